@@ -1,0 +1,47 @@
+#!/usr/bin/env bash
+# Installs every Debian 12 package oxbow needs to build, test, benchmark and run.
+# Used by the README's commands, .ci/run (through scripts/test.sh) and docker/Dockerfile.
+# Idempotent: does nothing (and needs no network) when everything is already installed.
+#   scripts/install-deps.sh            build + test + benchmark dependencies
+#   scripts/install-deps.sh --runtime  only what the `oxbow` binary needs at run time
+set -euo pipefail
+
+build_packages=(
+  build-essential cmake ninja-build pkg-config git
+  libopencv-dev          # decode/resize/draw; cv::SIFT only as a reference peer in tests and benchmarks
+  libeigen3-dev          # least squares in verification, exact k-means path
+  libflann-dev           # randomised kd-forests (matching, approximate k-means)
+  libsqlite3-dev         # the index catalogue
+  nlohmann-json3-dev     # JSON in the CLI and the HTTP API
+  libcli11-dev           # the oxbow CLI
+  libcpp-httplib-dev     # the HTTP server
+  libgtest-dev libgmock-dev libbenchmark-dev
+  opencv-doc             # sample photos (graf, box, ...) used as test and demo data
+  libvlfeat-dev          # VLFeat SIFT: benchmark peer only
+  libfaiss-dev           # faiss: benchmark peer only
+  curl python3           # demo and evaluation scripts
+)
+runtime_packages=(
+  libopencv-core406 libopencv-imgproc406 libopencv-imgcodecs406 libopencv-features2d406 libopencv-calib3d406
+  libopencv-flann406 libflann1.9 libsqlite3-0 libcpp-httplib0.11 curl ca-certificates
+)
+
+packages=("${build_packages[@]}")
+if [[ "${1:-}" == "--runtime" ]]; then packages=("${runtime_packages[@]}"); fi
+
+missing=()
+for p in "${packages[@]}"; do
+  if ! dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed"; then
+    missing+=("$p")
+  fi
+done
+if [[ ${#missing[@]} -eq 0 ]]; then
+  echo "install-deps: all ${#packages[@]} packages present" >&2
+  exit 0
+fi
+
+sudo_cmd=()
+if [[ $(id -u) -ne 0 ]]; then sudo_cmd=(sudo); fi
+echo "install-deps: installing ${missing[*]}" >&2
+"${sudo_cmd[@]}" apt-get update -qq
+DEBIAN_FRONTEND=noninteractive "${sudo_cmd[@]}" apt-get install -y -qq --no-install-recommends "${missing[@]}"

@@ -1,0 +1,60 @@
+// Entry point of the `oxbow` binary: global flags, then the registered subcommands (see cli.h).
+#include <algorithm>
+#include <cstdio>
+#include <exception>
+
+#include "server/cli.h"
+#include "sift/log.h"
+
+namespace oxbow::cli {
+
+namespace {
+std::vector<CommandSpec>& Registry() {
+  static std::vector<CommandSpec> commands;
+  return commands;
+}
+}  // namespace
+
+bool RegisterCommand(CommandSpec spec) {
+  Registry().push_back(std::move(spec));
+  return true;
+}
+
+const std::vector<CommandSpec>& RegisteredCommands() { return Registry(); }
+
+}  // namespace oxbow::cli
+
+int main(int argc, char** argv) {
+  using oxbow::cli::CommandError;
+  CLI::App app{
+      "oxbow: instance-level image retrieval (SIFT, visual words, TF-IDF, spatial verification).\n"
+      "Run 'oxbow <command> --help' for the options of a command."};
+  app.require_subcommand(1);
+  app.set_version_flag("--version", "oxbow 0.1.0");
+  std::string log_level = "info";
+  app.add_option("--log-level", log_level, "stderr log level: debug, info, warning, error, off")
+      ->capture_default_str();
+  app.add_flag_callback("-q,--quiet", [&] { log_level = "warning"; }, "only warnings and errors on stderr");
+  app.parse_complete_callback([&] {
+    oxbow::log::Level level;
+    if (!oxbow::log::ParseLevel(log_level, &level)) throw CLI::ValidationError("--log-level", "unknown level '" + log_level + "'");
+    oxbow::log::SetLevel(level);
+  });
+
+  auto commands = oxbow::cli::RegisteredCommands();
+  std::sort(commands.begin(), commands.end(), [](const auto& a, const auto& b) { return a.order < b.order; });
+  for (const auto& command : commands) command.set_up(app);
+
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    return app.exit(e);
+  } catch (const CommandError& e) {
+    std::fprintf(stderr, "oxbow: error: %s\n", e.what());
+    return e.exit_code();
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "oxbow: internal error: %s\n", e.what());
+    return 1;
+  }
+  return 0;
+}
