@@ -1,0 +1,94 @@
+// Image decoding into the float grey images the SIFT extractor works on.
+//
+// DecodeImage accepts JPEG, PNG, PPM/PGM (binary P5/P6), WebP, TIFF and BMP. Before any pixel is
+// allocated it reads the image dimensions from the file header itself (not from OpenCV, which would
+// decode first) and refuses images whose declared width*height exceeds DecodeOptions::max_pixels, so a
+// small file declaring a huge image (a "decompression bomb") costs nothing. Truncated files are refused:
+// JPEG without its EOI marker, PNG without its IEND chunk, PNM shorter than width*height*channels bytes.
+// The EXIF orientation tag of JPEG files is honoured (the image is rotated/flipped upright), and the
+// result can be downscaled (area averaging) so that its longest side is at most max_image_side_px.
+//
+// Thread safety: all functions are reentrant (no shared state).
+#pragma once
+
+#include <cstdint>
+#include <optional>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "sift/error.h"
+
+namespace oxbow::sift {
+
+// A single-channel image of floats, row-major, values in [0, 1] (0 black, 1 white).
+struct GrayImage {
+  int width = 0;   // pixels
+  int height = 0;  // pixels
+  std::vector<float> pixels;  // width * height values; pixel (x, y) is pixels[y * width + x]
+
+  bool empty() const { return width <= 0 || height <= 0; }
+  float at(int x, int y) const { return pixels[static_cast<size_t>(y) * static_cast<size_t>(width) + static_cast<size_t>(x)]; }
+};
+
+struct DecodeOptions {
+  // Largest accepted declared width * height of the encoded image (before any downscaling), pixels.
+  // Checked from the file header before pixels are allocated; over it -> kImageTooLarge. Must be >= 1.
+  uint64_t max_pixels = 100'000'000;
+  // Largest accepted encoded file size, bytes; over it -> kImageTooLarge. Must be >= 1.
+  uint64_t max_bytes = 256ull << 20;
+  // When set, the decoded image is downscaled with area averaging (cv::INTER_AREA) so that its longest
+  // side is at most this many pixels; never upscaled. Must be >= 16 when set.
+  std::optional<int> max_image_side_px;
+  // Rotate/flip JPEG images as their EXIF Orientation tag says (what a photo viewer shows). When false
+  // the pixels are returned as stored.
+  bool apply_exif_orientation = true;
+
+  // Error message for an invalid setting, or nullopt.
+  [[nodiscard]] std::optional<std::string> Check() const;
+};
+
+// The container formats DecodeImage recognises from the first bytes of a file.
+enum class ImageFormat { kUnknown, kJpeg, kPng, kPnm, kWebp, kTiff, kBmp };
+
+const char* ImageFormatName(ImageFormat format);  // "jpeg", "png", ...
+
+// What a file header declares, read without decoding pixels.
+struct ImageHeaderInfo {
+  ImageFormat format = ImageFormat::kUnknown;
+  uint64_t width = 0;   // pixels, as declared (before EXIF orientation)
+  uint64_t height = 0;  // pixels
+};
+
+// Reads the format and declared dimensions from the header bytes. kInvalidImage for an empty, unknown or
+// damaged header. Cost: O(header size) (JPEG: walks the marker segments up to the first SOFn).
+[[nodiscard]] Result<ImageHeaderInfo> ReadImageHeader(std::span<const uint8_t> bytes);
+
+struct DecodedImage {
+  GrayImage gray;           // the decoded (oriented, possibly downscaled) grey image
+  int original_width = 0;   // pixels of the full-resolution image after EXIF orientation
+  int original_height = 0;
+  // Multiply coordinates in `gray` by this to get coordinates in the original (oriented) image:
+  // x_orig = x_gray * scale_to_original (>= 1; exactly 1 when not downscaled). Pixel centres are
+  // mapped as in cv::resize: x_orig = (x_gray + 0.5) * s - 0.5 per axis; with one uniform s this equals
+  // x_gray * s + (s - 1) / 2 — see GrayToOriginal().
+  double scale_to_original = 1.0;
+};
+
+// Maps a pixel coordinate of DecodedImage::gray into original-image coordinates (pixel-centre aware).
+inline double GrayToOriginal(double coordinate, double scale_to_original) {
+  return (coordinate + 0.5) * scale_to_original - 0.5;
+}
+
+// Decodes an encoded image into grey. Errors: kInvalidArgument for bad options; kInvalidImage for empty,
+// truncated, corrupt or unrecognised bytes; kImageTooLarge when bytes.size() > max_bytes or the declared
+// width*height > max_pixels; kUnsupportedFormat for a recognised format OpenCV cannot decode here.
+[[nodiscard]] Result<DecodedImage> DecodeImage(std::span<const uint8_t> bytes, const DecodeOptions& options = {});
+
+// Reads the file (kNotFound / kIoError) and decodes it as DecodeImage does; messages name the path.
+[[nodiscard]] Result<DecodedImage> ReadImage(const std::string& path, const DecodeOptions& options = {});
+
+// Converts an 8-bit grey image (row-major, `stride` bytes per row) to [0,1] floats.
+GrayImage GrayFromBytes(const uint8_t* data, int width, int height, size_t stride);
+
+}  // namespace oxbow::sift

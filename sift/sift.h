@@ -1,0 +1,170 @@
+// SIFT: the Scale-Invariant Feature Transform (Lowe 2004), oxbow's own implementation.
+//
+// ==== Overview ====================================================================================
+//
+// SIFT finds blob-like structures that can be re-detected in another photo of the same object taken at
+// another scale, rotation and (moderately) viewpoint, and describes the image patch around each with a
+// 128-dimensional histogram of gradient orientations. References:
+//   [L04]  D. G. Lowe, "Distinctive Image Features from Scale-Invariant Keypoints", IJCV 60(2), 2004.
+//   [AZ12] R. Arandjelovic, A. Zisserman, "Three things everyone should know to improve object
+//          retrieval", CVPR 2012 (RootSIFT).
+//   [M05]  K. Mikolajczyk et al., "A Comparison of Affine Region Detectors", IJCV 65, 2005 (the
+//          repeatability / matching-score protocol the tests use).
+// The parameters and conventions follow OpenCV's cv::SIFT (which follows [L04]) so that keypoints of
+// the two agree; see sift_test.cc for the measured agreement.
+//
+// 1. Input. A grey image I(x, y) in [0, 1] (DecodeImage). The camera is assumed to have blurred it
+//    with a Gaussian of sigma_n = assumed_blur (0.5 px).
+//
+// 2. Gaussian scale space [L04 sec. 3]. L(x, y, s) = G(s) * I. With upsample_first_octave the image is
+//    first enlarged 2x (bilinear), so octave -1 works at half-pixel resolution and finds the small
+//    blobs a 1x start would miss (sigma_n becomes 2 * 0.5). The base image of the first octave is blurred
+//    to sigma0 = `sigma` (1.6): by sqrt(sigma0^2 - (2 sigma_n)^2). Each octave o holds S + 3 images
+//    (S = `intervals` = 3) at sigma_i = sigma0 * k^i, k = 2^(1/S), i = 0..S+2, each obtained from the
+//    previous one by an incremental blur sqrt(sigma_i^2 - sigma_{i-1}^2). The next octave starts from
+//    image i = S (sigma = 2 sigma0) subsampled by 2. Octaves are added while the smaller image side is
+//    at least 2 * (border + 1) pixels; the count is round(log2(min side)) - 2 (+1 with upsampling).
+//    Gaussian kernels are truncated at `kernel_radius_sigmas` (4) sigma, as OpenCV does for floats.
+//
+// 3. Difference of Gaussians [L04 sec. 3]: D_i = L_{i+1} - L_i, i = 0..S+1, approximates
+//    (k - 1) sigma^2 * Laplacian, the scale-normalised blob detector.
+//
+// 4. Extrema [L04 sec. 3.1]. A sample of D_1..D_S is a candidate when it is strictly larger (or
+//    smaller) than all 26 neighbours in space and scale, and |D| > 0.5 * contrast_threshold / S.
+//
+// 5. Refinement [L04 sec. 4]. Fit a 3D quadratic to D around the sample (finite differences), solve for
+//    the offset (dx, dy, ds) = -H^-1 grad D. When a component exceeds 0.5 move to the neighbouring
+//    sample and repeat, at most 5 times; give up when it does not converge or leaves the image. Reject
+//    when |D(offset)| * S < contrast_threshold (low contrast), and when the 2x2 spatial Hessian has
+//    tr^2 / det >= (r + 1)^2 / r with r = edge_threshold (10): an edge, poorly localised along it.
+//    The keypoint scale is sigma0 * 2^((s + ds) / S) * 2^o, its position (x + dx) * 2^o.
+//
+// 6. Orientation [L04 sec. 5]. In a window of radius 3 * 1.5 * sigma around the keypoint (at the level
+//    nearest its scale), accumulate gradient magnitudes weighted by a Gaussian of 1.5 * sigma into 36
+//    bins of 10 degrees, smooth the histogram ([1 4 6 4 1] / 16), and take every local peak >= 80% of
+//    the highest; interpolate each by a parabola through it and its neighbours. Each such peak gives a
+//    keypoint (so a location can have several orientations).
+//
+// 7. Descriptor [L04 sec. 6]. Rotate a window of 4 x 4 cells, each 3 sigma wide, to the keypoint
+//    orientation; add each sample's gradient magnitude, weighted by a Gaussian of half the window
+//    width, into 8 orientation bins of its cell with trilinear interpolation (x, y, angle). Normalise to
+//    unit L2 norm, clip at 0.2 (reduces the effect of non-linear illumination changes), renormalise.
+//    RootSIFT [AZ12]: L1-normalise, then take the element-wise square root, so that the Euclidean
+//    distance between RootSIFTs is the Hellinger kernel between the SIFT histograms.
+//
+// 8. Output. Coordinates and scales are in input-image pixels (the octave -1 / downscaling factors are
+//    undone); the strongest max_features by |response| are kept when a limit is set.
+//
+// ==== Usage =========================================================================================
+//
+//   sift::SiftOptions options;                         // defaults = OpenCV's / Lowe's
+//   options.descriptor = sift::DescriptorKind::kRootSift;
+//   auto extractor = sift::SiftExtractor::Create(options);       // Result<SiftExtractor>
+//   if (!extractor) return extractor.error();
+//   auto features = extractor->ExtractFromFile("photo.jpg");      // Result<FeatureSet>
+//   // or: sift::FeatureSet f = extractor->Extract(gray_image);
+//
+// Performance: the separable Gaussian blurs, the DoG and the extrema pre-check are vectorised (AVX2+FMA
+// when compiled with it, with a scalar path computing the same formula); work is split over rows and
+// keypoints with per-item outputs, so the result is bit-identical for any num_threads.
+#pragma once
+
+#include <cstdint>
+#include <optional>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "sift/error.h"
+#include "sift/image.h"
+#include "sift/types.h"
+
+namespace oxbow::sift {
+
+struct SiftOptions {
+  // ---- Behaviour: these change the output and are part of Describe()/Fingerprint(). ----
+
+  // Enlarge the input 2x before building the first octave (octave -1), as Lowe and OpenCV do; finds
+  // ~3-4x more (small) keypoints at ~4x the pyramid cost. [L04 sec. 3.3]
+  bool upsample_first_octave = true;
+  // Blur of the base image of every octave, in that octave's pixels (sigma0 [L04 sec. 3.3]). (0.5, 10].
+  double sigma = 1.6;
+  // Blur assumed already present in the input image (camera / anti-aliasing), pixels. [0, sigma).
+  double assumed_blur = 0.5;
+  // Scales sampled per octave (S [L04 sec. 3.2]); each octave has S+3 Gaussians and S+2 DoGs. [1, 8].
+  int intervals = 3;
+  // Minimum |DoG| contrast at the refined extremum, before division by `intervals` (OpenCV's
+  // contrastThreshold; the effective threshold is contrast_threshold / intervals, for image values in
+  // [0, 1]). [L04 sec. 4] uses 0.03 with S = 3 in different units. [0, 1].
+  double contrast_threshold = 0.04;
+  // r in the edge test tr(H)^2 / det(H) < (r+1)^2 / r on the 2x2 spatial Hessian [L04 sec. 4.1]. > 1.
+  double edge_threshold = 10.0;
+  // Keep only the this many keypoints with the largest |response| (ties broken by position, so the
+  // result is deterministic). Unset: keep all. >= 1 when set.
+  std::optional<int> max_features;
+  // Descriptor form written into FeatureSet::descriptors.
+  DescriptorKind descriptor = DescriptorKind::kSift;
+  // A peak of the orientation histogram >= this fraction of the highest gives its own keypoint
+  // [L04 sec. 5]. (0, 1].
+  double orientation_peak_ratio = 0.8;
+  // Gaussian kernels are truncated at this many sigmas (radius = ceil(k * sigma)). OpenCV uses 4 for
+  // float images; 3 is ~25% faster with slightly different responses. [2.5, 6].
+  double kernel_radius_sigmas = 4.0;
+  // Upper bound on octaves (counting octave -1 when upsampling); unset = until the image is too small.
+  std::optional<int> max_octaves;
+
+  // ---- Performance: does not change the output. ----
+
+  // Worker threads; 0 = all hardware threads. The output is identical for every value. [0, 256].
+  int num_threads = 0;
+
+  // Error message for an invalid setting, or nullopt.
+  [[nodiscard]] std::optional<std::string> Check() const;
+  // Canonical "key=value;..." of every setting that changes the output (not num_threads), prefixed by
+  // the implementation version, e.g. "oxbow-sift/1;upsample=1;sigma=1.6;...".
+  std::string Describe() const;
+  // FNV-1a 64-bit hash of Describe(); stable across runs, machines and builds. vocab/ and index/ store
+  // it to refuse mixing features from different extractor settings.
+  uint64_t Fingerprint() const;
+};
+
+// Extracts SIFT keypoints and descriptors. Immutable after Create; Extract* are thread-safe (may be
+// called concurrently from several threads; each call uses its own scratch memory).
+//
+// Cost: O(W * H) time and memory for the pyramid (with upsampling ~ 4 * W * H floats for octave -1,
+// ~ 12 * W * H floats in total at peak), plus O(keypoints) for orientations and descriptors.
+class SiftExtractor {
+ public:
+  // kInvalidArgument when options.Check() fails.
+  [[nodiscard]] static Result<SiftExtractor> Create(const SiftOptions& options);
+
+  // Keypoints (in `image` pixel coordinates) and descriptors (options().descriptor form). Deterministic
+  // and identical for any num_threads. Images too small for one octave (< 8 pixels on a side) give
+  // an empty set; an empty image gives an empty set.
+  FeatureSet Extract(const GrayImage& image) const;
+
+  // Decodes then extracts; keypoint coordinates and scales are mapped back to the ORIGINAL image (before
+  // DecodeOptions::max_image_side_px downscaling, after EXIF orientation), and image_width/height are
+  // the original size. Errors as DecodeImage.
+  [[nodiscard]] Result<FeatureSet> ExtractFromBytes(std::span<const uint8_t> bytes,
+                                                    const DecodeOptions& decode = {}) const;
+  [[nodiscard]] Result<FeatureSet> ExtractFromFile(const std::string& path, const DecodeOptions& decode = {}) const;
+
+  const SiftOptions& options() const { return options_; }
+
+ private:
+  explicit SiftExtractor(const SiftOptions& options) : options_(options) {}
+  SiftOptions options_;
+};
+
+// Converts one SIFT descriptor (L2-normalised, non-negative) in place to RootSIFT: divide by its L1
+// norm, take the square root of each element. The result has unit L2 norm. An all-zero descriptor stays
+// zero. [AZ12]
+void ToRootSift(std::span<float> descriptor);
+
+// Converts every descriptor of `features` to bytes: out[i] = min(255, round(512 * d[i])), the scaling
+// OpenCV and COLMAP use (SIFT elements are <= ~0.45 after clipping and renormalisation, RootSIFT
+// elements likewise small, so saturation is rare). `out` is resized to size() * kDescriptorDim.
+void DescriptorsToUint8(const FeatureSet& features, std::vector<uint8_t>* out);
+
+}  // namespace oxbow::sift
