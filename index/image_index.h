@@ -1,0 +1,242 @@
+// ImageIndex: the retrieval index facade. Images go in as FeatureSets (keypoints + descriptors, see
+// sift/types.h; extraction happens in the caller), a query FeatureSet comes back as a ranked list of
+// indexed images with the region they matched.
+//
+// ==== Method ========================================================================================
+//
+// 1. Visual words (Sivic & Zisserman 2003, "Video Google"). Every descriptor is quantised to its nearest
+//    word of the index's vocab::Vocabulary. An image becomes a bag of words: tf_w(d) = how often word w
+//    occurs in image d.
+// 2. TF-IDF with cosine similarity (Sivic & Zisserman 2003; Philbin et al. 2007). With N live images and
+//    n_w of them containing w, idf_w = log(N / n_w). An image's vector has components
+//    v_w(d) = t(tf_w(d)) * idf_w, where t(x) = x, or sqrt(x) with IndexOptions::sqrt_tf (burstiness
+//    down-weighting; Jegou et al. 2009 "On the burstiness of visual elements"). The score of image d for
+//    query q is the cosine  s(q, d) = <v(q), v(d)> / (|v(q)| |v(d)|), in [0, 1]; an image whose vector
+//    is zero (every word in every image, e.g. N = 1) scores 0.
+//    Scores are exact after any sequence of Add/Remove: idf and every norm are those of an index built
+//    from scratch on the live images (|v(d)|^2 = L^2 A_d - 2 L B_d + C_d with L = log N,
+//    A_d = sum t^2, B_d = sum t^2 log n_w, C_d = sum t^2 (log n_w)^2; an add/remove updates B and C of
+//    the images sharing a word whose n_w changed).
+// 3. Inverted file: per visual word, the postings (image, tf) sorted by image, delta + varint coded,
+//    kept in immutable segments (a log-structured merge: each add makes a small segment, segments of
+//    similar size are merged, removed images are dropped at merge time). Scoring accumulates into a
+//    dense float array over images (one pass over the postings of the query's words).
+// 4. Spatial re-ranking (Philbin et al. 2007): the top `rerank_depth` images by tf-idf are matched to the
+//    query through shared visual words (one-to-one; sift::EnforceOneToOne) and verified with Lowe's
+//    Hough/affine verifier (sift::VerifyHoughAffine). Verified images come first, by inlier count, the
+//    tf-idf score breaking ties; unverified ones keep their tf-idf order after them.
+//    Geometry is stored per indexed feature in 9 bytes: word (24 bits), x and y quantised to 1/65535 of
+//    the image size (16 bits each), log2 scale in 1/16 octave steps (8 bits), orientation in 1/256 turns
+//    (8 bits).
+// 5. Average query expansion (Chum et al. 2007, "Total recall"), optional: the query's tf-idf vector
+//    and those of the first `qe_images` verified results (each restricted to the features inside the
+//    region it matched, all L2-normalised) are averaged and the index is queried again; the verified
+//    results stay first, the rest of the list follows the expanded query's scores.
+//
+// ==== Storage and durability ========================================================================
+//
+// An index is a folder:
+//   catalogue.sqlite   SQLite (WAL, synchronous=FULL): table `meta` (schema version, vocabulary
+//                      fingerprint, extractor settings) and table `images` (internal number, id, source
+//                      path, width, height, feature count, metadata JSON, added time, and the image's
+//                      words + geometry as a checksummed BLOB). Add/Remove commit one transaction before
+//                      they return, so an acknowledged change survives a crash or kill -9 at any moment
+//                      and a half-done one is rolled back by SQLite.
+//   vocabulary.oxvoc   a copy of the vocabulary (vocab::Vocabulary file format, CRC-checked); its
+//                      fingerprint must equal the one in `meta`.
+// Open rebuilds the in-memory inverted file from the BLOBs (one pass, O(total features)).
+// Open refuses: a folder without a catalogue, an unknown schema version, a vocabulary copy whose
+// fingerprint differs from the catalogue's, a damaged BLOB (checksum) or a damaged SQLite file.
+//
+// ==== Thread safety =================================================================================
+//
+// All const members (Query, QuerySimilar, Get, List, Stats, vocabulary, extractor_settings) may run
+// concurrently with each other and with Add/Remove, from any number of threads, and never wait for a
+// writer: each call takes the current immutable Snapshot (std::shared_ptr<const Snapshot>, swapped
+// under a mutex held only for the pointer copy) and works on it. Add/Remove serialise on a writer mutex;
+// each writes SQLite, builds the next snapshot (sharing every unchanged part with the previous one)
+// and publishes it. A query sees an image either fully added or not at all.
+//
+// Mutexes (image_index.cc):
+//   writer_mutex_    guards the SQLite connection used for writes and the building of the next snapshot
+//                    (one writer at a time); held for the whole Add/Remove.
+//   snapshot_mutex_  guards only the snapshot_ pointer (load / store of the shared_ptr).
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "sift/error.h"
+#include "sift/types.h"
+#include "sift/verify.h"
+#include "vocab/vocabulary.h"
+
+namespace oxbow::index {
+
+inline constexpr int kSchemaVersion = 1;  // version of catalogue.sqlite's schema and of the feature BLOBs
+
+// Options fixed for the life of an open index (scoring behaviour and performance).
+struct IndexOptions {
+  // --- Behaviour (change scores)
+  // Burstiness down-weighting: use sqrt(tf) instead of tf in both query and image vectors (Jegou et al.
+  // 2009). Measured on Paris: see README (index section).
+  bool sqrt_tf = true;
+  // Stop list: query words contained in more than this fraction of the live images are ignored when
+  // scoring (their idf is below log(1 / fraction)). Image norms still count every word. (0, 1];
+  // 1 keeps every word (except those in every image, whose idf is 0 anyway).
+  double max_document_frequency = 1.0;
+  // --- Performance
+  // Merge policy of the segment log: at most this many segments of about the same size before they are
+  // merged into one. [2, 64].
+  int merge_factor = 8;
+  // Threads used by Open to rebuild the index and by Query for re-ranking; 0 = all hardware threads.
+  // [0, 256]. Results do not depend on it.
+  int num_threads = 0;
+  // Search parameters of the vocabulary quantiser (Add and Query).
+  vocab::QuantizerOptions quantizer;
+
+  std::optional<std::string> Check() const;  // message for an invalid field, nullopt when valid
+};
+
+// Per-query options. CLI flags and HTTP parameters map 1:1 onto these fields.
+struct QueryOptions {
+  // Number of results returned. [1, 10000].
+  int top_k = 20;
+  // Spatial re-ranking depth R: the top R tf-idf candidates are verified; 0 disables re-ranking.
+  // [0, 10000]. Default chosen by measurement on Paris (see README).
+  int rerank_depth = 200;
+  // Query region x1,y1,x2,y2 in query-image pixels (x1 < x2, y1 < y2): only features whose keypoint lies
+  // inside (x1 <= x <= x2, y1 <= y <= y2) are used, as in the Oxford/Paris queries. Unset: the whole image.
+  std::optional<std::array<float, 4>> region;
+  // Average query expansion (Chum et al. 2007). Needs rerank_depth > 0.
+  bool query_expansion = false;
+  // Verified results averaged into the expanded query. [1, 100].
+  int qe_images = 5;
+  // A shared word contributes all its query x image feature pairs as tentative matches when both sides
+  // have at most this many features with that word; burstier words are skipped. [1, 100].
+  int max_pairs_per_word = 4;
+  // Verifier settings (sift/verify.h); min_inliers decides what counts as verified.
+  sift::HoughVerifyOptions verify;
+  // When non-empty, must equal the index's extractor settings (refuses features from another extractor).
+  std::string extractor_settings;
+
+  std::optional<std::string> Check() const;
+};
+
+// What the caller knows about an image besides its features.
+struct ImageInfo {
+  std::string source_path;     // where it came from (informational), may be empty
+  std::string metadata_json;   // user metadata, a JSON document (validated as JSON by api/, stored as is)
+  // When non-empty, must equal the index's extractor settings (sift::SiftOptions::Describe()).
+  std::string extractor_settings;
+};
+
+// One indexed image, as stored in the catalogue.
+struct ImageRecord {
+  std::string id;              // external key, unique, 1..256 bytes, no control characters
+  std::string source_path;
+  int width = 0;               // pixels
+  int height = 0;
+  uint32_t num_features = 0;   // indexed features (keypoints)
+  std::string metadata_json;
+  int64_t added_unix_ms = 0;   // wall-clock time of the Add, milliseconds since 1970 UTC
+};
+
+struct QueryResult {
+  std::string id;
+  double score = 0;            // tf-idf cosine in [0, 1] (of the expanded query for QE-only results)
+  bool verified = false;       // passed spatial verification
+  int inliers = 0;             // inlier correspondences (0 when not re-ranked)
+  sift::Affine2D db_from_query;  // query-image pixels -> db-image pixels (identity when not verified)
+  std::array<float, 4> db_region = {0, 0, 0, 0};  // x1,y1,x2,y2 in the db image (zeros when not verified)
+  ImageRecord record;          // catalogue entry (id, size, metadata, ...)
+};
+
+// Wall time of each stage of a query, milliseconds.
+struct QueryTimings {
+  double quantize_ms = 0;      // descriptors -> words
+  double score_ms = 0;         // tf-idf over the inverted file (+ top-R selection)
+  double verify_ms = 0;        // spatial re-ranking
+  double qe_ms = 0;            // query expansion (second scoring)
+  double total_ms = 0;
+};
+
+struct QueryResponse {
+  std::vector<QueryResult> results;  // best first, at most top_k
+  uint32_t query_features = 0;       // features used (inside the region)
+  uint64_t candidates = 0;           // images with a non-zero tf-idf score
+  QueryTimings timings;
+};
+
+struct IndexStats {
+  uint64_t num_images = 0;           // live images
+  uint64_t num_features = 0;         // indexed features of the live images
+  uint64_t postings_bytes = 0;       // inverted file (postings + per-word offsets), bytes in memory
+  uint64_t geometry_bytes = 0;       // per-feature words + geometry, bytes in memory
+  uint64_t other_bytes = 0;          // per-image tables (norms, records, id map), bytes in memory, approx.
+  double bytes_per_feature = 0;      // (postings + geometry + other) / num_features
+  uint64_t num_segments = 0;         // inverted-file segments
+  uint64_t vocabulary_size = 0;
+  uint64_t vocabulary_fingerprint = 0;
+};
+
+class ImageIndex {
+ public:
+  struct Snapshot;  // implementation detail (image_index.cc)
+
+  // Creates a new, empty index in `dir` (created if missing; must not already hold an index).
+  // `extractor_settings` (sift::SiftOptions::Describe()) must equal vocabulary.extractor_settings()
+  // when the latter is non-empty. Errors: kAlreadyExists, kIncompatible, kIoError, kInvalidArgument.
+  [[nodiscard]] static Result<std::unique_ptr<ImageIndex>> Create(const std::string& dir,
+                                                                  const vocab::Vocabulary& vocabulary,
+                                                                  std::string extractor_settings,
+                                                                  const IndexOptions& options = {});
+  // Opens an existing index (see "Storage" above for what is refused). O(total features).
+  [[nodiscard]] static Result<std::unique_ptr<ImageIndex>> Open(const std::string& dir,
+                                                                const IndexOptions& options = {});
+  // True when `dir` holds an index catalogue (cheap check, no validation).
+  static bool Exists(const std::string& dir);
+
+  ~ImageIndex();
+  ImageIndex(const ImageIndex&) = delete;
+  ImageIndex& operator=(const ImageIndex&) = delete;
+
+  // Quantises and adds one image, durably (committed before returning). `features.kind` must be the
+  // vocabulary's descriptor kind. Errors: kInvalidArgument (bad id, size mismatch, non-positive image
+  // size), kAlreadyExists (id taken), kIncompatible (descriptor kind / extractor settings), kIoError.
+  // Cost: quantisation + O(features + sum of n_w over the image's distinct words) + the amortised merge.
+  [[nodiscard]] Result<ImageRecord> Add(const std::string& id, const sift::FeatureSet& features,
+                                        const ImageInfo& info);
+  // Removes an image durably. kNotFound for an unknown id. Cost O(sum of n_w over its distinct words).
+  [[nodiscard]] Status Remove(const std::string& id);
+
+  [[nodiscard]] Result<ImageRecord> Get(const std::string& id) const;        // kNotFound if unknown
+  [[nodiscard]] bool Contains(const std::string& id) const;
+  // Live images ordered by id, [offset, offset + limit). O(N log N) per call.
+  [[nodiscard]] Result<std::vector<ImageRecord>> List(uint64_t offset, uint64_t limit) const;
+
+  // Ranks the indexed images for the query features (see "Method"). Errors: kInvalidArgument (options,
+  // sizes), kIncompatible (descriptor kind / extractor settings). A query with no usable feature returns
+  // an empty result list, not an error.
+  [[nodiscard]] Result<QueryResponse> Query(const sift::FeatureSet& query, const QueryOptions& options) const;
+  // Queries with an indexed image's own stored words and geometry (the image itself ranks first).
+  // kNotFound for an unknown id. `options.region` applies to that image's coordinates.
+  [[nodiscard]] Result<QueryResponse> QuerySimilar(const std::string& id, const QueryOptions& options) const;
+
+  IndexStats Stats() const;
+  const vocab::Vocabulary& vocabulary() const;
+  const std::string& extractor_settings() const;
+  const std::string& directory() const;
+
+  struct Impl;
+
+ private:
+  explicit ImageIndex(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace oxbow::index
