@@ -1,11 +1,269 @@
 #include "sift/image.h"
 
+#include <algorithm>
+#include <cctype>
+#include <cmath>
+#include <cstring>
+#include <string_view>
+
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "sift/binary_io.h"
+
 namespace oxbow::sift {
+namespace {
+
+// ---- Small readers over the header bytes (all bounds-checked by the callers). ----------------------
+
+uint32_t Be16(const uint8_t* p) { return (uint32_t{p[0]} << 8) | p[1]; }
+uint32_t Be32(const uint8_t* p) { return (uint32_t{p[0]} << 24) | (uint32_t{p[1]} << 16) | (uint32_t{p[2]} << 8) | p[3]; }
+uint32_t Le16(const uint8_t* p) { return (uint32_t{p[1]} << 8) | p[0]; }
+uint32_t Le24(const uint8_t* p) { return (uint32_t{p[2]} << 16) | (uint32_t{p[1]} << 8) | p[0]; }
+uint32_t Le32(const uint8_t* p) { return (uint32_t{p[3]} << 24) | (uint32_t{p[2]} << 16) | (uint32_t{p[1]} << 8) | p[0]; }
+
+bool StartsWith(std::span<const uint8_t> bytes, std::string_view prefix) {
+  return bytes.size() >= prefix.size() && std::memcmp(bytes.data(), prefix.data(), prefix.size()) == 0;
+}
+
+std::unexpected<Error> Invalid(std::string message) { return Fail(ErrorCode::kInvalidImage, std::move(message)); }
+
+ImageFormat SniffFormat(std::span<const uint8_t> b) {
+  if (b.size() >= 3 && b[0] == 0xFF && b[1] == 0xD8 && b[2] == 0xFF) return ImageFormat::kJpeg;
+  if (StartsWith(b, "\x89PNG\r\n\x1a\n")) return ImageFormat::kPng;
+  if (b.size() >= 2 && b[0] == 'P' && b[1] >= '1' && b[1] <= '6') return ImageFormat::kPnm;
+  if (b.size() >= 12 && StartsWith(b, "RIFF") && std::memcmp(b.data() + 8, "WEBP", 4) == 0) return ImageFormat::kWebp;
+  if (StartsWith(b, std::string_view("II*\0", 4)) || StartsWith(b, std::string_view("MM\0*", 4))) return ImageFormat::kTiff;
+  if (StartsWith(b, "BM")) return ImageFormat::kBmp;
+  return ImageFormat::kUnknown;
+}
+
+// JPEG: walk the marker segments from SOI up to the first start-of-frame, which holds the size.
+// Also reports where the scan data starts, for the truncation check.
+Result<ImageHeaderInfo> JpegHeader(std::span<const uint8_t> b, size_t* scan_start) {
+  size_t pos = 2;
+  while (true) {
+    while (pos < b.size() && b[pos] != 0xFF) ++pos;  // tolerate garbage between segments as libjpeg does
+    while (pos < b.size() && b[pos] == 0xFF) ++pos;  // fill bytes
+    if (pos >= b.size()) return Invalid("JPEG ends before its frame header (truncated or not a JPEG)");
+    const uint8_t marker = b[pos++];
+    if (marker == 0xD8 || (marker >= 0xD0 && marker <= 0xD7) || marker == 0x01) continue;  // no length
+    if (marker == 0xD9) return Invalid("JPEG has no frame header before its end marker");
+    if (pos + 2 > b.size()) return Invalid("JPEG segment header is truncated");
+    const uint32_t length = Be16(b.data() + pos);
+    if (length < 2 || pos + length > b.size()) return Invalid("JPEG segment runs past the end of the data (truncated)");
+    const bool is_sof = marker >= 0xC0 && marker <= 0xCF && marker != 0xC4 && marker != 0xC8 && marker != 0xCC;
+    if (is_sof) {
+      if (length < 8) return Invalid("JPEG frame header is too short");
+      ImageHeaderInfo info;
+      info.format = ImageFormat::kJpeg;
+      info.height = Be16(b.data() + pos + 3);
+      info.width = Be16(b.data() + pos + 5);
+      // The scan follows later; find SOS for the truncation check.
+      size_t p = pos + length;
+      *scan_start = b.size();
+      while (p + 4 <= b.size()) {
+        if (b[p] != 0xFF) {
+          ++p;
+          continue;
+        }
+        const uint8_t m = b[p + 1];
+        if (m == 0xFF) {
+          ++p;
+          continue;
+        }
+        if (m == 0xDA) {
+          *scan_start = p;
+          break;
+        }
+        if (m == 0xD8 || (m >= 0xD0 && m <= 0xD7) || m == 0x01) {
+          p += 2;
+          continue;
+        }
+        p += 2 + Be16(b.data() + p + 2);
+      }
+      return info;
+    }
+    pos += length;
+  }
+}
+
+Result<ImageHeaderInfo> PngHeader(std::span<const uint8_t> b) {
+  if (b.size() < 33) return Invalid("PNG is shorter than its signature and header chunk (truncated)");
+  if (Be32(b.data() + 8) != 13 || std::memcmp(b.data() + 12, "IHDR", 4) != 0)
+    return Invalid("PNG does not start with an IHDR chunk (corrupt)");
+  ImageHeaderInfo info;
+  info.format = ImageFormat::kPng;
+  info.width = Be32(b.data() + 16);
+  info.height = Be32(b.data() + 20);
+  const uint32_t crc = io::Crc32(b.subspan(12, 17));
+  if (crc != Be32(b.data() + 29)) return Invalid("PNG header chunk fails its CRC (corrupt)");
+  return info;
+}
+
+// PNM header: magic, then width, height (and maxval except for P1/P4), separated by whitespace and
+// '#' comments. `data_start` receives the offset of the pixel data.
+Result<ImageHeaderInfo> PnmHeader(std::span<const uint8_t> b, uint32_t* maxval, size_t* data_start) {
+  size_t pos = 2;
+  const int kind = b[1] - '0';
+  const int fields = (kind == 1 || kind == 4) ? 2 : 3;
+  uint64_t values[3] = {0, 0, 1};
+  for (int f = 0; f < fields; ++f) {
+    while (pos < b.size()) {
+      if (b[pos] == '#') {
+        while (pos < b.size() && b[pos] != '\n' && b[pos] != '\r') ++pos;
+      } else if (std::isspace(b[pos])) {
+        ++pos;
+      } else {
+        break;
+      }
+    }
+    if (pos >= b.size() || !std::isdigit(b[pos])) return Invalid("PNM header is truncated or malformed");
+    uint64_t v = 0;
+    while (pos < b.size() && std::isdigit(b[pos])) {
+      v = v * 10 + static_cast<uint64_t>(b[pos++] - '0');
+      if (v > (uint64_t{1} << 40)) return Invalid("PNM header declares an absurd size");
+    }
+    values[f] = v;
+  }
+  if (pos >= b.size() || !std::isspace(b[pos])) return Invalid("PNM header is truncated or malformed");
+  *data_start = pos + 1;
+  *maxval = static_cast<uint32_t>(std::min<uint64_t>(values[2], 0xFFFFFFFFu));
+  if (fields == 3 && (values[2] == 0 || values[2] > 65535)) return Invalid("PNM maxval must be in [1, 65535]");
+  ImageHeaderInfo info;
+  info.format = ImageFormat::kPnm;
+  info.width = values[0];
+  info.height = values[1];
+  return info;
+}
+
+Result<ImageHeaderInfo> WebpHeader(std::span<const uint8_t> b) {
+  if (b.size() < 30) return Invalid("WebP is shorter than its header (truncated)");
+  ImageHeaderInfo info;
+  info.format = ImageFormat::kWebp;
+  const uint8_t* chunk = b.data() + 12;
+  if (std::memcmp(chunk, "VP8X", 4) == 0) {
+    info.width = uint64_t{Le24(b.data() + 24)} + 1;
+    info.height = uint64_t{Le24(b.data() + 27)} + 1;
+  } else if (std::memcmp(chunk, "VP8L", 4) == 0) {
+    if (b[20] != 0x2F) return Invalid("WebP lossless header has a wrong signature (corrupt)");
+    const uint32_t bits = Le32(b.data() + 21);
+    info.width = (bits & 0x3FFF) + 1;
+    info.height = ((bits >> 14) & 0x3FFF) + 1;
+  } else if (std::memcmp(chunk, "VP8 ", 4) == 0) {
+    if (b[23] != 0x9D || b[24] != 0x01 || b[25] != 0x2A) return Invalid("WebP lossy header has a wrong start code (corrupt)");
+    info.width = Le16(b.data() + 26) & 0x3FFF;
+    info.height = Le16(b.data() + 28) & 0x3FFF;
+  } else {
+    return Invalid("WebP has an unknown first chunk (corrupt)");
+  }
+  return info;
+}
+
+Result<ImageHeaderInfo> TiffHeader(std::span<const uint8_t> b) {
+  const bool le = b[0] == 'I';
+  auto u16 = [&](size_t at) { return le ? Le16(b.data() + at) : Be16(b.data() + at); };
+  auto u32 = [&](size_t at) { return le ? Le32(b.data() + at) : Be32(b.data() + at); };
+  if (b.size() < 8) return Invalid("TIFF is shorter than its header (truncated)");
+  const uint64_t ifd = u32(4);
+  if (ifd + 2 > b.size()) return Invalid("TIFF directory offset points past the end (truncated)");
+  const uint32_t entries = u16(ifd);
+  if (ifd + 2 + uint64_t{entries} * 12 > b.size()) return Invalid("TIFF directory runs past the end (truncated)");
+  ImageHeaderInfo info;
+  info.format = ImageFormat::kTiff;
+  for (uint32_t e = 0; e < entries; ++e) {
+    const size_t at = ifd + 2 + e * 12;
+    const uint32_t tag = u16(at), type = u16(at + 2);
+    const uint64_t value = type == 3 ? u16(at + 8) : type == 4 ? u32(at + 8) : 0;
+    if (tag == 256) info.width = value;
+    if (tag == 257) info.height = value;
+  }
+  if (info.width == 0 || info.height == 0) return Invalid("TIFF directory has no image width/length (corrupt)");
+  return info;
+}
+
+Result<ImageHeaderInfo> BmpHeader(std::span<const uint8_t> b) {
+  if (b.size() < 26) return Invalid("BMP is shorter than its header (truncated)");
+  const uint32_t dib = Le32(b.data() + 14);
+  ImageHeaderInfo info;
+  info.format = ImageFormat::kBmp;
+  if (dib == 12) {
+    info.width = Le16(b.data() + 18);
+    info.height = Le16(b.data() + 20);
+  } else if (dib >= 40) {
+    info.width = static_cast<uint64_t>(std::abs(static_cast<int64_t>(static_cast<int32_t>(Le32(b.data() + 18)))));
+    info.height = static_cast<uint64_t>(std::abs(static_cast<int64_t>(static_cast<int32_t>(Le32(b.data() + 22)))));
+  } else {
+    return Invalid("BMP has an unknown header size (corrupt)");
+  }
+  return info;
+}
+
+// Checks that the encoded data is complete (cheap, format-specific; see image.h).
+Status CheckComplete(std::span<const uint8_t> b, const ImageHeaderInfo& info, size_t jpeg_scan_start, uint32_t pnm_maxval,
+                     size_t pnm_data_start) {
+  switch (info.format) {
+    case ImageFormat::kJpeg: {
+      if (jpeg_scan_start >= b.size()) return Invalid("JPEG has no scan data (truncated)");
+      // In entropy-coded data 0xFF is always stuffed (FF 00) or a restart marker, so FF D9 after the
+      // start of scan is the end-of-image marker; trailing bytes after it are allowed.
+      for (size_t i = b.size() - 1; i > jpeg_scan_start; --i)
+        if (b[i] == 0xD9 && b[i - 1] == 0xFF) return Ok();
+      return Invalid("JPEG has no end-of-image marker (truncated)");
+    }
+    case ImageFormat::kPng: {
+      // The IEND chunk: length 0, "IEND", its CRC; trailing bytes after it are allowed.
+      static constexpr uint8_t kIend[12] = {0, 0, 0, 0, 'I', 'E', 'N', 'D', 0xAE, 0x42, 0x60, 0x82};
+      if (b.size() < 12 || std::search(b.begin() + 33, b.end(), std::begin(kIend), std::end(kIend)) == b.end())
+        return Invalid("PNG has no IEND chunk (truncated)");
+      return Ok();
+    }
+    case ImageFormat::kPnm: {
+      const int kind = b[1] - '0';
+      if (kind < 4) return Ok();  // ASCII variants: the decoder reports missing samples itself
+      const uint64_t channels = kind == 6 ? 3 : 1;
+      const uint64_t bytes_per_sample = pnm_maxval > 255 ? 2 : 1;
+      const uint64_t need = kind == 4 ? (info.width + 7) / 8 * info.height
+                                      : info.width * info.height * channels * bytes_per_sample;
+      if (b.size() - pnm_data_start < need) return Invalid("PNM pixel data is shorter than its header declares (truncated)");
+      return Ok();
+    }
+    case ImageFormat::kWebp: {
+      const uint64_t riff = Le32(b.data() + 4);
+      if (b.size() < riff + 8) return Invalid("WebP is shorter than its RIFF header declares (truncated)");
+      return Ok();
+    }
+    default:
+      return Ok();
+  }
+}
+
+GrayImage ToGray(const cv::Mat& mat) {
+  GrayImage image;
+  image.width = mat.cols;
+  image.height = mat.rows;
+  image.pixels.resize(static_cast<size_t>(mat.cols) * static_cast<size_t>(mat.rows));
+  for (int y = 0; y < mat.rows; ++y) {
+    float* out = image.pixels.data() + static_cast<size_t>(y) * static_cast<size_t>(mat.cols);
+    if (mat.depth() == CV_8U) {
+      const uint8_t* in = mat.ptr<uint8_t>(y);
+      for (int x = 0; x < mat.cols; ++x) out[x] = in[x] * (1.0f / 255.0f);
+    } else {
+      const float* in = mat.ptr<float>(y);
+      for (int x = 0; x < mat.cols; ++x) out[x] = std::clamp(in[x], 0.0f, 1.0f);
+    }
+  }
+  return image;
+}
+
+}  // namespace
 
 std::optional<std::string> DecodeOptions::Check() const {
   if (max_pixels < 1) return "max_pixels must be >= 1";
   if (max_bytes < 1) return "max_bytes must be >= 1";
-  if (max_image_side_px && *max_image_side_px < 16) return "max_image_side_px must be >= 16 when set, got " + std::to_string(*max_image_side_px);
+  if (max_image_side_px && *max_image_side_px < 16)
+    return "max_image_side_px must be >= 16 when set, got " + std::to_string(*max_image_side_px);
   return std::nullopt;
 }
 
@@ -23,15 +281,101 @@ const char* ImageFormatName(ImageFormat format) {
 }
 
 Result<ImageHeaderInfo> ReadImageHeader(std::span<const uint8_t> bytes) {
-  return Fail(ErrorCode::kInternal, "ReadImageHeader is being implemented (issue 2)");
+  size_t scan_start = 0, data_start = 0;
+  uint32_t maxval = 0;
+  Result<ImageHeaderInfo> info = Invalid("");
+  switch (SniffFormat(bytes)) {
+    case ImageFormat::kJpeg: info = JpegHeader(bytes, &scan_start); break;
+    case ImageFormat::kPng: info = PngHeader(bytes); break;
+    case ImageFormat::kPnm: info = PnmHeader(bytes, &maxval, &data_start); break;
+    case ImageFormat::kWebp: info = WebpHeader(bytes); break;
+    case ImageFormat::kTiff: info = TiffHeader(bytes); break;
+    case ImageFormat::kBmp: info = BmpHeader(bytes); break;
+    case ImageFormat::kUnknown:
+      if (bytes.empty()) return Invalid("image data is empty");
+      return Invalid("not an image: the data starts with no known image signature (JPEG, PNG, PPM/PGM, WebP, TIFF, BMP)");
+  }
+  if (info && (info->width == 0 || info->height == 0)) return Invalid("image header declares a zero width or height");
+  return info;
 }
 
 Result<DecodedImage> DecodeImage(std::span<const uint8_t> bytes, const DecodeOptions& options) {
-  return Fail(ErrorCode::kInternal, "DecodeImage is being implemented (issue 2)");
+  if (auto message = options.Check()) return Fail(ErrorCode::kInvalidArgument, "invalid decode options: " + *message);
+  if (bytes.empty()) return Invalid("image data is empty");
+  if (bytes.size() > options.max_bytes)
+    return Fail(ErrorCode::kImageTooLarge, "image data is " + std::to_string(bytes.size()) + " bytes, over the limit of " +
+                                               std::to_string(options.max_bytes));
+  const ImageFormat format = SniffFormat(bytes);
+  size_t scan_start = 0, data_start = 0;
+  uint32_t maxval = 0;
+  Result<ImageHeaderInfo> info = Invalid("");
+  switch (format) {
+    case ImageFormat::kJpeg: info = JpegHeader(bytes, &scan_start); break;
+    case ImageFormat::kPnm: info = PnmHeader(bytes, &maxval, &data_start); break;
+    default: info = ReadImageHeader(bytes); break;
+  }
+  if (!info) return std::unexpected(info.error());
+  if (info->width == 0 || info->height == 0) return Invalid("image header declares a zero width or height");
+  const uint64_t declared = info->width * info->height;
+  if (info->width > (uint64_t{1} << 31) || info->height > (uint64_t{1} << 31) || declared > options.max_pixels)
+    return Fail(ErrorCode::kImageTooLarge, std::string(ImageFormatName(info->format)) + " header declares " +
+                                               std::to_string(info->width) + "x" + std::to_string(info->height) +
+                                               " pixels, over the limit of " + std::to_string(options.max_pixels));
+  if (auto complete = CheckComplete(bytes, *info, scan_start, maxval, data_start); !complete)
+    return std::unexpected(complete.error());
+
+  int flags = cv::IMREAD_GRAYSCALE;
+  if (!options.apply_exif_orientation) flags |= cv::IMREAD_IGNORE_ORIENTATION;
+  cv::Mat mat;
+  try {
+    const cv::Mat buffer(1, static_cast<int>(bytes.size()), CV_8U, const_cast<uint8_t*>(bytes.data()));
+    mat = cv::imdecode(buffer, flags);
+  } catch (const cv::Exception& e) {
+    return Invalid(std::string(ImageFormatName(info->format)) + " data could not be decoded: " + e.what());
+  }
+  if (mat.empty()) {
+    if (info->format == ImageFormat::kWebp || info->format == ImageFormat::kTiff) {
+      const cv::String ext = info->format == ImageFormat::kWebp ? ".webp" : ".tiff";
+      if (!cv::haveImageReader("x" + ext))
+        return Fail(ErrorCode::kUnsupportedFormat, std::string("this OpenCV build cannot decode ") + ImageFormatName(info->format));
+    }
+    return Invalid(std::string(ImageFormatName(info->format)) + " data could not be decoded (corrupt or truncated)");
+  }
+  if (static_cast<uint64_t>(mat.cols) * static_cast<uint64_t>(mat.rows) != declared)
+    return Invalid("decoded size differs from the size the header declares (corrupt)");
+  if (mat.depth() != CV_8U) mat.convertTo(mat, CV_32F, mat.depth() == CV_16U ? 1.0 / 65535.0 : 1.0);
+
+  DecodedImage out;
+  out.original_width = mat.cols;
+  out.original_height = mat.rows;
+  const int longest = std::max(mat.cols, mat.rows);
+  if (options.max_image_side_px && longest > *options.max_image_side_px) {
+    const double scale = static_cast<double>(longest) / *options.max_image_side_px;
+    const int w = std::max(1, static_cast<int>(std::lround(mat.cols / scale)));
+    const int h = std::max(1, static_cast<int>(std::lround(mat.rows / scale)));
+    cv::Mat small;
+    cv::resize(mat, small, cv::Size(w, h), 0, 0, cv::INTER_AREA);
+    mat = small;
+    out.scale_to_original = scale;
+  }
+  out.gray = ToGray(mat);
+  return out;
 }
 
 Result<DecodedImage> ReadImage(const std::string& path, const DecodeOptions& options) {
-  return Fail(ErrorCode::kInternal, "ReadImage is being implemented (issue 2)");
+  auto bytes = io::ReadWholeFile(path, options.max_bytes);
+  if (!bytes) {
+    Error error = bytes.error();
+    if (error.code == ErrorCode::kResourceExhausted) error.code = ErrorCode::kImageTooLarge;  // over max_bytes
+    return std::unexpected(error);
+  }
+  auto decoded = DecodeImage(*bytes, options);
+  if (!decoded) {
+    Error error = decoded.error();
+    error.message = "'" + path + "': " + error.message;
+    return std::unexpected(error);
+  }
+  return decoded;
 }
 
 GrayImage GrayFromBytes(const uint8_t* data, int width, int height, size_t stride) {
@@ -41,7 +385,8 @@ GrayImage GrayFromBytes(const uint8_t* data, int width, int height, size_t strid
   image.pixels.resize(static_cast<size_t>(width) * static_cast<size_t>(height));
   for (int y = 0; y < height; ++y)
     for (int x = 0; x < width; ++x)
-      image.pixels[static_cast<size_t>(y) * width + x] = data[y * stride + x] * (1.0f / 255.0f);
+      image.pixels[static_cast<size_t>(y) * static_cast<size_t>(width) + static_cast<size_t>(x)] =
+          data[static_cast<size_t>(y) * stride + static_cast<size_t>(x)] * (1.0f / 255.0f);
   return image;
 }
 

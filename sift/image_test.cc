@@ -1,0 +1,242 @@
+#include "sift/image.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+
+#include "sift/binary_io.h"
+
+namespace oxbow::sift {
+namespace {
+
+const std::string kOpencvData = "/usr/share/doc/opencv-doc/examples/data/";
+
+// A 64x48 test card: horizontal ramp plus a bright square in the top-left corner (so orientation
+// changes are visible).
+cv::Mat TestCard() {
+  cv::Mat m(48, 64, CV_8U);
+  for (int y = 0; y < m.rows; ++y)
+    for (int x = 0; x < m.cols; ++x) m.at<uint8_t>(y, x) = static_cast<uint8_t>(40 + 2 * x);
+  m(cv::Rect(2, 2, 10, 10)).setTo(250);
+  return m;
+}
+
+std::vector<uint8_t> Encode(const cv::Mat& m, const std::string& ext) {
+  std::vector<uint8_t> bytes;
+  EXPECT_TRUE(cv::imencode(ext, m, bytes)) << ext;
+  return bytes;
+}
+
+double MeanAbsDiff(const GrayImage& g, const cv::Mat& m) {
+  double sum = 0;
+  for (int y = 0; y < m.rows; ++y)
+    for (int x = 0; x < m.cols; ++x) sum += std::abs(g.at(x, y) - m.at<uint8_t>(y, x) / 255.0);
+  return sum / (m.rows * m.cols);
+}
+
+void PutBe32(std::vector<uint8_t>* v, uint32_t x) {
+  for (int s = 24; s >= 0; s -= 8) v->push_back(static_cast<uint8_t>(x >> s));
+}
+
+// A PNG whose IHDR declares width x height (valid CRC) followed by IEND: no pixel data at all.
+std::vector<uint8_t> PngHeaderOnly(uint32_t width, uint32_t height) {
+  std::vector<uint8_t> v = {0x89, 'P', 'N', 'G', '\r', '\n', 0x1a, '\n'};
+  PutBe32(&v, 13);
+  const size_t chunk = v.size();
+  for (char c : std::string("IHDR")) v.push_back(static_cast<uint8_t>(c));
+  PutBe32(&v, width);
+  PutBe32(&v, height);
+  for (int b : {8, 0, 0, 0, 0}) v.push_back(static_cast<uint8_t>(b));  // 8-bit grey
+  PutBe32(&v, io::Crc32(std::span<const uint8_t>(v).subspan(chunk, 17)));
+  for (int b : {0, 0, 0, 0, int{'I'}, int{'E'}, int{'N'}, int{'D'}, 0xAE, 0x42, 0x60, 0x82}) v.push_back(static_cast<uint8_t>(b));
+  return v;
+}
+
+// Inserts an EXIF APP1 segment with the given Orientation tag right after the JPEG SOI marker.
+std::vector<uint8_t> WithExifOrientation(const std::vector<uint8_t>& jpeg, uint16_t orientation) {
+  std::vector<uint8_t> app1 = {'E', 'x', 'i', 'f', 0, 0,                   // EXIF identifier
+                               'M', 'M', 0, 42, 0, 0, 0, 8,                // big-endian TIFF header, IFD0 at 8
+                               0, 1,                                       // one entry
+                               0x01, 0x12, 0, 3, 0, 0, 0, 1,               // Orientation, SHORT, count 1
+                               static_cast<uint8_t>(orientation >> 8), static_cast<uint8_t>(orientation), 0, 0,
+                               0, 0, 0, 0};                                // no next IFD
+  std::vector<uint8_t> out;
+  out.reserve(jpeg.size() + app1.size() + 4);
+  for (int b : {0xFF, 0xD8, 0xFF, 0xE1}) out.push_back(static_cast<uint8_t>(b));
+  const size_t length = app1.size() + 2;
+  out.push_back(static_cast<uint8_t>(length >> 8));
+  out.push_back(static_cast<uint8_t>(length));
+  out.insert(out.end(), app1.begin(), app1.end());
+  out.insert(out.end(), jpeg.begin() + 2, jpeg.end());
+  return out;
+}
+
+TEST(DecodeImage, DecodesEveryFormatIntoUnitRangeGrey) {
+  const cv::Mat card = TestCard();
+  for (const std::string ext : {".png", ".pgm", ".ppm", ".bmp", ".tiff", ".webp", ".jpg"}) {
+    if (!cv::haveImageWriter("x" + ext)) continue;
+    cv::Mat input = card;
+    if (ext == ".ppm") cv::merge(std::vector<cv::Mat>{card, card, card}, input);
+    auto decoded = DecodeImage(Encode(input, ext));
+    ASSERT_TRUE(decoded) << ext << ": " << decoded.error().ToString();
+    EXPECT_EQ(decoded->gray.width, 64) << ext;
+    EXPECT_EQ(decoded->gray.height, 48) << ext;
+    EXPECT_EQ(decoded->original_width, 64);
+    EXPECT_EQ(decoded->scale_to_original, 1.0);
+    const double tolerance = ext == ".jpg" || ext == ".webp" ? 0.02 : 0.003;
+    EXPECT_LT(MeanAbsDiff(decoded->gray, card), tolerance) << ext;
+    for (float v : decoded->gray.pixels) ASSERT_TRUE(v >= 0 && v <= 1) << ext;
+  }
+}
+
+TEST(DecodeImage, ReadsHeaderDimensionsWithoutDecoding) {
+  const cv::Mat card = TestCard();
+  for (const std::string ext : {".png", ".pgm", ".bmp", ".tiff", ".webp", ".jpg"}) {
+    if (!cv::haveImageWriter("x" + ext)) continue;
+    auto info = ReadImageHeader(Encode(card, ext));
+    ASSERT_TRUE(info) << ext << ": " << info.error().ToString();
+    EXPECT_EQ(info->width, 64u) << ext;
+    EXPECT_EQ(info->height, 48u) << ext;
+  }
+}
+
+TEST(DecodeImage, ReadsARealPhotoFile) {
+  auto decoded = ReadImage(kOpencvData + "graf1.png");
+  ASSERT_TRUE(decoded) << decoded.error().ToString();
+  EXPECT_EQ(decoded->gray.width, 800);
+  EXPECT_EQ(decoded->gray.height, 640);
+}
+
+TEST(DecodeImage, DownscalesToTheLongestSideLimit) {
+  DecodeOptions options;
+  options.max_image_side_px = 400;
+  auto decoded = ReadImage(kOpencvData + "graf1.png", options);
+  ASSERT_TRUE(decoded) << decoded.error().ToString();
+  EXPECT_EQ(decoded->gray.width, 400);
+  EXPECT_EQ(decoded->gray.height, 320);
+  EXPECT_EQ(decoded->original_width, 800);
+  EXPECT_EQ(decoded->original_height, 640);
+  EXPECT_DOUBLE_EQ(decoded->scale_to_original, 2.0);
+  EXPECT_DOUBLE_EQ(GrayToOriginal(0.0, 2.0), 0.5);  // the first small pixel covers big pixels 0 and 1
+  // Never upscales.
+  options.max_image_side_px = 5000;
+  decoded = ReadImage(kOpencvData + "graf1.png", options);
+  ASSERT_TRUE(decoded);
+  EXPECT_EQ(decoded->gray.width, 800);
+}
+
+TEST(DecodeImage, HonoursExifOrientation) {
+  const cv::Mat card = TestCard();  // 64 wide, 48 high, bright square top-left
+  const auto jpeg = WithExifOrientation(Encode(card, ".jpg"), 6);  // 6: display rotated 90 degrees clockwise
+  auto upright = DecodeImage(jpeg);
+  ASSERT_TRUE(upright) << upright.error().ToString();
+  EXPECT_EQ(upright->gray.width, 48);
+  EXPECT_EQ(upright->gray.height, 64);
+  EXPECT_EQ(upright->original_width, 48);
+  // Rotating clockwise moves the top-left square to the top-right.
+  EXPECT_GT(upright->gray.at(40, 6), 0.9f);
+  EXPECT_LT(upright->gray.at(6, 6), 0.8f);
+
+  DecodeOptions raw;
+  raw.apply_exif_orientation = false;
+  auto stored = DecodeImage(jpeg, raw);
+  ASSERT_TRUE(stored);
+  EXPECT_EQ(stored->gray.width, 64);
+  EXPECT_GT(stored->gray.at(6, 6), 0.9f);
+}
+
+TEST(DecodeImage, RefusesEmptyNonImageAndCorruptData) {
+  auto empty = DecodeImage(std::span<const uint8_t>());
+  ASSERT_FALSE(empty);
+  EXPECT_EQ(empty.error().code, ErrorCode::kInvalidImage);
+  EXPECT_NE(empty.error().message.find("empty"), std::string::npos);
+
+  const std::string text = "hello, this is a text file and not an image at all\n";
+  auto not_image = DecodeImage(std::span(reinterpret_cast<const uint8_t*>(text.data()), text.size()));
+  ASSERT_FALSE(not_image);
+  EXPECT_EQ(not_image.error().code, ErrorCode::kInvalidImage);
+  EXPECT_NE(not_image.error().message.find("not an image"), std::string::npos);
+
+  // A PNG signature followed by garbage, and a PNG whose header CRC is wrong.
+  std::vector<uint8_t> garbage_png = {0x89, 'P', 'N', 'G', '\r', '\n', 0x1a, '\n'};
+  for (int i = 0; i < 100; ++i) garbage_png.push_back(static_cast<uint8_t>(i * 37));
+  auto corrupt = DecodeImage(garbage_png);
+  ASSERT_FALSE(corrupt);
+  EXPECT_EQ(corrupt.error().code, ErrorCode::kInvalidImage);
+  auto png = Encode(TestCard(), ".png");
+  png[20] ^= 0x01;  // flips a bit of the declared width
+  auto bad_crc = DecodeImage(png);
+  ASSERT_FALSE(bad_crc);
+  EXPECT_EQ(bad_crc.error().code, ErrorCode::kInvalidImage);
+
+  // A JPEG whose compressed data is overwritten with garbage after the headers.
+  auto jpeg = Encode(TestCard(), ".jpg");
+  std::vector<uint8_t> garbage_jpeg(jpeg.begin(), jpeg.begin() + 4);
+  for (int i = 0; i < 200; ++i) garbage_jpeg.push_back(static_cast<uint8_t>(i * 13 + 1));
+  auto corrupt_jpeg = DecodeImage(garbage_jpeg);
+  ASSERT_FALSE(corrupt_jpeg);
+  EXPECT_EQ(corrupt_jpeg.error().code, ErrorCode::kInvalidImage);
+}
+
+TEST(DecodeImage, RefusesTruncatedFiles) {
+  cv::Mat photo = cv::imread(kOpencvData + "box.png", cv::IMREAD_GRAYSCALE);
+  ASSERT_FALSE(photo.empty());
+  for (const std::string ext : {".jpg", ".png", ".pgm", ".webp"}) {
+    if (!cv::haveImageWriter("x" + ext)) continue;
+    auto bytes = Encode(photo, ext);
+    for (double keep : {0.3, 0.9}) {
+      std::vector<uint8_t> truncated(bytes.begin(), bytes.begin() + static_cast<long>(bytes.size() * keep));
+      auto decoded = DecodeImage(truncated);
+      ASSERT_FALSE(decoded) << ext << " truncated to " << keep;
+      EXPECT_EQ(decoded.error().code, ErrorCode::kInvalidImage) << ext;
+      EXPECT_NE(decoded.error().message.find("truncated"), std::string::npos) << decoded.error().message;
+    }
+  }
+}
+
+TEST(DecodeImage, RefusesDeclaredOversizeBeforeAllocating) {
+  const auto bomb = PngHeaderOnly(100000, 100000);  // 10^10 pixels declared in 45 bytes
+  auto info = ReadImageHeader(bomb);
+  ASSERT_TRUE(info) << info.error().ToString();
+  EXPECT_EQ(info->width, 100000u);
+  auto decoded = DecodeImage(bomb);
+  ASSERT_FALSE(decoded);
+  EXPECT_EQ(decoded.error().code, ErrorCode::kImageTooLarge);
+  EXPECT_NE(decoded.error().message.find("100000x100000"), std::string::npos) << decoded.error().message;
+
+  // The limit is configurable, and applies to real images too.
+  DecodeOptions small;
+  small.max_pixels = 1000;
+  auto limited = DecodeImage(Encode(TestCard(), ".jpg"), small);
+  ASSERT_FALSE(limited);
+  EXPECT_EQ(limited.error().code, ErrorCode::kImageTooLarge);
+
+  DecodeOptions few_bytes;
+  few_bytes.max_bytes = 100;
+  auto too_many_bytes = DecodeImage(Encode(TestCard(), ".png"), few_bytes);
+  ASSERT_FALSE(too_many_bytes);
+  EXPECT_EQ(too_many_bytes.error().code, ErrorCode::kImageTooLarge);
+}
+
+TEST(DecodeImage, RefusesBadOptionsAndMissingFiles) {
+  DecodeOptions bad;
+  bad.max_image_side_px = 0;
+  EXPECT_TRUE(bad.Check().has_value());
+  auto decoded = DecodeImage(Encode(TestCard(), ".png"), bad);
+  ASSERT_FALSE(decoded);
+  EXPECT_EQ(decoded.error().code, ErrorCode::kInvalidArgument);
+
+  auto missing = ReadImage("/nonexistent/image.jpg");
+  ASSERT_FALSE(missing);
+  EXPECT_EQ(missing.error().code, ErrorCode::kNotFound);
+  EXPECT_NE(missing.error().message.find("/nonexistent/image.jpg"), std::string::npos);
+}
+
+}  // namespace
+}  // namespace oxbow::sift
