@@ -1,0 +1,606 @@
+#include "index/inverted_file.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <queue>
+#include <unordered_map>
+
+#include "sift/error.h"
+#include "sift/parallel.h"
+
+namespace oxbow::index {
+namespace {
+
+constexpr uint64_t kLevelBasePostings = 1024;
+
+inline size_t VarintSize(uint64_t v) {
+  size_t n = 1;
+  while (v >= 128) {
+    v >>= 7;
+    ++n;
+  }
+  return n;
+}
+
+inline void PutVarint(std::vector<uint8_t>* out, uint64_t v) {
+  while (v >= 128) {
+    out->push_back(static_cast<uint8_t>(v | 128));
+    v >>= 7;
+  }
+  out->push_back(static_cast<uint8_t>(v));
+}
+
+inline uint8_t* PutVarint(uint8_t* p, uint64_t v) {
+  while (v >= 128) {
+    *p++ = static_cast<uint8_t>(v | 128);
+    v >>= 7;
+  }
+  *p++ = static_cast<uint8_t>(v);
+  return p;
+}
+
+inline uint64_t GetVarint(const uint8_t*& p) {
+  uint64_t v = *p++;
+  if (v < 128) return v;
+  v &= 127;
+  int shift = 7;
+  while (true) {
+    const uint64_t b = *p++;
+    v |= (b & 127) << shift;
+    if (b < 128) return v;
+    shift += 7;
+  }
+}
+
+inline size_t PostingSize(uint32_t gap, uint32_t tf) {
+  return VarintSize((uint64_t{gap} << 1) | (tf > 1 ? 1 : 0)) + (tf > 1 ? VarintSize(tf - 2) : 0);
+}
+
+inline void PutPosting(std::vector<uint8_t>* out, uint32_t gap, uint32_t tf) {
+  PutVarint(out, (uint64_t{gap} << 1) | (tf > 1 ? 1 : 0));
+  if (tf > 1) PutVarint(out, tf - 2);
+}
+
+inline uint8_t* PutPosting(uint8_t* p, uint32_t gap, uint32_t tf) {
+  p = PutVarint(p, (uint64_t{gap} << 1) | (tf > 1 ? 1 : 0));
+  if (tf > 1) p = PutVarint(p, tf - 2);
+  return p;
+}
+
+// t(tf)^2 without rounding through sqrt: tf for sqrt-tf, tf^2 otherwise.
+inline double TermWeightSquared(bool sqrt_tf, uint32_t tf) {
+  return sqrt_tf ? static_cast<double>(tf) : static_cast<double>(tf) * static_cast<double>(tf);
+}
+
+}  // namespace
+
+// One immutable run of postings for the images in [first_image, end_image).
+struct InvertedFile::Segment {
+  uint32_t first_image = 0;
+  uint32_t end_image = 0;
+  bool dense = false;             // offsets indexed by word (vocabulary_size + 1) instead of via `words`
+  std::vector<uint32_t> words;    // sparse layout: distinct words, ascending
+  std::vector<uint64_t> offsets;  // into bytes; dense: per word; sparse: per entry of `words` (+1)
+  std::vector<uint8_t> bytes;
+  uint64_t num_postings = 0;
+
+  std::pair<const uint8_t*, const uint8_t*> List(uint32_t word) const {
+    if (dense) {
+      if (word + 1 >= offsets.size()) return {nullptr, nullptr};
+      return {bytes.data() + offsets[word], bytes.data() + offsets[word + 1]};
+    }
+    const auto it = std::lower_bound(words.begin(), words.end(), word);
+    if (it == words.end() || *it != word) return {nullptr, nullptr};
+    const size_t i = static_cast<size_t>(it - words.begin());
+    return {bytes.data() + offsets[i], bytes.data() + offsets[i + 1]};
+  }
+
+  // Calls fn(image, tf) for every posting of `word`, in image order.
+  template <typename Fn>
+  void ForEach(uint32_t word, Fn&& fn) const {
+    auto [p, end] = List(word);
+    uint32_t image = first_image;
+    while (p < end) {
+      const uint64_t v = GetVarint(p);
+      image += static_cast<uint32_t>(v >> 1);
+      uint32_t tf = 1;
+      if (v & 1) tf = static_cast<uint32_t>(GetVarint(p)) + 2;
+      fn(image, tf);
+    }
+  }
+
+  // Every word with postings here, ascending.
+  std::vector<uint32_t> Words() const {
+    if (!dense) return words;
+    std::vector<uint32_t> out;
+    for (size_t w = 0; w + 1 < offsets.size(); ++w) {
+      if (offsets[w + 1] > offsets[w]) out.push_back(static_cast<uint32_t>(w));
+    }
+    return out;
+  }
+
+  uint64_t MemoryBytes() const {
+    return bytes.capacity() + offsets.capacity() * sizeof(uint64_t) + words.capacity() * sizeof(uint32_t) +
+           sizeof(*this);
+  }
+
+  // Switches to the dense layout when at least 1/8 of the vocabulary has postings here (the dense table
+  // then costs at most 2x the sparse one and saves the binary search).
+  void ChooseLayout(size_t vocabulary_size) {
+    if (dense || words.size() * 8 < vocabulary_size) return;
+    std::vector<uint64_t> table(vocabulary_size + 1, 0);
+    size_t k = 0;
+    for (size_t w = 0; w <= vocabulary_size; ++w) {
+      while (k < words.size() && words[k] < w) ++k;
+      table[w] = k < words.size() ? offsets[k] : bytes.size();
+    }
+    offsets = std::move(table);
+    words.clear();
+    words.shrink_to_fit();
+    dense = true;
+  }
+};
+
+BagOfWords BagOfWords::FromWords(std::span<const uint32_t> words) {
+  std::vector<uint32_t> sorted(words.begin(), words.end());
+  std::sort(sorted.begin(), sorted.end());
+  BagOfWords bag;
+  for (size_t i = 0; i < sorted.size();) {
+    size_t j = i;
+    while (j < sorted.size() && sorted[j] == sorted[i]) ++j;
+    bag.words.push_back(sorted[i]);
+    bag.counts.push_back(static_cast<uint32_t>(j - i));
+    i = j;
+  }
+  return bag;
+}
+
+uint64_t BagOfWords::total() const {
+  uint64_t n = 0;
+  for (uint32_t c : counts) n += c;
+  return n;
+}
+
+std::optional<std::string> TfIdfOptions::Check() const {
+  if (!(max_document_frequency > 0 && max_document_frequency <= 1)) {
+    return "max_document_frequency must be in (0, 1], got " + std::to_string(max_document_frequency);
+  }
+  if (merge_factor < 2 || merge_factor > 64) {
+    return "merge_factor must be in [2, 64], got " + std::to_string(merge_factor);
+  }
+  return std::nullopt;
+}
+
+InvertedFile::InvertedFile(size_t vocabulary_size, const TfIdfOptions& options)
+    : vocabulary_size_(vocabulary_size), options_(options) {
+  const auto error = options.Check();
+  OXBOW_CHECK(!error, "invalid TfIdfOptions");
+  OXBOW_CHECK(vocabulary_size > 0 && vocabulary_size < (uint64_t{1} << 32));
+  CowArray<uint32_t>::Editor(&df_).Resize(vocabulary_size, 0);
+  for (uint32_t tf = 0; tf < term_weight_.size(); ++tf) {
+    term_weight_[tf] = options.sqrt_tf ? static_cast<float>(std::sqrt(static_cast<double>(tf)))
+                                       : static_cast<float>(tf);
+  }
+}
+
+float InvertedFile::TermWeight(uint32_t tf) const {
+  if (tf < term_weight_.size()) return term_weight_[tf];
+  return options_.sqrt_tf ? static_cast<float>(std::sqrt(static_cast<double>(tf))) : static_cast<float>(tf);
+}
+
+uint32_t InvertedFile::num_numbers() const { return static_cast<uint32_t>(images_.size()); }
+
+uint32_t InvertedFile::DocumentFrequency(uint32_t word) const {
+  OXBOW_CHECK(word < vocabulary_size_);
+  return df_[word];
+}
+
+double InvertedFile::Idf(uint32_t word) const {
+  const uint32_t df = DocumentFrequency(word);
+  if (df == 0) return std::numeric_limits<double>::infinity();
+  return std::log(static_cast<double>(num_live_) / static_cast<double>(df));
+}
+
+bool InvertedFile::IsLive(uint32_t image) const { return image < images_.size() && images_[image].live != 0; }
+
+double InvertedFile::Norm(uint32_t image) const {
+  if (!IsLive(image)) return 0;
+  const ImageState& s = images_[image];
+  const double l = std::log(static_cast<double>(num_live_));
+  const double sq = l * l * s.a - 2 * l * s.b + s.c;
+  return sq > 0 ? std::sqrt(sq) : 0.0;
+}
+
+InvertedFile InvertedFile::Build(size_t vocabulary_size, const TfIdfOptions& options, uint32_t num_numbers,
+                                 const std::function<bool(uint32_t, BagOfWords*)>& bag_of, int num_threads) {
+  InvertedFile out(vocabulary_size, options);
+  const int threads = ResolveThreadCount(num_threads);
+  constexpr uint32_t kBatch = 4096;
+  std::vector<BagOfWords> bags(kBatch);
+  std::vector<uint8_t> present(kBatch);
+
+  // Runs fn(image, bag) for every image in order, producing bags in parallel batches.
+  auto for_each_bag = [&](const std::function<void(uint32_t, const BagOfWords&)>& fn) {
+    for (uint32_t begin = 0; begin < num_numbers; begin += kBatch) {
+      const uint32_t n = std::min(kBatch, num_numbers - begin);
+      ParallelFor(n, threads, 64, [&](size_t b, size_t e, int) {
+        for (size_t i = b; i < e; ++i) {
+          bags[i].words.clear();
+          bags[i].counts.clear();
+          present[i] = bag_of(begin + static_cast<uint32_t>(i), &bags[i]) ? 1 : 0;
+        }
+      });
+      for (uint32_t i = 0; i < n; ++i) {
+        if (present[i]) fn(begin + i, bags[i]);
+      }
+    }
+  };
+
+  // Pass 1: document frequencies and the coded size of every word's list.
+  std::vector<uint32_t> last(vocabulary_size, 0);
+  std::vector<uint64_t> offsets(vocabulary_size + 1, 0);
+  std::vector<uint32_t> df(vocabulary_size, 0);
+  uint64_t live = 0;
+  for_each_bag([&](uint32_t image, const BagOfWords& bag) {
+    OXBOW_CHECK(bag.words.size() == bag.counts.size());
+    for (size_t k = 0; k < bag.words.size(); ++k) {
+      const uint32_t w = bag.words[k];
+      OXBOW_CHECK(w < vocabulary_size, "word id outside the vocabulary");
+      OXBOW_CHECK(bag.counts[k] >= 1 && (k == 0 || bag.words[k - 1] < w), "bag not sorted/distinct");
+      offsets[w + 1] += PostingSize(image - last[w], bag.counts[k]);
+      last[w] = image;
+      ++df[w];
+    }
+    ++live;
+  });
+  for (size_t w = 0; w < vocabulary_size; ++w) offsets[w + 1] += offsets[w];
+
+  auto segment = std::make_shared<Segment>();
+  segment->first_image = 0;
+  segment->end_image = num_numbers;
+  segment->bytes.resize(offsets[vocabulary_size]);
+  std::vector<double> log_df(vocabulary_size, 0);
+  for (size_t w = 0; w < vocabulary_size; ++w) log_df[w] = df[w] ? std::log(static_cast<double>(df[w])) : 0;
+
+  // Pass 2: postings and per-image norm sums.
+  std::vector<uint64_t> cursor(offsets.begin(), offsets.end() - 1);
+  std::fill(last.begin(), last.end(), 0);
+  CowArray<ImageState>::Editor images(&out.images_);
+  images.Resize(num_numbers);
+  uint64_t postings = 0, features = 0;
+  for_each_bag([&](uint32_t image, const BagOfWords& bag) {
+    ImageState& s = images.Mutable(image);
+    for (size_t k = 0; k < bag.words.size(); ++k) {
+      const uint32_t w = bag.words[k], tf = bag.counts[k];
+      uint8_t* p = segment->bytes.data() + cursor[w];
+      cursor[w] = static_cast<uint64_t>(PutPosting(p, image - last[w], tf) - segment->bytes.data());
+      last[w] = image;
+      const double t2 = TermWeightSquared(options.sqrt_tf, tf);
+      s.a += t2;
+      s.b += t2 * log_df[w];
+      s.c += t2 * log_df[w] * log_df[w];
+      s.features += tf;
+    }
+    s.live = 1;
+    postings += bag.words.size();
+    features += s.features;
+  });
+  for (size_t w = 0; w < vocabulary_size; ++w) OXBOW_CHECK(cursor[w] == offsets[w + 1], "bag_of changed between passes");
+
+  segment->dense = true;
+  segment->offsets = std::move(offsets);
+  segment->num_postings = postings;
+  {
+    CowArray<uint32_t>::Editor dfe(&out.df_);
+    for (size_t w = 0; w < vocabulary_size; ++w) {
+      if (df[w]) dfe.Mutable(w) = df[w];
+    }
+  }
+  if (postings > 0) out.segments_.push_back(std::move(segment));
+  out.num_live_ = live;
+  out.num_live_features_ = features;
+  out.num_postings_ = postings;
+  return out;
+}
+
+void InvertedFile::UpdateNormsForChangedWords(std::span<const std::pair<uint32_t, uint32_t>> word_old_df,
+                                              CowArray<ImageState>::Editor* editor) const {
+  for (const auto& [word, old_df] : word_old_df) {
+    const uint32_t new_df = df_[word];
+    if (old_df == 0 || new_df == 0 || old_df == new_df) continue;  // no live image holds it before/after
+    const double l0 = std::log(static_cast<double>(old_df));
+    const double l1 = std::log(static_cast<double>(new_df));
+    const double dl = l1 - l0, dl2 = l1 * l1 - l0 * l0;
+    for (const auto& segment : segments_) {
+      segment->ForEach(word, [&](uint32_t image, uint32_t tf) {
+        if (images_[image].live == 0) return;
+        ImageState& s = editor->Mutable(image);
+        const double t2 = TermWeightSquared(options_.sqrt_tf, tf);
+        s.b += t2 * dl;
+        s.c += t2 * dl2;
+      });
+    }
+  }
+}
+
+InvertedFile InvertedFile::WithAdded(std::span<const uint32_t> images, std::span<const BagOfWords* const> bags) const {
+  OXBOW_CHECK(images.size() == bags.size());
+  InvertedFile next = *this;
+  if (images.empty()) return next;
+  for (size_t i = 0; i < images.size(); ++i) {
+    OXBOW_CHECK(images[i] >= images_.size() && (i == 0 || images[i] > images[i - 1]),
+                "image numbers must be new and ascending");
+  }
+
+  // Document frequencies, remembering the old value of every word that changes.
+  std::unordered_map<uint32_t, uint32_t> old_df;
+  {
+    CowArray<uint32_t>::Editor dfe(&next.df_);
+    for (const BagOfWords* bag : bags) {
+      OXBOW_CHECK(bag->words.size() == bag->counts.size());
+      for (size_t k = 0; k < bag->words.size(); ++k) {
+        const uint32_t w = bag->words[k];
+        OXBOW_CHECK(w < vocabulary_size_, "word id outside the vocabulary");
+        OXBOW_CHECK(bag->counts[k] >= 1 && (k == 0 || bag->words[k - 1] < w), "bag not sorted/distinct");
+        old_df.try_emplace(w, df_[w]);
+        ++dfe.Mutable(w);
+      }
+    }
+  }
+  std::vector<std::pair<uint32_t, uint32_t>> changed(old_df.begin(), old_df.end());
+  std::sort(changed.begin(), changed.end());
+
+  CowArray<ImageState>::Editor editor(&next.images_);
+  editor.Resize(images.back() + size_t{1});
+  next.UpdateNormsForChangedWords(changed, &editor);
+
+  // The new images' own sums, with the new frequencies; and their segment.
+  struct Triple {
+    uint32_t word, image, tf;
+  };
+  std::vector<Triple> triples;
+  for (size_t i = 0; i < images.size(); ++i) {
+    ImageState& s = editor.Mutable(images[i]);
+    s = ImageState{};
+    for (size_t k = 0; k < bags[i]->words.size(); ++k) {
+      const uint32_t w = bags[i]->words[k], tf = bags[i]->counts[k];
+      const double l = std::log(static_cast<double>(next.df_[w]));
+      const double t2 = TermWeightSquared(options_.sqrt_tf, tf);
+      s.a += t2;
+      s.b += t2 * l;
+      s.c += t2 * l * l;
+      s.features += tf;
+      triples.push_back({w, images[i], tf});
+    }
+    s.live = 1;
+    ++next.num_live_;
+    next.num_live_features_ += s.features;
+  }
+  std::sort(triples.begin(), triples.end(),
+            [](const Triple& x, const Triple& y) { return x.word != y.word ? x.word < y.word : x.image < y.image; });
+  auto segment = std::make_shared<Segment>();
+  segment->first_image = images.front();
+  segment->end_image = images.back() + 1;
+  segment->num_postings = triples.size();
+  for (size_t i = 0; i < triples.size();) {
+    segment->words.push_back(triples[i].word);
+    segment->offsets.push_back(segment->bytes.size());
+    uint32_t last = segment->first_image;
+    size_t j = i;
+    for (; j < triples.size() && triples[j].word == triples[i].word; ++j) {
+      PutPosting(&segment->bytes, triples[j].image - last, triples[j].tf);
+      last = triples[j].image;
+    }
+    i = j;
+  }
+  segment->offsets.push_back(segment->bytes.size());
+  segment->ChooseLayout(vocabulary_size_);
+  if (segment->num_postings > 0) {
+    next.num_postings_ += segment->num_postings;
+    next.segments_.push_back(std::move(segment));
+  }
+  next.MergeTail(false);
+  return next;
+}
+
+InvertedFile InvertedFile::WithRemoved(std::span<const uint32_t> images, std::span<const BagOfWords* const> bags) const {
+  OXBOW_CHECK(images.size() == bags.size());
+  InvertedFile next = *this;
+  if (images.empty()) return next;
+  CowArray<ImageState>::Editor editor(&next.images_);
+  std::unordered_map<uint32_t, uint32_t> old_df;
+  {
+    CowArray<uint32_t>::Editor dfe(&next.df_);
+    for (size_t i = 0; i < images.size(); ++i) {
+      OXBOW_CHECK(next.IsLive(images[i]), "removing an image that is not live");
+      ImageState& s = editor.Mutable(images[i]);
+      s.live = 0;
+      --next.num_live_;
+      next.num_live_features_ -= s.features;
+      next.num_dead_postings_ += bags[i]->words.size();
+      for (const uint32_t w : bags[i]->words) {
+        OXBOW_CHECK(w < vocabulary_size_ && df_[w] > 0, "bag does not match the indexed image");
+        old_df.try_emplace(w, df_[w]);
+        --dfe.Mutable(w);
+      }
+    }
+  }
+  std::vector<std::pair<uint32_t, uint32_t>> changed(old_df.begin(), old_df.end());
+  std::sort(changed.begin(), changed.end());
+  // Iterates next's segments (same as ours) with next's liveness: removed images are skipped.
+  next.UpdateNormsForChangedWords(changed, &editor);
+  if (next.num_dead_postings_ * 2 > next.num_postings_) next.MergeTail(true);
+  return next;
+}
+
+void InvertedFile::MergeTail(bool everything) {
+  auto level = [&](const Segment& s) {
+    int l = 0;
+    for (uint64_t n = s.num_postings / kLevelBasePostings; n > 0; n /= static_cast<uint64_t>(options_.merge_factor)) ++l;
+    return l;
+  };
+  while (segments_.size() >= (everything ? 1u : 2u)) {
+    size_t first = segments_.size() - 1;
+    if (everything) {
+      first = 0;
+    } else {
+      const int last_level = level(*segments_.back());
+      while (first > 0 && level(*segments_[first - 1]) <= last_level) --first;
+      if (segments_.size() - first < static_cast<size_t>(options_.merge_factor)) return;
+    }
+    // Merge segments [first, end): word by word, in image order, dropping removed images.
+    std::vector<uint32_t> words;
+    for (size_t i = first; i < segments_.size(); ++i) {
+      const auto w = segments_[i]->Words();
+      words.insert(words.end(), w.begin(), w.end());
+    }
+    std::sort(words.begin(), words.end());
+    words.erase(std::unique(words.begin(), words.end()), words.end());
+    auto merged = std::make_shared<Segment>();
+    merged->first_image = segments_[first]->first_image;
+    merged->end_image = segments_.back()->end_image;
+    uint64_t old_postings = 0;
+    for (size_t i = first; i < segments_.size(); ++i) old_postings += segments_[i]->num_postings;
+    for (const uint32_t w : words) {
+      const size_t begin = merged->bytes.size();
+      uint32_t last = merged->first_image;
+      for (size_t i = first; i < segments_.size(); ++i) {
+        segments_[i]->ForEach(w, [&](uint32_t image, uint32_t tf) {
+          if (images_[image].live == 0) return;
+          PutPosting(&merged->bytes, image - last, tf);
+          last = image;
+          ++merged->num_postings;
+        });
+      }
+      if (merged->bytes.size() > begin) {
+        merged->words.push_back(w);
+        merged->offsets.push_back(begin);
+      }
+    }
+    merged->offsets.push_back(merged->bytes.size());
+    merged->bytes.shrink_to_fit();
+    merged->ChooseLayout(vocabulary_size_);
+    const uint64_t dropped = old_postings - merged->num_postings;
+    num_postings_ -= dropped;
+    num_dead_postings_ -= std::min(num_dead_postings_, dropped);
+    segments_.resize(first);
+    if (merged->num_postings > 0) segments_.push_back(std::move(merged));
+    if (everything) return;
+  }
+}
+
+std::vector<QueryTerm> InvertedFile::QueryVector(const BagOfWords& bag) const {
+  std::vector<QueryTerm> out;
+  if (num_live_ == 0) return out;
+  const double n = static_cast<double>(num_live_);
+  double norm_sq = 0;
+  std::vector<double> weights;
+  for (size_t k = 0; k < bag.words.size(); ++k) {
+    const uint32_t w = bag.words[k];
+    if (w >= vocabulary_size_) continue;
+    const uint32_t df = df_[w];
+    if (df == 0 || static_cast<double>(df) > options_.max_document_frequency * n) continue;
+    const double idf = std::log(n / static_cast<double>(df));
+    if (!(idf > 0)) continue;
+    const double v = static_cast<double>(TermWeight(bag.counts[k])) * idf;
+    out.push_back({w, 0});
+    weights.push_back(v);
+    norm_sq += v * v;
+  }
+  if (norm_sq <= 0) return {};
+  const double inv = 1.0 / std::sqrt(norm_sq);
+  for (size_t i = 0; i < out.size(); ++i) out[i].weight = static_cast<float>(weights[i] * inv);
+  return out;
+}
+
+std::vector<ScoredImage> InvertedFile::Score(std::span<const QueryTerm> query, size_t max_results,
+                                             ScoreScratch* scratch, uint64_t* candidates) const {
+  OXBOW_CHECK(scratch != nullptr);
+  std::vector<float>& acc = scratch->accumulator;
+  if (acc.size() < images_.size()) acc.resize(images_.size(), 0.0f);
+  if (candidates) *candidates = 0;
+  if (num_live_ == 0 || max_results == 0) return {};
+
+  const double n = static_cast<double>(num_live_);
+  for (const QueryTerm& term : query) {
+    if (term.word >= vocabulary_size_ || term.weight == 0) continue;
+    const uint32_t df = df_[term.word];
+    if (df == 0) continue;
+    const float weight = static_cast<float>(static_cast<double>(term.weight) * std::log(n / static_cast<double>(df)));
+    if (weight == 0) continue;
+    for (const auto& segment : segments_) {
+      auto [p, end] = segment->List(term.word);
+      uint32_t image = segment->first_image;
+      float* a = acc.data();
+      // Hot loop: one varint (usually one byte) per posting, one multiply-add.
+      while (p < end) {
+        uint64_t v = *p++;
+        if (v >= 128) {
+          v &= 127;
+          int shift = 7;
+          while (true) {
+            const uint64_t b = *p++;
+            v |= (b & 127) << shift;
+            if (b < 128) break;
+            shift += 7;
+          }
+        }
+        image += static_cast<uint32_t>(v >> 1);
+        float t = 1.0f;
+        if (v & 1) t = TermWeight(static_cast<uint32_t>(GetVarint(p)) + 2);
+        a[image] += weight * t;
+      }
+    }
+  }
+
+  // Normalise, select the best max_results (min-heap on (score, -image)), and re-zero the accumulator.
+  auto better = [](const ScoredImage& x, const ScoredImage& y) {
+    return x.score != y.score ? x.score > y.score : x.image < y.image;
+  };
+  std::priority_queue<ScoredImage, std::vector<ScoredImage>, decltype(better)> heap(better);  // top = worst kept
+  const double l = std::log(n);
+  uint64_t touched = 0;
+  const size_t end = images_.size();
+  for (size_t chunk = 0; chunk < end; chunk += CowArray<ImageState>::kChunk) {
+    const size_t chunk_end = std::min(end, chunk + CowArray<ImageState>::kChunk);
+    for (size_t i = chunk; i < chunk_end; ++i) {
+      const float v = acc[i];
+      if (v == 0) continue;
+      acc[i] = 0;
+      const ImageState& s = images_[i];
+      if (s.live == 0) continue;
+      const double sq = l * l * s.a - 2 * l * s.b + s.c;
+      if (!(sq > 0)) continue;
+      ++touched;
+      const ScoredImage cand{static_cast<uint32_t>(i), static_cast<float>(static_cast<double>(v) / std::sqrt(sq))};
+      if (heap.size() < max_results) {
+        heap.push(cand);
+      } else if (better(cand, heap.top())) {
+        heap.pop();
+        heap.push(cand);
+      }
+    }
+  }
+  if (candidates) *candidates = touched;
+  std::vector<ScoredImage> out(heap.size());
+  for (size_t i = out.size(); i-- > 0;) {
+    out[i] = heap.top();
+    heap.pop();
+  }
+  return out;
+}
+
+InvertedFileStats InvertedFile::Stats() const {
+  InvertedFileStats s;
+  s.num_images = num_live_;
+  s.num_postings = num_postings_;
+  s.num_features = num_live_features_;
+  for (const auto& segment : segments_) s.postings_bytes += segment->MemoryBytes();
+  s.image_table_bytes = images_.MemoryBytes();
+  s.word_table_bytes = df_.MemoryBytes();
+  s.num_segments = segments_.size();
+  return s;
+}
+
+}  // namespace oxbow::index

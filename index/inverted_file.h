@@ -1,0 +1,163 @@
+// The inverted file and its TF-IDF scoring (Sivic & Zisserman 2003; Philbin et al. 2007), independent
+// of how words were made (vocab/) or stored (catalogue.h).
+//
+// Images are numbered by the caller with dense uint32 "image numbers" that only grow (a removed number
+// is never reused). For every visual word the postings (image number, tf) are kept sorted by image
+// number and coded as varints: value = (gap << 1) | (tf > 1), followed by varint(tf - 2) when tf > 1,
+// where gap = image - previous image in the list (the first relative to the segment's first image).
+// With ~1 posting per feature this is 1-3 bytes per feature.
+//
+// Postings live in immutable Segments (a log-structured merge): WithAdded() appends one segment for the
+// new images, then merges the newest segments while `merge_factor` of them share a size level
+// (level = floor(log_merge_factor(postings / 1024))), so there are O(merge_factor * log N) segments and
+// each posting is rewritten O(log N) times over the index's life. Removed images are tombstoned (their
+// postings are skipped when scoring and dropped at the next merge of their segment).
+//
+// Scoring: idf_w = log(N / n_w) over the N live images, n_w of which contain w; image vectors
+// v_w(d) = t(tf) idf_w with t(x) = x or sqrt(x) (TfIdfOptions::sqrt_tf). The norm |v(d)| is kept exact
+// under adds and removes through three per-image sums (see image_index.h, "Method" 2), so scores equal
+// those of an index built from scratch on the same live images. Score() accumulates
+// q_w idf_w t(tf_d) over the postings of the query's words into a dense float array over image numbers,
+// then divides by |v(d)| and keeps the best `max_results` (ties: smaller image number first).
+//
+// Thread safety: an InvertedFile is an immutable value (its parts are shared_ptr<const>); any number of
+// threads may call its const members. WithAdded/WithRemoved return a new value and leave this one alone.
+// Copying an InvertedFile is O(vocabulary_size / 4096 + number of images / 4096).
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <optional>
+#include <span>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "index/cow_array.h"
+
+namespace oxbow::index {
+
+// The words of one image: distinct word ids ascending, each with its count tf >= 1.
+struct BagOfWords {
+  std::vector<uint32_t> words;
+  std::vector<uint32_t> counts;
+
+  // From a list of word ids in any order (duplicates counted).
+  static BagOfWords FromWords(std::span<const uint32_t> words);
+  uint64_t total() const;  // sum of counts
+};
+
+struct TfIdfOptions {
+  // Use sqrt(tf) instead of tf in query and image vectors (burstiness; Jegou et al. 2009).
+  bool sqrt_tf = true;
+  // Query words contained in more than this fraction of the live images are left out of the query
+  // vector (a stop list of the most frequent words). (0, 1].
+  double max_document_frequency = 1.0;
+  // Segments of one size level merged at once (see the file comment). [2, 64].
+  int merge_factor = 8;
+
+  std::optional<std::string> Check() const;
+};
+
+// One component of a query vector: the word and its weight in the L2-normalised query tf-idf vector.
+struct QueryTerm {
+  uint32_t word = 0;
+  float weight = 0;
+};
+
+struct ScoredImage {
+  uint32_t image = 0;  // image number
+  float score = 0;     // cosine similarity in [0, 1]
+};
+
+// Per-thread scratch memory of Score() (a dense accumulator over image numbers). Reuse it across
+// queries on one thread; never share one between threads at the same time.
+struct ScoreScratch {
+  std::vector<float> accumulator;
+};
+
+struct InvertedFileStats {
+  uint64_t num_images = 0;         // live
+  uint64_t num_postings = 0;       // stored (live + not yet merged away)
+  uint64_t num_features = 0;       // sum of tf over live images
+  uint64_t postings_bytes = 0;     // coded postings + per-word offset tables
+  uint64_t image_table_bytes = 0;  // per-image norms state
+  uint64_t word_table_bytes = 0;   // per-word document frequencies
+  uint64_t num_segments = 0;
+};
+
+class InvertedFile {
+ public:
+  struct Segment;  // defined in inverted_file.cc
+  // Per image number: the three sums that give |v(d)| exactly for any N (see image_index.h, "Method").
+  struct ImageState {
+    double a = 0;         // sum over the image's words of t(tf)^2
+    double b = 0;         // sum of t(tf)^2 log n_w
+    double c = 0;         // sum of t(tf)^2 (log n_w)^2
+    uint32_t live = 0;    // 1 while the image is in the index
+    uint32_t features = 0;  // sum of tf
+  };
+
+  // An empty inverted file over words [0, vocabulary_size). OXBOW_CHECKs options.Check().
+  InvertedFile(size_t vocabulary_size, const TfIdfOptions& options);
+
+  // Builds from scratch, as one segment, the images numbered [0, num_numbers) for which
+  // `bag_of(image, bag)` returns true (false: no image with that number). `bag_of` is called twice
+  // per number (two passes: sizes, then contents) and must give the same bag both times; it may be
+  // called from several threads at once for different numbers when num_threads != 1. Words must be
+  // < vocabulary_size (OXBOW_CHECK). O(total postings + vocabulary_size).
+  static InvertedFile Build(size_t vocabulary_size, const TfIdfOptions& options, uint32_t num_numbers,
+                            const std::function<bool(uint32_t image, BagOfWords* bag)>& bag_of,
+                            int num_threads = 1);
+
+  // A new version with `images` added (numbers ascending, each greater than every number used so far;
+  // bags[i] for images[i]). Cost O(new postings + postings of the existing images that share a word
+  // whose document frequency changed) + the amortised merge.
+  InvertedFile WithAdded(std::span<const uint32_t> images, std::span<const BagOfWords* const> bags) const;
+  // A new version without `images` (live numbers; bags[i] must be the bag they were added with).
+  // Cost O(postings of the live images sharing a word with them).
+  InvertedFile WithRemoved(std::span<const uint32_t> images, std::span<const BagOfWords* const> bags) const;
+
+  // The L2-normalised tf-idf vector of a query bag, sorted by word. Words not in any live image (idf
+  // undefined) and stop-listed words (TfIdfOptions::max_document_frequency) are left out; words in
+  // every image have weight 0 and are left out too. Empty if nothing remains.
+  std::vector<QueryTerm> QueryVector(const BagOfWords& bag) const;
+
+  // Scores every live image against `query` (terms sorted by word, weights of an L2-normalised vector;
+  // any real weights are accepted) and returns the best `max_results` by cosine, best first.
+  // `candidates` (optional) receives the number of live images with a non-zero dot product.
+  // Cost O(postings of the query words + number of images ever added).
+  std::vector<ScoredImage> Score(std::span<const QueryTerm> query, size_t max_results, ScoreScratch* scratch,
+                                 uint64_t* candidates = nullptr) const;
+
+  double Idf(uint32_t word) const;                 // log(N / n_w); +inf when n_w == 0
+  uint32_t DocumentFrequency(uint32_t word) const;
+  double Norm(uint32_t image) const;               // |v(d)| of a live image (0 if not live)
+  bool IsLive(uint32_t image) const;
+  float TermWeight(uint32_t tf) const;             // t(tf): tf or sqrt(tf)
+  uint64_t num_images() const { return num_live_; }
+  uint32_t num_numbers() const;                    // one past the largest image number used
+  size_t vocabulary_size() const { return vocabulary_size_; }
+  const TfIdfOptions& options() const { return options_; }
+  InvertedFileStats Stats() const;
+
+ private:
+  void MergeTail(bool everything);
+  void UpdateNormsForChangedWords(std::span<const std::pair<uint32_t, uint32_t>> word_old_df,
+                                  CowArray<ImageState>::Editor* editor) const;
+
+  size_t vocabulary_size_ = 0;
+  TfIdfOptions options_;
+  std::vector<std::shared_ptr<const Segment>> segments_;  // in image-number order
+  CowArray<uint32_t> df_;                                  // n_w per word
+  CowArray<ImageState> images_;                            // per image number
+  uint64_t num_live_ = 0;
+  uint64_t num_live_features_ = 0;
+  uint64_t num_postings_ = 0;       // stored in segments, live or not
+  uint64_t num_dead_postings_ = 0;  // of removed images, not yet merged away
+  std::array<float, 256> term_weight_{};  // t(tf) for tf < 256
+};
+
+}  // namespace oxbow::index

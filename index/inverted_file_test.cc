@@ -1,0 +1,252 @@
+#include "index/inverted_file.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <map>
+#include <random>
+#include <set>
+
+namespace oxbow::index {
+namespace {
+
+BagOfWords Bag(std::initializer_list<uint32_t> words) {
+  std::vector<uint32_t> w(words);
+  return BagOfWords::FromWords(w);
+}
+
+// Straightforward dense reference: cosine of tf-idf vectors, computed from the definition.
+std::map<uint32_t, double> ReferenceScores(const std::map<uint32_t, BagOfWords>& corpus, const BagOfWords& query,
+                                           size_t vocab, bool sqrt_tf) {
+  std::vector<double> df(vocab, 0);
+  for (const auto& [id, bag] : corpus) {
+    for (uint32_t w : bag.words) df[w] += 1;
+  }
+  const double n = static_cast<double>(corpus.size());
+  auto t = [&](uint32_t tf) { return sqrt_tf ? std::sqrt(static_cast<double>(tf)) : static_cast<double>(tf); };
+  auto vec = [&](const BagOfWords& bag) {
+    std::vector<double> v(vocab, 0);
+    for (size_t k = 0; k < bag.words.size(); ++k) {
+      if (df[bag.words[k]] > 0) v[bag.words[k]] = t(bag.counts[k]) * std::log(n / df[bag.words[k]]);
+    }
+    return v;
+  };
+  auto norm = [](const std::vector<double>& v) {
+    double s = 0;
+    for (double x : v) s += x * x;
+    return std::sqrt(s);
+  };
+  const auto q = vec(query);
+  std::map<uint32_t, double> out;
+  for (const auto& [id, bag] : corpus) {
+    const auto d = vec(bag);
+    double dot = 0;
+    for (size_t w = 0; w < vocab; ++w) dot += q[w] * d[w];
+    const double nq = norm(q), nd = norm(d);
+    out[id] = (nq > 0 && nd > 0) ? dot / (nq * nd) : 0.0;
+  }
+  return out;
+}
+
+std::map<uint32_t, double> AllScores(const InvertedFile& file, const BagOfWords& query) {
+  ScoreScratch scratch;
+  const auto terms = file.QueryVector(query);
+  std::map<uint32_t, double> out;
+  for (const auto& s : file.Score(terms, 1u << 30, &scratch)) out[s.image] = s.score;
+  return out;
+}
+
+TEST(InvertedFileTest, HandComputedCosineOnTinyCorpus) {
+  // d0 = {0, 1}, d1 = {1, 2}, d2 = {2, 3}; N = 3; idf: w0 = w3 = log 3, w1 = w2 = log 1.5.
+  for (bool sqrt_tf : {false, true}) {
+    InvertedFile file(5, TfIdfOptions{.sqrt_tf = sqrt_tf});
+    const BagOfWords b0 = Bag({0, 1}), b1 = Bag({1, 2}), b2 = Bag({2, 3});
+    const std::vector<uint32_t> ids = {0, 1, 2};
+    const std::vector<const BagOfWords*> bags = {&b0, &b1, &b2};
+    file = file.WithAdded(ids, bags);
+    EXPECT_NEAR(file.Idf(0), std::log(3.0), 1e-12);
+    EXPECT_NEAR(file.Idf(1), std::log(1.5), 1e-12);
+    EXPECT_TRUE(std::isinf(file.Idf(4)));
+    EXPECT_NEAR(file.Norm(1), std::sqrt(2.0) * std::log(1.5), 1e-12);
+
+    const auto scores = AllScores(file, Bag({0, 1}));
+    ASSERT_EQ(scores.size(), 2u);  // d2 shares no word with the query
+    EXPECT_NEAR(scores.at(0), 1.0, 1e-6);
+    // cos(q, d1) = log1.5^2 / (sqrt(log3^2 + log1.5^2) * sqrt(2) log1.5) = 0.244829...
+    EXPECT_NEAR(scores.at(1), 0.2448290, 1e-6);
+  }
+}
+
+TEST(InvertedFileTest, TermFrequencyWeighting) {
+  // Query {0,0,1}: with sqrt-tf the repeated word counts sqrt(2), raw tf counts 2.
+  const BagOfWords b0 = Bag({0, 0, 1}), b1 = Bag({1, 2}), b2 = Bag({2, 3});
+  const std::map<uint32_t, BagOfWords> corpus = {{0, b0}, {1, b1}, {2, b2}};
+  for (bool sqrt_tf : {false, true}) {
+    InvertedFile file(4, TfIdfOptions{.sqrt_tf = sqrt_tf});
+    const std::vector<uint32_t> ids = {0, 1, 2};
+    const std::vector<const BagOfWords*> bags = {&b0, &b1, &b2};
+    file = file.WithAdded(ids, bags);
+    const BagOfWords query = Bag({0, 1, 1, 1});
+    const auto expected = ReferenceScores(corpus, query, 4, sqrt_tf);
+    const auto got = AllScores(file, query);
+    for (const auto& [id, score] : got) EXPECT_NEAR(score, expected.at(id), 1e-6) << id;
+    EXPECT_GT(expected.at(0), 0);
+  }
+}
+
+// Random corpora with Zipf-like word frequencies; every image 5..60 features.
+BagOfWords RandomBag(std::mt19937_64& rng, size_t vocab) {
+  std::uniform_int_distribution<int> len(5, 60);
+  std::uniform_real_distribution<double> u(0, 1);
+  std::vector<uint32_t> w;
+  const int n = len(rng);
+  for (int i = 0; i < n; ++i) {
+    // Inverse-CDF of a truncated power law: frequent low ids, long tail.
+    w.push_back(static_cast<uint32_t>(std::min<double>(vocab - 1, std::floor(std::pow(vocab, u(rng)) - 1))));
+  }
+  return BagOfWords::FromWords(w);
+}
+
+TEST(InvertedFileTest, MatchesDenseReferenceOnRandomCorpus) {
+  std::mt19937_64 rng(7);
+  const size_t vocab = 300;
+  std::map<uint32_t, BagOfWords> corpus;
+  for (uint32_t i = 0; i < 120; ++i) corpus[i] = RandomBag(rng, vocab);
+  const InvertedFile file = InvertedFile::Build(vocab, {}, 120, [&](uint32_t image, BagOfWords* bag) {
+    *bag = corpus.at(image);
+    return true;
+  });
+  EXPECT_EQ(file.num_images(), 120u);
+  for (int q = 0; q < 10; ++q) {
+    const BagOfWords query = RandomBag(rng, vocab);
+    const auto expected = ReferenceScores(corpus, query, vocab, true);
+    const auto got = AllScores(file, query);
+    for (const auto& [id, score] : expected) {
+      const double g = got.count(id) ? got.at(id) : 0.0;
+      EXPECT_NEAR(g, score, 1e-6) << "image " << id;
+    }
+  }
+}
+
+TEST(InvertedFileTest, RandomAddRemoveSequenceEqualsRebuild) {
+  std::mt19937_64 rng(12345);
+  const size_t vocab = 500;
+  for (int merge_factor : {2, 8}) {
+    const TfIdfOptions options{.sqrt_tf = true, .merge_factor = merge_factor};
+    InvertedFile file(vocab, options);
+    std::map<uint32_t, BagOfWords> live;
+    uint32_t next_number = 0;
+    for (int step = 0; step < 400; ++step) {
+      std::uniform_int_distribution<int> op(0, 9);
+      if (op(rng) < 3 && !live.empty()) {
+        // Remove one or two random live images.
+        std::vector<uint32_t> ids;
+        std::vector<const BagOfWords*> bags;
+        auto it = live.begin();
+        std::advance(it, std::uniform_int_distribution<size_t>(0, live.size() - 1)(rng));
+        ids.push_back(it->first);
+        bags.push_back(&it->second);
+        file = file.WithRemoved(ids, bags);
+        live.erase(it);
+      } else {
+        // Add a batch of 1..3 images.
+        std::vector<uint32_t> ids;
+        std::vector<BagOfWords> new_bags;
+        const int n = std::uniform_int_distribution<int>(1, 3)(rng);
+        for (int i = 0; i < n; ++i) {
+          ids.push_back(next_number++);
+          new_bags.push_back(RandomBag(rng, vocab));
+        }
+        std::vector<const BagOfWords*> bags;
+        for (auto& b : new_bags) bags.push_back(&b);
+        file = file.WithAdded(ids, bags);
+        for (size_t i = 0; i < ids.size(); ++i) live[ids[i]] = new_bags[i];
+      }
+    }
+    ASSERT_GT(live.size(), 100u);
+    const InvertedFile rebuilt = InvertedFile::Build(vocab, options, next_number, [&](uint32_t image, BagOfWords* bag) {
+      auto it = live.find(image);
+      if (it == live.end()) return false;
+      *bag = it->second;
+      return true;
+    });
+    EXPECT_EQ(file.num_images(), rebuilt.num_images());
+    EXPECT_EQ(file.Stats().num_features, rebuilt.Stats().num_features);
+    for (uint32_t w = 0; w < vocab; ++w) ASSERT_EQ(file.DocumentFrequency(w), rebuilt.DocumentFrequency(w));
+    for (const auto& [id, bag] : live) EXPECT_NEAR(file.Norm(id), rebuilt.Norm(id), 1e-9 * (1 + rebuilt.Norm(id)));
+    for (int q = 0; q < 20; ++q) {
+      const BagOfWords query = RandomBag(rng, vocab);
+      const auto a = AllScores(file, query);
+      const auto b = AllScores(rebuilt, query);
+      ASSERT_EQ(a.size(), b.size());
+      for (const auto& [id, score] : b) {
+        ASSERT_TRUE(a.count(id)) << id;
+        EXPECT_NEAR(a.at(id), score, 1e-6) << "image " << id;
+      }
+      // And against the definition.
+      const auto expected = ReferenceScores(live, query, vocab, true);
+      for (const auto& [id, score] : expected) {
+        EXPECT_NEAR(a.count(id) ? a.at(id) : 0.0, score, 1e-6);
+      }
+    }
+    EXPECT_GE(file.Stats().num_segments, 1u);
+  }
+}
+
+TEST(InvertedFileTest, RemovingEverythingLeavesAnEmptyIndex) {
+  InvertedFile file(10, {});
+  const BagOfWords b0 = Bag({1, 2}), b1 = Bag({2, 3});
+  const std::vector<uint32_t> ids = {0, 1};
+  const std::vector<const BagOfWords*> bags = {&b0, &b1};
+  file = file.WithAdded(ids, bags).WithRemoved(ids, bags);
+  EXPECT_EQ(file.num_images(), 0u);
+  EXPECT_EQ(file.DocumentFrequency(2), 0u);
+  EXPECT_TRUE(AllScores(file, Bag({1, 2, 3})).empty());
+  EXPECT_EQ(file.Stats().num_postings, 0u);  // dead postings compacted away
+}
+
+TEST(InvertedFileTest, StopListDropsFrequentQueryWords) {
+  // Word 0 is in 3 of 4 images (df 0.75); with max_document_frequency 0.5 it is not used.
+  const BagOfWords b0 = Bag({0, 1}), b1 = Bag({0, 2}), b2 = Bag({0, 3}), b3 = Bag({4});
+  const std::vector<uint32_t> ids = {0, 1, 2, 3};
+  const std::vector<const BagOfWords*> bags = {&b0, &b1, &b2, &b3};
+  InvertedFile all = InvertedFile(5, {}).WithAdded(ids, bags);
+  InvertedFile stopped = InvertedFile(5, TfIdfOptions{.max_document_frequency = 0.5}).WithAdded(ids, bags);
+  EXPECT_EQ(all.QueryVector(Bag({0, 1})).size(), 2u);
+  const auto q = stopped.QueryVector(Bag({0, 1}));
+  ASSERT_EQ(q.size(), 1u);
+  EXPECT_EQ(q[0].word, 1u);
+  EXPECT_EQ(AllScores(all, Bag({0})).size(), 3u);
+  EXPECT_TRUE(AllScores(stopped, Bag({0})).empty());
+}
+
+TEST(InvertedFileTest, TopKIsOrderedAndTruncated) {
+  std::mt19937_64 rng(3);
+  const size_t vocab = 200;
+  std::map<uint32_t, BagOfWords> corpus;
+  for (uint32_t i = 0; i < 50; ++i) corpus[i] = RandomBag(rng, vocab);
+  const InvertedFile file = InvertedFile::Build(vocab, {}, 50, [&](uint32_t image, BagOfWords* bag) {
+    *bag = corpus.at(image);
+    return true;
+  }, 2);
+  ScoreScratch scratch;
+  const auto q = file.QueryVector(corpus.at(17));
+  uint64_t candidates = 0;
+  const auto top = file.Score(q, 5, &scratch, &candidates);
+  ASSERT_EQ(top.size(), 5u);
+  EXPECT_EQ(top[0].image, 17u);
+  EXPECT_NEAR(top[0].score, 1.0, 1e-5);
+  for (size_t i = 1; i < top.size(); ++i) EXPECT_GE(top[i - 1].score, top[i].score);
+  EXPECT_GE(candidates, 5u);
+  // The scratch accumulator is left zeroed for the next query.
+  for (float v : scratch.accumulator) ASSERT_EQ(v, 0.0f);
+}
+
+TEST(InvertedFileTest, OptionsAreChecked) {
+  EXPECT_TRUE(TfIdfOptions{.max_document_frequency = 0}.Check().has_value());
+  EXPECT_TRUE(TfIdfOptions{.merge_factor = 1}.Check().has_value());
+  EXPECT_FALSE(TfIdfOptions{}.Check().has_value());
+}
+
+}  // namespace
+}  // namespace oxbow::index
