@@ -6,15 +6,20 @@
 // largest dot product. The exact matcher computes a blocked matrix product Q D^T (AVX2/FMA when compiled
 // with it, a scalar loop computing the same sums otherwise) and keeps the two best neighbours per query.
 // The approximate matcher uses FLANN randomised kd-trees (Silpa-Anan & Hartley 2008; Muja & Lowe 2009):
-// `kd_trees` trees built over the db descriptors, `kd_checks` leaves visited per query.
+// `kd_trees` trees built over the db descriptors, `kd_checks` leaves visited per query. We use the FLANN
+// copy inside OpenCV (cvflann) rather than libflann 1.9: libflann 1.9 shuffles with std::random_device
+// when it builds trees, so its results change from run to run; cvflann draws from cv::theRNG(), which
+// we seed with `kd_seed` (thread-local, restored afterwards), so the forest and the matches are
+// reproducible.
 //
 // Ratio test (Lowe 2004, sec. 7.1): a query feature is matched to its nearest db feature only when
 // dist(nearest) < ratio * dist(second nearest); Lowe found 0.8 removes 90% of false matches while
 // losing under 5% of the correct ones. With fewer than two db features the ratio test cannot be applied
-// and the query feature gets no match.
+// and the query feature gets no match (unless ratio == 1, which disables the test).
 //
 // Mutual check: the match q -> d is kept only if q is also d's nearest neighbour among the query
-// features (exact search over the query set in the same way, no ratio test on the reverse side).
+// features (searched with the same method: exactly, or with a kd-forest over the query descriptors; no
+// ratio test on the reverse side).
 //
 // One-to-one (after the above): when several query features matched the same db feature only the
 // closest is kept (COLMAP issue 288: spatial verification lowered Oxford mAP until this was enforced).
@@ -55,7 +60,7 @@ struct MatchOptions {
   int kd_trees = 4;     // number of randomised kd-trees, [1, 64]; more trees = better recall, slower build
   int kd_checks = 64;   // leaves visited per query (FLANN `checks`), [1, 1 << 20]; more = better recall
   float ratio = 0.8f;   // Lowe's ratio test threshold on L2 distances, (0, 1]; 1 disables the test
-                        // (still needs two db features); Lowe 2004 sec. 7.1 recommends 0.8
+                        // (then a single db feature suffices); Lowe 2004 sec. 7.1 recommends 0.8
   bool mutual = false;  // also require the query feature to be the db feature's nearest neighbour
   bool one_to_one = true;  // keep only the closest match per db feature (query side is unique by design)
   // --- Performance
