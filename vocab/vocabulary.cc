@@ -1,45 +1,253 @@
+// Vocabulary: immutable centroids + two-level quantiser, and its file format.
+//
+// File (binary_io.h container, magic "OXBWVOCB", version 1), payload in host byte order (the
+// container records it):
+//   u32 dimension | u64 num_words | u8 descriptor kind (0 SIFT, 1 RootSIFT) | string extractor settings
+//   (u32 length + bytes) | u64 fingerprint | u64 num_lists | u64 offsets[num_lists + 1]
+//   | f32 coarse[num_lists x dimension] | f32 centroids[num_words x dimension]
+// The words are stored in coarse-list order (list l holds rows offsets[l]..offsets[l+1]), and a word's
+// id is its row, so the quantiser needs no id table and loading is one read plus one copy. The coarse
+// level is stored, not rebuilt, because rebuilding it for 1M words costs minutes.
 #include "vocab/vocabulary.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <numeric>
+
+#include "sift/binary_io.h"
+#include "vocab/kernels.h"
+#include "vocab/search.h"
 
 namespace oxbow::vocab {
 
+namespace {
+constexpr char kMagic[] = "OXBWVOCB";
+constexpr uint32_t kVersion = 1;
+constexpr int kMaxDimension = 4096;
+
+// 64-bit hash of bytes (8-byte words folded through the SplitMix64 finaliser; tail bytewise).
+uint64_t HashBytes(const void* data, size_t size, uint64_t h) {
+  auto mix = [](uint64_t z) {
+    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
+    z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
+    return z ^ (z >> 31);
+  };
+  const auto* p = static_cast<const uint8_t*>(data);
+  size_t i = 0;
+  for (; i + 8 <= size; i += 8) {
+    uint64_t v;
+    std::memcpy(&v, p + i, 8);
+    h = mix(h ^ v) + 0x9E3779B97F4A7C15ull;
+  }
+  for (; i < size; ++i) h = mix(h ^ p[i]) + 0x9E3779B97F4A7C15ull;
+  return mix(h ^ size);
+}
+
+bool AllFinite(std::span<const float> values) {
+  return std::all_of(values.begin(), values.end(), [](float v) { return std::isfinite(v); });
+}
+}  // namespace
+
 struct Vocabulary::State {
-  std::vector<float> centroids;
   int dimension = 0;
   sift::DescriptorKind kind = sift::DescriptorKind::kSift;
   std::string settings;
   uint64_t fingerprint = 0;
-  size_t num_lists = 0;
+  std::vector<float> centroids;  // k x dimension, in coarse-list order
+  std::vector<float> norms;      // k squared norms
+  internal::TwoLevelIndex index;
+
+  // Finishes a state whose dimension, kind, settings, centroids, index.coarse and index.offsets are set.
+  void Finish() {
+    const size_t k = centroids.size() / dimension;
+    norms.resize(k);
+    internal::RowSquaredNorms(centroids.data(), k, dimension, norms.data());
+    index.dim = dimension;
+    index.coarse_norms.resize(index.coarse.size() / dimension);
+    internal::RowSquaredNorms(index.coarse.data(), index.coarse_norms.size(), dimension, index.coarse_norms.data());
+    index.words = {centroids.data(), norms.data(), k, dimension};
+    fingerprint = ComputeFingerprint();
+  }
+  uint64_t ComputeFingerprint() const {
+    uint64_t h = HashBytes(&dimension, sizeof(dimension), 0x0B0B0B0Bull);
+    const auto kind_byte = static_cast<uint8_t>(kind);
+    h = HashBytes(&kind_byte, 1, h);
+    h = HashBytes(settings.data(), settings.size(), h);
+    return HashBytes(centroids.data(), centroids.size() * sizeof(float), h);
+  }
 };
 
-std::optional<std::string> QuantizerOptions::Check() const { return std::nullopt; }
-std::optional<std::string> QuantizerBuildOptions::Check() const { return std::nullopt; }
-std::optional<std::string> TrainOptions::Check() const { return std::nullopt; }
-std::optional<std::string> SampleOptions::Check() const { return std::nullopt; }
-
-Result<Vocabulary> Vocabulary::Read(const std::string&) { return Fail(ErrorCode::kInternal, "not implemented"); }
-Result<Vocabulary> Vocabulary::FromCentroids(std::vector<float>, int, sift::DescriptorKind, std::string,
-                                             const QuantizerBuildOptions&) {
-  return Fail(ErrorCode::kInternal, "not implemented");
+std::optional<std::string> QuantizerOptions::Check() const {
+  if (num_threads < 0) return "QuantizerOptions.num_threads must be >= 0 (0 = all hardware threads)";
+  if (num_probes < 1) return "QuantizerOptions.num_probes must be >= 1";
+  return std::nullopt;
 }
-Status Vocabulary::Write(const std::string&) const { return Fail(ErrorCode::kInternal, "not implemented"); }
+
+std::optional<std::string> QuantizerBuildOptions::Check() const {
+  if (iterations < 1 || iterations > 100) return "QuantizerBuildOptions.iterations must be in [1, 100]";
+  if (num_threads < 0) return "QuantizerBuildOptions.num_threads must be >= 0";
+  return std::nullopt;
+}
+
+Result<Vocabulary> Vocabulary::FromCentroids(std::vector<float> centroids, int dimension, sift::DescriptorKind kind,
+                                             std::string extractor_settings, const QuantizerBuildOptions& build) {
+  if (auto problem = build.Check()) return Fail(ErrorCode::kInvalidArgument, *problem);
+  if (dimension < 1 || dimension > kMaxDimension)
+    return Fail(ErrorCode::kInvalidArgument, "vocabulary dimension must be in [1, 4096], got " + std::to_string(dimension));
+  if (centroids.empty() || centroids.size() % dimension != 0)
+    return Fail(ErrorCode::kInvalidArgument, "centroid matrix must be non-empty with a multiple of " +
+                                                 std::to_string(dimension) + " values, got " + std::to_string(centroids.size()));
+  const size_t k = centroids.size() / dimension;
+  if (k > std::numeric_limits<uint32_t>::max() - 1) return Fail(ErrorCode::kInvalidArgument, "too many words (max 2^32 - 2)");
+  if (!AllFinite(centroids)) return Fail(ErrorCode::kInvalidArgument, "centroids contain NaN or infinity");
+  if (build.num_lists > k)
+    return Fail(ErrorCode::kInvalidArgument, "QuantizerBuildOptions.num_lists (" + std::to_string(build.num_lists) +
+                                                 ") exceeds the number of words (" + std::to_string(k) + ")");
+  const size_t lists = build.num_lists > 0 ? build.num_lists : internal::DefaultNumLists(k);
+  internal::CoarseClustering coarse =
+      internal::ClusterCoarse(centroids.data(), k, dimension, lists, build.iterations, build.seed, build.num_threads);
+  // Renumber the words in list order (stable within a list).
+  std::vector<uint32_t> order(k);
+  std::iota(order.begin(), order.end(), 0u);
+  std::stable_sort(order.begin(), order.end(), [&](uint32_t a, uint32_t b) {
+    return coarse.list_of_point[a] < coarse.list_of_point[b];
+  });
+  auto state = std::make_shared<State>();
+  state->dimension = dimension;
+  state->kind = kind;
+  state->settings = std::move(extractor_settings);
+  state->centroids.resize(centroids.size());
+  for (size_t r = 0; r < k; ++r)
+    std::copy_n(centroids.data() + size_t{order[r]} * dimension, dimension, state->centroids.data() + r * dimension);
+  state->index.coarse = std::move(coarse.centroids);
+  state->index.offsets.assign(lists + 1, 0);
+  for (uint32_t l : coarse.list_of_point) ++state->index.offsets[l + 1];
+  std::partial_sum(state->index.offsets.begin(), state->index.offsets.end(), state->index.offsets.begin());
+  state->Finish();
+  return Vocabulary(std::move(state));
+}
+
+Status Vocabulary::Write(const std::string& path) const {
+  const State& s = *state_;
+  io::ByteWriter w;
+  w.Put<uint32_t>(static_cast<uint32_t>(s.dimension));
+  w.Put<uint64_t>(size());
+  w.Put<uint8_t>(static_cast<uint8_t>(s.kind));
+  w.PutString(s.settings);
+  w.Put<uint64_t>(s.fingerprint);
+  w.Put<uint64_t>(s.index.num_lists());
+  w.PutArray(std::span<const uint64_t>(s.index.offsets));
+  w.PutArray(std::span<const float>(s.index.coarse));
+  w.PutArray(std::span<const float>(s.centroids));
+  return io::WriteContainerFile(path, std::string_view(kMagic, 8), kVersion, 0, w.bytes());
+}
+
+Result<Vocabulary> Vocabulary::Read(const std::string& path) {
+  auto container = io::ReadContainerFile(path, std::string_view(kMagic, 8), kVersion, kVersion);
+  if (!container) return std::unexpected(container.error());
+  io::ByteReader r(container->payload, "vocabulary file '" + path + "'");
+  auto corrupt = [&](const std::string& what) {
+    return Fail(ErrorCode::kCorruptData, "vocabulary file '" + path + "': " + what);
+  };
+  auto state = std::make_shared<State>();
+  auto dim = r.Get<uint32_t>();
+  if (!dim) return std::unexpected(dim.error());
+  if (*dim < 1 || *dim > kMaxDimension) return corrupt("dimension " + std::to_string(*dim) + " outside [1, 4096]");
+  state->dimension = static_cast<int>(*dim);
+  auto k = r.Get<uint64_t>();
+  if (!k) return std::unexpected(k.error());
+  auto kind = r.Get<uint8_t>();
+  if (!kind) return std::unexpected(kind.error());
+  if (*kind > 1) return corrupt("unknown descriptor kind " + std::to_string(*kind));
+  state->kind = static_cast<sift::DescriptorKind>(*kind);
+  auto settings = r.GetString();
+  if (!settings) return std::unexpected(settings.error());
+  state->settings = std::move(*settings);
+  auto fingerprint = r.Get<uint64_t>();
+  if (!fingerprint) return std::unexpected(fingerprint.error());
+  auto lists = r.Get<uint64_t>();
+  if (!lists) return std::unexpected(lists.error());
+  if (*k < 1 || *lists < 1 || *lists > *k) return corrupt("bad word or list count");
+  // Sizes must match the remaining bytes exactly before anything large is allocated.
+  const uint64_t d = *dim;
+  const uint64_t expected = (*lists + 1) * 8 + (*lists * d + *k * d) * 4;
+  if (*k > (uint64_t{1} << 32) - 2 || *lists > *k || r.remaining() != expected)
+    return corrupt("payload size does not match its " + std::to_string(*k) + " words and " + std::to_string(*lists) +
+                   " lists");
+  state->index.offsets.resize(*lists + 1);
+  state->index.coarse.resize(*lists * d);
+  state->centroids.resize(*k * d);
+  if (auto s = r.GetArray(std::span<uint64_t>(state->index.offsets)); !s) return std::unexpected(s.error());
+  if (auto s = r.GetArray(std::span<float>(state->index.coarse)); !s) return std::unexpected(s.error());
+  if (auto s = r.GetArray(std::span<float>(state->centroids)); !s) return std::unexpected(s.error());
+  const auto& off = state->index.offsets;
+  if (off.front() != 0 || off.back() != *k || !std::is_sorted(off.begin(), off.end()))
+    return corrupt("list offsets are not a partition of the words");
+  if (!AllFinite(state->centroids) || !AllFinite(state->index.coarse)) return corrupt("NaN or infinite centroid values");
+  state->Finish();
+  if (state->fingerprint != *fingerprint) return corrupt("fingerprint does not match the centroids");
+  return Vocabulary(std::move(state));
+}
+
 size_t Vocabulary::size() const { return state_->centroids.size() / state_->dimension; }
 int Vocabulary::dimension() const { return state_->dimension; }
 sift::DescriptorKind Vocabulary::descriptor_kind() const { return state_->kind; }
 const std::string& Vocabulary::extractor_settings() const { return state_->settings; }
 uint64_t Vocabulary::fingerprint() const { return state_->fingerprint; }
 std::span<const float> Vocabulary::centroids() const { return state_->centroids; }
-size_t Vocabulary::num_lists() const { return state_->num_lists; }
-void Vocabulary::Quantize(std::span<const float>, std::span<uint32_t>, const QuantizerOptions&) const {}
-void Vocabulary::QuantizeMulti(std::span<const float>, int, std::span<uint32_t>, std::span<float>,
-                               const QuantizerOptions&) const {}
+size_t Vocabulary::num_lists() const { return state_->index.num_lists(); }
 
-Result<Vocabulary> Train(std::span<const float>, int, sift::DescriptorKind, std::string, const TrainOptions&,
-                         TrainReport*) {
-  return Fail(ErrorCode::kInternal, "not implemented");
+void Vocabulary::Quantize(std::span<const float> descriptors, std::span<uint32_t> words,
+                          const QuantizerOptions& options) const {
+  const State& s = *state_;
+  OXBOW_CHECK(descriptors.size() % s.dimension == 0, "descriptor buffer is not a multiple of the dimension");
+  const size_t n = descriptors.size() / s.dimension;
+  OXBOW_CHECK(words.size() == n, "words must have one entry per descriptor");
+  OXBOW_CHECK(!options.Check(), "invalid QuantizerOptions (see QuantizerOptions::Check)");
+  if (n == 0) return;
+  std::vector<float> scores(n);
+  if (options.exact) {
+    internal::ExactSearch(s.index.words, descriptors.data(), n, 1, options.num_threads, words.data(), scores.data());
+  } else {
+    s.index.Search(descriptors.data(), n, 1, options.num_probes, options.num_threads, words.data(), scores.data());
+  }
 }
 
-DescriptorSampler::DescriptorSampler(const SampleOptions& options, int dimension)
-    : options_(options), dimension_(dimension), rng_state_(options.seed) {}
-void DescriptorSampler::AddImage(std::span<const float>) {}
+void Vocabulary::QuantizeMulti(std::span<const float> descriptors, int k, std::span<uint32_t> words,
+                               std::span<float> sq_distances, const QuantizerOptions& options) const {
+  const State& s = *state_;
+  OXBOW_CHECK(k >= 1, "k must be >= 1");
+  OXBOW_CHECK(descriptors.size() % s.dimension == 0, "descriptor buffer is not a multiple of the dimension");
+  const size_t n = descriptors.size() / s.dimension;
+  OXBOW_CHECK(words.size() == n * k && sq_distances.size() == n * k, "outputs must hold n x k entries");
+  OXBOW_CHECK(!options.Check(), "invalid QuantizerOptions (see QuantizerOptions::Check)");
+  if (n == 0) return;
+  if (options.exact) {
+    internal::ExactSearch(s.index.words, descriptors.data(), n, k, options.num_threads, words.data(),
+                          sq_distances.data());
+  } else {
+    s.index.Search(descriptors.data(), n, k, options.num_probes, options.num_threads, words.data(),
+                   sq_distances.data());
+  }
+  // Replace scores by exact squared distances and re-sort (the score order can differ in the last bits).
+  const size_t num_words = size();
+  std::vector<std::pair<float, uint32_t>> row(k);
+  for (size_t i = 0; i < n; ++i) {
+    const float* q = descriptors.data() + i * s.dimension;
+    for (int j = 0; j < k; ++j) {
+      const uint32_t w = words[i * k + j];
+      row[j] = {w < num_words ? internal::SquaredL2(q, s.centroids.data() + size_t{w} * s.dimension, s.dimension)
+                              : std::numeric_limits<float>::infinity(),
+                w};
+    }
+    std::sort(row.begin(), row.end());
+    for (int j = 0; j < k; ++j) {
+      sq_distances[i * k + j] = row[j].first;
+      words[i * k + j] = row[j].second;
+    }
+  }
+}
 
 }  // namespace oxbow::vocab

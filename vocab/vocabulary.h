@@ -103,6 +103,16 @@ class Vocabulary {
   std::shared_ptr<const State> state_;
 };
 
+// How Train finds each descriptor's nearest centroid in a Lloyd iteration.
+enum class AssignmentMethod : uint8_t {
+  kAuto,          // kExact up to TrainOptions::exact_assignment_max_words, kInvertedFile above (measured fastest)
+  kExact,         // every centroid (blocked AVX2 register tiles); O(n k d) per iteration
+  kKdForest,      // FLANN randomised kd-forest over the centroids, rebuilt every iteration (AKM, Philbin 2007)
+  kInvertedFile,  // the two-level quantiser of Vocabulary, rebuilt every iteration
+};
+
+const char* AssignmentMethodName(AssignmentMethod method);  // "auto" | "exact" | "kdforest" | "ivf"
+
 // Parameters of Train.
 struct TrainOptions {
   // Number of visual words k. Range [1, number of training descriptors].
@@ -112,21 +122,29 @@ struct TrainOptions {
   // Stop when the objective (mean squared distance to the assigned word) improves by less than this
   // fraction of its previous value in one iteration. Range [0, 1); 0 runs all iterations.
   double min_relative_improvement = 1e-4;
-  // Seed of the seeding and of the kd-forest; equal seeds and inputs give equal vocabularies, whatever
-  // the thread count.
+  // Seed of the seeding and of the approximate search structures; equal seeds and inputs give equal
+  // vocabularies, whatever the thread count.
   uint64_t seed = 1;
   // Threads, 0 = all hardware threads. The result does not depend on it.
   int num_threads = 0;
-  // Vocabularies up to this many words use exact assignment (every centroid, blocked matrix product);
-  // larger ones use the approximate kd-forest assignment (Philbin et al. 2007). Range >= 0.
+  // Nearest-centroid search during the iterations. With an approximate method a descriptor keeps its
+  // previous word when the search returns a farther one, so the objective still never increases.
+  AssignmentMethod assignment = AssignmentMethod::kAuto;
+  // kAuto: vocabularies up to this many words use exact assignment. Range >= 0.
   size_t exact_assignment_max_words = 4096;
-  // Approximate assignment: randomised kd-trees in the FLANN forest (Philbin et al. 2007 use 8). [1, 64]
+  // kKdForest: randomised kd-trees in the forest (Philbin et al. 2007 use 8). Range [1, 64].
   int kdtree_trees = 8;
-  // Approximate assignment: leaves checked per search (FLANN "checks"). Range [1, 100000].
+  // kKdForest: leaves checked per search (FLANN "checks"). Range [1, 100000].
   int kdtree_checks = 64;
-  // Seeding: k-means++ (D^2 sampling) when k is at most this; above it, k distinct descriptors chosen
-  // uniformly at random (k-means++ costs O(n k d), prohibitive for very large k). Range >= 0.
-  size_t kmeanspp_max_words = 20000;
+  // kInvertedFile: coarse lists probed per descriptor during training. Range >= 1.
+  int ivf_probes = 8;
+  // Seeding: k-means++ (D^2 sampling, Arthur & Vassilvitskii 2007) when k is at most this, run on a
+  // uniform subsample of seeding_points_per_word * k descriptors; above it, k distinct descriptors
+  // chosen uniformly at random (k-means++ costs O(k^2 d) sequential rounds, prohibitive for large k;
+  // with many Lloyd iterations the difference fades). Range >= 0.
+  size_t kmeanspp_max_words = 4096;
+  // Subsample factor of the k-means++ seeding. Range >= 1.
+  size_t seeding_points_per_word = 16;
   // How the coarse quantiser of the resulting vocabulary is built.
   QuantizerBuildOptions quantizer;
 

@@ -1,0 +1,159 @@
+#include "vocab/search.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <numeric>
+
+#include "sift/parallel.h"
+#include "vocab/kernels.h"
+
+namespace oxbow::vocab::internal {
+namespace {
+
+constexpr float kInf = std::numeric_limits<float>::infinity();
+
+// Sorted (score, row) list of capacity k per query; rows/scores point at the query's k slots.
+inline void Insert(uint32_t* rows, float* scores, int k, uint32_t row, float score) {
+  const int last = k - 1;
+  if (score > scores[last] || (score == scores[last] && row >= rows[last])) return;
+  int pos = last;
+  while (pos > 0 && (score < scores[pos - 1] || (score == scores[pos - 1] && row < rows[pos - 1]))) {
+    scores[pos] = scores[pos - 1];
+    rows[pos] = rows[pos - 1];
+    --pos;
+  }
+  scores[pos] = score;
+  rows[pos] = row;
+}
+
+void Reset(uint32_t* rows, float* scores, size_t count, uint32_t fill_row) {
+  std::fill(rows, rows + count, fill_row);
+  std::fill(scores, scores + count, kInf);
+}
+
+// Words per cache block when scanning a whole matrix: 512 x 128 floats = 256 KiB, half an L2.
+size_t WordBlock(int dim) { return std::max<size_t>(16, (size_t{1} << 16) / static_cast<size_t>(dim)); }
+
+// Scores `query_ptrs` (count) against all of `words`, blocked over words, keeping k best per query in
+// rows/scores (indexed by position in query_ptrs).
+void ScanAll(const WordMatrix& words, const float* const* query_ptrs, size_t count, int k, uint32_t* rows,
+             float* scores) {
+  const size_t block = WordBlock(words.dim);
+  for (size_t w0 = 0; w0 < words.num_words; w0 += block) {
+    const size_t nw = std::min(block, words.num_words - w0);
+    auto sink = [&](size_t qi, size_t wj, float score) {
+      Insert(rows + qi * k, scores + qi * k, k, static_cast<uint32_t>(w0 + wj), score);
+    };
+    ScoreBlock(query_ptrs, count, words.words + w0 * words.dim, words.norms + w0, nw, words.dim, sink);
+  }
+}
+
+constexpr size_t kQueryBatch = 2048;
+
+}  // namespace
+
+size_t DefaultNumLists(size_t num_words) {
+  const double lists = std::round(4.0 * std::sqrt(static_cast<double>(num_words)));
+  return std::clamp<size_t>(static_cast<size_t>(lists), 1, std::max<size_t>(1, num_words));
+}
+
+void ExactSearch(const WordMatrix& words, const float* queries, size_t n, int k, int num_threads, uint32_t* rows,
+                 float* scores) {
+  constexpr size_t kGrain = 256;
+  ParallelFor(n, num_threads, kGrain, [&](size_t begin, size_t end, int) {
+    std::vector<const float*> ptrs(end - begin);
+    for (size_t i = begin; i < end; ++i) ptrs[i - begin] = queries + i * words.dim;
+    Reset(rows + begin * k, scores + begin * k, (end - begin) * k, static_cast<uint32_t>(words.num_words));
+    ScanAll(words, ptrs.data(), ptrs.size(), k, rows + begin * k, scores + begin * k);
+  });
+}
+
+void TwoLevelIndex::Search(const float* queries, size_t n, int k, int num_probes, int num_threads, uint32_t* rows,
+                           float* scores) const {
+  const size_t lists = num_lists();
+  const int probes = static_cast<int>(std::clamp<size_t>(static_cast<size_t>(std::max(1, num_probes)), 1, lists));
+  const WordMatrix coarse_matrix{coarse.data(), coarse_norms.data(), lists, dim};
+  ParallelFor(n, num_threads, kQueryBatch, [&](size_t begin, size_t end, int) {
+    const size_t count = end - begin;
+    std::vector<const float*> ptrs(count);
+    for (size_t i = 0; i < count; ++i) ptrs[i] = queries + (begin + i) * dim;
+    // 1. The `probes` nearest coarse centroids of every query.
+    std::vector<uint32_t> probe_lists(count * probes);
+    std::vector<float> probe_scores(count * probes);
+    Reset(probe_lists.data(), probe_scores.data(), probe_lists.size(), static_cast<uint32_t>(lists));
+    ScanAll(coarse_matrix, ptrs.data(), count, probes, probe_lists.data(), probe_scores.data());
+    // 2. Group the queries by probed list (counting sort), so each list is read once per batch.
+    std::vector<uint32_t> group_start(lists + 1, 0);
+    for (uint32_t l : probe_lists) ++group_start[l + 1];
+    std::partial_sum(group_start.begin(), group_start.end(), group_start.begin());
+    std::vector<uint32_t> fill(group_start.begin(), group_start.end() - 1);
+    std::vector<uint32_t> members(probe_lists.size());
+    for (size_t q = 0; q < count; ++q)
+      for (int p = 0; p < probes; ++p) members[fill[probe_lists[q * probes + p]]++] = static_cast<uint32_t>(q);
+    // 3. Score each list's words against the queries that probe it.
+    uint32_t* out_rows = rows + begin * k;
+    float* out_scores = scores + begin * k;
+    Reset(out_rows, out_scores, count * k, static_cast<uint32_t>(words.num_words));
+    std::vector<const float*> group_ptrs;
+    for (size_t l = 0; l < lists; ++l) {
+      const uint32_t g0 = group_start[l], g1 = group_start[l + 1];
+      const uint64_t w0 = offsets[l], w1 = offsets[l + 1];
+      if (g0 == g1 || w0 == w1) continue;
+      group_ptrs.resize(g1 - g0);
+      for (uint32_t g = g0; g < g1; ++g) group_ptrs[g - g0] = ptrs[members[g]];
+      const uint32_t* group = members.data() + g0;
+      auto sink = [&](size_t gi, size_t wj, float score) {
+        const size_t q = group[gi];
+        Insert(out_rows + q * k, out_scores + q * k, k, static_cast<uint32_t>(w0 + wj), score);
+      };
+      ScoreBlock(group_ptrs.data(), group_ptrs.size(), words.words + w0 * dim, words.norms + w0, w1 - w0, dim, sink);
+    }
+  });
+}
+
+CoarseClustering ClusterCoarse(const float* points, size_t n, int dim, size_t num_lists, int iterations,
+                               uint64_t seed, int num_threads) {
+  num_lists = std::clamp<size_t>(num_lists, 1, std::max<size_t>(1, n));
+  SplitMix64 rng(seed ^ 0xC0A125Eull);
+  // Subsample (partial Fisher-Yates over indices): at most 64 points per list train the centroids.
+  std::vector<uint32_t> order(n);
+  std::iota(order.begin(), order.end(), 0u);
+  const size_t sample = std::min(n, num_lists * 64);
+  for (size_t i = 0; i < sample; ++i) std::swap(order[i], order[i + rng.Below(n - i)]);
+  std::vector<float> train(sample * dim);
+  for (size_t i = 0; i < sample; ++i) std::copy_n(points + size_t{order[i]} * dim, dim, train.data() + i * dim);
+  // The first num_lists sampled points (distinct indices) seed the centroids.
+  CoarseClustering out;
+  out.centroids.assign(train.begin(), train.begin() + num_lists * dim);
+  std::vector<float> norms(num_lists);
+  std::vector<uint32_t> assign(sample);
+  std::vector<float> score(sample);
+  std::vector<double> sums(num_lists * dim);
+  std::vector<uint32_t> counts(num_lists);
+  for (int it = 0; it < iterations; ++it) {
+    RowSquaredNorms(out.centroids.data(), num_lists, dim, norms.data());
+    ExactSearch({out.centroids.data(), norms.data(), num_lists, dim}, train.data(), sample, 1, num_threads,
+                assign.data(), score.data());
+    std::fill(sums.begin(), sums.end(), 0.0);
+    std::fill(counts.begin(), counts.end(), 0u);
+    for (size_t i = 0; i < sample; ++i) {
+      const uint32_t c = assign[i];
+      ++counts[c];
+      for (int d = 0; d < dim; ++d) sums[size_t{c} * dim + d] += train[i * dim + d];
+    }
+    for (size_t c = 0; c < num_lists; ++c) {
+      if (counts[c] == 0) continue;  // an empty coarse list keeps its centroid
+      for (int d = 0; d < dim; ++d)
+        out.centroids[c * dim + d] = static_cast<float>(sums[c * dim + d] / counts[c]);
+    }
+  }
+  RowSquaredNorms(out.centroids.data(), num_lists, dim, norms.data());
+  out.list_of_point.resize(n);
+  std::vector<float> all_scores(n);
+  ExactSearch({out.centroids.data(), norms.data(), num_lists, dim}, points, n, 1, num_threads,
+              out.list_of_point.data(), all_scores.data());
+  return out;
+}
+
+}  // namespace oxbow::vocab::internal

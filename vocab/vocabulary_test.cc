@@ -1,0 +1,241 @@
+#include "vocab/vocabulary.h"
+
+#include <gtest/gtest.h>
+#include <opencv2/features2d.hpp>
+#include <opencv2/imgcodecs.hpp>
+
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <random>
+
+#include "sift/binary_io.h"
+#include "sift/log.h"
+#include "vocab/kernels.h"
+
+namespace oxbow::vocab {
+namespace {
+
+namespace fs = std::filesystem;
+
+std::string TempPath(const std::string& name) {
+  return (fs::temp_directory_path() / ("oxbow_vocab_test_" + std::to_string(::getpid()) + "_" + name)).string();
+}
+
+// RootSIFT descriptors of real photos (cv::SIFT as the stand-in extractor; opencv-doc is always installed).
+std::vector<float> RealDescriptors() {
+  std::vector<float> out;
+  auto sift = cv::SIFT::create(1500);
+  for (const char* name : {"graf1.png", "box_in_scene.png", "leuvenA.jpg"}) {
+    const cv::Mat image = cv::imread(std::string("/usr/share/doc/opencv-doc/examples/data/") + name, cv::IMREAD_GRAYSCALE);
+    if (image.empty()) continue;
+    std::vector<cv::KeyPoint> keypoints;
+    cv::Mat desc;
+    sift->detectAndCompute(image, cv::noArray(), keypoints, desc);
+    for (int r = 0; r < desc.rows; ++r) {
+      const float* d = desc.ptr<float>(r);
+      double l1 = 0;
+      for (int i = 0; i < 128; ++i) l1 += d[i];
+      for (int i = 0; i < 128; ++i) out.push_back(static_cast<float>(std::sqrt(d[i] / std::max(l1, 1e-12))));
+    }
+  }
+  return out;
+}
+
+// A realistic vocabulary without training: words are real descriptors plus a little noise.
+std::vector<float> WordsFrom(const std::vector<float>& descriptors, size_t k, uint32_t seed) {
+  std::mt19937 rng(seed);
+  std::normal_distribution<float> noise(0.f, 0.01f);
+  const size_t n = descriptors.size() / 128;
+  std::vector<float> words(k * 128);
+  for (size_t w = 0; w < k; ++w) {
+    const size_t src = (w * 7919) % n;
+    for (int d = 0; d < 128; ++d) words[w * 128 + d] = descriptors[src * 128 + d] + noise(rng);
+  }
+  return words;
+}
+
+class VocabularyTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    log::SetLevel(log::Level::kWarning);
+    descriptors_ = new std::vector<float>(RealDescriptors());
+  }
+  static void TearDownTestSuite() { delete descriptors_; }
+  static const std::vector<float>& descriptors() { return *descriptors_; }
+  static std::vector<float>* descriptors_;
+};
+std::vector<float>* VocabularyTest::descriptors_ = nullptr;
+
+TEST_F(VocabularyTest, FileRoundTrip) {
+  ASSERT_GT(descriptors().size(), 128u * 1000);
+  auto vocab = Vocabulary::FromCentroids(WordsFrom(descriptors(), 500, 1), 128, sift::DescriptorKind::kRootSift,
+                                         "sift peak=0.0067 edge=10");
+  ASSERT_TRUE(vocab) << vocab.error().ToString();
+  const std::string path = TempPath("roundtrip.vocab");
+  ASSERT_TRUE(vocab->Write(path));
+  auto back = Vocabulary::Read(path);
+  ASSERT_TRUE(back) << back.error().ToString();
+  EXPECT_EQ(back->size(), 500u);
+  EXPECT_EQ(back->dimension(), 128);
+  EXPECT_EQ(back->descriptor_kind(), sift::DescriptorKind::kRootSift);
+  EXPECT_EQ(back->extractor_settings(), "sift peak=0.0067 edge=10");
+  EXPECT_EQ(back->fingerprint(), vocab->fingerprint());
+  EXPECT_EQ(back->num_lists(), vocab->num_lists());
+  EXPECT_TRUE(std::equal(back->centroids().begin(), back->centroids().end(), vocab->centroids().begin(),
+                         vocab->centroids().end()));
+  std::vector<uint32_t> a(2000), b(2000);
+  const std::span<const float> queries(descriptors().data(), 2000 * 128);
+  vocab->Quantize(queries, a);
+  back->Quantize(queries, b);
+  EXPECT_EQ(a, b);
+  fs::remove(path);
+}
+
+TEST_F(VocabularyTest, RefusesDamagedTruncatedForeignAndNewerFiles) {
+  auto vocab = Vocabulary::FromCentroids(WordsFrom(descriptors(), 64, 2), 128, sift::DescriptorKind::kSift, "x");
+  ASSERT_TRUE(vocab);
+  const std::string path = TempPath("damaged.vocab");
+  ASSERT_TRUE(vocab->Write(path));
+  std::vector<char> bytes;
+  {
+    std::ifstream in(path, std::ios::binary);
+    bytes.assign(std::istreambuf_iterator<char>(in), {});
+  }
+  auto write = [&](const std::vector<char>& b) {
+    std::ofstream out(path, std::ios::binary | std::ios::trunc);
+    out.write(b.data(), static_cast<std::streamsize>(b.size()));
+  };
+  // One flipped bit in the centroids.
+  auto flipped = bytes;
+  flipped[bytes.size() - 100] ^= 0x10;
+  write(flipped);
+  auto r1 = Vocabulary::Read(path);
+  ASSERT_FALSE(r1);
+  EXPECT_EQ(r1.error().code, ErrorCode::kCorruptData);
+  EXPECT_NE(r1.error().message.find(path), std::string::npos) << "the message names the file";
+  // Truncated.
+  write(std::vector<char>(bytes.begin(), bytes.begin() + bytes.size() / 2));
+  auto r2 = Vocabulary::Read(path);
+  ASSERT_FALSE(r2);
+  EXPECT_EQ(r2.error().code, ErrorCode::kCorruptData);
+  // Foreign file (another container magic, and plain text).
+  ASSERT_TRUE(io::WriteContainerFile(path, "OXBWFEAT", 1, 0, std::vector<uint8_t>(64, 1)));
+  auto r3 = Vocabulary::Read(path);
+  ASSERT_FALSE(r3);
+  EXPECT_EQ(r3.error().code, ErrorCode::kCorruptData);
+  write(std::vector<char>(100, 'a'));
+  EXPECT_FALSE(Vocabulary::Read(path));
+  // A newer format version.
+  ASSERT_TRUE(io::WriteContainerFile(path, "OXBWVOCB", 2, 0,
+                                     std::vector<uint8_t>(bytes.begin() + io::kHeaderBytes, bytes.end())));
+  auto r4 = Vocabulary::Read(path);
+  ASSERT_FALSE(r4);
+  EXPECT_EQ(r4.error().code, ErrorCode::kIncompatible);
+  // A valid container whose payload lies about its sizes.
+  std::vector<uint8_t> payload(bytes.begin() + io::kHeaderBytes, bytes.end());
+  payload[4] ^= 0x01;  // num_words
+  ASSERT_TRUE(io::WriteContainerFile(path, "OXBWVOCB", 1, 0, payload));
+  auto r5 = Vocabulary::Read(path);
+  ASSERT_FALSE(r5);
+  EXPECT_EQ(r5.error().code, ErrorCode::kCorruptData);
+  fs::remove(path);
+  auto r6 = Vocabulary::Read(path);
+  ASSERT_FALSE(r6);
+  EXPECT_EQ(r6.error().code, ErrorCode::kNotFound);
+}
+
+TEST_F(VocabularyTest, FromCentroidsRefusesBadMatrices) {
+  EXPECT_FALSE(Vocabulary::FromCentroids({}, 128, sift::DescriptorKind::kSift, ""));
+  EXPECT_FALSE(Vocabulary::FromCentroids(std::vector<float>(130, 0.f), 128, sift::DescriptorKind::kSift, ""));
+  std::vector<float> nan(256, 0.f);
+  nan[3] = NAN;
+  EXPECT_FALSE(Vocabulary::FromCentroids(nan, 128, sift::DescriptorKind::kSift, ""));
+  EXPECT_FALSE(Vocabulary::FromCentroids(std::vector<float>(256, 0.f), 128, sift::DescriptorKind::kSift, "",
+                                         {.num_lists = 3}));
+}
+
+// The default quantiser agrees with the exact nearest word on at least 95% of real descriptors
+// (a 2000-word vocabulary, real RootSIFT queries not used to make the words), and exact mode on all.
+TEST_F(VocabularyTest, QuantizerAgreesWithExactNearestWord) {
+  const size_t n = descriptors().size() / 128;
+  const size_t k = 2000;
+  auto vocab = Vocabulary::FromCentroids(WordsFrom(descriptors(), k, 3), 128, sift::DescriptorKind::kRootSift, "");
+  ASSERT_TRUE(vocab);
+  std::vector<uint32_t> truth(n), fast(n), exact(n), fast_mt(n);
+  const auto c = vocab->centroids();
+  for (size_t i = 0; i < n; ++i) {
+    double best = INFINITY;
+    for (size_t w = 0; w < k; ++w) {
+      double d = 0;
+      for (int j = 0; j < 128; ++j) {
+        const double diff = double(descriptors()[i * 128 + j]) - c[w * 128 + j];
+        d += diff * diff;
+      }
+      if (d < best) best = d, truth[i] = static_cast<uint32_t>(w);
+    }
+  }
+  vocab->Quantize(descriptors(), fast);
+  vocab->Quantize(descriptors(), fast_mt, {.num_threads = 3});
+  vocab->Quantize(descriptors(), exact, {.exact = true});
+  EXPECT_EQ(fast, fast_mt) << "results must not depend on the thread count";
+  size_t agree_fast = 0, agree_exact = 0, fast_distance_ok = 0;
+  for (size_t i = 0; i < n; ++i) {
+    agree_fast += fast[i] == truth[i];
+    agree_exact += exact[i] == truth[i];
+    // A disagreement of the exact mode can only be a near tie.
+    const float* q = descriptors().data() + i * 128;
+    const float d_truth = internal::SquaredL2Scalar(q, c.data() + size_t{truth[i]} * 128, 128);
+    const float d_fast = internal::SquaredL2Scalar(q, c.data() + size_t{fast[i]} * 128, 128);
+    fast_distance_ok += d_fast >= d_truth * (1 - 1e-5f);
+  }
+  EXPECT_GE(agree_exact, n - n / 1000) << "exact mode may differ only on float ties";
+  EXPECT_GE(static_cast<double>(agree_fast) / n, 0.95) << agree_fast << " of " << n;
+  EXPECT_EQ(fast_distance_ok, n) << "the quantiser never finds a word closer than the exact nearest";
+}
+
+TEST_F(VocabularyTest, QuantizeMultiReturnsSortedNearestWords) {
+  const size_t k = 300;
+  auto vocab = Vocabulary::FromCentroids(WordsFrom(descriptors(), k, 4), 128, sift::DescriptorKind::kRootSift, "");
+  ASSERT_TRUE(vocab);
+  const size_t n = 500;
+  const int m = 5;
+  const std::span<const float> queries(descriptors().data(), n * 128);
+  std::vector<uint32_t> words(n * m), single(n);
+  std::vector<float> dist(n * m);
+  vocab->QuantizeMulti(queries, m, words, dist, {.exact = true});
+  vocab->Quantize(queries, single, {.exact = true});
+  const auto c = vocab->centroids();
+  for (size_t i = 0; i < n; ++i) {
+    EXPECT_EQ(words[i * m], single[i]);
+    std::vector<float> all(k);
+    for (size_t w = 0; w < k; ++w) all[w] = internal::SquaredL2(queries.data() + i * 128, c.data() + w * 128, 128);
+    std::vector<float> sorted = all;
+    std::partial_sort(sorted.begin(), sorted.begin() + m, sorted.end());
+    for (int j = 0; j < m; ++j) {
+      EXPECT_FLOAT_EQ(dist[i * m + j], all[words[i * m + j]]);
+      EXPECT_NEAR(dist[i * m + j], sorted[j], 1e-6);
+      if (j > 0) EXPECT_LE(dist[i * m + j - 1], dist[i * m + j]);
+    }
+  }
+  // Asking for more words than exist fills the tail.
+  std::vector<uint32_t> w2(2 * (k + 2));
+  std::vector<float> d2(2 * (k + 2));
+  vocab->QuantizeMulti(queries.subspan(0, 256), static_cast<int>(k + 2), w2, d2, {.exact = true});
+  EXPECT_EQ(w2[k], k);
+  EXPECT_TRUE(std::isinf(d2[k + 1]));
+  EXPECT_LT(w2[k - 1], k);
+}
+
+TEST_F(VocabularyTest, QuantizeChecksSizes) {
+  auto vocab = Vocabulary::FromCentroids(WordsFrom(descriptors(), 10, 5), 128, sift::DescriptorKind::kSift, "");
+  ASSERT_TRUE(vocab);
+  std::vector<uint32_t> words(3);
+  EXPECT_THROW(vocab->Quantize(std::span<const float>(descriptors().data(), 2 * 128), words), InvariantError);
+  EXPECT_THROW(vocab->Quantize(std::span<const float>(descriptors().data(), 3 * 128), words, {.num_probes = 0}),
+               InvariantError);
+}
+
+}  // namespace
+}  // namespace oxbow::vocab
