@@ -4,7 +4,18 @@
 #include <cmath>
 #include <cstdlib>
 #include <cstdio>
+#include <bit>
+#include <optional>
 #include <sstream>
+
+#include "sift/parallel.h"
+#include "sift/scale_space.h"
+#include "sift/sift_internal.h"
+
+#if defined(__AVX2__) && defined(__FMA__)
+#include <immintrin.h>
+#define OXBOW_SIFT_AVX2 1
+#endif
 
 namespace oxbow::sift {
 
@@ -58,23 +69,659 @@ uint64_t SiftOptions::Fingerprint() const {
   return hash;
 }
 
+namespace internal {
+namespace {
+
+constexpr int kBorder = 5;             // extrema closer than this to an octave edge are ignored (as OpenCV)
+constexpr int kMaxRefineSteps = 5;     // [L04 sec. 4]
+constexpr int kOriBins = 36;           // orientation histogram bins [L04 sec. 5]
+constexpr float kOriSigmaFactor = 1.5f;
+constexpr float kOriRadiusFactor = 3.0f * kOriSigmaFactor;
+constexpr int kDescCells = 4;          // d: 4x4 spatial cells
+constexpr int kDescBins = 8;           // n: orientation bins per cell
+constexpr float kDescCellFactor = 3.0f;  // cell width = 3 sigma [L04 sec. 6.1]
+constexpr float kDescClip = 0.2f;      // [L04 sec. 6.1]
+constexpr int kHistStride = (kDescCells + 2) * (kDescBins + 2);
+
+// One octave of the Gaussian scale space: S + 3 images, each blurred more than the previous.
+struct Octave {
+  int index = 0;  // 0 = the first octave computed (the 2x upsampled one when upsampling)
+  std::vector<Plane> gauss;
+  float Dog(int layer, int r, int c) const { return gauss[static_cast<size_t>(layer + 1)].at(c, r) - gauss[static_cast<size_t>(layer)].at(c, r); }
+};
+
+struct Candidate {
+  int layer, r, c;
+};
+
+// An extremum after sub-pixel/sub-scale refinement, in its octave's pixel grid.
+struct Refined {
+  int layer = 0, r = 0, c = 0;
+  float xi = 0, xr = 0, xc = 0;  // offsets in scale, row, column
+  float contrast = 0;
+};
+
+// ---- Extrema scan ----------------------------------------------------------------------------------
+
+// Scans DoG layer rows `prev`, `cur`, `next` (each with rows y-1, y, y+1 reachable at +-stride) for
+// samples that are |v| > threshold and >= (<=) all 26 neighbours; appends their columns to `out`.
+void ScanRow(const float* const prev, const float* const cur, const float* const next, size_t stride, int x0, int x1,
+             float threshold, bool simd, std::vector<int>* out) {
+  auto is_extremum = [&](int x) {
+    const float v = cur[x];
+    if (!(std::fabs(v) > threshold)) return false;
+    const float* layers[3] = {prev, cur, next};
+    if (v > 0) {
+      for (const float* l : layers)
+        for (int dy = -1; dy <= 1; ++dy) {
+          const float* row = l + static_cast<ptrdiff_t>(dy) * static_cast<ptrdiff_t>(stride);
+          if (v < row[x - 1] || v < row[x] || v < row[x + 1]) return false;
+        }
+      return true;
+    }
+    if (v < 0) {
+      for (const float* l : layers)
+        for (int dy = -1; dy <= 1; ++dy) {
+          const float* row = l + static_cast<ptrdiff_t>(dy) * static_cast<ptrdiff_t>(stride);
+          if (v > row[x - 1] || v > row[x] || v > row[x + 1]) return false;
+        }
+      return true;
+    }
+    return false;
+  };
+  int x = x0;
+#ifdef OXBOW_SIFT_AVX2
+  if (simd) {
+    const __m256 thr = _mm256_set1_ps(threshold);
+    const __m256 zero = _mm256_setzero_ps();
+    const __m256 abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff));
+    const ptrdiff_t s = static_cast<ptrdiff_t>(stride);
+    for (; x + 8 <= x1; x += 8) {
+      const __m256 v = _mm256_loadu_ps(cur + x);
+      const __m256 strong = _mm256_cmp_ps(_mm256_and_ps(v, abs_mask), thr, _CMP_GT_OQ);
+      if (_mm256_movemask_ps(strong) == 0) continue;
+      // Own layer first: most samples fail here.
+      __m256 mx = _mm256_max_ps(_mm256_loadu_ps(cur + x - 1), _mm256_loadu_ps(cur + x + 1));
+      __m256 mn = _mm256_min_ps(_mm256_loadu_ps(cur + x - 1), _mm256_loadu_ps(cur + x + 1));
+      for (const ptrdiff_t off : {-s, s}) {
+        for (int dx = -1; dx <= 1; ++dx) {
+          const __m256 n = _mm256_loadu_ps(cur + off + x + dx);
+          mx = _mm256_max_ps(mx, n);
+          mn = _mm256_min_ps(mn, n);
+        }
+      }
+      __m256 is_max = _mm256_and_ps(_mm256_cmp_ps(v, zero, _CMP_GT_OQ), _mm256_cmp_ps(v, mx, _CMP_GE_OQ));
+      __m256 is_min = _mm256_and_ps(_mm256_cmp_ps(v, zero, _CMP_LT_OQ), _mm256_cmp_ps(v, mn, _CMP_LE_OQ));
+      __m256 any = _mm256_and_ps(strong, _mm256_or_ps(is_max, is_min));
+      if (_mm256_movemask_ps(any) == 0) continue;
+      for (const float* l : {prev, next}) {
+        for (const ptrdiff_t off : {-s, ptrdiff_t{0}, s}) {
+          for (int dx = -1; dx <= 1; ++dx) {
+            const __m256 n = _mm256_loadu_ps(l + off + x + dx);
+            mx = _mm256_max_ps(mx, n);
+            mn = _mm256_min_ps(mn, n);
+          }
+        }
+      }
+      is_max = _mm256_and_ps(is_max, _mm256_cmp_ps(v, mx, _CMP_GE_OQ));
+      is_min = _mm256_and_ps(is_min, _mm256_cmp_ps(v, mn, _CMP_LE_OQ));
+      int bits = _mm256_movemask_ps(_mm256_and_ps(strong, _mm256_or_ps(is_max, is_min)));
+      while (bits != 0) {
+        out->push_back(x + std::countr_zero(static_cast<unsigned>(bits)));
+        bits &= bits - 1;
+      }
+    }
+  }
+#endif
+  for (; x < x1; ++x)
+    if (is_extremum(x)) out->push_back(x);
+}
+
+// Finds the candidate extrema of one octave, in (layer, row, column) order. DoG rows are computed per
+// chunk of rows into a scratch buffer, so the DoG pyramid is never stored.
+std::vector<Candidate> ScanOctave(const Octave& octave, int intervals, float threshold, int num_threads, bool simd) {
+  const Plane& g0 = octave.gauss[0];
+  const int w = g0.width(), h = g0.height();
+  if (w <= 2 * kBorder || h <= 2 * kBorder) return {};
+  const int rows = h - 2 * kBorder;
+  const size_t grain = static_cast<size_t>(std::max(8, rows / std::max(1, 4 * num_threads)));
+  const size_t chunks = (static_cast<size_t>(rows) + grain - 1) / grain;
+  std::vector<std::vector<Candidate>> found(chunks);
+  const int dog_layers = intervals + 2;
+  ParallelFor(static_cast<size_t>(rows), num_threads, grain, [&](size_t begin, size_t end, int) {
+    const int y0 = kBorder + static_cast<int>(begin), y1 = kBorder + static_cast<int>(end);
+    const int buffer_rows = y1 - y0 + 2;
+    const size_t stride = g0.stride();
+    std::vector<float> dog(static_cast<size_t>(dog_layers) * static_cast<size_t>(buffer_rows) * stride + 16);
+    auto dog_row = [&](int layer, int y) {
+      return dog.data() + (static_cast<size_t>(layer) * static_cast<size_t>(buffer_rows) + static_cast<size_t>(y - y0 + 1)) * stride;
+    };
+    for (int l = 0; l < dog_layers; ++l) {
+      const Plane& a = octave.gauss[static_cast<size_t>(l)];
+      const Plane& b = octave.gauss[static_cast<size_t>(l) + 1];
+      for (int y = y0 - 1; y <= y1; ++y) {
+        const float* pa = a.row(y);
+        const float* pb = b.row(y);
+        float* d = dog_row(l, y);
+        for (int x = 0; x < w; ++x) d[x] = pb[x] - pa[x];
+      }
+    }
+    std::vector<Candidate>& out = found[begin / grain];
+    std::vector<int> columns;
+    for (int layer = 1; layer <= intervals; ++layer) {
+      for (int y = y0; y < y1; ++y) {
+        columns.clear();
+        ScanRow(dog_row(layer - 1, y), dog_row(layer, y), dog_row(layer + 1, y), stride, kBorder, w - kBorder, threshold,
+                simd, &columns);
+        for (int x : columns) out.push_back({layer, y, x});
+      }
+    }
+  });
+  // Chunks are ordered by row; order the merged list by (layer, row, column).
+  std::vector<Candidate> all;
+  for (auto& f : found) all.insert(all.end(), f.begin(), f.end());
+  std::stable_sort(all.begin(), all.end(), [](const Candidate& a, const Candidate& b) { return a.layer < b.layer; });
+  return all;
+}
+
+// ---- Refinement [L04 sec. 4] ------------------------------------------------------------------------
+
+// Solves H x = g for a symmetric 3x3 H by Gaussian elimination with partial pivoting; false if singular.
+bool Solve3(double H[3][3], const double g[3], double x[3]) {
+  double a[3][4];
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) a[i][j] = H[i][j];
+    a[i][3] = g[i];
+  }
+  for (int col = 0; col < 3; ++col) {
+    int pivot = col;
+    for (int i = col + 1; i < 3; ++i)
+      if (std::fabs(a[i][col]) > std::fabs(a[pivot][col])) pivot = i;
+    if (std::fabs(a[pivot][col]) < 1e-30) return false;
+    if (pivot != col)
+      for (int j = 0; j < 4; ++j) std::swap(a[col][j], a[pivot][j]);
+    for (int i = col + 1; i < 3; ++i) {
+      const double f = a[i][col] / a[col][col];
+      for (int j = col; j < 4; ++j) a[i][j] -= f * a[col][j];
+    }
+  }
+  for (int i = 2; i >= 0; --i) {
+    double v = a[i][3];
+    for (int j = i + 1; j < 3; ++j) v -= a[i][j] * x[j];
+    x[i] = v / a[i][i];
+  }
+  return true;
+}
+
+std::optional<Refined> Refine(const Octave& octave, Candidate cand, const SiftOptions& options) {
+  const int S = options.intervals;
+  const int w = octave.gauss[0].width(), h = octave.gauss[0].height();
+  int layer = cand.layer, r = cand.r, c = cand.c;
+  double offset[3] = {0, 0, 0};  // (column, row, scale)
+  double grad[3] = {0, 0, 0};
+  int step = 0;
+  for (; step < kMaxRefineSteps; ++step) {
+    const float v = octave.Dog(layer, r, c);
+    const float right = octave.Dog(layer, r, c + 1), left = octave.Dog(layer, r, c - 1);
+    const float down = octave.Dog(layer, r + 1, c), up = octave.Dog(layer, r - 1, c);
+    const float next = octave.Dog(layer + 1, r, c), prev = octave.Dog(layer - 1, r, c);
+    grad[0] = 0.5 * (right - left);
+    grad[1] = 0.5 * (down - up);
+    grad[2] = 0.5 * (next - prev);
+    double H[3][3];
+    H[0][0] = right + left - 2.0 * v;
+    H[1][1] = down + up - 2.0 * v;
+    H[2][2] = next + prev - 2.0 * v;
+    H[0][1] = H[1][0] = 0.25 * (octave.Dog(layer, r + 1, c + 1) - octave.Dog(layer, r + 1, c - 1) -
+                                octave.Dog(layer, r - 1, c + 1) + octave.Dog(layer, r - 1, c - 1));
+    H[0][2] = H[2][0] = 0.25 * (octave.Dog(layer + 1, r, c + 1) - octave.Dog(layer + 1, r, c - 1) -
+                                octave.Dog(layer - 1, r, c + 1) + octave.Dog(layer - 1, r, c - 1));
+    H[1][2] = H[2][1] = 0.25 * (octave.Dog(layer + 1, r + 1, c) - octave.Dog(layer + 1, r - 1, c) -
+                                octave.Dog(layer - 1, r + 1, c) + octave.Dog(layer - 1, r - 1, c));
+    double x[3] = {0, 0, 0};
+    if (!Solve3(H, grad, x)) x[0] = x[1] = x[2] = 0;  // a flat fit: keep the sample position
+    for (int i = 0; i < 3; ++i) offset[i] = -x[i];
+    if (std::fabs(offset[0]) < 0.5 && std::fabs(offset[1]) < 0.5 && std::fabs(offset[2]) < 0.5) break;
+    if (std::fabs(offset[0]) > 1e6 || std::fabs(offset[1]) > 1e6 || std::fabs(offset[2]) > 1e6) return std::nullopt;
+    c += static_cast<int>(std::lrint(offset[0]));
+    r += static_cast<int>(std::lrint(offset[1]));
+    layer += static_cast<int>(std::lrint(offset[2]));
+    if (layer < 1 || layer > S || c < kBorder || c >= w - kBorder || r < kBorder || r >= h - kBorder) return std::nullopt;
+  }
+  if (step >= kMaxRefineSteps) return std::nullopt;  // did not converge
+
+  // Contrast at the interpolated extremum: D + 0.5 * grad . offset (gradient at the final sample).
+  const float v = octave.Dog(layer, r, c);
+  grad[0] = 0.5 * (octave.Dog(layer, r, c + 1) - octave.Dog(layer, r, c - 1));
+  grad[1] = 0.5 * (octave.Dog(layer, r + 1, c) - octave.Dog(layer, r - 1, c));
+  grad[2] = 0.5 * (octave.Dog(layer + 1, r, c) - octave.Dog(layer - 1, r, c));
+  const double contrast = v + 0.5 * (grad[0] * offset[0] + grad[1] * offset[1] + grad[2] * offset[2]);
+  if (std::fabs(contrast) * S < options.contrast_threshold) return std::nullopt;
+
+  // Edge test on the 2x2 spatial Hessian [L04 sec. 4.1].
+  const double dxx = octave.Dog(layer, r, c + 1) + octave.Dog(layer, r, c - 1) - 2.0 * v;
+  const double dyy = octave.Dog(layer, r + 1, c) + octave.Dog(layer, r - 1, c) - 2.0 * v;
+  const double dxy = 0.25 * (octave.Dog(layer, r + 1, c + 1) - octave.Dog(layer, r + 1, c - 1) -
+                             octave.Dog(layer, r - 1, c + 1) + octave.Dog(layer, r - 1, c - 1));
+  const double tr = dxx + dyy, det = dxx * dyy - dxy * dxy;
+  const double e = options.edge_threshold;
+  if (det <= 0 || tr * tr * e >= (e + 1) * (e + 1) * det) return std::nullopt;
+
+  Refined out;
+  out.layer = layer;
+  out.r = r;
+  out.c = c;
+  out.xc = static_cast<float>(offset[0]);
+  out.xr = static_cast<float>(offset[1]);
+  out.xi = static_cast<float>(offset[2]);
+  out.contrast = static_cast<float>(contrast);
+  return out;
+}
+
+// ---- Gradients -------------------------------------------------------------------------------------
+
+#ifdef OXBOW_SIFT_AVX2
+// The same formula as FastAtan2Deg, 8 lanes at a time (bit-identical).
+inline __m256 Atan2Deg8(__m256 y, __m256 x) {
+  const __m256 abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff));
+  const __m256 zero = _mm256_setzero_ps();
+  const __m256 ax = _mm256_and_ps(x, abs_mask), ay = _mm256_and_ps(y, abs_mask);
+  const __m256 t = _mm256_div_ps(_mm256_min_ps(ax, ay), _mm256_max_ps(_mm256_max_ps(ax, ay), _mm256_set1_ps(1.17549435e-38f)));
+  const __m256 t2 = _mm256_mul_ps(t, t);
+  __m256 p = _mm256_fmadd_ps(_mm256_set1_ps(kAtanC9), t2, _mm256_set1_ps(kAtanC7));
+  p = _mm256_fmadd_ps(p, t2, _mm256_set1_ps(kAtanC5));
+  p = _mm256_fmadd_ps(p, t2, _mm256_set1_ps(kAtanC3));
+  p = _mm256_fmadd_ps(p, t2, _mm256_set1_ps(kAtanC1));
+  __m256 a = _mm256_mul_ps(p, t);
+  a = _mm256_blendv_ps(a, _mm256_sub_ps(_mm256_set1_ps(90.0f), a), _mm256_cmp_ps(ay, ax, _CMP_GT_OQ));
+  a = _mm256_blendv_ps(a, _mm256_sub_ps(_mm256_set1_ps(180.0f), a), _mm256_cmp_ps(x, zero, _CMP_LT_OQ));
+  a = _mm256_blendv_ps(a, _mm256_sub_ps(_mm256_set1_ps(360.0f), a), _mm256_cmp_ps(y, zero, _CMP_LT_OQ));
+  const __m256 full = _mm256_set1_ps(360.0f);
+  a = _mm256_blendv_ps(a, _mm256_sub_ps(a, full), _mm256_cmp_ps(a, full, _CMP_GE_OQ));
+  return a;
+}
+#endif
+
+// For samples (x, y) with x in [x0, x1) of row y of `img`: dx = I(x+1) - I(x-1), dy = I(y-1) - I(y+1)
+// (y axis pointing up, as OpenCV, so descriptors are laid out like cv::SIFT's), magnitude and
+// direction (degrees, [0, 360)). Outputs are indexed from 0.
+void RowGradients(const Plane& img, int y, int x0, int x1, float* mag, float* ori, bool simd) {
+  const float* row = img.row(y);
+  const float* above = img.row(y - 1);
+  const float* below = img.row(y + 1);
+  int x = x0;
+#ifdef OXBOW_SIFT_AVX2
+  if (simd) {
+    for (; x + 8 <= x1; x += 8) {
+      const __m256 dx = _mm256_sub_ps(_mm256_loadu_ps(row + x + 1), _mm256_loadu_ps(row + x - 1));
+      const __m256 dy = _mm256_sub_ps(_mm256_loadu_ps(above + x), _mm256_loadu_ps(below + x));
+      _mm256_storeu_ps(mag + (x - x0), _mm256_sqrt_ps(_mm256_fmadd_ps(dx, dx, _mm256_mul_ps(dy, dy))));
+      _mm256_storeu_ps(ori + (x - x0), Atan2Deg8(dy, dx));
+    }
+  }
+#endif
+  for (; x < x1; ++x) {
+    const float dx = row[x + 1] - row[x - 1];
+    const float dy = above[x] - below[x];
+    mag[x - x0] = std::sqrt(std::fma(dx, dx, dy * dy));
+    ori[x - x0] = FastAtan2Deg(dy, dx);
+  }
+}
+
+// ---- Orientation [L04 sec. 5] -----------------------------------------------------------------------
+
+// Smoothed 36-bin gradient orientation histogram around (c, r) of `img`; returns its maximum.
+float OrientationHistogram(const Plane& img, int c, int r, int radius, float sigma, float* hist, bool simd) {
+  float raw[kOriBins + 4] = {};
+  float* temp = raw + 2;
+  const int w = img.width(), h = img.height();
+  const float exp_scale = -1.0f / (2.0f * sigma * sigma);
+  float wx[256], mag[256], ori[256];
+  radius = std::min(radius, 120);
+  for (int i = -radius; i <= radius; ++i) wx[i + radius] = std::exp(static_cast<float>(i * i) * exp_scale);
+  const int x0 = std::max(c - radius, 1), x1 = std::min(c + radius + 1, w - 1);
+  for (int i = -radius; i <= radius; ++i) {
+    const int y = r + i;
+    if (y <= 0 || y >= h - 1 || x0 >= x1) continue;
+    RowGradients(img, y, x0, x1, mag, ori, simd);
+    const float wy = wx[i + radius];
+    for (int x = x0; x < x1; ++x) {
+      int bin = static_cast<int>(std::lrint(ori[x - x0] * (kOriBins / 360.0f)));
+      if (bin >= kOriBins) bin -= kOriBins;
+      temp[bin] += wy * wx[x - c + radius] * mag[x - x0];
+    }
+  }
+  temp[-1] = temp[kOriBins - 1];
+  temp[-2] = temp[kOriBins - 2];
+  temp[kOriBins] = temp[0];
+  temp[kOriBins + 1] = temp[1];
+  float max_value = 0;
+  for (int i = 0; i < kOriBins; ++i) {
+    hist[i] = (temp[i - 2] + temp[i + 2]) * (1.0f / 16.0f) + (temp[i - 1] + temp[i + 1]) * (4.0f / 16.0f) +
+              temp[i] * (6.0f / 16.0f);
+    max_value = std::max(max_value, hist[i]);
+  }
+  return max_value;
+}
+
+// ---- Descriptor [L04 sec. 6] ------------------------------------------------------------------------
+
+// Computes the 128-d descriptor of the keypoint at sub-pixel (x, y) of `img` (octave pixels), scale
+// `scale` (octave pixels) and orientation `ori_deg` (degrees, y axis up), unit L2 norm, clipped.
+void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, float* out, bool simd) {
+  constexpr int d = kDescCells, n = kDescBins;
+  const int cx = static_cast<int>(std::lrint(x)), cy = static_cast<int>(std::lrint(y));
+  const float fx = x - static_cast<float>(cx), fy = y - static_cast<float>(cy);
+  const float angle = ori_deg * static_cast<float>(3.14159265358979323846 / 180.0);
+  const float hist_width = kDescCellFactor * scale;
+  const int w = img.width(), h = img.height();
+  int radius = static_cast<int>(std::lrint(hist_width * 1.4142135623730951f * (d + 1) * 0.5f));
+  radius = std::min(radius, static_cast<int>(std::sqrt(static_cast<double>(w) * w + static_cast<double>(h) * h)));
+  radius = std::min(radius, 250);
+  const float cos_t = std::cos(angle) / hist_width, sin_t = std::sin(angle) / hist_width;
+  const float bins_per_deg = n / 360.0f;
+  // Gaussian weight of half the window width: exp(-(u^2 + v^2) / (2 (d/2)^2)) in cell units, which is
+  // rotation invariant, so separable in the image offsets (j - fx, i - fy).
+  const float exp_scale = -1.0f / (d * d * 0.5f * hist_width * hist_width);
+  float wcol[512], mag[512], ori[512];
+  for (int j = -radius; j <= radius; ++j) {
+    const float dj = static_cast<float>(j) - fx;
+    wcol[j + radius] = std::exp(dj * dj * exp_scale);
+  }
+  float hist[(d + 2) * kHistStride] = {};
+  const float half = d / 2.0f - 0.5f;
+  for (int i = -radius; i <= radius; ++i) {
+    const int yy = cy + i;
+    if (yy <= 0 || yy >= h - 1) continue;
+    const float di = static_cast<float>(i) - fy;
+    const float wrow = std::exp(di * di * exp_scale);
+    // rbin = dj * sin_t + di * cos_t + half, cbin = dj * cos_t - di * sin_t + half, both in (-1, d).
+    const float rb0 = di * cos_t + half, cb0 = half - di * sin_t;
+    // Columns where both bins may be in range (conservative; each sample is checked again below).
+    float lo = -static_cast<float>(radius), hi = static_cast<float>(radius);
+    auto restrict_range = [&](float slope, float intercept) {
+      if (std::fabs(slope) < 1e-12f) {
+        if (!(intercept > -1.0f && intercept < static_cast<float>(d))) hi = lo - 1;
+        return;
+      }
+      float a = (-1.0f - intercept) / slope, b = (static_cast<float>(d) - intercept) / slope;
+      if (a > b) std::swap(a, b);
+      lo = std::max(lo, a + fx - 1.0f);
+      hi = std::min(hi, b + fx + 1.0f);
+    };
+    restrict_range(sin_t, rb0);
+    restrict_range(cos_t, cb0);
+    int j0 = static_cast<int>(std::ceil(lo)), j1 = static_cast<int>(std::floor(hi)) + 1;
+    j0 = std::max(j0, 1 - cx);
+    j1 = std::min(j1, w - 1 - cx);
+    if (j0 >= j1) continue;
+    RowGradients(img, yy, cx + j0, cx + j1, mag, ori, simd);
+    for (int j = j0; j < j1; ++j) {
+      const float dj = static_cast<float>(j) - fx;
+      float rbin = std::fma(dj, sin_t, rb0);
+      float cbin = std::fma(dj, cos_t, cb0);
+      if (!(rbin > -1.0f && rbin < static_cast<float>(d) && cbin > -1.0f && cbin < static_cast<float>(d))) continue;
+      float obin = (ori[j - j0] - ori_deg) * bins_per_deg;
+      const float m = mag[j - j0] * (wrow * wcol[j + radius]);
+      const int r0 = static_cast<int>(std::floor(rbin));
+      const int c0 = static_cast<int>(std::floor(cbin));
+      int o0 = static_cast<int>(std::floor(obin));
+      rbin -= static_cast<float>(r0);
+      cbin -= static_cast<float>(c0);
+      obin -= static_cast<float>(o0);
+      if (o0 < 0) o0 += n;
+      if (o0 >= n) o0 -= n;
+      // Trilinear interpolation into the (d+2) x (d+2) x (n+2) histogram.
+      const float v_r1 = m * rbin, v_r0 = m - v_r1;
+      const float v_rc11 = v_r1 * cbin, v_rc10 = v_r1 - v_rc11;
+      const float v_rc01 = v_r0 * cbin, v_rc00 = v_r0 - v_rc01;
+      const float v_rco111 = v_rc11 * obin, v_rco110 = v_rc11 - v_rco111;
+      const float v_rco101 = v_rc10 * obin, v_rco100 = v_rc10 - v_rco101;
+      const float v_rco011 = v_rc01 * obin, v_rco010 = v_rc01 - v_rco011;
+      const float v_rco001 = v_rc00 * obin, v_rco000 = v_rc00 - v_rco001;
+      float* p = hist + ((r0 + 1) * (d + 2) + c0 + 1) * (n + 2) + o0;
+      p[0] += v_rco000;
+      p[1] += v_rco001;
+      p[n + 2] += v_rco010;
+      p[n + 3] += v_rco011;
+      p[(d + 2) * (n + 2)] += v_rco100;
+      p[(d + 2) * (n + 2) + 1] += v_rco101;
+      p[(d + 3) * (n + 2)] += v_rco110;
+      p[(d + 3) * (n + 2) + 1] += v_rco111;
+    }
+  }
+  // Fold the circular orientation bins and copy the inner d x d cells out.
+  for (int i = 0; i < d; ++i)
+    for (int j = 0; j < d; ++j) {
+      float* p = hist + ((i + 1) * (d + 2) + (j + 1)) * (n + 2);
+      p[0] += p[n];
+      p[1] += p[n + 1];
+      for (int k = 0; k < n; ++k) out[(i * d + j) * n + k] = p[k];
+    }
+  // Normalise, clip at 0.2 (of the norm), renormalise [L04 sec. 6.1].
+  float norm2 = 0;
+  for (int k = 0; k < kDescriptorDim; ++k) norm2 += out[k] * out[k];
+  const float clip = std::sqrt(norm2) * kDescClip;
+  norm2 = 0;
+  for (int k = 0; k < kDescriptorDim; ++k) {
+    out[k] = std::min(out[k], clip);
+    norm2 += out[k] * out[k];
+  }
+  const float inv = 1.0f / std::max(std::sqrt(norm2), 1.1920929e-07f);
+  for (int k = 0; k < kDescriptorDim; ++k) out[k] *= inv;
+}
+
+struct OctaveFeatures {
+  std::vector<Keypoint> keypoints;
+  std::vector<float> descriptors;
+};
+
+}  // namespace
+
+FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool simd) {
+  OXBOW_CHECK(!options.Check().has_value(), "invalid SiftOptions");
+  OXBOW_CHECK(image.pixels.size() == static_cast<size_t>(std::max(image.width, 0)) * static_cast<size_t>(std::max(image.height, 0)),
+              "GrayImage pixel count does not match width * height");
+  FeatureSet result;
+  result.image_width = image.width;
+  result.image_height = image.height;
+  result.kind = options.descriptor;
+  if (image.width <= 0 || image.height <= 0) return result;
+
+  const int threads = ResolveThreadCount(options.num_threads);
+  const int S = options.intervals;
+  const double sigma = options.sigma;
+
+  // Base image: input (optionally upsampled 2x), blurred from the assumed camera blur to sigma.
+  Plane input(image.width, image.height);
+  for (int y = 0; y < image.height; ++y)
+    std::copy_n(image.pixels.data() + static_cast<size_t>(y) * static_cast<size_t>(image.width), image.width, input.row(y));
+  Plane base;
+  double present_blur = options.assumed_blur;
+  if (options.upsample_first_octave) {
+    Upsample2x(input, &base, threads);
+    input = Plane();
+    present_blur *= 2;
+  } else {
+    base = std::move(input);
+  }
+  const double first_blur = std::sqrt(std::max(sigma * sigma - present_blur * present_blur, 0.01));
+
+  const int min_side = std::min(base.width(), base.height());
+  // As cv::SIFT: round(log2(min side of the base) - 2) octaves, plus one for the upsampled octave.
+  int octaves = static_cast<int>(std::lrint(std::log2(static_cast<double>(min_side)) - 2.0)) +
+                (options.upsample_first_octave ? 1 : 0);
+  if (options.max_octaves) octaves = std::min(octaves, *options.max_octaves);
+  if (octaves <= 0) return result;
+
+  // Incremental blurs: level i has total blur sigma * k^i; level i is level i-1 blurred by
+  // sqrt(sigma_i^2 - sigma_{i-1}^2).
+  std::vector<std::vector<float>> kernels(static_cast<size_t>(S) + 3);
+  kernels[0] = GaussianHalfKernel(first_blur, options.kernel_radius_sigmas);
+  const double k = std::pow(2.0, 1.0 / S);
+  for (int i = 1; i < S + 3; ++i) {
+    const double previous = std::pow(k, i - 1) * sigma, total = previous * k;
+    kernels[static_cast<size_t>(i)] = GaussianHalfKernel(std::sqrt(total * total - previous * previous), options.kernel_radius_sigmas);
+  }
+
+  // OpenCV quantises the pre-filter threshold to 8-bit grey levels; doing the same keeps the candidate
+  // set (and so the keypoints) identical to cv::SIFT's.
+  const float scan_threshold = static_cast<float>(std::floor(0.5 * options.contrast_threshold / S * 255.0) / 255.0);
+  const double coordinate_scale = options.upsample_first_octave ? 0.5 : 1.0;
+  const double coordinate_shift = options.upsample_first_octave ? -0.25 : 0.0;  // pixel centres, see Upsample2x
+
+  Plane next_base;
+  for (int o = 0; o < octaves; ++o) {
+    Octave octave;
+    octave.index = o;
+    octave.gauss.resize(static_cast<size_t>(S) + 3);
+    if (o == 0) {
+      GaussianBlur(base, &octave.gauss[0], kernels[0], threads, simd);
+      base = Plane();
+    } else {
+      octave.gauss[0] = std::move(next_base);
+    }
+    if (octave.gauss[0].width() < 1 || octave.gauss[0].height() < 1) break;
+    for (int i = 1; i < S + 3; ++i)
+      GaussianBlur(octave.gauss[static_cast<size_t>(i) - 1], &octave.gauss[static_cast<size_t>(i)], kernels[static_cast<size_t>(i)], threads, simd);
+
+    const std::vector<Candidate> candidates = ScanOctave(octave, S, scan_threshold, threads, simd);
+    std::vector<std::optional<Refined>> refined(candidates.size());
+    ParallelFor(candidates.size(), threads, 64, [&](size_t b, size_t e, int) {
+      for (size_t i = b; i < e; ++i) refined[i] = Refine(octave, candidates[i], options);
+    });
+    // Two candidates can converge onto the same sample; keep the first (as cv::SIFT removes duplicates).
+    std::vector<Refined> unique;
+    {
+      std::vector<uint64_t> seen;
+      for (const auto& r : refined) {
+        if (!r) continue;
+        const uint64_t key = (static_cast<uint64_t>(r->layer) << 58) | (static_cast<uint64_t>(r->r) << 29) | static_cast<uint64_t>(r->c);
+        seen.push_back(key);
+        unique.push_back(*r);
+      }
+      std::vector<size_t> order(unique.size());
+      for (size_t i = 0; i < order.size(); ++i) order[i] = i;
+      std::stable_sort(order.begin(), order.end(), [&](size_t a, size_t b) { return seen[a] < seen[b]; });
+      std::vector<bool> keep(unique.size(), true);
+      for (size_t i = 1; i < order.size(); ++i)
+        if (seen[order[i]] == seen[order[i - 1]]) keep[order[i]] = false;
+      std::vector<Refined> kept;
+      for (size_t i = 0; i < unique.size(); ++i)
+        if (keep[i]) kept.push_back(unique[i]);
+      unique.swap(kept);
+    }
+
+    std::vector<OctaveFeatures> per_point(unique.size());
+    const double octave_scale = std::ldexp(1.0, o);
+    ParallelFor(unique.size(), threads, 16, [&](size_t b, size_t e, int) {
+      float hist[kOriBins];
+      for (size_t i = b; i < e; ++i) {
+        const Refined& p = unique[i];
+        const float scale_octave = static_cast<float>(sigma * std::pow(2.0, (p.layer + p.xi) / S));
+        const Plane& img = octave.gauss[static_cast<size_t>(p.layer)];
+        const float max_value = OrientationHistogram(img, p.c, p.r, static_cast<int>(std::lrint(kOriRadiusFactor * scale_octave)),
+                                                     kOriSigmaFactor * scale_octave, hist, simd);
+        const float threshold = static_cast<float>(max_value * options.orientation_peak_ratio);
+        OctaveFeatures& out = per_point[i];
+        for (int j = 0; j < kOriBins; ++j) {
+          const int left = j > 0 ? j - 1 : kOriBins - 1, right = j < kOriBins - 1 ? j + 1 : 0;
+          if (!(hist[j] > hist[left] && hist[j] > hist[right] && hist[j] >= threshold)) continue;
+          float bin = j + 0.5f * (hist[left] - hist[right]) / (hist[left] - 2 * hist[j] + hist[right]);
+          bin = bin < 0 ? kOriBins + bin : bin >= kOriBins ? bin - kOriBins : bin;
+          const float ori_up = (360.0f / kOriBins) * bin;  // degrees, y axis up
+          Keypoint kp;
+          const double x_octave = p.c + p.xc, y_octave = p.r + p.xr;
+          kp.x = static_cast<float>(x_octave * octave_scale * coordinate_scale + coordinate_shift);
+          kp.y = static_cast<float>(y_octave * octave_scale * coordinate_scale + coordinate_shift);
+          kp.scale = static_cast<float>(scale_octave * octave_scale * coordinate_scale);
+          // y-down orientation from +x towards +y = 360 - ori_up.
+          double angle = 360.0 - ori_up;
+          if (angle >= 360.0 - 1e-4) angle = 0.0;
+          kp.orientation = static_cast<float>(angle * (3.14159265358979323846 / 180.0));
+          kp.response = std::fabs(p.contrast);
+          kp.octave = o - (options.upsample_first_octave ? 1 : 0);
+          out.keypoints.push_back(kp);
+          const size_t offset = out.descriptors.size();
+          out.descriptors.resize(offset + kDescriptorDim);
+          Descriptor(img, static_cast<float>(x_octave), static_cast<float>(y_octave), ori_up == 360.0f ? 0.0f : ori_up,
+                     scale_octave, out.descriptors.data() + offset, simd);
+          if (options.descriptor == DescriptorKind::kRootSift)
+            ToRootSift(std::span<float>(out.descriptors.data() + offset, kDescriptorDim));
+        }
+      }
+    });
+    for (auto& f : per_point) {
+      result.keypoints.insert(result.keypoints.end(), f.keypoints.begin(), f.keypoints.end());
+      result.descriptors.insert(result.descriptors.end(), f.descriptors.begin(), f.descriptors.end());
+    }
+    if (o + 1 < octaves) Decimate2x(octave.gauss[static_cast<size_t>(S)], &next_base);
+  }
+
+  if (options.max_features && result.keypoints.size() > static_cast<size_t>(*options.max_features)) {
+    std::vector<size_t> order(result.keypoints.size());
+    for (size_t i = 0; i < order.size(); ++i) order[i] = i;
+    std::stable_sort(order.begin(), order.end(),
+                     [&](size_t a, size_t b) { return result.keypoints[a].response > result.keypoints[b].response; });
+    order.resize(static_cast<size_t>(*options.max_features));
+    std::sort(order.begin(), order.end());  // keep the extraction order among the survivors
+    FeatureSet kept;
+    kept.image_width = result.image_width;
+    kept.image_height = result.image_height;
+    kept.kind = result.kind;
+    for (size_t i : order) {
+      kept.keypoints.push_back(result.keypoints[i]);
+      kept.descriptors.insert(kept.descriptors.end(), result.descriptors.begin() + static_cast<ptrdiff_t>(i * kDescriptorDim),
+                              result.descriptors.begin() + static_cast<ptrdiff_t>((i + 1) * kDescriptorDim));
+    }
+    return kept;
+  }
+  return result;
+}
+
+}  // namespace internal
+
 Result<SiftExtractor> SiftExtractor::Create(const SiftOptions& options) {
   if (auto message = options.Check()) return Fail(ErrorCode::kInvalidArgument, "invalid SIFT options: " + *message);
   return SiftExtractor(options);
 }
 
-FeatureSet SiftExtractor::Extract(const GrayImage& image) const {
-  OXBOW_CHECK(false, "SiftExtractor::Extract is being implemented (issue 2)");
-  return {};
-}
+FeatureSet SiftExtractor::Extract(const GrayImage& image) const { return internal::ExtractImpl(image, options_, true); }
 
 Result<FeatureSet> SiftExtractor::ExtractFromBytes(std::span<const uint8_t> bytes, const DecodeOptions& decode) const {
-  return Fail(ErrorCode::kInternal, "SiftExtractor::ExtractFromBytes is being implemented (issue 2)");
+  auto decoded = DecodeImage(bytes, decode);
+  if (!decoded) return std::unexpected(decoded.error());
+  FeatureSet features = Extract(decoded->gray);
+  const double s = decoded->scale_to_original;
+  if (s != 1.0) {
+    for (Keypoint& kp : features.keypoints) {
+      kp.x = static_cast<float>(GrayToOriginal(kp.x, s));
+      kp.y = static_cast<float>(GrayToOriginal(kp.y, s));
+      kp.scale = static_cast<float>(kp.scale * s);
+    }
+  }
+  features.image_width = decoded->original_width;
+  features.image_height = decoded->original_height;
+  return features;
 }
 
 Result<FeatureSet> SiftExtractor::ExtractFromFile(const std::string& path, const DecodeOptions& decode) const {
-  return Fail(ErrorCode::kInternal, "SiftExtractor::ExtractFromFile is being implemented (issue 2)");
+  auto decoded = ReadImage(path, decode);
+  if (!decoded) return std::unexpected(decoded.error());
+  FeatureSet features = Extract(decoded->gray);
+  const double s = decoded->scale_to_original;
+  if (s != 1.0) {
+    for (Keypoint& kp : features.keypoints) {
+      kp.x = static_cast<float>(GrayToOriginal(kp.x, s));
+      kp.y = static_cast<float>(GrayToOriginal(kp.y, s));
+      kp.scale = static_cast<float>(kp.scale * s);
+    }
+  }
+  features.image_width = decoded->original_width;
+  features.image_height = decoded->original_height;
+  return features;
 }
+
 
 void ToRootSift(std::span<float> descriptor) {
   double l1 = 0;

@@ -1,0 +1,37 @@
+// Evaluation of local features under a known homography (Mikolajczyk et al. 2005, "A Comparison of
+// Affine Region Detectors", IJCV 65): repeatability and matching score. Used by the SIFT tests and
+// the benchmark to compare oxbow's extractor with cv::SIFT and VLFeat on the same images.
+#pragma once
+
+#include <array>
+#include <string>
+
+#include "sift/error.h"
+#include "sift/types.h"
+
+namespace oxbow::sift {
+
+// 3x3 row-major homography mapping pixel coordinates of image 1 to image 2.
+using Homography = std::array<double, 9>;
+
+// Reads a homography from an Oxford affine text file (9 numbers, e.g. H1to2p) or an OpenCV FileStorage
+// XML/YAML file with a 3x3 matrix (e.g. opencv-doc's H1to3p.xml; the first matrix node is used).
+[[nodiscard]] Result<Homography> ReadHomography(const std::string& path);
+
+struct HomographyScore {
+  int keypoints_1 = 0;      // keypoints of image 1 whose projection lands inside image 2
+  int keypoints_2 = 0;      // keypoints of image 2 whose back-projection lands inside image 1
+  int repeated = 0;         // of keypoints_1, those with a keypoint of image 2 within `tolerance_px`
+  int correct_matches = 0;  // ratio-test nearest-neighbour matches (1 -> 2) that land within tolerance
+  double repeatability = 0;   // repeated / min(keypoints_1, keypoints_2)
+  double matching_score = 0;  // correct_matches / min(keypoints_1, keypoints_2)
+};
+
+// Scores features of two images related by `image2_from_image1`. A keypoint pair corresponds when the
+// projected position is within `tolerance_px` pixels (positions only; no region overlap). Matches are
+// nearest neighbours in descriptor space (L2) among the common-region keypoints that pass Lowe's ratio
+// test (`ratio`). Cost: O(n1 * n2 * 128).
+HomographyScore ScoreUnderHomography(const FeatureSet& image1, const FeatureSet& image2, const Homography& image2_from_image1,
+                                     double tolerance_px = 3.0, double ratio = 0.8);
+
+}  // namespace oxbow::sift

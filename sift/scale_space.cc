@@ -1,0 +1,187 @@
+#include "sift/scale_space.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdlib>
+#include <new>
+
+#include "sift/error.h"
+#include "sift/parallel.h"
+
+#if defined(__AVX2__) && defined(__FMA__)
+#include <immintrin.h>
+#define OXBOW_SIFT_AVX2 1
+#endif
+
+namespace oxbow::sift::internal {
+
+bool SimdCompiledIn() {
+#ifdef OXBOW_SIFT_AVX2
+  return true;
+#else
+  return false;
+#endif
+}
+
+void Plane::Free::operator()(float* p) const { std::free(p); }
+
+Plane::Plane(int width, int height) : width_(width), height_(height) {
+  OXBOW_CHECK(width >= 0 && height >= 0);
+  stride_ = (static_cast<size_t>(width) + 15) / 16 * 16;
+  // One extra row of padding so vector loads that run past the last column stay inside the buffer.
+  const size_t bytes = std::max<size_t>(64, (stride_ * (static_cast<size_t>(height) + 1)) * sizeof(float));
+  void* memory = std::aligned_alloc(64, (bytes + 63) / 64 * 64);
+  if (memory == nullptr) throw std::bad_alloc();
+  data_.reset(static_cast<float*>(memory));
+}
+
+int Reflect101(int i, int n) {
+  if (n == 1) return 0;
+  const int period = 2 * (n - 1);
+  i = ((i % period) + period) % period;
+  return i < n ? i : period - i;
+}
+
+std::vector<float> GaussianHalfKernel(double sigma, double radius_sigmas) {
+  const int ksize = static_cast<int>(std::lrint(2.0 * radius_sigmas * sigma + 1.0)) | 1;
+  const int radius = ksize / 2;
+  std::vector<double> w(static_cast<size_t>(radius) + 1);
+  double sum = 0;
+  for (int x = 0; x <= radius; ++x) {
+    w[static_cast<size_t>(x)] = std::exp(-0.5 * x * x / (sigma * sigma));
+    sum += x == 0 ? w[0] : 2 * w[static_cast<size_t>(x)];
+  }
+  std::vector<float> half(w.size());
+  for (size_t i = 0; i < w.size(); ++i) half[i] = static_cast<float>(w[i] / sum);
+  return half;
+}
+
+namespace {
+
+// out[x] = c0 * rows[0][x] + sum_k c_k * (minus[k][x] + plus[k][x]) for x in [begin, end).
+void VerticalPass(const float* const* minus, const float* const* plus, std::span<const float> c, int begin, int end,
+                  float* out, bool simd) {
+  const int r = static_cast<int>(c.size()) - 1;
+  int x = begin;
+#ifdef OXBOW_SIFT_AVX2
+  if (simd) {
+    for (; x + 8 <= end; x += 8) {
+      __m256 acc = _mm256_mul_ps(_mm256_set1_ps(c[0]), _mm256_loadu_ps(minus[0] + x));
+      for (int k = 1; k <= r; ++k)
+        acc = _mm256_fmadd_ps(_mm256_set1_ps(c[static_cast<size_t>(k)]),
+                              _mm256_add_ps(_mm256_loadu_ps(minus[k] + x), _mm256_loadu_ps(plus[k] + x)), acc);
+      _mm256_storeu_ps(out + x, acc);
+    }
+  }
+#endif
+  for (; x < end; ++x) {
+    float acc = c[0] * minus[0][x];
+    for (int k = 1; k <= r; ++k) acc = std::fma(c[static_cast<size_t>(k)], minus[k][x] + plus[k][x], acc);
+    out[x] = acc;
+  }
+}
+
+// out[x] = c0 * t[x] + sum_k c_k * (t[x-k] + t[x+k]) for x in [0, width); t is padded by r on both sides.
+void HorizontalPass(const float* t, std::span<const float> c, int width, float* out, bool simd) {
+  const int r = static_cast<int>(c.size()) - 1;
+  int x = 0;
+#ifdef OXBOW_SIFT_AVX2
+  if (simd) {
+    for (; x + 8 <= width; x += 8) {
+      __m256 acc = _mm256_mul_ps(_mm256_set1_ps(c[0]), _mm256_loadu_ps(t + x));
+      for (int k = 1; k <= r; ++k)
+        acc = _mm256_fmadd_ps(_mm256_set1_ps(c[static_cast<size_t>(k)]),
+                              _mm256_add_ps(_mm256_loadu_ps(t + x - k), _mm256_loadu_ps(t + x + k)), acc);
+      _mm256_storeu_ps(out + x, acc);
+    }
+  }
+#endif
+  for (; x < width; ++x) {
+    float acc = c[0] * t[x];
+    for (int k = 1; k <= r; ++k) acc = std::fma(c[static_cast<size_t>(k)], t[x - k] + t[x + k], acc);
+    out[x] = acc;
+  }
+}
+
+size_t RowGrain(int height, int num_threads) {
+  // A few chunks per thread for balance, but at least 8 rows so small octaves stay on one thread.
+  return static_cast<size_t>(std::max(8, height / std::max(1, 4 * num_threads)));
+}
+
+}  // namespace
+
+void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kernel, int num_threads, bool allow_simd) {
+  OXBOW_CHECK(!half_kernel.empty());
+  OXBOW_CHECK(dst != &src);
+  const int w = src.width(), h = src.height();
+  if (dst->width() != w || dst->height() != h) *dst = Plane(w, h);
+  if (w == 0 || h == 0) return;
+  const int r = static_cast<int>(half_kernel.size()) - 1;
+  ParallelFor(static_cast<size_t>(h), num_threads, RowGrain(h, num_threads), [&](size_t y0, size_t y1, int) {
+    std::vector<float> padded(static_cast<size_t>(w + 2 * r) + 8);
+    std::vector<const float*> minus(static_cast<size_t>(r) + 1), plus(static_cast<size_t>(r) + 1);
+    float* t = padded.data() + r;
+    for (int y = static_cast<int>(y0); y < static_cast<int>(y1); ++y) {
+      for (int k = 0; k <= r; ++k) {
+        minus[static_cast<size_t>(k)] = src.row(Reflect101(y - k, h));
+        plus[static_cast<size_t>(k)] = src.row(Reflect101(y + k, h));
+      }
+      VerticalPass(minus.data(), plus.data(), half_kernel, 0, w, t, allow_simd);
+      for (int i = 1; i <= r; ++i) {
+        t[-i] = t[Reflect101(-i, w)];
+        t[w - 1 + i] = t[Reflect101(w - 1 + i, w)];
+      }
+      HorizontalPass(t, half_kernel, w, dst->row(y), allow_simd);
+    }
+  });
+}
+
+void Upsample2x(const Plane& src, Plane* dst, int num_threads) {
+  const int w = src.width(), h = src.height();
+  *dst = Plane(2 * w, 2 * h);
+  if (w == 0 || h == 0) return;
+  ParallelFor(static_cast<size_t>(2 * h), num_threads, RowGrain(2 * h, num_threads), [&](size_t y0, size_t y1, int) {
+    std::vector<float> v(static_cast<size_t>(w));
+    for (int y = static_cast<int>(y0); y < static_cast<int>(y1); ++y) {
+      const int sy = y / 2;
+      const int other = std::clamp(y % 2 == 0 ? sy - 1 : sy + 1, 0, h - 1);
+      const float* a = src.row(sy);
+      const float* b = src.row(other);
+      for (int x = 0; x < w; ++x) v[static_cast<size_t>(x)] = 0.75f * a[x] + 0.25f * b[x];
+      float* out = dst->row(y);
+      for (int x = 0; x < w; ++x) {
+        const float centre = 0.75f * v[static_cast<size_t>(x)];
+        out[2 * x] = centre + 0.25f * v[static_cast<size_t>(std::max(x - 1, 0))];
+        out[2 * x + 1] = centre + 0.25f * v[static_cast<size_t>(std::min(x + 1, w - 1))];
+      }
+    }
+  });
+}
+
+void Decimate2x(const Plane& src, Plane* dst) {
+  const int w = src.width() / 2, h = src.height() / 2;
+  *dst = Plane(w, h);
+  for (int y = 0; y < h; ++y) {
+    const float* in = src.row(2 * y);
+    float* out = dst->row(y);
+    for (int x = 0; x < w; ++x) out[x] = in[2 * x];
+  }
+}
+
+float FastAtan2Deg(float y, float x) {
+  const float ax = std::fabs(x), ay = std::fabs(y);
+  const float t = std::min(ax, ay) / std::max(std::max(ax, ay), 1.17549435e-38f);
+  const float t2 = t * t;
+  float p = std::fma(kAtanC9, t2, kAtanC7);
+  p = std::fma(p, t2, kAtanC5);
+  p = std::fma(p, t2, kAtanC3);
+  p = std::fma(p, t2, kAtanC1);
+  float a = p * t;
+  if (ay > ax) a = 90.0f - a;
+  if (x < 0) a = 180.0f - a;
+  if (y < 0) a = 360.0f - a;
+  if (a >= 360.0f) a -= 360.0f;
+  return a;
+}
+
+}  // namespace oxbow::sift::internal
