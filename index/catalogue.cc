@@ -1,0 +1,252 @@
+#include "index/catalogue.h"
+
+#include <sqlite3.h>
+
+#include <chrono>
+#include <cinttypes>
+#include <cstdio>
+#include <filesystem>
+#include <map>
+
+namespace oxbow::index {
+
+// Owns the connection and the prepared statements.
+struct Catalogue::Db {
+  sqlite3* handle = nullptr;
+  sqlite3_stmt* insert = nullptr;
+  sqlite3_stmt* remove = nullptr;
+  ~Db() {
+    sqlite3_finalize(insert);
+    sqlite3_finalize(remove);
+    if (handle) sqlite3_close(handle);
+  }
+};
+
+namespace {
+
+std::string SqliteMessage(sqlite3* db) { return db ? sqlite3_errmsg(db) : "out of memory"; }
+
+ErrorCode CodeFor(int rc) {
+  switch (rc & 0xff) {
+    case SQLITE_CORRUPT:
+    case SQLITE_NOTADB:
+      return ErrorCode::kCorruptData;
+    case SQLITE_FULL:
+    case SQLITE_IOERR:
+    case SQLITE_CANTOPEN:
+    case SQLITE_READONLY:
+    case SQLITE_BUSY:
+    case SQLITE_LOCKED:
+      return ErrorCode::kIoError;
+    default:
+      return ErrorCode::kIoError;
+  }
+}
+
+Status Exec(sqlite3* db, const std::string& sql, const std::string& path) {
+  char* error = nullptr;
+  const int rc = sqlite3_exec(db, sql.c_str(), nullptr, nullptr, &error);
+  if (rc != SQLITE_OK) {
+    std::string message = error ? error : SqliteMessage(db);
+    sqlite3_free(error);
+    return Fail(CodeFor(rc), path + ": " + message);
+  }
+  return Ok();
+}
+
+Result<std::unique_ptr<Catalogue::Db>> Connect(const std::string& path, int flags) {
+  auto db = std::make_unique<Catalogue::Db>();
+  const int rc = sqlite3_open_v2(path.c_str(), &db->handle, flags | SQLITE_OPEN_FULLMUTEX, nullptr);
+  if (rc != SQLITE_OK) return Fail(CodeFor(rc), "cannot open " + path + ": " + SqliteMessage(db->handle));
+  sqlite3_busy_timeout(db->handle, 5000);
+  sqlite3_extended_result_codes(db->handle, 1);
+  return db;
+}
+
+int64_t NowUnixMs() {
+  return std::chrono::duration_cast<std::chrono::milliseconds>(std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+std::string Quote(const std::string& s) {
+  std::string out = "'";
+  for (char c : s) {
+    out += c;
+    if (c == '\'') out += '\'';
+  }
+  return out + "'";
+}
+
+Status Prepare(Catalogue::Db* db, const std::string& path) {
+  const char* insert_sql =
+      "INSERT INTO images(id, source_path, width, height, num_features, metadata_json, added_unix_ms, features) "
+      "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)";
+  if (sqlite3_prepare_v2(db->handle, insert_sql, -1, &db->insert, nullptr) != SQLITE_OK ||
+      sqlite3_prepare_v2(db->handle, "DELETE FROM images WHERE number = ?1", -1, &db->remove, nullptr) != SQLITE_OK) {
+    return Fail(ErrorCode::kCorruptData, path + ": not an oxbow catalogue (" + SqliteMessage(db->handle) + ")");
+  }
+  return Ok();
+}
+
+// WAL: readers do not block the writer; synchronous=FULL: a commit is fsync'ed before it returns.
+Status ConfigureDurability(sqlite3* db, const std::string& path) {
+  if (auto s = Exec(db, "PRAGMA journal_mode=WAL; PRAGMA synchronous=FULL;", path); !s) return s;
+  return Ok();
+}
+
+}  // namespace
+
+Catalogue::Catalogue(std::unique_ptr<Db> db, std::string path, CatalogueMeta meta)
+    : db_(std::move(db)), path_(std::move(path)), meta_(std::move(meta)) {}
+
+Catalogue::~Catalogue() = default;
+
+Result<std::unique_ptr<Catalogue>> Catalogue::Create(const std::string& path, const CatalogueMeta& meta_in) {
+  std::error_code ec;
+  if (std::filesystem::exists(path, ec)) return Fail(ErrorCode::kAlreadyExists, path + " already exists");
+  auto db = Connect(path, SQLITE_OPEN_READWRITE | SQLITE_OPEN_CREATE);
+  if (!db) return std::unexpected(db.error());
+  sqlite3* h = (*db)->handle;
+  if (auto s = ConfigureDurability(h, path); !s) return std::unexpected(s.error());
+  CatalogueMeta meta = meta_in;
+  meta.schema_version = kSchemaVersion;
+  meta.created_unix_ms = NowUnixMs();
+  char fingerprint[32];
+  std::snprintf(fingerprint, sizeof(fingerprint), "%016" PRIx64, meta.vocabulary_fingerprint);
+  const std::string sql =
+      "BEGIN IMMEDIATE;"
+      "CREATE TABLE meta(key TEXT PRIMARY KEY, value TEXT NOT NULL);"
+      "CREATE TABLE images(number INTEGER PRIMARY KEY AUTOINCREMENT, id TEXT NOT NULL UNIQUE,"
+      " source_path TEXT NOT NULL, width INTEGER NOT NULL, height INTEGER NOT NULL,"
+      " num_features INTEGER NOT NULL, metadata_json TEXT NOT NULL, added_unix_ms INTEGER NOT NULL,"
+      " features BLOB NOT NULL);"
+      "INSERT INTO meta VALUES ('schema_version', " + Quote(std::to_string(meta.schema_version)) + ");"
+      "INSERT INTO meta VALUES ('vocabulary_fingerprint', " + Quote(fingerprint) + ");"
+      "INSERT INTO meta VALUES ('vocabulary_size', " + Quote(std::to_string(meta.vocabulary_size)) + ");"
+      "INSERT INTO meta VALUES ('descriptor_kind', " + Quote(meta.descriptor_kind) + ");"
+      "INSERT INTO meta VALUES ('extractor_settings', " + Quote(meta.extractor_settings) + ");"
+      "INSERT INTO meta VALUES ('created_unix_ms', " + Quote(std::to_string(meta.created_unix_ms)) + ");"
+      "COMMIT;";
+  if (auto s = Exec(h, sql, path); !s) return std::unexpected(s.error());
+  if (auto s = Prepare(db->get(), path); !s) return std::unexpected(s.error());
+  return std::unique_ptr<Catalogue>(new Catalogue(std::move(*db), path, std::move(meta)));
+}
+
+Result<std::unique_ptr<Catalogue>> Catalogue::Open(const std::string& path) {
+  std::error_code ec;
+  if (!std::filesystem::is_regular_file(path, ec)) return Fail(ErrorCode::kNotFound, "no index catalogue at " + path);
+  auto db = Connect(path, SQLITE_OPEN_READWRITE);
+  if (!db) return std::unexpected(db.error());
+  sqlite3* h = (*db)->handle;
+  // Reading the meta table is the first access to the file: a damaged header fails here.
+  std::map<std::string, std::string> values;
+  sqlite3_stmt* stmt = nullptr;
+  int rc = sqlite3_prepare_v2(h, "SELECT key, value FROM meta", -1, &stmt, nullptr);
+  if (rc != SQLITE_OK) {
+    const std::string message = SqliteMessage(h);
+    const bool damaged = (rc & 0xff) == SQLITE_NOTADB || (rc & 0xff) == SQLITE_CORRUPT;
+    return Fail(ErrorCode::kCorruptData, path + (damaged ? " is damaged or not a SQLite database: "
+                                                         : " is not an oxbow index catalogue (incomplete or foreign): ") +
+                                             message);
+  }
+  while ((rc = sqlite3_step(stmt)) == SQLITE_ROW) {
+    values[reinterpret_cast<const char*>(sqlite3_column_text(stmt, 0))] =
+        reinterpret_cast<const char*>(sqlite3_column_text(stmt, 1));
+  }
+  sqlite3_finalize(stmt);
+  if (rc != SQLITE_DONE) return Fail(ErrorCode::kCorruptData, path + " is damaged: " + SqliteMessage(h));
+  for (const char* key : {"schema_version", "vocabulary_fingerprint", "vocabulary_size", "extractor_settings"}) {
+    if (!values.count(key)) return Fail(ErrorCode::kCorruptData, path + ": catalogue meta lacks '" + key + "'");
+  }
+  CatalogueMeta meta;
+  try {
+    meta.schema_version = std::stoi(values["schema_version"]);
+    meta.vocabulary_fingerprint = std::stoull(values["vocabulary_fingerprint"], nullptr, 16);
+    meta.vocabulary_size = std::stoull(values["vocabulary_size"]);
+    meta.created_unix_ms = values.count("created_unix_ms") ? std::stoll(values["created_unix_ms"]) : 0;
+  } catch (const std::exception&) {
+    return Fail(ErrorCode::kCorruptData, path + ": unreadable catalogue meta values");
+  }
+  meta.descriptor_kind = values["descriptor_kind"];
+  meta.extractor_settings = values["extractor_settings"];
+  if (meta.schema_version != kSchemaVersion) {
+    return Fail(ErrorCode::kIncompatible, path + " has schema version " + std::to_string(meta.schema_version) +
+                                              "; this build reads version " + std::to_string(kSchemaVersion) +
+                                              " (rebuild the index with this version)");
+  }
+  if (auto s = ConfigureDurability(h, path); !s) return std::unexpected(s.error());
+  if (auto s = Prepare(db->get(), path); !s) return std::unexpected(s.error());
+  return std::unique_ptr<Catalogue>(new Catalogue(std::move(*db), path, std::move(meta)));
+}
+
+Result<int64_t> Catalogue::Insert(const ImageRecord& r, std::span<const uint8_t> features) {
+  sqlite3_stmt* s = db_->insert;
+  sqlite3_reset(s);
+  sqlite3_clear_bindings(s);
+  sqlite3_bind_text(s, 1, r.id.data(), static_cast<int>(r.id.size()), SQLITE_TRANSIENT);
+  sqlite3_bind_text(s, 2, r.source_path.data(), static_cast<int>(r.source_path.size()), SQLITE_TRANSIENT);
+  sqlite3_bind_int(s, 3, r.width);
+  sqlite3_bind_int(s, 4, r.height);
+  sqlite3_bind_int64(s, 5, r.num_features);
+  sqlite3_bind_text(s, 6, r.metadata_json.data(), static_cast<int>(r.metadata_json.size()), SQLITE_TRANSIENT);
+  sqlite3_bind_int64(s, 7, r.added_unix_ms);
+  sqlite3_bind_blob64(s, 8, features.data(), features.size(), SQLITE_TRANSIENT);
+  // A single statement outside BEGIN is its own transaction: committed (and fsync'ed) when step returns.
+  const int rc = sqlite3_step(s);
+  sqlite3_reset(s);
+  if (rc == SQLITE_CONSTRAINT_UNIQUE || rc == SQLITE_CONSTRAINT_PRIMARYKEY) {
+    return Fail(ErrorCode::kAlreadyExists, "an image with id '" + r.id + "' is already indexed");
+  }
+  if (rc != SQLITE_DONE) return Fail(CodeFor(rc), path_ + ": cannot add '" + r.id + "': " + SqliteMessage(db_->handle));
+  return sqlite3_last_insert_rowid(db_->handle);
+}
+
+Status Catalogue::Delete(int64_t number) {
+  sqlite3_stmt* s = db_->remove;
+  sqlite3_reset(s);
+  sqlite3_bind_int64(s, 1, number);
+  const int rc = sqlite3_step(s);
+  sqlite3_reset(s);
+  if (rc != SQLITE_DONE) return Fail(CodeFor(rc), path_ + ": cannot remove image: " + SqliteMessage(db_->handle));
+  if (sqlite3_changes(db_->handle) == 0) return Fail(ErrorCode::kNotFound, "no image number " + std::to_string(number));
+  return Ok();
+}
+
+Status Catalogue::ForEach(const std::function<Status(CatalogueRow&&)>& fn) const {
+  sqlite3_stmt* stmt = nullptr;
+  const char* sql =
+      "SELECT number, id, source_path, width, height, num_features, metadata_json, added_unix_ms, features "
+      "FROM images ORDER BY number";
+  if (sqlite3_prepare_v2(db_->handle, sql, -1, &stmt, nullptr) != SQLITE_OK) {
+    return Fail(ErrorCode::kCorruptData, path_ + ": " + SqliteMessage(db_->handle));
+  }
+  auto text = [&](int col) {
+    const auto* p = reinterpret_cast<const char*>(sqlite3_column_text(stmt, col));
+    return std::string(p ? p : "", static_cast<size_t>(sqlite3_column_bytes(stmt, col)));
+  };
+  int rc;
+  Status status = Ok();
+  while ((rc = sqlite3_step(stmt)) == SQLITE_ROW) {
+    CatalogueRow row;
+    row.number = sqlite3_column_int64(stmt, 0);
+    row.record.id = text(1);
+    row.record.source_path = text(2);
+    row.record.width = sqlite3_column_int(stmt, 3);
+    row.record.height = sqlite3_column_int(stmt, 4);
+    row.record.num_features = static_cast<uint32_t>(sqlite3_column_int64(stmt, 5));
+    row.record.metadata_json = text(6);
+    row.record.added_unix_ms = sqlite3_column_int64(stmt, 7);
+    const auto* blob = static_cast<const uint8_t*>(sqlite3_column_blob(stmt, 8));
+    row.features.assign(blob, blob + sqlite3_column_bytes(stmt, 8));
+    status = fn(std::move(row));
+    if (!status) break;
+  }
+  const bool done = rc == SQLITE_DONE || !status;
+  const std::string message = SqliteMessage(db_->handle);
+  sqlite3_finalize(stmt);
+  if (!status) return status;
+  if (!done) return Fail(ErrorCode::kCorruptData, path_ + " is damaged: " + message);
+  return Ok();
+}
+
+}  // namespace oxbow::index

@@ -1,0 +1,78 @@
+// The durable catalogue of an index: one SQLite database (catalogue.sqlite) in WAL mode with
+// synchronous=FULL, so every committed transaction is on disk before Insert/Delete return and a crash or
+// kill -9 at any moment leaves either the old or the new state (SQLite's journal rolls back a half-done
+// transaction at the next open).
+//
+// Schema (version kSchemaVersion, image_index.h):
+//   meta(key TEXT PRIMARY KEY, value TEXT)      schema_version, vocabulary_fingerprint (hex),
+//                                               vocabulary_size, descriptor_kind, extractor_settings,
+//                                               created_unix_ms
+//   images(number INTEGER PRIMARY KEY AUTOINCREMENT,   internal image number, never reused
+//          id TEXT UNIQUE, source_path TEXT, width INTEGER, height INTEGER, num_features INTEGER,
+//          metadata_json TEXT, added_unix_ms INTEGER,
+//          features BLOB)                              PackedFeatures::Serialize() (feature_store.h)
+//
+// Thread safety: not thread-safe; ImageIndex serialises all calls under its writer mutex (Open's
+// ForEach runs before the index is shared).
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "index/image_index.h"
+#include "sift/error.h"
+
+namespace oxbow::index {
+
+struct CatalogueMeta {
+  int schema_version = kSchemaVersion;
+  uint64_t vocabulary_fingerprint = 0;
+  uint64_t vocabulary_size = 0;
+  std::string descriptor_kind;      // sift::DescriptorKindName
+  std::string extractor_settings;   // sift::SiftOptions::Describe()
+  int64_t created_unix_ms = 0;
+};
+
+struct CatalogueRow {
+  int64_t number = 0;
+  ImageRecord record;
+  std::vector<uint8_t> features;  // the BLOB
+};
+
+class Catalogue {
+ public:
+  // Creates the database file with its schema and meta rows in one transaction. kAlreadyExists if the
+  // file exists, kIoError when SQLite fails.
+  [[nodiscard]] static Result<std::unique_ptr<Catalogue>> Create(const std::string& path, const CatalogueMeta& meta);
+  // Opens an existing catalogue and reads its meta. kNotFound if missing; kCorruptData for a file that
+  // is not a SQLite database or lacks the tables/meta rows; kIncompatible for another schema version.
+  [[nodiscard]] static Result<std::unique_ptr<Catalogue>> Open(const std::string& path);
+  ~Catalogue();
+  Catalogue(const Catalogue&) = delete;
+  Catalogue& operator=(const Catalogue&) = delete;
+
+  const CatalogueMeta& meta() const { return meta_; }
+  const std::string& path() const { return path_; }
+
+  // Inserts one image row in its own committed transaction and returns its new number.
+  // kAlreadyExists when the id is taken, kIoError otherwise.
+  [[nodiscard]] Result<int64_t> Insert(const ImageRecord& record, std::span<const uint8_t> features);
+  // Deletes the row with this number in a committed transaction. kNotFound if absent.
+  [[nodiscard]] Status Delete(int64_t number);
+  // Calls fn for every row in number order; stops at and returns the first error.
+  [[nodiscard]] Status ForEach(const std::function<Status(CatalogueRow&&)>& fn) const;
+
+  struct Db;  // the SQLite connection (catalogue.cc)
+
+ private:
+  Catalogue(std::unique_ptr<Db> db, std::string path, CatalogueMeta meta);
+  std::unique_ptr<Db> db_;
+  std::string path_;
+  CatalogueMeta meta_;
+};
+
+}  // namespace oxbow::index

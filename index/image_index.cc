@@ -1,0 +1,599 @@
+#include "index/image_index.h"
+
+#include <algorithm>
+#include <array>
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <functional>
+#include <map>
+#include <mutex>
+#include <unordered_map>
+
+#include "index/catalogue.h"
+#include "index/cow_array.h"
+#include "index/feature_store.h"
+#include "index/inverted_file.h"
+#include "sift/log.h"
+#include "sift/match.h"
+#include "sift/parallel.h"
+
+namespace oxbow::index {
+namespace {
+
+constexpr const char* kCatalogueFile = "catalogue.sqlite";
+constexpr const char* kVocabularyFile = "vocabulary.oxvoc";
+constexpr size_t kIdShards = 64;
+constexpr size_t kMaxIdBytes = 256;
+
+using Clock = std::chrono::steady_clock;
+double MsSince(Clock::time_point t0) {
+  return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+}
+
+int64_t NowUnixMs() {
+  return std::chrono::duration_cast<std::chrono::milliseconds>(std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+std::string JoinPath(const std::string& dir, const char* file) {
+  return (std::filesystem::path(dir) / file).string();
+}
+
+size_t ShardOf(const std::string& id) { return std::hash<std::string>{}(id) % kIdShards; }
+
+// One indexed image: its catalogue record and packed words + geometry. Immutable once published.
+struct Entry {
+  ImageRecord record;
+  PackedFeatures features;
+};
+
+using IdShard = std::unordered_map<std::string, uint32_t>;
+
+TfIdfOptions ToTfIdf(const IndexOptions& o) {
+  return TfIdfOptions{.sqrt_tf = o.sqrt_tf, .max_document_frequency = o.max_document_frequency,
+                      .merge_factor = o.merge_factor};
+}
+
+Status CheckId(const std::string& id) {
+  if (id.empty() || id.size() > kMaxIdBytes) {
+    return Fail(ErrorCode::kInvalidArgument, "image id must be 1.." + std::to_string(kMaxIdBytes) + " bytes");
+  }
+  for (unsigned char c : id) {
+    if (c < 0x20 || c == 0x7f) return Fail(ErrorCode::kInvalidArgument, "image id contains a control character");
+  }
+  return Ok();
+}
+
+Status CheckFeatures(const sift::FeatureSet& f, const vocab::Vocabulary& vocabulary, const std::string& what) {
+  if (f.descriptors.size() != f.keypoints.size() * sift::kDescriptorDim) {
+    return Fail(ErrorCode::kInvalidArgument, what + ": " + std::to_string(f.descriptors.size()) +
+                                                 " descriptor values for " + std::to_string(f.keypoints.size()) +
+                                                 " keypoints (expected 128 each)");
+  }
+  if (vocabulary.dimension() != sift::kDescriptorDim) {
+    return Fail(ErrorCode::kIncompatible, "the index vocabulary has dimension " +
+                                              std::to_string(vocabulary.dimension()) + ", features have 128");
+  }
+  if (f.kind != vocabulary.descriptor_kind()) {
+    return Fail(ErrorCode::kIncompatible, what + " has " + sift::DescriptorKindName(f.kind) +
+                                              " descriptors but the index vocabulary was trained on " +
+                                              sift::DescriptorKindName(vocabulary.descriptor_kind()));
+  }
+  if (f.image_width <= 0 || f.image_height <= 0) {
+    return Fail(ErrorCode::kInvalidArgument, what + ": image size must be positive");
+  }
+  for (const sift::Keypoint& k : f.keypoints) {
+    if (!std::isfinite(k.x) || !std::isfinite(k.y) || !std::isfinite(k.scale) || !std::isfinite(k.orientation)) {
+      return Fail(ErrorCode::kInvalidArgument, what + ": non-finite keypoint");
+    }
+  }
+  return Ok();
+}
+
+Status CheckSettings(const std::string& given, const std::string& index_settings, const std::string& what) {
+  if (!given.empty() && given != index_settings) {
+    return Fail(ErrorCode::kIncompatible, what + " were extracted with settings '" + given +
+                                              "' but the index uses '" + index_settings +
+                                              "'; extract with the index's settings");
+  }
+  return Ok();
+}
+
+// A query's features after region filtering and quantisation.
+struct QueryFeatures {
+  std::vector<sift::Keypoint> keypoints;
+  std::vector<uint32_t> words;
+  int width = 0;
+  int height = 0;
+};
+
+}  // namespace
+
+std::optional<std::string> IndexOptions::Check() const {
+  if (auto e = ToTfIdf(*this).Check()) return e;
+  if (num_threads < 0 || num_threads > 256) return "num_threads must be in [0, 256]";
+  if (auto e = quantizer.Check()) return "quantizer: " + *e;
+  return std::nullopt;
+}
+
+std::optional<std::string> QueryOptions::Check() const {
+  if (top_k < 1 || top_k > 10000) return "top_k must be in [1, 10000], got " + std::to_string(top_k);
+  if (rerank_depth < 0 || rerank_depth > 10000) {
+    return "rerank_depth must be in [0, 10000], got " + std::to_string(rerank_depth);
+  }
+  if (region) {
+    const auto& r = *region;
+    for (float v : r) {
+      if (!std::isfinite(v)) return std::string("region must be finite");
+    }
+    if (!(r[0] < r[2] && r[1] < r[3])) return std::string("region must satisfy x1 < x2 and y1 < y2");
+  }
+  if (query_expansion && rerank_depth == 0) return std::string("query_expansion needs rerank_depth > 0");
+  if (qe_images < 1 || qe_images > 100) return "qe_images must be in [1, 100]";
+  if (max_pairs_per_word < 1 || max_pairs_per_word > 100) return "max_pairs_per_word must be in [1, 100]";
+  if (auto e = verify.Check()) return "verify: " + *e;
+  return std::nullopt;
+}
+
+// Everything a reader needs, immutable once published.
+struct ImageIndex::Snapshot {
+  InvertedFile inverted;
+  CowArray<std::shared_ptr<const Entry>> entries;  // by image number; null for unused/removed numbers
+  std::array<std::shared_ptr<const IdShard>, kIdShards> ids;
+  uint64_t geometry_bytes = 0;
+
+  explicit Snapshot(InvertedFile file) : inverted(std::move(file)) {}
+
+  const Entry* Find(const std::string& id, uint32_t* number = nullptr) const {
+    const IdShard& shard = *ids[ShardOf(id)];
+    const auto it = shard.find(id);
+    if (it == shard.end()) return nullptr;
+    if (number) *number = it->second;
+    return entries[it->second].get();
+  }
+};
+
+struct ImageIndex::Impl {
+  std::string dir;
+  IndexOptions index_options;
+  vocab::Vocabulary vocabulary;
+  std::string extractor_settings;
+
+  mutable std::mutex writer_mutex;              // guards catalogue and the building of the next snapshot
+  std::unique_ptr<Catalogue> catalogue;         // guarded by writer_mutex
+
+  mutable std::mutex snapshot_mutex;            // guards only the `snapshot` pointer
+  std::shared_ptr<const Snapshot> snapshot;
+
+  Impl(std::string d, const IndexOptions& o, vocab::Vocabulary v, std::string settings)
+      : dir(std::move(d)), index_options(o), vocabulary(std::move(v)), extractor_settings(std::move(settings)) {}
+
+  std::shared_ptr<const Snapshot> Current() const {
+    std::lock_guard<std::mutex> lock(snapshot_mutex);
+    return snapshot;
+  }
+  void Publish(std::shared_ptr<const Snapshot> next) {
+    std::lock_guard<std::mutex> lock(snapshot_mutex);
+    snapshot = std::move(next);
+  }
+
+  Result<QueryResponse> Run(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
+                            QueryTimings timings) const;
+};
+
+ImageIndex::ImageIndex(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+ImageIndex::~ImageIndex() = default;
+
+bool ImageIndex::Exists(const std::string& dir) {
+  std::error_code ec;
+  return std::filesystem::is_regular_file(JoinPath(dir, kCatalogueFile), ec);
+}
+
+Result<std::unique_ptr<ImageIndex>> ImageIndex::Create(const std::string& dir, const vocab::Vocabulary& vocabulary,
+                                                       std::string extractor_settings, const IndexOptions& options) {
+  if (auto e = options.Check()) return Fail(ErrorCode::kInvalidArgument, "index options: " + *e);
+  if (Exists(dir)) return Fail(ErrorCode::kAlreadyExists, dir + " already holds an index");
+  if (!vocabulary.extractor_settings().empty() && extractor_settings != vocabulary.extractor_settings()) {
+    return Fail(ErrorCode::kIncompatible, "the vocabulary was trained on features extracted with '" +
+                                              vocabulary.extractor_settings() + "', not '" + extractor_settings + "'");
+  }
+  if (vocabulary.size() == 0 || vocabulary.size() > kMaxPackedWord + size_t{1}) {
+    return Fail(ErrorCode::kInvalidArgument, "vocabulary size must be in [1, 2^24]");
+  }
+  std::error_code ec;
+  std::filesystem::create_directories(dir, ec);
+  if (ec) return Fail(ErrorCode::kIoError, "cannot create " + dir + ": " + ec.message());
+  // The vocabulary copy first (atomic write); the catalogue, created in one transaction, marks the index
+  // as complete. A crash in between leaves a folder that Exists() does not report as an index.
+  if (auto s = vocabulary.Write(JoinPath(dir, kVocabularyFile)); !s) return std::unexpected(s.error());
+  CatalogueMeta meta;
+  meta.vocabulary_fingerprint = vocabulary.fingerprint();
+  meta.vocabulary_size = vocabulary.size();
+  meta.descriptor_kind = sift::DescriptorKindName(vocabulary.descriptor_kind());
+  meta.extractor_settings = extractor_settings;
+  auto catalogue = Catalogue::Create(JoinPath(dir, kCatalogueFile), meta);
+  if (!catalogue) return std::unexpected(catalogue.error());
+
+  auto impl = std::make_unique<Impl>(dir, options, vocabulary, std::move(extractor_settings));
+  impl->catalogue = std::move(*catalogue);
+  auto snap = std::make_shared<Snapshot>(InvertedFile(vocabulary.size(), ToTfIdf(options)));
+  for (auto& shard : snap->ids) shard = std::make_shared<IdShard>();
+  impl->snapshot = std::move(snap);
+  return std::unique_ptr<ImageIndex>(new ImageIndex(std::move(impl)));
+}
+
+Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, const IndexOptions& options) {
+  if (auto e = options.Check()) return Fail(ErrorCode::kInvalidArgument, "index options: " + *e);
+  const std::string catalogue_path = JoinPath(dir, kCatalogueFile);
+  if (!Exists(dir)) return Fail(ErrorCode::kNotFound, "no index at " + dir + " (missing " + kCatalogueFile + ")");
+  auto catalogue = Catalogue::Open(catalogue_path);
+  if (!catalogue) return std::unexpected(catalogue.error());
+  const CatalogueMeta& meta = (*catalogue)->meta();
+  auto vocabulary = vocab::Vocabulary::Read(JoinPath(dir, kVocabularyFile));
+  if (!vocabulary) {
+    return Fail(vocabulary.error().code, "index " + dir + ": its vocabulary copy is unusable: " +
+                                             vocabulary.error().message);
+  }
+  if (vocabulary->fingerprint() != meta.vocabulary_fingerprint || vocabulary->size() != meta.vocabulary_size) {
+    return Fail(ErrorCode::kIncompatible, "index " + dir + ": vocabulary copy " + kVocabularyFile +
+                                              " does not match the catalogue (fingerprint or size differ); "
+                                              "the folder mixes two indexes");
+  }
+  if (meta.descriptor_kind != sift::DescriptorKindName(vocabulary->descriptor_kind())) {
+    return Fail(ErrorCode::kIncompatible, "index " + dir + ": descriptor kind of the catalogue and vocabulary differ");
+  }
+
+  // Load every row (validating each BLOB), then build the inverted file in one pass.
+  std::vector<std::shared_ptr<const Entry>> by_number;
+  const size_t vocab_size = vocabulary->size();
+  auto status = (*catalogue)->ForEach([&](CatalogueRow&& row) -> Status {
+    if (row.number <= 0 || row.number >= (int64_t{1} << 31)) {
+      return Fail(ErrorCode::kCorruptData, catalogue_path + ": image number out of range");
+    }
+    auto features = PackedFeatures::Deserialize(row.features, "image '" + row.record.id + "' in " + catalogue_path);
+    if (!features) return std::unexpected(features.error());
+    if (features->size() != row.record.num_features || features->width() != row.record.width ||
+        features->height() != row.record.height) {
+      return Fail(ErrorCode::kCorruptData, catalogue_path + ": image '" + row.record.id +
+                                               "' record disagrees with its features");
+    }
+    if (features->size() > 0 && features->word(features->size() - 1) >= vocab_size) {
+      return Fail(ErrorCode::kCorruptData, catalogue_path + ": image '" + row.record.id +
+                                               "' has a word outside the vocabulary");
+    }
+    const auto number = static_cast<size_t>(row.number);
+    if (by_number.size() <= number) by_number.resize(number + 1);
+    by_number[number] = std::make_shared<Entry>(Entry{std::move(row.record), std::move(*features)});
+    return Ok();
+  });
+  if (!status) return std::unexpected(status.error());
+
+  const auto num_numbers = static_cast<uint32_t>(by_number.size());
+  InvertedFile inverted = InvertedFile::Build(
+      vocab_size, ToTfIdf(options), num_numbers,
+      [&](uint32_t number, BagOfWords* bag) {
+        if (!by_number[number]) return false;
+        *bag = by_number[number]->features.Bag();
+        return true;
+      },
+      options.num_threads);
+  auto snap = std::make_shared<Snapshot>(std::move(inverted));
+  std::array<std::shared_ptr<IdShard>, kIdShards> shards;
+  for (auto& shard : shards) shard = std::make_shared<IdShard>();
+  {
+    CowArray<std::shared_ptr<const Entry>>::Editor editor(&snap->entries);
+    editor.Resize(num_numbers);
+    for (uint32_t n = 0; n < num_numbers; ++n) {
+      if (!by_number[n]) continue;
+      shards[ShardOf(by_number[n]->record.id)]->emplace(by_number[n]->record.id, n);
+      snap->geometry_bytes += by_number[n]->features.MemoryBytes();
+      editor.Mutable(n) = std::move(by_number[n]);
+    }
+  }
+  for (size_t i = 0; i < kIdShards; ++i) snap->ids[i] = std::move(shards[i]);
+
+  auto impl = std::make_unique<Impl>(dir, options, std::move(*vocabulary), meta.extractor_settings);
+  impl->catalogue = std::move(*catalogue);
+  impl->snapshot = std::move(snap);
+  return std::unique_ptr<ImageIndex>(new ImageIndex(std::move(impl)));
+}
+
+Result<ImageRecord> ImageIndex::Add(const std::string& id, const sift::FeatureSet& features, const ImageInfo& info) {
+  if (auto s = CheckId(id); !s) return std::unexpected(s.error());
+  if (auto s = CheckFeatures(features, impl_->vocabulary, "image '" + id + "'"); !s) return std::unexpected(s.error());
+  if (auto s = CheckSettings(info.extractor_settings, impl_->extractor_settings, "features of '" + id + "'"); !s) {
+    return std::unexpected(s.error());
+  }
+  if (Contains(id)) return Fail(ErrorCode::kAlreadyExists, "an image with id '" + id + "' is already indexed");
+
+  // Quantise outside the writer lock: it is the expensive part and needs no shared state.
+  std::vector<uint32_t> words(features.size());
+  impl_->vocabulary.Quantize(features.descriptors, words, impl_->index_options.quantizer);
+  auto entry = std::make_shared<Entry>();
+  entry->features = PackedFeatures::Pack(features.keypoints, words, features.image_width, features.image_height);
+  entry->record = ImageRecord{.id = id, .source_path = info.source_path, .width = features.image_width,
+                              .height = features.image_height, .num_features = static_cast<uint32_t>(features.size()),
+                              .metadata_json = info.metadata_json, .added_unix_ms = NowUnixMs()};
+  const BagOfWords bag = entry->features.Bag();
+  const std::vector<uint8_t> blob = entry->features.Serialize();
+
+  std::lock_guard<std::mutex> writer(impl_->writer_mutex);
+  const auto current = impl_->Current();
+  if (current->Find(id)) return Fail(ErrorCode::kAlreadyExists, "an image with id '" + id + "' is already indexed");
+  // Durable first: once Insert returns the row is committed; the snapshot then makes it visible.
+  auto number = impl_->catalogue->Insert(entry->record, blob);
+  if (!number) return std::unexpected(number.error());
+  const auto n = static_cast<uint32_t>(*number);
+
+  auto next = std::make_shared<Snapshot>(*current);
+  const std::array<uint32_t, 1> numbers = {n};
+  const std::array<const BagOfWords*, 1> bags = {&bag};
+  next->inverted = current->inverted.WithAdded(numbers, bags);
+  {
+    CowArray<std::shared_ptr<const Entry>>::Editor editor(&next->entries);
+    editor.Resize(std::max<size_t>(next->entries.size(), size_t{n} + 1));
+    editor.Mutable(n) = entry;
+  }
+  auto shard = std::make_shared<IdShard>(*current->ids[ShardOf(id)]);
+  shard->emplace(id, n);
+  next->ids[ShardOf(id)] = std::move(shard);
+  next->geometry_bytes += entry->features.MemoryBytes();
+  impl_->Publish(std::move(next));
+  return entry->record;
+}
+
+Status ImageIndex::Remove(const std::string& id) {
+  std::lock_guard<std::mutex> writer(impl_->writer_mutex);
+  const auto current = impl_->Current();
+  uint32_t n = 0;
+  const Entry* entry = current->Find(id, &n);
+  if (!entry) return Fail(ErrorCode::kNotFound, "no image with id '" + id + "'");
+  if (auto s = impl_->catalogue->Delete(n); !s) return s;
+
+  auto next = std::make_shared<Snapshot>(*current);
+  const BagOfWords bag = entry->features.Bag();
+  const std::array<uint32_t, 1> numbers = {n};
+  const std::array<const BagOfWords*, 1> bags = {&bag};
+  next->inverted = current->inverted.WithRemoved(numbers, bags);
+  next->geometry_bytes -= entry->features.MemoryBytes();
+  {
+    CowArray<std::shared_ptr<const Entry>>::Editor editor(&next->entries);
+    editor.Mutable(n) = nullptr;
+  }
+  auto shard = std::make_shared<IdShard>(*current->ids[ShardOf(id)]);
+  shard->erase(id);
+  next->ids[ShardOf(id)] = std::move(shard);
+  impl_->Publish(std::move(next));
+  return Ok();
+}
+
+Result<ImageRecord> ImageIndex::Get(const std::string& id) const {
+  const auto snap = impl_->Current();
+  const Entry* entry = snap->Find(id);
+  if (!entry) return Fail(ErrorCode::kNotFound, "no image with id '" + id + "'");
+  return entry->record;
+}
+
+bool ImageIndex::Contains(const std::string& id) const { return impl_->Current()->Find(id) != nullptr; }
+
+Result<std::vector<ImageRecord>> ImageIndex::List(uint64_t offset, uint64_t limit) const {
+  const auto snap = impl_->Current();
+  std::vector<std::pair<std::string, uint32_t>> all;
+  for (const auto& shard : snap->ids) all.insert(all.end(), shard->begin(), shard->end());
+  std::sort(all.begin(), all.end());
+  std::vector<ImageRecord> out;
+  for (uint64_t i = offset; i < all.size() && out.size() < limit; ++i) {
+    out.push_back(snap->entries[all[i].second]->record);
+  }
+  return out;
+}
+
+Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const QueryOptions& options) const {
+  const auto t0 = Clock::now();
+  if (auto e = options.Check()) return Fail(ErrorCode::kInvalidArgument, "query options: " + *e);
+  if (auto s = CheckFeatures(query, impl_->vocabulary, "the query"); !s) return std::unexpected(s.error());
+  if (auto s = CheckSettings(options.extractor_settings, impl_->extractor_settings, "the query features"); !s) {
+    return std::unexpected(s.error());
+  }
+  const auto snap = impl_->Current();
+  QueryFeatures q;
+  q.width = query.image_width;
+  q.height = query.image_height;
+  std::vector<float> descriptors;
+  for (size_t i = 0; i < query.size(); ++i) {
+    const sift::Keypoint& k = query.keypoints[i];
+    if (options.region) {
+      const auto& r = *options.region;
+      if (k.x < r[0] || k.x > r[2] || k.y < r[1] || k.y > r[3]) continue;
+    }
+    q.keypoints.push_back(k);
+    const auto d = query.Descriptor(i);
+    descriptors.insert(descriptors.end(), d.begin(), d.end());
+  }
+  QueryTimings timings;
+  q.words.resize(q.keypoints.size());
+  impl_->vocabulary.Quantize(descriptors, q.words, impl_->index_options.quantizer);
+  timings.quantize_ms = MsSince(t0);
+  auto response = impl_->Run(*snap, q, options, timings);
+  if (response) response->timings.total_ms = MsSince(t0);
+  return response;
+}
+
+Result<QueryResponse> ImageIndex::QuerySimilar(const std::string& id, const QueryOptions& options) const {
+  const auto t0 = Clock::now();
+  if (auto e = options.Check()) return Fail(ErrorCode::kInvalidArgument, "query options: " + *e);
+  const auto snap = impl_->Current();
+  const Entry* entry = snap->Find(id);
+  if (!entry) return Fail(ErrorCode::kNotFound, "no image with id '" + id + "'");
+  QueryFeatures q;
+  q.width = entry->features.width();
+  q.height = entry->features.height();
+  for (size_t i = 0; i < entry->features.size(); ++i) {
+    const sift::Keypoint k = entry->features.keypoint(i);
+    if (options.region) {
+      const auto& r = *options.region;
+      if (k.x < r[0] || k.x > r[2] || k.y < r[1] || k.y > r[3]) continue;
+    }
+    q.keypoints.push_back(k);
+    q.words.push_back(entry->features.word(i));
+  }
+  auto response = impl_->Run(*snap, q, options, QueryTimings{});
+  if (response) response->timings.total_ms = MsSince(t0);
+  return response;
+}
+
+Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFeatures& query,
+                                            const QueryOptions& options, QueryTimings timings) const {
+  thread_local ScoreScratch scratch;
+  QueryResponse response;
+  response.query_features = static_cast<uint32_t>(query.words.size());
+
+  // 1. TF-IDF scoring.
+  auto t = Clock::now();
+  const BagOfWords bag = BagOfWords::FromWords(query.words);
+  const std::vector<QueryTerm> terms = snap.inverted.QueryVector(bag);
+  const size_t depth = std::max<size_t>(static_cast<size_t>(options.top_k), static_cast<size_t>(options.rerank_depth));
+  const std::vector<ScoredImage> scored = snap.inverted.Score(terms, depth, &scratch, &response.candidates);
+  timings.score_ms = MsSince(t);
+
+  std::vector<QueryResult> results(scored.size());
+  for (size_t i = 0; i < scored.size(); ++i) {
+    results[i].id = snap.entries[scored[i].image]->record.id;
+    results[i].score = scored[i].score;
+  }
+
+  // 2. Spatial re-ranking of the top R.
+  t = Clock::now();
+  const size_t rerank = std::min(scored.size(), static_cast<size_t>(options.rerank_depth));
+  size_t num_verified = 0;
+  if (rerank > 0) {
+    // Query features sorted by word for the merge join.
+    std::vector<uint32_t> order(query.words.size());
+    for (uint32_t i = 0; i < order.size(); ++i) order[i] = i;
+    std::stable_sort(order.begin(), order.end(), [&](uint32_t a, uint32_t b) { return query.words[a] < query.words[b]; });
+    const std::array<float, 4> query_region =
+        options.region ? *options.region
+                       : std::array<float, 4>{0, 0, static_cast<float>(query.width), static_cast<float>(query.height)};
+    ParallelFor(rerank, index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
+      for (size_t c = begin; c < end; ++c) {
+        const PackedFeatures& db = snap.entries[scored[c].image]->features;
+        std::vector<sift::Match> matches;
+        size_t i = 0, j = 0;
+        const size_t nq = order.size(), nd = db.size();
+        while (i < nq && j < nd) {
+          const uint32_t wq = query.words[order[i]], wd = db.word(j);
+          if (wq < wd) {
+            ++i;
+          } else if (wd < wq) {
+            ++j;
+          } else {
+            size_t i2 = i, j2 = j;
+            while (i2 < nq && query.words[order[i2]] == wq) ++i2;
+            while (j2 < nd && db.word(j2) == wd) ++j2;
+            const size_t cq = i2 - i, cd = j2 - j;
+            if (cq <= static_cast<size_t>(options.max_pairs_per_word) &&
+                cd <= static_cast<size_t>(options.max_pairs_per_word)) {
+              // Pairs from a word seen once on each side are the most reliable: smallest "distance".
+              const float distance = static_cast<float>(cq * cd);
+              for (size_t a = i; a < i2; ++a) {
+                for (size_t b = j; b < j2; ++b) {
+                  matches.push_back({order[a], static_cast<uint32_t>(b), distance});
+                }
+              }
+            }
+            i = i2;
+            j = j2;
+          }
+        }
+        if (matches.size() < 3) continue;
+        const std::vector<sift::Match> unique = sift::EnforceOneToOne(matches);
+        std::vector<sift::Keypoint> db_keypoints(nd);
+        for (size_t k = 0; k < nd; ++k) db_keypoints[k] = db.keypoint(k);
+        const sift::VerificationResult v = sift::VerifyHoughAffine(
+            query.keypoints, db_keypoints, unique, query_region, {db.width(), db.height()}, options.verify);
+        QueryResult& r = results[c];
+        r.inliers = v.num_inliers;
+        if (v.verified) {
+          r.verified = true;
+          r.db_from_query = v.db_from_query;
+          r.db_region = v.db_region;
+        }
+      }
+    });
+    // Verified first (by inliers, then score), then the rest in tf-idf order; stable keeps ties by rank.
+    std::stable_sort(results.begin(), results.begin() + static_cast<std::ptrdiff_t>(rerank),
+                     [](const QueryResult& a, const QueryResult& b) {
+                       if (a.verified != b.verified) return a.verified;
+                       if (a.verified && a.inliers != b.inliers) return a.inliers > b.inliers;
+                       return a.score > b.score;
+                     });
+    for (size_t c = 0; c < rerank; ++c) num_verified += results[c].verified ? 1 : 0;
+  }
+  timings.verify_ms = MsSince(t);
+
+  // 3. Average query expansion over the verified results.
+  if (options.query_expansion && num_verified > 0) {
+    t = Clock::now();
+    std::map<uint32_t, double> average;
+    for (const QueryTerm& term : terms) average[term.word] += term.weight;
+    const size_t used = std::min(num_verified, static_cast<size_t>(options.qe_images));
+    for (size_t c = 0; c < used; ++c) {
+      const Entry* entry = snap.Find(results[c].id);
+      const BagOfWords region_bag = entry->features.BagInside(results[c].db_region);
+      for (const QueryTerm& term : snap.inverted.QueryVector(region_bag)) average[term.word] += term.weight;
+    }
+    std::vector<QueryTerm> expanded;
+    double norm_sq = 0;
+    for (const auto& [word, weight] : average) norm_sq += weight * weight;
+    const double inv = norm_sq > 0 ? 1.0 / std::sqrt(norm_sq) : 0.0;
+    for (const auto& [word, weight] : average) expanded.push_back({word, static_cast<float>(weight * inv)});
+    const std::vector<ScoredImage> rescored =
+        snap.inverted.Score(expanded, static_cast<size_t>(options.top_k) + num_verified, &scratch);
+    std::vector<QueryResult> merged(results.begin(), results.begin() + static_cast<std::ptrdiff_t>(num_verified));
+    std::unordered_map<std::string, const QueryResult*> first_stage;
+    for (const QueryResult& r : results) first_stage[r.id] = &r;
+    for (const ScoredImage& s : rescored) {
+      const std::string& id = snap.entries[s.image]->record.id;
+      const auto it = first_stage.find(id);
+      if (it != first_stage.end() && it->second->verified) continue;
+      QueryResult r;
+      if (it != first_stage.end()) r = *it->second;
+      r.id = id;
+      r.score = s.score;
+      merged.push_back(std::move(r));
+    }
+    results = std::move(merged);
+    timings.qe_ms = MsSince(t);
+  }
+
+  if (results.size() > static_cast<size_t>(options.top_k)) results.resize(static_cast<size_t>(options.top_k));
+  for (QueryResult& r : results) r.record = snap.Find(r.id)->record;
+  response.results = std::move(results);
+  response.timings = timings;
+  return response;
+}
+
+IndexStats ImageIndex::Stats() const {
+  const auto snap = impl_->Current();
+  const InvertedFileStats s = snap->inverted.Stats();
+  IndexStats out;
+  out.num_images = s.num_images;
+  out.num_features = s.num_features;
+  out.postings_bytes = s.postings_bytes;
+  out.geometry_bytes = snap->geometry_bytes;
+  out.other_bytes = s.image_table_bytes + s.word_table_bytes + snap->entries.MemoryBytes();
+  for (const auto& shard : snap->ids) out.other_bytes += shard->size() * 64;
+  const uint64_t total = out.postings_bytes + out.geometry_bytes + out.other_bytes;
+  out.bytes_per_feature = out.num_features ? static_cast<double>(total) / static_cast<double>(out.num_features) : 0.0;
+  out.num_segments = s.num_segments;
+  out.vocabulary_size = impl_->vocabulary.size();
+  out.vocabulary_fingerprint = impl_->vocabulary.fingerprint();
+  return out;
+}
+
+const vocab::Vocabulary& ImageIndex::vocabulary() const { return impl_->vocabulary; }
+const std::string& ImageIndex::extractor_settings() const { return impl_->extractor_settings; }
+const std::string& ImageIndex::directory() const { return impl_->dir; }
+
+}  // namespace oxbow::index

@@ -1,0 +1,510 @@
+#include "index/image_index.h"
+
+#include <gtest/gtest.h>
+#include <sqlite3.h>
+
+#include <atomic>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <optional>
+#include <numbers>
+#include <random>
+#include <thread>
+
+#include "index/feature_store.h"
+
+namespace oxbow::index {
+namespace {
+
+namespace fs = std::filesystem;
+constexpr int kWords = 256;
+
+// A vocabulary of kWords random unit centroids; features are made by perturbing a centroid slightly so
+// the quantiser is known to return that word.
+class Fixture : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = fs::temp_directory_path() / ("oxbow_index_test_" + std::to_string(::getpid()) + "_" +
+                                        ::testing::UnitTest::GetInstance()->current_test_info()->name());
+    fs::remove_all(dir_);
+    vocabulary_ = MakeVocabulary(1);
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+
+  static vocab::Vocabulary MakeVocabulary(uint64_t seed, const std::string& settings = "test-extractor/1") {
+    std::mt19937_64 rng(seed);
+    std::normal_distribution<float> g(0, 1);
+    std::vector<float> c(static_cast<size_t>(kWords) * 128);
+    for (int w = 0; w < kWords; ++w) {
+      double n = 0;
+      for (int d = 0; d < 128; ++d) {
+        c[w * 128 + d] = g(rng);
+        n += c[w * 128 + d] * c[w * 128 + d];
+      }
+      for (int d = 0; d < 128; ++d) c[w * 128 + d] /= static_cast<float>(std::sqrt(n));
+    }
+    auto v = vocab::Vocabulary::FromCentroids(std::move(c), 128, sift::DescriptorKind::kRootSift, settings);
+    EXPECT_TRUE(v.has_value()) << (v ? "" : v.error().ToString());
+    return *v;
+  }
+
+  // Features with the given words at the given keypoints.
+  sift::FeatureSet Features(const std::vector<uint32_t>& words, const std::vector<sift::Keypoint>& keypoints,
+                            int width = 640, int height = 480) const {
+    sift::FeatureSet f;
+    f.image_width = width;
+    f.image_height = height;
+    f.kind = sift::DescriptorKind::kRootSift;
+    f.keypoints = keypoints;
+    const auto centroids = vocabulary_.centroids();
+    for (uint32_t w : words) {
+      f.descriptors.insert(f.descriptors.end(), centroids.begin() + w * 128, centroids.begin() + (w + 1) * 128);
+    }
+    return f;
+  }
+
+  // An image of n random features (word, position, scale, orientation).
+  sift::FeatureSet RandomImage(std::mt19937_64& rng, int n, int width = 640, int height = 480) const {
+    std::uniform_int_distribution<uint32_t> word(0, kWords - 1);
+    std::uniform_real_distribution<float> x(0, static_cast<float>(width - 1)), y(0, static_cast<float>(height - 1));
+    std::uniform_real_distribution<float> s(1.5f, 12.0f), o(0, 6.28f);
+    std::vector<uint32_t> words;
+    std::vector<sift::Keypoint> kps;
+    for (int i = 0; i < n; ++i) {
+      words.push_back(word(rng));
+      kps.push_back({x(rng), y(rng), s(rng), o(rng), 1.0f, 0});
+    }
+    return Features(words, kps, width, height);
+  }
+
+  std::unique_ptr<ImageIndex> CreateIndex(const IndexOptions& options = {}) {
+    auto index = ImageIndex::Create(dir_.string(), vocabulary_, "test-extractor/1", options);
+    EXPECT_TRUE(index.has_value()) << (index ? "" : index.error().ToString());
+    return std::move(*index);
+  }
+
+  fs::path dir_;
+  vocab::Vocabulary vocabulary_ = MakeVocabulary(1);
+};
+
+QueryOptions Opts(int top_k, int rerank_depth, bool query_expansion = false,
+                  std::optional<std::array<float, 4>> region = std::nullopt) {
+  QueryOptions o;
+  o.top_k = top_k;
+  o.rerank_depth = rerank_depth;
+  o.query_expansion = query_expansion;
+  o.region = region;
+  return o;
+}
+
+ImageInfo Info(std::string source_path = "", std::string metadata_json = "", std::string settings = "") {
+  ImageInfo info;
+  info.source_path = std::move(source_path);
+  info.metadata_json = std::move(metadata_json);
+  info.extractor_settings = std::move(settings);
+  return info;
+}
+
+std::map<std::string, double> ScoresById(const QueryResponse& r) {
+  std::map<std::string, double> out;
+  for (const auto& x : r.results) out[x.id] = x.score;
+  return out;
+}
+
+TEST_F(Fixture, AddGetListRemove) {
+  auto index = CreateIndex();
+  std::mt19937_64 rng(1);
+  ASSERT_TRUE(index->Add("b", RandomImage(rng, 50), Info("/x/b.jpg", R"({"k":1})")));
+  ASSERT_TRUE(index->Add("a", RandomImage(rng, 40), {}));
+  const auto dup = index->Add("a", RandomImage(rng, 10), {});
+  ASSERT_FALSE(dup);
+  EXPECT_EQ(dup.error().code, ErrorCode::kAlreadyExists);
+
+  const auto b = index->Get("b");
+  ASSERT_TRUE(b);
+  EXPECT_EQ(b->source_path, "/x/b.jpg");
+  EXPECT_EQ(b->metadata_json, R"({"k":1})");
+  EXPECT_EQ(b->num_features, 50u);
+  EXPECT_EQ(b->width, 640);
+  EXPECT_GT(b->added_unix_ms, 0);
+
+  const auto list = index->List(0, 10);
+  ASSERT_TRUE(list);
+  ASSERT_EQ(list->size(), 2u);
+  EXPECT_EQ((*list)[0].id, "a");
+  EXPECT_EQ(index->List(1, 10)->size(), 1u);
+
+  const auto stats = index->Stats();
+  EXPECT_EQ(stats.num_images, 2u);
+  EXPECT_EQ(stats.num_features, 90u);
+  EXPECT_GT(stats.bytes_per_feature, 0);
+
+  ASSERT_TRUE(index->Remove("a"));
+  EXPECT_EQ(index->Get("a").error().code, ErrorCode::kNotFound);
+  EXPECT_EQ(index->Remove("a").error().code, ErrorCode::kNotFound);
+  EXPECT_EQ(index->Stats().num_images, 1u);
+}
+
+TEST_F(Fixture, BadInputIsAnErrorValue) {
+  auto index = CreateIndex();
+  std::mt19937_64 rng(2);
+  auto f = RandomImage(rng, 10);
+  EXPECT_EQ(index->Add("", f, {}).error().code, ErrorCode::kInvalidArgument);
+  EXPECT_EQ(index->Add("a\nb", f, {}).error().code, ErrorCode::kInvalidArgument);
+  auto wrong_kind = f;
+  wrong_kind.kind = sift::DescriptorKind::kSift;
+  EXPECT_EQ(index->Add("x", wrong_kind, {}).error().code, ErrorCode::kIncompatible);
+  auto short_desc = f;
+  short_desc.descriptors.pop_back();
+  EXPECT_EQ(index->Add("x", short_desc, {}).error().code, ErrorCode::kInvalidArgument);
+  auto no_size = f;
+  no_size.image_width = 0;
+  EXPECT_EQ(index->Add("x", no_size, {}).error().code, ErrorCode::kInvalidArgument);
+  const auto other = index->Add("x", f, Info("", "", "other-extractor/2"));
+  ASSERT_FALSE(other);
+  EXPECT_EQ(other.error().code, ErrorCode::kIncompatible);
+  EXPECT_NE(other.error().message.find("other-extractor/2"), std::string::npos);
+  EXPECT_EQ(index->Query(f, Opts(0, 0)).error().code, ErrorCode::kInvalidArgument);
+  EXPECT_EQ(index->Query(f, Opts(20, 0, false, std::array<float, 4>{5, 5, 1, 1})).error().code, ErrorCode::kInvalidArgument);
+  EXPECT_EQ(index->Stats().num_images, 0u);
+  // A query on an empty index is an empty list.
+  const auto r = index->Query(f, {});
+  ASSERT_TRUE(r);
+  EXPECT_TRUE(r->results.empty());
+}
+
+TEST_F(Fixture, CreateRefusesExistingIndexAndForeignExtractor) {
+  CreateIndex();
+  EXPECT_EQ(ImageIndex::Create(dir_.string(), vocabulary_, "test-extractor/1").error().code, ErrorCode::kAlreadyExists);
+  const auto other = ImageIndex::Create((dir_ / "sub").string(), vocabulary_, "other/1");
+  ASSERT_FALSE(other);
+  EXPECT_EQ(other.error().code, ErrorCode::kIncompatible);
+  EXPECT_EQ(ImageIndex::Open((dir_ / "missing").string()).error().code, ErrorCode::kNotFound);
+}
+
+TEST_F(Fixture, SpatialReRankingFindsTheTransformedImage) {
+  auto index = CreateIndex();
+  std::mt19937_64 rng(3);
+  std::vector<sift::FeatureSet> images;
+  for (int i = 0; i < 30; ++i) {
+    images.push_back(RandomImage(rng, 150));
+    ASSERT_TRUE(index->Add("img" + std::to_string(i), images.back(), {}));
+  }
+  // Query: image 7 seen at scale 0.5, rotated 30 degrees and shifted, 60% of its features, plus clutter.
+  const sift::FeatureSet& target = images[7];
+  const double angle = std::numbers::pi / 6, scale = 0.5;
+  const double ca = std::cos(angle) * scale, sa = std::sin(angle) * scale;
+  std::vector<uint32_t> words;
+  std::vector<sift::Keypoint> kps;
+  std::vector<uint32_t> target_words(target.size());
+  vocabulary_.Quantize(target.descriptors, target_words);
+  for (size_t i = 0; i < target.size(); i += 5) {
+    for (size_t j = i; j < std::min(target.size(), i + 3); ++j) {
+      const auto& k = target.keypoints[j];
+      sift::Keypoint q = k;
+      q.x = static_cast<float>(ca * k.x - sa * k.y + 300);
+      q.y = static_cast<float>(sa * k.x + ca * k.y + 50);
+      q.scale = static_cast<float>(k.scale * scale);
+      q.orientation = static_cast<float>(std::fmod(k.orientation + angle, 2 * std::numbers::pi));
+      words.push_back(target_words[j]);
+      kps.push_back(q);
+    }
+  }
+  const auto clutter = RandomImage(rng, 60, 800, 800);
+  std::vector<uint32_t> clutter_words(clutter.size());
+  vocabulary_.Quantize(clutter.descriptors, clutter_words);
+  words.insert(words.end(), clutter_words.begin(), clutter_words.end());
+  kps.insert(kps.end(), clutter.keypoints.begin(), clutter.keypoints.end());
+  const auto query = Features(words, kps, 800, 800);
+
+  const auto r = index->Query(query, Opts(5, 30));
+  ASSERT_TRUE(r) << r.error().ToString();
+  ASSERT_FALSE(r->results.empty());
+  const QueryResult& best = r->results[0];
+  EXPECT_EQ(best.id, "img7");
+  EXPECT_TRUE(best.verified);
+  EXPECT_GE(best.inliers, 40);
+  // db_from_query is the inverse similarity: scale 2, rotation -30 degrees.
+  const auto& m = best.db_from_query.m;
+  EXPECT_NEAR(std::hypot(m[0], m[3]), 1 / scale, 0.1);
+  const Eigen::Vector2d p = best.db_from_query.Apply({ca * 100 - sa * 200 + 300, sa * 100 + ca * 200 + 50});
+  EXPECT_NEAR(p.x(), 100, 3);
+  EXPECT_NEAR(p.y(), 200, 3);
+  for (size_t i = 1; i < r->results.size(); ++i) EXPECT_FALSE(r->results[i].verified) << r->results[i].id;
+  EXPECT_GT(r->results[0].db_region[2], r->results[0].db_region[0]);
+
+  // Query expansion keeps the verified image first.
+  const auto qe = index->Query(query, Opts(5, 30, true));
+  ASSERT_TRUE(qe);
+  EXPECT_EQ(qe->results[0].id, "img7");
+
+  // QuerySimilar: an image finds itself first.
+  const auto self = index->QuerySimilar("img12", Opts(3, 200));
+  ASSERT_TRUE(self);
+  EXPECT_EQ(self->results[0].id, "img12");
+  EXPECT_TRUE(self->results[0].verified);
+  EXPECT_NEAR(self->results[0].score, 1.0, 1e-5);
+}
+
+TEST_F(Fixture, RegionQueryUsesOnlyFeaturesInside) {
+  auto index = CreateIndex();
+  std::mt19937_64 rng(4);
+  const auto a = RandomImage(rng, 80), b = RandomImage(rng, 80);
+  ASSERT_TRUE(index->Add("a", a, {}));
+  ASSERT_TRUE(index->Add("b", b, {}));
+  for (int i = 0; i < 10; ++i) ASSERT_TRUE(index->Add("noise" + std::to_string(i), RandomImage(rng, 80), {}));
+  // Query: a's features on the left half (x < 300), b's (more of them) on the right half.
+  sift::FeatureSet q = Features({}, {}, 640, 480);
+  auto append = [&](const sift::FeatureSet& src, size_t count, float x0) {
+    for (size_t i = 0; i < count; ++i) {
+      sift::Keypoint k = src.keypoints[i];
+      k.x = x0 + std::fmod(k.x, 290.0f);
+      q.keypoints.push_back(k);
+      const auto d = src.Descriptor(i);
+      q.descriptors.insert(q.descriptors.end(), d.begin(), d.end());
+    }
+  };
+  append(a, 30, 0);
+  append(b, 70, 330);
+  const auto whole = index->Query(q, Opts(3, 0));
+  ASSERT_TRUE(whole);
+  EXPECT_EQ(whole->results[0].id, "b");
+  const auto left = index->Query(q, Opts(3, 0, false, std::array<float, 4>{0, 0, 300, 480}));
+  ASSERT_TRUE(left);
+  EXPECT_EQ(left->query_features, 30u);
+  EXPECT_EQ(left->results[0].id, "a");
+}
+
+TEST_F(Fixture, AddRemoveSequenceEqualsFreshIndex) {
+  std::mt19937_64 rng(5);
+  std::map<std::string, sift::FeatureSet> live;
+  {
+    IndexOptions small_merges;
+    small_merges.merge_factor = 2;
+    auto index = CreateIndex(small_merges);
+    int counter = 0;
+    for (int step = 0; step < 120; ++step) {
+      if (rng() % 4 == 0 && !live.empty()) {
+        auto it = live.begin();
+        std::advance(it, rng() % live.size());
+        ASSERT_TRUE(index->Remove(it->first));
+        live.erase(it);
+      } else {
+        const std::string id = "i" + std::to_string(counter++);
+        live[id] = RandomImage(rng, 20 + static_cast<int>(rng() % 80));
+        ASSERT_TRUE(index->Add(id, live[id], {}));
+      }
+    }
+    const fs::path fresh_dir = dir_ / "fresh";
+    auto fresh = ImageIndex::Create(fresh_dir.string(), vocabulary_, "test-extractor/1");
+    ASSERT_TRUE(fresh);
+    for (const auto& [id, f] : live) ASSERT_TRUE((*fresh)->Add(id, f, {}));
+    for (int q = 0; q < 10; ++q) {
+      const auto query = RandomImage(rng, 60);
+      const QueryOptions options = Opts(1000, 0);
+      const auto a = ScoresById(*index->Query(query, options));
+      const auto b = ScoresById(*(*fresh)->Query(query, options));
+      ASSERT_EQ(a.size(), b.size());
+      for (const auto& [id, s] : b) EXPECT_NEAR(a.at(id), s, 1e-6) << id;
+    }
+  }
+  // And after a restart (rebuild from the catalogue) the same scores again.
+  auto reopened = ImageIndex::Open(dir_.string());
+  ASSERT_TRUE(reopened) << reopened.error().ToString();
+  EXPECT_EQ((*reopened)->Stats().num_images, live.size());
+  auto fresh = ImageIndex::Open((dir_ / "fresh").string());
+  ASSERT_TRUE(fresh);
+  const auto query = RandomImage(rng, 60);
+  const QueryOptions options = Opts(1000, 0);
+  const auto a = ScoresById(*(*reopened)->Query(query, options));
+  const auto b = ScoresById(*(*fresh)->Query(query, options));
+  ASSERT_EQ(a.size(), b.size());
+  for (const auto& [id, s] : b) EXPECT_NEAR(a.at(id), s, 1e-6) << id;
+}
+
+TEST_F(Fixture, RestartGivesIdenticalResults) {
+  std::mt19937_64 rng(6);
+  std::vector<sift::FeatureSet> queries;
+  std::vector<QueryResponse> before;
+  {
+    auto index = CreateIndex();
+    for (int i = 0; i < 25; ++i) ASSERT_TRUE(index->Add("img" + std::to_string(i), RandomImage(rng, 100), {}));
+    ASSERT_TRUE(index->Remove("img3"));
+    for (int q = 0; q < 5; ++q) {
+      queries.push_back(RandomImage(rng, 80));
+      before.push_back(*index->Query(queries.back(), Opts(10, 10)));
+    }
+  }
+  auto index = ImageIndex::Open(dir_.string());
+  ASSERT_TRUE(index) << index.error().ToString();
+  EXPECT_EQ((*index)->Stats().num_images, 24u);
+  EXPECT_FALSE((*index)->Contains("img3"));
+  EXPECT_EQ((*index)->vocabulary().fingerprint(), vocabulary_.fingerprint());
+  EXPECT_EQ((*index)->extractor_settings(), "test-extractor/1");
+  for (size_t q = 0; q < queries.size(); ++q) {
+    const auto after = (*index)->Query(queries[q], Opts(10, 10));
+    ASSERT_TRUE(after);
+    ASSERT_EQ(after->results.size(), before[q].results.size());
+    for (size_t i = 0; i < after->results.size(); ++i) {
+      EXPECT_EQ(after->results[i].id, before[q].results[i].id);
+      EXPECT_FLOAT_EQ(static_cast<float>(after->results[i].score), static_cast<float>(before[q].results[i].score));
+      EXPECT_EQ(after->results[i].inliers, before[q].results[i].inliers);
+    }
+  }
+}
+
+TEST_F(Fixture, VocabularyMismatchIsRefused) {
+  {
+    auto index = CreateIndex();
+    std::mt19937_64 rng(7);
+    ASSERT_TRUE(index->Add("a", RandomImage(rng, 30), {}));
+  }
+  // Another vocabulary's file in place of the index's copy.
+  ASSERT_TRUE(MakeVocabulary(99).Write((dir_ / "vocabulary.oxvoc").string()));
+  const auto r = ImageIndex::Open(dir_.string());
+  ASSERT_FALSE(r);
+  EXPECT_EQ(r.error().code, ErrorCode::kIncompatible);
+  EXPECT_NE(r.error().message.find("does not match"), std::string::npos) << r.error().message;
+}
+
+void ExecSql(const fs::path& db_path, const std::string& sql) {
+  sqlite3* db = nullptr;
+  ASSERT_EQ(sqlite3_open(db_path.c_str(), &db), SQLITE_OK);
+  char* error = nullptr;
+  EXPECT_EQ(sqlite3_exec(db, sql.c_str(), nullptr, nullptr, &error), SQLITE_OK) << (error ? error : "");
+  sqlite3_free(error);
+  sqlite3_close(db);
+}
+
+TEST_F(Fixture, UnknownSchemaVersionIsRefused) {
+  CreateIndex();
+  ExecSql(dir_ / "catalogue.sqlite", "UPDATE meta SET value = '99' WHERE key = 'schema_version'");
+  const auto r = ImageIndex::Open(dir_.string());
+  ASSERT_FALSE(r);
+  EXPECT_EQ(r.error().code, ErrorCode::kIncompatible);
+  EXPECT_NE(r.error().message.find("schema version 99"), std::string::npos) << r.error().message;
+}
+
+TEST_F(Fixture, DamagedFeatureBlobIsRefused) {
+  {
+    auto index = CreateIndex();
+    std::mt19937_64 rng(8);
+    ASSERT_TRUE(index->Add("a", RandomImage(rng, 30), {}));
+  }
+  // Flip one byte inside the packed features (after the 24-byte header): the checksum must catch it.
+  ExecSql(dir_ / "catalogue.sqlite",
+          "UPDATE images SET features = substr(features, 1, 30) || x'ff' || substr(features, 32) WHERE id = 'a'");
+  const auto r = ImageIndex::Open(dir_.string());
+  ASSERT_FALSE(r);
+  EXPECT_EQ(r.error().code, ErrorCode::kCorruptData);
+  EXPECT_NE(r.error().message.find("checksum"), std::string::npos) << r.error().message;
+}
+
+TEST_F(Fixture, DamagedCatalogueAndVocabularyAreRefused) {
+  {
+    auto index = CreateIndex();
+    std::mt19937_64 rng(9);
+    ASSERT_TRUE(index->Add("a", RandomImage(rng, 30), {}));
+  }
+  const fs::path vocab_path = dir_ / "vocabulary.oxvoc";
+  const fs::path backup = dir_ / "vocab.bak";
+  fs::copy_file(vocab_path, backup);
+  // Truncated vocabulary copy.
+  fs::resize_file(vocab_path, fs::file_size(vocab_path) / 2);
+  auto r = ImageIndex::Open(dir_.string());
+  ASSERT_FALSE(r);
+  EXPECT_EQ(r.error().code, ErrorCode::kCorruptData) << r.error().ToString();
+  fs::copy_file(backup, vocab_path, fs::copy_options::overwrite_existing);
+  ASSERT_TRUE(ImageIndex::Open(dir_.string()));
+  // Garbage over the SQLite header.
+  {
+    std::fstream f(dir_ / "catalogue.sqlite", std::ios::in | std::ios::out | std::ios::binary);
+    f.write("this is not a database file at all", 32);
+  }
+  r = ImageIndex::Open(dir_.string());
+  ASSERT_FALSE(r);
+  EXPECT_EQ(r.error().code, ErrorCode::kCorruptData) << r.error().ToString();
+}
+
+TEST_F(Fixture, PackedFeaturesRoundTrip) {
+  std::mt19937_64 rng(10);
+  const auto f = RandomImage(rng, 200, 1000, 700);
+  std::vector<uint32_t> words(f.size());
+  vocabulary_.Quantize(f.descriptors, words);
+  const PackedFeatures packed = PackedFeatures::Pack(f.keypoints, words, 1000, 700);
+  ASSERT_EQ(packed.size(), f.size());
+  const auto blob = packed.Serialize();
+  const auto back = PackedFeatures::Deserialize(blob, "test");
+  ASSERT_TRUE(back);
+  EXPECT_EQ(back->Words(), packed.Words());
+  // Every original keypoint has a dequantised twin within the documented error.
+  size_t matched = 0;
+  for (size_t i = 0; i < f.size(); ++i) {
+    for (size_t j = 0; j < back->size(); ++j) {
+      const auto k = back->keypoint(j);
+      if (back->word(j) == words[i] && std::abs(k.x - f.keypoints[i].x) < 0.01f &&
+          std::abs(k.y - f.keypoints[i].y) < 0.01f) {
+        EXPECT_NEAR(std::log2(k.scale / f.keypoints[i].scale), 0, 1.0 / 32 + 1e-6);
+        double d = std::fmod(std::abs(k.orientation - f.keypoints[i].orientation), 2 * std::numbers::pi);
+        d = std::min(d, 2 * std::numbers::pi - d);
+        EXPECT_LE(d, std::numbers::pi / 256 + 1e-5);
+        ++matched;
+        break;
+      }
+    }
+  }
+  EXPECT_EQ(matched, f.size());
+  auto damaged = blob;
+  damaged[damaged.size() - 3] ^= 0x40;
+  EXPECT_EQ(PackedFeatures::Deserialize(damaged, "test").error().code, ErrorCode::kCorruptData);
+  auto truncated = blob;
+  truncated.resize(blob.size() - 9);
+  EXPECT_EQ(PackedFeatures::Deserialize(truncated, "test").error().code, ErrorCode::kCorruptData);
+  auto future = blob;
+  future[4] = 7;
+  EXPECT_EQ(PackedFeatures::Deserialize(future, "test").error().code, ErrorCode::kIncompatible);
+}
+
+TEST_F(Fixture, ReadersRunWhileWritersAdd) {
+  auto index = CreateIndex();
+  std::mt19937_64 rng(11);
+  for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("seed" + std::to_string(i), RandomImage(rng, 60), {}));
+  std::vector<sift::FeatureSet> to_add;
+  for (int i = 0; i < 40; ++i) to_add.push_back(RandomImage(rng, 60));
+  const auto query = RandomImage(rng, 60);
+  std::atomic<bool> done{false};
+  std::atomic<int> queries{0}, failures{0};
+  std::vector<std::thread> readers;
+  for (int t = 0; t < 2; ++t) {
+    readers.emplace_back([&] {
+      while (!done) {
+        const auto r = index->Query(query, Opts(50, 5));
+        if (!r) {
+          ++failures;
+          continue;
+        }
+        // Every returned id resolves (a snapshot never shows half an image).
+        for (const auto& x : r->results) {
+          if (x.record.id != x.id || x.record.num_features != 60) ++failures;
+        }
+        ++queries;
+      }
+    });
+  }
+  for (int i = 0; i < 40; ++i) {
+    ASSERT_TRUE(index->Add("new" + std::to_string(i), to_add[i], {}));
+    if (i % 3 == 0) {
+      ASSERT_TRUE(index->Remove("seed" + std::to_string(i / 3)));
+    }
+  }
+  done = true;
+  for (auto& t : readers) t.join();
+  EXPECT_EQ(failures.load(), 0);
+  EXPECT_GT(queries.load(), 0);
+  EXPECT_EQ(index->Stats().num_images, 60u - 14u);
+}
+
+}  // namespace
+}  // namespace oxbow::index
