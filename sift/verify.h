@@ -23,7 +23,7 @@
 //    has no USAC variant in OpenCV 4.6), affine = cv::estimateAffine2D, homography = cv::findHomography,
 //    fundamental = cv::findFundamentalMat; the last three with USAC MAGSAC++ (Barath et al. 2020) by
 //    default, which is threshold-robust and needs fewer iterations than classic RANSAC, or with classic
-//    RANSAC on request. All random generators are seeded, so results are reproducible.
+//    RANSAC on request. OpenCV starts both samplers from a fixed state, so results are reproducible.
 //
 // Both expect one-to-one matches (see EnforceOneToOne in match.h): many-to-one matches inflate inlier
 // counts on repeated structure (COLMAP issue 288).
@@ -60,8 +60,9 @@ struct Affine2D {
 
 struct HoughVerifyOptions {
   // --- Hough bins (Lowe 2004 sec. 7.3)
-  double orientation_bin_deg = 30;     // rotation bin width, degrees, (0, 180]; 360 must not need to be a multiple
-  double scale_bin_factor = 2;         // scale bin width as a factor, (1, 16]
+  double orientation_bin_deg = 30;     // rotation bin width, degrees, [1, 180]; rounded so that a whole number
+                                       // of bins covers 360 degrees
+  double scale_bin_factor = 2;         // scale bin width as a factor, [1.1, 16]
   double location_bin_fraction = 0.25;  // location bin width as a fraction of the projected size
                                         // (max(width, height) of the query region times the bin's scale), (0, 1]
   int min_cluster_votes = 3;           // a bin is verified when it holds at least this many matches, >= 3
@@ -98,11 +99,12 @@ struct VerificationResult {
 
 // Lowe's Hough pose clustering + affine verification (see the file comment).
 // query / db: the two images' keypoints; matches: tentative matches (any order; indices into query and
-// db, assumed one-to-one; out-of-range indices are ignored and never reported as inliers).
+// db, assumed one-to-one). Matches with an out-of-range index, a non-finite keypoint or a keypoint scale
+// <= 0 are ignored and never reported as inliers.
 // query_region: x1,y1,x2,y2 of the query object in query pixels (the whole image: 0,0,w,h).
 // db_size: width,height of the db image in pixels (used to clip db_region).
-// Invalid options (Check() non-empty), an empty/degenerate region or non-finite keypoints give an
-// unverified result; never throws for bad input, output is always finite.
+// Invalid options (Check() non-empty) or an empty/non-finite region give an unverified, empty result;
+// never throws for bad input; the output is always finite.
 // Thread-safe (no shared state). Cost O(16 n) for voting plus O(n) per verified cluster; about 0.1 ms
 // for 1000 matches on one core (see match_benchmark). Deterministic.
 VerificationResult VerifyHoughAffine(std::span<const Keypoint> query, std::span<const Keypoint> db,
@@ -131,7 +133,6 @@ struct RobustFitOptions {
   double confidence = 0.999;     // desired probability of having drawn an all-inlier sample, (0, 1)
   int max_iterations = 10000;    // sampling iterations at most, >= 1
   int refine_iterations = 10;    // Levenberg-Marquardt refinement (similarity/affine RANSAC), >= 0
-  int seed = 0;                  // random generator state (USAC); OpenCV's RANSAC seeds itself fixed
   HoughVerifyOptions hough;      // used by GeometricModel::kHoughAffine
 
   std::optional<std::string> Check() const;
