@@ -60,7 +60,7 @@ Result<Homography> ReadHomography(const std::string& path) {
 }
 
 HomographyScore ScoreUnderHomography(const FeatureSet& a, const FeatureSet& b, const Homography& b_from_a, double tolerance_px,
-                                     double ratio) {
+                                     double ratio, double scale_ratio) {
   const Homography a_from_b = Invert(b_from_a);
   std::vector<int> common_a, common_b;
   std::vector<cv::Point2d> projected_a;
@@ -82,29 +82,51 @@ HomographyScore ScoreUnderHomography(const FeatureSet& a, const FeatureSet& b, c
   const int denominator = std::min(score.keypoints_1, score.keypoints_2);
   if (denominator == 0) return score;
 
-  // Repeatability: a keypoint of image 1 is repeated when some keypoint of image 2 lies within tolerance.
+  // Repeatability: pairs (i in 1, j in 2) whose positions agree within tolerance and whose scales agree
+  // within `scale_ratio` (after the local scale change of the homography), matched one-to-one greedily
+  // by distance.
   const double tol2 = tolerance_px * tolerance_px;
-  std::vector<std::vector<int>> grid;
   const double cell = std::max(tolerance_px, 1.0);
   const int gw = static_cast<int>(b.image_width / cell) + 1, gh = static_cast<int>(b.image_height / cell) + 1;
-  grid.resize(static_cast<size_t>(gw) * static_cast<size_t>(gh));
+  std::vector<std::vector<int>> grid(static_cast<size_t>(gw) * static_cast<size_t>(gh));
   auto cell_of = [&](double v, int n) { return std::clamp(static_cast<int>(v / cell), 0, n - 1); };
   for (int j : common_b) {
     const Keypoint& k = b.keypoints[static_cast<size_t>(j)];
     grid[static_cast<size_t>(cell_of(k.y, gh) * gw + cell_of(k.x, gw))].push_back(j);
   }
-  auto has_neighbour = [&](const cv::Point2d& p) {
+  struct Pair {
+    double d2;
+    int i, j;
+  };
+  std::vector<Pair> pairs;
+  const double log_ratio = std::log(scale_ratio);
+  for (size_t n = 0; n < common_a.size(); ++n) {
+    const Keypoint& ka = a.keypoints[static_cast<size_t>(common_a[n])];
+    const cv::Point2d& p = projected_a[n];
+    // Local scale change of the homography: sqrt of the Jacobian determinant, by finite differences.
+    double x1 = p.x, y1 = p.y, x2 = p.x, y2 = p.y;
+    Project(b_from_a, ka.x + 1.0, ka.y, &x1, &y1);
+    Project(b_from_a, ka.x, ka.y + 1.0, &x2, &y2);
+    const double local = std::sqrt(std::fabs((x1 - p.x) * (y2 - p.y) - (x2 - p.x) * (y1 - p.y)));
     const int cx = cell_of(p.x, gw), cy = cell_of(p.y, gh);
     for (int y = std::max(0, cy - 1); y <= std::min(gh - 1, cy + 1); ++y)
       for (int x = std::max(0, cx - 1); x <= std::min(gw - 1, cx + 1); ++x)
         for (int j : grid[static_cast<size_t>(y * gw + x)]) {
           const Keypoint& k = b.keypoints[static_cast<size_t>(j)];
-          const double dx = k.x - p.x, dy = k.y - p.y;
-          if (dx * dx + dy * dy < tol2) return true;
+          const double dx = k.x - p.x, dy = k.y - p.y, d2 = dx * dx + dy * dy;
+          if (d2 >= tol2 || std::fabs(std::log(k.scale / (ka.scale * local))) > log_ratio) continue;
+          pairs.push_back({d2, static_cast<int>(n), j});
         }
-    return false;
-  };
-  for (const auto& p : projected_a) score.repeated += has_neighbour(p) ? 1 : 0;
+  }
+  std::sort(pairs.begin(), pairs.end(), [](const Pair& x, const Pair& y) {
+    return x.d2 != y.d2 ? x.d2 < y.d2 : (x.i != y.i ? x.i < y.i : x.j < y.j);
+  });
+  std::vector<bool> used_a(common_a.size(), false), used_b(b.size(), false);
+  for (const Pair& pair : pairs) {
+    if (used_a[static_cast<size_t>(pair.i)] || used_b[static_cast<size_t>(pair.j)]) continue;
+    used_a[static_cast<size_t>(pair.i)] = used_b[static_cast<size_t>(pair.j)] = true;
+    ++score.repeated;
+  }
 
   // Matching score: nearest neighbour in descriptor space with Lowe's ratio test.
   cv::Mat da(static_cast<int>(common_a.size()), kDescriptorDim, CV_32F), db(static_cast<int>(common_b.size()), kDescriptorDim, CV_32F);

@@ -21,17 +21,21 @@ using Homography = std::array<double, 9>;
 struct HomographyScore {
   int keypoints_1 = 0;      // keypoints of image 1 whose projection lands inside image 2
   int keypoints_2 = 0;      // keypoints of image 2 whose back-projection lands inside image 1
-  int repeated = 0;         // of keypoints_1, those with a keypoint of image 2 within `tolerance_px`
+  int repeated = 0;         // one-to-one corresponding pairs (see ScoreUnderHomography)
   int correct_matches = 0;  // ratio-test nearest-neighbour matches (1 -> 2) that land within tolerance
   double repeatability = 0;   // repeated / min(keypoints_1, keypoints_2)
   double matching_score = 0;  // correct_matches / min(keypoints_1, keypoints_2)
 };
 
-// Scores features of two images related by `image2_from_image1`. A keypoint pair corresponds when the
-// projected position is within `tolerance_px` pixels (positions only; no region overlap). Matches are
-// nearest neighbours in descriptor space (L2) among the common-region keypoints that pass Lowe's ratio
-// test (`ratio`). Cost: O(n1 * n2 * 128).
+// Scores features of two images related by `image2_from_image1`. Only keypoints whose projection lands
+// inside the other image count. Repeatability: keypoint pairs whose projected position is within
+// `tolerance_px` pixels (in image 2) and whose scales agree within a factor `scale_ratio` (after the
+// homography's local scale change), matched one-to-one (greedy, closest first) — a stand-in for the
+// paper's 40% region-overlap criterion that, unlike position alone, is not fooled by dense small
+// keypoints. Matching score: nearest neighbours in descriptor space (L2) from image 1 to image 2 that
+// pass Lowe's ratio test (`ratio`) and land within `tolerance_px` of the projection.
+// Cost: O(n1 * n2 * 128) for the matching.
 HomographyScore ScoreUnderHomography(const FeatureSet& image1, const FeatureSet& image2, const Homography& image2_from_image1,
-                                     double tolerance_px = 3.0, double ratio = 0.8);
+                                     double tolerance_px = 3.0, double ratio = 0.8, double scale_ratio = 1.5);
 
 }  // namespace oxbow::sift

@@ -5,6 +5,7 @@
 #include <cstdlib>
 #include <cstdio>
 #include <bit>
+#include <charconv>
 #include <optional>
 #include <sstream>
 
@@ -35,14 +36,11 @@ std::optional<std::string> SiftOptions::Check() const {
 }
 
 namespace {
-// Shortest text that reads back to the same double ("%.17g" trimmed), so Describe() is canonical.
+// Shortest text that reads back to the same double (std::to_chars), so Describe() is canonical.
 std::string CanonicalDouble(double v) {
   char buf[64];
-  for (int precision = 1; precision <= 17; ++precision) {
-    std::snprintf(buf, sizeof buf, "%.*g", precision, v);
-    if (std::strtod(buf, nullptr) == v) break;
-  }
-  return buf;
+  const auto result = std::to_chars(buf, buf + sizeof buf, v);
+  return std::string(buf, result.ptr);
 }
 }  // namespace
 
