@@ -1,0 +1,138 @@
+#include "eval/ground_truth.h"
+
+#include <gtest/gtest.h>
+
+#include <filesystem>
+#include <fstream>
+
+namespace oxbow::eval {
+namespace {
+
+namespace fs = std::filesystem;
+
+class GroundTruthTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = fs::temp_directory_path() /
+           ("oxbow_gt_test_" + std::string(::testing::UnitTest::GetInstance()->current_test_info()->name()));
+    fs::remove_all(dir_);
+    fs::create_directories(dir_);
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+  void Write(const std::string& name, const std::string& text) { std::ofstream(dir_ / name) << text; }
+  fs::path dir_;
+};
+
+TEST_F(GroundTruthTest, ReadsOxfordFolderAndRestricts) {
+  Write("tower_1_query.txt", "oxc1_tower_000001 10.5 20 300 400.25\n");
+  Write("tower_1_good.txt", "tower_000001\ntower_000002\n");
+  Write("tower_1_ok.txt", "tower_000003\r\n");
+  Write("tower_1_junk.txt", "tower_000009\n");
+  Write("bridge_1_query.txt", "bridge_000001 0 0 50 50\n");
+  Write("bridge_1_good.txt", "bridge_000002\n");
+  Write("bridge_1_ok.txt", "");
+  Write("bridge_1_junk.txt", "");
+  auto protocol = LoadOxfordProtocol(dir_.string(), "toy");
+  ASSERT_TRUE(protocol) << protocol.error().ToString();
+  ASSERT_EQ(protocol->queries.size(), 2u);
+  const EvalQuery& tower = protocol->queries[1];
+  EXPECT_EQ(tower.name, "tower_1");
+  EXPECT_EQ(tower.image, "tower_000001");  // "oxc1_" prefix stripped
+  ASSERT_TRUE(tower.bbox);
+  EXPECT_FLOAT_EQ((*tower.bbox)[0], 10.5f);
+  EXPECT_FLOAT_EQ((*tower.bbox)[3], 400.25f);
+  EXPECT_EQ(tower.relevance.positives.size(), 3u);
+  EXPECT_TRUE(tower.relevance.positives.contains("tower_000003"));  // CR stripped
+  EXPECT_TRUE(tower.relevance.junk.contains("tower_000009"));
+  EXPECT_EQ(protocol->database.size(), 6u);
+
+  // Present: the tower query image, one good image, the junk one, and an unlisted distractor. The
+  // bridge query image is absent, so that query is dropped.
+  const Protocol restricted =
+      RestrictToImages(*protocol, {"tower_000001", "tower_000002", "tower_000009", "distractor"});
+  ASSERT_EQ(restricted.queries.size(), 1u);
+  EXPECT_EQ(restricted.queries[0].relevance.positives.size(), 2u);
+  EXPECT_EQ(restricted.queries[0].relevance.junk.size(), 1u);
+  EXPECT_EQ(restricted.database.size(), 4u);
+}
+
+TEST_F(GroundTruthTest, RefusesMalformedQueryFileAndMissingFolder) {
+  Write("x_query.txt", "only_a_name\n");
+  Write("x_good.txt", "");
+  Write("x_ok.txt", "");
+  Write("x_junk.txt", "");
+  auto bad = LoadOxfordProtocol(dir_.string(), "bad");
+  ASSERT_FALSE(bad);
+  EXPECT_EQ(bad.error().code, ErrorCode::kCorruptData);
+  auto missing = LoadOxfordProtocol((dir_ / "nope").string(), "missing");
+  ASSERT_FALSE(missing);
+  EXPECT_EQ(missing.error().code, ErrorCode::kNotFound);
+}
+
+TEST_F(GroundTruthTest, RevisitedSettingsFollowRadenovic) {
+  Write("gnd.json", R"({"imlist": ["a", "b", "c", "d"], "qimlist": ["q1", "q2"],
+    "gnd": [{"bbx": [1, 2, 3, 4], "easy": [0], "hard": [1], "junk": [2]},
+            {"bbx": [1, 2, 3, 4], "easy": [3], "hard": [], "junk": []}]})");
+  const std::string path = (dir_ / "gnd.json").string();
+  auto easy = LoadRevisitedProtocol(path, RevisitedSetting::kEasy, "r");
+  auto medium = LoadRevisitedProtocol(path, RevisitedSetting::kMedium, "r");
+  auto hard = LoadRevisitedProtocol(path, RevisitedSetting::kHard, "r");
+  ASSERT_TRUE(easy && medium && hard);
+  EXPECT_EQ(easy->name, "r-easy");
+  EXPECT_EQ(easy->queries[0].relevance.positives, (std::unordered_set<std::string>{"a"}));
+  EXPECT_EQ(easy->queries[0].relevance.junk, (std::unordered_set<std::string>{"b", "c"}));
+  EXPECT_EQ(medium->queries[0].relevance.positives, (std::unordered_set<std::string>{"a", "b"}));
+  EXPECT_EQ(hard->queries[0].relevance.positives, (std::unordered_set<std::string>{"b"}));
+  EXPECT_EQ(hard->queries[0].relevance.junk, (std::unordered_set<std::string>{"a", "c"}));
+  EXPECT_EQ(hard->queries.size(), 1u);  // q2 has no hard positive: dropped, as revisitop skips it
+  EXPECT_EQ(medium->queries.size(), 2u);
+
+  Write("broken.json", R"({"imlist": ["a"], "qimlist": ["q"], "gnd": [{"bbx": [], "easy": [7], "hard": [], "junk": []}]})");
+  auto broken = LoadRevisitedProtocol((dir_ / "broken.json").string(), RevisitedSetting::kEasy, "r");
+  ASSERT_FALSE(broken);
+  EXPECT_EQ(broken.error().code, ErrorCode::kCorruptData);
+}
+
+TEST_F(GroundTruthTest, GroupsProtocol) {
+  fs::create_directories(dir_ / "mug");
+  fs::create_directories(dir_ / "shoe");
+  for (const char* f : {"mug/1.jpg", "mug/2.png", "mug/notes.txt", "shoe/1.jpg", "shoe/2.jpg", "shoe/3.JPG"}) {
+    Write(f, "x");
+  }
+  auto protocol = LoadGroupsProtocol(dir_.string());
+  ASSERT_TRUE(protocol) << protocol.error().ToString();
+  EXPECT_EQ(protocol->database.size(), 5u);
+  ASSERT_EQ(protocol->queries.size(), 5u);
+  EXPECT_EQ(protocol->queries[0].image, "mug/1");
+  EXPECT_EQ(protocol->queries[0].relevance.positives, (std::unordered_set<std::string>{"mug/2"}));
+  EXPECT_TRUE(protocol->queries[0].relevance.junk.contains("mug/1"));
+}
+
+// The official Paris ground truth restricted to the 250-image subset (../shared/data), when present:
+// the counts stated in the data README.
+TEST(ParisSubset, RestrictedProtocolMatchesDataReadme) {
+  const fs::path data = fs::path(OXBOW_SOURCE_DIR) / ".." / "shared" / "data" / "paris6k";
+  if (!fs::exists(data / "gt")) GTEST_SKIP() << "Paris data not present at " << data;
+  auto protocol = LoadOxfordProtocol((data / "gt").string(), "paris6k");
+  ASSERT_TRUE(protocol) << protocol.error().ToString();
+  EXPECT_EQ(protocol->queries.size(), 55u);
+  auto ids = ListImageIds((data / "images").string());
+  ASSERT_TRUE(ids);
+  ASSERT_EQ(ids->size(), 250u);
+  const Protocol restricted = RestrictToImages(*protocol, *ids);
+  EXPECT_EQ(restricted.queries.size(), 12u);
+  EXPECT_EQ(restricted.database.size(), 250u);
+  for (const EvalQuery& q : restricted.queries) {
+    if (q.name == "defense_4") {
+      EXPECT_EQ(q.relevance.positives.size(), 39u);
+      EXPECT_EQ(q.relevance.junk.size(), 8u);
+    }
+    if (q.name == "moulinrouge_2") {
+      EXPECT_EQ(q.relevance.positives.size(), 32u);
+      EXPECT_EQ(q.relevance.junk.size(), 16u);
+    }
+  }
+}
+
+}  // namespace
+}  // namespace oxbow::eval
