@@ -1,0 +1,250 @@
+#include "eval/report.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <set>
+#include <sstream>
+
+#include <nlohmann/json.hpp>
+
+#include "eval/plot.h"
+
+namespace oxbow::eval {
+namespace {
+
+constexpr int kPrecisionKs[] = {1, 5, 10};
+
+std::string Fixed(double v, int digits = 3) {
+  char buf[64];
+  std::snprintf(buf, sizeof buf, "%.*f", digits, v);
+  return buf;
+}
+
+std::string SafeFileName(std::string s) {
+  for (char& c : s) {
+    if (!std::isalnum(static_cast<unsigned char>(c)) && c != '-' && c != '_') c = '_';
+  }
+  return s;
+}
+
+}  // namespace
+
+double Percentile(std::vector<double> values, double p) {
+  if (values.empty()) return 0;
+  std::sort(values.begin(), values.end());
+  const double rank = std::clamp(p, 0.0, 100.0) / 100.0 * (values.size() - 1);
+  const size_t lo = static_cast<size_t>(std::floor(rank));
+  const size_t hi = std::min(values.size() - 1, lo + 1);
+  return values[lo] + (values[hi] - values[lo]) * (rank - lo);
+}
+
+QueryOutcome ScoreRanking(const EvalQuery& query, const std::vector<std::string>& ranking) {
+  QueryOutcome outcome;
+  outcome.name = query.name;
+  outcome.ap = AveragePrecision(ranking, query.relevance);
+  for (int k : kPrecisionKs) outcome.precision_at.push_back(PrecisionAtK(ranking, query.relevance, k));
+  outcome.pr_curve = PrecisionRecallCurve(ranking, query.relevance);
+  outcome.top.assign(ranking.begin(), ranking.begin() + std::min<size_t>(10, ranking.size()));
+  return outcome;
+}
+
+void Summarise(RunResult* run) {
+  run->map = 0;
+  run->mean_precision_at.assign(std::size(kPrecisionKs), 0.0);
+  std::vector<double> latencies, extract, search;
+  for (const QueryOutcome& q : run->queries) {
+    run->map += q.ap;
+    for (size_t i = 0; i < q.precision_at.size() && i < run->mean_precision_at.size(); ++i) {
+      run->mean_precision_at[i] += q.precision_at[i];
+    }
+    latencies.push_back(q.latency_ms);
+    if (auto it = q.stage_ms.find("extract"); it != q.stage_ms.end()) extract.push_back(it->second);
+    double s = 0;
+    for (const char* stage : {"quantize", "score", "verify", "qe"}) {
+      if (auto it = q.stage_ms.find(stage); it != q.stage_ms.end()) s += it->second;
+    }
+    search.push_back(s);
+  }
+  if (!run->queries.empty()) {
+    run->map /= run->queries.size();
+    for (double& p : run->mean_precision_at) p /= run->queries.size();
+  }
+  run->query_p50_ms = Percentile(latencies, 50);
+  run->query_p95_ms = Percentile(latencies, 95);
+  run->extract_p50_ms = Percentile(extract, 50);
+  run->search_p50_ms = Percentile(search, 50);
+}
+
+Status WriteReport(const std::string& dir, const std::vector<RunResult>& runs, const std::string& command_line) {
+  namespace fs = std::filesystem;
+  std::error_code ec;
+  fs::create_directories(fs::path(dir) / "plots", ec);
+  if (ec) return Fail(ErrorCode::kIoError, "cannot create report folder '" + dir + "': " + ec.message());
+
+  // ---- JSON: every number.
+  nlohmann::json json = nlohmann::json::object();
+  json["command"] = command_line;
+  json["runs"] = nlohmann::json::array();
+  for (const RunResult& run : runs) {
+    nlohmann::json r;
+    r["protocol"] = run.protocol;
+    r["label"] = run.label;
+    r["settings"] = run.settings;
+    r["map"] = run.map;
+    r["mean_precision_at"] = {{"1", run.mean_precision_at.at(0)}, {"5", run.mean_precision_at.at(1)},
+                              {"10", run.mean_precision_at.at(2)}};
+    r["build_vocab_s"] = run.build_vocab_s;
+    r["build_index_s"] = run.build_index_s;
+    r["query_p50_ms"] = run.query_p50_ms;
+    r["query_p95_ms"] = run.query_p95_ms;
+    r["extract_p50_ms"] = run.extract_p50_ms;
+    r["search_p50_ms"] = run.search_p50_ms;
+    r["index"] = {{"images", run.index_images},
+                  {"features", run.index_features},
+                  {"bytes_per_feature", run.index_bytes_per_feature},
+                  {"vocabulary_words", run.vocabulary_words}};
+    r["queries"] = nlohmann::json::array();
+    for (const QueryOutcome& q : run.queries) {
+      nlohmann::json pr = nlohmann::json::array();
+      for (const PrPoint& p : q.pr_curve) pr.push_back({p.recall, p.precision});
+      r["queries"].push_back({{"name", q.name},
+                              {"ap", q.ap},
+                              {"precision_at", q.precision_at},
+                              {"latency_ms", q.latency_ms},
+                              {"stage_ms", q.stage_ms},
+                              {"top", q.top},
+                              {"pr_curve", pr}});
+    }
+    json["runs"].push_back(std::move(r));
+  }
+  {
+    std::ofstream out(fs::path(dir) / "results.json");
+    out << json.dump(2) << "\n";
+    if (!out) return Fail(ErrorCode::kIoError, "cannot write '" + dir + "/results.json'");
+  }
+
+  // ---- Plots.
+  std::vector<std::string> plot_files;
+  for (size_t i = 0; i < runs.size(); ++i) {
+    const RunResult& run = runs[i];
+    std::vector<Series> curves;
+    for (const QueryOutcome& q : run.queries) {
+      Series s{q.name + " (AP " + Fixed(q.ap, 2) + ")", {}};
+      for (const PrPoint& p : q.pr_curve) s.points.push_back({p.recall, p.precision});
+      curves.push_back(std::move(s));
+    }
+    const std::string pr_file = "plots/pr_" + std::to_string(i) + "_" + SafeFileName(run.label) + ".png";
+    ChartOptions pr_options{.title = "Precision-recall per query: " + run.protocol + ", " + run.label,
+                            .x_label = "recall",
+                            .y_label = "precision"};
+    if (auto st = WriteLineChart((fs::path(dir) / pr_file).string(), curves, pr_options); !st) return st;
+    plot_files.push_back(pr_file);
+  }
+  if (!runs.empty()) {
+    std::vector<std::string> query_names;
+    for (const QueryOutcome& q : runs[0].queries) query_names.push_back(q.name);
+    std::vector<std::string> labels;
+    std::vector<std::vector<double>> values;
+    for (const RunResult& run : runs) {
+      if (run.protocol != runs[0].protocol) continue;
+      labels.push_back(run.label);
+      std::vector<double> aps;
+      for (const std::string& name : query_names) {
+        auto it = std::find_if(run.queries.begin(), run.queries.end(), [&](const QueryOutcome& q) { return q.name == name; });
+        aps.push_back(it == run.queries.end() ? 0.0 : it->ap);
+      }
+      values.push_back(std::move(aps));
+    }
+    ChartOptions ap_options{.title = "AP per query: " + runs[0].protocol, .x_label = "", .y_label = "AP"};
+    if (auto st = WriteBarChart((fs::path(dir) / "plots/ap_per_query.png").string(), query_names, labels, values,
+                                ap_options);
+        !st) {
+      return st;
+    }
+    plot_files.push_back("plots/ap_per_query.png");
+
+    // mAP vs vocabulary size, one line per (features, re-ranking, QE) combination, when sizes vary.
+    std::map<std::string, Series> by_variant;
+    std::set<uint64_t> sizes;
+    for (const RunResult& run : runs) {
+      sizes.insert(run.vocabulary_words);
+      std::string variant;
+      for (const char* key : {"features", "rerank", "qe"}) {
+        auto it = run.settings.find(key);
+        variant += std::string(key) + "=" + (it == run.settings.end() ? "?" : it->second) + " ";
+      }
+      by_variant[variant].name = variant;
+      by_variant[variant].points.push_back({static_cast<double>(run.vocabulary_words), run.map});
+    }
+    if (sizes.size() > 1) {
+      std::vector<Series> lines;
+      for (auto& [_, s] : by_variant) {
+        std::sort(s.points.begin(), s.points.end());
+        lines.push_back(s);
+      }
+      ChartOptions size_options{.title = "mAP vs vocabulary size: " + runs[0].protocol,
+                                .x_label = "words",
+                                .y_label = "mAP",
+                                .x_min = 0,
+                                .x_max = 0,
+                                .log_x = true};
+      if (auto st = WriteLineChart((fs::path(dir) / "plots/map_vs_vocabulary.png").string(), lines, size_options); !st) {
+        return st;
+      }
+      plot_files.push_back("plots/map_vs_vocabulary.png");
+    }
+  }
+
+  // ---- Markdown.
+  std::ostringstream md;
+  md << "# oxbow retrieval evaluation\n\n";
+  md << "Command: `" << command_line << "`\n\n";
+  md << "| protocol | configuration | mAP | mP@1 | mP@5 | mP@10 | query p50 ms | p95 ms | extract p50 ms | "
+        "search p50 ms | images | features | B/feature |\n";
+  md << "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
+  for (const RunResult& run : runs) {
+    md << "| " << run.protocol << " | " << run.label << " | **" << Fixed(run.map) << "** | "
+       << Fixed(run.mean_precision_at.at(0)) << " | " << Fixed(run.mean_precision_at.at(1)) << " | "
+       << Fixed(run.mean_precision_at.at(2)) << " | " << Fixed(run.query_p50_ms, 1) << " | "
+       << Fixed(run.query_p95_ms, 1) << " | " << Fixed(run.extract_p50_ms, 1) << " | " << Fixed(run.search_p50_ms, 1)
+       << " | " << run.index_images << " | " << run.index_features << " | " << Fixed(run.index_bytes_per_feature, 1)
+       << " |\n";
+  }
+  md << "\n## Settings\n\n";
+  for (const RunResult& run : runs) {
+    md << "- **" << run.protocol << ", " << run.label << "**: ";
+    bool first = true;
+    for (const auto& [k, v] : run.settings) {
+      md << (first ? "" : "; ") << k << " = " << v;
+      first = false;
+    }
+    md << "; vocabulary build " << Fixed(run.build_vocab_s, 1) << " s, index build " << Fixed(run.build_index_s, 1)
+       << " s\n";
+  }
+  md << "\n## AP per query\n\n| query |";
+  for (const RunResult& run : runs) md << " " << run.label << " |";
+  md << "\n|---|";
+  for (size_t i = 0; i < runs.size(); ++i) md << "---|";
+  md << "\n";
+  if (!runs.empty()) {
+    for (const QueryOutcome& q0 : runs[0].queries) {
+      md << "| " << q0.name << " |";
+      for (const RunResult& run : runs) {
+        auto it = std::find_if(run.queries.begin(), run.queries.end(), [&](const QueryOutcome& q) { return q.name == q0.name; });
+        md << " " << (it == run.queries.end() ? "-" : Fixed(it->ap)) << " |";
+      }
+      md << "\n";
+    }
+  }
+  md << "\n## Plots\n\n";
+  for (const std::string& f : plot_files) md << "![" << f << "](" << f << ")\n\n";
+  std::ofstream out(fs::path(dir) / "report.md");
+  out << md.str();
+  if (!out) return Fail(ErrorCode::kIoError, "cannot write '" + dir + "/report.md'");
+  return Ok();
+}
+
+}  // namespace oxbow::eval
