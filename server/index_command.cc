@@ -1,0 +1,271 @@
+// `oxbow index build|add|remove|info`: create and maintain an image index (index/image_index.h).
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "index/image_index.h"
+#include "server/cli.h"
+#include "server/index_cli.h"
+#include "sift/log.h"
+#include "sift/parallel.h"
+#include "sift/sift.h"
+#include "vocab/vocabulary.h"
+
+namespace oxbow::cli {
+namespace {
+
+namespace fs = std::filesystem;
+
+struct ImageJob {
+  std::string id;
+  std::string path;
+};
+
+// The extractor whose settings the index records.
+sift::SiftExtractor ExtractorFor(const index::ImageIndex& idx, int threads_per_image) {
+  sift::SiftOptions options = ValueOrExit(SiftOptionsFromSettings(idx.extractor_settings()));
+  options.num_threads = threads_per_image;
+  return ValueOrExit(sift::SiftExtractor::Create(options));
+}
+
+// Settings for a new index: the vocabulary's, or this build's defaults for its descriptor kind.
+std::string SettingsFor(const vocab::Vocabulary& vocabulary) {
+  if (!vocabulary.extractor_settings().empty()) return vocabulary.extractor_settings();
+  sift::SiftOptions options;
+  options.descriptor = vocabulary.descriptor_kind();
+  return options.Describe();
+}
+
+std::unique_ptr<index::ImageIndex> OpenOrCreate(const std::string& dir, const vocab::Vocabulary& vocabulary,
+                                                const index::IndexOptions& options) {
+  if (index::ImageIndex::Exists(dir)) {
+    auto idx = ValueOrExit(index::ImageIndex::Open(dir, options));
+    if (idx->vocabulary().fingerprint() != vocabulary.fingerprint()) {
+      throw CommandError(ExitCodeFor(ErrorCode::kIncompatible),
+                         "the index at " + dir + " was built with another vocabulary; use that vocabulary or a new --out folder");
+    }
+    OXBOW_LOG(kInfo) << "resuming index " << dir << " (" << idx->Stats().num_images << " images)";
+    return idx;
+  }
+  return ValueOrExit(index::ImageIndex::Create(dir, vocabulary, SettingsFor(vocabulary), options));
+}
+
+std::vector<ImageJob> CollectImages(const std::string& images_dir, const std::string& list_file) {
+  std::vector<std::string> paths;
+  if (!images_dir.empty()) {
+    std::error_code ec;
+    if (!fs::is_directory(images_dir, ec)) throw CommandError(ExitCodeFor(ErrorCode::kNotFound), images_dir + " is not a folder");
+    for (const auto& entry : fs::recursive_directory_iterator(images_dir, ec)) {
+      if (entry.is_regular_file() && IsImageFile(entry.path())) paths.push_back(entry.path().string());
+    }
+    std::sort(paths.begin(), paths.end());
+  } else {
+    std::ifstream in(list_file);
+    if (!in) throw CommandError(ExitCodeFor(ErrorCode::kNotFound), "cannot read list " + list_file);
+    const fs::path base = fs::path(list_file).parent_path();
+    std::string line;
+    while (std::getline(in, line)) {
+      while (!line.empty() && (line.back() == '\r' || line.back() == ' ')) line.pop_back();
+      if (line.empty() || line[0] == '#') continue;
+      fs::path p(line);
+      std::error_code ec;
+      if (p.is_relative() && !fs::exists(p, ec) && fs::exists(base / p, ec)) p = base / p;
+      paths.push_back(p.string());
+    }
+  }
+  std::vector<ImageJob> jobs;
+  std::map<std::string, std::string> seen;
+  for (const auto& p : paths) {
+    const std::string id = fs::path(p).stem().string();
+    auto [it, inserted] = seen.emplace(id, p);
+    if (!inserted) {
+      OXBOW_LOG(kWarning) << "skipping " << p << ": id '" << id << "' already used by " << it->second;
+      continue;
+    }
+    jobs.push_back({id, p});
+  }
+  return jobs;
+}
+
+void PrintJson(const nlohmann::json& j) { std::printf("%s\n", j.dump(2).c_str()); }
+
+nlohmann::json StatsJson(const index::ImageIndex& idx) {
+  const index::IndexStats s = idx.Stats();
+  char fingerprint[32];
+  std::snprintf(fingerprint, sizeof(fingerprint), "%016llx", static_cast<unsigned long long>(s.vocabulary_fingerprint));
+  return {{"index", idx.directory()},
+          {"images", s.num_images},
+          {"features", s.num_features},
+          {"bytes_per_feature", s.bytes_per_feature},
+          {"memory_bytes", {{"postings", s.postings_bytes}, {"geometry", s.geometry_bytes}, {"other", s.other_bytes}}},
+          {"segments", s.num_segments},
+          {"vocabulary", {{"size", s.vocabulary_size}, {"fingerprint", fingerprint},
+                          {"descriptor", sift::DescriptorKindName(idx.vocabulary().descriptor_kind())}}},
+          {"extractor_settings", idx.extractor_settings()}};
+}
+
+void SetUpIndex(CLI::App& app) {
+  CLI::App* cmd = app.add_subcommand("index", "Build and maintain an image index (build, add, remove, info)");
+  cmd->require_subcommand(1);
+
+  // ---- build
+  struct BuildArgs {
+    std::string vocab, images, list, out;
+    int threads = 0;
+    std::optional<int> max_side;
+  };
+  auto build = std::make_shared<BuildArgs>();
+  CLI::App* b = cmd->add_subcommand("build", "Index every image of a folder or list (resumable: indexed ids are skipped)");
+  b->add_option("--vocab", build->vocab, "vocabulary file (oxbow vocab train)")->required();
+  auto* images_opt = b->add_option("--images", build->images, "folder of images (searched recursively)");
+  auto* list_opt = b->add_option("--list", build->list, "text file with one image path per line");
+  images_opt->excludes(list_opt);
+  b->add_option("--out", build->out, "index folder (created, or resumed when it holds an index)")->required();
+  b->add_option("--threads", build->threads, "worker threads, 0 = all cores")->check(CLI::Range(0, 256));
+  b->add_option("--max-image-side", build->max_side, "downscale images whose longest side exceeds this (px)");
+  b->callback([build] {
+    if (build->images.empty() && build->list.empty()) throw CommandError(2, "give --images DIR or --list FILE");
+    const auto t0 = std::chrono::steady_clock::now();
+    const vocab::Vocabulary vocabulary = ValueOrExit(vocab::Vocabulary::Read(build->vocab));
+    index::IndexOptions options;
+    options.num_threads = build->threads;
+    options.quantizer.num_threads = build->threads;
+    auto idx = OpenOrCreate(build->out, vocabulary, options);
+    const sift::SiftExtractor extractor = ExtractorFor(*idx, 1);
+    sift::DecodeOptions decode;
+    decode.max_image_side_px = build->max_side;
+    if (auto e = decode.Check()) throw CommandError(2, "--max-image-side: " + *e);
+
+    std::vector<ImageJob> all = CollectImages(build->images, build->list);
+    std::vector<ImageJob> todo;
+    for (auto& job : all) {
+      if (!idx->Contains(job.id)) todo.push_back(std::move(job));
+    }
+    const size_t skipped = all.size() - todo.size();
+    if (skipped) {
+      OXBOW_LOG(kInfo) << skipped << " images already indexed, skipped";
+    }
+    const int threads = ResolveThreadCount(build->threads);
+    size_t added = 0, failed = 0;
+    uint64_t features = 0;
+    {
+      log::Progress progress("indexing", todo.size(), "images");
+      const size_t batch = static_cast<size_t>(threads) * 2;
+      for (size_t begin = 0; begin < todo.size(); begin += batch) {
+        const size_t n = std::min(batch, todo.size() - begin);
+        std::vector<std::optional<Result<sift::FeatureSet>>> extracted(n);
+        // Extract in parallel (one image per worker), add in order.
+        ParallelFor(n, threads, 1, [&](size_t lo, size_t hi, int) {
+          for (size_t i = lo; i < hi; ++i) extracted[i] = extractor.ExtractFromFile(todo[begin + i].path, decode);
+        });
+        for (size_t i = 0; i < n; ++i) {
+          const ImageJob& job = todo[begin + i];
+          Result<sift::FeatureSet>& f = *extracted[i];
+          if (!f) {
+            OXBOW_LOG(kWarning) << "skipping " << job.path << ": " << f.error().ToString();
+            ++failed;
+          } else {
+            index::ImageInfo info;
+            info.source_path = fs::absolute(job.path).string();
+            info.extractor_settings = idx->extractor_settings();
+            auto record = idx->Add(job.id, *f, info);
+            if (!record) {
+              if (record.error().code == ErrorCode::kIoError) throw CommandError(record.error());
+              OXBOW_LOG(kWarning) << "skipping " << job.path << ": " << record.error().ToString();
+              ++failed;
+            } else {
+              ++added;
+              features += record->num_features;
+            }
+          }
+          progress.Advance();
+        }
+      }
+    }
+    const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    nlohmann::json summary = StatsJson(*idx);
+    summary["added"] = added;
+    summary["already_indexed"] = skipped;
+    summary["failed"] = failed;
+    summary["added_features"] = features;
+    summary["seconds"] = seconds;
+    summary["images_per_second"] = seconds > 0 ? static_cast<double>(added) / seconds : 0.0;
+    PrintJson(summary);
+  });
+
+  // ---- add
+  struct AddArgs {
+    std::string index, id, metadata;
+    std::vector<std::string> images;
+    std::optional<int> max_side;
+  };
+  auto add = std::make_shared<AddArgs>();
+  CLI::App* a = cmd->add_subcommand("add", "Add images to an index (id = file name without extension)");
+  a->add_option("--index", add->index, "index folder")->required();
+  a->add_option("images", add->images, "image files")->required();
+  a->add_option("--id", add->id, "id for the image (only with one image)");
+  a->add_option("--metadata", add->metadata, "metadata JSON stored with the image(s)");
+  a->add_option("--max-image-side", add->max_side, "downscale images whose longest side exceeds this (px)");
+  a->callback([add] {
+    if (!add->id.empty() && add->images.size() != 1) throw CommandError(2, "--id needs exactly one image");
+    if (!add->metadata.empty() && !nlohmann::json::accept(add->metadata)) throw CommandError(2, "--metadata is not valid JSON");
+    auto idx = ValueOrExit(index::ImageIndex::Open(add->index));
+    const sift::SiftExtractor extractor = ExtractorFor(*idx, 0);
+    sift::DecodeOptions decode;
+    decode.max_image_side_px = add->max_side;
+    nlohmann::json out = nlohmann::json::array();
+    int errors = 0;
+    for (const auto& path : add->images) {
+      const std::string id = add->id.empty() ? fs::path(path).stem().string() : add->id;
+      auto f = extractor.ExtractFromFile(path, decode);
+      Result<index::ImageRecord> record = f ? idx->Add(id, *f, {fs::absolute(path).string(), add->metadata,
+                                                                idx->extractor_settings()})
+                                            : Result<index::ImageRecord>(std::unexpected(f.error()));
+      if (!record) {
+        std::fprintf(stderr, "oxbow: %s: %s\n", path.c_str(), record.error().ToString().c_str());
+        ++errors;
+        out.push_back({{"id", id}, {"error", record.error().ToString()}});
+      } else {
+        out.push_back({{"id", id}, {"features", record->num_features}});
+      }
+    }
+    PrintJson(out);
+    if (errors) throw CommandError(3, std::to_string(errors) + " image(s) not added");
+  });
+
+  // ---- remove
+  struct RemoveArgs {
+    std::string index;
+    std::vector<std::string> ids;
+  };
+  auto remove = std::make_shared<RemoveArgs>();
+  CLI::App* r = cmd->add_subcommand("remove", "Remove images from an index by id");
+  r->add_option("--index", remove->index, "index folder")->required();
+  r->add_option("ids", remove->ids, "image ids")->required();
+  r->callback([remove] {
+    auto idx = ValueOrExit(index::ImageIndex::Open(remove->index));
+    for (const auto& id : remove->ids) OkOrExit(idx->Remove(id));
+    OXBOW_LOG(kInfo) << "removed " << remove->ids.size() << " image(s)";
+  });
+
+  // ---- info
+  auto info_index = std::make_shared<std::string>();
+  CLI::App* i = cmd->add_subcommand("info", "Print an index's statistics as JSON");
+  i->add_option("--index", *info_index, "index folder")->required();
+  i->callback([info_index] {
+    auto idx = ValueOrExit(index::ImageIndex::Open(*info_index));
+    PrintJson(StatsJson(*idx));
+  });
+}
+
+const bool registered = RegisterCommand({"index", 30, &SetUpIndex});
+
+}  // namespace
+}  // namespace oxbow::cli

@@ -1,0 +1,108 @@
+// `oxbow query --index INDEX IMAGE`: rank the indexed images for a query photo, print JSON.
+#include <chrono>
+#include <cstdio>
+#include <optional>
+#include <sstream>
+#include <string>
+
+#include <nlohmann/json.hpp>
+
+#include "index/image_index.h"
+#include "server/cli.h"
+#include "server/index_cli.h"
+#include "sift/sift.h"
+
+namespace oxbow::cli {
+namespace {
+
+std::array<float, 4> ParseBox(const std::string& text) {
+  std::array<float, 4> box{};
+  std::stringstream in(text);
+  std::string item;
+  int n = 0;
+  try {
+    while (std::getline(in, item, ',')) {
+      if (n == 4) throw std::invalid_argument("too many");
+      box[n++] = std::stof(item);
+    }
+  } catch (const std::exception&) {
+    n = -1;
+  }
+  if (n != 4) throw CommandError(2, "--bbox must be x1,y1,x2,y2 (pixels), got '" + text + "'");
+  return box;
+}
+
+nlohmann::json ResultJson(const index::QueryResult& r) {
+  nlohmann::json metadata = nullptr;
+  if (!r.record.metadata_json.empty()) {
+    metadata = nlohmann::json::accept(r.record.metadata_json) ? nlohmann::json::parse(r.record.metadata_json)
+                                                              : nlohmann::json(r.record.metadata_json);
+  }
+  nlohmann::json j = {{"id", r.id},
+                      {"score", r.score},
+                      {"verified", r.verified},
+                      {"inliers", r.inliers},
+                      {"source_path", r.record.source_path},
+                      {"width", r.record.width},
+                      {"height", r.record.height},
+                      {"metadata", metadata}};
+  if (r.verified) {
+    j["db_from_query"] = r.db_from_query.m;
+    j["db_region"] = r.db_region;
+  }
+  return j;
+}
+
+void SetUpQuery(CLI::App& app) {
+  struct Args {
+    std::string index, image, bbox;
+    index::QueryOptions options;
+    std::optional<int> max_side;
+  };
+  auto args = std::make_shared<Args>();
+  CLI::App* cmd = app.add_subcommand("query", "Rank the indexed images for a query image; prints JSON");
+  cmd->add_option("--index", args->index, "index folder")->required();
+  cmd->add_option("image", args->image, "query image file")->required();
+  cmd->add_option("--bbox", args->bbox, "query region x1,y1,x2,y2 in pixels: only features inside are used");
+  cmd->add_option("--top-k", args->options.top_k, "results returned")->capture_default_str();
+  cmd->add_option("--rerank", args->options.rerank_depth, "spatially verify the top R (0: tf-idf only)")
+      ->capture_default_str();
+  cmd->add_flag("--qe", args->options.query_expansion, "average query expansion (Chum et al. 2007)");
+  cmd->add_option("--qe-images", args->options.qe_images, "verified results averaged by --qe")->capture_default_str();
+  cmd->add_option("--min-inliers", args->options.verify.min_inliers, "inliers needed to count as verified")
+      ->capture_default_str();
+  cmd->add_option("--max-image-side", args->max_side, "downscale the query if its longest side exceeds this (px)");
+  cmd->callback([args] {
+    using Clock = std::chrono::steady_clock;
+    const auto t0 = Clock::now();
+    if (!args->bbox.empty()) args->options.region = ParseBox(args->bbox);
+    if (auto e = args->options.Check()) throw CommandError(2, *e);
+    auto idx = ValueOrExit(index::ImageIndex::Open(args->index));
+    const double open_ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+    sift::SiftOptions sift_options = ValueOrExit(SiftOptionsFromSettings(idx->extractor_settings()));
+    const sift::SiftExtractor extractor = ValueOrExit(sift::SiftExtractor::Create(sift_options));
+    sift::DecodeOptions decode;
+    decode.max_image_side_px = args->max_side;
+    const TimedFeatures f = ValueOrExit(ExtractTimed(extractor, args->image, decode));
+    args->options.extractor_settings = idx->extractor_settings();
+    const index::QueryResponse response = ValueOrExit(idx->Query(f.features, args->options));
+
+    nlohmann::json out;
+    out["query"] = {{"image", args->image}, {"width", f.features.image_width}, {"height", f.features.image_height},
+                    {"features", f.features.size()}, {"features_used", response.query_features}};
+    if (args->options.region) out["query"]["bbox"] = *args->options.region;
+    out["candidates"] = response.candidates;
+    out["results"] = nlohmann::json::array();
+    for (const auto& r : response.results) out["results"].push_back(ResultJson(r));
+    const auto& t = response.timings;
+    out["timings_ms"] = {{"open_index", open_ms}, {"decode", f.decode_ms},   {"extract", f.extract_ms},
+                         {"quantize", t.quantize_ms}, {"score", t.score_ms}, {"verify", t.verify_ms},
+                         {"qe", t.qe_ms}, {"query_total", t.total_ms}};
+    std::printf("%s\n", out.dump(2).c_str());
+  });
+}
+
+const bool registered = RegisterCommand({"query", 40, &SetUpQuery});
+
+}  // namespace
+}  // namespace oxbow::cli
