@@ -14,6 +14,7 @@
 #include "index/cow_array.h"
 #include "index/feature_store.h"
 #include "index/inverted_file.h"
+#include "index/rerank.h"
 #include "sift/log.h"
 #include "sift/match.h"
 #include "sift/parallel.h"
@@ -468,50 +469,14 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
   const size_t rerank = std::min(scored.size(), static_cast<size_t>(options.rerank_depth));
   size_t num_verified = 0;
   if (rerank > 0) {
-    // Query features sorted by word for the merge join.
-    std::vector<uint32_t> order(query.words.size());
-    for (uint32_t i = 0; i < order.size(); ++i) order[i] = i;
-    std::stable_sort(order.begin(), order.end(), [&](uint32_t a, uint32_t b) { return query.words[a] < query.words[b]; });
     const std::array<float, 4> query_region =
         options.region ? *options.region
                        : std::array<float, 4>{0, 0, static_cast<float>(query.width), static_cast<float>(query.height)};
+    const QueryGeometry geometry(query.keypoints, query.words, query_region);
     ParallelFor(rerank, index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
       for (size_t c = begin; c < end; ++c) {
-        const PackedFeatures& db = snap.entries[scored[c].image]->features;
-        std::vector<sift::Match> matches;
-        size_t i = 0, j = 0;
-        const size_t nq = order.size(), nd = db.size();
-        while (i < nq && j < nd) {
-          const uint32_t wq = query.words[order[i]], wd = db.word(j);
-          if (wq < wd) {
-            ++i;
-          } else if (wd < wq) {
-            ++j;
-          } else {
-            size_t i2 = i, j2 = j;
-            while (i2 < nq && query.words[order[i2]] == wq) ++i2;
-            while (j2 < nd && db.word(j2) == wd) ++j2;
-            const size_t cq = i2 - i, cd = j2 - j;
-            if (cq <= static_cast<size_t>(options.max_pairs_per_word) &&
-                cd <= static_cast<size_t>(options.max_pairs_per_word)) {
-              // Pairs from a word seen once on each side are the most reliable: smallest "distance".
-              const float distance = static_cast<float>(cq * cd);
-              for (size_t a = i; a < i2; ++a) {
-                for (size_t b = j; b < j2; ++b) {
-                  matches.push_back({order[a], static_cast<uint32_t>(b), distance});
-                }
-              }
-            }
-            i = i2;
-            j = j2;
-          }
-        }
-        if (matches.size() < 3) continue;
-        const std::vector<sift::Match> unique = sift::EnforceOneToOne(matches);
-        std::vector<sift::Keypoint> db_keypoints(nd);
-        for (size_t k = 0; k < nd; ++k) db_keypoints[k] = db.keypoint(k);
-        const sift::VerificationResult v = sift::VerifyHoughAffine(
-            query.keypoints, db_keypoints, unique, query_region, {db.width(), db.height()}, options.verify);
+        const sift::VerificationResult v =
+            geometry.Verify(snap.entries[scored[c].image]->features, options.max_pairs_per_word, options.verify);
         QueryResult& r = results[c];
         r.inliers = v.num_inliers;
         if (v.verified) {

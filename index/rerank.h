@@ -1,0 +1,39 @@
+// Spatial verification of one candidate image against a query, through shared visual words
+// (Philbin et al. 2007): tentative matches are the query x candidate feature pairs with the same word
+// (skipping words with more than max_pairs_per_word features on either side: bursts), made one-to-one
+// (sift::EnforceOneToOne; pairs from words seen once on each side preferred), then verified with Lowe's
+// Hough/affine verifier (sift::VerifyHoughAffine).
+//
+// Thread safety: a QueryGeometry is immutable after construction; Verify may run concurrently.
+// Cost of Verify: O(|query| + |candidate|) for the merge join, plus the verifier (O(matches)).
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <span>
+#include <vector>
+
+#include "index/feature_store.h"
+#include "sift/types.h"
+#include "sift/verify.h"
+
+namespace oxbow::index {
+
+class QueryGeometry {
+ public:
+  // keypoints[i] has word words[i]; region x1,y1,x2,y2 is the query object (the whole image if unknown).
+  // The spans must outlive this object.
+  QueryGeometry(std::span<const sift::Keypoint> keypoints, std::span<const uint32_t> words,
+                const std::array<float, 4>& region);
+
+  sift::VerificationResult Verify(const PackedFeatures& candidate, int max_pairs_per_word,
+                                  const sift::HoughVerifyOptions& options) const;
+
+ private:
+  std::span<const sift::Keypoint> keypoints_;
+  std::span<const uint32_t> words_;
+  std::vector<uint32_t> order_;  // feature indices sorted by word
+  std::array<float, 4> region_;
+};
+
+}  // namespace oxbow::index
