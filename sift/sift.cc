@@ -686,11 +686,9 @@ Result<SiftExtractor> SiftExtractor::Create(const SiftOptions& options) {
 
 FeatureSet SiftExtractor::Extract(const GrayImage& image) const { return internal::ExtractImpl(image, options_, true); }
 
-Result<FeatureSet> SiftExtractor::ExtractFromBytes(std::span<const uint8_t> bytes, const DecodeOptions& decode) const {
-  auto decoded = DecodeImage(bytes, decode);
-  if (!decoded) return std::unexpected(decoded.error());
-  FeatureSet features = Extract(decoded->gray);
-  const double s = decoded->scale_to_original;
+FeatureSet SiftExtractor::ExtractFromDecoded(const DecodedImage& decoded) const {
+  FeatureSet features = Extract(decoded.gray);
+  const double s = decoded.scale_to_original;
   if (s != 1.0) {
     for (Keypoint& kp : features.keypoints) {
       kp.x = static_cast<float>(GrayToOriginal(kp.x, s));
@@ -698,28 +696,22 @@ Result<FeatureSet> SiftExtractor::ExtractFromBytes(std::span<const uint8_t> byte
       kp.scale = static_cast<float>(kp.scale * s);
     }
   }
-  features.image_width = decoded->original_width;
-  features.image_height = decoded->original_height;
+  features.image_width = decoded.original_width;
+  features.image_height = decoded.original_height;
   return features;
+}
+
+Result<FeatureSet> SiftExtractor::ExtractFromBytes(std::span<const uint8_t> bytes, const DecodeOptions& decode) const {
+  auto decoded = DecodeImage(bytes, decode);
+  if (!decoded) return std::unexpected(decoded.error());
+  return ExtractFromDecoded(*decoded);
 }
 
 Result<FeatureSet> SiftExtractor::ExtractFromFile(const std::string& path, const DecodeOptions& decode) const {
   auto decoded = ReadImage(path, decode);
   if (!decoded) return std::unexpected(decoded.error());
-  FeatureSet features = Extract(decoded->gray);
-  const double s = decoded->scale_to_original;
-  if (s != 1.0) {
-    for (Keypoint& kp : features.keypoints) {
-      kp.x = static_cast<float>(GrayToOriginal(kp.x, s));
-      kp.y = static_cast<float>(GrayToOriginal(kp.y, s));
-      kp.scale = static_cast<float>(kp.scale * s);
-    }
-  }
-  features.image_width = decoded->original_width;
-  features.image_height = decoded->original_height;
-  return features;
+  return ExtractFromDecoded(*decoded);
 }
-
 
 void ToRootSift(std::span<float> descriptor) {
   double l1 = 0;

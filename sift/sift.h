@@ -149,6 +149,8 @@ class SiftExtractor {
   [[nodiscard]] Result<FeatureSet> ExtractFromBytes(std::span<const uint8_t> bytes,
                                                     const DecodeOptions& decode = {}) const;
   [[nodiscard]] Result<FeatureSet> ExtractFromFile(const std::string& path, const DecodeOptions& decode = {}) const;
+  // Extracts from an already decoded image; coordinates mapped to the original image as above.
+  FeatureSet ExtractFromDecoded(const DecodedImage& decoded) const;
 
   const SiftOptions& options() const { return options_; }
 

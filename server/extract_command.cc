@@ -1,0 +1,175 @@
+// `oxbow extract IMAGE...`: SIFT features of each image to a feature file (oxbow binary or COLMAP
+// text), optionally a drawing of the keypoints; and `oxbow features info FILE...` to inspect feature
+// files. See sift/sift.h (the method) and sift/features_io.h (the formats).
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "server/cli.h"
+#include "sift/draw.h"
+#include "sift/features_io.h"
+#include "sift/log.h"
+#include "sift/sift.h"
+
+namespace oxbow::cli {
+namespace {
+
+namespace fs = std::filesystem;
+
+struct ExtractArgs {
+  std::vector<std::string> images;
+  std::string out_dir = ".";
+  std::string format = "oxbow";
+  std::optional<std::string> draw;
+  bool root_sift = false;
+  bool no_upsample = false;
+  bool ignore_exif = false;
+  std::optional<int> max_features;
+  std::optional<int> max_image_side_px;
+  uint64_t max_pixels = sift::DecodeOptions{}.max_pixels;
+  double contrast_threshold = sift::SiftOptions{}.contrast_threshold;
+  double edge_threshold = sift::SiftOptions{}.edge_threshold;
+  int num_threads = 0;
+};
+
+// out.png with several images -> out_<image stem>.png
+std::string DrawPath(const std::string& draw, const std::string& image, bool several) {
+  if (!several) return draw;
+  const fs::path p(draw);
+  return (p.parent_path() / (p.stem().string() + "_" + fs::path(image).stem().string() + p.extension().string())).string();
+}
+
+void RunExtract(const ExtractArgs& args) {
+  sift::SiftOptions options;
+  options.descriptor = args.root_sift ? sift::DescriptorKind::kRootSift : sift::DescriptorKind::kSift;
+  options.max_features = args.max_features;
+  options.upsample_first_octave = !args.no_upsample;
+  options.contrast_threshold = args.contrast_threshold;
+  options.edge_threshold = args.edge_threshold;
+  options.num_threads = args.num_threads;
+  const sift::SiftExtractor extractor = ValueOrExit(sift::SiftExtractor::Create(options));
+  sift::DecodeOptions decode;
+  decode.max_image_side_px = args.max_image_side_px;
+  decode.max_pixels = args.max_pixels;
+  decode.apply_exif_orientation = !args.ignore_exif;
+  if (auto message = decode.Check()) throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), *message);
+
+  std::error_code ec;
+  fs::create_directories(args.out_dir, ec);
+  if (ec) throw CommandError(ExitCodeFor(ErrorCode::kIoError), "cannot create output folder '" + args.out_dir + "': " + ec.message());
+
+  std::optional<Error> first_failure;
+  int failures = 0;
+  auto report = [&](const Error& error) {
+    ++failures;
+    if (!first_failure) first_failure = error;
+    if (args.images.size() > 1) std::fprintf(stderr, "oxbow: %s\n", error.ToString().c_str());
+  };
+  for (const std::string& image : args.images) {
+    const auto start = std::chrono::steady_clock::now();
+    auto decoded = sift::ReadImage(image, decode);
+    if (!decoded) {
+      report(decoded.error());
+      continue;
+    }
+    const sift::FeatureSet features = extractor.ExtractFromDecoded(*decoded);
+    const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+    const std::string name = fs::path(image).filename().string();
+    const std::string out = (fs::path(args.out_dir) / (name + (args.format == "colmap" ? ".txt" : ".oxfeat"))).string();
+    Status written = args.format == "colmap"
+                         ? sift::WriteColmapFeatures(out, features)
+                         : sift::WriteFeatureFile(out, {features, options.Fingerprint(), options.Describe()});
+    if (!written) {
+      report(written.error());
+      continue;
+    }
+    std::string drawn;
+    if (args.draw) {
+      drawn = DrawPath(*args.draw, image, args.images.size() > 1);
+      if (auto status = sift::DrawKeypoints(decoded->gray, features, 1.0 / decoded->scale_to_original, drawn); !status) {
+        report(status.error());
+        drawn.clear();
+      }
+    }
+    std::printf("%s: %dx%d, %zu keypoints, %.1f ms -> %s%s%s\n", image.c_str(), features.image_width, features.image_height,
+                features.size(), ms, out.c_str(), drawn.empty() ? "" : ", ", drawn.c_str());
+  }
+  if (first_failure) {
+    if (args.images.size() == 1) throw CommandError(*first_failure);
+    throw CommandError(ExitCodeFor(first_failure->code), std::to_string(failures) + " of " + std::to_string(args.images.size()) +
+                                                             " images failed; the first: " + first_failure->ToString());
+  }
+}
+
+void SetUpExtract(CLI::App& app) {
+  auto* cmd = app.add_subcommand("extract",
+                                 "Extract SIFT features (Lowe 2004; RootSIFT optional) from images into feature files.\n"
+                                 "Writes <out>/<image name>.oxfeat (oxbow's versioned binary format; inspect with\n"
+                                 "'oxbow features info') or, with --format colmap, <out>/<image name>.txt in COLMAP's\n"
+                                 "text format ('N 128', then 'x y scale orientation d1..d128' per keypoint, descriptors\n"
+                                 "0..255), ready for 'colmap feature_importer'. Prints one line per image.\n"
+                                 "Example: oxbow extract photos/*.jpg --out feats --root-sift --max-side 1024");
+  auto args = std::make_shared<ExtractArgs>();
+  cmd->add_option("images", args->images, "image files (JPEG, PNG, PPM/PGM, WebP, TIFF, BMP)")->required();
+  cmd->add_option("--out", args->out_dir, "output folder (created if missing)")->capture_default_str();
+  cmd->add_option("--format", args->format, "feature file format: oxbow (binary) or colmap (text)")
+      ->check(CLI::IsMember({"oxbow", "colmap"}))
+      ->capture_default_str();
+  cmd->add_flag("--root-sift", args->root_sift, "store RootSIFT descriptors (L1 normalise + sqrt; better for retrieval)");
+  cmd->add_option("--max-features", args->max_features, "keep only the N strongest keypoints (by DoG contrast)")
+      ->check(CLI::PositiveNumber);
+  cmd->add_option("--max-side", args->max_image_side_px,
+                  "downscale images so the longest side is at most PX pixels before extracting (keypoints are still "
+                  "written in original-image coordinates)")
+      ->check(CLI::Range(16, 1 << 20));
+  cmd->add_option("--max-pixels", args->max_pixels, "refuse images whose header declares more pixels than this")
+      ->capture_default_str();
+  cmd->add_flag("--no-upsample", args->no_upsample,
+                "do not double the image size for the first octave (about 3x faster, finds fewer small features)");
+  cmd->add_option("--contrast-threshold", args->contrast_threshold,
+                  "minimum DoG contrast, divided by the 3 scales per octave as OpenCV does; lower finds more, weaker keypoints")
+      ->capture_default_str();
+  cmd->add_option("--edge-threshold", args->edge_threshold, "edge rejection ratio r (Lowe's r = 10); higher keeps more edge-like keypoints")
+      ->capture_default_str();
+  cmd->add_flag("--ignore-exif", args->ignore_exif, "use the pixels as stored, ignoring the EXIF orientation tag");
+  cmd->add_option("--threads", args->num_threads, "worker threads per image; 0 = all cores (output is identical for any value)")
+      ->check(CLI::Range(0, 256))
+      ->capture_default_str();
+  cmd->add_option("--draw", args->draw,
+                  "also write the image with its keypoints drawn (circle radius = 3 x scale, line = orientation); with "
+                  "several images, out.png becomes out_<image stem>.png");
+  cmd->callback([args] { RunExtract(*args); });
+}
+
+void SetUpFeatures(CLI::App& app) {
+  auto* cmd = app.add_subcommand("features", "Inspect feature files written by 'oxbow extract'.");
+  cmd->require_subcommand(1);
+  auto* info = cmd->add_subcommand("info", "Print the header of each feature file and its first keypoints; refuses damaged files.");
+  auto files = std::make_shared<std::vector<std::string>>();
+  auto show = std::make_shared<int>(5);
+  info->add_option("files", *files, "feature files (.oxfeat)")->required();
+  info->add_option("--show", *show, "number of keypoints to print")->capture_default_str()->check(CLI::NonNegativeNumber);
+  info->callback([files, show] {
+    for (const std::string& path : *files) {
+      const sift::FeatureFile file = ValueOrExit(sift::ReadFeatureFile(path));
+      const sift::FeatureSet& f = file.features;
+      std::printf("%s: format %u, image %dx%d, %zu keypoints, %s descriptors\n  extractor %016llx %s\n", path.c_str(),
+                  sift::kFeatureFileVersion, f.image_width, f.image_height, f.size(), sift::DescriptorKindName(f.kind),
+                  static_cast<unsigned long long>(file.extractor_fingerprint), file.extractor_description.c_str());
+      for (size_t i = 0; i < std::min<size_t>(f.size(), static_cast<size_t>(*show)); ++i) {
+        const sift::Keypoint& k = f.keypoints[i];
+        std::printf("  #%zu x %.2f y %.2f scale %.2f orientation %.3f response %.4f octave %d\n", i, k.x, k.y, k.scale,
+                    k.orientation, k.response, k.octave);
+      }
+    }
+  });
+}
+
+const bool registered_extract = RegisterCommand({"extract", 10, &SetUpExtract});
+const bool registered_features = RegisterCommand({"features", 11, &SetUpFeatures});
+
+}  // namespace
+}  // namespace oxbow::cli
