@@ -1,0 +1,230 @@
+// Unit tests of the transport-free pieces of the API: error mapping, parameter parsing, metrics text,
+// extractor-settings round trip, JSON mapping.
+#include <gtest/gtest.h>
+
+#include <set>
+
+#include "api/errors.h"
+#include "api/json.h"
+#include "api/metrics.h"
+#include "api/params.h"
+#include "api/service.h"
+
+namespace oxbow::api {
+namespace {
+
+TEST(Errors, EveryCodeMapsToAnErrorStatus) {
+  const std::vector<std::pair<ErrorCode, int>> expected = {
+      {ErrorCode::kInvalidArgument, 400}, {ErrorCode::kInvalidImage, 400},   {ErrorCode::kImageTooLarge, 413},
+      {ErrorCode::kUnsupportedFormat, 415}, {ErrorCode::kNotFound, 404},     {ErrorCode::kAlreadyExists, 409},
+      {ErrorCode::kCorruptData, 500},     {ErrorCode::kIncompatible, 409},   {ErrorCode::kIoError, 500},
+      {ErrorCode::kResourceExhausted, 503}, {ErrorCode::kUnauthenticated, 401}, {ErrorCode::kInternal, 500}};
+  for (const auto& [code, status] : expected) {
+    EXPECT_EQ(HttpStatusFor(code), status) << ErrorCodeName(code);
+    const HttpError e = ToHttpError(Error{code, "m"});
+    EXPECT_GE(e.status, 400);
+    EXPECT_EQ(e.code, ErrorCodeName(code));
+  }
+}
+
+TEST(Errors, BodyHasTheOneShape) {
+  const auto body = ErrorBody(ToHttpError(Error{ErrorCode::kNotFound, "no image 'x'"}), "req-1");
+  ASSERT_TRUE(body.contains("error"));
+  EXPECT_EQ(body["error"]["code"], "not_found");
+  EXPECT_EQ(body["error"]["message"], "no image 'x'");
+  EXPECT_EQ(body["error"]["request_id"], "req-1");
+  EXPECT_EQ(body.size(), 1u);
+  EXPECT_EQ(MethodNotAllowed("PUT", "/v1/search", "POST").status, 405);
+  EXPECT_EQ(PermissionDenied("x").status, 403);
+  EXPECT_EQ(RouteNotFound("GET", "/nope").status, 404);
+}
+
+TEST(Params, IntegersAreCheckedCompletely) {
+  EXPECT_EQ(ParseInt("k", "42", 1, 100).value(), 42);
+  EXPECT_EQ(ParseInt("k", "+7", 1, 100).value(), 7);
+  for (const char* bad : {"", "4x", "x", "1.5", " 3", "101", "0", "-1", "99999999999999999999999"}) {
+    auto r = ParseInt("k", bad, 1, 100);
+    ASSERT_FALSE(r) << bad;
+    EXPECT_EQ(r.error().code, ErrorCode::kInvalidArgument);
+    EXPECT_NE(r.error().message.find("'k'"), std::string::npos);
+  }
+}
+
+TEST(Params, BoolsAndBoxes) {
+  EXPECT_TRUE(ParseBool("qe", "").value());
+  EXPECT_TRUE(ParseBool("qe", "true").value());
+  EXPECT_FALSE(ParseBool("qe", "0").value());
+  EXPECT_FALSE(ParseBool("qe", "maybe"));
+  auto box = ParseBox("bbox", "1,2.5,30,40");
+  ASSERT_TRUE(box);
+  EXPECT_FLOAT_EQ((*box)[1], 2.5f);
+  EXPECT_FLOAT_EQ((*box)[3], 40.f);
+  for (const char* bad : {"", "1,2,3", "1,2,3,4,5", "3,2,1,4", "1,4,3,2", "a,b,c,d", "1,2,3,inf", "1,,3,4", "1,2,3,4,"}) {
+    EXPECT_FALSE(ParseBox("bbox", bad)) << bad;
+  }
+}
+
+TEST(Params, QueryParamsOverrideDefaultsAndRefuseUnknownNames) {
+  index::QueryOptions defaults;
+  auto q = ParseQueryParams({{"top_k", "5"}, {"rerank", "50"}, {"bbox", "0,0,10,10"}, {"qe", "true"}}, defaults);
+  ASSERT_TRUE(q) << q.error().message;
+  EXPECT_EQ(q->top_k, 5);
+  EXPECT_EQ(q->rerank_depth, 50);
+  EXPECT_TRUE(q->query_expansion);
+  ASSERT_TRUE(q->region.has_value());
+  EXPECT_FLOAT_EQ((*q->region)[2], 10.f);
+
+  auto off = ParseQueryParams({{"rerank", "false"}}, defaults);
+  ASSERT_TRUE(off);
+  EXPECT_EQ(off->rerank_depth, 0);
+  auto on = ParseQueryParams({{"rerank", "true"}}, defaults);
+  ASSERT_TRUE(on);
+  EXPECT_EQ(on->rerank_depth, defaults.rerank_depth);
+
+  auto none = ParseQueryParams({}, defaults);
+  ASSERT_TRUE(none);
+  EXPECT_EQ(none->top_k, defaults.top_k);
+  EXPECT_FALSE(none->region.has_value());
+
+  auto typo = ParseQueryParams({{"topk", "5"}}, defaults);
+  ASSERT_FALSE(typo);
+  EXPECT_NE(typo.error().message.find("topk"), std::string::npos);
+  EXPECT_FALSE(ParseQueryParams({{"top_k", "0"}}, defaults));
+  EXPECT_FALSE(ParseQueryParams({{"qe", "1"}, {"rerank", "0"}}, defaults));
+}
+
+TEST(Params, AddParams) {
+  auto add = ParseAddParams({{"id", "a b"}, {"replace", "true"}, {"metadata", R"({"k": [1, 2]})"}});
+  ASSERT_TRUE(add) << add.error().message;
+  EXPECT_EQ(add->id, "a b");
+  EXPECT_TRUE(add->replace);
+  EXPECT_EQ(add->metadata_json, R"({"k":[1,2]})");
+  EXPECT_FALSE(ParseAddParams({}));                                  // id required
+  EXPECT_FALSE(ParseAddParams({{"id", ""}}));
+  EXPECT_FALSE(ParseAddParams({{"id", std::string(257, 'x')}}));
+  EXPECT_FALSE(ParseAddParams({{"id", "a\nb"}}));
+  EXPECT_FALSE(ParseAddParams({{"id", "a"}, {"metadata", "{not json"}}));
+}
+
+TEST(Params, ListAndMatchParams) {
+  auto list = ParseListParams({{"offset", "10"}, {"limit", "5"}});
+  ASSERT_TRUE(list);
+  EXPECT_EQ(list->offset, 10u);
+  EXPECT_EQ(list->limit, 5u);
+  EXPECT_FALSE(ParseListParams({{"limit", "0"}}));
+  EXPECT_FALSE(ParseListParams({{"limit", "1001"}}));
+  EXPECT_FALSE(ParseListParams({{"offset", "-1"}}));
+
+  auto match = ParseMatchParams({{"model", "homography"}, {"ratio", "0.7"}, {"mutual", "1"}, {"method", "kdtree"}});
+  ASSERT_TRUE(match) << match.error().message;
+  EXPECT_EQ(match->model, sift::GeometricModel::kHomography);
+  EXPECT_FLOAT_EQ(match->match.ratio, 0.7f);
+  EXPECT_TRUE(match->match.mutual);
+  EXPECT_EQ(match->match.method, sift::MatchOptions::Method::kKdForest);
+  EXPECT_FALSE(ParseMatchParams({{"model", "banana"}}));
+  EXPECT_FALSE(ParseMatchParams({{"ratio", "1.5"}}));
+  EXPECT_FALSE(ParseMatchParams({{"ratio", "0"}}));
+  EXPECT_FALSE(ParseMatchParams({{"method", "fast"}}));
+}
+
+TEST(Metrics, RendersCountersAndCumulativeHistograms) {
+  Metrics metrics;
+  metrics.Observe("/v1/search", "POST", 200, 0.004);
+  metrics.Observe("/v1/search", "POST", 200, 0.2);
+  metrics.Observe("/v1/search", "POST", 400, 0.0005);
+  metrics.Observe("/v1/images/{id}", "GET", 404, 100.0);  // beyond the last bucket: only +Inf
+  EXPECT_EQ(metrics.Count("/v1/search", "POST", 200), 2u);
+  EXPECT_EQ(metrics.Count("/v1/search", "POST", 500), 0u);
+  const std::string text = metrics.Render({{"oxbow_index_images", "Live images.", 3}});
+  EXPECT_NE(text.find("# TYPE oxbow_http_requests_total counter"), std::string::npos);
+  EXPECT_NE(text.find("oxbow_http_requests_total{route=\"/v1/search\",method=\"POST\",status=\"200\"} 2"), std::string::npos);
+  // 0.004 s falls in le=0.005; 0.2 s in le=0.25 (cumulative: 1 then 2).
+  EXPECT_NE(text.find("route=\"/v1/search\",method=\"POST\",status=\"200\",le=\"0.0025\"} 0"), std::string::npos);
+  EXPECT_NE(text.find("route=\"/v1/search\",method=\"POST\",status=\"200\",le=\"0.005\"} 1"), std::string::npos);
+  EXPECT_NE(text.find("route=\"/v1/search\",method=\"POST\",status=\"200\",le=\"0.25\"} 2"), std::string::npos);
+  EXPECT_NE(text.find("route=\"/v1/images/{id}\",method=\"GET\",status=\"404\",le=\"30\"} 0"), std::string::npos);
+  EXPECT_NE(text.find("route=\"/v1/images/{id}\",method=\"GET\",status=\"404\",le=\"+Inf\"} 1"), std::string::npos);
+  EXPECT_NE(text.find("# TYPE oxbow_index_images gauge\noxbow_index_images 3\n"), std::string::npos);
+  EXPECT_EQ(EscapeLabelValue("a\"b\\c\n"), "a\\\"b\\\\c\\n");
+}
+
+TEST(Settings, RoundTripsEveryDescribedOption) {
+  sift::SiftOptions options;
+  options.upsample_first_octave = false;
+  options.sigma = 1.7;
+  options.contrast_threshold = 0.03;
+  options.max_features = 1234;
+  options.descriptor = sift::DescriptorKind::kRootSift;
+  options.max_octaves = 5;
+  auto parsed = SiftOptionsFromSettings(options.Describe());
+  ASSERT_TRUE(parsed) << parsed.error().message;
+  EXPECT_EQ(parsed->Describe(), options.Describe());
+  EXPECT_EQ(parsed->max_features, 1234);
+  EXPECT_EQ(parsed->descriptor, sift::DescriptorKind::kRootSift);
+
+  auto defaults = SiftOptionsFromSettings(sift::SiftOptions{}.Describe());
+  ASSERT_TRUE(defaults);
+  EXPECT_EQ(defaults->Describe(), sift::SiftOptions{}.Describe());
+
+  for (const std::string bad : {std::string(""), std::string("other-sift/1;sigma=1"),
+                                sift::SiftOptions{}.Describe() + ";future_field=3",
+                                std::string("oxbow-sift/1;sigma=abc")}) {
+    auto r = SiftOptionsFromSettings(bad);
+    ASSERT_FALSE(r) << bad;
+    EXPECT_EQ(r.error().code, ErrorCode::kIncompatible);
+  }
+}
+
+TEST(Json, SearchResponseCarriesEveryDocumentedField) {
+  SearchResponse response;
+  response.options.top_k = 3;
+  response.options.region = std::array<float, 4>{1, 2, 3, 4};
+  response.query_width = 640;
+  response.query_height = 480;
+  response.decode_extract_ms = 12.5;
+  index::QueryResult r;
+  r.id = "box_in_scene";
+  r.score = 0.5;
+  r.verified = true;
+  r.inliers = 17;
+  r.db_from_query.m = {2, 0, 10, 0, 2, 20};
+  r.db_region = {5, 6, 7, 8};
+  r.record.width = 512;
+  r.record.metadata_json = R"({"title":"box"})";
+  response.index.results.push_back(r);
+  response.index.timings.verify_ms = 3;
+  const auto json = SearchResponseToJson(response);
+  ASSERT_EQ(json["results"].size(), 1u);
+  const auto& first = json["results"][0];
+  EXPECT_EQ(first["id"], "box_in_scene");
+  EXPECT_EQ(first["rank"], 1);
+  EXPECT_EQ(first["inliers"], 17);
+  EXPECT_EQ(first["transform"][0][2], 10.0);
+  EXPECT_EQ(first["region"][3], 8.0);
+  EXPECT_EQ(first["metadata"]["title"], "box");
+  EXPECT_EQ(json["query"]["bbox"][0], 1.0);
+  EXPECT_EQ(json["params"]["top_k"], 3);
+  for (const char* stage : {"decode_extract", "quantize", "score", "verify", "qe", "total"}) {
+    EXPECT_TRUE(json["timings_ms"].contains(stage)) << stage;
+  }
+  EXPECT_EQ(json["timings_ms"]["verify"], 3.0);
+  EXPECT_TRUE(MetadataToJson("").is_null());
+  EXPECT_EQ(MetadataToJson("not json"), "not json");
+}
+
+TEST(ServiceOptions, CheckRefusesOutOfRangeValues) {
+  ServiceOptions options;
+  EXPECT_FALSE(options.Check().has_value());
+  options.max_image_side_px = 8;
+  EXPECT_TRUE(options.Check().has_value());
+  options = {};
+  options.max_concurrent_extractions = -1;
+  EXPECT_TRUE(options.Check().has_value());
+  options = {};
+  options.default_query.top_k = 0;
+  EXPECT_TRUE(options.Check().has_value());
+  EXPECT_GT(ResidentMemoryBytes(), 0u);
+}
+
+}  // namespace
+}  // namespace oxbow::api

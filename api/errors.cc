@@ -1,0 +1,46 @@
+#include "api/errors.h"
+
+namespace oxbow::api {
+
+int HttpStatusFor(ErrorCode code) {
+  switch (code) {
+    case ErrorCode::kInvalidArgument: return 400;
+    case ErrorCode::kInvalidImage: return 400;
+    case ErrorCode::kUnauthenticated: return 401;
+    case ErrorCode::kNotFound: return 404;
+    case ErrorCode::kAlreadyExists: return 409;
+    case ErrorCode::kIncompatible: return 409;
+    case ErrorCode::kImageTooLarge: return 413;
+    case ErrorCode::kUnsupportedFormat: return 415;
+    case ErrorCode::kCorruptData: return 500;
+    case ErrorCode::kIoError: return 500;
+    case ErrorCode::kInternal: return 500;
+    case ErrorCode::kResourceExhausted: return 503;
+  }
+  return 500;
+}
+
+HttpError ToHttpError(const Error& error) {
+  return HttpError{HttpStatusFor(error.code), std::string(ErrorCodeName(error.code)), error.message};
+}
+
+HttpError PermissionDenied(std::string message) { return HttpError{403, "permission_denied", std::move(message)}; }
+
+HttpError RouteNotFound(std::string_view method, std::string_view path) {
+  return HttpError{404, "not_found",
+                   "no route " + std::string(method) + " " + std::string(path) + " (see GET /v1 routes in the README)"};
+}
+
+HttpError MethodNotAllowed(std::string_view method, std::string_view path, std::string_view allowed) {
+  return HttpError{405, "method_not_allowed",
+                   std::string(method) + " is not allowed on " + std::string(path) + "; allowed: " +
+                       std::string(allowed)};
+}
+
+HttpError Unavailable(std::string message) { return HttpError{503, "unavailable", std::move(message)}; }
+
+nlohmann::json ErrorBody(const HttpError& error, std::string_view request_id) {
+  return {{"error", {{"code", error.code}, {"message", error.message}, {"request_id", std::string(request_id)}}}};
+}
+
+}  // namespace oxbow::api

@@ -1,0 +1,212 @@
+#include "api/params.h"
+
+#include <charconv>
+#include <cmath>
+#include <cstdlib>
+#include <string>
+
+#include <nlohmann/json.hpp>
+
+namespace oxbow::api {
+
+namespace {
+
+std::string Quote(std::string_view text) {
+  constexpr size_t kMaxShown = 64;  // do not echo a huge parameter back
+  std::string shown(text.substr(0, kMaxShown));
+  if (text.size() > kMaxShown) shown += "...";
+  return "'" + shown + "'";
+}
+
+const std::string* Find(const Params& params, const std::string& name) {
+  auto it = params.find(name);
+  return it == params.end() ? nullptr : &it->second;
+}
+
+}  // namespace
+
+Result<int64_t> ParseInt(std::string_view name, std::string_view text, int64_t min, int64_t max) {
+  int64_t value = 0;
+  const char* begin = text.data();
+  const char* end = text.data() + text.size();
+  if (!text.empty() && text.front() == '+') ++begin;
+  auto [ptr, ec] = std::from_chars(begin, end, value);
+  if (text.empty() || ec != std::errc() || ptr != end) {
+    return Fail(ErrorCode::kInvalidArgument,
+                "parameter '" + std::string(name) + "' must be an integer, got " + Quote(text));
+  }
+  if (value < min || value > max) {
+    return Fail(ErrorCode::kInvalidArgument, "parameter '" + std::string(name) + "' must be in [" +
+                                                 std::to_string(min) + ", " + std::to_string(max) + "], got " +
+                                                 std::to_string(value));
+  }
+  return value;
+}
+
+Result<bool> ParseBool(std::string_view name, std::string_view text) {
+  if (text.empty() || text == "true" || text == "1" || text == "yes" || text == "on") return true;
+  if (text == "false" || text == "0" || text == "no" || text == "off") return false;
+  return Fail(ErrorCode::kInvalidArgument,
+              "parameter '" + std::string(name) + "' must be true or false, got " + Quote(text));
+}
+
+Result<std::array<float, 4>> ParseBox(std::string_view name, std::string_view text) {
+  std::array<float, 4> box{};
+  const std::string bad = "parameter '" + std::string(name) + "' must be x1,y1,x2,y2 (pixels, x1 < x2, y1 < y2), got " + Quote(text);
+  size_t start = 0;
+  for (int i = 0; i < 4; ++i) {
+    const size_t comma = text.find(',', start);
+    const bool last = i == 3;
+    if (last != (comma == std::string_view::npos)) return Fail(ErrorCode::kInvalidArgument, bad);
+    const std::string part(text.substr(start, last ? std::string_view::npos : comma - start));
+    char* parse_end = nullptr;
+    const double v = part.empty() ? NAN : std::strtod(part.c_str(), &parse_end);
+    if (part.empty() || parse_end != part.c_str() + part.size() || !std::isfinite(v) || std::abs(v) > 1e9) {
+      return Fail(ErrorCode::kInvalidArgument, bad);
+    }
+    box[static_cast<size_t>(i)] = static_cast<float>(v);
+    start = comma + 1;
+  }
+  if (!(box[0] < box[2]) || !(box[1] < box[3])) return Fail(ErrorCode::kInvalidArgument, bad);
+  return box;
+}
+
+Status CheckKnownParams(const Params& params, const std::set<std::string>& known) {
+  for (const auto& [name, value] : params) {
+    if (known.contains(name)) continue;
+    std::string list;
+    for (const auto& k : known) list += (list.empty() ? "" : ", ") + k;
+    return Fail(ErrorCode::kInvalidArgument, "unknown parameter " + Quote(name) + "; known: " + list);
+  }
+  return Ok();
+}
+
+Result<index::QueryOptions> ParseQueryParams(const Params& params, const index::QueryOptions& defaults) {
+  if (auto known = CheckKnownParams(params, QueryParamNames()); !known) return std::unexpected(known.error());
+  index::QueryOptions options = defaults;
+  if (const auto* v = Find(params, "top_k")) {
+    auto parsed = ParseInt("top_k", *v, 1, 10000);
+    if (!parsed) return std::unexpected(parsed.error());
+    options.top_k = static_cast<int>(*parsed);
+  }
+  if (const auto* v = Find(params, "rerank")) {
+    if (*v == "true" || *v == "false" || *v == "yes" || *v == "no" || *v == "on" || *v == "off") {
+      options.rerank_depth = (*v == "false" || *v == "no" || *v == "off") ? 0 : (defaults.rerank_depth > 0 ? defaults.rerank_depth : 200);
+    } else {
+      auto parsed = ParseInt("rerank", *v, 0, 10000);
+      if (!parsed) return std::unexpected(parsed.error());
+      options.rerank_depth = static_cast<int>(*parsed);
+    }
+  }
+  if (const auto* v = Find(params, "bbox")) {
+    auto parsed = ParseBox("bbox", *v);
+    if (!parsed) return std::unexpected(parsed.error());
+    options.region = *parsed;
+  }
+  if (const auto* v = Find(params, "qe")) {
+    auto parsed = ParseBool("qe", *v);
+    if (!parsed) return std::unexpected(parsed.error());
+    options.query_expansion = *parsed;
+  }
+  if (const auto* v = Find(params, "qe_images")) {
+    auto parsed = ParseInt("qe_images", *v, 1, 100);
+    if (!parsed) return std::unexpected(parsed.error());
+    options.qe_images = static_cast<int>(*parsed);
+  }
+  if (options.query_expansion && options.rerank_depth == 0) {
+    return Fail(ErrorCode::kInvalidArgument, "parameter 'qe' needs re-ranking: set rerank > 0 (or leave it at its default)");
+  }
+  if (auto message = options.Check()) return Fail(ErrorCode::kInvalidArgument, *message);
+  return options;
+}
+
+Status CheckImageId(std::string_view id) {
+  if (id.empty() || id.size() > 256) {
+    return Fail(ErrorCode::kInvalidArgument, "image id must be 1 to 256 bytes long, got " + std::to_string(id.size()));
+  }
+  for (unsigned char c : id) {
+    if (c < 0x20 || c == 0x7f) return Fail(ErrorCode::kInvalidArgument, "image id must not contain control characters");
+  }
+  return Ok();
+}
+
+Result<AddParams> ParseAddParams(const Params& params) {
+  if (auto known = CheckKnownParams(params, {"id", "replace", "metadata"}); !known) return std::unexpected(known.error());
+  AddParams add;
+  const auto* id = Find(params, "id");
+  if (id == nullptr) {
+    return Fail(ErrorCode::kInvalidArgument, "parameter 'id' is required (POST /v1/images?id=NAME, or a multipart field 'id')");
+  }
+  if (auto ok = CheckImageId(*id); !ok) return std::unexpected(ok.error());
+  add.id = *id;
+  if (const auto* v = Find(params, "replace")) {
+    auto parsed = ParseBool("replace", *v);
+    if (!parsed) return std::unexpected(parsed.error());
+    add.replace = *parsed;
+  }
+  if (const auto* v = Find(params, "metadata")) {
+    auto json = nlohmann::json::parse(*v, nullptr, /*allow_exceptions=*/false);
+    if (json.is_discarded()) {
+      return Fail(ErrorCode::kInvalidArgument, "parameter 'metadata' must be a JSON document, got " + Quote(*v));
+    }
+    add.metadata_json = json.dump();
+  }
+  return add;
+}
+
+Result<ListParams> ParseListParams(const Params& params) {
+  if (auto known = CheckKnownParams(params, {"offset", "limit"}); !known) return std::unexpected(known.error());
+  ListParams list;
+  if (const auto* v = Find(params, "offset")) {
+    auto parsed = ParseInt("offset", *v, 0, int64_t{1} << 53);
+    if (!parsed) return std::unexpected(parsed.error());
+    list.offset = static_cast<uint64_t>(*parsed);
+  }
+  if (const auto* v = Find(params, "limit")) {
+    auto parsed = ParseInt("limit", *v, 1, 1000);
+    if (!parsed) return std::unexpected(parsed.error());
+    list.limit = static_cast<uint64_t>(*parsed);
+  }
+  return list;
+}
+
+Result<MatchParams> ParseMatchParams(const Params& params) {
+  if (auto known = CheckKnownParams(params, {"model", "ratio", "mutual", "method"}); !known) {
+    return std::unexpected(known.error());
+  }
+  MatchParams match;
+  if (const auto* v = Find(params, "model")) {
+    auto model = sift::ParseGeometricModel(*v);
+    if (!model) {
+      return Fail(ErrorCode::kInvalidArgument,
+                  "parameter 'model' must be hough-affine, similarity, affine, homography or fundamental, got " + Quote(*v));
+    }
+    match.model = *model;
+  }
+  if (const auto* v = Find(params, "ratio")) {
+    char* end = nullptr;
+    const double ratio = v->empty() ? NAN : std::strtod(v->c_str(), &end);
+    if (v->empty() || end != v->c_str() + v->size() || !(ratio > 0 && ratio <= 1)) {
+      return Fail(ErrorCode::kInvalidArgument, "parameter 'ratio' must be a number in (0, 1], got " + Quote(*v));
+    }
+    match.match.ratio = static_cast<float>(ratio);
+  }
+  if (const auto* v = Find(params, "mutual")) {
+    auto parsed = ParseBool("mutual", *v);
+    if (!parsed) return std::unexpected(parsed.error());
+    match.match.mutual = *parsed;
+  }
+  if (const auto* v = Find(params, "method")) {
+    if (*v == "brute") {
+      match.match.method = sift::MatchOptions::Method::kBruteForce;
+    } else if (*v == "kdtree") {
+      match.match.method = sift::MatchOptions::Method::kKdForest;
+    } else {
+      return Fail(ErrorCode::kInvalidArgument, "parameter 'method' must be brute or kdtree, got " + Quote(*v));
+    }
+  }
+  if (auto message = match.match.Check()) return Fail(ErrorCode::kInvalidArgument, *message);
+  return match;
+}
+
+}  // namespace oxbow::api

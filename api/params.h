@@ -1,0 +1,78 @@
+// Request parameters of the HTTP API, parsed and validated without any HTTP library: the transport
+// collects query-string parameters and multipart text fields into a Params map (name -> value; the
+// first value of a repeated name), these functions turn it into typed options or a kInvalidArgument
+// error naming the parameter. Unknown parameter names are refused (a typo such as `topk` would
+// otherwise silently run with the default). Thread-safe (pure functions).
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <map>
+#include <optional>
+#include <set>
+#include <string>
+#include <string_view>
+
+#include "index/image_index.h"
+#include "sift/error.h"
+#include "sift/verify.h"
+
+namespace oxbow::api {
+
+using Params = std::map<std::string, std::string>;
+
+// ---- Scalars (exposed for tests and the transport) ------------------------------------------------
+
+// Whole decimal integer in [min, max], no sign for min >= 0, no trailing characters.
+[[nodiscard]] Result<int64_t> ParseInt(std::string_view name, std::string_view text, int64_t min, int64_t max);
+// true|false|1|0|yes|no|on|off (case-sensitive lower case); "" counts as true (`?qe` alone).
+[[nodiscard]] Result<bool> ParseBool(std::string_view name, std::string_view text);
+// "x1,y1,x2,y2", four finite numbers with x1 < x2 and y1 < y2 (pixels).
+[[nodiscard]] Result<std::array<float, 4>> ParseBox(std::string_view name, std::string_view text);
+
+// Refuses any parameter whose name is not in `known` (message lists the known ones).
+[[nodiscard]] Status CheckKnownParams(const Params& params, const std::set<std::string>& known);
+
+// ---- Routes ---------------------------------------------------------------------------------------
+
+// POST /v1/search, GET /v1/images/{id}/similar:
+//   top_k      [1, 10000]            QueryOptions::top_k
+//   rerank     [0, 10000] | true | false   QueryOptions::rerank_depth (false = 0, true = the default depth)
+//   bbox       x1,y1,x2,y2           QueryOptions::region (query-image pixels)
+//   qe         bool                  QueryOptions::query_expansion
+//   qe_images  [1, 100]              QueryOptions::qe_images
+// Starts from `defaults`; the result passes QueryOptions::Check().
+[[nodiscard]] Result<index::QueryOptions> ParseQueryParams(const Params& params, const index::QueryOptions& defaults);
+inline const std::set<std::string>& QueryParamNames() {
+  static const std::set<std::string> names = {"top_k", "rerank", "bbox", "qe", "qe_images"};
+  return names;
+}
+
+// POST /v1/images: id (required, 1..256 bytes, no control characters), replace (bool, default false),
+// metadata (a JSON document, default none; stored re-serialised compactly).
+struct AddParams {
+  std::string id;
+  bool replace = false;
+  std::string metadata_json;  // "" when absent
+};
+[[nodiscard]] Result<AddParams> ParseAddParams(const Params& params);
+
+// GET /v1/images: offset [0, 2^53] (default 0), limit [1, 1000] (default 100).
+struct ListParams {
+  uint64_t offset = 0;
+  uint64_t limit = 100;
+};
+[[nodiscard]] Result<ListParams> ParseListParams(const Params& params);
+
+// POST /v1/match: model (hough-affine|similarity|affine|homography|fundamental, default hough-affine),
+// ratio (0, 1], mutual (bool), method (brute|kdtree).
+struct MatchParams {
+  sift::GeometricModel model = sift::GeometricModel::kHoughAffine;
+  sift::MatchOptions match;
+};
+[[nodiscard]] Result<MatchParams> ParseMatchParams(const Params& params);
+
+// Checks an image id as the index does (1..256 bytes, no control characters), with a message.
+[[nodiscard]] Status CheckImageId(std::string_view id);
+
+}  // namespace oxbow::api

@@ -1,0 +1,344 @@
+#include "api/service.h"
+
+#include <unistd.h>
+
+#include <cstdio>
+#include <cstdlib>
+#include <fstream>
+#include <map>
+#include <thread>
+
+#include "sift/log.h"
+#include "sift/parallel.h"
+#include "vocab/vocabulary.h"
+
+namespace oxbow::api {
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double MsSince(Clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+}
+
+// Releases an extraction slot when the extraction ends, also on an early return or an exception.
+class SlotGuard {
+ public:
+  SlotGuard(std::counting_semaphore<1024>* semaphore, std::atomic<int>* in_flight)
+      : semaphore_(semaphore), in_flight_(in_flight) {
+    in_flight_->fetch_add(1);
+  }
+  ~SlotGuard() {
+    in_flight_->fetch_sub(1);
+    semaphore_->release();
+  }
+  SlotGuard(const SlotGuard&) = delete;
+  SlotGuard& operator=(const SlotGuard&) = delete;
+
+ private:
+  std::counting_semaphore<1024>* semaphore_;
+  std::atomic<int>* in_flight_;
+};
+
+bool ParseDouble(const std::string& text, double* out) {
+  char* end = nullptr;
+  *out = std::strtod(text.c_str(), &end);
+  return !text.empty() && end == text.c_str() + text.size();
+}
+
+bool ParseIntText(const std::string& text, int* out) {
+  char* end = nullptr;
+  const long v = std::strtol(text.c_str(), &end, 10);
+  if (text.empty() || end != text.c_str() + text.size() || v < -1'000'000'000 || v > 1'000'000'000) return false;
+  *out = static_cast<int>(v);
+  return true;
+}
+
+}  // namespace
+
+std::optional<std::string> ServiceOptions::Check() const {
+  if (max_image_bytes < 1) return "max_image_bytes must be >= 1";
+  if (max_pixels < 1) return "max_pixels must be >= 1";
+  if (max_image_side_px && *max_image_side_px < 16) return "max_image_side_px must be >= 16 when set";
+  if (max_concurrent_extractions < 0 || max_concurrent_extractions > 1024) {
+    return "max_concurrent_extractions must be in [0, 1024]";
+  }
+  if (extraction_wait_ms < 0 || extraction_wait_ms > 600'000) return "extraction_wait_ms must be in [0, 600000]";
+  if (threads_per_request < 0 || threads_per_request > 256) return "threads_per_request must be in [0, 256]";
+  if (auto message = default_query.Check()) return "default query: " + *message;
+  return std::nullopt;
+}
+
+sift::DecodeOptions ServiceOptions::Decode() const {
+  sift::DecodeOptions decode;
+  decode.max_bytes = max_image_bytes;
+  decode.max_pixels = max_pixels;
+  decode.max_image_side_px = max_image_side_px;
+  return decode;
+}
+
+Result<sift::SiftOptions> SiftOptionsFromSettings(const std::string& settings) {
+  const std::string prefix = "oxbow-sift/1";
+  auto incompatible = [&](const std::string& why) {
+    return Fail(ErrorCode::kIncompatible, "extractor settings '" + settings + "' are not understood by this build (" +
+                                              why + "); re-create the index with this version's vocabulary");
+  };
+  if (settings.rfind(prefix, 0) != 0) return incompatible("expected the prefix " + prefix);
+  std::map<std::string, std::string> fields;
+  size_t start = prefix.size();
+  while (start < settings.size()) {
+    if (settings[start] != ';') return incompatible("expected ';' at offset " + std::to_string(start));
+    ++start;
+    size_t end = settings.find(';', start);
+    if (end == std::string::npos) end = settings.size();
+    const std::string field = settings.substr(start, end - start);
+    const size_t eq = field.find('=');
+    if (eq == std::string::npos) return incompatible("field '" + field + "' has no '='");
+    fields[field.substr(0, eq)] = field.substr(eq + 1);
+    start = end;
+  }
+  sift::SiftOptions o;
+  auto need = [&](const char* key) -> const std::string* {
+    auto it = fields.find(key);
+    return it == fields.end() ? nullptr : &it->second;
+  };
+  const std::string* v = nullptr;
+  if ((v = need("upsample"))) o.upsample_first_octave = *v == "1";
+  if ((v = need("sigma")) && !ParseDouble(*v, &o.sigma)) return incompatible("sigma");
+  if ((v = need("assumed_blur")) && !ParseDouble(*v, &o.assumed_blur)) return incompatible("assumed_blur");
+  if ((v = need("intervals")) && !ParseIntText(*v, &o.intervals)) return incompatible("intervals");
+  if ((v = need("contrast")) && !ParseDouble(*v, &o.contrast_threshold)) return incompatible("contrast");
+  if ((v = need("edge")) && !ParseDouble(*v, &o.edge_threshold)) return incompatible("edge");
+  if ((v = need("max_features")) && *v != "all") {
+    int n = 0;
+    if (!ParseIntText(*v, &n)) return incompatible("max_features");
+    o.max_features = n;
+  }
+  if ((v = need("descriptor"))) {
+    if (*v == sift::DescriptorKindName(sift::DescriptorKind::kRootSift)) {
+      o.descriptor = sift::DescriptorKind::kRootSift;
+    } else if (*v == sift::DescriptorKindName(sift::DescriptorKind::kSift)) {
+      o.descriptor = sift::DescriptorKind::kSift;
+    } else {
+      return incompatible("descriptor");
+    }
+  }
+  if ((v = need("peak_ratio")) && !ParseDouble(*v, &o.orientation_peak_ratio)) return incompatible("peak_ratio");
+  if ((v = need("kernel_radius")) && !ParseDouble(*v, &o.kernel_radius_sigmas)) return incompatible("kernel_radius");
+  if ((v = need("max_octaves")) && *v != "all") {
+    int n = 0;
+    if (!ParseIntText(*v, &n)) return incompatible("max_octaves");
+    o.max_octaves = n;
+  }
+  // The round trip is the real test: any field this parser does not know, or a changed default, shows
+  // up as a different description.
+  if (o.Describe() != settings) return incompatible("this build describes them as '" + o.Describe() + "'");
+  if (auto message = o.Check()) return incompatible(*message);
+  return o;
+}
+
+uint64_t ResidentMemoryBytes() {
+  std::ifstream statm("/proc/self/statm");
+  uint64_t size_pages = 0, resident_pages = 0;
+  if (!(statm >> size_pages >> resident_pages)) return 0;
+  const long page = sysconf(_SC_PAGESIZE);
+  return resident_pages * static_cast<uint64_t>(page > 0 ? page : 4096);
+}
+
+Service::Service(std::unique_ptr<index::ImageIndex> index, sift::SiftExtractor extractor, const ServiceOptions& options)
+    : index_(std::move(index)),
+      extractor_(std::move(extractor)),
+      options_(options),
+      extraction_slots_(std::min(1024, ResolveThreadCount(options.max_concurrent_extractions))),
+      extraction_semaphore_(extraction_slots_),
+      opened_(Clock::now()) {}
+
+Service::~Service() = default;
+
+Result<std::unique_ptr<Service>> Service::Open(const std::string& index_dir,
+                                               const std::optional<std::string>& vocabulary_path,
+                                               const ServiceOptions& options,
+                                               const index::IndexOptions& index_options) {
+  if (auto message = options.Check()) return Fail(ErrorCode::kInvalidArgument, "service options: " + *message);
+  std::unique_ptr<index::ImageIndex> index;
+  if (index::ImageIndex::Exists(index_dir)) {
+    auto opened = index::ImageIndex::Open(index_dir, index_options);
+    if (!opened) return std::unexpected(opened.error());
+    index = std::move(*opened);
+    if (vocabulary_path) {
+      auto vocabulary = vocab::Vocabulary::Read(*vocabulary_path);
+      if (!vocabulary) return std::unexpected(vocabulary.error());
+      if (vocabulary->fingerprint() != index->vocabulary().fingerprint()) {
+        return Fail(ErrorCode::kIncompatible, "the index in '" + index_dir + "' was built with another vocabulary than '" +
+                                                  *vocabulary_path + "'; drop --vocab to use the index's own copy");
+      }
+    }
+  } else if (vocabulary_path) {
+    auto vocabulary = vocab::Vocabulary::Read(*vocabulary_path);
+    if (!vocabulary) return std::unexpected(vocabulary.error());
+    std::string settings = vocabulary->extractor_settings();
+    if (settings.empty()) {
+      sift::SiftOptions defaults;
+      defaults.descriptor = vocabulary->descriptor_kind();
+      settings = defaults.Describe();
+    }
+    auto created = index::ImageIndex::Create(index_dir, *vocabulary, settings, index_options);
+    if (!created) return std::unexpected(created.error());
+    index = std::move(*created);
+    OXBOW_LOG(kInfo) << "created an empty index in " << index_dir << " (vocabulary " << *vocabulary_path << ", "
+                     << vocabulary->size() << " words)";
+  } else {
+    return Fail(ErrorCode::kNotFound, "no index in '" + index_dir +
+                                          "'; pass --vocab VOCAB to create an empty one there (see `oxbow vocab train`)");
+  }
+
+  auto sift_options = SiftOptionsFromSettings(index->extractor_settings());
+  if (!sift_options) return std::unexpected(sift_options.error());
+  sift_options->num_threads = options.threads_per_request;
+  auto extractor = sift::SiftExtractor::Create(*sift_options);
+  if (!extractor) return std::unexpected(extractor.error());
+  return std::unique_ptr<Service>(new Service(std::move(index), std::move(*extractor), options));
+}
+
+Result<sift::FeatureSet> Service::Extract(std::span<const uint8_t> image, double* elapsed_ms) const {
+  if (!extraction_semaphore_.try_acquire_for(std::chrono::milliseconds(options_.extraction_wait_ms))) {
+    return Fail(ErrorCode::kResourceExhausted,
+                "all " + std::to_string(extraction_slots_) + " extraction slots stayed busy for " +
+                    std::to_string(options_.extraction_wait_ms) + " ms; retry later");
+  }
+  SlotGuard slot(&extraction_semaphore_, &extractions_in_flight_);
+  const auto start = Clock::now();
+  auto features = extractor_.ExtractFromBytes(image, options_.Decode());
+  *elapsed_ms = MsSince(start);
+  return features;
+}
+
+Result<AddImageResponse> Service::AddImage(const AddImageRequest& request) {
+  // Cheap checks first, so a bad id or a taken id costs no extraction.
+  if (request.id.empty() || request.id.size() > 256) {
+    return Fail(ErrorCode::kInvalidArgument, "image id must be 1 to 256 bytes long");
+  }
+  if (!request.replace && index_->Contains(request.id)) {
+    return Fail(ErrorCode::kAlreadyExists, "an image with id '" + request.id +
+                                               "' is already indexed; add replace=true to replace it");
+  }
+  AddImageResponse response;
+  auto features = Extract(request.image, &response.decode_extract_ms);
+  if (!features) return std::unexpected(features.error());
+
+  index::ImageInfo info;
+  info.source_path = request.source_name;
+  info.metadata_json = request.metadata_json;
+  info.extractor_settings = index_->extractor_settings();
+
+  const auto start = Clock::now();
+  std::lock_guard<std::mutex> lock(write_mutex_);
+  if (index_->Contains(request.id)) {
+    if (!request.replace) {
+      return Fail(ErrorCode::kAlreadyExists, "an image with id '" + request.id +
+                                                 "' is already indexed; add replace=true to replace it");
+    }
+    if (auto removed = index_->Remove(request.id); !removed) return std::unexpected(removed.error());
+    response.replaced = true;
+  }
+  auto record = index_->Add(request.id, *features, info);
+  if (!record) return std::unexpected(record.error());
+  response.record = std::move(*record);
+  response.add_ms = MsSince(start);
+  return response;
+}
+
+Result<index::ImageRecord> Service::GetImage(const std::string& id) const { return index_->Get(id); }
+
+Status Service::DeleteImage(const std::string& id) {
+  std::lock_guard<std::mutex> lock(write_mutex_);
+  return index_->Remove(id);
+}
+
+Result<ListResponse> Service::ListImages(uint64_t offset, uint64_t limit) const {
+  auto images = index_->List(offset, limit);
+  if (!images) return std::unexpected(images.error());
+  ListResponse response;
+  response.images = std::move(*images);
+  response.offset = offset;
+  response.limit = limit;
+  response.total = index_->Stats().num_images;
+  return response;
+}
+
+Result<SearchResponse> Service::Search(std::span<const uint8_t> image, const index::QueryOptions& options) const {
+  const auto start = Clock::now();
+  SearchResponse response;
+  response.options = options;
+  auto features = Extract(image, &response.decode_extract_ms);
+  if (!features) return std::unexpected(features.error());
+  response.query_width = features->image_width;
+  response.query_height = features->image_height;
+  response.extracted_features = static_cast<uint32_t>(features->size());
+  index::QueryOptions query = options;
+  query.extractor_settings = index_->extractor_settings();
+  auto result = index_->Query(*features, query);
+  if (!result) return std::unexpected(result.error());
+  response.index = std::move(*result);
+  response.total_ms = MsSince(start);
+  return response;
+}
+
+Result<SearchResponse> Service::SearchSimilar(const std::string& id, const index::QueryOptions& options) const {
+  const auto start = Clock::now();
+  SearchResponse response;
+  response.options = options;
+  response.query_id = id;
+  auto record = index_->Get(id);
+  if (!record) return std::unexpected(record.error());
+  response.query_width = record->width;
+  response.query_height = record->height;
+  response.extracted_features = record->num_features;
+  auto result = index_->QuerySimilar(id, options);
+  if (!result) return std::unexpected(result.error());
+  response.index = std::move(*result);
+  response.total_ms = MsSince(start);
+  return response;
+}
+
+Result<MatchResponse> Service::Match(std::span<const uint8_t> image_a, std::span<const uint8_t> image_b,
+                                     const PairMatchOptions& options) const {
+  const auto start = Clock::now();
+  MatchResponse response;
+  auto a = Extract(image_a, &response.decode_extract_a_ms);
+  if (!a) {
+    Error error = a.error();
+    error.message = "image a: " + error.message;
+    return std::unexpected(error);
+  }
+  auto b = Extract(image_b, &response.decode_extract_b_ms);
+  if (!b) {
+    Error error = b.error();
+    error.message = "image b: " + error.message;
+    return std::unexpected(error);
+  }
+  PairMatchOptions pair = options;
+  pair.match.num_threads = options_.threads_per_request;
+  auto match = MatchPair(*a, *b, pair);
+  if (!match) return std::unexpected(match.error());
+  response.match = std::move(*match);
+  response.width_a = a->image_width;
+  response.height_a = a->image_height;
+  response.width_b = b->image_width;
+  response.height_b = b->image_height;
+  response.total_ms = MsSince(start);
+  return response;
+}
+
+ServiceStats Service::Stats() const {
+  ServiceStats stats;
+  stats.index = index_->Stats();
+  stats.rss_bytes = ResidentMemoryBytes();
+  stats.uptime_s = std::chrono::duration<double>(Clock::now() - opened_).count();
+  stats.extractions_in_flight = extractions_in_flight_.load();
+  stats.max_concurrent_extractions = extraction_slots_;
+  return stats;
+}
+
+}  // namespace oxbow::api

@@ -1,0 +1,163 @@
+// The oxbow retrieval service: what the HTTP API does, without HTTP. It owns an index::ImageIndex and
+// the sift::SiftExtractor configured as the index's features were extracted, and turns uploaded image
+// bytes into index operations:
+//
+//   AddImage     decode + extract (bounded concurrency) -> ImageIndex::Add (durable when it returns)
+//   Search       decode + extract -> ImageIndex::Query (tf-idf, spatial re-ranking, query expansion)
+//   SearchSimilar ImageIndex::QuerySimilar (an indexed image's stored features; no decoding)
+//   Match        decode + extract both -> MatchPair (api/pair_match.h)
+//   Get/Delete/List/Stats
+//
+// Thread safety: every member may be called concurrently from any number of threads. Searches never
+// wait for writers (ImageIndex reads an immutable snapshot); the only waits are (1) for an extraction
+// slot (at most max_concurrent_extractions decode+extract run at once, bounding peak memory; a request
+// waiting longer than extraction_wait_ms fails with kResourceExhausted -> 503) and (2) AddImage /
+// DeleteImage serialise among themselves on write_mutex_ (the index serialises writers anyway; the
+// service lock makes "replace" = remove + add one step for other writers). Searches take no service lock.
+#pragma once
+
+#include <atomic>
+#include <chrono>
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <semaphore>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "api/pair_match.h"
+#include "index/image_index.h"
+#include "sift/error.h"
+#include "sift/image.h"
+#include "sift/sift.h"
+
+namespace oxbow::api {
+
+struct ServiceOptions {
+  // --- Limits (memory and time per request)
+  // Largest accepted encoded image, bytes (DecodeOptions::max_bytes); over it -> 413. >= 1.
+  uint64_t max_image_bytes = 32ull << 20;
+  // Largest accepted declared width * height, pixels (DecodeOptions::max_pixels), checked from the file
+  // header before decoding; over it -> 413. >= 1. 40 MP: a 7300 x 5500 photo.
+  uint64_t max_pixels = 40'000'000;
+  // Images whose longest side exceeds this are downscaled before extraction (DecodeOptions::
+  // max_image_side_px); keypoints are reported in original pixels. Bounds extraction memory and time
+  // (SIFT peak memory ~ 48 bytes per pixel with the 2x first octave). Unset: never downscale. >= 16.
+  std::optional<int> max_image_side_px = 1600;
+  // Decode + extract operations running at once (each holds its image pyramid in memory);
+  // 0 = hardware threads. [0, 1024].
+  int max_concurrent_extractions = 0;
+  // How long a request waits for an extraction slot before failing with 503, milliseconds. [0, 600000].
+  int extraction_wait_ms = 10'000;
+  // Threads used inside one extraction and one pairwise match; 1 lets concurrent requests use the
+  // cores, 0 = all hardware threads (lowest latency for a single request). [0, 256].
+  int threads_per_request = 1;
+  // --- Query defaults (overridden per request by top_k, rerank, bbox, qe, qe_images)
+  index::QueryOptions default_query;
+
+  std::optional<std::string> Check() const;
+  sift::DecodeOptions Decode() const;  // the decode limits above as DecodeOptions
+};
+
+// Reconstructs the extractor options from SiftOptions::Describe() text (as stored by the vocabulary and
+// the index). kIncompatible when the text is not one this build writes (checked by describing the
+// result again and comparing), so an index from another extractor version is refused with a message.
+[[nodiscard]] Result<sift::SiftOptions> SiftOptionsFromSettings(const std::string& settings);
+
+struct AddImageRequest {
+  std::string id;                       // external id, 1..256 bytes, no control characters
+  std::span<const uint8_t> image;       // encoded image bytes (JPEG, PNG, ...); not owned
+  std::string metadata_json;            // a JSON document or ""
+  std::string source_name;              // e.g. the multipart file name; informational
+  bool replace = false;                 // an existing image with this id is replaced (else kAlreadyExists)
+};
+
+struct AddImageResponse {
+  index::ImageRecord record;
+  bool replaced = false;                // an image with this id existed and was removed first
+  double decode_extract_ms = 0;
+  double add_ms = 0;                    // quantise + durable commit + publish
+};
+
+struct SearchResponse {
+  index::QueryResponse index;           // results + per-stage timings of the index
+  index::QueryOptions options;          // the options the query ran with
+  std::string query_id;                 // SearchSimilar: the indexed image queried with; else ""
+  int query_width = 0;                  // pixels (original image)
+  int query_height = 0;
+  uint32_t extracted_features = 0;      // features of the whole query image (before the bbox)
+  double decode_extract_ms = 0;         // 0 for SearchSimilar
+  double total_ms = 0;
+};
+
+struct MatchResponse {
+  PairMatchResult match;
+  int width_a = 0, height_a = 0, width_b = 0, height_b = 0;  // original image sizes, pixels
+  double decode_extract_a_ms = 0;
+  double decode_extract_b_ms = 0;
+  double total_ms = 0;
+};
+
+struct ListResponse {
+  std::vector<index::ImageRecord> images;
+  uint64_t offset = 0;
+  uint64_t limit = 0;
+  uint64_t total = 0;                   // live images in the index
+};
+
+struct ServiceStats {
+  index::IndexStats index;
+  uint64_t rss_bytes = 0;               // resident memory of the process (/proc/self/statm), 0 if unknown
+  double uptime_s = 0;                  // since the service was opened
+  int extractions_in_flight = 0;
+  int max_concurrent_extractions = 0;
+};
+
+class Service {
+ public:
+  // Opens the index in `index_dir`, or creates it when the folder holds none and `vocabulary_path` is
+  // given (the index then uses that vocabulary and its extractor settings). When both exist, the
+  // vocabulary must be the index's (same fingerprint), else kIncompatible. kNotFound when there is no
+  // index and no vocabulary. kInvalidArgument for invalid options.
+  [[nodiscard]] static Result<std::unique_ptr<Service>> Open(const std::string& index_dir,
+                                                             const std::optional<std::string>& vocabulary_path,
+                                                             const ServiceOptions& options,
+                                                             const index::IndexOptions& index_options = {});
+
+  [[nodiscard]] Result<AddImageResponse> AddImage(const AddImageRequest& request);
+  [[nodiscard]] Result<index::ImageRecord> GetImage(const std::string& id) const;
+  [[nodiscard]] Status DeleteImage(const std::string& id);
+  [[nodiscard]] Result<ListResponse> ListImages(uint64_t offset, uint64_t limit) const;
+  [[nodiscard]] Result<SearchResponse> Search(std::span<const uint8_t> image, const index::QueryOptions& options) const;
+  [[nodiscard]] Result<SearchResponse> SearchSimilar(const std::string& id, const index::QueryOptions& options) const;
+  [[nodiscard]] Result<MatchResponse> Match(std::span<const uint8_t> image_a, std::span<const uint8_t> image_b,
+                                            const PairMatchOptions& options) const;
+  ServiceStats Stats() const;
+
+  const ServiceOptions& options() const { return options_; }
+  const index::ImageIndex& index() const { return *index_; }
+  const sift::SiftExtractor& extractor() const { return extractor_; }
+
+  ~Service();
+
+ private:
+  Service(std::unique_ptr<index::ImageIndex> index, sift::SiftExtractor extractor, const ServiceOptions& options);
+  // Decode + extract under an extraction slot; kResourceExhausted when no slot frees up in time.
+  [[nodiscard]] Result<sift::FeatureSet> Extract(std::span<const uint8_t> image, double* elapsed_ms) const;
+
+  std::unique_ptr<index::ImageIndex> index_;
+  sift::SiftExtractor extractor_;
+  ServiceOptions options_;
+  int extraction_slots_ = 1;
+  mutable std::counting_semaphore<1024> extraction_semaphore_;
+  mutable std::atomic<int> extractions_in_flight_{0};
+  std::mutex write_mutex_;  // serialises AddImage/DeleteImage (held across replace's remove + add)
+  std::chrono::steady_clock::time_point opened_;
+};
+
+// Resident set size of this process in bytes (Linux /proc/self/statm), 0 when unavailable.
+uint64_t ResidentMemoryBytes();
+
+}  // namespace oxbow::api

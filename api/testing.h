@@ -1,0 +1,78 @@
+// Test fixtures shared by the api/ unit tests and the HTTP integration tests (tests/http_*_test.cc):
+// a small vocabulary trained in-process on a few of the opencv-doc sample photos (installed with
+// Debian's opencv-doc package, which scripts/install-deps.sh installs). Header-only; tests only.
+#pragma once
+
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <iterator>
+#include <string>
+#include <vector>
+
+#include "sift/error.h"
+#include "sift/sift.h"
+#include "vocab/vocabulary.h"
+
+namespace oxbow::api::testing {
+
+inline const char* kSampleDir = "/usr/share/doc/opencv-doc/examples/data";
+
+inline std::string SamplePath(const std::string& name) { return std::string(kSampleDir) + "/" + name; }
+
+inline std::vector<uint8_t> ReadBytes(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  return std::vector<uint8_t>(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+}
+
+// Fast extractor settings for tests: no 2x first octave, at most 1000 features, RootSIFT.
+inline sift::SiftOptions TestSiftOptions() {
+  sift::SiftOptions options;
+  options.upsample_first_octave = false;
+  options.max_features = 1000;
+  options.descriptor = sift::DescriptorKind::kRootSift;
+  return options;
+}
+
+// Trains a `words`-word vocabulary on the features of `images` (file names in kSampleDir) with
+// TestSiftOptions and writes it to `path`. Seconds on one core for ~4 images and 64 words.
+inline Result<vocab::Vocabulary> BuildTestVocabulary(const std::vector<std::string>& images, size_t words,
+                                                     const std::string& path) {
+  auto extractor = sift::SiftExtractor::Create(TestSiftOptions());
+  if (!extractor) return std::unexpected(extractor.error());
+  std::vector<float> descriptors;
+  for (const auto& name : images) {
+    auto features = extractor->ExtractFromFile(SamplePath(name));
+    if (!features) return std::unexpected(features.error());
+    descriptors.insert(descriptors.end(), features->descriptors.begin(), features->descriptors.end());
+  }
+  vocab::TrainOptions train;
+  train.num_words = words;
+  train.max_iterations = 10;
+  auto vocabulary = vocab::Train(descriptors, sift::kDescriptorDim, sift::DescriptorKind::kRootSift,
+                                 TestSiftOptions().Describe(), train);
+  if (!vocabulary) return std::unexpected(vocabulary.error());
+  if (auto written = vocabulary->Write(path); !written) return std::unexpected(written.error());
+  return vocabulary;
+}
+
+// A fresh empty folder under the system temp dir, removed by the destructor.
+class TempDir {
+ public:
+  explicit TempDir(const std::string& prefix) {
+    std::string pattern = (std::filesystem::temp_directory_path() / (prefix + "-XXXXXX")).string();
+    path_ = mkdtemp(pattern.data()) ? pattern : std::string();
+  }
+  ~TempDir() {
+    std::error_code ignored;
+    if (!path_.empty()) std::filesystem::remove_all(path_, ignored);
+  }
+  TempDir(const TempDir&) = delete;
+  TempDir& operator=(const TempDir&) = delete;
+  const std::string& path() const { return path_; }
+
+ private:
+  std::string path_;
+};
+
+}  // namespace oxbow::api::testing
