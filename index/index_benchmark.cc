@@ -1,0 +1,465 @@
+// Index benchmark (run by hand, not a test).
+//
+//   index_benchmark synthetic [--images N] [--features F] [--vocab V] [--zipf S] [--queries Q]
+//                             [--max-df D] [--geometry 0|1] [--threads T]
+//     Builds the in-memory inverted file directly (InvertedFile::Build, not through SQLite) for N images
+//     of F features each, words drawn from a Zipf(S) law over a V-word vocabulary (rank r has
+//     probability ~ r^-S), random geometry. Prints build time, memory per feature (postings, geometry,
+//     per-image tables, and process RSS), tf-idf query latency on ONE core (Q queries of F Zipf words,
+//     p50/p95) for several stop-list settings, and re-ranking latency for R = 100/200 candidates.
+//
+//   index_benchmark paris [--data DIR] [--words K] [--max-side PX] [--repeat N]
+//     The Paris subset protocol (../shared/data/README.md): extracts RootSIFT from the 250 images,
+//     trains a K-word vocabulary on them, indexes them, runs the 12 cropped queries with and without
+//     re-ranking and query expansion; prints mAP and per-stage latency p50/p95.
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <numbers>
+#include <random>
+#include <set>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "index/feature_store.h"
+#include "index/image_index.h"
+#include "index/inverted_file.h"
+#include "index/rerank.h"
+#include "sift/parallel.h"
+#include "sift/sift.h"
+#include "vocab/vocabulary.h"
+
+namespace oxbow::index {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+double Ms(Clock::time_point a, Clock::time_point b) { return std::chrono::duration<double, std::milli>(b - a).count(); }
+
+double Percentile(std::vector<double> v, double p) {
+  if (v.empty()) return 0;
+  std::sort(v.begin(), v.end());
+  const size_t i = std::min(v.size() - 1, static_cast<size_t>(std::ceil(p * static_cast<double>(v.size()))) - (p > 0 ? 1 : 0));
+  return v[i];
+}
+
+uint64_t RssBytes() {
+  std::ifstream in("/proc/self/status");
+  std::string line;
+  while (std::getline(in, line)) {
+    if (line.rfind("VmRSS:", 0) == 0) return std::stoull(line.substr(6)) * 1024;
+  }
+  return 0;
+}
+
+std::map<std::string, std::string> ParseFlags(int argc, char** argv, int first) {
+  std::map<std::string, std::string> flags;
+  for (int i = first; i + 1 < argc; i += 2) flags[argv[i]] = argv[i + 1];
+  return flags;
+}
+
+double Flag(const std::map<std::string, std::string>& f, const std::string& name, double fallback) {
+  const auto it = f.find(name);
+  return it == f.end() ? fallback : std::stod(it->second);
+}
+
+// SplitMix64: a tiny deterministic generator, seeded per image so both Build passes see the same bag.
+struct SplitMix {
+  uint64_t s;
+  uint64_t Next() {
+    uint64_t z = (s += 0x9e3779b97f4a7c15ull);
+    z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
+    z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
+    return z ^ (z >> 31);
+  }
+  double Uniform() { return static_cast<double>(Next() >> 11) * 0x1.0p-53; }
+};
+
+// Vose's alias method: O(1) sampling from a discrete distribution.
+class AliasTable {
+ public:
+  explicit AliasTable(const std::vector<double>& weights) : prob_(weights.size()), alias_(weights.size()) {
+    const size_t n = weights.size();
+    double sum = 0;
+    for (double w : weights) sum += w;
+    std::vector<double> scaled(n);
+    std::vector<uint32_t> small, large;
+    for (size_t i = 0; i < n; ++i) {
+      scaled[i] = weights[i] * static_cast<double>(n) / sum;
+      (scaled[i] < 1 ? small : large).push_back(static_cast<uint32_t>(i));
+    }
+    while (!small.empty() && !large.empty()) {
+      const uint32_t s = small.back(), l = large.back();
+      small.pop_back();
+      prob_[s] = static_cast<float>(scaled[s]);
+      alias_[s] = l;
+      scaled[l] -= 1 - scaled[s];
+      if (scaled[l] < 1) {
+        large.pop_back();
+        small.push_back(l);
+      }
+    }
+    for (uint32_t i : large) prob_[i] = 1;
+    for (uint32_t i : small) prob_[i] = 1;
+  }
+  uint32_t Sample(SplitMix& rng) const {
+    const uint64_t r = rng.Next();
+    const auto i = static_cast<uint32_t>((r >> 32) * prob_.size() >> 32);
+    const float u = static_cast<float>(r & 0xffffffffu) * 0x1.0p-32f;
+    return u < prob_[i] ? i : alias_[i];
+  }
+
+ private:
+  std::vector<float> prob_;
+  std::vector<uint32_t> alias_;
+};
+
+struct SyntheticImage {
+  std::vector<uint32_t> words;
+  std::vector<sift::Keypoint> keypoints;
+};
+
+SyntheticImage MakeImage(const AliasTable& zipf, uint64_t seed, int features, bool geometry) {
+  SplitMix rng{seed * 0x2545f4914f6cdd1dull + 17};
+  SyntheticImage img;
+  img.words.resize(static_cast<size_t>(features));
+  for (auto& w : img.words) w = zipf.Sample(rng);
+  if (geometry) {
+    img.keypoints.resize(static_cast<size_t>(features));
+    for (auto& k : img.keypoints) {
+      k.x = static_cast<float>(rng.Uniform() * 1023);
+      k.y = static_cast<float>(rng.Uniform() * 767);
+      k.scale = static_cast<float>(1.6 * std::exp2(rng.Uniform() * 4));
+      k.orientation = static_cast<float>(rng.Uniform() * 2 * std::numbers::pi);
+    }
+  }
+  return img;
+}
+
+int RunSynthetic(const std::map<std::string, std::string>& flags) {
+  const auto num_images = static_cast<uint32_t>(Flag(flags, "--images", 100000));
+  const int features = static_cast<int>(Flag(flags, "--features", 1000));
+  const auto vocab_size = static_cast<size_t>(Flag(flags, "--vocab", 1000000));
+  const double zipf_s = Flag(flags, "--zipf", 1.0);
+  const int num_queries = static_cast<int>(Flag(flags, "--queries", 50));
+  const bool with_geometry = Flag(flags, "--geometry", 1) != 0;
+  const int threads = static_cast<int>(Flag(flags, "--threads", 0));
+  std::printf("synthetic: %u images x %d features, vocabulary %zu words, Zipf exponent %.2f, %s\n", num_images,
+              features, vocab_size, zipf_s, with_geometry ? "with geometry" : "postings only");
+
+  std::vector<double> weights(vocab_size);
+  for (size_t r = 0; r < vocab_size; ++r) weights[r] = std::pow(static_cast<double>(r + 1), -zipf_s);
+  const AliasTable zipf(weights);
+
+  const uint64_t rss0 = RssBytes();
+  auto t0 = Clock::now();
+  const InvertedFile file = InvertedFile::Build(
+      vocab_size, TfIdfOptions{}, num_images,
+      [&](uint32_t image, BagOfWords* bag) {
+        const SyntheticImage img = MakeImage(zipf, image, features, false);
+        *bag = BagOfWords::FromWords(img.words);
+        return true;
+      },
+      threads);
+  auto t1 = Clock::now();
+  const InvertedFileStats stats = file.Stats();
+  const uint64_t rss1 = RssBytes();
+  std::printf("build (2 passes incl. generating the words): %.1f s on %d threads\n", Ms(t0, t1) / 1000,
+              ResolveThreadCount(threads));
+
+  // Geometry store, as the index keeps it (one PackedFeatures per image).
+  std::vector<PackedFeatures> geometry;
+  uint64_t geometry_bytes = 0;
+  if (with_geometry) {
+    t0 = Clock::now();
+    geometry.resize(num_images);
+    ParallelFor(num_images, ResolveThreadCount(threads), 256, [&](size_t b, size_t e, int) {
+      for (size_t i = b; i < e; ++i) {
+        const SyntheticImage img = MakeImage(zipf, i, features, true);
+        geometry[i] = PackedFeatures::Pack(img.keypoints, img.words, 1024, 768);
+      }
+    });
+    for (const auto& g : geometry) geometry_bytes += g.MemoryBytes() + 16;  // + malloc header
+    std::printf("geometry store: %.1f s\n", Ms(t0, Clock::now()) / 1000);
+  }
+  const uint64_t rss2 = RssBytes();
+  const double nf = static_cast<double>(stats.num_features);
+  const double per_image_geometry_overhead = sizeof(PackedFeatures) + 16.0;  // when not materialised
+  const double geometry_per_feature =
+      with_geometry ? static_cast<double>(geometry_bytes) / nf : kPackedFeatureBytes + per_image_geometry_overhead / features;
+  std::printf("\n| memory (bytes per indexed feature) | value |\n|---|---|\n");
+  std::printf("| postings (varint, incl. word offset tables) | %.3f |\n", static_cast<double>(stats.postings_bytes) / nf);
+  std::printf("| geometry (9 B/feature + per-image vector)%s | %.3f |\n", with_geometry ? "" : " (computed, not allocated)",
+              geometry_per_feature);
+  std::printf("| per-image norm state + per-word df | %.3f |\n",
+              static_cast<double>(stats.image_table_bytes + stats.word_table_bytes) / nf);
+  std::printf("| **total** | **%.3f** |\n",
+              (static_cast<double>(stats.postings_bytes + stats.image_table_bytes + stats.word_table_bytes)) / nf +
+                  geometry_per_feature);
+  std::printf("| process RSS growth / feature (build%s) | %.3f |\n", with_geometry ? " + geometry" : "",
+              static_cast<double>(rss2 - rss0) / nf);
+  std::printf("postings: %llu (%.3f per feature; %.1f%% of features merged into a (word, image) posting with tf > 1)\n",
+              static_cast<unsigned long long>(stats.num_postings), static_cast<double>(stats.num_postings) / nf,
+              100.0 * (1 - static_cast<double>(stats.num_postings) / nf));
+  (void)rss1;
+
+  // Queries: one-core tf-idf scoring for several stop lists.
+  std::vector<BagOfWords> queries;
+  for (int q = 0; q < num_queries; ++q) {
+    queries.push_back(BagOfWords::FromWords(MakeImage(zipf, 1'000'000'000ull + q, features, false).words));
+  }
+  std::printf("\n| stop list (max document frequency) | query words kept | postings scanned | tf-idf p50 ms | p95 ms |\n");
+  std::printf("|---|---|---|---|---|\n");
+  for (double max_df : {1.0, 0.1, 0.03, 0.01}) {
+    // Same postings, another query-time stop list: rebuild only the options (the InvertedFile is a value).
+    TfIdfOptions o;
+    o.max_document_frequency = max_df;
+    std::vector<double> ms;
+    double kept = 0, scanned = 0;
+    ScoreScratch scratch;
+    for (int rep = 0; rep < 2; ++rep) {
+      for (const BagOfWords& q : queries) {
+        const auto s = Clock::now();
+        std::vector<QueryTerm> terms = file.QueryVector(q);
+        // Apply the stop list here (QueryVector uses the file's own options; equivalent filter).
+        std::erase_if(terms, [&](const QueryTerm& t) {
+          return static_cast<double>(file.DocumentFrequency(t.word)) > max_df * static_cast<double>(file.num_images());
+        });
+        const auto top = file.Score(terms, 200, &scratch);
+        const auto e = Clock::now();
+        if (rep == 1) {
+          ms.push_back(Ms(s, e));
+          kept += static_cast<double>(terms.size());
+          for (const auto& t : terms) scanned += file.DocumentFrequency(t.word);
+        }
+        if (top.empty()) std::printf("(empty result)\n");
+      }
+    }
+    std::printf("| %.2f | %.0f | %.3g | %.1f | %.1f |\n", max_df, kept / num_queries, scanned / num_queries,
+                Percentile(ms, 0.5), Percentile(ms, 0.95));
+  }
+
+  // Re-ranking: verify the top R candidates of a query that is a similarity-transformed half of one
+  // indexed image plus clutter (one true match, R-1 false candidates), single thread.
+  if (with_geometry) {
+    std::printf("\n| re-ranking (1 thread) | p50 ms | p95 ms | verified |\n|---|---|---|---|\n");
+    for (int depth : {100, 200}) {
+      std::vector<double> ms;
+      int verified_right = 0;
+      for (int q = 0; q < std::min(num_queries, 20); ++q) {
+        const uint32_t target = static_cast<uint32_t>((q * 7919) % num_images);
+        const SyntheticImage src = MakeImage(zipf, target, features, true);
+        SyntheticImage query = MakeImage(zipf, 2'000'000'000ull + q, features / 2, true);
+        const double a = 0.4, sc = 0.8, ca = std::cos(a) * sc, sa = std::sin(a) * sc;
+        for (int i = 0; i < features; i += 2) {
+          sift::Keypoint k = src.keypoints[static_cast<size_t>(i)];
+          const float x = k.x, y = k.y;
+          k.x = static_cast<float>(ca * x - sa * y + 200);
+          k.y = static_cast<float>(sa * x + ca * y + 50);
+          k.scale *= static_cast<float>(sc);
+          k.orientation = static_cast<float>(std::fmod(k.orientation + a, 2 * std::numbers::pi));
+          query.keypoints.push_back(k);
+          query.words.push_back(src.words[static_cast<size_t>(i)]);
+        }
+        ScoreScratch scratch;
+        const auto terms = file.QueryVector(BagOfWords::FromWords(query.words));
+        const auto top = file.Score(terms, static_cast<size_t>(depth), &scratch);
+        const auto s = Clock::now();
+        const QueryGeometry geometry_q(query.keypoints, query.words, {0, 0, 1400, 1100});
+        int best_inliers = -1;
+        uint32_t best = 0;
+        for (const ScoredImage& c : top) {
+          const auto v = geometry_q.Verify(geometry[c.image], 4, {});
+          if (v.verified && v.num_inliers > best_inliers) {
+            best_inliers = v.num_inliers;
+            best = c.image;
+          }
+        }
+        ms.push_back(Ms(s, Clock::now()));
+        if (best_inliers > 0 && best == target) ++verified_right;
+      }
+      std::printf("| R = %d | %.1f | %.1f | %d/%zu right image verified best |\n", depth, Percentile(ms, 0.5),
+                  Percentile(ms, 0.95), verified_right, ms.size());
+    }
+  }
+  return 0;
+}
+
+// ---- Paris ------------------------------------------------------------------------------------------
+
+std::vector<std::string> ReadLines(const std::filesystem::path& p) {
+  std::vector<std::string> out;
+  std::ifstream in(p);
+  std::string line;
+  while (std::getline(in, line)) {
+    while (!line.empty() && (line.back() == '\r' || line.back() == ' ')) line.pop_back();
+    if (!line.empty()) out.push_back(line);
+  }
+  return out;
+}
+
+// Oxford compute_ap: junk skipped, trapezoidal precision.
+double AveragePrecision(const std::vector<std::string>& ranked, const std::set<std::string>& positives,
+                        const std::set<std::string>& junk) {
+  double old_recall = 0, old_precision = 1, ap = 0;
+  size_t intersect = 0, j = 0;
+  for (const auto& id : ranked) {
+    if (junk.count(id)) continue;
+    if (positives.count(id)) ++intersect;
+    const double recall = static_cast<double>(intersect) / static_cast<double>(positives.size());
+    const double precision = static_cast<double>(intersect) / static_cast<double>(j + 1);
+    ap += (recall - old_recall) * ((old_precision + precision) / 2.0);
+    old_recall = recall;
+    old_precision = precision;
+    ++j;
+  }
+  return ap;
+}
+
+int RunParis(const std::map<std::string, std::string>& flags) {
+  namespace fs = std::filesystem;
+  const fs::path data = flags.count("--data") ? fs::path(flags.at("--data")) : fs::path(OXBOW_SOURCE_DIR "/../shared/data/paris6k");
+  const auto words = static_cast<size_t>(Flag(flags, "--words", 20000));
+  const int max_side = static_cast<int>(Flag(flags, "--max-side", 1024));
+  const int repeat = static_cast<int>(Flag(flags, "--repeat", 3));
+  if (!fs::is_directory(data / "images")) {
+    std::printf("no Paris data at %s\n", data.c_str());
+    return 1;
+  }
+  std::vector<std::string> names;
+  for (const auto& e : fs::directory_iterator(data / "images")) names.push_back(e.path().filename().string());
+  std::sort(names.begin(), names.end());
+
+  sift::SiftOptions sift_options;
+  sift_options.descriptor = sift::DescriptorKind::kRootSift;
+  sift_options.num_threads = 1;
+  const auto extractor = *sift::SiftExtractor::Create(sift_options);
+  sift::DecodeOptions decode;
+  decode.max_image_side_px = max_side;
+  std::vector<sift::FeatureSet> features(names.size());
+  auto t0 = Clock::now();
+  ParallelFor(names.size(), 0, 1, [&](size_t b, size_t e, int) {
+    for (size_t i = b; i < e; ++i) {
+      auto f = extractor.ExtractFromFile((data / "images" / names[i]).string(), decode);
+      if (f) features[i] = std::move(*f);
+    }
+  });
+  size_t total = 0;
+  for (const auto& f : features) total += f.size();
+  std::printf("extracted %zu images, %zu RootSIFT features (%.0f/image) in %.0f s\n", names.size(), total,
+              static_cast<double>(total) / static_cast<double>(names.size()), Ms(t0, Clock::now()) / 1000);
+
+  // Vocabulary: trained on (a sample of) the database descriptors, as in Philbin et al. 2007.
+  vocab::DescriptorSampler sampler({.max_per_image = 2000, .max_total = 400000, .seed = 1}, 128);
+  for (const auto& f : features) sampler.AddImage(f.descriptors);
+  vocab::TrainOptions train;
+  train.num_words = words;
+  train.max_iterations = 10;
+  t0 = Clock::now();
+  auto vocabulary = vocab::Train(sampler.descriptors(), 128, sift::DescriptorKind::kRootSift, sift_options.Describe(), train);
+  if (!vocabulary) {
+    std::printf("training failed: %s\n", vocabulary.error().ToString().c_str());
+    return 1;
+  }
+  std::printf("vocabulary: %zu words from %zu descriptors in %.0f s\n", vocabulary->size(), sampler.size(),
+              Ms(t0, Clock::now()) / 1000);
+
+  const fs::path dir = fs::temp_directory_path() / ("oxbow_paris_bench_" + std::to_string(getpid()));
+  fs::remove_all(dir);
+  IndexOptions index_options;
+  index_options.num_threads = 1;
+  auto idx = *ImageIndex::Create(dir.string(), *vocabulary, sift_options.Describe(), index_options);
+  t0 = Clock::now();
+  for (size_t i = 0; i < names.size(); ++i) {
+    if (!idx->Add(fs::path(names[i]).stem().string(), features[i], {})) std::printf("add failed: %s\n", names[i].c_str());
+  }
+  const IndexStats st = idx->Stats();
+  std::printf("indexed %llu images (%llu features) in %.1f s (quantise + SQLite commit per image); %.2f bytes/feature in memory\n",
+              static_cast<unsigned long long>(st.num_images), static_cast<unsigned long long>(st.num_features),
+              Ms(t0, Clock::now()) / 1000, st.bytes_per_feature);
+
+  struct Query {
+    std::string name, image;
+    std::array<float, 4> box;
+    std::set<std::string> positives, junk;
+  };
+  std::vector<Query> queries;
+  for (const auto& line : ReadLines(data / "subset_queries_present.txt")) {
+    std::istringstream in(line);
+    Query q;
+    in >> q.name;
+    std::istringstream box_line(ReadLines(data / "gt" / (q.name + "_query.txt")).at(0));
+    box_line >> q.image >> q.box[0] >> q.box[1] >> q.box[2] >> q.box[3];
+    for (const char* kind : {"good", "ok"}) {
+      for (const auto& id : ReadLines(data / "gt" / (q.name + "_" + kind + ".txt"))) q.positives.insert(id);
+    }
+    for (const auto& id : ReadLines(data / "gt" / (q.name + "_junk.txt"))) q.junk.insert(id);
+    queries.push_back(std::move(q));
+  }
+  // The query features: the query image's features, with the box mapped into the (downscaled) frame.
+  std::printf("\n| setting | mAP | quantise p50/p95 ms | score p50/p95 | verify p50/p95 | qe p50/p95 | total p50/p95 |\n");
+  std::printf("|---|---|---|---|---|---|---|\n");
+  struct Setting {
+    const char* name;
+    int rerank;
+    bool qe;
+  };
+  for (const Setting s : {Setting{"tf-idf only", 0, false}, Setting{"re-rank R=100", 100, false},
+                          Setting{"re-rank R=200", 200, false}, Setting{"re-rank R=200 + QE", 200, true}}) {
+    std::vector<double> aps, quantize, score, verify, qe, totals;
+    for (int rep = 0; rep < repeat; ++rep) {
+      for (const Query& q : queries) {
+        const auto it = std::find(names.begin(), names.end(), q.image + ".jpg");
+        if (it == names.end()) continue;
+        QueryOptions options;
+        options.top_k = 250;
+        options.rerank_depth = s.rerank;
+        options.query_expansion = s.qe;
+        options.region = q.box;
+        const auto r = idx->Query(features[static_cast<size_t>(it - names.begin())], options);
+        if (!r) {
+          std::printf("query failed: %s\n", r.error().ToString().c_str());
+          continue;
+        }
+        if (rep == 0) {
+          std::vector<std::string> ranked;
+          for (const auto& x : r->results) ranked.push_back(x.id);
+          aps.push_back(AveragePrecision(ranked, q.positives, q.junk));
+        }
+        quantize.push_back(r->timings.quantize_ms);
+        score.push_back(r->timings.score_ms);
+        verify.push_back(r->timings.verify_ms);
+        qe.push_back(r->timings.qe_ms);
+        totals.push_back(r->timings.total_ms);
+      }
+    }
+    double map = 0;
+    for (double ap : aps) map += ap;
+    map /= static_cast<double>(std::max<size_t>(1, aps.size()));
+    std::printf("| %s | %.3f | %.1f / %.1f | %.2f / %.2f | %.1f / %.1f | %.1f / %.1f | %.1f / %.1f |\n", s.name, map,
+                Percentile(quantize, .5), Percentile(quantize, .95), Percentile(score, .5), Percentile(score, .95),
+                Percentile(verify, .5), Percentile(verify, .95), Percentile(qe, .5), Percentile(qe, .95),
+                Percentile(totals, .5), Percentile(totals, .95));
+  }
+  std::printf("(%zu queries x %d repetitions; 1 verification thread; vocabulary %zu words; RootSIFT, long side <= %d px)\n",
+              queries.size(), repeat, vocabulary->size(), max_side);
+  fs::remove_all(dir);
+  return 0;
+}
+
+}  // namespace
+}  // namespace oxbow::index
+
+int main(int argc, char** argv) {
+  if (argc < 2 || (std::strcmp(argv[1], "synthetic") != 0 && std::strcmp(argv[1], "paris") != 0)) {
+    std::fprintf(stderr, "usage: index_benchmark synthetic|paris [--flag value ...] (see the file comment)\n");
+    return 2;
+  }
+  const auto flags = oxbow::index::ParseFlags(argc, argv, 2);
+  return std::strcmp(argv[1], "synthetic") == 0 ? oxbow::index::RunSynthetic(flags) : oxbow::index::RunParis(flags);
+}
