@@ -211,11 +211,18 @@ Result<Protocol> LoadGroupsProtocol(const std::string& dir) {
     if (entry.is_directory()) group_dirs.push_back(entry.path());
   }
   std::sort(group_dirs.begin(), group_dirs.end());
+  std::set<std::string> seen;
   for (const fs::path& group_dir : group_dirs) {
     auto ids = ListImageIds(group_dir.string());
     if (!ids) return std::unexpected(ids.error());
     std::vector<std::string> members;
-    for (const std::string& id : *ids) members.push_back(group_dir.filename().string() + "/" + id);
+    for (const std::string& id : *ids) {
+      if (!seen.insert(id).second) {
+        return Fail(ErrorCode::kInvalidArgument, "image name '" + id + "' appears in more than one group of '" +
+                                                     dir + "': ids are file names and must be unique");
+      }
+      members.push_back(id);
+    }
     if (!members.empty()) groups.push_back(std::move(members));
   }
   if (groups.empty()) return Fail(ErrorCode::kNotFound, "no sub-folders with images in '" + dir + "'");

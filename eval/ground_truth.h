@@ -54,8 +54,8 @@ const char* RevisitedSettingName(RevisitedSetting setting);  // "easy" | "medium
                                                      const std::string& name);
 
 // A folder of sub-folders, one per object or place; images with extensions jpg/jpeg/png/ppm/pgm/bmp/
-// tif/tiff/webp. Every image is a query; positives = the other images of its group. Ids are
-// "<group>/<file name without extension>".
+// tif/tiff/webp. Every image is a query; positives = the other images of its group. Ids are file names
+// without extension, as `oxbow index build` assigns them, so they must be unique across groups.
 [[nodiscard]] Result<Protocol> LoadGroupsProtocol(const std::string& dir);
 
 // Image ids (file names without extension) of the image files directly inside `dir`, sorted.

@@ -96,16 +96,20 @@ TEST_F(GroundTruthTest, RevisitedSettingsFollowRadenovic) {
 TEST_F(GroundTruthTest, GroupsProtocol) {
   fs::create_directories(dir_ / "mug");
   fs::create_directories(dir_ / "shoe");
-  for (const char* f : {"mug/1.jpg", "mug/2.png", "mug/notes.txt", "shoe/1.jpg", "shoe/2.jpg", "shoe/3.JPG"}) {
+  for (const char* f : {"mug/m1.jpg", "mug/m2.png", "mug/notes.txt", "shoe/s1.jpg", "shoe/s2.jpg", "shoe/s3.JPG"}) {
     Write(f, "x");
   }
   auto protocol = LoadGroupsProtocol(dir_.string());
   ASSERT_TRUE(protocol) << protocol.error().ToString();
   EXPECT_EQ(protocol->database.size(), 5u);
   ASSERT_EQ(protocol->queries.size(), 5u);
-  EXPECT_EQ(protocol->queries[0].image, "mug/1");
-  EXPECT_EQ(protocol->queries[0].relevance.positives, (std::unordered_set<std::string>{"mug/2"}));
-  EXPECT_TRUE(protocol->queries[0].relevance.junk.contains("mug/1"));
+  EXPECT_EQ(protocol->queries[0].image, "m1");
+  EXPECT_EQ(protocol->queries[0].relevance.positives, (std::unordered_set<std::string>{"m2"}));
+  EXPECT_TRUE(protocol->queries[0].relevance.junk.contains("m1"));
+  Write("shoe/m1.jpg", "x");  // same name in two groups: ambiguous ids
+  auto ambiguous = LoadGroupsProtocol(dir_.string());
+  ASSERT_FALSE(ambiguous);
+  EXPECT_EQ(ambiguous.error().code, ErrorCode::kInvalidArgument);
 }
 
 // The official Paris ground truth restricted to the 250-image subset (../shared/data), when present:

@@ -1,0 +1,439 @@
+// `oxbow eval`: from images and ground truth to a report (eval/). For every configuration of the
+// matrix it trains a vocabulary and builds an index with this same binary's `vocab train` and
+// `index build` (cached in the work folder), starts `oxbow serve` on an ephemeral loopback port and
+// runs every query through the HTTP API, the way users call it; optionally also in-process.
+#include <signal.h>
+#include <spawn.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <future>
+#include <regex>
+#include <sstream>
+#include <thread>
+
+#include <nlohmann/json.hpp>
+
+#include "eval/ground_truth.h"
+#include "eval/report.h"
+#include "index/image_index.h"
+#include "server/cli.h"
+#include "server/index_cli.h"
+#include "sift/log.h"
+#include "sift/sift.h"
+
+// After Eigen (via index/ and sift/ headers): httplib pulls in <resolv.h>, whose `_res` macro breaks
+// Eigen's headers when they come later.
+#include <httplib.h>
+
+extern char** environ;
+
+namespace oxbow::cli {
+namespace {
+
+namespace fs = std::filesystem;
+using Clock = std::chrono::steady_clock;
+
+struct EvalArgs {
+  std::string protocol = "oxford";       // oxford | restricted | revisited | groups
+  std::string images;                    // database images folder
+  std::string gt;                        // ground-truth folder (oxford/restricted) or JSON (revisited)
+  std::string setting = "medium";        // revisited: easy | medium | hard
+  std::string train_images;              // vocabulary training images (default: the database images)
+  std::string work = "eval-work";        // cache of vocabularies and indexes
+  std::string out = "eval-report";       // report folder
+  std::vector<std::string> features = {"rootsift"};
+  std::vector<int> words = {20000};
+  std::vector<int> rerank = {200};
+  std::vector<std::string> qe = {"on"};
+  int top_k = 0;                         // results requested per query; 0 = the whole database (max 10000)
+  int sample = 1000000;                  // vocabulary training sample
+  int per_image = 0;                     // per-image cap on the training sample; 0 = the command's default
+  int iterations = 0;                    // k-means iterations; 0 = the command's default
+  uint64_t seed = 1;
+  int threads = 0;
+  bool full_image = false;               // ignore the query boxes
+  std::string mode = "http";             // http | in-process | both
+  int max_queries = 0;                   // evaluate only the first N queries (0 = all), for smoke runs
+};
+
+std::string SelfExe() {
+  std::error_code ec;
+  const fs::path p = fs::read_symlink("/proc/self/exe", ec);
+  if (ec) throw CommandError(1, "cannot find the oxbow binary (/proc/self/exe): " + ec.message());
+  return p.string();
+}
+
+std::string JoinArgs(const std::vector<std::string>& args) {
+  std::string s;
+  for (const auto& a : args) s += (s.empty() ? "" : " ") + a;
+  return s;
+}
+
+// Runs a child process to completion, inheriting stdout/stderr; throws on a non-zero exit.
+void RunChild(const std::vector<std::string>& args) {
+  OXBOW_LOG(kInfo) << "eval: running " << JoinArgs(args);
+  std::vector<char*> argv;
+  for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
+  argv.push_back(nullptr);
+  pid_t pid;
+  if (posix_spawn(&pid, argv[0], nullptr, nullptr, argv.data(), environ) != 0) {
+    throw CommandError(1, "cannot start " + args[0]);
+  }
+  int status = 0;
+  while (waitpid(pid, &status, 0) < 0 && errno == EINTR) {
+  }
+  if (!WIFEXITED(status) || WEXITSTATUS(status) != 0) {
+    throw CommandError(1, "'" + JoinArgs(args) + "' failed (status " + std::to_string(status) + ")");
+  }
+}
+
+// A running `oxbow serve`, stopped with SIGTERM when destroyed. Its output goes to a log file; the
+// port is read from its "listening on http://HOST:PORT" line.
+class ServerProcess {
+ public:
+  ServerProcess(const std::string& exe, const std::string& index_dir, const std::string& log_path, int threads) {
+    int fds[2];
+    if (pipe(fds) != 0) throw CommandError(1, "pipe failed");
+    std::vector<std::string> args = {exe, "serve", "--index", index_dir, "--host", "127.0.0.1", "--port", "0"};
+    if (threads > 0) args.insert(args.end(), {"--threads", std::to_string(threads)});
+    OXBOW_LOG(kInfo) << "eval: starting " << JoinArgs(args);
+    std::vector<char*> argv;
+    for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
+    argv.push_back(nullptr);
+    posix_spawn_file_actions_t actions;
+    posix_spawn_file_actions_init(&actions);
+    posix_spawn_file_actions_adddup2(&actions, fds[1], STDOUT_FILENO);
+    posix_spawn_file_actions_adddup2(&actions, fds[1], STDERR_FILENO);
+    posix_spawn_file_actions_addclose(&actions, fds[0]);
+    const int rc = posix_spawn(&pid_, argv[0], &actions, nullptr, argv.data(), environ);
+    posix_spawn_file_actions_destroy(&actions);
+    close(fds[1]);
+    if (rc != 0) {
+      close(fds[0]);
+      throw CommandError(1, "cannot start the server");
+    }
+    // Drain the server's output into the log for its whole life (a full pipe would block it).
+    std::promise<int> port_promise;
+    auto port_future = port_promise.get_future();
+    reader_ = std::thread([fd = fds[0], log_path, p = std::move(port_promise)]() mutable {
+      std::ofstream log(log_path, std::ios::app);
+      std::string pending;
+      bool port_found = false;
+      const std::regex listening(R"(listening on http://[^:/\s]+:(\d+))");
+      char buf[4096];
+      ssize_t n;
+      while ((n = read(fd, buf, sizeof buf)) > 0) {
+        log.write(buf, n);
+        if (port_found) continue;
+        pending.append(buf, static_cast<size_t>(n));
+        std::smatch m;
+        if (std::regex_search(pending, m, listening)) {
+          port_found = true;
+          p.set_value(std::stoi(m[1]));
+        }
+      }
+      if (!port_found) p.set_value(-1);
+      close(fd);
+    });
+    if (port_future.wait_for(std::chrono::seconds(300)) != std::future_status::ready || (port_ = port_future.get()) <= 0) {
+      throw CommandError(1, "the server did not start; see " + log_path);
+    }
+  }
+  ~ServerProcess() {
+    kill(pid_, SIGTERM);
+    int status = 0;
+    waitpid(pid_, &status, 0);
+    if (reader_.joinable()) reader_.join();
+  }
+  int port() const { return port_; }
+
+ private:
+  pid_t pid_ = -1;
+  int port_ = -1;
+  std::thread reader_;
+};
+
+std::string ImagePath(const std::string& dir, const std::string& id) {
+  for (const char* ext : {".jpg", ".jpeg", ".png", ".JPG", ".ppm", ".pgm", ".bmp", ".tif", ".tiff", ".webp"}) {
+    fs::path p = fs::path(dir) / (id + ext);
+    if (fs::exists(p)) return p.string();
+  }
+  return "";
+}
+
+std::string ReadBytes(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  return std::string((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+}
+
+struct Config {
+  std::string features;
+  int words;
+  std::string Dir(const std::string& work) const {
+    return (fs::path(work) / (features + "-" + std::to_string(words))).string();
+  }
+};
+
+// Trains the vocabulary and builds the index of one configuration unless the work folder has them.
+void Prepare(const EvalArgs& a, const Config& c, const std::string& exe, eval::RunResult* base) {
+  fs::create_directories(c.Dir(a.work));
+  const std::string vocab = (fs::path(c.Dir(a.work)) / "vocabulary.oxvoc").string();
+  const std::string index = (fs::path(c.Dir(a.work)) / "index").string();
+  if (!fs::exists(vocab)) {
+    std::vector<std::string> args = {exe, "vocab", "train", "--images", a.train_images.empty() ? a.images : a.train_images,
+                                     "--words", std::to_string(c.words), "--out", vocab, "--sample",
+                                     std::to_string(a.sample), "--seed", std::to_string(a.seed)};
+    if (c.features == "rootsift") args.push_back("--root-sift");
+    if (a.per_image > 0) args.insert(args.end(), {"--per-image", std::to_string(a.per_image)});
+    if (a.iterations > 0) args.insert(args.end(), {"--iterations", std::to_string(a.iterations)});
+    if (a.threads > 0) args.insert(args.end(), {"--threads", std::to_string(a.threads)});
+    const auto t0 = Clock::now();
+    RunChild(args);
+    base->build_vocab_s = std::chrono::duration<double>(Clock::now() - t0).count();
+  }
+  if (!index::ImageIndex::Exists(index) || !fs::exists(fs::path(c.Dir(a.work)) / "index.complete")) {
+    std::vector<std::string> args = {exe, "index", "build", "--vocab", vocab, "--images", a.images, "--out", index};
+    if (a.threads > 0) args.insert(args.end(), {"--threads", std::to_string(a.threads)});
+    const auto t0 = Clock::now();
+    RunChild(args);
+    base->build_index_s = std::chrono::duration<double>(Clock::now() - t0).count();
+    std::ofstream(fs::path(c.Dir(a.work)) / "index.complete") << "ok\n";
+  }
+}
+
+std::string BoxParam(const std::array<float, 4>& b) {
+  std::ostringstream s;
+  s << b[0] << "," << b[1] << "," << b[2] << "," << b[3];
+  return s.str();
+}
+
+void RunHttp(const EvalArgs& a, const eval::Protocol& protocol, int port, int rerank, bool qe, int top_k,
+             eval::RunResult* run) {
+  httplib::Client client("127.0.0.1", port);
+  client.set_read_timeout(300, 0);
+  client.set_write_timeout(60, 0);
+  log::Progress progress("eval " + run->label, protocol.queries.size(), "queries");
+  for (const eval::EvalQuery& q : protocol.queries) {
+    const std::string path = ImagePath(a.images, q.image);
+    if (path.empty()) throw CommandError(4, "query image '" + q.image + "' not found in " + a.images);
+    std::string target = "/v1/search?top_k=" + std::to_string(top_k) + "&rerank=" + std::to_string(rerank) +
+                         "&qe=" + (qe ? "true" : "false");
+    if (q.bbox && !a.full_image) target += "&bbox=" + BoxParam(*q.bbox);
+    const std::string body = ReadBytes(path);
+    const auto t0 = Clock::now();
+    auto response = client.Post(target, body, "application/octet-stream");
+    const double ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+    if (!response) throw CommandError(7, "search request failed: " + httplib::to_string(response.error()));
+    if (response->status != 200) {
+      throw CommandError(1, "search for " + q.name + " answered " + std::to_string(response->status) + ": " + response->body);
+    }
+    const auto json = nlohmann::json::parse(response->body);
+    std::vector<std::string> ranking;
+    for (const auto& r : json.at("results")) ranking.push_back(r.at("id").get<std::string>());
+    eval::QueryOutcome outcome = eval::ScoreRanking(q, ranking);
+    outcome.latency_ms = ms;
+    for (const auto& [stage, value] : json.at("timings_ms").items()) {
+      outcome.stage_ms[stage == "decode_extract" ? "extract" : stage] = value.get<double>();
+    }
+    run->queries.push_back(std::move(outcome));
+    progress.Advance();
+  }
+}
+
+void RunInProcess(const EvalArgs& a, const eval::Protocol& protocol, const index::ImageIndex& idx, int rerank, bool qe,
+                  int top_k, eval::RunResult* run) {
+  auto options = ValueOrExit(SiftOptionsFromSettings(idx.extractor_settings()));
+  options.num_threads = a.threads;
+  const auto extractor = ValueOrExit(sift::SiftExtractor::Create(options));
+  log::Progress progress("eval " + run->label, protocol.queries.size(), "queries");
+  for (const eval::EvalQuery& q : protocol.queries) {
+    const std::string path = ImagePath(a.images, q.image);
+    if (path.empty()) throw CommandError(4, "query image '" + q.image + "' not found in " + a.images);
+    const auto t0 = Clock::now();
+    auto features = ValueOrExit(extractor.ExtractFromFile(path));
+    const double extract_ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+    index::QueryOptions qo;
+    qo.top_k = top_k;
+    qo.rerank_depth = rerank;
+    qo.query_expansion = qe;
+    if (q.bbox && !a.full_image) qo.region = *q.bbox;
+    auto response = ValueOrExit(idx.Query(features, qo));
+    std::vector<std::string> ranking;
+    for (const auto& r : response.results) ranking.push_back(r.id);
+    eval::QueryOutcome outcome = eval::ScoreRanking(q, ranking);
+    outcome.latency_ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+    outcome.stage_ms = {{"extract", extract_ms},
+                        {"quantize", response.timings.quantize_ms},
+                        {"score", response.timings.score_ms},
+                        {"verify", response.timings.verify_ms},
+                        {"qe", response.timings.qe_ms}};
+    run->queries.push_back(std::move(outcome));
+    progress.Advance();
+  }
+}
+
+eval::Protocol LoadProtocol(const EvalArgs& a) {
+  if (a.protocol == "groups") return ValueOrExit(eval::LoadGroupsProtocol(a.images));
+  if (a.protocol == "revisited") {
+    eval::RevisitedSetting setting = eval::RevisitedSetting::kMedium;
+    if (a.setting == "easy") setting = eval::RevisitedSetting::kEasy;
+    else if (a.setting == "hard") setting = eval::RevisitedSetting::kHard;
+    else if (a.setting != "medium") throw CommandError(2, "--setting must be easy, medium or hard");
+    auto protocol = ValueOrExit(eval::LoadRevisitedProtocol(a.gt, setting, fs::path(a.gt).stem().string()));
+    auto present = ValueOrExit(eval::ListImageIds(a.images));
+    if (present.size() < protocol.database.size()) {
+      OXBOW_LOG(kWarning) << "eval: only " << present.size() << " of " << protocol.database.size()
+                          << " database images are present; restricting the protocol to them";
+      protocol = eval::RestrictToImages(protocol, present);
+    }
+    return protocol;
+  }
+  const std::string name = fs::path(a.gt).parent_path().filename().string().empty()
+                                ? "oxford"
+                                : fs::path(a.gt).lexically_normal().parent_path().filename().string();
+  auto protocol = ValueOrExit(eval::LoadOxfordProtocol(a.gt, name));
+  if (a.protocol == "restricted") {
+    protocol = eval::RestrictToImages(protocol, ValueOrExit(eval::ListImageIds(a.images)));
+    protocol.name += "-restricted";
+  } else if (a.protocol != "oxford") {
+    throw CommandError(2, "--protocol must be oxford, restricted, revisited or groups");
+  }
+  return protocol;
+}
+
+void Run(const EvalArgs& a, const std::string& command_line) {
+  eval::Protocol protocol = LoadProtocol(a);
+  if (a.max_queries > 0 && protocol.queries.size() > static_cast<size_t>(a.max_queries)) {
+    protocol.queries.resize(static_cast<size_t>(a.max_queries));
+  }
+  if (protocol.queries.empty()) throw CommandError(2, "the protocol has no query with a positive image");
+  OXBOW_LOG(kInfo) << "eval: protocol " << protocol.name << ": " << protocol.queries.size() << " queries, "
+                   << protocol.database.size() << " database images";
+  const int top_k = a.top_k > 0 ? a.top_k : static_cast<int>(std::min<size_t>(10000, protocol.database.size()));
+  const std::string exe = SelfExe();
+  fs::create_directories(a.work);
+  std::vector<eval::RunResult> runs;
+  for (const std::string& features : a.features) {
+    if (features != "sift" && features != "rootsift") throw CommandError(2, "--features takes sift and/or rootsift");
+    for (int words : a.words) {
+      const Config config{features, words};
+      eval::RunResult base;
+      base.protocol = protocol.name;
+      Prepare(a, config, exe, &base);
+      const std::string index_dir = (fs::path(config.Dir(a.work)) / "index").string();
+      auto idx = ValueOrExit(index::ImageIndex::Open(index_dir));
+      const index::IndexStats stats = idx->Stats();
+      base.index_images = stats.num_images;
+      base.index_features = stats.num_features;
+      base.index_bytes_per_feature = stats.bytes_per_feature;
+      base.vocabulary_words = stats.vocabulary_size;
+      std::unique_ptr<ServerProcess> server;
+      if (a.mode != "in-process") {
+        idx.reset();  // the server opens the index itself
+        server = std::make_unique<ServerProcess>(exe, index_dir, (fs::path(config.Dir(a.work)) / "serve.log").string(),
+                                                 a.threads);
+      }
+      for (int rerank : a.rerank) {
+        for (const std::string& qe_text : a.qe) {
+          const bool qe = qe_text == "on";
+          if (qe && rerank == 0) continue;  // QE averages verified results: needs re-ranking
+          for (const std::string& mode : {std::string("http"), std::string("in-process")}) {
+            if (a.mode != "both" && a.mode != mode) continue;
+            eval::RunResult run = base;
+            run.label = features + " " + std::to_string(words / 1000) + "k" +
+                        (rerank > 0 ? " +rerank" + std::to_string(rerank) : "") + (qe ? " +qe" : "") +
+                        (a.mode == "both" ? " (" + mode + ")" : "");
+            run.settings = {{"features", features},
+                            {"words", std::to_string(words)},
+                            {"vocabulary_trained_on", a.train_images.empty() ? "the database images" : a.train_images},
+                            {"training_sample", std::to_string(a.sample)},
+                            {"seed", std::to_string(a.seed)},
+                            {"rerank", std::to_string(rerank)},
+                            {"qe", qe ? "on" : "off"},
+                            {"query_region", a.full_image ? "full image" : "ground-truth box"},
+                            {"top_k", std::to_string(top_k)},
+                            {"path", mode},
+                            {"extractor", stats.vocabulary_size ? "oxbow SIFT (index settings)" : ""}};
+            if (mode == "http") {
+              RunHttp(a, protocol, server->port(), rerank, qe, top_k, &run);
+            } else {
+              if (!idx) idx = ValueOrExit(index::ImageIndex::Open(index_dir));
+              RunInProcess(a, protocol, *idx, rerank, qe, top_k, &run);
+            }
+            eval::Summarise(&run);
+            OXBOW_LOG(kInfo) << "eval: " << protocol.name << " | " << run.label << " | mAP " << run.map
+                             << " | query p50 " << run.query_p50_ms << " ms";
+            runs.push_back(std::move(run));
+          }
+        }
+      }
+    }
+  }
+  OkOrExit(eval::WriteReport(a.out, runs, command_line));
+  std::printf("%-28s %-36s %8s %10s\n", "protocol", "configuration", "mAP", "p50 ms");
+  for (const auto& run : runs) {
+    std::printf("%-28s %-36s %8.4f %10.1f\n", run.protocol.c_str(), run.label.c_str(), run.map, run.query_p50_ms);
+  }
+  std::printf("report: %s/report.md\n", a.out.c_str());
+}
+
+void SetUp(CLI::App& app) {
+  auto args = std::make_shared<EvalArgs>();
+  auto command_line = std::make_shared<std::string>();
+  CLI::App* cmd = app.add_subcommand(
+      "eval",
+      "Evaluate retrieval accuracy (mAP) on a data set with ground truth and write a report.\n"
+      "Trains a vocabulary and builds an index per configuration (cached in --work), serves it on an\n"
+      "ephemeral loopback port and runs every query through the HTTP API.\n"
+      "Example (the Paris subset, restricted protocol):\n"
+      "  oxbow eval --protocol restricted --images ../shared/data/paris6k/images \\\n"
+      "             --gt ../shared/data/paris6k/gt --out eval-report");
+  cmd->add_option("--protocol", args->protocol,
+                  "oxford (good/ok/junk folder), restricted (the same, limited to the images present), "
+                  "revisited (JSON from scripts/revisited_gt_to_json.py), groups (a folder of sub-folders)")
+      ->capture_default_str();
+  cmd->add_option("--images", args->images, "database images folder (groups: the folder of group folders)")->required();
+  cmd->add_option("--gt", args->gt, "ground truth: folder of *_query.txt etc. (oxford, restricted) or JSON (revisited)");
+  cmd->add_option("--setting", args->setting, "revisited difficulty: easy, medium, hard")->capture_default_str();
+  cmd->add_option("--train-images", args->train_images, "train the vocabulary on these images instead of the database");
+  cmd->add_option("--work", args->work, "folder caching vocabularies and indexes between runs")->capture_default_str();
+  cmd->add_option("--out", args->out, "report folder (report.md, results.json, plots/)")->capture_default_str();
+  cmd->add_option("--features", args->features, "descriptor kinds to compare: sift, rootsift")->delimiter(',')->capture_default_str();
+  cmd->add_option("--words", args->words, "vocabulary sizes to compare, e.g. 10000,50000")->delimiter(',')->capture_default_str();
+  cmd->add_option("--rerank", args->rerank, "re-ranking depths to compare (0 = tf-idf only)")->delimiter(',')->capture_default_str();
+  cmd->add_option("--qe", args->qe, "query expansion settings to compare: off, on")->delimiter(',')->capture_default_str();
+  cmd->add_option("--top-k", args->top_k, "results per query (0 = the whole database, at most 10000)");
+  cmd->add_option("--sample", args->sample, "descriptors sampled to train each vocabulary")->capture_default_str();
+  cmd->add_option("--per-image", args->per_image, "cap of training descriptors per image (0 = vocab train's default)");
+  cmd->add_option("--iterations", args->iterations, "k-means iterations (0 = vocab train's default)");
+  cmd->add_option("--seed", args->seed, "random seed for sampling and k-means")->capture_default_str();
+  cmd->add_option("--threads", args->threads, "threads for training, indexing and serving (0 = all cores)");
+  cmd->add_flag("--full-image", args->full_image, "query with the whole query image instead of its box");
+  cmd->add_option("--mode", args->mode, "http (through oxbow serve), in-process, or both")->capture_default_str();
+  cmd->add_option("--max-queries", args->max_queries, "evaluate only the first N queries (smoke runs)");
+  cmd->callback([args, command_line, &app] {
+    std::string line = "oxbow eval";
+    for (const auto* opt : app.get_subcommand("eval")->get_options()) {
+      if (opt->count() == 0 || opt->get_name() == "--help") continue;
+      line += " " + opt->get_name();
+      for (const auto& r : opt->results()) line += " " + r;
+    }
+    if ((args->protocol == "oxford" || args->protocol == "restricted" || args->protocol == "revisited") && args->gt.empty()) {
+      throw CommandError(2, "--gt is required for the " + args->protocol + " protocol");
+    }
+    if (args->mode != "http" && args->mode != "in-process" && args->mode != "both") {
+      throw CommandError(2, "--mode must be http, in-process or both");
+    }
+    Run(*args, line);
+  });
+}
+
+const bool registered = RegisterCommand({"eval", 80, &SetUp});
+
+}  // namespace
+}  // namespace oxbow::cli
