@@ -5,6 +5,8 @@
 #include <cstdlib>
 #include <new>
 
+#include <sys/mman.h>
+
 #include "sift/error.h"
 #include "sift/parallel.h"
 
@@ -25,14 +27,31 @@ bool SimdCompiledIn() {
 
 void Plane::Free::operator()(float* p) const { std::free(p); }
 
-Plane::Plane(int width, int height) : width_(width), height_(height) {
+Plane::Plane(int width, int height) { Reshape(width, height); }
+
+void Plane::Reshape(int width, int height) {
   OXBOW_CHECK(width >= 0 && height >= 0);
-  stride_ = (static_cast<size_t>(width) + 15) / 16 * 16;
+  const size_t stride = (static_cast<size_t>(width) + 15) / 16 * 16;
   // One extra row of padding so vector loads that run past the last column stay inside the buffer.
-  const size_t bytes = std::max<size_t>(64, (stride_ * (static_cast<size_t>(height) + 1)) * sizeof(float));
-  void* memory = std::aligned_alloc(64, (bytes + 63) / 64 * 64);
-  if (memory == nullptr) throw std::bad_alloc();
-  data_.reset(static_cast<float*>(memory));
+  const size_t needed = std::max<size_t>(16, stride * (static_cast<size_t>(height) + 1));
+  if (needed > capacity_ || !data_) {
+    constexpr size_t kHuge = size_t{2} << 20;
+    size_t bytes = needed * sizeof(float);
+    const bool huge = bytes >= 2 * kHuge;
+    const size_t alignment = huge ? kHuge : 64;
+    bytes = (bytes + alignment - 1) / alignment * alignment;
+    data_.reset();
+    void* memory = std::aligned_alloc(alignment, bytes);
+    if (memory == nullptr) throw std::bad_alloc();
+#ifdef MADV_HUGEPAGE
+    if (huge) ::madvise(memory, bytes, MADV_HUGEPAGE);  // advisory; failure is harmless
+#endif
+    data_.reset(static_cast<float*>(memory));
+    capacity_ = bytes / sizeof(float);
+  }
+  width_ = width;
+  height_ = height;
+  stride_ = stride;
 }
 
 int Reflect101(int i, int n) {
@@ -65,6 +84,27 @@ void VerticalPass(const float* const* minus, const float* const* plus, std::span
   int x = begin;
 #ifdef OXBOW_SIFT_AVX2
   if (simd) {
+    // 32 columns per iteration so each tap's row pointers and coefficient are loaded once per 4 vectors.
+    for (; x + 32 <= end; x += 32) {
+      const __m256 c0 = _mm256_set1_ps(c[0]);
+      __m256 a0 = _mm256_mul_ps(c0, _mm256_loadu_ps(minus[0] + x));
+      __m256 a1 = _mm256_mul_ps(c0, _mm256_loadu_ps(minus[0] + x + 8));
+      __m256 a2 = _mm256_mul_ps(c0, _mm256_loadu_ps(minus[0] + x + 16));
+      __m256 a3 = _mm256_mul_ps(c0, _mm256_loadu_ps(minus[0] + x + 24));
+      for (int k = 1; k <= r; ++k) {
+        const __m256 ck = _mm256_set1_ps(c[static_cast<size_t>(k)]);
+        const float* m = minus[k] + x;
+        const float* p = plus[k] + x;
+        a0 = _mm256_fmadd_ps(ck, _mm256_add_ps(_mm256_loadu_ps(m), _mm256_loadu_ps(p)), a0);
+        a1 = _mm256_fmadd_ps(ck, _mm256_add_ps(_mm256_loadu_ps(m + 8), _mm256_loadu_ps(p + 8)), a1);
+        a2 = _mm256_fmadd_ps(ck, _mm256_add_ps(_mm256_loadu_ps(m + 16), _mm256_loadu_ps(p + 16)), a2);
+        a3 = _mm256_fmadd_ps(ck, _mm256_add_ps(_mm256_loadu_ps(m + 24), _mm256_loadu_ps(p + 24)), a3);
+      }
+      _mm256_storeu_ps(out + x, a0);
+      _mm256_storeu_ps(out + x + 8, a1);
+      _mm256_storeu_ps(out + x + 16, a2);
+      _mm256_storeu_ps(out + x + 24, a3);
+    }
     for (; x + 8 <= end; x += 8) {
       __m256 acc = _mm256_mul_ps(_mm256_set1_ps(c[0]), _mm256_loadu_ps(minus[0] + x));
       for (int k = 1; k <= r; ++k)
@@ -87,6 +127,26 @@ void HorizontalPass(const float* t, std::span<const float> c, int width, float* 
   int x = 0;
 #ifdef OXBOW_SIFT_AVX2
   if (simd) {
+    for (; x + 32 <= width; x += 32) {
+      const __m256 c0 = _mm256_set1_ps(c[0]);
+      __m256 a0 = _mm256_mul_ps(c0, _mm256_loadu_ps(t + x));
+      __m256 a1 = _mm256_mul_ps(c0, _mm256_loadu_ps(t + x + 8));
+      __m256 a2 = _mm256_mul_ps(c0, _mm256_loadu_ps(t + x + 16));
+      __m256 a3 = _mm256_mul_ps(c0, _mm256_loadu_ps(t + x + 24));
+      for (int k = 1; k <= r; ++k) {
+        const __m256 ck = _mm256_set1_ps(c[static_cast<size_t>(k)]);
+        const float* m = t + x - k;
+        const float* p = t + x + k;
+        a0 = _mm256_fmadd_ps(ck, _mm256_add_ps(_mm256_loadu_ps(m), _mm256_loadu_ps(p)), a0);
+        a1 = _mm256_fmadd_ps(ck, _mm256_add_ps(_mm256_loadu_ps(m + 8), _mm256_loadu_ps(p + 8)), a1);
+        a2 = _mm256_fmadd_ps(ck, _mm256_add_ps(_mm256_loadu_ps(m + 16), _mm256_loadu_ps(p + 16)), a2);
+        a3 = _mm256_fmadd_ps(ck, _mm256_add_ps(_mm256_loadu_ps(m + 24), _mm256_loadu_ps(p + 24)), a3);
+      }
+      _mm256_storeu_ps(out + x, a0);
+      _mm256_storeu_ps(out + x + 8, a1);
+      _mm256_storeu_ps(out + x + 16, a2);
+      _mm256_storeu_ps(out + x + 24, a3);
+    }
     for (; x + 8 <= width; x += 8) {
       __m256 acc = _mm256_mul_ps(_mm256_set1_ps(c[0]), _mm256_loadu_ps(t + x));
       for (int k = 1; k <= r; ++k)
@@ -114,7 +174,7 @@ void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kern
   OXBOW_CHECK(!half_kernel.empty());
   OXBOW_CHECK(dst != &src);
   const int w = src.width(), h = src.height();
-  if (dst->width() != w || dst->height() != h) *dst = Plane(w, h);
+  if (dst->width() != w || dst->height() != h) dst->Reshape(w, h);
   if (w == 0 || h == 0) return;
   const int r = static_cast<int>(half_kernel.size()) - 1;
   ParallelFor(static_cast<size_t>(h), num_threads, RowGrain(h, num_threads), [&](size_t y0, size_t y1, int) {
@@ -160,7 +220,7 @@ void Upsample2x(const Plane& src, Plane* dst, int num_threads) {
 
 void Decimate2x(const Plane& src, Plane* dst) {
   const int w = src.width() / 2, h = src.height() / 2;
-  *dst = Plane(w, h);
+  dst->Reshape(w, h);
   for (int y = 0; y < h; ++y) {
     const float* in = src.row(2 * y);
     float* out = dst->row(y);

@@ -19,12 +19,15 @@ namespace oxbow::sift::internal {
 bool SimdCompiledIn();
 
 // A float image with rows padded to a multiple of 16 floats (64 bytes) and 64-byte aligned rows.
-// Movable, not copyable. Not thread-safe to mutate; concurrent reads are fine.
+// Buffers of 4 MiB or more are 2 MiB aligned and advised to use transparent huge pages, which cuts the
+// page faults of first touch (a pyramid of a 1 Mpixel photo is ~60 MiB) by 512x. Movable, not copyable. Not thread-safe to mutate; concurrent reads are fine.
 class Plane {
  public:
   Plane() = default;
   Plane(int width, int height);
   Plane(Plane&&) noexcept = default;
+  // Changes the size, keeping the buffer when it is large enough (contents are then unspecified).
+  void Reshape(int width, int height);
   Plane& operator=(Plane&&) noexcept = default;
 
   int width() const { return width_; }
@@ -42,6 +45,7 @@ class Plane {
   int width_ = 0;
   int height_ = 0;
   size_t stride_ = 0;
+  size_t capacity_ = 0;  // floats allocated
   std::unique_ptr<float[], Free> data_;
 };
 

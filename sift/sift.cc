@@ -6,6 +6,7 @@
 #include <cstdio>
 #include <bit>
 #include <charconv>
+#include <memory>
 #include <optional>
 #include <sstream>
 
@@ -101,26 +102,25 @@ struct Refined {
 
 // ---- Extrema scan ----------------------------------------------------------------------------------
 
-// Scans DoG layer rows `prev`, `cur`, `next` (each with rows y-1, y, y+1 reachable at +-stride) for
-// samples that are |v| > threshold and >= (<=) all 26 neighbours; appends their columns to `out`.
-void ScanRow(const float* const prev, const float* const cur, const float* const next, size_t stride, int x0, int x1,
-             float threshold, bool simd, std::vector<int>* out) {
+// Scans row y of a DoG layer for samples with |v| > threshold that are >= (or <=) all 26 neighbours;
+// rows[l][dy] is row y - 1 + dy of layer (layer - 1 + l). Appends the columns found, in order.
+void ScanRow(const float* const (&rows)[3][3], int x0, int x1, float threshold, bool simd, std::vector<int>* out) {
+  const float* cur = rows[1][1];
   auto is_extremum = [&](int x) {
     const float v = cur[x];
     if (!(std::fabs(v) > threshold)) return false;
-    const float* layers[3] = {prev, cur, next};
     if (v > 0) {
-      for (const float* l : layers)
-        for (int dy = -1; dy <= 1; ++dy) {
-          const float* row = l + static_cast<ptrdiff_t>(dy) * static_cast<ptrdiff_t>(stride);
+      for (int l = 0; l < 3; ++l)
+        for (int dy = 0; dy < 3; ++dy) {
+          const float* row = rows[l][dy];
           if (v < row[x - 1] || v < row[x] || v < row[x + 1]) return false;
         }
       return true;
     }
     if (v < 0) {
-      for (const float* l : layers)
-        for (int dy = -1; dy <= 1; ++dy) {
-          const float* row = l + static_cast<ptrdiff_t>(dy) * static_cast<ptrdiff_t>(stride);
+      for (int l = 0; l < 3; ++l)
+        for (int dy = 0; dy < 3; ++dy) {
+          const float* row = rows[l][dy];
           if (v > row[x - 1] || v > row[x] || v > row[x + 1]) return false;
         }
       return true;
@@ -133,7 +133,6 @@ void ScanRow(const float* const prev, const float* const cur, const float* const
     const __m256 thr = _mm256_set1_ps(threshold);
     const __m256 zero = _mm256_setzero_ps();
     const __m256 abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff));
-    const ptrdiff_t s = static_cast<ptrdiff_t>(stride);
     for (; x + 8 <= x1; x += 8) {
       const __m256 v = _mm256_loadu_ps(cur + x);
       const __m256 strong = _mm256_cmp_ps(_mm256_and_ps(v, abs_mask), thr, _CMP_GT_OQ);
@@ -141,9 +140,9 @@ void ScanRow(const float* const prev, const float* const cur, const float* const
       // Own layer first: most samples fail here.
       __m256 mx = _mm256_max_ps(_mm256_loadu_ps(cur + x - 1), _mm256_loadu_ps(cur + x + 1));
       __m256 mn = _mm256_min_ps(_mm256_loadu_ps(cur + x - 1), _mm256_loadu_ps(cur + x + 1));
-      for (const ptrdiff_t off : {-s, s}) {
+      for (const int dy : {0, 2}) {
         for (int dx = -1; dx <= 1; ++dx) {
-          const __m256 n = _mm256_loadu_ps(cur + off + x + dx);
+          const __m256 n = _mm256_loadu_ps(rows[1][dy] + x + dx);
           mx = _mm256_max_ps(mx, n);
           mn = _mm256_min_ps(mn, n);
         }
@@ -152,10 +151,10 @@ void ScanRow(const float* const prev, const float* const cur, const float* const
       __m256 is_min = _mm256_and_ps(_mm256_cmp_ps(v, zero, _CMP_LT_OQ), _mm256_cmp_ps(v, mn, _CMP_LE_OQ));
       __m256 any = _mm256_and_ps(strong, _mm256_or_ps(is_max, is_min));
       if (_mm256_movemask_ps(any) == 0) continue;
-      for (const float* l : {prev, next}) {
-        for (const ptrdiff_t off : {-s, ptrdiff_t{0}, s}) {
+      for (const int l : {0, 2}) {
+        for (int dy = 0; dy < 3; ++dy) {
           for (int dx = -1; dx <= 1; ++dx) {
-            const __m256 n = _mm256_loadu_ps(l + off + x + dx);
+            const __m256 n = _mm256_loadu_ps(rows[l][dy] + x + dx);
             mx = _mm256_max_ps(mx, n);
             mn = _mm256_min_ps(mn, n);
           }
@@ -175,8 +174,8 @@ void ScanRow(const float* const prev, const float* const cur, const float* const
     if (is_extremum(x)) out->push_back(x);
 }
 
-// Finds the candidate extrema of one octave, in (layer, row, column) order. DoG rows are computed per
-// chunk of rows into a scratch buffer, so the DoG pyramid is never stored.
+// Finds the candidate extrema of one octave, in (layer, row, column) order. DoG rows are computed on
+// the fly into a small ring buffer per worker, so the DoG pyramid is never stored.
 std::vector<Candidate> ScanOctave(const Octave& octave, int intervals, float threshold, int num_threads, bool simd) {
   const Plane& g0 = octave.gauss[0];
   const int w = g0.width(), h = g0.height();
@@ -188,32 +187,42 @@ std::vector<Candidate> ScanOctave(const Octave& octave, int intervals, float thr
   const int dog_layers = intervals + 2;
   ParallelFor(static_cast<size_t>(rows), num_threads, grain, [&](size_t begin, size_t end, int) {
     const int y0 = kBorder + static_cast<int>(begin), y1 = kBorder + static_cast<int>(end);
-    const int buffer_rows = y1 - y0 + 2;
+    // A ring of 4 DoG rows per layer (rows y-1, y, y+1 and the next one): ~100 KB that stays in cache.
+    // Row pointers for the scan are set per row, so the ring only needs consistent slots.
     const size_t stride = g0.stride();
-    std::vector<float> dog(static_cast<size_t>(dog_layers) * static_cast<size_t>(buffer_rows) * stride + 16);
-    auto dog_row = [&](int layer, int y) {
-      return dog.data() + (static_cast<size_t>(layer) * static_cast<size_t>(buffer_rows) + static_cast<size_t>(y - y0 + 1)) * stride;
+    constexpr int kRing = 4;
+    std::unique_ptr<float[]> ring(new float[static_cast<size_t>(dog_layers) * kRing * stride + 16]);
+    auto slot = [&](int layer, int y) {
+      return ring.get() + (static_cast<size_t>(layer) * kRing + static_cast<size_t>((y % kRing + kRing) % kRing)) * stride;
     };
-    for (int l = 0; l < dog_layers; ++l) {
-      const Plane& a = octave.gauss[static_cast<size_t>(l)];
-      const Plane& b = octave.gauss[static_cast<size_t>(l) + 1];
-      for (int y = y0 - 1; y <= y1; ++y) {
-        const float* pa = a.row(y);
-        const float* pb = b.row(y);
-        float* d = dog_row(l, y);
+    auto compute_row = [&](int y) {
+      for (int l = 0; l < dog_layers; ++l) {
+        const float* pa = octave.gauss[static_cast<size_t>(l)].row(y);
+        const float* pb = octave.gauss[static_cast<size_t>(l) + 1].row(y);
+        float* d = slot(l, y);
         for (int x = 0; x < w; ++x) d[x] = pb[x] - pa[x];
+      }
+    };
+    compute_row(y0 - 1);
+    compute_row(y0);
+    std::vector<Candidate> rows_found[8];
+    std::vector<int> columns;
+    for (int y = y0; y < y1; ++y) {
+      compute_row(y + 1);
+      for (int layer = 1; layer <= intervals; ++layer) {
+        columns.clear();
+        // ScanRow reaches rows y-1 and y+1 through +-stride, so hand it a contiguous view: copy-free
+        // when the three ring slots are in order, otherwise via the slot pointers below.
+        const float* rows3[3][3];
+        for (int l = 0; l < 3; ++l)
+          for (int dy = 0; dy < 3; ++dy) rows3[l][dy] = slot(layer - 1 + l, y - 1 + dy);
+        ScanRow(rows3, kBorder, w - kBorder, threshold, simd, &columns);
+        for (int x : columns) rows_found[layer - 1].push_back({layer, y, x});
       }
     }
     std::vector<Candidate>& out = found[begin / grain];
-    std::vector<int> columns;
-    for (int layer = 1; layer <= intervals; ++layer) {
-      for (int y = y0; y < y1; ++y) {
-        columns.clear();
-        ScanRow(dog_row(layer - 1, y), dog_row(layer, y), dog_row(layer + 1, y), stride, kBorder, w - kBorder, threshold,
-                simd, &columns);
-        for (int x : columns) out.push_back({layer, y, x});
-      }
-    }
+    for (int layer = 1; layer <= intervals; ++layer)
+      out.insert(out.end(), rows_found[layer - 1].begin(), rows_found[layer - 1].end());
   });
   // Chunks are ordered by row; order the merged list by (layer, row, column).
   std::vector<Candidate> all;
@@ -454,19 +463,89 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
     j1 = std::min(j1, w - 1 - cx);
     if (j0 >= j1) continue;
     RowGradients(img, yy, cx + j0, cx + j1, mag, ori, simd);
-    for (int j = j0; j < j1; ++j) {
+    int j = j0;
+#ifdef OXBOW_SIFT_AVX2
+    if (simd) {
+      // The scalar formula below, 8 samples at a time; samples outside the window get weight 0 in bin
+      // (0, 0, 0) (adding +0 leaves the histogram unchanged), then the adds are done in sample order.
+      const __m256 iota = _mm256_setr_ps(0, 1, 2, 3, 4, 5, 6, 7);
+      const __m256 minus_one = _mm256_set1_ps(-1.0f), dv = _mm256_set1_ps(static_cast<float>(d));
+      const __m256 vsin = _mm256_set1_ps(sin_t), vcos = _mm256_set1_ps(cos_t);
+      const __m256 vrb0 = _mm256_set1_ps(rb0), vcb0 = _mm256_set1_ps(cb0);
+      const __m256 vori = _mm256_set1_ps(ori_deg), vbins = _mm256_set1_ps(bins_per_deg), vwrow = _mm256_set1_ps(wrow);
+      const __m256i vn = _mm256_set1_epi32(n), zero_i = _mm256_setzero_si256();
+      alignas(32) int index[8];
+      alignas(32) float weights[8][8];
+      for (; j + 8 <= j1; j += 8) {
+        const __m256 dj = _mm256_sub_ps(_mm256_add_ps(_mm256_set1_ps(static_cast<float>(j)), iota), _mm256_set1_ps(fx));
+        __m256 rbin = _mm256_fmadd_ps(dj, vsin, vrb0);
+        __m256 cbin = _mm256_fmadd_ps(dj, vcos, vcb0);
+        const __m256 valid = _mm256_and_ps(
+            _mm256_and_ps(_mm256_cmp_ps(rbin, minus_one, _CMP_GT_OQ), _mm256_cmp_ps(rbin, dv, _CMP_LT_OQ)),
+            _mm256_and_ps(_mm256_cmp_ps(cbin, minus_one, _CMP_GT_OQ), _mm256_cmp_ps(cbin, dv, _CMP_LT_OQ)));
+        if (_mm256_movemask_ps(valid) == 0) continue;
+        rbin = _mm256_and_ps(rbin, valid);
+        cbin = _mm256_and_ps(cbin, valid);
+        __m256 obin = _mm256_mul_ps(_mm256_sub_ps(_mm256_loadu_ps(ori + (j - j0)), vori), vbins);
+        obin = _mm256_and_ps(obin, valid);
+        const __m256 m = _mm256_and_ps(
+            _mm256_mul_ps(_mm256_loadu_ps(mag + (j - j0)), _mm256_mul_ps(vwrow, _mm256_loadu_ps(wcol + j + radius))), valid);
+        const __m256 rf = _mm256_floor_ps(rbin), cf = _mm256_floor_ps(cbin), of = _mm256_floor_ps(obin);
+        const __m256i r0 = _mm256_cvttps_epi32(rf), c0 = _mm256_cvttps_epi32(cf);
+        __m256i o0 = _mm256_cvttps_epi32(of);
+        rbin = _mm256_sub_ps(rbin, rf);
+        cbin = _mm256_sub_ps(cbin, cf);
+        obin = _mm256_sub_ps(obin, of);
+        o0 = _mm256_add_epi32(o0, _mm256_and_si256(_mm256_cmpgt_epi32(zero_i, o0), vn));
+        o0 = _mm256_sub_epi32(o0, _mm256_andnot_si256(_mm256_cmpgt_epi32(vn, o0), vn));
+        const __m256 v_r1 = _mm256_mul_ps(m, rbin), v_r0 = _mm256_sub_ps(m, v_r1);
+        const __m256 v_rc11 = _mm256_mul_ps(v_r1, cbin), v_rc10 = _mm256_sub_ps(v_r1, v_rc11);
+        const __m256 v_rc01 = _mm256_mul_ps(v_r0, cbin), v_rc00 = _mm256_sub_ps(v_r0, v_rc01);
+        const __m256 v111 = _mm256_mul_ps(v_rc11, obin), v110 = _mm256_sub_ps(v_rc11, v111);
+        const __m256 v101 = _mm256_mul_ps(v_rc10, obin), v100 = _mm256_sub_ps(v_rc10, v101);
+        const __m256 v011 = _mm256_mul_ps(v_rc01, obin), v010 = _mm256_sub_ps(v_rc01, v011);
+        const __m256 v001 = _mm256_mul_ps(v_rc00, obin), v000 = _mm256_sub_ps(v_rc00, v001);
+        // index = ((r0 + 1) * (d + 2) + c0 + 1) * (n + 2) + o0
+        const __m256i cell = _mm256_add_epi32(_mm256_mullo_epi32(_mm256_add_epi32(r0, _mm256_set1_epi32(1)), _mm256_set1_epi32(d + 2)),
+                                              _mm256_add_epi32(c0, _mm256_set1_epi32(1)));
+        _mm256_store_si256(reinterpret_cast<__m256i*>(index),
+                           _mm256_add_epi32(_mm256_mullo_epi32(cell, _mm256_set1_epi32(n + 2)), o0));
+        _mm256_store_ps(weights[0], v000);
+        _mm256_store_ps(weights[1], v001);
+        _mm256_store_ps(weights[2], v010);
+        _mm256_store_ps(weights[3], v011);
+        _mm256_store_ps(weights[4], v100);
+        _mm256_store_ps(weights[5], v101);
+        _mm256_store_ps(weights[6], v110);
+        _mm256_store_ps(weights[7], v111);
+        for (int lane = 0; lane < 8; ++lane) {
+          float* p = hist + index[lane];
+          p[0] += weights[0][lane];
+          p[1] += weights[1][lane];
+          p[n + 2] += weights[2][lane];
+          p[n + 3] += weights[3][lane];
+          p[(d + 2) * (n + 2)] += weights[4][lane];
+          p[(d + 2) * (n + 2) + 1] += weights[5][lane];
+          p[(d + 3) * (n + 2)] += weights[6][lane];
+          p[(d + 3) * (n + 2) + 1] += weights[7][lane];
+        }
+      }
+    }
+#endif
+    for (; j < j1; ++j) {
       const float dj = static_cast<float>(j) - fx;
       float rbin = std::fma(dj, sin_t, rb0);
       float cbin = std::fma(dj, cos_t, cb0);
       if (!(rbin > -1.0f && rbin < static_cast<float>(d) && cbin > -1.0f && cbin < static_cast<float>(d))) continue;
       float obin = (ori[j - j0] - ori_deg) * bins_per_deg;
       const float m = mag[j - j0] * (wrow * wcol[j + radius]);
-      const int r0 = static_cast<int>(std::floor(rbin));
-      const int c0 = static_cast<int>(std::floor(cbin));
-      int o0 = static_cast<int>(std::floor(obin));
-      rbin -= static_cast<float>(r0);
-      cbin -= static_cast<float>(c0);
-      obin -= static_cast<float>(o0);
+      const float rf = std::floor(rbin), cf = std::floor(cbin), of = std::floor(obin);
+      const int r0 = static_cast<int>(rf);
+      const int c0 = static_cast<int>(cf);
+      int o0 = static_cast<int>(of);
+      rbin -= rf;
+      cbin -= cf;
+      obin -= of;
       if (o0 < 0) o0 += n;
       if (o0 >= n) o0 -= n;
       // Trilinear interpolation into the (d+2) x (d+2) x (n+2) histogram.
@@ -568,16 +647,18 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
   const double coordinate_scale = options.upsample_first_octave ? 0.5 : 1.0;
   const double coordinate_shift = options.upsample_first_octave ? -0.25 : 0.0;  // pixel centres, see Upsample2x
 
-  Plane next_base;
+  // The S + 3 planes of octave 0 are reused by the (smaller) later octaves; `spare` receives the
+  // decimated base of the next octave.
+  Octave octave;
+  octave.gauss.resize(static_cast<size_t>(S) + 3);
+  Plane spare;
   for (int o = 0; o < octaves; ++o) {
-    Octave octave;
     octave.index = o;
-    octave.gauss.resize(static_cast<size_t>(S) + 3);
     if (o == 0) {
       GaussianBlur(base, &octave.gauss[0], kernels[0], threads, simd);
       base = Plane();
     } else {
-      octave.gauss[0] = std::move(next_base);
+      std::swap(octave.gauss[0], spare);
     }
     if (octave.gauss[0].width() < 1 || octave.gauss[0].height() < 1) break;
     for (int i = 1; i < S + 3; ++i)
@@ -653,7 +734,7 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
       result.keypoints.insert(result.keypoints.end(), f.keypoints.begin(), f.keypoints.end());
       result.descriptors.insert(result.descriptors.end(), f.descriptors.begin(), f.descriptors.end());
     }
-    if (o + 1 < octaves) Decimate2x(octave.gauss[static_cast<size_t>(S)], &next_base);
+    if (o + 1 < octaves) Decimate2x(octave.gauss[static_cast<size_t>(S)], &spare);
   }
 
   if (options.max_features && result.keypoints.size() > static_cast<size_t>(*options.max_features)) {
