@@ -1,5 +1,5 @@
 // Descriptor matching. The exact matcher works on scores |d|^2 - 2 q.d (the squared distance minus the
-// query's constant |q|^2) so that the inner loop is a plain dot product: a 4-query x 16-db register tile
+// query's constant |q|^2) so that the inner loop is a plain dot product: a 6-query x 16-db register tile
 // over db descriptors packed dimension-major in blocks of 16 (one 8 KiB block stays in L1 while a chunk
 // of queries streams past it). Both kernels add q[k] * d[k] with a fused multiply-add for k = 0..127 in
 // order, so the AVX2 and the scalar kernel produce identical bits.
@@ -27,8 +27,8 @@ namespace {
 
 constexpr size_t kDim = kDescriptorDim;
 constexpr size_t kDbBlock = 16;      // db descriptors per packed block (two AVX2 registers wide)
-constexpr size_t kQueryGroup = 4;    // query rows per register tile
-constexpr size_t kQueryChunk = 64;   // queries per parallel work item
+constexpr size_t kQueryGroup = 6;    // query rows per register tile (12 accumulators + 2 db + 1 broadcast)
+constexpr size_t kQueryChunk = 96;   // queries per parallel work item (a multiple of kQueryGroup)
 constexpr float kInf = std::numeric_limits<float>::infinity();
 constexpr uint32_t kNone = std::numeric_limits<uint32_t>::max();
 
@@ -63,14 +63,26 @@ struct NearestQuery {
   }
 };
 
-// dots[r * 16 + j] = rows[r] . block column j, for a block packed as block[k * 16 + j].
+// a * b + c, rounded once where the target has FMA (as the AVX2 kernel computes it), else twice
+// (std::fma without hardware support is a slow library call).
+inline float MulAdd(float a, float b, float c) {
+#ifdef __FMA__
+  return std::fma(a, b, c);
+#else
+  return a * b + c;
+#endif
+}
+
+// dots[r * 16 + j] = rows[r] . block column j, for a block packed as block[k * 16 + j]. Each sum runs
+// over k = 0..127 in order, exactly as in DotTileAvx2.
 void DotTileScalar(const float* const rows[kQueryGroup], const float* block, float* dots) {
   for (size_t r = 0; r < kQueryGroup; ++r) {
-    for (size_t j = 0; j < kDbBlock; ++j) {
-      float sum = 0;
-      for (size_t k = 0; k < kDim; ++k) sum = std::fma(rows[r][k], block[k * kDbBlock + j], sum);
-      dots[r * kDbBlock + j] = sum;
+    float sums[kDbBlock] = {};
+    for (size_t k = 0; k < kDim; ++k) {
+      const float q = rows[r][k];
+      for (size_t j = 0; j < kDbBlock; ++j) sums[j] = MulAdd(q, block[k * kDbBlock + j], sums[j]);
     }
+    for (size_t j = 0; j < kDbBlock; ++j) dots[r * kDbBlock + j] = sums[j];
   }
 }
 
@@ -78,14 +90,34 @@ void DotTileScalar(const float* const rows[kQueryGroup], const float* block, flo
 void DotTileAvx2(const float* const rows[kQueryGroup], const float* block, float* dots) {
   __m256 acc[kQueryGroup][2];
   for (size_t r = 0; r < kQueryGroup; ++r) acc[r][0] = acc[r][1] = _mm256_setzero_ps();
+  const float* const r0 = rows[0];
+  const float* const r1 = rows[1];
+  const float* const r2 = rows[2];
+  const float* const r3 = rows[3];
+  const float* const r4 = rows[4];
+  const float* const r5 = rows[5];
+  static_assert(kQueryGroup == 6, "the tile below is written out for 6 rows");
   for (size_t k = 0; k < kDim; ++k) {
     const __m256 d0 = _mm256_loadu_ps(block + k * kDbBlock);
     const __m256 d1 = _mm256_loadu_ps(block + k * kDbBlock + 8);
-    for (size_t r = 0; r < kQueryGroup; ++r) {
-      const __m256 q = _mm256_broadcast_ss(rows[r] + k);
-      acc[r][0] = _mm256_fmadd_ps(q, d0, acc[r][0]);
-      acc[r][1] = _mm256_fmadd_ps(q, d1, acc[r][1]);
-    }
+    __m256 q = _mm256_broadcast_ss(r0 + k);
+    acc[0][0] = _mm256_fmadd_ps(q, d0, acc[0][0]);
+    acc[0][1] = _mm256_fmadd_ps(q, d1, acc[0][1]);
+    q = _mm256_broadcast_ss(r1 + k);
+    acc[1][0] = _mm256_fmadd_ps(q, d0, acc[1][0]);
+    acc[1][1] = _mm256_fmadd_ps(q, d1, acc[1][1]);
+    q = _mm256_broadcast_ss(r2 + k);
+    acc[2][0] = _mm256_fmadd_ps(q, d0, acc[2][0]);
+    acc[2][1] = _mm256_fmadd_ps(q, d1, acc[2][1]);
+    q = _mm256_broadcast_ss(r3 + k);
+    acc[3][0] = _mm256_fmadd_ps(q, d0, acc[3][0]);
+    acc[3][1] = _mm256_fmadd_ps(q, d1, acc[3][1]);
+    q = _mm256_broadcast_ss(r4 + k);
+    acc[4][0] = _mm256_fmadd_ps(q, d0, acc[4][0]);
+    acc[4][1] = _mm256_fmadd_ps(q, d1, acc[4][1]);
+    q = _mm256_broadcast_ss(r5 + k);
+    acc[5][0] = _mm256_fmadd_ps(q, d0, acc[5][0]);
+    acc[5][1] = _mm256_fmadd_ps(q, d1, acc[5][1]);
   }
   for (size_t r = 0; r < kQueryGroup; ++r) {
     _mm256_storeu_ps(dots + r * kDbBlock, acc[r][0]);

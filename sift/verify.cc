@@ -39,20 +39,48 @@ struct Points {
     for (auto* v : {&qx, &qy, &dx, &dy, &qcos, &qsin, &dcos, &dsin, &scale_ratio_sq, &log_scale, &rotation}) v->clear();
     match_index.clear();
   }
+  void Reserve(size_t n) {
+    for (auto* v : {&qx, &qy, &dx, &dy, &qcos, &qsin, &dcos, &dsin, &scale_ratio_sq, &log_scale, &rotation}) v->reserve(n);
+    match_index.reserve(n);
+  }
   size_t size() const { return match_index.size(); }
 };
 
 // Reused between calls on the same thread.
+// One Hough bin: its key, how many matches voted for it, and the head of its list of votes. 16 bytes,
+// so a probe touches one cache line.
+struct Bin {
+  uint64_t key = kEmptyKey;
+  uint32_t count = 0;
+  int32_t head = -1;
+};
+
 struct Scratch {
   Points points;
-  std::vector<uint64_t> table_key;
-  std::vector<uint32_t> table_count;
-  std::vector<int32_t> table_head;
+  std::vector<Bin> table;          // open addressing, linear probing; all empty between calls
+  std::vector<uint32_t> occupied;  // slots used by this call, reset to empty on the way out
   std::vector<int32_t> vote_next;
   std::vector<uint32_t> vote_point;
-  std::vector<uint32_t> clusters;  // table slots with enough votes
+  std::vector<uint32_t> clusters;  // table slots with enough votes, in the order they reached the minimum
+  std::vector<uint32_t> ordered;   // `clusters` sorted by decreasing count (stable)
+  std::vector<uint32_t> count_start;
   std::vector<uint32_t> members, selected, previous, best;
   std::vector<uint8_t> in_best;
+};
+
+// Empties the bins a call used, so the next call starts from an all-empty table without clearing it all.
+class TableReset {
+ public:
+  explicit TableReset(Scratch& s) : s_(s) {}
+  ~TableReset() {
+    for (uint32_t slot : s_.occupied) s_.table[slot] = Bin{};
+    s_.occupied.clear();
+  }
+  TableReset(const TableReset&) = delete;
+  TableReset& operator=(const TableReset&) = delete;
+
+ private:
+  Scratch& s_;
 };
 
 Scratch& ThreadScratch() {
@@ -228,6 +256,7 @@ std::optional<std::string> HoughVerifyOptions::Check() const {
   if (!(location_bin_fraction > 0 && location_bin_fraction <= 1)) return bad("location_bin_fraction", location_bin_fraction, "(0, 1]");
   if (min_cluster_votes < 3) return bad("min_cluster_votes", min_cluster_votes, "[3, inf)");
   if (max_clusters_to_verify < 1) return bad("max_clusters_to_verify", max_clusters_to_verify, "[1, inf)");
+  if (!(early_stop_fraction >= 0 && early_stop_fraction <= 1)) return bad("early_stop_fraction", early_stop_fraction, "[0, 1]");
   if (!(initial_residual_bin_fraction > 0 && initial_residual_bin_fraction <= 4)) {
     return bad("initial_residual_bin_fraction", initial_residual_bin_fraction, "(0, 4]");
   }
@@ -260,6 +289,7 @@ VerificationResult VerifyHoughAffine(std::span<const Keypoint> query, std::span<
   Scratch& s = ThreadScratch();
   Points& p = s.points;
   p.Clear();
+  p.Reserve(matches.size());
   constexpr double kTwoPi = 2 * std::numbers::pi;
   for (size_t m = 0; m < matches.size(); ++m) {
     const Match& match = matches[m];
@@ -272,10 +302,11 @@ VerificationResult VerifyHoughAffine(std::span<const Keypoint> query, std::span<
     p.qy.push_back(a.y);
     p.dx.push_back(b.x);
     p.dy.push_back(b.y);
-    p.qcos.push_back(std::cos(double(a.orientation)));
-    p.qsin.push_back(std::sin(double(a.orientation)));
-    p.dcos.push_back(std::cos(double(b.orientation)));
-    p.dsin.push_back(std::sin(double(b.orientation)));
+    // Single precision trigonometry is plenty for 30-degree bins and a 15-degree agreement test.
+    p.qcos.push_back(std::cos(a.orientation));
+    p.qsin.push_back(std::sin(a.orientation));
+    p.dcos.push_back(std::cos(b.orientation));
+    p.dsin.push_back(std::sin(b.orientation));
     const double ratio = double(b.scale) / double(a.scale);
     p.scale_ratio_sq.push_back(ratio * ratio);
     p.log_scale.push_back(std::log(ratio));
@@ -292,35 +323,42 @@ VerificationResult VerifyHoughAffine(std::span<const Keypoint> query, std::span<
   const double log_scale_bin = std::log(options.scale_bin_factor);
   const size_t max_votes = 16 * n;
   int bits = 4;
-  while ((size_t{1} << bits) < 2 * max_votes) ++bits;
+  while ((size_t{1} << bits) < max_votes + max_votes / 2) ++bits;  // load factor <= 2/3
+  if (s.table.size() < (size_t{1} << bits)) s.table.assign(size_t{1} << bits, Bin{});
+  while ((size_t{1} << bits) < s.table.size()) ++bits;  // a larger table left by an earlier call is fine
   const size_t capacity = size_t{1} << bits;
-  s.table_key.assign(capacity, kEmptyKey);
-  s.table_count.resize(capacity);
-  s.table_head.resize(capacity);
+  TableReset reset(s);
   s.vote_next.resize(max_votes);
   s.vote_point.resize(max_votes);
   size_t votes = 0;
   s.clusters.clear();
+  uint32_t max_count = 0;
 
   auto location_bin_size = [&](int scale_bin) {
     return options.location_bin_fraction * region_size * std::exp((scale_bin + 0.5) * log_scale_bin);
   };
   for (size_t i = 0; i < n; ++i) {
-    const double o = p.rotation[i] / orientation_bin_rad - 0.5;
-    const int o0 = static_cast<int>(std::floor(o));
-    const int o_bins[2] = {(o0 % orientation_bins + orientation_bins) % orientation_bins, ((o0 + 1) % orientation_bins + orientation_bins) % orientation_bins};
+    const double o = p.rotation[i] / orientation_bin_rad - 0.5;  // in [-0.5, bins - 0.5)
+    int o0 = static_cast<int>(std::floor(o));
+    int o1 = o0 + 1;
+    if (o0 < 0) o0 += orientation_bins;
+    if (o1 >= orientation_bins) o1 -= orientation_bins;
+    const int o_bins[2] = {o0, o1};
     const double sc = p.log_scale[i] / log_scale_bin - 0.5;
     const int s0 = static_cast<int>(std::floor(sc));
     if (s0 < -kScaleBinOffset + 1 || s0 > kScaleBinOffset - 2) continue;
-    // Predicted position of the region centre in the db image: d + s R(theta) (c - q).
-    const double ratio = std::exp(p.log_scale[i]);
-    const double cr = ratio * std::cos(p.rotation[i]), sr = ratio * std::sin(p.rotation[i]);
+    // Predicted position of the region centre in the db image: d + s R(theta) (c - q), with
+    // s R(theta) from the two keypoints' directions and scales.
+    const double ratio = std::sqrt(p.scale_ratio_sq[i]);
+    const double cr = ratio * (p.dcos[i] * p.qcos[i] + p.dsin[i] * p.qsin[i]);
+    const double sr = ratio * (p.dsin[i] * p.qcos[i] - p.dcos[i] * p.qsin[i]);
     const double ux = cx - p.qx[i], uy = cy - p.qy[i];
     const double px = p.dx[i] + cr * ux - sr * uy;
     const double py = p.dy[i] + sr * ux + cr * uy;
+    const double size0 = location_bin_size(s0);
     for (int ds = 0; ds < 2; ++ds) {
       const int scale_bin = s0 + ds;
-      const double size = location_bin_size(scale_bin);
+      const double size = ds == 0 ? size0 : size0 * options.scale_bin_factor;
       const double xf = px / size - 0.5, yf = py / size - 0.5;
       if (!(std::abs(xf) < double(kLocationOffset - 2) && std::abs(yf) < double(kLocationOffset - 2))) continue;
       const int64_t x0 = static_cast<int64_t>(std::floor(xf)), y0 = static_cast<int64_t>(std::floor(yf));
@@ -329,29 +367,30 @@ VerificationResult VerifyHoughAffine(std::span<const Keypoint> query, std::span<
           for (int dy = 0; dy < 2; ++dy) {
             const uint64_t key = PackKey(od, scale_bin, x0 + dx, y0 + dy);
             size_t slot = SlotOf(key, bits);
-            while (s.table_key[slot] != kEmptyKey && s.table_key[slot] != key) slot = (slot + 1) & (capacity - 1);
-            if (s.table_key[slot] == kEmptyKey) {
-              s.table_key[slot] = key;
-              s.table_count[slot] = 0;
-              s.table_head[slot] = -1;
+            while (s.table[slot].key != kEmptyKey && s.table[slot].key != key) slot = (slot + 1) & (capacity - 1);
+            Bin& bin = s.table[slot];
+            if (bin.key == kEmptyKey) {
+              bin.key = key;
+              s.occupied.push_back(static_cast<uint32_t>(slot));
             }
             s.vote_point[votes] = static_cast<uint32_t>(i);
-            s.vote_next[votes] = s.table_head[slot];
-            s.table_head[slot] = static_cast<int32_t>(votes);
+            s.vote_next[votes] = bin.head;
+            bin.head = static_cast<int32_t>(votes);
             ++votes;
-            if (++s.table_count[slot] == static_cast<uint32_t>(options.min_cluster_votes)) {
-              s.clusters.push_back(static_cast<uint32_t>(slot));
-            }
+            if (++bin.count == static_cast<uint32_t>(options.min_cluster_votes)) s.clusters.push_back(static_cast<uint32_t>(slot));
+            max_count = std::max(max_count, bin.count);
           }
         }
       }
     }
   }
-  // Largest bins first; equal counts in key order so the result does not depend on hash layout.
-  std::sort(s.clusters.begin(), s.clusters.end(), [&](uint32_t a, uint32_t b) {
-    if (s.table_count[a] != s.table_count[b]) return s.table_count[a] > s.table_count[b];
-    return s.table_key[a] < s.table_key[b];
-  });
+  // Largest bins first (counting sort, O(clusters + n)); equal counts keep the order in which the bins
+  // reached min_cluster_votes, which depends on the input only, not on the hash layout.
+  s.count_start.assign(size_t{max_count} + 2, 0);
+  for (uint32_t slot : s.clusters) ++s.count_start[max_count - s.table[slot].count + 1];
+  for (size_t c = 1; c < s.count_start.size(); ++c) s.count_start[c] += s.count_start[c - 1];
+  s.ordered.resize(s.clusters.size());
+  for (uint32_t slot : s.clusters) s.ordered[s.count_start[max_count - s.table[slot].count]++] = slot;
 
   // ---- Verification, largest clusters first.
   s.in_best.assign(n, 0);
@@ -361,21 +400,24 @@ VerificationResult VerifyHoughAffine(std::span<const Keypoint> query, std::span<
   Affine2D best_fit;
   int best_votes = 0;
   int verified_clusters = 0;
-  for (uint32_t slot : s.clusters) {
+  for (uint32_t slot : s.ordered) {
     if (verified_clusters >= options.max_clusters_to_verify) break;
+    // Bins come in decreasing vote order: once they hold fewer votes than a fraction of the best verified
+    // inlier count, no later bin can be the peak of a better-supported pose.
+    if (best_verified && double(s.table[slot].count) < options.early_stop_fraction * double(s.best.size())) break;
+    // A bin whose members mostly already support the best fit is the same pose hypothesis again (each
+    // match votes into 16 neighbouring bins): skip it without counting it against the budget.
     s.members.clear();
     size_t already = 0;
-    for (int32_t v = s.table_head[slot]; v >= 0; v = s.vote_next[v]) {
+    for (int32_t v = s.table[slot].head; v >= 0; v = s.vote_next[v]) {
       s.members.push_back(s.vote_point[v]);
       already += s.in_best[s.vote_point[v]];
     }
-    // A bin whose members mostly already support the best fit is the same pose hypothesis again (each
-    // match votes into 16 neighbouring bins): skip it without counting it against the budget.
     if (have_fit && 2 * already > s.members.size()) continue;
     ++verified_clusters;
     std::sort(s.members.begin(), s.members.end());
     const int votes_here = static_cast<int>(s.members.size());
-    const double tolerance = options.initial_residual_bin_fraction * location_bin_size(ScaleBinOfKey(s.table_key[slot]));
+    const double tolerance = options.initial_residual_bin_fraction * location_bin_size(ScaleBinOfKey(s.table[slot].key));
     Affine2D fit;
     if (!VerifyCluster(p, s.members, tolerance, options, orientation_bin_rad, s.selected, s.previous, &fit)) continue;
     const bool verified = static_cast<int>(s.selected.size()) >= options.min_inliers && Plausible(fit, options);

@@ -67,7 +67,11 @@ struct HoughVerifyOptions {
                                         // (max(width, height) of the query region times the bin's scale), (0, 1]
   int min_cluster_votes = 3;           // a bin is verified when it holds at least this many matches, >= 3
                                        // (an affine needs 3 points)
-  int max_clusters_to_verify = 32;     // verify at most this many bins (largest first), >= 1
+  int max_clusters_to_verify = 32;     // verify at most this many bins (largest first), >= 1; bins that are
+                                       // mostly inliers of the best fit so far are skipped and not counted
+  double early_stop_fraction = 0.25;   // once a cluster is verified with K inliers, stop at the first bin with
+                                       // fewer than this * K votes: the peak bin of a pose supported by more
+                                       // than K matches holds a good share of them. [0, 1]; 0 = never stop early
   // --- Fit and outlier removal (Lowe 2004 sec. 7.4)
   double initial_residual_bin_fraction = 0.5;  // first tolerance, as a fraction of the cluster's location
                                                // bin (Lowe: half a bin), (0, 4]
