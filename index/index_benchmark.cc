@@ -408,9 +408,27 @@ int RunParis(const std::map<std::string, std::string>& flags) {
     const char* name;
     int rerank;
     bool qe;
+    double max_df;
+    bool sqrt_tf;
   };
-  for (const Setting s : {Setting{"tf-idf only", 0, false}, Setting{"re-rank R=100", 100, false},
-                          Setting{"re-rank R=200", 200, false}, Setting{"re-rank R=200 + QE", 200, true}}) {
+  idx.reset();
+  std::string opened_as;
+  for (const Setting s : {Setting{"tf-idf only", 0, false, 1.0, true}, Setting{"tf-idf, raw tf", 0, false, 1.0, false},
+                          Setting{"tf-idf, stop list df > 10%", 0, false, 0.1, true},
+                          Setting{"re-rank R=50", 50, false, 1.0, true}, Setting{"re-rank R=100", 100, false, 1.0, true},
+                          Setting{"re-rank R=200", 200, false, 1.0, true},
+                          Setting{"re-rank R=200 + QE", 200, true, 1.0, true},
+                          Setting{"re-rank R=200 + QE, stop list df > 10%", 200, true, 0.1, true}}) {
+    const std::string key = std::to_string(s.max_df) + (s.sqrt_tf ? "s" : "r");
+    if (key != opened_as) {
+      IndexOptions o;
+      o.num_threads = 1;
+      o.max_document_frequency = s.max_df;
+      o.sqrt_tf = s.sqrt_tf;
+      idx.reset();
+      idx = *ImageIndex::Open(dir.string(), o);
+      opened_as = key;
+    }
     std::vector<double> aps, quantize, score, verify, qe, totals;
     for (int rep = 0; rep < repeat; ++rep) {
       for (const Query& q : queries) {
