@@ -7,7 +7,8 @@
 //
 // Determinism. Every (query, word) dot product is computed by one fixed formula whatever the tile it
 // falls in: 8 partial sums (lane l holds dimensions l, l+8, l+16, ...) accumulated with fused
-// multiply-adds in increasing dimension order, then reduced as ((s0+s4)+(s1+s5)) + ((s2+s6)+(s3+s7)).
+// multiply-adds in increasing dimension order, then reduced as ((s0+s1)+(s2+s3)) + ((s4+s5)+(s6+s7))
+// (the order of a horizontal-add tree, which reduces four pairs at once in the vector path).
 // The AVX2 path (8-lane registers, 4 queries x 3 words per register tile) and the scalar path
 // (std::fma) therefore give bit-identical scores, and a query's nearest word does not depend on which
 // other queries share its batch or on the thread count.
@@ -30,7 +31,7 @@ namespace oxbow::vocab::internal {
 inline float DotScalar(const float* a, const float* b, int dim) {
   float lane[8] = {0, 0, 0, 0, 0, 0, 0, 0};
   for (int i = 0; i < dim; ++i) lane[i & 7] = std::fma(a[i], b[i], lane[i & 7]);
-  return ((lane[0] + lane[4]) + (lane[1] + lane[5])) + ((lane[2] + lane[6]) + (lane[3] + lane[7]));
+  return ((lane[0] + lane[1]) + (lane[2] + lane[3])) + ((lane[4] + lane[5]) + (lane[6] + lane[7]));
 }
 
 // Squared L2 distance |a - b|^2 (exact reporting; 8 lanes, same reduction order).
@@ -40,14 +41,22 @@ inline float SquaredL2Scalar(const float* a, const float* b, int dim) {
     const float d = a[i] - b[i];
     lane[i & 7] = std::fma(d, d, lane[i & 7]);
   }
-  return ((lane[0] + lane[4]) + (lane[1] + lane[5])) + ((lane[2] + lane[6]) + (lane[3] + lane[7]));
+  return ((lane[0] + lane[1]) + (lane[2] + lane[3])) + ((lane[4] + lane[5]) + (lane[6] + lane[7]));
 }
 
 #ifdef OXBOW_VOCAB_AVX2
+// Four 8-lane sums at once: lane i of the result is ((x0+x1)+(x2+x3)) + ((x4+x5)+(x6+x7)) of input i.
+inline __m128 HorizontalSum4(__m256 a, __m256 b, __m256 c, __m256 d) {
+  const __m256 ab = _mm256_hadd_ps(a, b);     // a01 a23 b01 b23 | a45 a67 b45 b67
+  const __m256 cd = _mm256_hadd_ps(c, d);
+  const __m256 abcd = _mm256_hadd_ps(ab, cd);  // a0123 b0123 c0123 d0123 | a4567 b4567 c4567 d4567
+  return _mm_add_ps(_mm256_castps256_ps128(abcd), _mm256_extractf128_ps(abcd, 1));
+}
+
 inline float HorizontalSum(__m256 v) {
-  const __m128 s = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps(v, 1));  // s_l = v_l + v_{l+4}
-  const __m128 h = _mm_hadd_ps(s, s);                                                     // (s0+s1, s2+s3, ..)
-  return _mm_cvtss_f32(_mm_hadd_ps(h, h));                                                 // (s0+s1)+(s2+s3)
+  const __m256 h = _mm256_hadd_ps(v, v);
+  const __m256 hh = _mm256_hadd_ps(h, h);  // (v0+v1)+(v2+v3) | (v4+v5)+(v6+v7)
+  return _mm_cvtss_f32(_mm_add_ss(_mm256_castps256_ps128(hh), _mm256_extractf128_ps(hh, 1)));
 }
 
 inline float SquaredL2Avx2(const float* a, const float* b, int dim) {
@@ -97,8 +106,15 @@ inline void ScoreTileAvx2(const float* const* queries, size_t qi, const float* w
       for (int b = 0; b < WN; ++b) acc[a][b] = _mm256_fmadd_ps(qv, wv[b], acc[a][b]);
     }
   }
-  for (int a = 0; a < QN; ++a)
-    for (int b = 0; b < WN; ++b) sink(qi + a, wj + b, norms[wj + b] - 2.0f * HorizontalSum(acc[a][b]));
+  const __m256 zero = _mm256_setzero_ps();
+  for (int b = 0; b < WN; ++b) {
+    const __m128 dots = HorizontalSum4(acc[0][b], QN > 1 ? acc[QN > 1 ? 1 : 0][b] : zero,
+                                       QN > 2 ? acc[QN > 2 ? 2 : 0][b] : zero, QN > 3 ? acc[QN > 3 ? 3 : 0][b] : zero);
+    const __m128 scores = _mm_sub_ps(_mm_set1_ps(norms[wj + b]), _mm_add_ps(dots, dots));
+    alignas(16) float out[4];
+    _mm_store_ps(out, scores);
+    for (int a = 0; a < QN; ++a) sink(qi + a, wj + b, out[a]);
+  }
 }
 
 template <int QN, typename Sink>
