@@ -38,7 +38,10 @@ class FeaturesIoTest : public ::testing::Test {
       file.features.keypoints.push_back({u(rng) * 640, u(rng) * 480, 1 + u(rng) * 10, u(rng) * 6.28f, u(rng), i % 5 - 1});
       float norm2 = 0;
       std::vector<float> d(kDescriptorDim);
-      for (float& v : d) norm2 += (v = u(rng)) * v;
+      for (float& v : d) {
+        v = u(rng);
+        norm2 += v * v;
+      }
       for (float& v : d) file.features.descriptors.push_back(v / std::sqrt(norm2));
     }
     file.extractor_fingerprint = 0x0123456789abcdefull;
