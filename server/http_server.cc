@@ -1,0 +1,543 @@
+#include "server/http_server.h"
+
+#include <httplib.h>
+
+#include <chrono>
+#include <condition_variable>
+#include <cstdio>
+#include <deque>
+#include <functional>
+#include <random>
+#include <regex>
+#include <sstream>
+#include <thread>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "api/errors.h"
+#include "api/json.h"
+#include "api/params.h"
+#include "sift/log.h"
+
+namespace oxbow::server {
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+using nlohmann::json;
+
+// What the log line and the metrics need to know about the request this thread is serving. httplib
+// handles a request start to finish on one worker thread (pre-routing handler, route handler, error
+// handler, logger), so a thread-local carries it; the logger resets it.
+struct RequestContext {
+  bool active = false;
+  std::string id;
+  Clock::time_point start;
+  std::string route = "unmatched";
+  std::string stages;     // "extract=12.1 quantize=0.4 ..." for the log line
+};
+thread_local RequestContext t_request;
+// Set by the shedding thread of BoundedTaskQueue: every request on this thread gets 503.
+thread_local bool t_shedding = false;
+
+std::string NewRequestId() {
+  thread_local std::mt19937_64 rng(std::random_device{}() ^
+                                   std::hash<std::thread::id>{}(std::this_thread::get_id()));
+  char buf[17];
+  std::snprintf(buf, sizeof buf, "%016llx", static_cast<unsigned long long>(rng()));
+  return buf;
+}
+
+bool IsSaneRequestId(const std::string& id) {
+  if (id.empty() || id.size() > 64) return false;
+  for (char c : id) {
+    if (!(std::isalnum(static_cast<unsigned char>(c)) || c == '.' || c == '_' || c == '-')) return false;
+  }
+  return true;
+}
+
+// A path safe to print on one log line (no control characters, bounded length).
+std::string LoggablePath(const std::string& path) {
+  std::string out;
+  for (size_t i = 0; i < path.size() && i < 200; ++i) {
+    const unsigned char c = static_cast<unsigned char>(path[i]);
+    out += (c < 0x20 || c == 0x7f) ? '?' : static_cast<char>(c);
+  }
+  if (path.size() > 200) out += "...";
+  return out;
+}
+
+void SendJson(httplib::Response& res, int status, const json& body) {
+  res.status = status;
+  res.set_content(body.dump() + "\n", "application/json");
+}
+
+void SendError(httplib::Response& res, const api::HttpError& error) {
+  if (error.status == 401) res.set_header("WWW-Authenticate", "Bearer");
+  SendJson(res, error.status, api::ErrorBody(error, t_request.id));
+}
+
+void SendError(httplib::Response& res, const Error& error) { SendError(res, api::ToHttpError(error)); }
+
+// Stage timings -> the log context and a Server-Timing header (RFC: W3C Server Timing).
+void RecordStages(httplib::Response& res, const std::vector<std::pair<const char*, double>>& stages) {
+  std::string header;
+  std::string log;
+  for (const auto& [name, ms] : stages) {
+    char buf[64];
+    std::snprintf(buf, sizeof buf, "%s;dur=%.2f", name, ms);
+    header += (header.empty() ? "" : ", ") + std::string(buf);
+    std::snprintf(buf, sizeof buf, "%s=%.2f", name, ms);
+    log += (log.empty() ? "" : " ") + std::string(buf);
+  }
+  if (!header.empty()) res.set_header("Server-Timing", header);
+  t_request.stages = log;
+}
+
+// Query-string parameters plus multipart text fields (everything but the named file fields).
+api::Params CollectParams(const httplib::Request& req, const std::vector<std::string>& file_fields) {
+  api::Params params;
+  for (const auto& [name, value] : req.params) params.emplace(name, value);  // first value wins
+  for (const auto& [name, part] : req.files) {
+    if (std::find(file_fields.begin(), file_fields.end(), name) != file_fields.end()) continue;
+    params.emplace(name, part.content);
+  }
+  return params;
+}
+
+// The image of a request: the multipart part `field` (or `alt_field`), else the raw body. Refuses
+// bodies that are clearly not an image (JSON, form-urlencoded, text) with 415, and empty ones with 400.
+Result<std::string_view> RequestImage(const httplib::Request& req, const std::string& field,
+                                      const std::string& alt_field, std::string* filename) {
+  if (req.is_multipart_form_data()) {
+    for (const auto* name : {&field, &alt_field}) {
+      auto it = req.files.find(*name);
+      if (it != req.files.end()) {
+        if (it->second.content.empty()) {
+          return Fail(ErrorCode::kInvalidImage, "multipart part '" + *name + "' is empty");
+        }
+        *filename = it->second.filename;
+        return std::string_view(it->second.content);
+      }
+    }
+    return Fail(ErrorCode::kInvalidArgument, "multipart request without a '" + field + "' part holding the image");
+  }
+  const std::string type = req.get_header_value("Content-Type");
+  if (type.rfind("application/json", 0) == 0 || type.rfind("application/x-www-form-urlencoded", 0) == 0 ||
+      type.rfind("text/", 0) == 0) {
+    return Fail(ErrorCode::kUnsupportedFormat,
+                "Content-Type '" + type + "' is not an image: send the image bytes (e.g. curl --data-binary @photo.jpg "
+                "-H 'Content-Type: image/jpeg') or multipart/form-data with a '" + field + "' part");
+  }
+  if (req.body.empty()) return Fail(ErrorCode::kInvalidImage, "empty request body: send the image bytes");
+  return std::string_view(req.body);
+}
+
+std::span<const uint8_t> Bytes(std::string_view text) {
+  return {reinterpret_cast<const uint8_t*>(text.data()), text.size()};
+}
+
+// ---- Bounded task queue --------------------------------------------------------------------------
+
+// httplib's default ThreadPool queues without bound. This one keeps at most `max_queued` connections
+// waiting for `threads` workers; an overflowing connection goes to one shedding thread, which answers
+// its request 503 without reading the body (t_shedding) and closes it. httplib 0.11's enqueue cannot
+// refuse a job (the job owns the socket and must run to close it), hence shedding instead of dropping.
+class BoundedTaskQueue : public httplib::TaskQueue {
+ public:
+  BoundedTaskQueue(int threads, int max_queued) : max_queued_(static_cast<size_t>(max_queued)) {
+    for (int i = 0; i < threads; ++i) workers_.emplace_back([this] { Work(&jobs_, false); });
+    shedder_ = std::thread([this] { Work(&shed_jobs_, true); });
+  }
+  ~BoundedTaskQueue() override = default;
+
+  void enqueue(std::function<void()> fn) override {
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      if (jobs_.size() < max_queued_) {
+        jobs_.push_back(std::move(fn));
+      } else {
+        shed_jobs_.push_back(std::move(fn));
+      }
+    }
+    cond_.notify_all();
+  }
+
+  void shutdown() override {
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      shutdown_ = true;
+    }
+    cond_.notify_all();
+    for (auto& t : workers_) t.join();
+    shedder_.join();
+  }
+
+ private:
+  void Work(std::deque<std::function<void()>>* queue, bool shedding) {
+    t_shedding = shedding;
+    for (;;) {
+      std::function<void()> fn;
+      {
+        std::unique_lock<std::mutex> lock(mutex_);
+        cond_.wait(lock, [&] { return !queue->empty() || shutdown_; });
+        if (queue->empty()) return;  // shutdown_ and drained: queued connections are served first
+        fn = std::move(queue->front());
+        queue->pop_front();
+      }
+      fn();
+    }
+  }
+
+  const size_t max_queued_;
+  std::mutex mutex_;                              // guards jobs_, shed_jobs_, shutdown_
+  std::condition_variable cond_;
+  std::deque<std::function<void()>> jobs_;
+  std::deque<std::function<void()>> shed_jobs_;
+  bool shutdown_ = false;
+  std::vector<std::thread> workers_;
+  std::thread shedder_;
+};
+
+}  // namespace
+
+bool ConstantTimeEquals(const std::string& given, const std::string& expected) {
+  // Compare every byte of the longer string so the time does not reveal the matching prefix.
+  const size_t n = std::max(given.size(), expected.size());
+  unsigned char diff = given.size() == expected.size() ? 0 : 1;
+  for (size_t i = 0; i < n; ++i) {
+    const unsigned char a = i < given.size() ? static_cast<unsigned char>(given[i]) : 0;
+    const unsigned char b = i < expected.size() ? static_cast<unsigned char>(expected[i]) : 0;
+    diff |= static_cast<unsigned char>(a ^ b);
+  }
+  return diff == 0;
+}
+
+std::optional<std::string> HttpServerOptions::Check() const {
+  if (host.empty()) return "host must not be empty";
+  if (port < 0 || port > 65535) return "port must be in [0, 65535]";
+  if (threads < 1 || threads > 1024) return "threads must be in [1, 1024]";
+  if (max_queued_connections < 1 || max_queued_connections > 100000) return "max_queued_connections must be in [1, 100000]";
+  if (max_body_bytes < 1 || max_body_bytes > (1ull << 32)) return "max_body_bytes must be in [1, 2^32]";
+  if (read_timeout_s < 1 || read_timeout_s > 3600) return "read_timeout_s must be in [1, 3600]";
+  if (write_timeout_s < 1 || write_timeout_s > 3600) return "write_timeout_s must be in [1, 3600]";
+  if (keep_alive_timeout_s < 1 || keep_alive_timeout_s > 3600) return "keep_alive_timeout_s must be in [1, 3600]";
+  if (keep_alive_max_requests < 1 || keep_alive_max_requests > 100000) return "keep_alive_max_requests must be in [1, 100000]";
+  return std::nullopt;
+}
+
+// Route patterns with their methods, for 405 answers and the route label of unmatched requests.
+struct HttpServer::RouteTable {
+  struct Route {
+    std::string label;     // "/v1/images/{id}"
+    std::regex pattern;    // full-path match
+    std::string methods;   // "GET, DELETE"
+  };
+  std::vector<Route> routes;
+
+  const Route* Find(const std::string& path) const {
+    for (const auto& r : routes) {
+      if (std::regex_match(path, r.pattern)) return &r;
+    }
+    return nullptr;
+  }
+};
+
+namespace {
+const HttpServer::RouteTable& Routes() {
+  static const HttpServer::RouteTable table = {{
+      {"/", std::regex("/"), "GET"},
+      {"/v1", std::regex("/v1/?"), "GET"},
+      {"/healthz", std::regex("/healthz"), "GET"},
+      {"/readyz", std::regex("/readyz"), "GET"},
+      {"/metrics", std::regex("/metrics"), "GET"},
+      {"/v1/stats", std::regex("/v1/stats"), "GET"},
+      {"/v1/images", std::regex("/v1/images"), "GET, POST"},
+      {"/v1/images/{id}/similar", std::regex("/v1/images/.+/similar"), "GET"},
+      {"/v1/images/{id}", std::regex("/v1/images/.+"), "GET, DELETE"},
+      {"/v1/search", std::regex("/v1/search"), "POST"},
+      {"/v1/match", std::regex("/v1/match"), "POST"},
+  }};
+  return table;
+}
+}  // namespace
+
+HttpServer::HttpServer(const HttpServerOptions& options)
+    : options_(options), http_(std::make_unique<httplib::Server>()) {
+  const int threads = options_.threads;
+  const int max_queued = options_.max_queued_connections;
+  http_->new_task_queue = [threads, max_queued] { return new BoundedTaskQueue(threads, max_queued); };
+  http_->set_payload_max_length(static_cast<size_t>(options_.max_body_bytes));
+  http_->set_read_timeout(options_.read_timeout_s, 0);
+  http_->set_write_timeout(options_.write_timeout_s, 0);
+  http_->set_keep_alive_timeout(options_.keep_alive_timeout_s);
+  http_->set_keep_alive_max_count(static_cast<size_t>(options_.keep_alive_max_requests));
+  RegisterRoutes();
+}
+
+HttpServer::~HttpServer() = default;
+
+std::shared_ptr<api::Service> HttpServer::service() const {
+  std::lock_guard<std::mutex> lock(service_mutex_);
+  return service_;
+}
+
+void HttpServer::SetService(std::shared_ptr<api::Service> service) {
+  std::lock_guard<std::mutex> lock(service_mutex_);
+  service_ = std::move(service);
+}
+
+bool HttpServer::ready() const { return service() != nullptr && !shutting_down_.load(); }
+
+Result<int> HttpServer::Bind() {
+  if (auto message = options_.Check()) return Fail(ErrorCode::kInvalidArgument, "server options: " + *message);
+  if (options_.port == 0) {
+    port_ = http_->bind_to_any_port(options_.host);
+    if (port_ <= 0) return Fail(ErrorCode::kIoError, "cannot bind " + options_.host + " on any port");
+  } else {
+    if (!http_->bind_to_port(options_.host, options_.port)) {
+      return Fail(ErrorCode::kIoError, "cannot bind " + options_.host + ":" + std::to_string(options_.port) +
+                                           " (in use, or not an address of this machine?)");
+    }
+    port_ = options_.port;
+  }
+  return port_;
+}
+
+void HttpServer::Run() { http_->listen_after_bind(); }
+
+void HttpServer::Shutdown() {
+  shutting_down_.store(true);
+  http_->stop();
+}
+
+void HttpServer::RegisterRoutes() {
+  auto& http = *http_;
+
+  // Every request starts here (after its headers are read, before its body is).
+  http.set_pre_routing_handler([this](const httplib::Request& req, httplib::Response& res) {
+    t_request = RequestContext{};
+    t_request.active = true;
+    t_request.start = Clock::now();
+    const std::string given = req.get_header_value("X-Request-Id");
+    t_request.id = IsSaneRequestId(given) ? given : NewRequestId();
+    res.set_header("X-Request-Id", t_request.id);
+    if (const auto* route = Routes().Find(req.path)) t_request.route = route->label;
+    if (t_shedding) {
+      res.set_header("Retry-After", "1");
+      res.set_header("Connection", "close");
+      SendError(res, api::Unavailable("server busy: " + std::to_string(options_.max_queued_connections) +
+                                      " connections already wait for a worker; retry later"));
+      return httplib::Server::HandlerResponse::Handled;
+    }
+    return httplib::Server::HandlerResponse::Unhandled;
+  });
+
+  // Responses with an error status that no handler filled (unknown route, payload too large, malformed
+  // request) get the JSON error shape; an unknown method on a known route becomes 405.
+  http.set_error_handler(httplib::Server::HandlerWithResponse([this](const httplib::Request& req, httplib::Response& res) {
+    if (!res.body.empty()) return httplib::Server::HandlerResponse::Unhandled;
+    if (res.status == 404) {
+      if (const auto* route = Routes().Find(req.path)) {
+        res.set_header("Allow", route->methods);
+        SendError(res, api::MethodNotAllowed(req.method, req.path, route->methods));
+      } else {
+        SendError(res, api::RouteNotFound(req.method, LoggablePath(req.path)));
+      }
+    } else if (res.status == 413) {
+      SendError(res, api::HttpError{413, "payload_too_large", "request body over the server's limit of " +
+                                                                  std::to_string(options_.max_body_bytes) +
+                                                                  " bytes (oxbow serve --max-upload-mb)"});
+    } else {
+      SendError(res, api::HttpError{res.status, res.status >= 500 ? "internal" : "bad_request",
+                                    "the HTTP request could not be processed (status " + std::to_string(res.status) + ")"});
+    }
+    return httplib::Server::HandlerResponse::Handled;
+  }));
+
+  http.set_exception_handler([](const httplib::Request&, httplib::Response& res, std::exception_ptr ep) {
+    std::string what = "unknown exception";
+    try {
+      if (ep) std::rethrow_exception(ep);
+    } catch (const std::exception& e) {
+      what = e.what();
+    } catch (...) {
+    }
+    OXBOW_LOG(kError) << "http " << t_request.id << " internal error: " << what;
+    SendError(res, api::HttpError{500, "internal", "internal error: " + what});
+  });
+
+  http.set_logger([this](const httplib::Request& req, const httplib::Response& res) {
+    const double seconds = t_request.active ? std::chrono::duration<double>(Clock::now() - t_request.start).count() : 0;
+    const std::string route = t_request.active ? t_request.route : "unmatched";
+    metrics_.Observe(route, req.method, res.status, seconds);
+    OXBOW_LOG(kInfo) << "http " << (t_request.active ? t_request.id : "-") << " " << req.method << " "
+                     << LoggablePath(req.path) << " route=" << route << " status=" << res.status << " ms="
+                     << seconds * 1000 << (t_request.stages.empty() ? "" : " ") << t_request.stages;
+    t_request = RequestContext{};
+  });
+
+  // Wraps a route body: catches everything, answers 503 while the index loads, checks the API key.
+  enum class Access { kOpen, kWrite };
+  auto route = [this](Access access, std::function<void(api::Service&, const httplib::Request&, httplib::Response&)> body) {
+    return [this, access, body = std::move(body)](const httplib::Request& req, httplib::Response& res) {
+      try {
+        if (access == Access::kWrite && !options_.api_key.empty()) {
+          std::string key = req.get_header_value("X-API-Key");
+          const std::string auth = req.get_header_value("Authorization");
+          if (key.empty() && auth.rfind("Bearer ", 0) == 0) key = auth.substr(7);
+          if (key.empty()) {
+            SendError(res, Error{ErrorCode::kUnauthenticated,
+                                 "this route needs the API key: header 'Authorization: Bearer KEY' or 'X-API-Key: KEY'"});
+            return;
+          }
+          if (!ConstantTimeEquals(key, options_.api_key)) {
+            SendError(res, api::PermissionDenied("wrong API key"));
+            return;
+          }
+        }
+        auto service = this->service();
+        if (!service) {
+          res.set_header("Retry-After", "5");
+          SendError(res, api::Unavailable(shutting_down_ ? "shutting down" : "the index is still loading; retry shortly"));
+          return;
+        }
+        body(*service, req, res);
+      } catch (const std::exception& e) {
+        OXBOW_LOG(kError) << "http " << t_request.id << " internal error: " << e.what();
+        SendError(res, api::HttpError{500, "internal", std::string("internal error: ") + e.what()});
+      } catch (...) {
+        SendError(res, api::HttpError{500, "internal", "internal error"});
+      }
+    };
+  };
+
+  // ---- Process and index status
+  http.Get("/healthz", [](const httplib::Request&, httplib::Response& res) { SendJson(res, 200, {{"status", "ok"}}); });
+  http.Get("/readyz", [this](const httplib::Request&, httplib::Response& res) {
+    if (shutting_down_) {
+      SendError(res, api::Unavailable("shutting down"));
+    } else if (!service()) {
+      SendError(res, api::Unavailable("the index is still loading"));
+    } else {
+      SendJson(res, 200, {{"status", "ready"}});
+    }
+  });
+  auto describe = [](const httplib::Request&, httplib::Response& res) {
+    json routes = json::array();
+    for (const auto& r : Routes().routes) routes.push_back({{"route", r.label}, {"methods", r.methods}});
+    SendJson(res, 200, {{"service", "oxbow"}, {"api_version", "v1"}, {"routes", routes}});
+  };
+  http.Get("/", describe);
+  http.Get(R"(/v1/?)", describe);
+  http.Get("/metrics", [this](const httplib::Request&, httplib::Response& res) {
+    std::vector<api::Gauge> gauges = {
+        {"oxbow_ready", "1 when the index is loaded and the server is not shutting down.", ready() ? 1.0 : 0.0},
+        {"oxbow_process_resident_memory_bytes", "Resident memory of the process.",
+         static_cast<double>(api::ResidentMemoryBytes())}};
+    if (auto s = service()) {
+      const auto stats = s->Stats();
+      gauges.push_back({"oxbow_index_images", "Live images in the index.", static_cast<double>(stats.index.num_images)});
+      gauges.push_back({"oxbow_index_features", "Indexed features.", static_cast<double>(stats.index.num_features)});
+      gauges.push_back({"oxbow_index_memory_bytes", "In-memory index (postings + geometry + tables).",
+                        static_cast<double>(stats.index.postings_bytes + stats.index.geometry_bytes + stats.index.other_bytes)});
+      gauges.push_back({"oxbow_vocabulary_words", "Visual words.", static_cast<double>(stats.index.vocabulary_size)});
+      gauges.push_back({"oxbow_extractions_in_flight", "Image decodes + extractions running now.",
+                        static_cast<double>(stats.extractions_in_flight)});
+      gauges.push_back({"oxbow_uptime_seconds", "Seconds since the index was opened.", stats.uptime_s});
+    }
+    res.status = 200;
+    res.set_content(metrics_.Render(gauges), "text/plain; version=0.0.4");
+  });
+  http.Get("/v1/stats", route(Access::kOpen, [](api::Service& s, const httplib::Request&, httplib::Response& res) {
+             SendJson(res, 200, api::StatsToJson(s.Stats()));
+           }));
+
+  // ---- Images
+  http.Post("/v1/images", route(Access::kWrite, [](api::Service& s, const httplib::Request& req, httplib::Response& res) {
+              auto params = api::ParseAddParams(CollectParams(req, {"file", "image"}));
+              if (!params) return SendError(res, params.error());
+              std::string filename;
+              auto image = RequestImage(req, "file", "image", &filename);
+              if (!image) return SendError(res, image.error());
+              api::AddImageRequest add;
+              add.id = params->id;
+              add.image = Bytes(*image);
+              add.metadata_json = params->metadata_json;
+              add.replace = params->replace;
+              add.source_name = filename.empty() ? "http" : "http:" + filename;
+              auto added = s.AddImage(add);
+              if (!added) return SendError(res, added.error());
+              RecordStages(res, {{"decode_extract", added->decode_extract_ms}, {"add", added->add_ms}});
+              res.set_header("Location", "/v1/images/" + added->record.id);
+              SendJson(res, added->replaced ? 200 : 201, api::AddImageResponseToJson(*added));
+            }));
+  http.Get("/v1/images", route(Access::kOpen, [](api::Service& s, const httplib::Request& req, httplib::Response& res) {
+             auto params = api::ParseListParams(CollectParams(req, {}));
+             if (!params) return SendError(res, params.error());
+             auto list = s.ListImages(params->offset, params->limit);
+             if (!list) return SendError(res, list.error());
+             SendJson(res, 200, api::ListResponseToJson(*list));
+           }));
+  http.Get(R"(/v1/images/(.+)/similar)",
+           route(Access::kOpen, [](api::Service& s, const httplib::Request& req, httplib::Response& res) {
+             auto options = api::ParseQueryParams(CollectParams(req, {}), s.options().default_query);
+             if (!options) return SendError(res, options.error());
+             auto found = s.SearchSimilar(req.matches[1], *options);
+             if (!found) return SendError(res, found.error());
+             const auto& t = found->index.timings;
+             RecordStages(res, {{"quantize", t.quantize_ms}, {"score", t.score_ms}, {"verify", t.verify_ms}, {"qe", t.qe_ms}});
+             SendJson(res, 200, api::SearchResponseToJson(*found));
+           }));
+  http.Get(R"(/v1/images/(.+))", route(Access::kOpen, [](api::Service& s, const httplib::Request& req, httplib::Response& res) {
+             auto record = s.GetImage(req.matches[1]);
+             if (!record) return SendError(res, record.error());
+             SendJson(res, 200, api::ImageRecordToJson(*record));
+           }));
+  http.Delete(R"(/v1/images/(.+))",
+              route(Access::kWrite, [](api::Service& s, const httplib::Request& req, httplib::Response& res) {
+                const std::string id = req.matches[1];
+                if (auto removed = s.DeleteImage(id); !removed) return SendError(res, removed.error());
+                SendJson(res, 200, {{"id", id}, {"deleted", true}});
+              }));
+
+  // ---- Search and match
+  http.Post("/v1/search", route(Access::kOpen, [](api::Service& s, const httplib::Request& req, httplib::Response& res) {
+              auto options = api::ParseQueryParams(CollectParams(req, {"file", "image"}), s.options().default_query);
+              if (!options) return SendError(res, options.error());
+              std::string filename;
+              auto image = RequestImage(req, "file", "image", &filename);
+              if (!image) return SendError(res, image.error());
+              auto found = s.Search(Bytes(*image), *options);
+              if (!found) return SendError(res, found.error());
+              const auto& t = found->index.timings;
+              RecordStages(res, {{"decode_extract", found->decode_extract_ms}, {"quantize", t.quantize_ms},
+                                 {"score", t.score_ms}, {"verify", t.verify_ms}, {"qe", t.qe_ms}});
+              SendJson(res, 200, api::SearchResponseToJson(*found));
+            }));
+  http.Post("/v1/match", route(Access::kOpen, [](api::Service& s, const httplib::Request& req, httplib::Response& res) {
+              if (!req.is_multipart_form_data()) {
+                return SendError(res, Error{ErrorCode::kUnsupportedFormat,
+                                            "POST /v1/match takes multipart/form-data with image parts 'a' and 'b'"});
+              }
+              auto params = api::ParseMatchParams(CollectParams(req, {"a", "b"}));
+              if (!params) return SendError(res, params.error());
+              std::string name_a, name_b;
+              auto a = RequestImage(req, "a", "a", &name_a);
+              if (!a) return SendError(res, a.error());
+              auto b = RequestImage(req, "b", "b", &name_b);
+              if (!b) return SendError(res, b.error());
+              api::PairMatchOptions options;
+              options.model = params->model;
+              options.match = params->match;
+              auto matched = s.Match(Bytes(*a), Bytes(*b), options);
+              if (!matched) return SendError(res, matched.error());
+              RecordStages(res, {{"decode_extract_a", matched->decode_extract_a_ms},
+                                 {"decode_extract_b", matched->decode_extract_b_ms},
+                                 {"match", matched->match.match_ms}, {"verify", matched->match.verify_ms}});
+              SendJson(res, 200, api::MatchResponseToJson(*matched));
+            }));
+}
+
+}  // namespace oxbow::server

@@ -1,0 +1,105 @@
+// The HTTP JSON server: cpp-httplib routes over api::Service (see the README's HTTP API section for
+// every route, parameter and response).
+//
+// Behaviour:
+//  - Requests are handled by `threads` workers fed from a bounded queue of accepted connections. When
+//    `max_queued_connections` connections already wait, a new one is answered 503 (JSON, Retry-After)
+//    by a separate shedding thread instead of queueing without bound.
+//  - The index is opened in the background (SetService); until then /healthz answers 200 and /readyz
+//    and the /v1 routes answer 503, so a supervisor sees the process alive while a large index loads.
+//  - Searches never wait for writes (ImageIndex snapshots); this class adds no lock around the index.
+//  - Every response to an error has the body {"error": {"code", "message", "request_id"}}, including
+//    unknown routes (404), wrong methods (405), oversized bodies (413) and exceptions (500).
+//  - Every request gets an id (the client's X-Request-Id when it is 1..64 of [A-Za-z0-9._-], else a new
+//    random one), echoed in the X-Request-Id response header, and one log line (sift/log.h):
+//      http <id> <method> <path> route=<pattern> status=<code> ms=<latency> [stage timings]
+//  - Optional API key: POST and DELETE on /v1/images need `Authorization: Bearer KEY` or `X-API-Key: KEY`
+//    (compared in constant time); missing -> 401, wrong -> 403. Reads and searches are open.
+//  - Shutdown() (from the SIGTERM/SIGINT handler) stops accepting, lets in-flight requests finish, and
+//    returns from Run(); the index's state is durable after every acknowledged write anyway.
+//
+// Thread safety: SetService, Shutdown, port and ready may be called from any thread; Run from one.
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+
+#include "api/metrics.h"
+#include "api/service.h"
+#include "sift/error.h"
+
+namespace httplib {
+class Server;
+}
+
+namespace oxbow::server {
+
+struct HttpServerOptions {
+  // Address to bind. The loopback default keeps the server private; use 0.0.0.0 to expose it
+  // (then set an API key).
+  std::string host = "127.0.0.1";
+  // TCP port, [0, 65535]; 0 picks a free port (Bind returns it).
+  int port = 8080;
+  // Worker threads serving connections (each handles one request at a time), [1, 1024].
+  int threads = 8;
+  // Accepted connections waiting for a worker at most; beyond it new connections get 503. [1, 100000].
+  int max_queued_connections = 64;
+  // When non-empty, POST/DELETE /v1/images require this key (see the file comment).
+  std::string api_key;
+  // Largest request body, bytes (multipart included); over it -> 413. [1, 2^32].
+  uint64_t max_body_bytes = 32ull << 20;
+  // Socket read / write timeouts per operation, seconds, [1, 3600]: a client that stops sending or
+  // reading for this long is disconnected.
+  int read_timeout_s = 30;
+  int write_timeout_s = 30;
+  // Idle keep-alive connections are closed after this many seconds, [1, 3600]; and after
+  // keep_alive_max_requests requests, [1, 100000].
+  int keep_alive_timeout_s = 5;
+  int keep_alive_max_requests = 1000;
+
+  std::optional<std::string> Check() const;
+};
+
+class HttpServer {
+ public:
+  explicit HttpServer(const HttpServerOptions& options);
+  ~HttpServer();
+  HttpServer(const HttpServer&) = delete;
+  HttpServer& operator=(const HttpServer&) = delete;
+
+  // Binds the listening socket; returns the bound port. kInvalidArgument for bad options, kIoError
+  // when the address cannot be bound.
+  [[nodiscard]] Result<int> Bind();
+  // Serves until Shutdown(); returns after in-flight requests finished. Call after Bind().
+  void Run();
+  // Stops accepting and makes Run() return once in-flight requests are done. Idempotent.
+  void Shutdown();
+
+  // Makes the service available to the routes (the index finished loading).
+  void SetService(std::shared_ptr<api::Service> service);
+  bool ready() const;
+  int port() const { return port_; }
+
+  struct RouteTable;
+
+ private:
+  void RegisterRoutes();
+  std::shared_ptr<api::Service> service() const;
+
+  HttpServerOptions options_;
+  std::unique_ptr<httplib::Server> http_;
+  api::Metrics metrics_;
+  mutable std::mutex service_mutex_;           // guards service_ (pointer copy only)
+  std::shared_ptr<api::Service> service_;
+  std::atomic<bool> shutting_down_{false};
+  int port_ = 0;
+};
+
+// True when `given` equals `expected`; the time taken depends only on their lengths.
+bool ConstantTimeEquals(const std::string& given, const std::string& expected);
+
+}  // namespace oxbow::server

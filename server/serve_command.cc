@@ -1,0 +1,174 @@
+// `oxbow serve`: the HTTP JSON server over an index (server/http_server.h, api/service.h).
+#include <pthread.h>
+#include <signal.h>
+
+#include <cstdio>
+#include <memory>
+#include <optional>
+#include <string>
+#include <thread>
+
+#include "api/service.h"
+#include "server/cli.h"
+#include "server/http_server.h"
+#include "sift/log.h"
+
+namespace oxbow::cli {
+namespace {
+
+struct ServeFlags {
+  std::string index_dir;
+  std::string vocab_path;
+  server::HttpServerOptions http;
+  api::ServiceOptions service;
+  double max_upload_mb = 32;
+  double max_megapixels = 40;
+  int max_image_side = 1600;
+  int index_threads = 0;
+};
+
+void Serve(const ServeFlags& flags) {
+  server::HttpServerOptions http = flags.http;
+  api::ServiceOptions service_options = flags.service;
+  if (!(flags.max_upload_mb > 0 && flags.max_upload_mb <= 4096)) {
+    throw CommandError(2, "--max-upload-mb must be in (0, 4096]");
+  }
+  if (!(flags.max_megapixels > 0 && flags.max_megapixels <= 10000)) {
+    throw CommandError(2, "--max-megapixels must be in (0, 10000]");
+  }
+  http.max_body_bytes = static_cast<uint64_t>(flags.max_upload_mb * 1024 * 1024);
+  service_options.max_image_bytes = http.max_body_bytes;
+  service_options.max_pixels = static_cast<uint64_t>(flags.max_megapixels * 1e6);
+  service_options.max_image_side_px = flags.max_image_side > 0 ? std::optional<int>(flags.max_image_side) : std::nullopt;
+  if (auto message = http.Check()) throw CommandError(2, *message);
+  if (auto message = service_options.Check()) throw CommandError(2, *message);
+  if (http.host != "127.0.0.1" && http.host != "localhost" && http.host != "::1" && http.api_key.empty()) {
+    OXBOW_LOG(kWarning) << "serving on " << http.host << " without --api-key: anyone who can reach it may add and delete images";
+  }
+
+  // SIGINT/SIGTERM are handled by one thread (sigwait) so that no handler runs on a worker mid-request.
+  sigset_t signals;
+  sigemptyset(&signals);
+  sigaddset(&signals, SIGINT);
+  sigaddset(&signals, SIGTERM);
+  pthread_sigmask(SIG_BLOCK, &signals, nullptr);  // inherited by every thread started below
+
+  server::HttpServer server(http);
+  const int port = ValueOrExit(server.Bind());
+  // Tests and scripts parse this line for the port (it is printed once the socket accepts connections).
+  std::printf("listening on http://%s:%d\n", http.host.c_str(), port);
+  std::fflush(stdout);
+  OXBOW_LOG(kInfo) << "listening on http://" << http.host << ":" << port << " (" << http.threads << " workers, queue "
+                   << http.max_queued_connections << ", max body " << http.max_body_bytes << " bytes"
+                   << (http.api_key.empty() ? "" : ", API key required for writes") << ")";
+
+  std::optional<Error> load_error;
+  std::thread loader([&] {
+    index::IndexOptions index_options;
+    index_options.num_threads = flags.index_threads;
+    const auto start = std::chrono::steady_clock::now();
+    auto service = api::Service::Open(flags.index_dir, flags.vocab_path.empty() ? std::nullopt
+                                                                                : std::optional<std::string>(flags.vocab_path),
+                                      service_options, index_options);
+    if (!service) {
+      load_error = service.error();
+      OXBOW_LOG(kError) << "cannot open the index: " << service.error().ToString();
+      server.Shutdown();
+      return;
+    }
+    const auto stats = (*service)->Stats();
+    OXBOW_LOG(kInfo) << "index " << flags.index_dir << " ready: " << stats.index.num_images << " images, "
+                     << stats.index.num_features << " features, " << stats.index.vocabulary_size << " words, loaded in "
+                     << std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() << " s";
+    server.SetService(std::shared_ptr<api::Service>(std::move(*service)));
+  });
+
+  std::thread signal_waiter([&] {
+    int signal_number = 0;
+    sigwait(&signals, &signal_number);
+    OXBOW_LOG(kInfo) << "received " << (signal_number == SIGINT ? "SIGINT" : "SIGTERM")
+                     << ": no new connections, finishing in-flight requests";
+    server.Shutdown();
+  });
+
+  server.Run();  // returns after Shutdown(), once in-flight requests are done
+  loader.join();
+  // Wake the signal thread if the server stopped for another reason (index failed to load).
+  pthread_kill(signal_waiter.native_handle(), SIGTERM);
+  signal_waiter.join();
+  if (load_error) throw CommandError(*load_error);
+  OXBOW_LOG(kInfo) << "stopped";
+}
+
+void SetUpServe(CLI::App& app) {
+  auto flags = std::make_shared<ServeFlags>();
+  CLI::App* cmd = app.add_subcommand(
+      "serve",
+      "Serve an index over HTTP (JSON API under /v1; see the README).\n"
+      "  oxbow serve --index idx --vocab vocab.oxvoc        # creates idx if it holds no index yet\n"
+      "  curl -s --data-binary @photo.jpg 'http://127.0.0.1:8080/v1/search?top_k=5'\n"
+      "Prints 'listening on http://HOST:PORT' on stdout once bound. SIGINT/SIGTERM stop it gracefully.");
+  cmd->add_option("--index", flags->index_dir, "index folder (created when empty and --vocab is given)")->required();
+  cmd->add_option("--vocab", flags->vocab_path, "vocabulary file; needed only to create a new index")
+      ->check(CLI::ExistingFile);
+  cmd->add_option("--host", flags->http.host, "address to bind (loopback by default; 0.0.0.0 exposes it)")
+      ->capture_default_str();
+  cmd->add_option("--port", flags->http.port, "TCP port; 0 picks a free one (printed)")
+      ->capture_default_str()
+      ->check(CLI::Range(0, 65535));
+  cmd->add_option("--threads", flags->http.threads, "HTTP worker threads (concurrent requests)")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 1024));
+  cmd->add_option("--queue", flags->http.max_queued_connections,
+                  "connections waiting for a worker at most; beyond it new ones get 503")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 100000));
+  cmd->add_option("--api-key", flags->http.api_key,
+                  "require this key for POST/DELETE /v1/images (Authorization: Bearer KEY or X-API-Key: KEY); "
+                  "also read from $OXBOW_API_KEY")
+      ->envname("OXBOW_API_KEY");
+  cmd->add_option("--max-upload-mb", flags->max_upload_mb, "largest request body and image file, MiB (413 above)")
+      ->capture_default_str();
+  cmd->add_option("--max-megapixels", flags->max_megapixels,
+                  "largest declared image size, megapixels, checked before decoding (413 above)")
+      ->capture_default_str();
+  cmd->add_option("--max-image-side", flags->max_image_side,
+                  "downscale images whose longest side exceeds this many pixels before extraction; 0 = never")
+      ->capture_default_str()
+      ->check(CLI::Range(0, 100000));
+  cmd->add_option("--extractions", flags->service.max_concurrent_extractions,
+                  "decode+extract operations at once (bounds memory); 0 = CPU cores")
+      ->capture_default_str()
+      ->check(CLI::Range(0, 1024));
+  cmd->add_option("--extraction-wait-ms", flags->service.extraction_wait_ms,
+                  "how long a request waits for an extraction slot before 503")
+      ->capture_default_str()
+      ->check(CLI::Range(0, 600000));
+  cmd->add_option("--threads-per-request", flags->service.threads_per_request,
+                  "threads inside one extraction/match; 1 favours throughput, 0 = all cores (latency)")
+      ->capture_default_str()
+      ->check(CLI::Range(0, 256));
+  cmd->add_option("--index-threads", flags->index_threads, "threads for loading the index and re-ranking; 0 = all cores")
+      ->capture_default_str()
+      ->check(CLI::Range(0, 256));
+  cmd->add_option("--read-timeout-s", flags->http.read_timeout_s, "socket read timeout, seconds")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 3600));
+  cmd->add_option("--write-timeout-s", flags->http.write_timeout_s, "socket write timeout, seconds")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 3600));
+  cmd->add_option("--top-k", flags->service.default_query.top_k, "default top_k of searches")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 10000));
+  cmd->add_option("--rerank", flags->service.default_query.rerank_depth,
+                  "default spatial re-ranking depth of searches (0 = off)")
+      ->capture_default_str()
+      ->check(CLI::Range(0, 10000));
+  cmd->add_flag("--qe", flags->service.default_query.query_expansion, "query expansion on by default");
+  cmd->callback([flags] { Serve(*flags); });
+}
+
+const bool registered = RegisterCommand({"serve", 60, &SetUpServe});
+
+}  // namespace
+}  // namespace oxbow::cli

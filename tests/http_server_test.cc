@@ -1,0 +1,550 @@
+// HTTP integration tests: start the real `oxbow serve` (OXBOW_BINARY) on 127.0.0.1 with an ephemeral
+// port and talk HTTP to it with httplib::Client. Covers every route, every error status, auth, limits,
+// graceful shutdown, restart with data intact and kill -9 during a stream of adds.
+#include <fcntl.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <gtest/gtest.h>
+#include <httplib.h>
+
+#include <atomic>
+#include <chrono>
+#include <filesystem>
+#include <mutex>
+#include <regex>
+#include <set>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+
+#include "api/testing.h"
+
+namespace oxbow {
+namespace {
+
+using api::testing::ReadBytes;
+using api::testing::SamplePath;
+using nlohmann::json;
+
+std::string ReadText(const std::string& path) {
+  auto bytes = ReadBytes(path);
+  return std::string(bytes.begin(), bytes.end());
+}
+
+// A running `oxbow serve` child process. stdout is read until the "listening on" line (the port);
+// stderr (the request log) goes to a file.
+class ServerProcess {
+ public:
+  ServerProcess(const std::vector<std::string>& args, const std::string& log_path) : log_path_(log_path) {
+    int out[2];
+    if (pipe(out) != 0) return;
+    pid_ = fork();
+    if (pid_ == 0) {
+      dup2(out[1], STDOUT_FILENO);
+      const int log = open(log_path.c_str(), O_WRONLY | O_CREAT | O_APPEND, 0644);
+      if (log >= 0) dup2(log, STDERR_FILENO);
+      close(out[0]);
+      close(out[1]);
+      std::vector<std::string> full = {OXBOW_BINARY};
+      full.insert(full.end(), args.begin(), args.end());
+      std::vector<char*> argv;
+      for (auto& a : full) argv.push_back(a.data());
+      argv.push_back(nullptr);
+      execv(argv[0], argv.data());
+      _exit(127);
+    }
+    close(out[1]);
+    // Read stdout until the listening line (or EOF: the server failed to start).
+    std::string text;
+    char buf[256];
+    const std::regex listening(R"(listening on http://127\.0\.0\.1:(\d+))");
+    std::smatch m;
+    while (true) {
+      const ssize_t n = read(out[0], buf, sizeof buf);
+      if (n <= 0) break;
+      text.append(buf, static_cast<size_t>(n));
+      if (std::regex_search(text, m, listening)) {
+        port_ = std::stoi(m[1]);
+        break;
+      }
+    }
+    stdout_fd_ = out[0];
+  }
+  ~ServerProcess() {
+    if (pid_ > 0 && !exited_) {
+      kill(pid_, SIGKILL);
+      waitpid(pid_, nullptr, 0);
+    }
+    if (stdout_fd_ >= 0) close(stdout_fd_);
+  }
+
+  int port() const { return port_; }
+  httplib::Client Client() const {
+    httplib::Client client("127.0.0.1", port_);
+    client.set_read_timeout(60, 0);
+    client.set_write_timeout(60, 0);
+    return client;
+  }
+  // Polls /readyz until 200 (true) or the deadline passes.
+  bool WaitReady(std::chrono::seconds deadline = std::chrono::seconds(60)) const {
+    const auto end = std::chrono::steady_clock::now() + deadline;
+    auto client = Client();
+    while (std::chrono::steady_clock::now() < end) {
+      auto res = client.Get("/readyz");
+      if (res && res->status == 200) return true;
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    }
+    return false;
+  }
+  // Sends `signal` and waits for the exit; returns the exit status (or 128 + signal).
+  int Stop(int signal = SIGTERM) {
+    if (pid_ <= 0 || exited_) return -1;
+    kill(pid_, signal);
+    int status = 0;
+    waitpid(pid_, &status, 0);
+    exited_ = true;
+    return WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
+  }
+  std::string Log() const { return ReadText(log_path_); }
+
+ private:
+  pid_t pid_ = -1;
+  int port_ = 0;
+  int stdout_fd_ = -1;
+  bool exited_ = false;
+  std::string log_path_;
+};
+
+httplib::MultipartFormData Part(const std::string& name, const std::string& content, const std::string& filename = "",
+                                const std::string& type = "") {
+  return {name, content, filename, type};
+}
+
+void ExpectErrorShape(const httplib::Result& res, int status, const std::string& code) {
+  ASSERT_TRUE(res) << "no response";
+  EXPECT_EQ(res->status, status) << res->body;
+  auto body = json::parse(res->body, nullptr, false);
+  ASSERT_FALSE(body.is_discarded()) << res->body;
+  ASSERT_TRUE(body.contains("error")) << res->body;
+  EXPECT_EQ(body["error"]["code"], code) << res->body;
+  EXPECT_FALSE(body["error"]["message"].get<std::string>().empty());
+  EXPECT_EQ(body["error"]["request_id"], res->get_header_value("X-Request-Id"));
+  EXPECT_FALSE(res->get_header_value("X-Request-Id").empty());
+}
+
+class HttpServerTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    if (!std::filesystem::exists(SamplePath("box_in_scene.png"))) return;
+    dir_ = new api::testing::TempDir("oxbow-http-test");
+    vocab_ = dir_->path() + "/vocab.oxvoc";
+    auto vocabulary = api::testing::BuildTestVocabulary({"box_in_scene.png", "graf1.png", "leuvenA.jpg", "graf3.png"},
+                                                        512, vocab_);
+    ASSERT_TRUE(vocabulary) << vocabulary.error().ToString();
+    box_ = ReadText(SamplePath("box.png"));
+    scene_ = ReadText(SamplePath("box_in_scene.png"));
+    graf1_ = ReadText(SamplePath("graf1.png"));
+    graf3_ = ReadText(SamplePath("graf3.png"));
+    leuven_ = ReadText(SamplePath("leuvenA.jpg"));
+  }
+  static void TearDownTestSuite() {
+    delete dir_;
+    dir_ = nullptr;
+  }
+  void SetUp() override {
+    if (dir_ == nullptr) GTEST_SKIP() << "opencv-doc sample photos not installed (scripts/install-deps.sh)";
+  }
+  // Starts a server on a fresh index (or `index_dir`) with extra flags; waits until ready.
+  std::unique_ptr<ServerProcess> Start(const std::vector<std::string>& extra = {}, std::string index_dir = "",
+                                       bool with_vocab = true) {
+    if (index_dir.empty()) index_dir = dir_->path() + "/index-" + std::to_string(counter_++);
+    std::vector<std::string> args = {"serve", "--index", index_dir, "--port", "0", "--threads", "8"};
+    if (with_vocab) {
+      args.push_back("--vocab");
+      args.push_back(vocab_);
+    }
+    args.insert(args.end(), extra.begin(), extra.end());
+    auto server = std::make_unique<ServerProcess>(args, dir_->path() + "/server-" + std::to_string(counter_++) + ".log");
+    EXPECT_GT(server->port(), 0) << server->Log();
+    EXPECT_TRUE(server->port() > 0 && server->WaitReady()) << server->Log();
+    return server;
+  }
+
+  static inline api::testing::TempDir* dir_ = nullptr;
+  static inline std::string vocab_;
+  static inline std::string box_, scene_, graf1_, graf3_, leuven_;
+  static inline int counter_ = 0;
+};
+
+TEST_F(HttpServerTest, HealthReadyAndRouteIndex) {
+  auto server = Start();
+  auto client = server->Client();
+  auto health = client.Get("/healthz");
+  ASSERT_TRUE(health);
+  EXPECT_EQ(health->status, 200);
+  EXPECT_EQ(json::parse(health->body)["status"], "ok");
+  auto ready = client.Get("/readyz");
+  ASSERT_TRUE(ready);
+  EXPECT_EQ(ready->status, 200);
+  auto routes = client.Get("/v1");
+  ASSERT_TRUE(routes);
+  EXPECT_EQ(routes->status, 200);
+  EXPECT_GE(json::parse(routes->body)["routes"].size(), 8u);
+  // The request id: generated, or the client's own when sane.
+  httplib::Headers headers = {{"X-Request-Id", "my-trace.42"}};
+  auto traced = client.Get("/healthz", headers);
+  ASSERT_TRUE(traced);
+  EXPECT_EQ(traced->get_header_value("X-Request-Id"), "my-trace.42");
+  EXPECT_EQ(health->get_header_value("X-Request-Id").size(), 16u);
+}
+
+TEST_F(HttpServerTest, ImagesLifecycle) {
+  auto server = Start();
+  auto client = server->Client();
+  auto added = client.Post("/v1/images?id=scene", scene_, "image/png");
+  ASSERT_TRUE(added);
+  ASSERT_EQ(added->status, 201) << added->body;
+  auto body = json::parse(added->body);
+  EXPECT_EQ(body["id"], "scene");
+  EXPECT_EQ(body["width"], 512);
+  EXPECT_EQ(body["height"], 384);
+  EXPECT_GT(body["features"].get<int>(), 100);
+  EXPECT_FALSE(added->get_header_value("Server-Timing").empty());
+
+  ExpectErrorShape(client.Post("/v1/images?id=scene", graf1_, "image/png"), 409, "already_exists");
+
+  auto replaced = client.Post("/v1/images?id=scene&replace=true", graf3_, "image/png");
+  ASSERT_TRUE(replaced);
+  ASSERT_EQ(replaced->status, 200) << replaced->body;
+  EXPECT_TRUE(json::parse(replaced->body)["replaced"].get<bool>());
+  EXPECT_EQ(json::parse(replaced->body)["width"], 800);
+
+  httplib::MultipartFormDataItems form = {Part("id", "leuven"), Part("metadata", R"({"city":"Leuven","n":1})"),
+                                          Part("file", leuven_, "leuvenA.jpg", "image/jpeg")};
+  auto multipart = client.Post("/v1/images", form);
+  ASSERT_TRUE(multipart);
+  ASSERT_EQ(multipart->status, 201) << multipart->body;
+
+  auto got = client.Get("/v1/images/leuven");
+  ASSERT_TRUE(got);
+  ASSERT_EQ(got->status, 200);
+  auto record = json::parse(got->body);
+  EXPECT_EQ(record["metadata"]["city"], "Leuven");
+  EXPECT_EQ(record["width"], 751);
+  EXPECT_EQ(record["source"], "http:leuvenA.jpg");
+
+  ASSERT_EQ(client.Post("/v1/images?id=a%20b%2Fc", box_, "image/png")->status, 201);  // ids may hold spaces and '/'
+  auto odd = client.Get("/v1/images/a%20b%2Fc");
+  ASSERT_TRUE(odd);
+  EXPECT_EQ(odd->status, 200) << odd->body;
+
+  auto list = client.Get("/v1/images?offset=1&limit=2");
+  ASSERT_TRUE(list);
+  ASSERT_EQ(list->status, 200);
+  auto page = json::parse(list->body);
+  EXPECT_EQ(page["total"], 3);
+  ASSERT_EQ(page["images"].size(), 2u);
+  EXPECT_EQ(page["images"][0]["id"], "leuven");  // ordered by id: "a b/c", "leuven", "scene"
+  ExpectErrorShape(client.Get("/v1/images?limit=0"), 400, "invalid_argument");
+  ExpectErrorShape(client.Get("/v1/images?limit=abc"), 400, "invalid_argument");
+
+  auto deleted = client.Delete("/v1/images/leuven");
+  ASSERT_TRUE(deleted);
+  EXPECT_EQ(deleted->status, 200);
+  ExpectErrorShape(client.Delete("/v1/images/leuven"), 404, "not_found");
+  ExpectErrorShape(client.Get("/v1/images/leuven"), 404, "not_found");
+  ExpectErrorShape(client.Post("/v1/images", box_, "image/png"), 400, "invalid_argument");         // no id
+  ExpectErrorShape(client.Post("/v1/images?id=x&metadata=%7Bbad", box_, "image/png"), 400, "invalid_argument");
+}
+
+TEST_F(HttpServerTest, SearchSimilarAndMatch) {
+  auto server = Start();
+  auto client = server->Client();
+  for (const auto& [id, bytes] : std::vector<std::pair<std::string, std::string>>{
+           {"scene", scene_}, {"graf1", graf1_}, {"leuven", leuven_}}) {
+    ASSERT_EQ(client.Post("/v1/images?id=" + id, bytes, "image/png")->status, 201);
+  }
+  auto found = client.Post("/v1/search?top_k=2", box_, "image/png");
+  ASSERT_TRUE(found);
+  ASSERT_EQ(found->status, 200) << found->body;
+  auto body = json::parse(found->body);
+  ASSERT_GE(body["results"].size(), 1u);
+  EXPECT_LE(body["results"].size(), 2u);
+  const auto& first = body["results"][0];
+  EXPECT_EQ(first["id"], "scene");
+  EXPECT_TRUE(first["verified"].get<bool>());
+  EXPECT_GE(first["inliers"].get<int>(), 6);
+  EXPECT_EQ(first["transform"].size(), 2u);
+  ASSERT_TRUE(first["region"].is_array());
+  EXPECT_LE(first["region"][2].get<double>(), 512.0);
+  for (const char* stage : {"decode_extract", "quantize", "score", "verify", "qe", "total"}) {
+    EXPECT_TRUE(body["timings_ms"].contains(stage)) << stage;
+  }
+  EXPECT_GT(body["timings_ms"]["decode_extract"].get<double>(), 0);
+
+  // Multipart with fields, a bbox and query expansion.
+  httplib::MultipartFormDataItems form = {Part("file", box_, "box.png", "image/png"), Part("top_k", "1"),
+                                          Part("bbox", "0,0,200,200"), Part("qe", "true")};
+  auto multipart = client.Post("/v1/search", form);
+  ASSERT_TRUE(multipart);
+  ASSERT_EQ(multipart->status, 200) << multipart->body;
+  auto mbody = json::parse(multipart->body);
+  EXPECT_EQ(mbody["results"].size(), 1u);
+  EXPECT_EQ(mbody["query"]["bbox"][2], 200.0);
+  EXPECT_TRUE(mbody["params"]["qe"].get<bool>());
+  EXPECT_LT(mbody["query"]["features_used"].get<int>(), mbody["query"]["features"].get<int>());
+
+  ExpectErrorShape(client.Post("/v1/search?top_k=0", box_, "image/png"), 400, "invalid_argument");
+  ExpectErrorShape(client.Post("/v1/search?topk=3", box_, "image/png"), 400, "invalid_argument");
+  ExpectErrorShape(client.Post("/v1/search?bbox=1,2,3", box_, "image/png"), 400, "invalid_argument");
+
+  auto similar = client.Get("/v1/images/graf1/similar?top_k=3");
+  ASSERT_TRUE(similar);
+  ASSERT_EQ(similar->status, 200) << similar->body;
+  auto sbody = json::parse(similar->body);
+  EXPECT_EQ(sbody["query"]["id"], "graf1");
+  EXPECT_EQ(sbody["results"][0]["id"], "graf1");
+  ExpectErrorShape(client.Get("/v1/images/nope/similar"), 404, "not_found");
+
+  httplib::MultipartFormDataItems pair = {Part("a", box_, "box.png"), Part("b", scene_, "box_in_scene.png")};
+  auto matched = client.Post("/v1/match", pair);
+  ASSERT_TRUE(matched);
+  ASSERT_EQ(matched->status, 200) << matched->body;
+  auto match = json::parse(matched->body);
+  EXPECT_TRUE(match["verified"].get<bool>());
+  EXPECT_GE(match["inliers"].get<int>(), 10);
+  EXPECT_EQ(match["b"]["width"], 512);
+  EXPECT_EQ(match["transform"].size(), 3u);
+  httplib::MultipartFormDataItems homography = {Part("a", box_), Part("b", scene_), Part("model", "homography")};
+  auto fitted = client.Post("/v1/match", homography);
+  ASSERT_TRUE(fitted);
+  EXPECT_EQ(fitted->status, 200) << fitted->body;
+  EXPECT_EQ(json::parse(fitted->body)["model"], "homography");
+  httplib::MultipartFormDataItems missing = {Part("a", box_)};
+  ExpectErrorShape(client.Post("/v1/match", missing), 400, "invalid_argument");
+  ExpectErrorShape(client.Post("/v1/match", box_, "image/png"), 415, "unsupported_format");
+  httplib::MultipartFormDataItems bad_model = {Part("a", box_), Part("b", scene_), Part("model", "magic")};
+  ExpectErrorShape(client.Post("/v1/match", bad_model), 400, "invalid_argument");
+}
+
+TEST_F(HttpServerTest, ErrorStatusesAndLimits) {
+  auto server = Start({"--max-upload-mb", "2", "--max-megapixels", "0.6"});
+  auto client = server->Client();
+  ExpectErrorShape(client.Get("/v1/nothing"), 404, "not_found");
+  ExpectErrorShape(client.Get("/favicon.ico"), 404, "not_found");
+  auto wrong = client.Put("/v1/search", box_, "image/png");
+  ExpectErrorShape(wrong, 405, "method_not_allowed");
+  EXPECT_EQ(wrong->get_header_value("Allow"), "POST");
+  ExpectErrorShape(client.Delete("/v1/images"), 405, "method_not_allowed");
+
+  // Corrupt, truncated, empty and non-image bodies.
+  ExpectErrorShape(client.Post("/v1/search", "this is not an image at all", "application/octet-stream"), 400, "invalid_image");
+  ExpectErrorShape(client.Post("/v1/images?id=half", box_.substr(0, box_.size() / 2), "image/png"), 400, "invalid_image");
+  ExpectErrorShape(client.Post("/v1/search", "", "image/png"), 400, "invalid_image");
+  ExpectErrorShape(client.Post("/v1/search", R"({"image":"x"})", "application/json"), 415, "unsupported_format");
+
+  // Over the body limit (2 MiB) and over the pixel limit (0.6 MP; a 1000 x 800 PNG is small on disk).
+  ExpectErrorShape(client.Post("/v1/search", std::string(3u << 20, 'x'), "application/octet-stream"), 413, "payload_too_large");
+  std::vector<uchar> png;
+  ASSERT_TRUE(cv::imencode(".png", cv::Mat(800, 1000, CV_8UC1, cv::Scalar(128)), png));
+  ASSERT_LT(png.size(), 1u << 20);
+  ExpectErrorShape(client.Post("/v1/images?id=big", std::string(png.begin(), png.end()), "image/png"), 413, "image_too_large");
+  ExpectErrorShape(client.Get("/v1/images/big"), 404, "not_found");
+
+  // The server survived all of it.
+  auto health = client.Get("/healthz");
+  ASSERT_TRUE(health);
+  EXPECT_EQ(health->status, 200);
+
+  // Metrics and stats count what happened.
+  ASSERT_EQ(client.Post("/v1/images?id=box", box_, "image/png")->status, 201);
+  auto stats = client.Get("/v1/stats");
+  ASSERT_TRUE(stats);
+  ASSERT_EQ(stats->status, 200);
+  auto s = json::parse(stats->body);
+  EXPECT_EQ(s["images"], 1);
+  EXPECT_GT(s["features"].get<int>(), 50);
+  EXPECT_EQ(s["words"], 512);
+  EXPECT_GT(s["bytes_per_feature"].get<double>(), 0);
+  EXPECT_GT(s["memory_rss_bytes"].get<double>(), 1e6);
+  EXPECT_GE(s["uptime_s"].get<double>(), 0);
+  auto metrics = client.Get("/metrics");
+  ASSERT_TRUE(metrics);
+  ASSERT_EQ(metrics->status, 200);
+  const std::string& text = metrics->body;
+  EXPECT_NE(text.find(R"(oxbow_http_requests_total{route="/v1/search",method="POST",status="400"} 2)"), std::string::npos) << text;
+  EXPECT_NE(text.find(R"(oxbow_http_requests_total{route="/v1/search",method="POST",status="413"} 1)"), std::string::npos);
+  EXPECT_NE(text.find(R"(oxbow_http_requests_total{route="/v1/images",method="POST",status="201"} 1)"), std::string::npos);
+  EXPECT_NE(text.find(R"(oxbow_http_requests_total{route="unmatched",method="GET",status="404"} 2)"), std::string::npos);
+  EXPECT_NE(text.find("oxbow_http_request_duration_seconds_bucket{route=\"/v1/images\",method=\"POST\",status=\"201\",le=\"+Inf\"} 1"),
+            std::string::npos);
+  EXPECT_NE(text.find("oxbow_index_images 1\n"), std::string::npos);
+
+  // One log line per request, with the request id.
+  EXPECT_EQ(server->Stop(SIGTERM), 0);
+  const std::string log = server->Log();
+  EXPECT_NE(log.find("route=/v1/search status=413"), std::string::npos) << log;
+  EXPECT_NE(log.find(" POST /v1/images route=/v1/images status=201 ms="), std::string::npos) << log;
+  EXPECT_NE(log.find("decode_extract="), std::string::npos);
+}
+
+TEST_F(HttpServerTest, ApiKeyProtectsWrites) {
+  auto server = Start({"--api-key", "s3cret"});
+  auto client = server->Client();
+  ExpectErrorShape(client.Post("/v1/images?id=box", box_, "image/png"), 401, "unauthenticated");
+  httplib::Headers wrong = {{"Authorization", "Bearer nope"}};
+  ExpectErrorShape(client.Post("/v1/images?id=box", wrong, box_, "image/png"), 403, "permission_denied");
+  httplib::Headers bearer = {{"Authorization", "Bearer s3cret"}};
+  auto added = client.Post("/v1/images?id=box", bearer, box_, "image/png");
+  ASSERT_TRUE(added);
+  EXPECT_EQ(added->status, 201) << added->body;
+  ExpectErrorShape(client.Delete("/v1/images/box"), 401, "unauthenticated");
+  httplib::Headers key = {{"X-API-Key", "s3cret"}};
+  auto deleted = client.Delete("/v1/images/box", key);
+  ASSERT_TRUE(deleted);
+  EXPECT_EQ(deleted->status, 200);
+  // Reads and searches stay open.
+  auto search = client.Post("/v1/search", box_, "image/png");
+  ASSERT_TRUE(search);
+  EXPECT_EQ(search->status, 200) << search->body;
+  EXPECT_EQ(client.Get("/v1/images")->status, 200);
+}
+
+TEST_F(HttpServerTest, RestartKeepsDataAndGracefulStopFinishesInFlightRequests) {
+  const std::string index_dir = dir_->path() + "/restart";
+  {
+    auto server = Start({}, index_dir);
+    auto client = server->Client();
+    ASSERT_EQ(client.Post("/v1/images?id=scene&metadata=%7B%22k%22%3A1%7D", scene_, "image/png")->status, 201);
+    ASSERT_EQ(client.Post("/v1/images?id=graf1", graf1_, "image/png")->status, 201);
+    // A search in flight when SIGTERM arrives still gets its answer.
+    int in_flight_status = 0;
+    std::string in_flight_error;
+    std::thread searcher([&] {
+      auto res = server->Client().Post("/v1/search?qe=true", graf3_, "image/png");
+      in_flight_status = res ? res->status : -1;
+      if (!res) in_flight_error = httplib::to_string(res.error());
+    });
+    std::this_thread::sleep_for(std::chrono::milliseconds(40));
+    EXPECT_EQ(server->Stop(SIGTERM), 0) << server->Log();
+    searcher.join();
+    EXPECT_EQ(in_flight_status, 200) << "in-flight search was dropped: " << in_flight_error;
+  }
+  // No --vocab: the index folder carries its vocabulary.
+  auto server = Start({}, index_dir, /*with_vocab=*/false);
+  auto client = server->Client();
+  auto got = client.Get("/v1/images/scene");
+  ASSERT_TRUE(got);
+  ASSERT_EQ(got->status, 200);
+  EXPECT_EQ(json::parse(got->body)["metadata"]["k"], 1);
+  auto found = client.Post("/v1/search", box_, "image/png");
+  ASSERT_TRUE(found);
+  ASSERT_EQ(found->status, 200);
+  EXPECT_EQ(json::parse(found->body)["results"][0]["id"], "scene");
+
+  // A missing index without --vocab is a clear start-up error, not a crash.
+  ServerProcess broken({"serve", "--index", dir_->path() + "/none", "--port", "0"}, dir_->path() + "/broken.log");
+  EXPECT_EQ(broken.Stop(0), ExitCodeFor(ErrorCode::kNotFound));  // signal 0: just wait for it to exit
+  EXPECT_NE(broken.Log().find("--vocab"), std::string::npos) << broken.Log();
+}
+
+TEST_F(HttpServerTest, KillNineDuringAddsLosesNoAcknowledgedImage) {
+  const std::string index_dir = dir_->path() + "/kill9";
+  std::set<std::string> acknowledged;
+  std::set<std::string> attempted;
+  {
+    auto server = Start({}, index_dir);
+    std::mutex mutex;
+    std::atomic<bool> stop{false};
+    const std::vector<const std::string*> images = {&box_, &scene_, &leuven_};
+    std::vector<std::thread> writers;
+    for (int w = 0; w < 2; ++w) {
+      writers.emplace_back([&, w] {
+        auto client = server->Client();
+        for (int i = 0; !stop; ++i) {
+          const std::string id = "w" + std::to_string(w) + "-" + std::to_string(i);
+          {
+            std::lock_guard<std::mutex> lock(mutex);
+            attempted.insert(id);
+          }
+          auto res = client.Post("/v1/images?id=" + id, *images[static_cast<size_t>(i) % images.size()], "image/png");
+          if (!res) return;  // the server is gone
+          if (res->status == 201) {
+            std::lock_guard<std::mutex> lock(mutex);
+            acknowledged.insert(id);
+          }
+        }
+      });
+    }
+    // Kill once a few adds were acknowledged, while more are in flight.
+    for (int i = 0; i < 3000; ++i) {
+      {
+        std::lock_guard<std::mutex> lock(mutex);
+        if (acknowledged.size() >= 6) break;
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    }
+    EXPECT_EQ(server->Stop(SIGKILL), 128 + SIGKILL);
+    stop = true;
+    for (auto& t : writers) t.join();
+  }
+  ASSERT_GE(acknowledged.size(), 6u);
+  auto server = Start({}, index_dir, /*with_vocab=*/false);
+  auto client = server->Client();
+  for (const auto& id : acknowledged) {
+    auto got = client.Get("/v1/images/" + id);
+    ASSERT_TRUE(got);
+    EXPECT_EQ(got->status, 200) << "acknowledged image " << id << " lost";
+  }
+  // Nothing half-added: every image present is one we tried to add, whole (features, usable in a query).
+  auto list = client.Get("/v1/images?limit=1000");
+  ASSERT_TRUE(list);
+  auto page = json::parse(list->body);
+  EXPECT_GE(page["total"].get<size_t>(), acknowledged.size());
+  EXPECT_LE(page["total"].get<size_t>(), acknowledged.size() + 2);  // at most one unacknowledged add per writer
+  for (const auto& image : page["images"]) {
+    const std::string id = image["id"];
+    EXPECT_TRUE(attempted.contains(id)) << id;
+    EXPECT_GT(image["features"].get<int>(), 50) << id;
+    auto similar = client.Get("/v1/images/" + id + "/similar?top_k=1");
+    ASSERT_TRUE(similar);
+    EXPECT_EQ(similar->status, 200) << similar->body;
+  }
+}
+
+TEST_F(HttpServerTest, SaturatedExtractionAnswers503NotACrash) {
+  auto server = Start({"--extractions", "1", "--extraction-wait-ms", "0"});
+  std::vector<int> statuses(8, 0);
+  std::vector<std::thread> clients;
+  for (size_t i = 0; i < statuses.size(); ++i) {
+    clients.emplace_back([&, i] {
+      auto res = server->Client().Post("/v1/search", graf1_, "image/png");
+      statuses[i] = res ? res->status : -1;
+      if (res && res->status == 503) {
+        auto body = json::parse(res->body);
+        if (body["error"]["code"] != "resource_exhausted") statuses[i] = -2;
+      }
+    });
+  }
+  for (auto& t : clients) t.join();
+  int ok = 0, busy = 0;
+  for (int s : statuses) {
+    EXPECT_TRUE(s == 200 || s == 503) << s;
+    ok += s == 200;
+    busy += s == 503;
+  }
+  EXPECT_GE(ok, 1);
+  EXPECT_GE(busy, 1) << "8 concurrent 800x640 extractions with one slot and no wait should overflow";
+  auto health = server->Client().Get("/healthz");
+  ASSERT_TRUE(health);
+  EXPECT_EQ(health->status, 200);
+}
+
+}  // namespace
+}  // namespace oxbow
