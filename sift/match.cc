@@ -128,7 +128,7 @@ void DotTileAvx2(const float* const rows[kQueryGroup], const float* block, float
 
 using DotTileFn = void (*)(const float* const[kQueryGroup], const float*, float*);
 
-DotTileFn SelectKernel(internal::DotKernel kernel) {
+DotTileFn SelectKernel([[maybe_unused]] internal::DotKernel kernel) {
 #ifdef OXBOW_MATCH_AVX2
   if (kernel == internal::DotKernel::kAuto) return &DotTileAvx2;
 #endif
