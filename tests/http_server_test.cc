@@ -374,10 +374,17 @@ TEST_F(HttpServerTest, ErrorStatusesAndLimits) {
   EXPECT_GT(s["bytes_per_feature"].get<double>(), 0);
   EXPECT_GT(s["memory_rss_bytes"].get<double>(), 1e6);
   EXPECT_GE(s["uptime_s"].get<double>(), 0);
-  auto metrics = client.Get("/metrics");
-  ASSERT_TRUE(metrics);
-  ASSERT_EQ(metrics->status, 200);
-  const std::string& text = metrics->body;
+  // A request is counted by the logger, right after its response was sent: poll briefly.
+  const std::string added_series = R"(oxbow_http_requests_total{route="/v1/images",method="POST",status="201"} 1)";
+  std::string text;
+  for (int i = 0; i < 100 && text.find(added_series) == std::string::npos; ++i) {
+    auto metrics = client.Get("/metrics");
+    ASSERT_TRUE(metrics);
+    ASSERT_EQ(metrics->status, 200);
+    EXPECT_EQ(metrics->get_header_value("Content-Type"), "text/plain; version=0.0.4");
+    text = metrics->body;
+    if (text.find(added_series) == std::string::npos) std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
   EXPECT_NE(text.find(R"(oxbow_http_requests_total{route="/v1/search",method="POST",status="400"} 2)"), std::string::npos) << text;
   EXPECT_NE(text.find(R"(oxbow_http_requests_total{route="/v1/search",method="POST",status="413"} 1)"), std::string::npos);
   EXPECT_NE(text.find(R"(oxbow_http_requests_total{route="/v1/images",method="POST",status="201"} 1)"), std::string::npos);
