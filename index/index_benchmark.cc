@@ -395,10 +395,18 @@ int RunParis(const std::map<std::string, std::string>& flags) {
     in >> q.name;
     std::istringstream box_line(ReadLines(data / "gt" / (q.name + "_query.txt")).at(0));
     box_line >> q.image >> q.box[0] >> q.box[1] >> q.box[2] >> q.box[3];
+    // Restricted protocol: official good + ok (positives) and junk, intersected with the 250 images.
+    auto in_database = [&](const std::string& id) {
+      return std::binary_search(names.begin(), names.end(), id + ".jpg");
+    };
     for (const char* kind : {"good", "ok"}) {
-      for (const auto& id : ReadLines(data / "gt" / (q.name + "_" + kind + ".txt"))) q.positives.insert(id);
+      for (const auto& id : ReadLines(data / "gt" / (q.name + "_" + kind + ".txt"))) {
+        if (in_database(id)) q.positives.insert(id);
+      }
     }
-    for (const auto& id : ReadLines(data / "gt" / (q.name + "_junk.txt"))) q.junk.insert(id);
+    for (const auto& id : ReadLines(data / "gt" / (q.name + "_junk.txt"))) {
+      if (in_database(id)) q.junk.insert(id);
+    }
     queries.push_back(std::move(q));
   }
   // The query features: the query image's features, with the box mapped into the (downscaled) frame.
