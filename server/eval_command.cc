@@ -143,6 +143,15 @@ class ServerProcess {
     if (port_future.wait_for(std::chrono::seconds(300)) != std::future_status::ready || (port_ = port_future.get()) <= 0) {
       throw CommandError(1, "the server did not start; see " + log_path);
     }
+    // The server loads the index in the background: wait until /readyz says it is ready.
+    httplib::Client client("127.0.0.1", port_);
+    const auto deadline = Clock::now() + std::chrono::seconds(600);
+    while (true) {
+      auto ready = client.Get("/readyz");
+      if (ready && ready->status == 200) break;
+      if (Clock::now() > deadline) throw CommandError(1, "the server did not become ready; see " + log_path);
+      std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    }
   }
   ~ServerProcess() {
     kill(pid_, SIGTERM);
