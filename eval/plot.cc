@@ -13,7 +13,7 @@ namespace {
 // Okabe-Ito palette (distinguishable with colour-vision deficiencies), BGR.
 const cv::Scalar kPalette[] = {{178, 114, 0},  {0, 94, 213},   {115, 158, 0}, {167, 121, 204},
                                {66, 228, 240}, {233, 180, 86}, {0, 159, 230}, {0, 0, 0}};
-constexpr int kMarginLeft = 80, kMarginRight = 30, kMarginTop = 50, kMarginBottom = 90;
+constexpr int kMarginLeft = 80, kMarginRight = 30, kMarginTop = 50, kMarginBottom = 130;
 
 cv::Scalar Colour(size_t i) { return kPalette[i % (sizeof(kPalette) / sizeof(kPalette[0]))]; }
 
