@@ -196,17 +196,16 @@ void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kern
   });
 }
 
-void Upsample2x(const Plane& src, Plane* dst, int num_threads) {
-  const int w = src.width(), h = src.height();
-  *dst = Plane(2 * w, 2 * h);
+void Upsample2x(const float* src, int w, int h, size_t src_stride, Plane* dst, int num_threads) {
+  dst->Reshape(2 * w, 2 * h);
   if (w == 0 || h == 0) return;
   ParallelFor(static_cast<size_t>(2 * h), num_threads, RowGrain(2 * h, num_threads), [&](size_t y0, size_t y1, int) {
     std::vector<float> v(static_cast<size_t>(w));
     for (int y = static_cast<int>(y0); y < static_cast<int>(y1); ++y) {
       const int sy = y / 2;
       const int other = std::clamp(y % 2 == 0 ? sy - 1 : sy + 1, 0, h - 1);
-      const float* a = src.row(sy);
-      const float* b = src.row(other);
+      const float* a = src + static_cast<size_t>(sy) * src_stride;
+      const float* b = src + static_cast<size_t>(other) * src_stride;
       for (int x = 0; x < w; ++x) v[static_cast<size_t>(x)] = 0.75f * a[x] + 0.25f * b[x];
       float* out = dst->row(y);
       for (int x = 0; x < w; ++x) {

@@ -37,6 +37,7 @@ class Plane {
   const float* row(int y) const { return data_.get() + static_cast<size_t>(y) * stride_; }
   float at(int x, int y) const { return row(y)[x]; }
   bool empty() const { return width_ == 0 || height_ == 0; }
+  size_t capacity_bytes() const { return capacity_ * sizeof(float); }  // allocated, >= stride * height
 
  private:
   struct Free {
@@ -65,10 +66,10 @@ std::vector<float> GaussianHalfKernel(double sigma, double radius_sigmas);
 void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kernel, int num_threads,
                   bool allow_simd = true);
 
-// dst (2w x 2h) = bilinear 2x enlargement of src with pixel-centre alignment (as cv::resize
-// INTER_LINEAR): dst(2i) = 0.75 src(i) + 0.25 src(i-1), dst(2i+1) = 0.75 src(i) + 0.25 src(i+1),
-// edges replicated.
-void Upsample2x(const Plane& src, Plane* dst, int num_threads);
+// dst (2w x 2h) = bilinear 2x enlargement of the w x h image at `src` (rows `src_stride` floats apart)
+// with pixel-centre alignment (as cv::resize INTER_LINEAR): dst(2i) = 0.75 src(i) + 0.25 src(i-1),
+// dst(2i+1) = 0.75 src(i) + 0.25 src(i+1), edges replicated. dst is reshaped (its buffer reused).
+void Upsample2x(const float* src, int w, int h, size_t src_stride, Plane* dst, int num_threads);
 
 // dst (floor(w/2) x floor(h/2)) = src sampled at even rows and columns (the next octave's base).
 void Decimate2x(const Plane& src, Plane* dst);

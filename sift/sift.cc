@@ -33,6 +33,7 @@ std::optional<std::string> SiftOptions::Check() const {
   if (!(kernel_radius_sigmas >= 2.5 && kernel_radius_sigmas <= 6)) return "kernel_radius_sigmas must be in [2.5, 6], got " + std::to_string(kernel_radius_sigmas);
   if (max_octaves && (*max_octaves < 1 || *max_octaves > 32)) return "max_octaves must be in [1, 32] when set, got " + std::to_string(*max_octaves);
   if (num_threads < 0 || num_threads > 256) return "num_threads must be in [0, 256], got " + std::to_string(num_threads);
+  if (thread_cache_mib < 0 || thread_cache_mib > 65536) return "thread_cache_mib must be in [0, 65536], got " + std::to_string(thread_cache_mib);
   return std::nullopt;
 }
 
@@ -347,56 +348,93 @@ inline __m256 Atan2Deg8(__m256 y, __m256 x) {
   a = _mm256_blendv_ps(a, _mm256_sub_ps(a, full), _mm256_cmp_ps(a, full, _CMP_GE_OQ));
   return a;
 }
+
+// Gradient8 for the 8 samples x..x+7 of a row; see Gradient.
+inline void Gradient8(const float* row, const float* above, const float* below, int x, __m256* mag, __m256* ori) {
+  const __m256 dx = _mm256_sub_ps(_mm256_loadu_ps(row + x + 1), _mm256_loadu_ps(row + x - 1));
+  const __m256 dy = _mm256_sub_ps(_mm256_loadu_ps(above + x), _mm256_loadu_ps(below + x));
+  *mag = _mm256_sqrt_ps(_mm256_fmadd_ps(dx, dx, _mm256_mul_ps(dy, dy)));
+  *ori = Atan2Deg8(dy, dx);
+}
 #endif
 
-// For samples (x, y) with x in [x0, x1) of row y of `img`: dx = I(x+1) - I(x-1), dy = I(y-1) - I(y+1)
-// (y axis pointing up, as OpenCV, so descriptors are laid out like cv::SIFT's), magnitude and
-// direction (degrees, [0, 360)). Outputs are indexed from 0.
-void RowGradients(const Plane& img, int y, int x0, int x1, float* mag, float* ori, bool simd) {
-  const float* row = img.row(y);
-  const float* above = img.row(y - 1);
-  const float* below = img.row(y + 1);
-  int x = x0;
-#ifdef OXBOW_SIFT_AVX2
-  if (simd) {
-    for (; x + 8 <= x1; x += 8) {
-      const __m256 dx = _mm256_sub_ps(_mm256_loadu_ps(row + x + 1), _mm256_loadu_ps(row + x - 1));
-      const __m256 dy = _mm256_sub_ps(_mm256_loadu_ps(above + x), _mm256_loadu_ps(below + x));
-      _mm256_storeu_ps(mag + (x - x0), _mm256_sqrt_ps(_mm256_fmadd_ps(dx, dx, _mm256_mul_ps(dy, dy))));
-      _mm256_storeu_ps(ori + (x - x0), Atan2Deg8(dy, dx));
-    }
-  }
-#endif
-  for (; x < x1; ++x) {
-    const float dx = row[x + 1] - row[x - 1];
-    const float dy = above[x] - below[x];
-    mag[x - x0] = std::sqrt(std::fma(dx, dx, dy * dy));
-    ori[x - x0] = FastAtan2Deg(dy, dx);
-  }
+// Gradient at column x of `row` (rows y-1 and y+1 in `above`, `below`): dx = I(x+1) - I(x-1),
+// dy = I(y-1) - I(y+1) (y axis pointing up, as OpenCV, so descriptors are laid out like cv::SIFT's);
+// magnitude and direction in degrees, [0, 360).
+inline void Gradient(const float* row, const float* above, const float* below, int x, float* mag, float* ori) {
+  const float dx = row[x + 1] - row[x - 1];
+  const float dy = above[x] - below[x];
+  *mag = std::sqrt(std::fma(dx, dx, dy * dy));
+  *ori = FastAtan2Deg(dy, dx);
 }
+
+// The per-keypoint histograms are accumulated into kHistCopies interleaved copies (sample j of a row
+// goes to copy j % kHistCopies) that are summed at the end: consecutive samples usually hit the same
+// bins, and one copy would make every add wait for the previous store (a store-forwarding chain).
+// Both the vector and the scalar path use the same assignment, so they add in the same order, and
+// accumulate with explicit fused multiply-adds (h = fma(weight, value, h)): a plain `h += a * b` would
+// be contracted into an FMA by the compiler in the scalar path only, and the paths would differ.
+constexpr int kHistCopies = 4;
 
 // ---- Orientation [L04 sec. 5] -----------------------------------------------------------------------
 
 // Smoothed 36-bin gradient orientation histogram around (c, r) of `img`; returns its maximum.
 float OrientationHistogram(const Plane& img, int c, int r, int radius, float sigma, float* hist, bool simd) {
-  float raw[kOriBins + 4] = {};
-  float* temp = raw + 2;
+  alignas(32) float copies[kHistCopies][kOriBins] = {};
   const int w = img.width(), h = img.height();
   const float exp_scale = -1.0f / (2.0f * sigma * sigma);
-  float wx[256], mag[256], ori[256];
+  alignas(32) float wx[256 + 8] = {};
   radius = std::min(radius, 120);
   for (int i = -radius; i <= radius; ++i) wx[i + radius] = std::exp(static_cast<float>(i * i) * exp_scale);
   const int x0 = std::max(c - radius, 1), x1 = std::min(c + radius + 1, w - 1);
+  constexpr float kBinsPerDeg = kOriBins / 360.0f;
   for (int i = -radius; i <= radius; ++i) {
     const int y = r + i;
     if (y <= 0 || y >= h - 1 || x0 >= x1) continue;
-    RowGradients(img, y, x0, x1, mag, ori, simd);
+    const float* row = img.row(y);
+    const float* above = img.row(y - 1);
+    const float* below = img.row(y + 1);
     const float wy = wx[i + radius];
-    for (int x = x0; x < x1; ++x) {
-      int bin = static_cast<int>(std::lrint(ori[x - x0] * (kOriBins / 360.0f)));
-      if (bin >= kOriBins) bin -= kOriBins;
-      temp[bin] += wy * wx[x - c + radius] * mag[x - x0];
+    int x = x0;
+#ifdef OXBOW_SIFT_AVX2
+    if (simd) {
+      // Whole vectors of 8 samples; lanes past x1 read valid memory (row padding or the next row) and
+      // are not added.
+      const __m256 vwy = _mm256_set1_ps(wy);
+      alignas(32) int bins[8];
+      alignas(32) float weights[8], mags[8];
+      for (; x < x1; x += 8) {
+        __m256 mag, ori;
+        Gradient8(row, above, below, x, &mag, &ori);
+        __m256i bin = _mm256_cvtps_epi32(_mm256_mul_ps(ori, _mm256_set1_ps(kBinsPerDeg)));  // nearest, as lrint
+        bin = _mm256_sub_epi32(bin, _mm256_and_si256(_mm256_cmpgt_epi32(bin, _mm256_set1_epi32(kOriBins - 1)),
+                                                     _mm256_set1_epi32(kOriBins)));
+        _mm256_store_si256(reinterpret_cast<__m256i*>(bins), bin);
+        _mm256_store_ps(weights, _mm256_mul_ps(vwy, _mm256_loadu_ps(wx + (x - c + radius))));
+        _mm256_store_ps(mags, mag);
+        const int lanes = std::min(8, x1 - x);
+        for (int lane = 0; lane < lanes; ++lane) {
+          float& bin_sum = copies[lane % kHistCopies][bins[lane]];
+          bin_sum = std::fma(weights[lane], mags[lane], bin_sum);
+        }
+      }
     }
+#endif
+    for (; x < x1; ++x) {
+      float mag, ori;
+      Gradient(row, above, below, x, &mag, &ori);
+      int bin = static_cast<int>(std::lrint(ori * kBinsPerDeg));
+      if (bin >= kOriBins) bin -= kOriBins;
+      float& bin_sum = copies[(x - x0) % kHistCopies][bin];
+      bin_sum = std::fma(wy * wx[x - c + radius], mag, bin_sum);
+    }
+  }
+  float raw[kOriBins + 4];
+  float* temp = raw + 2;
+  for (int k = 0; k < kOriBins; ++k) {
+    float sum = copies[0][k];
+    for (int copy = 1; copy < kHistCopies; ++copy) sum += copies[copy][k];
+    temp[k] = sum;
   }
   temp[-1] = temp[kOriBins - 1];
   temp[-2] = temp[kOriBins - 2];
@@ -412,6 +450,22 @@ float OrientationHistogram(const Plane& img, int c, int r, int radius, float sig
 }
 
 // ---- Descriptor [L04 sec. 6] ------------------------------------------------------------------------
+
+constexpr int kHistSize = (kDescCells + 2) * kHistStride;  // (d+2) x (d+2) cells x (n+2) bins
+
+// Adds a sample to the 2 x 2 x 2 histogram bins from p (row r0, column c0, orientation o0): v_rc is its
+// weight for row r0 + r, column c0 + c; o0_weight and o1_weight split it between o0 and o0 + 1.
+inline void AddTrilinear(float* p, float v_rc00, float v_rc01, float v_rc10, float v_rc11, float o0_weight, float o1_weight) {
+  constexpr int n = kDescBins, row = (kDescCells + 2) * (kDescBins + 2);
+  p[0] = std::fma(v_rc00, o0_weight, p[0]);
+  p[1] = std::fma(v_rc00, o1_weight, p[1]);
+  p[n + 2] = std::fma(v_rc01, o0_weight, p[n + 2]);
+  p[n + 3] = std::fma(v_rc01, o1_weight, p[n + 3]);
+  p[row] = std::fma(v_rc10, o0_weight, p[row]);
+  p[row + 1] = std::fma(v_rc10, o1_weight, p[row + 1]);
+  p[row + n + 2] = std::fma(v_rc11, o0_weight, p[row + n + 2]);
+  p[row + n + 3] = std::fma(v_rc11, o1_weight, p[row + n + 3]);
+}
 
 // Computes the 128-d descriptor of the keypoint at sub-pixel (x, y) of `img` (octave pixels), scale
 // `scale` (octave pixels) and orientation `ori_deg` (degrees, y axis up), unit L2 norm, clipped.
@@ -430,12 +484,12 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
   // Gaussian weight of half the window width: exp(-(u^2 + v^2) / (2 (d/2)^2)) in cell units, which is
   // rotation invariant, so separable in the image offsets (j - fx, i - fy).
   const float exp_scale = -1.0f / (d * d * 0.5f * hist_width * hist_width);
-  float wcol[512], mag[512], ori[512];
+  alignas(32) float wcol[512 + 8] = {};
   for (int j = -radius; j <= radius; ++j) {
     const float dj = static_cast<float>(j) - fx;
     wcol[j + radius] = std::exp(dj * dj * exp_scale);
   }
-  float hist[(d + 2) * kHistStride] = {};
+  alignas(32) float copies[kHistCopies][kHistSize] = {};
   const float half = d / 2.0f - 0.5f;
   for (int i = -radius; i <= radius; ++i) {
     const int yy = cy + i;
@@ -462,34 +516,41 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
     j0 = std::max(j0, 1 - cx);
     j1 = std::min(j1, w - 1 - cx);
     if (j0 >= j1) continue;
-    RowGradients(img, yy, cx + j0, cx + j1, mag, ori, simd);
+    // Samples j of this row are at image column cx + j.
+    const float* row = img.row(yy) + cx;
+    const float* above = img.row(yy - 1) + cx;
+    const float* below = img.row(yy + 1) + cx;
     int j = j0;
 #ifdef OXBOW_SIFT_AVX2
     if (simd) {
-      // The scalar formula below, 8 samples at a time; samples outside the window get weight 0 in bin
-      // (0, 0, 0) (adding +0 leaves the histogram unchanged), then the adds are done in sample order.
-      const __m256 iota = _mm256_setr_ps(0, 1, 2, 3, 4, 5, 6, 7);
+      // The scalar formula below, 8 samples at a time, whole vectors (lanes past j1 read valid memory:
+      // row padding or the next row). Samples outside the window get weight 0 in bin (0, 0, 0) (adding
+      // +0 leaves the histogram unchanged); the adds are done in sample order.
+      const __m256i iota = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
       const __m256 minus_one = _mm256_set1_ps(-1.0f), dv = _mm256_set1_ps(static_cast<float>(d));
       const __m256 vsin = _mm256_set1_ps(sin_t), vcos = _mm256_set1_ps(cos_t);
       const __m256 vrb0 = _mm256_set1_ps(rb0), vcb0 = _mm256_set1_ps(cb0);
       const __m256 vori = _mm256_set1_ps(ori_deg), vbins = _mm256_set1_ps(bins_per_deg), vwrow = _mm256_set1_ps(wrow);
-      const __m256i vn = _mm256_set1_epi32(n), zero_i = _mm256_setzero_si256();
+      const __m256i vn = _mm256_set1_epi32(n), zero_i = _mm256_setzero_si256(), vend = _mm256_set1_epi32(j1);
       alignas(32) int index[8];
-      alignas(32) float weights[8][8];
-      for (; j + 8 <= j1; j += 8) {
-        const __m256 dj = _mm256_sub_ps(_mm256_add_ps(_mm256_set1_ps(static_cast<float>(j)), iota), _mm256_set1_ps(fx));
+      alignas(32) float weights[6][8];
+      for (; j < j1; j += 8) {
+        const __m256i jv = _mm256_add_epi32(_mm256_set1_epi32(j), iota);
+        const __m256 dj = _mm256_sub_ps(_mm256_cvtepi32_ps(jv), _mm256_set1_ps(fx));
         __m256 rbin = _mm256_fmadd_ps(dj, vsin, vrb0);
         __m256 cbin = _mm256_fmadd_ps(dj, vcos, vcb0);
         const __m256 valid = _mm256_and_ps(
-            _mm256_and_ps(_mm256_cmp_ps(rbin, minus_one, _CMP_GT_OQ), _mm256_cmp_ps(rbin, dv, _CMP_LT_OQ)),
-            _mm256_and_ps(_mm256_cmp_ps(cbin, minus_one, _CMP_GT_OQ), _mm256_cmp_ps(cbin, dv, _CMP_LT_OQ)));
+            _mm256_and_ps(_mm256_and_ps(_mm256_cmp_ps(rbin, minus_one, _CMP_GT_OQ), _mm256_cmp_ps(rbin, dv, _CMP_LT_OQ)),
+                          _mm256_and_ps(_mm256_cmp_ps(cbin, minus_one, _CMP_GT_OQ), _mm256_cmp_ps(cbin, dv, _CMP_LT_OQ))),
+            _mm256_castsi256_ps(_mm256_cmpgt_epi32(vend, jv)));
         if (_mm256_movemask_ps(valid) == 0) continue;
+        __m256 mag, ori;
+        Gradient8(row, above, below, j, &mag, &ori);
         rbin = _mm256_and_ps(rbin, valid);
         cbin = _mm256_and_ps(cbin, valid);
-        __m256 obin = _mm256_mul_ps(_mm256_sub_ps(_mm256_loadu_ps(ori + (j - j0)), vori), vbins);
+        __m256 obin = _mm256_mul_ps(_mm256_sub_ps(ori, vori), vbins);
         obin = _mm256_and_ps(obin, valid);
-        const __m256 m = _mm256_and_ps(
-            _mm256_mul_ps(_mm256_loadu_ps(mag + (j - j0)), _mm256_mul_ps(vwrow, _mm256_loadu_ps(wcol + j + radius))), valid);
+        const __m256 m = _mm256_and_ps(_mm256_mul_ps(mag, _mm256_mul_ps(vwrow, _mm256_loadu_ps(wcol + j + radius))), valid);
         const __m256 rf = _mm256_floor_ps(rbin), cf = _mm256_floor_ps(cbin), of = _mm256_floor_ps(obin);
         const __m256i r0 = _mm256_cvttps_epi32(rf), c0 = _mm256_cvttps_epi32(cf);
         __m256i o0 = _mm256_cvttps_epi32(of);
@@ -501,34 +562,22 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
         const __m256 v_r1 = _mm256_mul_ps(m, rbin), v_r0 = _mm256_sub_ps(m, v_r1);
         const __m256 v_rc11 = _mm256_mul_ps(v_r1, cbin), v_rc10 = _mm256_sub_ps(v_r1, v_rc11);
         const __m256 v_rc01 = _mm256_mul_ps(v_r0, cbin), v_rc00 = _mm256_sub_ps(v_r0, v_rc01);
-        const __m256 v111 = _mm256_mul_ps(v_rc11, obin), v110 = _mm256_sub_ps(v_rc11, v111);
-        const __m256 v101 = _mm256_mul_ps(v_rc10, obin), v100 = _mm256_sub_ps(v_rc10, v101);
-        const __m256 v011 = _mm256_mul_ps(v_rc01, obin), v010 = _mm256_sub_ps(v_rc01, v011);
-        const __m256 v001 = _mm256_mul_ps(v_rc00, obin), v000 = _mm256_sub_ps(v_rc00, v001);
+        const __m256 obin0 = _mm256_sub_ps(_mm256_set1_ps(1.0f), obin);
         // index = ((r0 + 1) * (d + 2) + c0 + 1) * (n + 2) + o0
         const __m256i cell = _mm256_add_epi32(_mm256_mullo_epi32(_mm256_add_epi32(r0, _mm256_set1_epi32(1)), _mm256_set1_epi32(d + 2)),
                                               _mm256_add_epi32(c0, _mm256_set1_epi32(1)));
         _mm256_store_si256(reinterpret_cast<__m256i*>(index),
                            _mm256_add_epi32(_mm256_mullo_epi32(cell, _mm256_set1_epi32(n + 2)), o0));
-        _mm256_store_ps(weights[0], v000);
-        _mm256_store_ps(weights[1], v001);
-        _mm256_store_ps(weights[2], v010);
-        _mm256_store_ps(weights[3], v011);
-        _mm256_store_ps(weights[4], v100);
-        _mm256_store_ps(weights[5], v101);
-        _mm256_store_ps(weights[6], v110);
-        _mm256_store_ps(weights[7], v111);
-        for (int lane = 0; lane < 8; ++lane) {
-          float* p = hist + index[lane];
-          p[0] += weights[0][lane];
-          p[1] += weights[1][lane];
-          p[n + 2] += weights[2][lane];
-          p[n + 3] += weights[3][lane];
-          p[(d + 2) * (n + 2)] += weights[4][lane];
-          p[(d + 2) * (n + 2) + 1] += weights[5][lane];
-          p[(d + 3) * (n + 2)] += weights[6][lane];
-          p[(d + 3) * (n + 2) + 1] += weights[7][lane];
-        }
+        _mm256_store_ps(weights[0], v_rc00);
+        _mm256_store_ps(weights[1], v_rc01);
+        _mm256_store_ps(weights[2], v_rc10);
+        _mm256_store_ps(weights[3], v_rc11);
+        _mm256_store_ps(weights[4], obin0);
+        _mm256_store_ps(weights[5], obin);
+        const int lanes = std::min(8, j1 - j);
+        for (int lane = 0; lane < lanes; ++lane)
+          AddTrilinear(copies[lane % kHistCopies] + index[lane], weights[0][lane], weights[1][lane], weights[2][lane],
+                       weights[3][lane], weights[4][lane], weights[5][lane]);
       }
     }
 #endif
@@ -537,8 +586,10 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
       float rbin = std::fma(dj, sin_t, rb0);
       float cbin = std::fma(dj, cos_t, cb0);
       if (!(rbin > -1.0f && rbin < static_cast<float>(d) && cbin > -1.0f && cbin < static_cast<float>(d))) continue;
-      float obin = (ori[j - j0] - ori_deg) * bins_per_deg;
-      const float m = mag[j - j0] * (wrow * wcol[j + radius]);
+      float mag, ori;
+      Gradient(row, above, below, j, &mag, &ori);
+      float obin = (ori - ori_deg) * bins_per_deg;
+      const float m = mag * (wrow * wcol[j + radius]);
       const float rf = std::floor(rbin), cf = std::floor(cbin), of = std::floor(obin);
       const int r0 = static_cast<int>(rf);
       const int c0 = static_cast<int>(cf);
@@ -552,22 +603,14 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
       const float v_r1 = m * rbin, v_r0 = m - v_r1;
       const float v_rc11 = v_r1 * cbin, v_rc10 = v_r1 - v_rc11;
       const float v_rc01 = v_r0 * cbin, v_rc00 = v_r0 - v_rc01;
-      const float v_rco111 = v_rc11 * obin, v_rco110 = v_rc11 - v_rco111;
-      const float v_rco101 = v_rc10 * obin, v_rco100 = v_rc10 - v_rco101;
-      const float v_rco011 = v_rc01 * obin, v_rco010 = v_rc01 - v_rco011;
-      const float v_rco001 = v_rc00 * obin, v_rco000 = v_rc00 - v_rco001;
-      float* p = hist + ((r0 + 1) * (d + 2) + c0 + 1) * (n + 2) + o0;
-      p[0] += v_rco000;
-      p[1] += v_rco001;
-      p[n + 2] += v_rco010;
-      p[n + 3] += v_rco011;
-      p[(d + 2) * (n + 2)] += v_rco100;
-      p[(d + 2) * (n + 2) + 1] += v_rco101;
-      p[(d + 3) * (n + 2)] += v_rco110;
-      p[(d + 3) * (n + 2) + 1] += v_rco111;
+      AddTrilinear(copies[(j - j0) % kHistCopies] + ((r0 + 1) * (d + 2) + c0 + 1) * (n + 2) + o0, v_rc00, v_rc01, v_rc10,
+                   v_rc11, 1.0f - obin, obin);
     }
   }
-  // Fold the circular orientation bins and copy the inner d x d cells out.
+  // Sum the copies, fold the circular orientation bins and copy the inner d x d cells out.
+  float* hist = copies[0];
+  for (int k = 0; k < kHistSize; ++k)
+    for (int copy = 1; copy < kHistCopies; ++copy) hist[k] += copies[copy][k];
   for (int i = 0; i < d; ++i)
     for (int j = 0; j < d; ++j) {
       float* p = hist + ((i + 1) * (d + 2) + (j + 1)) * (n + 2);
@@ -588,10 +631,35 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
   for (int k = 0; k < kDescriptorDim; ++k) out[k] *= inv;
 }
 
-struct OctaveFeatures {
-  std::vector<Keypoint> keypoints;
-  std::vector<float> descriptors;
+// Orientations (degrees, y axis up, [0, 360)) found for one refined extremum; at most one per two bins
+// since peaks are strict local maxima of the circular histogram.
+struct PointOrientations {
+  int count = 0;
+  float degrees[kOriBins / 2];
 };
+
+// Pyramid buffers kept by a thread between calls, so that a thread extracting image after image does
+// not pay the page faults (and the kernel's zeroing) of ~100 MB of fresh memory per image.
+struct Scratch {
+  std::vector<Plane> gauss;
+  Plane spare;
+
+  // Takes the octave planes back, then frees everything when the total exceeds `limit_mib`.
+  void Keep(std::vector<Plane> planes, int limit_mib) {
+    gauss = std::move(planes);
+    size_t bytes = spare.capacity_bytes();
+    for (const Plane& plane : gauss) bytes += plane.capacity_bytes();
+    if (bytes > (static_cast<size_t>(limit_mib) << 20)) {
+      gauss.clear();
+      spare = Plane();
+    }
+  }
+};
+
+Scratch& ThreadScratch() {
+  thread_local Scratch scratch;
+  return scratch;
+}
 
 }  // namespace
 
@@ -609,19 +677,24 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
   const int S = options.intervals;
   const double sigma = options.sigma;
 
-  // Base image: input (optionally upsampled 2x), blurred from the assumed camera blur to sigma.
-  Plane input(image.width, image.height);
-  for (int y = 0; y < image.height; ++y)
-    std::copy_n(image.pixels.data() + static_cast<size_t>(y) * static_cast<size_t>(image.width), image.width, input.row(y));
-  Plane base;
+  // Pyramid buffers: the calling thread's cache (see ThreadScratch); returned to it at the end.
+  Scratch& scratch = ThreadScratch();
+  Octave octave;
+  octave.gauss.swap(scratch.gauss);
+  octave.gauss.resize(static_cast<size_t>(S) + 3);
+  // `spare` holds the base image of octave 0 (the input, optionally upsampled 2x, still to be blurred
+  // from the assumed camera blur to sigma), then the decimated base of each next octave.
+  Plane& spare = scratch.spare;
   double present_blur = options.assumed_blur;
   if (options.upsample_first_octave) {
-    Upsample2x(input, &base, threads);
-    input = Plane();
+    Upsample2x(image.pixels.data(), image.width, image.height, static_cast<size_t>(image.width), &spare, threads);
     present_blur *= 2;
   } else {
-    base = std::move(input);
+    spare.Reshape(image.width, image.height);
+    for (int y = 0; y < image.height; ++y)
+      std::copy_n(image.pixels.data() + static_cast<size_t>(y) * static_cast<size_t>(image.width), image.width, spare.row(y));
   }
+  const Plane& base = spare;
   const double first_blur = std::sqrt(std::max(sigma * sigma - present_blur * present_blur, 0.01));
 
   const int min_side = std::min(base.width(), base.height());
@@ -629,7 +702,10 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
   int octaves = static_cast<int>(std::lrint(std::log2(static_cast<double>(min_side)) - 2.0)) +
                 (options.upsample_first_octave ? 1 : 0);
   if (options.max_octaves) octaves = std::min(octaves, *options.max_octaves);
-  if (octaves <= 0) return result;
+  if (octaves <= 0) {
+    scratch.Keep(std::move(octave.gauss), options.thread_cache_mib);
+    return result;
+  }
 
   // Incremental blurs: level i has total blur sigma * k^i; level i is level i-1 blurred by
   // sqrt(sigma_i^2 - sigma_{i-1}^2).
@@ -649,14 +725,10 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
 
   // The S + 3 planes of octave 0 are reused by the (smaller) later octaves; `spare` receives the
   // decimated base of the next octave.
-  Octave octave;
-  octave.gauss.resize(static_cast<size_t>(S) + 3);
-  Plane spare;
   for (int o = 0; o < octaves; ++o) {
     octave.index = o;
     if (o == 0) {
       GaussianBlur(base, &octave.gauss[0], kernels[0], threads, simd);
-      base = Plane();
     } else {
       std::swap(octave.gauss[0], spare);
     }
@@ -691,26 +763,47 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
       unique.swap(kept);
     }
 
-    std::vector<OctaveFeatures> per_point(unique.size());
-    const double octave_scale = std::ldexp(1.0, o);
-    ParallelFor(unique.size(), threads, 16, [&](size_t b, size_t e, int) {
+    // Orientations of every point first, then descriptors written straight into the result at offsets
+    // known from the counts: no per-point allocation, and the order is that of `unique` for any
+    // thread count.
+    std::vector<PointOrientations> orientations(unique.size());
+    std::vector<float> scales(unique.size());
+    ParallelFor(unique.size(), threads, 32, [&](size_t b, size_t e, int) {
       float hist[kOriBins];
       for (size_t i = b; i < e; ++i) {
         const Refined& p = unique[i];
         const float scale_octave = static_cast<float>(sigma * std::pow(2.0, (p.layer + p.xi) / S));
+        scales[i] = scale_octave;
         const Plane& img = octave.gauss[static_cast<size_t>(p.layer)];
         const float max_value = OrientationHistogram(img, p.c, p.r, static_cast<int>(std::lrint(kOriRadiusFactor * scale_octave)),
                                                      kOriSigmaFactor * scale_octave, hist, simd);
         const float threshold = static_cast<float>(max_value * options.orientation_peak_ratio);
-        OctaveFeatures& out = per_point[i];
+        PointOrientations& out = orientations[i];
         for (int j = 0; j < kOriBins; ++j) {
           const int left = j > 0 ? j - 1 : kOriBins - 1, right = j < kOriBins - 1 ? j + 1 : 0;
           if (!(hist[j] > hist[left] && hist[j] > hist[right] && hist[j] >= threshold)) continue;
           float bin = j + 0.5f * (hist[left] - hist[right]) / (hist[left] - 2 * hist[j] + hist[right]);
           bin = bin < 0 ? kOriBins + bin : bin >= kOriBins ? bin - kOriBins : bin;
-          const float ori_up = (360.0f / kOriBins) * bin;  // degrees, y axis up
-          Keypoint kp;
-          const double x_octave = p.c + p.xc, y_octave = p.r + p.xr;
+          out.degrees[out.count++] = (360.0f / kOriBins) * bin;  // degrees, y axis up
+        }
+      }
+    });
+    std::vector<size_t> first(unique.size() + 1);
+    first[0] = result.keypoints.size();
+    for (size_t i = 0; i < unique.size(); ++i) first[i + 1] = first[i] + static_cast<size_t>(orientations[i].count);
+    result.keypoints.resize(first.back());
+    result.descriptors.resize(first.back() * kDescriptorDim);
+    const double octave_scale = std::ldexp(1.0, o);
+    ParallelFor(unique.size(), threads, 16, [&](size_t b, size_t e, int) {
+      for (size_t i = b; i < e; ++i) {
+        const Refined& p = unique[i];
+        const float scale_octave = scales[i];
+        const Plane& img = octave.gauss[static_cast<size_t>(p.layer)];
+        const double x_octave = p.c + p.xc, y_octave = p.r + p.xr;
+        for (int a = 0; a < orientations[i].count; ++a) {
+          const float ori_up = orientations[i].degrees[a];
+          const size_t index = first[i] + static_cast<size_t>(a);
+          Keypoint& kp = result.keypoints[index];
           kp.x = static_cast<float>(x_octave * octave_scale * coordinate_scale + coordinate_shift);
           kp.y = static_cast<float>(y_octave * octave_scale * coordinate_scale + coordinate_shift);
           kp.scale = static_cast<float>(scale_octave * octave_scale * coordinate_scale);
@@ -720,22 +813,16 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
           kp.orientation = static_cast<float>(angle * (3.14159265358979323846 / 180.0));
           kp.response = std::fabs(p.contrast);
           kp.octave = o - (options.upsample_first_octave ? 1 : 0);
-          out.keypoints.push_back(kp);
-          const size_t offset = out.descriptors.size();
-          out.descriptors.resize(offset + kDescriptorDim);
+          float* descriptor = result.descriptors.data() + index * kDescriptorDim;
           Descriptor(img, static_cast<float>(x_octave), static_cast<float>(y_octave), ori_up == 360.0f ? 0.0f : ori_up,
-                     scale_octave, out.descriptors.data() + offset, simd);
-          if (options.descriptor == DescriptorKind::kRootSift)
-            ToRootSift(std::span<float>(out.descriptors.data() + offset, kDescriptorDim));
+                     scale_octave, descriptor, simd);
+          if (options.descriptor == DescriptorKind::kRootSift) ToRootSift(std::span<float>(descriptor, kDescriptorDim));
         }
       }
     });
-    for (auto& f : per_point) {
-      result.keypoints.insert(result.keypoints.end(), f.keypoints.begin(), f.keypoints.end());
-      result.descriptors.insert(result.descriptors.end(), f.descriptors.begin(), f.descriptors.end());
-    }
     if (o + 1 < octaves) Decimate2x(octave.gauss[static_cast<size_t>(S)], &spare);
   }
+  scratch.Keep(std::move(octave.gauss), options.thread_cache_mib);
 
   if (options.max_features && result.keypoints.size() > static_cast<size_t>(*options.max_features)) {
     std::vector<size_t> order(result.keypoints.size());

@@ -125,6 +125,11 @@ struct SiftOptions {
 
   // Worker threads; 0 = all hardware threads. The output is identical for every value. [0, 256].
   int num_threads = 0;
+  // Each thread that calls Extract keeps its pyramid buffers (about 28 * W * H * 4 bytes with
+  // upsampling: ~90 MB for a 1024x768 image) for its next call, which saves the page faults of fresh
+  // memory (~10-15% of the extraction time), unless they exceed this many MiB; 0 frees them after
+  // every call. [0, 65536].
+  int thread_cache_mib = 256;
 
   // Error message for an invalid setting, or nullopt.
   [[nodiscard]] std::optional<std::string> Check() const;
