@@ -77,48 +77,70 @@ std::vector<float> GaussianHalfKernel(double sigma, double radius_sigmas) {
 
 namespace {
 
-// out[x] = c0 * rows[0][x] + sum_k c_k * (minus[k][x] + plus[k][x]) for x in [begin, end).
-void VerticalPass(const float* const* minus, const float* const* plus, std::span<const float> c, int begin, int end,
-                  float* out, bool simd) {
-  const int r = static_cast<int>(c.size()) - 1;
-  int x = begin;
+// Vertical pass for `count` (1..kRowBlock) consecutive output rows: out[m][x] = sum_{i=0..2r}
+// kernel[i] * rows[m + i][x], accumulated in order of i (the i = 0 term a product, then fused
+// multiply-adds); rows[j] is source row y - r + j, kernel is the full kernel c_r..c_0..c_r.
+// Four rows at a time the AVX2 path loads each source row once for all four (1 load per 4 FMAs
+// instead of 2 loads per FMA): the 2r + 4 rows live in L2, not L1, so loads are the limit otherwise.
+constexpr int kRowBlock = 4;
+
+void VerticalPass(const float* const* rows, const float* kernel, int r, int count, int width, float* const* out, bool simd) {
+  const int taps = 2 * r + 1;
+  int x = 0;
 #ifdef OXBOW_SIFT_AVX2
   if (simd) {
-    // 32 columns per iteration so each tap's row pointers and coefficient are loaded once per 4 vectors.
-    for (; x + 32 <= end; x += 32) {
-      const __m256 c0 = _mm256_set1_ps(c[0]);
-      __m256 a0 = _mm256_mul_ps(c0, _mm256_loadu_ps(minus[0] + x));
-      __m256 a1 = _mm256_mul_ps(c0, _mm256_loadu_ps(minus[0] + x + 8));
-      __m256 a2 = _mm256_mul_ps(c0, _mm256_loadu_ps(minus[0] + x + 16));
-      __m256 a3 = _mm256_mul_ps(c0, _mm256_loadu_ps(minus[0] + x + 24));
-      for (int k = 1; k <= r; ++k) {
-        const __m256 ck = _mm256_set1_ps(c[static_cast<size_t>(k)]);
-        const float* m = minus[k] + x;
-        const float* p = plus[k] + x;
-        a0 = _mm256_fmadd_ps(ck, _mm256_add_ps(_mm256_loadu_ps(m), _mm256_loadu_ps(p)), a0);
-        a1 = _mm256_fmadd_ps(ck, _mm256_add_ps(_mm256_loadu_ps(m + 8), _mm256_loadu_ps(p + 8)), a1);
-        a2 = _mm256_fmadd_ps(ck, _mm256_add_ps(_mm256_loadu_ps(m + 16), _mm256_loadu_ps(p + 16)), a2);
-        a3 = _mm256_fmadd_ps(ck, _mm256_add_ps(_mm256_loadu_ps(m + 24), _mm256_loadu_ps(p + 24)), a3);
+    if (count == kRowBlock && taps > kRowBlock) {
+      for (; x + 16 <= width; x += 16) {
+        // Source row j contributes to output m with kernel[j - m] for 0 <= j - m < taps.
+        __m256 a0[kRowBlock], a1[kRowBlock];
+        const __m256 k0 = _mm256_broadcast_ss(kernel);
+#pragma GCC unroll 4
+        for (int m = 0; m < kRowBlock; ++m) {
+          a0[m] = _mm256_mul_ps(k0, _mm256_loadu_ps(rows[m] + x));
+          a1[m] = _mm256_mul_ps(k0, _mm256_loadu_ps(rows[m] + x + 8));
+        }
+        auto add_row = [&](int j, int m_begin, int m_end) {
+          const __m256 v0 = _mm256_loadu_ps(rows[j] + x), v1 = _mm256_loadu_ps(rows[j] + x + 8);
+#pragma GCC unroll 4
+          for (int m = 0; m < kRowBlock; ++m) {
+            if (m < m_begin || m >= m_end) continue;
+            const __m256 k = _mm256_broadcast_ss(kernel + (j - m));
+            a0[m] = _mm256_fmadd_ps(k, v0, a0[m]);
+            a1[m] = _mm256_fmadd_ps(k, v1, a1[m]);
+          }
+        };
+        for (int j = 1; j < kRowBlock; ++j) add_row(j, 0, j);  // outputs m < j
+        for (int j = kRowBlock; j < taps; ++j) add_row(j, 0, kRowBlock);
+        for (int j = taps; j < taps + kRowBlock - 1; ++j) add_row(j, j - taps + 1, kRowBlock);
+#pragma GCC unroll 4
+        for (int m = 0; m < kRowBlock; ++m) {
+          _mm256_storeu_ps(out[m] + x, a0[m]);
+          _mm256_storeu_ps(out[m] + x + 8, a1[m]);
+        }
       }
-      _mm256_storeu_ps(out + x, a0);
-      _mm256_storeu_ps(out + x + 8, a1);
-      _mm256_storeu_ps(out + x + 16, a2);
-      _mm256_storeu_ps(out + x + 24, a3);
     }
-    for (; x + 8 <= end; x += 8) {
-      __m256 acc = _mm256_mul_ps(_mm256_set1_ps(c[0]), _mm256_loadu_ps(minus[0] + x));
-      for (int k = 1; k <= r; ++k)
-        acc = _mm256_fmadd_ps(_mm256_set1_ps(c[static_cast<size_t>(k)]),
-                              _mm256_add_ps(_mm256_loadu_ps(minus[k] + x), _mm256_loadu_ps(plus[k] + x)), acc);
-      _mm256_storeu_ps(out + x, acc);
+    for (int m = 0; m < count; ++m) {
+      int xm = x;
+      for (; xm + 8 <= width; xm += 8) {
+        __m256 acc = _mm256_mul_ps(_mm256_broadcast_ss(kernel), _mm256_loadu_ps(rows[m] + xm));
+        for (int i = 1; i < taps; ++i) acc = _mm256_fmadd_ps(_mm256_broadcast_ss(kernel + i), _mm256_loadu_ps(rows[m + i] + xm), acc);
+        _mm256_storeu_ps(out[m] + xm, acc);
+      }
+      for (; xm < width; ++xm) {
+        float acc = kernel[0] * rows[m][xm];
+        for (int i = 1; i < taps; ++i) acc = std::fma(kernel[i], rows[m + i][xm], acc);
+        out[m][xm] = acc;
+      }
     }
+    return;
   }
 #endif
-  for (; x < end; ++x) {
-    float acc = c[0] * minus[0][x];
-    for (int k = 1; k <= r; ++k) acc = std::fma(c[static_cast<size_t>(k)], minus[k][x] + plus[k][x], acc);
-    out[x] = acc;
-  }
+  for (int m = 0; m < count; ++m)
+    for (int xm = x; xm < width; ++xm) {
+      float acc = kernel[0] * rows[m][xm];
+      for (int i = 1; i < taps; ++i) acc = std::fma(kernel[i], rows[m + i][xm], acc);
+      out[m][xm] = acc;
+    }
 }
 
 // out[x] = c0 * t[x] + sum_k c_k * (t[x-k] + t[x+k]) for x in [0, width); t is padded by r on both sides.
@@ -177,21 +199,27 @@ void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kern
   if (dst->width() != w || dst->height() != h) dst->Reshape(w, h);
   if (w == 0 || h == 0) return;
   const int r = static_cast<int>(half_kernel.size()) - 1;
-  ParallelFor(static_cast<size_t>(h), num_threads, RowGrain(h, num_threads), [&](size_t y0, size_t y1, int) {
-    std::vector<float> padded(static_cast<size_t>(w + 2 * r) + 8);
-    std::vector<const float*> minus(static_cast<size_t>(r) + 1), plus(static_cast<size_t>(r) + 1);
-    float* t = padded.data() + r;
-    for (int y = static_cast<int>(y0); y < static_cast<int>(y1); ++y) {
-      for (int k = 0; k <= r; ++k) {
-        minus[static_cast<size_t>(k)] = src.row(Reflect101(y - k, h));
-        plus[static_cast<size_t>(k)] = src.row(Reflect101(y + k, h));
+  std::vector<float> kernel(static_cast<size_t>(2 * r + 1));
+  for (int i = 0; i <= 2 * r; ++i) kernel[static_cast<size_t>(i)] = half_kernel[static_cast<size_t>(std::abs(i - r))];
+  // Row chunks are multiples of kRowBlock so that a row's formula does not depend on the thread count
+  // (it does not anyway: every output row is computed by the same sequence of operations).
+  const size_t grain = (RowGrain(h, num_threads) + kRowBlock - 1) / kRowBlock * kRowBlock;
+  ParallelFor(static_cast<size_t>(h), num_threads, grain, [&](size_t y0, size_t y1, int) {
+    std::vector<float> padded(static_cast<size_t>(kRowBlock) * (static_cast<size_t>(w + 2 * r) + 8));
+    std::vector<const float*> rows(static_cast<size_t>(2 * r + kRowBlock));
+    float* t[kRowBlock];
+    for (int m = 0; m < kRowBlock; ++m) t[m] = padded.data() + static_cast<size_t>(m) * (static_cast<size_t>(w + 2 * r) + 8) + r;
+    for (int y = static_cast<int>(y0); y < static_cast<int>(y1); y += kRowBlock) {
+      const int count = std::min(kRowBlock, static_cast<int>(y1) - y);
+      for (int j = 0; j < 2 * r + count; ++j) rows[static_cast<size_t>(j)] = src.row(Reflect101(y - r + j, h));
+      VerticalPass(rows.data(), kernel.data(), r, count, w, t, allow_simd);
+      for (int m = 0; m < count; ++m) {
+        for (int i = 1; i <= r; ++i) {
+          t[m][-i] = t[m][Reflect101(-i, w)];
+          t[m][w - 1 + i] = t[m][Reflect101(w - 1 + i, w)];
+        }
+        HorizontalPass(t[m], half_kernel, w, dst->row(y + m), allow_simd);
       }
-      VerticalPass(minus.data(), plus.data(), half_kernel, 0, w, t, allow_simd);
-      for (int i = 1; i <= r; ++i) {
-        t[-i] = t[Reflect101(-i, w)];
-        t[w - 1 + i] = t[Reflect101(w - 1 + i, w)];
-      }
-      HorizontalPass(t, half_kernel, w, dst->row(y), allow_simd);
     }
   });
 }

@@ -59,10 +59,11 @@ int Reflect101(int i, int n);
 // (OpenCV's rule for float images with radius_sigmas = 4). Weights exp(-x^2 / (2 sigma^2)) / sum.
 std::vector<float> GaussianHalfKernel(double sigma, double radius_sigmas);
 
-// dst = src blurred with the separable kernel (vertical pass then horizontal pass, fused per row so each
-// row is read once from L2), BORDER_REFLECT_101. dst is (re)allocated to src's size; must not alias src.
-// Rows are split over `num_threads` workers; the output does not depend on it.
-// Cost: ~ 2 * (r + 1) fused multiply-adds per pixel.
+// dst = src blurred with the separable kernel, BORDER_REFLECT_101: a vertical pass over the 2r + 1 taps
+// (fused multiply-adds in tap order, four output rows per sweep so each source row is loaded once for
+// four), then a horizontal pass on each row while it is in L1 (symmetric taps added first). dst is
+// (re)allocated to src's size; must not alias src. Rows are split over `num_threads` workers; the
+// output does not depend on it. Cost: ~ 3r + 2 floating-point operations per pixel.
 void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kernel, int num_threads,
                   bool allow_simd = true);
 
