@@ -25,6 +25,79 @@ bool SimdCompiledIn() {
 #endif
 }
 
+WorkerTeam::WorkerTeam(int num_threads) {
+  OXBOW_CHECK(num_threads >= 1);
+  threads_.reserve(static_cast<size_t>(num_threads - 1));
+  for (int w = 1; w < num_threads; ++w) threads_.emplace_back([this, w] { WorkerLoop(w); });
+}
+
+WorkerTeam::~WorkerTeam() {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    stop_ = true;
+  }
+  wake_.notify_all();
+  for (std::thread& t : threads_) t.join();
+}
+
+void WorkerTeam::Work(int worker) {
+  try {
+    for (size_t c = next_.fetch_add(1); c < chunks_; c = next_.fetch_add(1)) {
+      const size_t begin = c * grain_;
+      (*fn_)(begin, std::min(n_, begin + grain_), worker);
+    }
+  } catch (...) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (!failure_) failure_ = std::current_exception();
+    next_.store(chunks_);
+  }
+}
+
+void WorkerTeam::WorkerLoop(int worker) {
+  uint64_t seen = 0;
+  for (;;) {
+    {
+      std::unique_lock<std::mutex> lock(mutex_);
+      wake_.wait(lock, [&] { return stop_ || generation_ != seen; });
+      if (stop_) return;
+      seen = generation_;
+    }
+    Work(worker);
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (--running_ == 0) done_.notify_one();
+  }
+}
+
+void WorkerTeam::ParallelFor(size_t n, size_t grain, const std::function<void(size_t, size_t, int)>& fn) {
+  if (n == 0) return;
+  grain = std::max<size_t>(1, grain);
+  const size_t chunks = (n + grain - 1) / grain;
+  if (threads_.empty() || chunks <= 1) {
+    fn(0, n, 0);
+    return;
+  }
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    n_ = n;
+    grain_ = grain;
+    chunks_ = chunks;
+    fn_ = &fn;
+    next_.store(0);
+    failure_ = nullptr;
+    running_ = static_cast<int>(threads_.size());
+    ++generation_;
+  }
+  wake_.notify_all();
+  Work(0);
+  std::exception_ptr failure;
+  {
+    std::unique_lock<std::mutex> lock(mutex_);
+    done_.wait(lock, [&] { return running_ == 0; });
+    failure = failure_;
+  }
+  if (failure) std::rethrow_exception(failure);
+}
+
 void Plane::Free::operator()(float* p) const { std::free(p); }
 
 Plane::Plane(int width, int height) { Reshape(width, height); }
@@ -193,6 +266,12 @@ size_t RowGrain(int height, int num_threads) {
 }  // namespace
 
 void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kernel, int num_threads, bool allow_simd) {
+  WorkerTeam team(std::max(1, num_threads));
+  GaussianBlur(src, dst, half_kernel, team, allow_simd);
+}
+
+void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kernel, WorkerTeam& team, bool allow_simd) {
+  const int num_threads = team.size();
   OXBOW_CHECK(!half_kernel.empty());
   OXBOW_CHECK(dst != &src);
   const int w = src.width(), h = src.height();
@@ -204,7 +283,7 @@ void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kern
   // Row chunks are multiples of kRowBlock so that a row's formula does not depend on the thread count
   // (it does not anyway: every output row is computed by the same sequence of operations).
   const size_t grain = (RowGrain(h, num_threads) + kRowBlock - 1) / kRowBlock * kRowBlock;
-  ParallelFor(static_cast<size_t>(h), num_threads, grain, [&](size_t y0, size_t y1, int) {
+  team.ParallelFor(static_cast<size_t>(h), grain, [&](size_t y0, size_t y1, int) {
     std::vector<float> padded(static_cast<size_t>(kRowBlock) * (static_cast<size_t>(w + 2 * r) + 8));
     std::vector<const float*> rows(static_cast<size_t>(2 * r + kRowBlock));
     float* t[kRowBlock];
@@ -224,10 +303,11 @@ void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kern
   });
 }
 
-void Upsample2x(const float* src, int w, int h, size_t src_stride, Plane* dst, int num_threads) {
+void Upsample2x(const float* src, int w, int h, size_t src_stride, Plane* dst, WorkerTeam& team) {
+  const int num_threads = team.size();
   dst->Reshape(2 * w, 2 * h);
   if (w == 0 || h == 0) return;
-  ParallelFor(static_cast<size_t>(2 * h), num_threads, RowGrain(2 * h, num_threads), [&](size_t y0, size_t y1, int) {
+  team.ParallelFor(static_cast<size_t>(2 * h), RowGrain(2 * h, num_threads), [&](size_t y0, size_t y1, int) {
     std::vector<float> v(static_cast<size_t>(w));
     for (int y = static_cast<int>(y0); y < static_cast<int>(y1); ++y) {
       const int sy = y / 2;

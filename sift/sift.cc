@@ -177,7 +177,8 @@ void ScanRow(const float* const (&rows)[3][3], int x0, int x1, float threshold, 
 
 // Finds the candidate extrema of one octave, in (layer, row, column) order. DoG rows are computed on
 // the fly into a small ring buffer per worker, so the DoG pyramid is never stored.
-std::vector<Candidate> ScanOctave(const Octave& octave, int intervals, float threshold, int num_threads, bool simd) {
+std::vector<Candidate> ScanOctave(const Octave& octave, int intervals, float threshold, WorkerTeam& team, bool simd) {
+  const int num_threads = team.size();
   const Plane& g0 = octave.gauss[0];
   const int w = g0.width(), h = g0.height();
   if (w <= 2 * kBorder || h <= 2 * kBorder) return {};
@@ -186,7 +187,7 @@ std::vector<Candidate> ScanOctave(const Octave& octave, int intervals, float thr
   const size_t chunks = (static_cast<size_t>(rows) + grain - 1) / grain;
   std::vector<std::vector<Candidate>> found(chunks);
   const int dog_layers = intervals + 2;
-  ParallelFor(static_cast<size_t>(rows), num_threads, grain, [&](size_t begin, size_t end, int) {
+  team.ParallelFor(static_cast<size_t>(rows), grain, [&](size_t begin, size_t end, int) {
     const int y0 = kBorder + static_cast<int>(begin), y1 = kBorder + static_cast<int>(end);
     // A ring of 4 DoG rows per layer (rows y-1, y, y+1 and the next one): ~100 KB that stays in cache.
     // Row pointers for the scan are set per row, so the ring only needs consistent slots.
@@ -687,6 +688,7 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
   if (image.width <= 0 || image.height <= 0) return result;
 
   const int threads = ResolveThreadCount(options.num_threads);
+  WorkerTeam team(threads);
   const int S = options.intervals;
   const double sigma = options.sigma;
 
@@ -700,7 +702,7 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
   Plane& spare = scratch.spare;
   double present_blur = options.assumed_blur;
   if (options.upsample_first_octave) {
-    Upsample2x(image.pixels.data(), image.width, image.height, static_cast<size_t>(image.width), &spare, threads);
+    Upsample2x(image.pixels.data(), image.width, image.height, static_cast<size_t>(image.width), &spare, team);
     present_blur *= 2;
   } else {
     spare.Reshape(image.width, image.height);
@@ -741,17 +743,17 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
   for (int o = 0; o < octaves; ++o) {
     octave.index = o;
     if (o == 0) {
-      GaussianBlur(base, &octave.gauss[0], kernels[0], threads, simd);
+      GaussianBlur(base, &octave.gauss[0], kernels[0], team, simd);
     } else {
       std::swap(octave.gauss[0], spare);
     }
     if (octave.gauss[0].width() < 1 || octave.gauss[0].height() < 1) break;
     for (int i = 1; i < S + 3; ++i)
-      GaussianBlur(octave.gauss[static_cast<size_t>(i) - 1], &octave.gauss[static_cast<size_t>(i)], kernels[static_cast<size_t>(i)], threads, simd);
+      GaussianBlur(octave.gauss[static_cast<size_t>(i) - 1], &octave.gauss[static_cast<size_t>(i)], kernels[static_cast<size_t>(i)], team, simd);
 
-    const std::vector<Candidate> candidates = ScanOctave(octave, S, scan_threshold, threads, simd);
+    const std::vector<Candidate> candidates = ScanOctave(octave, S, scan_threshold, team, simd);
     std::vector<std::optional<Refined>> refined(candidates.size());
-    ParallelFor(candidates.size(), threads, 64, [&](size_t b, size_t e, int) {
+    team.ParallelFor(candidates.size(), 64, [&](size_t b, size_t e, int) {
       for (size_t i = b; i < e; ++i) refined[i] = Refine(octave, candidates[i], options);
     });
     // Two candidates can converge onto the same sample; keep the first (as cv::SIFT removes duplicates).
@@ -781,7 +783,7 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
     // thread count.
     std::vector<PointOrientations> orientations(unique.size());
     std::vector<float> scales(unique.size());
-    ParallelFor(unique.size(), threads, 32, [&](size_t b, size_t e, int) {
+    team.ParallelFor(unique.size(), 32, [&](size_t b, size_t e, int) {
       float hist[kOriBins];
       for (size_t i = b; i < e; ++i) {
         const Refined& p = unique[i];
@@ -807,7 +809,7 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
     result.keypoints.resize(first.back());
     result.descriptors.resize(first.back() * kDescriptorDim);
     const double octave_scale = std::ldexp(1.0, o);
-    ParallelFor(unique.size(), threads, 16, [&](size_t b, size_t e, int) {
+    team.ParallelFor(unique.size(), 16, [&](size_t b, size_t e, int) {
       for (size_t i = b; i < e; ++i) {
         const Refined& p = unique[i];
         const float scale_octave = scales[i];
