@@ -547,7 +547,7 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
       const __m256 vori = _mm256_set1_ps(ori_deg), vbins = _mm256_set1_ps(bins_per_deg), vwrow = _mm256_set1_ps(wrow);
       const __m256i vn = _mm256_set1_epi32(n), zero_i = _mm256_setzero_si256(), vend = _mm256_set1_epi32(j1);
       alignas(32) int index[8];
-      alignas(32) float weights[6][8];
+      alignas(32) float weights[4][8], o_pairs[16];
       for (; j < j1; j += 8) {
         const __m256i jv = _mm256_add_epi32(_mm256_set1_epi32(j), iota);
         const __m256 dj = _mm256_sub_ps(_mm256_cvtepi32_ps(jv), _mm256_set1_ps(fx));
@@ -586,12 +586,26 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
         _mm256_store_ps(weights[1], v_rc01);
         _mm256_store_ps(weights[2], v_rc10);
         _mm256_store_ps(weights[3], v_rc11);
-        _mm256_store_ps(weights[4], obin0);
-        _mm256_store_ps(weights[5], obin);
-        const int lanes = std::min(8, j1 - j);
-        for (int lane = 0; lane < lanes; ++lane)
-          AddTrilinear(copies[lane % kHistCopies] + index[lane], weights[0][lane], weights[1][lane], weights[2][lane],
-                       weights[3][lane], weights[4][lane], weights[5][lane]);
+        // (o0 weight, o1 weight) of lane l at o_pairs[2 l], [2 l + 1].
+        const __m256 pairs_lo = _mm256_unpacklo_ps(obin0, obin), pairs_hi = _mm256_unpackhi_ps(obin0, obin);
+        _mm256_store_ps(o_pairs, _mm256_permute2f128_ps(pairs_lo, pairs_hi, 0x20));
+        _mm256_store_ps(o_pairs + 8, _mm256_permute2f128_ps(pairs_lo, pairs_hi, 0x31));
+        // Valid lanes only, in order (an invalid lane would add zeros). AddTrilinear's eight FMAs as
+        // four two-wide ones on (o0, o0 + 1).
+        for (unsigned bits = static_cast<unsigned>(_mm256_movemask_ps(valid)); bits != 0; bits &= bits - 1) {
+          const int lane = std::countr_zero(bits);
+          float* p = copies[lane % kHistCopies] + index[lane];
+          const __m128 o_weights = _mm_castpd_ps(_mm_load_sd(reinterpret_cast<const double*>(o_pairs + 2 * lane)));
+          auto add_pair = [&](int offset, const float* v_rc) {
+            double* target = reinterpret_cast<double*>(p + offset);
+            const __m128 sum = _mm_fmadd_ps(_mm_broadcast_ss(v_rc), o_weights, _mm_castpd_ps(_mm_load_sd(target)));
+            _mm_store_sd(target, _mm_castps_pd(sum));
+          };
+          add_pair(0, weights[0] + lane);
+          add_pair(n + 2, weights[1] + lane);
+          add_pair((d + 2) * (n + 2), weights[2] + lane);
+          add_pair((d + 3) * (n + 2), weights[3] + lane);
+        }
       }
     }
 #endif
