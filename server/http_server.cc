@@ -305,10 +305,23 @@ Result<int> HttpServer::Bind() {
   return port_;
 }
 
-void HttpServer::Run() { http_->listen_after_bind(); }
+void HttpServer::Run() {
+  if (shutting_down_.load()) return;
+  // httplib's stop() does nothing until listen has started, so a Shutdown() that comes before (a fast
+  // failing index load, an early SIGTERM) would be lost. This watcher waits until the server runs, then
+  // repeats the stop if a shutdown was asked meanwhile; a later Shutdown() stops the running server itself.
+  std::atomic<bool> listen_returned{false};
+  std::thread watcher([&] {
+    while (!http_->is_running() && !listen_returned.load()) std::this_thread::sleep_for(std::chrono::milliseconds(1));
+    if (shutting_down_.load()) http_->stop();
+  });
+  http_->listen_after_bind();
+  listen_returned.store(true);
+  watcher.join();
+}
 
 void HttpServer::Shutdown() {
-  shutting_down_.store(true);
+  shutting_down_.store(true);  // before stop(): Run's watcher reads it after the server started
   http_->stop();
 }
 

@@ -438,10 +438,23 @@ TEST_F(HttpServerTest, RestartKeepsDataAndGracefulStopFinishesInFlightRequests) 
       in_flight_status = res ? res->status : -1;
       if (!res) in_flight_error = httplib::to_string(res.error());
     });
-    std::this_thread::sleep_for(std::chrono::milliseconds(40));
+    // Signal once the search is being served (its extraction holds a slot), or after 5 s regardless.
+    auto watcher = server->Client();
+    for (int i = 0; i < 500; ++i) {
+      auto stats = watcher.Get("/v1/stats");
+      if (stats && stats->status == 200 && json::parse(stats->body)["extractions_in_flight"].get<int>() > 0) break;
+      std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    }
     EXPECT_EQ(server->Stop(SIGTERM), 0) << server->Log();
     searcher.join();
     EXPECT_EQ(in_flight_status, 200) << "in-flight search was dropped: " << in_flight_error;
+    // The search was answered after the signal arrived, i.e. it really was in flight.
+    const std::string log = server->Log();
+    const size_t signalled = log.find("received SIGTERM");
+    const size_t answered = log.find("POST /v1/search route=/v1/search status=200");
+    ASSERT_NE(signalled, std::string::npos) << log;
+    ASSERT_NE(answered, std::string::npos) << log;
+    EXPECT_LT(signalled, answered) << log;
   }
   // No --vocab: the index folder carries its vocabulary.
   auto server = Start({}, index_dir, /*with_vocab=*/false);
