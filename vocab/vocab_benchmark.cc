@@ -8,14 +8,26 @@
 //               kd-forest vs faiss IndexFlatL2 and IndexHNSWFlat. Timings interleaved over repetitions,
 //               medians reported.
 //
-// Usage: vocab_benchmark [--images DIR] [--cache FILE] [--words 10000,100000,1000000] [--queries N]
-//                        [--train-sample N] [--train-words K] [--train-iterations N] [--reps N] [--skip-train] [--synthetic]
-// The 10k and 100k vocabularies are trained with Train (inverted-file assignment); the 1M one is
-// synthetic-from-data (training descriptors + Gaussian noise, sigma 0.01): training 1M words is too
-// long for a benchmark run. Vocabularies are cached next to the descriptor cache.
+//   scale:      (--scale-words K) Train at scale on 2 threads: the real training descriptors plus
+//               jittered copies up to --scale-descriptors N (see Expand); per-iteration wall time and
+//               objective, seeding and final quantiser build time, total process CPU time and the load
+//               average; --scale-out writes the vocabulary, which --vocab FILE then benchmarks for
+//               assignment.
+//
+// Usage: vocab_benchmark [--images DIR] [--cache FILE] [--words 10000,100000,1000000|none] [--queries N]
+//                        [--train-sample N] [--train-words K] [--train-iterations N] [--reps N] [--skip-train]
+//                        [--synthetic] [--vocab-iterations N] [--vocab FILE]
+//                        [--scale-words K --scale-descriptors N --scale-iterations N --scale-threads T
+//                         --scale-out FILE]
+// Assignment vocabularies up to 200k words are trained with Train (inverted-file assignment,
+// --vocab-iterations Lloyd iterations, default 8) on all training descriptors; larger ones, or all with
+// --synthetic, are synthetic-from-data (training descriptors + Gaussian noise, sigma 0.01). Each is
+// cached next to the descriptor cache under a name that encodes every input: word count, origin,
+// iterations, seed, and a hash of the training descriptors and extractor settings.
 #include <faiss/Clustering.h>
 #include <faiss/IndexFlat.h>
 #include <faiss/IndexHNSW.h>
+#include <faiss/utils/distances.h>
 #include <flann/flann.hpp>
 #include <omp.h>
 #include <opencv2/core.hpp>
@@ -28,7 +40,10 @@
 #include <filesystem>
 #include <fstream>
 #include <functional>
+#include <limits>
 #include <map>
+#include <numeric>
+#include <string_view>
 #include <random>
 #include <string>
 #include <vector>
@@ -37,6 +52,7 @@
 #include "sift/parallel.h"
 #include "sift/sift.h"
 #include "vocab/kernels.h"
+#include "vocab/search.h"
 #include "vocab/vocabulary.h"
 
 namespace fs = std::filesystem;
@@ -53,6 +69,14 @@ double ThreadCpuSeconds() {
   timespec ts;
   clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
   return static_cast<double>(ts.tv_sec) + 1e-9 * static_cast<double>(ts.tv_nsec);
+}
+
+// The 1, 5 and 15 minute load averages, to put wall times in context on a shared machine.
+std::string LoadAverage() {
+  std::ifstream in("/proc/loadavg");
+  std::string a, b, c;
+  in >> a >> b >> c;
+  return in ? a + " " + b + " " + c : "unknown";
 }
 
 double Median(std::vector<double> v) {
@@ -188,43 +212,72 @@ struct Method {
   std::function<void(const float*, size_t, uint32_t*)> assign;
 };
 
-void AssignmentComparison(const Descriptors& d, size_t k, size_t num_queries, int reps, const std::string& cache_dir,
-                          bool synthetic) {
-  // ---- The vocabulary ----
-  const std::string path = cache_dir + "/oxbow_vocab_bench_" + std::to_string(k) + ".vocab";
-  std::optional<vocab::Vocabulary> vocab;
-  if (auto v = vocab::Vocabulary::Read(path)) vocab = std::move(*v);
-  std::string origin;
+// Hash of the training descriptors and extractor settings: part of every cached vocabulary's name, so
+// a cache made from other data is never reused.
+uint64_t DataHash(const Descriptors& d) {
+  const std::string_view bytes(reinterpret_cast<const char*>(d.train.data()), d.train.size() * sizeof(float));
+  return std::hash<std::string_view>{}(bytes) ^ (std::hash<std::string>{}(d.settings) * 0x9E3779B97F4A7C15ull);
+}
+
+// The vocabulary of k words benchmarked for assignment: cached, or made now (trained, or synthetic from
+// data) and cached. `origin` receives a description for the table title.
+vocab::Vocabulary AssignmentVocabulary(const Descriptors& d, size_t k, int iterations, const std::string& cache_dir,
+                                       bool synthetic, std::string& origin) {
   const size_t train_n = d.train.size() / 128;
-  if (!synthetic && k <= 200000 && 2 * k <= train_n) {
-    origin = "trained (Train, ivf assignment, 8 iterations)";
-    if (!vocab) {
-      vocab::TrainOptions o;
-      o.num_words = k;
-      o.max_iterations = 8;
-      o.assignment = vocab::AssignmentMethod::kInvertedFile;
-      const auto t = Clock::now();
-      auto v = vocab::Train(d.train, 128, sift::DescriptorKind::kRootSift, d.settings, o);
-      std::printf("(trained %zu words on %zu descriptors in %.1f s)\n", k, train_n, Seconds(t));
-      vocab = std::move(*v);
-      (void)vocab->Write(path);
-    }
+  const bool trained = !synthetic && k <= 200000 && 2 * k <= train_n;
+  constexpr uint64_t kSeed = 1;
+  char key[160];
+  if (trained) {
+    std::snprintf(key, sizeof(key), "k%zu_trained_ivf_it%d_seed%llu_n%zu_data%016llx", k, iterations,
+                  static_cast<unsigned long long>(kSeed), train_n, static_cast<unsigned long long>(DataHash(d)));
+    origin = "trained with Train on " + std::to_string(train_n) + " descriptors, ivf assignment, " +
+             std::to_string(iterations) + " iterations";
   } else {
-    origin = "synthetic from data (training descriptors + N(0, 0.01^2) noise)";
-    if (!vocab) {
-      std::mt19937 rng(5);
-      std::normal_distribution<float> noise(0.f, 0.01f);
-      std::vector<float> c(k * 128);
-      for (size_t w = 0; w < k; ++w) {
-        const size_t src = (w * 2654435761u) % train_n;
-        for (int j = 0; j < 128; ++j) c[w * 128 + j] = std::max(0.f, d.train[src * 128 + j] + noise(rng));
-      }
-      const auto t = Clock::now();
-      vocab = *vocab::Vocabulary::FromCentroids(std::move(c), 128, sift::DescriptorKind::kRootSift, d.settings);
-      std::printf("(built the quantiser of %zu words in %.1f s)\n", k, Seconds(t));
-      (void)vocab->Write(path);
-    }
+    std::snprintf(key, sizeof(key), "k%zu_synthetic_sigma0.01_seed5_n%zu_data%016llx", k, train_n,
+                  static_cast<unsigned long long>(DataHash(d)));
+    origin = "synthetic from data (training descriptors + N(0, 0.01^2) noise), not trained";
   }
+  const std::string path = cache_dir + "/oxbow_vocab_bench_" + key + ".vocab";
+  if (auto v = vocab::Vocabulary::Read(path)) {
+    std::printf("(vocabulary read from the cache %s)\n", path.c_str());
+    return std::move(*v);
+  }
+  std::optional<vocab::Vocabulary> vocab;
+  if (trained) {
+    vocab::TrainOptions o;
+    o.num_words = k;
+    o.max_iterations = iterations;
+    o.min_relative_improvement = 0;
+    o.seed = kSeed;
+    o.assignment = vocab::AssignmentMethod::kInvertedFile;
+    vocab::TrainReport report;
+    const auto t = Clock::now();
+    auto v = vocab::Train(d.train, 128, sift::DescriptorKind::kRootSift, d.settings, o, &report);
+    if (!v) throw std::runtime_error(v.error().ToString());
+    std::printf("(trained %zu words on %zu descriptors in %.1f s wall, %zu iterations, objective %.5f)\n", k, train_n,
+                Seconds(t), report.iterations.size(), report.iterations.back().objective);
+    vocab = std::move(*v);
+  } else {
+    std::mt19937 rng(5);
+    std::normal_distribution<float> noise(0.f, 0.01f);
+    std::vector<float> c(k * 128);
+    for (size_t w = 0; w < k; ++w) {
+      const size_t src = (w * 2654435761u) % train_n;
+      for (int j = 0; j < 128; ++j) c[w * 128 + j] = std::max(0.f, d.train[src * 128 + j] + noise(rng));
+    }
+    const auto t = Clock::now();
+    vocab = *vocab::Vocabulary::FromCentroids(std::move(c), 128, sift::DescriptorKind::kRootSift, d.settings);
+    std::printf("(built the quantiser of %zu words in %.1f s)\n", k, Seconds(t));
+  }
+  if (auto written = vocab->Write(path); !written)
+    std::printf("(could not cache the vocabulary: %s)\n", written.error().ToString().c_str());
+  return std::move(*vocab);
+}
+
+void AssignmentComparison(const Descriptors& d, const vocab::Vocabulary& vocab_ref, const std::string& origin,
+                          size_t num_queries, int reps) {
+  const vocab::Vocabulary* vocab = &vocab_ref;
+  const size_t k = vocab->size();
   const std::vector<float> queries = Subsample(d.queries, num_queries, 11);
   const size_t nq = queries.size() / 128;
   std::vector<uint32_t> truth(nq);
@@ -233,7 +286,7 @@ void AssignmentComparison(const Descriptors& d, size_t k, size_t num_queries, in
 
   // ---- Peers (built with all threads; searched on one) ----
   std::vector<Method> methods;
-  for (int probes : {1, 2, 4, 8, 12, 16, 24, 32}) {
+  for (int probes : {1, 2, 4, 8, 12, 16, 24, 32, 48, 64}) {
     if (static_cast<size_t>(probes) > vocab->num_lists()) continue;
     methods.push_back({"oxbow two-level, " + std::to_string(vocab->num_lists()) + " lists, " +
                            std::to_string(probes) + " probes",
@@ -246,7 +299,11 @@ void AssignmentComparison(const Descriptors& d, size_t k, size_t num_queries, in
                      }});
   flann::Matrix<float> dataset(const_cast<float*>(centroids.data()), k, 128);
   flann::Index<flann::L2<float>> kdforest(dataset, flann::KDTreeIndexParams(8));
-  kdforest.buildIndex();
+  {
+    const auto t = Clock::now();
+    kdforest.buildIndex();
+    std::printf("(FLANN kd-forest, 8 trees, built in %.1f s)\n", Seconds(t));
+  }
   for (int checks : {32, 128, 512}) {
     methods.push_back({"FLANN kd-forest, 8 trees, " + std::to_string(checks) + " checks",
                        [&, checks](const float* q, size_t n, uint32_t* out) {
@@ -277,10 +334,20 @@ void AssignmentComparison(const Descriptors& d, size_t k, size_t num_queries, in
     index.search(static_cast<faiss::Index::idx_t>(n), q, 1, dist.data(), labels.data());
     for (size_t i = 0; i < n; ++i) out[i] = static_cast<uint32_t>(labels[i]);
   };
-  if (k <= 200000)
-    methods.push_back({"faiss IndexFlatL2 (exact)", [&](const float* q, size_t n, uint32_t* out) {
+  // faiss's flat search goes through BLAS sgemm for batches of 20 or more queries; Debian's default
+  // libblas.so.3 is the reference (netlib) BLAS, so faiss's own SIMD distance loop (BLAS threshold
+  // raised above the batch) is measured too.
+  if (k <= 200000) {
+    methods.push_back({"faiss IndexFlatL2 (exact, sgemm via Debian reference libblas)",
+                       [&](const float* q, size_t n, uint32_t* out) { faiss_search(flat, q, n, out); }});
+    methods.push_back({"faiss IndexFlatL2 (exact, faiss distance loop, no BLAS)",
+                       [&](const float* q, size_t n, uint32_t* out) {
+                         const int saved = faiss::distance_compute_blas_threshold;
+                         faiss::distance_compute_blas_threshold = std::numeric_limits<int>::max();
                          faiss_search(flat, q, n, out);
+                         faiss::distance_compute_blas_threshold = saved;
                        }});
+  }
   if (hnsw) {
     for (int ef : {16, 32, 64}) {
       methods.push_back({"faiss HNSW M=32, efSearch " + std::to_string(ef), [&, ef](const float* q, size_t n, uint32_t* out) {
@@ -312,11 +379,81 @@ void AssignmentComparison(const Descriptors& d, size_t k, size_t num_queries, in
       recall[m] = static_cast<double>(hits) / n;
     }
   }
-  std::printf("\n## Assignment: %zu words (%s), %zu held-out queries, one core, thread CPU time (median of %d)\n\n", k, origin.c_str(),
-              nq, reps);
-  std::printf("| method | descriptors/s | recall@1 |\n|---|---|---|\n");
+  std::printf("\n## Assignment: %zu words (%s), %zu held-out queries, one core, thread CPU time (median of %d; load %s)\n\n",
+              k, origin.c_str(), nq, reps, LoadAverage().c_str());
+  std::printf("| method | descriptors/s | recall@1 | queries timed |\n|---|---|---|---|\n");
   for (size_t m = 0; m < methods.size(); ++m)
-    std::printf("| %s | %.0f | %.3f |\n", methods[m].name.c_str(), Median(rates[m]), recall[m]);
+    std::printf("| %s | %.0f | %.3f | %zu |\n", methods[m].name.c_str(), Median(rates[m]), recall[m],
+                batch_for(methods[m].name));
+  std::fflush(stdout);
+}
+
+// The real training descriptors followed by jittered copies up to `total` rows: copy j of descriptor
+// i is x_i + N(0, sigma^2) per component, negative components set to 0, then L2-normalised again
+// (RootSIFT vectors have unit L2 norm). Copies cycle over the real descriptors in order.
+std::vector<float> Expand(const std::vector<float>& real, size_t total, float sigma, uint64_t seed) {
+  const size_t n = real.size() / 128;
+  std::vector<float> out(total * 128);
+  std::copy_n(real.data(), std::min(n, total) * 128, out.data());
+  ParallelFor(total > n ? total - n : 0, 0, 65536, [&](size_t begin, size_t end, int) {
+    for (size_t r = begin; r < end; ++r) {
+      vocab::internal::SplitMix64 rng(seed * 0x9E3779B97F4A7C15ull + r);
+      const float* src = real.data() + (r % n) * 128;
+      float* dst = out.data() + (n + r) * 128;
+      double norm = 0;
+      for (int j = 0; j < 128; j += 2) {  // Box-Muller, two normals per draw
+        const double u1 = 1.0 - rng.Uniform01(), u2 = rng.Uniform01();
+        const double radius = std::sqrt(-2.0 * std::log(u1));
+        dst[j] = std::max(0.f, src[j] + sigma * static_cast<float>(radius * std::cos(2 * M_PI * u2)));
+        dst[j + 1] = std::max(0.f, src[j + 1] + sigma * static_cast<float>(radius * std::sin(2 * M_PI * u2)));
+        norm += double{dst[j]} * dst[j] + double{dst[j + 1]} * dst[j + 1];
+      }
+      const float inv = norm > 0 ? static_cast<float>(1.0 / std::sqrt(norm)) : 0.f;
+      for (int j = 0; j < 128; ++j) dst[j] *= inv;
+    }
+  });
+  return out;
+}
+
+// Trains k words on `total` descriptors (Expand of the training descriptors) with `threads` threads
+// and the default (auto) assignment, all iterations; prints the per-iteration table.
+void ScaleTraining(const Descriptors& d, size_t k, size_t total, int iterations, int threads, float sigma,
+                   const std::string& out_path) {
+  const auto t_expand = Clock::now();
+  const std::vector<float> x = Expand(d.train, total, sigma, 3);
+  const size_t real = std::min(total, d.train.size() / 128);
+  std::printf("\n## Scale: %zu words from %zu descriptors (%zu real RootSIFT + %zu jittered copies, sigma %.3f, "
+              "clamped at 0, L2-renormalised; made in %.1f s), %d threads, %d iterations, load at start %s\n\n",
+              k, total, real, total - real, sigma, Seconds(t_expand), threads, iterations, LoadAverage().c_str());
+  std::fflush(stdout);
+  vocab::TrainOptions o;
+  o.num_words = k;
+  o.max_iterations = iterations;
+  o.min_relative_improvement = 0;
+  o.num_threads = threads;
+  o.quantizer.num_threads = threads;
+  vocab::TrainReport report;
+  const double cpu0 = [] { timespec ts; clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts); return ts.tv_sec + 1e-9 * ts.tv_nsec; }();
+  auto v = vocab::Train(x, 128, sift::DescriptorKind::kRootSift, d.settings, o, &report);
+  const double cpu = [] { timespec ts; clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts); return ts.tv_sec + 1e-9 * ts.tv_nsec; }() - cpu0;
+  if (!v) throw std::runtime_error(v.error().ToString());
+  double iteration_sum = 0;
+  std::printf("| iteration | wall (s) | objective | reassigned | empty clusters |\n|---|---|---|---|---|\n");
+  for (const auto& it : report.iterations) {
+    iteration_sum += it.seconds;
+    std::printf("| %d | %.1f | %.5f | %.1f%% | %zu |\n", it.iteration, it.seconds, it.objective,
+                100 * it.reassigned_share, it.empty_clusters);
+  }
+  const double quantiser = report.total_seconds - report.seeding_seconds - iteration_sum;
+  std::printf("\nseeding %.1f s, iterations %.1f s (median %.1f s each), final quantiser build %.1f s, total %.1f s wall, "
+              "%.1f s process CPU (%d threads), load at end %s\n",
+              report.seeding_seconds, iteration_sum,
+              Median([&] { std::vector<double> s; for (const auto& it : report.iterations) s.push_back(it.seconds); return s; }()),
+              quantiser, report.total_seconds, cpu, threads, LoadAverage().c_str());
+  if (!out_path.empty()) {
+    if (auto w = v->Write(out_path); !w) std::printf("could not write %s: %s\n", out_path.c_str(), w.error().ToString().c_str());
+    else std::printf("wrote %s (%zu words, %zu lists)\n", out_path.c_str(), v->size(), v->num_lists());
+  }
   std::fflush(stdout);
 }
 
@@ -327,8 +464,12 @@ int main(int argc, char** argv) {
   std::string cache = "/tmp/oxbow_vocab_bench_descriptors.bin";
   std::vector<size_t> words = {10000, 100000, 1000000};
   size_t num_queries = 20000, train_sample = 100000, train_words = 1000;
-  int train_iterations = 10, reps = 3;
+  int train_iterations = 10, reps = 3, vocab_iterations = 8;
   bool skip_train = false, synthetic = false;
+  std::string vocab_file, scale_out;
+  size_t scale_words = 0, scale_descriptors = 5'000'000;
+  int scale_iterations = 2, scale_threads = 2;
+  float scale_sigma = 0.02f;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     auto next = [&]() -> std::string {
@@ -344,9 +485,18 @@ int main(int argc, char** argv) {
     else if (a == "--reps") reps = std::stoi(next());
     else if (a == "--skip-train") skip_train = true;
     else if (a == "--synthetic") synthetic = true;
+    else if (a == "--vocab-iterations") vocab_iterations = std::stoi(next());
+    else if (a == "--vocab") vocab_file = next();
+    else if (a == "--scale-words") scale_words = std::stoul(next());
+    else if (a == "--scale-descriptors") scale_descriptors = std::stoul(next());
+    else if (a == "--scale-iterations") scale_iterations = std::stoi(next());
+    else if (a == "--scale-threads") scale_threads = std::stoi(next());
+    else if (a == "--scale-sigma") scale_sigma = std::stof(next());
+    else if (a == "--scale-out") scale_out = next();
     else if (a == "--words") {
       words.clear();
       std::string list = next();
+      if (list == "none") list.clear();
       for (size_t p = 0; p < list.size();) {
         size_t q = list.find(',', p);
         if (q == std::string::npos) q = list.size();
@@ -354,8 +504,10 @@ int main(int argc, char** argv) {
         p = q + 1;
       }
     } else {
-      std::fprintf(stderr, "usage: %s [--images DIR] [--cache FILE] [--words K,K,..] [--queries N] [--train-sample N]"
-                           " [--train-words K] [--train-iterations N] [--reps N] [--skip-train] [--synthetic]\n", argv[0]);
+      std::fprintf(stderr, "usage: %s [--images DIR] [--cache FILE] [--words K,K,..|none] [--queries N] [--train-sample N]"
+                           " [--train-words K] [--train-iterations N] [--reps N] [--skip-train] [--synthetic]"
+                           " [--vocab-iterations N] [--vocab FILE] [--scale-words K] [--scale-descriptors N]"
+                           " [--scale-iterations N] [--scale-threads T] [--scale-sigma S] [--scale-out FILE]\n", argv[0]);
       return 2;
     }
   }
@@ -373,6 +525,20 @@ int main(int argc, char** argv) {
 #endif
   );
   if (!skip_train) TrainingComparison(d, train_sample, train_words, train_iterations, reps);
-  for (size_t k : words) AssignmentComparison(d, k, num_queries, reps, fs::path(cache).parent_path().string(), synthetic || k > 200000);
+  if (scale_words > 0) ScaleTraining(d, scale_words, scale_descriptors, scale_iterations, scale_threads, scale_sigma, scale_out);
+  if (!vocab_file.empty()) {
+    auto v = vocab::Vocabulary::Read(vocab_file);
+    if (!v) {
+      std::fprintf(stderr, "%s\n", v.error().ToString().c_str());
+      return 1;
+    }
+    AssignmentComparison(d, *v, "read from " + vocab_file, num_queries, reps);
+  }
+  for (size_t k : words) {
+    std::string origin;
+    const vocab::Vocabulary v = AssignmentVocabulary(d, k, vocab_iterations, fs::path(cache).parent_path().string(),
+                                                     synthetic || k > 200000, origin);
+    AssignmentComparison(d, v, origin, num_queries, reps);
+  }
   return 0;
 }
