@@ -87,9 +87,11 @@ void RecordStages(httplib::Response& res, const std::vector<std::pair<const char
   for (const auto& [name, ms] : stages) {
     char buf[64];
     std::snprintf(buf, sizeof buf, "%s;dur=%.2f", name, ms);
-    header += (header.empty() ? "" : ", ") + std::string(buf);
+    if (!header.empty()) header += ", ";
+    header += buf;
     std::snprintf(buf, sizeof buf, "%s=%.2f", name, ms);
-    log += (log.empty() ? "" : " ") + std::string(buf);
+    if (!log.empty()) log += ' ';
+    log += buf;
   }
   if (!header.empty()) res.set_header("Server-Timing", header);
   t_request.stages = log;
