@@ -166,7 +166,7 @@ TEST(Settings, RoundTripsEveryDescribedOption) {
   ASSERT_TRUE(defaults);
   EXPECT_EQ(defaults->Describe(), sift::SiftOptions{}.Describe());
 
-  for (const std::string bad : {std::string(""), std::string("other-sift/1;sigma=1"),
+  for (const std::string& bad : {std::string(""), std::string("other-sift/1;sigma=1"),
                                 sift::SiftOptions{}.Describe() + ";future_field=3",
                                 std::string("oxbow-sift/1;sigma=abc")}) {
     auto r = SiftOptionsFromSettings(bad);
