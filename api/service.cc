@@ -1,6 +1,12 @@
 #include "api/service.h"
 
+#include <sys/resource.h>
 #include <unistd.h>
+
+#include <condition_variable>
+#include <deque>
+#include <exception>
+#include <functional>
 
 #include <cstdio>
 #include <cstdlib>
@@ -57,6 +63,74 @@ bool ParseIntText(const std::string& text, int* out) {
 
 }  // namespace
 
+// Threads that run jobs at a lower CPU priority (a higher nice value, set per thread on Linux). A nice
+// value cannot be lowered again without privileges, hence dedicated threads rather than re-nicing the
+// caller's. Run() blocks the caller until its job is done.
+class Service::BackgroundThreads {
+ public:
+  BackgroundThreads(int threads, int nice) {
+    for (int i = 0; i < threads; ++i) {
+      threads_.emplace_back([this, nice] {
+        if (setpriority(PRIO_PROCESS, static_cast<id_t>(gettid()), nice) != 0) {
+          OXBOW_LOG(kWarning) << "cannot lower the priority of an add thread; adds run at normal priority";
+        }
+        Work();
+      });
+    }
+  }
+  ~BackgroundThreads() {
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      stop_ = true;
+    }
+    cond_.notify_all();
+    for (auto& t : threads_) t.join();
+  }
+  void Run(const std::function<void()>& job) {
+    std::mutex done_mutex;
+    std::condition_variable done_cond;
+    bool done = false;
+    std::exception_ptr error;
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      jobs_.push_back([&] {
+        try {
+          job();
+        } catch (...) {
+          error = std::current_exception();  // rethrown in the caller's thread
+        }
+        std::lock_guard<std::mutex> done_lock(done_mutex);
+        done = true;
+        done_cond.notify_one();
+      });
+    }
+    cond_.notify_one();
+    std::unique_lock<std::mutex> done_lock(done_mutex);
+    done_cond.wait(done_lock, [&] { return done; });
+    if (error) std::rethrow_exception(error);
+  }
+
+ private:
+  void Work() {
+    for (;;) {
+      std::function<void()> job;
+      {
+        std::unique_lock<std::mutex> lock(mutex_);
+        cond_.wait(lock, [&] { return stop_ || !jobs_.empty(); });
+        if (jobs_.empty()) return;
+        job = std::move(jobs_.front());
+        jobs_.pop_front();
+      }
+      job();
+    }
+  }
+  std::mutex mutex_;  // guards jobs_, stop_
+  std::condition_variable cond_;
+  std::deque<std::function<void()>> jobs_;
+  bool stop_ = false;
+  std::vector<std::thread> threads_;
+};
+
 std::optional<std::string> ServiceOptions::Check() const {
   if (max_image_bytes < 1) return "max_image_bytes must be >= 1";
   if (max_pixels < 1) return "max_pixels must be >= 1";
@@ -66,6 +140,7 @@ std::optional<std::string> ServiceOptions::Check() const {
   }
   if (extraction_wait_ms < 0 || extraction_wait_ms > 600'000) return "extraction_wait_ms must be in [0, 600000]";
   if (threads_per_request < 0 || threads_per_request > 256) return "threads_per_request must be in [0, 256]";
+  if (add_nice < 0 || add_nice > 19) return "add_nice must be in [0, 19]";
   if (auto message = default_query.Check()) return "default query: " + *message;
   return std::nullopt;
 }
@@ -152,7 +227,9 @@ Service::Service(std::unique_ptr<index::ImageIndex> index, sift::SiftExtractor e
       options_(options),
       extraction_slots_(std::min(1024, ResolveThreadCount(options.max_concurrent_extractions))),
       extraction_semaphore_(extraction_slots_),
-      opened_(Clock::now()) {}
+      opened_(Clock::now()) {
+  if (options_.add_nice > 0) add_threads_ = std::make_unique<BackgroundThreads>(extraction_slots_, options_.add_nice);
+}
 
 Service::~Service() = default;
 
@@ -224,7 +301,12 @@ Result<AddImageResponse> Service::AddImage(const AddImageRequest& request) {
                                                "' is already indexed; add replace=true to replace it");
   }
   AddImageResponse response;
-  auto features = Extract(request.image, &response.decode_extract_ms);
+  Result<sift::FeatureSet> features = Fail(ErrorCode::kInternal, "extraction did not run");
+  if (add_threads_) {
+    add_threads_->Run([&] { features = Extract(request.image, &response.decode_extract_ms); });
+  } else {
+    features = Extract(request.image, &response.decode_extract_ms);
+  }
   if (!features) return std::unexpected(features.error());
 
   index::ImageInfo info;

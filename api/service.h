@@ -14,6 +14,7 @@
 // waiting longer than extraction_wait_ms fails with kResourceExhausted -> 503) and (2) AddImage /
 // DeleteImage serialise among themselves on write_mutex_ (the index serialises writers anyway; the
 // service lock makes "replace" = remove + add one step for other writers). Searches take no service lock.
+// Adds extract on low-priority threads (ServiceOptions::add_nice) so they yield the CPU to searches.
 #pragma once
 
 #include <atomic>
@@ -54,6 +55,11 @@ struct ServiceOptions {
   // Threads used inside one extraction and one pairwise match; 1 lets concurrent requests use the
   // cores, 0 = all hardware threads (lowest latency for a single request). [0, 256].
   int threads_per_request = 1;
+  // Adds decode and extract on dedicated threads running at this nice value (Linux; 0 = the callers'
+  // threads at normal priority), so that on a busy machine the CPU goes to searches first and search
+  // latency barely moves while images are added. The add still completes (lower priority is not
+  // starvation on a machine that is not saturated for long). [0, 19].
+  int add_nice = 10;
   // --- Query defaults (overridden per request by top_k, rerank, bbox, qe, qe_images)
   index::QueryOptions default_query;
 
@@ -154,6 +160,8 @@ class Service {
   mutable std::counting_semaphore<1024> extraction_semaphore_;
   mutable std::atomic<int> extractions_in_flight_{0};
   std::mutex write_mutex_;  // serialises AddImage/DeleteImage (held across replace's remove + add)
+  class BackgroundThreads;
+  std::unique_ptr<BackgroundThreads> add_threads_;  // low-priority extraction for adds (add_nice > 0)
   std::chrono::steady_clock::time_point opened_;
 };
 

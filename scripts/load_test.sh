@@ -5,7 +5,7 @@
 # Runs on a throw-away copy of the demo index (scripts/demo.sh builds it on first use).
 #
 #   bash scripts/load_test.sh [--seconds 20] [--search-clients 2] [--similar-clients 2] [--add-clients 1]
-#                             [--threads 8] [--json out.json]
+#                             [--threads 8] [--json out.json] [--serve-arg FLAG]...
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 build_dir=${OXBOW_BUILD_DIR:-$root/build}
@@ -13,9 +13,11 @@ oxbow="$build_dir/server/oxbow"
 work="$root/demo-data"
 threads=8
 client_args=()
+serve_args=()
 while [[ $# -gt 0 ]]; do
   case "$1" in
     --threads) threads="$2"; shift 2 ;;
+    --serve-arg) serve_args+=("$2"); shift 2 ;;   # extra `oxbow serve` flag, e.g. --serve-arg=--add-nice --serve-arg=0
     --work) work="$2"; shift 2 ;;
     --seconds|--search-clients|--similar-clients|--add-clients|--json|--top-k) client_args+=("$1" "$2"); shift 2 ;;
     -h|--help) sed -n '2,9p' "$0"; exit 0 ;;
@@ -32,7 +34,7 @@ fi
 tmp=$(mktemp -d /tmp/oxbow-load-XXXXXX)
 cp -r "$index_src" "$tmp/index"
 samples=/usr/share/doc/opencv-doc/examples/data
-"$oxbow" serve --index "$tmp/index" --host 127.0.0.1 --port 0 --threads "$threads" > "$tmp/stdout" 2> "$tmp/serve.log" &
+"$oxbow" serve --index "$tmp/index" --host 127.0.0.1 --port 0 --threads "$threads" "${serve_args[@]}" > "$tmp/stdout" 2> "$tmp/serve.log" &
 pid=$!
 cleanup() { kill -TERM "$pid" 2>/dev/null || true; wait "$pid" 2>/dev/null || true; rm -rf "$tmp"; }
 trap cleanup EXIT
@@ -43,7 +45,7 @@ for _ in $(seq 1 300); do
   sleep 0.1
 done
 [[ -n "$port" ]] || { echo "load_test: server did not start"; cat "$tmp/serve.log"; exit 1; }
-echo "load_test: server on 127.0.0.1:$port ($threads workers), index copy $tmp/index, $(nproc) CPU cores" >&2
+echo "load_test: server on 127.0.0.1:$port ($threads workers ${serve_args[*]}), index copy $tmp/index, $(nproc) CPU cores" >&2
 
 python3 "$root/scripts/load_client.py" --port "$port" "${client_args[@]}" \
   --query "$samples/box.png" --query "$samples/graf1.png" --query "$samples/leuvenA.jpg" \

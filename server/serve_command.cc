@@ -148,6 +148,10 @@ void SetUpServe(CLI::App& app) {
                   "threads inside one extraction/match; 1 favours throughput, 0 = all cores (latency)")
       ->capture_default_str()
       ->check(CLI::Range(0, 256));
+  cmd->add_option("--add-nice", flags->service.add_nice,
+                  "nice value of the threads extracting added images, so searches get the CPU first; 0 = off")
+      ->capture_default_str()
+      ->check(CLI::Range(0, 19));
   cmd->add_option("--index-threads", flags->index_threads, "threads for loading the index and re-ranking; 0 = all cores")
       ->capture_default_str()
       ->check(CLI::Range(0, 256));
