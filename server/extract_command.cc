@@ -33,6 +33,7 @@ struct ExtractArgs {
   double contrast_threshold = sift::SiftOptions{}.contrast_threshold;
   double edge_threshold = sift::SiftOptions{}.edge_threshold;
   int num_threads = 0;
+  int thread_cache_mib = sift::SiftOptions{}.thread_cache_mib;
 };
 
 // out.png with several images -> out_<image stem>.png
@@ -50,6 +51,7 @@ void RunExtract(const ExtractArgs& args) {
   options.contrast_threshold = args.contrast_threshold;
   options.edge_threshold = args.edge_threshold;
   options.num_threads = args.num_threads;
+  options.thread_cache_mib = args.thread_cache_mib;
   const sift::SiftExtractor extractor = ValueOrExit(sift::SiftExtractor::Create(options));
   sift::DecodeOptions decode;
   decode.max_image_side_px = args.max_image_side_px;
@@ -137,6 +139,10 @@ void SetUpExtract(CLI::App& app) {
   cmd->add_flag("--ignore-exif", args->ignore_exif, "use the pixels as stored, ignoring the EXIF orientation tag");
   cmd->add_option("--threads", args->num_threads, "worker threads per image; 0 = all cores (output is identical for any value)")
       ->check(CLI::Range(0, 256))
+      ->capture_default_str();
+  cmd->add_option("--thread-cache-mib", args->thread_cache_mib,
+                  "pyramid buffers kept between images, MiB (0 = free after every image; output unchanged)")
+      ->check(CLI::Range(0, 65536))
       ->capture_default_str();
   cmd->add_option("--draw", args->draw,
                   "also write the image with its keypoints drawn (circle radius = 3 x scale, line = orientation); with "

@@ -2,10 +2,13 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <numbers>
+#include <stdexcept>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include <opencv2/core.hpp>
@@ -195,6 +198,73 @@ TEST(SiftDeterminism, ThreadCountsAndSimdPathsAgreeExactly) {
   options.num_threads = 2;
   EXPECT_TRUE(SameFeatures(one, internal::ExtractImpl(image, options, /*allow_simd=*/false)))
       << "scalar and vector paths differ (SIMD compiled in: " << internal::SimdCompiledIn() << ")";
+}
+
+TEST(SiftDeterminism, ReusedPyramidBuffersGiveTheSameOutput) {
+  const GrayImage small = FromMat(LoadGray(kOpencvData + "box.png"));
+  const GrayImage large = FromMat(LoadGray(kOpencvData + "graf1.png"));
+  ASSERT_GT(small.width, 0);
+  ASSERT_GT(large.width, 0);
+  // Reference: a fresh thread (empty cache) that frees its buffers after every call.
+  SiftOptions no_cache;
+  no_cache.num_threads = 1;
+  no_cache.thread_cache_mib = 0;
+  FeatureSet small_ref, large_ref;
+  std::thread([&] {
+    small_ref = MakeExtractor(no_cache).Extract(small);
+    large_ref = MakeExtractor(no_cache).Extract(large);
+  }).join();
+  ASSERT_GT(small_ref.size(), 100u);
+  // Cached buffers grown (small then large), then reused with stale contents for a smaller image, and
+  // with a different number of intervals (planes per octave).
+  SiftOptions cached = no_cache;
+  cached.thread_cache_mib = 256;
+  std::thread([&] {
+    const SiftExtractor extractor = MakeExtractor(cached);
+    EXPECT_TRUE(SameFeatures(small_ref, extractor.Extract(small)));
+    EXPECT_TRUE(SameFeatures(large_ref, extractor.Extract(large)));
+    EXPECT_TRUE(SameFeatures(small_ref, extractor.Extract(small)));
+    SiftOptions four = cached;
+    four.intervals = 4;
+    EXPECT_GT(MakeExtractor(four).Extract(small).size(), 0u);
+    EXPECT_TRUE(SameFeatures(large_ref, extractor.Extract(large)));
+    SiftOptions two_threads = cached;
+    two_threads.num_threads = 2;
+    EXPECT_TRUE(SameFeatures(small_ref, MakeExtractor(two_threads).Extract(small)));
+  }).join();
+}
+
+TEST(SiftWorkerTeam, CoversEveryItemOnceAcrossLoopsAndRethrows) {
+  for (const int threads : {1, 2, 4}) {
+    internal::WorkerTeam team(threads);
+    EXPECT_EQ(team.size(), threads);
+    for (const size_t n : {size_t{0}, size_t{1}, size_t{7}, size_t{1000}}) {
+      std::vector<int> hits(n, 0);
+      std::vector<int> workers(n, -1);
+      team.ParallelFor(n, 3, [&](size_t begin, size_t end, int worker) {
+        for (size_t i = begin; i < end; ++i) {
+          ++hits[i];
+          workers[i] = worker;
+        }
+      });
+      for (size_t i = 0; i < n; ++i) {
+        ASSERT_EQ(hits[i], 1) << threads << " threads, n " << n << ", item " << i;
+        ASSERT_GE(workers[i], 0);
+        ASSERT_LT(workers[i], threads);
+      }
+    }
+    EXPECT_THROW(team.ParallelFor(100, 1,
+                                  [](size_t begin, size_t end, int) {
+                                    if (begin <= 42 && 42 < end) throw std::runtime_error("item 42");
+                                  }),
+                 std::runtime_error);
+    // Still usable after an exception.
+    std::vector<int> hits(50, 0);
+    team.ParallelFor(50, 2, [&](size_t begin, size_t end, int) {
+      for (size_t i = begin; i < end; ++i) ++hits[i];
+    });
+    EXPECT_EQ(std::count(hits.begin(), hits.end(), 1), 50);
+  }
 }
 
 TEST(SiftDeterminism, VectorAndScalarKernelsAgree) {
@@ -424,7 +494,8 @@ TEST(SiftOptions, CheckDescribeAndFingerprint) {
            [](SiftOptions& o) { o.sigma = 0; }, [](SiftOptions& o) { o.intervals = 0; },
            [](SiftOptions& o) { o.contrast_threshold = -1; }, [](SiftOptions& o) { o.edge_threshold = 1; },
            [](SiftOptions& o) { o.max_features = 0; }, [](SiftOptions& o) { o.num_threads = -1; },
-           [](SiftOptions& o) { o.assumed_blur = 2; }, [](SiftOptions& o) { o.kernel_radius_sigmas = 1; }}) {
+           [](SiftOptions& o) { o.assumed_blur = 2; }, [](SiftOptions& o) { o.kernel_radius_sigmas = 1; },
+           [](SiftOptions& o) { o.thread_cache_mib = -1; }}) {
     SiftOptions bad;
     mutate(bad);
     EXPECT_TRUE(bad.Check().has_value());
