@@ -8,7 +8,9 @@
 #include <functional>
 #include <map>
 #include <mutex>
+#include <numeric>
 #include <unordered_map>
+#include <unordered_set>
 
 #include "index/catalogue.h"
 #include "index/cow_array.h"
@@ -53,7 +55,15 @@ using IdShard = std::unordered_map<std::string, uint32_t>;
 
 TfIdfOptions ToTfIdf(const IndexOptions& o) {
   return TfIdfOptions{.sqrt_tf = o.sqrt_tf, .max_document_frequency = o.max_document_frequency,
-                      .merge_factor = o.merge_factor};
+                      .stop_list_min_images = o.stop_list_min_images, .merge_factor = o.merge_factor};
+}
+
+// outer(inner(p)): the affine map that applies `inner` first.
+sift::Affine2D Compose(const sift::Affine2D& outer, const sift::Affine2D& inner) {
+  const auto& b = outer.m;
+  const auto& a = inner.m;
+  return sift::Affine2D{{b[0] * a[0] + b[1] * a[3], b[0] * a[1] + b[1] * a[4], b[0] * a[2] + b[1] * a[5] + b[2],
+                         b[3] * a[0] + b[4] * a[3], b[3] * a[1] + b[4] * a[4], b[3] * a[2] + b[4] * a[5] + b[5]}};
 }
 
 Status CheckId(const std::string& id) {
@@ -104,7 +114,9 @@ Status CheckSettings(const std::string& given, const std::string& index_settings
 // A query's features after region filtering and quantisation.
 struct QueryFeatures {
   std::vector<sift::Keypoint> keypoints;
-  std::vector<uint32_t> words;
+  std::vector<uint32_t> words;        // nearest word of each keypoint
+  std::vector<uint32_t> soft_words;   // with multiple assignment: distinct words ascending, else empty
+  std::vector<float> soft_tf;         // their weighted counts
   int width = 0;
   int height = 0;
 };
@@ -133,6 +145,19 @@ std::optional<std::string> QueryOptions::Check() const {
   if (query_expansion && rerank_depth == 0) return std::string("query_expansion needs rerank_depth > 0");
   if (qe_images < 1 || qe_images > 100) return "qe_images must be in [1, 100]";
   if (max_pairs_per_word < 1 || max_pairs_per_word > 100) return "max_pairs_per_word must be in [1, 100]";
+  if (query_assignments < 1 || query_assignments > 8) {
+    return "query_assignments must be in [1, 8], got " + std::to_string(query_assignments);
+  }
+  if (!(assignment_sigma_sq > 0 && assignment_sigma_sq <= 4)) return std::string("assignment_sigma_sq must be in (0, 4]");
+  if (transitive_depth < 0 || transitive_depth > 10000) {
+    return "transitive_depth must be in [0, 10000], got " + std::to_string(transitive_depth);
+  }
+  if (transitive_neighbours < 1 || transitive_neighbours > 10000) {
+    return "transitive_neighbours must be in [1, 10000], got " + std::to_string(transitive_neighbours);
+  }
+  if (transitive_anchors < 1 || transitive_anchors > 1000) {
+    return "transitive_anchors must be in [1, 1000], got " + std::to_string(transitive_anchors);
+  }
   if (auto e = verify.Check()) return "verify: " + *e;
   return std::nullopt;
 }
@@ -414,7 +439,30 @@ Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const Que
   }
   QueryTimings timings;
   q.words.resize(q.keypoints.size());
-  impl_->vocabulary.Quantize(descriptors, q.words, impl_->index_options.quantizer);
+  if (options.query_assignments == 1) {
+    impl_->vocabulary.Quantize(descriptors, q.words, impl_->index_options.quantizer);
+  } else {
+    const auto k = static_cast<size_t>(options.query_assignments);
+    std::vector<uint32_t> words(q.keypoints.size() * k);
+    std::vector<float> sq_distances(words.size());
+    impl_->vocabulary.QuantizeMulti(descriptors, options.query_assignments, words, sq_distances,
+                                    impl_->index_options.quantizer);
+    std::map<uint32_t, float> tf;
+    const size_t vocabulary_size = impl_->vocabulary.size();
+    for (size_t i = 0; i < q.keypoints.size(); ++i) {
+      q.words[i] = words[i * k];
+      for (size_t j = 0; j < k; ++j) {
+        const uint32_t w = words[i * k + j];
+        if (w >= vocabulary_size || !std::isfinite(sq_distances[i * k + j])) break;
+        const double excess = static_cast<double>(sq_distances[i * k + j]) - sq_distances[i * k];
+        tf[w] += static_cast<float>(std::exp(-excess / (2 * options.assignment_sigma_sq)));
+      }
+    }
+    for (const auto& [w, c] : tf) {
+      q.soft_words.push_back(w);
+      q.soft_tf.push_back(c);
+    }
+  }
   timings.quantize_ms = MsSince(t0);
   auto response = impl_->Run(*snap, q, options, timings);
   if (response) response->timings.total_ms = MsSince(t0);
@@ -452,8 +500,9 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
 
   // 1. TF-IDF scoring.
   auto t = Clock::now();
-  const BagOfWords bag = BagOfWords::FromWords(query.words);
-  const std::vector<QueryTerm> terms = snap.inverted.QueryVector(bag);
+  const std::vector<QueryTerm> terms = query.soft_words.empty()
+                                            ? snap.inverted.QueryVector(BagOfWords::FromWords(query.words))
+                                            : snap.inverted.QueryVector(query.soft_words, query.soft_tf);
   const size_t depth = std::max<size_t>(static_cast<size_t>(options.top_k), static_cast<size_t>(options.rerank_depth));
   const std::vector<ScoredImage> scored = snap.inverted.Score(terms, depth, &scratch, &response.candidates);
   timings.score_ms = MsSince(t);
@@ -530,6 +579,84 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
     }
     results = std::move(merged);
     timings.qe_ms = MsSince(t);
+  }
+
+  // 4. Transitive verification: unverified candidates against the matched regions of verified results
+  // (anchors), in rounds; a candidate verified in one round is an anchor of the next, up to
+  // transitive_anchors anchors in all. A candidate stops at its first anchor that verifies it.
+  if (options.transitive_depth > 0 && num_verified > 0) {
+    t = Clock::now();
+    const size_t first = num_verified;
+    const size_t last = std::min(results.size(), first + static_cast<size_t>(options.transitive_depth));
+    std::vector<size_t> pool(num_verified);  // anchor candidates: positions in `results`, in anchor order
+    std::iota(pool.begin(), pool.end(), size_t{0});
+    const auto max_anchors = static_cast<size_t>(options.transitive_anchors);
+    size_t used = 0;
+    while (used < std::min(pool.size(), max_anchors)) {
+      const size_t round_end = std::min(pool.size(), max_anchors);
+      struct Anchor {
+        std::vector<sift::Keypoint> keypoints;
+        std::vector<uint32_t> words;
+      };
+      std::vector<Anchor> anchors(round_end - used);
+      std::vector<QueryGeometry> geometries;
+      geometries.reserve(anchors.size());
+      for (size_t a = 0; a < anchors.size(); ++a) {
+        const QueryResult& anchor = results[pool[used + a]];
+        const PackedFeatures& f = snap.Find(anchor.id)->features;
+        const auto& box = anchor.db_region;
+        for (size_t i = 0; i < f.size(); ++i) {
+          const sift::Keypoint k = f.keypoint(i);
+          if (k.x < box[0] || k.x > box[2] || k.y < box[1] || k.y > box[3]) continue;
+          anchors[a].keypoints.push_back(k);
+          anchors[a].words.push_back(f.word(i));
+        }
+        geometries.emplace_back(anchors[a].keypoints, anchors[a].words, box);
+      }
+      // Each anchor only verifies its own nearest tf-idf neighbours (its region's bag scored against the
+      // index): most candidates share nothing with most anchors, and the verifier is the expensive part.
+      std::vector<std::unordered_set<uint32_t>> neighbours(anchors.size());
+      for (size_t a = 0; a < anchors.size(); ++a) {
+        const std::vector<QueryTerm> anchor_terms = snap.inverted.QueryVector(BagOfWords::FromWords(anchors[a].words));
+        for (const ScoredImage& s : snap.inverted.Score(anchor_terms, static_cast<size_t>(options.transitive_neighbours) + 1, &scratch)) {
+          neighbours[a].insert(s.image);
+        }
+      }
+      std::vector<uint8_t> found(last - first, 0);
+      ParallelFor(last - first, index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
+        for (size_t c = first + begin; c < first + end; ++c) {
+          QueryResult& r = results[c];
+          if (r.verified) continue;
+          uint32_t number = 0;
+          const PackedFeatures& f = snap.Find(r.id, &number)->features;
+          for (size_t a = 0; a < anchors.size(); ++a) {
+            if (!neighbours[a].contains(number)) continue;
+            const sift::VerificationResult v = geometries[a].Verify(f, options.max_pairs_per_word, options.verify);
+            if (!v.verified) continue;
+            r.verified = true;
+            r.inliers = v.num_inliers;
+            r.db_from_query = Compose(v.db_from_query, results[pool[used + a]].db_from_query);
+            r.db_region = v.db_region;
+            found[c - first] = 1;
+            break;
+          }
+        }
+      });
+      used = round_end;
+      std::vector<size_t> fresh;
+      for (size_t c = first; c < last; ++c) {
+        if (found[c - first]) fresh.push_back(c);
+      }
+      std::stable_sort(fresh.begin(), fresh.end(), [&](size_t x, size_t y) { return results[x].inliers > results[y].inliers; });
+      pool.insert(pool.end(), fresh.begin(), fresh.end());
+    }
+    std::stable_sort(results.begin() + static_cast<std::ptrdiff_t>(first),
+                     results.begin() + static_cast<std::ptrdiff_t>(last),
+                     [](const QueryResult& a, const QueryResult& b) {
+                       if (a.verified != b.verified) return a.verified;
+                       return a.verified && a.inliers > b.inliers;
+                     });
+    timings.verify_ms += MsSince(t);
   }
 
   if (results.size() > static_cast<size_t>(options.top_k)) results.resize(static_cast<size_t>(options.top_k));

@@ -32,6 +32,11 @@
 //    and those of the first `qe_images` verified results (each restricted to the features inside the
 //    region it matched, all L2-normalised) are averaged and the index is queried again; the verified
 //    results stay first, the rest of the list follows the expanded query's scores.
+// 6. Transitive verification (same paper, its transitive closure), optional: the first
+//    `transitive_depth` unverified results are verified against the matched regions of up to
+//    `transitive_anchors` verified results (directly verified first, then the transitively verified
+//    ones of earlier rounds), and those that pass are ranked right after the directly verified ones
+//    (by inliers). Their db_from_query is the composition through the result they matched.
 //
 // ==== Storage and durability ========================================================================
 //
@@ -87,8 +92,13 @@ struct IndexOptions {
   bool sqrt_tf = true;
   // Stop list: query words contained in more than this fraction of the live images are ignored when
   // scoring (their idf is below log(1 / fraction)). Image norms still count every word. (0, 1];
-  // 1 keeps every word (except those in every image, whose idf is 0 anyway).
-  double max_document_frequency = 1.0;
+  // 1 keeps every word (except those in every image, whose idf is 0 anyway). A query all of whose words
+  // would be dropped is scored with all of them.
+  // Default chosen by measurement on Paris (see README): 0.1 with query expansion.
+  double max_document_frequency = 0.1;
+  // The stop list never drops a word contained in at most this many live images (a floor that keeps
+  // small collections whole: the fraction alone would drop most words of a 20-image index). [0, 2^32).
+  uint32_t stop_list_min_images = 10;
   // --- Performance
   // Merge policy of the segment log: at most this many segments of about the same size before they are
   // merged into one. [2, 64].
@@ -114,8 +124,32 @@ struct QueryOptions {
   std::optional<std::array<float, 4>> region;
   // Average query expansion (Chum et al. 2007). Needs rerank_depth > 0.
   bool query_expansion = false;
+  // Multiple assignment of the query's descriptors when scoring (Philbin et al. 2008, "Lost in
+  // quantization"; Jegou et al. 2010): each descriptor counts for its `query_assignments` nearest
+  // words, word j with weight exp(-(d_j^2 - d_1^2) / (2 assignment_sigma_sq)), d_j its distance to
+  // centroid j (d_1 the nearest, weight 1). Re-ranking still uses the nearest word. [1, 8]; 1 = hard
+  // assignment. Ignored by QuerySimilar (stored images keep one word per feature).
+  int query_assignments = 1;
+  // Kernel width of the assignment weights, in squared descriptor distance (RootSIFT descriptors have
+  // unit L2 norm, so squared distances lie in [0, 4]). (0, 4].
+  double assignment_sigma_sq = 0.02;
   // Verified results averaged into the expanded query. [1, 100].
   int qe_images = 5;
+  // Transitive verification, the transitive closure of Chum et al. 2007 ("Total recall"): the first
+  // `transitive_depth` unverified results of the ranking (the expanded one with query_expansion) are
+  // verified against the regions matched in verified results ("anchors": the directly verified ones
+  // best first, then those verified transitively, round after round); those that pass join the
+  // verified results, after the directly verified ones, by inliers. Finds views too different from the
+  // query to match it directly. 0 disables. [0, 10000]. Does nothing without re-ranking
+  // (rerank_depth 0: nothing is verified). Default chosen by measurement on Paris (see README).
+  int transitive_depth = 200;
+  // At most this many anchors in all. [1, 1000].
+  int transitive_anchors = 20;
+  // An anchor is only verified against candidates among its own `transitive_neighbours` best tf-idf
+  // matches (its matched region's words scored against the index, one more tf-idf pass per anchor).
+  // Cost: at most transitive_anchors * min(transitive_depth, transitive_neighbours) verifications
+  // (a candidate stops at its first verifying anchor). [1, 10000].
+  int transitive_neighbours = 30;
   // A shared word contributes all its query x image feature pairs as tentative matches when both sides
   // have at most this many features with that word; burstier words are skipped. [1, 100].
   int max_pairs_per_word = 4;

@@ -185,7 +185,10 @@ TEST_F(Fixture, CreateRefusesExistingIndexAndForeignExtractor) {
 }
 
 TEST_F(Fixture, SpatialReRankingFindsTheTransformedImage) {
-  auto index = CreateIndex();
+  // Without a stop list, so that an image's own query vector is its whole tf-idf vector (cosine 1).
+  IndexOptions no_stop_list;
+  no_stop_list.max_document_frequency = 1.0;
+  auto index = CreateIndex(no_stop_list);
   std::mt19937_64 rng(3);
   std::vector<sift::FeatureSet> images;
   for (int i = 0; i < 30; ++i) {
@@ -246,6 +249,113 @@ TEST_F(Fixture, SpatialReRankingFindsTheTransformedImage) {
   EXPECT_EQ(self->results[0].id, "img12");
   EXPECT_TRUE(self->results[0].verified);
   EXPECT_NEAR(self->results[0].score, 1.0, 1e-5);
+}
+
+// Moves keypoints by the similarity p -> s R(angle) p + (tx, ty).
+std::vector<sift::Keypoint> Transformed(const std::vector<sift::Keypoint>& in, double angle, double scale, double tx,
+                                        double ty) {
+  const double ca = std::cos(angle) * scale, sa = std::sin(angle) * scale;
+  std::vector<sift::Keypoint> out;
+  for (const auto& k : in) {
+    sift::Keypoint q = k;
+    q.x = static_cast<float>(ca * k.x - sa * k.y + tx);
+    q.y = static_cast<float>(sa * k.x + ca * k.y + ty);
+    q.scale = static_cast<float>(k.scale * scale);
+    q.orientation = static_cast<float>(std::fmod(k.orientation + angle + 2 * std::numbers::pi, 2 * std::numbers::pi));
+    out.push_back(q);
+  }
+  return out;
+}
+
+TEST_F(Fixture, TransitiveVerificationReachesViewsThatOnlyMatchAResult) {
+  // "hub" shows the whole object; the query shows its even features, "far" its odd ones (another
+  // viewpoint, plus clutter). far and the query share no object feature, so only hub links them.
+  std::mt19937_64 rng(11);
+  auto index = CreateIndex();
+  const sift::FeatureSet hub = RandomImage(rng, 240);
+  std::vector<uint32_t> hub_words(hub.size());
+  vocabulary_.Quantize(hub.descriptors, hub_words);
+  ASSERT_TRUE(index->Add("hub", hub, {}));
+  for (int i = 0; i < 25; ++i) ASSERT_TRUE(index->Add("other" + std::to_string(i), RandomImage(rng, 150), {}));
+  std::vector<uint32_t> query_words, far_words;
+  std::vector<sift::Keypoint> query_kps, far_kps;
+  for (size_t i = 0; i < hub.size(); ++i) {
+    (i % 2 == 0 ? query_words : far_words).push_back(hub_words[i]);
+    (i % 2 == 0 ? query_kps : far_kps).push_back(hub.keypoints[i]);
+  }
+  far_kps = Transformed(far_kps, -0.4, 0.8, 120, 250);
+  const sift::FeatureSet clutter = RandomImage(rng, 60, 800, 700);
+  std::vector<uint32_t> clutter_words(clutter.size());
+  vocabulary_.Quantize(clutter.descriptors, clutter_words);
+  far_words.insert(far_words.end(), clutter_words.begin(), clutter_words.end());
+  far_kps.insert(far_kps.end(), clutter.keypoints.begin(), clutter.keypoints.end());
+  ASSERT_TRUE(index->Add("far", Features(far_words, far_kps, 800, 700), {}));
+  const double angle = 0.5, scale = 1.2, tx = 300, ty = 20;
+  const auto query = Features(query_words, Transformed(query_kps, angle, scale, tx, ty), 1100, 1000);
+
+  QueryOptions direct = Opts(30, 30);
+  direct.transitive_depth = 0;
+  const auto plain = index->Query(query, direct);
+  ASSERT_TRUE(plain) << plain.error().ToString();
+  ASSERT_EQ(plain->results[0].id, "hub");
+  ASSERT_TRUE(plain->results[0].verified);
+  for (const auto& r : plain->results) {
+    if (r.id == "far") {
+      EXPECT_FALSE(r.verified);
+    }
+  }
+  for (bool qe : {false, true}) {
+    QueryOptions transitive = Opts(30, 30, qe);
+    transitive.transitive_depth = 30;
+    const auto r = index->Query(query, transitive);
+    ASSERT_TRUE(r) << r.error().ToString();
+    ASSERT_GE(r->results.size(), 2u);
+    EXPECT_EQ(r->results[0].id, "hub");
+    const QueryResult& second = r->results[1];
+    EXPECT_EQ(second.id, "far") << "qe " << qe;
+    EXPECT_TRUE(second.verified);
+    EXPECT_GE(second.inliers, 40);
+    for (size_t i = 2; i < r->results.size(); ++i) EXPECT_FALSE(r->results[i].verified) << r->results[i].id;
+    // db_from_query goes through hub: query -> hub (inverse of the query's similarity) -> far.
+    const sift::Keypoint p = Transformed({sift::Keypoint{200, 150, 2, 0, 1, 0}}, angle, scale, tx, ty)[0];
+    const sift::Keypoint expected = Transformed({sift::Keypoint{200, 150, 2, 0, 1, 0}}, -0.4, 0.8, 120, 250)[0];
+    const Eigen::Vector2d mapped = second.db_from_query.Apply({p.x, p.y});
+    EXPECT_NEAR(mapped.x(), expected.x, 3);
+    EXPECT_NEAR(mapped.y(), expected.y, 3);
+  }
+  QueryOptions bad = Opts(5, 30);
+  bad.transitive_anchors = 0;
+  EXPECT_FALSE(index->Query(query, bad));
+}
+
+TEST_F(Fixture, MultipleAssignmentReachesTheSecondNearestWord) {
+  // The query descriptor lies between centroids 10 and 20, nearer 10; "b" holds only word 20.
+  auto index = CreateIndex();
+  std::mt19937_64 rng(5);
+  ASSERT_TRUE(index->Add("a", Features({10, 30}, {{10, 10, 2, 0, 1, 0}, {50, 50, 2, 0, 1, 0}}), {}));
+  ASSERT_TRUE(index->Add("b", Features({20, 40}, {{10, 10, 2, 0, 1, 0}, {50, 50, 2, 0, 1, 0}}), {}));
+  for (int i = 0; i < 5; ++i) ASSERT_TRUE(index->Add("r" + std::to_string(i), RandomImage(rng, 30), {}));
+  const auto c = vocabulary_.centroids();
+  sift::FeatureSet query = Features({10}, {{10, 10, 2, 0, 1, 0}});
+  for (size_t d = 0; d < 128; ++d) query.descriptors[d] = 0.55f * c[10 * 128 + d] + 0.45f * c[20 * 128 + d];
+  QueryOptions hard = Opts(10, 0);
+  const auto h = ScoresById(*index->Query(query, hard));
+  EXPECT_GT(h.count("a") ? h.at("a") : 0.0, 0.0);
+  EXPECT_EQ(h.count("b") ? h.at("b") : 0.0, 0.0);
+  QueryOptions soft = hard;
+  soft.query_assignments = 2;
+  soft.assignment_sigma_sq = 0.5;
+  const auto s = ScoresById(*index->Query(query, soft));
+  ASSERT_TRUE(s.count("a") && s.count("b"));
+  EXPECT_GT(s.at("b"), 0.0);
+  EXPECT_GT(s.at("a"), s.at("b"));  // the nearer word weighs more
+  // A tiny kernel gives the second word no weight: back to hard assignment.
+  soft.assignment_sigma_sq = 1e-6;
+  const auto tiny = ScoresById(*index->Query(query, soft));
+  EXPECT_EQ(tiny.count("b") ? tiny.at("b") : 0.0, 0.0);
+  EXPECT_NEAR(tiny.at("a"), h.at("a"), 1e-6);
+  soft.query_assignments = 9;
+  EXPECT_FALSE(index->Query(query, soft));
 }
 
 TEST_F(Fixture, RegionQueryUsesOnlyFeaturesInside) {

@@ -8,10 +8,14 @@
 //     per-image tables, and process RSS), tf-idf query latency on ONE core (Q queries of F Zipf words,
 //     p50/p95) for several stop-list settings, and re-ranking latency for R = 100/200 candidates.
 //
-//   index_benchmark paris [--data DIR] [--words K] [--max-side PX] [--repeat N]
+//   index_benchmark paris [--data DIR] [--words K] [--max-side PX] [--repeat N] [--cache DIR]
+//                         [--filter TEXT] [--verbose 1]
 //     The Paris subset protocol (../shared/data/README.md): extracts RootSIFT from the 250 images,
 //     trains a K-word vocabulary on them, indexes them, runs the 12 cropped queries with and without
 //     re-ranking and query expansion; prints mAP and per-stage latency p50/p95.
+//     --cache DIR keeps the extracted features and the vocabulary in DIR (feature files and a .oxvoc per
+//     K and max side) so that later runs only index and query. --filter runs only the settings whose
+//     name contains TEXT. --verbose 1 prints each query's AP and verified counts.
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -19,6 +23,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <map>
 #include <numbers>
 #include <random>
@@ -31,6 +36,7 @@
 #include "index/image_index.h"
 #include "index/inverted_file.h"
 #include "index/rerank.h"
+#include "sift/features_io.h"
 #include "sift/parallel.h"
 #include "sift/sift.h"
 #include "vocab/vocabulary.h"
@@ -341,12 +347,27 @@ int RunParis(const std::map<std::string, std::string>& flags) {
   const auto extractor = *sift::SiftExtractor::Create(sift_options);
   sift::DecodeOptions decode;
   decode.max_image_side_px = max_side;
+  const fs::path cache = flags.count("--cache") ? fs::path(flags.at("--cache")) : fs::path();
+  if (!cache.empty()) fs::create_directories(cache);
+  const std::string cache_tag = "_" + std::to_string(max_side);
   std::vector<sift::FeatureSet> features(names.size());
   auto t0 = Clock::now();
   ParallelFor(names.size(), 0, 1, [&](size_t b, size_t e, int) {
     for (size_t i = b; i < e; ++i) {
+      const fs::path cached = cache.empty() ? fs::path() : cache / (names[i] + cache_tag + ".oxfeat");
+      if (!cached.empty()) {
+        if (auto file = sift::ReadFeatureFile(cached.string()); file && file->extractor_description == sift_options.Describe()) {
+          features[i] = std::move(file->features);
+          continue;
+        }
+      }
       auto f = extractor.ExtractFromFile((data / "images" / names[i]).string(), decode);
-      if (f) features[i] = std::move(*f);
+      if (!f) continue;
+      features[i] = std::move(*f);
+      if (!cached.empty()) {
+        const sift::FeatureFile file{.features = features[i], .extractor_description = sift_options.Describe()};
+        if (!sift::WriteFeatureFile(cached.string(), file)) std::printf("cannot write %s\n", cached.c_str());
+      }
     }
   });
   size_t total = 0;
@@ -355,19 +376,27 @@ int RunParis(const std::map<std::string, std::string>& flags) {
               static_cast<double>(total) / static_cast<double>(names.size()), Ms(t0, Clock::now()) / 1000);
 
   // Vocabulary: trained on (a sample of) the database descriptors, as in Philbin et al. 2007.
-  vocab::DescriptorSampler sampler({.max_per_image = 2000, .max_total = 400000, .seed = 1}, 128);
-  for (const auto& f : features) sampler.AddImage(f.descriptors);
-  vocab::TrainOptions train;
-  train.num_words = words;
-  train.max_iterations = 10;
-  t0 = Clock::now();
-  auto vocabulary = vocab::Train(sampler.descriptors(), 128, sift::DescriptorKind::kRootSift, sift_options.Describe(), train);
+  const fs::path vocab_file = cache.empty() ? fs::path() : cache / ("vocab_" + std::to_string(words) + cache_tag + ".oxvoc");
+  Result<vocab::Vocabulary> vocabulary = std::unexpected(Error{});
+  if (!vocab_file.empty()) vocabulary = vocab::Vocabulary::Read(vocab_file.string());
   if (!vocabulary) {
-    std::printf("training failed: %s\n", vocabulary.error().ToString().c_str());
-    return 1;
+    vocab::DescriptorSampler sampler({.max_per_image = 2000, .max_total = 400000, .seed = 1}, 128);
+    for (const auto& f : features) sampler.AddImage(f.descriptors);
+    vocab::TrainOptions train;
+    train.num_words = words;
+    train.max_iterations = 10;
+    t0 = Clock::now();
+    vocabulary = vocab::Train(sampler.descriptors(), 128, sift::DescriptorKind::kRootSift, sift_options.Describe(), train);
+    if (!vocabulary) {
+      std::printf("training failed: %s\n", vocabulary.error().ToString().c_str());
+      return 1;
+    }
+    std::printf("vocabulary: %zu words from %zu descriptors in %.0f s\n", vocabulary->size(), sampler.size(),
+                Ms(t0, Clock::now()) / 1000);
+    if (!vocab_file.empty() && !vocabulary->Write(vocab_file.string())) std::printf("cannot write %s\n", vocab_file.c_str());
+  } else {
+    std::printf("vocabulary: %zu words read from %s\n", vocabulary->size(), vocab_file.c_str());
   }
-  std::printf("vocabulary: %zu words from %zu descriptors in %.0f s\n", vocabulary->size(), sampler.size(),
-              Ms(t0, Clock::now()) / 1000);
 
   const fs::path dir = fs::temp_directory_path() / ("oxbow_paris_bench_" + std::to_string(getpid()));
   fs::remove_all(dir);
@@ -413,26 +442,60 @@ int RunParis(const std::map<std::string, std::string>& flags) {
   std::printf("\n| setting | mAP | quantise p50/p95 ms | score p50/p95 | verify p50/p95 | qe p50/p95 | total p50/p95 |\n");
   std::printf("|---|---|---|---|---|---|---|\n");
   struct Setting {
-    const char* name;
-    int rerank;
-    bool qe;
-    double max_df;
-    bool sqrt_tf;
+    std::string name;
+    double max_df = 1.0;
+    bool sqrt_tf = true;
+    std::function<void(QueryOptions*)> tune;
+    uint32_t stop_min_images = 0;  // applied on top of QueryOptions{} (the server's defaults)
   };
+  const auto rerank = [](int r, bool qe) {
+    return [=](QueryOptions* o) {
+      o->rerank_depth = r;
+      o->query_expansion = qe;
+      o->transitive_depth = 0;
+    };
+  };
+  const std::vector<Setting> settings = {
+      {"tf-idf only", 1.0, true, rerank(0, false)},
+      {"tf-idf, raw tf", 1.0, false, rerank(0, false)},
+      {"tf-idf, stop list df > 10%", 0.1, true, rerank(0, false)},
+      {"re-rank R=50", 1.0, true, rerank(50, false)},
+      {"re-rank R=100", 1.0, true, rerank(100, false)},
+      {"re-rank R=200", 1.0, true, rerank(200, false)},
+      {"re-rank R=200 + QE", 1.0, true, rerank(200, true)},
+      {"re-rank R=200 + QE, stop list df > 10%", 0.1, true, rerank(200, true)},
+      {"QE, df > 5%", 0.05, true, rerank(200, true)},
+      {"QE, df > 20%", 0.2, true, rerank(200, true)},
+      {"QE 10 images, df > 10%", 0.1, true, [](QueryOptions* o) { o->query_expansion = true; o->transitive_depth = 0; o->qe_images = 10; }},
+      {"QE, min inliers 5, df > 10%", 0.1, true, [](QueryOptions* o) { o->query_expansion = true; o->transitive_depth = 0; o->verify.min_inliers = 5; }},
+      {"QE, min inliers 8, df > 10%", 0.1, true, [](QueryOptions* o) { o->query_expansion = true; o->transitive_depth = 0; o->verify.min_inliers = 8; }},
+      {"QE, pairs/word 16, df > 10%", 0.1, true, [](QueryOptions* o) { o->query_expansion = true; o->transitive_depth = 0; o->max_pairs_per_word = 16; }},
+      {"QE, MA 2, sigma^2 0.01, df > 10%", 0.1, true, [](QueryOptions* o) { o->query_expansion = true; o->transitive_depth = 0; o->query_assignments = 2; o->assignment_sigma_sq = 0.01; }},
+      {"QE, MA 3, sigma^2 0.05, df > 10%", 0.1, true, [](QueryOptions* o) { o->query_expansion = true; o->transitive_depth = 0; o->query_assignments = 3; o->assignment_sigma_sq = 0.05; }},
+      {"QE + transitive 200, 10 anchors, 10000 neighbours, df > 10%", 0.1, true, [](QueryOptions* o) { o->query_expansion = true; o->transitive_anchors = 10; o->transitive_neighbours = 10000; }},
+      {"QE + transitive 200, 20 anchors, 30 neighbours, df > 10%", 0.1, true, [](QueryOptions* o) { o->query_expansion = true; }},
+      {"QE + transitive 200, 40 anchors, 30 neighbours, df > 10%", 0.1, true, [](QueryOptions* o) { o->query_expansion = true; o->transitive_anchors = 40; }},
+      {"QE + transitive 200, 20 anchors, 20 neighbours, df > 10%", 0.1, true, [](QueryOptions* o) { o->query_expansion = true; o->transitive_neighbours = 20; }},
+      {"R=100, QE + transitive 200, 20 anchors, 30 neighbours, df > 10%", 0.1, true, [](QueryOptions* o) { o->rerank_depth = 100; o->query_expansion = true; }},
+      {"transitive 200, 20 anchors, 30 neighbours (no QE), df > 10%", 0.1, true, [](QueryOptions*) {}},
+      {"R=100, transitive 200, 20 anchors, 30 neighbours (no QE), df > 10%", 0.1, true, [](QueryOptions* o) { o->rerank_depth = 100; }},
+      {"QE, df > 10% unless in <= 10 images", 0.1, true, rerank(200, true), 10},
+      {"defaults (QueryOptions{}, IndexOptions{})", IndexOptions{}.max_document_frequency, IndexOptions{}.sqrt_tf,
+       [](QueryOptions*) {}, IndexOptions{}.stop_list_min_images},
+  };
+  const std::string filter = flags.count("--filter") ? flags.at("--filter") : std::string();
+  const bool verbose = Flag(flags, "--verbose", 0) != 0;
   idx.reset();
   std::string opened_as;
-  for (const Setting s : {Setting{"tf-idf only", 0, false, 1.0, true}, Setting{"tf-idf, raw tf", 0, false, 1.0, false},
-                          Setting{"tf-idf, stop list df > 10%", 0, false, 0.1, true},
-                          Setting{"re-rank R=50", 50, false, 1.0, true}, Setting{"re-rank R=100", 100, false, 1.0, true},
-                          Setting{"re-rank R=200", 200, false, 1.0, true},
-                          Setting{"re-rank R=200 + QE", 200, true, 1.0, true},
-                          Setting{"re-rank R=200 + QE, stop list df > 10%", 200, true, 0.1, true}}) {
-    const std::string key = std::to_string(s.max_df) + (s.sqrt_tf ? "s" : "r");
+  for (const Setting& s : settings) {
+    if (!filter.empty() && s.name.find(filter) == std::string::npos) continue;
+    const std::string key = std::to_string(s.max_df) + (s.sqrt_tf ? "s" : "r") + std::to_string(s.stop_min_images);
     if (key != opened_as) {
       IndexOptions o;
       o.num_threads = 1;
       o.max_document_frequency = s.max_df;
       o.sqrt_tf = s.sqrt_tf;
+      o.stop_list_min_images = s.stop_min_images;
       idx.reset();
       idx = *ImageIndex::Open(dir.string(), o);
       opened_as = key;
@@ -443,9 +506,8 @@ int RunParis(const std::map<std::string, std::string>& flags) {
         const auto it = std::find(names.begin(), names.end(), q.image + ".jpg");
         if (it == names.end()) continue;
         QueryOptions options;
+        s.tune(&options);
         options.top_k = 250;
-        options.rerank_depth = s.rerank;
-        options.query_expansion = s.qe;
         options.region = q.box;
         const auto r = idx->Query(features[static_cast<size_t>(it - names.begin())], options);
         if (!r) {
@@ -456,6 +518,17 @@ int RunParis(const std::map<std::string, std::string>& flags) {
           std::vector<std::string> ranked;
           for (const auto& x : r->results) ranked.push_back(x.id);
           aps.push_back(AveragePrecision(ranked, q.positives, q.junk));
+          if (verbose) {
+            int verified = 0, verified_positive = 0, verified_junk = 0;
+            for (const auto& x : r->results) {
+              if (!x.verified) continue;
+              ++verified;
+              verified_positive += q.positives.count(x.id) ? 1 : 0;
+              verified_junk += q.junk.count(x.id) ? 1 : 0;
+            }
+            std::printf("  %s: AP %.3f, %zu positives, %zu junk, %d verified (%d positive, %d junk)\n", q.name.c_str(),
+                        aps.back(), q.positives.size(), q.junk.size(), verified, verified_positive, verified_junk);
+          }
         }
         quantize.push_back(r->timings.quantize_ms);
         score.push_back(r->timings.score_ms);
@@ -467,7 +540,7 @@ int RunParis(const std::map<std::string, std::string>& flags) {
     double map = 0;
     for (double ap : aps) map += ap;
     map /= static_cast<double>(std::max<size_t>(1, aps.size()));
-    std::printf("| %s | %.3f | %.1f / %.1f | %.2f / %.2f | %.1f / %.1f | %.1f / %.1f | %.1f / %.1f |\n", s.name, map,
+    std::printf("| %s | %.3f | %.1f / %.1f | %.2f / %.2f | %.1f / %.1f | %.1f / %.1f | %.1f / %.1f |\n", s.name.c_str(), map,
                 Percentile(quantize, .5), Percentile(quantize, .95), Percentile(score, .5), Percentile(score, .95),
                 Percentile(verify, .5), Percentile(verify, .95), Percentile(qe, .5), Percentile(qe, .95),
                 Percentile(totals, .5), Percentile(totals, .95));

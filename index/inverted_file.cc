@@ -491,19 +491,41 @@ void InvertedFile::MergeTail(bool everything) {
 }
 
 std::vector<QueryTerm> InvertedFile::QueryVector(const BagOfWords& bag) const {
+  std::vector<float> tf(bag.counts.size());
+  for (size_t k = 0; k < tf.size(); ++k) tf[k] = static_cast<float>(bag.counts[k]);
+  return QueryVector(bag.words, tf);
+}
+
+std::vector<QueryTerm> InvertedFile::QueryVector(std::span<const uint32_t> words, std::span<const float> tf) const {
+  OXBOW_CHECK(words.size() == tf.size());
   std::vector<QueryTerm> out;
   if (num_live_ == 0) return out;
+  out = WeightedQueryVector(words, tf, /*use_stop_list=*/true);
+  // A stop list must not make an image unfindable: when it would drop every word of the query (a small
+  // vocabulary over many images), the query is scored with all its words.
+  if (out.empty() && options_.max_document_frequency < 1) out = WeightedQueryVector(words, tf, false);
+  return out;
+}
+
+std::vector<QueryTerm> InvertedFile::WeightedQueryVector(std::span<const uint32_t> words, std::span<const float> tf,
+                                                         bool use_stop_list) const {
+  std::vector<QueryTerm> out;
   const double n = static_cast<double>(num_live_);
   double norm_sq = 0;
   std::vector<double> weights;
-  for (size_t k = 0; k < bag.words.size(); ++k) {
-    const uint32_t w = bag.words[k];
-    if (w >= vocabulary_size_) continue;
+  for (size_t k = 0; k < words.size(); ++k) {
+    const uint32_t w = words[k];
+    if (w >= vocabulary_size_ || !(tf[k] > 0)) continue;
     const uint32_t df = df_[w];
-    if (df == 0 || static_cast<double>(df) > options_.max_document_frequency * n) continue;
+    if (df == 0) continue;
+    if (use_stop_list && df > options_.stop_list_min_images &&
+        static_cast<double>(df) > options_.max_document_frequency * n) {
+      continue;
+    }
     const double idf = std::log(n / static_cast<double>(df));
     if (!(idf > 0)) continue;
-    const double v = static_cast<double>(TermWeight(bag.counts[k])) * idf;
+    const double t = options_.sqrt_tf ? std::sqrt(static_cast<double>(tf[k])) : static_cast<double>(tf[k]);
+    const double v = t * idf;
     out.push_back({w, 0});
     weights.push_back(v);
     norm_sq += v * v;

@@ -55,6 +55,9 @@ struct TfIdfOptions {
   // Query words contained in more than this fraction of the live images are left out of the query
   // vector (a stop list of the most frequent words). (0, 1].
   double max_document_frequency = 1.0;
+  // ... but never a word contained in at most this many live images, so that a small collection keeps
+  // its words (with N = 20 and 0.1, a word in 3 images would otherwise be dropped). [0, 2^32).
+  uint32_t stop_list_min_images = 0;
   // Segments of one size level merged at once (see the file comment). [2, 64].
   int merge_factor = 8;
 
@@ -121,9 +124,13 @@ class InvertedFile {
   InvertedFile WithRemoved(std::span<const uint32_t> images, std::span<const BagOfWords* const> bags) const;
 
   // The L2-normalised tf-idf vector of a query bag, sorted by word. Words not in any live image (idf
-  // undefined) and stop-listed words (TfIdfOptions::max_document_frequency) are left out; words in
+  // undefined) and stop-listed words (n_w > max(max_document_frequency * N, stop_list_min_images)) are
+  // left out, unless that would leave out every word (then the stop list is not applied); words in
   // every image have weight 0 and are left out too. Empty if nothing remains.
   std::vector<QueryTerm> QueryVector(const BagOfWords& bag) const;
+  // The same for fractional term frequencies (soft / multiple assignment): words ascending and
+  // distinct, tf[i] > 0 the (weighted) count of words[i]; t() applies to the real value.
+  std::vector<QueryTerm> QueryVector(std::span<const uint32_t> words, std::span<const float> tf) const;
 
   // Scores every live image against `query` (terms sorted by word, weights of an L2-normalised vector;
   // any real weights are accepted) and returns the best `max_results` by cosine, best first.
@@ -144,6 +151,8 @@ class InvertedFile {
   InvertedFileStats Stats() const;
 
  private:
+  std::vector<QueryTerm> WeightedQueryVector(std::span<const uint32_t> words, std::span<const float> tf,
+                                             bool use_stop_list) const;
   void MergeTail(bool everything);
   void UpdateNormsForChangedWords(std::span<const std::pair<uint32_t, uint32_t>> word_old_df,
                                   CowArray<ImageState>::Editor* editor) const;

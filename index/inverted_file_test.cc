@@ -217,7 +217,59 @@ TEST(InvertedFileTest, StopListDropsFrequentQueryWords) {
   ASSERT_EQ(q.size(), 1u);
   EXPECT_EQ(q[0].word, 1u);
   EXPECT_EQ(AllScores(all, Bag({0})).size(), 3u);
-  EXPECT_TRUE(AllScores(stopped, Bag({0})).empty());
+  // A query of stop-listed words only is scored with them all rather than not at all.
+  EXPECT_EQ(AllScores(stopped, Bag({0})), AllScores(all, Bag({0})));
+}
+
+TEST(InvertedFileTest, StopListFloorKeepsWordsOfFewImages) {
+  // Word 0 is in 3 of 4 images: above max_document_frequency 0.5, but within a floor of 3 images.
+  const BagOfWords b0 = Bag({0, 1}), b1 = Bag({0, 2}), b2 = Bag({0, 3}), b3 = Bag({4});
+  const std::vector<uint32_t> ids = {0, 1, 2, 3};
+  const std::vector<const BagOfWords*> bags = {&b0, &b1, &b2, &b3};
+  const InvertedFile floor3 =
+      InvertedFile(5, TfIdfOptions{.max_document_frequency = 0.5, .stop_list_min_images = 3}).WithAdded(ids, bags);
+  const InvertedFile floor2 =
+      InvertedFile(5, TfIdfOptions{.max_document_frequency = 0.5, .stop_list_min_images = 2}).WithAdded(ids, bags);
+  EXPECT_EQ(floor3.QueryVector(Bag({0, 1})).size(), 2u);
+  EXPECT_EQ(AllScores(floor3, Bag({0})).size(), 3u);
+  const auto q = floor2.QueryVector(Bag({0, 1}));
+  ASSERT_EQ(q.size(), 1u);
+  EXPECT_EQ(q[0].word, 1u);
+}
+
+TEST(InvertedFileTest, FractionalQueryVectorMatchesCountsAndReference) {
+  std::mt19937_64 rng(5);
+  const size_t vocab = 60;
+  std::map<uint32_t, BagOfWords> corpus;
+  for (uint32_t i = 0; i < 20; ++i) corpus[i] = RandomBag(rng, vocab);
+  for (bool sqrt_tf : {true, false}) {
+    const InvertedFile file = InvertedFile::Build(vocab, {.sqrt_tf = sqrt_tf}, 20, [&](uint32_t image, BagOfWords* bag) {
+      *bag = corpus.at(image);
+      return true;
+    });
+    const BagOfWords& query = corpus.at(3);
+    std::vector<float> tf(query.counts.begin(), query.counts.end());
+    const auto a = file.QueryVector(query);
+    const auto b = file.QueryVector(query.words, tf);
+    ASSERT_EQ(a.size(), b.size());
+    for (size_t i = 0; i < a.size(); ++i) {
+      EXPECT_EQ(a[i].word, b[i].word);
+      EXPECT_FLOAT_EQ(a[i].weight, b[i].weight);
+    }
+    // A half count weighs t(0.5) relative to t(1) = 1: compare two single-word queries' raw weights
+    // through a two-word query where one word has tf 0.5 and the other tf 1.
+    std::vector<uint32_t> words;
+    for (uint32_t w : query.words) {
+      if (file.Idf(w) > 0 && words.size() < 2) words.push_back(w);
+    }
+    ASSERT_EQ(words.size(), 2u);
+    const uint32_t w1 = words[0], w2 = words[1];
+    const std::vector<float> half = {0.5f, 1.0f};
+    const auto v = file.QueryVector(words, half);
+    ASSERT_EQ(v.size(), 2u);
+    const double expected = (sqrt_tf ? std::sqrt(0.5) : 0.5) * file.Idf(w1) / file.Idf(w2);
+    EXPECT_NEAR(v[0].weight / v[1].weight, expected, 1e-5);
+  }
 }
 
 TEST(InvertedFileTest, TopKIsOrderedAndTruncated) {
@@ -245,6 +297,7 @@ TEST(InvertedFileTest, TopKIsOrderedAndTruncated) {
 TEST(InvertedFileTest, OptionsAreChecked) {
   EXPECT_TRUE(TfIdfOptions{.max_document_frequency = 0}.Check().has_value());
   EXPECT_TRUE(TfIdfOptions{.merge_factor = 1}.Check().has_value());
+  EXPECT_TRUE(TfIdfOptions{.max_document_frequency = 1.5}.Check().has_value());
   EXPECT_FALSE(TfIdfOptions{}.Check().has_value());
 }
 
