@@ -156,20 +156,20 @@ TEST(Settings, RoundTripsEveryDescribedOption) {
   options.max_features = 1234;
   options.descriptor = sift::DescriptorKind::kRootSift;
   options.max_octaves = 5;
-  auto parsed = SiftOptionsFromSettings(options.Describe());
+  auto parsed = sift::SiftOptions::FromDescription(options.Describe());
   ASSERT_TRUE(parsed) << parsed.error().message;
   EXPECT_EQ(parsed->Describe(), options.Describe());
   EXPECT_EQ(parsed->max_features, 1234);
   EXPECT_EQ(parsed->descriptor, sift::DescriptorKind::kRootSift);
 
-  auto defaults = SiftOptionsFromSettings(sift::SiftOptions{}.Describe());
+  auto defaults = sift::SiftOptions::FromDescription(sift::SiftOptions{}.Describe());
   ASSERT_TRUE(defaults);
   EXPECT_EQ(defaults->Describe(), sift::SiftOptions{}.Describe());
 
   for (const std::string& bad : {std::string(""), std::string("other-sift/1;sigma=1"),
                                 sift::SiftOptions{}.Describe() + ";future_field=3",
                                 std::string("oxbow-sift/1;sigma=abc")}) {
-    auto r = SiftOptionsFromSettings(bad);
+    auto r = sift::SiftOptions::FromDescription(bad);
     ASSERT_FALSE(r) << bad;
     EXPECT_EQ(r.error().code, ErrorCode::kIncompatible);
   }

@@ -47,20 +47,6 @@ class SlotGuard {
   std::atomic<int>* in_flight_;
 };
 
-bool ParseDouble(const std::string& text, double* out) {
-  char* end = nullptr;
-  *out = std::strtod(text.c_str(), &end);
-  return !text.empty() && end == text.c_str() + text.size();
-}
-
-bool ParseIntText(const std::string& text, int* out) {
-  char* end = nullptr;
-  const long v = std::strtol(text.c_str(), &end, 10);
-  if (text.empty() || end != text.c_str() + text.size() || v < -1'000'000'000 || v > 1'000'000'000) return false;
-  *out = static_cast<int>(v);
-  return true;
-}
-
 }  // namespace
 
 // Threads that run jobs at a lower CPU priority (a higher nice value, set per thread on Linux). A nice
@@ -153,66 +139,6 @@ sift::DecodeOptions ServiceOptions::Decode() const {
   return decode;
 }
 
-Result<sift::SiftOptions> SiftOptionsFromSettings(const std::string& settings) {
-  const std::string prefix = "oxbow-sift/1";
-  auto incompatible = [&](const std::string& why) {
-    return Fail(ErrorCode::kIncompatible, "extractor settings '" + settings + "' are not understood by this build (" +
-                                              why + "); re-create the index with this version's vocabulary");
-  };
-  if (settings.rfind(prefix, 0) != 0) return incompatible("expected the prefix " + prefix);
-  std::map<std::string, std::string> fields;
-  size_t start = prefix.size();
-  while (start < settings.size()) {
-    if (settings[start] != ';') return incompatible("expected ';' at offset " + std::to_string(start));
-    ++start;
-    size_t end = settings.find(';', start);
-    if (end == std::string::npos) end = settings.size();
-    const std::string field = settings.substr(start, end - start);
-    const size_t eq = field.find('=');
-    if (eq == std::string::npos) return incompatible("field '" + field + "' has no '='");
-    fields[field.substr(0, eq)] = field.substr(eq + 1);
-    start = end;
-  }
-  sift::SiftOptions o;
-  auto need = [&](const char* key) -> const std::string* {
-    auto it = fields.find(key);
-    return it == fields.end() ? nullptr : &it->second;
-  };
-  const std::string* v = nullptr;
-  if ((v = need("upsample"))) o.upsample_first_octave = *v == "1";
-  if ((v = need("sigma")) && !ParseDouble(*v, &o.sigma)) return incompatible("sigma");
-  if ((v = need("assumed_blur")) && !ParseDouble(*v, &o.assumed_blur)) return incompatible("assumed_blur");
-  if ((v = need("intervals")) && !ParseIntText(*v, &o.intervals)) return incompatible("intervals");
-  if ((v = need("contrast")) && !ParseDouble(*v, &o.contrast_threshold)) return incompatible("contrast");
-  if ((v = need("edge")) && !ParseDouble(*v, &o.edge_threshold)) return incompatible("edge");
-  if ((v = need("max_features")) && *v != "all") {
-    int n = 0;
-    if (!ParseIntText(*v, &n)) return incompatible("max_features");
-    o.max_features = n;
-  }
-  if ((v = need("descriptor"))) {
-    if (*v == sift::DescriptorKindName(sift::DescriptorKind::kRootSift)) {
-      o.descriptor = sift::DescriptorKind::kRootSift;
-    } else if (*v == sift::DescriptorKindName(sift::DescriptorKind::kSift)) {
-      o.descriptor = sift::DescriptorKind::kSift;
-    } else {
-      return incompatible("descriptor");
-    }
-  }
-  if ((v = need("peak_ratio")) && !ParseDouble(*v, &o.orientation_peak_ratio)) return incompatible("peak_ratio");
-  if ((v = need("kernel_radius")) && !ParseDouble(*v, &o.kernel_radius_sigmas)) return incompatible("kernel_radius");
-  if ((v = need("max_octaves")) && *v != "all") {
-    int n = 0;
-    if (!ParseIntText(*v, &n)) return incompatible("max_octaves");
-    o.max_octaves = n;
-  }
-  // The round trip is the real test: any field this parser does not know, or a changed default, shows
-  // up as a different description.
-  if (o.Describe() != settings) return incompatible("this build describes them as '" + o.Describe() + "'");
-  if (auto message = o.Check()) return incompatible(*message);
-  return o;
-}
-
 uint64_t ResidentMemoryBytes() {
   std::ifstream statm("/proc/self/statm");
   uint64_t size_pages = 0, resident_pages = 0;
@@ -270,7 +196,7 @@ Result<std::unique_ptr<Service>> Service::Open(const std::string& index_dir,
                                           "'; pass --vocab VOCAB to create an empty one there (see `oxbow vocab train`)");
   }
 
-  auto sift_options = SiftOptionsFromSettings(index->extractor_settings());
+  auto sift_options = sift::SiftOptions::FromDescription(index->extractor_settings());
   if (!sift_options) return std::unexpected(sift_options.error());
   sift_options->num_threads = options.threads_per_request;
   auto extractor = sift::SiftExtractor::Create(*sift_options);

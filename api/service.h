@@ -67,10 +67,6 @@ struct ServiceOptions {
   sift::DecodeOptions Decode() const;  // the decode limits above as DecodeOptions
 };
 
-// Reconstructs the extractor options from SiftOptions::Describe() text (as stored by the vocabulary and
-// the index). kIncompatible when the text is not one this build writes (checked by describing the
-// result again and comparing), so an index from another extractor version is refused with a message.
-[[nodiscard]] Result<sift::SiftOptions> SiftOptionsFromSettings(const std::string& settings);
 
 struct AddImageRequest {
   std::string id;                       // external id, 1..256 bytes, no control characters

@@ -256,7 +256,7 @@ void RunHttp(const EvalArgs& a, const eval::Protocol& protocol, int port, int re
 
 void RunInProcess(const EvalArgs& a, const eval::Protocol& protocol, const index::ImageIndex& idx, int rerank, bool qe,
                   int top_k, eval::RunResult* run) {
-  auto options = ValueOrExit(SiftOptionsFromSettings(idx.extractor_settings()));
+  auto options = ValueOrExit(sift::SiftOptions::FromDescription(idx.extractor_settings()));
   options.num_threads = a.threads;
   const auto extractor = ValueOrExit(sift::SiftExtractor::Create(options));
   log::Progress progress("eval " + run->label, protocol.queries.size(), "queries");

@@ -16,45 +16,6 @@
 
 namespace oxbow::cli {
 
-// Parses sift::SiftOptions::Describe() text back into options ("oxbow-sift/1;upsample=1;sigma=1.6;...").
-// The result must describe itself identically, else kIncompatible (settings from another version).
-inline Result<sift::SiftOptions> SiftOptionsFromSettings(const std::string& settings) {
-  sift::SiftOptions o;
-  std::stringstream in(settings);
-  std::string item;
-  bool first = true;
-  try {
-    while (std::getline(in, item, ';')) {
-      if (first) {
-        if (item != "oxbow-sift/1") break;
-        first = false;
-        continue;
-      }
-      const size_t eq = item.find('=');
-      if (eq == std::string::npos) continue;
-      const std::string key = item.substr(0, eq), value = item.substr(eq + 1);
-      if (key == "upsample") o.upsample_first_octave = value == "1";
-      else if (key == "sigma") o.sigma = std::stod(value);
-      else if (key == "assumed_blur") o.assumed_blur = std::stod(value);
-      else if (key == "intervals") o.intervals = std::stoi(value);
-      else if (key == "contrast") o.contrast_threshold = std::stod(value);
-      else if (key == "edge") o.edge_threshold = std::stod(value);
-      else if (key == "max_features") o.max_features = value == "all" ? std::nullopt : std::optional<int>(std::stoi(value));
-      else if (key == "descriptor") o.descriptor = value == "rootsift" ? sift::DescriptorKind::kRootSift : sift::DescriptorKind::kSift;
-      else if (key == "peak_ratio") o.orientation_peak_ratio = std::stod(value);
-      else if (key == "kernel_radius") o.kernel_radius_sigmas = std::stod(value);
-      else if (key == "max_octaves") o.max_octaves = value == "all" ? std::nullopt : std::optional<int>(std::stoi(value));
-    }
-  } catch (const std::exception&) {
-    return Fail(ErrorCode::kIncompatible, "unreadable extractor settings '" + settings + "'");
-  }
-  if (o.Describe() != settings) {
-    return Fail(ErrorCode::kIncompatible, "extractor settings '" + settings +
-                                              "' are not those of this build's SIFT ('" + o.Describe() + "')");
-  }
-  return o;
-}
-
 struct TimedFeatures {
   sift::FeatureSet features;
   double decode_ms = 0;

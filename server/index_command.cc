@@ -30,7 +30,7 @@ struct ImageJob {
 
 // The extractor whose settings the index records.
 sift::SiftExtractor ExtractorFor(const index::ImageIndex& idx, int threads_per_image) {
-  sift::SiftOptions options = ValueOrExit(SiftOptionsFromSettings(idx.extractor_settings()));
+  sift::SiftOptions options = ValueOrExit(sift::SiftOptions::FromDescription(idx.extractor_settings()));
   options.num_threads = threads_per_image;
   return ValueOrExit(sift::SiftExtractor::Create(options));
 }

@@ -79,7 +79,7 @@ void SetUpQuery(CLI::App& app) {
     if (auto e = args->options.Check()) throw CommandError(2, *e);
     auto idx = ValueOrExit(index::ImageIndex::Open(args->index));
     const double open_ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
-    sift::SiftOptions sift_options = ValueOrExit(SiftOptionsFromSettings(idx->extractor_settings()));
+    sift::SiftOptions sift_options = ValueOrExit(sift::SiftOptions::FromDescription(idx->extractor_settings()));
     const sift::SiftExtractor extractor = ValueOrExit(sift::SiftExtractor::Create(sift_options));
     sift::DecodeOptions decode;
     decode.max_image_side_px = args->max_side;

@@ -6,6 +6,7 @@
 #include <cstdio>
 #include <bit>
 #include <charconv>
+#include <map>
 #include <memory>
 #include <optional>
 #include <sstream>
@@ -45,6 +46,84 @@ std::string CanonicalDouble(double v) {
   return std::string(buf, result.ptr);
 }
 }  // namespace
+
+namespace {
+
+bool ParseDescribedDouble(const std::string& text, double* out) {
+  char* end = nullptr;
+  *out = std::strtod(text.c_str(), &end);
+  return !text.empty() && end == text.c_str() + text.size();
+}
+
+bool ParseDescribedInt(const std::string& text, int* out) {
+  char* end = nullptr;
+  const long v = std::strtol(text.c_str(), &end, 10);
+  if (text.empty() || end != text.c_str() + text.size() || v < -1'000'000'000 || v > 1'000'000'000) return false;
+  *out = static_cast<int>(v);
+  return true;
+}
+
+}  // namespace
+
+Result<SiftOptions> SiftOptions::FromDescription(const std::string& settings) {
+  const std::string prefix = "oxbow-sift/1";
+  auto incompatible = [&](const std::string& why) {
+    return Fail(ErrorCode::kIncompatible, "extractor settings '" + settings + "' are not understood by this build (" +
+                                              why + "); re-create the index with this version's vocabulary");
+  };
+  if (settings.rfind(prefix, 0) != 0) return incompatible("expected the prefix " + prefix);
+  std::map<std::string, std::string> fields;
+  size_t start = prefix.size();
+  while (start < settings.size()) {
+    if (settings[start] != ';') return incompatible("expected ';' at offset " + std::to_string(start));
+    ++start;
+    size_t end = settings.find(';', start);
+    if (end == std::string::npos) end = settings.size();
+    const std::string field = settings.substr(start, end - start);
+    const size_t eq = field.find('=');
+    if (eq == std::string::npos) return incompatible("field '" + field + "' has no '='");
+    fields[field.substr(0, eq)] = field.substr(eq + 1);
+    start = end;
+  }
+  SiftOptions o;
+  auto need = [&](const char* key) -> const std::string* {
+    auto it = fields.find(key);
+    return it == fields.end() ? nullptr : &it->second;
+  };
+  const std::string* v = nullptr;
+  if ((v = need("upsample"))) o.upsample_first_octave = *v == "1";
+  if ((v = need("sigma")) && !ParseDescribedDouble(*v, &o.sigma)) return incompatible("sigma");
+  if ((v = need("assumed_blur")) && !ParseDescribedDouble(*v, &o.assumed_blur)) return incompatible("assumed_blur");
+  if ((v = need("intervals")) && !ParseDescribedInt(*v, &o.intervals)) return incompatible("intervals");
+  if ((v = need("contrast")) && !ParseDescribedDouble(*v, &o.contrast_threshold)) return incompatible("contrast");
+  if ((v = need("edge")) && !ParseDescribedDouble(*v, &o.edge_threshold)) return incompatible("edge");
+  if ((v = need("max_features")) && *v != "all") {
+    int n = 0;
+    if (!ParseDescribedInt(*v, &n)) return incompatible("max_features");
+    o.max_features = n;
+  }
+  if ((v = need("descriptor"))) {
+    if (*v == DescriptorKindName(DescriptorKind::kRootSift)) {
+      o.descriptor = DescriptorKind::kRootSift;
+    } else if (*v == DescriptorKindName(DescriptorKind::kSift)) {
+      o.descriptor = DescriptorKind::kSift;
+    } else {
+      return incompatible("descriptor");
+    }
+  }
+  if ((v = need("peak_ratio")) && !ParseDescribedDouble(*v, &o.orientation_peak_ratio)) return incompatible("peak_ratio");
+  if ((v = need("kernel_radius")) && !ParseDescribedDouble(*v, &o.kernel_radius_sigmas)) return incompatible("kernel_radius");
+  if ((v = need("max_octaves")) && *v != "all") {
+    int n = 0;
+    if (!ParseDescribedInt(*v, &n)) return incompatible("max_octaves");
+    o.max_octaves = n;
+  }
+  // The round trip is the real test: any field this parser does not know, or a changed default, shows
+  // up as a different description.
+  if (o.Describe() != settings) return incompatible("this build describes them as '" + o.Describe() + "'");
+  if (auto message = o.Check()) return incompatible(*message);
+  return o;
+}
 
 std::string SiftOptions::Describe() const {
   std::ostringstream s;

@@ -144,6 +144,10 @@ struct SiftOptions {
   // FNV-1a 64-bit hash of Describe(); stable across runs, machines and builds. vocab/ and index/ store
   // it to refuse mixing features from different extractor settings.
   uint64_t Fingerprint() const;
+  // Parses a Describe() text back into options (performance fields keep their defaults). kIncompatible,
+  // with a message, for text this build does not describe identically (another version, an unknown or
+  // malformed field, values Check() refuses): the round trip Describe(FromDescription(d)) == d holds.
+  [[nodiscard]] static Result<SiftOptions> FromDescription(const std::string& description);
 };
 
 // Extracts SIFT keypoints and descriptors. Immutable after Create; Extract* are thread-safe (may be
