@@ -562,8 +562,10 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
     for (const auto& [word, weight] : average) norm_sq += weight * weight;
     const double inv = norm_sq > 0 ? 1.0 / std::sqrt(norm_sq) : 0.0;
     for (const auto& [word, weight] : average) expanded.push_back({word, static_cast<float>(weight * inv)});
-    const std::vector<ScoredImage> rescored =
-        snap.inverted.Score(expanded, static_cast<size_t>(options.top_k) + num_verified, &scratch);
+    // Deep enough for transitive verification's window as well as for top_k.
+    const size_t expanded_depth =
+        static_cast<size_t>(std::max(options.top_k, options.transitive_depth > 0 ? options.transitive_depth : 0));
+    const std::vector<ScoredImage> rescored = snap.inverted.Score(expanded, expanded_depth + num_verified, &scratch);
     std::vector<QueryResult> merged(results.begin(), results.begin() + static_cast<std::ptrdiff_t>(num_verified));
     std::unordered_map<std::string, const QueryResult*> first_stage;
     for (const QueryResult& r : results) first_stage[r.id] = &r;

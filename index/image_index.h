@@ -94,8 +94,9 @@ struct IndexOptions {
   // scoring (their idf is below log(1 / fraction)). Image norms still count every word. (0, 1];
   // 1 keeps every word (except those in every image, whose idf is 0 anyway). A query all of whose words
   // would be dropped is scored with all of them.
-  // Default chosen by measurement on Paris (see README): 0.1 with query expansion.
-  double max_document_frequency = 0.1;
+  // Off by default: 0.1 helps a 20k-word vocabulary on Paris but wrecks a 5k one (most words of a
+  // small vocabulary are in more than 10% of the images), see README.
+  double max_document_frequency = 1.0;
   // The stop list never drops a word contained in at most this many live images (a floor that keeps
   // small collections whole: the fraction alone would drop most words of a 20-image index). [0, 2^32).
   uint32_t stop_list_min_images = 10;
