@@ -12,7 +12,9 @@
 #include <filesystem>
 #include <fstream>
 #include <future>
+#include <map>
 #include <regex>
+#include <set>
 #include <sstream>
 #include <thread>
 
@@ -167,12 +169,30 @@ class ServerProcess {
   std::thread reader_;
 };
 
-std::string ImagePath(const std::string& dir, const std::string& id) {
-  for (const char* ext : {".jpg", ".jpeg", ".png", ".JPG", ".ppm", ".pgm", ".bmp", ".tif", ".tiff", ".webp"}) {
-    fs::path p = fs::path(dir) / (id + ext);
-    if (fs::exists(p)) return p.string();
+// Image files under `dir` (recursively, as the groups protocol nests them), by id (file name without
+// extension), in name order.
+std::map<std::string, std::string> ImageFiles(const std::string& dir) {
+  std::map<std::string, std::string> files;
+  static const std::set<std::string> kExtensions = {".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".bmp",
+                                                    ".tif", ".tiff", ".webp"};
+  std::error_code ec;
+  for (auto it = fs::recursive_directory_iterator(dir, ec); !ec && it != fs::recursive_directory_iterator();
+       it.increment(ec)) {
+    if (!it->is_regular_file()) continue;
+    std::string ext = it->path().extension().string();
+    std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char c) { return std::tolower(c); });
+    if (kExtensions.contains(ext)) files.emplace(it->path().stem().string(), it->path().string());
   }
-  return "";
+  if (ec) throw CommandError(4, "cannot list images in '" + dir + "': " + ec.message());
+  return files;
+}
+
+// Writes the paths of `files` to a list file for `oxbow vocab train --list` / `oxbow index build --list`.
+std::string WriteList(const std::map<std::string, std::string>& files, const fs::path& path) {
+  std::ofstream out(path);
+  for (const auto& [id, file] : files) out << file << "\n";
+  if (!out) throw CommandError(7, "cannot write '" + path.string() + "'");
+  return path.string();
 }
 
 std::string ReadBytes(const std::string& path) {
@@ -194,7 +214,9 @@ void Prepare(const EvalArgs& a, const Config& c, const std::string& exe, eval::R
   const std::string vocab = (fs::path(c.Dir(a.work)) / "vocabulary.oxvoc").string();
   const std::string index = (fs::path(c.Dir(a.work)) / "index").string();
   if (!fs::exists(vocab)) {
-    std::vector<std::string> args = {exe, "vocab", "train", "--images", a.train_images.empty() ? a.images : a.train_images,
+    const std::string list = WriteList(ImageFiles(a.train_images.empty() ? a.images : a.train_images),
+                                       fs::path(c.Dir(a.work)) / "train_images.txt");
+    std::vector<std::string> args = {exe, "vocab", "train", "--list", list,
                                      "--words", std::to_string(c.words), "--out", vocab, "--sample",
                                      std::to_string(a.sample), "--seed", std::to_string(a.seed)};
     if (c.features == "rootsift") args.push_back("--root-sift");
@@ -206,7 +228,8 @@ void Prepare(const EvalArgs& a, const Config& c, const std::string& exe, eval::R
     base->build_vocab_s = std::chrono::duration<double>(Clock::now() - t0).count();
   }
   if (!index::ImageIndex::Exists(index) || !fs::exists(fs::path(c.Dir(a.work)) / "index.complete")) {
-    std::vector<std::string> args = {exe, "index", "build", "--vocab", vocab, "--images", a.images, "--out", index};
+    const std::string list = WriteList(ImageFiles(a.images), fs::path(c.Dir(a.work)) / "database_images.txt");
+    std::vector<std::string> args = {exe, "index", "build", "--vocab", vocab, "--list", list, "--out", index};
     if (a.threads > 0) args.insert(args.end(), {"--threads", std::to_string(a.threads)});
     const auto t0 = Clock::now();
     RunChild(args);
@@ -223,13 +246,15 @@ std::string BoxParam(const std::array<float, 4>& b) {
 
 void RunHttp(const EvalArgs& a, const eval::Protocol& protocol, int port, int rerank, bool qe, int top_k,
              eval::RunResult* run) {
+  const auto files = ImageFiles(a.images);
   httplib::Client client("127.0.0.1", port);
   client.set_read_timeout(300, 0);
   client.set_write_timeout(60, 0);
   log::Progress progress("eval " + run->label, protocol.queries.size(), "queries");
   for (const eval::EvalQuery& q : protocol.queries) {
-    const std::string path = ImagePath(a.images, q.image);
-    if (path.empty()) throw CommandError(4, "query image '" + q.image + "' not found in " + a.images);
+    const auto found = files.find(q.image);
+    if (found == files.end()) throw CommandError(4, "query image '" + q.image + "' not found in " + a.images);
+    const std::string& path = found->second;
     std::string target = "/v1/search?top_k=" + std::to_string(top_k) + "&rerank=" + std::to_string(rerank) +
                          "&qe=" + (qe ? "true" : "false");
     if (q.bbox && !a.full_image) target += "&bbox=" + BoxParam(*q.bbox);
@@ -256,13 +281,15 @@ void RunHttp(const EvalArgs& a, const eval::Protocol& protocol, int port, int re
 
 void RunInProcess(const EvalArgs& a, const eval::Protocol& protocol, const index::ImageIndex& idx, int rerank, bool qe,
                   int top_k, eval::RunResult* run) {
+  const auto files = ImageFiles(a.images);
   auto options = ValueOrExit(sift::SiftOptions::FromDescription(idx.extractor_settings()));
   options.num_threads = a.threads;
   const auto extractor = ValueOrExit(sift::SiftExtractor::Create(options));
   log::Progress progress("eval " + run->label, protocol.queries.size(), "queries");
   for (const eval::EvalQuery& q : protocol.queries) {
-    const std::string path = ImagePath(a.images, q.image);
-    if (path.empty()) throw CommandError(4, "query image '" + q.image + "' not found in " + a.images);
+    const auto found = files.find(q.image);
+    if (found == files.end()) throw CommandError(4, "query image '" + q.image + "' not found in " + a.images);
+    const std::string& path = found->second;
     const auto t0 = Clock::now();
     auto features = ValueOrExit(extractor.ExtractFromFile(path));
     const double extract_ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
