@@ -91,6 +91,15 @@ TEST(Params, QueryParamsOverrideDefaultsAndRefuseUnknownNames) {
   EXPECT_NE(typo.error().message.find("topk"), std::string::npos);
   EXPECT_FALSE(ParseQueryParams({{"top_k", "0"}}, defaults));
   EXPECT_FALSE(ParseQueryParams({{"qe", "1"}, {"rerank", "0"}}, defaults));
+  // QE on by default (as `oxbow serve` ships) does not make a tf-idf-only search an error: it is off there.
+  index::QueryOptions qe_default = defaults;
+  qe_default.query_expansion = true;
+  auto tfidf_only = ParseQueryParams({{"rerank", "0"}}, qe_default);
+  ASSERT_TRUE(tfidf_only);
+  EXPECT_FALSE(tfidf_only->query_expansion);
+  auto kept = ParseQueryParams({{"top_k", "3"}}, qe_default);
+  ASSERT_TRUE(kept);
+  EXPECT_TRUE(kept->query_expansion);
 }
 
 TEST(Params, AddParams) {

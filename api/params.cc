@@ -103,8 +103,9 @@ Result<index::QueryOptions> ParseQueryParams(const Params& params, const index::
     if (!parsed) return std::unexpected(parsed.error());
     options.region = *parsed;
   }
-  if (const auto* v = Find(params, "qe")) {
-    auto parsed = ParseBool("qe", *v);
+  const auto* qe_param = Find(params, "qe");
+  if (qe_param != nullptr) {
+    auto parsed = ParseBool("qe", *qe_param);
     if (!parsed) return std::unexpected(parsed.error());
     options.query_expansion = *parsed;
   }
@@ -114,7 +115,12 @@ Result<index::QueryOptions> ParseQueryParams(const Params& params, const index::
     options.qe_images = static_cast<int>(*parsed);
   }
   if (options.query_expansion && options.rerank_depth == 0) {
-    return Fail(ErrorCode::kInvalidArgument, "parameter 'qe' needs re-ranking: set rerank > 0 (or leave it at its default)");
+    // QE averages verified results, so it needs re-ranking. Asked for explicitly, that is an error;
+    // coming from the server's default (on), it simply does not apply to a tf-idf-only search.
+    if (qe_param != nullptr) {
+      return Fail(ErrorCode::kInvalidArgument, "parameter 'qe' needs re-ranking: set rerank > 0 (or leave it at its default)");
+    }
+    options.query_expansion = false;
   }
   if (auto message = options.Check()) return Fail(ErrorCode::kInvalidArgument, *message);
   return options;
