@@ -90,9 +90,21 @@ void DrawAxes(cv::Mat& img, const Frame& f, bool x_ticks) {
 }
 
 void DrawLegend(cv::Mat& img, const Frame& f, const std::vector<std::string>& names) {
+  if (names.empty()) return;
+  // An opaque box behind the entries, so the legend stays readable over the data.
+  int text_width = 0;
+  for (const std::string& name : names) {
+    int baseline = 0;
+    text_width = std::max(text_width, cv::getTextSize(name, cv::FONT_HERSHEY_SIMPLEX, 0.42, 1, &baseline).width);
+  }
+  const int box_width = text_width + 30;
+  const cv::Rect box(f.area.x + f.area.width - box_width - 6, f.area.y + 6, box_width,
+                     static_cast<int>(names.size()) * 18 + 8);
+  cv::rectangle(img, box, cv::Scalar(255, 255, 255), cv::FILLED);
+  cv::rectangle(img, box, cv::Scalar(160, 160, 160), 1);
   int y = f.area.y + 18;
   for (size_t i = 0; i < names.size(); ++i) {
-    const cv::Point p(f.area.x + f.area.width - 260, y);
+    const cv::Point p(box.x + 10, y);
     DrawMarker(img, p, i, Colour(i));
     PutText(img, names[i], p + cv::Point(12, 5), 0.42);
     y += 18;
