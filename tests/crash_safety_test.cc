@@ -107,8 +107,8 @@ TEST(CrashSafetyTest, AcknowledgedChangesSurviveSigkill) {
     int acks = 0;
     char line[256];
     std::string last_line;
-    while (acks < kill_after && std::fgets(line, sizeof(line), in)) {
-      std::string s(line);
+    // One acknowledgement line: "a ID" (added) or "r ID" (removed).
+    auto record = [&](std::string s) {
       s.pop_back();
       last_line = s;
       if (s[0] == 'a') {
@@ -117,6 +117,9 @@ TEST(CrashSafetyTest, AcknowledgedChangesSurviveSigkill) {
         expected.erase(s.substr(2));
         removed.insert(s.substr(2));
       }
+    };
+    while (acks < kill_after && std::fgets(line, sizeof(line), in)) {
+      record(line);
       ++acks;
     }
     ASSERT_EQ(acks, kill_after) << "child stopped early";
@@ -125,16 +128,9 @@ TEST(CrashSafetyTest, AcknowledgedChangesSurviveSigkill) {
     ASSERT_EQ(kill(pid, SIGKILL), 0);
     // Acknowledgements written before the kill still count.
     while (std::fgets(line, sizeof(line), in)) {
-      std::string s(line);
+      const std::string s(line);
       if (s.back() != '\n') break;  // a torn line was never fully acknowledged
-      s.pop_back();
-      last_line = s;
-      if (s[0] == 'a') {
-        expected.insert(s.substr(2));
-      } else {
-        expected.erase(s.substr(2));
-        removed.insert(s.substr(2));
-      }
+      record(s);
     }
     std::fclose(in);
     // The change in flight at the kill may have committed unacknowledged: after the add of img<I> with
