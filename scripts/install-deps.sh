@@ -16,6 +16,7 @@ build_packages=(
   libcli11-dev           # the oxbow CLI
   libcpp-httplib-dev     # the HTTP server
   libgtest-dev libgmock-dev libbenchmark-dev
+  libjpeg-dev            # tests: a CMYK JPEG fixture (OpenCV cannot write one)
   opencv-doc             # sample photos (graf, box, ...) used as test and demo data
   libvlfeat-dev          # VLFeat SIFT: benchmark peer only
   libfaiss-dev           # faiss: benchmark peer only
