@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <chrono>
 #include <limits>
+#include <span>
 
 namespace oxbow::api {
 
@@ -26,6 +27,19 @@ std::array<float, 4> KeypointBox(const sift::FeatureSet& features) {
     box[3] = std::max(box[3], k.y);
   }
   return box;
+}
+
+// The inlier pairs as {ax, ay, bx, by}; `inliers` index `matches`.
+std::vector<std::array<float, 4>> InlierPairs(const sift::FeatureSet& a, const sift::FeatureSet& b,
+                                              std::span<const sift::Match> matches, std::span<const uint32_t> inliers) {
+  std::vector<std::array<float, 4>> pairs;
+  pairs.reserve(inliers.size());
+  for (uint32_t i : inliers) {
+    const auto& ka = a.keypoints[matches[i].query_index];
+    const auto& kb = b.keypoints[matches[i].db_index];
+    pairs.push_back({ka.x, ka.y, kb.x, kb.y});
+  }
+  return pairs;
 }
 
 }  // namespace
@@ -54,12 +68,14 @@ Result<PairMatchResult> MatchPair(const sift::FeatureSet& a, const sift::Feature
     const auto& m = v.db_from_query.m;
     result.b_from_a << m[0], m[1], m[2], m[3], m[4], m[5], 0, 0, 1;
     result.region_b = v.db_region;
+    if (options.correspondences) result.correspondences = InlierPairs(a, b, *matches, v.inliers);
   } else {
     auto fit = sift::FitRobust(options.model, a.keypoints, b.keypoints, *matches, options.fit);
     if (!fit) return std::unexpected(fit.error());
     result.verified = fit->success;
     result.inliers = fit->num_inliers;
     result.b_from_a = fit->db_from_query;
+    if (options.correspondences) result.correspondences = InlierPairs(a, b, *matches, fit->inliers);
     if (fit->success && options.model != sift::GeometricModel::kFundamental) {
       result.region_b = sift::ProjectBox(fit->db_from_query, KeypointBox(a), b_size);
     }
@@ -73,7 +89,7 @@ nlohmann::json PairMatchToJson(const PairMatchResult& r) {
   for (int i = 0; i < 3; ++i) {
     transform.push_back({r.b_from_a(i, 0), r.b_from_a(i, 1), r.b_from_a(i, 2)});
   }
-  return {{"model", sift::GeometricModelName(r.model)},
+  nlohmann::json json = {{"model", sift::GeometricModelName(r.model)},
           {"keypoints", {{"a", r.keypoints_a}, {"b", r.keypoints_b}}},
           {"tentative_matches", r.tentative_matches},
           {"verified", r.verified},
@@ -81,6 +97,8 @@ nlohmann::json PairMatchToJson(const PairMatchResult& r) {
           {"transform", transform},
           {"region", r.region_b},
           {"timings_ms", {{"match", r.match_ms}, {"verify", r.verify_ms}}}};
+  if (!r.correspondences.empty()) json["correspondences"] = r.correspondences;
+  return json;
 }
 
 }  // namespace oxbow::api

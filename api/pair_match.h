@@ -21,6 +21,9 @@ struct PairMatchOptions {
   sift::MatchOptions match;                                   // descriptor matching (sift/match.h)
   sift::GeometricModel model = sift::GeometricModel::kHoughAffine;  // model fitted to the matches
   sift::RobustFitOptions fit;                                 // estimator settings (and Hough settings)
+  // Fill PairMatchResult::correspondences with the inlier pairs (for drawing them; off by default to
+  // keep responses small).
+  bool correspondences = false;
 };
 
 struct PairMatchResult {
@@ -32,6 +35,9 @@ struct PairMatchResult {
   int inliers = 0;
   Eigen::Matrix3d b_from_a = Eigen::Matrix3d::Identity();  // image-a pixels -> image-b pixels
   std::array<float, 4> region_b = {0, 0, 0, 0};  // where image a's keypoint bounding box lands in b (x1,y1,x2,y2)
+  // With PairMatchOptions::correspondences: one {ax, ay, bx, by} per inlier (keypoint positions in
+  // original pixels of a and b), in the verifier's order; empty otherwise.
+  std::vector<std::array<float, 4>> correspondences;
   double match_ms = 0;
   double verify_ms = 0;
 };
@@ -42,7 +48,8 @@ struct PairMatchResult {
                                                 const PairMatchOptions& options);
 
 // {"model", "keypoints": {"a", "b"}, "tentative_matches", "verified", "inliers",
-//  "transform": 3x3 row-major b_from_a, "region": [x1,y1,x2,y2] in b, "timings_ms": {"match", "verify"}}.
+//  "transform": 3x3 row-major b_from_a, "region": [x1,y1,x2,y2] in b, "timings_ms": {"match", "verify"}},
+//  plus "correspondences": [[ax, ay, bx, by], ...] when they were asked for.
 nlohmann::json PairMatchToJson(const PairMatchResult& result);
 
 }  // namespace oxbow::api

@@ -177,7 +177,7 @@ Result<ListParams> ParseListParams(const Params& params) {
 }
 
 Result<MatchParams> ParseMatchParams(const Params& params) {
-  if (auto known = CheckKnownParams(params, {"model", "ratio", "mutual", "method"}); !known) {
+  if (auto known = CheckKnownParams(params, {"model", "ratio", "mutual", "method", "correspondences"}); !known) {
     return std::unexpected(known.error());
   }
   MatchParams match;
@@ -210,6 +210,11 @@ Result<MatchParams> ParseMatchParams(const Params& params) {
     } else {
       return Fail(ErrorCode::kInvalidArgument, "parameter 'method' must be brute or kdtree, got " + Quote(*v));
     }
+  }
+  if (const auto* v = Find(params, "correspondences")) {
+    auto parsed = ParseBool("correspondences", *v);
+    if (!parsed) return std::unexpected(parsed.error());
+    match.correspondences = *parsed;
   }
   if (auto message = match.match.Check()) return Fail(ErrorCode::kInvalidArgument, *message);
   return match;

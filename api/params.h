@@ -65,10 +65,12 @@ struct ListParams {
 [[nodiscard]] Result<ListParams> ParseListParams(const Params& params);
 
 // POST /v1/match: model (hough-affine|similarity|affine|homography|fundamental, default hough-affine),
-// ratio (0, 1], mutual (bool), method (brute|kdtree).
+// ratio (0, 1], mutual (bool), method (brute|kdtree), correspondences (bool, default false: return the
+// inlier pairs).
 struct MatchParams {
   sift::GeometricModel model = sift::GeometricModel::kHoughAffine;
   sift::MatchOptions match;
+  bool correspondences = false;
 };
 [[nodiscard]] Result<MatchParams> ParseMatchParams(const Params& params);
 

@@ -546,6 +546,7 @@ void HttpServer::RegisterRoutes() {
               api::PairMatchOptions options;
               options.model = params->model;
               options.match = params->match;
+              options.correspondences = params->correspondences;
               auto matched = s.Match(Bytes(*a), Bytes(*b), options);
               if (!matched) return SendError(res, matched.error());
               RecordStages(res, {{"decode_extract_a", matched->decode_extract_a_ms},
