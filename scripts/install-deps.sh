@@ -21,6 +21,8 @@ build_packages=(
   libvlfeat-dev          # VLFeat SIFT: benchmark peer only
   libfaiss-dev           # faiss: benchmark peer only
   curl python3           # demo and evaluation scripts
+  libclang-rt-14-dev     # libFuzzer runtime for the fuzz targets (scripts/fuzz.sh; GCC-instrumented, cmake/OxbowFuzz.cmake)
+  clang-tidy-16          # static checks (scripts/clang-tidy.sh): the first Debian 12 clang-tidy that parses libstdc++ 12's <expected>
 )
 runtime_packages=(
   libopencv-core406 libopencv-imgproc406 libopencv-imgcodecs406 libopencv-features2d406 libopencv-calib3d406
