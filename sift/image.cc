@@ -293,6 +293,9 @@ Result<ImageHeaderInfo> ReadImageHeader(std::span<const uint8_t> bytes) {
     case ImageFormat::kBmp: info = BmpHeader(bytes); break;
     case ImageFormat::kUnknown:
       if (bytes.empty()) return Invalid("image data is empty");
+      if (StartsWith(bytes, "GIF87a") || StartsWith(bytes, "GIF89a"))
+        return Fail(ErrorCode::kUnsupportedFormat, "GIF images are not supported (OpenCV 4.6 cannot decode them); "
+                                                   "convert to PNG or JPEG (an animation: its first frame)");
       return Invalid("not an image: the data starts with no known image signature (JPEG, PNG, PPM/PGM, WebP, TIFF, BMP)");
   }
   if (info && (info->width == 0 || info->height == 0)) return Invalid("image header declares a zero width or height");
