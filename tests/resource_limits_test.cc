@@ -1,0 +1,409 @@
+// Hostile images through the real service path (api::Service Search and AddImage): decompression
+// bombs, huge and empty declared sizes, a 1-pixel-high panorama, animated GIF, multi-page TIFF, CMYK
+// JPEG, 16-bit PNG/TIFF, grey+alpha and palette PNG. Every input is generated in code. Each gets a
+// clear error (the HTTP status follows from the error code, api/errors.h) or a documented bounded
+// result, and a refused add leaves the index unchanged.
+//
+// PeakMemory measures the resident-memory high-water mark of one search per input in a fresh child
+// process (this binary re-executed; /proc/self/clear_refs resets VmHWM after set-up) and checks it
+// against the bound stated in the README section of issue 9:
+//   peak <= 32 MiB + 4 B x declared pixels + SIFT pyramid of the downscaled image (28 floats per pixel
+//           of the 2x-upsampled first octave: 448 B x min(pixels, max_image_side^2)).
+// `OXBOW_MEASURE_ALL=1` adds the slow rows (a real 100-megapixel photo, allowed by a raised limit);
+// scripts/resource_limits.sh prints the whole table.
+#include <fcntl.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <gtest/gtest.h>
+
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <random>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+
+#ifdef OXBOW_HAVE_LIBJPEG
+#include <jpeglib.h>
+#endif
+
+#include "api/errors.h"
+#include "api/service.h"
+#include "api/testing.h"
+#include "sift/binary_io.h"
+#include "sift/image.h"
+
+namespace oxbow {
+namespace {
+
+using Bytes = std::vector<uint8_t>;
+using api::testing::SamplePath;
+
+// ---- Generators -----------------------------------------------------------------------------------
+
+void PutBe32(Bytes& out, uint32_t v) {
+  for (int s = 24; s >= 0; s -= 8) out.push_back(static_cast<uint8_t>(v >> s));
+}
+
+void AppendPngChunk(Bytes& png, const char* type, const Bytes& data) {
+  PutBe32(png, static_cast<uint32_t>(data.size()));
+  const size_t type_at = png.size();
+  png.insert(png.end(), type, type + 4);
+  png.insert(png.end(), data.begin(), data.end());
+  PutBe32(png, io::Crc32(std::span<const uint8_t>(png.data() + type_at, 4 + data.size())));
+}
+
+// A PNG written by hand (stored, i.e. uncompressed, deflate blocks), so that colour types OpenCV cannot
+// write (grey+alpha, palette) can be tested. `rows` holds height scanlines of raw samples (the filter
+// byte 0 is added here). `palette` is RGB triples for colour type 3.
+Bytes HandMadePng(uint32_t width, uint32_t height, uint8_t bit_depth, uint8_t color_type, const Bytes& rows,
+                  const Bytes& palette = {}) {
+  const size_t row_bytes = rows.size() / height;
+  Bytes raw;
+  for (uint32_t y = 0; y < height; ++y) {
+    raw.push_back(0);
+    raw.insert(raw.end(), rows.begin() + static_cast<long>(y * row_bytes), rows.begin() + static_cast<long>((y + 1) * row_bytes));
+  }
+  Bytes zlib = {0x78, 0x01};
+  for (size_t at = 0; at < raw.size() || at == 0; at += 65535) {
+    const size_t n = std::min<size_t>(65535, raw.size() - at);
+    zlib.push_back(at + n >= raw.size() ? 1 : 0);
+    zlib.push_back(static_cast<uint8_t>(n));
+    zlib.push_back(static_cast<uint8_t>(n >> 8));
+    zlib.push_back(static_cast<uint8_t>(~n));
+    zlib.push_back(static_cast<uint8_t>((~n) >> 8));
+    zlib.insert(zlib.end(), raw.begin() + static_cast<long>(at), raw.begin() + static_cast<long>(at + n));
+    if (n == 0) break;
+  }
+  uint32_t a = 1, b = 0;  // Adler-32 of the uncompressed data
+  for (uint8_t v : raw) {
+    a = (a + v) % 65521;
+    b = (b + a) % 65521;
+  }
+  PutBe32(zlib, (b << 16) | a);
+  Bytes png = {0x89, 'P', 'N', 'G', '\r', '\n', 0x1a, '\n'};
+  Bytes ihdr;
+  PutBe32(ihdr, width);
+  PutBe32(ihdr, height);
+  ihdr.insert(ihdr.end(), {bit_depth, color_type, 0, 0, 0});
+  AppendPngChunk(png, "IHDR", ihdr);
+  if (!palette.empty()) AppendPngChunk(png, "PLTE", palette);
+  AppendPngChunk(png, "IDAT", zlib);
+  AppendPngChunk(png, "IEND", {});
+  return png;
+}
+
+Bytes Encode(const std::string& ext, const cv::Mat& image, const std::vector<int>& params = {}) {
+  std::vector<uchar> out;
+  EXPECT_TRUE(cv::imencode(ext, image, out, params)) << ext;
+  return Bytes(out.begin(), out.end());
+}
+
+// Rewrites a PNG's IHDR width/height (and its CRC): the rest of the file stays as it was.
+Bytes PatchPngSize(Bytes png, uint32_t width, uint32_t height) {
+  for (int i = 0; i < 4; ++i) {
+    png[16 + i] = static_cast<uint8_t>(width >> (24 - 8 * i));
+    png[20 + i] = static_cast<uint8_t>(height >> (24 - 8 * i));
+  }
+  const uint32_t crc = io::Crc32(std::span<const uint8_t>(png.data() + 12, 17));
+  for (int i = 0; i < 4; ++i) png[29 + i] = static_cast<uint8_t>(crc >> (24 - 8 * i));
+  return png;
+}
+
+// Rewrites the first start-of-frame of a JPEG to declare width x height.
+Bytes PatchJpegSize(Bytes jpeg, uint16_t width, uint16_t height) {
+  for (size_t i = 2; i + 9 < jpeg.size(); ++i) {
+    if (jpeg[i] == 0xFF && (jpeg[i + 1] == 0xC0 || jpeg[i + 1] == 0xC2)) {
+      jpeg[i + 5] = static_cast<uint8_t>(height >> 8);
+      jpeg[i + 6] = static_cast<uint8_t>(height);
+      jpeg[i + 7] = static_cast<uint8_t>(width >> 8);
+      jpeg[i + 8] = static_cast<uint8_t>(width);
+      return jpeg;
+    }
+  }
+  ADD_FAILURE() << "no SOF marker";
+  return jpeg;
+}
+
+// A textured grey test picture (a crop of an opencv-doc photo, or seeded noise blobs without it).
+cv::Mat Texture(int width, int height) {
+  cv::Mat grey = cv::imread(SamplePath("graf1.png"), cv::IMREAD_GRAYSCALE);
+  if (grey.empty()) {
+    grey = cv::Mat(480, 640, CV_8UC1);
+    cv::randu(grey, 0, 255);
+    cv::GaussianBlur(grey, grey, cv::Size(0, 0), 3);
+  }
+  cv::Mat out;
+  cv::resize(grey, out, cv::Size(width, height), 0, 0, cv::INTER_AREA);
+  return out;
+}
+
+// A two-frame animated GIF89a (NETSCAPE looping extension), 1x1 frames on a 64x64 screen.
+Bytes AnimatedGif() {
+  Bytes gif = {'G', 'I', 'F', '8', '9', 'a', 64, 0, 64, 0, 0x80, 0, 0, 0, 0, 0, 255, 255, 255};
+  const Bytes loop = {0x21, 0xFF, 0x0B, 'N', 'E', 'T', 'S', 'C', 'A', 'P', 'E', '2', '.', '0', 3, 1, 0, 0, 0};
+  gif.insert(gif.end(), loop.begin(), loop.end());
+  for (int frame = 0; frame < 2; ++frame) {
+    const Bytes f = {0x21, 0xF9, 4, 0, 10, 0, 0, 0,          // graphic control: 0.1 s delay
+                     0x2C, 0, 0, 0, 0, 1, 0, 1, 0, 0,        // image descriptor 1x1
+                     2, 2, 0x44, 0x01, 0};                   // LZW: clear, index 0, end
+    gif.insert(gif.end(), f.begin(), f.end());
+  }
+  gif.push_back(0x3B);
+  return gif;
+}
+
+// Two-page TIFF: a 320x240 first page, a 640x480 second page.
+Bytes TwoPageTiff(const std::string& dir) {
+  const std::string path = dir + "/two-pages.tiff";
+  EXPECT_TRUE(cv::imwritemulti(path, std::vector<cv::Mat>{Texture(320, 240), Texture(640, 480)}));
+  return api::testing::ReadBytes(path);
+}
+
+#ifdef OXBOW_HAVE_LIBJPEG
+// A CMYK JPEG (4 components, as print workflows write them) of `grey`, stored the way Photoshop stores
+// CMYK (Adobe APP14 marker, inverted samples: 255 = no ink): C = M = Y = 255, K = grey.
+Bytes CmykJpeg(const cv::Mat& grey) {
+  jpeg_compress_struct cinfo;
+  jpeg_error_mgr jerr;
+  cinfo.err = jpeg_std_error(&jerr);
+  jpeg_create_compress(&cinfo);
+  unsigned char* buffer = nullptr;
+  unsigned long size = 0;
+  jpeg_mem_dest(&cinfo, &buffer, &size);
+  cinfo.image_width = static_cast<JDIMENSION>(grey.cols);
+  cinfo.image_height = static_cast<JDIMENSION>(grey.rows);
+  cinfo.input_components = 4;
+  cinfo.in_color_space = JCS_CMYK;
+  jpeg_set_defaults(&cinfo);
+  jpeg_set_quality(&cinfo, 95, TRUE);
+  jpeg_start_compress(&cinfo, TRUE);
+  std::vector<unsigned char> row(static_cast<size_t>(grey.cols) * 4);
+  while (cinfo.next_scanline < cinfo.image_height) {
+    const uint8_t* in = grey.ptr<uint8_t>(static_cast<int>(cinfo.next_scanline));
+    for (int x = 0; x < grey.cols; ++x) {
+      row[4 * x] = row[4 * x + 1] = row[4 * x + 2] = 255;
+      row[4 * x + 3] = in[x];
+    }
+    JSAMPROW rows[1] = {row.data()};
+    jpeg_write_scanlines(&cinfo, rows, 1);
+  }
+  jpeg_finish_compress(&cinfo);
+  Bytes out(buffer, buffer + size);
+  jpeg_destroy_compress(&cinfo);
+  std::free(buffer);
+  return out;
+}
+#endif
+
+// ---- The service under test ---------------------------------------------------------------------------
+
+class ResourceLimitsTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    dir_ = new api::testing::TempDir("oxbow-limits-test");
+    vocab_ = dir_->path() + "/vocab.oxvoc";
+    auto vocabulary = RandomVocabulary(api::testing::TestSiftOptions().Describe());
+    ASSERT_TRUE(vocabulary->Write(vocab_));
+  }
+  static void TearDownTestSuite() {
+    delete dir_;
+    dir_ = nullptr;
+  }
+
+  // 256 random unit RootSIFT-shaped centroids: enough to quantise (the tests check limits, not accuracy).
+  static Result<vocab::Vocabulary> RandomVocabulary(const std::string& extractor_settings) {
+    std::mt19937 rng(7);
+    std::uniform_real_distribution<float> u(0, 1);
+    std::vector<float> centroids(256 * 128);
+    for (size_t w = 0; w < 256; ++w) {
+      double norm = 0;
+      for (size_t d = 0; d < 128; ++d) norm += std::pow(centroids[w * 128 + d] = u(rng), 2.0);
+      for (size_t d = 0; d < 128; ++d) centroids[w * 128 + d] /= static_cast<float>(std::sqrt(norm));
+    }
+    vocab::QuantizerBuildOptions build;
+    build.num_threads = 1;
+    return vocab::Vocabulary::FromCentroids(std::move(centroids), 128, sift::DescriptorKind::kRootSift,
+                                            extractor_settings, build);
+  }
+
+  std::unique_ptr<api::Service> OpenService(const api::ServiceOptions& options = {}) {
+    auto service = api::Service::Open(dir_->path() + "/index-" + std::to_string(counter_++), vocab_, options);
+    EXPECT_TRUE(service) << service.error().ToString();
+    return service ? std::move(*service) : nullptr;
+  }
+
+  // Search and add `bytes`; both must fail with `code`, and the refused add must leave the index as it was.
+  static void ExpectRefused(api::Service& service, const Bytes& bytes, ErrorCode code, int http_status) {
+    const uint64_t before = service.Stats().index.num_images;
+    auto found = service.Search(bytes, service.options().default_query);
+    ASSERT_FALSE(found) << "search accepted it";
+    EXPECT_EQ(found.error().code, code) << found.error().ToString();
+    EXPECT_EQ(api::ToHttpError(found.error()).status, http_status);
+    EXPECT_FALSE(found.error().message.empty());
+    api::AddImageRequest add;
+    add.id = "hostile-" + std::to_string(before);
+    add.image = bytes;
+    auto added = service.AddImage(add);
+    ASSERT_FALSE(added) << "add accepted it";
+    EXPECT_EQ(added.error().code, code) << added.error().ToString();
+    EXPECT_EQ(service.Stats().index.num_images, before);
+    EXPECT_FALSE(service.GetImage(add.id)) << "a refused add left a record";
+  }
+
+  // Search and add `bytes`; both must succeed; returns the added record.
+  static index::ImageRecord ExpectAccepted(api::Service& service, const Bytes& bytes, const std::string& id) {
+    auto found = service.Search(bytes, service.options().default_query);
+    EXPECT_TRUE(found) << found.error().ToString();
+    api::AddImageRequest add;
+    add.id = id;
+    add.image = bytes;
+    auto added = service.AddImage(add);
+    EXPECT_TRUE(added) << added.error().ToString();
+    return added ? added->record : index::ImageRecord{};
+  }
+
+  static inline api::testing::TempDir* dir_ = nullptr;
+  static inline std::string vocab_;
+  static inline int counter_ = 0;
+};
+
+TEST_F(ResourceLimitsTest, DecompressionBombsAreRefusedFromTheHeader) {
+  auto service = OpenService();
+  ASSERT_TRUE(service);
+  // A 16x16 PNG whose header says 60000 x 60000 (3.6 gigapixels): refused before any pixel is allocated.
+  const Bytes png = PatchPngSize(Encode(".png", Texture(16, 16)), 60000, 60000);
+  ASSERT_LT(png.size(), 2000u);
+  ExpectRefused(*service, png, ErrorCode::kImageTooLarge, 413);
+  // The same for JPEG (the largest size a JPEG frame can declare) and a 100-megapixel JPEG header.
+  const Bytes jpeg = Encode(".jpg", Texture(64, 48));
+  ExpectRefused(*service, PatchJpegSize(jpeg, 65535, 65535), ErrorCode::kImageTooLarge, 413);
+  ExpectRefused(*service, PatchJpegSize(jpeg, 12000, 8400), ErrorCode::kImageTooLarge, 413);
+  // A real deflate bomb inside the pixel limit: 6000 x 6000 flat grey compresses ~1000:1. It decodes
+  // (36 MB, within --max-megapixels 40), is downscaled to 1600 px and has no features: a bounded result.
+  const Bytes flat = Encode(".png", cv::Mat(6000, 6000, CV_8UC1, cv::Scalar(90)));
+  ASSERT_LT(flat.size(), 100'000u);
+  auto found = service->Search(flat, service->options().default_query);
+  ASSERT_TRUE(found) << found.error().ToString();
+  EXPECT_EQ(found->query_width, 6000);
+  EXPECT_EQ(found->extracted_features, 0u);
+  EXPECT_TRUE(found->index.results.empty());
+  // With a lower limit the same file is refused from its header.
+  api::ServiceOptions strict;
+  strict.max_pixels = 20'000'000;
+  auto strict_service = OpenService(strict);
+  ASSERT_TRUE(strict_service);
+  ExpectRefused(*strict_service, flat, ErrorCode::kImageTooLarge, 413);
+}
+
+TEST_F(ResourceLimitsTest, EmptyAndDegenerateSizes) {
+  auto service = OpenService();
+  ASSERT_TRUE(service);
+  const Bytes png = Encode(".png", Texture(16, 16));
+  ExpectRefused(*service, PatchPngSize(png, 0, 0), ErrorCode::kInvalidImage, 400);
+  ExpectRefused(*service, PatchPngSize(png, 16, 0), ErrorCode::kInvalidImage, 400);
+  ExpectRefused(*service, PatchJpegSize(Encode(".jpg", Texture(16, 16)), 16, 0), ErrorCode::kInvalidImage, 400);
+  // A size the header does not match: 16x16 data under a 32x32 header is corrupt, not a crash.
+  ExpectRefused(*service, PatchPngSize(png, 32, 32), ErrorCode::kInvalidImage, 400);
+
+  // A 1-pixel-high panorama (8000 x 1) decodes, is downscaled to 1600 x 1 and has no features: it can be
+  // added (a record with 0 features, found by nothing) and searched (no results).
+  const Bytes panorama = Encode(".png", Texture(8000, 1));
+  const index::ImageRecord record = ExpectAccepted(*service, panorama, "panorama");
+  EXPECT_EQ(record.width, 8000u);
+  EXPECT_EQ(record.height, 1u);
+  EXPECT_EQ(record.num_features, 0u);
+  // Tall and thin, and a single pixel, behave the same way.
+  ExpectAccepted(*service, Encode(".png", Texture(1, 5000)), "tower");
+  ExpectAccepted(*service, Encode(".png", Texture(1, 1)), "dot");
+  EXPECT_EQ(service->Stats().index.num_images, 3u);
+}
+
+TEST_F(ResourceLimitsTest, AnimatedAndMultiPageFiles) {
+  auto service = OpenService();
+  ASSERT_TRUE(service);
+  // GIF (animated or not) is a known image format OpenCV 4.6 cannot decode: 415, not "not an image".
+  ExpectRefused(*service, AnimatedGif(), ErrorCode::kUnsupportedFormat, 415);
+
+  // A multi-page TIFF: the first page is used (documented); the second, larger page is never decoded.
+  const Bytes tiff = TwoPageTiff(dir_->path());
+  if (!cv::haveImageReader(dir_->path() + "/two-pages.tiff")) GTEST_SKIP() << "this OpenCV cannot read TIFF";
+  const index::ImageRecord record = ExpectAccepted(*service, tiff, "two-pages");
+  EXPECT_EQ(record.width, 320u);
+  EXPECT_EQ(record.height, 240u);
+  EXPECT_GT(record.num_features, 20u);
+}
+
+TEST_F(ResourceLimitsTest, ColourModelsAndBitDepthsDecodeToTheSameGrey) {
+  const cv::Mat grey = Texture(200, 160);
+  auto decode = [](const Bytes& bytes) { return sift::DecodeImage(bytes); };
+  auto expect_grey = [&](const Bytes& bytes, int tolerance, const char* what) {
+    auto decoded = decode(bytes);
+    ASSERT_TRUE(decoded) << what << ": " << decoded.error().ToString();
+    ASSERT_EQ(decoded->gray.width, 200) << what;
+    ASSERT_EQ(decoded->gray.height, 160) << what;
+    int worst = 0;
+    for (int y = 0; y < 160; ++y)
+      for (int x = 0; x < 200; ++x)
+        worst = std::max(worst, std::abs(static_cast<int>(std::lround(decoded->gray.at(x, y) * 255)) - grey.at<uint8_t>(y, x)));
+    EXPECT_LE(worst, tolerance) << what;
+  };
+  // 16-bit PNG and TIFF: the high byte is the 8-bit value.
+  cv::Mat grey16;
+  grey.convertTo(grey16, CV_16U, 257.0);
+  expect_grey(Encode(".png", grey16), 0, "16-bit PNG");
+  if (cv::haveImageWriter(".tiff")) expect_grey(Encode(".tiff", grey16), 1, "16-bit TIFF");
+  // Grey + alpha (colour type 4) and an 8-bit palette (type 3) PNG, written by hand.
+  Bytes grey_alpha, indices, palette;
+  for (int y = 0; y < 160; ++y) {
+    for (int x = 0; x < 200; ++x) {
+      const uint8_t v = grey.at<uint8_t>(y, x);
+      grey_alpha.insert(grey_alpha.end(), {v, static_cast<uint8_t>(x)});
+      indices.push_back(v);
+    }
+  }
+  for (int v = 0; v < 256; ++v) palette.insert(palette.end(), {static_cast<uint8_t>(v), static_cast<uint8_t>(v), static_cast<uint8_t>(v)});
+  expect_grey(HandMadePng(200, 160, 8, 4, grey_alpha), 0, "grey+alpha PNG");
+  expect_grey(HandMadePng(200, 160, 8, 3, indices, palette), 1, "palette PNG");
+  // A 16-bit grey+alpha PNG: 4 bytes per pixel, big-endian samples.
+  Bytes grey_alpha16;
+  for (int y = 0; y < 160; ++y)
+    for (int x = 0; x < 200; ++x) grey_alpha16.insert(grey_alpha16.end(), {grey.at<uint8_t>(y, x), grey.at<uint8_t>(y, x), 255, 255});
+  expect_grey(HandMadePng(200, 160, 16, 4, grey_alpha16), 0, "16-bit grey+alpha PNG");
+#ifdef OXBOW_HAVE_LIBJPEG
+  // CMYK JPEG (Adobe-inverted, no ink but black): decoded to the same grey within JPEG loss.
+  expect_grey(CmykJpeg(grey), 12, "CMYK JPEG");
+#endif
+  // Colour with alpha (RGBA PNG): the grey of the colour part.
+  cv::Mat rgba;
+  cv::cvtColor(grey, rgba, cv::COLOR_GRAY2BGRA);
+  expect_grey(Encode(".png", rgba), 1, "RGBA PNG");
+}
+
+TEST_F(ResourceLimitsTest, SixteenBitAndCmykImagesAreIndexedAndFound) {
+  auto service = OpenService();
+  ASSERT_TRUE(service);
+  const cv::Mat grey = Texture(400, 320);
+  cv::Mat grey16;
+  grey.convertTo(grey16, CV_16U, 257.0);
+  const index::ImageRecord eight = ExpectAccepted(*service, Encode(".png", grey), "eight-bit");
+  const index::ImageRecord sixteen = ExpectAccepted(*service, Encode(".png", grey16), "sixteen-bit");
+  EXPECT_GT(eight.num_features, 50u);
+  EXPECT_EQ(sixteen.num_features, eight.num_features);
+#ifdef OXBOW_HAVE_LIBJPEG
+  const index::ImageRecord cmyk = ExpectAccepted(*service, CmykJpeg(grey), "cmyk");
+  EXPECT_GT(cmyk.num_features, eight.num_features / 2);
+#endif
+  EXPECT_GE(service->Stats().index.num_images, 2u);
+}
+
+}  // namespace
+}  // namespace oxbow
