@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <limits>
 #include <span>
 
@@ -97,7 +98,16 @@ nlohmann::json PairMatchToJson(const PairMatchResult& r) {
           {"transform", transform},
           {"region", r.region_b},
           {"timings_ms", {{"match", r.match_ms}, {"verify", r.verify_ms}}}};
-  if (!r.correspondences.empty()) json["correspondences"] = r.correspondences;
+  if (!r.correspondences.empty()) {
+    // Hundredths of a pixel: plenty for drawing, and half the bytes of full float precision.
+    nlohmann::json pairs = nlohmann::json::array();
+    for (const auto& c : r.correspondences) {
+      nlohmann::json pair = nlohmann::json::array();
+      for (float v : c) pair.push_back(std::round(static_cast<double>(v) * 100) / 100);
+      pairs.push_back(std::move(pair));
+    }
+    json["correspondences"] = std::move(pairs);
+  }
   return json;
 }
 

@@ -128,6 +128,7 @@ std::optional<std::string> ServiceOptions::Check() const {
   if (threads_per_request < 0 || threads_per_request > 256) return "threads_per_request must be in [0, 256]";
   if (add_nice < 0 || add_nice > 19) return "add_nice must be in [0, 19]";
   if (auto message = default_query.Check()) return "default query: " + *message;
+  if (auto message = thumbnails.Check()) return *message;
   return std::nullopt;
 }
 
@@ -201,7 +202,11 @@ Result<std::unique_ptr<Service>> Service::Open(const std::string& index_dir,
   sift_options->num_threads = options.threads_per_request;
   auto extractor = sift::SiftExtractor::Create(*sift_options);
   if (!extractor) return std::unexpected(extractor.error());
-  return std::unique_ptr<Service>(new Service(std::move(index), std::move(*extractor), options));
+  auto thumbnails = ThumbnailStore::Open(index_dir + "/thumbnails.sqlite");
+  if (!thumbnails) return std::unexpected(thumbnails.error());
+  std::unique_ptr<Service> service(new Service(std::move(index), std::move(*extractor), options));
+  service->thumbnails_ = std::move(*thumbnails);
+  return service;
 }
 
 Result<sift::FeatureSet> Service::Extract(std::span<const uint8_t> image, double* elapsed_ms) const {
@@ -228,12 +233,19 @@ Result<AddImageResponse> Service::AddImage(const AddImageRequest& request) {
   }
   AddImageResponse response;
   Result<sift::FeatureSet> features = Fail(ErrorCode::kInternal, "extraction did not run");
-  if (add_threads_) {
-    add_threads_->Run([&] { features = Extract(request.image, &response.decode_extract_ms); });
-  } else {
+  Result<api::Thumbnail> thumbnail = Fail(ErrorCode::kInternal, "thumbnail not made");
+  auto extract = [&] {
     features = Extract(request.image, &response.decode_extract_ms);
+    if (features) thumbnail = MakeThumbnail(request.image, options_.thumbnails.stored_side_px,
+                                            options_.thumbnails.jpeg_quality, options_.Decode());
+  };
+  if (add_threads_) {
+    add_threads_->Run(extract);
+  } else {
+    extract();
   }
   if (!features) return std::unexpected(features.error());
+  if (!thumbnail) return std::unexpected(thumbnail.error());
 
   index::ImageInfo info;
   info.source_path = request.source_name;
@@ -250,6 +262,9 @@ Result<AddImageResponse> Service::AddImage(const AddImageRequest& request) {
     if (auto removed = index_->Remove(request.id); !removed) return std::unexpected(removed.error());
     response.replaced = true;
   }
+  // The thumbnail is durable before the image is indexed: an acknowledged add always has one.
+  ThumbnailStore::Entry entry{std::move(*thumbnail), features->image_width, features->image_height, info.source_path};
+  if (auto stored = thumbnails_->Put(request.id, entry); !stored) return std::unexpected(stored.error());
   auto record = index_->Add(request.id, *features, info);
   if (!record) return std::unexpected(record.error());
   response.record = std::move(*record);
@@ -261,7 +276,12 @@ Result<index::ImageRecord> Service::GetImage(const std::string& id) const { retu
 
 Status Service::DeleteImage(const std::string& id) {
   std::lock_guard<std::mutex> lock(write_mutex_);
-  return index_->Remove(id);
+  if (auto removed = index_->Remove(id); !removed) return removed;
+  // A leftover thumbnail is harmless (GetThumbnail needs the catalogue entry); the delete stands.
+  if (auto dropped = thumbnails_->Remove(id); !dropped) {
+    OXBOW_LOG(kWarning) << "image '" << id << "' deleted but its thumbnail stays: " << dropped.error().ToString();
+  }
+  return Ok();
 }
 
 Result<ListResponse> Service::ListImages(uint64_t offset, uint64_t limit) const {
@@ -336,6 +356,67 @@ Result<MatchResponse> Service::Match(std::span<const uint8_t> image_a, std::span
   response.width_b = b->image_width;
   response.height_b = b->image_height;
   response.total_ms = MsSince(start);
+  return response;
+}
+
+namespace {
+
+// Reads a whole file of at most max_bytes; kNotFound when it cannot be opened.
+Result<std::vector<uint8_t>> ReadSourceFile(const std::string& path, uint64_t max_bytes) {
+  std::ifstream in(path, std::ios::binary | std::ios::ate);
+  if (!in) return Fail(ErrorCode::kNotFound, "source file '" + path + "' cannot be read");
+  const auto size = static_cast<uint64_t>(in.tellg());
+  if (size > max_bytes) return Fail(ErrorCode::kImageTooLarge, "source file '" + path + "' is over the size limit");
+  std::vector<uint8_t> bytes(size);
+  in.seekg(0);
+  if (!in.read(reinterpret_cast<char*>(bytes.data()), static_cast<std::streamsize>(size))) {
+    return Fail(ErrorCode::kIoError, "cannot read source file '" + path + "'");
+  }
+  return bytes;
+}
+
+}  // namespace
+
+Result<ThumbnailResponse> Service::GetThumbnail(const std::string& id, int max_side_px) const {
+  const int stored_side = options_.thumbnails.stored_side_px;
+  if (max_side_px < 16 || max_side_px > stored_side) {
+    return Fail(ErrorCode::kInvalidArgument, "thumbnail size must be in [16, " + std::to_string(stored_side) + "] pixels");
+  }
+  auto record = index_->Get(id);
+  if (!record) return std::unexpected(record.error());
+  auto stored = thumbnails_->Get(id);
+  if (!stored) return std::unexpected(stored.error());
+  // An entry made for another image under the same id (replaced while the server was down) is stale.
+  const bool fresh = *stored && (*stored)->image_width == record->width && (*stored)->image_height == record->height &&
+                     (*stored)->source == record->source_path;
+  ThumbnailResponse response;
+  api::Thumbnail full;
+  if (fresh) {
+    full = std::move((*stored)->thumbnail);
+  } else {
+    // Images indexed from files (oxbow index build) have their path in the catalogue.
+    auto bytes = ReadSourceFile(record->source_path, options_.max_image_bytes);
+    if (!bytes) {
+      return Fail(ErrorCode::kNotFound, "image '" + id + "' has no stored thumbnail and its source '" +
+                                            record->source_path + "' is not a readable file");
+    }
+    auto made = MakeThumbnail(*bytes, stored_side, options_.thumbnails.jpeg_quality, options_.Decode());
+    if (!made) return std::unexpected(made.error());
+    full = *made;
+    response.from_source = true;
+    ThumbnailStore::Entry entry{std::move(*made), record->width, record->height, record->source_path};
+    if (auto cached = thumbnails_->Put(id, entry); !cached) {
+      OXBOW_LOG(kWarning) << "thumbnail of '" << id << "' not cached: " << cached.error().ToString();
+    }
+  }
+  if (std::max(full.width, full.height) <= max_side_px) {
+    response.thumbnail = std::move(full);
+    return response;
+  }
+  auto scaled = MakeThumbnail({reinterpret_cast<const uint8_t*>(full.jpeg.data()), full.jpeg.size()}, max_side_px,
+                              options_.thumbnails.jpeg_quality, options_.Decode());
+  if (!scaled) return std::unexpected(scaled.error());
+  response.thumbnail = std::move(*scaled);
   return response;
 }
 

@@ -7,6 +7,7 @@
 //   SearchSimilar ImageIndex::QuerySimilar (an indexed image's stored features; no decoding)
 //   Match        decode + extract both -> MatchPair (api/pair_match.h)
 //   Get/Delete/List/Stats
+//   GetThumbnail stored JPEG thumbnail (api/thumbnails.h), or one made from the source file
 //
 // Thread safety: every member may be called concurrently from any number of threads. Searches never
 // wait for writers (ImageIndex reads an immutable snapshot); the only waits are (1) for an extraction
@@ -29,6 +30,7 @@
 #include <vector>
 
 #include "api/pair_match.h"
+#include "api/thumbnails.h"
 #include "index/image_index.h"
 #include "sift/error.h"
 #include "sift/image.h"
@@ -62,6 +64,8 @@ struct ServiceOptions {
   int add_nice = 10;
   // --- Query defaults (overridden per request by top_k, rerank, bbox, qe, qe_images)
   index::QueryOptions default_query;
+  // --- Thumbnails (api/thumbnails.h): stored at add time in <index>/thumbnails.sqlite.
+  ThumbnailOptions thumbnails;
 
   std::optional<std::string> Check() const;
   sift::DecodeOptions Decode() const;  // the decode limits above as DecodeOptions
@@ -109,6 +113,11 @@ struct ListResponse {
   uint64_t total = 0;                   // live images in the index
 };
 
+struct ThumbnailResponse {
+  Thumbnail thumbnail;                  // JPEG, longest side <= the size asked for
+  bool from_source = false;             // made from the catalogue's source file (no stored thumbnail)
+};
+
 struct ServiceStats {
   index::IndexStats index;
   uint64_t rss_bytes = 0;               // resident memory of the process (/proc/self/statm), 0 if unknown
@@ -136,6 +145,12 @@ class Service {
   [[nodiscard]] Result<SearchResponse> SearchSimilar(const std::string& id, const index::QueryOptions& options) const;
   [[nodiscard]] Result<MatchResponse> Match(std::span<const uint8_t> image_a, std::span<const uint8_t> image_b,
                                             const PairMatchOptions& options) const;
+  // A JPEG of image `id` whose longest side is at most max_side_px ([16, thumbnails.stored_side_px]):
+  // the stored thumbnail (AddImage stores one before the image is indexed, so an acknowledged add has
+  // one), scaled down when smaller is asked for; else one made from the catalogue's source file when
+  // it is readable (images indexed by `oxbow index build`), which is then stored for next time.
+  // kNotFound for an unknown id or when neither exists; kInvalidArgument for a size out of range.
+  [[nodiscard]] Result<ThumbnailResponse> GetThumbnail(const std::string& id, int max_side_px) const;
   ServiceStats Stats() const;
 
   const ServiceOptions& options() const { return options_; }
@@ -158,6 +173,7 @@ class Service {
   std::mutex write_mutex_;  // serialises AddImage/DeleteImage (held across replace's remove + add)
   class BackgroundThreads;
   std::unique_ptr<BackgroundThreads> add_threads_;  // low-priority extraction for adds (add_nice > 0)
+  std::unique_ptr<ThumbnailStore> thumbnails_;      // <index>/thumbnails.sqlite (thread-safe itself)
   std::chrono::steady_clock::time_point opened_;
 };
 

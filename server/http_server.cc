@@ -18,6 +18,7 @@
 #include "api/errors.h"
 #include "api/json.h"
 #include "api/params.h"
+#include "server/web_assets.h"
 #include "sift/log.h"
 
 namespace oxbow::server {
@@ -136,6 +137,31 @@ Result<std::string_view> RequestImage(const httplib::Request& req, const std::st
   return std::string_view(req.body);
 }
 
+// Bytes with a strong ETag: 304 without a body when the client already holds them (If-None-Match).
+void SendCacheable(const httplib::Request& req, httplib::Response& res, std::string_view content,
+                   const std::string& content_type, const std::string& etag, const char* cache_control) {
+  res.set_header("ETag", etag);
+  res.set_header("Cache-Control", cache_control);
+  res.set_header("X-Content-Type-Options", "nosniff");
+  if (req.get_header_value("If-None-Match") == etag) {
+    res.status = 304;
+    return;
+  }
+  res.status = 200;
+  res.set_content(content.data(), content.size(), content_type.c_str());
+}
+
+// The web page's files (server/web_assets.h): revalidated on every use (cheap 304s), so a new binary's
+// page is never mixed with an old cached script. The policy keeps the page on this server only.
+void SendWebAsset(const httplib::Request& req, httplib::Response& res, std::string_view path) {
+  const WebAsset* asset = FindWebAsset(path);
+  if (asset == nullptr) return SendError(res, api::RouteNotFound(req.method, LoggablePath(req.path)));
+  res.set_header("Content-Security-Policy",
+                 "default-src 'self'; img-src 'self' blob: data:; connect-src 'self'; frame-ancestors 'none'; "
+                 "base-uri 'none'; form-action 'none'");
+  SendCacheable(req, res, asset->content, asset->content_type, asset->etag, "no-cache");
+}
+
 std::span<const uint8_t> Bytes(std::string_view text) {
   return {reinterpret_cast<const uint8_t*>(text.data()), text.size()};
 }
@@ -250,6 +276,7 @@ namespace {
 const HttpServer::RouteTable& Routes() {
   static const HttpServer::RouteTable table = {{
       {"/", std::regex("/"), "GET"},
+      {"/static/{file}", std::regex("/static/.+"), "GET"},
       {"/v1", std::regex("/v1/?"), "GET"},
       {"/healthz", std::regex("/healthz"), "GET"},
       {"/readyz", std::regex("/readyz"), "GET"},
@@ -257,6 +284,7 @@ const HttpServer::RouteTable& Routes() {
       {"/v1/stats", std::regex("/v1/stats"), "GET"},
       {"/v1/images", std::regex("/v1/images"), "GET, POST"},
       {"/v1/images/{id}/similar", std::regex("/v1/images/.+/similar"), "GET"},
+      {"/v1/images/{id}/thumbnail", std::regex("/v1/images/.+/thumbnail"), "GET"},
       {"/v1/images/{id}", std::regex("/v1/images/.+"), "GET, DELETE"},
       {"/v1/search", std::regex("/v1/search"), "POST"},
       {"/v1/match", std::regex("/v1/match"), "POST"},
@@ -444,7 +472,11 @@ void HttpServer::RegisterRoutes() {
     for (const auto& r : Routes().routes) routes.push_back({{"route", r.label}, {"methods", r.methods}});
     SendJson(res, 200, {{"service", "oxbow"}, {"api_version", "v1"}, {"routes", routes}});
   };
-  http.Get("/", describe);
+  // The web page (server/web/), also while the index loads (it shows the 503s the API answers then).
+  http.Get("/", [](const httplib::Request& req, httplib::Response& res) { SendWebAsset(req, res, "index.html"); });
+  http.Get(R"(/static/(.+))", [](const httplib::Request& req, httplib::Response& res) {
+    SendWebAsset(req, res, req.matches[1].str());
+  });
   http.Get(R"(/v1/?)", describe);
   http.Get("/metrics", [this](const httplib::Request&, httplib::Response& res) {
     std::vector<api::Gauge> gauges = {
@@ -504,6 +536,22 @@ void HttpServer::RegisterRoutes() {
              const auto& t = found->index.timings;
              RecordStages(res, {{"quantize", t.quantize_ms}, {"score", t.score_ms}, {"verify", t.verify_ms}, {"qe", t.qe_ms}});
              SendJson(res, 200, api::SearchResponseToJson(*found));
+           }));
+  http.Get(R"(/v1/images/(.+)/thumbnail)",
+           route(Access::kOpen, [](api::Service& s, const httplib::Request& req, httplib::Response& res) {
+             const api::Params params = CollectParams(req, {});
+             if (auto known = api::CheckKnownParams(params, {"size"}); !known) return SendError(res, known.error());
+             const int largest = s.options().thumbnails.stored_side_px;
+             int size = std::min(256, largest);
+             if (auto it = params.find("size"); it != params.end()) {
+               auto parsed = api::ParseInt("size", it->second, 16, largest);
+               if (!parsed) return SendError(res, parsed.error());
+               size = static_cast<int>(*parsed);
+             }
+             auto found = s.GetThumbnail(req.matches[1], size);
+             if (!found) return SendError(res, found.error());
+             const auto& jpeg = found->thumbnail.jpeg;
+             SendCacheable(req, res, jpeg, "image/jpeg", StrongEtag(jpeg), "private, max-age=60");
            }));
   http.Get(R"(/v1/images/(.+))", route(Access::kOpen, [](api::Service& s, const httplib::Request& req, httplib::Response& res) {
              auto record = s.GetImage(req.matches[1]);
