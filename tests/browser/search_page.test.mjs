@@ -1,0 +1,236 @@
+// End-to-end test of the search page in a real headless browser (Debian's /usr/bin/chromium driven by
+// playwright-core): builds a small index of opencv-doc photos with the oxbow CLI, starts
+// `oxbow serve --port 0 --api-key ...`, and drives the page as a person would. Saves screenshots.
+//
+//   node tests/browser/search_page.test.mjs --oxbow build/server/oxbow --work /tmp/x --artifacts build/test-artifacts/browser
+//
+// Needs: `npm ci --prefix tests/browser` (playwright-core) and the chromium package; without them it
+// fails with a message saying so (it never skips). Exit status 0 when every check passed.
+import { spawn, execFileSync } from 'node:child_process';
+import fs from 'node:fs';
+import path from 'node:path';
+import readline from 'node:readline';
+
+const SAMPLES = '/usr/share/doc/opencv-doc/examples/data';
+const INDEXED = ['box_in_scene.png', 'graf1.png', 'graf3.png', 'leuvenA.jpg', 'leuvenB.jpg', 'baboon.jpg',
+                 'fruits.jpg', 'building.jpg'];
+const API_KEY = 'browser-test-key';
+
+function parseArgs() {
+  const args = { oxbow: '', work: '', artifacts: '', chromium: process.env.CHROMIUM || '/usr/bin/chromium' };
+  const argv = process.argv.slice(2);
+  for (let i = 0; i < argv.length; i += 2) {
+    const key = argv[i].replace(/^--/, '');
+    if (!(key in args)) throw new Error(`unknown argument ${argv[i]}`);
+    args[key] = argv[i + 1];
+  }
+  if (!args.oxbow) throw new Error('usage: search_page.test.mjs --oxbow BIN [--work DIR] [--artifacts DIR]');
+  if (!args.work) args.work = fs.mkdtempSync('/tmp/oxbow-browser-');
+  if (!args.artifacts) args.artifacts = path.join(args.work, 'artifacts');
+  return args;
+}
+
+let failures = 0;
+function check(condition, what) {
+  console.log(`${condition ? 'ok  ' : 'FAIL'} ${what}`);
+  if (!condition) failures++;
+  return condition;
+}
+function fatal(message) {
+  console.error(`search_page.test: ${message}`);
+  process.exit(1);
+}
+
+function startServer(oxbow, indexDir, logPath) {
+  const log = fs.openSync(logPath, 'a');
+  const child = spawn(oxbow, ['serve', '--index', indexDir, '--port', '0', '--api-key', API_KEY, '--threads', '4'],
+                      { stdio: ['ignore', 'pipe', log] });
+  return new Promise((resolve, reject) => {
+    const timer = setTimeout(() => reject(new Error('no "listening on" line within 60 s; see ' + logPath)), 60000);
+    const lines = readline.createInterface({ input: child.stdout });
+    lines.on('line', (line) => {
+      const m = line.match(/listening on (http:\/\/\S+)/);
+      if (m) {
+        clearTimeout(timer);
+        resolve({ child, url: m[1] });
+      }
+    });
+    child.on('exit', (code) => reject(new Error(`oxbow serve exited with ${code}; see ${logPath}`)));
+  });
+}
+
+async function waitReady(url) {
+  for (let i = 0; i < 600; i++) {
+    try {
+      const r = await fetch(url + '/readyz');
+      if (r.ok) return;
+    } catch (_) { /* not yet */ }
+    await new Promise((r) => setTimeout(r, 100));
+  }
+  throw new Error('the server did not become ready');
+}
+
+async function main() {
+  const args = parseArgs();
+  let chromium;
+  try {
+    ({ chromium } = await import('playwright-core'));
+  } catch (e) {
+    fatal('playwright-core is not installed: run `npm ci --prefix tests/browser` (scripts/test.sh does). ' + e.message);
+  }
+  if (!fs.existsSync(args.chromium)) fatal(`no browser at ${args.chromium}: install Debian's chromium (scripts/install-deps.sh)`);
+  if (!fs.existsSync(args.oxbow)) fatal(`no oxbow binary at ${args.oxbow}`);
+  for (const name of [...INDEXED, 'box.png']) {
+    if (!fs.existsSync(path.join(SAMPLES, name))) fatal(`sample photo ${name} missing: install opencv-doc`);
+  }
+  fs.mkdirSync(args.artifacts, { recursive: true });
+  fs.mkdirSync(args.work, { recursive: true });
+
+  // A small index: a 2048-word vocabulary trained on the indexed photos themselves (seconds; coarser
+  // vocabularies leave too few words with few features each for re-ranking through shared words).
+  const list = path.join(args.work, 'images.txt');
+  fs.writeFileSync(list, INDEXED.map((n) => path.join(SAMPLES, n)).join('\n') + '\n');
+  const vocab = path.join(args.work, 'vocab.oxvoc');
+  const indexDir = path.join(args.work, 'index');
+  fs.rmSync(indexDir, { recursive: true, force: true });
+  const quiet = { stdio: ['ignore', 'ignore', 'pipe'] };
+  execFileSync(args.oxbow, ['vocab', 'train', '--list', list, '--words', '2048', '--root-sift', '--per-image', '1000',
+                            '--out', vocab], quiet);
+  execFileSync(args.oxbow, ['index', 'build', '--vocab', vocab, '--list', list, '--out', indexDir], quiet);
+  // A truncated JPEG (the first half of a real one): the server must refuse it with a clear error.
+  const truncated = path.join(args.work, 'truncated.jpg');
+  const jpeg = fs.readFileSync(path.join(SAMPLES, 'leuvenA.jpg'));
+  fs.writeFileSync(truncated, jpeg.subarray(0, Math.floor(jpeg.length / 2)));
+
+  const { child, url } = await startServer(args.oxbow, indexDir, path.join(args.work, 'serve.log'));
+  const browser = await chromium.launch({ executablePath: args.chromium, headless: true,
+                                          args: ['--no-sandbox', '--disable-dev-shm-usage'] });
+  const shot = async (page, name) => {
+    const file = path.join(args.artifacts, name);
+    await page.screenshot({ path: file, fullPage: true });
+    console.log(`     screenshot ${file}`);
+  };
+  let page;
+  try {
+    await waitReady(url);
+    const context = await browser.newContext({ viewport: { width: 1280, height: 900 } });
+    page = await context.newPage();
+    const consoleErrors = [];
+    page.on('console', (m) => { if (m.type() === 'error') consoleErrors.push(m.text()); });
+    page.on('pageerror', (e) => consoleErrors.push(e.message));
+    page.on('dialog', (d) => d.accept());  // the delete confirmation
+
+    await page.goto(url + '/');
+    await page.waitForSelector('body[data-ready="true"]');
+    await page.waitForFunction(() => /\d+ images/.test(document.getElementById('status').textContent));
+    check(/\b8 images\b/.test(await page.textContent('#status')), 'status strip shows the 8 indexed images');
+
+    // 1. Upload box.png: box_in_scene first, with its matched region drawn on the thumbnail.
+    await page.setInputFiles('#query-file', path.join(SAMPLES, 'box.png'));
+    await page.waitForSelector('#results li');
+    const first = await page.$eval('#results li', (li) => ({
+      id: li.dataset.id, rank: li.dataset.rank, text: li.textContent,
+      region: (() => { const r = li.querySelector('svg.overlay rect.region');
+                       return r ? [r.getAttribute('width'), r.getAttribute('height')].map(Number) : null; })(),
+    }));
+    check(first.id === 'box_in_scene' && first.rank === '1', `rank 1 is box_in_scene (got ${first.id})`);
+    check(first.region !== null && first.region[0] > 10 && first.region[1] > 10,
+          `its matched region is drawn on the thumbnail (${first.region})`);
+    check(/verified, \d+ inliers/.test(first.text), 'its caption says verified with the inlier count');
+    await page.waitForFunction(() => [...document.querySelectorAll('#results img')].every((i) => i.complete && i.naturalWidth > 0));
+    check(/last search: .*total \d+ ms/.test(await page.textContent('#status')), 'status strip shows the last search timings');
+    await shot(page, 'results.png');
+
+    // 2. The match view: correspondence lines and the transform.
+    await page.click('#results li:first-child button');
+    await page.waitForSelector('#match-svg line.corr', { timeout: 30000 });
+    const lines = await page.$$eval('#match-svg line.corr', (l) => l.length);
+    check(lines >= 6, `match view draws the verified correspondences (${lines} lines)`);
+    const details = await page.textContent('#match-details');
+    check(/Transform/.test(details) && /scale \d/.test(details), 'match view shows the transform');
+    await page.$eval('#match-view', (el) => el.scrollIntoView());
+    await shot(page, 'match.png');
+
+    // 3. Draw a query box with the mouse and search in it: the request carries bbox.
+    const overlay = await page.$('#query-overlay');
+    await overlay.scrollIntoViewIfNeeded();
+    const b = await overlay.boundingBox();
+    await page.mouse.move(b.x + b.width * 0.1, b.y + b.height * 0.1);
+    await page.mouse.down();
+    await page.mouse.move(b.x + b.width * 0.5, b.y + b.height * 0.5, { steps: 5 });
+    await page.mouse.move(b.x + b.width * 0.9, b.y + b.height * 0.9, { steps: 5 });
+    await page.mouse.up();
+    check(await page.isVisible('#query-box'), 'the drawn box is shown on the query');
+    const [request] = await Promise.all([
+      page.waitForRequest((r) => r.url().includes('/v1/search')),
+      page.click('#search-box-button'),
+    ]);
+    const bbox = new URL(request.url()).searchParams.get('bbox');
+    check(bbox !== null && bbox.split(',').length === 4, `the search request had bbox=${bbox}`);
+    await page.waitForFunction(() => /\(box [\d.]+/.test(document.getElementById('results-summary').textContent));
+    check((await page.$eval('#results li', (li) => li.dataset.id)) === 'box_in_scene', 'box search: box_in_scene still first');
+    // The keyboard moves the box too.
+    const before = await page.textContent('#box-text');
+    await page.focus('#query-overlay');
+    await page.keyboard.press('ArrowLeft');
+    check((await page.textContent('#box-text')) !== before, 'arrow keys move the box');
+    await shot(page, 'box-search.png');
+
+    // 4. A truncated JPEG gives the error message.
+    await page.setInputFiles('#query-file', truncated);
+    await page.waitForSelector('#messages .error');
+    const error = await page.textContent('#messages .error');
+    check(/not a readable image/.test(error) && /HTTP 400 invalid_image/.test(error), `truncated file: "${error}"`);
+    await shot(page, 'error.png');
+
+    // 5. The collection: add an image (the API key is asked for), see its stored thumbnail, delete it.
+    await page.click('#tab-browse');
+    await page.waitForSelector('#collection li');
+    check((await page.$$('#collection li')).length === 8, 'collection lists the 8 images');
+    await page.setInputFiles('#add-file', path.join(SAMPLES, 'box.png'));
+    await page.fill('#add-id', 'uploaded-box');
+    await page.click('#add-button');
+    await page.waitForSelector('#key-dialog[open]');
+    check(/needs an API key/.test(await page.textContent('#key-reason')), 'adding without a key asks for it');
+    await page.fill('#key-input', API_KEY);
+    await page.click('#key-ok');
+    await page.waitForSelector('#collection li[data-id="uploaded-box"]');
+    check(/Added uploaded-box/.test(await page.textContent('#messages')), 'the add is confirmed');
+    await page.waitForFunction(() => {
+      const img = document.querySelector('#collection li[data-id="uploaded-box"] img');
+      return img && img.complete && img.naturalWidth > 0;
+    });
+    check(true, 'the uploaded image has a thumbnail (stored at add time)');
+    await shot(page, 'collection.png');
+    await page.click('#collection li[data-id="uploaded-box"] button.danger');
+    await page.waitForFunction(() => /Deleted uploaded-box/.test(document.getElementById('messages').textContent));
+    check((await page.$('#collection li[data-id="uploaded-box"]')) === null, 'the deleted image left the collection');
+    check(consoleErrors.filter((e) => !/status of (400|401|404)/.test(e)).length === 0,
+          `no script errors (${consoleErrors.join(' | ')})`);
+    await context.close();
+
+    // 6. A phone-sized screen: same search, no horizontal scrolling.
+    const phone = await browser.newContext({ viewport: { width: 375, height: 812 }, deviceScaleFactor: 2, hasTouch: true });
+    const small = await phone.newPage();
+    await small.goto(url + '/');
+    await small.waitForSelector('body[data-ready="true"]');
+    await small.setInputFiles('#query-file', path.join(SAMPLES, 'box.png'));
+    await small.waitForSelector('#results li');
+    await small.waitForFunction(() => [...document.querySelectorAll('#results img')].every((i) => i.complete && i.naturalWidth > 0));
+    const overflow = await small.evaluate(() => document.documentElement.scrollWidth - window.innerWidth);
+    check(overflow <= 0, `phone width: no horizontal overflow (${overflow} px)`);
+    await shot(small, 'phone.png');
+    await phone.close();
+  } catch (e) {
+    failures++;
+    console.error('FAIL', e.stack || e.message);
+    if (page && !page.isClosed()) await shot(page, 'failure.png').catch(() => {});
+  } finally {
+    await browser.close();
+    child.kill('SIGTERM');
+  }
+  console.log(failures === 0 ? 'search_page.test: all checks passed' : `search_page.test: ${failures} check(s) failed`);
+  process.exit(failures === 0 ? 0 : 1);
+}
+
+main().catch((e) => fatal(e.stack || e.message));
