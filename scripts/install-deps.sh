@@ -21,6 +21,7 @@ build_packages=(
   libvlfeat-dev          # VLFeat SIFT: benchmark peer only
   libfaiss-dev           # faiss: benchmark peer only
   curl python3           # demo and evaluation scripts
+  chromium nodejs        # the web page's end-to-end test (tests/browser: playwright-core drives /usr/bin/chromium)
   libclang-rt-14-dev     # libFuzzer runtime for the fuzz targets (scripts/fuzz.sh; GCC-instrumented, cmake/OxbowFuzz.cmake)
   clang-tidy-16          # static checks (scripts/clang-tidy.sh): the first Debian 12 clang-tidy that parses libstdc++ 12's <expected>
 )
@@ -38,6 +39,8 @@ for p in "${packages[@]}"; do
     missing+=("$p")
   fi
 done
+# npm (tests/browser): Debian's nodejs leaves it to the npm package; NodeSource's nodejs carries its own.
+if [[ "${1:-}" != "--runtime" ]] && ! command -v npm >/dev/null 2>&1; then missing+=(npm); fi
 if [[ ${#missing[@]} -eq 0 ]]; then
   echo "install-deps: all ${#packages[@]} packages present" >&2
   exit 0

@@ -5,5 +5,7 @@ root=$(cd "$(dirname "$0")/.." && pwd)
 "$root/scripts/install-deps.sh"
 "$root/scripts/build.sh"
 build_dir=${OXBOW_BUILD_DIR:-$root/build}
+# playwright-core for the web page's browser test (pinned in tests/browser/package-lock.json).
+npm ci --prefix "$root/tests/browser" --no-audit --no-fund --loglevel=error
 cd "$build_dir"
 ctest --output-on-failure --parallel "${OXBOW_JOBS:-$(nproc)}" --timeout 900
