@@ -10,7 +10,6 @@
 #include <mutex>
 #include <numeric>
 #include <unordered_map>
-#include <unordered_set>
 
 #include "index/catalogue.h"
 #include "index/cow_array.h"
@@ -148,12 +147,18 @@ std::optional<std::string> QueryOptions::Check() const {
   if (query_assignments < 1 || query_assignments > 8) {
     return "query_assignments must be in [1, 8], got " + std::to_string(query_assignments);
   }
+  if (quantizer_probes < 1 || quantizer_probes > 4096) {
+    return "quantizer_probes must be in [1, 4096], got " + std::to_string(quantizer_probes);
+  }
   if (!(assignment_sigma_sq > 0 && assignment_sigma_sq <= 4)) return std::string("assignment_sigma_sq must be in (0, 4]");
   if (transitive_depth < 0 || transitive_depth > 10000) {
     return "transitive_depth must be in [0, 10000], got " + std::to_string(transitive_depth);
   }
   if (transitive_neighbours < 1 || transitive_neighbours > 10000) {
     return "transitive_neighbours must be in [1, 10000], got " + std::to_string(transitive_neighbours);
+  }
+  if (transitive_attempts < 1 || transitive_attempts > 1000) {
+    return "transitive_attempts must be in [1, 1000], got " + std::to_string(transitive_attempts);
   }
   if (transitive_anchors < 1 || transitive_anchors > 1000) {
     return "transitive_anchors must be in [1, 1000], got " + std::to_string(transitive_anchors);
@@ -439,14 +444,15 @@ Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const Que
   }
   QueryTimings timings;
   q.words.resize(q.keypoints.size());
+  vocab::QuantizerOptions quantizer = impl_->index_options.quantizer;
+  quantizer.num_probes = options.quantizer_probes;
   if (options.query_assignments == 1) {
-    impl_->vocabulary.Quantize(descriptors, q.words, impl_->index_options.quantizer);
+    impl_->vocabulary.Quantize(descriptors, q.words, quantizer);
   } else {
     const auto k = static_cast<size_t>(options.query_assignments);
     std::vector<uint32_t> words(q.keypoints.size() * k);
     std::vector<float> sq_distances(words.size());
-    impl_->vocabulary.QuantizeMulti(descriptors, options.query_assignments, words, sq_distances,
-                                    impl_->index_options.quantizer);
+    impl_->vocabulary.QuantizeMulti(descriptors, options.query_assignments, words, sq_distances, quantizer);
     std::map<uint32_t, float> tf;
     const size_t vocabulary_size = impl_->vocabulary.size();
     for (size_t i = 0; i < q.keypoints.size(); ++i) {
@@ -617,22 +623,43 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
       }
       // Each anchor only verifies its own nearest tf-idf neighbours (its region's bag scored against the
       // index): most candidates share nothing with most anchors, and the verifier is the expensive part.
-      std::vector<std::unordered_set<uint32_t>> neighbours(anchors.size());
+      // A candidate is tried against at most transitive_attempts anchors, those whose regions score it
+      // highest, in anchor order: a view of the object verifies against one of its closest anchors or
+      // rarely at all, while a negative would otherwise pay one verification per anchor listing it.
+      std::unordered_map<uint32_t, size_t> window;  // image number -> position in `results`
+      for (size_t c = first; c < last; ++c) {
+        uint32_t number = 0;
+        if (!results[c].verified && snap.Find(results[c].id, &number)) window.emplace(number, c);
+      }
+      struct Attempt {
+        float score;
+        uint32_t anchor;
+      };
+      std::vector<std::vector<Attempt>> attempts(last - first);
       for (size_t a = 0; a < anchors.size(); ++a) {
         const std::vector<QueryTerm> anchor_terms = snap.inverted.QueryVector(BagOfWords::FromWords(anchors[a].words));
         for (const ScoredImage& s : snap.inverted.Score(anchor_terms, static_cast<size_t>(options.transitive_neighbours) + 1, &scratch)) {
-          neighbours[a].insert(s.image);
+          const auto it = window.find(s.image);
+          if (it != window.end()) attempts[it->second - first].push_back({s.score, static_cast<uint32_t>(a)});
         }
+      }
+      const auto max_attempts = static_cast<size_t>(options.transitive_attempts);
+      for (auto& list : attempts) {
+        std::sort(list.begin(), list.end(), [](const Attempt& x, const Attempt& y) {
+          return x.score != y.score ? x.score > y.score : x.anchor < y.anchor;
+        });
+        if (list.size() > max_attempts) list.resize(max_attempts);
+        // Among those, the better anchor first (anchors are ordered best first).
+        std::sort(list.begin(), list.end(), [](const Attempt& x, const Attempt& y) { return x.anchor < y.anchor; });
       }
       std::vector<uint8_t> found(last - first, 0);
       ParallelFor(last - first, index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
         for (size_t c = first + begin; c < first + end; ++c) {
           QueryResult& r = results[c];
-          if (r.verified) continue;
-          uint32_t number = 0;
-          const PackedFeatures& f = snap.Find(r.id, &number)->features;
-          for (size_t a = 0; a < anchors.size(); ++a) {
-            if (!neighbours[a].contains(number)) continue;
+          if (r.verified || attempts[c - first].empty()) continue;
+          const PackedFeatures& f = snap.Find(r.id)->features;
+          for (const Attempt& attempt : attempts[c - first]) {
+            const size_t a = attempt.anchor;
             const sift::VerificationResult v = geometries[a].Verify(f, options.max_pairs_per_word, options.verify);
             if (!v.verified) continue;
             r.verified = true;

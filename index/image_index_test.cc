@@ -323,9 +323,32 @@ TEST_F(Fixture, TransitiveVerificationReachesViewsThatOnlyMatchAResult) {
     EXPECT_NEAR(mapped.x(), expected.x, 3);
     EXPECT_NEAR(mapped.y(), expected.y, 3);
   }
+  // One attempt per candidate is enough here: far is hub's own best neighbour.
+  QueryOptions one_attempt = Opts(30, 30);
+  one_attempt.transitive_depth = 30;
+  one_attempt.transitive_attempts = 1;
+  const auto once = index->Query(query, one_attempt);
+  ASSERT_TRUE(once) << once.error().ToString();
+  ASSERT_GE(once->results.size(), 2u);
+  EXPECT_EQ(once->results[1].id, "far");
+  EXPECT_TRUE(once->results[1].verified);
   QueryOptions bad = Opts(5, 30);
   bad.transitive_anchors = 0;
   EXPECT_FALSE(index->Query(query, bad));
+  for (int attempts : {0, 1001}) {
+    QueryOptions bad_attempts = Opts(5, 30);
+    bad_attempts.transitive_attempts = attempts;
+    const auto refused = index->Query(query, bad_attempts);
+    ASSERT_FALSE(refused);
+    EXPECT_NE(refused.error().message.find("transitive_attempts"), std::string::npos);
+  }
+  for (int probes : {0, 4097}) {
+    QueryOptions bad_probes = Opts(5, 30);
+    bad_probes.quantizer_probes = probes;
+    const auto refused = index->Query(query, bad_probes);
+    ASSERT_FALSE(refused);
+    EXPECT_NE(refused.error().message.find("quantizer_probes"), std::string::npos);
+  }
 }
 
 TEST_F(Fixture, MultipleAssignmentReachesTheSecondNearestWord) {

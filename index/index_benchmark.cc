@@ -9,13 +9,18 @@
 //     p50/p95) for several stop-list settings, and re-ranking latency for R = 100/200 candidates.
 //
 //   index_benchmark paris [--data DIR] [--words K] [--max-side PX] [--repeat N] [--cache DIR]
-//                         [--filter TEXT] [--verbose 1]
+//                         [--vocab FILE] [--threads T] [--filter TEXT] [--verbose 1]
 //     The Paris subset protocol (../shared/data/README.md): extracts RootSIFT from the 250 images,
 //     trains a K-word vocabulary on them, indexes them, runs the 12 cropped queries with and without
 //     re-ranking and query expansion; prints mAP and per-stage latency p50/p95.
 //     --cache DIR keeps the extracted features and the vocabulary in DIR (feature files and a .oxvoc per
-//     K and max side) so that later runs only index and query. --filter runs only the settings whose
-//     name contains TEXT. --verbose 1 prints each query's AP and verified counts.
+//     K and max side) so that later runs only index and query. --vocab FILE uses that vocabulary (e.g.
+//     one from `oxbow vocab train`) instead of training or the cached one. --threads T verifies with T
+//     threads (IndexOptions::num_threads; default 1). --filter runs only the settings whose name
+//     contains TEXT. --verbose 1 prints each query's AP and verified counts.
+//     Latency columns are wall times per stage; the CPU column is the CPU time of the whole query
+//     (process CPU time, so it counts every verification thread), which other processes on a shared
+//     machine disturb far less than wall time. The load average is printed with them.
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -30,7 +35,10 @@
 #include <set>
 #include <sstream>
 #include <string>
+#include <thread>
 #include <vector>
+
+#include <time.h>
 
 #include "index/feature_store.h"
 #include "index/image_index.h"
@@ -46,6 +54,20 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 double Ms(Clock::time_point a, Clock::time_point b) { return std::chrono::duration<double, std::milli>(b - a).count(); }
+
+// CPU time of this process (all its threads), milliseconds: far less disturbed by other processes on
+// a shared machine than wall time. Only the timed query runs while it is read.
+double ProcessCpuMs() {
+  timespec ts{};
+  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
+  return static_cast<double>(ts.tv_sec) * 1e3 + static_cast<double>(ts.tv_nsec) * 1e-6;
+}
+
+double LoadAverage1() {
+  double load = 0;
+  std::ifstream("/proc/loadavg") >> load;
+  return load;
+}
 
 double Percentile(std::vector<double> v, double p) {
   if (v.empty()) return 0;
@@ -327,12 +349,21 @@ double AveragePrecision(const std::vector<std::string>& ranked, const std::set<s
   return ap;
 }
 
+// The search defaults before the latency work (server, 20k words: mAP 0.883, 110 ms CPU p50 / 215 p95).
+void PreviousDefaults(QueryOptions* o) {
+  o->rerank_depth = 200;
+  o->quantizer_probes = 16;
+  o->max_pairs_per_word = 4;
+  o->transitive_attempts = 1000;
+}
+
 int RunParis(const std::map<std::string, std::string>& flags) {
   namespace fs = std::filesystem;
   const fs::path data = flags.count("--data") ? fs::path(flags.at("--data")) : fs::path(OXBOW_SOURCE_DIR "/../shared/data/paris6k");
   const auto words = static_cast<size_t>(Flag(flags, "--words", 20000));
   const int max_side = static_cast<int>(Flag(flags, "--max-side", 1024));
   const int repeat = static_cast<int>(Flag(flags, "--repeat", 3));
+  const int threads = static_cast<int>(Flag(flags, "--threads", 1));
   if (!fs::is_directory(data / "images")) {
     std::printf("no Paris data at %s\n", data.c_str());
     return 1;
@@ -376,7 +407,9 @@ int RunParis(const std::map<std::string, std::string>& flags) {
               static_cast<double>(total) / static_cast<double>(names.size()), Ms(t0, Clock::now()) / 1000);
 
   // Vocabulary: trained on (a sample of) the database descriptors, as in Philbin et al. 2007.
-  const fs::path vocab_file = cache.empty() ? fs::path() : cache / ("vocab_" + std::to_string(words) + cache_tag + ".oxvoc");
+  const fs::path vocab_file = flags.count("--vocab") ? fs::path(flags.at("--vocab"))
+                              : cache.empty()        ? fs::path()
+                                                     : cache / ("vocab_" + std::to_string(words) + cache_tag + ".oxvoc");
   Result<vocab::Vocabulary> vocabulary = std::unexpected(Error{});
   if (!vocab_file.empty()) vocabulary = vocab::Vocabulary::Read(vocab_file.string());
   if (!vocabulary) {
@@ -439,8 +472,8 @@ int RunParis(const std::map<std::string, std::string>& flags) {
     queries.push_back(std::move(q));
   }
   // The query features: the query image's features, with the box mapped into the (downscaled) frame.
-  std::printf("\n| setting | mAP | quantise p50/p95 ms | score p50/p95 | verify p50/p95 | qe p50/p95 | total p50/p95 |\n");
-  std::printf("|---|---|---|---|---|---|---|\n");
+  std::printf("\n| setting | mAP | quantise p50/p95 ms | score p50/p95 | verify p50/p95 | qe p50/p95 | total p50/p95 | CPU p50/p95 |\n");
+  std::printf("|---|---|---|---|---|---|---|---|\n");
   struct Setting {
     std::string name;
     double max_df = 1.0;
@@ -453,6 +486,13 @@ int RunParis(const std::map<std::string, std::string>& flags) {
       o->rerank_depth = r;
       o->query_expansion = qe;
       o->transitive_depth = 0;
+    };
+  };
+  // The server searches with QueryOptions{} and query expansion on.
+  const auto server = [](std::function<void(QueryOptions*)> tune) {
+    return [=](QueryOptions* o) {
+      o->query_expansion = true;
+      tune(o);
     };
   };
   const std::vector<Setting> settings = {
@@ -482,17 +522,34 @@ int RunParis(const std::map<std::string, std::string>& flags) {
       {"QE, df > 10% unless in <= 10 images", 0.1, true, rerank(200, true), 10},
       {"defaults (QueryOptions{}, IndexOptions{})", IndexOptions{}.max_document_frequency, IndexOptions{}.sqrt_tf,
        [](QueryOptions*) {}, IndexOptions{}.stop_list_min_images},
+      {"server defaults (QueryOptions{} + QE, IndexOptions{})", IndexOptions{}.max_document_frequency,
+       IndexOptions{}.sqrt_tf, [](QueryOptions* o) { o->query_expansion = true; }, IndexOptions{}.stop_list_min_images},
+      {"server defaults, no transitive", 1.0, true, server([](QueryOptions* o) { o->transitive_depth = 0; }), 10},
+      {"previous defaults: R=200, 16 probes, 4 pairs/word, 1000 attempts", 1.0, true, server([](QueryOptions* o) { PreviousDefaults(o); }), 10},
+      {"previous + 2 attempts", 1.0, true, server([](QueryOptions* o) { PreviousDefaults(o); o->transitive_attempts = 2; }), 10},
+      {"previous + 2 attempts + 8 probes", 1.0, true, server([](QueryOptions* o) { PreviousDefaults(o); o->transitive_attempts = 2; o->quantizer_probes = 8; }), 10},
+      {"previous + 2 attempts + 2 pairs/word", 1.0, true, server([](QueryOptions* o) { PreviousDefaults(o); o->transitive_attempts = 2; o->max_pairs_per_word = 2; }), 10},
+      {"server defaults, R=200", 1.0, true, server([](QueryOptions* o) { o->rerank_depth = 200; }), 10},
+      {"server defaults, 1 attempt", 1.0, true, server([](QueryOptions* o) { o->transitive_attempts = 1; }), 10},
+      {"server defaults, 20 neighbours", 1.0, true, server([](QueryOptions* o) { o->transitive_neighbours = 20; }), 10},
+      {"server defaults, 30 anchors", 1.0, true, server([](QueryOptions* o) { o->transitive_anchors = 30; }), 10},
+      {"server defaults, 16 probes", 1.0, true, server([](QueryOptions* o) { o->quantizer_probes = 16; }), 10},
+      {"server defaults, depth 100", 1.0, true, server([](QueryOptions* o) { o->transitive_depth = 100; }), 10},
+      {"server defaults, depth 100, 30 anchors", 1.0, true, server([](QueryOptions* o) { o->transitive_depth = 100; o->transitive_anchors = 30; }), 10},
+      {"server defaults, depth 100, 40 anchors", 1.0, true, server([](QueryOptions* o) { o->transitive_depth = 100; o->transitive_anchors = 40; }), 10},
+      {"server defaults, depth 100, 40 anchors, 1 attempt", 1.0, true, server([](QueryOptions* o) { o->transitive_depth = 100; o->transitive_anchors = 40; o->transitive_attempts = 1; }), 10},
   };
   const std::string filter = flags.count("--filter") ? flags.at("--filter") : std::string();
   const bool verbose = Flag(flags, "--verbose", 0) != 0;
   idx.reset();
   std::string opened_as;
+  std::vector<double> loads;
   for (const Setting& s : settings) {
     if (!filter.empty() && s.name.find(filter) == std::string::npos) continue;
     const std::string key = std::to_string(s.max_df) + (s.sqrt_tf ? "s" : "r") + std::to_string(s.stop_min_images);
     if (key != opened_as) {
       IndexOptions o;
-      o.num_threads = 1;
+      o.num_threads = threads;
       o.max_document_frequency = s.max_df;
       o.sqrt_tf = s.sqrt_tf;
       o.stop_list_min_images = s.stop_min_images;
@@ -500,7 +557,8 @@ int RunParis(const std::map<std::string, std::string>& flags) {
       idx = *ImageIndex::Open(dir.string(), o);
       opened_as = key;
     }
-    std::vector<double> aps, quantize, score, verify, qe, totals;
+    std::vector<double> aps, quantize, score, verify, qe, totals, cpu;
+    const double load_before = LoadAverage1();
     for (int rep = 0; rep < repeat; ++rep) {
       for (const Query& q : queries) {
         const auto it = std::find(names.begin(), names.end(), q.image + ".jpg");
@@ -509,7 +567,9 @@ int RunParis(const std::map<std::string, std::string>& flags) {
         s.tune(&options);
         options.top_k = 250;
         options.region = q.box;
+        const double cpu0 = ProcessCpuMs();
         const auto r = idx->Query(features[static_cast<size_t>(it - names.begin())], options);
+        cpu.push_back(ProcessCpuMs() - cpu0);
         if (!r) {
           std::printf("query failed: %s\n", r.error().ToString().c_str());
           continue;
@@ -540,13 +600,20 @@ int RunParis(const std::map<std::string, std::string>& flags) {
     double map = 0;
     for (double ap : aps) map += ap;
     map /= static_cast<double>(std::max<size_t>(1, aps.size()));
-    std::printf("| %s | %.3f | %.1f / %.1f | %.2f / %.2f | %.1f / %.1f | %.1f / %.1f | %.1f / %.1f |\n", s.name.c_str(), map,
-                Percentile(quantize, .5), Percentile(quantize, .95), Percentile(score, .5), Percentile(score, .95),
-                Percentile(verify, .5), Percentile(verify, .95), Percentile(qe, .5), Percentile(qe, .95),
-                Percentile(totals, .5), Percentile(totals, .95));
+    std::printf("| %s | %.3f | %.1f / %.1f | %.2f / %.2f | %.1f / %.1f | %.1f / %.1f | %.1f / %.1f | %.1f / %.1f |\n",
+                s.name.c_str(), map, Percentile(quantize, .5), Percentile(quantize, .95), Percentile(score, .5),
+                Percentile(score, .95), Percentile(verify, .5), Percentile(verify, .95), Percentile(qe, .5),
+                Percentile(qe, .95), Percentile(totals, .5), Percentile(totals, .95), Percentile(cpu, .5),
+                Percentile(cpu, .95));
+    loads.push_back(std::max(load_before, LoadAverage1()));
   }
-  std::printf("(%zu queries x %d repetitions; 1 verification thread; vocabulary %zu words; RootSIFT, long side <= %d px)\n",
-              queries.size(), repeat, vocabulary->size(), max_side);
+  if (!loads.empty()) {
+    std::printf("(1-minute load average during the settings: %.2f .. %.2f on %u hardware threads)\n",
+                *std::min_element(loads.begin(), loads.end()), *std::max_element(loads.begin(), loads.end()),
+                std::thread::hardware_concurrency());
+  }
+  std::printf("(%zu queries x %d repetitions; %d verification thread(s); vocabulary %zu words; RootSIFT, long side <= %d px)\n",
+              queries.size(), repeat, threads, vocabulary->size(), max_side);
   fs::remove_all(dir);
   return 0;
 }

@@ -2,8 +2,7 @@
 
 #include <algorithm>
 #include <numeric>
-
-#include "sift/match.h"
+#include <vector>
 
 namespace oxbow::index {
 
@@ -17,7 +16,10 @@ QueryGeometry::QueryGeometry(std::span<const sift::Keypoint> keypoints, std::spa
 
 sift::VerificationResult QueryGeometry::Verify(const PackedFeatures& db, int max_pairs_per_word,
                                                const sift::HoughVerifyOptions& options) const {
-  std::vector<sift::Match> matches;
+  // Scratch reused by every call on this thread: a re-ranking pass verifies hundreds of candidates.
+  thread_local std::vector<sift::Match> matches;
+  thread_local std::vector<sift::Keypoint> db_keypoints;
+  matches.clear();
   size_t i = 0, j = 0;
   const size_t nq = order_.size(), nd = db.size();
   const auto limit = static_cast<size_t>(max_pairs_per_word);
@@ -33,22 +35,33 @@ sift::VerificationResult QueryGeometry::Verify(const PackedFeatures& db, int max
       while (j2 < nd && db.word(j2) == wd) ++j2;
       const size_t cq = i2 - i, cd = j2 - j;
       if (cq <= limit && cd <= limit) {
-        // Pairs from a word seen once on each side are the most reliable: smallest "distance".
+        // The word's cq x cd pairs made one-to-one, as sift::EnforceOneToOne does for them: features of
+        // different words never share a pair, all pairs of a word have the same "distance" cq * cd
+        // (pairs from a word seen once on each side are the most reliable), and its tie-break by
+        // (query index, db index) pairs the k-th smallest query index with the k-th smallest db index.
+        // Both runs are ascending (stable sort by word; db features in index order).
         const auto distance = static_cast<float>(cq * cd);
-        for (size_t a = i; a < i2; ++a) {
-          for (size_t b = j; b < j2; ++b) matches.push_back({order_[a], static_cast<uint32_t>(b), distance});
+        for (size_t k = 0; k < std::min(cq, cd); ++k) {
+          // db_index numbers the compact keypoint array built below.
+          matches.push_back({order_[i + k], static_cast<uint32_t>(j + k), distance});
         }
       }
       i = i2;
       j = j2;
     }
   }
-  if (matches.size() < 3) return {};
-  const std::vector<sift::Match> unique = sift::EnforceOneToOne(matches);
-  // Only the matched db keypoints are dequantised; the verifier reads keypoints by match index.
-  std::vector<sift::Keypoint> db_keypoints(nd);
-  for (const sift::Match& m : unique) db_keypoints[m.db_index] = db.keypoint(m.db_index);
-  return sift::VerifyHoughAffine(keypoints_, db_keypoints, unique, region_, {db.width(), db.height()}, options);
+  // Inliers are a subset of the one-to-one matches: with fewer than min_inliers of them the candidate
+  // cannot verify, so the verifier is not run (same result, no cost).
+  if (matches.size() < static_cast<size_t>(std::max(3, options.min_inliers))) return {};
+  std::sort(matches.begin(), matches.end(),
+            [](const sift::Match& a, const sift::Match& b) { return a.query_index < b.query_index; });
+  // Only the matched db keypoints are dequantised, into a compact array the matches index.
+  db_keypoints.resize(matches.size());
+  for (size_t m = 0; m < matches.size(); ++m) {
+    db_keypoints[m] = db.keypoint(matches[m].db_index);
+    matches[m].db_index = static_cast<uint32_t>(m);
+  }
+  return sift::VerifyHoughAffine(keypoints_, db_keypoints, matches, region_, {db.width(), db.height()}, options);
 }
 
 }  // namespace oxbow::index

@@ -4,8 +4,15 @@
 // (sift::EnforceOneToOne; pairs from words seen once on each side preferred), then verified with Lowe's
 // Hough/affine verifier (sift::VerifyHoughAffine).
 //
-// Thread safety: a QueryGeometry is immutable after construction; Verify may run concurrently.
-// Cost of Verify: O(|query| + |candidate|) for the merge join, plus the verifier (O(matches)).
+// The one-to-one step is done per word while merging (features of different words never share a
+// pair), with exactly sift::EnforceOneToOne's result; with fewer one-to-one matches than
+// options.min_inliers the verifier is skipped (it could not verify). Only the matched db keypoints are
+// dequantised.
+//
+// Thread safety: a QueryGeometry is immutable after construction; Verify may run concurrently (its
+// scratch buffers are thread-local).
+// Cost of Verify: O(|query| + |candidate|) for the merge join, O(m log m) for m matches, plus the
+// verifier (O(matches)).
 #pragma once
 
 #include <array>
