@@ -9,9 +9,13 @@
 #include <gtest/gtest.h>
 #include <httplib.h>
 
+#include <algorithm>
 #include <atomic>
+#include <cmath>
+#include <cstdlib>
 #include <chrono>
 #include <filesystem>
+#include <fstream>
 #include <mutex>
 #include <regex>
 #include <set>
@@ -564,6 +568,138 @@ TEST_F(HttpServerTest, SaturatedExtractionAnswers503NotACrash) {
   auto health = server->Client().Get("/healthz");
   ASSERT_TRUE(health);
   EXPECT_EQ(health->status, 200);
+}
+
+// ---- The web page's routes: static files, thumbnails, match correspondences -------------------------
+
+// Width and height of a JPEG response (decoded), or {0, 0}.
+std::pair<int, int> JpegSize(const std::string& bytes) {
+  const cv::Mat raw(1, static_cast<int>(bytes.size()), CV_8UC1, const_cast<char*>(bytes.data()));
+  const cv::Mat image = cv::imdecode(raw, cv::IMREAD_COLOR);
+  return {image.cols, image.rows};
+}
+
+TEST_F(HttpServerTest, WebPageAndStaticFiles) {
+  auto server = Start();
+  auto client = server->Client();
+  auto page = client.Get("/");
+  ASSERT_TRUE(page);
+  ASSERT_EQ(page->status, 200);
+  EXPECT_EQ(page->get_header_value("Content-Type"), "text/html; charset=utf-8");
+  EXPECT_NE(page->body.find(R"(src="/static/app.js")"), std::string::npos);
+  EXPECT_NE(page->get_header_value("Content-Security-Policy").find("default-src 'self'"), std::string::npos);
+  for (const auto& [path, type] : std::vector<std::pair<std::string, std::string>>{
+           {"/static/app.js", "text/javascript; charset=utf-8"}, {"/static/style.css", "text/css; charset=utf-8"}}) {
+    auto file = client.Get(path);
+    ASSERT_TRUE(file);
+    ASSERT_EQ(file->status, 200) << path;
+    EXPECT_EQ(file->get_header_value("Content-Type"), type) << path;
+    EXPECT_GT(file->body.size(), 100u) << path;
+    // Revalidation: the same ETag gets 304 without a body.
+    const std::string etag = file->get_header_value("ETag");
+    ASSERT_EQ(etag.size(), 18u) << etag;
+    auto again = client.Get(path, {{"If-None-Match", etag}});
+    ASSERT_TRUE(again);
+    EXPECT_EQ(again->status, 304) << path;
+    EXPECT_TRUE(again->body.empty());
+  }
+  ExpectErrorShape(client.Get("/static/nope.js"), 404, "not_found");
+  ExpectErrorShape(client.Get("/static/../CMakeLists.txt"), 404, "not_found");
+  ExpectErrorShape(client.Post("/static/app.js", "x", "text/plain"), 405, "method_not_allowed");
+}
+
+TEST_F(HttpServerTest, ThumbnailsStoredAtAddSurviveRestartAndGoWithDelete) {
+  const std::string index_dir = dir_->path() + "/thumbnails";
+  std::string etag_before;
+  {
+    auto server = Start({}, index_dir);
+    auto client = server->Client();
+    ASSERT_EQ(client.Post("/v1/images?id=scene", scene_, "image/png")->status, 201);
+    auto thumb = client.Get("/v1/images/scene/thumbnail");
+    ASSERT_TRUE(thumb);
+    ASSERT_EQ(thumb->status, 200) << thumb->body;
+    EXPECT_EQ(thumb->get_header_value("Content-Type"), "image/jpeg");
+    EXPECT_EQ(JpegSize(thumb->body), std::make_pair(256, 192));  // 512 x 384, default longest side 256
+    etag_before = thumb->get_header_value("ETag");
+    auto small = client.Get("/v1/images/scene/thumbnail?size=100");
+    ASSERT_TRUE(small);
+    ASSERT_EQ(small->status, 200);
+    EXPECT_EQ(JpegSize(small->body), std::make_pair(100, 75));
+    auto largest = client.Get("/v1/images/scene/thumbnail?size=512");
+    ASSERT_TRUE(largest);
+    EXPECT_EQ(JpegSize(largest->body), std::make_pair(512, 384));
+    auto cached = client.Get("/v1/images/scene/thumbnail", {{"If-None-Match", etag_before}});
+    ASSERT_TRUE(cached);
+    EXPECT_EQ(cached->status, 304);
+    ExpectErrorShape(client.Get("/v1/images/scene/thumbnail?size=513"), 400, "invalid_argument");
+    ExpectErrorShape(client.Get("/v1/images/scene/thumbnail?size=8"), 400, "invalid_argument");
+    ExpectErrorShape(client.Get("/v1/images/scene/thumbnail?sise=64"), 400, "invalid_argument");
+    ExpectErrorShape(client.Get("/v1/images/nope/thumbnail"), 404, "not_found");
+    EXPECT_EQ(server->Stop(SIGTERM), 0);
+  }
+  // After a restart the uploaded image (no source file on the server) still has its thumbnail.
+  auto server = Start({}, index_dir, /*with_vocab=*/false);
+  auto client = server->Client();
+  auto thumb = client.Get("/v1/images/scene/thumbnail");
+  ASSERT_TRUE(thumb);
+  ASSERT_EQ(thumb->status, 200) << thumb->body;
+  EXPECT_EQ(thumb->get_header_value("ETag"), etag_before);
+  ASSERT_EQ(client.Delete("/v1/images/scene")->status, 200);
+  ExpectErrorShape(client.Get("/v1/images/scene/thumbnail"), 404, "not_found");
+}
+
+TEST_F(HttpServerTest, ThumbnailsOfCliIndexedImagesComeFromTheirSourceFile) {
+  // `oxbow index build` records each image's path; the server makes the thumbnail from it.
+  const std::string index_dir = dir_->path() + "/cli-index";
+  const std::string list = dir_->path() + "/cli-list.txt";
+  {
+    std::ofstream out(list);
+    out << SamplePath("graf1.png") << "\n";
+  }
+  const std::string command = std::string(OXBOW_BINARY) + " index build --vocab " + vocab_ + " --list " + list +
+                              " --out " + index_dir + " > /dev/null 2>&1";
+  ASSERT_EQ(std::system(command.c_str()), 0) << command;
+  auto server = Start({}, index_dir, /*with_vocab=*/false);
+  auto client = server->Client();
+  auto thumb = client.Get("/v1/images/graf1/thumbnail?size=200");
+  ASSERT_TRUE(thumb);
+  ASSERT_EQ(thumb->status, 200) << thumb->body;
+  EXPECT_EQ(JpegSize(thumb->body), std::make_pair(200, 160));  // 800 x 640
+}
+
+TEST_F(HttpServerTest, MatchReturnsCorrespondencesWhenAsked) {
+  auto server = Start();
+  auto client = server->Client();
+  httplib::MultipartFormDataItems plain = {Part("a", box_), Part("b", scene_)};
+  auto without = client.Post("/v1/match", plain);
+  ASSERT_TRUE(without);
+  ASSERT_EQ(without->status, 200);
+  EXPECT_FALSE(json::parse(without->body).contains("correspondences"));
+
+  httplib::MultipartFormDataItems asked = {Part("a", box_), Part("b", scene_), Part("correspondences", "true")};
+  auto with = client.Post("/v1/match", asked);
+  ASSERT_TRUE(with);
+  ASSERT_EQ(with->status, 200) << with->body;
+  auto body = json::parse(with->body);
+  ASSERT_TRUE(body["verified"].get<bool>());
+  const auto& pairs = body["correspondences"];
+  ASSERT_EQ(pairs.size(), body["inliers"].get<size_t>());
+  // Every pair lies in its images and agrees with the fitted transform (b = T a) within a few pixels.
+  const auto& t = body["transform"];
+  std::vector<double> errors;
+  for (const auto& p : pairs) {
+    ASSERT_EQ(p.size(), 4u);
+    const double ax = p[0], ay = p[1], bx = p[2], by = p[3];
+    EXPECT_TRUE(ax >= 0 && ax < 324 && ay >= 0 && ay < 223) << p;
+    EXPECT_TRUE(bx >= 0 && bx < 512 && by >= 0 && by < 384) << p;
+    const double px = t[0][0].get<double>() * ax + t[0][1].get<double>() * ay + t[0][2].get<double>();
+    const double py = t[1][0].get<double>() * ax + t[1][1].get<double>() * ay + t[1][2].get<double>();
+    errors.push_back(std::hypot(px - bx, py - by));
+  }
+  std::sort(errors.begin(), errors.end());
+  EXPECT_LT(errors[errors.size() / 2], 5.0);
+  httplib::MultipartFormDataItems bad = {Part("a", box_), Part("b", scene_), Part("correspondences", "maybe")};
+  ExpectErrorShape(client.Post("/v1/match", bad), 400, "invalid_argument");
 }
 
 }  // namespace
