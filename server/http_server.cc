@@ -19,6 +19,7 @@
 #include "api/json.h"
 #include "api/params.h"
 #include "server/web_assets.h"
+#include "server/request_guard.h"
 #include "sift/log.h"
 
 namespace oxbow::server {
@@ -80,6 +81,27 @@ void SendError(httplib::Response& res, const api::HttpError& error) {
 }
 
 void SendError(httplib::Response& res, const Error& error) { SendError(res, api::ToHttpError(error)); }
+
+// Slow-client protection (server/request_guard.h). A request whose body does not fit the upload budget
+// is answered 503 before its body is read.
+httplib::Server::HandlerResponse RefuseOverUploadBudget(const httplib::Request& req, httplib::Response& res,
+                                                        UploadBudget* budget, uint64_t max_body_bytes) {
+  if (ReserveUploadForThisRequest(req, budget, max_body_bytes)) return httplib::Server::HandlerResponse::Unhandled;
+  res.set_header("Retry-After", "1");
+  res.set_header("Connection", "close");
+  SendError(res, Error{ErrorCode::kResourceExhausted,
+                       "uploads in progress fill the server's budget of " + std::to_string(budget->capacity()) +
+                           " bytes; retry later (oxbow serve --max-inflight-upload-mb)"});
+  return httplib::Server::HandlerResponse::Handled;
+}
+
+// A request whose headers + body did not arrive within the request timeout.
+httplib::Server::HandlerResponse AnswerRequestTimeout(httplib::Response& res) {
+  res.set_header("Connection", "close");
+  SendError(res, api::HttpError{408, "request_timeout",
+                                "the request did not arrive within the server's request timeout (oxbow serve --request-timeout-s)"});
+  return httplib::Server::HandlerResponse::Handled;
+}
 
 // Stage timings -> the log context and a Server-Timing header (RFC: W3C Server Timing).
 void RecordStages(httplib::Response& res, const std::vector<std::pair<const char*, double>>& stages) {
@@ -205,6 +227,7 @@ class BoundedTaskQueue : public httplib::TaskQueue {
  private:
   void Work(std::deque<std::function<void()>>* queue, bool shedding) {
     t_shedding = shedding;
+    if (shedding) MarkSheddingThread();
     for (;;) {
       std::function<void()> fn;
       {
@@ -252,6 +275,10 @@ std::optional<std::string> HttpServerOptions::Check() const {
   if (write_timeout_s < 1 || write_timeout_s > 3600) return "write_timeout_s must be in [1, 3600]";
   if (keep_alive_timeout_s < 1 || keep_alive_timeout_s > 3600) return "keep_alive_timeout_s must be in [1, 3600]";
   if (keep_alive_max_requests < 1 || keep_alive_max_requests > 100000) return "keep_alive_max_requests must be in [1, 100000]";
+  if (request_timeout_s < 1 || request_timeout_s > 3600) return "request_timeout_s must be in [1, 3600]";
+  if (max_inflight_body_bytes < max_body_bytes || max_inflight_body_bytes > (1ull << 40)) {
+    return "max_inflight_body_bytes must be in [max_body_bytes, 2^40] (at least one largest upload must fit)";
+  }
   return std::nullopt;
 }
 
@@ -294,7 +321,9 @@ const HttpServer::RouteTable& Routes() {
 }  // namespace
 
 HttpServer::HttpServer(const HttpServerOptions& options)
-    : options_(options), http_(std::make_unique<httplib::Server>()) {
+    : options_(options),
+      upload_budget_(std::make_unique<UploadBudget>(options.max_inflight_body_bytes)),
+      http_(std::make_unique<GuardedHttpServer>(std::chrono::seconds(options.request_timeout_s), upload_budget_.get())) {
   const int threads = options_.threads;
   const int max_queued = options_.max_queued_connections;
   http_->new_task_queue = [threads, max_queued] { return new BoundedTaskQueue(threads, max_queued); };
@@ -374,13 +403,14 @@ void HttpServer::RegisterRoutes() {
                                       " connections already wait for a worker; retry later"));
       return httplib::Server::HandlerResponse::Handled;
     }
-    return httplib::Server::HandlerResponse::Unhandled;
+    return RefuseOverUploadBudget(req, res, upload_budget_.get(), options_.max_body_bytes);
   });
 
   // Responses with an error status that no handler filled (unknown route, payload too large, malformed
   // request) get the JSON error shape; an unknown method on a known route becomes 405.
   http.set_error_handler(httplib::Server::HandlerWithResponse([this](const httplib::Request& req, httplib::Response& res) {
     if (!res.body.empty()) return httplib::Server::HandlerResponse::Unhandled;
+    if (RequestDeadlineExpired()) return AnswerRequestTimeout(res);
     if (res.status == 404) {
       if (const auto* route = Routes().Find(req.path)) {
         res.set_header("Allow", route->methods);

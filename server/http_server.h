@@ -37,6 +37,10 @@ class Server;
 }
 
 namespace oxbow::server {
+class UploadBudget;
+}
+
+namespace oxbow::server {
 
 struct HttpServerOptions {
   // Address to bind. The loopback default keeps the server private; use 0.0.0.0 to expose it
@@ -60,6 +64,14 @@ struct HttpServerOptions {
   // keep_alive_max_requests requests, [1, 100000].
   int keep_alive_timeout_s = 5;
   int keep_alive_max_requests = 1000;
+  // Slow-client protection (server/request_guard.h). A request's headers and body must arrive within this
+  // many seconds of its first byte, however slowly they trickle; a body that misses it is answered 408,
+  // headers that miss it get the connection closed. [1, 3600].
+  int request_timeout_s = 60;
+  // Request bodies held in memory by all requests together, bytes: a request reserves its Content-Length
+  // before its body is read; one that does not fit is answered 503 (Retry-After) without reading it.
+  // [max_body_bytes, 2^40].
+  uint64_t max_inflight_body_bytes = 256ull << 20;
 
   std::optional<std::string> Check() const;
 };
@@ -91,6 +103,7 @@ class HttpServer {
   std::shared_ptr<api::Service> service() const;
 
   HttpServerOptions options_;
+  std::unique_ptr<UploadBudget> upload_budget_;  // declared before http_, which uses it
   std::unique_ptr<httplib::Server> http_;
   api::Metrics metrics_;
   mutable std::mutex service_mutex_;           // guards service_ (pointer copy only)

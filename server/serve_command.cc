@@ -22,6 +22,7 @@ struct ServeFlags {
   server::HttpServerOptions http;
   api::ServiceOptions service;
   double max_upload_mb = 32;
+  double max_inflight_upload_mb = 256;
   double max_megapixels = 40;
   int max_image_side = 1600;
   int index_threads = 0;
@@ -37,6 +38,10 @@ void Serve(const ServeFlags& flags) {
     throw CommandError(2, "--max-megapixels must be in (0, 10000]");
   }
   http.max_body_bytes = static_cast<uint64_t>(flags.max_upload_mb * 1024 * 1024);
+  if (!(flags.max_inflight_upload_mb >= flags.max_upload_mb && flags.max_inflight_upload_mb <= 1024 * 1024)) {
+    throw CommandError(2, "--max-inflight-upload-mb must be in [--max-upload-mb, 1048576]");
+  }
+  http.max_inflight_body_bytes = static_cast<uint64_t>(flags.max_inflight_upload_mb * 1024 * 1024);
   service_options.max_image_bytes = http.max_body_bytes;
   service_options.max_pixels = static_cast<uint64_t>(flags.max_megapixels * 1e6);
   service_options.max_image_side_px = flags.max_image_side > 0 ? std::optional<int>(flags.max_image_side) : std::nullopt;
@@ -161,6 +166,14 @@ void SetUpServe(CLI::App& app) {
   cmd->add_option("--write-timeout-s", flags->http.write_timeout_s, "socket write timeout, seconds")
       ->capture_default_str()
       ->check(CLI::Range(1, 3600));
+  cmd->add_option("--request-timeout-s", flags->http.request_timeout_s,
+                  "a request's headers and body must arrive within this many seconds, however slowly they trickle "
+                  "(408 or closed after it)")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 3600));
+  cmd->add_option("--max-inflight-upload-mb", flags->max_inflight_upload_mb,
+                  "request bodies held in memory by all requests together, MiB; an upload that does not fit gets 503")
+      ->capture_default_str();
   cmd->add_option("--top-k", flags->service.default_query.top_k, "default top_k of searches")
       ->capture_default_str()
       ->check(CLI::Range(1, 10000));

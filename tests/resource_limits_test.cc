@@ -41,12 +41,14 @@
 #include "api/testing.h"
 #include "sift/binary_io.h"
 #include "sift/image.h"
+#include "tests/e2e_testing.h"
 
 namespace oxbow {
 namespace {
 
 using Bytes = std::vector<uint8_t>;
-using api::testing::SamplePath;
+using oxbow::testing::RandomVocabulary;
+using oxbow::testing::Texture;
 
 // ---- Generators -----------------------------------------------------------------------------------
 
@@ -134,19 +136,6 @@ Bytes PatchJpegSize(Bytes jpeg, uint16_t width, uint16_t height) {
   return jpeg;
 }
 
-// A textured grey test picture (a crop of an opencv-doc photo, or seeded noise blobs without it).
-cv::Mat Texture(int width, int height) {
-  cv::Mat grey = cv::imread(SamplePath("graf1.png"), cv::IMREAD_GRAYSCALE);
-  if (grey.empty()) {
-    grey = cv::Mat(480, 640, CV_8UC1);
-    cv::randu(grey, 0, 255);
-    cv::GaussianBlur(grey, grey, cv::Size(0, 0), 3);
-  }
-  cv::Mat out;
-  cv::resize(grey, out, cv::Size(width, height), 0, 0, cv::INTER_AREA);
-  return out;
-}
-
 // A two-frame animated GIF89a (NETSCAPE looping extension), 1x1 frames on a 64x64 screen.
 Bytes AnimatedGif() {
   Bytes gif = {'G', 'I', 'F', '8', '9', 'a', 64, 0, 64, 0, 0x80, 0, 0, 0, 0, 0, 255, 255, 255};
@@ -218,22 +207,6 @@ class ResourceLimitsTest : public ::testing::Test {
   static void TearDownTestSuite() {
     delete dir_;
     dir_ = nullptr;
-  }
-
-  // 256 random unit RootSIFT-shaped centroids: enough to quantise (the tests check limits, not accuracy).
-  static Result<vocab::Vocabulary> RandomVocabulary(const std::string& extractor_settings) {
-    std::mt19937 rng(7);
-    std::uniform_real_distribution<float> u(0, 1);
-    std::vector<float> centroids(256 * 128);
-    for (size_t w = 0; w < 256; ++w) {
-      double norm = 0;
-      for (size_t d = 0; d < 128; ++d) norm += std::pow(centroids[w * 128 + d] = u(rng), 2.0);
-      for (size_t d = 0; d < 128; ++d) centroids[w * 128 + d] /= static_cast<float>(std::sqrt(norm));
-    }
-    vocab::QuantizerBuildOptions build;
-    build.num_threads = 1;
-    return vocab::Vocabulary::FromCentroids(std::move(centroids), 128, sift::DescriptorKind::kRootSift,
-                                            extractor_settings, build);
   }
 
   std::unique_ptr<api::Service> OpenService(const api::ServiceOptions& options = {}) {

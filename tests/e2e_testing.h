@@ -1,0 +1,155 @@
+// Helpers of the end-to-end tests in tests/: a running `oxbow serve` child process (OXBOW_BINARY), a
+// vocabulary of random centroids (instant; for tests of limits and durability, not of accuracy) and
+// textured test pictures. Header-only; tests only.
+#pragma once
+
+#include <fcntl.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <httplib.h>
+
+#include <chrono>
+#include <cmath>
+#include <fstream>
+#include <iterator>
+#include <regex>
+#include <string>
+#include <thread>
+#include <random>
+#include <vector>
+
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "sift/error.h"
+#include "vocab/vocabulary.h"
+
+namespace oxbow::testing {
+
+// `words` random unit centroids of RootSIFT-shaped (non-negative) descriptors, labelled with
+// `extractor_settings` (sift::SiftOptions::Describe()). Identical images quantise identically, which is
+// all the limit and durability tests need.
+inline Result<vocab::Vocabulary> RandomVocabulary(const std::string& extractor_settings, size_t words = 256) {
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<float> u(0, 1);
+  std::vector<float> centroids(words * 128);
+  for (size_t w = 0; w < words; ++w) {
+    double norm = 0;
+    for (size_t d = 0; d < 128; ++d) norm += std::pow(centroids[w * 128 + d] = u(rng), 2.0);
+    for (size_t d = 0; d < 128; ++d) centroids[w * 128 + d] /= static_cast<float>(std::sqrt(norm));
+  }
+  vocab::QuantizerBuildOptions build;
+  build.num_threads = 1;
+  return vocab::Vocabulary::FromCentroids(std::move(centroids), 128, sift::DescriptorKind::kRootSift,
+                                          extractor_settings, build);
+}
+
+// A textured grey picture: the crop of an opencv-doc photo (`sample`, e.g. "graf1.png") at (x, y)
+// resized to width x height; seeded blurred noise when the photo is not installed.
+inline cv::Mat Texture(int width, int height, const std::string& sample = "graf1.png", int x = 0, int y = 0) {
+  cv::Mat grey = cv::imread("/usr/share/doc/opencv-doc/examples/data/" + sample, cv::IMREAD_GRAYSCALE);
+  if (grey.empty()) {
+    grey = cv::Mat(480, 640, CV_8UC1);
+    cv::setRNGSeed(x * 7919 + y);
+    cv::randu(grey, 0, 255);
+    cv::GaussianBlur(grey, grey, cv::Size(0, 0), 3);
+  }
+  const cv::Rect crop(std::min(x, grey.cols / 2), std::min(y, grey.rows / 2), grey.cols - std::min(x, grey.cols / 2),
+                      grey.rows - std::min(y, grey.rows / 2));
+  cv::Mat out;
+  cv::resize(grey(crop), out, cv::Size(width, height), 0, 0, cv::INTER_AREA);
+  return out;
+}
+
+class ServerProcess {
+ public:
+  ServerProcess(const std::vector<std::string>& args, const std::string& log_path) : log_path_(log_path) {
+    int out[2];
+    if (pipe(out) != 0) return;
+    pid_ = fork();
+    if (pid_ == 0) {
+      dup2(out[1], STDOUT_FILENO);
+      const int log = open(log_path.c_str(), O_WRONLY | O_CREAT | O_APPEND, 0644);
+      if (log >= 0) dup2(log, STDERR_FILENO);
+      close(out[0]);
+      close(out[1]);
+      std::vector<std::string> full = {OXBOW_BINARY};
+      full.insert(full.end(), args.begin(), args.end());
+      std::vector<char*> argv;
+      for (auto& a : full) argv.push_back(a.data());
+      argv.push_back(nullptr);
+      execv(argv[0], argv.data());
+      _exit(127);
+    }
+    close(out[1]);
+    // Read stdout until the listening line (or EOF: the server failed to start).
+    std::string text;
+    char buf[256];
+    const std::regex listening(R"(listening on http://127\.0\.0\.1:(\d+))");
+    std::smatch m;
+    while (true) {
+      const ssize_t n = read(out[0], buf, sizeof buf);
+      if (n <= 0) break;
+      text.append(buf, static_cast<size_t>(n));
+      if (std::regex_search(text, m, listening)) {
+        port_ = std::stoi(m[1]);
+        break;
+      }
+    }
+    stdout_fd_ = out[0];
+  }
+  ~ServerProcess() {
+    if (pid_ > 0 && !exited_) {
+      kill(pid_, SIGKILL);
+      waitpid(pid_, nullptr, 0);
+    }
+    if (stdout_fd_ >= 0) close(stdout_fd_);
+  }
+  ServerProcess(const ServerProcess&) = delete;
+  ServerProcess& operator=(const ServerProcess&) = delete;
+
+  int port() const { return port_; }
+  pid_t pid() const { return pid_; }
+  httplib::Client Client() const {
+    httplib::Client client("127.0.0.1", port_);
+    client.set_read_timeout(60, 0);
+    client.set_write_timeout(60, 0);
+    return client;
+  }
+  // Polls /readyz until 200 (true) or the deadline passes.
+  bool WaitReady(std::chrono::seconds deadline = std::chrono::seconds(60)) const {
+    const auto end = std::chrono::steady_clock::now() + deadline;
+    auto client = Client();
+    while (std::chrono::steady_clock::now() < end) {
+      auto res = client.Get("/readyz");
+      if (res && res->status == 200) return true;
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    }
+    return false;
+  }
+  // Sends `signal` and waits for the exit; returns the exit status (or 128 + signal).
+  int Stop(int signal = SIGTERM) {
+    if (pid_ <= 0 || exited_) return -1;
+    kill(pid_, signal);
+    int status = 0;
+    waitpid(pid_, &status, 0);
+    exited_ = true;
+    return WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
+  }
+  std::string Log() const {
+    std::ifstream in(log_path_, std::ios::binary);
+    return std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+  }
+
+ private:
+  pid_t pid_ = -1;
+  int port_ = 0;
+  int stdout_fd_ = -1;
+  bool exited_ = false;
+  std::string log_path_;
+};
+
+}  // namespace oxbow::testing
