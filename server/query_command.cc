@@ -10,6 +10,7 @@
 #include "index/image_index.h"
 #include "server/cli.h"
 #include "server/index_cli.h"
+#include "server/search_flags.h"
 #include "sift/sift.h"
 
 namespace oxbow::cli {
@@ -57,6 +58,7 @@ void SetUpQuery(CLI::App& app) {
   struct Args {
     std::string index, image, bbox;
     index::QueryOptions options;
+    index::IndexOptions index_options;
     std::optional<int> max_side;
   };
   auto args = std::make_shared<Args>();
@@ -67,17 +69,21 @@ void SetUpQuery(CLI::App& app) {
   cmd->add_option("--top-k", args->options.top_k, "results returned")->capture_default_str();
   cmd->add_option("--rerank", args->options.rerank_depth, "spatially verify the top R (0: tf-idf only)")
       ->capture_default_str();
-  cmd->add_flag("--qe", args->options.query_expansion, "average query expansion (Chum et al. 2007)");
-  cmd->add_option("--qe-images", args->options.qe_images, "verified results averaged by --qe")->capture_default_str();
-  cmd->add_option("--min-inliers", args->options.verify.min_inliers, "inliers needed to count as verified")
-      ->capture_default_str();
+  // Query expansion is on by default, as in `oxbow serve`; it does not apply to --rerank 0 unless asked for.
+  args->options.query_expansion = true;
+  auto* qe = cmd->add_flag("--qe,!--no-qe", args->options.query_expansion,
+                           "average query expansion (Chum et al. 2007); on by default, --no-qe turns it off");
+  AddSearchFlags(cmd, &args->options);
+  AddIndexScoringFlags(cmd, &args->index_options);
   cmd->add_option("--max-image-side", args->max_side, "downscale the query if its longest side exceeds this (px)");
-  cmd->callback([args] {
+  cmd->callback([args, qe] {
     using Clock = std::chrono::steady_clock;
     const auto t0 = Clock::now();
     if (!args->bbox.empty()) args->options.region = ParseBox(args->bbox);
+    if (args->options.rerank_depth == 0 && qe->count() == 0) args->options.query_expansion = false;
     if (auto e = args->options.Check()) throw CommandError(2, *e);
-    auto idx = ValueOrExit(index::ImageIndex::Open(args->index));
+    if (auto e = args->index_options.Check()) throw CommandError(2, *e);
+    auto idx = ValueOrExit(index::ImageIndex::Open(args->index, args->index_options));
     const double open_ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
     sift::SiftOptions sift_options = ValueOrExit(sift::SiftOptions::FromDescription(idx->extractor_settings()));
     const sift::SiftExtractor extractor = ValueOrExit(sift::SiftExtractor::Create(sift_options));

@@ -11,6 +11,7 @@
 #include "api/service.h"
 #include "server/cli.h"
 #include "server/http_server.h"
+#include "server/search_flags.h"
 #include "sift/log.h"
 
 namespace oxbow::cli {
@@ -26,6 +27,7 @@ struct ServeFlags {
   double max_megapixels = 40;
   int max_image_side = 1600;
   int index_threads = 0;
+  index::IndexOptions index_options;  // scoring options (--max-df, ...); num_threads from --index-threads
 };
 
 void Serve(const ServeFlags& flags) {
@@ -47,6 +49,7 @@ void Serve(const ServeFlags& flags) {
   service_options.max_image_side_px = flags.max_image_side > 0 ? std::optional<int>(flags.max_image_side) : std::nullopt;
   if (auto message = http.Check()) throw CommandError(2, *message);
   if (auto message = service_options.Check()) throw CommandError(2, *message);
+  if (auto message = flags.index_options.Check()) throw CommandError(2, *message);
   if (http.host != "127.0.0.1" && http.host != "localhost" && http.host != "::1" && http.api_key.empty()) {
     OXBOW_LOG(kWarning) << "serving on " << http.host << " without --api-key: anyone who can reach it may add and delete images";
   }
@@ -69,7 +72,7 @@ void Serve(const ServeFlags& flags) {
 
   std::optional<Error> load_error;
   std::thread loader([&] {
-    index::IndexOptions index_options;
+    index::IndexOptions index_options = flags.index_options;
     index_options.num_threads = flags.index_threads;
     const auto start = std::chrono::steady_clock::now();
     auto service = api::Service::Open(flags.index_dir, flags.vocab_path.empty() ? std::nullopt
@@ -186,6 +189,10 @@ void SetUpServe(CLI::App& app) {
   flags->service.default_query.query_expansion = true;
   cmd->add_flag("--qe,!--no-qe", flags->service.default_query.query_expansion,
                 "average query expansion in searches by default (on; --no-qe turns it off; a search's qe parameter overrides)");
+  // Defaults of the other search parameters (a search's own parameters override them) and the index's
+  // scoring options.
+  AddSearchFlags(cmd, &flags->service.default_query);
+  AddIndexScoringFlags(cmd, &flags->index_options);
   cmd->callback([flags] { Serve(*flags); });
 }
 

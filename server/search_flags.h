@@ -1,0 +1,81 @@
+// Command-line flags for the search and index options (index/image_index.h), shared by `oxbow query`
+// and `oxbow serve` so that both spell, range-check and document them the same way. Each flag maps 1:1
+// onto one option field; its default is the field's in-class default (see the field's comment for the
+// meaning and the paper), and the same names (with '_' for '-') are the HTTP search parameters
+// (api/params.h).
+#pragma once
+
+#include <CLI/CLI.hpp>
+
+#include "index/image_index.h"
+
+namespace oxbow::cli {
+
+// Per-search options beyond --top-k/--rerank/--qe (which each command words for its own use).
+inline void AddSearchFlags(CLI::App* cmd, index::QueryOptions* o) {
+  const auto group = "Search";
+  cmd->add_option("--qe-images", o->qe_images, "verified results averaged into the expanded query")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 100))
+      ->group(group);
+  cmd->add_option("--min-inliers", o->verify.min_inliers, "inliers needed to count as verified")
+      ->capture_default_str()
+      ->check(CLI::Range(3, 1000000))
+      ->group(group);
+  cmd->add_option("--max-pairs-per-word", o->max_pairs_per_word,
+                  "re-ranking: words with more features than this on either side give no tentative matches")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 100))
+      ->group(group);
+  cmd->add_option("--transitive-depth", o->transitive_depth,
+                  "transitive verification: unverified results tried against verified ones (0 = off)")
+      ->capture_default_str()
+      ->check(CLI::Range(0, 10000))
+      ->group(group);
+  cmd->add_option("--transitive-anchors", o->transitive_anchors, "transitive verification: verified results used as anchors")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 1000))
+      ->group(group);
+  cmd->add_option("--transitive-neighbours", o->transitive_neighbours,
+                  "transitive verification: an anchor only verifies its own best tf-idf neighbours")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 10000))
+      ->group(group);
+  cmd->add_option("--transitive-attempts", o->transitive_attempts,
+                  "transitive verification: anchors a candidate is verified against at most")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 1000))
+      ->group(group);
+  cmd->add_option("--query-assignments", o->query_assignments,
+                  "multiple assignment: nearest words each query descriptor counts for (1 = hard)")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 8))
+      ->group(group);
+  cmd->add_option("--assignment-sigma-sq", o->assignment_sigma_sq, "multiple assignment: kernel width (squared distance)")
+      ->capture_default_str()
+      ->check(CLI::Range(1e-9, 4.0))
+      ->group(group);
+  cmd->add_option("--quantizer-probes", o->quantizer_probes,
+                  "coarse quantiser lists probed per query descriptor (more: slower, closer to exact)")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 4096))
+      ->group(group);
+}
+
+// Options of the opened index that change scores: fixed while it is open, not stored in it.
+inline void AddIndexScoringFlags(CLI::App* cmd, index::IndexOptions* o) {
+  const auto group = "Index scoring";
+  cmd->add_option("--max-df", o->max_document_frequency,
+                  "stop list: ignore query words in more than this fraction of the images (1 = off)")
+      ->capture_default_str()
+      ->check(CLI::Range(1e-9, 1.0))
+      ->group(group);
+  cmd->add_option("--stop-list-min-images", o->stop_list_min_images,
+                  "stop list: never drop a word contained in at most this many images")
+      ->capture_default_str()
+      ->group(group);
+  cmd->add_flag("--sqrt-tf,!--raw-tf", o->sqrt_tf, "burstiness: sqrt of term frequencies (default) or raw counts")
+      ->group(group);
+}
+
+}  // namespace oxbow::cli
