@@ -3,6 +3,8 @@
 #include <gtest/gtest.h>
 
 #include <set>
+#include <utility>
+#include <vector>
 
 #include "api/errors.h"
 #include "api/json.h"
@@ -100,6 +102,54 @@ TEST(Params, QueryParamsOverrideDefaultsAndRefuseUnknownNames) {
   auto kept = ParseQueryParams({{"top_k", "3"}}, qe_default);
   ASSERT_TRUE(kept);
   EXPECT_TRUE(kept->query_expansion);
+}
+
+TEST(Params, SearchOptionParamsMapOntoQueryOptions) {
+  const index::QueryOptions defaults;
+  auto q = ParseQueryParams({{"transitive_depth", "0"},
+                             {"transitive_anchors", "7"},
+                             {"transitive_neighbours", "11"},
+                             {"transitive_attempts", "3"},
+                             {"query_assignments", "2"},
+                             {"quantizer_probes", "32"},
+                             {"max_pairs_per_word", "1"},
+                             {"min_inliers", "9"},
+                             {"qe_images", "4"}},
+                            defaults);
+  ASSERT_TRUE(q) << q.error().message;
+  EXPECT_EQ(q->transitive_depth, 0);
+  EXPECT_EQ(q->transitive_anchors, 7);
+  EXPECT_EQ(q->transitive_neighbours, 11);
+  EXPECT_EQ(q->transitive_attempts, 3);
+  EXPECT_EQ(q->query_assignments, 2);
+  EXPECT_EQ(q->quantizer_probes, 32);
+  EXPECT_EQ(q->max_pairs_per_word, 1);
+  EXPECT_EQ(q->verify.min_inliers, 9);
+  EXPECT_EQ(q->qe_images, 4);
+  // Untouched fields keep the defaults.
+  EXPECT_EQ(q->rerank_depth, defaults.rerank_depth);
+  EXPECT_EQ(q->top_k, defaults.top_k);
+
+  // Out of range or not an integer: an error naming the parameter.
+  const std::vector<std::pair<std::string, std::string>> bad = {
+      {"transitive_depth", "-1"},      {"transitive_depth", "10001"}, {"transitive_anchors", "0"},
+      {"transitive_anchors", "1001"},  {"transitive_neighbours", "0"}, {"transitive_attempts", "0"},
+      {"transitive_attempts", "1001"}, {"query_assignments", "9"},    {"quantizer_probes", "0"},
+      {"quantizer_probes", "4097"},    {"max_pairs_per_word", "101"}, {"min_inliers", "2"},
+      {"qe_images", "0"},              {"transitive_depth", "2.5"},   {"quantizer_probes", "many"}};
+  for (const auto& [name, value] : bad) {
+    auto refused = ParseQueryParams({{name, value}}, defaults);
+    ASSERT_FALSE(refused) << name << "=" << value;
+    EXPECT_EQ(refused.error().code, ErrorCode::kInvalidArgument);
+    EXPECT_NE(refused.error().message.find(name), std::string::npos) << refused.error().message;
+  }
+  // Every parameter is known, near misses are not.
+  for (const char* name : {"transitive_depth", "transitive_anchors", "transitive_neighbours", "transitive_attempts",
+                           "query_assignments", "quantizer_probes", "max_pairs_per_word", "min_inliers"}) {
+    EXPECT_TRUE(QueryParamNames().contains(name)) << name;
+  }
+  EXPECT_FALSE(ParseQueryParams({{"transitive_neighbors", "5"}}, defaults));
+  EXPECT_FALSE(ParseQueryParams({{"probes", "5"}}, defaults));
 }
 
 TEST(Params, AddParams) {

@@ -81,13 +81,52 @@ Status CheckKnownParams(const Params& params, const std::set<std::string>& known
   return Ok();
 }
 
+namespace {
+
+// The integer search parameters that map straight onto one QueryOptions field, with their ranges.
+struct IntQueryParam {
+  const char* name;
+  int64_t min;
+  int64_t max;
+  int index::QueryOptions::*field;
+};
+constexpr IntQueryParam kIntQueryParams[] = {
+    {"top_k", 1, 10000, &index::QueryOptions::top_k},
+    {"qe_images", 1, 100, &index::QueryOptions::qe_images},
+    {"max_pairs_per_word", 1, 100, &index::QueryOptions::max_pairs_per_word},
+    {"transitive_depth", 0, 10000, &index::QueryOptions::transitive_depth},
+    {"transitive_anchors", 1, 1000, &index::QueryOptions::transitive_anchors},
+    {"transitive_neighbours", 1, 10000, &index::QueryOptions::transitive_neighbours},
+    {"transitive_attempts", 1, 1000, &index::QueryOptions::transitive_attempts},
+    {"query_assignments", 1, 8, &index::QueryOptions::query_assignments},
+    {"quantizer_probes", 1, 4096, &index::QueryOptions::quantizer_probes},
+};
+
+}  // namespace
+
+const std::set<std::string>& QueryParamNames() {
+  static const std::set<std::string> names = [] {
+    std::set<std::string> n = {"rerank", "bbox", "qe", "min_inliers"};
+    for (const IntQueryParam& p : kIntQueryParams) n.insert(p.name);
+    return n;
+  }();
+  return names;
+}
+
 Result<index::QueryOptions> ParseQueryParams(const Params& params, const index::QueryOptions& defaults) {
   if (auto known = CheckKnownParams(params, QueryParamNames()); !known) return std::unexpected(known.error());
   index::QueryOptions options = defaults;
-  if (const auto* v = Find(params, "top_k")) {
-    auto parsed = ParseInt("top_k", *v, 1, 10000);
+  for (const IntQueryParam& p : kIntQueryParams) {
+    if (const auto* v = Find(params, p.name)) {
+      auto parsed = ParseInt(p.name, *v, p.min, p.max);
+      if (!parsed) return std::unexpected(parsed.error());
+      options.*p.field = static_cast<int>(*parsed);
+    }
+  }
+  if (const auto* v = Find(params, "min_inliers")) {
+    auto parsed = ParseInt("min_inliers", *v, 3, 1000000);
     if (!parsed) return std::unexpected(parsed.error());
-    options.top_k = static_cast<int>(*parsed);
+    options.verify.min_inliers = static_cast<int>(*parsed);
   }
   if (const auto* v = Find(params, "rerank")) {
     if (*v == "true" || *v == "false" || *v == "yes" || *v == "no" || *v == "on" || *v == "off") {
@@ -108,11 +147,6 @@ Result<index::QueryOptions> ParseQueryParams(const Params& params, const index::
     auto parsed = ParseBool("qe", *qe_param);
     if (!parsed) return std::unexpected(parsed.error());
     options.query_expansion = *parsed;
-  }
-  if (const auto* v = Find(params, "qe_images")) {
-    auto parsed = ParseInt("qe_images", *v, 1, 100);
-    if (!parsed) return std::unexpected(parsed.error());
-    options.qe_images = static_cast<int>(*parsed);
   }
   if (options.query_expansion && options.rerank_depth == 0) {
     // QE averages verified results, so it needs re-ranking. Asked for explicitly, that is an error;

@@ -41,12 +41,17 @@ using Params = std::map<std::string, std::string>;
 //   bbox       x1,y1,x2,y2           QueryOptions::region (query-image pixels)
 //   qe         bool                  QueryOptions::query_expansion
 //   qe_images  [1, 100]              QueryOptions::qe_images
+//   min_inliers            [3, 1000000]  QueryOptions::verify.min_inliers
+//   max_pairs_per_word     [1, 100]      QueryOptions::max_pairs_per_word
+//   transitive_depth       [0, 10000]    QueryOptions::transitive_depth (0 = off)
+//   transitive_anchors     [1, 1000]     QueryOptions::transitive_anchors
+//   transitive_neighbours  [1, 10000]    QueryOptions::transitive_neighbours
+//   transitive_attempts    [1, 1000]     QueryOptions::transitive_attempts
+//   query_assignments      [1, 8]        QueryOptions::query_assignments
+//   quantizer_probes       [1, 4096]     QueryOptions::quantizer_probes
 // Starts from `defaults`; the result passes QueryOptions::Check().
 [[nodiscard]] Result<index::QueryOptions> ParseQueryParams(const Params& params, const index::QueryOptions& defaults);
-inline const std::set<std::string>& QueryParamNames() {
-  static const std::set<std::string> names = {"top_k", "rerank", "bbox", "qe", "qe_images"};
-  return names;
-}
+const std::set<std::string>& QueryParamNames();
 
 // POST /v1/images: id (required, 1..256 bytes, no control characters), replace (bool, default false),
 // metadata (a JSON document, default none; stored re-serialised compactly).
