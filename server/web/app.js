@@ -10,6 +10,7 @@ const $ = (id) => document.getElementById(id);
 const SVG_NS = 'http://www.w3.org/2000/svg';
 const PAGE_SIZE = 24;
 const MATCH_THUMBNAIL_PX = 512;  // the largest thumbnail the server keeps
+const MAX_LINES = 150;           // correspondence lines drawn in the match view at most
 
 const state = {
   query: null,        // {kind: 'file', file, url, width, height} | {kind: 'id', id, url, width, height}
@@ -434,18 +435,25 @@ async function openMatchView(result) {
   const H = 400;
   const gap = 16;
   const q = state.query;
-  const sa = H / q.height;            // query pixels -> SVG units
+  const sq = H / q.height;            // query pixels -> SVG units (the box)
+  const sa = H / match.a.height;      // pixels of the image matched as a (the file, or the query's thumbnail)
   const sb = H / match.b.height;      // thumbnail pixels -> SVG units
-  const wa = q.width * sa;
+  const wa = q.width * sq;
   const wb = match.b.width * sb;
   svg.setAttribute('viewBox', `0 0 ${wa + gap + wb} ${H}`);
   const thumbUrl = URL.createObjectURL(thumbBlob);
   svg.append(svgElement('image', { href: q.url, x: 0, y: 0, width: wa, height: H, preserveAspectRatio: 'none' }),
              svgElement('image', { href: thumbUrl, x: wa + gap, y: 0, width: wb, height: H, preserveAspectRatio: 'none' }));
-  const inBox = (c) => !state.box || (c[0] >= state.box[0] && c[0] <= state.box[2] && c[1] >= state.box[1] && c[1] <= state.box[3]);
+  const ka = q.height / match.a.height;  // a pixels -> query pixels (1 for an uploaded file)
+  const inBox = (c) => !state.box || (c[0] * ka >= state.box[0] && c[0] * ka <= state.box[2] &&
+                                      c[1] * ka >= state.box[1] && c[1] * ka <= state.box[3]);
   const pairs = (match.correspondences || []).filter(inBox);
+  // Hundreds of lines hide the pictures: draw an even sample of at most MAX_LINES.
+  const step = Math.max(1, pairs.length / MAX_LINES);
+  const drawn = [];
+  for (let i = 0; i < pairs.length && drawn.length < MAX_LINES; i += step) drawn.push(pairs[Math.floor(i)]);
   const lines = svgElement('g', { class: 'correspondences' });
-  for (const c of pairs) {
+  for (const c of drawn) {
     const x1 = c[0] * sa;
     const y1 = c[1] * sa;
     const x2 = wa + gap + c[2] * sb;
@@ -455,7 +463,7 @@ async function openMatchView(result) {
                  svgElement('circle', { cx: x2, cy: y2, r: 3, class: 'corr-end' }));
   }
   if (state.box) {
-    const b = state.box.map((v) => v * sa);
+    const b = state.box.map((v) => v * sq);
     svg.append(svgElement('rect', { x: b[0], y: b[1], width: b[2] - b[0], height: b[3] - b[1], class: 'box' }));
   }
   if (result.region) {
@@ -466,7 +474,8 @@ async function openMatchView(result) {
   }
   svg.append(lines);
   $('match-summary').textContent =
-    `${pairs.length} verified correspondences drawn as lines (query photo against the result's ` +
+    (drawn.length < pairs.length ? `${drawn.length} of ${pairs.length}` : `${pairs.length}`) +
+    ` verified correspondences drawn as lines (query photo against the result's ` +
     `${match.b.width} × ${match.b.height} px thumbnail; model ${match.model}, ${match.inliers} inliers of ` +
     `${match.tentative_matches} tentative matches).`;
   const details = $('match-details');
@@ -580,8 +589,8 @@ async function deleteImage(id) {
     showError(e);
     return;
   }
-  showInfo(`Deleted ${id}.`);
   await loadCollection();
+  showInfo(`Deleted ${id}.`);
   refreshStatus();
 }
 
@@ -647,7 +656,10 @@ function start() {
   $('query-file').addEventListener('change', (event) => setQueryFile(event.target.files[0]));
   $('search-form').addEventListener('submit', (event) => {
     event.preventDefault();
-    const id = $('query-id').value.trim();
+    const text = $('query-id').value.trim();
+    // A pasted address of an indexed image (…/v1/images/ID or …/v1/images/ID/thumbnail) works too.
+    const m = text.match(/\/v1\/images\/([^/?#]+)/);
+    const id = m ? decodeURIComponent(m[1]) : text;
     if (id) setQueryId(id);
   });
   $('match-close').addEventListener('click', () => {

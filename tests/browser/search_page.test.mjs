@@ -70,6 +70,20 @@ async function waitReady(url) {
   throw new Error('the server did not become ready');
 }
 
+// True when every correspondence line starts in the left picture and ends in the right one (the SVG's
+// two <image> elements), i.e. the coordinates were scaled into the right picture.
+function linesInTheirPictures(page) {
+  return page.$eval('#match-svg', (svg) => {
+    const [a, b] = [...svg.querySelectorAll('image')].map((i) => ['x', 'y', 'width', 'height'].map((k) => Number(i.getAttribute(k))));
+    const inside = (x, y, r) => x >= r[0] - 0.5 && x <= r[0] + r[2] + 0.5 && y >= r[1] - 0.5 && y <= r[1] + r[3] + 0.5;
+    const lines = [...svg.querySelectorAll('line.corr')];
+    return lines.length > 0 && lines.every((l) => {
+      const v = ['x1', 'y1', 'x2', 'y2'].map((k) => Number(l.getAttribute(k)));
+      return inside(v[0], v[1], a) && inside(v[2], v[3], b);
+    });
+  });
+}
+
 async function main() {
   const args = parseArgs();
   let chromium;
@@ -143,9 +157,10 @@ async function main() {
 
     // 2. The match view: correspondence lines and the transform.
     await page.click('#results li:first-child button');
-    await page.waitForSelector('#match-svg line.corr', { timeout: 30000 });
+    await page.waitForSelector('#match-svg line.corr', { state: 'attached', timeout: 30000 });
     const lines = await page.$$eval('#match-svg line.corr', (l) => l.length);
     check(lines >= 6, `match view draws the verified correspondences (${lines} lines)`);
+    check(await linesInTheirPictures(page), 'every line runs from the query picture to the result picture');
     const details = await page.textContent('#match-details');
     check(/Transform/.test(details) && /scale \d/.test(details), 'match view shows the transform');
     await page.$eval('#match-view', (el) => el.scrollIntoView());
@@ -176,14 +191,37 @@ async function main() {
     check((await page.textContent('#box-text')) !== before, 'arrow keys move the box');
     await shot(page, 'box-search.png');
 
-    // 4. A truncated JPEG gives the error message.
+    // 4. Drag and drop a photo onto the drop zone.
+    const boxBase64 = fs.readFileSync(path.join(SAMPLES, 'box.png')).toString('base64');
+    await page.evaluate((data) => {
+      const bytes = Uint8Array.from(atob(data), (c) => c.charCodeAt(0));
+      const transfer = new DataTransfer();
+      transfer.items.add(new File([bytes], 'dropped-box.png', { type: 'image/png' }));
+      document.getElementById('drop-zone').dispatchEvent(new DragEvent('drop', { dataTransfer: transfer, bubbles: true, cancelable: true }));
+    }, boxBase64);
+    await page.waitForFunction(() => /No box/.test(document.getElementById('box-text').textContent) &&
+                                     !/\(box /.test(document.getElementById('results-summary').textContent) &&
+                                     document.querySelector('#results li'));
+    check((await page.$eval('#results li', (li) => li.dataset.id)) === 'box_in_scene', 'a dropped photo is searched');
+
+    // 5. Search by a pasted address of an indexed image, then its match view (the query is a thumbnail).
+    await page.fill('#query-id', `${url}/v1/images/graf1/thumbnail`);
+    await page.click('#search-id-button');
+    await page.waitForFunction(() => document.querySelector('#results li')?.dataset.id === 'graf1');
+    check(true, 'search by pasted address: graf1 finds itself first');
+    await page.click('#results li:first-child button');
+    await page.waitForSelector('#match-svg line.corr', { state: 'attached', timeout: 30000 });
+    check(await linesInTheirPictures(page), 'by-id match view: every line runs between the two pictures');
+    await shot(page, 'match-by-id.png');
+
+    // 6. A truncated JPEG gives the error message.
     await page.setInputFiles('#query-file', truncated);
     await page.waitForSelector('#messages .error');
     const error = await page.textContent('#messages .error');
     check(/not a readable image/.test(error) && /HTTP 400 invalid_image/.test(error), `truncated file: "${error}"`);
     await shot(page, 'error.png');
 
-    // 5. The collection: add an image (the API key is asked for), see its stored thumbnail, delete it.
+    // 7. The collection: add an image (the API key is asked for), see its stored thumbnail, delete it.
     await page.click('#tab-browse');
     await page.waitForSelector('#collection li');
     check((await page.$$('#collection li')).length === 8, 'collection lists the 8 images');
@@ -209,7 +247,7 @@ async function main() {
           `no script errors (${consoleErrors.join(' | ')})`);
     await context.close();
 
-    // 6. A phone-sized screen: same search, no horizontal scrolling.
+    // 8. A phone-sized screen: same search, no horizontal scrolling.
     const phone = await browser.newContext({ viewport: { width: 375, height: 812 }, deviceScaleFactor: 2, hasTouch: true });
     const small = await phone.newPage();
     await small.goto(url + '/');
