@@ -1,0 +1,224 @@
+// Thumbnails: making them (sizes, colour, reduced decoding, errors), the SQLite store (round trip,
+// persistence, other versions and damaged files refused) and the service's use of them (stored at add,
+// replaced, deleted, stale entries not served).
+#include "api/thumbnails.h"
+
+#include <gtest/gtest.h>
+#include <sqlite3.h>
+
+#include <filesystem>
+#include <fstream>
+
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+
+#include "api/service.h"
+#include "api/testing.h"
+
+namespace oxbow::api {
+namespace {
+
+using testing::ReadBytes;
+using testing::SamplePath;
+
+std::span<const uint8_t> AsBytes(const std::string& text) {
+  return {reinterpret_cast<const uint8_t*>(text.data()), text.size()};
+}
+
+cv::Mat DecodeJpeg(const std::string& jpeg) {
+  const cv::Mat raw(1, static_cast<int>(jpeg.size()), CV_8UC1, const_cast<char*>(jpeg.data()));
+  return cv::imdecode(raw, cv::IMREAD_UNCHANGED);
+}
+
+TEST(MakeThumbnail, ScalesTheLongestSideDownNeverUpAndKeepsColour) {
+  const auto bytes = ReadBytes(SamplePath("fruits.jpg"));  // 512 x 480, colour
+  if (bytes.empty()) GTEST_SKIP() << "opencv-doc sample photos not installed";
+  auto small = MakeThumbnail(bytes, 128, 80, {});
+  ASSERT_TRUE(small) << small.error().ToString();
+  EXPECT_EQ(small->width, 128);
+  EXPECT_EQ(small->height, 120);
+  const cv::Mat decoded = DecodeJpeg(small->jpeg);
+  EXPECT_EQ(decoded.cols, 128);
+  EXPECT_EQ(decoded.rows, 120);
+  EXPECT_EQ(decoded.channels(), 3);
+  auto same = MakeThumbnail(bytes, 2000, 80, {});
+  ASSERT_TRUE(same);
+  EXPECT_EQ(same->width, 512);
+  EXPECT_EQ(same->height, 480);
+  auto worse = MakeThumbnail(bytes, 128, 10, {});
+  ASSERT_TRUE(worse);
+  EXPECT_LT(worse->jpeg.size(), small->jpeg.size());  // quality is applied
+}
+
+TEST(MakeThumbnail, LargeJpegIsDecodedReducedToTheRightSize) {
+  cv::Mat big(2000, 3000, CV_8UC3);
+  cv::randu(big, cv::Scalar::all(0), cv::Scalar::all(255));
+  std::vector<uchar> jpeg;
+  ASSERT_TRUE(cv::imencode(".jpg", big, jpeg));
+  auto thumb = MakeThumbnail(jpeg, 300, 80, {});
+  ASSERT_TRUE(thumb) << thumb.error().ToString();
+  EXPECT_EQ(thumb->width, 300);
+  EXPECT_EQ(thumb->height, 200);
+}
+
+TEST(MakeThumbnail, RefusesBadInputWithErrors) {
+  EXPECT_EQ(MakeThumbnail({}, 100, 80, {}).error().code, ErrorCode::kInvalidImage);
+  EXPECT_EQ(MakeThumbnail(AsBytes("this is not an image at all"), 100, 80, {}).error().code, ErrorCode::kInvalidImage);
+  const auto bytes = ReadBytes(SamplePath("box.png"));
+  if (bytes.empty()) GTEST_SKIP() << "opencv-doc sample photos not installed";
+  sift::DecodeOptions tight;
+  tight.max_pixels = 1000;
+  EXPECT_EQ(MakeThumbnail(bytes, 100, 80, tight).error().code, ErrorCode::kImageTooLarge);
+  tight = {};
+  tight.max_bytes = 100;
+  EXPECT_EQ(MakeThumbnail(bytes, 100, 80, tight).error().code, ErrorCode::kImageTooLarge);
+  EXPECT_EQ(MakeThumbnail(bytes, 0, 80, {}).error().code, ErrorCode::kInvalidArgument);
+  EXPECT_EQ(MakeThumbnail(bytes, 100, 101, {}).error().code, ErrorCode::kInvalidArgument);
+}
+
+class ThumbnailStoreTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    ASSERT_FALSE(dir_.path().empty());
+    path_ = dir_.path() + "/thumbnails.sqlite";
+    cv::Mat image(30, 40, CV_8UC3, cv::Scalar(10, 200, 30));
+    std::vector<uchar> jpeg;
+    ASSERT_TRUE(cv::imencode(".jpg", image, jpeg));
+    entry_.thumbnail.jpeg.assign(jpeg.begin(), jpeg.end());
+    entry_.image_width = 400;
+    entry_.image_height = 300;
+    entry_.source = "http:photo.jpg";
+  }
+  testing::TempDir dir_{"oxbow-thumbnail-store"};
+  std::string path_;
+  ThumbnailStore::Entry entry_;
+};
+
+TEST_F(ThumbnailStoreTest, RoundTripPersistsAndRemoves) {
+  {
+    auto store = ThumbnailStore::Open(path_);
+    ASSERT_TRUE(store) << store.error().ToString();
+    ASSERT_TRUE((*store)->Put("a b/c", entry_));
+    auto missing = (*store)->Get("other");
+    ASSERT_TRUE(missing);
+    EXPECT_FALSE(missing->has_value());
+  }
+  auto store = ThumbnailStore::Open(path_);  // reopened: the entry was durable
+  ASSERT_TRUE(store);
+  auto got = (*store)->Get("a b/c");
+  ASSERT_TRUE(got) << got.error().ToString();
+  ASSERT_TRUE(got->has_value());
+  EXPECT_EQ((*got)->thumbnail.jpeg, entry_.thumbnail.jpeg);
+  EXPECT_EQ((*got)->thumbnail.width, 40);  // read from the JPEG header
+  EXPECT_EQ((*got)->thumbnail.height, 30);
+  EXPECT_EQ((*got)->image_width, 400);
+  EXPECT_EQ((*got)->image_height, 300);
+  EXPECT_EQ((*got)->source, "http:photo.jpg");
+  entry_.source = "replaced";
+  ASSERT_TRUE((*store)->Put("a b/c", entry_));
+  EXPECT_EQ((*(*store)->Get("a b/c"))->source, "replaced");
+  ASSERT_TRUE((*store)->Remove("a b/c"));
+  EXPECT_FALSE((*store)->Get("a b/c")->has_value());
+  EXPECT_TRUE((*store)->Remove("never there"));
+}
+
+TEST_F(ThumbnailStoreTest, RefusesAnotherSchemaVersion) {
+  ASSERT_TRUE(ThumbnailStore::Open(path_));
+  sqlite3* db = nullptr;
+  ASSERT_EQ(sqlite3_open(path_.c_str(), &db), SQLITE_OK);
+  ASSERT_EQ(sqlite3_exec(db, "PRAGMA user_version=2", nullptr, nullptr, nullptr), SQLITE_OK);
+  sqlite3_close(db);
+  auto store = ThumbnailStore::Open(path_);
+  ASSERT_FALSE(store);
+  EXPECT_EQ(store.error().code, ErrorCode::kIncompatible);
+  EXPECT_NE(store.error().message.find("version 2"), std::string::npos) << store.error().message;
+}
+
+TEST_F(ThumbnailStoreTest, RefusesADamagedFile) {
+  {
+    std::ofstream out(path_, std::ios::binary);
+    out << std::string(8192, 'x');
+  }
+  auto store = ThumbnailStore::Open(path_);
+  ASSERT_FALSE(store);
+  EXPECT_EQ(store.error().code, ErrorCode::kCorruptData) << store.error().ToString();
+}
+
+TEST_F(ThumbnailStoreTest, AnEntryThatIsNotAJpegIsCorruptData) {
+  auto store = ThumbnailStore::Open(path_);
+  ASSERT_TRUE(store);
+  entry_.thumbnail.jpeg = "garbage";
+  ASSERT_TRUE((*store)->Put("bad", entry_));
+  auto got = (*store)->Get("bad");
+  ASSERT_FALSE(got);
+  EXPECT_EQ(got.error().code, ErrorCode::kCorruptData);
+}
+
+// The service: thumbnails stored with adds, replaced with them, removed with deletes; an entry made for
+// another image under the same id is not served.
+TEST(ServiceThumbnails, FollowAddsReplacesAndDeletes) {
+  if (!std::filesystem::exists(SamplePath("box_in_scene.png"))) GTEST_SKIP() << "opencv-doc sample photos not installed";
+  testing::TempDir dir("oxbow-service-thumbnails");
+  const std::string vocab = dir.path() + "/vocab.oxvoc";
+  ASSERT_TRUE(testing::BuildTestVocabulary({"box_in_scene.png", "graf1.png"}, 128, vocab));
+  const std::string index_dir = dir.path() + "/index";
+  auto service = Service::Open(index_dir, vocab, {});
+  ASSERT_TRUE(service) << service.error().ToString();
+  const auto scene = ReadBytes(SamplePath("box_in_scene.png"));  // 512 x 384
+  const auto graf = ReadBytes(SamplePath("graf1.png"));          // 800 x 640
+  AddImageRequest add;
+  add.id = "x";
+  add.image = scene;
+  add.source_name = "http:scene.png";
+  ASSERT_TRUE((*service)->AddImage(add));
+  auto thumb = (*service)->GetThumbnail("x", 128);
+  ASSERT_TRUE(thumb) << thumb.error().ToString();
+  EXPECT_EQ(thumb->thumbnail.width, 128);
+  EXPECT_EQ(thumb->thumbnail.height, 96);
+  EXPECT_EQ((*service)->GetThumbnail("x", 15).error().code, ErrorCode::kInvalidArgument);
+  EXPECT_EQ((*service)->GetThumbnail("x", 513).error().code, ErrorCode::kInvalidArgument);
+  EXPECT_EQ((*service)->GetThumbnail("nope", 128).error().code, ErrorCode::kNotFound);
+
+  add.image = graf;
+  add.replace = true;
+  ASSERT_TRUE((*service)->AddImage(add));
+  thumb = (*service)->GetThumbnail("x", 512);
+  ASSERT_TRUE(thumb);
+  EXPECT_EQ(thumb->thumbnail.width, 512);
+  EXPECT_EQ(thumb->thumbnail.height, 410);  // graf1's shape now
+
+  // A stale entry (made for a 512 x 384 image) under the id of the 800 x 640 one is not served; the
+  // source "http:scene.png" is no file, so there is nothing to make one from.
+  {
+    auto store = ThumbnailStore::Open(index_dir + "/thumbnails.sqlite");
+    ASSERT_TRUE(store);
+    auto entry = (*store)->Get("x");
+    ASSERT_TRUE(entry && entry->has_value());
+    (*entry)->image_width = 512;
+    (*entry)->image_height = 384;
+    ASSERT_TRUE((*store)->Put("x", **entry));
+  }
+  EXPECT_EQ((*service)->GetThumbnail("x", 128).error().code, ErrorCode::kNotFound);
+
+  ASSERT_TRUE((*service)->DeleteImage("x"));
+  auto store = ThumbnailStore::Open(index_dir + "/thumbnails.sqlite");
+  ASSERT_TRUE(store);
+  EXPECT_FALSE((*store)->Get("x")->has_value());
+
+  // With no stored entry but a readable source file, one is made from the file, then kept.
+  add.id = "from-file";
+  add.replace = false;
+  add.source_name = SamplePath("graf1.png");
+  ASSERT_TRUE((*service)->AddImage(add));
+  ASSERT_TRUE((*store)->Remove("from-file"));
+  thumb = (*service)->GetThumbnail("from-file", 200);
+  ASSERT_TRUE(thumb) << thumb.error().ToString();
+  EXPECT_TRUE(thumb->from_source);
+  EXPECT_EQ(thumb->thumbnail.width, 200);
+  thumb = (*service)->GetThumbnail("from-file", 200);
+  ASSERT_TRUE(thumb);
+  EXPECT_FALSE(thumb->from_source);
+}
+
+}  // namespace
+}  // namespace oxbow::api
