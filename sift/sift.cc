@@ -666,11 +666,15 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
         for (unsigned bits = static_cast<unsigned>(_mm256_movemask_ps(valid)); bits != 0; bits &= bits - 1) {
           const int lane = std::countr_zero(bits);
           float* p = hist + index[lane];
-          const __m128 o_weights = _mm_castpd_ps(_mm_load_sd(reinterpret_cast<const double*>(o_pairs + 2 * lane)));
+          // Two floats at a 4-byte aligned address: _mm_loadl_epi64 / _mm_storel_epi64 (movq) are the
+          // unaligned 8-byte load and store (_mm_load_sd on a double* there is a misaligned access, UB).
+          const __m128 o_weights =
+              _mm_castsi128_ps(_mm_loadl_epi64(reinterpret_cast<const __m128i*>(o_pairs + 2 * lane)));
           auto add_pair = [&](int offset, const float* v_rc) {
-            double* target = reinterpret_cast<double*>(p + offset);
-            const __m128 sum = _mm_fmadd_ps(_mm_broadcast_ss(v_rc), o_weights, _mm_castpd_ps(_mm_load_sd(target)));
-            _mm_store_sd(target, _mm_castps_pd(sum));
+            auto* target = reinterpret_cast<__m128i*>(p + offset);
+            const __m128 sum =
+                _mm_fmadd_ps(_mm_broadcast_ss(v_rc), o_weights, _mm_castsi128_ps(_mm_loadl_epi64(target)));
+            _mm_storel_epi64(target, _mm_castps_si128(sum));
           };
           add_pair(0, weights[0] + lane);
           add_pair(n + 2, weights[1] + lane);
