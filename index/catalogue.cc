@@ -150,8 +150,13 @@ Result<std::unique_ptr<Catalogue>> Catalogue::Open(const std::string& path) {
                                              message);
   }
   while ((rc = sqlite3_step(stmt)) == SQLITE_ROW) {
-    values[reinterpret_cast<const char*>(sqlite3_column_text(stmt, 0))] =
-        reinterpret_cast<const char*>(sqlite3_column_text(stmt, 1));
+    const auto* key = reinterpret_cast<const char*>(sqlite3_column_text(stmt, 0));
+    const auto* value = reinterpret_cast<const char*>(sqlite3_column_text(stmt, 1));
+    if (key == nullptr || value == nullptr) {  // NULL in a damaged meta table (or out of memory)
+      sqlite3_finalize(stmt);
+      return Fail(ErrorCode::kCorruptData, path + " is damaged: a catalogue meta row holds NULL");
+    }
+    values[key] = value;
   }
   sqlite3_finalize(stmt);
   if (rc != SQLITE_DONE) return Fail(ErrorCode::kCorruptData, path + " is damaged: " + SqliteMessage(h));
