@@ -99,6 +99,7 @@ class ByteReader {
   [[nodiscard]] Status GetArray(std::span<T> out) {
     static_assert(std::is_trivially_copyable_v<T>);
     if (remaining() < out.size_bytes()) return Truncated();
+    if (out.empty()) return Ok();  // an empty span may have no data pointer (memcpy from/to null is UB)
     std::memcpy(out.data(), bytes_.data() + pos_, out.size_bytes());
     pos_ += out.size_bytes();
     return Ok();
