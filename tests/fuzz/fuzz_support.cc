@@ -55,7 +55,8 @@ std::string WriteScratchFile(const std::string& name, std::span<const uint8_t> b
 uint8_t InputSplitter::Byte() { return pos_ < data_.size() ? data_[pos_++] : 0; }
 
 std::string_view InputSplitter::Piece() {
-  const size_t length = std::min<size_t>(Byte(), data_.size() - pos_);
+  const size_t wanted = Byte();  // read before data_.size() - pos_ is computed
+  const size_t length = std::min(wanted, data_.size() - pos_);
   std::string_view piece(reinterpret_cast<const char*>(data_.data() + pos_), length);
   pos_ += length;
   return piece;
@@ -99,8 +100,10 @@ const vocab::Vocabulary& FuzzVocabulary() {
       auto v = RandomRootSift(rng);
       centroids.insert(centroids.end(), v.begin(), v.end());
     }
+    sift::SiftOptions extractor;
+    extractor.descriptor = sift::DescriptorKind::kRootSift;
     auto made = vocab::Vocabulary::FromCentroids(std::move(centroids), sift::kDescriptorDim,
-                                                 sift::DescriptorKind::kRootSift, sift::SiftOptions{}.Describe());
+                                                 sift::DescriptorKind::kRootSift, extractor.Describe());
     if (!made) CheckSetup(std::unexpected(made.error()), "fuzz vocabulary");
     return std::move(*made);
   }();

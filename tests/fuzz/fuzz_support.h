@@ -49,7 +49,7 @@ class InputSplitter {
 
 // The fuzz targets' fixed vocabulary: `words` deterministic pseudo-random RootSIFT-like centroids
 // (seeded, identical in every process), descriptor kind RootSIFT, extractor settings of the default
-// SiftOptions. The seed generator builds its index seeds with it so that they open in the targets.
+// SiftOptions with RootSIFT descriptors. The seed generator builds its index seeds with it so that they open in the targets.
 const vocab::Vocabulary& FuzzVocabulary();
 inline constexpr int kFuzzVocabularyWords = 64;
 

@@ -4,8 +4,9 @@
 // request line, headers, query string and multipart body; oxbow's routes collect the parameters
 // (CollectParams), pick the image part, parse and validate every parameter (bbox, top_k, ids, metadata
 // JSON...), decode and search. Checked for every input: the server answers (no crash, no hang: 20 s
-// limit), the answer is an HTTP/1.1 status line, and every oxbow error answer (4xx/5xx with a JSON body)
-// carries {"error": {...}}. Writes are allowed, so the index changes as the run goes on.
+// limit), the answer is an HTTP/1.1 status line, every error answer with a JSON body carries
+// {"error": {...}}, and no input gets 500 (an internal error). Writes are allowed, so the index changes
+// as the run goes on.
 #include <arpa/inet.h>
 #include <netinet/in.h>
 #include <poll.h>
@@ -121,6 +122,9 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   if (response.rfind("HTTP/1.1 ", 0) != 0) Bug("not an HTTP/1.1 status line", response);
   const int status = std::atoi(response.c_str() + 9);
   if (status < 100 || status > 599) Bug("status code out of range", response);
+  // A request, however malformed, is the client's error (4xx) or an overload (503); a 500 means an
+  // exception or an internal error inside the server.
+  if (status == 500) Bug("internal error answer", response);
   const bool json = response.find("Content-Type: application/json") != std::string::npos;
   if (status >= 400 && json && response.find("\"error\"") == std::string::npos) {
     Bug("error answer without an error object", response);

@@ -162,7 +162,8 @@ int main(int argc, char** argv) {
     const fs::path dir = out / "index_catalogue_fuzz";
     for (int images : {0, 3}) {
       const fs::path index_dir = fuzz::ScratchDir() / ("seed-index-" + std::to_string(images));
-      auto index = index::ImageIndex::Create(index_dir.string(), fuzz::FuzzVocabulary(), sift::SiftOptions{}.Describe());
+      auto index = index::ImageIndex::Create(index_dir.string(), fuzz::FuzzVocabulary(),
+                                             fuzz::FuzzVocabulary().extractor_settings());
       if (!index) fuzz::CheckSetup(std::unexpected(index.error()), "create index");
       sift::FeatureSet query = fuzz::FuzzQueryFeatures();
       for (int i = 0; i < images; ++i) {
