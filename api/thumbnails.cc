@@ -52,13 +52,16 @@ Result<Thumbnail> MakeThumbnail(std::span<const uint8_t> image, int max_side_px,
   }
   // Decode at the smallest power-of-two reduction that still leaves >= max_side_px (libjpeg scales
   // while decoding, so a 24 MP JPEG never becomes 72 MB of pixels here).
+  // A reduction must leave the shortest side >= 1 pixel: OpenCV asserts on an 8000 x 1 panorama reduced
+  // to 1000 x 0.
   const uint64_t longest = std::max(header->width, header->height);
+  const uint64_t shortest = std::min(header->width, header->height);
   int flags = cv::IMREAD_COLOR;
-  if (longest >= 8ull * static_cast<uint64_t>(max_side_px)) {
+  if (longest >= 8ull * static_cast<uint64_t>(max_side_px) && shortest >= 8) {
     flags = cv::IMREAD_REDUCED_COLOR_8;
-  } else if (longest >= 4ull * static_cast<uint64_t>(max_side_px)) {
+  } else if (longest >= 4ull * static_cast<uint64_t>(max_side_px) && shortest >= 4) {
     flags = cv::IMREAD_REDUCED_COLOR_4;
-  } else if (longest >= 2ull * static_cast<uint64_t>(max_side_px)) {
+  } else if (longest >= 2ull * static_cast<uint64_t>(max_side_px) && shortest >= 2) {
     flags = cv::IMREAD_REDUCED_COLOR_2;
   }
   cv::Mat pixels;
