@@ -72,7 +72,9 @@ std::string LoggablePath(const std::string& path) {
 
 void SendJson(httplib::Response& res, int status, const json& body) {
   res.status = status;
-  res.set_content(body.dump() + "\n", "application/json");
+  // Bodies echo client bytes (paths, ids, parameter values) that need not be UTF-8; the strict default
+  // would throw (-> 500) where the client's error deserves its 4xx: invalid bytes become U+FFFD.
+  res.set_content(body.dump(-1, ' ', false, json::error_handler_t::replace) + "\n", "application/json");
 }
 
 void SendError(httplib::Response& res, const api::HttpError& error) {
