@@ -28,6 +28,7 @@
 #include <opencv2/imgcodecs.hpp>
 
 #include "api/testing.h"
+#include "tests/e2e_testing.h"
 
 namespace oxbow {
 namespace {
@@ -41,89 +42,7 @@ std::string ReadText(const std::string& path) {
   return std::string(bytes.begin(), bytes.end());
 }
 
-// A running `oxbow serve` child process. stdout is read until the "listening on" line (the port);
-// stderr (the request log) goes to a file.
-class ServerProcess {
- public:
-  ServerProcess(const std::vector<std::string>& args, const std::string& log_path) : log_path_(log_path) {
-    int out[2];
-    if (pipe(out) != 0) return;
-    pid_ = fork();
-    if (pid_ == 0) {
-      dup2(out[1], STDOUT_FILENO);
-      const int log = open(log_path.c_str(), O_WRONLY | O_CREAT | O_APPEND, 0644);
-      if (log >= 0) dup2(log, STDERR_FILENO);
-      close(out[0]);
-      close(out[1]);
-      std::vector<std::string> full = {OXBOW_BINARY};
-      full.insert(full.end(), args.begin(), args.end());
-      std::vector<char*> argv;
-      for (auto& a : full) argv.push_back(a.data());
-      argv.push_back(nullptr);
-      execv(argv[0], argv.data());
-      _exit(127);
-    }
-    close(out[1]);
-    // Read stdout until the listening line (or EOF: the server failed to start).
-    std::string text;
-    char buf[256];
-    const std::regex listening(R"(listening on http://127\.0\.0\.1:(\d+))");
-    std::smatch m;
-    while (true) {
-      const ssize_t n = read(out[0], buf, sizeof buf);
-      if (n <= 0) break;
-      text.append(buf, static_cast<size_t>(n));
-      if (std::regex_search(text, m, listening)) {
-        port_ = std::stoi(m[1]);
-        break;
-      }
-    }
-    stdout_fd_ = out[0];
-  }
-  ~ServerProcess() {
-    if (pid_ > 0 && !exited_) {
-      kill(pid_, SIGKILL);
-      waitpid(pid_, nullptr, 0);
-    }
-    if (stdout_fd_ >= 0) close(stdout_fd_);
-  }
-
-  int port() const { return port_; }
-  httplib::Client Client() const {
-    httplib::Client client("127.0.0.1", port_);
-    client.set_read_timeout(60, 0);
-    client.set_write_timeout(60, 0);
-    return client;
-  }
-  // Polls /readyz until 200 (true) or the deadline passes.
-  bool WaitReady(std::chrono::seconds deadline = std::chrono::seconds(60)) const {
-    const auto end = std::chrono::steady_clock::now() + deadline;
-    auto client = Client();
-    while (std::chrono::steady_clock::now() < end) {
-      auto res = client.Get("/readyz");
-      if (res && res->status == 200) return true;
-      std::this_thread::sleep_for(std::chrono::milliseconds(20));
-    }
-    return false;
-  }
-  // Sends `signal` and waits for the exit; returns the exit status (or 128 + signal).
-  int Stop(int signal = SIGTERM) {
-    if (pid_ <= 0 || exited_) return -1;
-    kill(pid_, signal);
-    int status = 0;
-    waitpid(pid_, &status, 0);
-    exited_ = true;
-    return WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
-  }
-  std::string Log() const { return ReadText(log_path_); }
-
- private:
-  pid_t pid_ = -1;
-  int port_ = 0;
-  int stdout_fd_ = -1;
-  bool exited_ = false;
-  std::string log_path_;
-};
+using oxbow::testing::ServerProcess;
 
 httplib::MultipartFormData Part(const std::string& name, const std::string& content, const std::string& filename = "",
                                 const std::string& type = "") {
