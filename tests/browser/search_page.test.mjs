@@ -70,6 +70,36 @@ async function waitReady(url) {
   throw new Error('the server did not become ready');
 }
 
+// A valid PNG header declaring 60000 x 60000 pixels (CRCs included), with one tiny IDAT chunk.
+function hugePng() {
+  const crcTable = Array.from({ length: 256 }, (_, n) => {
+    let c = n;
+    for (let k = 0; k < 8; k++) c = c & 1 ? 0xedb88320 ^ (c >>> 1) : c >>> 1;
+    return c >>> 0;
+  });
+  const crc = (bytes) => {
+    let c = 0xffffffff;
+    for (const b of bytes) c = crcTable[(c ^ b) & 0xff] ^ (c >>> 8);
+    return (c ^ 0xffffffff) >>> 0;
+  };
+  const chunk = (type, data) => {
+    const body = Buffer.concat([Buffer.from(type, 'ascii'), data]);
+    const out = Buffer.alloc(12 + data.length);
+    out.writeUInt32BE(data.length, 0);
+    body.copy(out, 4);
+    out.writeUInt32BE(crc(body), 8 + data.length);
+    return out;
+  };
+  const ihdr = Buffer.alloc(13);
+  ihdr.writeUInt32BE(60000, 0);
+  ihdr.writeUInt32BE(60000, 4);
+  ihdr[8] = 8;  // bit depth
+  ihdr[9] = 2;  // RGB
+  return Buffer.concat([Buffer.from([0x89, 0x50, 0x4e, 0x47, 0x0d, 0x0a, 0x1a, 0x0a]), chunk('IHDR', ihdr),
+                        chunk('IDAT', Buffer.from([0x78, 0x9c, 0x63, 0x00, 0x00, 0x00, 0x01, 0x00, 0x01])),
+                        chunk('IEND', Buffer.alloc(0))]);
+}
+
 // True when every correspondence line starts in the left picture and ends in the right one (the SVG's
 // two <image> elements), i.e. the coordinates were scaled into the right picture.
 function linesInTheirPictures(page) {
@@ -220,6 +250,11 @@ async function main() {
     const error = await page.textContent('#messages .error');
     check(/not a readable image/.test(error) && /HTTP 400 invalid_image/.test(error), `truncated file: "${error}"`);
     await shot(page, 'error.png');
+    // A 68-byte PNG declaring 60000 x 60000 pixels: refused from its header (413), with its own message.
+    await page.setInputFiles('#query-file', { name: 'huge.png', mimeType: 'image/png', buffer: hugePng() });
+    await page.waitForFunction(() => /too large/.test(document.querySelector('#messages .error')?.textContent || ''));
+    const tooLarge = await page.textContent('#messages .error');
+    check(/HTTP 413 image_too_large/.test(tooLarge), `oversized image: "${tooLarge}"`);
 
     // 7. The collection: add an image (the API key is asked for), see its stored thumbnail, delete it.
     await page.click('#tab-browse');
@@ -243,7 +278,7 @@ async function main() {
     await page.click('#collection li[data-id="uploaded-box"] button.danger');
     await page.waitForFunction(() => /Deleted uploaded-box/.test(document.getElementById('messages').textContent));
     check((await page.$('#collection li[data-id="uploaded-box"]')) === null, 'the deleted image left the collection');
-    check(consoleErrors.filter((e) => !/status of (400|401|404)/.test(e)).length === 0,
+    check(consoleErrors.filter((e) => !/status of (400|401|413)/.test(e)).length === 0,
           `no script errors (${consoleErrors.join(' | ')})`);
     await context.close();
 
