@@ -158,6 +158,7 @@ async function main() {
   try {
     await waitReady(url);
     const context = await browser.newContext({ viewport: { width: 1280, height: 900 } });
+    context.setDefaultTimeout(60000);  // generous: ctest runs other suites beside this one on few cores
     page = await context.newPage();
     const consoleErrors = [];
     page.on('console', (m) => { if (m.type() === 'error') consoleErrors.push(m.text()); });
@@ -187,7 +188,7 @@ async function main() {
 
     // 2. The match view: correspondence lines and the transform.
     await page.click('#results li:first-child button');
-    await page.waitForSelector('#match-svg line.corr', { state: 'attached', timeout: 30000 });
+    await page.waitForSelector('#match-svg line.corr', { state: 'attached' });
     const lines = await page.$$eval('#match-svg line.corr', (l) => l.length);
     check(lines >= 6, `match view draws the verified correspondences (${lines} lines)`);
     check(await linesInTheirPictures(page), 'every line runs from the query picture to the result picture');
@@ -240,7 +241,7 @@ async function main() {
     await page.waitForFunction(() => document.querySelector('#results li')?.dataset.id === 'graf1');
     check(true, 'search by pasted address: graf1 finds itself first');
     await page.click('#results li:first-child button');
-    await page.waitForSelector('#match-svg line.corr', { state: 'attached', timeout: 30000 });
+    await page.waitForSelector('#match-svg line.corr', { state: 'attached' });
     check(await linesInTheirPictures(page), 'by-id match view: every line runs between the two pictures');
     await shot(page, 'match-by-id.png');
 
@@ -284,6 +285,7 @@ async function main() {
 
     // 8. A phone-sized screen: same search, no horizontal scrolling.
     const phone = await browser.newContext({ viewport: { width: 375, height: 812 }, deviceScaleFactor: 2, hasTouch: true });
+    phone.setDefaultTimeout(60000);
     const small = await phone.newPage();
     await small.goto(url + '/');
     await small.waitForSelector('body[data-ready="true"]');
