@@ -394,8 +394,11 @@ Result<ThumbnailResponse> Service::GetThumbnail(const std::string& id, int max_s
   if (fresh) {
     full = std::move((*stored)->thumbnail);
   } else {
-    // Images indexed from files (oxbow index build) have their path in the catalogue.
-    auto bytes = ReadSourceFile(record->source_path, options_.max_image_bytes);
+    // Images indexed from files (oxbow index build) have their path in the catalogue. Uploads record
+    // "http[:<client's file name>]", never a path to open (the name is the client's).
+    const bool uploaded = record->source_path == "http" || record->source_path.rfind("http:", 0) == 0;
+    auto bytes = uploaded ? Result<std::vector<uint8_t>>(Fail(ErrorCode::kNotFound, "uploaded"))
+                          : ReadSourceFile(record->source_path, options_.max_image_bytes);
     if (!bytes) {
       return Fail(ErrorCode::kNotFound, "image '" + id + "' has no stored thumbnail and its source '" +
                                             record->source_path + "' is not a readable file");
