@@ -61,6 +61,29 @@ TEST(MakeThumbnail, LargeJpegIsDecodedReducedToTheRightSize) {
   EXPECT_EQ(thumb->height, 200);
 }
 
+TEST(MakeThumbnail, AppliesTheExifOrientationAsTheExtractorDoes) {
+  // A 64 x 48 JPEG whose EXIF Orientation 6 says "show rotated 90 degrees clockwise": the thumbnail is
+  // upright (48 x 64), as sift::DecodeImage sees it, so regions in image pixels land where drawn.
+  cv::Mat landscape(48, 64, CV_8UC3, cv::Scalar(40, 40, 40));
+  landscape(cv::Rect(0, 0, 16, 16)).setTo(cv::Scalar(255, 255, 255));  // bright square top-left
+  std::vector<uchar> plain;
+  ASSERT_TRUE(cv::imencode(".jpg", landscape, plain));
+  // APP1 "Exif": big-endian TIFF header, IFD0 with one entry: tag 0x0112 (Orientation), SHORT, 1, value 6.
+  const std::string exif("\xFF\xE1\x00\x22" "Exif\0\0" "MM\x00\x2A\x00\x00\x00\x08" "\x00\x01"
+                         "\x01\x12\x00\x03\x00\x00\x00\x01\x00\x06\x00\x00" "\x00\x00\x00\x00", 36);
+  std::string jpeg(plain.begin(), plain.begin() + 2);
+  jpeg += exif;
+  jpeg.append(plain.begin() + 2, plain.end());
+  auto thumb = MakeThumbnail(AsBytes(jpeg), 100, 90, {});
+  ASSERT_TRUE(thumb) << thumb.error().ToString();
+  EXPECT_EQ(thumb->width, 48);
+  EXPECT_EQ(thumb->height, 64);
+  const cv::Mat upright = DecodeJpeg(thumb->jpeg);
+  ASSERT_EQ(upright.cols, 48);
+  EXPECT_GT(upright.at<cv::Vec3b>(6, 40)[0], 200);  // the square is now top-right
+  EXPECT_LT(upright.at<cv::Vec3b>(6, 6)[0], 100);
+}
+
 TEST(MakeThumbnail, RefusesBadInputWithErrors) {
   EXPECT_EQ(MakeThumbnail({}, 100, 80, {}).error().code, ErrorCode::kInvalidImage);
   EXPECT_EQ(MakeThumbnail(AsBytes("this is not an image at all"), 100, 80, {}).error().code, ErrorCode::kInvalidImage);
