@@ -586,8 +586,10 @@ int RunParis(const std::map<std::string, std::string>& flags) {
               verified_positive += q.positives.count(x.id) ? 1 : 0;
               verified_junk += q.junk.count(x.id) ? 1 : 0;
             }
-            std::printf("  %s: AP %.3f, %zu positives, %zu junk, %d verified (%d positive, %d junk)\n", q.name.c_str(),
-                        aps.back(), q.positives.size(), q.junk.size(), verified, verified_positive, verified_junk);
+            std::printf("  %s: AP %.3f, %zu positives, %zu junk, %d verified (%d positive, %d junk); %u features, "
+                        "CPU %.1f ms (quantise %.1f, verify %.1f)\n",
+                        q.name.c_str(), aps.back(), q.positives.size(), q.junk.size(), verified, verified_positive,
+                        verified_junk, r->query_features, cpu.back(), r->timings.quantize_ms, r->timings.verify_ms);
           }
         }
         quantize.push_back(r->timings.quantize_ms);

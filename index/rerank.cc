@@ -12,6 +12,18 @@ QueryGeometry::QueryGeometry(std::span<const sift::Keypoint> keypoints, std::spa
   OXBOW_CHECK(keypoints.size() == words.size());
   std::iota(order_.begin(), order_.end(), 0u);
   std::stable_sort(order_.begin(), order_.end(), [&](uint32_t a, uint32_t b) { return words_[a] < words_[b]; });
+  for (uint32_t i = 0; i < order_.size(); ++i) {
+    const uint32_t w = words_[order_[i]];
+    if (run_words_.empty() || run_words_.back() != w) {
+      run_words_.push_back(w);
+      run_begin_.push_back(i);
+    }
+  }
+  run_begin_.push_back(static_cast<uint32_t>(order_.size()));
+  if (!run_words_.empty()) {
+    has_word_.assign(run_words_.back() / 64 + 1, 0);
+    for (uint32_t w : run_words_) has_word_[w / 64] |= uint64_t{1} << (w % 64);
+  }
 }
 
 sift::VerificationResult QueryGeometry::Verify(const PackedFeatures& db, int max_pairs_per_word,
@@ -20,20 +32,20 @@ sift::VerificationResult QueryGeometry::Verify(const PackedFeatures& db, int max
   thread_local std::vector<sift::Match> matches;
   thread_local std::vector<sift::Keypoint> db_keypoints;
   matches.clear();
-  size_t i = 0, j = 0;
-  const size_t nq = order_.size(), nd = db.size();
+  const size_t nd = db.size();
   const auto limit = static_cast<size_t>(max_pairs_per_word);
-  while (i < nq && j < nd) {
-    const uint32_t wq = words_[order_[i]], wd = db.word(j);
-    if (wq < wd) {
-      ++i;
-    } else if (wd < wq) {
-      ++j;
-    } else {
-      size_t i2 = i, j2 = j;
-      while (i2 < nq && words_[order_[i2]] == wq) ++i2;
-      while (j2 < nd && db.word(j2) == wd) ++j2;
-      const size_t cq = i2 - i, cd = j2 - j;
+  const size_t bitmap_words = has_word_.size() * 64;
+  size_t r = 0;  // first query run whose word may still occur in the db (db words ascend)
+  for (size_t j = 0; j < nd;) {
+    // The db image's run of word w: [j, j2). Most words are not in the query: one bit test skips them.
+    const uint32_t w = db.word(j);
+    size_t j2 = j + 1;
+    while (j2 < nd && db.word(j2) == w) ++j2;
+    if (w < bitmap_words && (has_word_[w / 64] >> (w % 64) & 1) != 0) {
+      r = static_cast<size_t>(std::lower_bound(run_words_.begin() + static_cast<std::ptrdiff_t>(r), run_words_.end(), w) -
+                              run_words_.begin());
+      const size_t i = run_begin_[r];
+      const size_t cq = run_begin_[r + 1] - i, cd = j2 - j;
       if (cq <= limit && cd <= limit) {
         // The word's cq x cd pairs made one-to-one, as sift::EnforceOneToOne does for them: features of
         // different words never share a pair, all pairs of a word have the same "distance" cq * cd
@@ -46,9 +58,8 @@ sift::VerificationResult QueryGeometry::Verify(const PackedFeatures& db, int max
           matches.push_back({order_[i + k], static_cast<uint32_t>(j + k), distance});
         }
       }
-      i = i2;
-      j = j2;
     }
+    j = j2;
   }
   // Inliers are a subset of the one-to-one matches: with fewer than min_inliers of them the candidate
   // cannot verify, so the verifier is not run (same result, no cost).

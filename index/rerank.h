@@ -39,7 +39,10 @@ class QueryGeometry {
  private:
   std::span<const sift::Keypoint> keypoints_;
   std::span<const uint32_t> words_;
-  std::vector<uint32_t> order_;  // feature indices sorted by word
+  std::vector<uint32_t> order_;        // feature indices sorted by word
+  std::vector<uint32_t> run_words_;    // the distinct words, ascending
+  std::vector<uint32_t> run_begin_;    // run_words_[r]'s features: order_[run_begin_[r] .. run_begin_[r + 1])
+  std::vector<uint64_t> has_word_;     // bit w set when the query has word w (w below 64 * size)
   std::array<float, 4> region_;
 };
 
