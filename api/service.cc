@@ -3,6 +3,7 @@
 #include <sys/resource.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <condition_variable>
 #include <deque>
 #include <exception>
@@ -379,9 +380,11 @@ Result<std::vector<uint8_t>> ReadSourceFile(const std::string& path, uint64_t ma
 
 Result<ThumbnailResponse> Service::GetThumbnail(const std::string& id, int max_side_px) const {
   const int stored_side = options_.thumbnails.stored_side_px;
-  if (max_side_px < 16 || max_side_px > stored_side) {
-    return Fail(ErrorCode::kInvalidArgument, "thumbnail size must be in [16, " + std::to_string(stored_side) + "] pixels");
+  if (max_side_px < kMinThumbnailPx || max_side_px > kMaxThumbnailPx) {
+    return Fail(ErrorCode::kInvalidArgument, "thumbnail size must be in [" + std::to_string(kMinThumbnailPx) + ", " +
+                                                 std::to_string(kMaxThumbnailPx) + "] pixels");
   }
+  max_side_px = std::min(max_side_px, stored_side);  // nothing larger than the stored one is kept
   auto record = index_->Get(id);
   if (!record) return std::unexpected(record.error());
   auto stored = thumbnails_->Get(id);

@@ -113,6 +113,9 @@ struct ListResponse {
   uint64_t total = 0;                   // live images in the index
 };
 
+inline constexpr int kMinThumbnailPx = 16;    // sizes Service::GetThumbnail accepts, pixels
+inline constexpr int kMaxThumbnailPx = 2048;
+
 struct ThumbnailResponse {
   Thumbnail thumbnail;                  // JPEG, longest side <= the size asked for
   bool from_source = false;             // made from the catalogue's source file (no stored thumbnail)
@@ -145,8 +148,8 @@ class Service {
   [[nodiscard]] Result<SearchResponse> SearchSimilar(const std::string& id, const index::QueryOptions& options) const;
   [[nodiscard]] Result<MatchResponse> Match(std::span<const uint8_t> image_a, std::span<const uint8_t> image_b,
                                             const PairMatchOptions& options) const;
-  // A JPEG of image `id` whose longest side is at most max_side_px ([16, thumbnails.stored_side_px]):
-  // the stored thumbnail (AddImage stores one before the image is indexed, so an acknowledged add has
+  // A JPEG of image `id` whose longest side is at most min(max_side_px, thumbnails.stored_side_px)
+  // (max_side_px in [kMinThumbnailPx, kMaxThumbnailPx]): the stored thumbnail (AddImage stores one before the image is indexed, so an acknowledged add has
   // one), scaled down when smaller is asked for; else one made from the catalogue's source file when
   // it is readable (images indexed by `oxbow index build`), which is then stored for next time.
   // kNotFound for an unknown id or when neither exists; kInvalidArgument for a size out of range.

@@ -199,7 +199,10 @@ TEST(ServiceThumbnails, FollowAddsReplacesAndDeletes) {
   EXPECT_EQ(thumb->thumbnail.width, 128);
   EXPECT_EQ(thumb->thumbnail.height, 96);
   EXPECT_EQ((*service)->GetThumbnail("x", 15).error().code, ErrorCode::kInvalidArgument);
-  EXPECT_EQ((*service)->GetThumbnail("x", 513).error().code, ErrorCode::kInvalidArgument);
+  EXPECT_EQ((*service)->GetThumbnail("x", 2049).error().code, ErrorCode::kInvalidArgument);
+  thumb = (*service)->GetThumbnail("x", 2048);  // clamped to the stored 512
+  ASSERT_TRUE(thumb);
+  EXPECT_EQ(thumb->thumbnail.width, 512);
   EXPECT_EQ((*service)->GetThumbnail("nope", 128).error().code, ErrorCode::kNotFound);
 
   add.image = graf;

@@ -576,10 +576,9 @@ void HttpServer::RegisterRoutes() {
            route(Access::kOpen, [](api::Service& s, const httplib::Request& req, httplib::Response& res) {
              const api::Params params = CollectParams(req, {});
              if (auto known = api::CheckKnownParams(params, {"size"}); !known) return SendError(res, known.error());
-             const int largest = s.options().thumbnails.stored_side_px;
-             int size = std::min(256, largest);
+             int size = 256;  // a larger size than the server stores gets the stored one
              if (auto it = params.find("size"); it != params.end()) {
-               auto parsed = api::ParseInt("size", it->second, 16, largest);
+               auto parsed = api::ParseInt("size", it->second, api::kMinThumbnailPx, api::kMaxThumbnailPx);
                if (!parsed) return SendError(res, parsed.error());
                size = static_cast<int>(*parsed);
              }

@@ -112,7 +112,7 @@ void SetUpServe(CLI::App& app) {
   auto flags = std::make_shared<ServeFlags>();
   CLI::App* cmd = app.add_subcommand(
       "serve",
-      "Serve an index over HTTP (JSON API under /v1; see the README).\n"
+      "Serve an index over HTTP (JSON API under /v1, the search page at /; see the README).\n"
       "  oxbow serve --index idx --vocab vocab.oxvoc        # creates idx if it holds no index yet\n"
       "  curl -s --data-binary @photo.jpg 'http://127.0.0.1:8080/v1/search?top_k=5'\n"
       "Prints 'listening on http://HOST:PORT' on stdout once bound. SIGINT/SIGTERM stop it gracefully.");
@@ -156,6 +156,13 @@ void SetUpServe(CLI::App& app) {
                   "threads inside one extraction/match; 1 favours throughput, 0 = all cores (latency)")
       ->capture_default_str()
       ->check(CLI::Range(0, 256));
+  cmd->add_option("--thumbnail-px", flags->service.thumbnails.stored_side_px,
+                  "longest side of the thumbnail stored with each added image (the page's match view uses it)")
+      ->capture_default_str()
+      ->check(CLI::Range(32, 2048));
+  cmd->add_option("--thumbnail-quality", flags->service.thumbnails.jpeg_quality, "JPEG quality of thumbnails")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 100));
   cmd->add_option("--add-nice", flags->service.add_nice,
                   "nice value of the threads extracting added images, so searches get the CPU first; 0 = off")
       ->capture_default_str()

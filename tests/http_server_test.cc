@@ -550,7 +550,10 @@ TEST_F(HttpServerTest, ThumbnailsStoredAtAddSurviveRestartAndGoWithDelete) {
     auto cached = client.Get("/v1/images/scene/thumbnail", {{"If-None-Match", etag_before}});
     ASSERT_TRUE(cached);
     EXPECT_EQ(cached->status, 304);
-    ExpectErrorShape(client.Get("/v1/images/scene/thumbnail?size=513"), 400, "invalid_argument");
+    auto over = client.Get("/v1/images/scene/thumbnail?size=1000");  // larger than stored: the stored one
+    ASSERT_TRUE(over);
+    EXPECT_EQ(JpegSize(over->body), std::make_pair(512, 384));
+    ExpectErrorShape(client.Get("/v1/images/scene/thumbnail?size=2049"), 400, "invalid_argument");
     ExpectErrorShape(client.Get("/v1/images/scene/thumbnail?size=8"), 400, "invalid_argument");
     ExpectErrorShape(client.Get("/v1/images/scene/thumbnail?sise=64"), 400, "invalid_argument");
     ExpectErrorShape(client.Get("/v1/images/nope/thumbnail"), 404, "not_found");
