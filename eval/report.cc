@@ -166,13 +166,14 @@ Status WriteReport(const std::string& dir, const std::vector<RunResult>& runs, c
     }
     plot_files.push_back("plots/ap_per_query.png");
 
-    // mAP vs vocabulary size, one line per (features, re-ranking, QE) combination, when sizes vary.
+    // mAP vs vocabulary size, one line per (features, re-ranking, transitive, QE) combination, when
+    // sizes vary.
     std::map<std::string, Series> by_variant;
     std::set<uint64_t> sizes;
     for (const RunResult& run : runs) {
       sizes.insert(run.vocabulary_words);
       std::string variant;
-      for (const char* key : {"features", "rerank", "qe"}) {
+      for (const char* key : {"features", "rerank", "transitive", "qe"}) {
         auto it = run.settings.find(key);
         variant += std::string(key) + "=" + (it == run.settings.end() ? "?" : it->second) + " ";
       }

@@ -52,6 +52,7 @@ struct EvalArgs {
   std::vector<int> words = {20000};
   std::vector<int> rerank = {200};
   std::vector<std::string> qe = {"on"};
+  std::vector<std::string> transitive = {"on"};  // transitive verification (the server's default) on/off
   int top_k = 0;                         // results requested per query; 0 = the whole database (max 10000)
   int sample = 1000000;                  // vocabulary training sample
   int per_image = 0;                     // per-image cap on the training sample; 0 = the command's default
@@ -244,8 +245,8 @@ std::string BoxParam(const std::array<float, 4>& b) {
   return s.str();
 }
 
-void RunHttp(const EvalArgs& a, const eval::Protocol& protocol, int port, int rerank, bool qe, int top_k,
-             eval::RunResult* run) {
+void RunHttp(const EvalArgs& a, const eval::Protocol& protocol, int port, int rerank, bool qe, bool transitive,
+             int top_k, eval::RunResult* run) {
   const auto files = ImageFiles(a.images);
   httplib::Client client("127.0.0.1", port);
   client.set_read_timeout(300, 0);
@@ -256,7 +257,7 @@ void RunHttp(const EvalArgs& a, const eval::Protocol& protocol, int port, int re
     if (found == files.end()) throw CommandError(4, "query image '" + q.image + "' not found in " + a.images);
     const std::string& path = found->second;
     std::string target = "/v1/search?top_k=" + std::to_string(top_k) + "&rerank=" + std::to_string(rerank) +
-                         "&qe=" + (qe ? "true" : "false");
+                         "&qe=" + (qe ? "true" : "false") + (transitive ? "" : "&transitive_depth=0");
     if (q.bbox && !a.full_image) target += "&bbox=" + BoxParam(*q.bbox);
     const std::string body = ReadBytes(path);
     const auto t0 = Clock::now();
@@ -280,7 +281,7 @@ void RunHttp(const EvalArgs& a, const eval::Protocol& protocol, int port, int re
 }
 
 void RunInProcess(const EvalArgs& a, const eval::Protocol& protocol, const index::ImageIndex& idx, int rerank, bool qe,
-                  int top_k, eval::RunResult* run) {
+                  bool transitive, int top_k, eval::RunResult* run) {
   const auto files = ImageFiles(a.images);
   auto options = ValueOrExit(sift::SiftOptions::FromDescription(idx.extractor_settings()));
   options.num_threads = a.threads;
@@ -297,6 +298,7 @@ void RunInProcess(const EvalArgs& a, const eval::Protocol& protocol, const index
     qo.top_k = top_k;
     qo.rerank_depth = rerank;
     qo.query_expansion = qe;
+    if (!transitive) qo.transitive_depth = 0;
     if (q.bbox && !a.full_image) qo.region = *q.bbox;
     auto response = ValueOrExit(idx.Query(features, qo));
     std::vector<std::string> ranking;
@@ -342,6 +344,27 @@ eval::Protocol LoadProtocol(const EvalArgs& a) {
   return protocol;
 }
 
+// Every (a, b) pair, a-major.
+std::vector<std::pair<std::string, std::string>> Combinations(const std::vector<std::string>& as,
+                                                              const std::vector<std::string>& bs) {
+  std::vector<std::pair<std::string, std::string>> out;
+  for (const auto& x : as) {
+    for (const auto& y : bs) out.emplace_back(x, y);
+  }
+  return out;
+}
+
+// The search settings every run shares (the server's defaults, index/image_index.h), for the report.
+std::string SearchDefaults() {
+  const index::QueryOptions o;
+  std::ostringstream s;
+  s << "transitive_depth " << o.transitive_depth << ", anchors " << o.transitive_anchors << ", neighbours "
+    << o.transitive_neighbours << ", attempts " << o.transitive_attempts << ", qe_images " << o.qe_images
+    << ", quantizer_probes " << o.quantizer_probes << ", max_pairs_per_word " << o.max_pairs_per_word
+    << ", min_inliers " << o.verify.min_inliers;
+  return s.str();
+}
+
 void Run(const EvalArgs& a, const std::string& command_line) {
   eval::Protocol protocol = LoadProtocol(a);
   if (a.max_queries > 0 && protocol.queries.size() > static_cast<size_t>(a.max_queries)) {
@@ -375,14 +398,16 @@ void Run(const EvalArgs& a, const std::string& command_line) {
                                                  a.threads);
       }
       for (int rerank : a.rerank) {
-        for (const std::string& qe_text : a.qe) {
-          const bool qe = qe_text == "on";
-          if (qe && rerank == 0) continue;  // QE averages verified results: needs re-ranking
+        for (const auto& [qe_text, transitive_text] : Combinations(a.qe, a.transitive)) {
+          const bool qe = qe_text == "on", transitive = transitive_text == "on";
+          // QE and transitive verification build on verified results: both need re-ranking.
+          if ((qe || !transitive) && rerank == 0) continue;
           for (const std::string& mode : {std::string("http"), std::string("in-process")}) {
             if (a.mode != "both" && a.mode != mode) continue;
             eval::RunResult run = base;
             run.label = features + " " + std::to_string(words / 1000) + "k" +
-                        (rerank > 0 ? " +rerank" + std::to_string(rerank) : "") + (qe ? " +qe" : "") +
+                        (rerank > 0 ? " +rerank" + std::to_string(rerank) : "") +
+                        (rerank > 0 && transitive ? " +tv" : "") + (qe ? " +qe" : "") +
                         (a.mode == "both" ? " (" + mode + ")" : "");
             run.settings = {{"features", features},
                             {"words", std::to_string(words)},
@@ -391,15 +416,17 @@ void Run(const EvalArgs& a, const std::string& command_line) {
                             {"seed", std::to_string(a.seed)},
                             {"rerank", std::to_string(rerank)},
                             {"qe", qe ? "on" : "off"},
+                            {"transitive", rerank > 0 && transitive ? "on" : "off"},
+                            {"search_defaults", SearchDefaults()},
                             {"query_region", a.full_image ? "full image" : "ground-truth box"},
                             {"top_k", std::to_string(top_k)},
                             {"path", mode},
                             {"extractor", stats.vocabulary_size ? "oxbow SIFT (index settings)" : ""}};
             if (mode == "http") {
-              RunHttp(a, protocol, server->port(), rerank, qe, top_k, &run);
+              RunHttp(a, protocol, server->port(), rerank, qe, transitive, top_k, &run);
             } else {
               if (!idx) idx = ValueOrExit(index::ImageIndex::Open(index_dir));
-              RunInProcess(a, protocol, *idx, rerank, qe, top_k, &run);
+              RunInProcess(a, protocol, *idx, rerank, qe, transitive, top_k, &run);
             }
             eval::Summarise(&run);
             OXBOW_LOG(kInfo) << "eval: " << protocol.name << " | " << run.label << " | mAP " << run.map
@@ -443,6 +470,10 @@ void SetUp(CLI::App& app) {
   cmd->add_option("--words", args->words, "vocabulary sizes to compare, e.g. 10000,50000")->delimiter(',')->capture_default_str();
   cmd->add_option("--rerank", args->rerank, "re-ranking depths to compare (0 = tf-idf only)")->delimiter(',')->capture_default_str();
   cmd->add_option("--qe", args->qe, "query expansion settings to compare: off, on")->delimiter(',')->capture_default_str();
+  cmd->add_option("--transitive", args->transitive,
+                  "transitive verification settings to compare: off, on (the server's default)")
+      ->delimiter(',')
+      ->capture_default_str();
   cmd->add_option("--top-k", args->top_k, "results per query (0 = the whole database, at most 10000)");
   cmd->add_option("--sample", args->sample, "descriptors sampled to train each vocabulary")->capture_default_str();
   cmd->add_option("--per-image", args->per_image, "cap of training descriptors per image (0 = vocab train's default)");
