@@ -556,7 +556,10 @@ async function loadCollection() {
     title.textContent = image.id;
     const facts = document.createElement('span');
     facts.textContent = `${image.width} × ${image.height} px · ${image.features} features`;
-    caption.append(title, facts);
+    const origin = document.createElement('span');
+    origin.className = 'origin';
+    origin.textContent = `${image.source || 'no source'} · added ${new Date(image.added_unix_ms).toLocaleString()}`;
+    caption.append(title, facts, origin);
     if (image.metadata !== null) {
       const meta = document.createElement('code');
       meta.textContent = JSON.stringify(image.metadata);

@@ -186,8 +186,15 @@ async function main() {
     check(/last search: .*total \d+ ms/.test(await page.textContent('#status')), 'status strip shows the last search timings');
     await shot(page, 'results.png');
 
-    // 2. The match view: correspondence lines and the transform.
-    await page.click('#results li:first-child button');
+    // 2. The match view, opened from the keyboard: Tab from the last form field reaches the first result.
+    await page.focus('#top-k');
+    let reached = false;
+    for (let i = 0; i < 10 && !reached; i++) {
+      await page.keyboard.press('Tab');
+      reached = await page.evaluate(() => document.activeElement?.closest('#results li')?.dataset.rank === '1');
+    }
+    check(reached, 'Tab reaches the first result');
+    await page.keyboard.press('Enter');
     await page.waitForSelector('#match-svg line.corr', { state: 'attached' });
     const lines = await page.$$eval('#match-svg line.corr', (l) => l.length);
     check(lines >= 6, `match view draws the verified correspondences (${lines} lines)`);
