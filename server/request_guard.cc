@@ -114,11 +114,11 @@ class DeadlineStream : public httplib::Stream {
   size_t begin_ = 0, end_ = 0;
 };
 
-// Stop sending, discard what the client still sends (at most 1 MiB, 1 s), then close: a client whose
-// body the server did not read gets the response instead of a reset.
-void LingeringClose(socket_t sock) {
+// Stop sending, discard what the client still sends (at most 1 MiB, for at most `linger`), then close:
+// a client whose body the server did not read gets the response instead of a reset.
+void LingeringClose(socket_t sock, std::chrono::milliseconds linger) {
   ::shutdown(sock, SHUT_WR);
-  const auto until = Clock::now() + std::chrono::seconds(1);
+  const auto until = Clock::now() + linger;
   char sink[16384];
   for (size_t discarded = 0; discarded < (1u << 20);) {
     if (!PollFor(sock, POLLIN, MsUntil(until))) break;
@@ -195,7 +195,8 @@ bool GuardedHttpServer::process_and_close_socket(socket_t sock) {
     t_reserved_bytes = 0;
     if (!ok || connection_closed || close_connection) break;
   }
-  LingeringClose(sock);
+  // The shedding thread lingers briefly: it must keep up with a flood.
+  LingeringClose(sock, std::chrono::milliseconds(t_shedding_thread ? 200 : 1000));
   return ok;
 }
 

@@ -17,8 +17,9 @@
 //    its Content-Length (a chunked one: the body limit) before its body is read and releases it when its
 //    response is done; a request that does not fit is answered 503 with Retry-After, unread.
 //  - Closing is "lingering": after the response the server stops writing, discards what the client still
-//    sends for a bounded time, then closes, so a client whose body was not read still receives its 503/413
-//    instead of a connection reset.
+//    sends (at most 1 MiB, for at most 1 s; 200 ms on the shedding thread), then closes, so a client whose
+//    body was not read still receives its 503/413 instead of a connection reset (larger unread bodies may
+//    still see a reset).
 //
 // Thread safety: UploadBudget is thread-safe. GuardedHttpServer is used as an httplib::Server. The
 // thread-local helpers (MarkSheddingThread, RequestDeadlineExpired, ReserveUploadForThisRequest) refer to

@@ -218,6 +218,17 @@ TEST_F(SlowClientsTest, UploadsBeyondTheInFlightBudgetGet503Unread) {
   auto record = client.Get("/v1/images/slow");
   ASSERT_TRUE(record);
   EXPECT_EQ(record->status, 404);
+  // Many uploads at once: each is admitted (then 400: not an image) or refused 503, none goes unanswered.
+  std::vector<int> statuses(12, 0);
+  std::vector<std::thread> uploaders;
+  for (size_t i = 0; i < statuses.size(); ++i) {
+    uploaders.emplace_back([&, i] {
+      auto res = server->Client().Post("/v1/search", body, "image/png");
+      statuses[i] = res ? res->status : -1;
+    });
+  }
+  for (auto& t : uploaders) t.join();
+  for (int status : statuses) EXPECT_TRUE(status == 400 || status == 503) << status;
   auto found = client.Post("/v1/search", image_, "image/png");
   ASSERT_TRUE(found);
   EXPECT_EQ(found->status, 200) << found->body;
