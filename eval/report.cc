@@ -5,6 +5,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <initializer_list>
 #include <set>
 #include <sstream>
 
@@ -213,6 +214,26 @@ Status WriteReport(const std::string& dir, const std::vector<RunResult>& runs, c
        << Fixed(run.query_p95_ms, 1) << " | " << Fixed(run.extract_p50_ms, 1) << " | " << Fixed(run.search_p50_ms, 1)
        << " | " << run.index_images << " | " << run.index_features << " | " << Fixed(run.index_bytes_per_feature, 1)
        << " |\n";
+  }
+  // Search stages as the server reports them (timings_ms), p50 / p95 over the queries.
+  md << "\n## Search stages (ms, p50 / p95 over the queries)\n\n";
+  md << "| configuration | quantize | score | verify (incl. transitive) | qe | search total | extract |\n";
+  md << "|---|---|---|---|---|---|---|\n";
+  for (const RunResult& run : runs) {
+    const auto stage = [&](std::initializer_list<const char*> names) {
+      std::vector<double> v;
+      for (const QueryOutcome& q : run.queries) {
+        double sum = 0;
+        for (const char* name : names) {
+          if (auto it = q.stage_ms.find(name); it != q.stage_ms.end()) sum += it->second;
+        }
+        v.push_back(sum);
+      }
+      return Fixed(Percentile(v, 50), 1) + " / " + Fixed(Percentile(v, 95), 1);
+    };
+    md << "| " << run.label << " | " << stage({"quantize"}) << " | " << stage({"score"}) << " | " << stage({"verify"})
+       << " | " << stage({"qe"}) << " | " << stage({"quantize", "score", "verify", "qe"}) << " | "
+       << stage({"extract"}) << " |\n";
   }
   md << "\n## Settings\n\n";
   for (const RunResult& run : runs) {
