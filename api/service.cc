@@ -210,7 +210,8 @@ Result<std::unique_ptr<Service>> Service::Open(const std::string& index_dir,
   return service;
 }
 
-Result<sift::FeatureSet> Service::Extract(std::span<const uint8_t> image, double* elapsed_ms) const {
+Result<sift::FeatureSet> Service::Extract(std::span<const uint8_t> image, double* elapsed_ms,
+                                          const std::function<void()>& also) const {
   if (!extraction_semaphore_.try_acquire_for(std::chrono::milliseconds(options_.extraction_wait_ms))) {
     return Fail(ErrorCode::kResourceExhausted,
                 "all " + std::to_string(extraction_slots_) + " extraction slots stayed busy for " +
@@ -220,6 +221,7 @@ Result<sift::FeatureSet> Service::Extract(std::span<const uint8_t> image, double
   const auto start = Clock::now();
   auto features = extractor_.ExtractFromBytes(image, options_.Decode());
   *elapsed_ms = MsSince(start);
+  if (features && also) also();
   return features;
 }
 
@@ -236,9 +238,10 @@ Result<AddImageResponse> Service::AddImage(const AddImageRequest& request) {
   Result<sift::FeatureSet> features = Fail(ErrorCode::kInternal, "extraction did not run");
   Result<api::Thumbnail> thumbnail = Fail(ErrorCode::kInternal, "thumbnail not made");
   auto extract = [&] {
-    features = Extract(request.image, &response.decode_extract_ms);
-    if (features) thumbnail = MakeThumbnail(request.image, options_.thumbnails.stored_side_px,
-                                            options_.thumbnails.jpeg_quality, options_.Decode());
+    features = Extract(request.image, &response.decode_extract_ms, [&] {
+      thumbnail = MakeThumbnail(request.image, options_.thumbnails.stored_side_px, options_.thumbnails.jpeg_quality,
+                                options_.Decode());
+    });
   };
   if (add_threads_) {
     add_threads_->Run(extract);

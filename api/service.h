@@ -20,6 +20,7 @@
 
 #include <atomic>
 #include <chrono>
+#include <functional>
 #include <cstdint>
 #include <memory>
 #include <mutex>
@@ -164,8 +165,11 @@ class Service {
 
  private:
   Service(std::unique_ptr<index::ImageIndex> index, sift::SiftExtractor extractor, const ServiceOptions& options);
-  // Decode + extract under an extraction slot; kResourceExhausted when no slot frees up in time.
-  [[nodiscard]] Result<sift::FeatureSet> Extract(std::span<const uint8_t> image, double* elapsed_ms) const;
+  // Decode + extract under an extraction slot; kResourceExhausted when no slot frees up in time. After a
+  // successful extraction `also` (when given) runs under the same slot (the add's thumbnail decode), so
+  // the slots bound its memory too.
+  [[nodiscard]] Result<sift::FeatureSet> Extract(std::span<const uint8_t> image, double* elapsed_ms,
+                                                 const std::function<void()>& also = nullptr) const;
 
   std::unique_ptr<index::ImageIndex> index_;
   sift::SiftExtractor extractor_;
