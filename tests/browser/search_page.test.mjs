@@ -128,6 +128,7 @@ async function main() {
     if (!fs.existsSync(path.join(SAMPLES, name))) fatal(`sample photo ${name} missing: install opencv-doc`);
   }
   fs.mkdirSync(args.artifacts, { recursive: true });
+  fs.rmSync(path.join(args.artifacts, 'failure.png'), { force: true });  // a previous run's
   fs.mkdirSync(args.work, { recursive: true });
 
   // A small index: a 2048-word vocabulary trained on the indexed photos themselves (seconds; coarser
