@@ -119,6 +119,7 @@ void SetUpIndex(CLI::App& app) {
   struct BuildArgs {
     std::string vocab, images, list, out;
     int threads = 0;
+    int probes = vocab::QuantizerOptions{}.num_probes;
     std::optional<int> max_side;
   };
   auto build = std::make_shared<BuildArgs>();
@@ -130,6 +131,10 @@ void SetUpIndex(CLI::App& app) {
   b->add_option("--out", build->out, "index folder (created, or resumed when it holds an index)")->required();
   b->add_option("--threads", build->threads, "worker threads, 0 = all cores")->check(CLI::Range(0, 256));
   b->add_option("--max-image-side", build->max_side, "downscale images whose longest side exceeds this (px)");
+  b->add_option("--quantizer-probes", build->probes,
+                "coarse quantiser lists probed per indexed descriptor (searches set their own, default 8)")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 4096));
   b->callback([build] {
     if (build->images.empty() && build->list.empty()) throw CommandError(2, "give --images DIR or --list FILE");
     const auto t0 = std::chrono::steady_clock::now();
@@ -137,6 +142,7 @@ void SetUpIndex(CLI::App& app) {
     index::IndexOptions options;
     options.num_threads = build->threads;
     options.quantizer.num_threads = build->threads;
+    options.quantizer.num_probes = build->probes;
     auto idx = OpenOrCreate(build->out, vocabulary, options);
     const sift::SiftExtractor extractor = ExtractorFor(*idx, 1);
     sift::DecodeOptions decode;
