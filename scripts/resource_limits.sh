@@ -8,4 +8,4 @@ set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 build_dir=${OXBOW_BUILD_DIR:-$root/build}
 cmake --build "$build_dir" --target resource_limits_test --parallel "${OXBOW_JOBS:-2}" >&2
-OXBOW_MEASURE_ALL=1 "$build_dir/tests/resource_limits_test" --gtest_filter='*PeakMemory*' | grep -E '^\||OK|FAILED'
+OXBOW_MEASURE_ALL=1 "$build_dir/tests/resource_limits_test" --gtest_filter='*PeakMemory*' 2>/dev/null | grep -E '^\||OK|FAILED'

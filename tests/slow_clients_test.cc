@@ -189,6 +189,34 @@ TEST_F(SlowClientsTest, TricklingAndIdleClientsDoNotStarveANormalRequest) {
   EXPECT_NE(server->Log().find("status=408"), std::string::npos);
 }
 
+TEST_F(SlowClientsTest, AStalledClientCannotBlockTheBusyAnswer) {
+  // One worker, a queue of one: the first trickler holds the worker, the second waits in the queue, the
+  // third is handed to the shedding thread and trickles its headers there. A normal request after them
+  // must get its 503 while the first trickler still holds the worker (the shedder's header deadline).
+  auto server = Start({"--threads", "1", "--queue", "1", "--request-timeout-s", "30"});
+  const int port = server->port();
+  std::vector<Outcome> outcomes(3);
+  std::atomic<bool> first_still_connected{true};
+  std::vector<std::thread> stalled;
+  for (size_t i = 0; i < outcomes.size(); ++i) {
+    stalled.emplace_back([&, i, port] {
+      outcomes[i] = Trickle(port, "GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ", std::chrono::milliseconds(200),
+                            std::chrono::seconds(6));
+      if (i == 0) first_still_connected = false;
+    });
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));  // connect in this order
+  }
+  auto busy = server->Client().Get("/healthz");
+  const bool answered_while_held = first_still_connected.load();
+  ASSERT_TRUE(busy) << httplib::to_string(busy.error());
+  EXPECT_EQ(busy->status, 503) << busy->body;
+  EXPECT_EQ(json::parse(busy->body)["error"]["code"], "unavailable");
+  EXPECT_TRUE(answered_while_held) << "the busy answer waited for the stalled clients";
+  for (auto& t : stalled) t.join();
+  EXPECT_TRUE(outcomes[2].ended_by_server) << "the shedding thread waited for trickled headers";
+  EXPECT_FALSE(outcomes[0].ended_by_server) << "inside --request-timeout-s the worker's client is not cut";
+}
+
 TEST_F(SlowClientsTest, UploadsBeyondTheInFlightBudgetGet503Unread) {
   auto server = Start({"--max-upload-mb", "1", "--max-inflight-upload-mb", "1", "--request-timeout-s", "3"});
   const int port = server->port();
