@@ -108,11 +108,20 @@ Protocol RestrictToImages(const Protocol& protocol, const std::vector<std::strin
   // Database = the images present (those no list names are negatives).
   const std::set<std::string> database(present_ids.begin(), present_ids.end());
   restricted.database.assign(database.begin(), database.end());
+  // Query photos the protocol keeps out of its database (revisited Oxford/Paris) but that are among the
+  // images present get indexed like the rest: they are junk for every query (neither help nor hurt),
+  // otherwise a query's own photo would rank first as a negative.
+  const std::unordered_set<std::string> official(protocol.database.begin(), protocol.database.end());
+  std::vector<std::string> outside;
+  for (const EvalQuery& query : protocol.queries) {
+    if (present.contains(query.image) && !official.contains(query.image)) outside.push_back(query.image);
+  }
   for (const EvalQuery& query : protocol.queries) {
     if (!present.contains(query.image)) continue;
     EvalQuery q = query;
     std::erase_if(q.relevance.positives, [&](const std::string& id) { return !present.contains(id); });
     std::erase_if(q.relevance.junk, [&](const std::string& id) { return !present.contains(id); });
+    q.relevance.junk.insert(outside.begin(), outside.end());
     if (q.relevance.positives.empty()) continue;
     restricted.queries.push_back(std::move(q));
   }

@@ -42,7 +42,9 @@ struct Protocol {
 [[nodiscard]] Result<Protocol> LoadOxfordProtocol(const std::string& gt_dir, const std::string& name);
 
 // Restricts a protocol to the images present (ids): drops queries whose image is absent and intersects
-// the lists; queries left with no positive are dropped too (their AP is undefined).
+// the lists; queries left with no positive are dropped too (their AP is undefined). Query images
+// present but outside the protocol's database (revisited: queries are not database images) become
+// junk for every query.
 Protocol RestrictToImages(const Protocol& protocol, const std::vector<std::string>& present_ids);
 
 enum class RevisitedSetting { kEasy, kMedium, kHard };

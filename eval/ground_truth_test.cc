@@ -87,6 +87,14 @@ TEST_F(GroundTruthTest, RevisitedSettingsFollowRadenovic) {
   EXPECT_EQ(hard->queries.size(), 1u);  // q2 has no hard positive: dropped, as revisitop skips it
   EXPECT_EQ(medium->queries.size(), 2u);
 
+  // Restricted to a folder that also holds the query photos: they are indexed, so they are junk (queries
+  // are not database images in the revisited protocol).
+  const Protocol restricted = RestrictToImages(*medium, {"a", "b", "d", "q1", "q2"});
+  ASSERT_EQ(restricted.queries.size(), 2u);
+  EXPECT_EQ(restricted.queries[0].relevance.positives, (std::unordered_set<std::string>{"a", "b"}));
+  EXPECT_EQ(restricted.queries[0].relevance.junk, (std::unordered_set<std::string>{"q1", "q2"}));
+  EXPECT_EQ(restricted.queries[1].relevance.junk, (std::unordered_set<std::string>{"q1", "q2"}));
+
   Write("broken.json", R"({"imlist": ["a"], "qimlist": ["q"], "gnd": [{"bbx": [], "easy": [7], "hard": [], "junk": []}]})");
   auto broken = LoadRevisitedProtocol((dir_ / "broken.json").string(), RevisitedSetting::kEasy, "r");
   ASSERT_FALSE(broken);
