@@ -1,0 +1,68 @@
+#!/usr/bin/env bash
+# The hardening phases of the README's test command (scripts/test.sh runs this after the normal build
+# and ctest when OXBOW_TEST_HARDENING=1; can also be run alone after scripts/install-deps.sh):
+#   asan  ASan + UBSan build (GCC, -O1) of every test, whole ctest suite       build dir build-asan
+#   tsan  TSan build of the concurrency tests (HTTP server, index readers/writers, service)  build-tsan
+#   tidy  clang-tidy 16 over every source file, profile .clang-tidy, warnings as errors (scripts/clang-tidy.sh)
+#   fuzz  every libFuzzer target of tests/fuzz for OXBOW_FUZZ_SECONDS (default 30) s each (scripts/fuzz.sh)
+# OXBOW_HARDENING_PHASES="asan tsan tidy fuzz" picks phases (for local iteration); OXBOW_JOBS the build
+# parallelism. Prints the time of each phase at the end; exits non-zero on the first failing phase.
+set -euo pipefail
+root=$(cd "$(dirname "$0")/.." && pwd)
+phases=${OXBOW_HARDENING_PHASES:-asan tsan tidy fuzz}
+jobs=${OXBOW_JOBS:-$(nproc)}
+timings=()
+# The concurrency tests run under TSan: many threads on one index / service / server.
+tsan_tests=(http_server_test image_index_test service_test)
+
+# Test executables of a configured build folder (GoogleTest suites *_test and fuzz replays *_replay);
+# benchmarks are not built.
+test_targets() {
+  ninja -C "$1" -t targets all | sed -n 's/^\([a-z0-9_]*_\(test\|replay\)\): phony$/\1/p' | grep -v '^cmake_' | sort -u
+}
+
+configure() {  # configure DIR SANITIZERS
+  cmake -S "$root" -B "$1" -G Ninja -DCMAKE_BUILD_TYPE=Release -DCMAKE_CXX_FLAGS_RELEASE="-O1 -g1" \
+    -DOXBOW_SANITIZE="$2" >/dev/null
+}
+
+run_phase() {
+  local name=$1 start
+  start=$(date +%s)
+  echo "==== hardening phase: $name" >&2
+  "phase_$name"
+  timings+=("$name $(( $(date +%s) - start ))")
+}
+
+phase_asan() {
+  local dir=$root/build-asan
+  configure "$dir" "address;undefined"
+  mapfile -t targets < <(test_targets "$dir")
+  cmake --build "$dir" --parallel "$jobs" --target oxbow "${targets[@]}"
+  (cd "$dir" && ASAN_OPTIONS=detect_leaks=1:detect_stack_use_after_return=1 \
+    UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
+    ctest --output-on-failure --parallel "$jobs" --timeout 1800 -E '^browser_')
+}
+
+phase_tsan() {
+  local dir=$root/build-tsan
+  configure "$dir" "thread"
+  cmake --build "$dir" --parallel "$jobs" --target oxbow "${tsan_tests[@]}"
+  local regex
+  regex="^($(IFS='|'; echo "${tsan_tests[*]}"))\$"
+  (cd "$dir" && TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1:suppressions=$root/tests/tsan.supp" \
+    ctest --output-on-failure --parallel "$jobs" --timeout 1800 -R "$regex")
+}
+
+phase_tidy() {
+  [[ -f "$root/build-asan/compile_commands.json" ]] || configure "$root/build-asan" "address;undefined"
+  "$root/scripts/clang-tidy.sh" "$root/build-asan"
+}
+
+phase_fuzz() {
+  "$root/scripts/fuzz.sh" --seconds "${OXBOW_FUZZ_SECONDS:-30}"
+}
+
+for p in $phases; do run_phase "$p"; done
+echo "hardening phase times (s, load average $(cut -d' ' -f1-3 /proc/loadavg)):" >&2
+for t in "${timings[@]}"; do echo "  $t" >&2; done
