@@ -58,7 +58,7 @@ class Service::BackgroundThreads {
   BackgroundThreads(int threads, int nice) {
     for (int i = 0; i < threads; ++i) {
       threads_.emplace_back([this, nice] {
-        if (setpriority(PRIO_PROCESS, static_cast<id_t>(gettid()), nice) != 0) {
+        if (nice > 0 && setpriority(PRIO_PROCESS, static_cast<id_t>(gettid()), nice) != 0) {
           OXBOW_LOG(kWarning) << "cannot lower the priority of an add thread; adds run at normal priority";
         }
         Work();
@@ -157,6 +157,7 @@ Service::Service(std::unique_ptr<index::ImageIndex> index, sift::SiftExtractor e
       extraction_semaphore_(extraction_slots_),
       opened_(Clock::now()) {
   if (options_.add_nice > 0) add_threads_ = std::make_unique<BackgroundThreads>(extraction_slots_, options_.add_nice);
+  extract_threads_ = std::make_unique<BackgroundThreads>(extraction_slots_, 0);
 }
 
 Service::~Service() = default;
@@ -211,17 +212,21 @@ Result<std::unique_ptr<Service>> Service::Open(const std::string& index_dir,
 }
 
 Result<sift::FeatureSet> Service::Extract(std::span<const uint8_t> image, double* elapsed_ms,
-                                          const std::function<void()>& also) const {
+                                          const std::function<void()>& also, BackgroundThreads* threads) const {
   if (!extraction_semaphore_.try_acquire_for(std::chrono::milliseconds(options_.extraction_wait_ms))) {
     return Fail(ErrorCode::kResourceExhausted,
                 "all " + std::to_string(extraction_slots_) + " extraction slots stayed busy for " +
                     std::to_string(options_.extraction_wait_ms) + " ms; retry later");
   }
   SlotGuard slot(&extraction_semaphore_, &extractions_in_flight_);
-  const auto start = Clock::now();
-  auto features = extractor_.ExtractFromBytes(image, options_.Decode());
-  *elapsed_ms = MsSince(start);
-  if (features && also) also();
+  // At most extraction_slots_ jobs hold a slot, and each pool has that many threads: no job waits here.
+  Result<sift::FeatureSet> features = Fail(ErrorCode::kInternal, "extraction did not run");
+  threads->Run([&] {
+    const auto start = Clock::now();
+    features = extractor_.ExtractFromBytes(image, options_.Decode());
+    *elapsed_ms = MsSince(start);
+    if (features && also) also();
+  });
   return features;
 }
 
@@ -237,17 +242,13 @@ Result<AddImageResponse> Service::AddImage(const AddImageRequest& request) {
   AddImageResponse response;
   Result<sift::FeatureSet> features = Fail(ErrorCode::kInternal, "extraction did not run");
   Result<api::Thumbnail> thumbnail = Fail(ErrorCode::kInternal, "thumbnail not made");
-  auto extract = [&] {
-    features = Extract(request.image, &response.decode_extract_ms, [&] {
-      thumbnail = MakeThumbnail(request.image, options_.thumbnails.stored_side_px, options_.thumbnails.jpeg_quality,
-                                options_.Decode());
-    });
-  };
-  if (add_threads_) {
-    add_threads_->Run(extract);
-  } else {
-    extract();
-  }
+  features = Extract(
+      request.image, &response.decode_extract_ms,
+      [&] {
+        thumbnail = MakeThumbnail(request.image, options_.thumbnails.stored_side_px, options_.thumbnails.jpeg_quality,
+                                  options_.Decode());
+      },
+      add_threads_ ? add_threads_.get() : extract_threads_.get());
   if (!features) return std::unexpected(features.error());
   if (!thumbnail) return std::unexpected(thumbnail.error());
 
@@ -303,7 +304,7 @@ Result<SearchResponse> Service::Search(std::span<const uint8_t> image, const ind
   const auto start = Clock::now();
   SearchResponse response;
   response.options = options;
-  auto features = Extract(image, &response.decode_extract_ms);
+  auto features = Extract(image, &response.decode_extract_ms, nullptr, extract_threads_.get());
   if (!features) return std::unexpected(features.error());
   response.query_width = features->image_width;
   response.query_height = features->image_height;
@@ -338,13 +339,13 @@ Result<MatchResponse> Service::Match(std::span<const uint8_t> image_a, std::span
                                      const PairMatchOptions& options) const {
   const auto start = Clock::now();
   MatchResponse response;
-  auto a = Extract(image_a, &response.decode_extract_a_ms);
+  auto a = Extract(image_a, &response.decode_extract_a_ms, nullptr, extract_threads_.get());
   if (!a) {
     Error error = a.error();
     error.message = "image a: " + error.message;
     return std::unexpected(error);
   }
-  auto b = Extract(image_b, &response.decode_extract_b_ms);
+  auto b = Extract(image_b, &response.decode_extract_b_ms, nullptr, extract_threads_.get());
   if (!b) {
     Error error = b.error();
     error.message = "image b: " + error.message;

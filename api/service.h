@@ -164,12 +164,16 @@ class Service {
   ~Service();
 
  private:
+  class BackgroundThreads;
   Service(std::unique_ptr<index::ImageIndex> index, sift::SiftExtractor extractor, const ServiceOptions& options);
   // Decode + extract under an extraction slot; kResourceExhausted when no slot frees up in time. After a
   // successful extraction `also` (when given) runs under the same slot (the add's thumbnail decode), so
-  // the slots bound its memory too.
+  // the slots bound its memory too. The slot is taken on the calling thread; the work runs on one of
+  // `threads` (the add threads, else extract_threads_): SIFT keeps its pyramid buffers per thread that
+  // extracts (SiftOptions::thread_cache_mib), so extracting on the HTTP workers would let every worker
+  // keep ~200 MiB of buffers (32 workers: 7 GiB measured) whatever the slot count.
   [[nodiscard]] Result<sift::FeatureSet> Extract(std::span<const uint8_t> image, double* elapsed_ms,
-                                                 const std::function<void()>& also = nullptr) const;
+                                                 const std::function<void()>& also, BackgroundThreads* threads) const;
 
   std::unique_ptr<index::ImageIndex> index_;
   sift::SiftExtractor extractor_;
@@ -178,8 +182,8 @@ class Service {
   mutable std::counting_semaphore<1024> extraction_semaphore_;
   mutable std::atomic<int> extractions_in_flight_{0};
   std::mutex write_mutex_;  // serialises AddImage/DeleteImage (held across replace's remove + add)
-  class BackgroundThreads;
-  std::unique_ptr<BackgroundThreads> add_threads_;  // low-priority extraction for adds (add_nice > 0)
+  std::unique_ptr<BackgroundThreads> add_threads_;      // low-priority extraction for adds (add_nice > 0)
+  std::unique_ptr<BackgroundThreads> extract_threads_;  // every other extraction (normal priority)
   std::unique_ptr<ThumbnailStore> thumbnails_;      // <index>/thumbnails.sqlite (thread-safe itself)
   std::chrono::steady_clock::time_point opened_;
 };
