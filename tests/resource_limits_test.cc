@@ -26,6 +26,7 @@
 #include <random>
 #include <sstream>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include <opencv2/core.hpp>
@@ -524,6 +525,55 @@ TEST_F(ResourceLimitsTest, PeakMemoryPerSearchStaysUnderTheBound) {
     EXPECT_TRUE(status == 200 || status == 400 || status == 413 || status == 415) << c.name << ": " << status << " " << code;
     EXPECT_LE(peak, bound) << c.name;
   }
+}
+
+uint64_t ChildStatusBytes(pid_t pid, const char* field) {  // VmRSS / VmHWM of another process, bytes
+  std::ifstream status("/proc/" + std::to_string(pid) + "/status");
+  std::string line;
+  while (std::getline(status, line)) {
+    if (line.rfind(field, 0) == 0) return std::stoull(line.substr(std::strlen(field) + 1)) * 1024;
+  }
+  return 0;
+}
+
+// The server's memory grows with --extractions, not with --threads: SIFT keeps pyramid buffers per thread
+// that extracts, so extractions run on service-owned threads. Before that, 32 concurrent searches with
+// --threads 32 --extractions 2 peaked at 7 GiB. Compared with one search alone, eight at once (eight HTTP
+// workers, one extraction slot) may only add their request bodies.
+TEST_F(ResourceLimitsTest, ConcurrentSearchesCostWhatTheExtractionSlotsAllow) {
+#if defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
+  GTEST_SKIP() << "sanitizer builds add shadow memory";
+#endif
+  oxbow::testing::ServerProcess server({"serve", "--index", dir_->path() + "/concurrent", "--vocab", vocab_, "--port", "0",
+                                        "--threads", "8", "--extractions", "1", "--extraction-wait-ms", "120000"},
+                                       dir_->path() + "/concurrent.log");
+  ASSERT_TRUE(server.port() > 0 && server.WaitReady()) << server.Log();
+  auto reset_peak = [&] {
+    std::ofstream clear("/proc/" + std::to_string(server.pid()) + "/clear_refs");
+    clear << "5";
+    return static_cast<bool>(clear);
+  };
+  if (!reset_peak()) GTEST_SKIP() << "cannot reset the server's VmHWM here";
+  const Bytes jpeg = Encode(".jpg", Texture(1600, 1200), {cv::IMWRITE_JPEG_QUALITY, 90});
+  const std::string body(jpeg.begin(), jpeg.end());
+  auto search = [&] {
+    auto res = server.Client().Post("/v1/search", body, "image/jpeg");
+    return res ? res->status : -1;
+  };
+  const uint64_t before_one = ChildStatusBytes(server.pid(), "VmRSS:");
+  ASSERT_EQ(search(), 200);
+  const uint64_t one = ChildStatusBytes(server.pid(), "VmHWM:") - before_one;
+  ASSERT_TRUE(reset_peak());
+  const uint64_t before_many = ChildStatusBytes(server.pid(), "VmRSS:");
+  std::vector<int> statuses(8, 0);
+  std::vector<std::thread> clients;
+  for (size_t i = 0; i < statuses.size(); ++i) clients.emplace_back([&, i] { statuses[i] = search(); });
+  for (auto& t : clients) t.join();
+  const uint64_t many = ChildStatusBytes(server.pid(), "VmHWM:") - before_many;
+  for (int status : statuses) EXPECT_EQ(status, 200);
+  std::printf("one search: +%.1f MiB; eight at once with one extraction slot: +%.1f MiB\n", one / 1048576.0, many / 1048576.0);
+  EXPECT_GT(one, 16u << 20) << "the first extraction should allocate its pyramid";
+  EXPECT_LE(many, one / 2 + 8 * body.size() * 3) << "concurrent searches allocated pyramids beyond the extraction slots";
 }
 
 }  // namespace
