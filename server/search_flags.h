@@ -13,53 +13,27 @@ namespace oxbow::cli {
 
 // Per-search options beyond --top-k/--rerank/--qe (which each command words for its own use).
 inline void AddSearchFlags(CLI::App* cmd, index::QueryOptions* o) {
-  const auto group = "Search";
-  cmd->add_option("--qe-images", o->qe_images, "verified results averaged into the expanded query")
-      ->capture_default_str()
-      ->check(CLI::Range(1, 100))
-      ->group(group);
-  cmd->add_option("--min-inliers", o->verify.min_inliers, "inliers needed to count as verified")
-      ->capture_default_str()
-      ->check(CLI::Range(3, 1000000))
-      ->group(group);
-  cmd->add_option("--max-pairs-per-word", o->max_pairs_per_word,
-                  "re-ranking: words with more features than this on either side give no tentative matches")
-      ->capture_default_str()
-      ->check(CLI::Range(1, 100))
-      ->group(group);
-  cmd->add_option("--transitive-depth", o->transitive_depth,
-                  "transitive verification: unverified results tried against verified ones (0 = off)")
-      ->capture_default_str()
-      ->check(CLI::Range(0, 10000))
-      ->group(group);
-  cmd->add_option("--transitive-anchors", o->transitive_anchors, "transitive verification: verified results used as anchors")
-      ->capture_default_str()
-      ->check(CLI::Range(1, 1000))
-      ->group(group);
-  cmd->add_option("--transitive-neighbours", o->transitive_neighbours,
-                  "transitive verification: an anchor only verifies its own best tf-idf neighbours")
-      ->capture_default_str()
-      ->check(CLI::Range(1, 10000))
-      ->group(group);
-  cmd->add_option("--transitive-attempts", o->transitive_attempts,
-                  "transitive verification: anchors a candidate is verified against at most")
-      ->capture_default_str()
-      ->check(CLI::Range(1, 1000))
-      ->group(group);
-  cmd->add_option("--query-assignments", o->query_assignments,
-                  "multiple assignment: nearest words each query descriptor counts for (1 = hard)")
-      ->capture_default_str()
-      ->check(CLI::Range(1, 8))
-      ->group(group);
-  cmd->add_option("--assignment-sigma-sq", o->assignment_sigma_sq, "multiple assignment: kernel width (squared distance)")
-      ->capture_default_str()
-      ->check(CLI::Range(1e-9, 4.0))
-      ->group(group);
-  cmd->add_option("--quantizer-probes", o->quantizer_probes,
-                  "coarse quantiser lists probed per query descriptor (more: slower, closer to exact)")
-      ->capture_default_str()
-      ->check(CLI::Range(1, 4096))
-      ->group(group);
+  const auto add = [cmd](const char* name, auto* field, const char* help, auto min, auto max) {
+    cmd->add_option(name, *field, help)->capture_default_str()->check(CLI::Range(min, max))->group("Search");
+  };
+  add("--qe-images", &o->qe_images, "verified results averaged into the expanded query", 1, 100);
+  add("--min-inliers", &o->verify.min_inliers, "inliers needed to count as verified", 3, 1000000);
+  add("--max-pairs-per-word", &o->max_pairs_per_word,
+      "re-ranking: words with more features than this on either side give no tentative matches", 1, 100);
+  add("--transitive-depth", &o->transitive_depth,
+      "transitive verification: unverified results tried against verified ones (0 = off)", 0, 10000);
+  add("--transitive-anchors", &o->transitive_anchors, "transitive verification: verified results used as anchors", 1,
+      1000);
+  add("--transitive-neighbours", &o->transitive_neighbours,
+      "transitive verification: an anchor only verifies its own best tf-idf neighbours", 1, 10000);
+  add("--transitive-attempts", &o->transitive_attempts,
+      "transitive verification: anchors a candidate is verified against at most", 1, 1000);
+  add("--query-assignments", &o->query_assignments,
+      "multiple assignment: nearest words each query descriptor counts for (1 = hard)", 1, 8);
+  add("--assignment-sigma-sq", &o->assignment_sigma_sq, "multiple assignment: kernel width (squared distance)", 1e-9,
+      4.0);
+  add("--quantizer-probes", &o->quantizer_probes,
+      "coarse quantiser lists probed per query descriptor (more: slower, closer to exact)", 1, 4096);
 }
 
 // Options of the opened index that change scores: fixed while it is open, not stored in it.
