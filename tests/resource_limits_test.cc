@@ -382,8 +382,9 @@ TEST_F(ResourceLimitsTest, SixteenBitAndCmykImagesAreIndexedAndFound) {
 
 // ---- Peak memory per request ------------------------------------------------------------------------
 
-uint64_t ProcStatusBytes(const char* field) {  // VmRSS / VmHWM of this process, bytes
-  std::ifstream status("/proc/self/status");
+// A VmRSS / VmHWM line of /proc/<process>/status ("self" or a pid), bytes.
+uint64_t StatusBytes(const std::string& process, const char* field) {
+  std::ifstream status("/proc/" + process + "/status");
   std::string line;
   while (std::getline(status, line)) {
     if (line.rfind(field, 0) == 0) return std::stoull(line.substr(std::strlen(field) + 1)) * 1024;
@@ -458,9 +459,9 @@ TEST(ResourceLimitsMeasure, OneSearch) {
     std::ofstream clear("/proc/self/clear_refs");
     clear << "5";  // resets VmHWM to the current RSS (Linux >= 4.0)
   }
-  const uint64_t before = ProcStatusBytes("VmRSS:");
+  const uint64_t before = StatusBytes("self", "VmRSS:");
   auto found = (*service)->Search(bytes, (*service)->options().default_query);
-  const uint64_t peak = ProcStatusBytes("VmHWM:");
+  const uint64_t peak = StatusBytes("self", "VmHWM:");
   const int status = found ? 200 : api::ToHttpError(found.error()).status;
   std::printf("OXBOW_MEASURE status=%d peak=%llu code=%s\n", status, static_cast<unsigned long long>(peak - std::min(peak, before)),
               found ? "ok" : std::string(ErrorCodeName(found.error().code)).c_str());
@@ -527,15 +528,6 @@ TEST_F(ResourceLimitsTest, PeakMemoryPerSearchStaysUnderTheBound) {
   }
 }
 
-uint64_t ChildStatusBytes(pid_t pid, const char* field) {  // VmRSS / VmHWM of another process, bytes
-  std::ifstream status("/proc/" + std::to_string(pid) + "/status");
-  std::string line;
-  while (std::getline(status, line)) {
-    if (line.rfind(field, 0) == 0) return std::stoull(line.substr(std::strlen(field) + 1)) * 1024;
-  }
-  return 0;
-}
-
 // The server's memory grows with --extractions, not with --threads: SIFT keeps pyramid buffers per thread
 // that extracts, so extractions run on service-owned threads. Before that, 32 concurrent searches with
 // --threads 32 --extractions 2 peaked at 7 GiB. Compared with one search alone, eight at once (eight HTTP
@@ -560,16 +552,16 @@ TEST_F(ResourceLimitsTest, ConcurrentSearchesCostWhatTheExtractionSlotsAllow) {
     auto res = server.Client().Post("/v1/search", body, "image/jpeg");
     return res ? res->status : -1;
   };
-  const uint64_t before_one = ChildStatusBytes(server.pid(), "VmRSS:");
+  const uint64_t before_one = StatusBytes(std::to_string(server.pid()), "VmRSS:");
   ASSERT_EQ(search(), 200);
-  const uint64_t one = ChildStatusBytes(server.pid(), "VmHWM:") - before_one;
+  const uint64_t one = StatusBytes(std::to_string(server.pid()), "VmHWM:") - before_one;
   ASSERT_TRUE(reset_peak());
-  const uint64_t before_many = ChildStatusBytes(server.pid(), "VmRSS:");
+  const uint64_t before_many = StatusBytes(std::to_string(server.pid()), "VmRSS:");
   std::vector<int> statuses(8, 0);
   std::vector<std::thread> clients;
   for (size_t i = 0; i < statuses.size(); ++i) clients.emplace_back([&, i] { statuses[i] = search(); });
   for (auto& t : clients) t.join();
-  const uint64_t many = ChildStatusBytes(server.pid(), "VmHWM:") - before_many;
+  const uint64_t many = StatusBytes(std::to_string(server.pid()), "VmHWM:") - before_many;
   for (int status : statuses) EXPECT_EQ(status, 200);
   std::printf("one search: +%.1f MiB; eight at once with one extraction slot: +%.1f MiB\n", one / 1048576.0, many / 1048576.0);
   EXPECT_GT(one, 16u << 20) << "the first extraction should allocate its pyramid";
