@@ -23,7 +23,7 @@ fi
 start=$(date +%s)
 "$runner" -clang-tidy-binary "$tidy" -p "$build_dir" -quiet -j "${OXBOW_JOBS:-$(nproc)}" \
   -extra-arg=-std=c++2b -extra-arg=-D__cpp_concepts=202002L -extra-arg=-Wno-builtin-macro-redefined \
-  -extra-arg=-Wno-unknown-warning-option "$files" > "$build_dir/clang-tidy.log" 2>&1 && status=0 || status=$?
+  -extra-arg=-Wno-macro-redefined -extra-arg=-Wno-unknown-warning-option "$files" > "$build_dir/clang-tidy.log" 2>&1 && status=0 || status=$?
 grep -E "(warning|error): " "$build_dir/clang-tidy.log" | sort -u || true
 echo "clang-tidy.sh: $(grep -c '^clang-tidy-16\|^/usr/bin/clang-tidy-16' "$build_dir/clang-tidy.log" || true) files in $(( $(date +%s) - start )) s, exit $status (log: $build_dir/clang-tidy.log)"
 exit "$status"

@@ -41,7 +41,7 @@ const std::filesystem::path& ScratchDir() {
 }
 
 std::string WriteScratchFile(const std::string& name, std::span<const uint8_t> bytes) {
-  const std::string path = (ScratchDir() / name).string();
+  std::string path = (ScratchDir() / name).string();
   std::ofstream out(path, std::ios::binary | std::ios::trunc);
   out.write(reinterpret_cast<const char*>(bytes.data()), static_cast<std::streamsize>(bytes.size()));
   out.close();
