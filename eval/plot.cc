@@ -71,7 +71,7 @@ cv::Mat NewCanvas(const ChartOptions& options, Frame* frame) {
   return img;
 }
 
-void DrawAxes(cv::Mat& img, const Frame& f, bool x_ticks) {
+void DrawAxes(cv::Mat& img, const Frame& f, bool x_ticks, const std::vector<double>& x_tick_values = {}) {
   cv::rectangle(img, f.area, cv::Scalar(60, 60, 60), 1);
   for (int i = 0; i <= 5; ++i) {
     const double y = f.y_min + (f.y_max - f.y_min) * i / 5.0;
@@ -80,16 +80,21 @@ void DrawAxes(cv::Mat& img, const Frame& f, bool x_ticks) {
     PutText(img, FormatTick(y), p + cv::Point(-45, 5));
   }
   if (!x_ticks) return;
-  for (int i = 0; i <= 5; ++i) {
-    const double x = f.log_x ? std::pow(10.0, std::log10(f.x_min) + (std::log10(f.x_max) - std::log10(f.x_min)) * i / 5.0)
-                             : f.x_min + (f.x_max - f.x_min) * i / 5.0;
+  std::vector<double> xs = x_tick_values;
+  if (xs.empty()) {
+    for (int i = 0; i <= 5; ++i) {
+      xs.push_back(f.log_x ? std::pow(10.0, std::log10(f.x_min) + (std::log10(f.x_max) - std::log10(f.x_min)) * i / 5.0)
+                           : f.x_min + (f.x_max - f.x_min) * i / 5.0);
+    }
+  }
+  for (double x : xs) {
     const cv::Point p = f.Map(x, f.y_min);
     cv::line(img, p, p + cv::Point(0, -f.area.height), cv::Scalar(225, 225, 225), 1);
     PutText(img, FormatTick(x), p + cv::Point(-12, 20));
   }
 }
 
-void DrawLegend(cv::Mat& img, const Frame& f, const std::vector<std::string>& names) {
+void DrawLegend(cv::Mat& img, const Frame& f, const std::vector<std::string>& names, bool at_bottom = false) {
   if (names.empty()) return;
   // An opaque box behind the entries, so the legend stays readable over the data.
   int text_width = 0;
@@ -98,11 +103,12 @@ void DrawLegend(cv::Mat& img, const Frame& f, const std::vector<std::string>& na
     text_width = std::max(text_width, cv::getTextSize(name, cv::FONT_HERSHEY_SIMPLEX, 0.42, 1, &baseline).width);
   }
   const int box_width = text_width + 30;
-  const cv::Rect box(f.area.x + f.area.width - box_width - 6, f.area.y + 6, box_width,
-                     static_cast<int>(names.size()) * 18 + 8);
+  const int box_height = static_cast<int>(names.size()) * 18 + 8;
+  const cv::Rect box(f.area.x + f.area.width - box_width - 6,
+                     at_bottom ? f.area.y + f.area.height - box_height - 6 : f.area.y + 6, box_width, box_height);
   cv::rectangle(img, box, cv::Scalar(255, 255, 255), cv::FILLED);
   cv::rectangle(img, box, cv::Scalar(160, 160, 160), 1);
-  int y = f.area.y + 18;
+  int y = box.y + 12;
   for (size_t i = 0; i < names.size(); ++i) {
     const cv::Point p(box.x + 10, y);
     DrawMarker(img, p, i, Colour(i));
@@ -146,7 +152,7 @@ Status WriteLineChart(const std::string& png_path, const std::vector<Series>& se
     if (options.y_min >= options.y_max) { f.y_min = std::min(0.0, y0); f.y_max = y1 * 1.05; }
   }
   if (f.log_x && f.x_min <= 0) f.log_x = false;
-  DrawAxes(img, f, true);
+  DrawAxes(img, f, true, options.x_ticks);
   std::vector<std::string> names;
   for (size_t i = 0; i < series.size(); ++i) {
     names.push_back(series[i].name);
@@ -155,7 +161,7 @@ Status WriteLineChart(const std::string& png_path, const std::vector<Series>& se
     if (pts.size() > 1) cv::polylines(img, pts, false, Colour(i), 2, cv::LINE_AA);
     for (const cv::Point& p : pts) DrawMarker(img, p, i, Colour(i));
   }
-  DrawLegend(img, f, names);
+  DrawLegend(img, f, names, options.legend_at_bottom);
   return Save(png_path, img);
 }
 

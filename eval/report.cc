@@ -192,7 +192,9 @@ Status WriteReport(const std::string& dir, const std::vector<RunResult>& runs, c
                                 .y_label = "mAP",
                                 .x_min = 0,
                                 .x_max = 0,
-                                .log_x = true};
+                                .log_x = true,
+                                .x_ticks = std::vector<double>(sizes.begin(), sizes.end()),
+                                .legend_at_bottom = true};
       if (auto st = WriteLineChart((fs::path(dir) / "plots/map_vs_vocabulary.png").string(), lines, size_options); !st) {
         return st;
       }
