@@ -9,6 +9,7 @@
 #include <algorithm>
 #include <cerrno>
 #include <cstring>
+#include <limits>
 #include <string>
 
 namespace oxbow::server {
@@ -30,8 +31,12 @@ bool PollFor(int fd, short events, int timeout_ms) {
   }
 }
 
+// Milliseconds from now until `t`, clamped to [0, INT_MAX] (0: passed or less than 1 ms away).
 int MsUntil(Clock::time_point t) {
-  return static_cast<int>(std::chrono::duration_cast<std::chrono::milliseconds>(t - Clock::now()).count());
+  const auto now = Clock::now();
+  if (t <= now) return 0;
+  const auto ms = std::chrono::duration_cast<std::chrono::milliseconds>(t - now).count();
+  return static_cast<int>(std::min<int64_t>(ms, std::numeric_limits<int>::max()));
 }
 
 // A socket stream (what httplib's SocketStream does) whose reads stop at a deadline set per request.
@@ -114,10 +119,15 @@ class DeadlineStream : public httplib::Stream {
   size_t begin_ = 0, end_ = 0;
 };
 
-// Stop sending, discard what the client still sends (at most 1 MiB, for at most `linger`), then close:
-// a client whose body the server did not read gets the response instead of a reset.
+// Stop sending; when the client has sent bytes the server did not read (a body refused unread), discard
+// what it still sends (at most 1 MiB, for at most `linger`); then close. The client then gets the
+// response instead of a reset. A connection with nothing unread (an idle keep-alive one) closes at once.
 void LingeringClose(socket_t sock, std::chrono::milliseconds linger) {
   ::shutdown(sock, SHUT_WR);
+  if (!PollFor(sock, POLLIN, 0)) {
+    ::close(sock);
+    return;
+  }
   const auto until = Clock::now() + linger;
   char sink[16384];
   for (size_t discarded = 0; discarded < (1u << 20);) {
