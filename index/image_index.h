@@ -36,7 +36,9 @@
 //    `transitive_depth` unverified results are verified against the matched regions of up to
 //    `transitive_anchors` verified results (directly verified first, then the transitively verified
 //    ones of earlier rounds), and those that pass are ranked right after the directly verified ones
-//    (by inliers). Their db_from_query is the composition through the result they matched.
+//    (by inliers). Their db_from_query is the composition through the result they matched. Each anchor
+//    only checks its own `transitive_neighbours` best tf-idf matches, and each candidate is verified
+//    against at most `transitive_attempts` anchors (those that score it highest).
 //
 // ==== Storage and durability ========================================================================
 //
