@@ -6,7 +6,8 @@
 #
 # oxbow is C++23 built with GCC 12; clang-tidy 16 parses it as C++2b. libstdc++ 12 only declares
 # std::expected when __cpp_concepts >= 202002L, which clang 16 implements (P0848, conditionally trivial
-# special members) but still advertises as 201907L, so the macro is raised for the analysis only.
+# special members) but still advertises as 201907L, so the macro is raised (-U then -D, which warns
+# about nothing) for the analysis only.
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 build_dir=${1:-$root/build-tidy}
@@ -22,8 +23,8 @@ if [[ ! -f "$build_dir/compile_commands.json" ]]; then
 fi
 start=$(date +%s)
 "$runner" -clang-tidy-binary "$tidy" -p "$build_dir" -quiet -j "${OXBOW_JOBS:-$(nproc)}" \
-  -extra-arg=-std=c++2b -extra-arg=-D__cpp_concepts=202002L -extra-arg=-Wno-builtin-macro-redefined \
-  -extra-arg=-Wno-macro-redefined -extra-arg=-Wno-unknown-warning-option "$files" > "$build_dir/clang-tidy.log" 2>&1 && status=0 || status=$?
+  -extra-arg=-std=c++2b -extra-arg=-U__cpp_concepts -extra-arg=-D__cpp_concepts=202002L \
+  -extra-arg=-Wno-builtin-macro-redefined -extra-arg=-Wno-unknown-warning-option "$files" > "$build_dir/clang-tidy.log" 2>&1 && status=0 || status=$?
 grep -E "(warning|error): " "$build_dir/clang-tidy.log" | sort -u || true
 echo "clang-tidy.sh: $(grep -c '^clang-tidy-16\|^/usr/bin/clang-tidy-16' "$build_dir/clang-tidy.log" || true) files in $(( $(date +%s) - start )) s, exit $status (log: $build_dir/clang-tidy.log)"
 exit "$status"
