@@ -84,6 +84,20 @@ void SendError(httplib::Response& res, const api::HttpError& error) {
 
 void SendError(httplib::Response& res, const Error& error) { SendError(res, api::ToHttpError(error)); }
 
+// curl --data-binary @photo.jpg without -H 'Content-Type: ...' labels the photo
+// application/x-www-form-urlencoded. httplib 0.11 would then cap the body at 8 KiB (413) and parse it
+// as form fields, so on the routes taking raw image bytes (POST /v1/images and /v1/search) such a body
+// is relabelled application/octet-stream before it is read: the decoder decides whether it is an image.
+// The Request is owned (non-const) by httplib's connection loop; this hook runs before the body is read.
+void TakeFormEncodedBodyAsImage(const httplib::Request& req) {
+  if (req.method != "POST" || (req.path != "/v1/images" && req.path != "/v1/search")) return;
+  auto& headers = const_cast<httplib::Request&>(req).headers;
+  auto it = headers.find("Content-Type");
+  if (it != headers.end() && it->second.rfind("application/x-www-form-urlencoded", 0) == 0) {
+    it->second = "application/octet-stream";
+  }
+}
+
 // Slow-client protection (server/request_guard.h). A request whose body does not fit the upload budget
 // is answered 503 before its body is read.
 httplib::Server::HandlerResponse RefuseOverUploadBudget(const httplib::Request& req, httplib::Response& res,
@@ -134,7 +148,7 @@ api::Params CollectParams(const httplib::Request& req, const std::vector<std::st
 }
 
 // The image of a request: the multipart part `field` (or `alt_field`), else the raw body. Refuses
-// bodies that are clearly not an image (JSON, form-urlencoded, text) with 415, and empty ones with 400.
+// bodies that are clearly not an image (JSON, text) with 415, and empty ones with 400.
 Result<std::string_view> RequestImage(const httplib::Request& req, const std::string& field,
                                       const std::string& alt_field, std::string* filename) {
   if (req.is_multipart_form_data()) {
@@ -151,8 +165,7 @@ Result<std::string_view> RequestImage(const httplib::Request& req, const std::st
     return Fail(ErrorCode::kInvalidArgument, "multipart request without a '" + field + "' part holding the image");
   }
   const std::string type = req.get_header_value("Content-Type");
-  if (type.rfind("application/json", 0) == 0 || type.rfind("application/x-www-form-urlencoded", 0) == 0 ||
-      type.rfind("text/", 0) == 0) {
+  if (type.rfind("application/json", 0) == 0 || type.rfind("text/", 0) == 0) {
     return Fail(ErrorCode::kUnsupportedFormat,
                 "Content-Type '" + type + "' is not an image: send the image bytes (e.g. curl --data-binary @photo.jpg "
                 "-H 'Content-Type: image/jpeg') or multipart/form-data with a '" + field + "' part");
@@ -408,6 +421,7 @@ void HttpServer::RegisterRoutes() {
                                       " connections already wait for a worker; retry later"));
       return httplib::Server::HandlerResponse::Handled;
     }
+    TakeFormEncodedBodyAsImage(req);
     return RefuseOverUploadBudget(req, res, upload_budget_.get(), options_.max_body_bytes);
   });
 

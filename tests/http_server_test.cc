@@ -271,6 +271,13 @@ TEST_F(HttpServerTest, ErrorStatusesAndLimits) {
   ExpectErrorShape(client.Post("/v1/images?id=half", box_.substr(0, box_.size() / 2), "image/png"), 400, "invalid_image");
   ExpectErrorShape(client.Post("/v1/search", "", "image/png"), 400, "invalid_image");
   ExpectErrorShape(client.Post("/v1/search", R"({"image":"x"})", "application/json"), 415, "unsupported_format");
+  // curl --data-binary without -H sends application/x-www-form-urlencoded: taken as the image bytes
+  // (box.png is over httplib's 8 KiB form limit), and a form that is not an image is refused as such.
+  ASSERT_GT(box_.size(), 8192u);
+  auto curl_default = client.Post("/v1/search", box_, "application/x-www-form-urlencoded");
+  ASSERT_TRUE(curl_default);
+  EXPECT_EQ(curl_default->status, 200) << curl_default->body;
+  ExpectErrorShape(client.Post("/v1/search", "top_k=5&rerank=0", "application/x-www-form-urlencoded"), 400, "invalid_image");
 
   // Over the body limit (2 MiB) and over the pixel limit (0.6 MP; a 1000 x 800 PNG is small on disk).
   ExpectErrorShape(client.Post("/v1/search", std::string(3u << 20, 'x'), "application/octet-stream"), 413, "payload_too_large");
@@ -308,7 +315,8 @@ TEST_F(HttpServerTest, ErrorStatusesAndLimits) {
     text = metrics->body;
     if (text.find(added_series) == std::string::npos) std::this_thread::sleep_for(std::chrono::milliseconds(10));
   }
-  EXPECT_NE(text.find(R"(oxbow_http_requests_total{route="/v1/search",method="POST",status="400"} 2)"), std::string::npos) << text;
+  EXPECT_NE(text.find(R"(oxbow_http_requests_total{route="/v1/search",method="POST",status="400"} 3)"), std::string::npos) << text;
+  EXPECT_NE(text.find(R"(oxbow_http_requests_total{route="/v1/search",method="POST",status="200"} 1)"), std::string::npos);
   EXPECT_NE(text.find(R"(oxbow_http_requests_total{route="/v1/search",method="POST",status="413"} 1)"), std::string::npos);
   EXPECT_NE(text.find(R"(oxbow_http_requests_total{route="/v1/images",method="POST",status="201"} 1)"), std::string::npos);
   EXPECT_NE(text.find(R"(oxbow_http_requests_total{route="unmatched",method="GET",status="404"} 2)"), std::string::npos);
