@@ -135,7 +135,7 @@ PY
 
 cat >&2 <<HINTS
 
-Try it yourself:
+Try it yourself: open $url/ in a browser (the search page), or
   $shown
   curl -s '$url/v1/images?limit=5'
   curl -s '$url/v1/images/$( [[ $data == opencv ]] && echo graf3 || echo paris_eiffel_000266 )/similar?top_k=3'
@@ -145,5 +145,5 @@ if [[ "$serve" == 0 ]]; then
   echo "demo: --no-serve: stopping the server" >&2
   exit 0
 fi
-echo "demo: the server runs at $url (log: $log); Ctrl-C stops it" >&2
+echo "demo: the server runs at $url (search page: $url/; log: $log); Ctrl-C stops it" >&2
 wait "$server_pid"
