@@ -12,6 +12,7 @@
 
 #include <gtest/gtest.h>
 
+#include <array>
 #include <atomic>
 #include <chrono>
 #include <cstdlib>
@@ -157,7 +158,7 @@ TEST_F(SlowClientsTest, TricklingAndIdleClientsDoNotStarveANormalRequest) {
   const auto give_up = std::chrono::seconds(25);
   std::vector<Outcome> bodies(2);
   Outcome header;
-  std::vector<bool> idle_closed(2, false);
+  std::array<bool, 2> idle_closed{};  // not vector<bool>: its bits share a word, written by two threads
   std::vector<std::thread> stalled;
   for (auto& outcome : bodies) {
     stalled.emplace_back([&, port] { outcome = Trickle(port, PostHead("/v1/search", 100000), interval, give_up); });
