@@ -433,8 +433,9 @@ TEST_F(HttpServerTest, KillNineDuringAddsLosesNoAcknowledgedImage) {
         }
       });
     }
-    // Kill once a few adds were acknowledged, while more are in flight.
-    for (int i = 0; i < 3000; ++i) {
+    // Kill once a few adds were acknowledged, while more are in flight (waits up to 120 s: a TSan build
+    // on a loaded machine takes seconds per add).
+    for (int i = 0; i < 24000; ++i) {
       {
         std::lock_guard<std::mutex> lock(mutex);
         if (acknowledged.size() >= 6) break;
