@@ -4,16 +4,16 @@ namespace oxbow::api {
 
 int HttpStatusFor(ErrorCode code) {
   switch (code) {
-    case ErrorCode::kInvalidArgument: return 400;
+    case ErrorCode::kInvalidArgument:
     case ErrorCode::kInvalidImage: return 400;
     case ErrorCode::kUnauthenticated: return 401;
     case ErrorCode::kNotFound: return 404;
-    case ErrorCode::kAlreadyExists: return 409;
+    case ErrorCode::kAlreadyExists:
     case ErrorCode::kIncompatible: return 409;
     case ErrorCode::kImageTooLarge: return 413;
     case ErrorCode::kUnsupportedFormat: return 415;
-    case ErrorCode::kCorruptData: return 500;
-    case ErrorCode::kIoError: return 500;
+    case ErrorCode::kCorruptData:
+    case ErrorCode::kIoError:
     case ErrorCode::kInternal: return 500;
     case ErrorCode::kResourceExhausted: return 503;
   }

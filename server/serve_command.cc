@@ -102,7 +102,8 @@ void Serve(const ServeFlags& flags) {
   server.Run();  // returns after Shutdown(), once in-flight requests are done
   loader.join();
   // Wake the signal thread if the server stopped for another reason (index failed to load).
-  pthread_kill(signal_waiter.native_handle(), SIGTERM);
+  // The waiter blocks SIGTERM and consumes it in sigwait(): this wakes it, it does not terminate anything.
+  pthread_kill(signal_waiter.native_handle(), SIGTERM);  // NOLINT(bugprone-bad-signal-to-kill-thread)
   signal_waiter.join();
   if (load_error) throw CommandError(*load_error);
   OXBOW_LOG(kInfo) << "stopped";

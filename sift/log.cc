@@ -3,6 +3,7 @@
 #include <unistd.h>
 
 #include <atomic>
+#include <cmath>
 #include <cstdio>
 #include <ctime>
 
@@ -26,7 +27,7 @@ char LevelLetter(Level level) {
 std::string FormatDuration(double seconds) {
   char buf[32];
   if (seconds < 0 || seconds > 1e7) return "?";
-  const int s = static_cast<int>(seconds + 0.5);
+  const int s = static_cast<int>(std::lround(seconds));
   if (s >= 3600) {
     std::snprintf(buf, sizeof buf, "%dh%02dm", s / 3600, (s / 60) % 60);
   } else {

@@ -291,9 +291,11 @@ TEST(SiftDeterminism, VectorAndScalarKernelsAgree) {
         ASSERT_NEAR(a.at(x, y), ref.at<float>(y, x), 2e-5f) << x << "," << y;
       }
   }
-  for (float y = -2; y <= 2; y += 0.25f)
-    for (float x = -2; x <= 2; x += 0.25f) {
-      if (x == 0 && y == 0) continue;
+  for (int iy = -8; iy <= 8; ++iy)
+    for (int ix = -8; ix <= 8; ++ix) {
+      if (ix == 0 && iy == 0) continue;
+      const float y = 0.25f * static_cast<float>(iy);
+      const float x = 0.25f * static_cast<float>(ix);
       double expected = std::atan2(y, x) * 180 / kPi;
       if (expected < 0) expected += 360;
       const double diff = std::fabs(internal::FastAtan2Deg(y, x) - expected);
@@ -513,6 +515,7 @@ TEST(SiftExtractor, MaxFeaturesKeepsTheStrongest) {
   const FeatureSet best = MakeExtractor(options).Extract(image);
   ASSERT_EQ(best.size(), 100u);
   std::vector<float> responses;
+  responses.reserve(all.keypoints.size());
   for (const Keypoint& k : all.keypoints) responses.push_back(k.response);
   std::sort(responses.rbegin(), responses.rend());
   for (const Keypoint& k : best.keypoints) EXPECT_GE(k.response, responses[99]);

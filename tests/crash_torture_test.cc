@@ -137,7 +137,7 @@ class CrashTortureTest : public ::testing::Test {
     vocabulary_ = std::make_unique<vocab::Vocabulary>(std::move(*vocabulary));
     auto extractor = sift::SiftExtractor::Create(*sift::SiftOptions::FromDescription(settings_));
     ASSERT_TRUE(extractor);
-    extractor_ = std::make_unique<sift::SiftExtractor>(std::move(*extractor));
+    extractor_ = std::make_unique<sift::SiftExtractor>(*extractor);
   }
 
   const sift::FeatureSet& FeaturesOf(int picture) {
@@ -304,6 +304,7 @@ TEST_F(CrashTortureTest, KillNineAtRandomMomentsLosesNothingAcknowledged) {
     std::atomic<bool> stop{false};
     std::vector<Counts> client_counts(kClients);
     std::vector<std::thread> clients;
+    clients.reserve(kClients);
     for (int c = 0; c < kClients; ++c) {
       clients.emplace_back(RunClient, server.port(), &models[static_cast<size_t>(c)], &client_counts[static_cast<size_t>(c)],
                            rng(), &stop);

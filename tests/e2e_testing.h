@@ -79,6 +79,7 @@ class ServerProcess {
       std::vector<std::string> full = {OXBOW_BINARY};
       full.insert(full.end(), args.begin(), args.end());
       std::vector<char*> argv;
+      argv.reserve(full.size() + 1);
       for (auto& a : full) argv.push_back(a.data());
       argv.push_back(nullptr);
       execv(argv[0], argv.data());

@@ -21,7 +21,7 @@ const oxbow::sift::SiftExtractor& Extractor() {
     options.max_features = 200;
     auto made = oxbow::sift::SiftExtractor::Create(options);
     if (!made) std::abort();
-    return std::move(*made);
+    return *made;
   }();
   return extractor;
 }
