@@ -12,8 +12,11 @@ root=$(cd "$(dirname "$0")/.." && pwd)
 phases=${OXBOW_HARDENING_PHASES:-asan tsan tidy fuzz}
 jobs=${OXBOW_JOBS:-$(nproc)}
 timings=()
-# The concurrency tests run under TSan: many threads on one index / service / server.
-tsan_tests=(http_server_test image_index_test service_test)
+# The concurrency tests run under TSan: many threads on one index / service / server, slow clients, and
+# kill -9 under concurrent writers. The tests in tests/ run the TSan-built `oxbow` of the same build
+# folder as a child (OXBOW_BINARY), which inherits TSAN_OPTIONS: log_path collects the reports of every
+# process (a child's report would otherwise go only to its log), and any report fails the phase.
+tsan_tests=(http_server_test image_index_test service_test slow_clients_test crash_torture_test)
 
 # Test executables of a configured build folder (GoogleTest suites *_test and fuzz replays *_replay);
 # benchmarks are not built.
@@ -48,10 +51,17 @@ phase_tsan() {
   local dir=$root/build-tsan
   configure "$dir" "thread"
   cmake --build "$dir" --parallel "$jobs" --target oxbow "${tsan_tests[@]}"
-  local regex
+  local regex reports=$dir/tsan-reports status=0
   regex="^($(IFS='|'; echo "${tsan_tests[*]}"))\$"
-  (cd "$dir" && TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1:suppressions=$root/tests/tsan.supp" \
-    ctest --output-on-failure --parallel "$jobs" --timeout 1800 -R "$regex")
+  rm -rf "$reports" && mkdir -p "$reports"
+  (cd "$dir" && TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1:suppressions=$root/tests/tsan.supp:log_path=$reports/tsan" \
+    ctest --output-on-failure --parallel "$jobs" --timeout 1800 -R "$regex") || status=$?
+  if compgen -G "$reports/tsan.*" >/dev/null; then
+    cat "$reports"/tsan.* >&2
+    echo "tsan: ThreadSanitizer reports above (files in $reports)" >&2
+    status=1
+  fi
+  return "$status"
 }
 
 phase_tidy() {
