@@ -152,10 +152,10 @@ TEST(CrashSafetyTest, AcknowledgedChangesSurviveSigkill) {
       removed.insert(in_flight_removal);
     }
     for (const std::string& id : expected) {
-      const auto record = idx.Get(id);
-      ASSERT_TRUE(record) << "acknowledged image " << id << " lost in round " << round;
+      const auto found = idx.Get(id);
+      ASSERT_TRUE(found) << "acknowledged image " << id << " lost in round " << round;
       const int i = std::stoi(id.substr(3));
-      EXPECT_EQ(record->num_features, ImageFeatures(vocabulary, i).size()) << id;
+      EXPECT_EQ(found->num_features, ImageFeatures(vocabulary, i).size()) << id;
     }
     for (const std::string& id : removed) EXPECT_FALSE(idx.Contains(id)) << "acknowledged removal of " << id << " undone";
     // At most the one change in flight may have committed without being acknowledged.
@@ -165,11 +165,11 @@ TEST(CrashSafetyTest, AcknowledgedChangesSurviveSigkill) {
     // Whatever is there is whole: each image's stored features find the image itself first.
     const auto all = idx.List(0, 1u << 20);
     ASSERT_TRUE(all);
-    for (const auto& record : *all) {
-      const int i = std::stoi(record.id.substr(3));
-      EXPECT_EQ(record.num_features, ImageFeatures(vocabulary, i).size()) << record.id;
+    for (const auto& stored : *all) {
+      const int i = std::stoi(stored.id.substr(3));
+      EXPECT_EQ(stored.num_features, ImageFeatures(vocabulary, i).size()) << stored.id;
       // Adopt an unacknowledged but committed add so later rounds keep checking it.
-      expected.insert(record.id);
+      expected.insert(stored.id);
     }
     index::QueryOptions query;
     query.top_k = 1;

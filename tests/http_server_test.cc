@@ -89,7 +89,7 @@ class HttpServerTest : public ::testing::Test {
     if (index_dir.empty()) index_dir = dir_->path() + "/index-" + std::to_string(counter_++);
     std::vector<std::string> args = {"serve", "--index", index_dir, "--port", "0", "--threads", "8"};
     if (with_vocab) {
-      args.push_back("--vocab");
+      args.emplace_back("--vocab");
       args.push_back(vocab_);
     }
     args.insert(args.end(), extra.begin(), extra.end());
@@ -415,6 +415,7 @@ TEST_F(HttpServerTest, KillNineDuringAddsLosesNoAcknowledgedImage) {
     std::atomic<bool> stop{false};
     const std::vector<const std::string*> images = {&box_, &scene_, &leuven_};
     std::vector<std::thread> writers;
+    writers.reserve(2);
     for (int w = 0; w < 2; ++w) {
       writers.emplace_back([&, w] {
         auto client = server->Client();

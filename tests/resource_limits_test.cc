@@ -449,10 +449,15 @@ TEST(ResourceLimitsMeasure, OneSearch) {
   const char* input = std::getenv("OXBOW_MEASURE_INPUT");
   if (input == nullptr) GTEST_SKIP() << "run by PeakMemoryPerSearchStaysUnderTheBound in a child process";
   api::ServiceOptions options;
-  options.max_pixels = std::stoull(std::getenv("OXBOW_MEASURE_MAX_PIXELS"));
+  // The parent sets every variable; a missing one reads as "" (std::stoull throws: a test error, not a crash).
+  const auto env = [](const char* name) {
+    const char* value = std::getenv(name);
+    return std::string(value != nullptr ? value : "");
+  };
+  options.max_pixels = std::stoull(env("OXBOW_MEASURE_MAX_PIXELS"));
   options.threads_per_request = 1;
   options.add_nice = 0;
-  auto service = api::Service::Open(std::getenv("OXBOW_MEASURE_INDEX"), std::string(std::getenv("OXBOW_MEASURE_VOCAB")), options);
+  auto service = api::Service::Open(env("OXBOW_MEASURE_INDEX"), env("OXBOW_MEASURE_VOCAB"), options);
   ASSERT_TRUE(service) << service.error().ToString();
   const Bytes bytes = api::testing::ReadBytes(input);
   {
@@ -482,6 +487,7 @@ TEST_F(ResourceLimitsTest, PeakMemoryPerSearchStaysUnderTheBound) {
   sift::SiftOptions production;  // the server's extractor: `oxbow vocab train` defaults (RootSIFT, 2x first octave)
   production.descriptor = sift::DescriptorKind::kRootSift;
   ASSERT_TRUE(RandomVocabulary(production.Describe())->Write(vocab));
+  // NOLINTNEXTLINE(bugprone-unchecked-optional-access): the default is set (value() would throw otherwise)
   const int max_side = api::ServiceOptions{}.max_image_side_px.value();
   std::printf("| input | declared size | file bytes | --max-megapixels | result | peak memory (MiB) | bound (MiB) |\n"
               "|---|---|---:|---:|---|---:|---:|\n");

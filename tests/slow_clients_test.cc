@@ -160,6 +160,7 @@ TEST_F(SlowClientsTest, TricklingAndIdleClientsDoNotStarveANormalRequest) {
   Outcome header;
   std::array<bool, 2> idle_closed{};  // not vector<bool>: its bits share a word, written by two threads
   std::vector<std::thread> stalled;
+  stalled.reserve(bodies.size() + 1 + idle_closed.size());
   for (auto& outcome : bodies) {
     stalled.emplace_back([&, port] { outcome = Trickle(port, PostHead("/v1/search", 100000), interval, give_up); });
   }
