@@ -49,6 +49,9 @@ httplib::MultipartFormData Part(const std::string& name, const std::string& cont
   return {name, content, filename, type};
 }
 
+// The status of a response, or -1 when none arrived (so an assertion fails instead of dereferencing).
+int StatusOf(const httplib::Result& res) { return res ? res->status : -1; }
+
 void ExpectErrorShape(const httplib::Result& res, int status, const std::string& code) {
   ASSERT_TRUE(res) << "no response";
   EXPECT_EQ(res->status, status) << res->body;
@@ -162,7 +165,7 @@ TEST_F(HttpServerTest, ImagesLifecycle) {
   EXPECT_EQ(record["width"], 751);
   EXPECT_EQ(record["source"], "http:leuvenA.jpg");
 
-  ASSERT_EQ(client.Post("/v1/images?id=a%20b%2Fc", box_, "image/png")->status, 201);  // ids may hold spaces and '/'
+  ASSERT_EQ(StatusOf(client.Post("/v1/images?id=a%20b%2Fc", box_, "image/png")), 201);  // ids may hold spaces and '/'
   auto odd = client.Get("/v1/images/a%20b%2Fc");
   ASSERT_TRUE(odd);
   EXPECT_EQ(odd->status, 200) << odd->body;
@@ -191,7 +194,7 @@ TEST_F(HttpServerTest, SearchSimilarAndMatch) {
   auto client = server->Client();
   for (const auto& [id, bytes] : std::vector<std::pair<std::string, std::string>>{
            {"scene", scene_}, {"graf1", graf1_}, {"leuven", leuven_}}) {
-    ASSERT_EQ(client.Post("/v1/images?id=" + id, bytes, "image/png")->status, 201);
+    ASSERT_EQ(StatusOf(client.Post("/v1/images?id=" + id, bytes, "image/png")), 201);
   }
   auto found = client.Post("/v1/search?top_k=2", box_, "image/png");
   ASSERT_TRUE(found);
@@ -293,7 +296,7 @@ TEST_F(HttpServerTest, ErrorStatusesAndLimits) {
   EXPECT_EQ(health->status, 200);
 
   // Metrics and stats count what happened.
-  ASSERT_EQ(client.Post("/v1/images?id=box", box_, "image/png")->status, 201);
+  ASSERT_EQ(StatusOf(client.Post("/v1/images?id=box", box_, "image/png")), 201);
   auto stats = client.Get("/v1/stats");
   ASSERT_TRUE(stats);
   ASSERT_EQ(stats->status, 200);
@@ -351,7 +354,7 @@ TEST_F(HttpServerTest, ApiKeyProtectsWrites) {
   auto search = client.Post("/v1/search", box_, "image/png");
   ASSERT_TRUE(search);
   EXPECT_EQ(search->status, 200) << search->body;
-  EXPECT_EQ(client.Get("/v1/images")->status, 200);
+  EXPECT_EQ(StatusOf(client.Get("/v1/images")), 200);
 }
 
 TEST_F(HttpServerTest, RestartKeepsDataAndGracefulStopFinishesInFlightRequests) {
@@ -359,8 +362,8 @@ TEST_F(HttpServerTest, RestartKeepsDataAndGracefulStopFinishesInFlightRequests) 
   {
     auto server = Start({}, index_dir);
     auto client = server->Client();
-    ASSERT_EQ(client.Post("/v1/images?id=scene&metadata=%7B%22k%22%3A1%7D", scene_, "image/png")->status, 201);
-    ASSERT_EQ(client.Post("/v1/images?id=graf1", graf1_, "image/png")->status, 201);
+    ASSERT_EQ(StatusOf(client.Post("/v1/images?id=scene&metadata=%7B%22k%22%3A1%7D", scene_, "image/png")), 201);
+    ASSERT_EQ(StatusOf(client.Post("/v1/images?id=graf1", graf1_, "image/png")), 201);
     // A search in flight when SIGTERM arrives still gets its answer.
     int in_flight_status = 0;
     std::string in_flight_error;
@@ -543,7 +546,7 @@ TEST_F(HttpServerTest, ThumbnailsStoredAtAddSurviveRestartAndGoWithDelete) {
   {
     auto server = Start({}, index_dir);
     auto client = server->Client();
-    ASSERT_EQ(client.Post("/v1/images?id=scene", scene_, "image/png")->status, 201);
+    ASSERT_EQ(StatusOf(client.Post("/v1/images?id=scene", scene_, "image/png")), 201);
     auto thumb = client.Get("/v1/images/scene/thumbnail");
     ASSERT_TRUE(thumb);
     ASSERT_EQ(thumb->status, 200) << thumb->body;
@@ -576,7 +579,7 @@ TEST_F(HttpServerTest, ThumbnailsStoredAtAddSurviveRestartAndGoWithDelete) {
   ASSERT_TRUE(thumb);
   ASSERT_EQ(thumb->status, 200) << thumb->body;
   EXPECT_EQ(thumb->get_header_value("ETag"), etag_before);
-  ASSERT_EQ(client.Delete("/v1/images/scene")->status, 200);
+  ASSERT_EQ(StatusOf(client.Delete("/v1/images/scene")), 200);
   ExpectErrorShape(client.Get("/v1/images/scene/thumbnail"), 404, "not_found");
 }
 
