@@ -74,7 +74,7 @@ TEST(Params, QueryParamsOverrideDefaultsAndRefuseUnknownNames) {
   EXPECT_EQ(q->rerank_depth, 50);
   EXPECT_TRUE(q->query_expansion);
   ASSERT_TRUE(q->region.has_value());
-  EXPECT_FLOAT_EQ((*q->region)[2], 10.f);
+  EXPECT_FLOAT_EQ(q->region.value()[2], 10.f);
 
   auto off = ParseQueryParams({{"rerank", "false"}}, defaults);
   ASSERT_TRUE(off);

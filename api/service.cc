@@ -80,7 +80,7 @@ class Service::BackgroundThreads {
     std::exception_ptr error;
     {
       std::lock_guard<std::mutex> lock(mutex_);
-      jobs_.push_back([&] {
+      jobs_.emplace_back([&] {
         try {
           job();
         } catch (...) {
@@ -149,9 +149,10 @@ uint64_t ResidentMemoryBytes() {
   return resident_pages * static_cast<uint64_t>(page > 0 ? page : 4096);
 }
 
-Service::Service(std::unique_ptr<index::ImageIndex> index, sift::SiftExtractor extractor, const ServiceOptions& options)
+Service::Service(std::unique_ptr<index::ImageIndex> index, const sift::SiftExtractor& extractor,
+                 const ServiceOptions& options)
     : index_(std::move(index)),
-      extractor_(std::move(extractor)),
+      extractor_(extractor),
       options_(options),
       extraction_slots_(std::min(1024, ResolveThreadCount(options.max_concurrent_extractions))),
       extraction_semaphore_(extraction_slots_),
@@ -206,7 +207,7 @@ Result<std::unique_ptr<Service>> Service::Open(const std::string& index_dir,
   if (!extractor) return std::unexpected(extractor.error());
   auto thumbnails = ThumbnailStore::Open(index_dir + "/thumbnails.sqlite");
   if (!thumbnails) return std::unexpected(thumbnails.error());
-  std::unique_ptr<Service> service(new Service(std::move(index), std::move(*extractor), options));
+  std::unique_ptr<Service> service(new Service(std::move(index), *extractor, options));
   service->thumbnails_ = std::move(*thumbnails);
   return service;
 }
@@ -393,13 +394,16 @@ Result<ThumbnailResponse> Service::GetThumbnail(const std::string& id, int max_s
   if (!record) return std::unexpected(record.error());
   auto stored = thumbnails_->Get(id);
   if (!stored) return std::unexpected(stored.error());
+  std::optional<ThumbnailStore::Entry>& kept = *stored;
   // An entry made for another image under the same id (replaced while the server was down) is stale.
-  const bool fresh = *stored && (*stored)->image_width == record->width && (*stored)->image_height == record->height &&
-                     (*stored)->source == record->source_path;
+  if (kept && (kept->image_width != record->width || kept->image_height != record->height ||
+               kept->source != record->source_path)) {
+    kept.reset();
+  }
   ThumbnailResponse response;
   api::Thumbnail full;
-  if (fresh) {
-    full = std::move((*stored)->thumbnail);
+  if (kept) {
+    full = std::move(kept->thumbnail);
   } else {
     // Images indexed from files (oxbow index build) have their path in the catalogue. Uploads record
     // "http[:<client's file name>]", never a path to open (the name is the client's).

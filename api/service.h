@@ -165,7 +165,7 @@ class Service {
 
  private:
   class BackgroundThreads;
-  Service(std::unique_ptr<index::ImageIndex> index, sift::SiftExtractor extractor, const ServiceOptions& options);
+  Service(std::unique_ptr<index::ImageIndex> index, const sift::SiftExtractor& extractor, const ServiceOptions& options);
   // Decode + extract under an extraction slot; kResourceExhausted when no slot frees up in time. After a
   // successful extraction `also` (when given) runs under the same slot (the add's thumbnail decode), so
   // the slots bound its memory too. The slot is taken on the calling thread; the work runs on one of

@@ -131,15 +131,16 @@ TEST_F(ThumbnailStoreTest, RoundTripPersistsAndRemoves) {
   auto got = (*store)->Get("a b/c");
   ASSERT_TRUE(got) << got.error().ToString();
   ASSERT_TRUE(got->has_value());
-  EXPECT_EQ((*got)->thumbnail.jpeg, entry_.thumbnail.jpeg);
-  EXPECT_EQ((*got)->thumbnail.width, 40);  // read from the JPEG header
-  EXPECT_EQ((*got)->thumbnail.height, 30);
-  EXPECT_EQ((*got)->image_width, 400);
-  EXPECT_EQ((*got)->image_height, 300);
-  EXPECT_EQ((*got)->source, "http:photo.jpg");
+  const ThumbnailStore::Entry& stored = got->value();
+  EXPECT_EQ(stored.thumbnail.jpeg, entry_.thumbnail.jpeg);
+  EXPECT_EQ(stored.thumbnail.width, 40);  // read from the JPEG header
+  EXPECT_EQ(stored.thumbnail.height, 30);
+  EXPECT_EQ(stored.image_width, 400);
+  EXPECT_EQ(stored.image_height, 300);
+  EXPECT_EQ(stored.source, "http:photo.jpg");
   entry_.source = "replaced";
   ASSERT_TRUE((*store)->Put("a b/c", entry_));
-  EXPECT_EQ((*(*store)->Get("a b/c"))->source, "replaced");
+  EXPECT_EQ((*store)->Get("a b/c")->value().source, "replaced");
   ASSERT_TRUE((*store)->Remove("a b/c"));
   EXPECT_FALSE((*store)->Get("a b/c")->has_value());
   EXPECT_TRUE((*store)->Remove("never there"));
@@ -220,9 +221,9 @@ TEST(ServiceThumbnails, FollowAddsReplacesAndDeletes) {
     ASSERT_TRUE(store);
     auto entry = (*store)->Get("x");
     ASSERT_TRUE(entry && entry->has_value());
-    (*entry)->image_width = 512;
-    (*entry)->image_height = 384;
-    ASSERT_TRUE((*store)->Put("x", **entry));
+    entry->value().image_width = 512;
+    entry->value().image_height = 384;
+    ASSERT_TRUE((*store)->Put("x", entry->value()));
   }
   EXPECT_EQ((*service)->GetThumbnail("x", 128).error().code, ErrorCode::kNotFound);
 

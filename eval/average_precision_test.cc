@@ -62,8 +62,9 @@ TEST(AveragePrecision, NoPositivesIsZeroAndDuplicatesCountOnce) {
 TEST(AveragePrecision, MatchesReferenceLoopOnRandomRankings) {
   std::mt19937 rng(7);
   for (int trial = 0; trial < 200; ++trial) {
-    std::vector<std::string> ranked;
     const int n = 1 + static_cast<int>(rng() % 60);
+    std::vector<std::string> ranked;
+    ranked.reserve(static_cast<size_t>(n));
     for (int i = 0; i < n; ++i) ranked.push_back("img" + std::to_string(i));
     std::shuffle(ranked.begin(), ranked.end(), rng);
     Relevance rel;

@@ -227,8 +227,11 @@ Result<Protocol> LoadGroupsProtocol(const std::string& dir) {
     std::vector<std::string> members;
     for (const std::string& id : *ids) {
       if (!seen.insert(id).second) {
-        return Fail(ErrorCode::kInvalidArgument, "image name '" + id + "' appears in more than one group of '" +
-                                                     dir + "': ids are file names and must be unique");
+        std::string message = "image name '" + id;
+        message += "' appears in more than one group of '";
+        message += dir;
+        message += "': ids are file names and must be unique";
+        return Fail(ErrorCode::kInvalidArgument, message);
       }
       members.push_back(id);
     }

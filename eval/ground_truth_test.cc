@@ -39,8 +39,8 @@ TEST_F(GroundTruthTest, ReadsOxfordFolderAndRestricts) {
   EXPECT_EQ(tower.name, "tower_1");
   EXPECT_EQ(tower.image, "tower_000001");  // "oxc1_" prefix stripped
   ASSERT_TRUE(tower.bbox);
-  EXPECT_FLOAT_EQ((*tower.bbox)[0], 10.5f);
-  EXPECT_FLOAT_EQ((*tower.bbox)[3], 400.25f);
+  EXPECT_FLOAT_EQ(tower.bbox.value()[0], 10.5f);
+  EXPECT_FLOAT_EQ(tower.bbox.value()[3], 400.25f);
   EXPECT_EQ(tower.relevance.positives.size(), 3u);
   EXPECT_TRUE(tower.relevance.positives.contains("tower_000003"));  // CR stripped
   EXPECT_TRUE(tower.relevance.junk.contains("tower_000009"));

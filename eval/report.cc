@@ -134,7 +134,7 @@ Status WriteReport(const std::string& dir, const std::vector<RunResult>& runs, c
     std::vector<Series> curves;
     for (const QueryOutcome& q : run.queries) {
       Series s{q.name + " (AP " + Fixed(q.ap, 2) + ")", {}};
-      for (const PrPoint& p : q.pr_curve) s.points.push_back({p.recall, p.precision});
+      for (const PrPoint& p : q.pr_curve) s.points.emplace_back(p.recall, p.precision);
       curves.push_back(std::move(s));
     }
     const std::string pr_file = "plots/pr_" + std::to_string(i) + "_" + SafeFileName(run.label) + ".png";
@@ -165,7 +165,7 @@ Status WriteReport(const std::string& dir, const std::vector<RunResult>& runs, c
         !st) {
       return st;
     }
-    plot_files.push_back("plots/ap_per_query.png");
+    plot_files.emplace_back("plots/ap_per_query.png");
 
     // mAP vs vocabulary size, one line per (features, re-ranking, transitive, QE) combination, when
     // sizes vary.
@@ -179,7 +179,7 @@ Status WriteReport(const std::string& dir, const std::vector<RunResult>& runs, c
         variant += std::string(key) + "=" + (it == run.settings.end() ? "?" : it->second) + " ";
       }
       by_variant[variant].name = variant;
-      by_variant[variant].points.push_back({static_cast<double>(run.vocabulary_words), run.map});
+      by_variant[variant].points.emplace_back(static_cast<double>(run.vocabulary_words), run.map);
     }
     if (sizes.size() > 1) {
       std::vector<Series> lines;
@@ -198,7 +198,7 @@ Status WriteReport(const std::string& dir, const std::vector<RunResult>& runs, c
       if (auto st = WriteLineChart((fs::path(dir) / "plots/map_vs_vocabulary.png").string(), lines, size_options); !st) {
         return st;
       }
-      plot_files.push_back("plots/map_vs_vocabulary.png");
+      plot_files.emplace_back("plots/map_vs_vocabulary.png");
     }
   }
 

@@ -564,6 +564,7 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
       for (const QueryTerm& term : snap.inverted.QueryVector(region_bag)) average[term.word] += term.weight;
     }
     std::vector<QueryTerm> expanded;
+    expanded.reserve(average.size());
     double norm_sq = 0;
     for (const auto& [word, weight] : average) norm_sq += weight * weight;
     const double inv = norm_sq > 0 ? 1.0 / std::sqrt(norm_sq) : 0.0;

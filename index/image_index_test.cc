@@ -602,11 +602,13 @@ TEST_F(Fixture, ReadersRunWhileWritersAdd) {
   std::mt19937_64 rng(11);
   for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("seed" + std::to_string(i), RandomImage(rng, 60), {}));
   std::vector<sift::FeatureSet> to_add;
+  to_add.reserve(40);
   for (int i = 0; i < 40; ++i) to_add.push_back(RandomImage(rng, 60));
   const auto query = RandomImage(rng, 60);
   std::atomic<bool> done{false};
   std::atomic<int> queries{0}, failures{0};
   std::vector<std::thread> readers;
+  readers.reserve(2);
   for (int t = 0; t < 2; ++t) {
     readers.emplace_back([&] {
       while (!done) {

@@ -238,6 +238,7 @@ int RunSynthetic(const std::map<std::string, std::string>& flags) {
 
   // Queries: one-core tf-idf scoring for several stop lists.
   std::vector<BagOfWords> queries;
+  queries.reserve(static_cast<size_t>(num_queries));
   for (int q = 0; q < num_queries; ++q) {
     queries.push_back(BagOfWords::FromWords(MakeImage(zipf, 1'000'000'000ull + q, features, false).words));
   }
@@ -489,7 +490,7 @@ int RunParis(const std::map<std::string, std::string>& flags) {
     };
   };
   // The server searches with QueryOptions{} and query expansion on.
-  const auto server = [](std::function<void(QueryOptions*)> tune) {
+  const auto server = [](const std::function<void(QueryOptions*)>& tune) {
     return [=](QueryOptions* o) {
       o->query_expansion = true;
       tune(o);

@@ -100,6 +100,7 @@ BagOfWords RandomBag(std::mt19937_64& rng, size_t vocab) {
   std::uniform_real_distribution<double> u(0, 1);
   std::vector<uint32_t> w;
   const int n = len(rng);
+  w.reserve(static_cast<size_t>(n));
   for (int i = 0; i < n; ++i) {
     // Inverse-CDF of a truncated power law: frequent low ids, long tail.
     w.push_back(static_cast<uint32_t>(std::min<double>(vocab - 1, std::floor(std::pow(vocab, u(rng)) - 1))));
@@ -158,6 +159,7 @@ TEST(InvertedFileTest, RandomAddRemoveSequenceEqualsRebuild) {
           new_bags.push_back(RandomBag(rng, vocab));
         }
         std::vector<const BagOfWords*> bags;
+        bags.reserve(new_bags.size());
         for (auto& b : new_bags) bags.push_back(&b);
         file = file.WithAdded(ids, bags);
         for (size_t i = 0; i < ids.size(); ++i) live[ids[i]] = new_bags[i];

@@ -81,6 +81,7 @@ std::string JoinArgs(const std::vector<std::string>& args) {
 void RunChild(const std::vector<std::string>& args) {
   OXBOW_LOG(kInfo) << "eval: running " << JoinArgs(args);
   std::vector<char*> argv;
+  argv.reserve(args.size() + 1);
   for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
   argv.push_back(nullptr);
   pid_t pid;
@@ -106,6 +107,7 @@ class ServerProcess {
     if (threads > 0) args.insert(args.end(), {"--threads", std::to_string(threads)});
     OXBOW_LOG(kInfo) << "eval: starting " << JoinArgs(args);
     std::vector<char*> argv;
+    argv.reserve(args.size() + 1);
     for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
     argv.push_back(nullptr);
     posix_spawn_file_actions_t actions;
@@ -143,9 +145,8 @@ class ServerProcess {
       if (!port_found) p.set_value(-1);
       close(fd);
     });
-    if (port_future.wait_for(std::chrono::seconds(300)) != std::future_status::ready || (port_ = port_future.get()) <= 0) {
-      throw CommandError(1, "the server did not start; see " + log_path);
-    }
+    if (port_future.wait_for(std::chrono::seconds(300)) == std::future_status::ready) port_ = port_future.get();
+    if (port_ <= 0) throw CommandError(1, "the server did not start; see " + log_path);
     // The server loads the index in the background: wait until /readyz says it is ready.
     httplib::Client client("127.0.0.1", port_);
     const auto deadline = Clock::now() + std::chrono::seconds(600);
@@ -220,7 +221,7 @@ void Prepare(const EvalArgs& a, const Config& c, const std::string& exe, eval::R
     std::vector<std::string> args = {exe, "vocab", "train", "--list", list,
                                      "--words", std::to_string(c.words), "--out", vocab, "--sample",
                                      std::to_string(a.sample), "--seed", std::to_string(a.seed)};
-    if (c.features == "rootsift") args.push_back("--root-sift");
+    if (c.features == "rootsift") args.emplace_back("--root-sift");
     if (a.per_image > 0) args.insert(args.end(), {"--per-image", std::to_string(a.per_image)});
     if (a.iterations > 0) args.insert(args.end(), {"--iterations", std::to_string(a.iterations)});
     if (a.threads > 0) args.insert(args.end(), {"--threads", std::to_string(a.threads)});
@@ -302,6 +303,7 @@ void RunInProcess(const EvalArgs& a, const eval::Protocol& protocol, const index
     if (q.bbox && !a.full_image) qo.region = *q.bbox;
     auto response = ValueOrExit(idx.Query(features, qo));
     std::vector<std::string> ranking;
+    ranking.reserve(response.results.size());
     for (const auto& r : response.results) ranking.push_back(r.id);
     eval::QueryOutcome outcome = eval::ScoreRanking(q, ranking);
     outcome.latency_ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();

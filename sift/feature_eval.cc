@@ -90,9 +90,12 @@ HomographyScore ScoreUnderHomography(const FeatureSet& a, const FeatureSet& b, c
   const int gw = static_cast<int>(b.image_width / cell) + 1, gh = static_cast<int>(b.image_height / cell) + 1;
   std::vector<std::vector<int>> grid(static_cast<size_t>(gw) * static_cast<size_t>(gh));
   auto cell_of = [&](double v, int n) { return std::clamp(static_cast<int>(v / cell), 0, n - 1); };
+  auto grid_cell = [&](int y, int x) -> std::vector<int>& {
+    return grid[(static_cast<size_t>(y) * static_cast<size_t>(gw)) + static_cast<size_t>(x)];
+  };
   for (int j : common_b) {
     const Keypoint& k = b.keypoints[static_cast<size_t>(j)];
-    grid[static_cast<size_t>(cell_of(k.y, gh) * gw + cell_of(k.x, gw))].push_back(j);
+    grid_cell(cell_of(k.y, gh), cell_of(k.x, gw)).push_back(j);
   }
   struct Pair {
     double d2;
@@ -111,7 +114,7 @@ HomographyScore ScoreUnderHomography(const FeatureSet& a, const FeatureSet& b, c
     const int cx = cell_of(p.x, gw), cy = cell_of(p.y, gh);
     for (int y = std::max(0, cy - 1); y <= std::min(gh - 1, cy + 1); ++y)
       for (int x = std::max(0, cx - 1); x <= std::min(gw - 1, cx + 1); ++x)
-        for (int j : grid[static_cast<size_t>(y * gw + x)]) {
+        for (int j : grid_cell(y, x)) {
           const Keypoint& k = b.keypoints[static_cast<size_t>(j)];
           const double dx = k.x - p.x, dy = k.y - p.y, d2 = dx * dx + dy * dy;
           if (d2 >= tol2 || std::fabs(std::log(k.scale / (ka.scale * local))) > log_ratio) continue;

@@ -128,7 +128,7 @@ int main(int argc, char** argv) {
     } else if (!std::strcmp(argv[i], "--features") && i + 1 < argc) {
       max_features = std::atoi(argv[++i]);
     } else {
-      paths.push_back(argv[i]);
+      paths.emplace_back(argv[i]);
     }
   }
   if (paths.size() != 2) {

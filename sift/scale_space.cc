@@ -307,7 +307,7 @@ void Upsample2x(const float* src, int w, int h, size_t src_stride, Plane* dst, W
   const int num_threads = team.size();
   dst->Reshape(2 * w, 2 * h);
   if (w == 0 || h == 0) return;
-  team.ParallelFor(static_cast<size_t>(2 * h), RowGrain(2 * h, num_threads), [&](size_t y0, size_t y1, int) {
+  team.ParallelFor(2 * static_cast<size_t>(h), RowGrain(2 * h, num_threads), [&](size_t y0, size_t y1, int) {
     std::vector<float> v(static_cast<size_t>(w));
     for (int y = static_cast<int>(y0); y < static_cast<int>(y1); ++y) {
       const int sy = y / 2;

@@ -90,19 +90,27 @@ Result<SiftOptions> SiftOptions::FromDescription(const std::string& settings) {
     auto it = fields.find(key);
     return it == fields.end() ? nullptr : &it->second;
   };
-  const std::string* v = nullptr;
-  if ((v = need("upsample"))) o.upsample_first_octave = *v == "1";
-  if ((v = need("sigma")) && !ParseDescribedDouble(*v, &o.sigma)) return incompatible("sigma");
-  if ((v = need("assumed_blur")) && !ParseDescribedDouble(*v, &o.assumed_blur)) return incompatible("assumed_blur");
-  if ((v = need("intervals")) && !ParseDescribedInt(*v, &o.intervals)) return incompatible("intervals");
-  if ((v = need("contrast")) && !ParseDescribedDouble(*v, &o.contrast_threshold)) return incompatible("contrast");
-  if ((v = need("edge")) && !ParseDescribedDouble(*v, &o.edge_threshold)) return incompatible("edge");
-  if ((v = need("max_features")) && *v != "all") {
+  // An absent field keeps the default (and then fails the round trip below if the default changed).
+  auto read_double = [&](const char* key, double* out) {
+    const std::string* v = need(key);
+    return v == nullptr || ParseDescribedDouble(*v, out);
+  };
+  auto read_int = [&](const char* key, int* out) {
+    const std::string* v = need(key);
+    return v == nullptr || ParseDescribedInt(*v, out);
+  };
+  if (const std::string* v = need("upsample")) o.upsample_first_octave = *v == "1";
+  if (!read_double("sigma", &o.sigma)) return incompatible("sigma");
+  if (!read_double("assumed_blur", &o.assumed_blur)) return incompatible("assumed_blur");
+  if (!read_int("intervals", &o.intervals)) return incompatible("intervals");
+  if (!read_double("contrast", &o.contrast_threshold)) return incompatible("contrast");
+  if (!read_double("edge", &o.edge_threshold)) return incompatible("edge");
+  if (const std::string* v = need("max_features"); v && *v != "all") {
     int n = 0;
     if (!ParseDescribedInt(*v, &n)) return incompatible("max_features");
     o.max_features = n;
   }
-  if ((v = need("descriptor"))) {
+  if (const std::string* v = need("descriptor")) {
     if (*v == DescriptorKindName(DescriptorKind::kRootSift)) {
       o.descriptor = DescriptorKind::kRootSift;
     } else if (*v == DescriptorKindName(DescriptorKind::kSift)) {
@@ -111,9 +119,9 @@ Result<SiftOptions> SiftOptions::FromDescription(const std::string& settings) {
       return incompatible("descriptor");
     }
   }
-  if ((v = need("peak_ratio")) && !ParseDescribedDouble(*v, &o.orientation_peak_ratio)) return incompatible("peak_ratio");
-  if ((v = need("kernel_radius")) && !ParseDescribedDouble(*v, &o.kernel_radius_sigmas)) return incompatible("kernel_radius");
-  if ((v = need("max_octaves")) && *v != "all") {
+  if (!read_double("peak_ratio", &o.orientation_peak_ratio)) return incompatible("peak_ratio");
+  if (!read_double("kernel_radius", &o.kernel_radius_sigmas)) return incompatible("kernel_radius");
+  if (const std::string* v = need("max_octaves"); v && *v != "all") {
     int n = 0;
     if (!ParseDescribedInt(*v, &n)) return incompatible("max_octaves");
     o.max_octaves = n;
@@ -166,7 +174,7 @@ constexpr int kHistStride = (kDescCells + 2) * (kDescBins + 2);
 struct Octave {
   int index = 0;  // 0 = the first octave computed (the 2x upsampled one when upsampling)
   std::vector<Plane> gauss;
-  float Dog(int layer, int r, int c) const { return gauss[static_cast<size_t>(layer + 1)].at(c, r) - gauss[static_cast<size_t>(layer)].at(c, r); }
+  float Dog(int layer, int r, int c) const { return gauss[static_cast<size_t>(layer) + 1].at(c, r) - gauss[static_cast<size_t>(layer)].at(c, r); }
 };
 
 struct Candidate {

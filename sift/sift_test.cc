@@ -121,7 +121,7 @@ GrayImage Blob(int w, int h, double cx, double cy, double blob_sigma) {
   for (int y = 0; y < h; ++y)
     for (int x = 0; x < w; ++x) {
       const double r2 = (x - cx) * (x - cx) + (y - cy) * (y - cy);
-      g.pixels[static_cast<size_t>(y * w + x)] = static_cast<float>(0.1 + 0.8 * std::exp(-r2 / (2 * blob_sigma * blob_sigma)));
+      g.pixels[(static_cast<size_t>(y) * w) + x] = static_cast<float>(0.1 + 0.8 * std::exp(-r2 / (2 * blob_sigma * blob_sigma)));
     }
   return g;
 }
@@ -411,7 +411,7 @@ TEST(SiftDescriptor, ClippingOfASpikyHistogram) {
   g.width = g.height = 96;
   g.pixels.resize(96 * 96);
   for (int y = 0; y < 96; ++y)
-    for (int x = 0; x < 96; ++x) g.pixels[static_cast<size_t>(y * 96 + x)] = (x - 48) * (x - 48) + (y - 48) * (y - 48) < 15 * 15 ? 0.9f : 0.1f;
+    for (int x = 0; x < 96; ++x) g.pixels[(static_cast<size_t>(y) * 96) + x] = (x - 48) * (x - 48) + (y - 48) * (y - 48) < 15 * 15 ? 0.9f : 0.1f;
   const FeatureSet f = MakeExtractor().Extract(g);
   ASSERT_GT(f.size(), 0u);
   bool found_flattened = false;

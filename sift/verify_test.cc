@@ -278,7 +278,7 @@ TEST(Affine2D, InverseAndProjectBox) {
   const auto inv = a.Inverse();
   ASSERT_TRUE(inv.has_value());
   const Eigen::Vector2d p(123, -45);
-  EXPECT_LT((inv->Apply(a.Apply(p)) - p).norm(), 1e-9);
+  EXPECT_LT((inv.value().Apply(a.Apply(p)) - p).norm(), 1e-9);
   EXPECT_FALSE((Affine2D{{1, 2, 0, 2, 4, 0}}.Inverse().has_value()));  // rank 1
   EXPECT_FALSE((Affine2D{{std::numeric_limits<double>::quiet_NaN(), 0, 0, 0, 1, 0}}.Inverse().has_value()));
   const std::array<float, 4> box = ProjectBox(ToMatrix(Similarity(2, 0, 10, 20)), {0, 0, 100, 50}, {150, 1000});
@@ -486,7 +486,7 @@ TEST(RealImages, UnrelatedPairsAreRejected) {
       {OpenCvData("graf3.png"), OpenCvData("leuvenA.jpg")},
   };
   const std::string boat = SharedData("oxford_affine/images/boat/img1.pgm");
-  if (std::filesystem::exists(boat)) pairs.push_back({boat, OpenCvData("graf1.png")});
+  if (std::filesystem::exists(boat)) pairs.emplace_back(boat, OpenCvData("graf1.png"));
   for (const auto& [a_path, b_path] : pairs) {
     const FeatureSet& a = Features(a_path);
     const FeatureSet& b = Features(b_path);

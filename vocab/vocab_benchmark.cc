@@ -445,10 +445,13 @@ void ScaleTraining(const Descriptors& d, size_t k, size_t total, int iterations,
                 100 * it.reassigned_share, it.empty_clusters);
   }
   const double quantiser = report.total_seconds - report.seeding_seconds - iteration_sum;
+  std::vector<double> iteration_seconds;
+  iteration_seconds.reserve(report.iterations.size());
+  for (const auto& it : report.iterations) iteration_seconds.push_back(it.seconds);
   std::printf("\nseeding %.1f s, iterations %.1f s (median %.1f s each), final quantiser build %.1f s, total %.1f s wall, "
               "%.1f s process CPU (%d threads), load at end %s\n",
               report.seeding_seconds, iteration_sum,
-              Median([&] { std::vector<double> s; for (const auto& it : report.iterations) s.push_back(it.seconds); return s; }()),
+              Median(iteration_seconds),
               quantiser, report.total_seconds, cpu, threads, LoadAverage().c_str());
   if (!out_path.empty()) {
     if (auto w = v->Write(out_path); !w) std::printf("could not write %s: %s\n", out_path.c_str(), w.error().ToString().c_str());
