@@ -24,6 +24,7 @@ build_packages=(
   chromium nodejs        # the web page's end-to-end test (tests/browser: playwright-core drives /usr/bin/chromium)
   libclang-rt-14-dev     # libFuzzer runtime for the fuzz targets (scripts/fuzz.sh; GCC-instrumented, cmake/OxbowFuzz.cmake)
   clang-tidy-16          # static checks (scripts/clang-tidy.sh): the first Debian 12 clang-tidy that parses libstdc++ 12's <expected>
+  libomp-16-dev          # <omp.h> for clang-tidy 16 (faiss's headers include it; GCC's copy does not parse with clang)
 )
 runtime_packages=(
   libopencv-core406 libopencv-imgproc406 libopencv-imgcodecs406 libopencv-features2d406 libopencv-calib3d406
