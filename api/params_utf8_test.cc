@@ -16,14 +16,14 @@ TEST(CheckImageId, AcceptsUtf8Ids) {
 }
 
 TEST(CheckImageId, RefusesMalformedUtf8) {
-  for (const std::string id : {std::string("no\x94\x94"),          // stray continuation bytes
-                               std::string("cut\xC3"),             // truncated 2-byte sequence
-                               std::string("\xE6\x9D"),            // truncated 3-byte sequence
-                               std::string("\xC0\xAF"),            // overlong '/'
-                               std::string("\xE0\x80\xAF"),        // overlong 3-byte
-                               std::string("\xED\xA0\x80"),        // UTF-16 surrogate U+D800
-                               std::string("\xF4\x90\x80\x80"),    // above U+10FFFF
-                               std::string("\xFF")}) {
+  for (const std::string& id : {std::string("no\x94\x94"),          // stray continuation bytes
+                                std::string("cut\xC3"),             // truncated 2-byte sequence
+                                std::string("\xE6\x9D"),            // truncated 3-byte sequence
+                                std::string("\xC0\xAF"),            // overlong '/'
+                                std::string("\xE0\x80\xAF"),        // overlong 3-byte
+                                std::string("\xED\xA0\x80"),        // UTF-16 surrogate U+D800
+                                std::string("\xF4\x90\x80\x80"),    // above U+10FFFF
+                                std::string("\xFF")}) {
     auto checked = CheckImageId(id);
     ASSERT_FALSE(checked) << "accepted an id of " << id.size() << " bytes";
     EXPECT_EQ(checked.error().code, ErrorCode::kInvalidArgument);
