@@ -9,7 +9,7 @@
 # Seeds are regenerated from real files by fuzz_seeds into BUILD/fuzz-seeds/<target>; what a run finds
 # is kept in BUILD/fuzz-corpus/<target> (reused by the next run); a crashing input is written to
 # BUILD/fuzz-artifacts/<target>/ and the script exits 1: fix the bug, then keep the input as a regression
-# test in tests/fuzz/regressions/<target>/ (replayed by the ctest fuzz_<target> in every build).
+# test in tests/fuzz/regressions/<target>/ (replayed by the ctest fuzz_<target> in the normal and ASan builds).
 # Prints one line per target: executions, executions/s, corpus files, result; then the wall time.
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)

@@ -5,8 +5,8 @@
 #   asan  ASan + UBSan build (GCC, -O1) of every test, whole ctest suite       build dir build-asan
 #   tsan  TSan build of the concurrency tests (HTTP server, index readers/writers, service)  build-tsan
 #   tidy  clang-tidy 16 over every source file, profile .clang-tidy, warnings as errors (scripts/clang-tidy.sh)
-#   fuzz  every libFuzzer target of tests/fuzz for OXBOW_FUZZ_SECONDS (default 60) s each, two at a
-#         time on two cores (scripts/fuzz.sh)
+#   fuzz  every libFuzzer target of tests/fuzz for OXBOW_FUZZ_SECONDS (default 60) s each, one target
+#         per core at a time (scripts/fuzz.sh)
 # OXBOW_HARDENING_PHASES="tidy asan tsan fuzz" picks phases (that is the default order: clang-tidy needs
 # no build, so its findings come first); OXBOW_JOBS the build parallelism. Every phase runs even when
 # an earlier one fails; prints each phase's time and result at the end and exits non-zero when any
