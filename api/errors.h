@@ -11,7 +11,7 @@
 
 #include <nlohmann/json.hpp>
 
-#include "sift/error.h"
+#include "sift/base/error.h"
 
 namespace oxbow::api {
 

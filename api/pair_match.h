@@ -10,7 +10,7 @@
 #include <Eigen/Core>
 #include <nlohmann/json.hpp>
 
-#include "sift/error.h"
+#include "sift/base/error.h"
 #include "sift/match.h"
 #include "sift/types.h"
 #include "sift/verify.h"

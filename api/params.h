@@ -14,7 +14,7 @@
 #include <string_view>
 
 #include "index/image_index.h"
-#include "sift/error.h"
+#include "sift/base/error.h"
 #include "sift/verify.h"
 
 namespace oxbow::api {

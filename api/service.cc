@@ -15,8 +15,8 @@
 #include <map>
 #include <thread>
 
-#include "sift/log.h"
-#include "sift/parallel.h"
+#include "sift/base/log.h"
+#include "sift/base/parallel.h"
 #include "vocab/vocabulary.h"
 
 namespace oxbow::api {

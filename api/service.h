@@ -33,7 +33,7 @@
 #include "api/pair_match.h"
 #include "api/thumbnails.h"
 #include "index/image_index.h"
-#include "sift/error.h"
+#include "sift/base/error.h"
 #include "sift/image.h"
 #include "sift/sift.h"
 
@@ -44,12 +44,13 @@ struct ServiceOptions {
   // Largest accepted encoded image, bytes (DecodeOptions::max_bytes); over it -> 413. >= 1.
   uint64_t max_image_bytes = 32ull << 20;
   // Largest accepted declared width * height, pixels (DecodeOptions::max_pixels), checked from the file
-  // header before decoding; over it -> 413. >= 1. 40 MP: a 7300 x 5500 photo.
-  uint64_t max_pixels = 40'000'000;
+  // header before decoding; over it -> 413. >= 1. The product default (sift/image.h).
+  uint64_t max_pixels = sift::DecodeOptions{}.max_pixels;
   // Images whose longest side exceeds this are downscaled before extraction (DecodeOptions::
   // max_image_side_px); keypoints are reported in original pixels. Bounds extraction memory and time
   // (SIFT peak memory ~ 48 bytes per pixel with the 2x first octave). Unset: never downscale. >= 16.
-  std::optional<int> max_image_side_px = 1600;
+  // The product default (sift/image.h).
+  std::optional<int> max_image_side_px = sift::DecodeOptions{}.max_image_side_px;
   // Decode + extract operations running at once (each holds its image pyramid in memory);
   // 0 = hardware threads. [0, 1024].
   int max_concurrent_extractions = 0;

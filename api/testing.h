@@ -10,7 +10,7 @@
 #include <string>
 #include <vector>
 
-#include "sift/error.h"
+#include "sift/base/error.h"
 #include "sift/sift.h"
 #include "vocab/vocabulary.h"
 

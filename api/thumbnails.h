@@ -25,7 +25,7 @@
 #include <span>
 #include <string>
 
-#include "sift/error.h"
+#include "sift/base/error.h"
 #include "sift/image.h"
 
 struct sqlite3;

@@ -8,17 +8,12 @@
 
 #include <nlohmann/json.hpp>
 
+#include "sift/image.h"
+
 namespace oxbow::eval {
 namespace {
 
 namespace fs = std::filesystem;
-
-bool IsImageExtension(std::string ext) {
-  std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char c) { return std::tolower(c); });
-  static const std::set<std::string> kExtensions = {".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".bmp",
-                                                    ".tif", ".tiff", ".webp"};
-  return kExtensions.contains(ext);
-}
 
 std::string StripOxfordPrefix(const std::string& name) {
   return name.starts_with("oxc1_") ? name.substr(5) : name;
@@ -197,14 +192,11 @@ Result<Protocol> LoadRevisitedProtocol(const std::string& json_path, RevisitedSe
 }
 
 Result<std::vector<std::string>> ListImageIds(const std::string& dir) {
-  std::error_code ec;
-  if (!fs::is_directory(dir, ec)) return Fail(ErrorCode::kNotFound, "image folder '" + dir + "' does not exist");
+  auto files = sift::ListImageFiles(dir);  // the listing every command uses (recursive)
+  if (!files) return std::unexpected(files.error());
   std::vector<std::string> ids;
-  for (const auto& entry : fs::directory_iterator(dir)) {
-    if (entry.is_regular_file() && IsImageExtension(entry.path().extension().string())) {
-      ids.push_back(entry.path().stem().string());
-    }
-  }
+  ids.reserve(files->size());
+  for (const std::string& f : *files) ids.push_back(fs::path(f).stem().string());
   std::sort(ids.begin(), ids.end());
   return ids;
 }

@@ -21,7 +21,7 @@
 #include <vector>
 
 #include "eval/average_precision.h"
-#include "sift/error.h"
+#include "sift/base/error.h"
 
 namespace oxbow::eval {
 

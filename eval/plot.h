@@ -7,7 +7,7 @@
 #include <utility>
 #include <vector>
 
-#include "sift/error.h"
+#include "sift/base/error.h"
 
 namespace oxbow::eval {
 

@@ -8,7 +8,7 @@
 
 #include "eval/average_precision.h"
 #include "eval/ground_truth.h"
-#include "sift/error.h"
+#include "sift/base/error.h"
 
 namespace oxbow::eval {
 

@@ -24,7 +24,7 @@
 #include <vector>
 
 #include "index/image_index.h"
-#include "sift/error.h"
+#include "sift/base/error.h"
 
 namespace oxbow::index {
 

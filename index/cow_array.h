@@ -13,7 +13,7 @@
 #include <memory>
 #include <vector>
 
-#include "sift/error.h"
+#include "sift/base/error.h"
 
 namespace oxbow::index {
 

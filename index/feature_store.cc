@@ -5,7 +5,7 @@
 #include <numbers>
 #include <numeric>
 
-#include "sift/binary_io.h"
+#include "sift/base/binary_io.h"
 
 namespace oxbow::index {
 namespace {

@@ -26,7 +26,7 @@
 #include <vector>
 
 #include "index/inverted_file.h"
-#include "sift/error.h"
+#include "sift/base/error.h"
 #include "sift/types.h"
 
 namespace oxbow::index {

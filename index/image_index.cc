@@ -16,9 +16,9 @@
 #include "index/feature_store.h"
 #include "index/inverted_file.h"
 #include "index/rerank.h"
-#include "sift/log.h"
+#include "sift/base/log.h"
 #include "sift/match.h"
-#include "sift/parallel.h"
+#include "sift/base/parallel.h"
 
 namespace oxbow::index {
 namespace {
@@ -141,7 +141,6 @@ std::optional<std::string> QueryOptions::Check() const {
     }
     if (!(r[0] < r[2] && r[1] < r[3])) return std::string("region must satisfy x1 < x2 and y1 < y2");
   }
-  if (query_expansion && rerank_depth == 0) return std::string("query_expansion needs rerank_depth > 0");
   if (qe_images < 1 || qe_images > 100) return "qe_images must be in [1, 100]";
   if (max_pairs_per_word < 1 || max_pairs_per_word > 100) return "max_pairs_per_word must be in [1, 100]";
   if (query_assignments < 1 || query_assignments > 8) {

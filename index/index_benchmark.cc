@@ -45,7 +45,7 @@
 #include "index/inverted_file.h"
 #include "index/rerank.h"
 #include "sift/features_io.h"
-#include "sift/parallel.h"
+#include "sift/base/parallel.h"
 #include "sift/sift.h"
 #include "vocab/vocabulary.h"
 

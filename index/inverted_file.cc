@@ -6,8 +6,8 @@
 #include <queue>
 #include <unordered_map>
 
-#include "sift/error.h"
-#include "sift/parallel.h"
+#include "sift/base/error.h"
+#include "sift/base/parallel.h"
 
 namespace oxbow::index {
 namespace {

@@ -57,7 +57,8 @@ struct TfIdfOptions {
   double max_document_frequency = 1.0;
   // ... but never a word contained in at most this many live images, so that a small collection keeps
   // its words (with N = 20 and 0.1, a word in 3 images would otherwise be dropped). [0, 2^32).
-  uint32_t stop_list_min_images = 0;
+  // The product default; ImageIndex's IndexOptions takes it from here.
+  uint32_t stop_list_min_images = 10;
   // Segments of one size level merged at once (see the file comment). [2, 64].
   int merge_factor = 8;
 

@@ -15,7 +15,7 @@ build_packages=(
   nlohmann-json3-dev     # JSON in the CLI and the HTTP API
   libcli11-dev           # the oxbow CLI
   libcpp-httplib-dev     # the HTTP server
-  libgtest-dev libgmock-dev libbenchmark-dev
+  libgtest-dev libgmock-dev
   libjpeg-dev            # tests: a CMYK JPEG fixture (OpenCV cannot write one)
   opencv-doc             # sample photos (graf, box, ...) used as test and demo data
   libvlfeat-dev          # VLFeat SIFT: benchmark peer only

@@ -34,7 +34,7 @@ fi
 tmp=$(mktemp -d /tmp/oxbow-load-XXXXXX)
 cp -r "$index_src" "$tmp/index"
 samples=/usr/share/doc/opencv-doc/examples/data
-"$oxbow" serve --index "$tmp/index" --host 127.0.0.1 --port 0 --threads "$threads" "${serve_args[@]}" > "$tmp/stdout" 2> "$tmp/serve.log" &
+"$oxbow" serve --index "$tmp/index" --host 127.0.0.1 --port 0 --http-workers "$threads" "${serve_args[@]}" > "$tmp/stdout" 2> "$tmp/serve.log" &
 pid=$!
 cleanup() { kill -TERM "$pid" 2>/dev/null || true; wait "$pid" 2>/dev/null || true; rm -rf "$tmp"; }
 trap cleanup EXIT

@@ -8,7 +8,7 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "sift/binary_io.h"
+#include "sift/base/binary_io.h"
 
 namespace oxbow::sift {
 

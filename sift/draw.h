@@ -3,7 +3,7 @@
 
 #include <string>
 
-#include "sift/error.h"
+#include "sift/base/error.h"
 #include "sift/image.h"
 #include "sift/types.h"
 

@@ -12,7 +12,7 @@
 
 #include <Eigen/Core>
 
-#include "sift/error.h"
+#include "sift/base/error.h"
 #include "sift/match.h"
 #include "sift/types.h"
 

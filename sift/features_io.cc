@@ -4,7 +4,7 @@
 #include <cstdio>
 #include <string>
 
-#include "sift/binary_io.h"
+#include "sift/base/binary_io.h"
 #include "sift/sift.h"
 
 namespace oxbow::sift {

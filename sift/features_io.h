@@ -26,7 +26,7 @@
 #include <string_view>
 #include <vector>
 
-#include "sift/error.h"
+#include "sift/base/error.h"
 #include "sift/types.h"
 
 namespace oxbow::sift {

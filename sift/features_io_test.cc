@@ -9,7 +9,7 @@
 #include <sstream>
 #include <string>
 
-#include "sift/binary_io.h"
+#include "sift/base/binary_io.h"
 #include "sift/sift.h"
 
 namespace oxbow::sift {

@@ -4,13 +4,14 @@
 #include <cctype>
 #include <cmath>
 #include <cstring>
+#include <filesystem>
 #include <string_view>
 
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "sift/binary_io.h"
+#include "sift/base/binary_io.h"
 
 namespace oxbow::sift {
 namespace {
@@ -265,6 +266,31 @@ std::optional<std::string> DecodeOptions::Check() const {
   if (max_image_side_px && *max_image_side_px < 16)
     return "max_image_side_px must be >= 16 when set, got " + std::to_string(*max_image_side_px);
   return std::nullopt;
+}
+
+bool IsImageFile(const std::string& path) {
+  std::string ext = std::filesystem::path(path).extension().string();
+  std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
+  for (const char* e : {".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".pnm", ".bmp", ".tif", ".tiff", ".webp"}) {
+    if (ext == e) return true;
+  }
+  return false;
+}
+
+Result<std::vector<std::string>> ListImageFiles(const std::string& folder) { return ListFiles(folder, IsImageFile); }
+
+Result<std::vector<std::string>> ListFiles(const std::string& folder, const std::function<bool(const std::string&)>& keep) {
+  namespace fs = std::filesystem;
+  std::error_code ec;
+  if (!fs::is_directory(folder, ec)) return Fail(ErrorCode::kNotFound, "'" + folder + "' is not a folder");
+  std::vector<std::string> files;
+  fs::recursive_directory_iterator it(folder, fs::directory_options::follow_directory_symlink, ec);
+  for (; !ec && it != fs::recursive_directory_iterator(); it.increment(ec)) {
+    if (it->is_regular_file(ec) && keep(it->path().string())) files.push_back(it->path().string());
+  }
+  if (ec) return Fail(ErrorCode::kIoError, "cannot list '" + folder + "': " + ec.message());
+  std::sort(files.begin(), files.end());
+  return files;
 }
 
 const char* ImageFormatName(ImageFormat format) {

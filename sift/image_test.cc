@@ -10,7 +10,7 @@
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 
-#include "sift/binary_io.h"
+#include "sift/base/binary_io.h"
 
 namespace oxbow::sift {
 namespace {

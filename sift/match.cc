@@ -20,7 +20,7 @@
 #include <opencv2/flann.hpp>
 
 #include "sift/match_internal.h"
-#include "sift/parallel.h"
+#include "sift/base/parallel.h"
 
 namespace oxbow::sift {
 namespace {

@@ -35,7 +35,7 @@
 #include <string>
 #include <vector>
 
-#include "sift/error.h"
+#include "sift/base/error.h"
 #include "sift/types.h"
 
 namespace oxbow::sift {

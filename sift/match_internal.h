@@ -3,7 +3,7 @@
 
 #include <vector>
 
-#include "sift/error.h"
+#include "sift/base/error.h"
 #include "sift/match.h"
 #include "sift/types.h"
 

@@ -7,8 +7,8 @@
 
 #include <sys/mman.h>
 
-#include "sift/error.h"
-#include "sift/parallel.h"
+#include "sift/base/error.h"
+#include "sift/base/parallel.h"
 
 #if defined(__AVX2__) && defined(__FMA__)
 #include <immintrin.h>

@@ -11,7 +11,7 @@
 #include <optional>
 #include <sstream>
 
-#include "sift/parallel.h"
+#include "sift/base/parallel.h"
 #include "sift/scale_space.h"
 #include "sift/sift_internal.h"
 

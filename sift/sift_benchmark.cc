@@ -29,7 +29,7 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "sift/feature_eval.h"
+#include "sift/testing/feature_eval.h"
 #include "sift/image.h"
 #include "sift/sift.h"
 

@@ -16,7 +16,7 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "sift/feature_eval.h"
+#include "sift/testing/feature_eval.h"
 #include "sift/scale_space.h"
 #include "sift/sift_internal.h"
 

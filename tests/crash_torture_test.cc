@@ -289,7 +289,7 @@ TEST_F(CrashTortureTest, KillNineAtRandomMomentsLosesNothingAcknowledged) {
   for (int c = 0; c < kClients; ++c) models[static_cast<size_t>(c)].client = c;
   Counts counts;
   for (int round = 0; round <= rounds; ++round) {
-    std::vector<std::string> args = {"serve", "--index", index_dir, "--port", "0", "--threads", "4", "--index-threads", "1"};
+    std::vector<std::string> args = {"serve", "--index", index_dir, "--port", "0", "--http-workers", "4", "--index-threads", "1"};
     if (round == 0) args.insert(args.end(), {"--vocab", vocab_path_});
     oxbow::testing::ServerProcess server(args, dir_->path() + "/server-" + std::to_string(round) + ".log");
     ASSERT_TRUE(server.port() > 0 && server.WaitReady()) << "round " << round << ": no restart without repair\n" << server.Log();

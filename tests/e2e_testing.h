@@ -24,7 +24,7 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "sift/error.h"
+#include "sift/base/error.h"
 #include "vocab/vocabulary.h"
 
 namespace oxbow::testing {

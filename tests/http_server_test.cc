@@ -90,7 +90,7 @@ class HttpServerTest : public ::testing::Test {
   std::unique_ptr<ServerProcess> Start(const std::vector<std::string>& extra = {}, std::string index_dir = "",
                                        bool with_vocab = true) {
     if (index_dir.empty()) index_dir = dir_->path() + "/index-" + std::to_string(counter_++);
-    std::vector<std::string> args = {"serve", "--index", index_dir, "--port", "0", "--threads", "8"};
+    std::vector<std::string> args = {"serve", "--index", index_dir, "--port", "0", "--http-workers", "8"};
     if (with_vocab) {
       args.emplace_back("--vocab");
       args.push_back(vocab_);

@@ -40,7 +40,7 @@
 #include "api/errors.h"
 #include "api/service.h"
 #include "api/testing.h"
-#include "sift/binary_io.h"
+#include "sift/base/binary_io.h"
 #include "sift/image.h"
 #include "tests/e2e_testing.h"
 
@@ -543,7 +543,7 @@ TEST_F(ResourceLimitsTest, ConcurrentSearchesCostWhatTheExtractionSlotsAllow) {
   GTEST_SKIP() << "sanitizer builds add shadow memory";
 #endif
   oxbow::testing::ServerProcess server({"serve", "--index", dir_->path() + "/concurrent", "--vocab", vocab_, "--port", "0",
-                                        "--threads", "8", "--extractions", "1", "--extraction-wait-ms", "120000"},
+                                        "--http-workers", "8", "--extractions", "1", "--extraction-wait-ms", "120000"},
                                        dir_->path() + "/concurrent.log");
   ASSERT_TRUE(server.port() > 0 && server.WaitReady()) << server.Log();
   auto reset_peak = [&] {

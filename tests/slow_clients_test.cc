@@ -151,7 +151,7 @@ TEST_F(SlowClientsTest, TricklingAndIdleClientsDoNotStarveANormalRequest) {
   // Without the request deadline they would hold both workers until they give up (25 s); each sends a
   // byte every 200 ms, far inside the 30 s per-read timeout.
   const char* timeout = std::getenv("OXBOW_SLOW_CLIENTS_REQUEST_TIMEOUT_S");  // 3600 shows the unguarded server
-  auto server = Start({"--threads", "2", "--queue", "16", "--read-timeout-s", "30", "--request-timeout-s",
+  auto server = Start({"--http-workers", "2", "--queue", "16", "--read-timeout-s", "30", "--request-timeout-s",
                        timeout != nullptr ? timeout : "2"});
   const int port = server->port();
   const auto interval = std::chrono::milliseconds(200);
@@ -195,7 +195,7 @@ TEST_F(SlowClientsTest, AStalledClientCannotBlockTheBusyAnswer) {
   // One worker, a queue of one: the first trickler holds the worker, the second waits in the queue, the
   // third is handed to the shedding thread and trickles its headers there. A normal request after them
   // must get its 503 while the first trickler still holds the worker (the shedder's header deadline).
-  auto server = Start({"--threads", "1", "--queue", "1", "--request-timeout-s", "30"});
+  auto server = Start({"--http-workers", "1", "--queue", "1", "--request-timeout-s", "30"});
   const int port = server->port();
   std::vector<Outcome> outcomes(3);
   std::atomic<bool> first_still_connected{true};

@@ -5,7 +5,7 @@
 #include <limits>
 #include <numeric>
 
-#include "sift/parallel.h"
+#include "sift/base/parallel.h"
 #include "vocab/kernels.h"
 
 namespace oxbow::vocab::internal {

@@ -14,8 +14,8 @@
 #include <numeric>
 #include <sstream>
 
-#include "sift/log.h"
-#include "sift/parallel.h"
+#include "sift/base/log.h"
+#include "sift/base/parallel.h"
 #include "vocab/kernels.h"
 #include "vocab/search.h"
 #include "vocab/vocabulary.h"

@@ -4,7 +4,7 @@
 #include <random>
 #include <vector>
 
-#include "sift/log.h"
+#include "sift/base/log.h"
 #include "vocab/kernels.h"
 #include "vocab/vocabulary.h"
 

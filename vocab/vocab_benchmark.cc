@@ -48,8 +48,8 @@
 #include <string>
 #include <vector>
 
-#include "sift/log.h"
-#include "sift/parallel.h"
+#include "sift/base/log.h"
+#include "sift/base/parallel.h"
 #include "sift/sift.h"
 #include "vocab/kernels.h"
 #include "vocab/search.h"

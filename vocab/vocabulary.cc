@@ -16,7 +16,7 @@
 #include <limits>
 #include <numeric>
 
-#include "sift/binary_io.h"
+#include "sift/base/binary_io.h"
 #include "vocab/kernels.h"
 #include "vocab/search.h"
 

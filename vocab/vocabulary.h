@@ -24,7 +24,7 @@
 #include <string>
 #include <vector>
 
-#include "sift/error.h"
+#include "sift/base/error.h"
 #include "sift/types.h"
 
 namespace oxbow::vocab {

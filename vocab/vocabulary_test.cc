@@ -10,8 +10,8 @@
 #include <fstream>
 #include <random>
 
-#include "sift/binary_io.h"
-#include "sift/log.h"
+#include "sift/base/binary_io.h"
+#include "sift/base/log.h"
 #include "vocab/kernels.h"
 
 namespace oxbow::vocab {

@@ -43,7 +43,7 @@ function fatal(message) {
 
 function startServer(oxbow, indexDir, logPath) {
   const log = fs.openSync(logPath, 'a');
-  const child = spawn(oxbow, ['serve', '--index', indexDir, '--port', '0', '--api-key', API_KEY, '--threads', '4'],
+  const child = spawn(oxbow, ['serve', '--index', indexDir, '--port', '0', '--api-key', API_KEY, '--http-workers', '4'],
                       { stdio: ['ignore', 'pipe', log] });
   return new Promise((resolve, reject) => {
     const timer = setTimeout(() => reject(new Error('no "listening on" line within 60 s; see ' + logPath)), 60000);
@@ -139,7 +139,7 @@ async function main() {
   const indexDir = path.join(args.work, 'index');
   fs.rmSync(indexDir, { recursive: true, force: true });
   const quiet = { stdio: ['ignore', 'ignore', 'pipe'] };
-  execFileSync(args.oxbow, ['vocab', 'train', '--list', list, '--words', '2048', '--root-sift', '--per-image', '1000',
+  execFileSync(args.oxbow, ['vocab', 'train', '--list', list, '--words', '2048', '--per-image', '1000',
                             '--out', vocab], quiet);
   execFileSync(args.oxbow, ['index', 'build', '--vocab', vocab, '--list', list, '--out', indexDir], quiet);
   // A truncated JPEG (the first half of a real one): the server must refuse it with a clear error.

@@ -10,7 +10,7 @@
 #include <cstdlib>
 #include <string>
 
-#include "sift/binary_io.h"
+#include "sift/base/binary_io.h"
 #include "sift/features_io.h"
 #include "tests/fuzz/fuzz_support.h"
 

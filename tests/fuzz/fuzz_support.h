@@ -19,7 +19,7 @@
 #include <string_view>
 #include <vector>
 
-#include "sift/error.h"
+#include "sift/base/error.h"
 #include "sift/types.h"
 #include "vocab/vocabulary.h"
 

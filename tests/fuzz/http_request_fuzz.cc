@@ -27,8 +27,8 @@
 #include <thread>
 
 #include "api/service.h"
-#include "sift/binary_io.h"
-#include "server/http_server.h"
+#include "sift/base/binary_io.h"
+#include "server/http/http_server.h"
 #include "tests/fuzz/fuzz_support.h"
 
 namespace {

@@ -11,7 +11,7 @@
 #include <vector>
 
 #include "index/feature_store.h"
-#include "sift/binary_io.h"
+#include "sift/base/binary_io.h"
 #include "tests/fuzz/fuzz_support.h"
 
 namespace {

@@ -18,7 +18,7 @@
 
 #include "index/feature_store.h"
 #include "index/image_index.h"
-#include "sift/binary_io.h"
+#include "sift/base/binary_io.h"
 #include "sift/features_io.h"
 #include "sift/image.h"
 #include "sift/sift.h"

@@ -8,7 +8,7 @@
 #include <string>
 #include <vector>
 
-#include "sift/binary_io.h"
+#include "sift/base/binary_io.h"
 #include "tests/fuzz/fuzz_support.h"
 #include "vocab/vocabulary.h"
 

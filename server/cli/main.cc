@@ -3,8 +3,8 @@
 #include <cstdio>
 #include <exception>
 
-#include "server/cli.h"
-#include "sift/log.h"
+#include "server/cli/cli.h"
+#include "sift/base/log.h"
 
 namespace oxbow::cli {
 

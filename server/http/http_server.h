@@ -30,7 +30,7 @@
 
 #include "api/metrics.h"
 #include "api/service.h"
-#include "sift/error.h"
+#include "sift/base/error.h"
 
 namespace httplib {
 class Server;

@@ -1,4 +1,4 @@
-#include "sift/error.h"
+#include "sift/base/error.h"
 
 namespace oxbow {
 

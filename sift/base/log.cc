@@ -1,4 +1,4 @@
-#include "sift/log.h"
+#include "sift/base/log.h"
 
 #include <unistd.h>
 

@@ -23,9 +23,9 @@
 #include "eval/ground_truth.h"
 #include "eval/report.h"
 #include "index/image_index.h"
-#include "server/cli.h"
-#include "server/index_cli.h"
-#include "sift/log.h"
+#include "server/cli/cli.h"
+#include "server/cli/common_flags.h"
+#include "sift/base/log.h"
 #include "sift/sift.h"
 
 // After Eigen (via index/ and sift/ headers): httplib pulls in <resolv.h>, whose `_res` macro breaks
@@ -50,7 +50,7 @@ struct EvalArgs {
   std::string out = "eval-report";       // report folder
   std::vector<std::string> features = {"rootsift"};
   std::vector<int> words = {20000};
-  std::vector<int> rerank = {200};
+  std::vector<int> rerank = {index::QueryOptions{}.rerank_depth};  // the server's default
   std::vector<std::string> qe = {"on"};
   std::vector<std::string> transitive = {"on"};  // transitive verification (the server's default) on/off
   int top_k = 0;                         // results requested per query; 0 = the whole database (max 10000)
@@ -104,7 +104,7 @@ class ServerProcess {
     int fds[2];
     if (pipe(fds) != 0) throw CommandError(1, "pipe failed");
     std::vector<std::string> args = {exe, "serve", "--index", index_dir, "--host", "127.0.0.1", "--port", "0"};
-    if (threads > 0) args.insert(args.end(), {"--threads", std::to_string(threads)});
+    if (threads > 0) args.insert(args.end(), {"--index-threads", std::to_string(threads)});
     OXBOW_LOG(kInfo) << "eval: starting " << JoinArgs(args);
     std::vector<char*> argv;
     argv.reserve(args.size() + 1);
@@ -173,19 +173,10 @@ class ServerProcess {
 
 // Image files under `dir` (recursively, as the groups protocol nests them), by id (file name without
 // extension), in name order.
+// Image files under `dir` by id (file name without extension), listed as every command lists a folder.
 std::map<std::string, std::string> ImageFiles(const std::string& dir) {
   std::map<std::string, std::string> files;
-  static const std::set<std::string> kExtensions = {".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".bmp",
-                                                    ".tif", ".tiff", ".webp"};
-  std::error_code ec;
-  for (auto it = fs::recursive_directory_iterator(dir, ec); !ec && it != fs::recursive_directory_iterator();
-       it.increment(ec)) {
-    if (!it->is_regular_file()) continue;
-    std::string ext = it->path().extension().string();
-    std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char c) { return std::tolower(c); });
-    if (kExtensions.contains(ext)) files.emplace(it->path().stem().string(), it->path().string());
-  }
-  if (ec) throw CommandError(4, "cannot list images in '" + dir + "': " + ec.message());
+  for (const std::string& path : ValueOrExit(sift::ListImageFiles(dir))) files.emplace(fs::path(path).stem().string(), path);
   return files;
 }
 
@@ -221,7 +212,7 @@ void Prepare(const EvalArgs& a, const Config& c, const std::string& exe, eval::R
     std::vector<std::string> args = {exe, "vocab", "train", "--list", list,
                                      "--words", std::to_string(c.words), "--out", vocab, "--sample",
                                      std::to_string(a.sample), "--seed", std::to_string(a.seed)};
-    if (c.features == "rootsift") args.emplace_back("--root-sift");
+    args.insert(args.end(), {"--descriptor", c.features});
     if (a.per_image > 0) args.insert(args.end(), {"--per-image", std::to_string(a.per_image)});
     if (a.iterations > 0) args.insert(args.end(), {"--iterations", std::to_string(a.iterations)});
     if (a.threads > 0) args.insert(args.end(), {"--threads", std::to_string(a.threads)});

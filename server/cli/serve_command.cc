@@ -9,10 +9,11 @@
 #include <thread>
 
 #include "api/service.h"
-#include "server/cli.h"
-#include "server/http_server.h"
-#include "server/search_flags.h"
-#include "sift/log.h"
+#include "server/cli/cli.h"
+#include "server/cli/common_flags.h"
+#include "server/http/http_server.h"
+#include "server/cli/search_flags.h"
+#include "sift/base/log.h"
 
 namespace oxbow::cli {
 namespace {
@@ -24,8 +25,7 @@ struct ServeFlags {
   api::ServiceOptions service;
   double max_upload_mb = 32;
   double max_inflight_upload_mb = 256;
-  double max_megapixels = 40;
-  int max_image_side = 1600;
+  ImageFlags image;
   int index_threads = 0;
   index::IndexOptions index_options;  // scoring options (--max-df, ...); num_threads from --index-threads
 };
@@ -36,17 +36,15 @@ void Serve(const ServeFlags& flags) {
   if (!(flags.max_upload_mb > 0 && flags.max_upload_mb <= 4096)) {
     throw CommandError(2, "--max-upload-mb must be in (0, 4096]");
   }
-  if (!(flags.max_megapixels > 0 && flags.max_megapixels <= 10000)) {
-    throw CommandError(2, "--max-megapixels must be in (0, 10000]");
-  }
+  const sift::DecodeOptions decode = flags.image.ToDecodeOptions();
   http.max_body_bytes = static_cast<uint64_t>(flags.max_upload_mb * 1024 * 1024);
   if (!(flags.max_inflight_upload_mb >= flags.max_upload_mb && flags.max_inflight_upload_mb <= 1024 * 1024)) {
     throw CommandError(2, "--max-inflight-upload-mb must be in [--max-upload-mb, 1048576]");
   }
   http.max_inflight_body_bytes = static_cast<uint64_t>(flags.max_inflight_upload_mb * 1024 * 1024);
   service_options.max_image_bytes = http.max_body_bytes;
-  service_options.max_pixels = static_cast<uint64_t>(flags.max_megapixels * 1e6);
-  service_options.max_image_side_px = flags.max_image_side > 0 ? std::optional<int>(flags.max_image_side) : std::nullopt;
+  service_options.max_pixels = decode.max_pixels;
+  service_options.max_image_side_px = decode.max_image_side_px;
   if (auto message = http.Check()) throw CommandError(2, *message);
   if (auto message = service_options.Check()) throw CommandError(2, *message);
   if (auto message = flags.index_options.Check()) throw CommandError(2, *message);
@@ -125,7 +123,7 @@ void SetUpServe(CLI::App& app) {
   cmd->add_option("--port", flags->http.port, "TCP port; 0 picks a free one (printed)")
       ->capture_default_str()
       ->check(CLI::Range(0, 65535));
-  cmd->add_option("--threads", flags->http.threads, "HTTP worker threads (concurrent requests)")
+  cmd->add_option("--http-workers", flags->http.threads, "HTTP worker threads: requests served at once")
       ->capture_default_str()
       ->check(CLI::Range(1, 1024));
   cmd->add_option("--queue", flags->http.max_queued_connections,
@@ -138,13 +136,7 @@ void SetUpServe(CLI::App& app) {
       ->envname("OXBOW_API_KEY");
   cmd->add_option("--max-upload-mb", flags->max_upload_mb, "largest request body and image file, MiB (413 above)")
       ->capture_default_str();
-  cmd->add_option("--max-megapixels", flags->max_megapixels,
-                  "largest declared image size, megapixels, checked before decoding (413 above)")
-      ->capture_default_str();
-  cmd->add_option("--max-image-side", flags->max_image_side,
-                  "downscale images whose longest side exceeds this many pixels before extraction; 0 = never")
-      ->capture_default_str()
-      ->check(CLI::Range(0, 100000));
+  AddImageFlags(cmd, &flags->image);  // over --max-megapixels: 413
   cmd->add_option("--extractions", flags->service.max_concurrent_extractions,
                   "decode+extract operations at once (bounds memory); 0 = CPU cores")
       ->capture_default_str()
@@ -192,9 +184,7 @@ void SetUpServe(CLI::App& app) {
                   "default spatial re-ranking depth of searches (0 = off)")
       ->capture_default_str()
       ->check(CLI::Range(0, 10000));
-  // Query expansion is on by default: on the Paris subset it raises mAP (0.848 -> 0.865 at 5k words)
-  // for a few ms per query; a search with rerank=0 runs without it.
-  flags->service.default_query.query_expansion = true;
+  // Query expansion is on by default (index::QueryOptions); a search with rerank=0 runs without it.
   cmd->add_flag("--qe,!--no-qe", flags->service.default_query.query_expansion,
                 "average query expansion in searches by default (on; --no-qe turns it off; a search's qe parameter overrides)");
   // Defaults of the other search parameters (a search's own parameters override them) and the index's

@@ -6,7 +6,7 @@
 #include <array>
 #include <string>
 
-#include "sift/error.h"
+#include "sift/base/error.h"
 #include "sift/types.h"
 
 namespace oxbow::sift {

@@ -1,4 +1,4 @@
-#include "sift/feature_eval.h"
+#include "sift/testing/feature_eval.h"
 
 #include <algorithm>
 #include <cmath>

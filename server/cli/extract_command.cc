@@ -8,10 +8,12 @@
 #include <string>
 #include <vector>
 
-#include "server/cli.h"
+#include "server/cli/cli.h"
+#include "server/cli/common_flags.h"
+#include "sift/base/parallel.h"
 #include "sift/draw.h"
 #include "sift/features_io.h"
-#include "sift/log.h"
+#include "sift/base/log.h"
 #include "sift/sift.h"
 
 namespace oxbow::cli {
@@ -24,12 +26,11 @@ struct ExtractArgs {
   std::string out_dir = ".";
   std::string format = "oxbow";
   std::optional<std::string> draw;
-  bool root_sift = false;
+  sift::DescriptorKind descriptor = sift::SiftOptions{}.descriptor;
   bool no_upsample = false;
   bool ignore_exif = false;
   std::optional<int> max_features;
-  std::optional<int> max_image_side_px;
-  uint64_t max_pixels = sift::DecodeOptions{}.max_pixels;
+  ImageFlags image;
   double contrast_threshold = sift::SiftOptions{}.contrast_threshold;
   double edge_threshold = sift::SiftOptions{}.edge_threshold;
   int num_threads = 0;
@@ -45,17 +46,16 @@ std::string DrawPath(const std::string& draw, const std::string& image, bool sev
 
 void RunExtract(const ExtractArgs& args) {
   sift::SiftOptions options;
-  options.descriptor = args.root_sift ? sift::DescriptorKind::kRootSift : sift::DescriptorKind::kSift;
+  options.descriptor = args.descriptor;
   options.max_features = args.max_features;
   options.upsample_first_octave = !args.no_upsample;
   options.contrast_threshold = args.contrast_threshold;
   options.edge_threshold = args.edge_threshold;
-  options.num_threads = args.num_threads;
+  const ThreadSplit split = SplitThreads(args.num_threads, args.images.size());
+  options.num_threads = split.per_item;
   options.thread_cache_mib = args.thread_cache_mib;
   const sift::SiftExtractor extractor = ValueOrExit(sift::SiftExtractor::Create(options));
-  sift::DecodeOptions decode;
-  decode.max_image_side_px = args.max_image_side_px;
-  decode.max_pixels = args.max_pixels;
+  sift::DecodeOptions decode = args.image.ToDecodeOptions();
   decode.apply_exif_orientation = !args.ignore_exif;
   if (auto message = decode.Check()) throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), *message);
 
@@ -70,34 +70,54 @@ void RunExtract(const ExtractArgs& args) {
     if (!first_failure) first_failure = error;
     if (args.images.size() > 1) std::fprintf(stderr, "oxbow: %s\n", error.ToString().c_str());
   };
-  for (const std::string& image : args.images) {
-    const auto start = std::chrono::steady_clock::now();
-    auto decoded = sift::ReadImage(image, decode);
-    if (!decoded) {
-      report(decoded.error());
-      continue;
-    }
-    const sift::FeatureSet features = extractor.ExtractFromDecoded(*decoded);
-    const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
-    const std::string name = fs::path(image).filename().string();
-    const std::string out = (fs::path(args.out_dir) / (name + (args.format == "colmap" ? ".txt" : ".oxfeat"))).string();
-    Status written = args.format == "colmap"
-                         ? sift::WriteColmapFeatures(out, features)
-                         : sift::WriteFeatureFile(out, {features, options.Fingerprint(), options.Describe()});
-    if (!written) {
-      report(written.error());
-      continue;
-    }
-    std::string drawn;
-    if (args.draw) {
-      drawn = DrawPath(*args.draw, image, args.images.size() > 1);
-      if (auto status = sift::DrawKeypoints(decoded->gray, features, 1.0 / decoded->scale_to_original, drawn); !status) {
-        report(status.error());
-        drawn.clear();
+  // Images in parallel (split.workers at a time, each with split.per_item threads); outputs are written
+  // and reported in the order given.
+  struct Extracted {
+    Result<sift::DecodedImage> decoded = std::unexpected(Error{});
+    sift::FeatureSet features;
+    double ms = 0;
+  };
+  const size_t batch = static_cast<size_t>(split.workers);
+  for (size_t begin = 0; begin < args.images.size(); begin += batch) {
+    const size_t n = std::min(batch, args.images.size() - begin);
+    std::vector<Extracted> extracted(n);
+    ParallelFor(n, split.workers, 1, [&](size_t lo, size_t hi, int) {
+      for (size_t i = lo; i < hi; ++i) {
+        const auto start = std::chrono::steady_clock::now();
+        extracted[i].decoded = sift::ReadImage(args.images[begin + i], decode);
+        if (extracted[i].decoded) extracted[i].features = extractor.ExtractFromDecoded(*extracted[i].decoded);
+        extracted[i].ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
       }
+    });
+    for (size_t i = 0; i < n; ++i) {
+      const std::string& image = args.images[begin + i];
+      const Extracted& e = extracted[i];
+      if (!e.decoded) {
+        report(e.decoded.error());
+        continue;
+      }
+      const sift::FeatureSet& features = e.features;
+      const std::string name = fs::path(image).filename().string();
+      const std::string out = (fs::path(args.out_dir) / (name + (args.format == "colmap" ? ".txt" : ".oxfeat"))).string();
+      Status written = args.format == "colmap"
+                           ? sift::WriteColmapFeatures(out, features)
+                           : sift::WriteFeatureFile(out, {features, options.Fingerprint(), options.Describe()});
+      if (!written) {
+        report(written.error());
+        continue;
+      }
+      std::string drawn;
+      if (args.draw) {
+        drawn = DrawPath(*args.draw, image, args.images.size() > 1);
+        if (auto status = sift::DrawKeypoints(e.decoded->gray, features, 1.0 / e.decoded->scale_to_original, drawn);
+            !status) {
+          report(status.error());
+          drawn.clear();
+        }
+      }
+      std::printf("%s: %dx%d, %zu keypoints, %.1f ms -> %s%s%s\n", image.c_str(), features.image_width,
+                  features.image_height, features.size(), e.ms, out.c_str(), drawn.empty() ? "" : ", ", drawn.c_str());
     }
-    std::printf("%s: %dx%d, %zu keypoints, %.1f ms -> %s%s%s\n", image.c_str(), features.image_width, features.image_height,
-                features.size(), ms, out.c_str(), drawn.empty() ? "" : ", ", drawn.c_str());
   }
   if (first_failure) {
     if (args.images.size() == 1) throw CommandError(*first_failure);
@@ -108,27 +128,23 @@ void RunExtract(const ExtractArgs& args) {
 
 void SetUpExtract(CLI::App& app) {
   auto* cmd = app.add_subcommand("extract",
-                                 "Extract SIFT features (Lowe 2004; RootSIFT optional) from images into feature files.\n"
+                                 "Extract SIFT features (Lowe 2004) from images into feature files, RootSIFT by default.\n"
                                  "Writes <out>/<image name>.oxfeat (oxbow's versioned binary format; inspect with\n"
                                  "'oxbow features info') or, with --format colmap, <out>/<image name>.txt in COLMAP's\n"
                                  "text format ('N 128', then 'x y scale orientation d1..d128' per keypoint, descriptors\n"
-                                 "0..255), ready for 'colmap feature_importer'. Prints one line per image.\n"
-                                 "Example: oxbow extract photos/*.jpg --out feats --root-sift --max-side 1024");
+                                 "0..255), ready for 'colmap feature_importer' (use --descriptor sift for COLMAP). Images\n"
+                                 "are extracted in parallel; prints one line per image, in the order given.\n"
+                                 "Example: oxbow extract photos/*.jpg --out feats --max-image-side 1024");
   auto args = std::make_shared<ExtractArgs>();
   cmd->add_option("images", args->images, "image files (JPEG, PNG, PPM/PGM, WebP, TIFF, BMP)")->required();
   cmd->add_option("--out", args->out_dir, "output folder (created if missing)")->capture_default_str();
   cmd->add_option("--format", args->format, "feature file format: oxbow (binary) or colmap (text)")
       ->check(CLI::IsMember({"oxbow", "colmap"}))
       ->capture_default_str();
-  cmd->add_flag("--root-sift", args->root_sift, "store RootSIFT descriptors (L1 normalise + sqrt; better for retrieval)");
+  AddDescriptorFlag(cmd, &args->descriptor);
   cmd->add_option("--max-features", args->max_features, "keep only the N strongest keypoints (by DoG contrast)")
       ->check(CLI::PositiveNumber);
-  cmd->add_option("--max-side", args->max_image_side_px,
-                  "downscale images so the longest side is at most PX pixels before extracting (keypoints are still "
-                  "written in original-image coordinates)")
-      ->check(CLI::Range(16, 1 << 20));
-  cmd->add_option("--max-pixels", args->max_pixels, "refuse images whose header declares more pixels than this")
-      ->capture_default_str();
+  AddImageFlags(cmd, &args->image);
   cmd->add_flag("--no-upsample", args->no_upsample,
                 "do not double the image size for the first octave (about 3x faster, finds fewer small features)");
   cmd->add_option("--contrast-threshold", args->contrast_threshold,
@@ -137,9 +153,7 @@ void SetUpExtract(CLI::App& app) {
   cmd->add_option("--edge-threshold", args->edge_threshold, "edge rejection ratio r (Lowe's r = 10); higher keeps more edge-like keypoints")
       ->capture_default_str();
   cmd->add_flag("--ignore-exif", args->ignore_exif, "use the pixels as stored, ignoring the EXIF orientation tag");
-  cmd->add_option("--threads", args->num_threads, "worker threads per image; 0 = all cores (output is identical for any value)")
-      ->check(CLI::Range(0, 256))
-      ->capture_default_str();
+  AddThreadsFlag(cmd, &args->num_threads);
   cmd->add_option("--thread-cache-mib", args->thread_cache_mib,
                   "pyramid buffers kept between images, MiB (0 = free after every image; output unchanged)")
       ->check(CLI::Range(0, 65536))

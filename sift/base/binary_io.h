@@ -22,7 +22,7 @@
 #include <type_traits>
 #include <vector>
 
-#include "sift/error.h"
+#include "sift/base/error.h"
 
 namespace oxbow::io {
 

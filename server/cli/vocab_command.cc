@@ -8,9 +8,10 @@
 #include <string>
 #include <vector>
 
-#include "server/cli.h"
+#include "server/cli/cli.h"
+#include "server/cli/common_flags.h"
 #include "sift/features_io.h"
-#include "sift/log.h"
+#include "sift/base/log.h"
 #include "sift/sift.h"
 #include "vocab/vocabulary.h"
 
@@ -23,7 +24,7 @@ struct VocabTrainArgs {
   std::optional<std::string> images_dir, list_file, features_dir;
   std::string out;
   size_t words = 0;
-  bool root_sift = false;
+  sift::DescriptorKind descriptor = sift::SiftOptions{}.descriptor;
   size_t sample = vocab::SampleOptions{}.max_total;
   size_t per_image = vocab::SampleOptions{}.max_per_image;
   int iterations = vocab::TrainOptions{}.max_iterations;
@@ -31,26 +32,12 @@ struct VocabTrainArgs {
   int threads = 0;
   std::string assignment = "auto";
   int probes = 0;
-  std::optional<int> max_side;
+  ImageFlags image;
 };
 
-bool IsImageFile(const fs::path& p) {
-  std::string ext = p.extension().string();
-  std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
-  for (const char* e : {".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".pnm", ".bmp", ".tif", ".tiff", ".webp"})
-    if (ext == e) return true;
-  return false;
-}
-
-// Regular files in `dir` accepted by `keep`, sorted by name (the sample depends on this order).
-std::vector<std::string> ListFolder(const std::string& dir, bool (*keep)(const fs::path&)) {
-  std::error_code ec;
-  if (!fs::is_directory(dir, ec)) throw CommandError(ExitCodeFor(ErrorCode::kNotFound), "'" + dir + "' is not a folder");
-  std::vector<std::string> files;
-  for (const auto& entry : fs::directory_iterator(dir, ec))
-    if (entry.is_regular_file() && keep(entry.path())) files.push_back(entry.path().string());
-  std::sort(files.begin(), files.end());
-  return files;
+// Files under `dir` (recursively, sorted by path: the sample depends on this order) that `keep` accepts.
+std::vector<std::string> ListFolder(const std::string& dir, const std::function<bool(const std::string&)>& keep) {
+  return ValueOrExit(sift::ListFiles(dir, keep));
 }
 
 void RunVocabTrain(const VocabTrainArgs& args) {
@@ -80,18 +67,17 @@ void RunVocabTrain(const VocabTrainArgs& args) {
                            std::to_string(args.words) + ")");
 
   vocab::DescriptorSampler sampler(sample, sift::kDescriptorDim);
-  sift::DescriptorKind kind = args.root_sift ? sift::DescriptorKind::kRootSift : sift::DescriptorKind::kSift;
+  const sift::DescriptorKind kind = args.descriptor;
   std::string settings;
   size_t failures = 0;
   if (args.features_dir) {
-    const auto files = ListFolder(*args.features_dir, [](const fs::path& p) { return p.extension() == ".oxfeat"; });
+    const auto files = ListFolder(*args.features_dir, [](const std::string& p) { return fs::path(p).extension() == ".oxfeat"; });
     if (files.empty()) throw CommandError(ExitCodeFor(ErrorCode::kNotFound), "no .oxfeat files in '" + *args.features_dir + "'");
     log::Progress progress("sampling feature files", files.size(), "files");
     for (size_t i = 0; i < files.size(); ++i) {
       sift::FeatureFile file = ValueOrExit(sift::ReadFeatureFile(files[i]));
       if (i == 0) {
         settings = file.extractor_description;
-        if (file.features.kind == sift::DescriptorKind::kRootSift) kind = sift::DescriptorKind::kRootSift;
       } else if (file.extractor_description != settings) {
         throw CommandError(ExitCodeFor(ErrorCode::kIncompatible),
                            "'" + files[i] + "' was extracted with other settings (" + file.extractor_description +
@@ -99,19 +85,25 @@ void RunVocabTrain(const VocabTrainArgs& args) {
       }
       if (file.features.kind != kind) {
         if (file.features.kind == sift::DescriptorKind::kRootSift)
-          throw CommandError(ExitCodeFor(ErrorCode::kIncompatible), "'" + files[i] + "' mixes RootSIFT with SIFT files");
-        for (size_t r = 0; r < file.features.size(); ++r)  // SIFT files, --root-sift asked: convert
+          throw CommandError(ExitCodeFor(ErrorCode::kIncompatible),
+                             "'" + files[i] + "' holds RootSIFT descriptors; raw SIFT cannot be recovered from them: "
+                             "train with --descriptor rootsift");
+        for (size_t r = 0; r < file.features.size(); ++r)  // SIFT files, RootSIFT asked: convert
           sift::ToRootSift({file.features.descriptors.data() + r * sift::kDescriptorDim, size_t{sift::kDescriptorDim}});
       }
       sampler.AddImage(file.features.descriptors);
       progress.Advance();
     }
-    if (kind == sift::DescriptorKind::kRootSift && settings.find("descriptor=rootsift") == std::string::npos)
-      settings += ";vocab_root_sift=1";
+    // The vocabulary records the extractor whose output it was trained on, so that `index build` and
+    // `serve` extract the same way. SIFT files converted to RootSIFT: the files' extractor with the
+    // RootSIFT descriptor, which extracts exactly what the conversion produced.
+    sift::SiftOptions extractor = ValueOrExit(sift::SiftOptions::FromDescription(settings));
+    extractor.descriptor = kind;
+    settings = extractor.Describe();
   } else {
     std::vector<std::string> images;
     if (args.images_dir) {
-      images = ListFolder(*args.images_dir, [](const fs::path& p) { return IsImageFile(p); });
+      images = ListFolder(*args.images_dir, sift::IsImageFile);
     } else {
       std::ifstream in(*args.list_file);
       if (!in) throw CommandError(ExitCodeFor(ErrorCode::kNotFound), "cannot read the list '" + *args.list_file + "'");
@@ -126,8 +118,7 @@ void RunVocabTrain(const VocabTrainArgs& args) {
     options.num_threads = args.threads;
     const sift::SiftExtractor extractor = ValueOrExit(sift::SiftExtractor::Create(options));
     settings = options.Describe();
-    sift::DecodeOptions decode;
-    decode.max_image_side_px = args.max_side;
+    const sift::DecodeOptions decode = args.image.ToDecodeOptions();
     log::Progress progress("extracting and sampling", images.size(), "images");
     for (const std::string& path : images) {
       auto features = extractor.ExtractFromFile(path, decode);
@@ -178,31 +169,27 @@ void SetUpVocab(CLI::App& app) {
       "Stops after --iterations or when the objective improves by less than 0.01%. Same seed and input give\n"
       "the same vocabulary for any --threads. Use about 10-50 descriptors per word.\n"
       "Examples:\n"
-      "  oxbow vocab train --images photos/ --words 20000 --out paris20k.vocab --root-sift\n"
+      "  oxbow vocab train --images photos/ --words 20000 --out paris20k.oxvoc\n"
       "  oxbow vocab train --features feats/ --words 100000 --sample 5000000 --per-image 2000 --out 100k.vocab");
   auto* source = train->add_option_group("source", "where the training descriptors come from (exactly one)");
-  source->add_option("--images", args->images_dir, "folder of images (JPEG, PNG, PPM/PGM, BMP, TIFF, WebP)");
+  source->add_option("--images", args->images_dir, "folder of images (JPEG, PNG, PPM/PGM, BMP, TIFF, WebP), searched recursively");
   source->add_option("--list", args->list_file, "text file with one image path per line ('#' starts a comment)");
-  source->add_option("--features", args->features_dir, "folder of .oxfeat feature files from 'oxbow extract'");
+  source->add_option("--features", args->features_dir, "folder of .oxfeat feature files from 'oxbow extract', searched recursively");
   source->require_option(1);
   train->add_option("--words", args->words, "vocabulary size k (number of visual words)")->required()->check(CLI::PositiveNumber);
   train->add_option("--out", args->out, "vocabulary file to write (atomically)")->required();
-  train->add_flag("--root-sift", args->root_sift,
-                  "use RootSIFT (L1 normalise + sqrt; Arandjelovic & Zisserman 2012); with --features, SIFT files are converted");
+  AddDescriptorFlag(train, &args->descriptor);  // with --features, SIFT files are converted to RootSIFT
   train->add_option("--sample", args->sample, "maximum training descriptors in total")->capture_default_str()->check(CLI::PositiveNumber);
   train->add_option("--per-image", args->per_image, "maximum descriptors kept per image")->capture_default_str()->check(CLI::PositiveNumber);
   train->add_option("--iterations", args->iterations, "maximum Lloyd iterations")->capture_default_str()->check(CLI::Range(1, 1000));
   train->add_option("--seed", args->seed, "seed of the sampling, the seeding and the search structures")->capture_default_str();
-  train->add_option("--threads", args->threads, "worker threads; 0 = all cores (the result does not depend on it)")
-      ->capture_default_str()
-      ->check(CLI::Range(0, 256));
+  AddThreadsFlag(train, &args->threads);
   train->add_option("--assignment", args->assignment, "nearest-centroid search in the iterations: auto, exact, ivf, kdforest")
       ->capture_default_str()
       ->check(CLI::IsMember({"auto", "exact", "ivf", "kdforest"}));
   train->add_option("--probes", args->probes, "ivf assignment: coarse lists probed per descriptor (default 8)")
       ->check(CLI::Range(1, 1 << 20));
-  train->add_option("--max-side", args->max_side, "--images/--list: downscale images so the longest side is at most PX")
-      ->check(CLI::Range(16, 1 << 20));
+  AddImageFlags(train, &args->image);
   train->callback([args] { RunVocabTrain(*args); });
 
   auto path = std::make_shared<std::string>();

@@ -11,10 +11,10 @@
 #include <nlohmann/json.hpp>
 
 #include "index/image_index.h"
-#include "server/cli.h"
-#include "server/index_cli.h"
-#include "sift/log.h"
-#include "sift/parallel.h"
+#include "server/cli/cli.h"
+#include "server/cli/common_flags.h"
+#include "sift/base/log.h"
+#include "sift/base/parallel.h"
 #include "sift/sift.h"
 #include "vocab/vocabulary.h"
 
@@ -60,12 +60,7 @@ std::unique_ptr<index::ImageIndex> OpenOrCreate(const std::string& dir, const vo
 std::vector<ImageJob> CollectImages(const std::string& images_dir, const std::string& list_file) {
   std::vector<std::string> paths;
   if (!images_dir.empty()) {
-    std::error_code ec;
-    if (!fs::is_directory(images_dir, ec)) throw CommandError(ExitCodeFor(ErrorCode::kNotFound), images_dir + " is not a folder");
-    for (const auto& entry : fs::recursive_directory_iterator(images_dir, ec)) {
-      if (entry.is_regular_file() && IsImageFile(entry.path())) paths.push_back(entry.path().string());
-    }
-    std::sort(paths.begin(), paths.end());
+    paths = ValueOrExit(sift::ListImageFiles(images_dir));
   } else {
     std::ifstream in(list_file);
     if (!in) throw CommandError(ExitCodeFor(ErrorCode::kNotFound), "cannot read list " + list_file);
@@ -120,7 +115,7 @@ void SetUpIndex(CLI::App& app) {
     std::string vocab, images, list, out;
     int threads = 0;
     int probes = vocab::QuantizerOptions{}.num_probes;
-    std::optional<int> max_side;
+    ImageFlags image;
   };
   auto build = std::make_shared<BuildArgs>();
   CLI::App* b = cmd->add_subcommand("build", "Index every image of a folder or list (resumable: indexed ids are skipped)");
@@ -129,8 +124,8 @@ void SetUpIndex(CLI::App& app) {
   auto* list_opt = b->add_option("--list", build->list, "text file with one image path per line");
   images_opt->excludes(list_opt);
   b->add_option("--out", build->out, "index folder (created, or resumed when it holds an index)")->required();
-  b->add_option("--threads", build->threads, "worker threads, 0 = all cores")->check(CLI::Range(0, 256));
-  b->add_option("--max-image-side", build->max_side, "downscale images whose longest side exceeds this (px)");
+  AddThreadsFlag(b, &build->threads);
+  AddImageFlags(b, &build->image);
   b->add_option("--quantizer-probes", build->probes,
                 "coarse quantiser lists probed per indexed descriptor (searches set their own, default 8)")
       ->capture_default_str()
@@ -144,10 +139,7 @@ void SetUpIndex(CLI::App& app) {
     options.quantizer.num_threads = build->threads;
     options.quantizer.num_probes = build->probes;
     auto idx = OpenOrCreate(build->out, vocabulary, options);
-    const sift::SiftExtractor extractor = ExtractorFor(*idx, 1);
-    sift::DecodeOptions decode;
-    decode.max_image_side_px = build->max_side;
-    if (auto e = decode.Check()) throw CommandError(2, "--max-image-side: " + *e);
+    const sift::DecodeOptions decode = build->image.ToDecodeOptions();
 
     std::vector<ImageJob> all = CollectImages(build->images, build->list);
     std::vector<ImageJob> todo;
@@ -158,17 +150,18 @@ void SetUpIndex(CLI::App& app) {
     if (skipped) {
       OXBOW_LOG(kInfo) << skipped << " images already indexed, skipped";
     }
-    const int threads = ResolveThreadCount(build->threads);
+    const ThreadSplit split = SplitThreads(build->threads, todo.size());
+    const sift::SiftExtractor extractor = ExtractorFor(*idx, split.per_item);
     size_t added = 0, failed = 0;
     uint64_t features = 0;
     {
       log::Progress progress("indexing", todo.size(), "images");
-      const size_t batch = static_cast<size_t>(threads) * 2;
+      const size_t batch = static_cast<size_t>(split.workers) * 2;
       for (size_t begin = 0; begin < todo.size(); begin += batch) {
         const size_t n = std::min(batch, todo.size() - begin);
         std::vector<std::optional<Result<sift::FeatureSet>>> extracted(n);
         // Extract in parallel (one image per worker), add in order.
-        ParallelFor(n, threads, 1, [&](size_t lo, size_t hi, int) {
+        ParallelFor(n, split.workers, 1, [&](size_t lo, size_t hi, int) {
           for (size_t i = lo; i < hi; ++i) extracted[i] = extractor.ExtractFromFile(todo[begin + i].path, decode);
         });
         for (size_t i = 0; i < n; ++i) {
@@ -210,7 +203,8 @@ void SetUpIndex(CLI::App& app) {
   struct AddArgs {
     std::string index, id, metadata;
     std::vector<std::string> images;
-    std::optional<int> max_side;
+    ImageFlags image;
+    int threads = 0;
   };
   auto add = std::make_shared<AddArgs>();
   CLI::App* a = cmd->add_subcommand("add", "Add images to an index (id = file name without extension)");
@@ -218,14 +212,14 @@ void SetUpIndex(CLI::App& app) {
   a->add_option("images", add->images, "image files")->required();
   a->add_option("--id", add->id, "id for the image (only with one image)");
   a->add_option("--metadata", add->metadata, "metadata JSON stored with the image(s)");
-  a->add_option("--max-image-side", add->max_side, "downscale images whose longest side exceeds this (px)");
+  AddImageFlags(a, &add->image);
+  AddThreadsFlag(a, &add->threads);
   a->callback([add] {
     if (!add->id.empty() && add->images.size() != 1) throw CommandError(2, "--id needs exactly one image");
     if (!add->metadata.empty() && !nlohmann::json::accept(add->metadata)) throw CommandError(2, "--metadata is not valid JSON");
     auto idx = ValueOrExit(index::ImageIndex::Open(add->index));
-    const sift::SiftExtractor extractor = ExtractorFor(*idx, 0);
-    sift::DecodeOptions decode;
-    decode.max_image_side_px = add->max_side;
+    const sift::SiftExtractor extractor = ExtractorFor(*idx, add->threads);
+    const sift::DecodeOptions decode = add->image.ToDecodeOptions();
     nlohmann::json out = nlohmann::json::array();
     int errors = 0;
     for (const auto& path : add->images) {

@@ -9,7 +9,8 @@
 
 #include <nlohmann/json.hpp>
 
-#include "server/cli.h"
+#include "server/cli/cli.h"
+#include "server/cli/common_flags.h"
 #include "sift/draw_matches.h"
 #include "sift/match.h"
 #include "sift/sift.h"
@@ -33,9 +34,9 @@ struct MatchArgs {
   std::string method = "brute";
   int kd_trees = 4;
   int kd_checks = 64;
-  bool root_sift = false;
+  sift::DescriptorKind descriptor = sift::SiftOptions{}.descriptor;
   std::optional<int> max_features;
-  std::optional<int> max_image_side_px;
+  ImageFlags image;
   double reprojection_px = 4.0;
   int min_inliers = 6;
   int num_threads = 0;
@@ -54,12 +55,11 @@ void RunMatch(const MatchArgs& args) {
   if (!model) throw CommandError(2, "unknown --model '" + args.model + "'");
 
   SiftOptions sift_options;
-  sift_options.descriptor = args.root_sift ? DescriptorKind::kRootSift : DescriptorKind::kSift;
+  sift_options.descriptor = args.descriptor;
   sift_options.max_features = args.max_features;
   sift_options.num_threads = args.num_threads;
   const SiftExtractor extractor = ValueOrExit(SiftExtractor::Create(sift_options));
-  DecodeOptions decode;
-  decode.max_image_side_px = args.max_image_side_px;
+  const DecodeOptions decode = args.image.ToDecodeOptions();
 
   auto start = Clock::now();
   const FeatureSet query = ValueOrExit(extractor.ExtractFromFile(args.query_path, decode));
@@ -167,11 +167,10 @@ void SetUpMatch(CLI::App& app) {
       ->capture_default_str();
   cmd->add_option("--kd-trees", args->kd_trees, "kd-forest: number of randomised trees")->check(CLI::Range(1, 64))->capture_default_str();
   cmd->add_option("--kd-checks", args->kd_checks, "kd-forest: leaves visited per query")->check(CLI::Range(1, 1 << 20))->capture_default_str();
-  cmd->add_flag("--root-sift", args->root_sift, "use RootSIFT descriptors instead of SIFT");
+  AddDescriptorFlag(cmd, &args->descriptor);
   cmd->add_option("--max-features", args->max_features, "keep at most this many strongest keypoints per image")
       ->check(CLI::PositiveNumber);
-  cmd->add_option("--max-image-side", args->max_image_side_px, "downscale images whose longest side exceeds this (pixels)")
-      ->check(CLI::Range(16, 1 << 20));
+  AddImageFlags(cmd, &args->image);
   cmd->add_option("--reprojection-px", args->reprojection_px,
                   "inlier threshold of the robust estimators (similarity/affine/homography/fundamental), pixels")
       ->check(CLI::PositiveNumber)
@@ -179,7 +178,7 @@ void SetUpMatch(CLI::App& app) {
   cmd->add_option("--min-inliers", args->min_inliers, "inliers needed for \"verified\": true")
       ->check(CLI::Range(3, 1 << 30))
       ->capture_default_str();
-  cmd->add_option("--threads", args->num_threads, "worker threads (0 = all hardware threads)")->check(CLI::NonNegativeNumber)->capture_default_str();
+  AddThreadsFlag(cmd, &args->num_threads);
   cmd->add_option("--draw", args->draw_path,
                   "write the two images side by side: inliers green, rejected matches red, matched region outlined");
   cmd->callback([args] { RunMatch(*args); });

@@ -14,7 +14,7 @@
 #include <string>
 #include <vector>
 
-#include "sift/error.h"
+#include "sift/base/error.h"
 
 namespace oxbow::cli {
 

@@ -1,4 +1,4 @@
-#include "sift/binary_io.h"
+#include "sift/base/binary_io.h"
 
 #include <fcntl.h>
 #include <sys/stat.h>

@@ -8,9 +8,9 @@
 #include <nlohmann/json.hpp>
 
 #include "index/image_index.h"
-#include "server/cli.h"
-#include "server/index_cli.h"
-#include "server/search_flags.h"
+#include "server/cli/cli.h"
+#include "server/cli/common_flags.h"
+#include "server/cli/search_flags.h"
 #include "sift/sift.h"
 
 namespace oxbow::cli {
@@ -59,7 +59,8 @@ void SetUpQuery(CLI::App& app) {
     std::string index, image, bbox;
     index::QueryOptions options;
     index::IndexOptions index_options;
-    std::optional<int> max_side;
+    ImageFlags image_flags;
+    int threads = 0;
   };
   auto args = std::make_shared<Args>();
   CLI::App* cmd = app.add_subcommand("query", "Rank the indexed images for a query image; prints JSON");
@@ -69,13 +70,13 @@ void SetUpQuery(CLI::App& app) {
   cmd->add_option("--top-k", args->options.top_k, "results returned")->capture_default_str();
   cmd->add_option("--rerank", args->options.rerank_depth, "spatially verify the top R (0: tf-idf only)")
       ->capture_default_str();
-  // Query expansion is on by default, as in `oxbow serve`; it does not apply to --rerank 0 unless asked for.
-  args->options.query_expansion = true;
+  // Query expansion needs verified results: it does not apply to --rerank 0 unless asked for.
   auto* qe = cmd->add_flag("--qe,!--no-qe", args->options.query_expansion,
                            "average query expansion (Chum et al. 2007); on by default, --no-qe turns it off");
   AddSearchFlags(cmd, &args->options);
   AddIndexScoringFlags(cmd, &args->index_options);
-  cmd->add_option("--max-image-side", args->max_side, "downscale the query if its longest side exceeds this (px)");
+  AddImageFlags(cmd, &args->image_flags);
+  AddThreadsFlag(cmd, &args->threads);
   cmd->callback([args, qe] {
     using Clock = std::chrono::steady_clock;
     const auto t0 = Clock::now();
@@ -83,12 +84,13 @@ void SetUpQuery(CLI::App& app) {
     if (args->options.rerank_depth == 0 && qe->count() == 0) args->options.query_expansion = false;
     if (auto e = args->options.Check()) throw CommandError(2, *e);
     if (auto e = args->index_options.Check()) throw CommandError(2, *e);
+    const sift::DecodeOptions decode = args->image_flags.ToDecodeOptions();
+    args->index_options.num_threads = args->threads;
     auto idx = ValueOrExit(index::ImageIndex::Open(args->index, args->index_options));
     const double open_ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
     sift::SiftOptions sift_options = ValueOrExit(sift::SiftOptions::FromDescription(idx->extractor_settings()));
+    sift_options.num_threads = args->threads;
     const sift::SiftExtractor extractor = ValueOrExit(sift::SiftExtractor::Create(sift_options));
-    sift::DecodeOptions decode;
-    decode.max_image_side_px = args->max_side;
     const TimedFeatures f = ValueOrExit(ExtractTimed(extractor, args->image, decode));
     args->options.extractor_settings = idx->extractor_settings();
     const index::QueryResponse response = ValueOrExit(idx->Query(f.features, args->options));

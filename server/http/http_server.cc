@@ -1,4 +1,4 @@
-#include "server/http_server.h"
+#include "server/http/http_server.h"
 
 #include <httplib.h>
 
@@ -18,9 +18,9 @@
 #include "api/errors.h"
 #include "api/json.h"
 #include "api/params.h"
-#include "server/web_assets.h"
-#include "server/request_guard.h"
-#include "sift/log.h"
+#include "server/http/web_assets.h"
+#include "server/http/request_guard.h"
+#include "sift/base/log.h"
 
 namespace oxbow::server {
 
