@@ -43,7 +43,7 @@ int main(int argc, char** argv) {
   const int status = RUN_ALL_TESTS();
   const ::testing::UnitTest& unit = *::testing::UnitTest::GetInstance();
   if (status != 0) return status;
-  if (::testing::GTEST_FLAG(list_tests)) return 0;
+  if (GTEST_FLAG_GET(list_tests)) return 0;
   const int ran = unit.test_to_run_count();
   if (ran == 0) {
     std::fprintf(stderr, "no test ran: the filter matches no test of this binary\n");
