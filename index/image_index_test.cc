@@ -648,7 +648,9 @@ TEST_F(Fixture, ReadersRunWhileWritersAdd) {
   while (started.load() < 2) std::this_thread::yield();
   for (int i = 0; i < 40; ++i) {
     EXPECT_TRUE(index->Add("new" + std::to_string(i), to_add[i], {})) << i;
-    if (i % 3 == 0) EXPECT_TRUE(index->Remove("seed" + std::to_string(i / 3))) << i;
+    if (i % 3 == 0) {
+      EXPECT_TRUE(index->Remove("seed" + std::to_string(i / 3))) << i;
+    }
   }
   done = true;
   for (auto& t : readers) t.join();
