@@ -5,7 +5,14 @@
 #   *_benchmark.cc and *_main.cc. Include paths are rooted at the repository, so code writes
 #   #include "sift/types.h".
 #   Every *_test.cc in the folder becomes its own GoogleTest executable and ctest entry, linked
-#   against the module; every *_benchmark.cc becomes a benchmark executable (not a test).
+#   against the module (oxbow_add_gtest); every *_benchmark.cc becomes a benchmark executable (not a test).
+#
+# oxbow_add_gtest(NAME <target> SOURCE <file> [LABELS ...])
+#   Registers the GoogleTest executable <target> (built from <file>) with ctest and links it with
+#   tests/gtest_main.cc instead of GTest::gtest_main: a binary whose tests all skipped exits with
+#   OXBOW_GTEST_SKIP_CODE, which ctest reports as skipped, not passed. Test suites whose name contains
+#   "SharedData" (their tests need ../shared/data or $OXBOW_SHARED_DATA, tests/shared_data.h) run as a second
+#   ctest entry <target>_shared_data, so that ctest shows them skipped when the data is absent.
 
 set(OXBOW_COMPILE_WARNINGS -Wall -Wextra -Wpedantic -Wshadow -Wnon-virtual-dtor -Wno-unused-parameter)
 
@@ -24,6 +31,32 @@ function(oxbow_target_defaults target)
   endif()
   if(OXBOW_FUZZ)  # coverage instrumentation + libFuzzer runtime (cmake/OxbowFuzz.cmake)
     target_link_libraries(${target} PRIVATE oxbow_fuzz_runtime)
+  endif()
+endfunction()
+
+set(OXBOW_GTEST_SKIP_CODE 77)  # kAllSkipped in tests/gtest_main.cc
+
+function(oxbow_add_gtest)
+  cmake_parse_arguments(G "" "NAME;SOURCE" "LABELS" ${ARGN})
+  if(NOT TARGET oxbow_gtest_main)
+    add_library(oxbow_gtest_main STATIC ${PROJECT_SOURCE_DIR}/tests/gtest_main.cc)
+    target_link_libraries(oxbow_gtest_main PUBLIC GTest::gtest)
+    oxbow_target_defaults(oxbow_gtest_main)
+  endif()
+  target_link_libraries(${G_NAME} PRIVATE oxbow_gtest_main GTest::gtest)
+  file(STRINGS ${G_SOURCE} _shared_data_tests REGEX "^TEST(_F|_P)?\\([A-Za-z0-9_]*SharedData")
+  if(_shared_data_tests)
+    add_test(NAME ${G_NAME} COMMAND ${G_NAME} --gtest_filter=-*SharedData* WORKING_DIRECTORY ${PROJECT_SOURCE_DIR})
+    add_test(NAME ${G_NAME}_shared_data COMMAND ${G_NAME} --gtest_filter=*SharedData*
+      WORKING_DIRECTORY ${PROJECT_SOURCE_DIR})
+    set(_entries ${G_NAME} ${G_NAME}_shared_data)
+  else()
+    add_test(NAME ${G_NAME} COMMAND ${G_NAME} WORKING_DIRECTORY ${PROJECT_SOURCE_DIR})
+    set(_entries ${G_NAME})
+  endif()
+  set_tests_properties(${_entries} PROPERTIES SKIP_RETURN_CODE ${OXBOW_GTEST_SKIP_CODE})
+  if(G_LABELS)
+    set_tests_properties(${_entries} PROPERTIES LABELS "${G_LABELS}")
   endif()
 endfunction()
 
@@ -58,10 +91,9 @@ function(oxbow_add_module)
     foreach(t IN LISTS _tests)
       get_filename_component(_n ${t} NAME_WE)
       add_executable(${_n} ${t})
-      target_link_libraries(${_n} PRIVATE ${M_NAME} ${M_PRIVATE_DEPS} ${M_TEST_DEPS} GTest::gtest GTest::gtest_main)
+      target_link_libraries(${_n} PRIVATE ${M_NAME} ${M_PRIVATE_DEPS} ${M_TEST_DEPS})
       oxbow_target_defaults(${_n})
-      add_test(NAME ${_n} COMMAND ${_n} WORKING_DIRECTORY ${PROJECT_SOURCE_DIR})
-      set_tests_properties(${_n} PROPERTIES LABELS "${M_NAME}")
+      oxbow_add_gtest(NAME ${_n} SOURCE ${t} LABELS ${M_NAME})
     endforeach()
   endif()
   if(OXBOW_BUILD_BENCHMARKS)

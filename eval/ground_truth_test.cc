@@ -5,6 +5,8 @@
 #include <filesystem>
 #include <fstream>
 
+#include "tests/shared_data.h"
+
 namespace oxbow::eval {
 namespace {
 
@@ -120,11 +122,11 @@ TEST_F(GroundTruthTest, GroupsProtocol) {
   EXPECT_EQ(ambiguous.error().code, ErrorCode::kInvalidArgument);
 }
 
-// The official Paris ground truth restricted to the 250-image subset (../shared/data), when present:
+// The official Paris ground truth restricted to the 250-image subset (tests/shared_data.h), when present:
 // the counts stated in the data README.
-TEST(ParisSubset, RestrictedProtocolMatchesDataReadme) {
-  const fs::path data = fs::path(OXBOW_SOURCE_DIR) / ".." / "shared" / "data" / "paris6k";
-  if (!fs::exists(data / "gt")) GTEST_SKIP() << "Paris data not present at " << data;
+TEST(ParisSubsetSharedData, RestrictedProtocolMatchesDataReadme) {
+  const fs::path data = oxbow::testing::SharedDataDir() / "paris6k";
+  if (!fs::exists(data / "gt")) GTEST_SKIP() << "Paris data not present at " << data << " (set OXBOW_SHARED_DATA)";
   auto protocol = LoadOxfordProtocol((data / "gt").string(), "paris6k");
   ASSERT_TRUE(protocol) << protocol.error().ToString();
   EXPECT_EQ(protocol->queries.size(), 55u);

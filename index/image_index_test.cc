@@ -5,6 +5,7 @@
 
 #include <atomic>
 #include <cmath>
+#include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <map>
@@ -185,9 +186,11 @@ TEST_F(Fixture, CreateRefusesExistingIndexAndForeignExtractor) {
 }
 
 TEST_F(Fixture, SpatialReRankingFindsTheTransformedImage) {
-  // Without a stop list, so that an image's own query vector is its whole tf-idf vector (cosine 1).
+  // Without a stop list (a fraction of 1 drops no word, whatever the default), so that an image's own
+  // query vector is its whole tf-idf vector (cosine 1); the end of the test shows the difference.
   IndexOptions no_stop_list;
   no_stop_list.max_document_frequency = 1.0;
+  no_stop_list.stop_list_min_images = 0;
   auto index = CreateIndex(no_stop_list);
   std::mt19937_64 rng(3);
   std::vector<sift::FeatureSet> images;
@@ -249,6 +252,20 @@ TEST_F(Fixture, SpatialReRankingFindsTheTransformedImage) {
   EXPECT_EQ(self->results[0].id, "img12");
   EXPECT_TRUE(self->results[0].verified);
   EXPECT_NEAR(self->results[0].score, 1.0, 1e-5);
+
+  // With a stop list the query leaves out the words of more than 40% of the images (about half of
+  // them here: 150 of 256 words per image) while the image's norm counts them: cosine below 1.
+  IndexOptions stop_list = no_stop_list;
+  stop_list.max_document_frequency = 0.4;
+  auto stopped = ImageIndex::Create((dir_ / "stop-list").string(), vocabulary_, "test-extractor/1", stop_list);
+  ASSERT_TRUE(stopped) << stopped.error().ToString();
+  for (size_t i = 0; i < images.size(); ++i) ASSERT_TRUE((*stopped)->Add("img" + std::to_string(i), images[i], {}));
+  const auto stopped_self = (*stopped)->QuerySimilar("img12", Opts(3, 200));
+  ASSERT_TRUE(stopped_self);
+  EXPECT_EQ(stopped_self->results[0].id, "img12");
+  std::printf("self score without / with the stop list: %.4f / %.4f\n", self->results[0].score,
+              stopped_self->results[0].score);
+  EXPECT_LT(stopped_self->results[0].score, 0.95) << "the stop list dropped no query word";
 }
 
 // Moves keypoints by the similarity p -> s R(angle) p + (tx, ty).
@@ -606,11 +623,12 @@ TEST_F(Fixture, ReadersRunWhileWritersAdd) {
   for (int i = 0; i < 40; ++i) to_add.push_back(RandomImage(rng, 60));
   const auto query = RandomImage(rng, 60);
   std::atomic<bool> done{false};
-  std::atomic<int> queries{0}, failures{0};
+  std::atomic<int> started{0}, queries{0}, failures{0};
   std::vector<std::thread> readers;
   readers.reserve(2);
   for (int t = 0; t < 2; ++t) {
     readers.emplace_back([&] {
+      ++started;
       while (!done) {
         const auto r = index->Query(query, Opts(50, 5));
         if (!r) {
@@ -625,10 +643,13 @@ TEST_F(Fixture, ReadersRunWhileWritersAdd) {
       }
     });
   }
+  // The writes start once both readers are querying; EXPECT (not ASSERT) while they run, so that a
+  // failure still reaches the join below.
+  while (started.load() < 2) std::this_thread::yield();
   for (int i = 0; i < 40; ++i) {
-    ASSERT_TRUE(index->Add("new" + std::to_string(i), to_add[i], {}));
+    EXPECT_TRUE(index->Add("new" + std::to_string(i), to_add[i], {})) << i;
     if (i % 3 == 0) {
-      ASSERT_TRUE(index->Remove("seed" + std::to_string(i / 3)));
+      EXPECT_TRUE(index->Remove("seed" + std::to_string(i / 3))) << i;
     }
   }
   done = true;

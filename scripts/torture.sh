@@ -8,5 +8,5 @@ root=$(cd "$(dirname "$0")/.." && pwd)
 build_dir=${OXBOW_BUILD_DIR:-$root/build}
 cmake --build "$build_dir" --target crash_torture_test oxbow --parallel "${OXBOW_JOBS:-2}" >&2
 export OXBOW_TORTURE_ROUNDS=${1:-100}
-if [[ -n "${2:-}" ]]; then export OXBOW_TORTURE_SEED=$2; fi
+export OXBOW_TORTURE_SEED=${2:-$(od -An -N4 -tu4 /dev/urandom | tr -d ' ')}  # the test's own default is fixed (1)
 "$build_dir/tests/crash_torture_test" | grep -E 'crash torture|Failure|round|OK|FAILED'

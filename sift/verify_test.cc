@@ -20,6 +20,7 @@
 
 #include "sift/match.h"
 #include "sift/sift.h"
+#include "tests/shared_data.h"
 
 namespace oxbow::sift {
 namespace {
@@ -393,7 +394,7 @@ TEST(FitRobust, DegenerateAndInvalidInput) {
 // ---------------------------------------------------------------- real images
 
 std::string OpenCvData(const std::string& name) { return "/usr/share/doc/opencv-doc/examples/data/" + name; }
-std::string SharedData(const std::string& path) { return std::string(OXBOW_SOURCE_DIR) + "/../shared/data/" + path; }
+std::string SharedData(const std::string& path) { return (oxbow::testing::SharedDataDir() / path).string(); }
 
 const FeatureSet& Features(const std::string& path) {
   static std::map<std::string, FeatureSet> cache;
@@ -468,9 +469,10 @@ TEST(RealImages, Graf1ToGraf3HomographyMatchesGroundTruth) {
   ExpectHomographyMatchesTruth(OpenCvData("graf1.png"), OpenCvData("graf3.png"), truth, 6.0, 12.0);
 }
 
-TEST(RealImages, BoatSequenceHomographiesMatchGroundTruth) {
+TEST(RealImagesSharedData, BoatSequenceHomographiesMatchGroundTruth) {
   const std::string dir = SharedData("oxford_affine/");
-  if (!std::filesystem::exists(dir + "images/boat/img1.pgm")) GTEST_SKIP() << "no " << dir << " (shared data absent)";
+  if (!std::filesystem::exists(dir + "images/boat/img1.pgm"))
+    GTEST_SKIP() << "no " << dir << " (set OXBOW_SHARED_DATA; see tests/shared_data.h)";
   for (int n : {2, 3, 4}) {
     SCOPED_TRACE("boat 1 -> " + std::to_string(n));
     ExpectHomographyMatchesTruth(dir + "images/boat/img1.pgm", dir + "images/boat/img" + std::to_string(n) + ".pgm",

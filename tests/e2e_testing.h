@@ -1,10 +1,14 @@
 // Helpers of the end-to-end tests in tests/: a running `oxbow serve` child process (OXBOW_BINARY), a
-// vocabulary of random centroids (instant; for tests of limits and durability, not of accuracy) and
-// textured test pictures. Header-only; tests only.
+// vocabulary of random centroids (instant; for tests of limits and durability, not of accuracy),
+// textured test pictures and raw client sockets (for requests sent piece by piece). Header-only; tests only.
 #pragma once
 
+#include <arpa/inet.h>
 #include <fcntl.h>
+#include <netinet/in.h>
+#include <poll.h>
 #include <signal.h>
+#include <sys/socket.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -63,6 +67,48 @@ inline cv::Mat Texture(int width, int height, const std::string& sample = "graf1
   cv::resize(grey(crop), out, cv::Size(width, height), 0, 0, cv::INTER_AREA);
   return out;
 }
+
+// A TCP connection to 127.0.0.1:port, or -1.
+inline int ConnectTo(int port) {
+  const int fd = socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_port = htons(static_cast<uint16_t>(port));
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  if (connect(fd, reinterpret_cast<sockaddr*>(&address), sizeof address) != 0) {
+    close(fd);
+    return -1;
+  }
+  return fd;
+}
+
+inline bool SendAll(int fd, const std::string& text) {
+  for (size_t sent = 0; sent < text.size();) {
+    const ssize_t n = send(fd, text.data() + sent, text.size() - sent, MSG_NOSIGNAL);
+    if (n <= 0) return false;
+    sent += static_cast<size_t>(n);
+  }
+  return true;
+}
+
+// Reads until `text` holds `end` (true), or the peer closes, or `deadline` passes (false).
+inline bool ReadUntil(int fd, const std::string& end, std::string* text,
+                      std::chrono::seconds deadline = std::chrono::seconds(60)) {
+  const auto until = std::chrono::steady_clock::now() + deadline;
+  char buf[4096];
+  while (text->find(end) == std::string::npos) {
+    const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(until - std::chrono::steady_clock::now());
+    pollfd p{fd, POLLIN, 0};
+    if (left.count() <= 0 || poll(&p, 1, static_cast<int>(left.count())) <= 0) return false;
+    const ssize_t n = recv(fd, buf, sizeof buf, 0);
+    if (n <= 0) return false;
+    text->append(buf, static_cast<size_t>(n));
+  }
+  return true;
+}
+
+// The interim response a server sends to `Expect: 100-continue` once a worker has read the headers.
+inline constexpr const char* kContinue = "HTTP/1.1 100 Continue\r\n\r\n";
 
 class ServerProcess {
  public:
@@ -133,12 +179,28 @@ class ServerProcess {
   }
   // Sends `signal` and waits for the exit; returns the exit status (or 128 + signal).
   int Stop(int signal = SIGTERM) {
+    Signal(signal);
+    return Wait();
+  }
+  void Signal(int signal) const {
+    if (pid_ > 0 && !exited_) kill(pid_, signal);
+  }
+  // Waits for the exit; returns the exit status (or 128 + signal).
+  int Wait() {
     if (pid_ <= 0 || exited_) return -1;
-    kill(pid_, signal);
     int status = 0;
     waitpid(pid_, &status, 0);
     exited_ = true;
     return WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
+  }
+  // Polls the log until it contains `text` (true) or `deadline` passes.
+  bool WaitForLog(const std::string& text, std::chrono::seconds deadline = std::chrono::seconds(60)) const {
+    const auto end = std::chrono::steady_clock::now() + deadline;
+    while (Log().find(text) == std::string::npos) {
+      if (std::chrono::steady_clock::now() >= end) return false;
+      std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    }
+    return true;
   }
   std::string Log() const {
     std::ifstream in(log_path_, std::ios::binary);

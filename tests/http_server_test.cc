@@ -364,25 +364,25 @@ TEST_F(HttpServerTest, RestartKeepsDataAndGracefulStopFinishesInFlightRequests) 
     auto client = server->Client();
     ASSERT_EQ(StatusOf(client.Post("/v1/images?id=scene&metadata=%7B%22k%22%3A1%7D", scene_, "image/png")), 201);
     ASSERT_EQ(StatusOf(client.Post("/v1/images?id=graf1", graf1_, "image/png")), 201);
-    // A search in flight when SIGTERM arrives still gets its answer.
-    int in_flight_status = 0;
-    std::string in_flight_error;
-    std::thread searcher([&] {
-      auto res = server->Client().Post("/v1/search?qe=true", graf3_, "image/png");
-      in_flight_status = res ? res->status : -1;
-      if (!res) in_flight_error = httplib::to_string(res.error());
-    });
-    // Signal once the search is being served (its extraction holds a slot), or after 5 s regardless.
-    auto watcher = server->Client();
-    for (int i = 0; i < 500; ++i) {
-      auto stats = watcher.Get("/v1/stats");
-      if (stats && stats->status == 200 && json::parse(stats->body)["extractions_in_flight"].get<int>() > 0) break;
-      std::this_thread::sleep_for(std::chrono::milliseconds(10));
-    }
-    EXPECT_EQ(server->Stop(SIGTERM), 0) << server->Log();
-    searcher.join();
-    EXPECT_EQ(in_flight_status, 200) << "in-flight search was dropped: " << in_flight_error;
-    // The search was answered after the signal arrived, i.e. it really was in flight.
+    // A search in flight when SIGTERM arrives still gets its answer. To be sure it is in flight, the
+    // test holds back the second half of its body until the server has logged the signal.
+    const int fd = oxbow::testing::ConnectTo(server->port());
+    ASSERT_GE(fd, 0);
+    const std::string head = "POST /v1/search?qe=true HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: image/png\r\n"
+                             "Content-Length: " + std::to_string(graf3_.size()) +
+                             "\r\nExpect: 100-continue\r\nConnection: close\r\n\r\n";
+    std::string response;
+    ASSERT_TRUE(oxbow::testing::SendAll(fd, head));
+    ASSERT_TRUE(oxbow::testing::ReadUntil(fd, oxbow::testing::kContinue, &response)) << response;  // a worker has it
+    const size_t half = graf3_.size() / 2;
+    ASSERT_TRUE(oxbow::testing::SendAll(fd, graf3_.substr(0, half)));
+    server->Signal(SIGTERM);
+    EXPECT_TRUE(server->WaitForLog("received SIGTERM")) << server->Log();
+    ASSERT_TRUE(oxbow::testing::SendAll(fd, graf3_.substr(half)));
+    EXPECT_TRUE(oxbow::testing::ReadUntil(fd, std::string(oxbow::testing::kContinue) + "HTTP/1.1 200 ", &response))
+        << "in-flight search was dropped: " << response;
+    close(fd);
+    EXPECT_EQ(server->Wait(), 0) << server->Log();
     const std::string log = server->Log();
     const size_t signalled = log.find("received SIGTERM");
     const size_t answered = log.find("POST /v1/search route=/v1/search status=200");

@@ -4,8 +4,6 @@
 // holding their worker for as long as they like; uploads beyond --max-inflight-upload-mb get 503 with
 // Retry-After, unread, and the budget comes back once a request ends. No wall-clock assertions: the
 // tests check who ended each connection, with generous give-up times.
-#include <arpa/inet.h>
-#include <netinet/in.h>
 #include <poll.h>
 #include <sys/socket.h>
 #include <unistd.h>
@@ -16,6 +14,7 @@
 #include <atomic>
 #include <chrono>
 #include <cstdlib>
+#include <latch>
 #include <memory>
 #include <string>
 #include <thread>
@@ -33,27 +32,9 @@ namespace {
 using Clock = std::chrono::steady_clock;
 using nlohmann::json;
 
-int Connect(int port) {
-  const int fd = socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in address{};
-  address.sin_family = AF_INET;
-  address.sin_port = htons(static_cast<uint16_t>(port));
-  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  if (connect(fd, reinterpret_cast<sockaddr*>(&address), sizeof address) != 0) {
-    close(fd);
-    return -1;
-  }
-  return fd;
-}
-
-bool SendAll(int fd, const std::string& text) {
-  for (size_t sent = 0; sent < text.size();) {
-    const ssize_t n = send(fd, text.data() + sent, text.size() - sent, MSG_NOSIGNAL);
-    if (n <= 0) return false;
-    sent += static_cast<size_t>(n);
-  }
-  return true;
-}
+using oxbow::testing::ConnectTo;
+using oxbow::testing::kContinue;
+using oxbow::testing::SendAll;
 
 // How a stalled client's connection ended.
 struct Outcome {
@@ -76,35 +57,47 @@ bool ServerSpoke(int fd, Outcome* outcome) {
   }
 }
 
-// Sends `head`, then one byte of `filler` every `interval` until the server answers or closes the
-// connection, or `give_up` passes.
-Outcome Trickle(int port, const std::string& head, std::chrono::milliseconds interval, std::chrono::seconds give_up) {
-  Outcome outcome;
-  const int fd = Connect(port);
-  if (fd < 0) return outcome;
-  const auto until = Clock::now() + give_up;
-  if (SendAll(fd, head)) {
-    while (Clock::now() < until) {
-      std::this_thread::sleep_for(interval);
-      if (ServerSpoke(fd, &outcome) || !SendAll(fd, "x")) {
-        outcome.ended_by_server = true;
-        break;
-      }
-    }
-  } else {
-    outcome.ended_by_server = true;
-  }
-  // Collect the rest of a response that was being written.
-  pollfd p{fd, POLLIN, 0};
-  while (outcome.ended_by_server && poll(&p, 1, 200) > 0 && !ServerSpoke(fd, &outcome)) {
-  }
-  close(fd);
-  return outcome;
-}
+// A stalled client: sends `head`, then one byte every `interval` until the server answers or closes
+// the connection, `give_up` passes or `*stop` is set. `*ready` is counted down once the head is sent
+// and, for a head with "Expect: 100-continue", once the server's 100 Continue shows that a worker (not
+// the queue) holds the connection; or on any failure before that, so that waiters never hang.
+struct Trickle {
+  std::string head;
+  std::chrono::milliseconds interval{200};
+  std::chrono::seconds give_up{25};
+  std::latch* ready = nullptr;
+  const std::atomic<bool>* stop = nullptr;
 
-// Connects and sends nothing; reports whether the server closed the connection before `give_up`.
-bool IdleConnectionClosedByServer(int port, std::chrono::seconds give_up) {
-  const int fd = Connect(port);
+  Outcome Run(int port) const {
+    Outcome outcome;
+    const int fd = ConnectTo(port);
+    bool started = fd >= 0 && SendAll(fd, head);
+    if (started && head.find("Expect: 100-continue") != std::string::npos) {
+      started = oxbow::testing::ReadUntil(fd, kContinue, &outcome.response);
+      if (started) outcome.response.erase(0, outcome.response.find(kContinue) + std::string(kContinue).size());
+    }
+    if (ready != nullptr) ready->count_down();
+    if (fd < 0) return outcome;
+    outcome.ended_by_server = !started;
+    const auto until = Clock::now() + give_up;
+    while (!outcome.ended_by_server && Clock::now() < until && (stop == nullptr || !stop->load())) {
+      std::this_thread::sleep_for(interval);
+      outcome.ended_by_server = ServerSpoke(fd, &outcome) || !SendAll(fd, "x");
+    }
+    // Collect the rest of a response that was being written.
+    pollfd p{fd, POLLIN, 0};
+    while (outcome.ended_by_server && poll(&p, 1, 200) > 0 && !ServerSpoke(fd, &outcome)) {
+    }
+    close(fd);
+    return outcome;
+  }
+};
+
+// Connects and sends nothing (then counts down `connected`); reports whether the server closed the
+// connection before `give_up`.
+bool IdleConnectionClosedByServer(int port, std::chrono::seconds give_up, std::latch* connected) {
+  const int fd = ConnectTo(port);
+  connected->count_down();
   if (fd < 0) return false;
   pollfd p{fd, POLLIN, 0};
   const bool closed = poll(&p, 1, static_cast<int>(give_up.count() * 1000)) > 0;
@@ -112,9 +105,10 @@ bool IdleConnectionClosedByServer(int port, std::chrono::seconds give_up) {
   return closed;
 }
 
+// A POST head whose body will trickle; with Expect: 100-continue (see Trickle).
 std::string PostHead(const std::string& path, size_t content_length) {
   return "POST " + path + " HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: image/png\r\nContent-Length: " +
-         std::to_string(content_length) + "\r\n\r\n";
+         std::to_string(content_length) + "\r\nExpect: 100-continue\r\n\r\n";
 }
 
 class SlowClientsTest : public ::testing::Test {
@@ -154,23 +148,28 @@ TEST_F(SlowClientsTest, TricklingAndIdleClientsDoNotStarveANormalRequest) {
   auto server = Start({"--http-workers", "2", "--queue", "16", "--read-timeout-s", "30", "--request-timeout-s",
                        timeout != nullptr ? timeout : "2"});
   const int port = server->port();
-  const auto interval = std::chrono::milliseconds(200);
-  const auto give_up = std::chrono::seconds(25);
   std::vector<Outcome> bodies(2);
   Outcome header;
   std::array<bool, 2> idle_closed{};  // not vector<bool>: its bits share a word, written by two threads
+  // The trickled bodies are held by the two workers (100 Continue) before the others connect; the
+  // others have connected (so queue ahead of it) before the normal request does.
+  std::latch workers_taken(static_cast<ptrdiff_t>(bodies.size()));
+  std::latch queued(static_cast<ptrdiff_t>(1 + idle_closed.size()));
   std::vector<std::thread> stalled;
   stalled.reserve(bodies.size() + 1 + idle_closed.size());
   for (auto& outcome : bodies) {
-    stalled.emplace_back([&, port] { outcome = Trickle(port, PostHead("/v1/search", 100000), interval, give_up); });
+    stalled.emplace_back([&, port] {
+      outcome = Trickle{.head = PostHead("/v1/search", 100000), .ready = &workers_taken}.Run(port);
+    });
   }
+  workers_taken.wait();
   stalled.emplace_back([&, port] {
-    header = Trickle(port, "GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ", interval, give_up);
+    header = Trickle{.head = "GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ", .ready = &queued}.Run(port);
   });
   for (size_t i = 0; i < idle_closed.size(); ++i) {
-    stalled.emplace_back([&, i, port] { idle_closed[i] = IdleConnectionClosedByServer(port, give_up); });
+    stalled.emplace_back([&, i, port] { idle_closed[i] = IdleConnectionClosedByServer(port, std::chrono::seconds(25), &queued); });
   }
-  std::this_thread::sleep_for(std::chrono::milliseconds(500));  // let them take the workers
+  queued.wait();
 
   auto client = server->Client();
   auto found = client.Post("/v1/search", image_, "image/png");
@@ -192,29 +191,34 @@ TEST_F(SlowClientsTest, TricklingAndIdleClientsDoNotStarveANormalRequest) {
 }
 
 TEST_F(SlowClientsTest, AStalledClientCannotBlockTheBusyAnswer) {
-  // One worker, a queue of one: the first trickler holds the worker, the second waits in the queue, the
-  // third is handed to the shedding thread and trickles its headers there. A normal request after them
-  // must get its 503 while the first trickler still holds the worker (the shedder's header deadline).
+  // One worker, a queue of one: the first trickler (a body) holds the worker, the second (headers) waits
+  // in the queue, the third is handed to the shedding thread and trickles its headers there. Each
+  // connects once the previous one is in place. A normal request after them must get its 503 while
+  // the first trickler still holds the worker (the shedder's header deadline).
   auto server = Start({"--http-workers", "1", "--queue", "1", "--request-timeout-s", "30"});
   const int port = server->port();
+  const std::string slow_headers = "GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ";
   std::vector<Outcome> outcomes(3);
-  std::atomic<bool> first_still_connected{true};
+  std::atomic<bool> first_still_connected{true}, release{false};
+  std::latch held(1), queued(1), shed(1);
   std::vector<std::thread> stalled;
-  for (size_t i = 0; i < outcomes.size(); ++i) {
-    stalled.emplace_back([&, i, port] {
-      outcomes[i] = Trickle(port, "GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ", std::chrono::milliseconds(200),
-                            std::chrono::seconds(6));
-      if (i == 0) first_still_connected = false;
-    });
-    std::this_thread::sleep_for(std::chrono::milliseconds(300));  // connect in this order
-  }
+  stalled.emplace_back([&, port] {
+    outcomes[0] = Trickle{.head = PostHead("/v1/search", 100000), .ready = &held, .stop = &release}.Run(port);
+    first_still_connected = false;
+  });
+  held.wait();
+  stalled.emplace_back([&, port] { outcomes[1] = Trickle{.head = slow_headers, .ready = &queued, .stop = &release}.Run(port); });
+  queued.wait();
+  stalled.emplace_back([&, port] { outcomes[2] = Trickle{.head = slow_headers, .ready = &shed}.Run(port); });
+  shed.wait();
   auto busy = server->Client().Get("/healthz");
   const bool answered_while_held = first_still_connected.load();
+  release = true;
+  for (auto& t : stalled) t.join();
   ASSERT_TRUE(busy) << httplib::to_string(busy.error());
   EXPECT_EQ(busy->status, 503) << busy->body;
   EXPECT_EQ(json::parse(busy->body)["error"]["code"], "unavailable");
   EXPECT_TRUE(answered_while_held) << "the busy answer waited for the stalled clients";
-  for (auto& t : stalled) t.join();
   EXPECT_TRUE(outcomes[2].ended_by_server) << "the shedding thread waited for trickled headers";
   EXPECT_FALSE(outcomes[0].ended_by_server) << "inside --request-timeout-s the worker's client is not cut";
 }
@@ -224,16 +228,26 @@ TEST_F(SlowClientsTest, UploadsBeyondTheInFlightBudgetGet503Unread) {
   const int port = server->port();
   // A slow upload declaring 900 000 bytes holds most of the 1 MiB budget while it trickles.
   Outcome slow;
-  std::thread holder([&] { slow = Trickle(port, PostHead("/v1/images?id=slow", 900000), std::chrono::milliseconds(200),
-                                          std::chrono::seconds(25)); });
-  std::this_thread::sleep_for(std::chrono::milliseconds(500));
+  std::latch started(1);
+  std::thread holder([&] { slow = Trickle{.head = PostHead("/v1/images?id=slow", 900000), .ready = &started}.Run(port); });
+  started.wait();
   auto client = server->Client();
   const std::string body(300000, 'x');  // not an image: once admitted it gets 400, never 503
-  auto refused = client.Post("/v1/search", body, "image/png");
-  ASSERT_TRUE(refused) << httplib::to_string(refused.error());
-  EXPECT_EQ(refused->status, 503) << refused->body;
-  EXPECT_EQ(json::parse(refused->body)["error"]["code"], "resource_exhausted");
-  EXPECT_EQ(refused->get_header_value("Retry-After"), "1");
+  // The worker reserves the slow upload's budget just after its 100 Continue: until then a request
+  // may still be admitted (400), after that it must be refused, for as long as the upload trickles.
+  const auto deadline = Clock::now() + std::chrono::seconds(20);
+  int status = 0;
+  std::string refused_body, retry_after;
+  do {
+    auto res = client.Post("/v1/search", body, "image/png");
+    ASSERT_TRUE(res) << httplib::to_string(res.error());
+    status = res->status;
+    refused_body = res->body;
+    retry_after = res->get_header_value("Retry-After");
+  } while (status == 400 && Clock::now() < deadline);
+  EXPECT_EQ(status, 503) << refused_body;
+  EXPECT_EQ(json::parse(refused_body)["error"]["code"], "resource_exhausted");
+  EXPECT_EQ(retry_after, "1");
   // Requests without a body are not affected.
   auto stats = client.Get("/v1/stats");
   ASSERT_TRUE(stats);

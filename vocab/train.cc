@@ -1,10 +1,11 @@
 // k-means training of the vocabulary (see vocabulary.h for the contract).
 //
-// Determinism: every parallel step writes per-descriptor or per-centroid outputs, or per-chunk partial
-// sums over fixed-size chunks merged in chunk order, and every random choice comes from SplitMix64
-// seeded by TrainOptions::seed; so the vocabulary depends on the seed and the data, not on the thread
-// count. The centroid update sums each cluster's members in descriptor order (a counting sort by word),
-// in double precision.
+// Determinism (exact and inverted-file assignment): every parallel step writes per-descriptor or
+// per-centroid outputs, or per-chunk partial sums over fixed-size chunks merged in chunk order, and every
+// random choice of ours comes from SplitMix64 seeded by TrainOptions::seed; so the vocabulary depends on
+// the seed and the data, not on the thread count. The kd-forest is not reproducible (see Assign). The
+// centroid update sums each cluster's members in descriptor order (a counting sort by word), in double
+// precision.
 #include <flann/flann.hpp>
 
 #include <algorithm>
@@ -151,7 +152,9 @@ void Assign(AssignmentMethod method, const std::vector<float>& centroids, size_t
     for (size_t i = 0; i < n; ++i) out[i] = order[out[i]];
     return;
   }
-  // Randomised kd-forest (FLANN). Its tree construction draws from rand(), seeded here.
+  // Randomised kd-forest (libflann 1.9). seed_random seeds the rand() it uses for split dimensions, but
+  // its tree building also shuffles with a std::random_device of its own, so the forest, and with it
+  // the vocabulary, differs from run to run whatever the seed (train_test.cc).
   flann::Matrix<float> dataset(const_cast<float*>(centroids.data()), k, dim);
   flann::seed_random(static_cast<unsigned>(iteration_seed));
   flann::Index<flann::L2<float>> index(dataset, flann::KDTreeIndexParams(options.kdtree_trees));

@@ -123,7 +123,7 @@ struct TrainOptions {
   // fraction of its previous value in one iteration. Range [0, 1); 0 runs all iterations.
   double min_relative_improvement = 1e-4;
   // Seed of the seeding and of the approximate search structures; equal seeds and inputs give equal
-  // vocabularies, whatever the thread count.
+  // vocabularies, whatever the thread count (not with kKdForest: libflann's trees are not reproducible).
   uint64_t seed = 1;
   // Threads, 0 = all hardware threads. The result does not depend on it.
   int num_threads = 0;
