@@ -1,6 +1,6 @@
-// Helpers of the end-to-end tests in tests/: a running `oxbow serve` child process (OXBOW_BINARY), a
-// vocabulary of random centroids (instant; for tests of limits and durability, not of accuracy) and
-// textured test pictures. Header-only; tests only.
+// Helpers of the end-to-end tests in tests/: a shell command's output, a running `oxbow serve` child
+// process (OXBOW_BINARY), a vocabulary of random centroids (instant; for tests of limits and
+// durability, not of accuracy) and textured test pictures. Header-only; tests only.
 #pragma once
 
 #include <fcntl.h>
@@ -12,6 +12,7 @@
 
 #include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <fstream>
 #include <iterator>
 #include <regex>
@@ -61,6 +62,20 @@ inline cv::Mat Texture(int width, int height, const std::string& sample = "graf1
                       grey.rows - std::min(y, grey.rows / 2));
   cv::Mat out;
   cv::resize(grey(crop), out, cv::Size(width, height), 0, 0, cv::INTER_AREA);
+  return out;
+}
+
+// Runs `command` with the shell and returns its stdout; *exit_code gets its exit status (-1 when it
+// did not exit normally).
+inline std::string RunCommand(const std::string& command, int* exit_code) {
+  std::string out;
+  FILE* pipe = popen(command.c_str(), "r");
+  if (!pipe) return out;
+  char buf[4096];
+  size_t n;
+  while ((n = fread(buf, 1, sizeof(buf), pipe)) > 0) out.append(buf, n);
+  const int status = pclose(pipe);
+  *exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
   return out;
 }
 
