@@ -184,6 +184,9 @@ TEST(Params, ListAndMatchParams) {
   EXPECT_FALSE(ParseMatchParams({{"ratio", "1.5"}}));
   EXPECT_FALSE(ParseMatchParams({{"ratio", "0"}}));
   EXPECT_FALSE(ParseMatchParams({{"method", "fast"}}));
+  EXPECT_EQ(ParseMatchParams({})->min_inliers, 6);
+  EXPECT_EQ(ParseMatchParams({{"min_inliers", "12"}})->min_inliers, 12);
+  EXPECT_FALSE(ParseMatchParams({{"min_inliers", "2"}}));
 }
 
 TEST(Metrics, RendersCountersAndCumulativeHistograms) {

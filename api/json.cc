@@ -79,13 +79,9 @@ nlohmann::json SearchResponseToJson(const SearchResponse& response) {
 }
 
 nlohmann::json MatchResponseToJson(const MatchResponse& response) {
-  nlohmann::json json = PairMatchToJson(response.match);
-  json["a"] = {{"width", response.width_a}, {"height", response.height_a}, {"keypoints", response.match.keypoints_a}};
-  json["b"] = {{"width", response.width_b}, {"height", response.height_b}, {"keypoints", response.match.keypoints_b}};
-  json["timings_ms"]["decode_extract_a"] = response.decode_extract_a_ms;
-  json["timings_ms"]["decode_extract_b"] = response.decode_extract_b_ms;
-  json["timings_ms"]["total"] = response.total_ms;
-  return json;
+  return PairMatchToJson(response.match, {.decode_extract_a = response.decode_extract_a_ms,
+                                          .decode_extract_b = response.decode_extract_b_ms,
+                                          .total = response.total_ms});
 }
 
 nlohmann::json StatsToJson(const ServiceStats& stats) {

@@ -25,7 +25,7 @@ nlohmann::json ListResponseToJson(const ListResponse& response);
 //               "region" (matched box in the db image), "width", "height", "metadata"}],
 //  "timings_ms": {"decode_extract", "quantize", "score", "verify", "qe", "total"}}
 nlohmann::json SearchResponseToJson(const SearchResponse& response);
-// {"a": {"width", "height"}, "b": {...}, PairMatchToJson fields, "timings_ms" + decode_extract_a/_b, total}
+// PairMatchToJson (api/pair_match.h) with the service's decode + extract and total times.
 nlohmann::json MatchResponseToJson(const MatchResponse& response);
 // {"images", "features", "words", "bytes_per_feature", "index_bytes": {...}, "memory_rss_bytes",
 //  "uptime_s", "extractions_in_flight", "max_concurrent_extractions", "segments", "vocabulary_fingerprint"}

@@ -1,10 +1,9 @@
 #include "api/pair_match.h"
 
-#include <algorithm>
 #include <chrono>
 #include <cmath>
-#include <limits>
 #include <span>
+#include <string>
 
 namespace oxbow::api {
 
@@ -12,22 +11,6 @@ namespace {
 
 double MsSince(std::chrono::steady_clock::time_point start) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
-}
-
-// Bounding box x1,y1,x2,y2 of the keypoints of `features`; the whole image when it has none.
-std::array<float, 4> KeypointBox(const sift::FeatureSet& features) {
-  if (features.keypoints.empty()) {
-    return {0, 0, static_cast<float>(features.image_width), static_cast<float>(features.image_height)};
-  }
-  std::array<float, 4> box = {std::numeric_limits<float>::max(), std::numeric_limits<float>::max(),
-                              std::numeric_limits<float>::lowest(), std::numeric_limits<float>::lowest()};
-  for (const auto& k : features.keypoints) {
-    box[0] = std::min(box[0], k.x);
-    box[1] = std::min(box[1], k.y);
-    box[2] = std::max(box[2], k.x);
-    box[3] = std::max(box[3], k.y);
-  }
-  return box;
 }
 
 // The inlier pairs as {ax, ay, bx, by}; `inliers` index `matches`.
@@ -43,61 +26,90 @@ std::vector<std::array<float, 4>> InlierPairs(const sift::FeatureSet& a, const s
   return pairs;
 }
 
+// The estimator settings with the one min_inliers of PairMatchOptions.
+sift::RobustFitOptions FitOptions(const PairMatchOptions& options) {
+  sift::RobustFitOptions fit = options.fit;
+  fit.hough.min_inliers = options.min_inliers;
+  return fit;
+}
+
 }  // namespace
+
+std::optional<std::string> PairMatchOptions::Check() const {
+  if (min_inliers < 3) return "min_inliers must be >= 3, got " + std::to_string(min_inliers);
+  if (auto problem = match.Check()) return problem;
+  if (auto problem = FitOptions(*this).Check()) return problem;
+  return std::nullopt;
+}
 
 Result<PairMatchResult> MatchPair(const sift::FeatureSet& a, const sift::FeatureSet& b,
                                   const PairMatchOptions& options) {
+  if (auto problem = options.Check()) return Fail(ErrorCode::kInvalidArgument, *problem);
   PairMatchResult result;
   result.model = options.model;
+  result.width_a = a.image_width;
+  result.height_a = a.image_height;
+  result.width_b = b.image_width;
+  result.height_b = b.image_height;
   result.keypoints_a = a.size();
   result.keypoints_b = b.size();
 
   auto start = std::chrono::steady_clock::now();
   auto matches = sift::MatchDescriptors(a, b, options.match);
   if (!matches) return std::unexpected(matches.error());
+  result.matches = std::move(*matches);
   result.match_ms = MsSince(start);
-  result.tentative_matches = matches->size();
 
   start = std::chrono::steady_clock::now();
+  const sift::RobustFitOptions fit_options = FitOptions(options);
+  // The whole of image a is the query region, as in a search without a bbox.
+  const std::array<float, 4> a_region = {0, 0, static_cast<float>(a.image_width), static_cast<float>(a.image_height)};
   const std::array<int, 2> b_size = {b.image_width, b.image_height};
+  Eigen::Matrix3d transform;
   if (options.model == sift::GeometricModel::kHoughAffine) {
-    const std::array<float, 4> a_region = {0, 0, static_cast<float>(a.image_width), static_cast<float>(a.image_height)};
-    const sift::VerificationResult v =
-        sift::VerifyHoughAffine(a.keypoints, b.keypoints, *matches, a_region, b_size, options.fit.hough);
-    result.verified = v.verified;
-    result.inliers = v.num_inliers;
+    sift::VerificationResult v =
+        sift::VerifyHoughAffine(a.keypoints, b.keypoints, result.matches, a_region, b_size, fit_options.hough);
+    result.verified = v.verified;  // min_inliers and the plausible-affine test
+    result.inliers = std::move(v.inliers);
     const auto& m = v.db_from_query.m;
-    result.b_from_a << m[0], m[1], m[2], m[3], m[4], m[5], 0, 0, 1;
-    result.region_b = v.db_region;
-    if (options.correspondences) result.correspondences = InlierPairs(a, b, *matches, v.inliers);
+    transform << m[0], m[1], m[2], m[3], m[4], m[5], 0, 0, 1;
   } else {
-    auto fit = sift::FitRobust(options.model, a.keypoints, b.keypoints, *matches, options.fit);
+    auto fit = sift::FitRobust(options.model, a.keypoints, b.keypoints, result.matches, fit_options);
     if (!fit) return std::unexpected(fit.error());
-    result.verified = fit->success;
-    result.inliers = fit->num_inliers;
-    result.b_from_a = fit->db_from_query;
-    if (options.correspondences) result.correspondences = InlierPairs(a, b, *matches, fit->inliers);
-    if (fit->success && options.model != sift::GeometricModel::kFundamental) {
-      result.region_b = sift::ProjectBox(fit->db_from_query, KeypointBox(a), b_size);
-    }
+    result.verified = fit->success && fit->num_inliers >= options.min_inliers;
+    result.inliers = std::move(fit->inliers);
+    transform = fit->db_from_query;
   }
+  if (result.verified) {
+    result.transform = transform;
+    if (options.model != sift::GeometricModel::kFundamental) result.region = sift::ProjectBox(transform, a_region, b_size);
+  }
+  if (options.correspondences) result.correspondences = InlierPairs(a, b, result.matches, result.inliers);
   result.verify_ms = MsSince(start);
   return result;
 }
 
-nlohmann::json PairMatchToJson(const PairMatchResult& r) {
-  nlohmann::json transform = nlohmann::json::array();
-  for (int i = 0; i < 3; ++i) {
-    transform.push_back({r.b_from_a(i, 0), r.b_from_a(i, 1), r.b_from_a(i, 2)});
+nlohmann::json PairMatchToJson(const PairMatchResult& r, const PairMatchCallerTimings& timings) {
+  nlohmann::json transform = nullptr;
+  if (r.transform) {
+    transform = nlohmann::json::array();
+    for (int i = 0; i < 3; ++i) transform.push_back({(*r.transform)(i, 0), (*r.transform)(i, 1), (*r.transform)(i, 2)});
   }
-  nlohmann::json json = {{"model", sift::GeometricModelName(r.model)},
-          {"keypoints", {{"a", r.keypoints_a}, {"b", r.keypoints_b}}},
-          {"tentative_matches", r.tentative_matches},
-          {"verified", r.verified},
-          {"inliers", r.inliers},
-          {"transform", transform},
-          {"region", r.region_b},
-          {"timings_ms", {{"match", r.match_ms}, {"verify", r.verify_ms}}}};
+  nlohmann::json json = {
+      {"model", sift::GeometricModelName(r.model)},
+      {"verified", r.verified},
+      {"inliers", r.inliers.size()},
+      {"tentative_matches", r.matches.size()},
+      {"transform", std::move(transform)},
+      {"region", r.region ? nlohmann::json(*r.region) : nlohmann::json(nullptr)},
+      {"a", {{"width", r.width_a}, {"height", r.height_a}, {"keypoints", r.keypoints_a}}},
+      {"b", {{"width", r.width_b}, {"height", r.height_b}, {"keypoints", r.keypoints_b}}},
+      {"timings_ms",
+       {{"decode_extract_a", timings.decode_extract_a},
+        {"decode_extract_b", timings.decode_extract_b},
+        {"match", r.match_ms},
+        {"verify", r.verify_ms},
+        {"total", timings.total}}}};
   if (!r.correspondences.empty()) {
     // Hundredths of a pixel: plenty for drawing, and half the bytes of full float precision.
     nlohmann::json pairs = nlohmann::json::array();

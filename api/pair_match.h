@@ -1,10 +1,20 @@
-// Matching two images' features and fitting a geometric model: the computation behind POST /v1/match
-// (and the same steps as `oxbow match`): MatchDescriptors (ratio test, optional mutual check,
-// one-to-one) then either Lowe's Hough/affine verifier (VerifyHoughAffine, whole-image query region) or
-// a robust estimator (FitRobust). Transport-free; thread-safe (no shared state).
+// The one match-then-verify pipeline of two images' features, behind both POST /v1/match (Service::Match)
+// and `oxbow match`; the callers only decode and extract. MatchDescriptors (ratio test, optional mutual
+// check, one-to-one), then the geometric model: Lowe's Hough/affine verifier (VerifyHoughAffine, as
+// search re-ranking uses it) or a robust estimator (FitRobust), then the verified rule, the region and
+// the JSON mapping, so both front ends give the same answer in the same shape.
+//
+// Verified rule (every model): at least PairMatchOptions::min_inliers inliers, and for hough-affine also
+// its plausible-affine test (sift/verify.h); for the robust models the estimator must have succeeded.
+// Region: the same definition as a search result's "region" (index/image_index.cc, api/json.cc): the
+// query region, here the whole image a (0,0,width,height), mapped through the fitted transform into b,
+// as the axis-aligned bounding box of the four mapped corners clipped to b (sift::ProjectBox). Set only
+// when verified and the model maps points (not for fundamental).
+// Transport-free; thread-safe (no shared state).
 #pragma once
 
 #include <array>
+#include <optional>
 #include <vector>
 
 #include <Eigen/Core>
@@ -18,38 +28,59 @@
 namespace oxbow::api {
 
 struct PairMatchOptions {
-  sift::MatchOptions match;                                   // descriptor matching (sift/match.h)
+  sift::MatchOptions match;                                         // descriptor matching (sift/match.h)
   sift::GeometricModel model = sift::GeometricModel::kHoughAffine;  // model fitted to the matches
-  sift::RobustFitOptions fit;                                 // estimator settings (and Hough settings)
+  // Estimator settings, and the Hough verifier's in fit.hough (whose min_inliers is replaced by the one
+  // below, so that one number rules every model).
+  sift::RobustFitOptions fit;
+  int min_inliers = sift::HoughVerifyOptions{}.min_inliers;  // "verified" needs this many inliers, >= 3
   // Fill PairMatchResult::correspondences with the inlier pairs (for drawing them; off by default to
   // keep responses small).
   bool correspondences = false;
+
+  // Empty when every field is valid, else a message naming the field.
+  std::optional<std::string> Check() const;
 };
 
 struct PairMatchResult {
   sift::GeometricModel model = sift::GeometricModel::kHoughAffine;
+  int width_a = 0, height_a = 0, width_b = 0, height_b = 0;  // original image sizes, pixels
   size_t keypoints_a = 0;
   size_t keypoints_b = 0;
-  size_t tentative_matches = 0;   // after ratio test / mutual / one-to-one
-  bool verified = false;          // the model was fitted (Hough: accepted by its rule)
-  int inliers = 0;
-  Eigen::Matrix3d b_from_a = Eigen::Matrix3d::Identity();  // image-a pixels -> image-b pixels
-  std::array<float, 4> region_b = {0, 0, 0, 0};  // where image a's keypoint bounding box lands in b (x1,y1,x2,y2)
+  std::vector<sift::Match> matches;  // tentative matches (after ratio test / mutual / one-to-one)
+  bool verified = false;             // the verified rule of the file comment
+  // Inliers of the best fit, indices into `matches`, also when the fit was rejected (as a search
+  // result reports its inlier count when unverified).
+  std::vector<uint32_t> inliers;
+  // Set only when verified: image-a pixels -> image-b pixels (3x3; hough-affine, similarity and affine
+  // have last row 0 0 1), or for fundamental F with x_b^T F x_a = 0.
+  std::optional<Eigen::Matrix3d> transform;
+  std::optional<std::array<float, 4>> region;  // x1,y1,x2,y2 in b (see the file comment); set only when verified
   // With PairMatchOptions::correspondences: one {ax, ay, bx, by} per inlier (keypoint positions in
-  // original pixels of a and b), in the verifier's order; empty otherwise.
+  // original pixels of a and b), in `inliers` order; empty otherwise.
   std::vector<std::array<float, 4>> correspondences;
   double match_ms = 0;
   double verify_ms = 0;
 };
 
-// `a` plays the query, `b` the database image. Errors from MatchDescriptors / FitRobust
-// (kInvalidArgument). Cost: O(|a| |b| 128) with brute force matching, plus the model fit.
+// `a` plays the query, `b` the database image. Errors (kInvalidArgument): invalid options (Check()),
+// errors of MatchDescriptors / FitRobust. Cost: O(|a| |b| 128) with brute force matching, plus the fit.
 [[nodiscard]] Result<PairMatchResult> MatchPair(const sift::FeatureSet& a, const sift::FeatureSet& b,
                                                 const PairMatchOptions& options);
 
-// {"model", "keypoints": {"a", "b"}, "tentative_matches", "verified", "inliers",
-//  "transform": 3x3 row-major b_from_a, "region": [x1,y1,x2,y2] in b, "timings_ms": {"match", "verify"}},
-//  plus "correspondences": [[ax, ay, bx, by], ...] when they were asked for.
-nlohmann::json PairMatchToJson(const PairMatchResult& result);
+// Stage times measured by the caller around MatchPair, ms.
+struct PairMatchCallerTimings {
+  double decode_extract_a = 0;
+  double decode_extract_b = 0;
+  double total = 0;  // decode + extract of both, matching and verification
+};
+
+// The JSON of a match, the same from the CLI and HTTP:
+// {"model", "verified", "inliers", "tentative_matches",
+//  "transform": 3x3 row-major (see PairMatchResult::transform) or null, "region": [x1,y1,x2,y2] or null,
+//  "a": {"width", "height", "keypoints"}, "b": {...},
+//  "timings_ms": {"decode_extract_a", "decode_extract_b", "match", "verify", "total"}},
+// plus "correspondences": [[ax, ay, bx, by], ...] when they were asked for.
+nlohmann::json PairMatchToJson(const PairMatchResult& result, const PairMatchCallerTimings& timings);
 
 }  // namespace oxbow::api

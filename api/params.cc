@@ -246,7 +246,8 @@ Result<ListParams> ParseListParams(const Params& params) {
 }
 
 Result<MatchParams> ParseMatchParams(const Params& params) {
-  if (auto known = CheckKnownParams(params, {"model", "ratio", "mutual", "method", "correspondences"}); !known) {
+  if (auto known = CheckKnownParams(params, {"model", "ratio", "mutual", "method", "min_inliers", "correspondences"});
+      !known) {
     return std::unexpected(known.error());
   }
   MatchParams match;
@@ -279,6 +280,11 @@ Result<MatchParams> ParseMatchParams(const Params& params) {
     } else {
       return Fail(ErrorCode::kInvalidArgument, "parameter 'method' must be brute or kdtree, got " + Quote(*v));
     }
+  }
+  if (const auto* v = Find(params, "min_inliers")) {
+    auto parsed = ParseInt("min_inliers", *v, 3, 1000000);
+    if (!parsed) return std::unexpected(parsed.error());
+    match.min_inliers = static_cast<int>(*parsed);
   }
   if (const auto* v = Find(params, "correspondences")) {
     auto parsed = ParseBool("correspondences", *v);

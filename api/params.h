@@ -13,6 +13,7 @@
 #include <string>
 #include <string_view>
 
+#include "api/pair_match.h"
 #include "index/image_index.h"
 #include "sift/base/error.h"
 #include "sift/verify.h"
@@ -70,11 +71,12 @@ struct ListParams {
 [[nodiscard]] Result<ListParams> ParseListParams(const Params& params);
 
 // POST /v1/match: model (hough-affine|similarity|affine|homography|fundamental, default hough-affine),
-// ratio (0, 1], mutual (bool), method (brute|kdtree), correspondences (bool, default false: return the
-// inlier pairs).
+// ratio (0, 1], mutual (bool), method (brute|kdtree), min_inliers [3, 1000000] (default 6, as search),
+// correspondences (bool, default false: return the inlier pairs).
 struct MatchParams {
   sift::GeometricModel model = sift::GeometricModel::kHoughAffine;
   sift::MatchOptions match;
+  int min_inliers = PairMatchOptions{}.min_inliers;
   bool correspondences = false;
 };
 [[nodiscard]] Result<MatchParams> ParseMatchParams(const Params& params);

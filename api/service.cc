@@ -357,10 +357,6 @@ Result<MatchResponse> Service::Match(std::span<const uint8_t> image_a, std::span
   auto match = MatchPair(*a, *b, pair);
   if (!match) return std::unexpected(match.error());
   response.match = std::move(*match);
-  response.width_a = a->image_width;
-  response.height_a = a->image_height;
-  response.width_b = b->image_width;
-  response.height_b = b->image_height;
   response.total_ms = MsSince(start);
   return response;
 }

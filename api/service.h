@@ -102,7 +102,6 @@ struct SearchResponse {
 
 struct MatchResponse {
   PairMatchResult match;
-  int width_a = 0, height_a = 0, width_b = 0, height_b = 0;  // original image sizes, pixels
   double decode_extract_a_ms = 0;
   double decode_extract_b_ms = 0;
   double total_ms = 0;

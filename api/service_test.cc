@@ -149,11 +149,12 @@ TEST_F(ServiceTest, MatchFindsTheBoxInTheScene) {
   auto match = service->Match(box, scene, options);
   ASSERT_TRUE(match) << match.error().ToString();
   EXPECT_TRUE(match->match.verified);
-  EXPECT_GE(match->match.inliers, 10);
-  EXPECT_EQ(match->width_b, 512);
+  EXPECT_GE(match->match.inliers.size(), 10u);
+  EXPECT_EQ(match->match.width_b, 512);
   // The box occupies the lower-left part of the scene: the matched region lies inside the scene.
-  EXPECT_GT(match->match.region_b[2], match->match.region_b[0]);
-  EXPECT_LE(match->match.region_b[2], 512.f);
+  ASSERT_TRUE(match->match.region);
+  EXPECT_GT((*match->match.region)[2], (*match->match.region)[0]);
+  EXPECT_LE((*match->match.region)[2], 512.f);
 
   auto unrelated = service->Match(box, graf, options);
   ASSERT_TRUE(unrelated) << unrelated.error().ToString();

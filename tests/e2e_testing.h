@@ -1,6 +1,7 @@
-// Helpers of the end-to-end tests in tests/: a running `oxbow serve` child process (OXBOW_BINARY), a
-// vocabulary of random centroids (instant; for tests of limits and durability, not of accuracy),
-// textured test pictures and raw client sockets (for requests sent piece by piece). Header-only; tests only.
+// Helpers of the end-to-end tests in tests/: a shell command's output, a running `oxbow serve` child
+// process (OXBOW_BINARY), a vocabulary of random centroids (instant; for tests of limits and
+// durability, not of accuracy), textured test pictures and raw client sockets (for requests sent piece
+// by piece). Header-only; tests only.
 #pragma once
 
 #include <arpa/inet.h>
@@ -16,6 +17,7 @@
 
 #include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <fstream>
 #include <iterator>
 #include <regex>
@@ -109,6 +111,20 @@ inline bool ReadUntil(int fd, const std::string& end, std::string* text,
 
 // The interim response a server sends to `Expect: 100-continue` once a worker has read the headers.
 inline constexpr const char* kContinue = "HTTP/1.1 100 Continue\r\n\r\n";
+
+// Runs `command` with the shell and returns its stdout; *exit_code gets its exit status (-1 when it
+// did not exit normally).
+inline std::string RunCommand(const std::string& command, int* exit_code) {
+  std::string out;
+  FILE* pipe = popen(command.c_str(), "r");
+  if (!pipe) return out;
+  char buf[4096];
+  size_t n;
+  while ((n = fread(buf, 1, sizeof(buf), pipe)) > 0) out.append(buf, n);
+  const int status = pclose(pipe);
+  *exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  return out;
+}
 
 class ServerProcess {
  public:

@@ -642,6 +642,7 @@ void HttpServer::RegisterRoutes() {
               api::PairMatchOptions options;
               options.model = params->model;
               options.match = params->match;
+              options.min_inliers = params->min_inliers;
               options.correspondences = params->correspondences;
               auto matched = s.Match(Bytes(*a), Bytes(*b), options);
               if (!matched) return SendError(res, matched.error());
