@@ -213,7 +213,9 @@ TEST(InvertedFileTest, StopListDropsFrequentQueryWords) {
   const std::vector<uint32_t> ids = {0, 1, 2, 3};
   const std::vector<const BagOfWords*> bags = {&b0, &b1, &b2, &b3};
   InvertedFile all = InvertedFile(5, {}).WithAdded(ids, bags);
-  InvertedFile stopped = InvertedFile(5, TfIdfOptions{.max_document_frequency = 0.5}).WithAdded(ids, bags);
+  // No floor (the default floor of 10 images would keep every word of this 4-image collection).
+  InvertedFile stopped =
+      InvertedFile(5, TfIdfOptions{.max_document_frequency = 0.5, .stop_list_min_images = 0}).WithAdded(ids, bags);
   EXPECT_EQ(all.QueryVector(Bag({0, 1})).size(), 2u);
   const auto q = stopped.QueryVector(Bag({0, 1}));
   ASSERT_EQ(q.size(), 1u);

@@ -31,6 +31,13 @@ GrayImage FromMat(const cv::Mat& m8) { return GrayFromBytes(m8.ptr<uint8_t>(0), 
 
 cv::Mat LoadGray(const std::string& path) { return cv::imread(path, cv::IMREAD_GRAYSCALE); }
 
+// The comparisons with cv::SIFT compare raw SIFT descriptors (the product default is RootSIFT).
+SiftOptions OpencvLike() {
+  SiftOptions options;
+  options.descriptor = DescriptorKind::kSift;
+  return options;
+}
+
 SiftExtractor MakeExtractor(SiftOptions options = {}) {
   auto e = SiftExtractor::Create(options);
   EXPECT_TRUE(e) << e.error().ToString();
@@ -100,7 +107,7 @@ TEST(SiftReference, MostOpencvKeypointsHaveACounterpart) {
     const cv::Mat gray = LoadGray(kOpencvData + name);
     ASSERT_FALSE(gray.empty()) << name;
     const FeatureSet reference = OpencvSift(gray);
-    const FeatureSet ours = MakeExtractor().Extract(FromMat(gray));
+    const FeatureSet ours = MakeExtractor(OpencvLike()).Extract(FromMat(gray));
     double descriptor_share = 0;
     const double share = ShareWithCounterpart(reference, ours, 0.5, 1.05, 3.0 * kPi / 180, &descriptor_share);
     std::printf("%s: cv::SIFT %zu keypoints, ours %zu; %.1f%% of cv's have a counterpart, %.1f%% of those with "
@@ -358,7 +365,7 @@ TEST(SiftInvariance, HalfSizeKeepsTheLargerKeypoints) {
 
 TEST(SiftDescriptor, NormalisedClippedAndRootSiftConsistent) {
   const cv::Mat gray = LoadGray(kOpencvData + "box.png");
-  SiftOptions options;
+  SiftOptions options = OpencvLike();
   options.max_features = 300;
   const FeatureSet sift = MakeExtractor(options).Extract(FromMat(gray));
   ASSERT_EQ(sift.size(), 300u);
@@ -435,7 +442,7 @@ TEST(SiftHomography, Graf1To3NotWorseThanOpencv) {
   const cv::Mat g1 = LoadGray(kOpencvData + "graf1.png"), g3 = LoadGray(kOpencvData + "graf3.png");
   auto h = ReadHomography(kOpencvData + "H1to3p.xml");
   ASSERT_TRUE(h) << h.error().ToString();
-  const auto extractor = MakeExtractor();
+  const auto extractor = MakeExtractor(OpencvLike());
   const HomographyScore ours = ScoreUnderHomography(extractor.Extract(FromMat(g1)), extractor.Extract(FromMat(g3)), *h);
   const HomographyScore cv = ScoreUnderHomography(OpencvSift(g1), OpencvSift(g3), *h);
   std::printf("graf1->graf3 (3 px): ours repeatability %.3f matching score %.3f; cv::SIFT %.3f %.3f\n", ours.repeatability,
@@ -470,7 +477,7 @@ TEST(SiftHomographySharedData, BoatSequenceNotWorseThanOpencv) {
   };
   const cv::Mat g1 = image(1);
   ASSERT_FALSE(g1.empty());
-  const auto extractor = MakeExtractor();
+  const auto extractor = MakeExtractor(OpencvLike());
   const FeatureSet ours1 = extractor.Extract(FromMat(g1)), cv1 = OpencvSift(g1);
   for (int i = 2; i <= 6; ++i) {
     auto h = ReadHomography(gt + "H1to" + std::to_string(i) + "p");
@@ -486,20 +493,22 @@ TEST(SiftHomographySharedData, BoatSequenceNotWorseThanOpencv) {
 }
 
 TEST(SiftOptions, CheckDescribeAndFingerprint) {
+  // The product default is RootSIFT (every command and the server extract it unless told otherwise).
   SiftOptions options;
+  EXPECT_EQ(options.descriptor, DescriptorKind::kRootSift);
   EXPECT_FALSE(options.Check().has_value());
   EXPECT_EQ(options.Describe(),
             "oxbow-sift/1;upsample=1;sigma=1.6;assumed_blur=0.5;intervals=3;contrast=0.04;edge=10;max_features=all;"
-            "descriptor=sift;peak_ratio=0.8;kernel_radius=4;max_octaves=all");
+            "descriptor=rootsift;peak_ratio=0.8;kernel_radius=4;max_octaves=all");
   // FNV-1a 64 of the string above; a change here means stored vocabularies/indexes will refuse the new
   // features, so it must be deliberate.
-  EXPECT_EQ(options.Fingerprint(), 3483263922624271981u) << "got " << options.Fingerprint();
+  EXPECT_EQ(options.Fingerprint(), 15604930684332118585u) << "got " << options.Fingerprint();
   SiftOptions threads = options;
   threads.num_threads = 7;
   EXPECT_EQ(threads.Fingerprint(), options.Fingerprint());
-  SiftOptions root = options;
-  root.descriptor = DescriptorKind::kRootSift;
-  EXPECT_NE(root.Fingerprint(), options.Fingerprint());
+  SiftOptions sift = options;
+  sift.descriptor = DescriptorKind::kSift;
+  EXPECT_EQ(sift.Fingerprint(), 3483263922624271981u) << "got " << sift.Fingerprint();
 
   for (auto mutate : std::vector<void (*)(SiftOptions&)>{
            [](SiftOptions& o) { o.sigma = 0; }, [](SiftOptions& o) { o.intervals = 0; },
