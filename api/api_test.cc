@@ -254,9 +254,15 @@ TEST(Json, SearchResponseCarriesEveryDocumentedField) {
   r.record.width = 512;
   r.record.metadata_json = R"({"title":"box"})";
   response.index.results.push_back(r);
+  index::QueryResult unverified = r;  // tf-idf only: no transform, no region (as POST /v1/match)
+  unverified.id = "graf1";
+  unverified.verified = false;
+  response.index.results.push_back(unverified);
   response.index.timings.verify_ms = 3;
   const auto json = SearchResponseToJson(response);
-  ASSERT_EQ(json["results"].size(), 1u);
+  ASSERT_EQ(json["results"].size(), 2u);
+  EXPECT_TRUE(json["results"][1]["transform"].is_null());
+  EXPECT_TRUE(json["results"][1]["region"].is_null());
   const auto& first = json["results"][0];
   EXPECT_EQ(first["id"], "box_in_scene");
   EXPECT_EQ(first["rank"], 1);

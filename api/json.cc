@@ -53,8 +53,12 @@ nlohmann::json SearchResponseToJson(const SearchResponse& response) {
                        {"score", r.score},
                        {"verified", r.verified},
                        {"inliers", r.inliers},
-                       {"transform", {{r.db_from_query.m[0], r.db_from_query.m[1], r.db_from_query.m[2]},
-                                      {r.db_from_query.m[3], r.db_from_query.m[4], r.db_from_query.m[5]}}},
+                       // As POST /v1/match: a transform and a region only for a verified result.
+                       {"transform", r.verified ? nlohmann::json{{r.db_from_query.m[0], r.db_from_query.m[1],
+                                                                  r.db_from_query.m[2]},
+                                                                 {r.db_from_query.m[3], r.db_from_query.m[4],
+                                                                  r.db_from_query.m[5]}}
+                                                : nlohmann::json(nullptr)},
                        {"region", r.verified ? nlohmann::json(r.db_region) : nlohmann::json(nullptr)},
                        {"width", r.record.width},
                        {"height", r.record.height},

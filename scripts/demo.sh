@@ -77,7 +77,7 @@ echo "demo: $(wc -l < "$list") photos ($data), vocabulary of $words words, work 
 
 say "3/5 vocabulary (oxbow vocab train; cached)"
 if [[ ! -f "$dir/vocab.oxvoc" ]]; then
-  "$oxbow" vocab train --list "$list" --words "$words" --per-image 1500 --out "$dir/vocab.oxvoc"
+  "$oxbow" vocab train --list "$list" --words "$words" --out "$dir/vocab.oxvoc"
 else
   echo "demo: using cached $dir/vocab.oxvoc" >&2
 fi
