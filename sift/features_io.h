@@ -1,6 +1,6 @@
 // On-disk feature files: oxbow's versioned binary format and COLMAP's text format.
 //
-// oxbow format (a sift/binary_io.h container, magic "OXBWFEAT", version 1, flags 0):
+// oxbow format (a sift/base/binary_io.h container, magic "OXBWFEAT", version 1, flags 0):
 //   payload (little-endian as the container header records):
 //     u32 image_width, u32 image_height          input image size in pixels (after EXIF orientation)
 //     u8  descriptor kind (0 sift, 1 rootsift), u8 descriptor encoding (0 = float32), u16 reserved (0)

@@ -1,5 +1,5 @@
 // Fuzz target: the feature file reader (sift/features_io.h) and the container it sits in
-// (sift/binary_io.h). The first input byte picks how the rest is presented:
+// (sift/base/binary_io.h). The first input byte picks how the rest is presented:
 //   0: as a feature payload (DecodeFeaturePayload), past the container's CRC;
 //   1: as a whole file (ReadFeatureFile -> ReadContainerFile: magic, version, byte order, lengths, CRCs);
 //   2: as a payload wrapped in a valid container header (correct CRCs), so mutations reach the payload

@@ -1,5 +1,5 @@
 // Fuzz target: the HTTP layer end to end. The input is sent as the raw bytes of a request over TCP to a
-// real server::HttpServer (server/http_server.cc, compiled in) on 127.0.0.1, serving an api::Service
+// real server::HttpServer (server/http/http_server.cc, linked as oxbow_http) on 127.0.0.1, serving an api::Service
 // over an index built with the fuzz vocabulary (one image indexed at start). cpp-httplib parses the
 // request line, headers, query string and multipart body; oxbow's routes collect the parameters
 // (CollectParams), pick the image part, parse and validate every parameter (bbox, top_k, ids, metadata
