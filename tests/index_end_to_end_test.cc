@@ -14,6 +14,7 @@
 
 #include "index/image_index.h"
 #include "sift/sift.h"
+#include "tests/e2e_testing.h"
 #include "vocab/vocabulary.h"
 
 namespace oxbow {
@@ -30,17 +31,7 @@ const std::vector<std::string> kDatabase = {"box_in_scene.png", "graf3.png", "ae
 const std::map<std::string, std::string> kQueries = {
     {"box.png", "box_in_scene"}, {"graf1.png", "graf3"}, {"aero1.jpg", "aero3"}, {"leuvenA.jpg", "leuvenB"}};
 
-std::string RunCommand(const std::string& command, int* exit_code) {
-  std::string out;
-  FILE* pipe = popen(command.c_str(), "r");
-  if (!pipe) return out;
-  char buf[4096];
-  size_t n;
-  while ((n = fread(buf, 1, sizeof(buf), pipe)) > 0) out.append(buf, n);
-  const int status = pclose(pipe);
-  *exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return out;
-}
+using testing::RunCommand;
 
 class EndToEnd : public ::testing::Test {
  protected:
