@@ -144,6 +144,9 @@ TEST(ParallelFor, ConcurrentCallersNeverShareAWorkerNumber) {
 }
 
 TEST(ParallelFor, AForkedChildGetsWorkingHelpers) {
+#if defined(__SANITIZE_THREAD__)
+  GTEST_SKIP() << "ThreadSanitizer cannot start threads in the child of a multi-threaded fork";
+#endif
   SerialsOfAllWorkers(3);  // the parent's pool has threads, which the child does not inherit
   const pid_t pid = fork();
   ASSERT_GE(pid, 0);
