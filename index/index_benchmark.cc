@@ -7,6 +7,12 @@
 //     probability ~ r^-S), random geometry. Prints build time, memory per feature (postings, geometry,
 //     per-image tables, and process RSS), tf-idf query latency on ONE core (Q queries of F Zipf words,
 //     p50/p95) for several stop-list settings, and re-ranking latency for R = 100/200 candidates.
+//     Peer for scoring, in the same run on the same postings: a plain sparse dot product over the
+//     postings uncompressed in CSR form ((image, t(tf)) pairs per word, 8 bytes each, inverse norms
+//     precomputed), dense accumulator, partial sort. Both get the same query vectors (built outside
+//     the timers) and warm scratch memory, and run alternately query by query; printed with the ratio
+//     of medians and the share of top-200 results they agree on. --peer 0 skips it (it needs 8 bytes
+//     per posting of extra memory).
 //
 //   index_benchmark paris [--data DIR] [--words K] [--max-side PX] [--repeat N] [--cache DIR]
 //                         [--vocab FILE] [--threads T] [--filter TEXT] [--verbose 1]
@@ -22,17 +28,22 @@
 //     (process CPU time, so it counts every verification thread), which other processes on a shared
 //     machine disturb far less than wall time. The load average is printed with them.
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <functional>
 #include <map>
+#include <new>
 #include <numbers>
+#include <optional>
 #include <random>
 #include <set>
+#include <span>
 #include <sstream>
 #include <string>
 #include <thread>
@@ -48,6 +59,19 @@
 #include "sift/base/parallel.h"
 #include "sift/sift.h"
 #include "vocab/vocabulary.h"
+
+// Counts heap allocations through operator new (the verifier's containers use it), for the
+// re-ranking table.
+std::atomic<uint64_t> g_allocations{0};
+
+void* operator new(size_t size) {
+  g_allocations.fetch_add(1, std::memory_order_relaxed);
+  if (void* p = std::malloc(size == 0 ? 1 : size)) return p;
+  throw std::bad_alloc();
+}
+// Not inlined: GCC would otherwise see free() on a pointer from a new-expression and warn.
+[[gnu::noinline]] void operator delete(void* p) noexcept { std::free(p); }
+[[gnu::noinline]] void operator delete(void* p, size_t) noexcept { std::free(p); }
 
 namespace oxbow::index {
 namespace {
@@ -169,6 +193,76 @@ SyntheticImage MakeImage(const AliasTable& zipf, uint64_t seed, int features, bo
   return img;
 }
 
+// The scoring peer (see the file comment): the same tf-idf cosine as InvertedFile::Score, computed the
+// straightforward way over uncompressed postings.
+class CsrPostings {
+ public:
+  CsrPostings(const InvertedFile& file, uint32_t num_images, const std::function<BagOfWords(uint32_t)>& bag_of)
+      : offsets_(file.vocabulary_size() + 1, 0), inv_norm_(num_images) {
+    for (size_t w = 0; w < file.vocabulary_size(); ++w) {
+      offsets_[w + 1] = offsets_[w] + file.DocumentFrequency(static_cast<uint32_t>(w));
+    }
+    images_.resize(offsets_.back());
+    tf_weights_.resize(offsets_.back());
+    std::vector<uint64_t> cursor(offsets_.begin(), offsets_.end() - 1);
+    for (uint32_t image = 0; image < num_images; ++image) {
+      const BagOfWords bag = bag_of(image);
+      for (size_t i = 0; i < bag.words.size(); ++i) {
+        const uint64_t at = cursor[bag.words[i]]++;
+        images_[at] = image;
+        tf_weights_[at] = file.TermWeight(bag.counts[i]);
+      }
+      inv_norm_[image] = static_cast<float>(1.0 / file.Norm(image));
+    }
+    accumulator_.assign(num_images, 0.0f);
+  }
+
+  uint64_t bytes() const {
+    return images_.size() * (sizeof(uint32_t) + sizeof(float)) + offsets_.size() * sizeof(uint64_t) +
+           inv_norm_.size() * sizeof(float);
+  }
+
+  // Not thread-safe (one accumulator).
+  std::vector<ScoredImage> Score(const InvertedFile& file, std::span<const QueryTerm> query, size_t max_results) {
+    for (const QueryTerm& term : query) {
+      if (offsets_[term.word] == offsets_[term.word + 1]) continue;
+      const auto weight = static_cast<float>(static_cast<double>(term.weight) * file.Idf(term.word));
+      for (uint64_t i = offsets_[term.word]; i < offsets_[term.word + 1]; ++i) {
+        accumulator_[images_[i]] += weight * tf_weights_[i];
+      }
+    }
+    candidates_.clear();
+    for (size_t i = 0; i < accumulator_.size(); ++i) {
+      if (accumulator_[i] == 0) continue;
+      candidates_.push_back({static_cast<uint32_t>(i), accumulator_[i] * inv_norm_[i]});
+      accumulator_[i] = 0;
+    }
+    const size_t k = std::min(max_results, candidates_.size());
+    std::partial_sort(candidates_.begin(), candidates_.begin() + static_cast<std::ptrdiff_t>(k), candidates_.end(),
+                      [](const ScoredImage& x, const ScoredImage& y) {
+                        return x.score != y.score ? x.score > y.score : x.image < y.image;
+                      });
+    return {candidates_.begin(), candidates_.begin() + static_cast<std::ptrdiff_t>(k)};
+  }
+
+ private:
+  std::vector<uint64_t> offsets_;  // per word, into images_ / tf_weights_
+  std::vector<uint32_t> images_;
+  std::vector<float> tf_weights_;  // t(tf)
+  std::vector<float> inv_norm_;    // 1 / |v(d)|
+  std::vector<float> accumulator_;
+  std::vector<ScoredImage> candidates_;
+};
+
+// Share of b's images that are also in a.
+double Agreement(const std::vector<ScoredImage>& a, const std::vector<ScoredImage>& b) {
+  std::set<uint32_t> in_a;
+  for (const ScoredImage& s : a) in_a.insert(s.image);
+  size_t shared = 0;
+  for (const ScoredImage& s : b) shared += in_a.count(s.image);
+  return b.empty() ? 1.0 : static_cast<double>(shared) / static_cast<double>(b.size());
+}
+
 int RunSynthetic(const std::map<std::string, std::string>& flags) {
   const auto num_images = static_cast<uint32_t>(Flag(flags, "--images", 100000));
   const int features = static_cast<int>(Flag(flags, "--features", 1000));
@@ -177,6 +271,7 @@ int RunSynthetic(const std::map<std::string, std::string>& flags) {
   const int num_queries = static_cast<int>(Flag(flags, "--queries", 50));
   const bool with_geometry = Flag(flags, "--geometry", 1) != 0;
   const int threads = static_cast<int>(Flag(flags, "--threads", 0));
+  const bool with_peer = Flag(flags, "--peer", 1) != 0;
   std::printf("synthetic: %u images x %d features, vocabulary %zu words, Zipf exponent %.2f, %s\n", num_images,
               features, vocab_size, zipf_s, with_geometry ? "with geometry" : "postings only");
 
@@ -236,84 +331,119 @@ int RunSynthetic(const std::map<std::string, std::string>& flags) {
               100.0 * (1 - static_cast<double>(stats.num_postings) / nf));
   (void)rss1;
 
-  // Queries: one-core tf-idf scoring for several stop lists.
+  std::optional<CsrPostings> peer;
+  if (with_peer) {
+    t0 = Clock::now();
+    peer.emplace(file, num_images, [&](uint32_t image) { return BagOfWords::FromWords(MakeImage(zipf, image, features, false).words); });
+    std::printf("peer: the same postings in CSR form, %.3f bytes per feature, built in %.1f s\n",
+                static_cast<double>(peer->bytes()) / nf, Ms(t0, Clock::now()) / 1000);
+  }
+
+  // Queries: one-core tf-idf scoring for several stop lists; the query vectors are made outside the timers.
   std::vector<BagOfWords> queries;
   queries.reserve(static_cast<size_t>(num_queries));
   for (int q = 0; q < num_queries; ++q) {
     queries.push_back(BagOfWords::FromWords(MakeImage(zipf, 1'000'000'000ull + q, features, false).words));
   }
-  std::printf("\n| stop list (max document frequency) | query words kept | postings scanned | tf-idf p50 ms | p95 ms |\n");
-  std::printf("|---|---|---|---|---|\n");
+  std::printf("\n| stop list (max document frequency) | query words kept | postings scanned | oxbow p50 ms | p95 ms |%s\n",
+              peer ? " CSR dot product p50 ms | p95 ms | oxbow / CSR (p50) | top-200 agreement |" : "");
+  std::printf("|---|---|---|---|---|%s\n", peer ? "---|---|---|---|" : "");
   for (double max_df : {1.0, 0.1, 0.03, 0.01}) {
-    // Same postings, another query-time stop list: rebuild only the options (the InvertedFile is a value).
-    TfIdfOptions o;
-    o.max_document_frequency = max_df;
-    std::vector<double> ms;
-    double kept = 0, scanned = 0;
+    std::vector<double> ms, peer_ms;
+    double kept = 0, scanned = 0, agreement = 0;
     ScoreScratch scratch;
-    for (int rep = 0; rep < 2; ++rep) {
+    for (int rep = 0; rep < 2; ++rep) {  // the first repetition warms caches and scratch memory
       for (const BagOfWords& q : queries) {
-        const auto s = Clock::now();
         std::vector<QueryTerm> terms = file.QueryVector(q);
-        // Apply the stop list here (QueryVector uses the file's own options; equivalent filter).
+        // The same postings with another query-time stop list (QueryVector applies the file's own).
         std::erase_if(terms, [&](const QueryTerm& t) {
           return static_cast<double>(file.DocumentFrequency(t.word)) > max_df * static_cast<double>(file.num_images());
         });
-        const auto top = file.Score(terms, 200, &scratch);
-        const auto e = Clock::now();
-        if (rep == 1) {
-          ms.push_back(Ms(s, e));
-          kept += static_cast<double>(terms.size());
-          for (const auto& t : terms) scanned += file.DocumentFrequency(t.word);
+        // Alternate which of the two runs first.
+        std::vector<ScoredImage> top, peer_top;
+        double oxbow_ms = 0, csr_ms = 0;
+        const bool oxbow_first = (&q - queries.data()) % 2 == 0;
+        for (int turn = 0; turn < 2; ++turn) {
+          const auto s = Clock::now();
+          if ((turn == 0) == oxbow_first) {
+            top = file.Score(terms, 200, &scratch);
+            oxbow_ms = Ms(s, Clock::now());
+          } else if (peer) {
+            peer_top = peer->Score(file, terms, 200);
+            csr_ms = Ms(s, Clock::now());
+          }
         }
         if (top.empty()) std::printf("(empty result)\n");
+        if (rep == 0) continue;
+        ms.push_back(oxbow_ms);
+        kept += static_cast<double>(terms.size());
+        for (const auto& t : terms) scanned += file.DocumentFrequency(t.word);
+        if (peer) {
+          peer_ms.push_back(csr_ms);
+          agreement += Agreement(top, peer_top);
+        }
       }
     }
-    std::printf("| %.2f | %.0f | %.3g | %.1f | %.1f |\n", max_df, kept / num_queries, scanned / num_queries,
+    std::printf("| %.2f | %.0f | %.3g | %.1f | %.1f |", max_df, kept / num_queries, scanned / num_queries,
                 Percentile(ms, 0.5), Percentile(ms, 0.95));
+    if (peer) {
+      std::printf(" %.1f | %.1f | %.2f | %.3f |", Percentile(peer_ms, 0.5), Percentile(peer_ms, 0.95),
+                  Percentile(ms, 0.5) / Percentile(peer_ms, 0.5), agreement / num_queries);
+    }
+    std::printf("\n");
   }
 
   // Re-ranking: verify the top R candidates of a query that is a similarity-transformed half of one
-  // indexed image plus clutter (one true match, R-1 false candidates), single thread.
+  // indexed image plus clutter (one true match, R-1 false candidates), split over T threads with
+  // ParallelFor as ImageIndex::Query does. Heap allocations are counted while the verification runs;
+  // the first query of each setting is a warm-up and not counted.
   if (with_geometry) {
-    std::printf("\n| re-ranking (1 thread) | p50 ms | p95 ms | verified |\n|---|---|---|---|\n");
+    std::printf("\n| re-ranking | threads | p50 ms | p95 ms | heap allocations per query | verified |\n|---|---|---|---|---|---|\n");
     for (int depth : {100, 200}) {
-      std::vector<double> ms;
-      int verified_right = 0;
-      for (int q = 0; q < std::min(num_queries, 20); ++q) {
-        const uint32_t target = static_cast<uint32_t>((q * 7919) % num_images);
-        const SyntheticImage src = MakeImage(zipf, target, features, true);
-        SyntheticImage query = MakeImage(zipf, 2'000'000'000ull + q, features / 2, true);
-        const double a = 0.4, sc = 0.8, ca = std::cos(a) * sc, sa = std::sin(a) * sc;
-        for (int i = 0; i < features; i += 2) {
-          sift::Keypoint k = src.keypoints[static_cast<size_t>(i)];
-          const float x = k.x, y = k.y;
-          k.x = static_cast<float>(ca * x - sa * y + 200);
-          k.y = static_cast<float>(sa * x + ca * y + 50);
-          k.scale *= static_cast<float>(sc);
-          k.orientation = static_cast<float>(std::fmod(k.orientation + a, 2 * std::numbers::pi));
-          query.keypoints.push_back(k);
-          query.words.push_back(src.words[static_cast<size_t>(i)]);
-        }
-        ScoreScratch scratch;
-        const auto terms = file.QueryVector(BagOfWords::FromWords(query.words));
-        const auto top = file.Score(terms, static_cast<size_t>(depth), &scratch);
-        const auto s = Clock::now();
-        const QueryGeometry geometry_q(query.keypoints, query.words, {0, 0, 1400, 1100});
-        int best_inliers = -1;
-        uint32_t best = 0;
-        for (const ScoredImage& c : top) {
-          const auto v = geometry_q.Verify(geometry[c.image], 4, {});
-          if (v.verified && v.num_inliers > best_inliers) {
-            best_inliers = v.num_inliers;
-            best = c.image;
+      for (int rerank_threads : {1, 2}) {
+        std::vector<double> ms;
+        uint64_t allocations = 0;
+        int verified_right = 0;
+        const int count = std::min(num_queries, 20);
+        for (int q = -1; q < count; ++q) {
+          const uint32_t target = static_cast<uint32_t>((std::max(q, 0) * 7919) % num_images);
+          const SyntheticImage src = MakeImage(zipf, target, features, true);
+          SyntheticImage query = MakeImage(zipf, 2'000'000'000ull + static_cast<uint64_t>(std::max(q, 0)), features / 2, true);
+          const double a = 0.4, sc = 0.8, ca = std::cos(a) * sc, sa = std::sin(a) * sc;
+          for (int i = 0; i < features; i += 2) {
+            sift::Keypoint k = src.keypoints[static_cast<size_t>(i)];
+            const float x = k.x, y = k.y;
+            k.x = static_cast<float>(ca * x - sa * y + 200);
+            k.y = static_cast<float>(sa * x + ca * y + 50);
+            k.scale *= static_cast<float>(sc);
+            k.orientation = static_cast<float>(std::fmod(k.orientation + a, 2 * std::numbers::pi));
+            query.keypoints.push_back(k);
+            query.words.push_back(src.words[static_cast<size_t>(i)]);
           }
+          ScoreScratch scratch;
+          const auto terms = file.QueryVector(BagOfWords::FromWords(query.words));
+          const auto top = file.Score(terms, static_cast<size_t>(depth), &scratch);
+          std::vector<int> inliers(top.size(), -1);
+          const QueryGeometry geometry_q(query.keypoints, query.words, {0, 0, 1400, 1100});
+          const uint64_t allocations0 = g_allocations.load();
+          const auto s = Clock::now();
+          ParallelFor(top.size(), rerank_threads, 1, [&](size_t begin, size_t end, int) {
+            for (size_t c = begin; c < end; ++c) {
+              const auto v = geometry_q.Verify(geometry[top[c].image], 4, {});
+              if (v.verified) inliers[c] = v.num_inliers;
+            }
+          });
+          const double elapsed = Ms(s, Clock::now());
+          if (q < 0) continue;
+          allocations += g_allocations.load() - allocations0;
+          ms.push_back(elapsed);
+          const auto best = std::max_element(inliers.begin(), inliers.end());
+          if (best != inliers.end() && *best > 0 && top[static_cast<size_t>(best - inliers.begin())].image == target) ++verified_right;
         }
-        ms.push_back(Ms(s, Clock::now()));
-        if (best_inliers > 0 && best == target) ++verified_right;
+        std::printf("| R = %d | %d | %.1f | %.1f | %.1f | %d/%zu right image verified best |\n", depth, rerank_threads,
+                    Percentile(ms, 0.5), Percentile(ms, 0.95), static_cast<double>(allocations) / static_cast<double>(count),
+                    verified_right, ms.size());
       }
-      std::printf("| R = %d | %.1f | %.1f | %d/%zu right image verified best |\n", depth, Percentile(ms, 0.5),
-                  Percentile(ms, 0.95), verified_right, ms.size());
     }
   }
   return 0;

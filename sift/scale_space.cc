@@ -25,77 +25,10 @@ bool SimdCompiledIn() {
 #endif
 }
 
-WorkerTeam::WorkerTeam(int num_threads) {
-  OXBOW_CHECK(num_threads >= 1);
-  threads_.reserve(static_cast<size_t>(num_threads - 1));
-  for (int w = 1; w < num_threads; ++w) threads_.emplace_back([this, w] { WorkerLoop(w); });
-}
+WorkerTeam::WorkerTeam(int num_threads) : num_threads_(num_threads) { OXBOW_CHECK(num_threads >= 1); }
 
-WorkerTeam::~WorkerTeam() {
-  {
-    std::lock_guard<std::mutex> lock(mutex_);
-    stop_ = true;
-  }
-  wake_.notify_all();
-  for (std::thread& t : threads_) t.join();
-}
-
-void WorkerTeam::Work(int worker) {
-  try {
-    for (size_t c = next_.fetch_add(1); c < chunks_; c = next_.fetch_add(1)) {
-      const size_t begin = c * grain_;
-      (*fn_)(begin, std::min(n_, begin + grain_), worker);
-    }
-  } catch (...) {
-    std::lock_guard<std::mutex> lock(mutex_);
-    if (!failure_) failure_ = std::current_exception();
-    next_.store(chunks_);
-  }
-}
-
-void WorkerTeam::WorkerLoop(int worker) {
-  uint64_t seen = 0;
-  for (;;) {
-    {
-      std::unique_lock<std::mutex> lock(mutex_);
-      wake_.wait(lock, [&] { return stop_ || generation_ != seen; });
-      if (stop_) return;
-      seen = generation_;
-    }
-    Work(worker);
-    std::lock_guard<std::mutex> lock(mutex_);
-    if (--running_ == 0) done_.notify_one();
-  }
-}
-
-void WorkerTeam::ParallelFor(size_t n, size_t grain, const std::function<void(size_t, size_t, int)>& fn) {
-  if (n == 0) return;
-  grain = std::max<size_t>(1, grain);
-  const size_t chunks = (n + grain - 1) / grain;
-  if (threads_.empty() || chunks <= 1) {
-    fn(0, n, 0);
-    return;
-  }
-  {
-    std::lock_guard<std::mutex> lock(mutex_);
-    n_ = n;
-    grain_ = grain;
-    chunks_ = chunks;
-    fn_ = &fn;
-    next_.store(0);
-    failure_ = nullptr;
-    running_ = static_cast<int>(threads_.size());
-    ++generation_;
-  }
-  wake_.notify_all();
-  Work(0);
-  std::exception_ptr failure;
-  {
-    std::unique_lock<std::mutex> lock(mutex_);
-    done_.wait(lock, [&] { return running_ == 0; });
-    failure = failure_;
-  }
-  if (failure) std::rethrow_exception(failure);
+void WorkerTeam::ParallelFor(size_t n, size_t grain, const std::function<void(size_t, size_t, int)>& fn) const {
+  oxbow::ParallelFor(n, num_threads_, grain, fn);
 }
 
 void Plane::Free::operator()(float* p) const { std::free(p); }

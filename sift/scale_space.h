@@ -7,16 +7,11 @@
 // order, so their results are bit-identical; tests assert that.
 #pragma once
 
-#include <atomic>
-#include <condition_variable>
 #include <cstddef>
 #include <cstdint>
-#include <exception>
 #include <functional>
 #include <memory>
-#include <mutex>
 #include <span>
-#include <thread>
 #include <vector>
 
 namespace oxbow::sift::internal {
@@ -24,38 +19,17 @@ namespace oxbow::sift::internal {
 // True when this build has the AVX2+FMA code paths.
 bool SimdCompiledIn();
 
-// A team of num_threads - 1 worker threads started once and reused for every parallel loop of an
-// extraction: oxbow::ParallelFor starts and joins its threads on every call, which an extraction makes
-// ~80 times. ParallelFor has oxbow::ParallelFor's contract (chunks of `grain` handed out in order,
-// fn(begin, end, worker) with the caller as worker 0, exceptions rethrown in the caller after all
-// workers finish). One ParallelFor at a time: not for concurrent use from several threads; not
-// reentrant (fn must not call ParallelFor on the same team). Idle workers sleep on a condition variable.
+// The worker count of an extraction and its parallel loops: oxbow::ParallelFor over num_threads workers
+// (the process-wide persistent pool, so an extraction starts no threads).
 class WorkerTeam {
  public:
   explicit WorkerTeam(int num_threads);  // num_threads >= 1; 1 runs everything in the caller
-  ~WorkerTeam();
-  WorkerTeam(const WorkerTeam&) = delete;
-  WorkerTeam& operator=(const WorkerTeam&) = delete;
 
-  int size() const { return static_cast<int>(threads_.size()) + 1; }
-  void ParallelFor(size_t n, size_t grain, const std::function<void(size_t begin, size_t end, int worker)>& fn);
+  int size() const { return num_threads_; }
+  void ParallelFor(size_t n, size_t grain, const std::function<void(size_t begin, size_t end, int worker)>& fn) const;
 
  private:
-  void WorkerLoop(int worker);
-  void Work(int worker);
-
-  std::vector<std::thread> threads_;
-  std::mutex mutex_;
-  std::condition_variable wake_;  // guarded by mutex_: generation_, stop_
-  std::condition_variable done_;  // guarded by mutex_: running_
-  uint64_t generation_ = 0;
-  bool stop_ = false;
-  int running_ = 0;  // workers still busy with the current loop
-  // The current loop; written by the caller before generation_ is advanced, read by the workers.
-  size_t n_ = 0, grain_ = 1, chunks_ = 0;
-  const std::function<void(size_t, size_t, int)>* fn_ = nullptr;
-  std::atomic<size_t> next_{0};
-  std::exception_ptr failure_;  // guarded by mutex_
+  int num_threads_;
 };
 
 // A float image with rows padded to a multiple of 16 floats (64 bytes) and 64-byte aligned rows.

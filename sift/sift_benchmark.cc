@@ -2,11 +2,21 @@
 // process, interleaved repetitions. Prints median milliseconds per image, keypoints, repeatability and
 // matching score under ground-truth homographies, and peak memory for a 4000x3000 photo.
 //
-//   build-sift/sift/sift_benchmark [--reps N] [--skip-large] [--quick]   (--quick: graf1, oxbow vs cv::SIFT only)
+//   build/sift/sift_benchmark [--reps N] [--skip-large] [--quick] [--processes]
+//     --quick: graf1 only, oxbow vs cv::SIFT only, no quality table.
+//     --processes: every method runs its repetitions of an image in a process of its own (forked from
+//     this one before any extraction), so no method inherits another's allocator and page state.
 //
-// Timings exclude decoding (every method gets the same decoded grey image). cv::SIFT runs with
-// cv::setNumThreads(1) or (2); VLFeat is single-threaded. Paths: opencv-doc samples (always present)
-// and ../shared/data (boat, Paris photos) when present.
+// Both sides are timed alike: every method starts from the same decoded 8-bit image, and its timer
+// includes its conversion to float (oxbow and VLFeat here, cv::SIFT inside detectAndCompute). Thread
+// settings (cv::setNumThreads, and a parallel loop that wakes OpenCV's pool) are applied before the
+// timer starts. Each side is measured in two states:
+//   cold  each repetition on a newly started thread with a newly created extractor: oxbow's per-thread
+//         pyramid cache starts empty, cv::SIFT allocates its pyramid as always;
+//   warm  repetitions on one thread with one extractor: oxbow keeps its pyramid buffers between images
+//         (SiftOptions::thread_cache_mib, the default), cv::SIFT has no such cache and allocates anew.
+// VLFeat is single-threaded and measured cold only. Paths: opencv-doc samples (always present) and
+// ../shared/data (boat, Paris photos) when present.
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -22,6 +32,7 @@
 #include <map>
 #include <numbers>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include <opencv2/core.hpp>
@@ -47,23 +58,19 @@ using Clock = std::chrono::steady_clock;
 const std::string kOpencvData = "/usr/share/doc/opencv-doc/examples/data/";
 const std::string kShared = OXBOW_SOURCE_DIR "/../shared/data/";
 
+enum class Side { kOxbow, kOpencv, kVlfeat };
+
 struct Method {
   std::string name;
-  std::function<FeatureSet(const cv::Mat& gray8, const GrayImage& gray)> run;
+  Side side;
+  int threads;
+  bool cold;
 };
 
-FeatureSet Ours(const GrayImage& gray, int threads) {
-  SiftOptions options;
-  options.num_threads = threads;
-  return SiftExtractor::Create(options)->Extract(gray);
-}
+// Converts inside the caller's timer, as cv::SIFT converts inside its own.
+GrayImage ToGray(const cv::Mat& m) { return GrayFromBytes(m.ptr<uint8_t>(0), m.cols, m.rows, m.step[0]); }
 
-FeatureSet Opencv(const cv::Mat& gray8, int threads) {
-  cv::setNumThreads(threads);
-  auto sift = cv::SIFT::create(0, 3, 0.04, 10, 1.6);
-  std::vector<cv::KeyPoint> kps;
-  cv::Mat desc;
-  sift->detectAndCompute(gray8, cv::noArray(), kps, desc);
+FeatureSet FromOpencv(const cv::Mat& gray8, const std::vector<cv::KeyPoint>& kps, const cv::Mat& desc) {
   FeatureSet f;
   f.image_width = gray8.cols;
   f.image_height = gray8.rows;
@@ -79,7 +86,8 @@ FeatureSet Opencv(const cv::Mat& gray8, int threads) {
 }
 
 #ifdef OXBOW_HAVE_VLFEAT
-FeatureSet Vlfeat(const GrayImage& gray) {
+FeatureSet Vlfeat(const cv::Mat& gray8) {
+  const GrayImage gray = ToGray(gray8);
   FeatureSet f;
   f.image_width = gray.width;
   f.image_height = gray.height;
@@ -108,17 +116,81 @@ FeatureSet Vlfeat(const GrayImage& gray) {
 }
 #endif
 
+// Extractors of the warm methods, created once (outside every timer) and reused.
+class Extractors {
+ public:
+  const SiftExtractor& Oxbow(int threads) {
+    auto it = oxbow_.find(threads);
+    if (it == oxbow_.end()) it = oxbow_.emplace(threads, NewOxbow(threads)).first;
+    return it->second;
+  }
+  cv::SIFT& Opencv() {
+    if (!opencv_) opencv_ = NewOpencv();
+    return *opencv_;
+  }
+  static SiftExtractor NewOxbow(int threads) {
+    SiftOptions options;
+    options.num_threads = threads;
+    return *SiftExtractor::Create(options);
+  }
+  static cv::Ptr<cv::SIFT> NewOpencv() { return cv::SIFT::create(0, 3, 0.04, 10, 1.6); }
+
+ private:
+  std::map<int, SiftExtractor> oxbow_;
+  cv::Ptr<cv::SIFT> opencv_;
+};
+
+// The timed part of a method: conversion and extraction, with the extractor created inside when cold.
+FeatureSet Extract(const Method& m, const cv::Mat& gray8, Extractors& warm) {
+  switch (m.side) {
+    case Side::kOxbow: {
+      if (m.cold) return Extractors::NewOxbow(m.threads).Extract(ToGray(gray8));
+      return warm.Oxbow(m.threads).Extract(ToGray(gray8));
+    }
+    case Side::kOpencv: {
+      const cv::Ptr<cv::SIFT> fresh = m.cold ? Extractors::NewOpencv() : nullptr;
+      std::vector<cv::KeyPoint> kps;
+      cv::Mat desc;
+      (m.cold ? *fresh : warm.Opencv()).detectAndCompute(gray8, cv::noArray(), kps, desc);
+      return FromOpencv(gray8, kps, desc);
+    }
+    case Side::kVlfeat:
+#ifdef OXBOW_HAVE_VLFEAT
+      return Vlfeat(gray8);
+#endif
+      break;
+  }
+  return {};
+}
+
+// Untimed set-up before each timed run: OpenCV's thread count, and one parallel loop so that OpenCV's
+// pool has its threads before the timer starts.
+void PrepareThreads(const Method& m) {
+  if (m.side != Side::kOpencv) return;
+  cv::setNumThreads(m.threads);
+  cv::parallel_for_(cv::Range(0, 4 * m.threads), [](const cv::Range&) {});
+}
+
 std::vector<Method> Methods() {
   std::vector<Method> m;
-  m.push_back({"oxbow 1T", [](const cv::Mat&, const GrayImage& g) { return Ours(g, 1); }});
-  m.push_back({"cv::SIFT 1T", [](const cv::Mat& g8, const GrayImage&) { return Opencv(g8, 1); }});
-  m.push_back({"oxbow 2T", [](const cv::Mat&, const GrayImage& g) { return Ours(g, 2); }});
-  m.push_back({"cv::SIFT 2T", [](const cv::Mat& g8, const GrayImage&) { return Opencv(g8, 2); }});
+  for (const int threads : {1, 2}) {
+    for (const bool cold : {true, false}) {
+      m.push_back({"oxbow", Side::kOxbow, threads, cold});
+      m.push_back({"cv::SIFT", Side::kOpencv, threads, cold});
+    }
+  }
 #ifdef OXBOW_HAVE_VLFEAT
-  m.push_back({"VLFeat 1T", [](const cv::Mat&, const GrayImage& g) { return Vlfeat(g); }});
+  m.push_back({"VLFeat", Side::kVlfeat, 1, true});
 #endif
   return m;
 }
+
+std::string Label(const Method& m) { return m.name + " " + std::to_string(m.threads) + "T " + (m.cold ? "cold" : "warm"); }
+
+struct Sample {
+  double wall_ms = 0, cpu_ms = 0;
+  size_t keypoints = 0;
+};
 
 double CpuMs() {
   timespec t{};
@@ -131,51 +203,72 @@ double Median(std::vector<double> v) {
   return v.empty() ? 0 : (v.size() % 2 ? v[v.size() / 2] : 0.5 * (v[v.size() / 2 - 1] + v[v.size() / 2]));
 }
 
-GrayImage ToGray(const cv::Mat& m) { return GrayFromBytes(m.ptr<uint8_t>(0), m.cols, m.rows, m.step[0]); }
-
-// Peak resident memory added by running `fn` once, measured in a forked child (VmHWM - VmRSS at start).
-long PeakExtraMiB(const std::function<void()>& fn) {
-  auto read_kib = [](const char* key) {
-    std::ifstream in("/proc/self/status");
-    std::string line;
-    while (std::getline(in, line))
-      if (line.rfind(key, 0) == 0) return std::atol(line.c_str() + std::strlen(key));
-    return 0L;
-  };
+// Runs fn in a forked child and returns what it returned (empty if the child failed).
+std::vector<double> InChild(const std::function<std::vector<double>()>& fn) {
   int pipe_fds[2];
-  if (::pipe(pipe_fds) != 0) return -1;
+  if (::pipe(pipe_fds) != 0) return {};
   const pid_t pid = ::fork();
   if (pid == 0) {
     ::close(pipe_fds[0]);
-    // Reset the high-water mark to the current RSS (Linux >= 4.0: write 5 to clear_refs).
-    { std::ofstream("/proc/self/clear_refs") << "5"; }
-    const long start = read_kib("VmRSS:");
-    fn();
-    const long peak = read_kib("VmHWM:");
-    const long extra = (peak - start) / 1024;
-    if (::write(pipe_fds[1], &extra, sizeof extra) != sizeof extra) _exit(1);
+    const std::vector<double> values = fn();
+    const size_t n = values.size();
+    const auto bytes = static_cast<ssize_t>(n * sizeof(double));
+    if (::write(pipe_fds[1], &n, sizeof n) != sizeof n || ::write(pipe_fds[1], values.data(), n * sizeof(double)) != bytes) _exit(1);
     _exit(0);
   }
   ::close(pipe_fds[1]);
-  long extra = -1;
-  if (::read(pipe_fds[0], &extra, sizeof extra) != sizeof extra) extra = -1;
+  size_t n = 0;
+  std::vector<double> values;
+  if (::read(pipe_fds[0], &n, sizeof n) == sizeof n && n < (1u << 20)) {
+    values.resize(n);
+    if (::read(pipe_fds[0], values.data(), n * sizeof(double)) != static_cast<ssize_t>(n * sizeof(double))) values.clear();
+  }
   ::close(pipe_fds[0]);
   int status = 0;
   ::waitpid(pid, &status, 0);
-  return extra;
+  return values;
+}
+
+long ReadStatusKib(const char* key) {
+  std::ifstream in("/proc/self/status");
+  std::string line;
+  while (std::getline(in, line))
+    if (line.rfind(key, 0) == 0) return std::atol(line.c_str() + std::strlen(key));
+  return 0L;
+}
+
+// One timed run of m (a cold run on a newly started thread). Thread set-up happens before the timer.
+Sample TimeOne(const Method& m, const cv::Mat& gray8, Extractors& warm) {
+  PrepareThreads(m);
+  Sample s;
+  auto body = [&] {
+    const auto start = Clock::now();
+    const double cpu_start = CpuMs();
+    const FeatureSet f = Extract(m, gray8, warm);
+    s.wall_ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+    s.cpu_ms = CpuMs() - cpu_start;
+    s.keypoints = f.size();
+  };
+  if (m.cold) {
+    std::thread(body).join();
+  } else {
+    body();
+  }
+  return s;
 }
 
 }  // namespace
 
 int main(int argc, char** argv) {
   int reps = 5;
-  bool skip_large = false, quick = false;
+  bool skip_large = false, quick = false, processes = false;
   for (int i = 1; i < argc; ++i) {
     if (!std::strcmp(argv[i], "--reps") && i + 1 < argc) reps = std::max(1, std::atoi(argv[++i]));
     else if (!std::strcmp(argv[i], "--skip-large")) skip_large = true;
     else if (!std::strcmp(argv[i], "--quick")) quick = skip_large = true;
+    else if (!std::strcmp(argv[i], "--processes")) processes = true;
     else {
-      std::fprintf(stderr, "usage: %s [--reps N] [--skip-large] [--quick]\n", argv[0]);
+      std::fprintf(stderr, "usage: %s [--reps N] [--skip-large] [--quick] [--processes]\n", argv[0]);
       return 2;
     }
   }
@@ -192,33 +285,57 @@ int main(int argc, char** argv) {
   std::vector<Method> methods = Methods();
   if (quick) {  // graf1 only, oxbow and cv::SIFT only, no quality table
     images.resize(1);
-    methods.resize(4);
+    std::erase_if(methods, [](const Method& m) { return m.side == Side::kVlfeat; });
   }
-  std::printf("SIFT benchmark: %d interleaved repetitions, median ms per image (decode excluded)\n\n", reps);
-  std::printf("Per method: median wall ms, median process CPU ms (robust to other load for 1T runs), keypoints.\n");
-  std::printf("Ratios ours/cv: 1T wall, 1T CPU | 2T wall.\n\n%-22s", "image");
-  for (const Method& m : methods) std::printf(" | %-22s", m.name.c_str());
-  std::printf(" | ours/cv 1T  | 2T\n");
-  std::map<std::string, std::vector<double>> all_ratios;
+  Extractors warm;
+  std::printf("SIFT benchmark: %d repetitions, %s; median ms per image from the decoded 8-bit image\n", reps,
+              processes ? "each method's repetitions in a process of its own" : "methods interleaved in one process");
+  std::printf("(conversion to float inside every timer; cold = new thread and new extractor per run, warm = one of each)\n\n");
+  std::printf("| image | peer | threads | state | oxbow wall ms | peer wall ms | ours/peer wall | oxbow CPU ms | peer CPU ms "
+              "| ours/peer CPU | keypoints ours / peer |\n");
+  std::printf("|---|---|---:|---|---:|---:|---:|---:|---:|---:|---|\n");
   for (const Image& image : images) {
     const cv::Mat gray8 = cv::imread(image.path, cv::IMREAD_GRAYSCALE);
     if (gray8.empty()) continue;
-    const GrayImage gray = ToGray(gray8);
-    std::vector<std::vector<double>> ms(methods.size()), cpu(methods.size());
-    std::vector<size_t> keypoints(methods.size());
-    for (int r = 0; r < reps; ++r)
+    std::vector<std::vector<Sample>> samples(methods.size());
+    if (processes) {
       for (size_t m = 0; m < methods.size(); ++m) {
-        const auto start = Clock::now();
-        const double cpu_start = CpuMs();
-        const FeatureSet f = methods[m].run(gray8, gray);
-        ms[m].push_back(std::chrono::duration<double, std::milli>(Clock::now() - start).count());
-        cpu[m].push_back(CpuMs() - cpu_start);
-        keypoints[m] = f.size();
+        const std::vector<double> flat = InChild([&] {
+          std::vector<double> out;
+          for (int r = 0; r < reps; ++r) {
+            const Sample s = TimeOne(methods[m], gray8, warm);
+            out.insert(out.end(), {s.wall_ms, s.cpu_ms, static_cast<double>(s.keypoints)});
+          }
+          return out;
+        });
+        for (size_t i = 0; i + 2 < flat.size(); i += 3) {
+          samples[m].push_back({flat[i], flat[i + 1], static_cast<size_t>(flat[i + 2])});
+        }
       }
-    std::printf("%-22s", image.name.c_str());
-    for (size_t m = 0; m < methods.size(); ++m) std::printf(" | %7.1f %7.1f %6zu", Median(ms[m]), Median(cpu[m]), keypoints[m]);
-    std::printf(" | %5.2f %5.2f | %5.2f\n", Median(ms[0]) / Median(ms[1]), Median(cpu[0]) / Median(cpu[1]),
-                Median(ms[2]) / Median(ms[3]));
+    } else {
+      for (int r = 0; r < reps; ++r) {
+        for (size_t k = 0; k < methods.size(); ++k) {
+          const size_t m = (k + static_cast<size_t>(r)) % methods.size();  // rotate who runs first
+          samples[m].push_back(TimeOne(methods[m], gray8, warm));
+        }
+      }
+    }
+    auto median = [&](size_t m, double Sample::*field) {
+      std::vector<double> v;
+      for (const Sample& s : samples[m]) v.push_back(s.*field);
+      return Median(v);
+    };
+    for (size_t p = 0; p < methods.size(); ++p) {
+      if (methods[p].side == Side::kOxbow) continue;
+      size_t o = 0;  // oxbow in the same threads and state
+      while (methods[o].side != Side::kOxbow || methods[o].threads != methods[p].threads || methods[o].cold != methods[p].cold) ++o;
+      if (samples[o].empty() || samples[p].empty()) continue;
+      const double ow = median(o, &Sample::wall_ms), pw = median(p, &Sample::wall_ms);
+      const double oc = median(o, &Sample::cpu_ms), pc = median(p, &Sample::cpu_ms);
+      std::printf("| %s | %s | %d | %s | %.1f | %.1f | %.2f | %.1f | %.1f | %.2f | %zu / %zu |\n", image.name.c_str(),
+                  methods[p].name.c_str(), methods[p].threads, methods[p].cold ? "cold" : "warm", ow, pw, ow / pw, oc, pc,
+                  oc / pc, samples[o].back().keypoints, samples[p].back().keypoints);
+    }
   }
 
   // Quality under ground-truth homographies (3 px, ratio 0.8, scale within 1.5x, one-to-one).
@@ -232,18 +349,20 @@ int main(int argc, char** argv) {
     for (int i = 2; i <= 6; ++i)
       pairs.push_back({"boat 1->" + std::to_string(i), boat + "img1.pgm", boat + "img" + std::to_string(i) + ".pgm",
                        gt + "H1to" + std::to_string(i) + "p"});
-  std::printf("\nRepeatability / matching score (3 px, Lowe ratio 0.8, scales within 1.5x, one-to-one):\n%-12s", "pair");
+  std::vector<Method> one_each;  // features do not depend on threads or cache state
   for (const Method& m : methods)
-    if (m.name.find("2T") == std::string::npos) std::printf(" | %-13s", m.name.c_str());
+    if (m.threads == 1 && m.cold) one_each.push_back(m);
+  std::printf("\nRepeatability / matching score (3 px, Lowe ratio 0.8, scales within 1.5x, one-to-one):\n%-12s", "pair");
+  for (const Method& m : one_each) std::printf(" | %-13s", m.name.c_str());
   std::printf("\n");
   for (const Pair& p : pairs) {
     const cv::Mat a8 = cv::imread(p.a, cv::IMREAD_GRAYSCALE), b8 = cv::imread(p.b, cv::IMREAD_GRAYSCALE);
     auto h = ReadHomography(p.h);
     if (a8.empty() || b8.empty() || !h) continue;
     std::printf("%-12s", p.name.c_str());
-    for (const Method& m : methods) {
-      if (m.name.find("2T") != std::string::npos) continue;
-      const HomographyScore s = ScoreUnderHomography(m.run(a8, ToGray(a8)), m.run(b8, ToGray(b8)), *h);
+    for (const Method& m : one_each) {
+      PrepareThreads(m);
+      const HomographyScore s = ScoreUnderHomography(Extract(m, a8, warm), Extract(m, b8, warm), *h);
       std::printf(" | %.3f / %.3f", s.repeatability, s.matching_score);
     }
     std::printf("\n");
@@ -255,15 +374,18 @@ int main(int argc, char** argv) {
     if (!std::filesystem::exists(source)) source = kOpencvData + "building.jpg";
     cv::Mat small = cv::imread(source, cv::IMREAD_GRAYSCALE), large;
     cv::resize(small, large, cv::Size(4000, 3000), 0, 0, cv::INTER_CUBIC);
-    const GrayImage large_gray = ToGray(large);
-    std::printf("\n4000x3000 photo (%s upscaled): one run each, time and peak extra resident memory\n", source.c_str());
+    std::printf("\n4000x3000 photo (%s upscaled): one cold run each in a process of its own, time and peak extra "
+                "resident memory\n", source.c_str());
     for (const Method& m : methods) {
-      const auto start = Clock::now();
-      size_t n = 0;
-      const long mib = PeakExtraMiB([&] { n = m.run(large, large_gray).size(); });
-      const double total = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
-      std::printf("  %-12s %8.0f ms (incl. fork)  peak +%ld MiB\n", m.name.c_str(), total, mib);
-      (void)n;
+      if (!m.cold) continue;
+      const std::vector<double> r = InChild([&] {
+        // Reset the high-water mark to the current RSS (Linux >= 4.0: write 5 to clear_refs).
+        { std::ofstream("/proc/self/clear_refs") << "5"; }
+        const long start = ReadStatusKib("VmRSS:");
+        const Sample s = TimeOne(m, large, warm);
+        return std::vector<double>{s.wall_ms, static_cast<double>(ReadStatusKib("VmHWM:") - start) / 1024};
+      });
+      if (r.size() == 2) std::printf("  %-18s %8.0f ms  peak +%.0f MiB\n", Label(m).c_str(), r[0], r[1]);
     }
   }
   return 0;

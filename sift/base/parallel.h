@@ -3,10 +3,8 @@
 
 #include <algorithm>
 #include <cstddef>
-#include <exception>
 #include <functional>
 #include <thread>
-#include <vector>
 
 namespace oxbow {
 
@@ -17,10 +15,17 @@ inline int ResolveThreadCount(int requested) {
 }
 
 // Calls fn(begin, end, worker) over [0, n) split into contiguous chunks of `grain` items, handed out in
-// order to `num_threads` workers (worker in [0, num_threads)); the calling thread is worker 0. Which
-// worker runs a chunk may vary between runs; results are deterministic as long as fn writes only to
-// outputs indexed by item (or merges per-chunk outputs in chunk order). Exceptions from fn are
-// rethrown in the caller after all workers finish.
+// order to at most `num_threads` workers (worker in [0, num_threads)); the calling thread is worker 0
+// and works until every chunk is taken. Which worker runs a chunk may vary between runs; results are
+// deterministic as long as fn writes only to outputs indexed by item (or merges per-chunk outputs in
+// chunk order). Exceptions from fn are rethrown in the caller after all workers finish.
+//
+// The other workers come from one process-wide pool of persistent threads, grown on demand to the
+// largest num_threads - 1 ever requested and joined at exit: no thread is created per call, so
+// thread_local scratch (the verifier's arenas, the scoring buffers) survives from call to call. Safe to
+// call concurrently from many threads (callers share the pool; a caller whose helpers are busy
+// elsewhere does its own chunks) and from inside fn (the nested caller works on its own loop, so
+// nothing waits on a thread that waits on it). After fork() the child starts a fresh pool.
 void ParallelFor(size_t n, int num_threads, size_t grain,
                  const std::function<void(size_t begin, size_t end, int worker)>& fn);
 
