@@ -16,11 +16,11 @@ root=$(cd "$(dirname "$0")/.." && pwd)
 phases=${OXBOW_HARDENING_PHASES:-tidy asan tsan fuzz}
 jobs=${OXBOW_JOBS:-$(nproc)}
 timings=()
-# The concurrency tests run under TSan: many threads on one index / service / server, slow clients, and
+# The concurrency tests run under TSan: the worker pool, many threads on one index / service / server, slow clients, and
 # kill -9 under concurrent writers. The tests in tests/ run the TSan-built `oxbow` of the same build
 # folder as a child (OXBOW_BINARY), which inherits TSAN_OPTIONS: log_path collects the reports of every
 # process (a child's report would otherwise go only to its log), and any report fails the phase.
-tsan_tests=(http_server_test image_index_test service_test slow_clients_test crash_torture_test)
+tsan_tests=(http_server_test image_index_test service_test slow_clients_test crash_torture_test parallel_test)
 
 # Test executables of a configured build folder (GoogleTest suites *_test and fuzz replays *_replay);
 # benchmarks are not built.

@@ -71,7 +71,7 @@ class MatchAgreementTest : public ::testing::Test {
     for (const auto& [name, value] : options) {
       std::string flag = name;
       std::replace(flag.begin(), flag.end(), '_', '-');
-      command += " --" + flag + " " + value;
+      command.append(" --").append(flag).append(" ").append(value);
     }
     int exit_code = -1;
     const std::string out = oxbow::testing::RunCommand(command + " " + extra + " 2>&1", &exit_code);

@@ -1,4 +1,4 @@
-#include "sift/parallel.h"
+#include "sift/base/parallel.h"
 
 #include <gtest/gtest.h>
 
