@@ -6,6 +6,8 @@
 #include <filesystem>
 #include <fstream>
 #include <initializer_list>
+#include <map>
+#include <ostream>
 #include <set>
 #include <sstream>
 
@@ -79,56 +81,63 @@ void Summarise(RunResult* run) {
   run->search_p50_ms = Percentile(search, 50);
 }
 
-Status WriteReport(const std::string& dir, const std::vector<RunResult>& runs, const std::string& command_line) {
-  namespace fs = std::filesystem;
-  std::error_code ec;
-  fs::create_directories(fs::path(dir) / "plots", ec);
-  if (ec) return Fail(ErrorCode::kIoError, "cannot create report folder '" + dir + "': " + ec.message());
+namespace {
 
-  // ---- JSON: every number.
+namespace fs = std::filesystem;
+
+// The query named `name` in `run`, or nullptr.
+const QueryOutcome* FindQuery(const RunResult& run, const std::string& name) {
+  auto it = std::find_if(run.queries.begin(), run.queries.end(), [&](const QueryOutcome& q) { return q.name == name; });
+  return it == run.queries.end() ? nullptr : &*it;
+}
+
+nlohmann::json RunToJson(const RunResult& run) {
+  nlohmann::json r;
+  r["protocol"] = run.protocol;
+  r["label"] = run.label;
+  r["settings"] = run.settings;
+  r["map"] = run.map;
+  r["mean_precision_at"] = {{"1", run.mean_precision_at.at(0)}, {"5", run.mean_precision_at.at(1)},
+                            {"10", run.mean_precision_at.at(2)}};
+  r["build_vocab_s"] = run.build_vocab_s;
+  r["build_index_s"] = run.build_index_s;
+  r["query_p50_ms"] = run.query_p50_ms;
+  r["query_p95_ms"] = run.query_p95_ms;
+  r["extract_p50_ms"] = run.extract_p50_ms;
+  r["search_p50_ms"] = run.search_p50_ms;
+  r["index"] = {{"images", run.index_images},
+                {"features", run.index_features},
+                {"bytes_per_feature", run.index_bytes_per_feature},
+                {"vocabulary_words", run.vocabulary_words}};
+  r["queries"] = nlohmann::json::array();
+  for (const QueryOutcome& q : run.queries) {
+    nlohmann::json pr = nlohmann::json::array();
+    for (const PrPoint& p : q.pr_curve) pr.push_back({p.recall, p.precision});
+    r["queries"].push_back({{"name", q.name},
+                            {"ap", q.ap},
+                            {"precision_at", q.precision_at},
+                            {"latency_ms", q.latency_ms},
+                            {"stage_ms", q.stage_ms},
+                            {"top", q.top},
+                            {"pr_curve", pr}});
+  }
+  return r;
+}
+
+// results.json: every number.
+Status WriteResultsJson(const std::string& dir, const std::vector<RunResult>& runs, const std::string& command_line) {
   nlohmann::json json = nlohmann::json::object();
   json["command"] = command_line;
   json["runs"] = nlohmann::json::array();
-  for (const RunResult& run : runs) {
-    nlohmann::json r;
-    r["protocol"] = run.protocol;
-    r["label"] = run.label;
-    r["settings"] = run.settings;
-    r["map"] = run.map;
-    r["mean_precision_at"] = {{"1", run.mean_precision_at.at(0)}, {"5", run.mean_precision_at.at(1)},
-                              {"10", run.mean_precision_at.at(2)}};
-    r["build_vocab_s"] = run.build_vocab_s;
-    r["build_index_s"] = run.build_index_s;
-    r["query_p50_ms"] = run.query_p50_ms;
-    r["query_p95_ms"] = run.query_p95_ms;
-    r["extract_p50_ms"] = run.extract_p50_ms;
-    r["search_p50_ms"] = run.search_p50_ms;
-    r["index"] = {{"images", run.index_images},
-                  {"features", run.index_features},
-                  {"bytes_per_feature", run.index_bytes_per_feature},
-                  {"vocabulary_words", run.vocabulary_words}};
-    r["queries"] = nlohmann::json::array();
-    for (const QueryOutcome& q : run.queries) {
-      nlohmann::json pr = nlohmann::json::array();
-      for (const PrPoint& p : q.pr_curve) pr.push_back({p.recall, p.precision});
-      r["queries"].push_back({{"name", q.name},
-                              {"ap", q.ap},
-                              {"precision_at", q.precision_at},
-                              {"latency_ms", q.latency_ms},
-                              {"stage_ms", q.stage_ms},
-                              {"top", q.top},
-                              {"pr_curve", pr}});
-    }
-    json["runs"].push_back(std::move(r));
-  }
-  {
-    std::ofstream out(fs::path(dir) / "results.json");
-    out << json.dump(2) << "\n";
-    if (!out) return Fail(ErrorCode::kIoError, "cannot write '" + dir + "/results.json'");
-  }
+  for (const RunResult& run : runs) json["runs"].push_back(RunToJson(run));
+  std::ofstream out(fs::path(dir) / "results.json");
+  out << json.dump(2) << "\n";
+  if (!out) return Fail(ErrorCode::kIoError, "cannot write '" + dir + "/results.json'");
+  return Ok();
+}
 
-  // ---- Plots.
-  std::vector<std::string> plot_files;
+// One precision-recall chart per run.
+Status WritePrCharts(const std::string& dir, const std::vector<RunResult>& runs, std::vector<std::string>* plot_files) {
   for (size_t i = 0; i < runs.size(); ++i) {
     const RunResult& run = runs[i];
     std::vector<Series> curves;
@@ -142,70 +151,76 @@ Status WriteReport(const std::string& dir, const std::vector<RunResult>& runs, c
                             .x_label = "recall",
                             .y_label = "precision"};
     if (auto st = WriteLineChart((fs::path(dir) / pr_file).string(), curves, pr_options); !st) return st;
-    plot_files.push_back(pr_file);
+    plot_files->push_back(pr_file);
   }
-  if (!runs.empty()) {
-    std::vector<std::string> query_names;
-    for (const QueryOutcome& q : runs[0].queries) query_names.push_back(q.name);
-    std::vector<std::string> labels;
-    std::vector<std::vector<double>> values;
-    for (const RunResult& run : runs) {
-      if (run.protocol != runs[0].protocol) continue;
-      labels.push_back(run.label);
-      std::vector<double> aps;
-      for (const std::string& name : query_names) {
-        auto it = std::find_if(run.queries.begin(), run.queries.end(), [&](const QueryOutcome& q) { return q.name == name; });
-        aps.push_back(it == run.queries.end() ? 0.0 : it->ap);
-      }
-      values.push_back(std::move(aps));
-    }
-    ChartOptions ap_options{.title = "AP per query: " + runs[0].protocol, .x_label = "", .y_label = "AP"};
-    if (auto st = WriteBarChart((fs::path(dir) / "plots/ap_per_query.png").string(), query_names, labels, values,
-                                ap_options);
-        !st) {
-      return st;
-    }
-    plot_files.emplace_back("plots/ap_per_query.png");
+  return Ok();
+}
 
-    // mAP vs vocabulary size, one line per (features, re-ranking, transitive, QE) combination, when
-    // sizes vary.
-    std::map<std::string, Series> by_variant;
-    std::set<uint64_t> sizes;
-    for (const RunResult& run : runs) {
-      sizes.insert(run.vocabulary_words);
-      std::string variant;
-      for (const char* key : {"features", "rerank", "transitive", "qe"}) {
-        auto it = run.settings.find(key);
-        variant += std::string(key) + "=" + (it == run.settings.end() ? "?" : it->second) + " ";
-      }
-      by_variant[variant].name = variant;
-      by_variant[variant].points.emplace_back(static_cast<double>(run.vocabulary_words), run.map);
+// AP of each query of the first run's protocol, one bar per run of that protocol. `runs` is not empty.
+Status WriteApPerQueryChart(const std::string& dir, const std::vector<RunResult>& runs,
+                            std::vector<std::string>* plot_files) {
+  std::vector<std::string> query_names;
+  for (const QueryOutcome& q : runs[0].queries) query_names.push_back(q.name);
+  std::vector<std::string> labels;
+  std::vector<std::vector<double>> values;
+  for (const RunResult& run : runs) {
+    if (run.protocol != runs[0].protocol) continue;
+    labels.push_back(run.label);
+    std::vector<double> aps;
+    for (const std::string& name : query_names) {
+      const QueryOutcome* q = FindQuery(run, name);
+      aps.push_back(q == nullptr ? 0.0 : q->ap);
     }
-    if (sizes.size() > 1) {
-      std::vector<Series> lines;
-      for (auto& [_, s] : by_variant) {
-        std::sort(s.points.begin(), s.points.end());
-        lines.push_back(s);
-      }
-      ChartOptions size_options{.title = "mAP vs vocabulary size: " + runs[0].protocol,
-                                .x_label = "words",
-                                .y_label = "mAP",
-                                .x_min = 0,
-                                .x_max = 0,
-                                .log_x = true,
-                                .x_ticks = std::vector<double>(sizes.begin(), sizes.end()),
-                                .legend_at_bottom = true};
-      if (auto st = WriteLineChart((fs::path(dir) / "plots/map_vs_vocabulary.png").string(), lines, size_options); !st) {
-        return st;
-      }
-      plot_files.emplace_back("plots/map_vs_vocabulary.png");
-    }
+    values.push_back(std::move(aps));
   }
+  ChartOptions ap_options{.title = "AP per query: " + runs[0].protocol, .x_label = "", .y_label = "AP"};
+  if (auto st = WriteBarChart((fs::path(dir) / "plots/ap_per_query.png").string(), query_names, labels, values,
+                              ap_options);
+      !st) {
+    return st;
+  }
+  plot_files->emplace_back("plots/ap_per_query.png");
+  return Ok();
+}
 
-  // ---- Markdown.
-  std::ostringstream md;
-  md << "# oxbow retrieval evaluation\n\n";
-  md << "Command: `" << command_line << "`\n\n";
+// mAP vs vocabulary size, one line per (features, re-ranking, transitive, QE) combination, when sizes
+// vary. `runs` is not empty.
+Status WriteMapVsVocabularyChart(const std::string& dir, const std::vector<RunResult>& runs,
+                                 std::vector<std::string>* plot_files) {
+  std::map<std::string, Series> by_variant;
+  std::set<uint64_t> sizes;
+  for (const RunResult& run : runs) {
+    sizes.insert(run.vocabulary_words);
+    std::string variant;
+    for (const char* key : {"features", "rerank", "transitive", "qe"}) {
+      auto it = run.settings.find(key);
+      variant += std::string(key) + "=" + (it == run.settings.end() ? "?" : it->second) + " ";
+    }
+    by_variant[variant].name = variant;
+    by_variant[variant].points.emplace_back(static_cast<double>(run.vocabulary_words), run.map);
+  }
+  if (sizes.size() <= 1) return Ok();
+  std::vector<Series> lines;
+  for (auto& [_, s] : by_variant) {
+    std::sort(s.points.begin(), s.points.end());
+    lines.push_back(s);
+  }
+  ChartOptions size_options{.title = "mAP vs vocabulary size: " + runs[0].protocol,
+                            .x_label = "words",
+                            .y_label = "mAP",
+                            .x_min = 0,
+                            .x_max = 0,
+                            .log_x = true,
+                            .x_ticks = std::vector<double>(sizes.begin(), sizes.end()),
+                            .legend_at_bottom = true};
+  if (auto st = WriteLineChart((fs::path(dir) / "plots/map_vs_vocabulary.png").string(), lines, size_options); !st) {
+    return st;
+  }
+  plot_files->emplace_back("plots/map_vs_vocabulary.png");
+  return Ok();
+}
+
+void WriteSummaryTable(std::ostream& md, const std::vector<RunResult>& runs) {
   md << "| protocol | configuration | mAP | mP@1 | mP@5 | mP@10 | query p50 ms | p95 ms | extract p50 ms | "
         "search p50 ms | images | features | B/feature |\n";
   md << "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
@@ -217,7 +232,10 @@ Status WriteReport(const std::string& dir, const std::vector<RunResult>& runs, c
        << " | " << run.index_images << " | " << run.index_features << " | " << Fixed(run.index_bytes_per_feature, 1)
        << " |\n";
   }
-  // Search stages as the server reports them (timings_ms), p50 / p95 over the queries.
+}
+
+// Search stages as the server reports them (timings_ms), p50 / p95 over the queries.
+void WriteStageTable(std::ostream& md, const std::vector<RunResult>& runs) {
   md << "\n## Search stages (ms, p50 / p95 over the queries)\n\n";
   md << "| configuration | quantize | score | verify (incl. transitive) | qe | search total | extract |\n";
   md << "|---|---|---|---|---|---|---|\n";
@@ -237,6 +255,9 @@ Status WriteReport(const std::string& dir, const std::vector<RunResult>& runs, c
        << " | " << stage({"qe"}) << " | " << stage({"quantize", "score", "verify", "qe"}) << " | "
        << stage({"extract"}) << " |\n";
   }
+}
+
+void WriteSettings(std::ostream& md, const std::vector<RunResult>& runs) {
   md << "\n## Settings\n\n";
   for (const RunResult& run : runs) {
     md << "- **" << run.protocol << ", " << run.label << "**: ";
@@ -248,21 +269,48 @@ Status WriteReport(const std::string& dir, const std::vector<RunResult>& runs, c
     md << "; vocabulary build " << Fixed(run.build_vocab_s, 1) << " s, index build " << Fixed(run.build_index_s, 1)
        << " s\n";
   }
+}
+
+// One row per query of the first run, one column per run.
+void WriteApTable(std::ostream& md, const std::vector<RunResult>& runs) {
   md << "\n## AP per query\n\n| query |";
   for (const RunResult& run : runs) md << " " << run.label << " |";
   md << "\n|---|";
   for (size_t i = 0; i < runs.size(); ++i) md << "---|";
   md << "\n";
-  if (!runs.empty()) {
-    for (const QueryOutcome& q0 : runs[0].queries) {
-      md << "| " << q0.name << " |";
-      for (const RunResult& run : runs) {
-        auto it = std::find_if(run.queries.begin(), run.queries.end(), [&](const QueryOutcome& q) { return q.name == q0.name; });
-        md << " " << (it == run.queries.end() ? "-" : Fixed(it->ap)) << " |";
-      }
-      md << "\n";
+  if (runs.empty()) return;
+  for (const QueryOutcome& q0 : runs[0].queries) {
+    md << "| " << q0.name << " |";
+    for (const RunResult& run : runs) {
+      const QueryOutcome* q = FindQuery(run, q0.name);
+      md << " " << (q == nullptr ? "-" : Fixed(q->ap)) << " |";
     }
+    md << "\n";
   }
+}
+
+}  // namespace
+
+Status WriteReport(const std::string& dir, const std::vector<RunResult>& runs, const std::string& command_line) {
+  std::error_code ec;
+  fs::create_directories(fs::path(dir) / "plots", ec);
+  if (ec) return Fail(ErrorCode::kIoError, "cannot create report folder '" + dir + "': " + ec.message());
+  if (auto st = WriteResultsJson(dir, runs, command_line); !st) return st;
+
+  std::vector<std::string> plot_files;
+  if (auto st = WritePrCharts(dir, runs, &plot_files); !st) return st;
+  if (!runs.empty()) {
+    if (auto st = WriteApPerQueryChart(dir, runs, &plot_files); !st) return st;
+    if (auto st = WriteMapVsVocabularyChart(dir, runs, &plot_files); !st) return st;
+  }
+
+  std::ostringstream md;
+  md << "# oxbow retrieval evaluation\n\n";
+  md << "Command: `" << command_line << "`\n\n";
+  WriteSummaryTable(md, runs);
+  WriteStageTable(md, runs);
+  WriteSettings(md, runs);
+  WriteApTable(md, runs);
   md << "\n## Plots\n\n";
   for (const std::string& f : plot_files) md << "![" << f << "](" << f << ")\n\n";
   std::ofstream out(fs::path(dir) / "report.md");

@@ -9,6 +9,7 @@
 #include <map>
 #include <mutex>
 #include <numeric>
+#include <span>
 #include <unordered_map>
 
 #include "index/catalogue.h"
@@ -210,6 +211,24 @@ struct ImageIndex::Impl {
 
   Result<QueryResponse> Run(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
                             QueryTimings timings) const;
+
+  // The stages of Run after scoring. Each rewrites `results`; Rerank returns how many it verified.
+  size_t Rerank(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
+                const std::vector<ScoredImage>& scored, std::vector<QueryResult>& results) const;
+  static void ExpandQuery(const Snapshot& snap, const std::vector<QueryTerm>& terms, const QueryOptions& options,
+                          size_t num_verified, ScoreScratch* scratch, std::vector<QueryResult>& results);
+  void VerifyTransitively(const Snapshot& snap, const QueryOptions& options, size_t num_verified,
+                          ScoreScratch* scratch, std::vector<QueryResult>& results) const;
+
+  // A candidate of transitive verification and an anchor to try it against.
+  struct TransitiveAttempt {
+    float score;      // the candidate's tf-idf score against the anchor's region
+    uint32_t anchor;  // index into this round's anchors
+  };
+  // For each of results[first, last), the anchors to try, in anchor order.
+  static std::vector<std::vector<TransitiveAttempt>> PlanTransitiveAttempts(
+      const Snapshot& snap, const QueryOptions& options, const std::vector<std::span<const uint32_t>>& anchor_words,
+      const std::vector<QueryResult>& results, size_t first, size_t last, ScoreScratch* scratch);
 };
 
 ImageIndex::ImageIndex(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
@@ -520,171 +539,20 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
 
   // 2. Spatial re-ranking of the top R.
   t = Clock::now();
-  const size_t rerank = std::min(scored.size(), static_cast<size_t>(options.rerank_depth));
-  size_t num_verified = 0;
-  if (rerank > 0) {
-    const std::array<float, 4> query_region =
-        options.region ? *options.region
-                       : std::array<float, 4>{0, 0, static_cast<float>(query.width), static_cast<float>(query.height)};
-    const QueryGeometry geometry(query.keypoints, query.words, query_region);
-    ParallelFor(rerank, index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
-      for (size_t c = begin; c < end; ++c) {
-        const sift::VerificationResult v =
-            geometry.Verify(snap.entries[scored[c].image]->features, options.max_pairs_per_word, options.verify);
-        QueryResult& r = results[c];
-        r.inliers = v.num_inliers;
-        if (v.verified) {
-          r.verified = true;
-          r.db_from_query = v.db_from_query;
-          r.db_region = v.db_region;
-        }
-      }
-    });
-    // Verified first (by inliers, then score), then the rest in tf-idf order; stable keeps ties by rank.
-    std::stable_sort(results.begin(), results.begin() + static_cast<std::ptrdiff_t>(rerank),
-                     [](const QueryResult& a, const QueryResult& b) {
-                       if (a.verified != b.verified) return a.verified;
-                       if (a.verified && a.inliers != b.inliers) return a.inliers > b.inliers;
-                       return a.score > b.score;
-                     });
-    for (size_t c = 0; c < rerank; ++c) num_verified += results[c].verified ? 1 : 0;
-  }
+  const size_t num_verified = Rerank(snap, query, options, scored, results);
   timings.verify_ms = MsSince(t);
 
   // 3. Average query expansion over the verified results.
   if (options.query_expansion && num_verified > 0) {
     t = Clock::now();
-    std::map<uint32_t, double> average;
-    for (const QueryTerm& term : terms) average[term.word] += term.weight;
-    const size_t used = std::min(num_verified, static_cast<size_t>(options.qe_images));
-    for (size_t c = 0; c < used; ++c) {
-      const Entry* entry = snap.Find(results[c].id);
-      const BagOfWords region_bag = entry->features.BagInside(results[c].db_region);
-      for (const QueryTerm& term : snap.inverted.QueryVector(region_bag)) average[term.word] += term.weight;
-    }
-    std::vector<QueryTerm> expanded;
-    expanded.reserve(average.size());
-    double norm_sq = 0;
-    for (const auto& [word, weight] : average) norm_sq += weight * weight;
-    const double inv = norm_sq > 0 ? 1.0 / std::sqrt(norm_sq) : 0.0;
-    for (const auto& [word, weight] : average) expanded.push_back({word, static_cast<float>(weight * inv)});
-    // Deep enough for transitive verification's window as well as for top_k.
-    const size_t expanded_depth =
-        static_cast<size_t>(std::max(options.top_k, options.transitive_depth > 0 ? options.transitive_depth : 0));
-    const std::vector<ScoredImage> rescored = snap.inverted.Score(expanded, expanded_depth + num_verified, &scratch);
-    std::vector<QueryResult> merged(results.begin(), results.begin() + static_cast<std::ptrdiff_t>(num_verified));
-    std::unordered_map<std::string, const QueryResult*> first_stage;
-    for (const QueryResult& r : results) first_stage[r.id] = &r;
-    for (const ScoredImage& s : rescored) {
-      const std::string& id = snap.entries[s.image]->record.id;
-      const auto it = first_stage.find(id);
-      if (it != first_stage.end() && it->second->verified) continue;
-      QueryResult r;
-      if (it != first_stage.end()) r = *it->second;
-      r.id = id;
-      r.score = s.score;
-      merged.push_back(std::move(r));
-    }
-    results = std::move(merged);
+    ExpandQuery(snap, terms, options, num_verified, &scratch, results);
     timings.qe_ms = MsSince(t);
   }
 
-  // 4. Transitive verification: unverified candidates against the matched regions of verified results
-  // (anchors), in rounds; a candidate verified in one round is an anchor of the next, up to
-  // transitive_anchors anchors in all. A candidate stops at its first anchor that verifies it.
+  // 4. Transitive verification.
   if (options.transitive_depth > 0 && num_verified > 0) {
     t = Clock::now();
-    const size_t first = num_verified;
-    const size_t last = std::min(results.size(), first + static_cast<size_t>(options.transitive_depth));
-    std::vector<size_t> pool(num_verified);  // anchor candidates: positions in `results`, in anchor order
-    std::iota(pool.begin(), pool.end(), size_t{0});
-    const auto max_anchors = static_cast<size_t>(options.transitive_anchors);
-    size_t used = 0;
-    while (used < std::min(pool.size(), max_anchors)) {
-      const size_t round_end = std::min(pool.size(), max_anchors);
-      struct Anchor {
-        std::vector<sift::Keypoint> keypoints;
-        std::vector<uint32_t> words;
-      };
-      std::vector<Anchor> anchors(round_end - used);
-      std::vector<QueryGeometry> geometries;
-      geometries.reserve(anchors.size());
-      for (size_t a = 0; a < anchors.size(); ++a) {
-        const QueryResult& anchor = results[pool[used + a]];
-        const PackedFeatures& f = snap.Find(anchor.id)->features;
-        const auto& box = anchor.db_region;
-        for (size_t i = 0; i < f.size(); ++i) {
-          const sift::Keypoint k = f.keypoint(i);
-          if (k.x < box[0] || k.x > box[2] || k.y < box[1] || k.y > box[3]) continue;
-          anchors[a].keypoints.push_back(k);
-          anchors[a].words.push_back(f.word(i));
-        }
-        geometries.emplace_back(anchors[a].keypoints, anchors[a].words, box);
-      }
-      // Each anchor only verifies its own nearest tf-idf neighbours (its region's bag scored against the
-      // index): most candidates share nothing with most anchors, and the verifier is the expensive part.
-      // A candidate is tried against at most transitive_attempts anchors, those whose regions score it
-      // highest, in anchor order: a view of the object verifies against one of its closest anchors or
-      // rarely at all, while a negative would otherwise pay one verification per anchor listing it.
-      std::unordered_map<uint32_t, size_t> window;  // image number -> position in `results`
-      for (size_t c = first; c < last; ++c) {
-        uint32_t number = 0;
-        if (!results[c].verified && snap.Find(results[c].id, &number)) window.emplace(number, c);
-      }
-      struct Attempt {
-        float score;
-        uint32_t anchor;
-      };
-      std::vector<std::vector<Attempt>> attempts(last - first);
-      for (size_t a = 0; a < anchors.size(); ++a) {
-        const std::vector<QueryTerm> anchor_terms = snap.inverted.QueryVector(BagOfWords::FromWords(anchors[a].words));
-        for (const ScoredImage& s : snap.inverted.Score(anchor_terms, static_cast<size_t>(options.transitive_neighbours) + 1, &scratch)) {
-          const auto it = window.find(s.image);
-          if (it != window.end()) attempts[it->second - first].push_back({s.score, static_cast<uint32_t>(a)});
-        }
-      }
-      const auto max_attempts = static_cast<size_t>(options.transitive_attempts);
-      for (auto& list : attempts) {
-        std::sort(list.begin(), list.end(), [](const Attempt& x, const Attempt& y) {
-          return x.score != y.score ? x.score > y.score : x.anchor < y.anchor;
-        });
-        if (list.size() > max_attempts) list.resize(max_attempts);
-        // Among those, the better anchor first (anchors are ordered best first).
-        std::sort(list.begin(), list.end(), [](const Attempt& x, const Attempt& y) { return x.anchor < y.anchor; });
-      }
-      std::vector<uint8_t> found(last - first, 0);
-      ParallelFor(last - first, index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
-        for (size_t c = first + begin; c < first + end; ++c) {
-          QueryResult& r = results[c];
-          if (r.verified || attempts[c - first].empty()) continue;
-          const PackedFeatures& f = snap.Find(r.id)->features;
-          for (const Attempt& attempt : attempts[c - first]) {
-            const size_t a = attempt.anchor;
-            const sift::VerificationResult v = geometries[a].Verify(f, options.max_pairs_per_word, options.verify);
-            if (!v.verified) continue;
-            r.verified = true;
-            r.inliers = v.num_inliers;
-            r.db_from_query = Compose(v.db_from_query, results[pool[used + a]].db_from_query);
-            r.db_region = v.db_region;
-            found[c - first] = 1;
-            break;
-          }
-        }
-      });
-      used = round_end;
-      std::vector<size_t> fresh;
-      for (size_t c = first; c < last; ++c) {
-        if (found[c - first]) fresh.push_back(c);
-      }
-      std::stable_sort(fresh.begin(), fresh.end(), [&](size_t x, size_t y) { return results[x].inliers > results[y].inliers; });
-      pool.insert(pool.end(), fresh.begin(), fresh.end());
-    }
-    std::stable_sort(results.begin() + static_cast<std::ptrdiff_t>(first),
-                     results.begin() + static_cast<std::ptrdiff_t>(last),
-                     [](const QueryResult& a, const QueryResult& b) {
-                       if (a.verified != b.verified) return a.verified;
-                       return a.verified && a.inliers > b.inliers;
-                     });
+    VerifyTransitively(snap, options, num_verified, &scratch, results);
     timings.verify_ms += MsSince(t);
   }
 
@@ -693,6 +561,182 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
   response.results = std::move(results);
   response.timings = timings;
   return response;
+}
+
+size_t ImageIndex::Impl::Rerank(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
+                                const std::vector<ScoredImage>& scored, std::vector<QueryResult>& results) const {
+  const size_t rerank = std::min(scored.size(), static_cast<size_t>(options.rerank_depth));
+  if (rerank == 0) return 0;
+  const std::array<float, 4> query_region =
+      options.region ? *options.region
+                     : std::array<float, 4>{0, 0, static_cast<float>(query.width), static_cast<float>(query.height)};
+  const QueryGeometry geometry(query.keypoints, query.words, query_region);
+  ParallelFor(rerank, index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
+    for (size_t c = begin; c < end; ++c) {
+      const sift::VerificationResult v =
+          geometry.Verify(snap.entries[scored[c].image]->features, options.max_pairs_per_word, options.verify);
+      QueryResult& r = results[c];
+      r.inliers = v.num_inliers;
+      if (v.verified) {
+        r.verified = true;
+        r.db_from_query = v.db_from_query;
+        r.db_region = v.db_region;
+      }
+    }
+  });
+  // Verified first (by inliers, then score), then the rest in tf-idf order; stable keeps ties by rank.
+  std::stable_sort(results.begin(), results.begin() + static_cast<std::ptrdiff_t>(rerank),
+                   [](const QueryResult& a, const QueryResult& b) {
+                     if (a.verified != b.verified) return a.verified;
+                     if (a.verified && a.inliers != b.inliers) return a.inliers > b.inliers;
+                     return a.score > b.score;
+                   });
+  size_t num_verified = 0;
+  for (size_t c = 0; c < rerank; ++c) num_verified += results[c].verified ? 1 : 0;
+  return num_verified;
+}
+
+void ImageIndex::Impl::ExpandQuery(const Snapshot& snap, const std::vector<QueryTerm>& terms,
+                                   const QueryOptions& options, size_t num_verified, ScoreScratch* scratch,
+                                   std::vector<QueryResult>& results) {
+  std::map<uint32_t, double> average;
+  for (const QueryTerm& term : terms) average[term.word] += term.weight;
+  const size_t used = std::min(num_verified, static_cast<size_t>(options.qe_images));
+  for (size_t c = 0; c < used; ++c) {
+    const Entry* entry = snap.Find(results[c].id);
+    const BagOfWords region_bag = entry->features.BagInside(results[c].db_region);
+    for (const QueryTerm& term : snap.inverted.QueryVector(region_bag)) average[term.word] += term.weight;
+  }
+  std::vector<QueryTerm> expanded;
+  expanded.reserve(average.size());
+  double norm_sq = 0;
+  for (const auto& [word, weight] : average) norm_sq += weight * weight;
+  const double inv = norm_sq > 0 ? 1.0 / std::sqrt(norm_sq) : 0.0;
+  for (const auto& [word, weight] : average) expanded.push_back({word, static_cast<float>(weight * inv)});
+  // Deep enough for transitive verification's window as well as for top_k.
+  const size_t expanded_depth =
+      static_cast<size_t>(std::max(options.top_k, options.transitive_depth > 0 ? options.transitive_depth : 0));
+  const std::vector<ScoredImage> rescored = snap.inverted.Score(expanded, expanded_depth + num_verified, scratch);
+  std::vector<QueryResult> merged(results.begin(), results.begin() + static_cast<std::ptrdiff_t>(num_verified));
+  std::unordered_map<std::string, const QueryResult*> first_stage;
+  for (const QueryResult& r : results) first_stage[r.id] = &r;
+  for (const ScoredImage& s : rescored) {
+    const std::string& id = snap.entries[s.image]->record.id;
+    const auto it = first_stage.find(id);
+    if (it != first_stage.end() && it->second->verified) continue;
+    QueryResult r;
+    if (it != first_stage.end()) r = *it->second;
+    r.id = id;
+    r.score = s.score;
+    merged.push_back(std::move(r));
+  }
+  results = std::move(merged);
+}
+
+// Unverified candidates against the matched regions of verified results (anchors), in rounds; a
+// candidate verified in one round is an anchor of the next, up to transitive_anchors anchors in all. A
+// candidate stops at its first anchor that verifies it.
+void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptions& options, size_t num_verified,
+                                          ScoreScratch* scratch, std::vector<QueryResult>& results) const {
+  const size_t first = num_verified;
+  const size_t last = std::min(results.size(), first + static_cast<size_t>(options.transitive_depth));
+  std::vector<size_t> pool(num_verified);  // anchor candidates: positions in `results`, in anchor order
+  std::iota(pool.begin(), pool.end(), size_t{0});
+  const auto max_anchors = static_cast<size_t>(options.transitive_anchors);
+  size_t used = 0;
+  while (used < std::min(pool.size(), max_anchors)) {
+    const size_t round_end = std::min(pool.size(), max_anchors);
+    struct Anchor {
+      std::vector<sift::Keypoint> keypoints;
+      std::vector<uint32_t> words;
+    };
+    std::vector<Anchor> anchors(round_end - used);
+    std::vector<QueryGeometry> geometries;
+    geometries.reserve(anchors.size());
+    std::vector<std::span<const uint32_t>> anchor_words;
+    anchor_words.reserve(anchors.size());
+    for (size_t a = 0; a < anchors.size(); ++a) {
+      const QueryResult& anchor = results[pool[used + a]];
+      const PackedFeatures& f = snap.Find(anchor.id)->features;
+      const auto& box = anchor.db_region;
+      for (size_t i = 0; i < f.size(); ++i) {
+        const sift::Keypoint k = f.keypoint(i);
+        if (k.x < box[0] || k.x > box[2] || k.y < box[1] || k.y > box[3]) continue;
+        anchors[a].keypoints.push_back(k);
+        anchors[a].words.push_back(f.word(i));
+      }
+      geometries.emplace_back(anchors[a].keypoints, anchors[a].words, box);
+      anchor_words.emplace_back(anchors[a].words);
+    }
+    const std::vector<std::vector<TransitiveAttempt>> attempts =
+        PlanTransitiveAttempts(snap, options, anchor_words, results, first, last, scratch);
+    std::vector<uint8_t> found(last - first, 0);
+    ParallelFor(last - first, index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
+      for (size_t c = first + begin; c < first + end; ++c) {
+        QueryResult& r = results[c];
+        if (r.verified || attempts[c - first].empty()) continue;
+        const PackedFeatures& f = snap.Find(r.id)->features;
+        for (const TransitiveAttempt& attempt : attempts[c - first]) {
+          const size_t a = attempt.anchor;
+          const sift::VerificationResult v = geometries[a].Verify(f, options.max_pairs_per_word, options.verify);
+          if (!v.verified) continue;
+          r.verified = true;
+          r.inliers = v.num_inliers;
+          r.db_from_query = Compose(v.db_from_query, results[pool[used + a]].db_from_query);
+          r.db_region = v.db_region;
+          found[c - first] = 1;
+          break;
+        }
+      }
+    });
+    used = round_end;
+    std::vector<size_t> fresh;
+    for (size_t c = first; c < last; ++c) {
+      if (found[c - first]) fresh.push_back(c);
+    }
+    std::stable_sort(fresh.begin(), fresh.end(), [&](size_t x, size_t y) { return results[x].inliers > results[y].inliers; });
+    pool.insert(pool.end(), fresh.begin(), fresh.end());
+  }
+  std::stable_sort(results.begin() + static_cast<std::ptrdiff_t>(first),
+                   results.begin() + static_cast<std::ptrdiff_t>(last),
+                   [](const QueryResult& a, const QueryResult& b) {
+                     if (a.verified != b.verified) return a.verified;
+                     return a.verified && a.inliers > b.inliers;
+                   });
+}
+
+// Each anchor only verifies its own nearest tf-idf neighbours (its region's bag scored against the
+// index): most candidates share nothing with most anchors, and the verifier is the expensive part.
+// A candidate is tried against at most transitive_attempts anchors, those whose regions score it
+// highest, in anchor order: a view of the object verifies against one of its closest anchors or
+// rarely at all, while a negative would otherwise pay one verification per anchor listing it.
+std::vector<std::vector<ImageIndex::Impl::TransitiveAttempt>> ImageIndex::Impl::PlanTransitiveAttempts(
+    const Snapshot& snap, const QueryOptions& options, const std::vector<std::span<const uint32_t>>& anchor_words,
+    const std::vector<QueryResult>& results, size_t first, size_t last, ScoreScratch* scratch) {
+  std::unordered_map<uint32_t, size_t> window;  // image number -> position in `results`
+  for (size_t c = first; c < last; ++c) {
+    uint32_t number = 0;
+    if (!results[c].verified && snap.Find(results[c].id, &number)) window.emplace(number, c);
+  }
+  std::vector<std::vector<TransitiveAttempt>> attempts(last - first);
+  for (size_t a = 0; a < anchor_words.size(); ++a) {
+    const std::vector<QueryTerm> anchor_terms = snap.inverted.QueryVector(BagOfWords::FromWords(anchor_words[a]));
+    for (const ScoredImage& s : snap.inverted.Score(anchor_terms, static_cast<size_t>(options.transitive_neighbours) + 1, scratch)) {
+      const auto it = window.find(s.image);
+      if (it != window.end()) attempts[it->second - first].push_back({s.score, static_cast<uint32_t>(a)});
+    }
+  }
+  const auto max_attempts = static_cast<size_t>(options.transitive_attempts);
+  for (auto& list : attempts) {
+    std::sort(list.begin(), list.end(), [](const TransitiveAttempt& x, const TransitiveAttempt& y) {
+      return x.score != y.score ? x.score > y.score : x.anchor < y.anchor;
+    });
+    if (list.size() > max_attempts) list.resize(max_attempts);
+    // Among those, the better anchor first (anchors are ordered best first).
+    std::sort(list.begin(), list.end(),
+              [](const TransitiveAttempt& x, const TransitiveAttempt& y) { return x.anchor < y.anchor; });
+  }
+  return attempts;
 }
 
 IndexStats ImageIndex::Stats() const {

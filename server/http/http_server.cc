@@ -333,6 +333,117 @@ const HttpServer::RouteTable& Routes() {
   }};
   return table;
 }
+
+// ---- Route handlers (run by HttpServer::ServiceRoute once the service is available)
+
+void DescribeApi(const httplib::Request&, httplib::Response& res) {
+  json routes = json::array();
+  for (const auto& r : Routes().routes) routes.push_back({{"route", r.label}, {"methods", r.methods}});
+  SendJson(res, 200, {{"service", "oxbow"}, {"api_version", "v1"}, {"routes", routes}});
+}
+
+void PostImage(api::Service& s, const httplib::Request& req, httplib::Response& res) {
+  auto params = api::ParseAddParams(CollectParams(req, {"file", "image"}));
+  if (!params) return SendError(res, params.error());
+  std::string filename;
+  auto image = RequestImage(req, "file", "image", &filename);
+  if (!image) return SendError(res, image.error());
+  api::AddImageRequest add;
+  add.id = params->id;
+  add.image = Bytes(*image);
+  add.metadata_json = params->metadata_json;
+  add.replace = params->replace;
+  add.source_name = filename.empty() ? "http" : "http:" + filename;
+  auto added = s.AddImage(add);
+  if (!added) return SendError(res, added.error());
+  RecordStages(res, {{"decode_extract", added->decode_extract_ms}, {"add", added->add_ms}});
+  res.set_header("Location", "/v1/images/" + added->record.id);
+  SendJson(res, added->replaced ? 200 : 201, api::AddImageResponseToJson(*added));
+}
+
+void ListImages(api::Service& s, const httplib::Request& req, httplib::Response& res) {
+  auto params = api::ParseListParams(CollectParams(req, {}));
+  if (!params) return SendError(res, params.error());
+  auto list = s.ListImages(params->offset, params->limit);
+  if (!list) return SendError(res, list.error());
+  SendJson(res, 200, api::ListResponseToJson(*list));
+}
+
+void GetSimilar(api::Service& s, const httplib::Request& req, httplib::Response& res) {
+  auto options = api::ParseQueryParams(CollectParams(req, {}), s.options().default_query);
+  if (!options) return SendError(res, options.error());
+  auto found = s.SearchSimilar(req.matches[1], *options);
+  if (!found) return SendError(res, found.error());
+  const auto& t = found->index.timings;
+  RecordStages(res, {{"quantize", t.quantize_ms}, {"score", t.score_ms}, {"verify", t.verify_ms}, {"qe", t.qe_ms}});
+  SendJson(res, 200, api::SearchResponseToJson(*found));
+}
+
+void GetThumbnail(api::Service& s, const httplib::Request& req, httplib::Response& res) {
+  const api::Params params = CollectParams(req, {});
+  if (auto known = api::CheckKnownParams(params, {"size"}); !known) return SendError(res, known.error());
+  int size = 256;  // a larger size than the server stores gets the stored one
+  if (auto it = params.find("size"); it != params.end()) {
+    auto parsed = api::ParseInt("size", it->second, api::kMinThumbnailPx, api::kMaxThumbnailPx);
+    if (!parsed) return SendError(res, parsed.error());
+    size = static_cast<int>(*parsed);
+  }
+  auto found = s.GetThumbnail(req.matches[1], size);
+  if (!found) return SendError(res, found.error());
+  const auto& jpeg = found->thumbnail.jpeg;
+  SendCacheable(req, res, jpeg, "image/jpeg", StrongEtag(jpeg), "private, max-age=60");
+}
+
+void GetImage(api::Service& s, const httplib::Request& req, httplib::Response& res) {
+  auto record = s.GetImage(req.matches[1]);
+  if (!record) return SendError(res, record.error());
+  SendJson(res, 200, api::ImageRecordToJson(*record));
+}
+
+void DeleteImage(api::Service& s, const httplib::Request& req, httplib::Response& res) {
+  const std::string id = req.matches[1];
+  if (auto removed = s.DeleteImage(id); !removed) return SendError(res, removed.error());
+  SendJson(res, 200, {{"id", id}, {"deleted", true}});
+}
+
+void PostSearch(api::Service& s, const httplib::Request& req, httplib::Response& res) {
+  auto options = api::ParseQueryParams(CollectParams(req, {"file", "image"}), s.options().default_query);
+  if (!options) return SendError(res, options.error());
+  std::string filename;
+  auto image = RequestImage(req, "file", "image", &filename);
+  if (!image) return SendError(res, image.error());
+  auto found = s.Search(Bytes(*image), *options);
+  if (!found) return SendError(res, found.error());
+  const auto& t = found->index.timings;
+  RecordStages(res, {{"decode_extract", found->decode_extract_ms}, {"quantize", t.quantize_ms},
+                     {"score", t.score_ms}, {"verify", t.verify_ms}, {"qe", t.qe_ms}});
+  SendJson(res, 200, api::SearchResponseToJson(*found));
+}
+
+void PostMatch(api::Service& s, const httplib::Request& req, httplib::Response& res) {
+  if (!req.is_multipart_form_data()) {
+    return SendError(res, Error{ErrorCode::kUnsupportedFormat,
+                                "POST /v1/match takes multipart/form-data with image parts 'a' and 'b'"});
+  }
+  auto params = api::ParseMatchParams(CollectParams(req, {"a", "b"}));
+  if (!params) return SendError(res, params.error());
+  std::string name_a, name_b;
+  auto a = RequestImage(req, "a", "a", &name_a);
+  if (!a) return SendError(res, a.error());
+  auto b = RequestImage(req, "b", "b", &name_b);
+  if (!b) return SendError(res, b.error());
+  api::PairMatchOptions options;
+  options.model = params->model;
+  options.match = params->match;
+  options.min_inliers = params->min_inliers;
+  options.correspondences = params->correspondences;
+  auto matched = s.Match(Bytes(*a), Bytes(*b), options);
+  if (!matched) return SendError(res, matched.error());
+  RecordStages(res, {{"decode_extract_a", matched->decode_extract_a_ms},
+                     {"decode_extract_b", matched->decode_extract_b_ms},
+                     {"match", matched->match.match_ms}, {"verify", matched->match.verify_ms}});
+  SendJson(res, 200, api::MatchResponseToJson(*matched));
+}
 }  // namespace
 
 HttpServer::HttpServer(const HttpServerOptions& options)
@@ -403,10 +514,18 @@ void HttpServer::Shutdown() {
 }
 
 void HttpServer::RegisterRoutes() {
-  auto& http = *http_;
+  RegisterRequestHooks();
+  RegisterErrorHandlers();
+  // httplib tries a method's routes in registration order: the specific /v1/images/{id}/... patterns
+  // are registered before /v1/images/{id}.
+  RegisterStatusRoutes();
+  RegisterImageRoutes();
+  RegisterSearchRoutes();
+}
 
+void HttpServer::RegisterRequestHooks() {
   // Every request starts here (after its headers are read, before its body is).
-  http.set_pre_routing_handler([this](const httplib::Request& req, httplib::Response& res) {
+  http_->set_pre_routing_handler([this](const httplib::Request& req, httplib::Response& res) {
     t_request = RequestContext{};
     t_request.active = true;
     t_request.start = Clock::now();
@@ -425,9 +544,21 @@ void HttpServer::RegisterRoutes() {
     return RefuseOverUploadBudget(req, res, upload_budget_.get(), options_.max_body_bytes);
   });
 
+  http_->set_logger([this](const httplib::Request& req, const httplib::Response& res) {
+    const double seconds = t_request.active ? std::chrono::duration<double>(Clock::now() - t_request.start).count() : 0;
+    const std::string route = t_request.active ? t_request.route : "unmatched";
+    metrics_.Observe(route, req.method, res.status, seconds);
+    OXBOW_LOG(kInfo) << "http " << (t_request.active ? t_request.id : "-") << " " << req.method << " "
+                     << LoggablePath(req.path) << " route=" << route << " status=" << res.status << " ms="
+                     << seconds * 1000 << (t_request.stages.empty() ? "" : " ") << t_request.stages;
+    t_request = RequestContext{};
+  });
+}
+
+void HttpServer::RegisterErrorHandlers() {
   // Responses with an error status that no handler filled (unknown route, payload too large, malformed
   // request) get the JSON error shape; an unknown method on a known route becomes 405.
-  http.set_error_handler(httplib::Server::HandlerWithResponse([this](const httplib::Request& req, httplib::Response& res) {
+  http_->set_error_handler(httplib::Server::HandlerWithResponse([this](const httplib::Request& req, httplib::Response& res) {
     if (!res.body.empty()) return httplib::Server::HandlerResponse::Unhandled;
     if (RequestDeadlineExpired()) return AnswerRequestTimeout(res);
     if (res.status == 404) {
@@ -448,7 +579,7 @@ void HttpServer::RegisterRoutes() {
     return httplib::Server::HandlerResponse::Handled;
   }));
 
-  http.set_exception_handler([](const httplib::Request&, httplib::Response& res, const std::exception_ptr& ep) {
+  http_->set_exception_handler([](const httplib::Request&, httplib::Response& res, const std::exception_ptr& ep) {
     std::string what = "unknown exception";
     try {
       if (ep) std::rethrow_exception(ep);
@@ -459,53 +590,43 @@ void HttpServer::RegisterRoutes() {
     OXBOW_LOG(kError) << "http " << t_request.id << " internal error: " << what;
     SendError(res, api::HttpError{500, "internal", "internal error: " + what});
   });
+}
 
-  http.set_logger([this](const httplib::Request& req, const httplib::Response& res) {
-    const double seconds = t_request.active ? std::chrono::duration<double>(Clock::now() - t_request.start).count() : 0;
-    const std::string route = t_request.active ? t_request.route : "unmatched";
-    metrics_.Observe(route, req.method, res.status, seconds);
-    OXBOW_LOG(kInfo) << "http " << (t_request.active ? t_request.id : "-") << " " << req.method << " "
-                     << LoggablePath(req.path) << " route=" << route << " status=" << res.status << " ms="
-                     << seconds * 1000 << (t_request.stages.empty() ? "" : " ") << t_request.stages;
-    t_request = RequestContext{};
-  });
-
-  // Wraps a route body: catches everything, answers 503 while the index loads, checks the API key.
-  enum class Access { kOpen, kWrite };
-  auto route = [this](Access access, std::function<void(api::Service&, const httplib::Request&, httplib::Response&)> body) {
-    return [this, access, body = std::move(body)](const httplib::Request& req, httplib::Response& res) {
-      try {
-        if (access == Access::kWrite && !options_.api_key.empty()) {
-          std::string key = req.get_header_value("X-API-Key");
-          const std::string auth = req.get_header_value("Authorization");
-          if (key.empty() && auth.rfind("Bearer ", 0) == 0) key = auth.substr(7);
-          if (key.empty()) {
-            SendError(res, Error{ErrorCode::kUnauthenticated,
-                                 "this route needs the API key: header 'Authorization: Bearer KEY' or 'X-API-Key: KEY'"});
-            return;
-          }
-          if (!ConstantTimeEquals(key, options_.api_key)) {
-            SendError(res, api::PermissionDenied("wrong API key"));
-            return;
-          }
-        }
-        auto service = this->service();
-        if (!service) {
-          res.set_header("Retry-After", "5");
-          SendError(res, api::Unavailable(shutting_down_ ? "shutting down" : "the index is still loading; retry shortly"));
+HttpServer::Handler HttpServer::ServiceRoute(Access access, ServiceHandler body) {
+  return [this, access, body = std::move(body)](const httplib::Request& req, httplib::Response& res) {
+    try {
+      if (access == Access::kWrite && !options_.api_key.empty()) {
+        std::string key = req.get_header_value("X-API-Key");
+        const std::string auth = req.get_header_value("Authorization");
+        if (key.empty() && auth.rfind("Bearer ", 0) == 0) key = auth.substr(7);
+        if (key.empty()) {
+          SendError(res, Error{ErrorCode::kUnauthenticated,
+                               "this route needs the API key: header 'Authorization: Bearer KEY' or 'X-API-Key: KEY'"});
           return;
         }
-        body(*service, req, res);
-      } catch (const std::exception& e) {
-        OXBOW_LOG(kError) << "http " << t_request.id << " internal error: " << e.what();
-        SendError(res, api::HttpError{500, "internal", std::string("internal error: ") + e.what()});
-      } catch (...) {
-        SendError(res, api::HttpError{500, "internal", "internal error"});
+        if (!ConstantTimeEquals(key, options_.api_key)) {
+          SendError(res, api::PermissionDenied("wrong API key"));
+          return;
+        }
       }
-    };
+      auto service = this->service();
+      if (!service) {
+        res.set_header("Retry-After", "5");
+        SendError(res, api::Unavailable(shutting_down_ ? "shutting down" : "the index is still loading; retry shortly"));
+        return;
+      }
+      body(*service, req, res);
+    } catch (const std::exception& e) {
+      OXBOW_LOG(kError) << "http " << t_request.id << " internal error: " << e.what();
+      SendError(res, api::HttpError{500, "internal", std::string("internal error: ") + e.what()});
+    } catch (...) {
+      SendError(res, api::HttpError{500, "internal", "internal error"});
+    }
   };
+}
 
-  // ---- Process and index status
+void HttpServer::RegisterStatusRoutes() {
+  auto& http = *http_;
   http.Get("/healthz", [](const httplib::Request&, httplib::Response& res) { SendJson(res, 200, {{"status", "ok"}}); });
   http.Get("/readyz", [this](const httplib::Request&, httplib::Response& res) {
     if (shutting_down_) {
@@ -516,141 +637,51 @@ void HttpServer::RegisterRoutes() {
       SendJson(res, 200, {{"status", "ready"}});
     }
   });
-  auto describe = [](const httplib::Request&, httplib::Response& res) {
-    json routes = json::array();
-    for (const auto& r : Routes().routes) routes.push_back({{"route", r.label}, {"methods", r.methods}});
-    SendJson(res, 200, {{"service", "oxbow"}, {"api_version", "v1"}, {"routes", routes}});
-  };
   // The web page (server/web/), also while the index loads (it shows the 503s the API answers then).
   http.Get("/", [](const httplib::Request& req, httplib::Response& res) { SendWebAsset(req, res, "index.html"); });
   http.Get(R"(/static/(.+))", [](const httplib::Request& req, httplib::Response& res) {
     SendWebAsset(req, res, req.matches[1].str());
   });
-  http.Get(R"(/v1/?)", describe);
-  http.Get("/metrics", [this](const httplib::Request&, httplib::Response& res) {
-    std::vector<api::Gauge> gauges = {
-        {"oxbow_ready", "1 when the index is loaded and the server is not shutting down.", ready() ? 1.0 : 0.0},
-        {"oxbow_process_resident_memory_bytes", "Resident memory of the process.",
-         static_cast<double>(api::ResidentMemoryBytes())}};
-    if (auto s = service()) {
-      const auto stats = s->Stats();
-      gauges.push_back({"oxbow_index_images", "Live images in the index.", static_cast<double>(stats.index.num_images)});
-      gauges.push_back({"oxbow_index_features", "Indexed features.", static_cast<double>(stats.index.num_features)});
-      gauges.push_back({"oxbow_index_memory_bytes", "In-memory index (postings + geometry + tables).",
-                        static_cast<double>(stats.index.postings_bytes + stats.index.geometry_bytes + stats.index.other_bytes)});
-      gauges.push_back({"oxbow_vocabulary_words", "Visual words.", static_cast<double>(stats.index.vocabulary_size)});
-      gauges.push_back({"oxbow_extractions_in_flight", "Image decodes + extractions running now.",
-                        static_cast<double>(stats.extractions_in_flight)});
-      gauges.push_back({"oxbow_uptime_seconds", "Seconds since the index was opened.", stats.uptime_s});
-    }
-    res.status = 200;
-    res.set_content(metrics_.Render(gauges), "text/plain; version=0.0.4");
-  });
-  http.Get("/v1/stats", route(Access::kOpen, [](api::Service& s, const httplib::Request&, httplib::Response& res) {
+  http.Get(R"(/v1/?)", DescribeApi);
+  http.Get("/metrics", [this](const httplib::Request&, httplib::Response& res) { ServeMetrics(res); });
+  http.Get("/v1/stats", ServiceRoute(Access::kOpen, [](api::Service& s, const httplib::Request&, httplib::Response& res) {
              SendJson(res, 200, api::StatsToJson(s.Stats()));
            }));
+}
 
-  // ---- Images
-  http.Post("/v1/images", route(Access::kWrite, [](api::Service& s, const httplib::Request& req, httplib::Response& res) {
-              auto params = api::ParseAddParams(CollectParams(req, {"file", "image"}));
-              if (!params) return SendError(res, params.error());
-              std::string filename;
-              auto image = RequestImage(req, "file", "image", &filename);
-              if (!image) return SendError(res, image.error());
-              api::AddImageRequest add;
-              add.id = params->id;
-              add.image = Bytes(*image);
-              add.metadata_json = params->metadata_json;
-              add.replace = params->replace;
-              add.source_name = filename.empty() ? "http" : "http:" + filename;
-              auto added = s.AddImage(add);
-              if (!added) return SendError(res, added.error());
-              RecordStages(res, {{"decode_extract", added->decode_extract_ms}, {"add", added->add_ms}});
-              res.set_header("Location", "/v1/images/" + added->record.id);
-              SendJson(res, added->replaced ? 200 : 201, api::AddImageResponseToJson(*added));
-            }));
-  http.Get("/v1/images", route(Access::kOpen, [](api::Service& s, const httplib::Request& req, httplib::Response& res) {
-             auto params = api::ParseListParams(CollectParams(req, {}));
-             if (!params) return SendError(res, params.error());
-             auto list = s.ListImages(params->offset, params->limit);
-             if (!list) return SendError(res, list.error());
-             SendJson(res, 200, api::ListResponseToJson(*list));
-           }));
-  http.Get(R"(/v1/images/(.+)/similar)",
-           route(Access::kOpen, [](api::Service& s, const httplib::Request& req, httplib::Response& res) {
-             auto options = api::ParseQueryParams(CollectParams(req, {}), s.options().default_query);
-             if (!options) return SendError(res, options.error());
-             auto found = s.SearchSimilar(req.matches[1], *options);
-             if (!found) return SendError(res, found.error());
-             const auto& t = found->index.timings;
-             RecordStages(res, {{"quantize", t.quantize_ms}, {"score", t.score_ms}, {"verify", t.verify_ms}, {"qe", t.qe_ms}});
-             SendJson(res, 200, api::SearchResponseToJson(*found));
-           }));
-  http.Get(R"(/v1/images/(.+)/thumbnail)",
-           route(Access::kOpen, [](api::Service& s, const httplib::Request& req, httplib::Response& res) {
-             const api::Params params = CollectParams(req, {});
-             if (auto known = api::CheckKnownParams(params, {"size"}); !known) return SendError(res, known.error());
-             int size = 256;  // a larger size than the server stores gets the stored one
-             if (auto it = params.find("size"); it != params.end()) {
-               auto parsed = api::ParseInt("size", it->second, api::kMinThumbnailPx, api::kMaxThumbnailPx);
-               if (!parsed) return SendError(res, parsed.error());
-               size = static_cast<int>(*parsed);
-             }
-             auto found = s.GetThumbnail(req.matches[1], size);
-             if (!found) return SendError(res, found.error());
-             const auto& jpeg = found->thumbnail.jpeg;
-             SendCacheable(req, res, jpeg, "image/jpeg", StrongEtag(jpeg), "private, max-age=60");
-           }));
-  http.Get(R"(/v1/images/(.+))", route(Access::kOpen, [](api::Service& s, const httplib::Request& req, httplib::Response& res) {
-             auto record = s.GetImage(req.matches[1]);
-             if (!record) return SendError(res, record.error());
-             SendJson(res, 200, api::ImageRecordToJson(*record));
-           }));
-  http.Delete(R"(/v1/images/(.+))",
-              route(Access::kWrite, [](api::Service& s, const httplib::Request& req, httplib::Response& res) {
-                const std::string id = req.matches[1];
-                if (auto removed = s.DeleteImage(id); !removed) return SendError(res, removed.error());
-                SendJson(res, 200, {{"id", id}, {"deleted", true}});
-              }));
+void HttpServer::ServeMetrics(httplib::Response& res) const {
+  std::vector<api::Gauge> gauges = {
+      {"oxbow_ready", "1 when the index is loaded and the server is not shutting down.", ready() ? 1.0 : 0.0},
+      {"oxbow_process_resident_memory_bytes", "Resident memory of the process.",
+       static_cast<double>(api::ResidentMemoryBytes())}};
+  if (auto s = service()) {
+    const auto stats = s->Stats();
+    gauges.push_back({"oxbow_index_images", "Live images in the index.", static_cast<double>(stats.index.num_images)});
+    gauges.push_back({"oxbow_index_features", "Indexed features.", static_cast<double>(stats.index.num_features)});
+    gauges.push_back({"oxbow_index_memory_bytes", "In-memory index (postings + geometry + tables).",
+                      static_cast<double>(stats.index.postings_bytes + stats.index.geometry_bytes + stats.index.other_bytes)});
+    gauges.push_back({"oxbow_vocabulary_words", "Visual words.", static_cast<double>(stats.index.vocabulary_size)});
+    gauges.push_back({"oxbow_extractions_in_flight", "Image decodes + extractions running now.",
+                      static_cast<double>(stats.extractions_in_flight)});
+    gauges.push_back({"oxbow_uptime_seconds", "Seconds since the index was opened.", stats.uptime_s});
+  }
+  res.status = 200;
+  res.set_content(metrics_.Render(gauges), "text/plain; version=0.0.4");
+}
 
-  // ---- Search and match
-  http.Post("/v1/search", route(Access::kOpen, [](api::Service& s, const httplib::Request& req, httplib::Response& res) {
-              auto options = api::ParseQueryParams(CollectParams(req, {"file", "image"}), s.options().default_query);
-              if (!options) return SendError(res, options.error());
-              std::string filename;
-              auto image = RequestImage(req, "file", "image", &filename);
-              if (!image) return SendError(res, image.error());
-              auto found = s.Search(Bytes(*image), *options);
-              if (!found) return SendError(res, found.error());
-              const auto& t = found->index.timings;
-              RecordStages(res, {{"decode_extract", found->decode_extract_ms}, {"quantize", t.quantize_ms},
-                                 {"score", t.score_ms}, {"verify", t.verify_ms}, {"qe", t.qe_ms}});
-              SendJson(res, 200, api::SearchResponseToJson(*found));
-            }));
-  http.Post("/v1/match", route(Access::kOpen, [](api::Service& s, const httplib::Request& req, httplib::Response& res) {
-              if (!req.is_multipart_form_data()) {
-                return SendError(res, Error{ErrorCode::kUnsupportedFormat,
-                                            "POST /v1/match takes multipart/form-data with image parts 'a' and 'b'"});
-              }
-              auto params = api::ParseMatchParams(CollectParams(req, {"a", "b"}));
-              if (!params) return SendError(res, params.error());
-              std::string name_a, name_b;
-              auto a = RequestImage(req, "a", "a", &name_a);
-              if (!a) return SendError(res, a.error());
-              auto b = RequestImage(req, "b", "b", &name_b);
-              if (!b) return SendError(res, b.error());
-              api::PairMatchOptions options;
-              options.model = params->model;
-              options.match = params->match;
-              options.min_inliers = params->min_inliers;
-              options.correspondences = params->correspondences;
-              auto matched = s.Match(Bytes(*a), Bytes(*b), options);
-              if (!matched) return SendError(res, matched.error());
-              RecordStages(res, {{"decode_extract_a", matched->decode_extract_a_ms},
-                                 {"decode_extract_b", matched->decode_extract_b_ms},
-                                 {"match", matched->match.match_ms}, {"verify", matched->match.verify_ms}});
-              SendJson(res, 200, api::MatchResponseToJson(*matched));
-            }));
+void HttpServer::RegisterImageRoutes() {
+  auto& http = *http_;
+  http.Post("/v1/images", ServiceRoute(Access::kWrite, PostImage));
+  http.Get("/v1/images", ServiceRoute(Access::kOpen, ListImages));
+  http.Get(R"(/v1/images/(.+)/similar)", ServiceRoute(Access::kOpen, GetSimilar));
+  http.Get(R"(/v1/images/(.+)/thumbnail)", ServiceRoute(Access::kOpen, GetThumbnail));
+  http.Get(R"(/v1/images/(.+))", ServiceRoute(Access::kOpen, GetImage));
+  http.Delete(R"(/v1/images/(.+))", ServiceRoute(Access::kWrite, DeleteImage));
+}
+
+void HttpServer::RegisterSearchRoutes() {
+  http_->Post("/v1/search", ServiceRoute(Access::kOpen, PostSearch));
+  http_->Post("/v1/match", ServiceRoute(Access::kOpen, PostMatch));
 }
 
 }  // namespace oxbow::server

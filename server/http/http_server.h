@@ -23,6 +23,7 @@
 
 #include <atomic>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -34,6 +35,8 @@
 
 namespace httplib {
 class Server;
+struct Request;
+struct Response;
 }
 
 namespace oxbow::server {
@@ -99,7 +102,20 @@ class HttpServer {
   struct RouteTable;
 
  private:
+  // Whether a /v1 route needs the API key (when one is set).
+  enum class Access { kOpen, kWrite };
+  using Handler = std::function<void(const httplib::Request&, httplib::Response&)>;
+  using ServiceHandler = std::function<void(api::Service&, const httplib::Request&, httplib::Response&)>;
+
   void RegisterRoutes();
+  void RegisterRequestHooks();   // request id, load shedding, upload budget; the log line and metrics
+  void RegisterErrorHandlers();  // JSON error bodies for unhandled statuses and exceptions
+  void RegisterStatusRoutes();   // health, readiness, metrics, stats, API description, web page
+  void RegisterImageRoutes();
+  void RegisterSearchRoutes();
+  // Wraps a route body: catches everything, answers 503 while the index loads, checks the API key.
+  Handler ServiceRoute(Access access, ServiceHandler body);
+  void ServeMetrics(httplib::Response& res) const;
   std::shared_ptr<api::Service> service() const;
 
   HttpServerOptions options_;
