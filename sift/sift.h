@@ -134,7 +134,7 @@ struct SiftOptions {
   // Each thread that calls Extract keeps its pyramid buffers (28 * W * H floats with upsampling and 3
   // intervals: ~88 MB for a 1024x768 image) for its next call, unless they exceed this many MiB; 0
   // frees them after every call. Reuse saves the page faults (and kernel zeroing) of fresh memory: a
-  // first call measured ~1.8x as long as the following ones on our 2-core VM. [0, 65536].
+  // cold call measured 1.02-1.33x the CPU time of a warm one (sift_benchmark, README). [0, 65536].
   int thread_cache_mib = 256;
 
   // Error message for an invalid setting, or nullopt.
