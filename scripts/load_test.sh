@@ -5,7 +5,7 @@
 # Runs on a throw-away copy of the demo index (scripts/demo.sh builds it on first use).
 #
 #   bash scripts/load_test.sh [--seconds 20] [--search-clients 2] [--similar-clients 2] [--add-clients 1]
-#                             [--threads 8] [--json out.json] [--serve-arg FLAG]...
+#                             [--http-workers 8] [--json out.json] [--serve-arg FLAG]...
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 build_dir=${OXBOW_BUILD_DIR:-$root/build}
@@ -16,7 +16,7 @@ client_args=()
 serve_args=()
 while [[ $# -gt 0 ]]; do
   case "$1" in
-    --threads) threads="$2"; shift 2 ;;
+    --http-workers) threads="$2"; shift 2 ;;   # oxbow serve --http-workers
     --serve-arg) serve_args+=("$2"); shift 2 ;;   # extra `oxbow serve` flag, e.g. --serve-arg=--add-nice --serve-arg=0
     --work) work="$2"; shift 2 ;;
     --seconds|--search-clients|--similar-clients|--add-clients|--json|--top-k) client_args+=("$1" "$2"); shift 2 ;;
