@@ -64,10 +64,12 @@ int ExtractedKeypoints(const std::string& output) {
 
 TEST_F(CliCoherence, VocabularyFromSiftFeatureFilesIsUsableByIndexBuildAndServe) {
   int rc = 0;
-  std::string out = RunCommand(Oxbow("extract --descriptor sift --max-image-side 800 --out " + Path("feats") + " " +
+  std::string out = RunCommand(Oxbow("extract --descriptor SIFT --max-image-side 800 --out " + Path("feats") + " " +
                                      (kSamples / "graf1.png").string() + " " + (kSamples / "box.png").string()),
                                &rc);
   ASSERT_EQ(rc, 0) << out;
+  out = RunCommand(Oxbow("features info " + Path("feats/box.png.oxfeat")), &rc);
+  ASSERT_NE(out.find(", sift descriptors"), std::string::npos) << out;
   // The documented path: SIFT files, a RootSIFT vocabulary (the default descriptor converts them).
   out = RunCommand(Oxbow("vocab train --features " + Path("feats") + " --words 64 --out " + Path("v.oxvoc")), &rc);
   ASSERT_EQ(rc, 0) << out;

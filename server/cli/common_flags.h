@@ -17,7 +17,6 @@
 #include <algorithm>
 #include <chrono>
 #include <cstddef>
-#include <map>
 #include <optional>
 #include <string>
 
@@ -60,14 +59,16 @@ inline void AddImageFlags(CLI::App* cmd, ImageFlags* flags) {
 }
 
 inline void AddDescriptorFlag(CLI::App* cmd, sift::DescriptorKind* kind) {
-  cmd->add_option("--descriptor", *kind,
-                  "descriptor kind: rootsift (L1 normalise + sqrt of SIFT, Arandjelovic & Zisserman 2012; retrieves "
-                  "and matches better) or sift (raw SIFT, e.g. for COLMAP)")
-      ->transform(CLI::CheckedTransformer(
-          std::map<std::string, sift::DescriptorKind>{{"rootsift", sift::DescriptorKind::kRootSift},
-                                                      {"sift", sift::DescriptorKind::kSift}},
-          CLI::ignore_case))
-      ->default_str("rootsift");
+  cmd->add_option_function<std::string>(
+         "--descriptor",
+         [kind](const std::string& name) {
+           *kind = name == "sift" ? sift::DescriptorKind::kSift : sift::DescriptorKind::kRootSift;
+         },
+         "descriptor kind: rootsift (L1 normalise + sqrt of SIFT, Arandjelovic & Zisserman 2012; retrieves "
+         "and matches better) or sift (raw SIFT, e.g. for COLMAP)")
+      ->transform(CLI::IsMember({"rootsift", "sift"}, CLI::ignore_case).description(""))  // SIFT -> sift
+      ->type_name("rootsift|sift")
+      ->default_str(sift::DescriptorKindName(*kind));
 }
 
 inline void AddThreadsFlag(CLI::App* cmd, int* threads) {

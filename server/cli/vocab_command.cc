@@ -31,7 +31,7 @@ struct VocabTrainArgs {
   uint64_t seed = 1;
   int threads = 0;
   std::string assignment = "auto";
-  int probes = 0;
+  int probes = vocab::TrainOptions{}.ivf_probes;
   ImageFlags image;
 };
 
@@ -59,7 +59,7 @@ void RunVocabTrain(const VocabTrainArgs& args) {
   if (args.assignment == "exact") train.assignment = vocab::AssignmentMethod::kExact;
   if (args.assignment == "kdforest") train.assignment = vocab::AssignmentMethod::kKdForest;
   if (args.assignment == "ivf") train.assignment = vocab::AssignmentMethod::kInvertedFile;
-  if (args.probes > 0) train.ivf_probes = args.probes;
+  train.ivf_probes = args.probes;
   if (auto problem = train.Check()) throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), *problem);
   if (args.sample < args.words)
     throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument),
@@ -167,7 +167,8 @@ void SetUpVocab(CLI::App& app) {
       "inverted-file quantiser rebuilt on the current centroids (--assignment kdforest: FLANN kd-forest as in\n"
       "Philbin et al. 2007); a descriptor never moves to a farther word, so the objective never increases.\n"
       "Stops after --iterations or when the objective improves by less than 0.01%. Same seed and input give\n"
-      "the same vocabulary for any --threads. Use about 10-50 descriptors per word.\n"
+      "the same vocabulary for any --threads (not with --assignment kdforest: FLANN seeds its trees itself).\n"
+      "Use about 10-50 descriptors per word.\n"
       "Examples:\n"
       "  oxbow vocab train --images photos/ --words 20000 --out paris20k.oxvoc\n"
       "  oxbow vocab train --features feats/ --words 100000 --sample 5000000 --per-image 2000 --out 100k.vocab");
@@ -187,7 +188,9 @@ void SetUpVocab(CLI::App& app) {
   train->add_option("--assignment", args->assignment, "nearest-centroid search in the iterations: auto, exact, ivf, kdforest")
       ->capture_default_str()
       ->check(CLI::IsMember({"auto", "exact", "ivf", "kdforest"}));
-  train->add_option("--probes", args->probes, "ivf assignment: coarse lists probed per descriptor (default 8)")
+  train->add_option("--quantizer-probes", args->probes,
+                    "ivf assignment: coarse lists probed per descriptor in the iterations")
+      ->capture_default_str()
       ->check(CLI::Range(1, 1 << 20));
   AddImageFlags(train, &args->image);
   train->callback([args] { RunVocabTrain(*args); });
