@@ -272,7 +272,7 @@ TEST_F(SlowClientsTest, UploadsBeyondTheInFlightBudgetGet503Unread) {
     });
   }
   for (auto& t : uploaders) t.join();
-  for (int status : statuses) EXPECT_TRUE(status == 400 || status == 503) << status;
+  for (int upload_status : statuses) EXPECT_TRUE(upload_status == 400 || upload_status == 503) << upload_status;
   auto found = client.Post("/v1/search", image_, "image/png");
   ASSERT_TRUE(found);
   EXPECT_EQ(found->status, 200) << found->body;

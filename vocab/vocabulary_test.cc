@@ -224,7 +224,9 @@ TEST_F(VocabularyTest, QuantizeMultiReturnsSortedNearestWords) {
     for (int j = 0; j < m; ++j) {
       EXPECT_FLOAT_EQ(dist[i * m + j], all[words[i * m + j]]);
       EXPECT_NEAR(dist[i * m + j], sorted[j], 1e-6);
-      if (j > 0) EXPECT_LE(dist[i * m + j - 1], dist[i * m + j]);
+      if (j > 0) {
+        EXPECT_LE(dist[i * m + j - 1], dist[i * m + j]);
+      }
     }
   }
   // Asking for more words than exist fills the tail.
