@@ -162,7 +162,7 @@ Result<index::QueryOptions> ParseQueryParams(const Params& params, const index::
   }
   if (const auto* v = Find(params, "rerank")) {
     if (*v == "true" || *v == "false" || *v == "yes" || *v == "no" || *v == "on" || *v == "off") {
-      options.rerank_depth = (*v == "false" || *v == "no" || *v == "off") ? 0 : (defaults.rerank_depth > 0 ? defaults.rerank_depth : 200);
+      options.rerank_depth = (*v == "false" || *v == "no" || *v == "off") ? 0 : (defaults.rerank_depth > 0 ? defaults.rerank_depth : index::QueryOptions{}.rerank_depth);
     } else {
       auto parsed = ParseInt("rerank", *v, 0, 10000);
       if (!parsed) return std::unexpected(parsed.error());
