@@ -83,9 +83,9 @@ TEST(Params, QueryParamsOverrideDefaultsAndRefuseUnknownNames) {
   ASSERT_TRUE(on);
   EXPECT_EQ(on->rerank_depth, defaults.rerank_depth);
   // A server started with --rerank 0: rerank=true means the library's default depth (one definition).
-  index::QueryOptions tfidf_only = defaults;
-  tfidf_only.rerank_depth = 0;
-  auto on_default = ParseQueryParams({{"rerank", "true"}}, tfidf_only);
+  index::QueryOptions no_rerank = defaults;
+  no_rerank.rerank_depth = 0;
+  auto on_default = ParseQueryParams({{"rerank", "true"}}, no_rerank);
   ASSERT_TRUE(on_default);
   EXPECT_EQ(on_default->rerank_depth, index::QueryOptions{}.rerank_depth);
 
