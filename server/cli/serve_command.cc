@@ -25,6 +25,7 @@ struct ServeFlags {
   api::ServiceOptions service;
   double max_upload_mb = 32;
   double max_inflight_upload_mb = 256;
+  int max_header_kb = 64;
   ImageFlags image;
   int index_threads = 0;
   index::IndexOptions index_options;  // scoring options (--max-df, ...); num_threads from --index-threads
@@ -42,6 +43,7 @@ void Serve(const ServeFlags& flags) {
     throw CommandError(2, "--max-inflight-upload-mb must be in [--max-upload-mb, 1048576]");
   }
   http.max_inflight_body_bytes = static_cast<uint64_t>(flags.max_inflight_upload_mb * 1024 * 1024);
+  http.max_head_bytes = static_cast<size_t>(flags.max_header_kb) * 1024;
   service_options.max_image_bytes = http.max_body_bytes;
   service_options.max_pixels = decode.max_pixels;
   service_options.max_image_side_px = decode.max_image_side_px;
@@ -177,6 +179,16 @@ void SetUpServe(CLI::App& app) {
   cmd->add_option("--max-inflight-upload-mb", flags->max_inflight_upload_mb,
                   "request bodies held in memory by all requests together, MiB; an upload that does not fit gets 503")
       ->capture_default_str();
+  cmd->add_option("--max-header-count", flags->http.max_header_count, "request headers at most (431 above)")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 10000));
+  cmd->add_option("--max-header-kb", flags->max_header_kb, "request line + headers, KiB at most (431 above)")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 16384));
+  cmd->add_option("--max-connections-per-client", flags->http.max_connections_per_client,
+                  "open connections from one client address at most (served, queued or refused); beyond it 503")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 100000));
   cmd->add_option("--top-k", flags->service.default_query.top_k, "default top_k of searches")
       ->capture_default_str()
       ->check(CLI::Range(1, 10000));

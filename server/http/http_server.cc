@@ -3,12 +3,11 @@
 #include <httplib.h>
 
 #include <chrono>
-#include <condition_variable>
 #include <cstdio>
-#include <deque>
 #include <functional>
 #include <random>
 #include <regex>
+#include <set>
 #include <sstream>
 #include <thread>
 #include <vector>
@@ -40,8 +39,6 @@ struct RequestContext {
   std::string stages;     // "extract=12.1 quantize=0.4 ..." for the log line
 };
 thread_local RequestContext t_request;
-// Set by the shedding thread of BoundedTaskQueue: every request on this thread gets 503.
-thread_local bool t_shedding = false;
 
 std::string NewRequestId() {
   thread_local std::mt19937_64 rng(std::random_device{}() ^
@@ -105,6 +102,7 @@ httplib::Server::HandlerResponse RefuseOverUploadBudget(const httplib::Request& 
   if (ReserveUploadForThisRequest(req, budget, max_body_bytes)) return httplib::Server::HandlerResponse::Unhandled;
   res.set_header("Retry-After", "1");
   res.set_header("Connection", "close");
+  CloseConnectionAfterResponse();  // the body stays unread
   SendError(res, Error{ErrorCode::kResourceExhausted,
                        "uploads in progress fill the server's budget of " + std::to_string(budget->capacity()) +
                            " bytes; retry later (oxbow serve --max-inflight-upload-mb)"});
@@ -114,6 +112,7 @@ httplib::Server::HandlerResponse RefuseOverUploadBudget(const httplib::Request& 
 // A request whose headers + body did not arrive within the request timeout.
 httplib::Server::HandlerResponse AnswerRequestTimeout(httplib::Response& res) {
   res.set_header("Connection", "close");
+  CloseConnectionAfterResponse();
   SendError(res, api::HttpError{408, "request_timeout",
                                 "the request did not arrive within the server's request timeout (oxbow serve --request-timeout-s)"});
   return httplib::Server::HandlerResponse::Handled;
@@ -203,69 +202,6 @@ std::span<const uint8_t> Bytes(std::string_view text) {
   return {reinterpret_cast<const uint8_t*>(text.data()), text.size()};
 }
 
-// ---- Bounded task queue --------------------------------------------------------------------------
-
-// httplib's default ThreadPool queues without bound. This one keeps at most `max_queued` connections
-// waiting for `threads` workers; an overflowing connection goes to one shedding thread, which answers
-// its request 503 without reading the body (t_shedding) and closes it. httplib 0.11's enqueue cannot
-// refuse a job (the job owns the socket and must run to close it), hence shedding instead of dropping.
-class BoundedTaskQueue : public httplib::TaskQueue {
- public:
-  BoundedTaskQueue(int threads, int max_queued) : max_queued_(static_cast<size_t>(max_queued)) {
-    for (int i = 0; i < threads; ++i) workers_.emplace_back([this] { Work(&jobs_, false); });
-    shedder_ = std::thread([this] { Work(&shed_jobs_, true); });
-  }
-  ~BoundedTaskQueue() override = default;
-
-  void enqueue(std::function<void()> fn) override {
-    {
-      std::lock_guard<std::mutex> lock(mutex_);
-      if (jobs_.size() < max_queued_) {
-        jobs_.push_back(std::move(fn));
-      } else {
-        shed_jobs_.push_back(std::move(fn));
-      }
-    }
-    cond_.notify_all();
-  }
-
-  void shutdown() override {
-    {
-      std::lock_guard<std::mutex> lock(mutex_);
-      shutdown_ = true;
-    }
-    cond_.notify_all();
-    for (auto& t : workers_) t.join();
-    shedder_.join();
-  }
-
- private:
-  void Work(std::deque<std::function<void()>>* queue, bool shedding) {
-    t_shedding = shedding;
-    if (shedding) MarkSheddingThread();
-    for (;;) {
-      std::function<void()> fn;
-      {
-        std::unique_lock<std::mutex> lock(mutex_);
-        cond_.wait(lock, [&] { return !queue->empty() || shutdown_; });
-        if (queue->empty()) return;  // shutdown_ and drained: queued connections are served first
-        fn = std::move(queue->front());
-        queue->pop_front();
-      }
-      fn();
-    }
-  }
-
-  const size_t max_queued_;
-  std::mutex mutex_;                              // guards jobs_, shed_jobs_, shutdown_
-  std::condition_variable cond_;
-  std::deque<std::function<void()>> jobs_;
-  std::deque<std::function<void()>> shed_jobs_;
-  bool shutdown_ = false;
-  std::vector<std::thread> workers_;
-  std::thread shedder_;
-};
-
 }  // namespace
 
 bool ConstantTimeEquals(const std::string& given, const std::string& expected) {
@@ -291,6 +227,11 @@ std::optional<std::string> HttpServerOptions::Check() const {
   if (keep_alive_timeout_s < 1 || keep_alive_timeout_s > 3600) return "keep_alive_timeout_s must be in [1, 3600]";
   if (keep_alive_max_requests < 1 || keep_alive_max_requests > 100000) return "keep_alive_max_requests must be in [1, 100000]";
   if (request_timeout_s < 1 || request_timeout_s > 3600) return "request_timeout_s must be in [1, 3600]";
+  if (max_header_count < 1 || max_header_count > 10000) return "max_header_count must be in [1, 10000]";
+  if (max_head_bytes < 1024 || max_head_bytes > (1u << 24)) return "max_head_bytes must be in [1024, 2^24]";
+  if (max_connections_per_client < 1 || max_connections_per_client > 100000) {
+    return "max_connections_per_client must be in [1, 100000]";
+  }
   if (max_inflight_body_bytes < max_body_bytes || max_inflight_body_bytes > (1ull << 40)) {
     return "max_inflight_body_bytes must be in [max_body_bytes, 2^40] (at least one largest upload must fit)";
   }
@@ -447,12 +388,18 @@ void PostMatch(api::Service& s, const httplib::Request& req, httplib::Response& 
 }  // namespace
 
 HttpServer::HttpServer(const HttpServerOptions& options)
-    : options_(options),
-      upload_budget_(std::make_unique<UploadBudget>(options.max_inflight_body_bytes)),
-      http_(std::make_unique<GuardedHttpServer>(std::chrono::seconds(options.request_timeout_s), upload_budget_.get())) {
-  const int threads = options_.threads;
-  const int max_queued = options_.max_queued_connections;
-  http_->new_task_queue = [threads, max_queued] { return new BoundedTaskQueue(threads, max_queued); };
+    : options_(options), upload_budget_(std::make_unique<UploadBudget>(options.max_inflight_body_bytes)) {
+  GuardOptions guard;
+  guard.request_timeout = std::chrono::seconds(options_.request_timeout_s);
+  guard.threads = options_.threads;
+  guard.max_queued = options_.max_queued_connections;
+  guard.max_connections_per_client = options_.max_connections_per_client;
+  guard.head.max_header_count = static_cast<size_t>(options_.max_header_count);
+  guard.head.max_head_bytes = options_.max_head_bytes;
+  guard.head.max_body_bytes = options_.max_body_bytes;
+  guard.budget = upload_budget_.get();
+  guard.refusal_writer = [this](const RefusedRequest& refused, httplib::Response& res) { AnswerRefusal(refused, res); };
+  http_ = std::make_unique<GuardedHttpServer>(std::move(guard));
   http_->set_payload_max_length(static_cast<size_t>(options_.max_body_bytes));
   http_->set_read_timeout(options_.read_timeout_s, 0);
   http_->set_write_timeout(options_.write_timeout_s, 0);
@@ -533,13 +480,6 @@ void HttpServer::RegisterRequestHooks() {
     t_request.id = IsSaneRequestId(given) ? given : NewRequestId();
     res.set_header("X-Request-Id", t_request.id);
     if (const auto* route = Routes().Find(req.path)) t_request.route = route->label;
-    if (t_shedding) {
-      res.set_header("Retry-After", "1");
-      res.set_header("Connection", "close");
-      SendError(res, api::Unavailable("server busy: " + std::to_string(options_.max_queued_connections) +
-                                      " connections already wait for a worker; retry later"));
-      return httplib::Server::HandlerResponse::Handled;
-    }
     TakeFormEncodedBodyAsImage(req);
     return RefuseOverUploadBudget(req, res, upload_budget_.get(), options_.max_body_bytes);
   });
@@ -555,12 +495,36 @@ void HttpServer::RegisterRequestHooks() {
   });
 }
 
+void HttpServer::AnswerRefusal(const RefusedRequest& refused, httplib::Response& res) {
+  const std::string id = IsSaneRequestId(refused.request_id) ? refused.request_id : NewRequestId();
+  const std::string path = refused.target.substr(0, refused.target.find('?'));
+  const auto* route = path.empty() ? nullptr : Routes().Find(path);
+  const std::string route_label = route != nullptr ? route->label : "unmatched";
+  // Only the standard methods become a metrics label (a client's invented ones would add series).
+  static const std::set<std::string> kMethods = {"GET", "HEAD", "POST", "PUT", "DELETE", "CONNECT", "OPTIONS", "TRACE", "PATCH"};
+  const std::string method = kMethods.contains(refused.method) ? refused.method : "-";
+  res.status = refused.refusal.status;
+  res.set_header("X-Request-Id", id);
+  if (res.status == 503) res.set_header("Retry-After", "1");
+  const api::HttpError error{refused.refusal.status, refused.refusal.code, refused.refusal.message};
+  res.set_content(api::ErrorBody(error, id).dump(-1, ' ', false, json::error_handler_t::replace) + "\n", "application/json");
+  metrics_.Observe(route_label, method, res.status, 0);
+  OXBOW_LOG(kInfo) << "http " << id << " " << method << " " << (path.empty() ? "-" : LoggablePath(path)) << " route=" << route_label
+                   << " status=" << res.status << " refused: " << refused.refusal.message;
+}
+
 void HttpServer::RegisterErrorHandlers() {
   // Responses with an error status that no handler filled (unknown route, payload too large, malformed
-  // request) get the JSON error shape; an unknown method on a known route becomes 405.
+  // request) get the JSON error shape; an unknown method on a known route becomes 405. Those httplib
+  // answers itself, but for 404/405, may leave body bytes unread: their connection closes.
   http_->set_error_handler(httplib::Server::HandlerWithResponse([this](const httplib::Request& req, httplib::Response& res) {
     if (!res.body.empty()) return httplib::Server::HandlerResponse::Unhandled;
     if (RequestDeadlineExpired()) return AnswerRequestTimeout(res);
+    if (res.status != 404) {
+      res.set_header("Connection", "close");
+      CloseConnectionAfterResponse();
+    }
+    if (ChunkedBodyOverLimit()) res.status = 413;
     if (res.status == 404) {
       if (const auto* route = Routes().Find(req.path)) {
         res.set_header("Allow", route->methods);
@@ -596,8 +560,9 @@ HttpServer::Handler HttpServer::ServiceRoute(Access access, ServiceHandler body)
   return [this, access, body = std::move(body)](const httplib::Request& req, httplib::Response& res) {
     try {
       if (access == Access::kWrite && !options_.api_key.empty()) {
-        std::string key = req.get_header_value("X-API-Key");
-        const std::string auth = req.get_header_value("Authorization");
+        // The whole values: httplib's get_header_value stops at a NUL byte ("KEY\0junk" would pass).
+        std::string key = FullHeaderValue(req, "X-API-Key");
+        const std::string auth = FullHeaderValue(req, "Authorization");
         if (key.empty() && auth.rfind("Bearer ", 0) == 0) key = auth.substr(7);
         if (key.empty()) {
           SendError(res, Error{ErrorCode::kUnauthenticated,

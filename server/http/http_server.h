@@ -3,8 +3,11 @@
 //
 // Behaviour:
 //  - Requests are handled by `threads` workers fed from a bounded queue of accepted connections. When
-//    `max_queued_connections` connections already wait, a new one is answered 503 (JSON, Retry-After)
-//    by a separate shedding thread instead of queueing without bound.
+//    `max_queued_connections` connections already wait, or the client's address already has
+//    `max_connections_per_client` open, a new one is answered 503 (JSON, Retry-After) by a separate
+//    shedding thread instead of queueing without bound (server/http/request_guard.h).
+//  - Request heads are checked before httplib parses them (header count and bytes, strict framing, no
+//    compressed bodies); a refused request is answered at once and its connection closed.
 //  - The index is opened in the background (SetService); until then /healthz answers 200 and /readyz
 //    and the /v1 routes answer 503, so a supervisor sees the process alive while a large index loads.
 //  - Searches never wait for writes (ImageIndex snapshots); this class adds no lock around the index.
@@ -41,6 +44,7 @@ struct Response;
 
 namespace oxbow::server {
 class UploadBudget;
+struct RefusedRequest;
 }
 
 namespace oxbow::server {
@@ -75,6 +79,12 @@ struct HttpServerOptions {
   // before its body is read; one that does not fit is answered 503 (Retry-After) without reading it.
   // [max_body_bytes, 2^40].
   uint64_t max_inflight_body_bytes = 256ull << 20;
+  // Request headers at most, [1, 10000], and request line + headers, bytes, [1024, 2^24]; over -> 431.
+  int max_header_count = 100;
+  size_t max_head_bytes = 64u << 10;
+  // Open connections from one client address at most (served, queued or being refused); over -> 503.
+  // [1, 100000].
+  int max_connections_per_client = 64;
 
   std::optional<std::string> Check() const;
 };
@@ -116,6 +126,8 @@ class HttpServer {
   // Wraps a route body: catches everything, answers 503 while the index loads, checks the API key.
   Handler ServiceRoute(Access access, ServiceHandler body);
   void ServeMetrics(httplib::Response& res) const;
+  // The JSON answer, log line and metrics of a request refused before httplib parsed it.
+  void AnswerRefusal(const RefusedRequest& refused, httplib::Response& res);
   std::shared_ptr<api::Service> service() const;
 
   HttpServerOptions options_;

@@ -1,6 +1,9 @@
 // Fuzz target: the HTTP layer end to end. The input is sent as the raw bytes of a request over TCP to a
 // real server::HttpServer (server/http/http_server.cc, linked as oxbow_http) on 127.0.0.1, serving an api::Service
-// over an index built with the fuzz vocabulary (one image indexed at start). cpp-httplib parses the
+// over an index built with the fuzz vocabulary (one image indexed at start). oxbow's connection loop reads
+// and checks the request head first (server/http/request_guard.cc: header count and bytes, Content-Length /
+// Transfer-Encoding / Content-Encoding framing; the seeds include header floods, chunked and gzip bodies,
+// two Content-Lengths, Content-Length with chunked), cuts chunked bodies at the limit, then cpp-httplib parses the
 // request line, headers, query string and multipart body; oxbow's routes collect the parameters
 // (CollectParams), pick the image part, parse and validate every parameter (bbox, top_k, ids, metadata
 // JSON...), decode and search. Checked for every input: the server answers (no crash, no hang: 20 s
@@ -141,7 +144,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
     response.append(buffer, static_cast<size_t>(n));
   }
   ::close(fd);
-  if (response.empty()) return 0;  // httplib closes without an answer on a request it cannot read at all
+  if (response.empty()) return 0;  // an incomplete head (the input ended inside it) is closed without an answer
   if (response.rfind("HTTP/1.1 ", 0) != 0) Bug("not an HTTP/1.1 status line", response);
   const int status = std::atoi(response.c_str() + 9);
   if (status < 100 || status > 599) Bug("status code out of range", response);

@@ -7,6 +7,8 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include <algorithm>
+#include <cstddef>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
@@ -231,6 +233,28 @@ int main(int argc, char** argv) {
                      std::to_string(jpeg.size()) + "\r\n\r\n");
     raw.insert(raw.end(), jpeg.begin(), jpeg.end());
     Write(dir, "search_raw", raw);
+    // Framing and flood shapes the server refuses before httplib parses them (server/http/request_guard.h).
+    Bytes chunked = text("POST /v1/search HTTP/1.1\r\nHost: x\r\nContent-Type: image/jpeg\r\nTransfer-Encoding: chunked\r\n\r\n");
+    for (size_t at = 0; at < jpeg.size(); at += 4096) {
+      const size_t n = std::min<size_t>(4096, jpeg.size() - at);
+      char size_line[32];
+      std::snprintf(size_line, sizeof size_line, "%zx\r\n", n);
+      const Bytes line = text(size_line);
+      chunked.insert(chunked.end(), line.begin(), line.end());
+      chunked.insert(chunked.end(), jpeg.begin() + static_cast<std::ptrdiff_t>(at), jpeg.begin() + static_cast<std::ptrdiff_t>(at + n));
+      chunked.push_back('\r');
+      chunked.push_back('\n');
+    }
+    const Bytes last = text("0\r\n\r\n");
+    chunked.insert(chunked.end(), last.begin(), last.end());
+    Write(dir, "search_chunked", chunked);
+    Write(dir, "gzip_body", text("POST /v1/search HTTP/1.1\r\nHost: x\r\nContent-Encoding: gzip\r\nContent-Length: 10\r\n\r\n"
+                                 "\x1f\x8b\x08" "deflate"));
+    Write(dir, "duplicate_length", text("POST /v1/search HTTP/1.1\r\nContent-Length: 4\r\nContent-Length: 40\r\n\r\nabcd"));
+    Write(dir, "length_and_chunked", text("POST /v1/search HTTP/1.1\r\nContent-Length: 5\r\nTransfer-Encoding: chunked\r\n\r\n0\r\n\r\n"));
+    std::string flood = "GET /v1/stats HTTP/1.1\r\n";
+    for (int i = 0; i < 150; ++i) flood += "X-Flood-" + std::to_string(i) + ": " + std::string(40, 'a') + "\r\n";
+    Write(dir, "header_flood", text(flood + "\r\n"));
   }
   std::printf("fuzz_seeds: corpora written to %s\n", out.c_str());
   return 0;
