@@ -412,7 +412,7 @@ void WriteRefusal(httplib::Stream& stream, const RefusedRequest& refused, const 
   httplib::Response res;
   writer(refused, res);
   std::string out = "HTTP/1.1 " + std::to_string(res.status) + " " + ReasonPhrase(res.status) + "\r\n";
-  for (const auto& [name, value] : res.headers) out += name + ": " + value + "\r\n";
+  for (const auto& [name, value] : res.headers) out.append(name).append(": ").append(value).append("\r\n");
   out += "Content-Length: " + std::to_string(res.body.size()) + "\r\nConnection: close\r\n\r\n" + res.body;
   for (size_t sent = 0; sent < out.size();) {
     const ssize_t n = stream.write(out.data() + sent, out.size() - sent);
