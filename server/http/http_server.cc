@@ -1,6 +1,7 @@
 #include "server/http/http_server.h"
 
 #include <httplib.h>
+#include <malloc.h>
 
 #include <chrono>
 #include <condition_variable>
@@ -485,6 +486,11 @@ HttpServer::HttpServer(const HttpServerOptions& options)
   // httplib writes the headers and the body separately; with Nagle's algorithm the body then waits for
   // the client's delayed ACK (40 ms on Linux) on every response of a keep-alive connection.
   http_->set_tcp_nodelay(true);
+  // glibc raises its mmap threshold to the largest block freed (up to 32 MiB), after which request
+  // bodies and decoded images come from the per-thread arenas, where a freed block stays resident: a
+  // burst of 20 MB uploads left ~800 MiB resident for good (issue 19; README "memory"). A fixed
+  // threshold keeps every block of 1 MiB and more in mmap, handed back to the system when freed.
+  mallopt(M_MMAP_THRESHOLD, 1 << 20);
   RegisterRoutes();
 }
 
