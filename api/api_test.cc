@@ -171,6 +171,94 @@ TEST(Params, AddParams) {
   EXPECT_FALSE(ParseAddParams({{"id", "a"}, {"metadata", "{not json"}}));
 }
 
+// Issue 19: `top_k=5&top_k=500000` ran with 5, `id=dupA&id=dupB` stored dupA. Every route refuses a
+// repeated name, naming it (the transport collects the query string and multipart fields together).
+TEST(Params, RepeatedNamesAreRefused) {
+  const index::QueryOptions defaults;
+  auto search = ParseQueryParams({{"top_k", "5"}, {"top_k", "500000"}}, defaults);
+  ASSERT_FALSE(search);
+  EXPECT_EQ(search.error().code, ErrorCode::kInvalidArgument);
+  EXPECT_NE(search.error().message.find("'top_k' is given 2 times"), std::string::npos) << search.error().message;
+  auto add = ParseAddParams({{"id", "dupA"}, {"id", "dupB"}});
+  ASSERT_FALSE(add);
+  EXPECT_NE(add.error().message.find("'id'"), std::string::npos) << add.error().message;
+  EXPECT_FALSE(ParseAddParams({{"id", "a"}, {"replace", "false"}, {"replace", "false"}}));  // even when equal
+  EXPECT_FALSE(ParseListParams({{"limit", "5"}, {"limit", "6"}}));
+  EXPECT_FALSE(ParseMatchParams({{"model", "affine"}, {"model", "homography"}}));
+  // A repeated unknown name is refused too (as repeated: the first problem found).
+  EXPECT_FALSE(CheckKnownParams({{"size", "1"}, {"size", "2"}}, {"size"}));
+  EXPECT_TRUE(CheckKnownParams({{"size", "1"}}, {"size"}));
+}
+
+// Issue 19: metadata nested ~74,000 deep crashed the server (SIGSEGV in the recursive dump). The depth
+// and the size are checked on the text before it is parsed.
+TEST(Params, MetadataDepthAndSizeAreLimitedBeforeParsing) {
+  auto nested = [](int depth, const std::string& open = "[", const std::string& close = "]") {
+    std::string text;
+    for (int i = 0; i < depth; ++i) text += open;
+    for (int i = 0; i < depth; ++i) text += close;
+    return text;
+  };
+  // The shape of the crash (195 KiB), and one under the size limit that nests too deep.
+  for (const std::string& deep : {nested(100000), nested(kMaxJsonDepth + 1), nested(kMaxJsonDepth + 1, "{\"a\":", "}")}) {
+    auto add = ParseAddParams({{"id", "a"}, {"metadata", deep}});
+    ASSERT_FALSE(add) << deep.size();
+    EXPECT_EQ(add.error().code, ErrorCode::kInvalidArgument);
+  }
+  EXPECT_NE(ParseAddParams({{"id", "a"}, {"metadata", nested(kMaxJsonDepth + 1)}}).error().message.find("64 levels"),
+            std::string::npos);
+  auto deepest = ParseAddParams({{"id", "a"}, {"metadata", nested(kMaxJsonDepth)}});
+  ASSERT_TRUE(deepest) << deepest.error().message;
+  EXPECT_EQ(deepest->metadata_json, nested(kMaxJsonDepth));
+  // Brackets inside strings, escaped quotes included, are text, not nesting.
+  const std::string quoted = R"({"a":"\"[[[[)" + nested(200) + R"(\\","b":[1]})";
+  auto text = ParseAddParams({{"id", "a"}, {"metadata", quoted}});
+  ASSERT_TRUE(text) << text.error().message;
+  EXPECT_EQ(JsonNestingDepth(quoted), 2);
+  // Size: the limit itself passes, one byte more does not.
+  const std::string padding = R"({"a":")";
+  const std::string at_limit = padding + std::string(kMaxMetadataBytes - padding.size() - 2, 'x') + R"("})";
+  ASSERT_EQ(at_limit.size(), kMaxMetadataBytes);
+  EXPECT_TRUE(ParseAddParams({{"id", "a"}, {"metadata", at_limit}}));
+  auto big = ParseAddParams({{"id", "a"}, {"metadata", padding + std::string(kMaxMetadataBytes, 'x') + R"("})"}});
+  ASSERT_FALSE(big);
+  EXPECT_NE(big.error().message.find("at most 16384 bytes"), std::string::npos) << big.error().message;
+}
+
+TEST(Json, NestingDepthIsCountedWithoutParsing) {
+  EXPECT_EQ(JsonNestingDepth("1"), 0);
+  EXPECT_EQ(JsonNestingDepth("[]"), 1);
+  EXPECT_EQ(JsonNestingDepth(R"({"a":[{"b":[]}],"c":{}})"), 4);
+  EXPECT_EQ(JsonNestingDepth(R"(["]", "[", "\"[", "\\", [1]])"), 2);
+  // Counting stops past the limit: linear at most, whatever the input.
+  EXPECT_EQ(JsonNestingDepth(std::string(1000000, '['), 10), 11);
+  EXPECT_EQ(JsonNestingDepth(std::string(100, ']') + "[[", 64), 2);  // stray closers do not go below zero
+}
+
+// Metadata stored deeper than the limit (by an older server or `oxbow index add --metadata`) comes back
+// as its text, never parsed into a document whose dump would recurse once per level.
+TEST(Json, DeepStoredMetadataIsReturnedAsText) {
+  const std::string deep = std::string(100000, '[') + std::string(100000, ']');
+  const auto json = MetadataToJson(deep);
+  ASSERT_TRUE(json.is_string());
+  EXPECT_EQ(json.dump().size(), deep.size() + 2);
+  EXPECT_EQ(MetadataToJson(R"([[1]])")[0][0], 1);
+}
+
+// Issue 19: an id ending in /similar or /thumbnail could not be fetched by GET /v1/images/{id}. New ones
+// are refused; CheckImageId (used by GET and DELETE too) keeps accepting stored ones.
+TEST(Params, IdsThatReadAsSubresourcesAreRefusedOnAdd) {
+  for (const char* id : {"a/similar", "a/thumbnail", "x/y/thumbnail"}) {
+    auto add = ParseAddParams({{"id", id}});
+    ASSERT_FALSE(add) << id;
+    EXPECT_NE(add.error().message.find("must not end in '/similar' or '/thumbnail'"), std::string::npos);
+    EXPECT_TRUE(CheckImageId(id)) << id;
+  }
+  for (const char* id : {"similar", "thumbnail", "a/similar.jpg", "a/thumbnails", "dir/photo.jpg"}) {
+    EXPECT_TRUE(ParseAddParams({{"id", id}})) << id;
+  }
+}
+
 TEST(Params, ListAndMatchParams) {
   auto list = ParseListParams({{"offset", "10"}, {"limit", "5"}});
   ASSERT_TRUE(list);

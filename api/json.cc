@@ -1,11 +1,37 @@
 #include "api/json.h"
 
+#include <algorithm>
 #include <cstdio>
 
 namespace oxbow::api {
 
+int JsonNestingDepth(std::string_view text, int stop_above) {
+  int depth = 0;
+  int deepest = 0;
+  bool in_string = false;
+  for (size_t i = 0; i < text.size(); ++i) {
+    const char c = text[i];
+    if (in_string) {
+      if (c == '\\') {
+        ++i;  // the escaped character, which may be a quote
+      } else if (c == '"') {
+        in_string = false;
+      }
+    } else if (c == '"') {
+      in_string = true;
+    } else if (c == '[' || c == '{') {
+      deepest = std::max(deepest, ++depth);
+      if (deepest > stop_above) break;
+    } else if (c == ']' || c == '}') {
+      depth = std::max(depth - 1, 0);
+    }
+  }
+  return deepest;
+}
+
 nlohmann::json MetadataToJson(const std::string& metadata_json) {
   if (metadata_json.empty()) return nullptr;
+  if (JsonNestingDepth(metadata_json) > kMaxJsonDepth) return metadata_json;
   auto parsed = nlohmann::json::parse(metadata_json, nullptr, /*allow_exceptions=*/false);
   if (parsed.is_discarded()) return metadata_json;
   return parsed;

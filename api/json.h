@@ -5,6 +5,7 @@
 #pragma once
 
 #include <string>
+#include <string_view>
 
 #include <nlohmann/json.hpp>
 
@@ -31,7 +32,18 @@ nlohmann::json MatchResponseToJson(const MatchResponse& response);
 //  "uptime_s", "extractions_in_flight", "max_concurrent_extractions", "segments", "vocabulary_fingerprint"}
 nlohmann::json StatsToJson(const ServiceStats& stats);
 
-// The stored metadata text as JSON; null for "", the text as a JSON string if it does not parse.
+// The deepest nesting of arrays and objects accepted in a JSON document from a client (fixed). nlohmann-json
+// parses without recursion but dumps, copies and compares recursively: a document nested ~74,000 levels
+// deep overflows a worker thread's stack (issue 19). Real metadata nests a few levels.
+inline constexpr int kMaxJsonDepth = 64;
+
+// The nesting depth of arrays and objects in a JSON text, counted in one pass over its bytes (brackets
+// outside strings), without parsing or recursion, so that it is safe on any input; counting stops at
+// `stop_above` + 1. Exact for a valid JSON text; for an invalid one the parser refuses it anyway.
+[[nodiscard]] int JsonNestingDepth(std::string_view text, int stop_above = kMaxJsonDepth);
+
+// The stored metadata text as JSON; null for "", the text as a JSON string if it does not parse or nests
+// deeper than kMaxJsonDepth (stored by an older version or `oxbow index add --metadata`: returned, not parsed).
 nlohmann::json MetadataToJson(const std::string& metadata_json);
 
 }  // namespace oxbow::api

@@ -7,6 +7,8 @@
 
 #include <nlohmann/json.hpp>
 
+#include "api/json.h"
+
 namespace oxbow::api {
 
 namespace {
@@ -104,7 +106,12 @@ Result<std::array<float, 4>> ParseBox(std::string_view name, std::string_view te
 }
 
 Status CheckKnownParams(const Params& params, const std::set<std::string>& known) {
-  for (const auto& [name, value] : params) {
+  for (auto it = params.begin(); it != params.end(); ++it) {
+    const std::string& name = it->first;
+    if (const size_t n = params.count(name); n > 1) {
+      return Fail(ErrorCode::kInvalidArgument, "parameter " + Quote(name) + " is given " + std::to_string(n) +
+                                                   " times (query string and multipart fields together); give it once");
+    }
     if (known.contains(name)) continue;
     std::string list;
     for (const auto& k : known) list += (list.empty() ? "" : ", ") + k;
@@ -213,6 +220,12 @@ Result<AddParams> ParseAddParams(const Params& params) {
     return Fail(ErrorCode::kInvalidArgument, "parameter 'id' is required (POST /v1/images?id=NAME, or a multipart field 'id')");
   }
   if (auto ok = CheckImageId(*id); !ok) return std::unexpected(ok.error());
+  // Only new ids: one stored before this rule stays reachable (GET /v1/images/a%2Fsimilar, the slash
+  // encoded), so CheckImageId, which GET and DELETE use too, does not carry it.
+  if (id->ends_with("/similar") || id->ends_with("/thumbnail")) {
+    return Fail(ErrorCode::kInvalidArgument, "image id must not end in '/similar' or '/thumbnail' (the routes "
+                                             "GET /v1/images/{id}/similar and /thumbnail), got " + Quote(*id));
+  }
   add.id = *id;
   if (const auto* v = Find(params, "replace")) {
     auto parsed = ParseBool("replace", *v);
@@ -220,6 +233,15 @@ Result<AddParams> ParseAddParams(const Params& params) {
     add.replace = *parsed;
   }
   if (const auto* v = Find(params, "metadata")) {
+    // Both limits before parsing: the parse is linear, but the dump below recurses once per level.
+    if (v->size() > kMaxMetadataBytes) {
+      return Fail(ErrorCode::kInvalidArgument, "parameter 'metadata' must be at most " + std::to_string(kMaxMetadataBytes) +
+                                                   " bytes, got " + std::to_string(v->size()));
+    }
+    if (JsonNestingDepth(*v) > kMaxJsonDepth) {
+      return Fail(ErrorCode::kInvalidArgument, "parameter 'metadata' must nest arrays and objects at most " +
+                                                   std::to_string(kMaxJsonDepth) + " levels deep");
+    }
     auto json = nlohmann::json::parse(*v, nullptr, /*allow_exceptions=*/false);
     if (json.is_discarded()) {
       return Fail(ErrorCode::kInvalidArgument, "parameter 'metadata' must be a JSON document, got " + Quote(*v));

@@ -1,8 +1,10 @@
 // Request parameters of the HTTP API, parsed and validated without any HTTP library: the transport
-// collects query-string parameters and multipart text fields into a Params map (name -> value; the
-// first value of a repeated name), these functions turn it into typed options or a kInvalidArgument
-// error naming the parameter. Unknown parameter names are refused (a typo such as `topk` would
-// otherwise silently run with the default). Thread-safe (pure functions).
+// collects query-string parameters and multipart text fields into a Params multimap (name -> every
+// value given), these functions turn it into typed options or a kInvalidArgument error naming the
+// parameter. Unknown parameter names are refused (a typo such as `topk` would otherwise silently run
+// with the default), and so is a name given more than once (`top_k=5&top_k=500000`, or once in the
+// query string and once as a multipart field): which value was meant cannot be known. Thread-safe
+// (pure functions).
 #pragma once
 
 #include <array>
@@ -20,7 +22,7 @@
 
 namespace oxbow::api {
 
-using Params = std::map<std::string, std::string>;
+using Params = std::multimap<std::string, std::string>;
 
 // ---- Scalars (exposed for tests and the transport) ------------------------------------------------
 
@@ -31,7 +33,8 @@ using Params = std::map<std::string, std::string>;
 // "x1,y1,x2,y2", four finite numbers with x1 < x2 and y1 < y2 (pixels).
 [[nodiscard]] Result<std::array<float, 4>> ParseBox(std::string_view name, std::string_view text);
 
-// Refuses any parameter whose name is not in `known` (message lists the known ones).
+// Refuses a parameter given more than once (message names it), then any parameter whose name is not in
+// `known` (message lists the known ones).
 [[nodiscard]] Status CheckKnownParams(const Params& params, const std::set<std::string>& known);
 
 // ---- Routes ---------------------------------------------------------------------------------------
@@ -54,8 +57,12 @@ using Params = std::map<std::string, std::string>;
 [[nodiscard]] Result<index::QueryOptions> ParseQueryParams(const Params& params, const index::QueryOptions& defaults);
 const std::set<std::string>& QueryParamNames();
 
-// POST /v1/images: id (required, 1..256 bytes, no control characters), replace (bool, default false),
-// metadata (a JSON document, default none; stored re-serialised compactly).
+// POST /v1/images: id (required, CheckImageId, and not ending in "/similar" or "/thumbnail": the routes
+// GET /v1/images/{id}/similar and /thumbnail would take such an id sent unencoded for another image's),
+// replace (bool, default false), metadata (a JSON document of at most kMaxMetadataBytes nested at most
+// kMaxJsonDepth deep (api/json.h), both checked before it is parsed; default none; stored re-serialised
+// compactly).
+inline constexpr size_t kMaxMetadataBytes = 16 * 1024;  // fixed; every search result carries it
 struct AddParams {
   std::string id;
   bool replace = false;

@@ -1,6 +1,7 @@
 #include "server/http/http_server.h"
 
 #include <httplib.h>
+#include <malloc.h>
 
 #include <chrono>
 #include <cstdio>
@@ -135,13 +136,17 @@ void RecordStages(httplib::Response& res, const std::vector<std::pair<const char
   t_request.stages = log;
 }
 
-// Query-string parameters plus multipart text fields (everything but the named file fields).
+// Query-string parameters plus multipart text fields (everything but the named file fields), every
+// occurrence: the api/params.h parsers refuse a name given twice, also once in each. A repeated image
+// part is as ambiguous (which image is meant?), so it enters as a repeated parameter without its bytes.
 api::Params CollectParams(const httplib::Request& req, const std::vector<std::string>& file_fields) {
-  api::Params params;
-  for (const auto& [name, value] : req.params) params.emplace(name, value);  // first value wins
+  api::Params params(req.params.begin(), req.params.end());
   for (const auto& [name, part] : req.files) {
-    if (std::find(file_fields.begin(), file_fields.end(), name) != file_fields.end()) continue;
-    params.emplace(name, part.content);
+    if (std::find(file_fields.begin(), file_fields.end(), name) == file_fields.end()) {
+      params.emplace(name, part.content);
+    } else if (req.files.count(name) > 1) {
+      params.emplace(name, "");
+    }
   }
   return params;
 }
@@ -310,17 +315,17 @@ void ListImages(api::Service& s, const httplib::Request& req, httplib::Response&
   SendJson(res, 200, api::ListResponseToJson(*list));
 }
 
-void GetSimilar(api::Service& s, const httplib::Request& req, httplib::Response& res) {
+void GetSimilar(api::Service& s, const std::string& id, const httplib::Request& req, httplib::Response& res) {
   auto options = api::ParseQueryParams(CollectParams(req, {}), s.options().default_query);
   if (!options) return SendError(res, options.error());
-  auto found = s.SearchSimilar(req.matches[1], *options);
+  auto found = s.SearchSimilar(id, *options);
   if (!found) return SendError(res, found.error());
   const auto& t = found->index.timings;
   RecordStages(res, {{"quantize", t.quantize_ms}, {"score", t.score_ms}, {"verify", t.verify_ms}, {"qe", t.qe_ms}});
   SendJson(res, 200, api::SearchResponseToJson(*found));
 }
 
-void GetThumbnail(api::Service& s, const httplib::Request& req, httplib::Response& res) {
+void GetThumbnail(api::Service& s, const std::string& id, const httplib::Request& req, httplib::Response& res) {
   const api::Params params = CollectParams(req, {});
   if (auto known = api::CheckKnownParams(params, {"size"}); !known) return SendError(res, known.error());
   int size = 256;  // a larger size than the server stores gets the stored one
@@ -329,16 +334,36 @@ void GetThumbnail(api::Service& s, const httplib::Request& req, httplib::Respons
     if (!parsed) return SendError(res, parsed.error());
     size = static_cast<int>(*parsed);
   }
-  auto found = s.GetThumbnail(req.matches[1], size);
+  auto found = s.GetThumbnail(id, size);
   if (!found) return SendError(res, found.error());
   const auto& jpeg = found->thumbnail.jpeg;
   SendCacheable(req, res, jpeg, "image/jpeg", StrongEtag(jpeg), "private, max-age=60");
 }
 
-void GetImage(api::Service& s, const httplib::Request& req, httplib::Response& res) {
-  auto record = s.GetImage(req.matches[1]);
+void GetImage(api::Service& s, const std::string& id, httplib::Response& res) {
+  auto record = s.GetImage(id);
   if (!record) return SendError(res, record.error());
   SendJson(res, 200, api::ImageRecordToJson(*record));
+}
+
+// GET /v1/images/{id}, {id}/similar and {id}/thumbnail, told apart on the request target as the client
+// sent it: httplib matches routes on the decoded path, where the id "a/similar" sent as a%2Fsimilar
+// would read as the similar images of "a". A slash sent encoded belongs to the id (RFC 3986 2.2), so an
+// id stored before ParseAddParams refused such ids stays reachable.
+void GetImageOrSubresource(api::Service& s, const httplib::Request& req, httplib::Response& res) {
+  constexpr size_t kPrefix = std::string_view("/v1/images/").size();  // matched by the route's pattern
+  const std::string_view path(req.path);
+  const std::string_view target = std::string_view(req.target).substr(0, req.target.find('?'));
+  const std::string last = httplib::detail::decode_url(std::string(target.substr(target.rfind('/') + 1)), false);
+  // Decoding never joins bytes across a literal '/', so the decoded path ends in "/" + last.
+  const size_t id_size = path.size() - kPrefix - std::min(path.size() - kPrefix, last.size() + 1);
+  if ((last == "similar" || last == "thumbnail") && id_size > 0) {
+    const std::string id(path.substr(kPrefix, id_size));
+    t_request.route = "/v1/images/{id}/" + last;
+    return last == "similar" ? GetSimilar(s, id, req, res) : GetThumbnail(s, id, req, res);
+  }
+  t_request.route = "/v1/images/{id}";
+  GetImage(s, std::string(path.substr(kPrefix)), res);
 }
 
 void DeleteImage(api::Service& s, const httplib::Request& req, httplib::Response& res) {
@@ -408,6 +433,11 @@ HttpServer::HttpServer(const HttpServerOptions& options)
   // httplib writes the headers and the body separately; with Nagle's algorithm the body then waits for
   // the client's delayed ACK (40 ms on Linux) on every response of a keep-alive connection.
   http_->set_tcp_nodelay(true);
+  // glibc raises its mmap threshold to the largest block freed (up to 32 MiB), after which request
+  // bodies and decoded images come from the per-thread arenas, where a freed block stays resident: a
+  // burst of 20 MB uploads left ~800 MiB resident for good (issue 19; README "memory"). A fixed
+  // threshold keeps every block of 1 MiB and more in mmap, handed back to the system when freed.
+  mallopt(M_MMAP_THRESHOLD, 1 << 20);
   RegisterRoutes();
 }
 
@@ -463,8 +493,6 @@ void HttpServer::Shutdown() {
 void HttpServer::RegisterRoutes() {
   RegisterRequestHooks();
   RegisterErrorHandlers();
-  // httplib tries a method's routes in registration order: the specific /v1/images/{id}/... patterns
-  // are registered before /v1/images/{id}.
   RegisterStatusRoutes();
   RegisterImageRoutes();
   RegisterSearchRoutes();
@@ -638,9 +666,7 @@ void HttpServer::RegisterImageRoutes() {
   auto& http = *http_;
   http.Post("/v1/images", ServiceRoute(Access::kWrite, PostImage));
   http.Get("/v1/images", ServiceRoute(Access::kOpen, ListImages));
-  http.Get(R"(/v1/images/(.+)/similar)", ServiceRoute(Access::kOpen, GetSimilar));
-  http.Get(R"(/v1/images/(.+)/thumbnail)", ServiceRoute(Access::kOpen, GetThumbnail));
-  http.Get(R"(/v1/images/(.+))", ServiceRoute(Access::kOpen, GetImage));
+  http.Get(R"(/v1/images/(.+))", ServiceRoute(Access::kOpen, GetImageOrSubresource));
   http.Delete(R"(/v1/images/(.+))", ServiceRoute(Access::kWrite, DeleteImage));
 }
 

@@ -2,7 +2,8 @@
 // mapping (api/json.h). The input is a list of (name, value) pairs: one byte picks a known parameter
 // name (or, past the list, the next length-prefixed piece is the name), then a length-prefixed value.
 // The same map goes through every route's parser (search, add, list, match), and the values through
-// the scalar parsers. Expected: typed options that pass their Check(), or kInvalidArgument.
+// the scalar parsers. Expected: typed options that pass their Check(), or kInvalidArgument; a name
+// given twice is refused by every route; stored metadata within the size and depth limits.
 #include <array>
 #include <cstddef>
 #include <cstdint>
@@ -41,6 +42,8 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
     (void)api::MetadataToJson(value);
     params.emplace(std::move(name), std::move(value));
   }
+  bool repeated = false;
+  for (auto it = params.begin(); it != params.end(); ++it) repeated |= params.count(it->first) > 1;
   auto query = api::ParseQueryParams(params, index::QueryOptions{});
   ExpectValidOrInvalidArgument(query);
   if (query && query->Check()) std::abort();  // parsed options must be valid options
@@ -48,9 +51,14 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   ExpectValidOrInvalidArgument(add);
   if (add) {
     if (!api::CheckImageId(add->id)) std::abort();
-    (void)api::MetadataToJson(add->metadata_json);
+    if (add->metadata_json.size() > api::kMaxMetadataBytes) std::abort();
+    if (api::JsonNestingDepth(add->metadata_json) > api::kMaxJsonDepth) std::abort();
+    (void)api::MetadataToJson(add->metadata_json).dump();
   }
-  ExpectValidOrInvalidArgument(api::ParseListParams(params));
-  ExpectValidOrInvalidArgument(api::ParseMatchParams(params));
+  auto list = api::ParseListParams(params);
+  ExpectValidOrInvalidArgument(list);
+  auto match = api::ParseMatchParams(params);
+  ExpectValidOrInvalidArgument(match);
+  if (repeated && (query || add || list || match)) std::abort();
   return 0;
 }
