@@ -212,6 +212,23 @@ Status CheckImageId(std::string_view id) {
   return Ok();
 }
 
+Result<std::string> ParseMetadata(std::string_view text, std::string_view label) {
+  // Both limits before parsing: the parse is linear, but the dump below recurses once per level.
+  if (text.size() > kMaxMetadataBytes) {
+    return Fail(ErrorCode::kInvalidArgument, std::string(label) + " must be at most " + std::to_string(kMaxMetadataBytes) +
+                                                 " bytes, got " + std::to_string(text.size()));
+  }
+  if (JsonNestingDepth(text) > kMaxJsonDepth) {
+    return Fail(ErrorCode::kInvalidArgument, std::string(label) + " must nest arrays and objects at most " +
+                                                 std::to_string(kMaxJsonDepth) + " levels deep");
+  }
+  auto json = nlohmann::json::parse(text, nullptr, /*allow_exceptions=*/false);
+  if (json.is_discarded()) {
+    return Fail(ErrorCode::kInvalidArgument, std::string(label) + " must be a JSON document, got " + Quote(text));
+  }
+  return json.dump();
+}
+
 Result<AddParams> ParseAddParams(const Params& params) {
   if (auto known = CheckKnownParams(params, {"id", "replace", "metadata"}); !known) return std::unexpected(known.error());
   AddParams add;
@@ -233,20 +250,9 @@ Result<AddParams> ParseAddParams(const Params& params) {
     add.replace = *parsed;
   }
   if (const auto* v = Find(params, "metadata")) {
-    // Both limits before parsing: the parse is linear, but the dump below recurses once per level.
-    if (v->size() > kMaxMetadataBytes) {
-      return Fail(ErrorCode::kInvalidArgument, "parameter 'metadata' must be at most " + std::to_string(kMaxMetadataBytes) +
-                                                   " bytes, got " + std::to_string(v->size()));
-    }
-    if (JsonNestingDepth(*v) > kMaxJsonDepth) {
-      return Fail(ErrorCode::kInvalidArgument, "parameter 'metadata' must nest arrays and objects at most " +
-                                                   std::to_string(kMaxJsonDepth) + " levels deep");
-    }
-    auto json = nlohmann::json::parse(*v, nullptr, /*allow_exceptions=*/false);
-    if (json.is_discarded()) {
-      return Fail(ErrorCode::kInvalidArgument, "parameter 'metadata' must be a JSON document, got " + Quote(*v));
-    }
-    add.metadata_json = json.dump();
+    auto metadata = ParseMetadata(*v, "parameter 'metadata'");
+    if (!metadata) return std::unexpected(metadata.error());
+    add.metadata_json = std::move(*metadata);
   }
   return add;
 }

@@ -69,6 +69,10 @@ struct AddParams {
   std::string metadata_json;  // "" when absent
 };
 [[nodiscard]] Result<AddParams> ParseAddParams(const Params& params);
+// A metadata document (the rules of AddParams::metadata_json), re-serialised compactly; kInvalidArgument
+// naming the broken rule, the value called `label` ("parameter 'metadata'", "--metadata"). Shared by
+// POST /v1/images and `oxbow index add --metadata`.
+[[nodiscard]] Result<std::string> ParseMetadata(std::string_view text, std::string_view label);
 
 // GET /v1/images: offset [0, 2^53] (default 0), limit [1, 1000] (default 100).
 struct ListParams {

@@ -137,6 +137,29 @@ TEST_F(HostileParamsTest, DeepStoredMetadataIsReturnedAsText) {
   EXPECT_EQ(StatusOf(server_->Client().Get("/v1/images?limit=10")), 200);
 }
 
+// The command line keeps the same rules: `oxbow index add --metadata` refuses what POST /v1/images
+// refuses (before: any valid JSON, stored, then crashing whoever dumped it), and `oxbow query` prints
+// stored deep metadata as its text (before: parsed and dumped recursively, a crash).
+TEST_F(HostileParamsTest, CommandLineAppliesTheMetadataLimits) {
+  const std::string copy = dir_->path() + "/cli-index";
+  std::filesystem::remove_all(copy);
+  std::filesystem::copy(index_, copy, std::filesystem::copy_options::recursive);
+  const std::string image_path = dir_->path() + "/texture.png";
+  const std::string deep = dir_->path() + "/deep.json";
+  std::ofstream(deep) << Nested(8000);  // under the size limit, over the depth limit
+  int rc = 0;
+  std::string out = oxbow::testing::RunCommand(std::string(OXBOW_BINARY) + " index add --index " + copy + " --id cli-deep" +
+                                                   " --metadata \"$(cat " + deep + ")\" " + image_path + " 2>&1", &rc);
+  EXPECT_EQ(rc, 2) << out;
+  EXPECT_NE(out.find("--metadata must nest"), std::string::npos) << out;
+  out = oxbow::testing::RunCommand(std::string(OXBOW_BINARY) + " query --index " + copy + " --top-k 5 " + image_path, &rc);
+  ASSERT_EQ(rc, 0) << "oxbow query over stored deep metadata: " << out.substr(0, 2000);
+  const json results = json::parse(out.substr(out.find('{')))["results"];
+  bool saw_deep = false;
+  for (const auto& r : results) saw_deep |= r["id"] == "deep-stored" && r["metadata"].is_string();
+  EXPECT_TRUE(saw_deep) << out.substr(0, 2000);
+}
+
 TEST_F(HostileParamsTest, IdsEndingInASubrouteAreRefusedAndStoredOnesStayReachable) {
   auto client = server_->Client();
   // Stored before the rule: reachable with the slash encoded, also its own sub-routes.

@@ -10,6 +10,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "api/params.h"
 #include "index/image_index.h"
 #include "server/cli/cli.h"
 #include "server/cli/common_flags.h"
@@ -216,7 +217,11 @@ void SetUpIndex(CLI::App& app) {
   AddThreadsFlag(a, &add->threads);
   a->callback([add] {
     if (!add->id.empty() && add->images.size() != 1) throw CommandError(2, "--id needs exactly one image");
-    if (!add->metadata.empty() && !nlohmann::json::accept(add->metadata)) throw CommandError(2, "--metadata is not valid JSON");
+    if (!add->metadata.empty()) {
+      auto metadata = api::ParseMetadata(add->metadata, "--metadata");
+      if (!metadata) throw CommandError(2, metadata.error().message);
+      add->metadata = std::move(*metadata);
+    }
     auto idx = ValueOrExit(index::ImageIndex::Open(add->index));
     const sift::SiftExtractor extractor = ExtractorFor(*idx, add->threads);
     const sift::DecodeOptions decode = add->image.ToDecodeOptions();

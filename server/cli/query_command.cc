@@ -7,6 +7,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "api/json.h"
 #include "index/image_index.h"
 #include "server/cli/cli.h"
 #include "server/cli/common_flags.h"
@@ -34,11 +35,8 @@ std::array<float, 4> ParseBox(const std::string& text) {
 }
 
 nlohmann::json ResultJson(const index::QueryResult& r) {
-  nlohmann::json metadata = nullptr;
-  if (!r.record.metadata_json.empty()) {
-    metadata = nlohmann::json::accept(r.record.metadata_json) ? nlohmann::json::parse(r.record.metadata_json)
-                                                              : nlohmann::json(r.record.metadata_json);
-  }
+  // Stored by any version: too deep or invalid metadata comes back as its text, never parsed.
+  const nlohmann::json metadata = api::MetadataToJson(r.record.metadata_json);
   nlohmann::json j = {{"id", r.id},
                       {"score", r.score},
                       {"verified", r.verified},
