@@ -297,7 +297,9 @@ TEST_F(ServiceWritesTest, AThumbnailMadeFromAFileNeverOverwritesANewerImage) {
     int hook_calls = 0;
     service_->SetThumbnailMadeHookForTesting([&](const std::string& made_for) {
       if (made_for != id || hook_calls++ > 0) return;
-      if (!replace) ASSERT_TRUE(service_->DeleteImage(id));
+      if (!replace) {
+        ASSERT_TRUE(service_->DeleteImage(id));
+      }
       const auto added = service_->AddImage(Upload(id, "box_in_scene.png", replace));
       ASSERT_TRUE(added) << added.error().ToString();
     });

@@ -104,7 +104,7 @@ TEST_F(HostileStorageTest, ForeignWalIsRefusedAndTheCatalogueStaysByteIdentical)
       std::string(OXBOW_BINARY) + " serve --index " + copy + " --port 0 2>&1", &exit_code);
   EXPECT_EQ(exit_code, 6) << output;  // incompatible: the WAL's catalogue names another vocabulary
   EXPECT_NE(output.find("does not match"), std::string::npos) << output;
-  EXPECT_EQ(FileBytes(copy + "/catalogue.sqlite"), catalogue) << "the refused start wrote to the catalogue";
+  EXPECT_TRUE(FileBytes(copy + "/catalogue.sqlite") == catalogue) << "the refused start wrote to the catalogue";
 
   // Without the stray file the copy serves every image.
   fs::remove(copy + "/catalogue.sqlite-wal");
@@ -134,7 +134,7 @@ TEST_F(HostileStorageTest, ReadOnlyIndexFolderIsAnIoErrorExit7) {
   EXPECT_NE(output.find("io_error"), std::string::npos) << output;
   EXPECT_NE(output.find("permissions"), std::string::npos) << output;
   EXPECT_EQ(output.find("corrupt"), std::string::npos) << output;
-  EXPECT_EQ(FileBytes(copy + "/catalogue.sqlite"), catalogue);
+  EXPECT_TRUE(FileBytes(copy + "/catalogue.sqlite") == catalogue) << "the catalogue changed";
   EXPECT_EQ(ServedImages(copy), kImages);
 }
 
