@@ -85,7 +85,7 @@ struct AddImageRequest {
 
 struct AddImageResponse {
   index::ImageRecord record;
-  bool replaced = false;                // an image with this id existed and was removed first
+  bool replaced = false;                // an image with this id existed and was replaced (ImageIndex::Replace)
   double decode_extract_ms = 0;
   double add_ms = 0;                    // quantise + durable commit + publish
 };

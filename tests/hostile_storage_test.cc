@@ -56,7 +56,7 @@ class HostileStorageTest : public ::testing::Test {
   }
   // A copy of the index folder at `name`.
   std::string CopyIndex(const std::string& name) const {
-    const std::string copy = dir_.path() + "/" + name;
+    std::string copy = dir_.path() + "/" + name;
     fs::copy(index_, copy, fs::copy_options::recursive);
     return copy;
   }
