@@ -260,19 +260,31 @@ Result<AddImageResponse> Service::AddImage(const AddImageRequest& request) {
 
   const auto start = Clock::now();
   std::lock_guard<std::mutex> lock(write_mutex_);
-  if (index_->Contains(request.id)) {
-    if (!request.replace) {
-      return Fail(ErrorCode::kAlreadyExists, "an image with id '" + request.id +
-                                                 "' is already indexed; add replace=true to replace it");
-    }
-    if (auto removed = index_->Remove(request.id); !removed) return std::unexpected(removed.error());
-    response.replaced = true;
+  const bool replacing = index_->Contains(request.id);
+  if (replacing && !request.replace) {
+    return Fail(ErrorCode::kAlreadyExists, "an image with id '" + request.id +
+                                               "' is already indexed; add replace=true to replace it");
+  }
+  // The old image's thumbnail, put back if the replacement fails (the old image then stays indexed).
+  std::optional<ThumbnailStore::Entry> previous;
+  if (replacing) {
+    if (auto kept = thumbnails_->Get(request.id); kept) previous = std::move(*kept);
   }
   // The thumbnail is durable before the image is indexed: an acknowledged add always has one.
   ThumbnailStore::Entry entry{std::move(*thumbnail), features->image_width, features->image_height, info.source_path};
   if (auto stored = thumbnails_->Put(request.id, entry); !stored) return std::unexpected(stored.error());
-  auto record = index_->Add(request.id, *features, info);
-  if (!record) return std::unexpected(record.error());
+  // A replacement is one transaction in the index: the old image or the new one, never neither.
+  auto record = replacing ? index_->Replace(request.id, *features, info) : index_->Add(request.id, *features, info);
+  if (!record) {
+    if (previous) {
+      if (auto restored = thumbnails_->Put(request.id, *previous); !restored) {
+        OXBOW_LOG(kWarning) << "replacement of '" << request.id << "' failed and its old thumbnail was not restored: "
+                            << restored.error().ToString();
+      }
+    }
+    return std::unexpected(record.error());
+  }
+  response.replaced = replacing;
   response.record = std::move(*record);
   response.add_ms = MsSince(start);
   return response;
@@ -414,9 +426,16 @@ Result<ThumbnailResponse> Service::GetThumbnail(const std::string& id, int max_s
     if (!made) return std::unexpected(made.error());
     full = *made;
     response.from_source = true;
-    ThumbnailStore::Entry entry{std::move(*made), record->width, record->height, record->source_path};
-    if (auto cached = thumbnails_->Put(id, entry); !cached) {
-      OXBOW_LOG(kWarning) << "thumbnail of '" << id << "' not cached: " << cached.error().ToString();
+    if (thumbnail_made_for_testing_) thumbnail_made_for_testing_(id);
+    // Kept only if `id` is still the image it was made from, checked under the writers' lock: a delete
+    // + re-add or a replacement since the record was read has stored the new image's own thumbnail,
+    // which this one must not overwrite.
+    std::lock_guard<std::mutex> lock(write_mutex_);
+    if (auto now = index_->Get(id); now && *now == *record) {
+      ThumbnailStore::Entry entry{std::move(*made), record->width, record->height, record->source_path};
+      if (auto cached = thumbnails_->Put(id, entry); !cached) {
+        OXBOW_LOG(kWarning) << "thumbnail of '" << id << "' not cached: " << cached.error().ToString();
+      }
     }
   }
   if (std::max(full.width, full.height) <= max_side_px) {

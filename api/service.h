@@ -14,7 +14,8 @@
 // slot (at most max_concurrent_extractions decode+extract run at once, bounding peak memory; a request
 // waiting longer than extraction_wait_ms fails with kResourceExhausted -> 503) and (2) AddImage /
 // DeleteImage serialise among themselves on write_mutex_ (the index serialises writers anyway; the
-// service lock makes "replace" = remove + add one step for other writers). Searches take no service lock.
+// service lock makes the thumbnail and the index change one step for other writers; a replacement is one
+// transaction in the index, ImageIndex::Replace). Searches take no service lock.
 // Adds extract on low-priority threads (ServiceOptions::add_nice) so they yield the CPU to searches.
 #pragma once
 
@@ -84,7 +85,7 @@ struct AddImageRequest {
 
 struct AddImageResponse {
   index::ImageRecord record;
-  bool replaced = false;                // an image with this id existed and was removed first
+  bool replaced = false;                // an image with this id existed and was replaced (ImageIndex::Replace)
   double decode_extract_ms = 0;
   double add_ms = 0;                    // quantise + durable commit + publish
 };
@@ -156,6 +157,11 @@ class Service {
   // kNotFound for an unknown id or when neither exists; kInvalidArgument for a size out of range.
   [[nodiscard]] Result<ThumbnailResponse> GetThumbnail(const std::string& id, int max_side_px) const;
   ServiceStats Stats() const;
+  // Test seam: `hook` runs in GetThumbnail after it made a thumbnail from a source file and before it
+  // stores it (lets a test change the image in exactly that window). Set it before concurrent use.
+  void SetThumbnailMadeHookForTesting(std::function<void(const std::string& id)> hook) {
+    thumbnail_made_for_testing_ = std::move(hook);
+  }
 
   const ServiceOptions& options() const { return options_; }
   const index::ImageIndex& index() const { return *index_; }
@@ -181,7 +187,10 @@ class Service {
   int extraction_slots_ = 1;
   mutable std::counting_semaphore<1024> extraction_semaphore_;
   mutable std::atomic<int> extractions_in_flight_{0};
-  std::mutex write_mutex_;  // serialises AddImage/DeleteImage (held across replace's remove + add)
+  // Serialises AddImage/DeleteImage and GetThumbnail's storing of a thumbnail it made, so that the check
+  // "still the same image" and the store are one step for writers.
+  mutable std::mutex write_mutex_;
+  std::function<void(const std::string& id)> thumbnail_made_for_testing_;
   std::unique_ptr<BackgroundThreads> add_threads_;      // low-priority extraction for adds (add_nice > 0)
   std::unique_ptr<BackgroundThreads> extract_threads_;  // every other extraction (normal priority)
   std::unique_ptr<ThumbnailStore> thumbnails_;      // <index>/thumbnails.sqlite (thread-safe itself)

@@ -8,6 +8,7 @@
 
 #include <filesystem>
 #include <fstream>
+#include <map>
 
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -245,6 +246,110 @@ TEST(ServiceThumbnails, FollowAddsReplacesAndDeletes) {
   thumb = (*service)->GetThumbnail("from-file", 200);
   ASSERT_TRUE(thumb);
   EXPECT_FALSE(thumb->from_source);
+}
+
+// Service tests of races and failures around one id; box_in_scene is 512 x 384, graf1 800 x 640.
+class ServiceWritesTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    if (!std::filesystem::exists(SamplePath("box_in_scene.png"))) GTEST_SKIP() << "opencv-doc sample photos not installed";
+    ASSERT_TRUE(testing::BuildTestVocabulary({"box_in_scene.png", "graf1.png"}, 64, vocab_));
+    for (const char* sample : {"box_in_scene.png", "graf1.png"}) bytes_[sample] = ReadBytes(SamplePath(sample));
+    Reopen();
+  }
+  void Reopen() {
+    service_.reset();
+    auto opened = Service::Open(index_dir_, vocab_, {});
+    ASSERT_TRUE(opened) << opened.error().ToString();
+    service_ = std::move(*opened);
+  }
+  AddImageRequest Upload(const std::string& id, const std::string& sample, bool replace) const {
+    AddImageRequest add;
+    add.id = id;
+    add.image = bytes_.at(sample);
+    add.source_name = "http:" + sample;
+    add.replace = replace;
+    return add;
+  }
+  testing::TempDir dir_{"oxbow-service-writes"};
+  const std::string vocab_ = dir_.path() + "/vocab.oxvoc";
+  const std::string index_dir_ = dir_.path() + "/index";
+  std::map<std::string, std::vector<uint8_t>> bytes_;  // of the samples (requests do not own theirs)
+  std::unique_ptr<Service> service_;
+};
+
+// An image indexed from a file (as `oxbow index build` does: no stored thumbnail) gets its thumbnail
+// made on the first GET. If the image is deleted and uploaded again, or replaced, while that thumbnail is
+// being made, the new image's thumbnail must survive: the late one is not stored over it (it used to be,
+// and was then dropped as stale: 404 for the new image, also after a restart).
+TEST_F(ServiceWritesTest, AThumbnailMadeFromAFileNeverOverwritesANewerImage) {
+  for (const bool replace : {false, true}) {
+    SCOPED_TRACE(replace ? "replace=true" : "delete + add");
+    const std::string id = replace ? "replaced" : "re-added";
+    AddImageRequest from_file = Upload(id, "graf1.png", false);
+    from_file.source_name = SamplePath("graf1.png");
+    ASSERT_TRUE(service_->AddImage(from_file));
+    {
+      auto store = ThumbnailStore::Open(index_dir_ + "/thumbnails.sqlite");
+      ASSERT_TRUE(store);
+      ASSERT_TRUE((*store)->Remove(id));
+    }
+    int hook_calls = 0;
+    service_->SetThumbnailMadeHookForTesting([&](const std::string& made_for) {
+      if (made_for != id || hook_calls++ > 0) return;
+      if (!replace) {
+        ASSERT_TRUE(service_->DeleteImage(id));
+      }
+      const auto added = service_->AddImage(Upload(id, "box_in_scene.png", replace));
+      ASSERT_TRUE(added) << added.error().ToString();
+    });
+    ASSERT_TRUE(service_->GetThumbnail(id, 512));  // made from graf1, the image it started with
+    ASSERT_EQ(hook_calls, 1);
+    service_->SetThumbnailMadeHookForTesting(nullptr);
+    for (int restart = 0; restart < 2; ++restart) {
+      const auto thumb = service_->GetThumbnail(id, 512);
+      ASSERT_TRUE(thumb) << "restart " << restart << ": " << thumb.error().ToString();
+      EXPECT_FALSE(thumb->from_source);
+      EXPECT_EQ(thumb->thumbnail.width, 512);  // box_in_scene's shape, not graf1's 512 x 410
+      EXPECT_EQ(thumb->thumbnail.height, 384);
+      Reopen();
+    }
+  }
+}
+
+void ExecSql(const std::string& db_path, const std::string& sql) {
+  sqlite3* db = nullptr;
+  ASSERT_EQ(sqlite3_open(db_path.c_str(), &db), SQLITE_OK);
+  char* error = nullptr;
+  EXPECT_EQ(sqlite3_exec(db, sql.c_str(), nullptr, nullptr, &error), SQLITE_OK) << (error ? error : "");
+  sqlite3_free(error);
+  sqlite3_close(db);
+}
+
+// replace=true whose add part fails after the old image's removal (an injected insert failure, as a
+// full disk would give): the old image and its thumbnail stay, also after a restart. It used to be
+// two commits, remove then add, and the id was gone.
+TEST_F(ServiceWritesTest, AFailedReplacementKeepsTheOldImageAndThumbnail) {
+  const auto added = service_->AddImage(Upload("x", "box_in_scene.png", false));
+  ASSERT_TRUE(added) << added.error().ToString();
+  service_.reset();
+  ExecSql(index_dir_ + "/catalogue.sqlite",
+          "CREATE TRIGGER injected_failure BEFORE INSERT ON images WHEN NEW.id = 'x'"
+          " BEGIN SELECT RAISE(ABORT, 'injected insert failure'); END;");
+  Reopen();
+  const auto failed = service_->AddImage(Upload("x", "graf1.png", true));
+  ASSERT_FALSE(failed);
+  EXPECT_NE(failed.error().message.find("injected insert failure"), std::string::npos) << failed.error().message;
+  for (int restart = 0; restart < 2; ++restart) {
+    const auto kept = service_->GetImage("x");
+    ASSERT_TRUE(kept) << "restart " << restart << ": the failed replacement removed the image";
+    EXPECT_EQ(*kept, added->record);
+    const auto thumb = service_->GetThumbnail("x", 512);
+    ASSERT_TRUE(thumb) << thumb.error().ToString();
+    EXPECT_EQ(thumb->thumbnail.width, 512);
+    EXPECT_EQ(thumb->thumbnail.height, 384);
+    Reopen();
+  }
 }
 
 }  // namespace

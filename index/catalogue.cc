@@ -1,10 +1,13 @@
 #include "index/catalogue.h"
 
 #include <sqlite3.h>
+#include <unistd.h>
 
 #include <chrono>
+#include <cerrno>
 #include <cinttypes>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <map>
 
@@ -36,13 +39,44 @@ ErrorCode CodeFor(int rc) {
   }
 }
 
+// A failure of the environment (I/O, permissions, locks, space) rather than of the file's content.
+bool IsEnvironmentFailure(int rc) {
+  switch (rc & 0xff) {
+    case SQLITE_IOERR:
+    case SQLITE_READONLY:
+    case SQLITE_CANTOPEN:
+    case SQLITE_PERM:
+    case SQLITE_BUSY:
+    case SQLITE_LOCKED:
+    case SQLITE_FULL:
+    case SQLITE_NOMEM:
+      return true;
+    default:
+      return false;
+  }
+}
+
+// What to tell the user about a failure that comes from the environment rather than the content: a
+// read-only folder or file is not a damaged catalogue.
+std::string Hint(int rc) {
+  switch (rc & 0xff) {
+    case SQLITE_READONLY:
+    case SQLITE_CANTOPEN:
+    case SQLITE_PERM:
+      return " (the catalogue or its folder cannot be written or opened: check the permissions of the index "
+             "folder and that its file system is not mounted read-only)";
+    default:
+      return "";
+  }
+}
+
 Status Exec(sqlite3* db, const std::string& sql, const std::string& path) {
   char* error = nullptr;
   const int rc = sqlite3_exec(db, sql.c_str(), nullptr, nullptr, &error);
   if (rc != SQLITE_OK) {
     std::string message = error ? error : SqliteMessage(db);
     sqlite3_free(error);
-    return Fail(CodeFor(rc), path + ": " + message);
+    return Fail(CodeFor(rc), path + ": " + message + Hint(rc));
   }
   return Ok();
 }
@@ -50,7 +84,7 @@ Status Exec(sqlite3* db, const std::string& sql, const std::string& path) {
 Result<std::unique_ptr<Catalogue::Db>> Connect(const std::string& path, int flags) {
   auto db = std::make_unique<Catalogue::Db>();
   const int rc = sqlite3_open_v2(path.c_str(), &db->handle, flags | SQLITE_OPEN_FULLMUTEX, nullptr);
-  if (rc != SQLITE_OK) return Fail(CodeFor(rc), "cannot open " + path + ": " + SqliteMessage(db->handle));
+  if (rc != SQLITE_OK) return Fail(CodeFor(rc), "cannot open " + path + ": " + SqliteMessage(db->handle) + Hint(rc));
   sqlite3_busy_timeout(db->handle, 5000);
   sqlite3_extended_result_codes(db->handle, 1);
   return db;
@@ -128,15 +162,19 @@ Result<std::unique_ptr<Catalogue>> Catalogue::Create(const std::string& path, co
 Result<std::unique_ptr<Catalogue>> Catalogue::Open(const std::string& path) {
   std::error_code ec;
   if (!std::filesystem::is_regular_file(path, ec)) return Fail(ErrorCode::kNotFound, "no index catalogue at " + path);
-  auto db = Connect(path, SQLITE_OPEN_READWRITE);
+  // Read-only until validated: a read-write connection checkpoints whatever WAL it finds beside the file
+  // into it when it closes, so a foreign WAL would overwrite the catalogue even though the open fails.
+  auto db = Connect(path, SQLITE_OPEN_READONLY);
   if (!db) return std::unexpected(db.error());
   sqlite3* h = (*db)->handle;
+  sqlite3_db_config(h, SQLITE_DBCONFIG_NO_CKPT_ON_CLOSE, 1, nullptr);
   // Reading the meta table is the first access to the file: a damaged header fails here.
   std::map<std::string, std::string> values;
   sqlite3_stmt* stmt = nullptr;
   int rc = sqlite3_prepare_v2(h, "SELECT key, value FROM meta", -1, &stmt, nullptr);
   if (rc != SQLITE_OK) {
     const std::string message = SqliteMessage(h);
+    if (IsEnvironmentFailure(rc)) return Fail(ErrorCode::kIoError, path + " cannot be read: " + message + Hint(rc));
     const bool damaged = (rc & 0xff) == SQLITE_NOTADB || (rc & 0xff) == SQLITE_CORRUPT;
     return Fail(ErrorCode::kCorruptData, path + (damaged ? " is damaged or not a SQLite database: "
                                                          : " is not an oxbow index catalogue (incomplete or foreign): ") +
@@ -152,7 +190,10 @@ Result<std::unique_ptr<Catalogue>> Catalogue::Open(const std::string& path) {
     values[key] = value;
   }
   sqlite3_finalize(stmt);
-  if (rc != SQLITE_DONE) return Fail(ErrorCode::kCorruptData, path + " is damaged: " + SqliteMessage(h));
+  if (rc != SQLITE_DONE) {
+    if (IsEnvironmentFailure(rc)) return Fail(ErrorCode::kIoError, path + " cannot be read: " + SqliteMessage(h) + Hint(rc));
+    return Fail(ErrorCode::kCorruptData, path + " is damaged: " + SqliteMessage(h));
+  }
   for (const char* key : {"schema_version", "vocabulary_fingerprint", "vocabulary_size", "extractor_settings"}) {
     if (!values.count(key)) return Fail(ErrorCode::kCorruptData, path + ": catalogue meta lacks '" + key + "'");
   }
@@ -172,12 +213,50 @@ Result<std::unique_ptr<Catalogue>> Catalogue::Open(const std::string& path) {
                                               "; this build reads version " + std::to_string(kSchemaVersion) +
                                               " (rebuild the index with this version)");
   }
-  if (auto s = ConfigureDurability(h, path); !s) return std::unexpected(s.error());
-  if (auto s = Prepare(db->get(), path); !s) return std::unexpected(s.error());
   return std::unique_ptr<Catalogue>(new Catalogue(std::move(*db), path, std::move(meta)));
 }
 
+Status Catalogue::OpenForWriting() {
+  if (db_->insert != nullptr) return Ok();
+  // access() rather than the mode bits: it also sees a read-only mount (and root's permissions).
+  const std::string folder = std::filesystem::path(path_).parent_path().string();
+  if (::access(folder.empty() ? "." : folder.c_str(), W_OK) != 0) {
+    return Fail(ErrorCode::kIoError, "the index folder " + folder + " is not writable (" + std::strerror(errno) +
+                                         "): oxbow needs to write its catalogue there; check its permissions and "
+                                         "that its file system is not mounted read-only");
+  }
+  auto db = Connect(path_, SQLITE_OPEN_READWRITE);
+  if (!db) return std::unexpected(db.error());
+  // SQLite falls back to a read-only connection when the file itself cannot be opened for writing.
+  if (sqlite3_db_readonly((*db)->handle, "main") == 1) {
+    return Fail(ErrorCode::kIoError, path_ + " is read-only: oxbow needs to write it" + Hint(SQLITE_READONLY));
+  }
+  if (auto s = ConfigureDurability((*db)->handle, path_); !s) return s;
+  if (auto s = Prepare(db->get(), path_); !s) return s;
+  db_ = std::move(*db);  // closes the read-only connection, which never checkpoints
+  return Ok();
+}
+
+Result<int64_t> Catalogue::Replace(int64_t old_number, const ImageRecord& r, std::span<const uint8_t> features) {
+  OXBOW_CHECK(db_->insert != nullptr, "catalogue opened without OpenForWriting");
+  // Insert and Delete inside BEGIN ... COMMIT: the transaction, not each statement, is committed.
+  if (auto s = Exec(db_->handle, "BEGIN IMMEDIATE", path_); !s) return std::unexpected(s.error());
+  Result<int64_t> number = [&]() -> Result<int64_t> {
+    if (auto s = Delete(old_number); !s) return std::unexpected(s.error());
+    return Insert(r, features);
+  }();
+  if (number) {
+    auto committed = Exec(db_->handle, "COMMIT", path_);
+    if (committed) return number;
+    number = std::unexpected(committed.error());
+  }
+  // Fails harmlessly when SQLite already rolled the transaction back (a failed COMMIT may do so).
+  sqlite3_exec(db_->handle, "ROLLBACK", nullptr, nullptr, nullptr);
+  return number;
+}
+
 Result<int64_t> Catalogue::Insert(const ImageRecord& r, std::span<const uint8_t> features) {
+  OXBOW_CHECK(db_->insert != nullptr, "catalogue opened without OpenForWriting");
   sqlite3_stmt* s = db_->insert;
   sqlite3_reset(s);
   sqlite3_clear_bindings(s);
@@ -195,17 +274,22 @@ Result<int64_t> Catalogue::Insert(const ImageRecord& r, std::span<const uint8_t>
   if (rc == SQLITE_CONSTRAINT_UNIQUE || rc == SQLITE_CONSTRAINT_PRIMARYKEY) {
     return Fail(ErrorCode::kAlreadyExists, "an image with id '" + r.id + "' is already indexed");
   }
-  if (rc != SQLITE_DONE) return Fail(CodeFor(rc), path_ + ": cannot add '" + r.id + "': " + SqliteMessage(db_->handle));
+  if (rc != SQLITE_DONE) {
+    return Fail(CodeFor(rc), path_ + ": cannot add '" + r.id + "': " + SqliteMessage(db_->handle) + Hint(rc));
+  }
   return sqlite3_last_insert_rowid(db_->handle);
 }
 
 Status Catalogue::Delete(int64_t number) {
+  OXBOW_CHECK(db_->remove != nullptr, "catalogue opened without OpenForWriting");
   sqlite3_stmt* s = db_->remove;
   sqlite3_reset(s);
   sqlite3_bind_int64(s, 1, number);
   const int rc = sqlite3_step(s);
   sqlite3_reset(s);
-  if (rc != SQLITE_DONE) return Fail(CodeFor(rc), path_ + ": cannot remove image: " + SqliteMessage(db_->handle));
+  if (rc != SQLITE_DONE) {
+    return Fail(CodeFor(rc), path_ + ": cannot remove image: " + SqliteMessage(db_->handle) + Hint(rc));
+  }
   if (sqlite3_changes(db_->handle) == 0) return Fail(ErrorCode::kNotFound, "no image number " + std::to_string(number));
   return Ok();
 }
@@ -243,6 +327,7 @@ Status Catalogue::ForEach(const std::function<Status(CatalogueRow&&)>& fn) const
   const std::string message = SqliteMessage(db_->handle);
   sqlite3_finalize(stmt);
   if (!status) return status;
+  if (!done && IsEnvironmentFailure(rc)) return Fail(ErrorCode::kIoError, path_ + " cannot be read: " + message + Hint(rc));
   if (!done) return Fail(ErrorCode::kCorruptData, path_ + " is damaged: " + message);
   return Ok();
 }

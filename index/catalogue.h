@@ -12,6 +12,12 @@
 //          metadata_json TEXT, added_unix_ms INTEGER,
 //          features BLOB)                              PackedFeatures::Serialize() (feature_store.h)
 //
+// Opening never writes before the catalogue is validated: Open reads through a read-only connection
+// (which cannot checkpoint a WAL into the file), and only OpenForWriting, called once the caller has
+// checked everything it reads, opens the read-write connection. A stray or foreign catalogue.sqlite-wal
+// beside the file can then make the open fail but never changes catalogue.sqlite (SQLite checkpoints
+// the WAL into the database when a read-write connection closes).
+//
 // Thread safety: not thread-safe; ImageIndex serialises all calls under its writer mutex (Open's
 // ForEach runs before the index is shared).
 #pragma once
@@ -48,9 +54,15 @@ class Catalogue {
   // Creates the database file with its schema and meta rows in one transaction. kAlreadyExists if the
   // file exists, kIoError when SQLite fails.
   [[nodiscard]] static Result<std::unique_ptr<Catalogue>> Create(const std::string& path, const CatalogueMeta& meta);
-  // Opens an existing catalogue and reads its meta. kNotFound if missing; kCorruptData for a file that
-  // is not a SQLite database or lacks the tables/meta rows; kIncompatible for another schema version.
+  // Opens an existing catalogue read-only and reads its meta; nothing is written to the folder's files
+  // but SQLite's shared-memory index (catalogue.sqlite-shm). kNotFound if missing; kCorruptData for a
+  // file that is not a SQLite database or lacks the tables/meta rows; kIncompatible for another schema
+  // version; kIoError when it cannot be read (permissions, I/O errors, locked by another process).
   [[nodiscard]] static Result<std::unique_ptr<Catalogue>> Open(const std::string& path);
+  // Switches an opened catalogue to a read-write connection (WAL, synchronous=FULL) for Insert, Replace
+  // and Delete; call it only once the content read through Open is validated. kIoError when the file,
+  // its folder or the file system is read-only (the message says so), or SQLite fails.
+  [[nodiscard]] Status OpenForWriting();
   ~Catalogue();
   Catalogue(const Catalogue&) = delete;
   Catalogue& operator=(const Catalogue&) = delete;
@@ -61,6 +73,11 @@ class Catalogue {
   // Inserts one image row in its own committed transaction and returns its new number.
   // kAlreadyExists when the id is taken, kIoError otherwise.
   [[nodiscard]] Result<int64_t> Insert(const ImageRecord& record, std::span<const uint8_t> features);
+  // Deletes row `old_number` and inserts the new row in one committed transaction: a crash leaves
+  // either the old row or the new one. Returns the new number. kNotFound when `old_number` is absent
+  // (nothing changed), kIoError otherwise (rolled back).
+  [[nodiscard]] Result<int64_t> Replace(int64_t old_number, const ImageRecord& record,
+                                        std::span<const uint8_t> features);
   // Deletes the row with this number in a committed transaction. kNotFound if absent.
   [[nodiscard]] Status Delete(int64_t number);
   // Calls fn for every row in number order; stops at and returns the first error.

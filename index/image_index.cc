@@ -212,6 +212,12 @@ struct ImageIndex::Impl {
   Result<QueryResponse> Run(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
                             QueryTimings timings) const;
 
+  // Add (replace false) and Replace (true): validate, quantise, commit, publish one new snapshot.
+  Result<ImageRecord> Write(const std::string& id, const sift::FeatureSet& features, const ImageInfo& info,
+                            bool replace);
+  // Makes `next` (a copy of `current`) lose image `n` (`entry`): postings, entry, id, geometry bytes.
+  static void Unlink(const Snapshot& current, uint32_t n, const Entry& entry, Snapshot& next);
+
   // The stages of Run after scoring. Each rewrites `results`; Rerank returns how many it verified.
   size_t Rerank(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
                 const std::vector<ScoredImage>& scored, std::vector<QueryResult>& results) const;
@@ -317,6 +323,8 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, con
     return Ok();
   });
   if (!status) return std::unexpected(status.error());
+  // Everything read is validated: only now may the catalogue be opened for writing (catalogue.h).
+  if (auto writable = (*catalogue)->OpenForWriting(); !writable) return std::unexpected(writable.error());
 
   const auto num_numbers = static_cast<uint32_t>(by_number.size());
   InvertedFile inverted = InvertedFile::Build(
@@ -349,16 +357,27 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, con
 }
 
 Result<ImageRecord> ImageIndex::Add(const std::string& id, const sift::FeatureSet& features, const ImageInfo& info) {
+  return impl_->Write(id, features, info, /*replace=*/false);
+}
+
+Result<ImageRecord> ImageIndex::Replace(const std::string& id, const sift::FeatureSet& features,
+                                        const ImageInfo& info) {
+  return impl_->Write(id, features, info, /*replace=*/true);
+}
+
+Result<ImageRecord> ImageIndex::Impl::Write(const std::string& id, const sift::FeatureSet& features,
+                                            const ImageInfo& info, bool replace) {
   if (auto s = CheckId(id); !s) return std::unexpected(s.error());
-  if (auto s = CheckFeatures(features, impl_->vocabulary, "image '" + id + "'"); !s) return std::unexpected(s.error());
-  if (auto s = CheckSettings(info.extractor_settings, impl_->extractor_settings, "features of '" + id + "'"); !s) {
+  if (auto s = CheckFeatures(features, vocabulary, "image '" + id + "'"); !s) return std::unexpected(s.error());
+  if (auto s = CheckSettings(info.extractor_settings, extractor_settings, "features of '" + id + "'"); !s) {
     return std::unexpected(s.error());
   }
-  if (Contains(id)) return Fail(ErrorCode::kAlreadyExists, "an image with id '" + id + "' is already indexed");
+  const auto taken = [&] { return Fail(ErrorCode::kAlreadyExists, "an image with id '" + id + "' is already indexed"); };
+  if (!replace && Current()->Find(id)) return taken();
 
   // Quantise outside the writer lock: it is the expensive part and needs no shared state.
   std::vector<uint32_t> words(features.size());
-  impl_->vocabulary.Quantize(features.descriptors, words, impl_->index_options.quantizer);
+  vocabulary.Quantize(features.descriptors, words, index_options.quantizer);
   auto entry = std::make_shared<Entry>();
   entry->features = PackedFeatures::Pack(features.keypoints, words, features.image_width, features.image_height);
   entry->record = ImageRecord{.id = id, .source_path = info.source_path, .width = features.image_width,
@@ -367,29 +386,49 @@ Result<ImageRecord> ImageIndex::Add(const std::string& id, const sift::FeatureSe
   const BagOfWords bag = entry->features.Bag();
   const std::vector<uint8_t> blob = entry->features.Serialize();
 
-  std::lock_guard<std::mutex> writer(impl_->writer_mutex);
-  const auto current = impl_->Current();
-  if (current->Find(id)) return Fail(ErrorCode::kAlreadyExists, "an image with id '" + id + "' is already indexed");
-  // Durable first: once Insert returns the row is committed; the snapshot then makes it visible.
-  auto number = impl_->catalogue->Insert(entry->record, blob);
+  std::lock_guard<std::mutex> writer(writer_mutex);
+  const auto current = Current();
+  uint32_t old_number = 0;
+  const Entry* old = current->Find(id, &old_number);
+  if (old && !replace) return taken();
+  // Durable first: once the catalogue returns, the row is committed (a replacement in the same
+  // transaction as the removal of the old row); the snapshot then makes it visible.
+  auto number = old ? catalogue->Replace(old_number, entry->record, blob) : catalogue->Insert(entry->record, blob);
   if (!number) return std::unexpected(number.error());
   const auto n = static_cast<uint32_t>(*number);
 
+  // One snapshot with both changes: a query sees the old image or the new one, never neither.
   auto next = std::make_shared<Snapshot>(*current);
+  if (old) Unlink(*current, old_number, *old, *next);
   const std::array<uint32_t, 1> numbers = {n};
   const std::array<const BagOfWords*, 1> bags = {&bag};
-  next->inverted = current->inverted.WithAdded(numbers, bags);
+  next->inverted = next->inverted.WithAdded(numbers, bags);
   {
     CowArray<std::shared_ptr<const Entry>>::Editor editor(&next->entries);
     editor.Resize(std::max<size_t>(next->entries.size(), size_t{n} + 1));
     editor.Mutable(n) = entry;
   }
-  auto shard = std::make_shared<IdShard>(*current->ids[ShardOf(id)]);
-  shard->emplace(id, n);
+  auto shard = std::make_shared<IdShard>(*next->ids[ShardOf(id)]);
+  (*shard)[id] = n;
   next->ids[ShardOf(id)] = std::move(shard);
   next->geometry_bytes += entry->features.MemoryBytes();
-  impl_->Publish(std::move(next));
+  Publish(std::move(next));
   return entry->record;
+}
+
+void ImageIndex::Impl::Unlink(const Snapshot& current, uint32_t n, const Entry& entry, Snapshot& next) {
+  const BagOfWords bag = entry.features.Bag();
+  const std::array<uint32_t, 1> numbers = {n};
+  const std::array<const BagOfWords*, 1> bags = {&bag};
+  next.inverted = current.inverted.WithRemoved(numbers, bags);
+  next.geometry_bytes -= entry.features.MemoryBytes();
+  {
+    CowArray<std::shared_ptr<const Entry>>::Editor editor(&next.entries);
+    editor.Mutable(n) = nullptr;
+  }
+  auto shard = std::make_shared<IdShard>(*current.ids[ShardOf(entry.record.id)]);
+  shard->erase(entry.record.id);
+  next.ids[ShardOf(entry.record.id)] = std::move(shard);
 }
 
 Status ImageIndex::Remove(const std::string& id) {
@@ -401,18 +440,7 @@ Status ImageIndex::Remove(const std::string& id) {
   if (auto s = impl_->catalogue->Delete(n); !s) return s;
 
   auto next = std::make_shared<Snapshot>(*current);
-  const BagOfWords bag = entry->features.Bag();
-  const std::array<uint32_t, 1> numbers = {n};
-  const std::array<const BagOfWords*, 1> bags = {&bag};
-  next->inverted = current->inverted.WithRemoved(numbers, bags);
-  next->geometry_bytes -= entry->features.MemoryBytes();
-  {
-    CowArray<std::shared_ptr<const Entry>>::Editor editor(&next->entries);
-    editor.Mutable(n) = nullptr;
-  }
-  auto shard = std::make_shared<IdShard>(*current->ids[ShardOf(id)]);
-  shard->erase(id);
-  next->ids[ShardOf(id)] = std::move(shard);
+  Impl::Unlink(*current, n, *entry, *next);
   impl_->Publish(std::move(next));
   return Ok();
 }

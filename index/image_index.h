@@ -53,20 +53,23 @@
 //                      fingerprint must equal the one in `meta`.
 // Open rebuilds the in-memory inverted file from the BLOBs (one pass, O(total features)).
 // Open refuses: a folder without a catalogue, an unknown schema version, a vocabulary copy whose
-// fingerprint differs from the catalogue's, a damaged BLOB (checksum) or a damaged SQLite file.
+// fingerprint differs from the catalogue's, a damaged BLOB (checksum) or a damaged SQLite file; and,
+// with kIoError, a folder it cannot write (read-only permissions or file system): the index is always
+// open for writing. Open validates through a read-only connection and writes nothing to a catalogue it
+// refuses (a stray or foreign catalogue.sqlite-wal is not checkpointed into it).
 //
 // ==== Thread safety =================================================================================
 //
 // All const members (Query, QuerySimilar, Get, List, Stats, vocabulary, extractor_settings) may run
 // concurrently with each other and with Add/Remove, from any number of threads, and never wait for a
 // writer: each call takes the current immutable Snapshot (std::shared_ptr<const Snapshot>, swapped
-// under a mutex held only for the pointer copy) and works on it. Add/Remove serialise on a writer mutex;
+// under a mutex held only for the pointer copy) and works on it. Add/Replace/Remove serialise on a writer mutex;
 // each writes SQLite, builds the next snapshot (sharing every unchanged part with the previous one)
 // and publishes it. A query sees an image either fully added or not at all.
 //
 // Mutexes (image_index.cc):
 //   writer_mutex_    guards the SQLite connection used for writes and the building of the next snapshot
-//                    (one writer at a time); held for the whole Add/Remove.
+//                    (one writer at a time); held for the whole commit + publish of Add/Replace/Remove.
 //   snapshot_mutex_  guards only the snapshot_ pointer (load / store of the shared_ptr).
 #pragma once
 
@@ -198,6 +201,8 @@ struct ImageRecord {
   uint32_t num_features = 0;   // indexed features (keypoints)
   std::string metadata_json;
   int64_t added_unix_ms = 0;   // wall-clock time of the Add, milliseconds since 1970 UTC
+
+  bool operator==(const ImageRecord&) const = default;
 };
 
 struct QueryResult {
@@ -265,6 +270,12 @@ class ImageIndex {
   // Cost: quantisation + O(features + sum of n_w over the image's distinct words) + the amortised merge.
   [[nodiscard]] Result<ImageRecord> Add(const std::string& id, const sift::FeatureSet& features,
                                         const ImageInfo& info);
+  // Adds one image as Add does, or, when `id` is indexed, replaces it: the removal of the old image and
+  // the addition of the new one are one durable SQLite transaction and one published snapshot, so a
+  // crash or a failure at any moment leaves the old image or the new one, never neither, and a query
+  // sees one of them. Errors as Add (except kAlreadyExists); nothing changed on an error.
+  [[nodiscard]] Result<ImageRecord> Replace(const std::string& id, const sift::FeatureSet& features,
+                                            const ImageInfo& info);
   // Removes an image durably. kNotFound for an unknown id. Cost O(sum of n_w over its distinct words).
   [[nodiscard]] Status Remove(const std::string& id);
 

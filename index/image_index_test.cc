@@ -14,6 +14,9 @@
 #include <random>
 #include <thread>
 
+#include <sys/wait.h>
+#include <unistd.h>
+
 #include "index/feature_store.h"
 
 namespace oxbow::index {
@@ -573,6 +576,165 @@ TEST_F(Fixture, DamagedCatalogueAndVocabularyAreRefused) {
   r = ImageIndex::Open(dir_.string());
   ASSERT_FALSE(r);
   EXPECT_EQ(r.error().code, ErrorCode::kCorruptData) << r.error().ToString();
+}
+
+std::string FileBytes(const fs::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  return std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+}
+
+// A catalogue.sqlite-wal that belongs to another index (here one on another vocabulary, with images)
+// beside the catalogue: the open is refused, and closing the refused open must not checkpoint that WAL
+// into catalogue.sqlite (a read-write connection would, overwriting every image of the index).
+TEST_F(Fixture, ForeignWalIsRefusedAndLeavesTheCatalogueAlone) {
+  {
+    auto index = CreateIndex();
+    std::mt19937_64 rng(11);
+    for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("a" + std::to_string(i), RandomImage(rng, 80), {}));
+  }
+  ASSERT_FALSE(fs::exists(dir_ / "catalogue.sqlite-wal"));  // a clean close checkpointed it
+  const fs::path other_dir = dir_.string() + "_other";
+  fs::remove_all(other_dir);
+  std::string foreign_wal;
+  {
+    const vocab::Vocabulary other_vocabulary = MakeVocabulary(2);
+    auto other = ImageIndex::Create(other_dir.string(), other_vocabulary, "test-extractor/1");
+    ASSERT_TRUE(other) << other.error().ToString();
+    std::mt19937_64 rng(12);
+    ASSERT_TRUE((*other)->Add("b", RandomImage(rng, 10), {}));
+    foreign_wal = FileBytes(other_dir / "catalogue.sqlite-wal");  // committed, not yet checkpointed
+  }
+  fs::remove_all(other_dir);
+  ASSERT_GT(foreign_wal.size(), 32u);
+  const std::string catalogue = FileBytes(dir_ / "catalogue.sqlite");
+  std::ofstream(dir_ / "catalogue.sqlite-wal", std::ios::binary) << foreign_wal;
+
+  const auto refused = ImageIndex::Open(dir_.string());
+  ASSERT_FALSE(refused);
+  EXPECT_EQ(refused.error().code, ErrorCode::kIncompatible) << refused.error().ToString();
+  EXPECT_TRUE(FileBytes(dir_ / "catalogue.sqlite") == catalogue) << "the refused open wrote to the catalogue";
+  EXPECT_TRUE(FileBytes(dir_ / "catalogue.sqlite-wal") == foreign_wal) << "the foreign WAL changed";
+
+  // Once the stray file is gone the index opens whole.
+  fs::remove(dir_ / "catalogue.sqlite-wal");
+  fs::remove(dir_ / "catalogue.sqlite-shm");
+  auto reopened = ImageIndex::Open(dir_.string());
+  ASSERT_TRUE(reopened) << reopened.error().ToString();
+  EXPECT_EQ((*reopened)->Stats().num_images, 20u);
+  EXPECT_TRUE((*reopened)->Contains("a19"));
+}
+
+// Makes every insert of `id` into the catalogue fail, as a full disk or an I/O error would.
+void FailInsertsOf(const fs::path& dir, const std::string& id) {
+  ExecSql(dir / "catalogue.sqlite", "CREATE TRIGGER injected_failure BEFORE INSERT ON images WHEN NEW.id = '" + id +
+                                        "' BEGIN SELECT RAISE(ABORT, 'injected insert failure'); END;");
+}
+
+TEST_F(Fixture, ReplaceIsOneTransactionOldOrNewNeverNeither) {
+  std::mt19937_64 rng(13);
+  const sift::FeatureSet old_image = RandomImage(rng, 40, 640, 480);
+  const sift::FeatureSet new_image = RandomImage(rng, 70, 800, 600);
+  ImageRecord old_record;
+  {
+    auto index = CreateIndex();
+    auto added = index->Add("x", old_image, Info("/old.jpg"));
+    ASSERT_TRUE(added);
+    old_record = *added;
+    ASSERT_TRUE(index->Add("other", RandomImage(rng, 40), {}));
+    // Replace of an absent id adds it.
+    ASSERT_TRUE(index->Replace("fresh", RandomImage(rng, 30), {}));
+    EXPECT_EQ(index->Stats().num_images, 3u);
+  }
+  FailInsertsOf(dir_, "x");
+  {
+    auto index = ImageIndex::Open(dir_.string());
+    ASSERT_TRUE(index) << index.error().ToString();
+    // The removal of the old row succeeds, the insert of the new one fails: the whole replacement
+    // rolls back, in the catalogue and in memory.
+    const auto failed = (*index)->Replace("x", new_image, Info("/new.jpg"));
+    ASSERT_FALSE(failed);
+    EXPECT_NE(failed.error().message.find("injected insert failure"), std::string::npos) << failed.error().message;
+    const auto kept = (*index)->Get("x");
+    ASSERT_TRUE(kept) << "a failed replacement removed the image";
+    EXPECT_EQ(*kept, old_record);
+    const auto self = (*index)->Query(old_image, Opts(1, 0));
+    ASSERT_TRUE(self);
+    ASSERT_FALSE(self->results.empty());
+    EXPECT_EQ(self->results[0].id, "x");
+  }
+  {
+    auto index = ImageIndex::Open(dir_.string());
+    ASSERT_TRUE(index) << index.error().ToString();
+    const auto kept = (*index)->Get("x");
+    ASSERT_TRUE(kept) << "the failed replacement removed the image from the catalogue";
+    EXPECT_EQ(*kept, old_record);
+    EXPECT_EQ((*index)->Stats().num_images, 3u);
+  }
+  ExecSql(dir_ / "catalogue.sqlite", "DROP TRIGGER injected_failure");
+  {
+    auto index = ImageIndex::Open(dir_.string());
+    ASSERT_TRUE(index) << index.error().ToString();
+    const auto replaced = (*index)->Replace("x", new_image, Info("/new.jpg"));
+    ASSERT_TRUE(replaced) << replaced.error().ToString();
+    EXPECT_EQ(replaced->num_features, 70u);
+    EXPECT_EQ((*index)->Get("x")->source_path, "/new.jpg");
+    EXPECT_EQ((*index)->Stats().num_images, 3u);
+    const auto self = (*index)->Query(new_image, Opts(1, 0));
+    ASSERT_TRUE(self);
+    ASSERT_FALSE(self->results.empty());
+    EXPECT_EQ(self->results[0].id, "x");
+  }
+  // After a restart: the new version only, and scores as an index built from scratch would give.
+  auto index = ImageIndex::Open(dir_.string());
+  ASSERT_TRUE(index) << index.error().ToString();
+  EXPECT_EQ((*index)->Get("x")->num_features, 70u);
+  EXPECT_EQ((*index)->Stats().num_images, 3u);
+}
+
+// A folder the process may not write (permissions; root ignores them, so as root the check runs in a
+// child that drops to user nobody) is an I/O problem, not damage, and the catalogue is left unchanged.
+TEST_F(Fixture, ReadOnlyFolderIsAnIoErrorNotDamage) {
+  {
+    auto index = CreateIndex();
+    std::mt19937_64 rng(14);
+    ASSERT_TRUE(index->Add("a", RandomImage(rng, 30), {}));
+  }
+  const std::string catalogue = FileBytes(dir_ / "catalogue.sqlite");
+  fs::permissions(dir_, fs::perms::owner_write | fs::perms::group_write | fs::perms::others_write,
+                  fs::perm_options::remove);
+  for (const auto& file : fs::directory_iterator(dir_)) {
+    fs::permissions(file.path(), fs::perms::owner_write | fs::perms::group_write | fs::perms::others_write,
+                    fs::perm_options::remove);
+  }
+  int fds[2];
+  ASSERT_EQ(pipe(fds), 0);
+  std::fflush(nullptr);
+  const pid_t pid = fork();
+  ASSERT_GE(pid, 0);
+  if (pid == 0) {
+    close(fds[0]);
+    if (geteuid() == 0 && (setgid(65534) != 0 || setuid(65534) != 0)) _exit(99);
+    const auto r = ImageIndex::Open(dir_.string());
+    const std::string report = r ? std::string("opened") : r.error().ToString();
+    if (write(fds[1], report.data(), report.size()) < 0) _exit(98);
+    _exit(r ? 1 : (r.error().code == ErrorCode::kIoError ? 0 : 2));
+  }
+  close(fds[1]);
+  std::string report;
+  char buf[512];
+  for (ssize_t n; (n = read(fds[0], buf, sizeof buf)) > 0;) report.append(buf, static_cast<size_t>(n));
+  close(fds[0]);
+  int status = 0;
+  ASSERT_EQ(waitpid(pid, &status, 0), pid);
+  fs::permissions(dir_, fs::perms::owner_write, fs::perm_options::add);
+  for (const auto& file : fs::directory_iterator(dir_)) fs::permissions(file.path(), fs::perms::owner_write, fs::perm_options::add);
+  ASSERT_TRUE(WIFEXITED(status));
+  if (WEXITSTATUS(status) == 99) GTEST_SKIP() << "running as root and cannot drop to user nobody (65534)";
+  EXPECT_EQ(WEXITSTATUS(status), 0) << report;
+  EXPECT_NE(report.find("read-only"), std::string::npos) << report;
+  EXPECT_NE(report.find("permissions"), std::string::npos) << report;
+  EXPECT_TRUE(FileBytes(dir_ / "catalogue.sqlite") == catalogue) << "the catalogue changed";
+  ASSERT_TRUE(ImageIndex::Open(dir_.string()));
 }
 
 TEST_F(Fixture, PackedFeaturesRoundTrip) {

@@ -1,8 +1,9 @@
-// Durability under kill -9: a child process adds (and removes) images in a loop, printing each change
-// to a pipe when it starts and when it is acknowledged; the parent SIGKILLs it as soon as an add has
-// started, confirms from the pipe that the add was still unacknowledged at the kill, reopens the index
-// and checks that every acknowledged change is there, nothing half-added, and the index still answers
-// queries.
+// Durability under kill -9: a child process adds, replaces and removes images in a loop, printing each
+// change to a pipe when it starts and when it is acknowledged; the parent SIGKILLs it as soon as an add
+// (even rounds) or a replacement (odd rounds) has started, confirms from the pipe that it was still
+// unacknowledged at the kill, reopens the index and checks that every acknowledged change is there,
+// nothing half-added, an image being replaced is there in its old or its new version (never neither),
+// and the index still answers queries.
 #include <gtest/gtest.h>
 #include <signal.h>
 #include <sys/wait.h>
@@ -11,6 +12,7 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <map>
 #include <random>
 #include <set>
 #include <string>
@@ -37,14 +39,15 @@ vocab::Vocabulary MakeVocabulary() {
   return *vocab::Vocabulary::FromCentroids(std::move(c), 128, sift::DescriptorKind::kSift, "crash-test/1", build);
 }
 
-// Deterministic features for image i (so the parent can recompute what the child added).
-sift::FeatureSet ImageFeatures(const vocab::Vocabulary& v, int i) {
-  std::mt19937_64 rng(1000 + i);
+// Deterministic features for version 1 (added) or 2 (replacement) of image i, so the parent can
+// recompute what the child wrote; the two versions differ in their feature count.
+sift::FeatureSet ImageFeatures(const vocab::Vocabulary& v, int i, int version = 1) {
+  std::mt19937_64 rng(1000 + i + 1000003 * (version - 1));
   sift::FeatureSet f;
   f.image_width = 500;
   f.image_height = 400;
   f.kind = sift::DescriptorKind::kSift;
-  const int n = 200 + i % 50;
+  const int n = 200 + i % 50 + (version - 1);
   for (int k = 0; k < n; ++k) {
     const uint32_t w = static_cast<uint32_t>(rng() % kWords);
     f.keypoints.push_back({static_cast<float>(rng() % 500), static_cast<float>(rng() % 400),
@@ -55,8 +58,9 @@ sift::FeatureSet ImageFeatures(const vocab::Vocabulary& v, int i) {
   return f;
 }
 
-// Child: add images start.., removing every 4th earlier one; prints "+ <id>" / "- <id>" before each add
-// / removal and "a <id>" / "r <id>" once it is acknowledged. Never returns.
+// Child: add images start.., removing every 4th earlier one and replacing another; prints "+ <id>" /
+// "- <id>" / "~ <id>" before each add / removal / replacement and "a <id>" / "r <id>" / "p <id>" once it
+// is acknowledged. Never returns.
 [[noreturn]] void RunChild(const std::string& dir, int write_fd, int start) {
   const vocab::Vocabulary vocabulary = MakeVocabulary();
   index::IndexOptions options;
@@ -80,6 +84,12 @@ sift::FeatureSet ImageFeatures(const vocab::Vocabulary& v, int i) {
       if (!idx.Remove(victim)) _exit(6);
       print("r " + victim + "\n");
     }
+    if (i % 4 == 1 && i > start) {
+      const std::string replaced = "img" + std::to_string(i - 1);
+      print("~ " + replaced + "\n");
+      if (!idx.Replace(replaced, ImageFeatures(vocabulary, i - 1, 2), {})) _exit(7);
+      print("p " + replaced + "\n");
+    }
   }
   _exit(0);
 }
@@ -94,13 +104,18 @@ TEST(CrashSafetyTest, AcknowledgedChangesSurviveSigkill) {
   }
   std::set<std::string> expected;  // ids acknowledged as added and not acknowledged as removed
   std::set<std::string> removed;
+  std::map<std::string, int> version;  // of each id in `expected`
   int start = 0;
   // Several rounds, each killed after a different number of acknowledgements, as soon as the next add
-  // has started. The kill may land after the add returned (the parent was slow to send it); such a
-  // round still checks durability but is not counted, and rounds go on until kMidAddKills were mid-add.
-  constexpr int kMidAddKills = 4;
+  // (even rounds) or replacement (odd rounds) has started. The kill may land after it returned (the
+  // parent was slow to send it); such a round still checks durability but is not counted, and rounds go
+  // on until kMidWriteKills were mid-add and as many mid-replacement.
+  constexpr int kMidWriteKills = 3;
   int mid_add_kills = 0;
-  for (int round = 0; round < 3 * kMidAddKills && mid_add_kills < kMidAddKills; ++round) {
+  int mid_replace_kills = 0;
+  for (int round = 0; round < 6 * kMidWriteKills && (mid_add_kills < kMidWriteKills || mid_replace_kills < kMidWriteKills);
+       ++round) {
+    const char target = round % 2 == 0 ? '+' : '~';
     int fds[2];
     ASSERT_EQ(pipe(fds), 0);
     std::fflush(nullptr);
@@ -123,6 +138,10 @@ TEST(CrashSafetyTest, AcknowledgedChangesSurviveSigkill) {
       last_line = s;
       if (s[0] == 'a') {
         expected.insert(s.substr(2));
+        version[s.substr(2)] = 1;
+        ++acks;
+      } else if (s[0] == 'p') {
+        version[s.substr(2)] = 2;
         ++acks;
       } else if (s[0] == 'r') {
         expected.erase(s.substr(2));
@@ -133,7 +152,7 @@ TEST(CrashSafetyTest, AcknowledgedChangesSurviveSigkill) {
     bool killed = false;
     while (std::fgets(line, sizeof(line), in)) {
       record(line);
-      if (acks >= kill_after && last_line[0] == '+') {
+      if (acks >= kill_after && last_line[0] == target) {
         ASSERT_EQ(kill(pid, SIGKILL), 0);
         killed = true;
         break;
@@ -148,12 +167,16 @@ TEST(CrashSafetyTest, AcknowledgedChangesSurviveSigkill) {
     }
     std::fclose(in);
     // The change in flight at the kill (started, never acknowledged) may or may not have committed.
-    std::string in_flight_add, in_flight_removal;
+    std::string in_flight_add, in_flight_removal, in_flight_replace;
     if (last_line[0] == '+') in_flight_add = last_line.substr(2);
     if (last_line[0] == '-') in_flight_removal = last_line.substr(2);
+    if (last_line[0] == '~') in_flight_replace = last_line.substr(2);
     if (!in_flight_add.empty()) ++mid_add_kills;
+    if (!in_flight_replace.empty()) ++mid_replace_kills;
     std::printf("round %d: killed after %d acknowledgements, %s\n", round, acks,
-                in_flight_add.empty() ? "not during an add" : ("during the add of " + in_flight_add).c_str());
+                !in_flight_add.empty()       ? ("during the add of " + in_flight_add).c_str()
+                : !in_flight_replace.empty() ? ("during the replacement of " + in_flight_replace).c_str()
+                                             : "not during an add or a replacement");
     int status = 0;
     ASSERT_EQ(waitpid(pid, &status, 0), pid);
     ASSERT_TRUE(WIFSIGNALED(status) && WTERMSIG(status) == SIGKILL) << "child exited with " << status;
@@ -165,11 +188,18 @@ TEST(CrashSafetyTest, AcknowledgedChangesSurviveSigkill) {
       expected.erase(in_flight_removal);
       removed.insert(in_flight_removal);
     }
+    // Old or new, never neither.
+    if (!in_flight_replace.empty()) {
+      const auto found = idx.Get(in_flight_replace);
+      ASSERT_TRUE(found) << "image " << in_flight_replace << " lost by a replacement interrupted in round " << round;
+      const int i = std::stoi(in_flight_replace.substr(3));
+      if (found->num_features == ImageFeatures(vocabulary, i, 2).size()) version[in_flight_replace] = 2;
+    }
     for (const std::string& id : expected) {
       const auto found = idx.Get(id);
       ASSERT_TRUE(found) << "acknowledged image " << id << " lost in round " << round;
       const int i = std::stoi(id.substr(3));
-      EXPECT_EQ(found->num_features, ImageFeatures(vocabulary, i).size()) << id;
+      EXPECT_EQ(found->num_features, ImageFeatures(vocabulary, i, version[id]).size()) << id;
     }
     for (const std::string& id : removed) EXPECT_FALSE(idx.Contains(id)) << "acknowledged removal of " << id << " undone";
     // At most the one change in flight may have committed without being acknowledged.
@@ -181,20 +211,22 @@ TEST(CrashSafetyTest, AcknowledgedChangesSurviveSigkill) {
     ASSERT_TRUE(all);
     for (const auto& stored : *all) {
       const int i = std::stoi(stored.id.substr(3));
-      EXPECT_EQ(stored.num_features, ImageFeatures(vocabulary, i).size()) << stored.id;
       // Adopt an unacknowledged but committed add so later rounds keep checking it.
-      expected.insert(stored.id);
+      if (expected.insert(stored.id).second) version[stored.id] = 1;
+      EXPECT_EQ(stored.num_features, ImageFeatures(vocabulary, i, version[stored.id]).size()) << stored.id;
     }
     index::QueryOptions query;
     query.top_k = 1;
     query.rerank_depth = 0;
-    const auto self = idx.Query(ImageFeatures(vocabulary, std::stoi(expected.begin()->substr(3))), query);
+    const std::string& first = *expected.begin();
+    const auto self = idx.Query(ImageFeatures(vocabulary, std::stoi(first.substr(3)), version[first]), query);
     ASSERT_TRUE(self);
     ASSERT_FALSE(self->results.empty());
     EXPECT_EQ(self->results[0].id, *expected.begin());
     start += 1000;
   }
-  EXPECT_EQ(mid_add_kills, kMidAddKills) << "the kill never landed while an add was in flight";
+  EXPECT_GE(mid_add_kills, kMidWriteKills) << "too few kills landed while an add was in flight";
+  EXPECT_GE(mid_replace_kills, kMidWriteKills) << "too few kills landed while a replacement was in flight";
   fs::remove_all(dir);
 }
 

@@ -1,0 +1,142 @@
+// The real `oxbow serve` against index folders it must refuse without changing them: a stray or foreign
+// catalogue.sqlite-wal beside the catalogue (refused, and the catalogue byte-identical afterwards: it
+// used to be overwritten by the checkpoint of that WAL when the refused open closed its connection), and
+// a folder the server may not write (exit 7, io_error, saying it is a permission problem, not damage).
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <filesystem>
+#include <fstream>
+#include <iterator>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "api/service.h"
+#include "api/testing.h"
+#include "tests/e2e_testing.h"
+
+namespace oxbow {
+namespace {
+
+namespace fs = std::filesystem;
+using nlohmann::json;
+
+std::string FileBytes(const fs::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  return std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+}
+
+std::vector<uint8_t> Picture(int n) {
+  const cv::Mat picture = oxbow::testing::Texture(320, 240, "graf1.png", 10 * n, 5 * n);
+  std::vector<uchar> png;
+  cv::imencode(".png", picture, png);
+  return {png.begin(), png.end()};
+}
+
+class HostileStorageTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    ASSERT_FALSE(dir_.path().empty());
+    const std::string settings = api::testing::TestSiftOptions().Describe();
+    ASSERT_TRUE(oxbow::testing::RandomVocabulary(settings, 256)->Write(vocab_));
+    auto service = api::Service::Open(index_, vocab_, {});
+    ASSERT_TRUE(service) << service.error().ToString();
+    for (int i = 0; i < kImages; ++i) {
+      api::AddImageRequest add;
+      add.id = "img" + std::to_string(i);
+      const std::vector<uint8_t> picture = Picture(i);
+      add.image = picture;
+      add.source_name = "http";
+      const auto added = (*service)->AddImage(add);
+      ASSERT_TRUE(added) << added.error().ToString();
+    }
+  }
+  // A copy of the index folder at `name`.
+  std::string CopyIndex(const std::string& name) const {
+    std::string copy = dir_.path() + "/" + name;
+    fs::copy(index_, copy, fs::copy_options::recursive);
+    return copy;
+  }
+  // Images the server started on `index` lists (-1 when it does not start).
+  int ServedImages(const std::string& index) {
+    oxbow::testing::ServerProcess server({"serve", "--index", index, "--port", "0"},
+                                         dir_.path() + "/serve-" + std::to_string(counter_++) + ".log");
+    if (server.port() == 0 || !server.WaitReady()) return -1;
+    auto client = server.Client();
+    const auto res = client.Get("/v1/images?limit=1000");
+    if (!res || res->status != 200) return -1;
+    return json::parse(res->body)["total"].get<int>();
+  }
+
+  static constexpr int kImages = 4;
+  api::testing::TempDir dir_{"oxbow-hostile-storage"};
+  const std::string vocab_ = dir_.path() + "/vocab.oxvoc";
+  const std::string index_ = dir_.path() + "/index";
+  int counter_ = 0;
+};
+
+TEST_F(HostileStorageTest, ForeignWalIsRefusedAndTheCatalogueStaysByteIdentical) {
+  // The WAL of another index (another vocabulary), taken while it holds a committed, not yet
+  // checkpointed add.
+  const std::string other_vocab = dir_.path() + "/other.oxvoc";
+  ASSERT_TRUE(oxbow::testing::RandomVocabulary(api::testing::TestSiftOptions().Describe(), 128)->Write(other_vocab));
+  std::string foreign_wal;
+  {
+    auto other = api::Service::Open(dir_.path() + "/other", other_vocab, {});
+    ASSERT_TRUE(other) << other.error().ToString();
+    api::AddImageRequest add;
+    add.id = "foreign";
+    const std::vector<uint8_t> picture = Picture(9);
+    add.image = picture;
+    ASSERT_TRUE((*other)->AddImage(add));
+    foreign_wal = FileBytes(dir_.path() + "/other/catalogue.sqlite-wal");
+  }
+  ASSERT_GT(foreign_wal.size(), 32u);
+
+  const std::string copy = CopyIndex("with-foreign-wal");
+  const std::string catalogue = FileBytes(copy + "/catalogue.sqlite");
+  std::ofstream(copy + "/catalogue.sqlite-wal", std::ios::binary) << foreign_wal;
+  int exit_code = 0;
+  const std::string output = oxbow::testing::RunCommand(
+      std::string(OXBOW_BINARY) + " serve --index " + copy + " --port 0 2>&1", &exit_code);
+  EXPECT_EQ(exit_code, 6) << output;  // incompatible: the WAL's catalogue names another vocabulary
+  EXPECT_NE(output.find("does not match"), std::string::npos) << output;
+  EXPECT_TRUE(FileBytes(copy + "/catalogue.sqlite") == catalogue) << "the refused start wrote to the catalogue";
+
+  // Without the stray file the copy serves every image.
+  fs::remove(copy + "/catalogue.sqlite-wal");
+  fs::remove(copy + "/catalogue.sqlite-shm");
+  EXPECT_EQ(ServedImages(copy), kImages);
+}
+
+TEST_F(HostileStorageTest, ReadOnlyIndexFolderIsAnIoErrorExit7) {
+  const std::string copy = CopyIndex("read-only");
+  const std::string catalogue = FileBytes(copy + "/catalogue.sqlite");
+  int exit_code = 0;
+  ASSERT_EQ(oxbow::testing::RunCommand("chmod -R a-w " + copy, &exit_code), "");
+  ASSERT_EQ(exit_code, 0);
+  // Root ignores file permissions: run the server as user nobody then (who may enter the test folder).
+  std::string as_user;
+  if (geteuid() == 0) {
+    fs::permissions(dir_.path(), fs::perms::others_exec, fs::perm_options::add);
+    as_user = "setpriv --reuid=65534 --regid=65534 --clear-groups ";
+    oxbow::testing::RunCommand(as_user + "test -x " + std::string(OXBOW_BINARY), &exit_code);
+    if (exit_code != 0) GTEST_SKIP() << "running as root and cannot run oxbow as user nobody (setpriv, or a build folder nobody cannot reach)";
+  }
+  const std::string output = oxbow::testing::RunCommand(
+      as_user + OXBOW_BINARY + " serve --index " + copy + " --port 0 2>&1", &exit_code);
+  int restored = 0;
+  oxbow::testing::RunCommand("chmod -R u+w " + copy, &restored);
+  EXPECT_EQ(exit_code, 7) << output;
+  EXPECT_NE(output.find("io_error"), std::string::npos) << output;
+  EXPECT_NE(output.find("permissions"), std::string::npos) << output;
+  EXPECT_EQ(output.find("corrupt"), std::string::npos) << output;
+  EXPECT_TRUE(FileBytes(copy + "/catalogue.sqlite") == catalogue) << "the catalogue changed";
+  EXPECT_EQ(ServedImages(copy), kImages);
+}
+
+}  // namespace
+}  // namespace oxbow
