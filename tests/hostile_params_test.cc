@@ -16,6 +16,7 @@
 
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include "api/testing.h"
 #include "index/image_index.h"
@@ -152,6 +153,15 @@ TEST_F(HostileParamsTest, CommandLineAppliesTheMetadataLimits) {
                                                    " --metadata \"$(cat " + deep + ")\" " + image_path + " 2>&1", &rc);
   EXPECT_EQ(rc, 2) << out;
   EXPECT_NE(out.find("--metadata must nest"), std::string::npos) << out;
+  // A second, different picture: the three stored copies of the texture then share words that do not
+  // occur in every image, so their idf is positive and the query finds them.
+  cv::Mat noise(300, 400, CV_8UC1);
+  cv::RNG(7).fill(noise, cv::RNG::UNIFORM, 0, 256);
+  cv::GaussianBlur(noise, noise, cv::Size(0, 0), 2.0);
+  const std::string other = dir_->path() + "/other.png";
+  ASSERT_TRUE(cv::imwrite(other, noise));
+  out = oxbow::testing::RunCommand(std::string(OXBOW_BINARY) + " index add --index " + copy + " " + other, &rc);
+  ASSERT_EQ(rc, 0) << out;
   out = oxbow::testing::RunCommand(std::string(OXBOW_BINARY) + " query --index " + copy + " --top-k 5 " + image_path, &rc);
   ASSERT_EQ(rc, 0) << "oxbow query over stored deep metadata: " << out.substr(0, 2000);
   const json results = json::parse(out.substr(out.find('{')))["results"];
