@@ -25,6 +25,7 @@ struct ServeFlags {
   api::ServiceOptions service;
   double max_upload_mb = 32;
   double max_inflight_upload_mb = 256;
+  int processing_timeout_s = api::ServiceOptions{}.processing_timeout_ms / 1000;
   ImageFlags image;
   int index_threads = 0;
   index::IndexOptions index_options;  // scoring options (--max-df, ...); num_threads from --index-threads
@@ -45,6 +46,7 @@ void Serve(const ServeFlags& flags) {
   service_options.max_image_bytes = http.max_body_bytes;
   service_options.max_pixels = decode.max_pixels;
   service_options.max_image_side_px = decode.max_image_side_px;
+  service_options.processing_timeout_ms = flags.processing_timeout_s * 1000;
   if (auto message = http.Check()) throw CommandError(2, *message);
   if (auto message = service_options.Check()) throw CommandError(2, *message);
   if (auto message = flags.index_options.Check()) throw CommandError(2, *message);
@@ -93,7 +95,7 @@ void Serve(const ServeFlags& flags) {
     int signal_number = 0;
     sigwait(&signals, &signal_number);
     OXBOW_LOG(kInfo) << "received " << (signal_number == SIGINT ? "SIGINT" : "SIGTERM")
-                     << ": no new connections, finishing in-flight requests";
+                     << ": no new connections, stopping extractions in flight, finishing in-flight requests";
     server.Shutdown();
   });
 
@@ -145,6 +147,11 @@ void SetUpServe(CLI::App& app) {
                   "how long a request waits for an extraction slot before 503")
       ->capture_default_str()
       ->check(CLI::Range(0, 600000));
+  cmd->add_option("--processing-timeout-s", flags->processing_timeout_s,
+                  "an add, search or match still decoding or extracting after this many seconds is stopped (503); "
+                  "so is one whose client hung up")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 3600));
   cmd->add_option("--threads-per-request", flags->service.threads_per_request,
                   "threads inside one extraction/match; 1 favours throughput, 0 = all cores (latency)")
       ->capture_default_str()

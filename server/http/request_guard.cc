@@ -20,6 +20,7 @@ using Clock = std::chrono::steady_clock;
 thread_local bool t_shedding_thread = false;
 thread_local bool t_deadline_expired = false;
 thread_local uint64_t t_reserved_bytes = 0;
+thread_local int t_socket = -1;
 
 // Waits until `fd` is ready for `events` or `timeout_ms` passes; retries on EINTR.
 bool PollFor(int fd, short events, int timeout_ms) {
@@ -162,6 +163,8 @@ void MarkSheddingThread() { t_shedding_thread = true; }
 
 bool RequestDeadlineExpired() { return t_deadline_expired; }
 
+int CurrentConnectionSocket() { return t_socket; }
+
 bool ReserveUploadForThisRequest(const httplib::Request& req, UploadBudget* budget, uint64_t max_body_bytes) {
   if (budget == nullptr) return true;
   uint64_t bytes = 0;
@@ -188,6 +191,7 @@ bool GuardedHttpServer::process_and_close_socket(socket_t sock) {
   const auto timeout = t_shedding_thread ? std::chrono::duration_cast<std::chrono::milliseconds>(kShedHeaderTimeout)
                                          : request_timeout_;
   bool ok = false;
+  t_socket = sock;
   for (size_t remaining = keep_alive_max_count_; remaining > 0; --remaining) {
     // Idle until the next request starts: at most keep_alive_timeout, and not past stop().
     const auto idle_until = Clock::now() + std::chrono::seconds(keep_alive_timeout_sec_);
@@ -205,6 +209,7 @@ bool GuardedHttpServer::process_and_close_socket(socket_t sock) {
     t_reserved_bytes = 0;
     if (!ok || connection_closed || close_connection) break;
   }
+  t_socket = -1;
   // The shedding thread lingers briefly: it must keep up with a flood.
   LingeringClose(sock, std::chrono::milliseconds(t_shedding_thread ? 200 : 1000));
   return ok;

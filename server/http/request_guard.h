@@ -70,6 +70,9 @@ class GuardedHttpServer : public httplib::Server {
 void MarkSheddingThread();
 // True when the request this thread serves ran past its read deadline (answer 408).
 bool RequestDeadlineExpired();
+// The socket of the connection this thread serves (-1 when none), for a route handler to notice that its
+// client hung up while the request is processed.
+int CurrentConnectionSocket();
 // Reserves this request's body (Content-Length, or `max_body_bytes` when chunked or unknown; capped at
 // max_body_bytes) from `budget`; false when it does not fit. Released by GuardedHttpServer after the
 // response.
