@@ -127,6 +127,7 @@ std::optional<std::string> ServiceOptions::Check() const {
   }
   if (extraction_wait_ms < 0 || extraction_wait_ms > 600'000) return "extraction_wait_ms must be in [0, 600000]";
   if (processing_timeout_ms < 1 || processing_timeout_ms > 3'600'000) return "processing_timeout_ms must be in [1, 3600000]";
+  if (shutdown_grace_ms < 0 || shutdown_grace_ms > 3'600'000) return "shutdown_grace_ms must be in [0, 3600000]";
   if (threads_per_request < 0 || threads_per_request > 256) return "threads_per_request must be in [0, 256]";
   if (add_nice < 0 || add_nice > 19) return "add_nice must be in [0, 19]";
   if (auto message = default_query.Check()) return "default query: " + *message;
@@ -217,12 +218,22 @@ Service::Work Service::StartWork(const sift::StopRequested& client_gone) const {
   return Work{Clock::now() + std::chrono::milliseconds(options_.processing_timeout_ms), &client_gone};
 }
 
+void Service::StopExtractions() {
+  const auto at = (Clock::now() + std::chrono::milliseconds(options_.shutdown_grace_ms)).time_since_epoch().count();
+  Clock::rep current = stop_at_.load();
+  while (at < current && !stop_at_.compare_exchange_weak(current, at)) {
+  }
+}
+
 std::optional<Error> Service::StopReason(const Work& work) const {
-  if (stopping_.load()) return Error{ErrorCode::kResourceExhausted, "the server is shutting down; retry on another instance"};
+  const auto now = Clock::now();
+  if (now.time_since_epoch().count() >= stop_at_.load()) {
+    return Error{ErrorCode::kResourceExhausted, "the server is shutting down; retry on another instance"};
+  }
   if (work.client_gone != nullptr && *work.client_gone && (*work.client_gone)()) {
     return Error{ErrorCode::kResourceExhausted, "the client closed its connection"};
   }
-  if (Clock::now() >= work.deadline) {
+  if (now >= work.deadline) {
     return Error{ErrorCode::kResourceExhausted, "decoding and extracting the image took longer than the server's limit of " +
                                                     std::to_string(options_.processing_timeout_ms) +
                                                     " ms (oxbow serve --processing-timeout-s); send a smaller image"};

@@ -13,9 +13,9 @@
 // wait for writers (ImageIndex reads an immutable snapshot); the only waits are (1) for an extraction
 // slot (at most max_concurrent_extractions decode+extract run at once, bounding peak memory; a request
 // waiting longer than extraction_wait_ms fails with kResourceExhausted -> 503; a request whose decode +
-// extraction runs past processing_timeout_ms, whose client has gone, or that is in flight when
-// StopExtractions() is called is abandoned at the extractor's next check, its slot freed, nothing
-// stored, kResourceExhausted -> 503) and (2) AddImage /
+// extraction runs past processing_timeout_ms, whose client has gone, or that still runs
+// shutdown_grace_ms after StopExtractions() is abandoned at the extractor's next check, its slot freed,
+// nothing stored, kResourceExhausted -> 503) and (2) AddImage /
 // DeleteImage serialise among themselves on write_mutex_ (the index serialises writers anyway; the
 // service lock makes "replace" = remove + add one step for other writers). Searches take no service lock.
 // Adds extract on low-priority threads (ServiceOptions::add_nice) so they yield the CPU to searches.
@@ -65,6 +65,11 @@ struct ServiceOptions {
   // deadline bounds what a hostile image can cost (the decoders' own limits bound the decode).
   // [1, 3600000].
   int processing_timeout_ms = 30'000;
+  // After StopExtractions (shutdown), decodes and extractions still running this many milliseconds later
+  // are stopped (503): a request almost done still gets its answer, and stopping waits at most this
+  // long for extractions (less than `docker stop`'s 10 s before SIGKILL). 0 stops them at once.
+  // [0, 3600000].
+  int shutdown_grace_ms = 5'000;
   // Threads used inside one extraction and one pairwise match; 1 lets concurrent requests use the
   // cores, 0 = all hardware threads (lowest latency for a single request). [0, 256].
   int threads_per_request = 1;
@@ -172,10 +177,10 @@ class Service {
   // kNotFound for an unknown id or when neither exists; kInvalidArgument for a size out of range.
   [[nodiscard]] Result<ThumbnailResponse> GetThumbnail(const std::string& id, int max_side_px) const;
   ServiceStats Stats() const;
-  // For shutdown: extractions in progress stop at their next check (their requests fail with 503,
-  // nothing stored), and later ones fail at once, so that stopping the server does not wait for them.
-  // Irreversible.
-  void StopExtractions() { stopping_.store(true); }
+  // For shutdown: decodes and extractions still running options().shutdown_grace_ms from now stop at
+  // their next check (their requests fail with 503, nothing stored), as do later ones, so that stopping
+  // the server does not wait for them. Irreversible; a second call does not extend the grace.
+  void StopExtractions();
 
   const ServiceOptions& options() const { return options_; }
   const index::ImageIndex& index() const { return *index_; }
@@ -209,7 +214,8 @@ class Service {
   int extraction_slots_ = 1;
   mutable std::counting_semaphore<1024> extraction_semaphore_;
   mutable std::atomic<int> extractions_in_flight_{0};
-  std::atomic<bool> stopping_{false};  // StopExtractions was called
+  // When StopExtractions' grace ends (Clock ticks since its epoch); the maximum until it is called.
+  std::atomic<Clock::rep> stop_at_{Clock::time_point::max().time_since_epoch().count()};
   std::mutex write_mutex_;  // serialises AddImage/DeleteImage (held across replace's remove + add)
   std::unique_ptr<BackgroundThreads> add_threads_;      // low-priority extraction for adds (add_nice > 0)
   std::unique_ptr<BackgroundThreads> extract_threads_;  // every other extraction (normal priority)

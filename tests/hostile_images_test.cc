@@ -214,6 +214,33 @@ TEST_F(HostileImagesTest, ProcessingDeadlineStopsTheExtraction) {
   EXPECT_TRUE(bad.Check().has_value());
 }
 
+// After StopExtractions (shutdown) work goes on for the grace, then stops; a stopped add stores nothing.
+TEST_F(HostileImagesTest, StopExtractionsStopsWorkAfterItsGrace) {
+  const Bytes jpeg = Encode(".jpg", Texture(320, 240));
+  api::ServiceOptions patient;
+  patient.shutdown_grace_ms = 600'000;
+  auto finishing = OpenService(patient);
+  ASSERT_TRUE(finishing);
+  finishing->StopExtractions();
+  EXPECT_TRUE(finishing->Search(jpeg, finishing->options().default_query));
+
+  api::ServiceOptions immediate;
+  immediate.shutdown_grace_ms = 0;
+  auto stopped = OpenService(immediate);
+  ASSERT_TRUE(stopped);
+  stopped->StopExtractions();
+  auto found = stopped->Search(jpeg, stopped->options().default_query);
+  ASSERT_FALSE(found);
+  EXPECT_EQ(found.error().code, ErrorCode::kResourceExhausted);
+  EXPECT_NE(found.error().message.find("shutting down"), std::string::npos) << found.error().message;
+  api::AddImageRequest add;
+  add.id = "during-shutdown";
+  add.image = jpeg;
+  EXPECT_FALSE(stopped->AddImage(add));
+  EXPECT_EQ(stopped->Stats().index.num_images, 0u);
+  EXPECT_EQ(stopped->Stats().extractions_in_flight, 0);
+}
+
 // A client that hangs up during its search frees the only extraction slot for the next client. Before,
 // the extraction ran to its end for nobody while everyone else waited (or got 503).
 TEST_F(HostileImagesTest, AClientThatHangsUpFreesItsExtractionSlot) {
@@ -233,10 +260,11 @@ TEST_F(HostileImagesTest, AClientThatHangsUpFreesItsExtractionSlot) {
   EXPECT_EQ(server->Stop(), 0);
 }
 
-// SIGTERM stops the extraction in flight (its client gets 503) instead of waiting for it, and the server
-// exits cleanly.
+// SIGTERM stops an extraction still running after --shutdown-grace-s (its client gets 503) instead of
+// waiting for it, and the server exits cleanly. (With the default grace of 5 s this search would finish:
+// http_server_test's graceful stop.)
 TEST_F(HostileImagesTest, ShutdownStopsExtractionsInFlight) {
-  auto server = StartServer({});
+  auto server = StartServer({"--shutdown-grace-s", "0"});
   ASSERT_GT(server->port(), 0);
   const int fd = StartSearch(*server, HeavyJpeg());
   ASSERT_GE(fd, 0) << "the search never started extracting\n" << server->Log();

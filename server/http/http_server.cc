@@ -523,7 +523,8 @@ void HttpServer::Run() {
 
 void HttpServer::Shutdown() {
   shutting_down_.store(true);  // before stop(): Run's watcher reads it after the server started
-  // In-flight extractions are abandoned (503) rather than waited for: stop() returns once they end.
+  // Extractions still running after the service's shutdown grace are abandoned (503) rather than
+  // waited for: stop() returns once the requests in flight end.
   if (auto s = service()) s->StopExtractions();
   http_->stop();
 }
