@@ -285,16 +285,7 @@ TEST(DecodeImage, RefusesAJpegFrameLargerThanItsData) {
   ASSERT_FALSE(photo.empty());
   cv::resize(photo, photo, cv::Size(512, 480));
   // The frame header claims 6000 x 6000 (36 MP, under the pixel limit) over the data of 512 x 480.
-  std::vector<uint8_t> claimed = Encode(photo, ".jpg");
-  for (size_t i = 2; i + 9 < claimed.size(); ++i) {
-    if (claimed[i] == 0xFF && claimed[i + 1] == 0xC0) {
-      claimed[i + 5] = 6000 >> 8;
-      claimed[i + 6] = 6000 & 0xFF;
-      claimed[i + 7] = 6000 >> 8;
-      claimed[i + 8] = 6000 & 0xFF;
-      break;
-    }
-  }
+  const auto claimed = testing::WithJpegFrameSize(Encode(photo, ".jpg"), 6000, 6000);
   auto info = ReadImageHeader(claimed);
   ASSERT_TRUE(info && info->width == 6000 && info->height == 6000);
   auto oversized = DecodeImage(claimed);

@@ -47,21 +47,6 @@ Bytes Encode(const std::string& ext, const cv::Mat& image) {
   return Bytes(out.begin(), out.end());
 }
 
-// Rewrites the baseline frame header of a JPEG to declare width x height.
-Bytes WithFrameSize(Bytes jpeg, uint16_t width, uint16_t height) {
-  for (size_t i = 2; i + 9 < jpeg.size(); ++i) {
-    if (jpeg[i] == 0xFF && jpeg[i + 1] == 0xC0) {
-      jpeg[i + 5] = static_cast<uint8_t>(height >> 8);
-      jpeg[i + 6] = static_cast<uint8_t>(height);
-      jpeg[i + 7] = static_cast<uint8_t>(width >> 8);
-      jpeg[i + 8] = static_cast<uint8_t>(width);
-      return jpeg;
-    }
-  }
-  ADD_FAILURE() << "no baseline frame header";
-  return jpeg;
-}
-
 class HostileImagesTest : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
@@ -171,7 +156,7 @@ TEST_F(HostileImagesTest, CostlyAndCorruptImagesAreRefusedAndNothingIsStored) {
   Bytes cut(jpeg.begin(), jpeg.begin() + static_cast<long>(jpeg.size() * 3 / 10));
   cut.insert(cut.end(), {0xFF, 0xD9});
   ExpectRefused(*service, cut, ErrorCode::kInvalidImage, 400, "jpeg-cut-with-eoi");
-  ExpectRefused(*service, WithFrameSize(jpeg, 6000, 6000), ErrorCode::kInvalidImage, 400, "jpeg-frame-over-data");
+  ExpectRefused(*service, hostile::WithJpegFrameSize(jpeg, 6000, 6000), ErrorCode::kInvalidImage, 400, "jpeg-frame-over-data");
   ExpectRefused(*service, hostile::TiffWithGarbageDeflateStrip(256, 256), ErrorCode::kInvalidImage, 400, "tiff-garbage-strip");
   for (const char* ext : {".webp", ".tiff"}) {
     if (!cv::haveImageWriter(ext)) continue;

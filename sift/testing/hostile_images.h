@@ -58,22 +58,29 @@ inline Bytes ProgressiveJpegWithScans(const Bytes& grey, int width, int height, 
   return out;
 }
 
+// `jpeg` with its first baseline or progressive frame header rewritten to declare width x height; the
+// data stays as it was. Unchanged when there is no such header.
+inline Bytes WithJpegFrameSize(Bytes jpeg, uint16_t width, uint16_t height) {
+  for (size_t i = 2; i + 9 < jpeg.size(); ++i) {
+    if (jpeg[i] == 0xFF && (jpeg[i + 1] == 0xC0 || jpeg[i + 1] == 0xC2)) {
+      jpeg[i + 5] = static_cast<uint8_t>(height >> 8);
+      jpeg[i + 6] = static_cast<uint8_t>(height);
+      jpeg[i + 7] = static_cast<uint8_t>(width >> 8);
+      jpeg[i + 8] = static_cast<uint8_t>(width);
+      break;
+    }
+  }
+  return jpeg;
+}
+
 // The shape of issue 19, item 4: the headers of a small progressive grey JPEG with its frame declaring
 // width x height, then `scans` empty DC scans (10 bytes each: an SOS segment and no data), then EOI.
 // libjpeg walks every block of the frame for each scan.
 inline Bytes JpegOfEmptyScans(uint16_t width, uint16_t height, int scans) {
-  Bytes jpeg = ProgressiveJpegWithScans(Bytes(16 * 16, 128), 16, 16, 2);
+  Bytes jpeg = WithJpegFrameSize(ProgressiveJpegWithScans(Bytes(16 * 16, 128), 16, 16, 2), width, height);
   size_t sos = 2;
-  while (sos + 4 <= jpeg.size() && !(jpeg[sos] == 0xFF && jpeg[sos + 1] == 0xDA)) {
-    const uint8_t marker = jpeg[sos + 1];
-    if (marker == 0xC2) {  // the progressive frame header: P, height, width
-      jpeg[sos + 5] = static_cast<uint8_t>(height >> 8);
-      jpeg[sos + 6] = static_cast<uint8_t>(height);
-      jpeg[sos + 7] = static_cast<uint8_t>(width >> 8);
-      jpeg[sos + 8] = static_cast<uint8_t>(width);
-    }
+  while (sos + 4 <= jpeg.size() && !(jpeg[sos] == 0xFF && jpeg[sos + 1] == 0xDA))
     sos += 2 + ((static_cast<size_t>(jpeg[sos + 2]) << 8) | jpeg[sos + 3]);
-  }
   jpeg.resize(sos);
   // SOS, length 8, one component (id 1, DC table 0), Ss = Se = 0, Ah = Al = 0.
   static constexpr uint8_t kEmptyScan[] = {0xFF, 0xDA, 0x00, 0x08, 0x01, 0x01, 0x00, 0x00, 0x00, 0x00};
