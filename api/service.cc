@@ -126,6 +126,8 @@ std::optional<std::string> ServiceOptions::Check() const {
     return "max_concurrent_extractions must be in [0, 1024]";
   }
   if (extraction_wait_ms < 0 || extraction_wait_ms > 600'000) return "extraction_wait_ms must be in [0, 600000]";
+  if (processing_timeout_ms < 1 || processing_timeout_ms > 3'600'000) return "processing_timeout_ms must be in [1, 3600000]";
+  if (shutdown_grace_ms < 0 || shutdown_grace_ms > 3'600'000) return "shutdown_grace_ms must be in [0, 3600000]";
   if (threads_per_request < 0 || threads_per_request > 256) return "threads_per_request must be in [0, 256]";
   if (add_nice < 0 || add_nice > 19) return "add_nice must be in [0, 19]";
   if (auto message = default_query.Check()) return "default query: " + *message;
@@ -212,22 +214,65 @@ Result<std::unique_ptr<Service>> Service::Open(const std::string& index_dir,
   return service;
 }
 
-Result<sift::FeatureSet> Service::Extract(std::span<const uint8_t> image, double* elapsed_ms,
+Service::Work Service::StartWork(const sift::StopRequested& client_gone) const {
+  return Work{Clock::now() + std::chrono::milliseconds(options_.processing_timeout_ms), &client_gone};
+}
+
+void Service::StopExtractions() {
+  const auto at = (Clock::now() + std::chrono::milliseconds(options_.shutdown_grace_ms)).time_since_epoch().count();
+  Clock::rep current = stop_at_.load();
+  while (at < current && !stop_at_.compare_exchange_weak(current, at)) {
+  }
+}
+
+std::optional<Error> Service::StopReason(const Work& work) const {
+  const auto now = Clock::now();
+  if (now.time_since_epoch().count() >= stop_at_.load()) {
+    return Error{ErrorCode::kResourceExhausted, "the server is shutting down; retry on another instance"};
+  }
+  if (work.client_gone != nullptr && *work.client_gone && (*work.client_gone)()) {
+    return Error{ErrorCode::kResourceExhausted, "the client closed its connection"};
+  }
+  if (now >= work.deadline) {
+    return Error{ErrorCode::kResourceExhausted, "decoding and extracting the image took longer than the server's limit of " +
+                                                    std::to_string(options_.processing_timeout_ms) +
+                                                    " ms (oxbow serve --processing-timeout-s); send a smaller image"};
+  }
+  return std::nullopt;
+}
+
+Result<sift::FeatureSet> Service::Extract(std::span<const uint8_t> image, const Work& work, double* elapsed_ms,
                                           const std::function<void()>& also, BackgroundThreads* threads) const {
-  if (!extraction_semaphore_.try_acquire_for(std::chrono::milliseconds(options_.extraction_wait_ms))) {
-    return Fail(ErrorCode::kResourceExhausted,
-                "all " + std::to_string(extraction_slots_) + " extraction slots stayed busy for " +
-                    std::to_string(options_.extraction_wait_ms) + " ms; retry later");
+  // The wait for a slot is taken in short steps, so that a request abandoned meanwhile stops waiting.
+  const auto wait_until = Clock::now() + std::chrono::milliseconds(options_.extraction_wait_ms);
+  for (;;) {
+    const auto step = std::clamp(std::chrono::duration_cast<std::chrono::milliseconds>(wait_until - Clock::now()),
+                                 std::chrono::milliseconds(0), std::chrono::milliseconds(20));
+    if (extraction_semaphore_.try_acquire_for(step)) break;
+    if (auto reason = StopReason(work)) return std::unexpected(*reason);
+    if (Clock::now() >= wait_until) {
+      return Fail(ErrorCode::kResourceExhausted,
+                  "all " + std::to_string(extraction_slots_) + " extraction slots stayed busy for " +
+                      std::to_string(options_.extraction_wait_ms) + " ms; retry later");
+    }
   }
   SlotGuard slot(&extraction_semaphore_, &extractions_in_flight_);
   // At most extraction_slots_ jobs hold a slot, and each pool has that many threads: no job waits here.
   Result<sift::FeatureSet> features = Fail(ErrorCode::kInternal, "extraction did not run");
+  const sift::StopRequested stop = [this, &work] { return StopReason(work).has_value(); };
   threads->Run([&] {
     const auto start = Clock::now();
-    features = extractor_.ExtractFromBytes(image, options_.Decode());
+    features = extractor_.ExtractFromBytes(image, options_.Decode(), stop);
     *elapsed_ms = MsSince(start);
     if (features && also) also();
   });
+  if (!features && features.error().code == ErrorCode::kResourceExhausted) {
+    if (auto reason = StopReason(work)) {
+      OXBOW_LOG(kInfo) << "extraction stopped after " << *elapsed_ms << " ms (" << features.error().message
+                       << "): " << reason->message;
+      return std::unexpected(*reason);
+    }
+  }
   return features;
 }
 
@@ -244,7 +289,7 @@ Result<AddImageResponse> Service::AddImage(const AddImageRequest& request) {
   Result<sift::FeatureSet> features = Fail(ErrorCode::kInternal, "extraction did not run");
   Result<api::Thumbnail> thumbnail = Fail(ErrorCode::kInternal, "thumbnail not made");
   features = Extract(
-      request.image, &response.decode_extract_ms,
+      request.image, StartWork(request.client_gone), &response.decode_extract_ms,
       [&] {
         thumbnail = MakeThumbnail(request.image, options_.thumbnails.stored_side_px, options_.thumbnails.jpeg_quality,
                                   options_.Decode());
@@ -313,11 +358,12 @@ Result<ListResponse> Service::ListImages(uint64_t offset, uint64_t limit) const 
   return response;
 }
 
-Result<SearchResponse> Service::Search(std::span<const uint8_t> image, const index::QueryOptions& options) const {
+Result<SearchResponse> Service::Search(std::span<const uint8_t> image, const index::QueryOptions& options,
+                                       const sift::StopRequested& client_gone) const {
   const auto start = Clock::now();
   SearchResponse response;
   response.options = options;
-  auto features = Extract(image, &response.decode_extract_ms, nullptr, extract_threads_.get());
+  auto features = Extract(image, StartWork(client_gone), &response.decode_extract_ms, nullptr, extract_threads_.get());
   if (!features) return std::unexpected(features.error());
   response.query_width = features->image_width;
   response.query_height = features->image_height;
@@ -349,16 +395,17 @@ Result<SearchResponse> Service::SearchSimilar(const std::string& id, const index
 }
 
 Result<MatchResponse> Service::Match(std::span<const uint8_t> image_a, std::span<const uint8_t> image_b,
-                                     const PairMatchOptions& options) const {
+                                     const PairMatchOptions& options, const sift::StopRequested& client_gone) const {
   const auto start = Clock::now();
   MatchResponse response;
-  auto a = Extract(image_a, &response.decode_extract_a_ms, nullptr, extract_threads_.get());
+  const Work work = StartWork(client_gone);  // one deadline for both images
+  auto a = Extract(image_a, work, &response.decode_extract_a_ms, nullptr, extract_threads_.get());
   if (!a) {
     Error error = a.error();
     error.message = "image a: " + error.message;
     return std::unexpected(error);
   }
-  auto b = Extract(image_b, &response.decode_extract_b_ms, nullptr, extract_threads_.get());
+  auto b = Extract(image_b, work, &response.decode_extract_b_ms, nullptr, extract_threads_.get());
   if (!b) {
     Error error = b.error();
     error.message = "image b: " + error.message;

@@ -12,7 +12,10 @@
 // Thread safety: every member may be called concurrently from any number of threads. Searches never
 // wait for writers (ImageIndex reads an immutable snapshot); the only waits are (1) for an extraction
 // slot (at most max_concurrent_extractions decode+extract run at once, bounding peak memory; a request
-// waiting longer than extraction_wait_ms fails with kResourceExhausted -> 503) and (2) AddImage /
+// waiting longer than extraction_wait_ms fails with kResourceExhausted -> 503; a request whose decode +
+// extraction runs past processing_timeout_ms, whose client has gone, or that still runs
+// shutdown_grace_ms after StopExtractions() is abandoned at the extractor's next check, its slot freed,
+// nothing stored, kResourceExhausted -> 503) and (2) AddImage /
 // DeleteImage serialise among themselves on write_mutex_ (the index serialises writers anyway; the
 // service lock makes the thumbnail and the index change one step for other writers; a replacement is one
 // transaction in the index, ImageIndex::Replace). Searches take no service lock.
@@ -57,6 +60,17 @@ struct ServiceOptions {
   int max_concurrent_extractions = 0;
   // How long a request waits for an extraction slot before failing with 503, milliseconds. [0, 600000].
   int extraction_wait_ms = 10'000;
+  // Processing deadline of an add, search or match, milliseconds from when the service is asked: decoding
+  // and extraction (waiting for a slot included) still running then are stopped (sift::StopRequested)
+  // and the request fails with kResourceExhausted (503). A 1600-pixel image takes ~1-2 s on one core; the
+  // deadline bounds what a hostile image can cost (the decoders' own limits bound the decode).
+  // [1, 3600000].
+  int processing_timeout_ms = 30'000;
+  // After StopExtractions (shutdown), decodes and extractions still running this many milliseconds later
+  // are stopped (503): a request almost done still gets its answer, and stopping waits at most this
+  // long for extractions (less than `docker stop`'s 10 s before SIGKILL). 0 stops them at once.
+  // [0, 3600000].
+  int shutdown_grace_ms = 5'000;
   // Threads used inside one extraction and one pairwise match; 1 lets concurrent requests use the
   // cores, 0 = all hardware threads (lowest latency for a single request). [0, 256].
   int threads_per_request = 1;
@@ -81,6 +95,8 @@ struct AddImageRequest {
   std::string metadata_json;            // a JSON document or ""
   std::string source_name;              // e.g. the multipart file name; informational
   bool replace = false;                 // an existing image with this id is replaced (else kAlreadyExists)
+  // True once the client that asked has gone (may be empty): the add is then abandoned, nothing stored.
+  sift::StopRequested client_gone;
 };
 
 struct AddImageResponse {
@@ -132,6 +148,8 @@ struct ServiceStats {
 };
 
 class Service {
+  using Clock = std::chrono::steady_clock;
+
  public:
   // Opens the index in `index_dir`, or creates it when the folder holds none and `vocabulary_path` is
   // given (the index then uses that vocabulary and its extractor settings). When both exist, the
@@ -146,10 +164,13 @@ class Service {
   [[nodiscard]] Result<index::ImageRecord> GetImage(const std::string& id) const;
   [[nodiscard]] Status DeleteImage(const std::string& id);
   [[nodiscard]] Result<ListResponse> ListImages(uint64_t offset, uint64_t limit) const;
-  [[nodiscard]] Result<SearchResponse> Search(std::span<const uint8_t> image, const index::QueryOptions& options) const;
+  // `client_gone` (may be empty) as AddImageRequest::client_gone: the search or match is abandoned.
+  [[nodiscard]] Result<SearchResponse> Search(std::span<const uint8_t> image, const index::QueryOptions& options,
+                                              const sift::StopRequested& client_gone = {}) const;
   [[nodiscard]] Result<SearchResponse> SearchSimilar(const std::string& id, const index::QueryOptions& options) const;
   [[nodiscard]] Result<MatchResponse> Match(std::span<const uint8_t> image_a, std::span<const uint8_t> image_b,
-                                            const PairMatchOptions& options) const;
+                                            const PairMatchOptions& options,
+                                            const sift::StopRequested& client_gone = {}) const;
   // A JPEG of image `id` whose longest side is at most min(max_side_px, thumbnails.stored_side_px)
   // (max_side_px in [kMinThumbnailPx, kMaxThumbnailPx]): the stored thumbnail (AddImage stores one before the image is indexed, so an acknowledged add has
   // one), scaled down when smaller is asked for; else one made from the catalogue's source file when
@@ -162,6 +183,10 @@ class Service {
   void SetThumbnailMadeHookForTesting(std::function<void(const std::string& id)> hook) {
     thumbnail_made_for_testing_ = std::move(hook);
   }
+  // For shutdown: decodes and extractions still running options().shutdown_grace_ms from now stop at
+  // their next check (their requests fail with 503, nothing stored), as do later ones, so that stopping
+  // the server does not wait for them. Irreversible; a second call does not extend the grace.
+  void StopExtractions();
 
   const ServiceOptions& options() const { return options_; }
   const index::ImageIndex& index() const { return *index_; }
@@ -178,7 +203,15 @@ class Service {
   // `threads` (the add threads, else extract_threads_): SIFT keeps its pyramid buffers per thread that
   // extracts (SiftOptions::thread_cache_mib), so extracting on the HTTP workers would let every worker
   // keep ~200 MiB of buffers (32 workers: 7 GiB measured) whatever the slot count.
-  [[nodiscard]] Result<sift::FeatureSet> Extract(std::span<const uint8_t> image, double* elapsed_ms,
+  // `work` bounds the request (deadline, client): see StopReason.
+  struct Work {
+    Clock::time_point deadline;               // processing_timeout_ms after the service was asked
+    const sift::StopRequested* client_gone;  // not owned; may be null or empty
+  };
+  [[nodiscard]] Work StartWork(const sift::StopRequested& client_gone) const;
+  // Why `work` must stop now (StopExtractions, client gone, deadline passed), or nullopt. Monotonic.
+  [[nodiscard]] std::optional<Error> StopReason(const Work& work) const;
+  [[nodiscard]] Result<sift::FeatureSet> Extract(std::span<const uint8_t> image, const Work& work, double* elapsed_ms,
                                                  const std::function<void()>& also, BackgroundThreads* threads) const;
 
   std::unique_ptr<index::ImageIndex> index_;
@@ -191,6 +224,8 @@ class Service {
   // "still the same image" and the store are one step for writers.
   mutable std::mutex write_mutex_;
   std::function<void(const std::string& id)> thumbnail_made_for_testing_;
+  // When StopExtractions' grace ends (Clock ticks since its epoch); the maximum until it is called.
+  std::atomic<Clock::rep> stop_at_{Clock::time_point::max().time_since_epoch().count()};
   std::unique_ptr<BackgroundThreads> add_threads_;      // low-priority extraction for adds (add_nice > 0)
   std::unique_ptr<BackgroundThreads> extract_threads_;  // every other extraction (normal priority)
   std::unique_ptr<ThumbnailStore> thumbnails_;      // <index>/thumbnails.sqlite (thread-safe itself)

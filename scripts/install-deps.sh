@@ -16,7 +16,8 @@ build_packages=(
   libcli11-dev           # the oxbow CLI
   libcpp-httplib-dev     # the HTTP server
   libgtest-dev libgmock-dev
-  libjpeg-dev            # tests: a CMYK JPEG fixture (OpenCV cannot write one)
+  libjpeg-dev            # sift/image.cc checks JPEG data with libjpeg (damage, scan limit); tests: a CMYK JPEG fixture
+  libtiff-dev            # sift/image.cc checks TIFF data with libtiff (damage, the dimensions libtiff decodes)
   opencv-doc             # sample photos (graf, box, ...) used as test and demo data
   libvlfeat-dev          # VLFeat SIFT: benchmark peer only
   libfaiss-dev           # faiss: benchmark peer only
@@ -28,7 +29,7 @@ build_packages=(
 )
 runtime_packages=(
   libopencv-core406 libopencv-imgproc406 libopencv-imgcodecs406 libopencv-features2d406 libopencv-calib3d406
-  libopencv-flann406 libflann1.9 libsqlite3-0 libcpp-httplib0.11 curl ca-certificates
+  libopencv-flann406 libflann1.9 libsqlite3-0 libcpp-httplib0.11 libjpeg62-turbo libtiff6 curl ca-certificates
 )
 
 packages=("${build_packages[@]}")

@@ -3,9 +3,17 @@
 #include <algorithm>
 #include <cctype>
 #include <cmath>
+#include <csetjmp>
+#include <cstdarg>
+#include <cstdio>
 #include <cstring>
 #include <filesystem>
+#include <memory>
 #include <string_view>
+
+#include <jpeglib.h>
+#include <jerror.h>
+#include <tiffio.h>
 
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -173,12 +181,21 @@ Result<ImageHeaderInfo> TiffHeader(std::span<const uint8_t> b) {
   if (ifd + 2 + uint64_t{entries} * 12 > b.size()) return Invalid("TIFF directory runs past the end (truncated)");
   ImageHeaderInfo info;
   info.format = ImageFormat::kTiff;
+  // libtiff ignores every repeat of a tag after its first entry, and it is libtiff that decodes: a file
+  // with ImageWidth 32000 then ImageWidth 1 is a 32000-pixel-wide image, so the first entry counts here too.
+  bool seen_width = false, seen_height = false;
   for (uint32_t e = 0; e < entries; ++e) {
     const size_t at = ifd + 2 + e * 12;
     const uint32_t tag = u16(at), type = u16(at + 2);
     const uint64_t value = type == 3 ? u16(at + 8) : type == 4 ? u32(at + 8) : 0;
-    if (tag == 256) info.width = value;
-    if (tag == 257) info.height = value;
+    if (tag == 256 && !seen_width) {
+      info.width = value;
+      seen_width = true;
+    }
+    if (tag == 257 && !seen_height) {
+      info.height = value;
+      seen_height = true;
+    }
   }
   if (info.width == 0 || info.height == 0) return Invalid("TIFF directory has no image width/length (corrupt)");
   return info;
@@ -240,6 +257,202 @@ Status CheckComplete(std::span<const uint8_t> b, const ImageHeaderInfo& info, si
   }
 }
 
+// Over the pixel limit: refused before any pixel is allocated.
+Status CheckPixelLimit(ImageFormat format, uint64_t width, uint64_t height, const DecodeOptions& options) {
+  if (width <= (uint64_t{1} << 31) && height <= (uint64_t{1} << 31) && width * height <= options.max_pixels) return Ok();
+  return Fail(ErrorCode::kImageTooLarge, std::string(ImageFormatName(format)) + " header declares " + std::to_string(width) +
+                                             "x" + std::to_string(height) + " pixels, over the limit of " +
+                                             std::to_string(options.max_pixels));
+}
+
+// ---- The data as libjpeg and libtiff see it -----------------------------------------------------------
+//
+// OpenCV's decoders carry on where the libraries report damage: libjpeg only warns about missing or
+// undecodable entropy-coded data (then fills in grey), and OpenCV's TIFF reader ignores what libtiff's
+// RGBA interface reports. So JPEG and TIFF data first goes through the library itself with such reports
+// as errors (what libjpeg-turbo's `djpeg -strict` does), and OpenCV decodes only what passed. The JPEG
+// pass also bounds the scans of a progressive file (`djpeg -maxscans`): libjpeg walks every block of
+// the frame for each scan, however few bytes the scan has, so scans, not bytes, set the cost.
+
+// libjpeg's callbacks reach this through cinfo->err (the first member); error_exit must not return, so
+// errors jump back into CheckJpegData.
+struct JpegCheck {
+  jpeg_error_mgr errors;
+  jpeg_progress_mgr progress;
+  std::jmp_buf failed;
+  int max_scans = 0;
+  bool over_scan_limit = false;
+  char message[JMSG_LENGTH_MAX] = {};
+};
+
+JpegCheck* CheckOf(j_common_ptr cinfo) { return reinterpret_cast<JpegCheck*>(cinfo->err); }
+
+[[noreturn]] void JpegFail(j_common_ptr cinfo) {
+  (*cinfo->err->format_message)(cinfo, CheckOf(cinfo)->message);
+  std::longjmp(CheckOf(cinfo)->failed, 1);
+}
+
+// Warnings that image data is missing or undecodable fail the check. The other warnings (an unknown
+// JFIF version, stray bytes between segments, a bad ICC profile) leave every pixel intact, and some
+// cameras write such files; they and trace messages (level >= 0) are ignored.
+void JpegMessage(j_common_ptr cinfo, int level) {
+  if (level >= 0) return;
+  switch (cinfo->err->msg_code) {
+    case JWRN_HIT_MARKER:      // "premature end of data segment": the scan's data ran out
+    case JWRN_JPEG_EOF:        // the file ran out
+    case JWRN_HUFF_BAD_CODE:
+    case JWRN_ARITH_BAD_CODE:
+    case JWRN_MUST_RESYNC:     // restart markers out of order: data was lost
+      JpegFail(cinfo);
+    default:
+      ++cinfo->err->num_warnings;
+  }
+}
+
+// libjpeg calls this for every row of blocks it reads; input_scan_number counts the scans started.
+void JpegProgress(j_common_ptr cinfo) {
+  JpegCheck* check = CheckOf(cinfo);
+  if (reinterpret_cast<j_decompress_ptr>(cinfo)->input_scan_number > check->max_scans) {
+    check->over_scan_limit = true;
+    std::longjmp(check->failed, 1);
+  }
+}
+
+// Decodes the JPEG at 1/8 scale and throws the pixels away: every scan and block is entropy-decoded
+// (where damage shows) while the inverse DCT and colour work shrink to almost nothing (~1/3 of a full
+// decode's time). No C++ object with a destructor lives between setjmp and the jumps back.
+Status CheckJpegData(std::span<const uint8_t> b, int max_scans) {
+  JpegCheck check;
+  jpeg_decompress_struct cinfo{};
+  cinfo.err = jpeg_std_error(&check.errors);
+  check.errors.error_exit = JpegFail;
+  check.errors.emit_message = JpegMessage;
+  check.progress.progress_monitor = JpegProgress;
+  check.max_scans = max_scans;
+  if (setjmp(check.failed) != 0) {
+    jpeg_destroy_decompress(&cinfo);
+    if (check.over_scan_limit) {
+      return Invalid("progressive JPEG has more than " + std::to_string(max_scans) +
+                     " scans (the limit; ordinary files have at most ~10): refused, as each scan costs a pass over the whole image");
+    }
+    return Invalid(std::string("JPEG data is corrupt or truncated (libjpeg: ") + check.message + ")");
+  }
+  jpeg_create_decompress(&cinfo);
+  cinfo.progress = &check.progress;
+  jpeg_mem_src(&cinfo, b.data(), static_cast<unsigned long>(b.size()));
+  jpeg_read_header(&cinfo, TRUE);
+  cinfo.scale_num = 1;
+  cinfo.scale_denom = 8;
+  cinfo.dct_method = JDCT_IFAST;
+  cinfo.do_fancy_upsampling = FALSE;
+  if (cinfo.jpeg_color_space == JCS_YCbCr || cinfo.jpeg_color_space == JCS_GRAYSCALE) cinfo.out_color_space = JCS_GRAYSCALE;
+  jpeg_start_decompress(&cinfo);
+  JSAMPARRAY row = (*cinfo.mem->alloc_sarray)(reinterpret_cast<j_common_ptr>(&cinfo), JPOOL_IMAGE,
+                                              cinfo.output_width * static_cast<JDIMENSION>(cinfo.output_components), 1);
+  while (cinfo.output_scanline < cinfo.output_height) jpeg_read_scanlines(&cinfo, row, 1);
+  jpeg_finish_decompress(&cinfo);  // reads on to the end marker: damage after the last row shows too
+  jpeg_destroy_decompress(&cinfo);
+  return Ok();
+}
+
+// libtiff reads the bytes from memory through these callbacks; `error` keeps its first error message.
+struct TiffInput {
+  std::span<const uint8_t> bytes;
+  uint64_t position = 0;
+  std::optional<std::string> error;
+};
+
+tmsize_t TiffRead(thandle_t handle, void* buffer, tmsize_t size) {
+  auto* in = static_cast<TiffInput*>(handle);
+  if (size <= 0 || in->position >= in->bytes.size()) return 0;
+  const uint64_t n = std::min<uint64_t>(static_cast<uint64_t>(size), in->bytes.size() - in->position);
+  std::memcpy(buffer, in->bytes.data() + in->position, n);
+  in->position += n;
+  return static_cast<tmsize_t>(n);
+}
+tmsize_t TiffWrite(thandle_t, void*, tmsize_t) { return -1; }
+toff_t TiffSeek(thandle_t handle, toff_t offset, int whence) {
+  auto* in = static_cast<TiffInput*>(handle);
+  const uint64_t base = whence == SEEK_CUR ? in->position : whence == SEEK_END ? in->bytes.size() : 0;
+  in->position = std::min<uint64_t>(base + offset, in->bytes.size());  // unsigned wrap-around: negative offsets
+  return in->position;
+}
+int TiffClose(thandle_t) { return 0; }
+toff_t TiffSize(thandle_t handle) { return static_cast<TiffInput*>(handle)->bytes.size(); }
+int TiffMap(thandle_t handle, void** base, toff_t* size) {
+  auto* in = static_cast<TiffInput*>(handle);
+  *base = const_cast<uint8_t*>(in->bytes.data());
+  *size = in->bytes.size();
+  return 1;
+}
+void TiffUnmap(thandle_t, void*, toff_t) {}
+
+// Handlers of this TIFF handle only (libtiff >= 4.5): returning 1 keeps the message from the process-wide
+// handlers (OpenCV installs its own there).
+int TiffError(TIFF*, void* user_data, const char* module, const char* format, va_list args) {
+  auto* in = static_cast<TiffInput*>(user_data);
+  if (!in->error) {
+    char text[512];
+    std::vsnprintf(text, sizeof text, format, args);
+    in->error = (module != nullptr ? std::string(module) + ": " : std::string()) + text;
+  }
+  return 1;
+}
+int TiffWarning(TIFF*, void*, const char*, const char*, va_list) { return 1; }
+
+// Opens the first directory (the page OpenCV decodes) with libtiff, checks the dimensions libtiff itself
+// will decode against the pixel limit, then decodes every strip or tile of it. `header` holds the
+// dimensions already checked from the header bytes (so libtiff opens nothing over the limit).
+Status CheckTiffData(std::span<const uint8_t> b, const ImageHeaderInfo& header, const DecodeOptions& options) {
+  // Largest strip, tile or other single allocation: the whole image at 4 samples of 16 bits (at least
+  // one 256x256 tile, which small images may use).
+  const uint64_t max_alloc = 8 * std::max<uint64_t>(header.width * header.height, uint64_t{1} << 16);
+  TiffInput input{b, 0, std::nullopt};
+  const std::unique_ptr<TIFFOpenOptions, decltype(&TIFFOpenOptionsFree)> open_options(TIFFOpenOptionsAlloc(), TIFFOpenOptionsFree);
+  TIFFOpenOptionsSetErrorHandlerExtR(open_options.get(), TiffError, &input);
+  TIFFOpenOptionsSetWarningHandlerExtR(open_options.get(), TiffWarning, nullptr);
+  TIFFOpenOptionsSetMaxSingleMemAlloc(open_options.get(), static_cast<tmsize_t>(max_alloc));
+  const std::unique_ptr<TIFF, decltype(&TIFFClose)> tif(
+      TIFFClientOpenExt("image", "r", &input, TiffRead, TiffWrite, TiffSeek, TiffClose, TiffSize, TiffMap, TiffUnmap,
+                        open_options.get()),
+      TIFFClose);
+  auto corrupt = [&] { return Invalid("TIFF data is corrupt (libtiff: " + input.error.value_or("unreadable directory") + ")"); };
+  if (!tif) return corrupt();
+  uint32_t width = 0, height = 0;
+  if (TIFFGetField(tif.get(), TIFFTAG_IMAGEWIDTH, &width) != 1 || TIFFGetField(tif.get(), TIFFTAG_IMAGELENGTH, &height) != 1)
+    return corrupt();
+  if (auto limit = CheckPixelLimit(ImageFormat::kTiff, width, height, options); !limit) return limit;
+  const bool tiled = TIFFIsTiled(tif.get()) != 0;
+  const uint64_t piece_bytes = tiled ? TIFFTileSize64(tif.get()) : TIFFStripSize64(tif.get());
+  const uint32_t pieces = tiled ? TIFFNumberOfTiles(tif.get()) : TIFFNumberOfStrips(tif.get());
+  if (input.error || piece_bytes == 0 || piece_bytes > max_alloc) return corrupt();
+  std::vector<uint8_t> buffer(piece_bytes);
+  const auto size = static_cast<tmsize_t>(piece_bytes);
+  for (uint32_t i = 0; i < pieces && !input.error; ++i) {
+    const tmsize_t n = tiled ? TIFFReadEncodedTile(tif.get(), i, buffer.data(), size) : TIFFReadEncodedStrip(tif.get(), i, buffer.data(), size);
+    if (n < 0) return corrupt();
+  }
+  if (input.error) return corrupt();
+  return Ok();
+}
+
+// Whether this OpenCV build decodes `format` (WebP and TIFF support are build options): it must read back
+// an image it wrote itself. Asked only after a decode failed, to tell 415 from a corrupt file.
+bool OpenCvDecodes(ImageFormat format) {
+  auto round_trip = [](const char* ext) {
+    try {
+      std::vector<uchar> bytes;
+      return cv::imencode(ext, cv::Mat(8, 8, CV_8UC1, cv::Scalar(128)), bytes) &&
+             !cv::imdecode(bytes, cv::IMREAD_GRAYSCALE).empty();
+    } catch (const cv::Exception&) {
+      return false;
+    }
+  };
+  static const bool webp = round_trip(".webp");
+  static const bool tiff = round_trip(".tiff");
+  return format == ImageFormat::kWebp ? webp : format == ImageFormat::kTiff ? tiff : true;
+}
+
 GrayImage ToGray(const cv::Mat& mat) {
   GrayImage image;
   image.width = mat.cols;
@@ -262,6 +475,7 @@ GrayImage ToGray(const cv::Mat& mat) {
 
 std::optional<std::string> DecodeOptions::Check() const {
   if (max_pixels < 1) return "max_pixels must be >= 1";
+  if (max_jpeg_scans < 1 || max_jpeg_scans > 10000) return "max_jpeg_scans must be in [1, 10000], got " + std::to_string(max_jpeg_scans);
   if (max_bytes < 1) return "max_bytes must be >= 1";
   if (max_image_side_px && *max_image_side_px < 16)
     return "max_image_side_px must be >= 16 when set, got " + std::to_string(*max_image_side_px);
@@ -345,13 +559,15 @@ Result<DecodedImage> DecodeImage(std::span<const uint8_t> bytes, const DecodeOpt
   }
   if (!info) return std::unexpected(info.error());
   if (info->width == 0 || info->height == 0) return Invalid("image header declares a zero width or height");
+  if (auto limit = CheckPixelLimit(info->format, info->width, info->height, options); !limit) return std::unexpected(limit.error());
   const uint64_t declared = info->width * info->height;
-  if (info->width > (uint64_t{1} << 31) || info->height > (uint64_t{1} << 31) || declared > options.max_pixels)
-    return Fail(ErrorCode::kImageTooLarge, std::string(ImageFormatName(info->format)) + " header declares " +
-                                               std::to_string(info->width) + "x" + std::to_string(info->height) +
-                                               " pixels, over the limit of " + std::to_string(options.max_pixels));
   if (auto complete = CheckComplete(bytes, *info, scan_start, maxval, data_start); !complete)
     return std::unexpected(complete.error());
+  if (info->format == ImageFormat::kJpeg) {
+    if (auto intact = CheckJpegData(bytes, options.max_jpeg_scans); !intact) return std::unexpected(intact.error());
+  } else if (info->format == ImageFormat::kTiff) {
+    if (auto intact = CheckTiffData(bytes, *info, options); !intact) return std::unexpected(intact.error());
+  }
 
   int flags = cv::IMREAD_GRAYSCALE;
   if (!options.apply_exif_orientation) flags |= cv::IMREAD_IGNORE_ORIENTATION;
@@ -363,11 +579,8 @@ Result<DecodedImage> DecodeImage(std::span<const uint8_t> bytes, const DecodeOpt
     return Invalid(std::string(ImageFormatName(info->format)) + " data could not be decoded: " + e.what());
   }
   if (mat.empty()) {
-    if (info->format == ImageFormat::kWebp || info->format == ImageFormat::kTiff) {
-      const cv::String ext = info->format == ImageFormat::kWebp ? ".webp" : ".tiff";
-      if (!cv::haveImageReader("x" + ext))
-        return Fail(ErrorCode::kUnsupportedFormat, std::string("this OpenCV build cannot decode ") + ImageFormatName(info->format));
-    }
+    if (!OpenCvDecodes(info->format))
+      return Fail(ErrorCode::kUnsupportedFormat, std::string("this OpenCV build cannot decode ") + ImageFormatName(info->format));
     return Invalid(std::string(ImageFormatName(info->format)) + " data could not be decoded (corrupt or truncated)");
   }
   if (static_cast<uint64_t>(mat.cols) * static_cast<uint64_t>(mat.rows) != declared)

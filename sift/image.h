@@ -3,8 +3,13 @@
 // DecodeImage accepts JPEG, PNG, PPM/PGM (binary P5/P6), WebP, TIFF and BMP. Before any pixel is
 // allocated it reads the image dimensions from the file header itself (not from OpenCV, which would
 // decode first) and refuses images whose declared width*height exceeds DecodeOptions::max_pixels, so a
-// small file declaring a huge image (a "decompression bomb") costs nothing. Truncated files are refused:
-// JPEG without its EOI marker, PNG without its IEND chunk, PNM shorter than width*height*channels bytes.
+// small file declaring a huge image (a "decompression bomb") costs nothing (TIFF: the dimensions libtiff
+// will use, i.e. the first of repeated tags). Truncated files are refused: JPEG without its EOI marker,
+// PNG without its IEND chunk, PNM shorter than width*height*channels bytes. JPEG and TIFF data is first
+// decoded by libjpeg / libtiff with every report of missing or corrupt data an error (OpenCV would fill
+// in grey and go on), so a JPEG cut short with an end marker appended, a frame header larger than its
+// data, or a TIFF strip that does not decompress are refused; so is a progressive JPEG with more than
+// DecodeOptions::max_jpeg_scans scans (each scan costs a pass over every block of the image).
 // The EXIF orientation tag of JPEG files is honoured (the image is rotated/flipped upright), and the
 // result can be downscaled (area averaging) so that its longest side is at most max_image_side_px.
 //
@@ -41,6 +46,12 @@ struct DecodeOptions {
   uint64_t max_pixels = 40'000'000;
   // Largest accepted encoded file size, bytes; over it -> kImageTooLarge. Must be >= 1.
   uint64_t max_bytes = 256ull << 20;
+  // Most scans a progressive JPEG may have; more -> kInvalidImage, after at most this many scans were
+  // read. libjpeg walks every block of the frame for each scan, even an almost empty one (~2.3 ms per
+  // scan of a 36 MP frame: 215 KiB of 10-byte scans cost ~50 s of CPU). libjpeg's progression writes
+  // 6 (grey) or 10 (colour) scans; 100 is also libtiff's default limit for JPEG inside TIFF
+  // (LIBTIFF_JPEG_MAX_ALLOWED_SCAN_NUMBER). [1, 10000].
+  int max_jpeg_scans = 100;
   // When set, the decoded image is downscaled with area averaging (cv::INTER_AREA) so that its longest
   // side is at most this many pixels; never upscaled; keypoints are still reported in original pixels.
   // Unset: no limit. Must be >= 16 when set. 1600 px bounds extraction time and memory (a 12 MP photo
@@ -87,8 +98,9 @@ inline double GrayToOriginal(double coordinate, double scale_to_original) {
 }
 
 // Decodes an encoded image into grey. Errors: kInvalidArgument for bad options; kInvalidImage for empty,
-// truncated, corrupt or unrecognised bytes; kImageTooLarge when bytes.size() > max_bytes or the declared
-// width*height > max_pixels; kUnsupportedFormat for a recognised format OpenCV cannot decode here.
+// truncated, corrupt or unrecognised bytes and JPEGs over max_jpeg_scans; kImageTooLarge when
+// bytes.size() > max_bytes or the declared width*height > max_pixels; kUnsupportedFormat for a recognised
+// format this OpenCV build cannot decode at all (GIF; WebP or TIFF when built without them).
 [[nodiscard]] Result<DecodedImage> DecodeImage(std::span<const uint8_t> bytes, const DecodeOptions& options = {});
 
 // Reads the file (kNotFound / kIoError) and decodes it as DecodeImage does; messages name the path.

@@ -9,8 +9,10 @@
 
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include "sift/base/binary_io.h"
+#include "sift/testing/hostile_images.h"
 
 namespace oxbow::sift {
 namespace {
@@ -222,6 +224,121 @@ TEST(DecodeImage, RefusesDeclaredOversizeBeforeAllocating) {
   auto too_many_bytes = DecodeImage(Encode(TestCard(), ".png"), few_bytes);
   ASSERT_FALSE(too_many_bytes);
   EXPECT_EQ(too_many_bytes.error().code, ErrorCode::kImageTooLarge);
+}
+
+// Issue 19, item 4: libjpeg walks every block of the frame for each scan of a progressive JPEG, however
+// few bytes the scan has. Scans past DecodeOptions::max_jpeg_scans are refused, even when each is valid.
+TEST(DecodeImage, RefusesProgressiveJpegsWithTooManyScans) {
+  cv::Mat card;
+  cv::resize(TestCard(), card, cv::Size(128, 96));
+  const testing::Bytes grey(card.datastart, card.dataend);
+  const auto many = testing::ProgressiveJpegWithScans(grey, 128, 96, 128);
+  auto decoded = DecodeImage(many);
+  ASSERT_FALSE(decoded) << "128 scans accepted";
+  EXPECT_EQ(decoded.error().code, ErrorCode::kInvalidImage);
+  EXPECT_NE(decoded.error().message.find("more than 100 scans"), std::string::npos) << decoded.error().message;
+  // Every scan is legal: under a higher limit the same file decodes, and at the limit too.
+  DecodeOptions lenient;
+  lenient.max_jpeg_scans = 128;
+  auto allowed = DecodeImage(many, lenient);
+  ASSERT_TRUE(allowed) << allowed.error().ToString();
+  EXPECT_LT(MeanAbsDiff(allowed->gray, card), 0.02);
+  EXPECT_TRUE(DecodeImage(testing::ProgressiveJpegWithScans(grey, 128, 96, 100)));
+  // What encoders write (libjpeg's default progression, through OpenCV) is far below the limit.
+  std::vector<uint8_t> progressive;
+  ASSERT_TRUE(cv::imencode(".jpg", card, progressive, {cv::IMWRITE_JPEG_PROGRESSIVE, 1}));
+  EXPECT_TRUE(DecodeImage(progressive));
+  lenient.max_jpeg_scans = 0;
+  EXPECT_TRUE(lenient.Check().has_value());
+}
+
+// The shape of the attack in issue 19: a 4000 x 4000 progressive frame and 3000 scans of 10 bytes (30 KB).
+// libjpeg warns that each scan's data is missing and fills in grey; OpenCV passed that on as an image.
+TEST(DecodeImage, RefusesAProgressiveJpegOfEmptyScans) {
+  const auto empty_scans = testing::JpegOfEmptyScans(4000, 4000, 3000);
+  ASSERT_LT(empty_scans.size(), 40'000u);
+  auto decoded = DecodeImage(empty_scans);
+  ASSERT_FALSE(decoded) << "a JPEG of empty scans was decoded";
+  EXPECT_EQ(decoded.error().code, ErrorCode::kInvalidImage);
+  EXPECT_NE(decoded.error().message.find("premature end of data segment"), std::string::npos) << decoded.error().message;
+}
+
+// Issue 19, item 9: JPEG data that libjpeg can only decode by filling in grey is refused (400), not
+// decoded into a grey image.
+TEST(DecodeImage, RefusesJpegsWhoseDataIsShorterThanTheFrame) {
+  cv::Mat photo = cv::imread(kOpencvData + "box.png", cv::IMREAD_GRAYSCALE);
+  ASSERT_FALSE(photo.empty());
+  cv::resize(photo, photo, cv::Size(512, 480));
+  const auto jpeg = Encode(photo, ".jpg");
+  ASSERT_TRUE(DecodeImage(jpeg));
+  // Cut at 30%, with an end marker appended so that it does not look truncated.
+  std::vector<uint8_t> cut(jpeg.begin(), jpeg.begin() + static_cast<long>(jpeg.size() * 3 / 10));
+  cut.insert(cut.end(), {0xFF, 0xD9});
+  auto decoded = DecodeImage(cut);
+  ASSERT_FALSE(decoded) << "a JPEG cut at 30% was decoded";
+  EXPECT_EQ(decoded.error().code, ErrorCode::kInvalidImage);
+  EXPECT_NE(decoded.error().message.find("corrupt or truncated"), std::string::npos) << decoded.error().message;
+}
+
+TEST(DecodeImage, RefusesAJpegFrameLargerThanItsData) {
+  cv::Mat photo = cv::imread(kOpencvData + "box.png", cv::IMREAD_GRAYSCALE);
+  ASSERT_FALSE(photo.empty());
+  cv::resize(photo, photo, cv::Size(512, 480));
+  // The frame header claims 6000 x 6000 (36 MP, under the pixel limit) over the data of 512 x 480.
+  const auto claimed = testing::WithJpegFrameSize(Encode(photo, ".jpg"), 6000, 6000);
+  auto info = ReadImageHeader(claimed);
+  ASSERT_TRUE(info && info->width == 6000 && info->height == 6000);
+  auto oversized = DecodeImage(claimed);
+  ASSERT_FALSE(oversized) << "a 6000x6000 frame over 512x480 of data was decoded";
+  EXPECT_EQ(oversized.error().code, ErrorCode::kInvalidImage);
+}
+
+// Issue 19, item 5: libtiff decodes the first of repeated ImageWidth/ImageLength entries; the pixel limit
+// is checked on those (before, the last ones were checked: 1 x 1 passed, then libtiff allocated 1 GB).
+TEST(DecodeImage, ChecksTheTiffDimensionsLibtiffDecodes) {
+  const auto bomb = testing::TiffWithRepeatedDimensions({32000, 32000}, {1, 1});
+  ASSERT_LT(bomb.size(), 1000u);
+  auto info = ReadImageHeader(bomb);
+  ASSERT_TRUE(info) << info.error().ToString();
+  EXPECT_EQ(info->width, 32000u);
+  EXPECT_EQ(info->height, 32000u);
+  auto decoded = DecodeImage(bomb);
+  ASSERT_FALSE(decoded);
+  EXPECT_EQ(decoded.error().code, ErrorCode::kImageTooLarge) << decoded.error().ToString();
+  EXPECT_NE(decoded.error().message.find("32000x32000"), std::string::npos) << decoded.error().message;
+  // The other way round libtiff decodes a 1 x 1 image, and so does DecodeImage.
+  auto small = DecodeImage(testing::TiffWithRepeatedDimensions({1, 1}, {32000, 32000}));
+  ASSERT_TRUE(small) << small.error().ToString();
+  EXPECT_EQ(small->original_width, 1);
+  EXPECT_EQ(small->original_height, 1);
+  // A hand-made TIFF without repeats decodes (the generator itself is sound).
+  auto plain = DecodeImage(testing::HandMadeTiff(testing::GreyTiffEntries(16, 8, 1), testing::Bytes(16 * 8, 200)));
+  ASSERT_TRUE(plain) << plain.error().ToString();
+  EXPECT_EQ(plain->gray.width, 16);
+  EXPECT_NEAR(plain->gray.at(3, 3), 200 / 255.0, 1e-6);
+}
+
+// Issue 19, item 9: a TIFF strip that does not decompress is corrupt data (400), whatever OpenCV makes
+// of it (its RGBA path ignored libtiff's error); and a corrupt WebP or TIFF is not "this OpenCV build
+// cannot decode webp/tiff" (415).
+TEST(DecodeImage, RefusesATiffStripThatDoesNotDecompress) {
+  auto garbage_strip = DecodeImage(testing::TiffWithGarbageDeflateStrip(64, 64));
+  ASSERT_FALSE(garbage_strip) << "a TIFF with a garbage deflate strip was decoded";
+  EXPECT_EQ(garbage_strip.error().code, ErrorCode::kInvalidImage) << garbage_strip.error().ToString();
+  EXPECT_NE(garbage_strip.error().message.find("libtiff"), std::string::npos) << garbage_strip.error().message;
+}
+
+TEST(DecodeImage, CorruptTiffAndWebpAreInvalidNotUnsupported) {
+  for (const std::string ext : {".webp", ".tiff"}) {
+    if (!cv::haveImageWriter(ext)) continue;
+    auto bytes = Encode(TestCard(), ext);
+    ASSERT_TRUE(DecodeImage(bytes)) << ext;
+    // Header intact, everything after the first 40 bytes overwritten.
+    for (size_t i = 40; i < bytes.size(); ++i) bytes[i] = static_cast<uint8_t>(0xA5 ^ i);
+    auto corrupt = DecodeImage(bytes);
+    ASSERT_FALSE(corrupt) << ext;
+    EXPECT_EQ(corrupt.error().code, ErrorCode::kInvalidImage) << ext << ": " << corrupt.error().ToString();
+  }
 }
 
 TEST(DecodeImage, RefusesBadOptionsAndMissingFiles) {

@@ -771,7 +771,7 @@ Scratch& ThreadScratch() {
 
 }  // namespace
 
-FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool simd) {
+FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool simd, const StopRequested& stop) {
   OXBOW_CHECK(!options.Check().has_value(), "invalid SiftOptions");
   OXBOW_CHECK(image.pixels.size() == static_cast<size_t>(std::max(image.width, 0)) * static_cast<size_t>(std::max(image.height, 0)),
               "GrayImage pixel count does not match width * height");
@@ -781,6 +781,7 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
   result.kind = options.descriptor;
   if (image.width <= 0 || image.height <= 0) return result;
 
+  const auto stopped = [&stop] { return stop && stop(); };
   const int threads = ResolveThreadCount(options.num_threads);
   WorkerTeam team(threads);
   const int S = options.intervals;
@@ -834,7 +835,7 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
 
   // The S + 3 planes of octave 0 are reused by the (smaller) later octaves; `spare` receives the
   // decimated base of the next octave.
-  for (int o = 0; o < octaves; ++o) {
+  for (int o = 0; o < octaves && !stopped(); ++o) {
     octave.index = o;
     if (o == 0) {
       GaussianBlur(base, &octave.gauss[0], kernels[0], team, simd);
@@ -842,10 +843,12 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
       std::swap(octave.gauss[0], spare);
     }
     if (octave.gauss[0].width() < 1 || octave.gauss[0].height() < 1) break;
-    for (int i = 1; i < S + 3; ++i)
+    for (int i = 1; i < S + 3 && !stopped(); ++i)
       GaussianBlur(octave.gauss[static_cast<size_t>(i) - 1], &octave.gauss[static_cast<size_t>(i)], kernels[static_cast<size_t>(i)], team, simd);
+    if (stopped()) break;
 
     const std::vector<Candidate> candidates = ScanOctave(octave, S, scan_threshold, team, simd);
+    if (stopped()) break;
     std::vector<std::optional<Refined>> refined(candidates.size());
     team.ParallelFor(candidates.size(), 64, [&](size_t b, size_t e, int) {
       for (size_t i = b; i < e; ++i) refined[i] = Refine(octave, candidates[i], options);
@@ -897,6 +900,7 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
         }
       }
     });
+    if (stopped()) break;
     std::vector<size_t> first(unique.size() + 1);
     first[0] = result.keypoints.size();
     for (size_t i = 0; i < unique.size(); ++i) first[i + 1] = first[i] + static_cast<size_t>(orientations[i].count);
@@ -932,6 +936,7 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
     if (o + 1 < octaves) Decimate2x(octave.gauss[static_cast<size_t>(S)], &spare);
   }
   scratch.Keep(std::move(octave.gauss), options.thread_cache_mib);
+  if (stopped()) return result;
 
   if (options.max_features && result.keypoints.size() > static_cast<size_t>(*options.max_features)) {
     std::vector<size_t> order(result.keypoints.size());
@@ -963,8 +968,10 @@ Result<SiftExtractor> SiftExtractor::Create(const SiftOptions& options) {
 
 FeatureSet SiftExtractor::Extract(const GrayImage& image) const { return internal::ExtractImpl(image, options_, true); }
 
-FeatureSet SiftExtractor::ExtractFromDecoded(const DecodedImage& decoded) const {
-  FeatureSet features = Extract(decoded.gray);
+namespace {
+
+// Keypoints of decoded.gray -> coordinates, scales and size of the original image.
+FeatureSet ToOriginal(FeatureSet features, const DecodedImage& decoded) {
   const double s = decoded.scale_to_original;
   if (s != 1.0) {
     for (Keypoint& kp : features.keypoints) {
@@ -978,10 +985,21 @@ FeatureSet SiftExtractor::ExtractFromDecoded(const DecodedImage& decoded) const 
   return features;
 }
 
-Result<FeatureSet> SiftExtractor::ExtractFromBytes(std::span<const uint8_t> bytes, const DecodeOptions& decode) const {
+}  // namespace
+
+FeatureSet SiftExtractor::ExtractFromDecoded(const DecodedImage& decoded) const {
+  return ToOriginal(Extract(decoded.gray), decoded);
+}
+
+Result<FeatureSet> SiftExtractor::ExtractFromBytes(std::span<const uint8_t> bytes, const DecodeOptions& decode,
+                                                   const StopRequested& stop) const {
   auto decoded = DecodeImage(bytes, decode);
   if (!decoded) return std::unexpected(decoded.error());
-  return ExtractFromDecoded(*decoded);
+  const auto stopped = [&stop] { return stop && stop(); };
+  if (stopped()) return Fail(ErrorCode::kResourceExhausted, "stopped after decoding, before the extraction");
+  FeatureSet features = internal::ExtractImpl(decoded->gray, options_, true, stop);
+  if (stopped()) return Fail(ErrorCode::kResourceExhausted, "stopped during the extraction");
+  return ToOriginal(std::move(features), *decoded);
 }
 
 Result<FeatureSet> SiftExtractor::ExtractFromFile(const std::string& path, const DecodeOptions& decode) const {

@@ -82,6 +82,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <optional>
 #include <span>
 #include <string>
@@ -151,6 +152,15 @@ struct SiftOptions {
   [[nodiscard]] static Result<SiftOptions> FromDescription(const std::string& description);
 };
 
+// A caller's signal to abandon an extraction (a deadline passed, the client hung up, the server stops).
+// Polled on the extracting thread between stages: after decoding, and before each Gaussian level, the
+// extrema scan, the orientations and the descriptors of every octave, so a stop takes effect within
+// one stage: measured at most ~0.35 s on one core for a 1600 x 1200 image of fine noise (72,000
+// keypoints, 1.2 s in all); a photo's stages are shorter. The decode itself is not interrupted (its own
+// limits bound it, image.h). Must be cheap, callable from that thread, and monotonic: once true it
+// stays true.
+using StopRequested = std::function<bool()>;
+
 // Extracts SIFT keypoints and descriptors. Immutable after Create; Extract* are thread-safe (may be
 // called concurrently from several threads; each calling thread has its own scratch memory, kept
 // between its calls up to SiftOptions::thread_cache_mib).
@@ -170,9 +180,10 @@ class SiftExtractor {
 
   // Decodes then extracts; keypoint coordinates and scales are mapped back to the ORIGINAL image (before
   // DecodeOptions::max_image_side_px downscaling, after EXIF orientation), and image_width/height are
-  // the original size. Errors as DecodeImage.
-  [[nodiscard]] Result<FeatureSet> ExtractFromBytes(std::span<const uint8_t> bytes,
-                                                    const DecodeOptions& decode = {}) const;
+  // the original size. Errors as DecodeImage, and kResourceExhausted when `stop` (may be empty) turned
+  // true before the extraction finished (the caller knows why and says so).
+  [[nodiscard]] Result<FeatureSet> ExtractFromBytes(std::span<const uint8_t> bytes, const DecodeOptions& decode = {},
+                                                    const StopRequested& stop = {}) const;
   [[nodiscard]] Result<FeatureSet> ExtractFromFile(const std::string& path, const DecodeOptions& decode = {}) const;
   // Extracts from an already decoded image; coordinates mapped to the original image as above.
   FeatureSet ExtractFromDecoded(const DecodedImage& decoded) const;

@@ -42,6 +42,7 @@
 #include "api/testing.h"
 #include "sift/base/binary_io.h"
 #include "sift/image.h"
+#include "sift/testing/hostile_images.h"
 #include "tests/e2e_testing.h"
 
 namespace oxbow {
@@ -123,18 +124,10 @@ Bytes PatchPngSize(Bytes png, uint32_t width, uint32_t height) {
 }
 
 // Rewrites the first start-of-frame of a JPEG to declare width x height.
-Bytes PatchJpegSize(Bytes jpeg, uint16_t width, uint16_t height) {
-  for (size_t i = 2; i + 9 < jpeg.size(); ++i) {
-    if (jpeg[i] == 0xFF && (jpeg[i + 1] == 0xC0 || jpeg[i + 1] == 0xC2)) {
-      jpeg[i + 5] = static_cast<uint8_t>(height >> 8);
-      jpeg[i + 6] = static_cast<uint8_t>(height);
-      jpeg[i + 7] = static_cast<uint8_t>(width >> 8);
-      jpeg[i + 8] = static_cast<uint8_t>(width);
-      return jpeg;
-    }
-  }
-  ADD_FAILURE() << "no SOF marker";
-  return jpeg;
+Bytes PatchJpegSize(const Bytes& jpeg, uint16_t width, uint16_t height) {
+  Bytes patched = sift::testing::WithJpegFrameSize(jpeg, width, height);
+  EXPECT_NE(patched, jpeg) << "no SOF marker";
+  return patched;
 }
 
 // A two-frame animated GIF89a (NETSCAPE looping extension), 1x1 frames on a 64x64 screen.

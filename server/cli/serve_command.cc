@@ -2,6 +2,7 @@
 #include <pthread.h>
 #include <signal.h>
 
+#include <cmath>
 #include <cstdio>
 #include <memory>
 #include <optional>
@@ -26,6 +27,8 @@ struct ServeFlags {
   double max_upload_mb = 32;
   double max_inflight_upload_mb = 256;
   int max_header_kb = 64;
+  int processing_timeout_s = api::ServiceOptions{}.processing_timeout_ms / 1000;
+  double shutdown_grace_s = api::ServiceOptions{}.shutdown_grace_ms / 1000.0;
   ImageFlags image;
   int index_threads = 0;
   index::IndexOptions index_options;  // scoring options (--max-df, ...); num_threads from --index-threads
@@ -47,6 +50,8 @@ void Serve(const ServeFlags& flags) {
   service_options.max_image_bytes = http.max_body_bytes;
   service_options.max_pixels = decode.max_pixels;
   service_options.max_image_side_px = decode.max_image_side_px;
+  service_options.processing_timeout_ms = flags.processing_timeout_s * 1000;
+  service_options.shutdown_grace_ms = static_cast<int>(std::lround(flags.shutdown_grace_s * 1000));
   if (auto message = http.Check()) throw CommandError(2, *message);
   if (auto message = service_options.Check()) throw CommandError(2, *message);
   if (auto message = flags.index_options.Check()) throw CommandError(2, *message);
@@ -95,7 +100,8 @@ void Serve(const ServeFlags& flags) {
     int signal_number = 0;
     sigwait(&signals, &signal_number);
     OXBOW_LOG(kInfo) << "received " << (signal_number == SIGINT ? "SIGINT" : "SIGTERM")
-                     << ": no new connections, finishing in-flight requests";
+                     << ": no new connections, finishing in-flight requests (extractions still running after "
+                     << flags.shutdown_grace_s << " s are stopped)";
     server.Shutdown();
   });
 
@@ -147,6 +153,16 @@ void SetUpServe(CLI::App& app) {
                   "how long a request waits for an extraction slot before 503")
       ->capture_default_str()
       ->check(CLI::Range(0, 600000));
+  cmd->add_option("--processing-timeout-s", flags->processing_timeout_s,
+                  "an add, search or match still decoding or extracting after this many seconds is stopped (503); "
+                  "so is one whose client hung up")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 3600));
+  cmd->add_option("--shutdown-grace-s", flags->shutdown_grace_s,
+                  "on SIGTERM/SIGINT, decodes and extractions still running after this many seconds are stopped "
+                  "(their requests get 503); 0 stops them at once")
+      ->capture_default_str()
+      ->check(CLI::Range(0.0, 3600.0));
   cmd->add_option("--threads-per-request", flags->service.threads_per_request,
                   "threads inside one extraction/match; 1 favours throughput, 0 = all cores (latency)")
       ->capture_default_str()

@@ -2,6 +2,7 @@
 
 #include <httplib.h>
 #include <malloc.h>
+#include <poll.h>
 
 #include <chrono>
 #include <cstdio>
@@ -288,6 +289,17 @@ void DescribeApi(const httplib::Request&, httplib::Response& res) {
   SendJson(res, 200, {{"service", "oxbow"}, {"api_version", "v1"}, {"routes", routes}});
 }
 
+// True once the client of the request this thread serves has closed or reset its connection (a client
+// that only half-closes its sending side counts too). Called by the service on its extraction thread
+// while this handler waits, hence the socket captured here.
+sift::StopRequested ClientGone() {
+  const int sock = CurrentConnectionSocket();
+  return [sock] {
+    pollfd p{sock, POLLRDHUP, 0};
+    return sock >= 0 && ::poll(&p, 1, 0) > 0 && (p.revents & (POLLRDHUP | POLLHUP | POLLERR)) != 0;
+  };
+}
+
 void PostImage(api::Service& s, const httplib::Request& req, httplib::Response& res) {
   auto params = api::ParseAddParams(CollectParams(req, {"file", "image"}));
   if (!params) return SendError(res, params.error());
@@ -300,6 +312,7 @@ void PostImage(api::Service& s, const httplib::Request& req, httplib::Response& 
   add.metadata_json = params->metadata_json;
   add.replace = params->replace;
   add.source_name = filename.empty() ? "http" : "http:" + filename;
+  add.client_gone = ClientGone();
   auto added = s.AddImage(add);
   if (!added) return SendError(res, added.error());
   RecordStages(res, {{"decode_extract", added->decode_extract_ms}, {"add", added->add_ms}});
@@ -378,7 +391,7 @@ void PostSearch(api::Service& s, const httplib::Request& req, httplib::Response&
   std::string filename;
   auto image = RequestImage(req, "file", "image", &filename);
   if (!image) return SendError(res, image.error());
-  auto found = s.Search(Bytes(*image), *options);
+  auto found = s.Search(Bytes(*image), *options, ClientGone());
   if (!found) return SendError(res, found.error());
   const auto& t = found->index.timings;
   RecordStages(res, {{"decode_extract", found->decode_extract_ms}, {"quantize", t.quantize_ms},
@@ -403,7 +416,7 @@ void PostMatch(api::Service& s, const httplib::Request& req, httplib::Response& 
   options.match = params->match;
   options.min_inliers = params->min_inliers;
   options.correspondences = params->correspondences;
-  auto matched = s.Match(Bytes(*a), Bytes(*b), options);
+  auto matched = s.Match(Bytes(*a), Bytes(*b), options, ClientGone());
   if (!matched) return SendError(res, matched.error());
   RecordStages(res, {{"decode_extract_a", matched->decode_extract_a_ms},
                      {"decode_extract_b", matched->decode_extract_b_ms},
@@ -487,6 +500,9 @@ void HttpServer::Run() {
 
 void HttpServer::Shutdown() {
   shutting_down_.store(true);  // before stop(): Run's watcher reads it after the server started
+  // Extractions still running after the service's shutdown grace are abandoned (503) rather than
+  // waited for: stop() returns once the requests in flight end.
+  if (auto s = service()) s->StopExtractions();
   http_->stop();
 }
 

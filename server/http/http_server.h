@@ -18,8 +18,12 @@
 //      http <id> <method> <path> route=<pattern> status=<code> ms=<latency> [stage timings]
 //  - Optional API key: POST and DELETE on /v1/images need `Authorization: Bearer KEY` or `X-API-Key: KEY`
 //    (compared in constant time); missing -> 401, wrong -> 403. Reads and searches are open.
-//  - Shutdown() (from the SIGTERM/SIGINT handler) stops accepting, lets in-flight requests finish, and
-//    returns from Run(); the index's state is durable after every acknowledged write anyway.
+//  - Shutdown() (from the SIGTERM/SIGINT handler) stops accepting, lets in-flight requests finish but
+//    abandons decodes and extractions still running after the service's shutdown grace (their requests
+//    get 503, nothing stored: api::Service::StopExtractions), and returns from Run(); the index's state
+//    is durable after every acknowledged write.
+//  - A search, add or match whose client closes its connection is abandoned at the extractor's next
+//    check (its extraction slot freed for others, nothing stored).
 //
 // Thread safety: SetService, Shutdown, port and ready may be called from any thread; Run from one.
 #pragma once

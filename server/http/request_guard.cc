@@ -28,6 +28,7 @@ thread_local bool t_deadline_expired = false;
 thread_local bool t_chunked_over_limit = false;
 thread_local bool t_close_after_response = false;
 thread_local uint64_t t_reserved_bytes = 0;
+thread_local int t_socket = -1;
 
 // Waits until `fd` is ready for `events` or `timeout_ms` passes; retries on EINTR.
 bool PollFor(int fd, short events, int timeout_ms) {
@@ -501,6 +502,7 @@ std::string FullHeaderValue(const httplib::Request& req, const char* name) {
   const auto it = req.headers.find(name);
   return it == req.headers.end() ? std::string() : it->second;
 }
+int CurrentConnectionSocket() { return t_socket; }
 
 bool ReserveUploadForThisRequest(const httplib::Request& req, UploadBudget* budget, uint64_t max_body_bytes) {
   if (budget == nullptr) return true;
@@ -639,6 +641,7 @@ void GuardedHttpServer::ServeConnection(socket_t sock, Clock::time_point accepte
   auto idle_since = accepted;
   uint64_t declared_body_bytes = 0;  // Content-Length of the last request
   bool body_unread = false;          // the last request was answered without reading its body
+  t_socket = sock;
   for (size_t remaining = keep_alive_max_count_; remaining > 0; --remaining) {
     // Idle until the next request starts: at most keep_alive_timeout (kShedHeaderTimeout when shedding),
     // kBusyIdleTimeout while other connections wait (none when shedding), and not past stop().
@@ -699,6 +702,7 @@ void GuardedHttpServer::ServeConnection(socket_t sock, Clock::time_point accepte
   } else {
     LingeringClose(sock, std::chrono::milliseconds(scheduler_->OthersWaiting() ? 0 : 200), 1u << 20, body_unread);
   }
+  t_socket = -1;
 }
 
 }  // namespace oxbow::server

@@ -170,6 +170,9 @@ bool RequestDeadlineExpired();
 bool ChunkedBodyOverLimit();
 // The connection of the request this thread serves closes after the response (its body may be unread).
 void CloseConnectionAfterResponse();
+// The socket of the connection this thread serves (-1 when none), for a route handler to notice that its
+// client hung up while the request is processed.
+int CurrentConnectionSocket();
 // Reserves this request's body (Content-Length, or `max_body_bytes` when chunked; capped at
 // max_body_bytes) from `budget`; false when it does not fit. Released by GuardedHttpServer after the
 // response.

@@ -24,6 +24,7 @@
 #include "sift/features_io.h"
 #include "sift/image.h"
 #include "sift/sift.h"
+#include "sift/testing/hostile_images.h"
 #include "tests/fuzz/fuzz_support.h"
 
 namespace fs = std::filesystem;
@@ -110,6 +111,17 @@ int main(int argc, char** argv) {
     WriteWithDamage(dir, stem + ".ppm", Encode(image, ".ppm"));
     WriteWithDamage(dir, stem + ".tiff", Encode(image, ".tiff"));
     WriteWithDamage(dir, stem + ".webp", Encode(image, ".webp", {cv::IMWRITE_WEBP_QUALITY, 50}));
+    if (n == 1) {
+      // Hostile shapes of issue 19: scan-heavy progressive JPEGs (valid scans over the limit, empty scans
+      // over a large frame), TIFFs with repeated dimension tags and with a strip that does not decompress.
+      const Bytes samples(grey.datastart, grey.dataend);
+      WriteWithDamage(dir, stem + "_128_scans.jpg", sift::testing::ProgressiveJpegWithScans(samples, grey.cols, grey.rows, 128));
+      WriteWithDamage(dir, stem + "_100_scans.jpg", sift::testing::ProgressiveJpegWithScans(samples, grey.cols, grey.rows, 100));
+      Write(dir, "empty_scans.jpg", sift::testing::JpegOfEmptyScans(1500, 1500, 400));
+      Write(dir, "tiff_repeated_dimensions_big_first.tiff", sift::testing::TiffWithRepeatedDimensions({32000, 32000}, {1, 1}));
+      Write(dir, "tiff_repeated_dimensions_small_first.tiff", sift::testing::TiffWithRepeatedDimensions({8, 8}, {32000, 32000}));
+      Write(dir, "tiff_garbage_deflate_strip.tiff", sift::testing::TiffWithGarbageDeflateStrip(64, 64));
+    }
   }
 
   // Features of one photo (a few dozen keypoints): feature files and catalogue BLOBs.
