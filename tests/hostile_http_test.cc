@@ -344,6 +344,31 @@ TEST_F(HostileHttpTest, IdleConnectionsDoNotStarveANewClient) {
   EXPECT_EQ(status, 200);
 }
 
+// A worker drops an idle keep-alive connection early while others wait, but never one whose request has
+// arrived: B and C send at once and wait (one worker, busy with A's idle keep-alive); when A is dropped
+// B has waited over the 1 s busy-idle limit with C still queued, and must still be answered. (Found by
+// the browser test: a thumbnail request on such a connection was closed unanswered.)
+TEST_F(HostileHttpTest, ARequestQueuedBehindAnIdleConnectionIsServed) {
+  auto server = Start({"--http-workers", "1", "--queue", "4"});
+  const int port = server->port();
+  const int a = ConnectTo(port);
+  ASSERT_GE(a, 0);
+  ASSERT_TRUE(oxbow::testing::SendAll(a, "GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n"));
+  std::string first;
+  ASSERT_TRUE(oxbow::testing::ReadUntil(a, "\"ok\"}", &first)) << first;  // served; A now idles, kept alive
+  std::vector<int> queued;
+  for (int i = 0; i < 2; ++i) {
+    queued.push_back(ConnectTo(port));
+    ASSERT_TRUE(oxbow::testing::SendAll(queued.back(), "GET /healthz HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n"));
+  }
+  for (size_t i = 0; i < queued.size(); ++i) {
+    const Reply reply = ReadReply(queued[i], std::chrono::seconds(10));
+    EXPECT_EQ(reply.Status(), 200) << "queued connection " << i << " was closed unanswered:\n" << reply.text;
+    close(queued[i]);
+  }
+  close(a);
+}
+
 TEST_F(HostileHttpTest, OneClientAddressHoldsAtMostItsConnectionLimit) {
   auto server = Start({"--http-workers", "8", "--max-connections-per-client", "3"});
   const int port = server->port();

@@ -650,6 +650,9 @@ void GuardedHttpServer::ServeConnection(socket_t sock, Clock::time_point accepte
     const auto busy_limit = shed != nullptr ? std::chrono::milliseconds(0) : kBusyIdleTimeout;
     bool readable = stream.HasBufferedBytes();
     while (!readable && svr_sock_ != INVALID_SOCKET) {
+      // A request already sent is served, however long its connection waited in the queue: only a
+      // connection with nothing to read is dropped for idleness.
+      if ((readable = PollFor(sock, POLLIN, 0))) break;
       const auto idle = Clock::now() - idle_since;
       if (idle >= idle_limit || (idle >= busy_limit && scheduler_->OthersWaiting())) break;
       readable = PollFor(sock, POLLIN, 50);
