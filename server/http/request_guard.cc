@@ -652,7 +652,8 @@ void GuardedHttpServer::ServeConnection(socket_t sock, Clock::time_point accepte
     while (!readable && svr_sock_ != INVALID_SOCKET) {
       // A request already sent is served, however long its connection waited in the queue: only a
       // connection with nothing to read is dropped for idleness.
-      if ((readable = PollFor(sock, POLLIN, 0))) break;
+      readable = PollFor(sock, POLLIN, 0);
+      if (readable) break;
       const auto idle = Clock::now() - idle_since;
       if (idle >= idle_limit || (idle >= busy_limit && scheduler_->OthersWaiting())) break;
       readable = PollFor(sock, POLLIN, 50);
