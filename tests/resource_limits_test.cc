@@ -443,6 +443,8 @@ TEST(ResourceLimitsMeasure, DISABLED_OneSearch) {
   const char* input = std::getenv("OXBOW_MEASURE_INPUT");
   ASSERT_NE(input, nullptr) << "run by PeakMemoryPerSearchStaysUnderTheBound in a child process";
   api::ServiceOptions options;
+  // This measures memory: a loaded machine must not turn a slow extraction into a 503 at the deadline.
+  options.processing_timeout_ms = 3'600'000;
   // The parent sets every variable; a missing one reads as "" (std::stoull throws: a test error, not a crash).
   const auto env = [](const char* name) {
     const char* value = std::getenv(name);
