@@ -329,6 +329,7 @@ TEST_F(HostileHttpTest, IdleConnectionsDoNotStarveANewClient) {
   auto server = Start({"--http-workers", "2", "--queue", "2"});
   const int port = server->port();
   std::vector<int> idle;
+  idle.reserve(14);
   for (int i = 0; i < 14; ++i) idle.push_back(ConnectTo(port));
   std::this_thread::sleep_for(std::chrono::milliseconds(200));  // all accepted and filed
   // The issue measured 48.8 s for this answer (the 503 thread waited 5 s per idle connection).
@@ -357,6 +358,7 @@ TEST_F(HostileHttpTest, ARequestQueuedBehindAnIdleConnectionIsServed) {
   std::string first;
   ASSERT_TRUE(oxbow::testing::ReadUntil(a, "\"ok\"}", &first)) << first;  // served; A now idles, kept alive
   std::vector<int> queued;
+  queued.reserve(2);
   for (int i = 0; i < 2; ++i) {
     queued.push_back(ConnectTo(port));
     ASSERT_TRUE(oxbow::testing::SendAll(queued.back(), "GET /healthz HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n"));
@@ -373,6 +375,7 @@ TEST_F(HostileHttpTest, OneClientAddressHoldsAtMostItsConnectionLimit) {
   auto server = Start({"--http-workers", "8", "--max-connections-per-client", "3"});
   const int port = server->port();
   std::vector<int> idle;
+  idle.reserve(3);
   for (int i = 0; i < 3; ++i) idle.push_back(ConnectTo(port));
   std::this_thread::sleep_for(std::chrono::milliseconds(200));
   const Reply over = Exchange(port, "GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n");
