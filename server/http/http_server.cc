@@ -530,13 +530,19 @@ void HttpServer::RegisterRequestHooks() {
 
   http_->set_logger([this](const httplib::Request& req, const httplib::Response& res) {
     const double seconds = t_request.active ? std::chrono::duration<double>(Clock::now() - t_request.start).count() : 0;
-    const std::string route = t_request.active ? t_request.route : "unmatched";
-    metrics_.Observe(route, req.method, res.status, seconds);
-    OXBOW_LOG(kInfo) << "http " << (t_request.active ? t_request.id : "-") << " " << req.method << " "
-                     << LoggablePath(req.path) << " route=" << route << " status=" << res.status << " ms="
-                     << seconds * 1000 << (t_request.stages.empty() ? "" : " ") << t_request.stages;
+    std::ostringstream tail;
+    tail << "ms=" << seconds * 1000 << (t_request.stages.empty() ? "" : " ") << t_request.stages;
+    LogRequest(t_request.active ? t_request.id : "-", req.method, LoggablePath(req.path),
+               t_request.active ? t_request.route : "unmatched", res.status, seconds, tail.str());
     t_request = RequestContext{};
   });
+}
+
+void HttpServer::LogRequest(const std::string& id, const std::string& method, const std::string& path,
+                            const std::string& route, int status, double seconds, const std::string& tail) {
+  metrics_.Observe(route, method, status, seconds);
+  OXBOW_LOG(kInfo) << "http " << id << " " << method << " " << path << " route=" << route << " status=" << status
+                   << " " << tail;
 }
 
 void HttpServer::AnswerRefusal(const RefusedRequest& refused, httplib::Response& res) {
@@ -547,14 +553,12 @@ void HttpServer::AnswerRefusal(const RefusedRequest& refused, httplib::Response&
   // Only the standard methods become a metrics label (a client's invented ones would add series).
   static const std::set<std::string> kMethods = {"GET", "HEAD", "POST", "PUT", "DELETE", "CONNECT", "OPTIONS", "TRACE", "PATCH"};
   const std::string method = kMethods.contains(refused.method) ? refused.method : "-";
-  res.status = refused.refusal.status;
   res.set_header("X-Request-Id", id);
-  if (res.status == 503) res.set_header("Retry-After", "1");
+  if (refused.refusal.status == 503) res.set_header("Retry-After", "1");
   const api::HttpError error{refused.refusal.status, refused.refusal.code, refused.refusal.message};
-  res.set_content(api::ErrorBody(error, id).dump(-1, ' ', false, json::error_handler_t::replace) + "\n", "application/json");
-  metrics_.Observe(route_label, method, res.status, 0);
-  OXBOW_LOG(kInfo) << "http " << id << " " << method << " " << (path.empty() ? "-" : LoggablePath(path)) << " route=" << route_label
-                   << " status=" << res.status << " refused: " << refused.refusal.message;
+  SendJson(res, error.status, api::ErrorBody(error, id));
+  LogRequest(id, method, path.empty() ? "-" : LoggablePath(path), route_label, res.status, 0,
+             "refused: " + refused.refusal.message);
 }
 
 void HttpServer::RegisterErrorHandlers() {

@@ -132,6 +132,9 @@ class HttpServer {
   void ServeMetrics(httplib::Response& res) const;
   // The JSON answer, log line and metrics of a request refused before httplib parsed it.
   void AnswerRefusal(const RefusedRequest& refused, httplib::Response& res);
+  // The one log line and the metrics of a request: "http <id> <method> <path> route=<r> status=<s> <tail>".
+  void LogRequest(const std::string& id, const std::string& method, const std::string& path, const std::string& route,
+                  int status, double seconds, const std::string& tail);
   std::shared_ptr<api::Service> service() const;
 
   HttpServerOptions options_;
