@@ -26,6 +26,7 @@
 #include "api/testing.h"
 #include "sift/sift.h"
 #include "tests/e2e_testing.h"
+#include "tests/server_suite.h"
 
 namespace oxbow {
 namespace {
@@ -150,29 +151,13 @@ std::string Chunked(const std::string& data, size_t chunk) {
   return out + "0\r\n\r\n";
 }
 
-class HostileHttpTest : public ::testing::Test {
+class HostileHttpTest : public oxbow::testing::ServerSuite {
  protected:
-  static void SetUpTestSuite() {
-    dir_ = new api::testing::TempDir("oxbow-hostile-http-test");
-    vocab_ = dir_->path() + "/vocab.oxvoc";
-    ASSERT_TRUE(oxbow::testing::RandomVocabulary(api::testing::TestSiftOptions().Describe())->Write(vocab_));
-    std::vector<uchar> png;
-    ASSERT_TRUE(cv::imencode(".png", oxbow::testing::Texture(400, 300), png));
-    image_.assign(png.begin(), png.end());
-  }
-  static void TearDownTestSuite() {
-    delete dir_;
-    dir_ = nullptr;
-  }
+  static void SetUpTestSuite() { SetUpServerSuite("oxbow-hostile-http-test"); }
   // A server whose request deadline (30 s) is far above the "at once" bounds of the tests.
-  std::unique_ptr<oxbow::testing::ServerProcess> Start(const std::vector<std::string>& extra) {
-    const std::string n = std::to_string(counter_++);
-    std::vector<std::string> args = {"serve", "--index", dir_->path() + "/index-" + n, "--vocab", vocab_, "--port", "0",
-                                     "--request-timeout-s", "30", "--read-timeout-s", "30"};
-    args.insert(args.end(), extra.begin(), extra.end());
-    auto server = std::make_unique<oxbow::testing::ServerProcess>(args, dir_->path() + "/server-" + n + ".log");
-    EXPECT_TRUE(server->port() > 0 && server->WaitReady()) << server->Log();
-    return server;
+  static std::unique_ptr<oxbow::testing::ServerProcess> Start(std::vector<std::string> extra) {
+    extra.insert(extra.begin(), {"--request-timeout-s", "30", "--read-timeout-s", "30"});
+    return StartServer(extra);
   }
   // Expects one error answer with `status` (any of `statuses`), the JSON error shape and a request id,
   // given at once, and the connection closed after it.
@@ -186,10 +171,6 @@ class HostileHttpTest : public ::testing::Test {
     EXPECT_FALSE(reply.Body()["error"]["request_id"].get<std::string>().empty()) << what;
   }
 
-  static inline api::testing::TempDir* dir_ = nullptr;
-  static inline std::string vocab_;
-  static inline std::string image_;
-  static inline int counter_ = 0;
 };
 
 TEST_F(HostileHttpTest, CompressedBodiesAreRefusedWithoutInflating) {

@@ -25,6 +25,7 @@
 #include "api/testing.h"
 #include "sift/sift.h"
 #include "tests/e2e_testing.h"
+#include "tests/server_suite.h"
 
 namespace oxbow {
 namespace {
@@ -111,33 +112,10 @@ std::string PostHead(const std::string& path, size_t content_length) {
          std::to_string(content_length) + "\r\nExpect: 100-continue\r\n\r\n";
 }
 
-class SlowClientsTest : public ::testing::Test {
+class SlowClientsTest : public oxbow::testing::ServerSuite {
  protected:
-  static void SetUpTestSuite() {
-    dir_ = new api::testing::TempDir("oxbow-slow-clients-test");
-    vocab_ = dir_->path() + "/vocab.oxvoc";
-    ASSERT_TRUE(oxbow::testing::RandomVocabulary(api::testing::TestSiftOptions().Describe())->Write(vocab_));
-    std::vector<uchar> png;
-    ASSERT_TRUE(cv::imencode(".png", oxbow::testing::Texture(400, 300), png));
-    image_.assign(png.begin(), png.end());
-  }
-  static void TearDownTestSuite() {
-    delete dir_;
-    dir_ = nullptr;
-  }
-  std::unique_ptr<oxbow::testing::ServerProcess> Start(const std::vector<std::string>& extra) {
-    const std::string n = std::to_string(counter_++);
-    std::vector<std::string> args = {"serve", "--index", dir_->path() + "/index-" + n, "--vocab", vocab_, "--port", "0"};
-    args.insert(args.end(), extra.begin(), extra.end());
-    auto server = std::make_unique<oxbow::testing::ServerProcess>(args, dir_->path() + "/server-" + n + ".log");
-    EXPECT_TRUE(server->port() > 0 && server->WaitReady()) << server->Log();
-    return server;
-  }
-
-  static inline api::testing::TempDir* dir_ = nullptr;
-  static inline std::string vocab_;
-  static inline std::string image_;
-  static inline int counter_ = 0;
+  static void SetUpTestSuite() { SetUpServerSuite("oxbow-slow-clients-test"); }
+  static std::unique_ptr<oxbow::testing::ServerProcess> Start(const std::vector<std::string>& extra) { return StartServer(extra); }
 };
 
 TEST_F(SlowClientsTest, TricklingAndIdleClientsDoNotStarveANormalRequest) {
