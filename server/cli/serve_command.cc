@@ -24,9 +24,10 @@ struct ServeFlags {
   std::string vocab_path;
   server::HttpServerOptions http;
   api::ServiceOptions service;
-  double max_upload_mb = 32;
-  double max_inflight_upload_mb = 256;
-  int max_header_kb = 64;
+  // The server's own defaults, in the flags' units.
+  double max_upload_mb = static_cast<double>(server::HttpServerOptions{}.max_body_bytes) / (1 << 20);
+  double max_inflight_upload_mb = static_cast<double>(server::HttpServerOptions{}.max_inflight_body_bytes) / (1 << 20);
+  int max_header_kb = static_cast<int>(server::HttpServerOptions{}.max_head_bytes / 1024);
   int processing_timeout_s = api::ServiceOptions{}.processing_timeout_ms / 1000;
   double shutdown_grace_s = api::ServiceOptions{}.shutdown_grace_ms / 1000.0;
   ImageFlags image;
