@@ -60,14 +60,15 @@ inline constexpr size_t kMaxTargetBytes = 8192;
 inline constexpr size_t kMaxHeaderLineBytes = 8192;
 
 // Limits on a request's head and body, enforced before httplib parses or reads them.
+// Like GuardOptions, filled by HttpServer from HttpServerOptions, where the product's defaults live.
 struct RequestHeadLimits {
   // Header lines at most, [1, 10000]; more -> 431.
-  size_t max_header_count = 100;
+  size_t max_header_count = 0;
   // Request line + headers, bytes at most, [1024, 2^24]; more -> 431 (a single line over
   // kMaxHeaderLineBytes too).
-  size_t max_head_bytes = 64u << 10;
+  size_t max_head_bytes = 0;
   // Request body (Content-Length, or the data of a chunked body), bytes at most; more -> 413.
-  uint64_t max_body_bytes = 32ull << 20;
+  uint64_t max_body_bytes = 0;
 };
 
 // An error answer given by the connection loop itself (before or instead of httplib).
@@ -133,14 +134,16 @@ class UploadBudget {
   uint64_t in_use_ = 0;
 };
 
+// No defaults of its own: HttpServer sets every field from HttpServerOptions (the product's defaults and
+// their checked ranges), so the two cannot disagree.
 struct GuardOptions {
   // Headers and body of a request must arrive within this long of its first byte.
-  std::chrono::milliseconds request_timeout{60000};
+  std::chrono::milliseconds request_timeout{0};
   // Worker threads, [1, 1024]; connections waiting for one at most, [1, 100000]; open connections of
   // one client address at most (served, queued or being refused), [1, 100000].
-  int threads = 8;
-  int max_queued = 64;
-  int max_connections_per_client = 256;
+  int threads = 0;
+  int max_queued = 0;
+  int max_connections_per_client = 0;
   RequestHeadLimits head;
   UploadBudget* budget = nullptr;  // not owned, may be null: gets back each request's reservation
   RefusalWriter refusal_writer;    // required
