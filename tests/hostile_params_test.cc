@@ -238,6 +238,10 @@ int64_t ResidentMiB(pid_t pid) {
 // ~450 MiB of them resident (glibc's raised mmap threshold put the later bodies in arenas); now the
 // RSS comes back to within 64 MiB of where it started.
 TEST_F(HostileParamsTest, LargeBodiesGiveTheirMemoryBack) {
+#if defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
+  GTEST_SKIP() << "sanitizer builds replace glibc's malloc (ASan also quarantines freed blocks): the mmap "
+                  "threshold under test does not apply; the normal suite measures it";
+#endif
   std::string junk(size_t{20'000'000}, ' ');  // every byte overwritten below
   std::mt19937 rng(3);
   for (char& c : junk) c = static_cast<char>(rng());
