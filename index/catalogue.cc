@@ -9,6 +9,7 @@
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
+#include <functional>
 #include <map>
 
 namespace oxbow::index {
@@ -237,22 +238,48 @@ Status Catalogue::OpenForWriting() {
   return Ok();
 }
 
-Result<int64_t> Catalogue::Replace(int64_t old_number, const ImageRecord& r, std::span<const uint8_t> features) {
+Status Catalogue::InTransaction(const std::function<Status()>& body) {
   OXBOW_CHECK(db_->insert != nullptr, "catalogue opened without OpenForWriting");
-  // Insert and Delete inside BEGIN ... COMMIT: the transaction, not each statement, is committed.
-  if (auto s = Exec(db_->handle, "BEGIN IMMEDIATE", path_); !s) return std::unexpected(s.error());
-  Result<int64_t> number = [&]() -> Result<int64_t> {
-    if (auto s = Delete(old_number); !s) return std::unexpected(s.error());
-    return Insert(r, features);
-  }();
-  if (number) {
-    auto committed = Exec(db_->handle, "COMMIT", path_);
-    if (committed) return number;
-    number = std::unexpected(committed.error());
+  // The statements inside BEGIN ... COMMIT are committed (and fsync'ed) together, by the COMMIT.
+  if (auto s = Exec(db_->handle, "BEGIN IMMEDIATE", path_); !s) return s;
+  Status status = body();
+  if (status) {
+    status = Exec(db_->handle, "COMMIT", path_);
+    if (status) return status;
   }
   // Fails harmlessly when SQLite already rolled the transaction back (a failed COMMIT may do so).
   sqlite3_exec(db_->handle, "ROLLBACK", nullptr, nullptr, nullptr);
+  return status;
+}
+
+Result<int64_t> Catalogue::Replace(int64_t old_number, const ImageRecord& r, std::span<const uint8_t> features) {
+  int64_t number = 0;
+  auto status = InTransaction([&]() -> Status {
+    if (auto s = Delete(old_number); !s) return s;
+    auto inserted = Insert(r, features);
+    if (!inserted) return std::unexpected(inserted.error());
+    number = *inserted;
+    return Ok();
+  });
+  if (!status) return std::unexpected(status.error());
   return number;
+}
+
+Result<std::vector<int64_t>> Catalogue::InsertMany(std::span<const ImageRecord> records,
+                                                   std::span<const std::vector<uint8_t>> features) {
+  OXBOW_CHECK(records.size() == features.size());
+  std::vector<int64_t> numbers;
+  numbers.reserve(records.size());
+  auto status = InTransaction([&]() -> Status {
+    for (size_t i = 0; i < records.size(); ++i) {
+      auto inserted = Insert(records[i], features[i]);
+      if (!inserted) return std::unexpected(inserted.error());
+      numbers.push_back(*inserted);
+    }
+    return Ok();
+  });
+  if (!status) return std::unexpected(status.error());
+  return numbers;
 }
 
 Result<int64_t> Catalogue::Insert(const ImageRecord& r, std::span<const uint8_t> features) {
@@ -268,7 +295,7 @@ Result<int64_t> Catalogue::Insert(const ImageRecord& r, std::span<const uint8_t>
   sqlite3_bind_text(s, 6, r.metadata_json.data(), static_cast<int>(r.metadata_json.size()), SQLITE_TRANSIENT);
   sqlite3_bind_int64(s, 7, r.added_unix_ms);
   sqlite3_bind_blob64(s, 8, features.data(), features.size(), SQLITE_TRANSIENT);
-  // A single statement outside BEGIN is its own transaction: committed (and fsync'ed) when step returns.
+  // Outside BEGIN a single statement is its own transaction: committed (and fsync'ed) when step returns.
   const int rc = sqlite3_step(s);
   sqlite3_reset(s);
   if (rc == SQLITE_CONSTRAINT_UNIQUE || rc == SQLITE_CONSTRAINT_PRIMARYKEY) {

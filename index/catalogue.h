@@ -73,6 +73,10 @@ class Catalogue {
   // Inserts one image row in its own committed transaction and returns its new number.
   // kAlreadyExists when the id is taken, kIoError otherwise.
   [[nodiscard]] Result<int64_t> Insert(const ImageRecord& record, std::span<const uint8_t> features);
+  // Inserts rows in one committed transaction and returns their numbers (ascending, in order): all
+  // or none. kAlreadyExists when an id is taken (nothing inserted), kIoError otherwise.
+  [[nodiscard]] Result<std::vector<int64_t>> InsertMany(std::span<const ImageRecord> records,
+                                                        std::span<const std::vector<uint8_t>> features);
   // Deletes row `old_number` and inserts the new row in one committed transaction: a crash leaves
   // either the old row or the new one. Returns the new number. kNotFound when `old_number` is absent
   // (nothing changed), kIoError otherwise (rolled back).
@@ -87,6 +91,8 @@ class Catalogue {
 
  private:
   Catalogue(std::unique_ptr<Db> db, std::string path, CatalogueMeta meta);
+  // Runs `body` inside BEGIN IMMEDIATE ... COMMIT; rolled back when body or the commit fails.
+  [[nodiscard]] Status InTransaction(const std::function<Status()>& body);
   std::unique_ptr<Db> db_;
   std::string path_;
   CatalogueMeta meta_;

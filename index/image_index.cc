@@ -9,6 +9,7 @@
 #include <map>
 #include <mutex>
 #include <numeric>
+#include <optional>
 #include <span>
 #include <unordered_map>
 
@@ -212,9 +213,18 @@ struct ImageIndex::Impl {
   Result<QueryResponse> Run(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
                             QueryTimings timings) const;
 
-  // Add (replace false) and Replace (true): validate, quantise, commit, publish one new snapshot.
+  // An image ready to commit: validated, quantised, packed and serialised (no shared state used).
+  struct Prepared {
+    std::shared_ptr<Entry> entry;
+    BagOfWords bag;
+    std::vector<uint8_t> blob;
+  };
+  Result<Prepared> Prepare(const std::string& id, const sift::FeatureSet& features, const ImageInfo& info) const;
+  // Add (replace false) and Replace (true): prepare, commit, publish one new snapshot.
   Result<ImageRecord> Write(const std::string& id, const sift::FeatureSet& features, const ImageInfo& info,
                             bool replace);
+  // `next` (a copy of the current snapshot) gains the committed images `numbers` (ascending).
+  static void Link(std::span<const uint32_t> numbers, std::span<Prepared* const> images, Snapshot& next);
   // Makes `next` (a copy of `current`) lose image `n` (`entry`): postings, entry, id, geometry bytes.
   static void Unlink(const Snapshot& current, uint32_t n, const Entry& entry, Snapshot& next);
 
@@ -365,26 +375,55 @@ Result<ImageRecord> ImageIndex::Replace(const std::string& id, const sift::Featu
   return impl_->Write(id, features, info, /*replace=*/true);
 }
 
-Result<ImageRecord> ImageIndex::Impl::Write(const std::string& id, const sift::FeatureSet& features,
-                                            const ImageInfo& info, bool replace) {
+Result<ImageIndex::Impl::Prepared> ImageIndex::Impl::Prepare(const std::string& id, const sift::FeatureSet& features,
+                                                              const ImageInfo& info) const {
   if (auto s = CheckId(id); !s) return std::unexpected(s.error());
   if (auto s = CheckFeatures(features, vocabulary, "image '" + id + "'"); !s) return std::unexpected(s.error());
   if (auto s = CheckSettings(info.extractor_settings, extractor_settings, "features of '" + id + "'"); !s) {
     return std::unexpected(s.error());
   }
-  const auto taken = [&] { return Fail(ErrorCode::kAlreadyExists, "an image with id '" + id + "' is already indexed"); };
-  if (!replace && Current()->Find(id)) return taken();
-
-  // Quantise outside the writer lock: it is the expensive part and needs no shared state.
   std::vector<uint32_t> words(features.size());
   vocabulary.Quantize(features.descriptors, words, index_options.quantizer);
-  auto entry = std::make_shared<Entry>();
-  entry->features = PackedFeatures::Pack(features.keypoints, words, features.image_width, features.image_height);
-  entry->record = ImageRecord{.id = id, .source_path = info.source_path, .width = features.image_width,
-                              .height = features.image_height, .num_features = static_cast<uint32_t>(features.size()),
-                              .metadata_json = info.metadata_json, .added_unix_ms = NowUnixMs()};
-  const BagOfWords bag = entry->features.Bag();
-  const std::vector<uint8_t> blob = entry->features.Serialize();
+  Prepared out;
+  out.entry = std::make_shared<Entry>();
+  out.entry->features = PackedFeatures::Pack(features.keypoints, words, features.image_width, features.image_height);
+  out.entry->record = ImageRecord{.id = id, .source_path = info.source_path, .width = features.image_width,
+                                  .height = features.image_height,
+                                  .num_features = static_cast<uint32_t>(features.size()),
+                                  .metadata_json = info.metadata_json, .added_unix_ms = NowUnixMs()};
+  out.bag = out.entry->features.Bag();
+  out.blob = out.entry->features.Serialize();
+  return out;
+}
+
+void ImageIndex::Impl::Link(std::span<const uint32_t> numbers, std::span<Prepared* const> images, Snapshot& next) {
+  std::vector<const BagOfWords*> bags;
+  bags.reserve(images.size());
+  for (const Prepared* p : images) bags.push_back(&p->bag);
+  next.inverted = next.inverted.WithAdded(numbers, bags);
+  {
+    CowArray<std::shared_ptr<const Entry>>::Editor editor(&next.entries);
+    editor.Resize(std::max<size_t>(next.entries.size(), size_t{numbers.back()} + 1));
+    for (size_t i = 0; i < numbers.size(); ++i) editor.Mutable(numbers[i]) = images[i]->entry;
+  }
+  std::map<size_t, std::shared_ptr<IdShard>> shards;  // each touched shard copied once
+  for (size_t i = 0; i < numbers.size(); ++i) {
+    const std::string& id = images[i]->entry->record.id;
+    auto& shard = shards[ShardOf(id)];
+    if (!shard) shard = std::make_shared<IdShard>(*next.ids[ShardOf(id)]);
+    (*shard)[id] = numbers[i];
+    next.geometry_bytes += images[i]->entry->features.MemoryBytes();
+  }
+  for (auto& [i, shard] : shards) next.ids[i] = std::move(shard);
+}
+
+Result<ImageRecord> ImageIndex::Impl::Write(const std::string& id, const sift::FeatureSet& features,
+                                            const ImageInfo& info, bool replace) {
+  const auto taken = [&] { return Fail(ErrorCode::kAlreadyExists, "an image with id '" + id + "' is already indexed"); };
+  if (!replace && Current()->Find(id)) return taken();
+  // Quantise outside the writer lock: it is the expensive part and needs no shared state.
+  auto prepared = Prepare(id, features, info);
+  if (!prepared) return std::unexpected(prepared.error());
 
   std::lock_guard<std::mutex> writer(writer_mutex);
   const auto current = Current();
@@ -393,27 +432,73 @@ Result<ImageRecord> ImageIndex::Impl::Write(const std::string& id, const sift::F
   if (old && !replace) return taken();
   // Durable first: once the catalogue returns, the row is committed (a replacement in the same
   // transaction as the removal of the old row); the snapshot then makes it visible.
-  auto number = old ? catalogue->Replace(old_number, entry->record, blob) : catalogue->Insert(entry->record, blob);
+  const ImageRecord& record = prepared->entry->record;
+  auto number = old ? catalogue->Replace(old_number, record, prepared->blob) : catalogue->Insert(record, prepared->blob);
   if (!number) return std::unexpected(number.error());
-  const auto n = static_cast<uint32_t>(*number);
 
   // One snapshot with both changes: a query sees the old image or the new one, never neither.
   auto next = std::make_shared<Snapshot>(*current);
   if (old) Unlink(*current, old_number, *old, *next);
-  const std::array<uint32_t, 1> numbers = {n};
-  const std::array<const BagOfWords*, 1> bags = {&bag};
-  next->inverted = next->inverted.WithAdded(numbers, bags);
-  {
-    CowArray<std::shared_ptr<const Entry>>::Editor editor(&next->entries);
-    editor.Resize(std::max<size_t>(next->entries.size(), size_t{n} + 1));
-    editor.Mutable(n) = entry;
-  }
-  auto shard = std::make_shared<IdShard>(*next->ids[ShardOf(id)]);
-  (*shard)[id] = n;
-  next->ids[ShardOf(id)] = std::move(shard);
-  next->geometry_bytes += entry->features.MemoryBytes();
+  const std::array<uint32_t, 1> numbers = {static_cast<uint32_t>(*number)};
+  const std::array<Prepared*, 1> images = {&*prepared};
+  Link(numbers, images, *next);
   Publish(std::move(next));
-  return entry->record;
+  return record;
+}
+
+std::vector<Result<ImageRecord>> ImageIndex::AddBatch(std::span<const BatchImage> images) {
+  std::vector<Result<ImageRecord>> results(images.size(), Fail(ErrorCode::kInvalidArgument, "not processed"));
+  std::vector<std::optional<Impl::Prepared>> prepared(images.size());
+  ParallelFor(images.size(), impl_->index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
+    for (size_t i = begin; i < end; ++i) {
+      if (images[i].features == nullptr) {
+        results[i] = Fail(ErrorCode::kInvalidArgument, "image '" + images[i].id + "': no features");
+        continue;
+      }
+      auto p = impl_->Prepare(images[i].id, *images[i].features, images[i].info);
+      if (p) {
+        prepared[i] = std::move(*p);
+      } else {
+        results[i] = std::unexpected(p.error());
+      }
+    }
+  });
+
+  std::lock_guard<std::mutex> writer(impl_->writer_mutex);
+  const auto current = impl_->Current();
+  std::vector<size_t> chosen;  // positions committed, in order
+  std::unordered_map<std::string, size_t> seen;
+  for (size_t i = 0; i < images.size(); ++i) {
+    if (!prepared[i]) continue;
+    if (current->Find(images[i].id) || !seen.emplace(images[i].id, i).second) {
+      results[i] = Fail(ErrorCode::kAlreadyExists, "an image with id '" + images[i].id + "' is already indexed");
+      continue;
+    }
+    chosen.push_back(i);
+  }
+  if (chosen.empty()) return results;
+  std::vector<ImageRecord> records;
+  std::vector<std::vector<uint8_t>> blobs;
+  records.reserve(chosen.size());
+  blobs.reserve(chosen.size());
+  for (const size_t i : chosen) {
+    records.push_back(prepared[i]->entry->record);
+    blobs.push_back(std::move(prepared[i]->blob));
+  }
+  auto numbers = impl_->catalogue->InsertMany(records, blobs);
+  if (!numbers) {
+    for (const size_t i : chosen) results[i] = std::unexpected(numbers.error());
+    return results;
+  }
+  std::vector<uint32_t> committed(numbers->begin(), numbers->end());
+  std::vector<Impl::Prepared*> linked;
+  linked.reserve(chosen.size());
+  for (const size_t i : chosen) linked.push_back(&*prepared[i]);
+  auto next = std::make_shared<Snapshot>(*current);
+  Impl::Link(committed, linked, *next);
+  impl_->Publish(std::move(next));
+  for (const size_t i : chosen) results[i] = prepared[i]->entry->record;
+  return results;
 }
 
 void ImageIndex::Impl::Unlink(const Snapshot& current, uint32_t n, const Entry& entry, Snapshot& next) {

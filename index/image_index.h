@@ -13,10 +13,14 @@
 //    down-weighting; Jegou et al. 2009 "On the burstiness of visual elements"). The score of image d for
 //    query q is the cosine  s(q, d) = <v(q), v(d)> / (|v(q)| |v(d)|), in [0, 1]; an image whose vector
 //    is zero (every word in every image, e.g. N = 1) scores 0.
-//    Scores are exact after any sequence of Add/Remove: idf and every norm are those of an index built
-//    from scratch on the live images (|v(d)|^2 = L^2 A_d - 2 L B_d + C_d with L = log N,
-//    A_d = sum t^2, B_d = sum t^2 log n_w, C_d = sum t^2 (log n_w)^2; an add/remove updates B and C of
-//    the images sharing a word whose n_w changed).
+//    N and n_w (hence idf and every norm) are the collection statistics of the last refresh
+//    (inverted_file.h): while the index holds at most TfIdfOptions::exact_statistics_postings postings
+//    (about 4000 images) every write refreshes them, so scores equal those of an index built from
+//    scratch on the live images; above that, an add or remove costs O(its own words) and the
+//    statistics are refreshed (one parallel pass over the postings) once the images changed since the
+//    last refresh exceed 10% of the live images. Norms use three per-image sums:
+//    |v(d)|^2 = L^2 A_d - 2 L B_d + C_d with L = log N, A_d = sum t^2, B_d = sum t^2 log n_w,
+//    C_d = sum t^2 (log n_w)^2.
 // 3. Inverted file: per visual word, the postings (image, tf) sorted by image, delta + varint coded,
 //    kept in immutable segments (a log-structured merge: each add makes a small segment, segments of
 //    similar size are merged, removed images are dropped at merge time). Scoring accumulates into a
@@ -77,6 +81,7 @@
 #include <cstdint>
 #include <memory>
 #include <optional>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -205,6 +210,13 @@ struct ImageRecord {
   bool operator==(const ImageRecord&) const = default;
 };
 
+// One image of ImageIndex::AddBatch (`features` must stay valid during the call).
+struct BatchImage {
+  std::string id;
+  const sift::FeatureSet* features = nullptr;
+  ImageInfo info;
+};
+
 struct QueryResult {
   std::string id;
   double score = 0;            // tf-idf cosine in [0, 1] (of the expanded query for QE-only results)
@@ -270,6 +282,12 @@ class ImageIndex {
   // Cost: quantisation + O(features + sum of n_w over the image's distinct words) + the amortised merge.
   [[nodiscard]] Result<ImageRecord> Add(const std::string& id, const sift::FeatureSet& features,
                                         const ImageInfo& info);
+  // Adds several images in one durable SQLite transaction and one published snapshot, quantising them
+  // on IndexOptions::num_threads threads: one result per image, in order. An image that fails
+  // validation (id, features, settings, an id already indexed or repeated earlier in the batch) gets
+  // its own error and the others are added; a catalogue failure (kIoError) fails every image and
+  // changes nothing. Bulk ingest: the per-commit costs (fsync, snapshot) are paid once per batch.
+  [[nodiscard]] std::vector<Result<ImageRecord>> AddBatch(std::span<const BatchImage> images);
   // Adds one image as Add does, or, when `id` is indexed, replaces it: the removal of the old image and
   // the addition of the new one are one durable SQLite transaction and one published snapshot, so a
   // crash or a failure at any moment leaves the old image or the new one, never neither, and a query

@@ -691,6 +691,68 @@ TEST_F(Fixture, ReplaceIsOneTransactionOldOrNewNeverNeither) {
   EXPECT_EQ((*index)->Stats().num_images, 3u);
 }
 
+// A batch is one transaction and one snapshot: per-image errors leave the others, a catalogue failure
+// leaves nothing, and the result equals adding the images one by one.
+TEST_F(Fixture, AddBatchEqualsSingleAddsAndFailsPerImageOrAsAWhole) {
+  std::mt19937_64 rng(21);
+  std::vector<sift::FeatureSet> images;
+  for (int i = 0; i < 12; ++i) images.push_back(RandomImage(rng, 30 + i * 5));
+  sift::FeatureSet wrong_kind = images[0];
+  wrong_kind.kind = sift::DescriptorKind::kSift;
+  {
+    auto index = CreateIndex();
+    ASSERT_TRUE(index->Add("b0", images[0], {}));
+    std::vector<BatchImage> batch;
+    for (int i = 1; i < 12; ++i) batch.push_back({"b" + std::to_string(i), &images[i], Info("/p" + std::to_string(i))});
+    batch.push_back({"b0", &images[1], {}});          // already indexed
+    batch.push_back({"b5", &images[2], {}});          // repeated in the batch
+    batch.push_back({"", &images[3], {}});            // bad id
+    batch.push_back({"kind", &wrong_kind, {}});       // wrong descriptor kind
+    const auto results = index->AddBatch(batch);
+    ASSERT_EQ(results.size(), batch.size());
+    for (size_t i = 0; i < 11; ++i) {
+      ASSERT_TRUE(results[i]) << results[i].error().ToString();
+      EXPECT_EQ(results[i]->id, batch[i].id);
+      EXPECT_EQ(results[i]->source_path, batch[i].info.source_path);
+    }
+    EXPECT_EQ(results[11].error().code, ErrorCode::kAlreadyExists);
+    EXPECT_EQ(results[12].error().code, ErrorCode::kAlreadyExists);
+    EXPECT_EQ(results[13].error().code, ErrorCode::kInvalidArgument);
+    EXPECT_EQ(results[14].error().code, ErrorCode::kIncompatible);
+    EXPECT_EQ(index->Stats().num_images, 12u);
+    EXPECT_EQ(index->Get("b5")->num_features, images[5].size());
+  }
+  // A catalogue failure on one row fails the whole batch and stores none of it.
+  FailInsertsOf(dir_, "c2");
+  {
+    auto index = ImageIndex::Open(dir_.string());
+    ASSERT_TRUE(index) << index.error().ToString();
+    std::vector<BatchImage> batch;
+    for (int i = 0; i < 4; ++i) batch.push_back({"c" + std::to_string(i), &images[i], {}});
+    for (const auto& r : (*index)->AddBatch(batch)) {
+      ASSERT_FALSE(r);
+      EXPECT_NE(r.error().message.find("injected insert failure"), std::string::npos) << r.error().message;
+    }
+    EXPECT_FALSE((*index)->Contains("c0"));
+    EXPECT_EQ((*index)->Stats().num_images, 12u);
+  }
+  // After a restart the batch-built index scores as one built image by image.
+  auto index = ImageIndex::Open(dir_.string());
+  ASSERT_TRUE(index) << index.error().ToString();
+  EXPECT_EQ((*index)->Stats().num_images, 12u);
+  EXPECT_FALSE((*index)->Contains("c0"));
+  auto single = ImageIndex::Create((dir_ / "single").string(), vocabulary_, "test-extractor/1");
+  ASSERT_TRUE(single);
+  for (int i = 0; i < 12; ++i) ASSERT_TRUE((*single)->Add("b" + std::to_string(i), images[i], {}));
+  for (int q = 0; q < 5; ++q) {
+    const auto query = RandomImage(rng, 60);
+    const auto a = ScoresById(*(*index)->Query(query, Opts(100, 0)));
+    const auto b = ScoresById(*(*single)->Query(query, Opts(100, 0)));
+    ASSERT_EQ(a.size(), b.size());
+    for (const auto& [id, s] : b) EXPECT_NEAR(a.at(id), s, 1e-6) << id;
+  }
+}
+
 // A folder the process may not write (permissions; root ignores them, so as root the check runs in a
 // child that drops to user nobody) is an I/O problem, not damage, and the catalogue is left unchanged.
 TEST_F(Fixture, ReadOnlyFolderIsAnIoErrorNotDamage) {

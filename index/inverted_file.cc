@@ -4,7 +4,6 @@
 #include <cmath>
 #include <limits>
 #include <queue>
-#include <unordered_map>
 
 #include "sift/base/error.h"
 #include "sift/base/parallel.h"
@@ -169,6 +168,9 @@ std::optional<std::string> TfIdfOptions::Check() const {
   if (merge_factor < 2 || merge_factor > 64) {
     return "merge_factor must be in [2, 64], got " + std::to_string(merge_factor);
   }
+  if (!(statistics_refresh_fraction > 0 && statistics_refresh_fraction <= 1)) {
+    return "statistics_refresh_fraction must be in (0, 1], got " + std::to_string(statistics_refresh_fraction);
+  }
   return std::nullopt;
 }
 
@@ -178,6 +180,7 @@ InvertedFile::InvertedFile(size_t vocabulary_size, const TfIdfOptions& options)
   OXBOW_CHECK(!error, "invalid TfIdfOptions");
   OXBOW_CHECK(vocabulary_size > 0 && vocabulary_size < (uint64_t{1} << 32));
   CowArray<uint32_t>::Editor(&df_).Resize(vocabulary_size, 0);
+  stats_df_ = df_;
   for (uint32_t tf = 0; tf < term_weight_.size(); ++tf) {
     term_weight_[tf] = options.sqrt_tf ? static_cast<float>(std::sqrt(static_cast<double>(tf)))
                                        : static_cast<float>(tf);
@@ -197,9 +200,10 @@ uint32_t InvertedFile::DocumentFrequency(uint32_t word) const {
 }
 
 double InvertedFile::Idf(uint32_t word) const {
-  const uint32_t df = DocumentFrequency(word);
+  OXBOW_CHECK(word < vocabulary_size_);
+  const uint32_t df = stats_df_[word];
   if (df == 0) return std::numeric_limits<double>::infinity();
-  return std::log(static_cast<double>(num_live_) / static_cast<double>(df));
+  return std::log(static_cast<double>(stats_num_live_) / static_cast<double>(df));
 }
 
 bool InvertedFile::IsLive(uint32_t image) const { return image < images_.size() && images_[image].live != 0; }
@@ -207,7 +211,7 @@ bool InvertedFile::IsLive(uint32_t image) const { return image < images_.size() 
 double InvertedFile::Norm(uint32_t image) const {
   if (!IsLive(image)) return 0;
   const ImageState& s = images_[image];
-  const double l = std::log(static_cast<double>(num_live_));
+  const double l = std::log(static_cast<double>(stats_num_live_));
   const double sq = l * l * s.a - 2 * l * s.b + s.c;
   return sq > 0 ? std::sqrt(sq) : 0.0;
 }
@@ -298,28 +302,91 @@ InvertedFile InvertedFile::Build(size_t vocabulary_size, const TfIdfOptions& opt
     }
   }
   if (postings > 0) out.segments_.push_back(std::move(segment));
+  out.stats_df_ = out.df_;
+  out.stats_num_live_ = live;
   out.num_live_ = live;
   out.num_live_features_ = features;
   out.num_postings_ = postings;
   return out;
 }
 
-void InvertedFile::UpdateNormsForChangedWords(std::span<const std::pair<uint32_t, uint32_t>> word_old_df,
-                                              CowArray<ImageState>::Editor* editor) const {
-  for (const auto& [word, old_df] : word_old_df) {
-    const uint32_t new_df = df_[word];
-    if (old_df == 0 || new_df == 0 || old_df == new_df) continue;  // no live image holds it before/after
-    const double l0 = std::log(static_cast<double>(old_df));
-    const double l1 = std::log(static_cast<double>(new_df));
-    const double dl = l1 - l0, dl2 = l1 * l1 - l0 * l0;
-    for (const auto& segment : segments_) {
-      segment->ForEach(word, [&](uint32_t image, uint32_t tf) {
-        if (images_[image].live == 0) return;
-        ImageState& s = editor->Mutable(image);
-        const double t2 = TermWeightSquared(options_.sqrt_tf, tf);
-        s.b += t2 * dl;
-        s.c += t2 * dl2;
-      });
+void InvertedFile::SetSums(const BagOfWords& bag, ImageState* s) const {
+  s->a = s->b = s->c = 0;
+  for (size_t k = 0; k < bag.words.size(); ++k) {
+    const uint32_t df = stats_df_[bag.words[k]];
+    if (df == 0) continue;  // unknown to the statistics until the next refresh
+    const double l = std::log(static_cast<double>(df));
+    const double t2 = TermWeightSquared(options_.sqrt_tf, bag.counts[k]);
+    s->a += t2;
+    s->b += t2 * l;
+    s->c += t2 * l * l;
+  }
+}
+
+InvertedFile InvertedFile::WithRefreshedStatistics(int num_threads) const {
+  InvertedFile next = *this;
+  next.RefreshStatistics(num_threads);
+  return next;
+}
+
+void InvertedFile::RefreshIfDue() {
+  if (changes_since_refresh_ == 0) return;
+  if (num_postings_ <= options_.exact_statistics_postings ||
+      static_cast<double>(changes_since_refresh_) >
+          options_.statistics_refresh_fraction * static_cast<double>(stats_num_live_)) {
+    RefreshStatistics(0);
+  }
+}
+
+// Every live image's sums from the postings. Words are dealt round-robin, in chunks, to a fixed number
+// of groups with their own partial sums, added in group order at the end: the floating-point order,
+// hence the result, is the same for any thread count.
+void InvertedFile::RefreshStatistics(int num_threads) {
+  stats_df_ = df_;
+  stats_num_live_ = num_live_;
+  changes_since_refresh_ = 0;
+  const size_t num_images = images_.size();
+  constexpr size_t kWordsPerChunk = 4096;
+  const size_t num_chunks = (vocabulary_size_ + kWordsPerChunk - 1) / kWordsPerChunk;
+  constexpr size_t kGroups = 4;
+  struct Sums {
+    std::vector<double> a, b, c;
+  };
+  std::vector<Sums> partial(kGroups);
+  ParallelFor(kGroups, num_threads, 1, [&](size_t g0, size_t g1, int) {
+    for (size_t g = g0; g < g1; ++g) {
+      Sums& sums = partial[g];
+      sums.a.assign(num_images, 0);
+      sums.b.assign(num_images, 0);
+      sums.c.assign(num_images, 0);
+      for (size_t chunk = g; chunk < num_chunks; chunk += kGroups) {
+        const size_t w_end = std::min(vocabulary_size_, (chunk + 1) * kWordsPerChunk);
+        for (size_t w = chunk * kWordsPerChunk; w < w_end; ++w) {
+          const uint32_t df = stats_df_[w];
+          if (df == 0) continue;
+          const double l = std::log(static_cast<double>(df));
+          for (const auto& segment : segments_) {
+            segment->ForEach(static_cast<uint32_t>(w), [&](uint32_t image, uint32_t tf) {
+              if (images_[image].live == 0) return;
+              const double t2 = TermWeightSquared(options_.sqrt_tf, tf);
+              sums.a[image] += t2;
+              sums.b[image] += t2 * l;
+              sums.c[image] += t2 * l * l;
+            });
+          }
+        }
+      }
+    }
+  });
+  CowArray<ImageState>::Editor editor(&images_);
+  for (size_t i = 0; i < num_images; ++i) {
+    if (images_[i].live == 0) continue;
+    ImageState& s = editor.Mutable(i);
+    s.a = s.b = s.c = 0;
+    for (const Sums& sums : partial) {
+      s.a += sums.a[i];
+      s.b += sums.b[i];
+      s.c += sums.c[i];
     }
   }
 }
@@ -333,8 +400,6 @@ InvertedFile InvertedFile::WithAdded(std::span<const uint32_t> images, std::span
                 "image numbers must be new and ascending");
   }
 
-  // Document frequencies, remembering the old value of every word that changes.
-  std::unordered_map<uint32_t, uint32_t> old_df;
   {
     CowArray<uint32_t>::Editor dfe(&next.df_);
     for (const BagOfWords* bag : bags) {
@@ -343,19 +408,14 @@ InvertedFile InvertedFile::WithAdded(std::span<const uint32_t> images, std::span
         const uint32_t w = bag->words[k];
         OXBOW_CHECK(w < vocabulary_size_, "word id outside the vocabulary");
         OXBOW_CHECK(bag->counts[k] >= 1 && (k == 0 || bag->words[k - 1] < w), "bag not sorted/distinct");
-        old_df.try_emplace(w, df_[w]);
         ++dfe.Mutable(w);
       }
     }
   }
-  std::vector<std::pair<uint32_t, uint32_t>> changed(old_df.begin(), old_df.end());
-  std::sort(changed.begin(), changed.end());
 
+  // The new images' own sums (with the statistics of the last refresh) and their segment.
   CowArray<ImageState>::Editor editor(&next.images_);
   editor.Resize(images.back() + size_t{1});
-  next.UpdateNormsForChangedWords(changed, &editor);
-
-  // The new images' own sums, with the new frequencies; and their segment.
   struct Triple {
     uint32_t word, image, tf;
   };
@@ -363,13 +423,9 @@ InvertedFile InvertedFile::WithAdded(std::span<const uint32_t> images, std::span
   for (size_t i = 0; i < images.size(); ++i) {
     ImageState& s = editor.Mutable(images[i]);
     s = ImageState{};
+    next.SetSums(*bags[i], &s);
     for (size_t k = 0; k < bags[i]->words.size(); ++k) {
       const uint32_t w = bags[i]->words[k], tf = bags[i]->counts[k];
-      const double l = std::log(static_cast<double>(next.df_[w]));
-      const double t2 = TermWeightSquared(options_.sqrt_tf, tf);
-      s.a += t2;
-      s.b += t2 * l;
-      s.c += t2 * l * l;
       s.features += tf;
       triples.push_back({w, images[i], tf});
     }
@@ -377,6 +433,7 @@ InvertedFile InvertedFile::WithAdded(std::span<const uint32_t> images, std::span
     ++next.num_live_;
     next.num_live_features_ += s.features;
   }
+  next.changes_since_refresh_ += images.size();
   std::sort(triples.begin(), triples.end(),
             [](const Triple& x, const Triple& y) { return x.word != y.word ? x.word < y.word : x.image < y.image; });
   auto segment = std::make_shared<Segment>();
@@ -401,6 +458,7 @@ InvertedFile InvertedFile::WithAdded(std::span<const uint32_t> images, std::span
     next.segments_.push_back(std::move(segment));
   }
   next.MergeTail(false);
+  next.RefreshIfDue();
   return next;
 }
 
@@ -408,9 +466,8 @@ InvertedFile InvertedFile::WithRemoved(std::span<const uint32_t> images, std::sp
   OXBOW_CHECK(images.size() == bags.size());
   InvertedFile next = *this;
   if (images.empty()) return next;
-  CowArray<ImageState>::Editor editor(&next.images_);
-  std::unordered_map<uint32_t, uint32_t> old_df;
   {
+    CowArray<ImageState>::Editor editor(&next.images_);
     CowArray<uint32_t>::Editor dfe(&next.df_);
     for (size_t i = 0; i < images.size(); ++i) {
       OXBOW_CHECK(next.IsLive(images[i]), "removing an image that is not live");
@@ -421,16 +478,13 @@ InvertedFile InvertedFile::WithRemoved(std::span<const uint32_t> images, std::sp
       next.num_dead_postings_ += bags[i]->words.size();
       for (const uint32_t w : bags[i]->words) {
         OXBOW_CHECK(w < vocabulary_size_ && df_[w] > 0, "bag does not match the indexed image");
-        old_df.try_emplace(w, df_[w]);
         --dfe.Mutable(w);
       }
     }
   }
-  std::vector<std::pair<uint32_t, uint32_t>> changed(old_df.begin(), old_df.end());
-  std::sort(changed.begin(), changed.end());
-  // Iterates next's segments (same as ours) with next's liveness: removed images are skipped.
-  next.UpdateNormsForChangedWords(changed, &editor);
+  next.changes_since_refresh_ += images.size();
   if (next.num_dead_postings_ * 2 > next.num_postings_) next.MergeTail(true);
+  next.RefreshIfDue();
   return next;
 }
 
@@ -499,7 +553,7 @@ std::vector<QueryTerm> InvertedFile::QueryVector(const BagOfWords& bag) const {
 std::vector<QueryTerm> InvertedFile::QueryVector(std::span<const uint32_t> words, std::span<const float> tf) const {
   OXBOW_CHECK(words.size() == tf.size());
   std::vector<QueryTerm> out;
-  if (num_live_ == 0) return out;
+  if (num_live_ == 0 || stats_num_live_ == 0) return out;
   out = WeightedQueryVector(words, tf, /*use_stop_list=*/true);
   // A stop list must not make an image unfindable: when it would drop every word of the query (a small
   // vocabulary over many images), the query is scored with all its words.
@@ -510,13 +564,13 @@ std::vector<QueryTerm> InvertedFile::QueryVector(std::span<const uint32_t> words
 std::vector<QueryTerm> InvertedFile::WeightedQueryVector(std::span<const uint32_t> words, std::span<const float> tf,
                                                          bool use_stop_list) const {
   std::vector<QueryTerm> out;
-  const double n = static_cast<double>(num_live_);
+  const double n = static_cast<double>(stats_num_live_);
   double norm_sq = 0;
   std::vector<double> weights;
   for (size_t k = 0; k < words.size(); ++k) {
     const uint32_t w = words[k];
     if (w >= vocabulary_size_ || !(tf[k] > 0)) continue;
-    const uint32_t df = df_[w];
+    const uint32_t df = stats_df_[w];
     if (df == 0) continue;
     if (use_stop_list && df > options_.stop_list_min_images &&
         static_cast<double>(df) > options_.max_document_frequency * n) {
@@ -542,12 +596,12 @@ std::vector<ScoredImage> InvertedFile::Score(std::span<const QueryTerm> query, s
   std::vector<float>& acc = scratch->accumulator;
   if (acc.size() < images_.size()) acc.resize(images_.size(), 0.0f);
   if (candidates) *candidates = 0;
-  if (num_live_ == 0 || max_results == 0) return {};
+  if (num_live_ == 0 || stats_num_live_ == 0 || max_results == 0) return {};
 
-  const double n = static_cast<double>(num_live_);
+  const double n = static_cast<double>(stats_num_live_);
   for (const QueryTerm& term : query) {
     if (term.word >= vocabulary_size_ || term.weight == 0) continue;
-    const uint32_t df = df_[term.word];
+    const uint32_t df = stats_df_[term.word];
     if (df == 0) continue;
     const float weight = static_cast<float>(static_cast<double>(term.weight) * std::log(n / static_cast<double>(df)));
     if (weight == 0) continue;

@@ -14,11 +14,21 @@
 // postings are skipped when scoring and dropped at the next merge of their segment).
 //
 // Scoring: idf_w = log(N / n_w) over the N live images, n_w of which contain w; image vectors
-// v_w(d) = t(tf) idf_w with t(x) = x or sqrt(x) (TfIdfOptions::sqrt_tf). The norm |v(d)| is kept exact
-// under adds and removes through three per-image sums (see image_index.h, "Method" 2), so scores equal
-// those of an index built from scratch on the same live images. Score() accumulates
+// v_w(d) = t(tf) idf_w with t(x) = x or sqrt(x) (TfIdfOptions::sqrt_tf). Score() accumulates
 // q_w idf_w t(tf_d) over the postings of the query's words into a dense float array over image numbers,
 // then divides by |v(d)| and keeps the best `max_results` (ties: smaller image number first).
+//
+// Collection statistics (N and every n_w, hence idf and the image norms) are those of the last
+// *refresh*. An add or remove updates the live counts and computes only its own image's norm (with the
+// refreshed statistics), so a write costs O(its words) at any collection size; a refresh recomputes
+// every live image's norm from its postings (three per-image sums, see image_index.h "Method" 2) in
+// one parallel pass, O(total postings). Refreshes happen by themselves: after every write while the
+// index holds at most `exact_statistics_postings` postings (small collections: scores always equal
+// those of an index built from scratch on the live images), and otherwise once the images added and
+// removed since the last refresh exceed `statistics_refresh_fraction` of the live images then (idf
+// drifts by at most about log(1 + fraction) in between; amortised cost per added image
+// features / fraction posting visits). Until a word's first refresh it is left out of query and image
+// vectors (its n_w is 0 in the statistics). Build() and WithRefreshedStatistics() give exact statistics.
 //
 // Thread safety: an InvertedFile is an immutable value (its parts are shared_ptr<const>); any number of
 // threads may call its const members. WithAdded/WithRemoved return a new value and leave this one alone.
@@ -61,6 +71,12 @@ struct TfIdfOptions {
   uint32_t stop_list_min_images = 10;
   // Segments of one size level merged at once (see the file comment). [2, 64].
   int merge_factor = 8;
+  // Statistics refresh (file comment): after every write while the index holds at most this many
+  // postings (4M: about 4000 images of 1000 features; a refresh then costs a few ms), else when the
+  // images added + removed since the last refresh exceed this fraction of the live images at that
+  // refresh. [0, 2^64) and (0, 1]. Results never depend on the thread count.
+  uint64_t exact_statistics_postings = 4'000'000;
+  double statistics_refresh_fraction = 0.1;
 
   std::optional<std::string> Check() const;
 };
@@ -95,7 +111,8 @@ struct InvertedFileStats {
 class InvertedFile {
  public:
   struct Segment;  // defined in inverted_file.cc
-  // Per image number: the three sums that give |v(d)| exactly for any N (see image_index.h, "Method").
+  // Per image number: the three sums that give |v(d)| for the statistics' N (image_index.h, "Method"),
+  // over the words known to the statistics.
   struct ImageState {
     double a = 0;         // sum over the image's words of t(tf)^2
     double b = 0;         // sum of t(tf)^2 log n_w
@@ -140,8 +157,14 @@ class InvertedFile {
   std::vector<ScoredImage> Score(std::span<const QueryTerm> query, size_t max_results, ScoreScratch* scratch,
                                  uint64_t* candidates = nullptr) const;
 
-  double Idf(uint32_t word) const;                 // log(N / n_w); +inf when n_w == 0
-  uint32_t DocumentFrequency(uint32_t word) const;
+  // A new version whose statistics are those of the live images now (one pass over every posting,
+  // on `num_threads` threads; 0 = all). Scores then equal those of Build() on the live images.
+  InvertedFile WithRefreshedStatistics(int num_threads = 0) const;
+  // Images added + removed since the last refresh (0: the statistics are those of the live images).
+  uint64_t changes_since_refresh() const { return changes_since_refresh_; }
+
+  double Idf(uint32_t word) const;                 // log(N / n_w) of the statistics; +inf when n_w == 0
+  uint32_t DocumentFrequency(uint32_t word) const; // live images containing the word now
   double Norm(uint32_t image) const;               // |v(d)| of a live image (0 if not live)
   bool IsLive(uint32_t image) const;
   float TermWeight(uint32_t tf) const;             // t(tf): tf or sqrt(tf)
@@ -155,14 +178,19 @@ class InvertedFile {
   std::vector<QueryTerm> WeightedQueryVector(std::span<const uint32_t> words, std::span<const float> tf,
                                              bool use_stop_list) const;
   void MergeTail(bool everything);
-  void UpdateNormsForChangedWords(std::span<const std::pair<uint32_t, uint32_t>> word_old_df,
-                                  CowArray<ImageState>::Editor* editor) const;
+  void RefreshStatistics(int num_threads);
+  void RefreshIfDue();
+  // Sums a, b, c of one image's bag with the current statistics (words unknown to them left out).
+  void SetSums(const BagOfWords& bag, ImageState* s) const;
 
   size_t vocabulary_size_ = 0;
   TfIdfOptions options_;
   std::vector<std::shared_ptr<const Segment>> segments_;  // in image-number order
-  CowArray<uint32_t> df_;                                  // n_w per word
+  CowArray<uint32_t> df_;                                  // n_w per word, live images now
+  CowArray<uint32_t> stats_df_;                            // n_w per word at the last refresh
   CowArray<ImageState> images_;                            // per image number
+  uint64_t stats_num_live_ = 0;                            // N at the last refresh
+  uint64_t changes_since_refresh_ = 0;
   uint64_t num_live_ = 0;
   uint64_t num_live_features_ = 0;
   uint64_t num_postings_ = 0;       // stored in segments, live or not

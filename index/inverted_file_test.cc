@@ -15,14 +15,17 @@ BagOfWords Bag(std::initializer_list<uint32_t> words) {
   return BagOfWords::FromWords(w);
 }
 
-// Straightforward dense reference: cosine of tf-idf vectors, computed from the definition.
+// Straightforward dense reference: cosine of tf-idf vectors, computed from the definition, with the
+// document frequencies of `statistics` (the corpus itself when null).
 std::map<uint32_t, double> ReferenceScores(const std::map<uint32_t, BagOfWords>& corpus, const BagOfWords& query,
-                                           size_t vocab, bool sqrt_tf) {
+                                           size_t vocab, bool sqrt_tf,
+                                           const std::map<uint32_t, BagOfWords>* statistics = nullptr) {
+  if (!statistics) statistics = &corpus;
   std::vector<double> df(vocab, 0);
-  for (const auto& [id, bag] : corpus) {
+  for (const auto& [id, bag] : *statistics) {
     for (uint32_t w : bag.words) df[w] += 1;
   }
-  const double n = static_cast<double>(corpus.size());
+  const double n = static_cast<double>(statistics->size());
   auto t = [&](uint32_t tf) { return sqrt_tf ? std::sqrt(static_cast<double>(tf)) : static_cast<double>(tf); };
   auto vec = [&](const BagOfWords& bag) {
     std::vector<double> v(vocab, 0);
@@ -193,6 +196,80 @@ TEST(InvertedFileTest, RandomAddRemoveSequenceEqualsRebuild) {
     }
     EXPECT_GE(file.Stats().num_segments, 1u);
   }
+}
+
+InvertedFile AddAll(const InvertedFile& file, std::map<uint32_t, BagOfWords>* live, uint32_t first, size_t n,
+                    std::mt19937_64& rng, size_t vocab) {
+  std::vector<uint32_t> ids;
+  std::vector<const BagOfWords*> bags;
+  for (uint32_t i = 0; i < n; ++i) {
+    (*live)[first + i] = RandomBag(rng, vocab);
+    ids.push_back(first + i);
+    bags.push_back(&(*live)[first + i]);
+  }
+  return file.WithAdded(ids, bags);
+}
+
+void ExpectScores(const InvertedFile& file, const std::map<uint32_t, BagOfWords>& live,
+                  const std::map<uint32_t, BagOfWords>& statistics, std::mt19937_64& rng, size_t vocab) {
+  for (int q = 0; q < 10; ++q) {
+    const BagOfWords query = RandomBag(rng, vocab);
+    const auto got = AllScores(file, query);
+    for (const auto& [id, score] : ReferenceScores(live, query, vocab, true, &statistics)) {
+      ASSERT_NEAR(got.count(id) ? got.at(id) : 0.0, score, 1e-6) << "image " << id;
+    }
+  }
+}
+
+// Above exact_statistics_postings, writes keep the statistics of the last refresh (idf, norms) until
+// the images changed since exceed statistics_refresh_fraction of the live images then.
+TEST(InvertedFileTest, StatisticsAreThoseOfTheLastRefreshUntilTheNext) {
+  std::mt19937_64 rng(7);
+  const size_t vocab = 300;
+  const TfIdfOptions options{.exact_statistics_postings = 0, .statistics_refresh_fraction = 0.5};
+  std::map<uint32_t, BagOfWords> live;
+  InvertedFile file = AddAll(InvertedFile(vocab, options), &live, 0, 40, rng, vocab);  // empty: refreshed
+  EXPECT_EQ(file.changes_since_refresh(), 0u);
+  const std::map<uint32_t, BagOfWords> refreshed = live;
+  ExpectScores(file, live, refreshed, rng, vocab);
+
+  // 10 more and 2 removed: 12 <= 0.5 * 40, so scores still use the 40 images' statistics.
+  file = AddAll(file, &live, 40, 10, rng, vocab);
+  const std::vector<uint32_t> gone = {3, 41};
+  const std::vector<const BagOfWords*> gone_bags = {&live[3], &live[41]};
+  file = file.WithRemoved(gone, gone_bags);
+  live.erase(3);
+  live.erase(41);
+  EXPECT_EQ(file.changes_since_refresh(), 12u);
+  EXPECT_EQ(file.num_images(), 48u);
+  std::vector<uint32_t> df(vocab, 0);  // the live counts are current even though the statistics are not
+  for (const auto& [id, bag] : live) {
+    for (uint32_t w : bag.words) ++df[w];
+  }
+  for (uint32_t w = 0; w < vocab; ++w) ASSERT_EQ(file.DocumentFrequency(w), df[w]) << w;
+  ExpectScores(file, live, refreshed, rng, vocab);
+
+  // An explicit refresh gives the live images' statistics (as Build).
+  const InvertedFile exact = file.WithRefreshedStatistics(1);
+  EXPECT_EQ(exact.changes_since_refresh(), 0u);
+  ExpectScores(exact, live, live, rng, vocab);
+
+  // 9 more: 21 > 0.5 * 40 refreshes by itself.
+  file = AddAll(file, &live, 50, 9, rng, vocab);
+  EXPECT_EQ(file.changes_since_refresh(), 0u);
+  ExpectScores(file, live, live, rng, vocab);
+}
+
+// The refresh's result does not depend on the thread count (fixed summation groups).
+TEST(InvertedFileTest, RefreshIsIndependentOfThreads) {
+  std::mt19937_64 rng(9);
+  const size_t vocab = 20000;
+  const TfIdfOptions options{.exact_statistics_postings = 0, .statistics_refresh_fraction = 1};
+  std::map<uint32_t, BagOfWords> live;
+  const InvertedFile file = AddAll(InvertedFile(vocab, options), &live, 0, 300, rng, vocab);
+  const InvertedFile one = file.WithRefreshedStatistics(1);
+  const InvertedFile three = file.WithRefreshedStatistics(3);
+  for (const auto& [id, bag] : live) ASSERT_EQ(one.Norm(id), three.Norm(id)) << id;
 }
 
 TEST(InvertedFileTest, RemovingEverythingLeavesAnEmptyIndex) {
