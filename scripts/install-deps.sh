@@ -22,6 +22,7 @@ build_packages=(
   libvlfeat-dev          # VLFeat SIFT: benchmark peer only
   libfaiss-dev           # faiss: benchmark peer only
   curl python3           # demo and evaluation scripts
+  python3-jsonschema     # tests/openapi_check.py validates every response against server/http/openapi.json
   chromium nodejs        # the web page's end-to-end test (tests/browser: playwright-core drives /usr/bin/chromium)
   libclang-rt-14-dev     # libFuzzer runtime for the fuzz targets (scripts/fuzz.sh; GCC-instrumented, cmake/OxbowFuzz.cmake)
   clang-tidy-16          # static checks (scripts/clang-tidy.sh): the first Debian 12 clang-tidy that parses libstdc++ 12's <expected>

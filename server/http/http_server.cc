@@ -25,6 +25,10 @@
 
 namespace oxbow::server {
 
+// This API's OpenAPI description (openapi.json), defined by the openapi_data.cc that
+// cmake/EmbedFiles.cmake generates (server/http/CMakeLists.txt).
+std::span<const EmbeddedFile> OpenApiFiles();
+
 namespace {
 
 using Clock = std::chrono::steady_clock;
@@ -267,6 +271,7 @@ const HttpServer::RouteTable& Routes() {
       {"/", std::regex("/"), "GET"},
       {"/static/{file}", std::regex("/static/.+"), "GET"},
       {"/v1", std::regex("/v1/?"), "GET"},
+      {"/v1/openapi.json", std::regex("/v1/openapi\\.json"), "GET"},
       {"/healthz", std::regex("/healthz"), "GET"},
       {"/readyz", std::regex("/readyz"), "GET"},
       {"/metrics", std::regex("/metrics"), "GET"},
@@ -287,6 +292,13 @@ void DescribeApi(const httplib::Request&, httplib::Response& res) {
   json routes = json::array();
   for (const auto& r : Routes().routes) routes.push_back({{"route", r.label}, {"methods", r.methods}});
   SendJson(res, 200, {{"service", "oxbow"}, {"api_version", "v1"}, {"routes", routes}});
+}
+
+// The document is fixed at build time; clients revalidate with its ETag (304).
+void ServeOpenApi(const httplib::Request& req, httplib::Response& res) {
+  const std::string_view document = OpenApiFiles().front().content;
+  static const std::string etag = StrongEtag(document);
+  SendCacheable(req, res, document, "application/json", etag, "no-cache");
 }
 
 // True once the client of the request this thread serves has closed or reset its connection (a client
@@ -656,6 +668,7 @@ void HttpServer::RegisterStatusRoutes() {
     SendWebAsset(req, res, req.matches[1].str());
   });
   http.Get(R"(/v1/?)", DescribeApi);
+  http.Get("/v1/openapi.json", ServeOpenApi);
   http.Get("/metrics", [this](const httplib::Request&, httplib::Response& res) { ServeMetrics(res); });
   http.Get("/v1/stats", ServiceRoute(Access::kOpen, [](api::Service& s, const httplib::Request&, httplib::Response& res) {
              SendJson(res, 200, api::StatsToJson(s.Stats()));
