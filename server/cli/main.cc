@@ -2,6 +2,7 @@
 #include <algorithm>
 #include <cstdio>
 #include <exception>
+#include <string>
 
 #include "server/cli/cli.h"
 #include "sift/base/log.h"
@@ -23,6 +24,18 @@ bool RegisterCommand(CommandSpec spec) {
 const std::vector<CommandSpec>& RegisteredCommands() { return Registry(); }
 
 }  // namespace oxbow::cli
+
+namespace {
+// A failed command's last line: as it always was in the text format; under `serve --log-format json` an
+// error-level log line, so that every stderr line stays JSON (never filtered by --log-level).
+void PrintError(const std::string& text) {
+  if (oxbow::log::GetFormat() == oxbow::log::Format::kJson) {
+    oxbow::log::Line(oxbow::log::Level::kError) << text;
+  } else {
+    std::fprintf(stderr, "%s\n", text.c_str());
+  }
+}
+}  // namespace
 
 int main(int argc, char** argv) {
   using oxbow::cli::CommandError;
@@ -50,10 +63,10 @@ int main(int argc, char** argv) {
   } catch (const CLI::ParseError& e) {
     return app.exit(e);
   } catch (const CommandError& e) {
-    std::fprintf(stderr, "oxbow: error: %s\n", e.what());
+    PrintError(std::string("oxbow: error: ") + e.what());
     return e.exit_code();
   } catch (const std::exception& e) {
-    std::fprintf(stderr, "oxbow: internal error: %s\n", e.what());
+    PrintError(std::string("oxbow: internal error: ") + e.what());
     return 1;
   }
   return 0;

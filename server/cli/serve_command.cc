@@ -33,9 +33,13 @@ struct ServeFlags {
   ImageFlags image;
   int index_threads = 0;
   index::IndexOptions index_options;  // scoring options (--max-df, ...); num_threads from --index-threads
+  std::string log_format = "text";
 };
 
 void Serve(const ServeFlags& flags) {
+  log::Format log_format = log::Format::kText;
+  if (!log::ParseFormat(flags.log_format, &log_format)) throw CommandError(2, "--log-format must be text or json");
+  log::SetFormat(log_format);
   server::HttpServerOptions http = flags.http;
   api::ServiceOptions service_options = flags.service;
   if (!(flags.max_upload_mb > 0 && flags.max_upload_mb <= 4096)) {
@@ -182,6 +186,9 @@ void SetUpServe(CLI::App& app) {
   cmd->add_option("--index-threads", flags->index_threads, "threads for loading the index and re-ranking; 0 = all cores")
       ->capture_default_str()
       ->check(CLI::Range(0, 256));
+  cmd->add_option("--log-format", flags->log_format,
+                  "stderr log lines: text, or json (one object per line; fields in the README, \"Log format\")")
+      ->capture_default_str();
   cmd->add_option("--read-timeout-s", flags->http.read_timeout_s, "socket read timeout, seconds")
       ->capture_default_str()
       ->check(CLI::Range(1, 3600));

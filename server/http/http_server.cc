@@ -10,7 +10,6 @@
 #include <random>
 #include <regex>
 #include <set>
-#include <sstream>
 #include <thread>
 #include <vector>
 
@@ -42,7 +41,7 @@ struct RequestContext {
   std::string id;
   Clock::time_point start;
   std::string route = "unmatched";
-  std::string stages;     // "extract=12.1 quantize=0.4 ..." for the log line
+  std::vector<std::pair<const char*, double>> stages;  // {"extract", 12.1 ms}, ... for the log line
 };
 thread_local RequestContext t_request;
 
@@ -127,18 +126,14 @@ httplib::Server::HandlerResponse AnswerRequestTimeout(httplib::Response& res) {
 // Stage timings -> the log context and a Server-Timing header (RFC: W3C Server Timing).
 void RecordStages(httplib::Response& res, const std::vector<std::pair<const char*, double>>& stages) {
   std::string header;
-  std::string log;
   for (const auto& [name, ms] : stages) {
     char buf[64];
     std::snprintf(buf, sizeof buf, "%s;dur=%.2f", name, ms);
     if (!header.empty()) header += ", ";
     header += buf;
-    std::snprintf(buf, sizeof buf, "%s=%.2f", name, ms);
-    if (!log.empty()) log += ' ';
-    log += buf;
   }
   if (!header.empty()) res.set_header("Server-Timing", header);
-  t_request.stages = log;
+  t_request.stages = stages;
 }
 
 // Query-string parameters plus multipart text fields (everything but the named file fields), every
@@ -542,19 +537,33 @@ void HttpServer::RegisterRequestHooks() {
 
   http_->set_logger([this](const httplib::Request& req, const httplib::Response& res) {
     const double seconds = t_request.active ? std::chrono::duration<double>(Clock::now() - t_request.start).count() : 0;
-    std::ostringstream tail;
-    tail << "ms=" << seconds * 1000 << (t_request.stages.empty() ? "" : " ") << t_request.stages;
     LogRequest(t_request.active ? t_request.id : "-", req.method, LoggablePath(req.path),
-               t_request.active ? t_request.route : "unmatched", res.status, seconds, tail.str());
+               t_request.active ? t_request.route : "unmatched", res.status, seconds, t_request.stages, "");
     t_request = RequestContext{};
   });
 }
 
 void HttpServer::LogRequest(const std::string& id, const std::string& method, const std::string& path,
-                            const std::string& route, int status, double seconds, const std::string& tail) {
+                            const std::string& route, int status, double seconds,
+                            const std::vector<std::pair<const char*, double>>& stages, const std::string& refusal) {
   metrics_.Observe(route, method, status, seconds);
-  OXBOW_LOG(kInfo) << "http " << id << " " << method << " " << path << " route=" << route << " status=" << status
-                   << " " << tail;
+  if (log::Level::kInfo < log::GetLevel()) return;
+  log::Line line(log::Level::kInfo);
+  // The same facts as the text, as fields for --log-format json (README "Log format").
+  line.Field("request_id", id).Field("method", method).Field("path", path).Field("route", route);
+  line.Field("status", status).Field("latency_ms", seconds * 1000).Field("stages_ms", stages);
+  line << "http " << id << " " << method << " " << path << " route=" << route << " status=" << status << " ";
+  if (!refusal.empty()) {
+    line.Field("refused", refusal);
+    line << "refused: " << refusal;
+    return;
+  }
+  line << "ms=" << seconds * 1000;
+  for (const auto& [name, ms] : stages) {
+    char buf[64];
+    std::snprintf(buf, sizeof buf, " %s=%.2f", name, ms);
+    line << buf;
+  }
 }
 
 void HttpServer::AnswerRefusal(const RefusedRequest& refused, httplib::Response& res) {
@@ -569,8 +578,8 @@ void HttpServer::AnswerRefusal(const RefusedRequest& refused, httplib::Response&
   if (refused.refusal.status == 503) res.set_header("Retry-After", "1");
   const api::HttpError error{refused.refusal.status, refused.refusal.code, refused.refusal.message};
   SendJson(res, error.status, api::ErrorBody(error, id));
-  LogRequest(id, method, path.empty() ? "-" : LoggablePath(path), route_label, res.status, 0,
-             "refused: " + refused.refusal.message);
+  LogRequest(id, method, path.empty() ? "-" : LoggablePath(path), route_label, res.status, 0, {},
+             refused.refusal.message);
 }
 
 void HttpServer::RegisterErrorHandlers() {

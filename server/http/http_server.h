@@ -35,6 +35,8 @@
 #include <mutex>
 #include <optional>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "api/metrics.h"
 #include "api/service.h"
@@ -132,9 +134,11 @@ class HttpServer {
   void ServeMetrics(httplib::Response& res) const;
   // The JSON answer, log line and metrics of a request refused before httplib parsed it.
   void AnswerRefusal(const RefusedRequest& refused, httplib::Response& res);
-  // The one log line and the metrics of a request: "http <id> <method> <path> route=<r> status=<s> <tail>".
+  // The one log line and the metrics of a request: "http <id> <method> <path> route=<r> status=<s> ms=<ms>
+  // <stage>=<ms>...", or "... refused: <refusal>" for one refused before it was read.
   void LogRequest(const std::string& id, const std::string& method, const std::string& path, const std::string& route,
-                  int status, double seconds, const std::string& tail);
+                  int status, double seconds, const std::vector<std::pair<const char*, double>>& stages,
+                  const std::string& refusal);
   std::shared_ptr<api::Service> service() const;
 
   HttpServerOptions options_;

@@ -1,12 +1,19 @@
 // Logging to stderr with levels, and a progress bar for long work. Thread-safe.
 // Usage: OXBOW_LOG(kInfo) << "indexed " << n << " images";
+//        OXBOW_LOG(kInfo).Field("status", 200).Field("route", "/v1/search") << "http ...";
+// Two formats (SetFormat): text lines for people, or one JSON object per line for log collectors, where
+// every line written here (progress included) is a complete JSON object.
 #pragma once
 
 #include <chrono>
+#include <concepts>
 #include <cstdint>
 #include <mutex>
+#include <span>
 #include <sstream>
 #include <string>
+#include <string_view>
+#include <utility>
 
 namespace oxbow::log {
 
@@ -17,10 +24,27 @@ Level GetLevel();
 // Parses "debug" | "info" | "warning" | "error" | "off"; false if unknown.
 bool ParseLevel(const std::string& text, Level* level);
 
-// One log line, written atomically to stderr when destroyed: "2026-11-21T06:01:02Z I message".
+// kText: "2026-11-21T06:01:02Z I message". kJson: {"time":"2026-11-21T06:01:02.345Z","level":"info",
+// "message":"message", ...the line's fields}, one object per line. Set it before logging starts
+// (lines already being built keep the format they started with).
+enum class Format { kText, kJson };
+void SetFormat(Format format);
+Format GetFormat();
+// Parses "text" | "json"; false if unknown.
+bool ParseFormat(const std::string& text, Format* format);
+
+// `text` as a JSON string literal, quotes included: '"', '\\' and control characters (U+0000..U+001F,
+// U+007F) escaped, and every byte that is not part of well-formed UTF-8 replaced by U+FFFD, so that any
+// bytes (a client's path, an id) give valid JSON.
+std::string JsonString(std::string_view text);
+
+// One log line, written atomically to stderr when destroyed. Fields are structured data for the JSON
+// format, where each becomes a member after time, level and message, in the order given (keys other than
+// those three, each once); the text format shows only the message, so a field's value must also be in
+// the message where text readers need it.
 class Line {
  public:
-  explicit Line(Level level) : level_(level) {}
+  explicit Line(Level level);
   ~Line();
   Line(const Line&) = delete;
   Line& operator=(const Line&) = delete;
@@ -30,8 +54,23 @@ class Line {
     return *this;
   }
 
+  Line& Field(std::string_view key, std::string_view value);
+  template <std::integral T>
+    requires(!std::same_as<T, bool>)
+  Line& Field(std::string_view key, T value) {
+    return RawField(key, std::to_string(value));
+  }
+  // Six significant digits; NaN and infinities become null.
+  Line& Field(std::string_view key, double value);
+  // An object of numbers: {"extract": 12.1, "quantize": 0.4}.
+  Line& Field(std::string_view key, std::span<const std::pair<const char*, double>> numbers);
+
  private:
+  Line& RawField(std::string_view key, std::string_view json_value);
+
   Level level_;
+  bool json_;
+  std::string json_fields_;  // ',"key":value' for each field (JSON format only)
   std::ostringstream stream_;
 };
 

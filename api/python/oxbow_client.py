@@ -1,0 +1,391 @@
+"""A Python client for the oxbow HTTP API (README "HTTP API"), standard library only (Python 3.11+).
+
+    from oxbow_client import Client, NotFoundError
+    oxbow = Client("http://127.0.0.1:8080", api_key="secret", timeout=30)
+    oxbow.add("eiffel-1", "photos/eiffel.jpg", metadata={"city": "Paris"})
+    hits = oxbow.search("query.jpg", bbox=(10, 20, 300, 400), top_k=5)["results"]
+    try:
+        oxbow.get("nope")
+    except NotFoundError as e:
+        print(e.status, e.code, e.message, e.request_id)
+
+Every method returns the server's JSON answer as a dict (the fields are in the README), or raises an
+OxbowError subclass that carries the server's error code, message, HTTP status and request id.
+Images are given as bytes, a path (str or os.PathLike) or a binary file object. A Client holds no
+connection between calls, so one may be shared by threads.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import mimetypes
+import os
+import secrets
+import socket
+import urllib.error
+import urllib.parse
+import urllib.request
+from collections.abc import Iterable, Mapping
+from typing import Any, BinaryIO, Union
+
+__all__ = [
+    "Client", "AddResult", "OxbowError", "TransportError", "ClientTimeoutError", "ClientError",
+    "InvalidArgumentError", "UnauthorizedError", "UnauthenticatedError", "PermissionDeniedError",
+    "NotFoundError", "ConflictError", "PayloadTooLargeError", "UnsupportedMediaTypeError", "ServerError",
+    "UnavailableError",
+]
+
+Image = Union[bytes, bytearray, memoryview, str, os.PathLike, BinaryIO]
+
+
+# ---- Errors ------------------------------------------------------------------------------------------
+
+class OxbowError(Exception):
+    """An oxbow request that failed.
+
+    status: the HTTP status (None when no answer came: TransportError).
+    code: the server's error code ("not_found", "invalid_argument", ...; README "Errors"), or None.
+    message: the server's message (or what went wrong on the way).
+    request_id: the X-Request-Id of the request, to find its line in the server's log, or None.
+    """
+
+    def __init__(self, message: str, *, status: int | None = None, code: str | None = None,
+                 request_id: str | None = None):
+        super().__init__(message)
+        self.message = message
+        self.status = status
+        self.code = code
+        self.request_id = request_id
+
+    def __str__(self) -> str:
+        where = [f"HTTP {self.status}"] if self.status is not None else []
+        if self.code:
+            where.append(self.code)
+        if self.request_id:
+            where.append(f"request {self.request_id}")
+        return f"{self.message} ({', '.join(where)})" if where else self.message
+
+
+class TransportError(OxbowError):
+    """No HTTP answer: the server could not be reached, or the connection broke."""
+
+
+class ClientTimeoutError(TransportError):
+    """The server did not answer within the client's timeout."""
+
+
+class ClientError(OxbowError):
+    """A 4xx answer: the request was refused."""
+
+
+class InvalidArgumentError(ClientError):
+    """400: a bad parameter or a bad image (code invalid_argument, invalid_image or bad_request)."""
+
+
+class UnauthorizedError(ClientError):
+    """401 or 403: the API key is missing or wrong."""
+
+
+class UnauthenticatedError(UnauthorizedError):
+    """401: a write without an API key on a server started with --api-key."""
+
+
+class PermissionDeniedError(UnauthorizedError):
+    """403: a wrong API key."""
+
+
+class NotFoundError(ClientError):
+    """404: unknown image id (or route)."""
+
+
+class ConflictError(ClientError):
+    """409: the id is taken (already_exists), or the index cannot take this image (incompatible)."""
+
+
+class PayloadTooLargeError(ClientError):
+    """413: the body is over the server's --max-upload-mb, or the image over its --max-megapixels."""
+
+
+class UnsupportedMediaTypeError(ClientError):
+    """415: not an image the server can decode."""
+
+
+class ServerError(OxbowError):
+    """A 5xx answer."""
+
+
+class UnavailableError(ServerError):
+    """503: the server is loading its index, overloaded or stopping; retry after `retry_after` seconds."""
+
+    def __init__(self, message: str, *, retry_after: float | None = None, **kwargs: Any):
+        super().__init__(message, **kwargs)
+        self.retry_after = retry_after
+
+
+_ERROR_BY_STATUS: dict[int, type[OxbowError]] = {
+    400: InvalidArgumentError, 401: UnauthenticatedError, 403: PermissionDeniedError, 404: NotFoundError,
+    409: ConflictError, 413: PayloadTooLargeError, 415: UnsupportedMediaTypeError, 503: UnavailableError,
+}
+
+
+def _error_from_response(status: int, headers: Mapping[str, str], body: bytes) -> OxbowError:
+    request_id = headers.get("X-Request-Id")
+    code = None
+    message = body[:200].decode("utf-8", "replace").strip() or f"HTTP {status}"
+    try:
+        error = json.loads(body)["error"]
+        code, message = error["code"], error["message"]
+        request_id = error.get("request_id") or request_id
+    except (ValueError, KeyError, TypeError):
+        pass  # not oxbow's error shape (a proxy's page?): keep the text
+    cls = _ERROR_BY_STATUS.get(status) or (ClientError if 400 <= status < 500 else
+                                           ServerError if status >= 500 else OxbowError)
+    kwargs: dict[str, Any] = {"status": status, "code": code, "request_id": request_id}
+    if cls is UnavailableError:
+        try:
+            kwargs["retry_after"] = float(headers.get("Retry-After", ""))
+        except ValueError:
+            kwargs["retry_after"] = None
+    return cls(message, **kwargs)
+
+
+# ---- Request bodies ----------------------------------------------------------------------------------
+
+def _image_bytes(image: Image) -> tuple[bytes, str]:
+    """The bytes of an image given as bytes, a path or a binary file object, and a file name for it."""
+    if isinstance(image, (bytes, bytearray, memoryview)):
+        return bytes(image), "image"
+    if isinstance(image, (str, os.PathLike)):
+        with open(image, "rb") as f:
+            return f.read(), os.path.basename(os.fspath(image))
+    if hasattr(image, "read"):
+        data = image.read()
+        if not isinstance(data, (bytes, bytearray)):
+            raise TypeError("the image file must be opened in binary mode ('rb')")
+        name = getattr(image, "name", None)
+        return bytes(data), os.path.basename(name) if isinstance(name, str) else "image"
+    raise TypeError(f"an image is bytes, a path or a binary file object, not {type(image).__name__}")
+
+
+def _field_value(value: Any) -> str:
+    """A parameter as the server parses it: true/false, "x1,y1,x2,y2" for a box, JSON for mappings."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return ",".join(str(v) for v in value)
+    if isinstance(value, Mapping):
+        return json.dumps(value, separators=(",", ":"))
+    return str(value)
+
+
+def _quote_header_param(text: str) -> str:
+    # As browsers write multipart names (WHATWG HTML form encoding): these three would end the value.
+    return text.replace('"', "%22").replace("\r", "%0D").replace("\n", "%0A")
+
+
+def _multipart(fields: Mapping[str, str], files: Mapping[str, tuple[bytes, str]]) -> tuple[bytes, str]:
+    """A multipart/form-data body (RFC 7578) and its Content-Type."""
+    parts: list[bytes] = []
+    for name, value in fields.items():
+        parts.append(f'Content-Disposition: form-data; name="{_quote_header_param(name)}"\r\n\r\n'.encode()
+                     + value.encode("utf-8"))
+    for name, (data, filename) in files.items():
+        content_type = mimetypes.guess_type(filename)[0] or "application/octet-stream"
+        head = (f'Content-Disposition: form-data; name="{_quote_header_param(name)}"; '
+                f'filename="{_quote_header_param(filename)}"\r\nContent-Type: {content_type}\r\n\r\n')
+        parts.append(head.encode("utf-8") + data)
+    while True:  # a boundary must not occur in the parts; 128 random bits practically never do
+        boundary = "oxbow-" + secrets.token_hex(16)
+        if not any(boundary.encode() in part for part in parts):
+            break
+    delimiter = f"--{boundary}\r\n".encode()
+    body = b"".join(delimiter + part + b"\r\n" for part in parts) + f"--{boundary}--\r\n".encode()
+    return body, f"multipart/form-data; boundary={boundary}"
+
+
+# ---- The client --------------------------------------------------------------------------------------
+
+@dataclasses.dataclass
+class AddResult:
+    """The outcome of one image of add_many: `response` (the add's answer) or `error`."""
+    id: str
+    response: dict | None = None
+    error: OxbowError | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+
+class Client:
+    """oxbow's HTTP API.
+
+    url: the server, e.g. "http://127.0.0.1:8080" (as printed by `oxbow serve`).
+    api_key: sent as "Authorization: Bearer KEY" (needed for add and delete on a server run with --api-key).
+    timeout: seconds to wait for the connection and for each read of the answer (a search of a large
+      image takes a few seconds on a busy server); on expiry ClientTimeoutError.
+    """
+
+    def __init__(self, url: str = "http://127.0.0.1:8080", *, api_key: str | None = None,
+                 timeout: float = 60.0):
+        self.url = url.rstrip("/")
+        self.api_key = api_key
+        self.timeout = timeout
+
+    # -- status
+
+    def health(self) -> dict:
+        """GET /healthz: {"status": "ok"} while the process is up."""
+        return self._request("GET", "/healthz")
+
+    def ready(self) -> bool:
+        """GET /readyz: True once the index is loaded; False while loading or stopping."""
+        try:
+            self._request("GET", "/readyz")
+        except UnavailableError:
+            return False
+        return True
+
+    def stats(self) -> dict:
+        """GET /v1/stats: images, features, words, index_bytes, memory_rss_bytes, uptime_s, ..."""
+        return self._request("GET", "/v1/stats")
+
+    # -- images
+
+    def add(self, id: str, image: Image, *, metadata: Any = None, replace: bool = False) -> dict:
+        """POST /v1/images: indexes `image` under `id`, with optional JSON `metadata` (a dict, list, ...).
+
+        An existing id raises ConflictError unless replace=True. Returns the stored record with
+        "replaced" and "timings_ms".
+        """
+        fields = {"id": id}
+        if metadata is not None:
+            fields["metadata"] = json.dumps(metadata, separators=(",", ":"))
+        if replace:
+            fields["replace"] = "true"
+        return self._request("POST", "/v1/images", multipart=(fields, {"file": _image_bytes(image)}))
+
+    def add_many(self, items: Iterable[tuple[str, Image] | tuple[str, Image, Any] | Mapping[str, Any]], *,
+                 replace: bool = False) -> list[AddResult]:
+        """Adds several images; never raises for one image's failure.
+
+        items: (id, image) or (id, image, metadata) tuples, or mappings with keys id, image and
+          optionally metadata.
+        Returns one AddResult per item, in order: the add's answer, or the OxbowError it raised.
+        The images are sent one by one (the server has no batch route yet), so the ones before a failure
+        stay added; each is acknowledged, hence durable, when its AddResult is ok.
+        """
+        normalized = [_add_item(item) for item in items]
+        return self._add_sequentially(normalized, replace)
+
+    def _add_sequentially(self, items: list[tuple[str, Image, Any]], replace: bool) -> list[AddResult]:
+        # The transport of add_many: one POST /v1/images per image. A batch route would replace this
+        # function alone, keeping add_many's arguments and results.
+        results = []
+        for id, image, metadata in items:
+            try:
+                results.append(AddResult(id, response=self.add(id, image, metadata=metadata, replace=replace)))
+            except OxbowError as e:
+                results.append(AddResult(id, error=e))
+        return results
+
+    def get(self, id: str) -> dict:
+        """GET /v1/images/{id}: the image's record (NotFoundError if unknown)."""
+        return self._request("GET", "/v1/images/" + _quote_id(id))
+
+    def delete(self, id: str) -> dict:
+        """DELETE /v1/images/{id}: {"id": id, "deleted": true} (NotFoundError if unknown)."""
+        return self._request("DELETE", "/v1/images/" + _quote_id(id))
+
+    def list(self, offset: int = 0, limit: int = 100) -> dict:
+        """GET /v1/images: {"images": [...], "offset", "limit", "total"}, by id; limit 1..1000."""
+        return self._request("GET", "/v1/images", query={"offset": offset, "limit": limit})
+
+    def thumbnail(self, id: str, size: int | None = None) -> bytes:
+        """GET /v1/images/{id}/thumbnail: JPEG bytes, longest side <= size (16..2048, default 256)."""
+        query = {"size": size} if size is not None else {}
+        return self._request("GET", "/v1/images/" + _quote_id(id) + "/thumbnail", query=query, raw=True)
+
+    # -- search
+
+    def search(self, image: Image, *, bbox: tuple[float, float, float, float] | None = None,
+               **options: Any) -> dict:
+        """POST /v1/search with an image; bbox = (x1, y1, x2, y2) in the image's pixels.
+
+        options: the server's search parameters (README "Search options"): top_k, rerank, qe, qe_images,
+        min_inliers, max_pairs_per_word, transitive_depth, transitive_anchors, transitive_neighbours,
+        transitive_attempts, query_assignments, quantizer_probes. Unknown names and out-of-range values
+        raise InvalidArgumentError (the server refuses them).
+        """
+        fields = _search_fields(bbox, options)
+        return self._request("POST", "/v1/search", multipart=(fields, {"file": _image_bytes(image)}))
+
+    def similar(self, id: str, **options: Any) -> dict:
+        """GET /v1/images/{id}/similar: a search with an indexed image's stored features; options as search."""
+        return self._request("GET", "/v1/images/" + _quote_id(id) + "/similar", query=_search_fields(None, options))
+
+    def match(self, a: Image, b: Image, **options: Any) -> dict:
+        """POST /v1/match: matches and verifies two images (no index involved).
+
+        options: model (hough-affine, similarity, affine, homography, fundamental), ratio, mutual,
+        method (brute, kdtree), min_inliers, correspondences (True adds the inlier pairs).
+        """
+        fields = {name: _field_value(value) for name, value in options.items() if value is not None}
+        return self._request("POST", "/v1/match", multipart=(fields, {"a": _image_bytes(a), "b": _image_bytes(b)}))
+
+    # -- transport
+
+    def _request(self, method: str, path: str, *, query: Mapping[str, Any] | None = None,
+                 multipart: tuple[Mapping[str, str], Mapping[str, tuple[bytes, str]]] | None = None,
+                 raw: bool = False) -> Any:
+        url = self.url + path
+        if query:
+            url += "?" + urllib.parse.urlencode({k: _field_value(v) for k, v in query.items()})
+        headers = {"Accept": "application/json", "User-Agent": "oxbow-client-python/1"}
+        if self.api_key is not None:
+            headers["Authorization"] = "Bearer " + self.api_key
+        data = None
+        if multipart is not None:
+            data, headers["Content-Type"] = _multipart(*multipart)
+        request = urllib.request.Request(url, data=data, headers=headers, method=method)
+        try:
+            with urllib.request.urlopen(request, timeout=self.timeout) as response:
+                body = response.read()
+        except urllib.error.HTTPError as e:
+            with e:
+                raise _error_from_response(e.code, e.headers, e.read()) from None
+        except (TimeoutError, socket.timeout) as e:
+            raise ClientTimeoutError(f"{method} {path}: no answer within {self.timeout} s") from e
+        except urllib.error.URLError as e:
+            if isinstance(e.reason, (TimeoutError, socket.timeout)):
+                raise ClientTimeoutError(f"{method} {path}: no answer within {self.timeout} s") from e
+            raise TransportError(f"{method} {path}: cannot reach {self.url}: {e.reason}") from e
+        except OSError as e:  # http.client.RemoteDisconnected, ConnectionResetError, ...
+            raise TransportError(f"{method} {path}: connection to {self.url} failed: {e}") from e
+        return body if raw else json.loads(body)
+
+
+def _quote_id(id: str) -> str:
+    # Every byte but unreserved ones encoded, "/" included: the server takes an encoded slash as part of
+    # the id, never as a route separator (README "Routes").
+    if not id:
+        raise ValueError("an image id is not empty")
+    return urllib.parse.quote(id, safe="")
+
+
+def _search_fields(bbox: Any, options: Mapping[str, Any]) -> dict[str, str]:
+    fields = {name: _field_value(value) for name, value in options.items() if value is not None}
+    if bbox is not None:
+        if len(bbox) != 4:
+            raise ValueError("bbox is (x1, y1, x2, y2)")
+        fields["bbox"] = _field_value(bbox)
+    return fields
+
+
+def _add_item(item: Any) -> tuple[str, Image, Any]:
+    if isinstance(item, Mapping):
+        return item["id"], item["image"], item.get("metadata")
+    if isinstance(item, tuple) and len(item) in (2, 3):
+        return item[0], item[1], item[2] if len(item) == 3 else None
+    raise TypeError("an add_many item is (id, image), (id, image, metadata) or a mapping with id and image")

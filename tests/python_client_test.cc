@@ -1,0 +1,49 @@
+// Runs the Python client's tests (api/python/oxbow_client_test.py) against a real `oxbow serve` with an
+// API key over an empty index of the suite's random vocabulary, with three textured pictures to add
+// and search. The Python tests never skip: without python3, or with a failing test, this test fails.
+#include <gtest/gtest.h>
+
+#include <filesystem>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include <opencv2/imgcodecs.hpp>
+
+#include "tests/server_suite.h"
+
+namespace oxbow {
+namespace {
+
+class PythonClientTest : public testing::ServerSuite {
+ protected:
+  static void SetUpTestSuite() { SetUpServerSuite("oxbow-python-client-test"); }
+};
+
+TEST_F(PythonClientTest, ClientTestsPassAgainstARealServer) {
+  const std::string images = dir_->path() + "/images";
+  std::filesystem::create_directories(images);
+  // Three different pictures: crops of one photo far enough apart to share few features.
+  const std::vector<std::pair<std::string, cv::Mat>> pictures = {
+      {"a.png", oxbow::testing::Texture(400, 300, "graf1.png", 0, 0)},
+      {"b.png", oxbow::testing::Texture(400, 300, "box_in_scene.png", 0, 0)},
+      {"c.png", oxbow::testing::Texture(320, 240, "fruits.jpg", 40, 30)}};
+  for (const auto& [name, picture] : pictures) ASSERT_TRUE(cv::imwrite(images + "/" + name, picture));
+
+  const std::string key = "python-client-test-key";
+  auto server = StartServer({"--api-key", key});
+  ASSERT_GT(server->port(), 0);
+  const std::string command = "OXBOW_URL=http://127.0.0.1:" + std::to_string(server->port()) +
+                              " OXBOW_API_KEY=" + key + " OXBOW_TEST_IMAGES='" + images + "' PYTHONDONTWRITEBYTECODE=1 python3 " +
+                              OXBOW_SOURCE_DIR "/api/python/oxbow_client_test.py -v 2>&1";
+  int exit_code = -1;
+  const std::string output = oxbow::testing::RunCommand(command, &exit_code);
+  EXPECT_EQ(exit_code, 0) << output << "\nserver log:\n" << server->Log();
+  // unittest's summary: every test ran (none skipped) and passed.
+  EXPECT_NE(output.find("\nOK\n"), std::string::npos) << output;
+  EXPECT_EQ(output.find("skipped"), std::string::npos) << output;
+  EXPECT_EQ(server->Stop(), 0) << server->Log();
+}
+
+}  // namespace
+}  // namespace oxbow
