@@ -190,5 +190,59 @@ TEST_F(EndToEnd, CommandLineBuildResumeAndQuery) {
   EXPECT_NE(refused.find("another vocabulary"), std::string::npos) << refused;
 }
 
+// `index build --features` (feature files from `oxbow extract`, extracted elsewhere) gives the same
+// index as extracting here: same records, same rankings and scores.
+TEST_F(EndToEnd, BuildFromFeatureFilesEqualsBuildFromImages) {
+  const fs::path images = *work_ / "images_for_features";
+  fs::create_directories(images);
+  std::string image_args;
+  for (const auto& name : kDatabase) {
+    fs::create_symlink(kSamples / name, images / name);
+    image_args += " " + (images / name).string();
+  }
+  const fs::path vocab_file = *work_ / "vocab_for_features.oxvoc";
+  ASSERT_TRUE(vocabulary_->Write(vocab_file.string()));
+  const std::string bin = OXBOW_BINARY;
+  const std::string side = " --max-image-side " + std::to_string(kMaxSide);
+  int code = -1;
+  RunCommand(bin + " -q extract --max-features 1500 --out " + (*work_ / "feats").string() + side + image_args, &code);
+  ASSERT_EQ(code, 0);
+  const auto from_features = nlohmann::json::parse(RunCommand(
+      bin + " -q index build --vocab " + vocab_file.string() + " --features " + (*work_ / "feats").string() +
+          " --out " + (*work_ / "from_features").string(), &code));
+  ASSERT_EQ(code, 0);
+  EXPECT_EQ(from_features["added"], kDatabase.size());
+  const auto from_images = nlohmann::json::parse(RunCommand(
+      bin + " -q index build --vocab " + vocab_file.string() + " --images " + images.string() + side + " --out " +
+          (*work_ / "from_images").string(), &code));
+  ASSERT_EQ(code, 0);
+  EXPECT_EQ(from_features["features"], from_images["features"]);
+  for (const auto& [query, expected] : kQueries) {
+    const std::string args = " --top-k 10" + side + " " + (kSamples / query).string();
+    const auto a = nlohmann::json::parse(
+        RunCommand(bin + " -q query --index " + (*work_ / "from_features").string() + args, &code));
+    ASSERT_EQ(code, 0);
+    const auto b = nlohmann::json::parse(
+        RunCommand(bin + " -q query --index " + (*work_ / "from_images").string() + args, &code));
+    ASSERT_EQ(code, 0);
+    ASSERT_EQ(a["results"].size(), b["results"].size()) << query;
+    EXPECT_EQ(a["results"][0]["id"], expected);
+    for (size_t i = 0; i < a["results"].size(); ++i) {
+      EXPECT_EQ(a["results"][i]["id"], b["results"][i]["id"]) << query << " rank " << i;
+      EXPECT_EQ(a["results"][i]["score"], b["results"][i]["score"]) << query << " rank " << i;
+      EXPECT_EQ(a["results"][i]["inliers"], b["results"][i]["inliers"]) << query << " rank " << i;
+    }
+  }
+  // Feature files from another extractor are refused per image, with the reason.
+  RunCommand(bin + " -q extract --max-features 700 --out " + (*work_ / "other_feats").string() + side + " " +
+                 (images / kDatabase[0]).string(), &code);
+  ASSERT_EQ(code, 0);
+  const std::string refused = RunCommand(bin + " index build --vocab " + vocab_file.string() + " --features " +
+                                             (*work_ / "other_feats").string() + " --out " +
+                                             (*work_ / "from_other").string() + " 2>&1", &code);
+  EXPECT_NE(refused.find("extract with the index's settings"), std::string::npos) << refused;
+  EXPECT_NE(refused.find("\"failed\": 1"), std::string::npos) << refused;
+}
+
 }  // namespace
 }  // namespace oxbow

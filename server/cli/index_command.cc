@@ -1,4 +1,5 @@
 // `oxbow index build|add|remove|info`: create and maintain an image index (index/image_index.h).
+#include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
@@ -16,6 +17,7 @@
 #include "server/cli/common_flags.h"
 #include "sift/base/log.h"
 #include "sift/base/parallel.h"
+#include "sift/features_io.h"
 #include "sift/sift.h"
 #include "vocab/vocabulary.h"
 
@@ -90,6 +92,34 @@ std::vector<ImageJob> CollectImages(const std::string& images_dir, const std::st
   return jobs;
 }
 
+// Every .oxfeat file under `folder` (recursively), id = the image name without its extension
+// (`oxbow extract` writes <image file name>.oxfeat, so photo.jpg.oxfeat is the image "photo", the id
+// `index build --images` would give photo.jpg).
+std::vector<ImageJob> CollectFeatureFiles(const std::string& folder) {
+  std::error_code ec;
+  if (!fs::is_directory(folder, ec)) {
+    throw CommandError(ExitCodeFor(ErrorCode::kNotFound), "no folder " + folder);
+  }
+  std::vector<std::string> paths;
+  for (fs::recursive_directory_iterator it(folder, ec), end; !ec && it != end; it.increment(ec)) {
+    if (it->is_regular_file(ec) && it->path().extension() == ".oxfeat") paths.push_back(it->path().string());
+  }
+  if (ec) throw CommandError(ExitCodeFor(ErrorCode::kIoError), "cannot list " + folder + ": " + ec.message());
+  std::sort(paths.begin(), paths.end());
+  std::vector<ImageJob> jobs;
+  std::map<std::string, std::string> seen;
+  for (const auto& p : paths) {
+    const std::string id = fs::path(p).stem().stem().string();
+    auto [it, inserted] = seen.emplace(id, p);
+    if (!inserted) {
+      OXBOW_LOG(kWarning) << "skipping " << p << ": id '" << id << "' already used by " << it->second;
+      continue;
+    }
+    jobs.push_back({id, p});
+  }
+  return jobs;
+}
+
 void PrintJson(const nlohmann::json& j) { std::printf("%s\n", j.dump(2).c_str()); }
 
 nlohmann::json StatsJson(const index::ImageIndex& idx) {
@@ -113,7 +143,7 @@ void SetUpIndex(CLI::App& app) {
 
   // ---- build
   struct BuildArgs {
-    std::string vocab, images, list, out;
+    std::string vocab, images, list, features, out;
     int threads = 0;
     int probes = vocab::QuantizerOptions{}.num_probes;
     ImageFlags image;
@@ -123,7 +153,11 @@ void SetUpIndex(CLI::App& app) {
   b->add_option("--vocab", build->vocab, "vocabulary file (oxbow vocab train)")->required();
   auto* images_opt = b->add_option("--images", build->images, "folder of images (searched recursively)");
   auto* list_opt = b->add_option("--list", build->list, "text file with one image path per line");
+  auto* features_opt = b->add_option("--features", build->features,
+                                     "folder of .oxfeat files from `oxbow extract` (searched recursively; id = image "
+                                     "name without extension): no extraction here, only quantisation");
   images_opt->excludes(list_opt);
+  features_opt->excludes(images_opt)->excludes(list_opt);
   b->add_option("--out", build->out, "index folder (created, or resumed when it holds an index)")->required();
   AddThreadsFlag(b, &build->threads);
   AddImageFlags(b, &build->image);
@@ -132,7 +166,10 @@ void SetUpIndex(CLI::App& app) {
       ->capture_default_str()
       ->check(CLI::Range(1, 4096));
   b->callback([build] {
-    if (build->images.empty() && build->list.empty()) throw CommandError(2, "give --images DIR or --list FILE");
+    if (build->images.empty() && build->list.empty() && build->features.empty()) {
+      throw CommandError(2, "give --images DIR, --list FILE or --features DIR");
+    }
+    const bool from_features = !build->features.empty();
     const auto t0 = std::chrono::steady_clock::now();
     const vocab::Vocabulary vocabulary = ValueOrExit(vocab::Vocabulary::Read(build->vocab));
     index::IndexOptions options;
@@ -142,7 +179,8 @@ void SetUpIndex(CLI::App& app) {
     auto idx = OpenOrCreate(build->out, vocabulary, options);
     const sift::DecodeOptions decode = build->image.ToDecodeOptions();
 
-    std::vector<ImageJob> all = CollectImages(build->images, build->list);
+    std::vector<ImageJob> all =
+        from_features ? CollectFeatureFiles(build->features) : CollectImages(build->images, build->list);
     std::vector<ImageJob> todo;
     for (auto& job : all) {
       if (!idx->Contains(job.id)) todo.push_back(std::move(job));
@@ -152,38 +190,58 @@ void SetUpIndex(CLI::App& app) {
       OXBOW_LOG(kInfo) << skipped << " images already indexed, skipped";
     }
     const ThreadSplit split = SplitThreads(build->threads, todo.size());
-    const sift::SiftExtractor extractor = ExtractorFor(*idx, split.per_item);
+    std::optional<sift::SiftExtractor> extractor;
+    if (!from_features) extractor.emplace(ExtractorFor(*idx, split.per_item));
     size_t added = 0, failed = 0;
     uint64_t features = 0;
     {
       log::Progress progress("indexing", todo.size(), "images");
-      const size_t batch = static_cast<size_t>(split.workers) * 2;
+      // One committed transaction per batch (ImageIndex::AddBatch quantises it on every thread): a
+      // crash loses at most the batch in flight, which the next run redoes.
+      const size_t batch = from_features ? 256 : std::max<size_t>(32, static_cast<size_t>(split.workers) * 2);
       for (size_t begin = 0; begin < todo.size(); begin += batch) {
         const size_t n = std::min(batch, todo.size() - begin);
-        std::vector<std::optional<Result<sift::FeatureSet>>> extracted(n);
-        // Extract in parallel (one image per worker), add in order.
-        ParallelFor(n, split.workers, 1, [&](size_t lo, size_t hi, int) {
-          for (size_t i = lo; i < hi; ++i) extracted[i] = extractor.ExtractFromFile(todo[begin + i].path, decode);
+        std::vector<std::optional<Result<sift::FeatureFile>>> loaded(n);
+        // Extract (one image per worker) or read feature files in parallel, add in order.
+        ParallelFor(n, from_features ? build->threads : split.workers, 1, [&](size_t lo, size_t hi, int) {
+          for (size_t i = lo; i < hi; ++i) {
+            const std::string& path = todo[begin + i].path;
+            if (from_features) {
+              loaded[i] = sift::ReadFeatureFile(path);
+            } else if (auto f = extractor->ExtractFromFile(path, decode)) {
+              loaded[i] = sift::FeatureFile{.features = std::move(*f), .extractor_description = idx->extractor_settings()};
+            } else {
+              loaded[i] = std::unexpected(f.error());
+            }
+          }
         });
+        std::vector<index::BatchImage> items;
+        std::vector<size_t> positions;
         for (size_t i = 0; i < n; ++i) {
           const ImageJob& job = todo[begin + i];
-          Result<sift::FeatureSet>& f = *extracted[i];
+          const Result<sift::FeatureFile>& f = *loaded[i];
           if (!f) {
             OXBOW_LOG(kWarning) << "skipping " << job.path << ": " << f.error().ToString();
             ++failed;
+            progress.Advance();
+            continue;
+          }
+          index::ImageInfo info;
+          info.source_path = fs::absolute(job.path).string();
+          info.extractor_settings = f->extractor_description;
+          items.push_back({job.id, &f->features, std::move(info)});
+          positions.push_back(i);
+        }
+        const auto results = idx->AddBatch(items);
+        for (size_t k = 0; k < results.size(); ++k) {
+          const auto& record = results[k];
+          if (!record) {
+            if (record.error().code == ErrorCode::kIoError) throw CommandError(record.error());
+            OXBOW_LOG(kWarning) << "skipping " << todo[begin + positions[k]].path << ": " << record.error().ToString();
+            ++failed;
           } else {
-            index::ImageInfo info;
-            info.source_path = fs::absolute(job.path).string();
-            info.extractor_settings = idx->extractor_settings();
-            auto record = idx->Add(job.id, *f, info);
-            if (!record) {
-              if (record.error().code == ErrorCode::kIoError) throw CommandError(record.error());
-              OXBOW_LOG(kWarning) << "skipping " << job.path << ": " << record.error().ToString();
-              ++failed;
-            } else {
-              ++added;
-              features += record->num_features;
-            }
+            ++added;
+            features += record->num_features;
           }
           progress.Advance();
         }
