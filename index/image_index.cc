@@ -77,8 +77,11 @@ Status CheckId(const std::string& id) {
   return Ok();
 }
 
-Status CheckFeatures(const sift::FeatureSet& f, const vocab::Vocabulary& vocabulary, const std::string& what) {
-  if (f.descriptors.size() != f.keypoints.size() * sift::kDescriptorDim) {
+// `words_given`: the caller assigned the words (BatchImage::words), so descriptors may be absent.
+Status CheckFeatures(const sift::FeatureSet& f, const vocab::Vocabulary& vocabulary, const std::string& what,
+                     bool words_given = false) {
+  const bool may_omit = words_given && f.descriptors.empty();
+  if (!may_omit && f.descriptors.size() != f.keypoints.size() * sift::kDescriptorDim) {
     return Fail(ErrorCode::kInvalidArgument, what + ": " + std::to_string(f.descriptors.size()) +
                                                  " descriptor values for " + std::to_string(f.keypoints.size()) +
                                                  " keypoints (expected 128 each)");
@@ -219,7 +222,9 @@ struct ImageIndex::Impl {
     BagOfWords bag;
     std::vector<uint8_t> blob;
   };
-  Result<Prepared> Prepare(const std::string& id, const sift::FeatureSet& features, const ImageInfo& info) const;
+  // `words`: pre-assigned words (BatchImage::words), or empty to quantise the descriptors.
+  Result<Prepared> Prepare(const std::string& id, const sift::FeatureSet& features, const ImageInfo& info,
+                           std::span<const uint32_t> words = {}) const;
   // Add (replace false) and Replace (true): prepare, commit, publish one new snapshot.
   Result<ImageRecord> Write(const std::string& id, const sift::FeatureSet& features, const ImageInfo& info,
                             bool replace);
@@ -376,14 +381,28 @@ Result<ImageRecord> ImageIndex::Replace(const std::string& id, const sift::Featu
 }
 
 Result<ImageIndex::Impl::Prepared> ImageIndex::Impl::Prepare(const std::string& id, const sift::FeatureSet& features,
-                                                              const ImageInfo& info) const {
+                                                              const ImageInfo& info,
+                                                              std::span<const uint32_t> assigned) const {
   if (auto s = CheckId(id); !s) return std::unexpected(s.error());
-  if (auto s = CheckFeatures(features, vocabulary, "image '" + id + "'"); !s) return std::unexpected(s.error());
+  const std::string what = "image '" + id + "'";
+  if (auto s = CheckFeatures(features, vocabulary, what, !assigned.empty()); !s) return std::unexpected(s.error());
+  if (!assigned.empty()) {
+    if (assigned.size() != features.keypoints.size()) {
+      return Fail(ErrorCode::kInvalidArgument, what + ": " + std::to_string(assigned.size()) + " words for " +
+                                                   std::to_string(features.keypoints.size()) + " keypoints");
+    }
+    for (const uint32_t w : assigned) {
+      if (w >= vocabulary.size()) return Fail(ErrorCode::kInvalidArgument, what + ": word outside the vocabulary");
+    }
+  }
   if (auto s = CheckSettings(info.extractor_settings, extractor_settings, "features of '" + id + "'"); !s) {
     return std::unexpected(s.error());
   }
-  std::vector<uint32_t> words(features.size());
-  vocabulary.Quantize(features.descriptors, words, index_options.quantizer);
+  std::vector<uint32_t> words(assigned.begin(), assigned.end());
+  if (assigned.empty()) {
+    words.resize(features.size());
+    vocabulary.Quantize(features.descriptors, words, index_options.quantizer);
+  }
   Prepared out;
   out.entry = std::make_shared<Entry>();
   out.entry->features = PackedFeatures::Pack(features.keypoints, words, features.image_width, features.image_height);
@@ -455,7 +474,7 @@ std::vector<Result<ImageRecord>> ImageIndex::AddBatch(std::span<const BatchImage
         results[i] = Fail(ErrorCode::kInvalidArgument, "image '" + images[i].id + "': no features");
         continue;
       }
-      auto p = impl_->Prepare(images[i].id, *images[i].features, images[i].info);
+      auto p = impl_->Prepare(images[i].id, *images[i].features, images[i].info, images[i].words);
       if (p) {
         prepared[i] = std::move(*p);
       } else {

@@ -215,6 +215,10 @@ struct BatchImage {
   std::string id;
   const sift::FeatureSet* features = nullptr;
   ImageInfo info;
+  // Visual words already assigned with this index's vocabulary, one per keypoint (ingest of
+  // pre-quantised features, e.g. the storage benchmark): quantisation is skipped and the
+  // descriptors may be empty. Each word must be < the vocabulary size.
+  std::span<const uint32_t> words;
 };
 
 struct QueryResult {

@@ -753,6 +753,52 @@ TEST_F(Fixture, AddBatchEqualsSingleAddsAndFailsPerImageOrAsAWhole) {
   }
 }
 
+// Pre-assigned words (BatchImage::words) skip quantisation and index exactly what quantising the
+// descriptors would have.
+TEST_F(Fixture, AddBatchWithAssignedWordsEqualsQuantising) {
+  std::mt19937_64 rng(22);
+  std::vector<std::vector<uint32_t>> words(6);
+  std::vector<sift::FeatureSet> with_descriptors, without;
+  std::uniform_int_distribution<uint32_t> word(0, kWords - 1);
+  std::uniform_real_distribution<float> x(0, 600), scale(1.5f, 10.0f);
+  for (auto& w : words) {
+    std::vector<sift::Keypoint> kps;
+    for (int i = 0; i < 50; ++i) {
+      w.push_back(word(rng));
+      kps.push_back(sift::Keypoint{.x = x(rng), .y = x(rng) * 0.7f, .scale = scale(rng), .orientation = 1.0f});
+    }
+    with_descriptors.push_back(Features(w, kps));
+    without.push_back(with_descriptors.back());
+    without.back().descriptors.clear();
+  }
+  auto quantised = CreateIndex();
+  auto assigned = ImageIndex::Create((dir_ / "assigned").string(), vocabulary_, "test-extractor/1");
+  ASSERT_TRUE(assigned);
+  std::vector<BatchImage> a, b;
+  for (size_t i = 0; i < words.size(); ++i) {
+    a.push_back({"w" + std::to_string(i), &with_descriptors[i], {}});
+    b.push_back({"w" + std::to_string(i), &without[i], {}, words[i]});
+  }
+  const std::vector<uint32_t> outside(50, kWords);
+  b.push_back({"outside", &without[0], {}, outside});
+  for (const auto& r : quantised->AddBatch(a)) ASSERT_TRUE(r) << r.error().ToString();
+  const auto results = (*assigned)->AddBatch(b);
+  for (size_t i = 0; i < words.size(); ++i) ASSERT_TRUE(results[i]) << results[i].error().ToString();
+  ASSERT_FALSE(results.back());
+  EXPECT_EQ(results.back().error().code, ErrorCode::kInvalidArgument);
+  for (const auto& query : with_descriptors) {
+    const auto x1 = quantised->Query(query, Opts(10, 10));
+    const auto x2 = (*assigned)->Query(query, Opts(10, 10));
+    ASSERT_TRUE(x1 && x2);
+    ASSERT_EQ(x1->results.size(), x2->results.size());
+    for (size_t i = 0; i < x1->results.size(); ++i) {
+      EXPECT_EQ(x1->results[i].id, x2->results[i].id);
+      EXPECT_EQ(x1->results[i].score, x2->results[i].score);
+      EXPECT_EQ(x1->results[i].inliers, x2->results[i].inliers);
+    }
+  }
+}
+
 // A folder the process may not write (permissions; root ignores them, so as root the check runs in a
 // child that drops to user nobody) is an I/O problem, not damage, and the catalogue is left unchanged.
 TEST_F(Fixture, ReadOnlyFolderIsAnIoErrorNotDamage) {
