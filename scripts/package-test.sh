@@ -193,7 +193,7 @@ for path in /usr/bin/oxbow /lib/systemd/system/oxbow.service /etc/default/oxbow 
   [[ ! -e $path && ! -L $path ]] || fail "$path is still there after apt-get purge"
 done
 # Kept on purge by design (README): the user and the index. Then removed by hand, as README says.
-getent passwd oxbow >/dev/null && [[ -d /var/lib/oxbow/index ]] || fail "purge was to keep the user oxbow and /var/lib/oxbow"
+{ getent passwd oxbow >/dev/null && [[ -d /var/lib/oxbow/index ]]; } || fail "purge was to keep the user oxbow and /var/lib/oxbow"
 as_root rm -rf /var/lib/oxbow
 as_root deluser --system --quiet oxbow >/dev/null 2>&1  # (it mentions crontab without cron)
 as_root delgroup --system --quiet oxbow >/dev/null 2>&1 || true
