@@ -27,6 +27,10 @@ build_packages=(
   libclang-rt-14-dev     # libFuzzer runtime for the fuzz targets (scripts/fuzz.sh; GCC-instrumented, cmake/OxbowFuzz.cmake)
   clang-tidy-16          # static checks (scripts/clang-tidy.sh): the first Debian 12 clang-tidy that parses libstdc++ 12's <expected>
   libomp-16-dev          # <omp.h> for clang-tidy 16 (faiss's headers include it; GCC's copy does not parse with clang)
+  help2man               # the Debian package's man pages, from `oxbow ... --help` (cmake/packaging/make-manpages.sh)
+  lintian                # checks the Debian package (scripts/package-test.sh); dpkg-shlibdeps, which computes its
+                         # Depends, is in dpkg-dev (from build-essential)
+  systemd                # systemd-analyze verify/security on oxbow.service (scripts/package-test.sh)
 )
 runtime_packages=(
   libopencv-core406 libopencv-imgproc406 libopencv-imgcodecs406 libopencv-features2d406 libopencv-calib3d406

@@ -9,6 +9,8 @@ build_dir=${OXBOW_BUILD_DIR:-$root/build}
 npm ci --prefix "$root/tests/browser" --no-audit --no-fund --loglevel=error
 cd "$build_dir"
 ctest --output-on-failure --parallel "${OXBOW_JOBS:-$(nproc)}" --timeout 900
+# The Debian package from this build: lintian, the unit, then install, serve, purge (as root; ~20 s).
+OXBOW_BUILD_DIR="$build_dir" "$root/scripts/package-test.sh"
 # Hardening phases, on by default (scripts/test-hardening.sh): every test again under ASan + UBSan, the
 # concurrency tests under TSan, clang-tidy (warnings as errors), and 60 s of fuzzing per target.
 # OXBOW_TEST_HARDENING=0 skips them for a quick local run; CI (.ci/run) always runs them.
