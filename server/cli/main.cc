@@ -43,7 +43,7 @@ int main(int argc, char** argv) {
       "oxbow: instance-level image retrieval (SIFT, visual words, TF-IDF, spatial verification).\n"
       "Run 'oxbow <command> --help' for the options of a command."};
   app.require_subcommand(1);
-  app.set_version_flag("--version", "oxbow 0.1.0");
+  app.set_version_flag("--version", "oxbow " OXBOW_VERSION);  // project(VERSION) in CMakeLists.txt
   std::string log_level = "info";
   app.add_option("--log-level", log_level, "stderr log level: debug, info, warning, error, off")
       ->capture_default_str();
