@@ -14,6 +14,24 @@
 //     of medians and the share of top-200 results they agree on. --peer 0 skips it (it needs 8 bytes
 //     per posting of extra memory).
 //
+//   index_benchmark storage --images N --out DIR [--features F] [--vocab V.oxvoc] [--words K]
+//                           [--threads T] [--batch B] [--queries Q] [--data DIR] [--cache DIR]
+//     Creates DIR as a normal index folder through ImageIndex (Create, AddBatch in batches of B = 1000,
+//     the SQLite catalogue: the code the server uses), servable as it is by `oxbow serve --index DIR`.
+//     Its N synthetic images (1024 x 768) have F = 1000 features each, drawn with replacement from the
+//     pool of every feature of real photos (the Paris subset's 250, or OpenCV's sample photos when it
+//     is absent; RootSIFT, long side <= 1024 px): each synthetic feature is one real feature's visual
+//     word (quantised once with the index's vocabulary) and its keypoint (position scaled to the
+//     synthetic image, scale and orientation kept). So words follow the real photos' word
+//     distribution, with real joint word/geometry statistics; unlike a real photo, a synthetic image's
+//     features are independent draws (no bursts, no objects). Vocabulary: --vocab, else K = 100000
+//     RootSIFT words trained on those photos and cached in --cache (default DIR.cache).
+//     Prints: ingest images/s (words already assigned: no extraction, no quantisation), disk bytes per
+//     feature, ImageIndex::Open time, resident bytes per feature after Open (RSS growth), tf-idf only and
+//     full default search (QueryOptions{}: re-ranking, QE, transitive verification) p50/p99 for Q real
+//     photos' features (quantisation included, extraction not), add p50/p99 of single images while
+//     another thread searches, remove p50/p99.
+//
 //   index_benchmark paris [--data DIR] [--words K] [--max-side PX] [--repeat N] [--cache DIR]
 //                         [--vocab FILE] [--threads T] [--filter TEXT] [--verbose 1]
 //     The Paris subset protocol (../shared/data/README.md): extracts RootSIFT from the 250 images,
@@ -49,6 +67,7 @@
 #include <thread>
 #include <vector>
 
+#include <malloc.h>
 #include <time.h>
 
 #include "index/feature_store.h"
@@ -488,6 +507,84 @@ void PreviousDefaults(QueryOptions* o) {
   o->transitive_attempts = 1000;
 }
 
+// RootSIFT features of `paths` (long side <= max_side), read from / written to `cache` (a folder, or
+// empty for none) as .oxfeat files; an image that cannot be read gives an empty set.
+std::vector<sift::FeatureSet> ExtractCached(const std::vector<std::string>& paths, const sift::SiftOptions& sift_options,
+                                            int max_side, const std::filesystem::path& cache) {
+  namespace fs = std::filesystem;
+  const auto extractor = *sift::SiftExtractor::Create(sift_options);
+  sift::DecodeOptions decode;
+  decode.max_image_side_px = max_side;
+  if (!cache.empty()) fs::create_directories(cache);
+  const std::string cache_tag = "_" + std::to_string(max_side);
+  std::vector<sift::FeatureSet> features(paths.size());
+  const auto t0 = Clock::now();
+  ParallelFor(paths.size(), 0, 1, [&](size_t b, size_t e, int) {
+    for (size_t i = b; i < e; ++i) {
+      const std::string name = fs::path(paths[i]).filename().string();
+      const fs::path cached = cache.empty() ? fs::path() : cache / (name + cache_tag + ".oxfeat");
+      if (!cached.empty()) {
+        if (auto file = sift::ReadFeatureFile(cached.string()); file && file->extractor_description == sift_options.Describe()) {
+          features[i] = std::move(file->features);
+          continue;
+        }
+      }
+      auto f = extractor.ExtractFromFile(paths[i], decode);
+      if (!f) continue;
+      features[i] = std::move(*f);
+      if (!cached.empty()) {
+        const sift::FeatureFile file{.features = features[i], .extractor_description = sift_options.Describe()};
+        if (!sift::WriteFeatureFile(cached.string(), file)) std::printf("cannot write %s\n", cached.c_str());
+      }
+    }
+  });
+  size_t total = 0;
+  for (const auto& f : features) total += f.size();
+  std::printf("extracted %zu images, %zu RootSIFT features (%.0f/image) in %.0f s\n", paths.size(), total,
+              static_cast<double>(total) / static_cast<double>(std::max<size_t>(1, paths.size())),
+              Ms(t0, Clock::now()) / 1000);
+  return features;
+}
+
+// --vocab FILE, else the `words`-word vocabulary cached in `cache`, else one trained on (a sample of)
+// `features` (as in Philbin et al. 2007) and cached.
+std::optional<vocab::Vocabulary> ReadOrTrainVocabulary(const std::map<std::string, std::string>& flags,
+                                                       const std::vector<sift::FeatureSet>& features, size_t words,
+                                                       const sift::SiftOptions& sift_options, int max_side,
+                                                       const std::filesystem::path& cache) {
+  namespace fs = std::filesystem;
+  const std::string cache_tag = "_" + std::to_string(max_side);
+  const fs::path vocab_file = flags.count("--vocab") ? fs::path(flags.at("--vocab"))
+                              : cache.empty()        ? fs::path()
+                                                     : cache / ("vocab_" + std::to_string(words) + cache_tag + ".oxvoc");
+  Result<vocab::Vocabulary> vocabulary = std::unexpected(Error{});
+  if (!vocab_file.empty()) vocabulary = vocab::Vocabulary::Read(vocab_file.string());
+  if (vocabulary) {
+    std::printf("vocabulary: %zu words read from %s\n", vocabulary->size(), vocab_file.c_str());
+    return std::move(*vocabulary);
+  }
+  if (flags.count("--vocab")) {
+    std::printf("cannot read %s: %s\n", vocab_file.c_str(), vocabulary.error().ToString().c_str());
+    return std::nullopt;
+  }
+  vocab::DescriptorSampler sampler({.max_per_image = 2000, .max_total = std::max<size_t>(400000, words * 10), .seed = 1},
+                                   128);
+  for (const auto& f : features) sampler.AddImage(f.descriptors);
+  vocab::TrainOptions train;
+  train.num_words = words;
+  train.max_iterations = 10;
+  const auto t0 = Clock::now();
+  vocabulary = vocab::Train(sampler.descriptors(), 128, sift::DescriptorKind::kRootSift, sift_options.Describe(), train);
+  if (!vocabulary) {
+    std::printf("training failed: %s\n", vocabulary.error().ToString().c_str());
+    return std::nullopt;
+  }
+  std::printf("vocabulary: %zu words from %zu descriptors in %.0f s\n", vocabulary->size(), sampler.size(),
+              Ms(t0, Clock::now()) / 1000);
+  if (!vocab_file.empty() && !vocabulary->Write(vocab_file.string())) std::printf("cannot write %s\n", vocab_file.c_str());
+  return std::move(*vocabulary);
+}
+
 int RunParis(const std::map<std::string, std::string>& flags) {
   namespace fs = std::filesystem;
   const fs::path data = flags.count("--data") ? fs::path(flags.at("--data")) : fs::path(OXBOW_SOURCE_DIR "/../shared/data/paris6k");
@@ -506,68 +603,19 @@ int RunParis(const std::map<std::string, std::string>& flags) {
   sift::SiftOptions sift_options;
   sift_options.descriptor = sift::DescriptorKind::kRootSift;
   sift_options.num_threads = 1;
-  const auto extractor = *sift::SiftExtractor::Create(sift_options);
-  sift::DecodeOptions decode;
-  decode.max_image_side_px = max_side;
   const fs::path cache = flags.count("--cache") ? fs::path(flags.at("--cache")) : fs::path();
-  if (!cache.empty()) fs::create_directories(cache);
-  const std::string cache_tag = "_" + std::to_string(max_side);
-  std::vector<sift::FeatureSet> features(names.size());
-  auto t0 = Clock::now();
-  ParallelFor(names.size(), 0, 1, [&](size_t b, size_t e, int) {
-    for (size_t i = b; i < e; ++i) {
-      const fs::path cached = cache.empty() ? fs::path() : cache / (names[i] + cache_tag + ".oxfeat");
-      if (!cached.empty()) {
-        if (auto file = sift::ReadFeatureFile(cached.string()); file && file->extractor_description == sift_options.Describe()) {
-          features[i] = std::move(file->features);
-          continue;
-        }
-      }
-      auto f = extractor.ExtractFromFile((data / "images" / names[i]).string(), decode);
-      if (!f) continue;
-      features[i] = std::move(*f);
-      if (!cached.empty()) {
-        const sift::FeatureFile file{.features = features[i], .extractor_description = sift_options.Describe()};
-        if (!sift::WriteFeatureFile(cached.string(), file)) std::printf("cannot write %s\n", cached.c_str());
-      }
-    }
-  });
-  size_t total = 0;
-  for (const auto& f : features) total += f.size();
-  std::printf("extracted %zu images, %zu RootSIFT features (%.0f/image) in %.0f s\n", names.size(), total,
-              static_cast<double>(total) / static_cast<double>(names.size()), Ms(t0, Clock::now()) / 1000);
-
-  // Vocabulary: trained on (a sample of) the database descriptors, as in Philbin et al. 2007.
-  const fs::path vocab_file = flags.count("--vocab") ? fs::path(flags.at("--vocab"))
-                              : cache.empty()        ? fs::path()
-                                                     : cache / ("vocab_" + std::to_string(words) + cache_tag + ".oxvoc");
-  Result<vocab::Vocabulary> vocabulary = std::unexpected(Error{});
-  if (!vocab_file.empty()) vocabulary = vocab::Vocabulary::Read(vocab_file.string());
-  if (!vocabulary) {
-    vocab::DescriptorSampler sampler({.max_per_image = 2000, .max_total = 400000, .seed = 1}, 128);
-    for (const auto& f : features) sampler.AddImage(f.descriptors);
-    vocab::TrainOptions train;
-    train.num_words = words;
-    train.max_iterations = 10;
-    t0 = Clock::now();
-    vocabulary = vocab::Train(sampler.descriptors(), 128, sift::DescriptorKind::kRootSift, sift_options.Describe(), train);
-    if (!vocabulary) {
-      std::printf("training failed: %s\n", vocabulary.error().ToString().c_str());
-      return 1;
-    }
-    std::printf("vocabulary: %zu words from %zu descriptors in %.0f s\n", vocabulary->size(), sampler.size(),
-                Ms(t0, Clock::now()) / 1000);
-    if (!vocab_file.empty() && !vocabulary->Write(vocab_file.string())) std::printf("cannot write %s\n", vocab_file.c_str());
-  } else {
-    std::printf("vocabulary: %zu words read from %s\n", vocabulary->size(), vocab_file.c_str());
-  }
+  std::vector<std::string> paths;
+  for (const auto& name : names) paths.push_back((data / "images" / name).string());
+  const std::vector<sift::FeatureSet> features = ExtractCached(paths, sift_options, max_side, cache);
+  auto vocabulary = ReadOrTrainVocabulary(flags, features, words, sift_options, max_side, cache);
+  if (!vocabulary) return 1;
 
   const fs::path dir = fs::temp_directory_path() / ("oxbow_paris_bench_" + std::to_string(getpid()));
   fs::remove_all(dir);
   IndexOptions index_options;
   index_options.num_threads = 1;
   auto idx = *ImageIndex::Create(dir.string(), *vocabulary, sift_options.Describe(), index_options);
-  t0 = Clock::now();
+  auto t0 = Clock::now();
   for (size_t i = 0; i < names.size(); ++i) {
     if (!idx->Add(fs::path(names[i]).stem().string(), features[i], {})) std::printf("add failed: %s\n", names[i].c_str());
   }
@@ -751,14 +799,218 @@ int RunParis(const std::map<std::string, std::string>& flags) {
   return 0;
 }
 
+
+uint64_t FolderBytes(const std::filesystem::path& dir) {
+  uint64_t bytes = 0;
+  for (const auto& e : std::filesystem::recursive_directory_iterator(dir)) {
+    if (e.is_regular_file()) bytes += e.file_size();
+  }
+  return bytes;
+}
+
+int RunStorage(const std::map<std::string, std::string>& flags) {
+  namespace fs = std::filesystem;
+  if (!flags.count("--images") || !flags.count("--out")) {
+    std::fprintf(stderr, "usage: index_benchmark storage --images N --out DIR [...] (see the file comment)\n");
+    return 2;
+  }
+  const auto num_images = static_cast<uint64_t>(Flag(flags, "--images", 0));
+  const fs::path out = flags.at("--out");
+  const int features_per_image = static_cast<int>(Flag(flags, "--features", 1000));
+  const int threads = static_cast<int>(Flag(flags, "--threads", 0));
+  const auto batch = static_cast<uint64_t>(Flag(flags, "--batch", 1000));
+  const auto num_queries = static_cast<size_t>(Flag(flags, "--queries", 20));
+  const auto words = static_cast<size_t>(Flag(flags, "--words", 100000));
+  constexpr int kMaxSide = 1024;
+  if (ImageIndex::Exists(out.string())) {
+    std::fprintf(stderr, "%s already holds an index; give a new folder\n", out.c_str());
+    return 2;
+  }
+
+  // Real photos: the Paris subset, else OpenCV's samples.
+  const fs::path paris = flags.count("--data") ? fs::path(flags.at("--data")) : fs::path(OXBOW_SOURCE_DIR "/../shared/data/paris6k");
+  std::vector<std::string> photos;
+  for (const fs::path folder : {paris / "images", fs::path("/usr/share/doc/opencv-doc/examples/data")}) {
+    if (auto listed = sift::ListImageFiles(folder.string()); listed && !listed->empty()) {
+      photos = std::move(*listed);
+      std::printf("real photos: %zu from %s\n", photos.size(), folder.c_str());
+      break;
+    }
+  }
+  if (photos.empty()) {
+    std::printf("no real photos found (Paris subset or opencv-doc)\n");
+    return 1;
+  }
+  sift::SiftOptions sift_options;
+  sift_options.descriptor = sift::DescriptorKind::kRootSift;
+  sift_options.num_threads = 1;
+  const fs::path cache = flags.count("--cache") ? fs::path(flags.at("--cache")) : fs::path(out.string() + ".cache");
+  const std::vector<sift::FeatureSet> real = ExtractCached(photos, sift_options, kMaxSide, cache);
+  auto vocabulary = ReadOrTrainVocabulary(flags, real, words, sift_options, kMaxSide, cache);
+  if (!vocabulary) return 1;
+
+  // The pool: every real feature's word and keypoint (position relative to its image).
+  struct PoolFeature {
+    uint32_t word;
+    float rx, ry, scale, orientation;
+  };
+  std::vector<PoolFeature> pool;
+  for (const auto& f : real) {
+    std::vector<uint32_t> w(f.size());
+    vocabulary->Quantize(f.descriptors, w, {.num_threads = 0});
+    for (size_t i = 0; i < f.size(); ++i) {
+      const sift::Keypoint& k = f.keypoints[i];
+      pool.push_back({w[i], k.x / static_cast<float>(f.image_width), k.y / static_cast<float>(f.image_height), k.scale,
+                      k.orientation});
+    }
+  }
+  std::printf("pool: %zu real features, vocabulary %zu words\n", pool.size(), vocabulary->size());
+  struct Synthetic {
+    sift::FeatureSet features;
+    std::vector<uint32_t> words;
+  };
+  const auto make = [&](uint64_t number) {
+    Synthetic s;
+    s.features.image_width = 1024;
+    s.features.image_height = 768;
+    s.features.kind = sift::DescriptorKind::kRootSift;
+    // Seeded by a hash of the number: SplitMix sequences from consecutive raw seeds are shifts of one
+    // another (image k would be image 0's draws shifted by k).
+    SplitMix rng{SplitMix{number}.Next()};
+    for (int i = 0; i < features_per_image; ++i) {
+      const PoolFeature& p = pool[rng.Next() % pool.size()];
+      s.features.keypoints.push_back(sift::Keypoint{.x = p.rx * 1023.0f, .y = p.ry * 767.0f, .scale = p.scale,
+                                                    .orientation = p.orientation});
+      s.words.push_back(p.word);
+    }
+    return s;
+  };
+
+  // Ingest.
+  IndexOptions options;
+  options.num_threads = threads;
+  {
+    auto idx = ImageIndex::Create(out.string(), *vocabulary, sift_options.Describe(), options);
+    if (!idx) {
+      std::printf("create failed: %s\n", idx.error().ToString().c_str());
+      return 1;
+    }
+    const auto t0 = Clock::now();
+    std::vector<Synthetic> images;
+    uint64_t next_report = 0;
+    for (uint64_t begin = 0; begin < num_images; begin += batch) {
+      const uint64_t n = std::min(batch, num_images - begin);
+      images.resize(n);
+      ParallelFor(n, threads, 16, [&](size_t b, size_t e, int) {
+        for (size_t i = b; i < e; ++i) images[i] = make(begin + i);
+      });
+      std::vector<BatchImage> items;
+      items.reserve(n);
+      for (uint64_t i = 0; i < n; ++i) {
+        items.push_back({"s" + std::to_string(begin + i), &images[i].features, {}, images[i].words});
+      }
+      for (const auto& r : (*idx)->AddBatch(items)) {
+        if (!r) {
+          std::printf("add failed: %s\n", r.error().ToString().c_str());
+          return 1;
+        }
+      }
+      if (begin + n >= next_report) {
+        const double s = Ms(t0, Clock::now()) / 1000;
+        std::fprintf(stderr, "ingest: %llu / %llu images, %.0f s, %.0f images/s\n",
+                     static_cast<unsigned long long>(begin + n), static_cast<unsigned long long>(num_images), s,
+                     static_cast<double>(begin + n) / s);
+        next_report += std::max<uint64_t>(batch, num_images / 20);
+      }
+    }
+    const double seconds = Ms(t0, Clock::now()) / 1000;
+    std::printf("ingest: %llu images x %d features in %.1f s = %.0f images/s (AddBatch of %llu, words assigned, %d threads)\n",
+                static_cast<unsigned long long>(num_images), features_per_image, seconds,
+                static_cast<double>(num_images) / seconds, static_cast<unsigned long long>(batch), ResolveThreadCount(threads));
+  }
+  const double total_features = static_cast<double>(num_images) * features_per_image;
+  std::printf("disk: %.2f bytes per feature (%.2f GB in %s)\n", static_cast<double>(FolderBytes(out)) / total_features,
+              static_cast<double>(FolderBytes(out)) / 1e9, out.c_str());
+
+  // Open, as a server would.
+  malloc_trim(0);
+  const uint64_t rss_before = RssBytes();
+  auto t0 = Clock::now();
+  auto opened = ImageIndex::Open(out.string(), options);
+  if (!opened) {
+    std::printf("open failed: %s\n", opened.error().ToString().c_str());
+    return 1;
+  }
+  std::unique_ptr<ImageIndex> idx = std::move(*opened);
+  const double open_s = Ms(t0, Clock::now()) / 1000;
+  malloc_trim(0);
+  const uint64_t rss_after = RssBytes();
+  const IndexStats stats = idx->Stats();
+  std::printf("open: %.1f s; resident %.2f bytes per feature (RSS growth %.2f GB; accounted in memory %.2f bytes/feature)\n",
+              open_s, static_cast<double>(rss_after - rss_before) / total_features,
+              static_cast<double>(rss_after - rss_before) / 1e9, stats.bytes_per_feature);
+
+  // Searches with real photos' features.
+  std::vector<const sift::FeatureSet*> queries;
+  for (size_t i = 0; i < real.size() && queries.size() < num_queries; i += std::max<size_t>(1, real.size() / num_queries)) {
+    if (real[i].size() > 0) queries.push_back(&real[i]);
+  }
+  QueryOptions tfidf;
+  tfidf.rerank_depth = 0;
+  tfidf.query_expansion = false;
+  tfidf.transitive_depth = 0;
+  for (const auto& [name, query_options] : {std::pair<const char*, QueryOptions>{"tf-idf only", tfidf},
+                                            std::pair<const char*, QueryOptions>{"full default search", QueryOptions{}}}) {
+    std::vector<double> ms;
+    for (const auto* q : queries) {
+      const auto r = idx->Query(*q, query_options);
+      if (r) ms.push_back(r->timings.total_ms);
+    }
+    std::printf("%s: p50 %.1f ms, p99 %.1f ms (%zu real photos, quantisation included)\n", name, Percentile(ms, .5),
+                Percentile(ms, .99), ms.size());
+  }
+
+  // Adds of single images while another thread searches, then their removal.
+  std::atomic<bool> stop{false};
+  std::atomic<uint64_t> searched{0};
+  std::thread searcher([&] {
+    for (size_t i = 0; !stop.load(); i = (i + 1) % queries.size()) {
+      if (idx->Query(*queries[i], QueryOptions{})) ++searched;
+    }
+  });
+  std::vector<double> add_ms, remove_ms;
+  constexpr int kWrites = 50;
+  for (int i = 0; i < kWrites; ++i) {
+    const Synthetic s = make(num_images + static_cast<uint64_t>(i));
+    const std::vector<BatchImage> one = {{"added" + std::to_string(i), &s.features, {}, s.words}};
+    const auto a0 = Clock::now();
+    if (!idx->AddBatch(one)[0]) std::printf("add failed\n");
+    add_ms.push_back(Ms(a0, Clock::now()));
+  }
+  for (int i = 0; i < kWrites; ++i) {
+    const auto r0 = Clock::now();
+    if (!idx->Remove("added" + std::to_string(i))) std::printf("remove failed\n");
+    remove_ms.push_back(Ms(r0, Clock::now()));
+  }
+  stop = true;
+  searcher.join();
+  std::printf("add while searching: p50 %.1f ms, p99 %.1f ms; remove: p50 %.1f ms, p99 %.1f ms (%d each, %llu searches alongside)\n",
+              Percentile(add_ms, .5), Percentile(add_ms, .99), Percentile(remove_ms, .5), Percentile(remove_ms, .99),
+              kWrites, static_cast<unsigned long long>(searched.load()));
+  std::printf("serve it: oxbow serve --index %s\n", out.c_str());
+  return 0;
+}
+
 }  // namespace
 }  // namespace oxbow::index
 
 int main(int argc, char** argv) {
-  if (argc < 2 || (std::strcmp(argv[1], "synthetic") != 0 && std::strcmp(argv[1], "paris") != 0)) {
-    std::fprintf(stderr, "usage: index_benchmark synthetic|paris [--flag value ...] (see the file comment)\n");
+  const std::string mode = argc >= 2 ? argv[1] : "";
+  if (mode != "synthetic" && mode != "paris" && mode != "storage") {
+    std::fprintf(stderr, "usage: index_benchmark synthetic|paris|storage [--flag value ...] (see the file comment)\n");
     return 2;
   }
   const auto flags = oxbow::index::ParseFlags(argc, argv, 2);
-  return std::strcmp(argv[1], "synthetic") == 0 ? oxbow::index::RunSynthetic(flags) : oxbow::index::RunParis(flags);
+  if (mode == "storage") return oxbow::index::RunStorage(flags);
+  return mode == "synthetic" ? oxbow::index::RunSynthetic(flags) : oxbow::index::RunParis(flags);
 }
