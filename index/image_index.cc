@@ -467,7 +467,8 @@ Result<ImageRecord> ImageIndex::Impl::Write(const std::string& id, const sift::F
 
 std::vector<Result<ImageRecord>> ImageIndex::AddBatch(std::span<const BatchImage> images) {
   std::vector<Result<ImageRecord>> results(images.size(), Fail(ErrorCode::kInvalidArgument, "not processed"));
-  std::vector<std::optional<Impl::Prepared>> prepared(images.size());
+  std::vector<Impl::Prepared> prepared(images.size());  // valid where results[i] is not yet decided
+  std::vector<uint8_t> ready(images.size(), 0);
   ParallelFor(images.size(), impl_->index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
     for (size_t i = begin; i < end; ++i) {
       if (images[i].features == nullptr) {
@@ -477,6 +478,7 @@ std::vector<Result<ImageRecord>> ImageIndex::AddBatch(std::span<const BatchImage
       auto p = impl_->Prepare(images[i].id, *images[i].features, images[i].info, images[i].words);
       if (p) {
         prepared[i] = std::move(*p);
+        ready[i] = 1;
       } else {
         results[i] = std::unexpected(p.error());
       }
@@ -488,7 +490,7 @@ std::vector<Result<ImageRecord>> ImageIndex::AddBatch(std::span<const BatchImage
   std::vector<size_t> chosen;  // positions committed, in order
   std::unordered_map<std::string, size_t> seen;
   for (size_t i = 0; i < images.size(); ++i) {
-    if (!prepared[i]) continue;
+    if (!ready[i]) continue;
     if (current->Find(images[i].id) || !seen.emplace(images[i].id, i).second) {
       results[i] = Fail(ErrorCode::kAlreadyExists, "an image with id '" + images[i].id + "' is already indexed");
       continue;
@@ -501,8 +503,8 @@ std::vector<Result<ImageRecord>> ImageIndex::AddBatch(std::span<const BatchImage
   records.reserve(chosen.size());
   blobs.reserve(chosen.size());
   for (const size_t i : chosen) {
-    records.push_back(prepared[i]->entry->record);
-    blobs.push_back(std::move(prepared[i]->blob));
+    records.push_back(prepared[i].entry->record);
+    blobs.push_back(std::move(prepared[i].blob));
   }
   auto numbers = impl_->catalogue->InsertMany(records, blobs);
   if (!numbers) {
@@ -512,11 +514,11 @@ std::vector<Result<ImageRecord>> ImageIndex::AddBatch(std::span<const BatchImage
   std::vector<uint32_t> committed(numbers->begin(), numbers->end());
   std::vector<Impl::Prepared*> linked;
   linked.reserve(chosen.size());
-  for (const size_t i : chosen) linked.push_back(&*prepared[i]);
+  for (const size_t i : chosen) linked.push_back(&prepared[i]);
   auto next = std::make_shared<Snapshot>(*current);
   Impl::Link(committed, linked, *next);
   impl_->Publish(std::move(next));
-  for (const size_t i : chosen) results[i] = prepared[i]->entry->record;
+  for (const size_t i : chosen) results[i] = prepared[i].entry->record;
   return results;
 }
 

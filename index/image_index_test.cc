@@ -696,6 +696,7 @@ TEST_F(Fixture, ReplaceIsOneTransactionOldOrNewNeverNeither) {
 TEST_F(Fixture, AddBatchEqualsSingleAddsAndFailsPerImageOrAsAWhole) {
   std::mt19937_64 rng(21);
   std::vector<sift::FeatureSet> images;
+  images.reserve(12);
   for (int i = 0; i < 12; ++i) images.push_back(RandomImage(rng, 30 + i * 5));
   sift::FeatureSet wrong_kind = images[0];
   wrong_kind.kind = sift::DescriptorKind::kSift;
@@ -703,11 +704,11 @@ TEST_F(Fixture, AddBatchEqualsSingleAddsAndFailsPerImageOrAsAWhole) {
     auto index = CreateIndex();
     ASSERT_TRUE(index->Add("b0", images[0], {}));
     std::vector<BatchImage> batch;
-    for (int i = 1; i < 12; ++i) batch.push_back({"b" + std::to_string(i), &images[i], Info("/p" + std::to_string(i))});
-    batch.push_back({"b0", &images[1], {}});          // already indexed
-    batch.push_back({"b5", &images[2], {}});          // repeated in the batch
-    batch.push_back({"", &images[3], {}});            // bad id
-    batch.push_back({"kind", &wrong_kind, {}});       // wrong descriptor kind
+    for (int i = 1; i < 12; ++i) batch.push_back({"b" + std::to_string(i), &images[i], Info("/p" + std::to_string(i)), {}});
+    batch.push_back({"b0", &images[1], {}, {}});          // already indexed
+    batch.push_back({"b5", &images[2], {}, {}});          // repeated in the batch
+    batch.push_back({"", &images[3], {}, {}});            // bad id
+    batch.push_back({"kind", &wrong_kind, {}, {}});       // wrong descriptor kind
     const auto results = index->AddBatch(batch);
     ASSERT_EQ(results.size(), batch.size());
     for (size_t i = 0; i < 11; ++i) {
@@ -728,7 +729,8 @@ TEST_F(Fixture, AddBatchEqualsSingleAddsAndFailsPerImageOrAsAWhole) {
     auto index = ImageIndex::Open(dir_.string());
     ASSERT_TRUE(index) << index.error().ToString();
     std::vector<BatchImage> batch;
-    for (int i = 0; i < 4; ++i) batch.push_back({"c" + std::to_string(i), &images[i], {}});
+    batch.reserve(4);
+    for (int i = 0; i < 4; ++i) batch.push_back({"c" + std::to_string(i), &images[i], {}, {}});
     for (const auto& r : (*index)->AddBatch(batch)) {
       ASSERT_FALSE(r);
       EXPECT_NE(r.error().message.find("injected insert failure"), std::string::npos) << r.error().message;
@@ -776,7 +778,7 @@ TEST_F(Fixture, AddBatchWithAssignedWordsEqualsQuantising) {
   ASSERT_TRUE(assigned);
   std::vector<BatchImage> a, b;
   for (size_t i = 0; i < words.size(); ++i) {
-    a.push_back({"w" + std::to_string(i), &with_descriptors[i], {}});
+    a.push_back({"w" + std::to_string(i), &with_descriptors[i], {}, {}});
     b.push_back({"w" + std::to_string(i), &without[i], {}, words[i]});
   }
   const std::vector<uint32_t> outside(50, kWords);

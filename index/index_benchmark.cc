@@ -605,6 +605,7 @@ int RunParis(const std::map<std::string, std::string>& flags) {
   sift_options.num_threads = 1;
   const fs::path cache = flags.count("--cache") ? fs::path(flags.at("--cache")) : fs::path();
   std::vector<std::string> paths;
+  paths.reserve(names.size());
   for (const auto& name : names) paths.push_back((data / "images" / name).string());
   const std::vector<sift::FeatureSet> features = ExtractCached(paths, sift_options, max_side, cache);
   auto vocabulary = ReadOrTrainVocabulary(flags, features, words, sift_options, max_side, cache);
@@ -830,7 +831,7 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
   // Real photos: the Paris subset, else OpenCV's samples.
   const fs::path paris = flags.count("--data") ? fs::path(flags.at("--data")) : fs::path(OXBOW_SOURCE_DIR "/../shared/data/paris6k");
   std::vector<std::string> photos;
-  for (const fs::path folder : {paris / "images", fs::path("/usr/share/doc/opencv-doc/examples/data")}) {
+  for (const fs::path& folder : {paris / "images", fs::path("/usr/share/doc/opencv-doc/examples/data")}) {
     if (auto listed = sift::ListImageFiles(folder.string()); listed && !listed->empty()) {
       photos = std::move(*listed);
       std::printf("real photos: %zu from %s\n", photos.size(), folder.c_str());
@@ -917,9 +918,9 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
       }
       if (begin + n >= next_report) {
         const double s = Ms(t0, Clock::now()) / 1000;
-        std::fprintf(stderr, "ingest: %llu / %llu images, %.0f s, %.0f images/s\n",
-                     static_cast<unsigned long long>(begin + n), static_cast<unsigned long long>(num_images), s,
-                     static_cast<double>(begin + n) / s);
+        const uint64_t done = begin + n;
+        std::fprintf(stderr, "ingest: %llu / %llu images, %.0f s, %.0f images/s\n", static_cast<unsigned long long>(done),
+                     static_cast<unsigned long long>(num_images), s, static_cast<double>(done) / s);
         next_report += std::max<uint64_t>(batch, num_images / 20);
       }
     }

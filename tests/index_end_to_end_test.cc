@@ -219,11 +219,14 @@ TEST_F(EndToEnd, BuildFromFeatureFilesEqualsBuildFromImages) {
   EXPECT_EQ(from_features["features"], from_images["features"]);
   for (const auto& [query, expected] : kQueries) {
     const std::string args = " --top-k 10" + side + " " + (kSamples / query).string();
-    const auto a = nlohmann::json::parse(
-        RunCommand(bin + " -q query --index " + (*work_ / "from_features").string() + args, &code));
+    const auto run_query = [&](const fs::path& index) {
+      std::string command = bin;
+      command.append(" -q query --index ").append(index.string()).append(args);
+      return nlohmann::json::parse(RunCommand(command, &code));
+    };
+    const auto a = run_query(*work_ / "from_features");
     ASSERT_EQ(code, 0);
-    const auto b = nlohmann::json::parse(
-        RunCommand(bin + " -q query --index " + (*work_ / "from_images").string() + args, &code));
+    const auto b = run_query(*work_ / "from_images");
     ASSERT_EQ(code, 0);
     ASSERT_EQ(a["results"].size(), b["results"].size()) << query;
     EXPECT_EQ(a["results"][0]["id"], expected);

@@ -229,7 +229,7 @@ void SetUpIndex(CLI::App& app) {
           index::ImageInfo info;
           info.source_path = fs::absolute(job.path).string();
           info.extractor_settings = f->extractor_description;
-          items.push_back({job.id, &f->features, std::move(info)});
+          items.push_back({job.id, &f->features, std::move(info), {}});
           positions.push_back(i);
         }
         const auto results = idx->AddBatch(items);
