@@ -175,13 +175,14 @@ TEST(Params, BatchAddParams) {
   auto items = ParseBatchAddParams({"a", "x/similar", "batch", "d", "e"}, {R"({"k": 1})", "", "", "{nope", ""}, 5, {});
   ASSERT_TRUE(items) << items.error().message;
   ASSERT_EQ(items->size(), 5u);
-  EXPECT_FALSE((*items)[0].error);
+  EXPECT_TRUE((*items)[0].status);
   EXPECT_EQ((*items)[0].metadata_json, R"({"k":1})");
-  EXPECT_TRUE((*items)[1].error);  // the sub-route and batch rules of a new id
-  EXPECT_TRUE((*items)[2].error);
-  ASSERT_TRUE((*items)[3].error);  // bad metadata fails that image alone
-  EXPECT_NE((*items)[3].error->message.find("metadata part 4"), std::string::npos) << (*items)[3].error->message;
-  EXPECT_FALSE((*items)[4].error);
+  EXPECT_FALSE((*items)[1].status);  // the sub-route and batch rules of a new id
+  EXPECT_FALSE((*items)[2].status);
+  ASSERT_FALSE((*items)[3].status);  // bad metadata fails that image alone
+  EXPECT_NE((*items)[3].status.error().message.find("metadata part 4"), std::string::npos)
+      << (*items)[3].status.error().message;
+  EXPECT_TRUE((*items)[4].status);
   EXPECT_EQ((*items)[4].metadata_json, "");
   EXPECT_TRUE(ParseBatchAddParams({"a", "b"}, {}, 2, {}));      // metadata is optional
   EXPECT_FALSE(ParseBatchAddParams({"a"}, {}, 2, {}));           // one id per image

@@ -290,7 +290,7 @@ Result<std::vector<BatchAddItem>> ParseBatchAddParams(const std::vector<std::str
   for (size_t i = 0; i < images; ++i) {
     items[i].id = ids[i];
     if (auto ok = CheckNewImageId(ids[i]); !ok) {
-      items[i].error = ok.error();
+      items[i].status = ok;
       continue;
     }
     if (metadata.empty() || metadata[i].empty()) continue;
@@ -298,7 +298,7 @@ Result<std::vector<BatchAddItem>> ParseBatchAddParams(const std::vector<std::str
     if (parsed) {
       items[i].metadata_json = std::move(*parsed);
     } else {
-      items[i].error = parsed.error();
+      items[i].status = std::unexpected(parsed.error());
     }
   }
   return items;

@@ -77,11 +77,11 @@ struct AddParams {
 // parts) and `metadata` (none, or one per image in that order; an empty part = no metadata), plus every
 // other parameter (`others`: query string and other text parts), of which there must be none. A count
 // that does not match the images' refuses the request (kInvalidArgument); a bad id or metadata document
-// is that image's own error (BatchAddItem::error), the others go on.
+// is that image's own error (BatchAddItem::status), the others go on.
 struct BatchAddItem {
   std::string id;
   std::string metadata_json;  // "" when absent
-  std::optional<Error> error;
+  Status status = Ok();        // why this image is refused, else Ok
 };
 [[nodiscard]] Result<std::vector<BatchAddItem>> ParseBatchAddParams(const std::vector<std::string>& ids,
                                                                     const std::vector<std::string>& metadata,

@@ -340,8 +340,9 @@ Result<AddBatchResponse> Service::AddImages(const AddBatchRequest& request) {
   const size_t n = request.images.size();
   AddBatchResponse response;
   response.results.assign(n, Fail(ErrorCode::kInternal, "not processed"));
-  std::vector<std::optional<sift::FeatureSet>> features(n);
-  std::vector<std::optional<api::Thumbnail>> thumbnails(n);
+  std::vector<sift::FeatureSet> features(n);
+  std::vector<api::Thumbnail> thumbnails(n);
+  std::vector<char> extracted_ok(n, 0);  // features[i] and thumbnails[i] hold image i's
   // Cheap checks first, so a taken or repeated id costs no extraction.
   std::set<std::string> seen;
   std::vector<size_t> todo;
@@ -383,6 +384,7 @@ Result<AddBatchResponse> Service::AddImages(const AddBatchRequest& request) {
       } else {
         features[i] = std::move(*extracted);
         thumbnails[i] = std::move(*thumbnail);
+        extracted_ok[i] = 1;
       }
     }
   };
@@ -413,7 +415,7 @@ Result<AddBatchResponse> Service::AddImages(const AddBatchRequest& request) {
   std::vector<index::BatchImage> batch_images;
   std::vector<size_t> batch_index;  // position in the request of each of batch_images
   for (size_t i : todo) {
-    if (!features[i]) continue;
+    if (extracted_ok[i] == 0) continue;
     const AddBatchItem& item = request.images[i];
     // Taken meanwhile by another writer: its thumbnail must not be overwritten.
     if (index_->Contains(item.id)) {
@@ -424,7 +426,7 @@ Result<AddBatchResponse> Service::AddImages(const AddBatchRequest& request) {
     info.source_path = item.source_name;
     info.metadata_json = item.metadata_json;
     info.extractor_settings = index_->extractor_settings();
-    batch_images.push_back(index::BatchImage{item.id, &*features[i], std::move(info)});
+    batch_images.push_back(index::BatchImage{item.id, &features[i], std::move(info)});
     batch_index.push_back(i);
   }
   // The thumbnails are durable before the images are indexed: an acknowledged add always has one. Those
@@ -439,7 +441,7 @@ Result<AddBatchResponse> Service::AddImages(const AddBatchRequest& request) {
   };
   for (size_t b = 0; b < batch_index.size(); ++b) {
     const size_t i = batch_index[b];
-    ThumbnailStore::Entry entry{std::move(*thumbnails[i]), features[i]->image_width, features[i]->image_height,
+    ThumbnailStore::Entry entry{std::move(thumbnails[i]), features[i].image_width, features[i].image_height,
                                 batch_images[b].info.source_path};
     if (auto stored = thumbnails_->Put(batch_images[b].id, entry); !stored) {
       drop_thumbnails([&](size_t k) { return k < b; });

@@ -380,8 +380,8 @@ void PostImageBatch(api::Service& s, const httplib::Request& req, httplib::Respo
   std::vector<size_t> position;  // of each image of `batch` in the request
   for (size_t i = 0; i < images.size(); ++i) {
     auto& item = (*items)[i];
-    if (item.error) {
-      results[i] = std::unexpected(*item.error);
+    if (!item.status) {
+      results[i] = std::unexpected(item.status.error());
     } else if (images[i].empty()) {
       results[i] = Fail(ErrorCode::kInvalidImage, "multipart part 'image' number " + std::to_string(i + 1) + " is empty");
     } else {
@@ -393,7 +393,11 @@ void PostImageBatch(api::Service& s, const httplib::Request& req, httplib::Respo
   batch.client_gone = ClientGone();
   auto added = s.AddImages(batch);
   for (size_t b = 0; b < position.size(); ++b) {
-    results[position[b]] = added ? std::move(added->results[b]) : Result<index::ImageRecord>(std::unexpected(added.error()));
+    if (added) {
+      results[position[b]] = std::move(added->results[b]);
+    } else {
+      results[position[b]] = std::unexpected(added.error());
+    }
   }
   json body = json::object();
   json list = json::array();
