@@ -429,6 +429,7 @@ Result<AddBatchResponse> Service::AddImages(const AddBatchRequest& request) {
     batch_images.push_back(index::BatchImage{item.id, &features[i], std::move(info)});
     batch_index.push_back(i);
   }
+  if (batch_images.empty()) return response;  // every image failed on its own: no transaction to make
   // The thumbnails are durable before the images are indexed: an acknowledged add always has one. Those
   // of images that then fail are removed again (their ids were not indexed, so nothing else used them).
   auto drop_thumbnails = [&](auto failed) {

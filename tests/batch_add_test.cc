@@ -190,6 +190,11 @@ TEST_F(BatchAddTest, MalformedBatchesAreRefusedWhole) {
   EXPECT_EQ(client.Post("/v1/images/batch", httplib::MultipartFormDataItems{{"id", "m-1", "", ""}})->status, 400);
   EXPECT_EQ(client.Post("/v1/images/batch", images_[0], "image/png")->status, 415);
   EXPECT_EQ(Total(*server), 3);
+  // Every image refused on its own: still 200, each with its error, nothing stored.
+  const json none = Parse(PostBatch(*server, {{"batch", images_[0], ""}, {"cap-0", images_[1], ""}}));
+  EXPECT_EQ(none["added"], 0) << none.dump();
+  EXPECT_EQ(none["failed"], 2) << none.dump();
+  EXPECT_EQ(Total(*server), 3);
   // The cap is published for clients that size their batches.
   EXPECT_EQ(Parse(client.Get("/v1"))["limits"]["max_batch_images"], 3);
 }
