@@ -171,6 +171,28 @@ TEST(Params, AddParams) {
   EXPECT_FALSE(ParseAddParams({{"id", "a"}, {"metadata", "{not json"}}));
 }
 
+TEST(Params, BatchAddParams) {
+  auto items = ParseBatchAddParams({"a", "x/similar", "batch", "d", "e"}, {R"({"k": 1})", "", "", "{nope", ""}, 5, {});
+  ASSERT_TRUE(items) << items.error().message;
+  ASSERT_EQ(items->size(), 5u);
+  EXPECT_TRUE((*items)[0].status);
+  EXPECT_EQ((*items)[0].metadata_json, R"({"k":1})");
+  EXPECT_FALSE((*items)[1].status);  // the sub-route and batch rules of a new id
+  EXPECT_FALSE((*items)[2].status);
+  ASSERT_FALSE((*items)[3].status);  // bad metadata fails that image alone
+  EXPECT_NE((*items)[3].status.error().message.find("metadata part 4"), std::string::npos)
+      << (*items)[3].status.error().message;
+  EXPECT_TRUE((*items)[4].status);
+  EXPECT_EQ((*items)[4].metadata_json, "");
+  EXPECT_TRUE(ParseBatchAddParams({"a", "b"}, {}, 2, {}));      // metadata is optional
+  EXPECT_FALSE(ParseBatchAddParams({"a"}, {}, 2, {}));           // one id per image
+  EXPECT_FALSE(ParseBatchAddParams({"a", "b"}, {""}, 2, {}));    // none or one metadata per image
+  EXPECT_FALSE(ParseBatchAddParams({}, {}, 0, {}));              // no image
+  EXPECT_FALSE(ParseBatchAddParams({"a"}, {}, 1, {{"replace", "true"}}));  // no other parameter
+  EXPECT_FALSE(ParseAddParams({{"id", "batch"}}));
+  EXPECT_TRUE(ParseAddParams({{"id", "batch2"}}));
+}
+
 // Issue 19: `top_k=5&top_k=500000` ran with 5, `id=dupA&id=dupB` stored dupA. Every route refuses a
 // repeated name, naming it (the transport collects the query string and multipart fields together).
 TEST(Params, RepeatedNamesAreRefused) {

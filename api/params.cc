@@ -236,13 +236,7 @@ Result<AddParams> ParseAddParams(const Params& params) {
   if (id == nullptr) {
     return Fail(ErrorCode::kInvalidArgument, "parameter 'id' is required (POST /v1/images?id=NAME, or a multipart field 'id')");
   }
-  if (auto ok = CheckImageId(*id); !ok) return std::unexpected(ok.error());
-  // Only new ids: one stored before this rule stays reachable (GET /v1/images/a%2Fsimilar, the slash
-  // encoded), so CheckImageId, which GET and DELETE use too, does not carry it.
-  if (id->ends_with("/similar") || id->ends_with("/thumbnail")) {
-    return Fail(ErrorCode::kInvalidArgument, "image id must not end in '/similar' or '/thumbnail' (the routes "
-                                             "GET /v1/images/{id}/similar and /thumbnail), got " + Quote(*id));
-  }
+  if (auto ok = CheckNewImageId(*id); !ok) return std::unexpected(ok.error());
   add.id = *id;
   if (const auto* v = Find(params, "replace")) {
     auto parsed = ParseBool("replace", *v);
@@ -255,6 +249,59 @@ Result<AddParams> ParseAddParams(const Params& params) {
     add.metadata_json = std::move(*metadata);
   }
   return add;
+}
+
+Status CheckNewImageId(std::string_view id) {
+  if (auto ok = CheckImageId(id); !ok) return ok;
+  // Not in CheckImageId, which GET and DELETE use too: an image stored before a rule stays reachable
+  // (GET /v1/images/a%2Fsimilar, the slash encoded; GET /v1/images/batch).
+  if (id.ends_with("/similar") || id.ends_with("/thumbnail")) {
+    return Fail(ErrorCode::kInvalidArgument, "image id must not end in '/similar' or '/thumbnail' (the routes "
+                                             "GET /v1/images/{id}/similar and /thumbnail), got " + Quote(id));
+  }
+  if (id == "batch") {
+    return Fail(ErrorCode::kInvalidArgument, "image id must not be 'batch' (the route POST /v1/images/batch)");
+  }
+  return Ok();
+}
+
+Result<std::vector<BatchAddItem>> ParseBatchAddParams(const std::vector<std::string>& ids,
+                                                      const std::vector<std::string>& metadata, size_t images,
+                                                      const Params& others) {
+  if (!others.empty()) {
+    return Fail(ErrorCode::kInvalidArgument, "unknown parameter " + Quote(others.begin()->first) +
+                                                 "; POST /v1/images/batch takes only multipart parts 'image', 'id' "
+                                                 "and 'metadata'");
+  }
+  if (images == 0) {
+    return Fail(ErrorCode::kInvalidArgument, "no 'image' part: send one multipart part 'image' per image");
+  }
+  if (ids.size() != images) {
+    return Fail(ErrorCode::kInvalidArgument, std::to_string(ids.size()) + " 'id' parts for " + std::to_string(images) +
+                                                 " 'image' parts: give one id per image, in the same order");
+  }
+  if (!metadata.empty() && metadata.size() != images) {
+    return Fail(ErrorCode::kInvalidArgument, std::to_string(metadata.size()) + " 'metadata' parts for " +
+                                                 std::to_string(images) +
+                                                 " 'image' parts: give none, or one per image in the same order "
+                                                 "(an empty part for an image without metadata)");
+  }
+  std::vector<BatchAddItem> items(images);
+  for (size_t i = 0; i < images; ++i) {
+    items[i].id = ids[i];
+    if (auto ok = CheckNewImageId(ids[i]); !ok) {
+      items[i].status = ok;
+      continue;
+    }
+    if (metadata.empty() || metadata[i].empty()) continue;
+    auto parsed = ParseMetadata(metadata[i], "metadata part " + std::to_string(i + 1));
+    if (parsed) {
+      items[i].metadata_json = std::move(*parsed);
+    } else {
+      items[i].status = std::unexpected(parsed.error());
+    }
+  }
+  return items;
 }
 
 Result<ListParams> ParseListParams(const Params& params) {

@@ -14,6 +14,7 @@
 #include <set>
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include "api/pair_match.h"
 #include "index/image_index.h"
@@ -57,9 +58,7 @@ using Params = std::multimap<std::string, std::string>;
 [[nodiscard]] Result<index::QueryOptions> ParseQueryParams(const Params& params, const index::QueryOptions& defaults);
 const std::set<std::string>& QueryParamNames();
 
-// POST /v1/images: id (required, CheckImageId, and not ending in "/similar" or "/thumbnail": the routes
-// GET /v1/images/{id}/similar and /thumbnail would take such an id sent unencoded for another image's),
-// replace (bool, default false), metadata (a JSON document of at most kMaxMetadataBytes nested at most
+// POST /v1/images: id (required, CheckNewImageId), replace (bool, default false), metadata (a JSON document of at most kMaxMetadataBytes nested at most
 // kMaxJsonDepth deep (api/json.h), both checked before it is parsed; default none; stored re-serialised
 // compactly).
 inline constexpr size_t kMaxMetadataBytes = 16 * 1024;  // fixed; every search result carries it
@@ -69,6 +68,24 @@ struct AddParams {
   std::string metadata_json;  // "" when absent
 };
 [[nodiscard]] Result<AddParams> ParseAddParams(const Params& params);
+// The id of a new image: CheckImageId, and none that another route would take for its own: ids ending
+// in "/similar" or "/thumbnail" (GET /v1/images/{id}/similar and /thumbnail) and "batch" (POST
+// /v1/images/batch). Only new ids: one stored before these rules stays reachable by GET and DELETE.
+[[nodiscard]] Status CheckNewImageId(std::string_view id);
+
+// POST /v1/images/batch: the multipart parts named `id` (one per image, in the order of the `image`
+// parts) and `metadata` (none, or one per image in that order; an empty part = no metadata), plus every
+// other parameter (`others`: query string and other text parts), of which there must be none. A count
+// that does not match the images' refuses the request (kInvalidArgument); a bad id or metadata document
+// is that image's own error (BatchAddItem::status), the others go on.
+struct BatchAddItem {
+  std::string id;
+  std::string metadata_json;  // "" when absent
+  Status status = Ok();        // why this image is refused, else Ok
+};
+[[nodiscard]] Result<std::vector<BatchAddItem>> ParseBatchAddParams(const std::vector<std::string>& ids,
+                                                                    const std::vector<std::string>& metadata,
+                                                                    size_t images, const Params& others);
 // A metadata document (the rules of AddParams::metadata_json), re-serialised compactly; kInvalidArgument
 // naming the broken rule, the value called `label` ("parameter 'metadata'", "--metadata"). Shared by
 // POST /v1/images and `oxbow index add --metadata`.

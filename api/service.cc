@@ -13,6 +13,7 @@
 #include <cstdlib>
 #include <fstream>
 #include <map>
+#include <set>
 #include <thread>
 
 #include "sift/base/log.h"
@@ -332,6 +333,132 @@ Result<AddImageResponse> Service::AddImage(const AddImageRequest& request) {
   response.replaced = replacing;
   response.record = std::move(*record);
   response.add_ms = MsSince(start);
+  return response;
+}
+
+Result<AddBatchResponse> Service::AddImages(const AddBatchRequest& request) {
+  const size_t n = request.images.size();
+  AddBatchResponse response;
+  response.results.assign(n, Fail(ErrorCode::kInternal, "not processed"));
+  std::vector<sift::FeatureSet> features(n);
+  std::vector<api::Thumbnail> thumbnails(n);
+  std::vector<char> extracted_ok(n, 0);  // features[i] and thumbnails[i] hold image i's
+  // Cheap checks first, so a taken or repeated id costs no extraction.
+  std::set<std::string> seen;
+  std::vector<size_t> todo;
+  for (size_t i = 0; i < n; ++i) {
+    const std::string& id = request.images[i].id;
+    if (id.empty() || id.size() > 256) {
+      response.results[i] = Fail(ErrorCode::kInvalidArgument, "image id must be 1 to 256 bytes long");
+    } else if (!seen.insert(id).second) {
+      response.results[i] = Fail(ErrorCode::kAlreadyExists, "image id '" + id + "' is repeated earlier in this batch");
+    } else if (index_->Contains(id)) {
+      response.results[i] = Fail(ErrorCode::kAlreadyExists, "an image with id '" + id + "' is already indexed");
+    } else {
+      todo.push_back(i);
+    }
+  }
+
+  // Each image gets the deadline of one add from when its extraction is asked; the batch as a whole
+  // stops only for a client gone or a shutdown (no deadline).
+  const Work batch{Clock::time_point::max(), &request.client_gone};
+  const auto extract_start = Clock::now();
+  std::atomic<size_t> next{0};
+  auto work = [&] {
+    for (size_t k = next++; k < todo.size() && !StopReason(batch); k = next++) {
+      const size_t i = todo[k];
+      const AddBatchItem& item = request.images[i];
+      Result<api::Thumbnail> thumbnail = Fail(ErrorCode::kInternal, "thumbnail not made");
+      double ms = 0;
+      auto extracted = Extract(
+          item.image, StartWork(request.client_gone), &ms,
+          [&] {
+            thumbnail = MakeThumbnail(item.image, options_.thumbnails.stored_side_px, options_.thumbnails.jpeg_quality,
+                                      options_.Decode());
+          },
+          add_threads_ ? add_threads_.get() : extract_threads_.get());
+      if (!extracted) {
+        response.results[i] = std::unexpected(extracted.error());
+      } else if (!thumbnail) {
+        response.results[i] = std::unexpected(thumbnail.error());
+      } else {
+        features[i] = std::move(*extracted);
+        thumbnails[i] = std::move(*thumbnail);
+        extracted_ok[i] = 1;
+      }
+    }
+  };
+  // Extract blocks its caller until its job ran on the add threads, hence one caller per slot at most.
+  std::exception_ptr error;  // the first exception of a caller, rethrown here as AddImage's would be
+  std::mutex error_mutex;
+  auto caller = [&] {
+    try {
+      work();
+    } catch (...) {
+      std::lock_guard<std::mutex> error_lock(error_mutex);
+      if (!error) error = std::current_exception();
+      next = todo.size();
+    }
+  };
+  {
+    std::vector<std::jthread> callers;
+    const size_t count = std::min(todo.size(), static_cast<size_t>(extraction_slots_));
+    for (size_t t = 1; t < count; ++t) callers.emplace_back(caller);
+    caller();
+  }
+  if (error) std::rethrow_exception(error);
+  response.decode_extract_ms = MsSince(extract_start);
+  if (auto reason = StopReason(batch)) return std::unexpected(*reason);
+
+  const auto add_start = Clock::now();
+  std::lock_guard<std::mutex> lock(write_mutex_);
+  std::vector<index::BatchImage> batch_images;
+  std::vector<size_t> batch_index;  // position in the request of each of batch_images
+  for (size_t i : todo) {
+    if (extracted_ok[i] == 0) continue;
+    const AddBatchItem& item = request.images[i];
+    // Taken meanwhile by another writer: its thumbnail must not be overwritten.
+    if (index_->Contains(item.id)) {
+      response.results[i] = Fail(ErrorCode::kAlreadyExists, "an image with id '" + item.id + "' is already indexed");
+      continue;
+    }
+    index::ImageInfo info;
+    info.source_path = item.source_name;
+    info.metadata_json = item.metadata_json;
+    info.extractor_settings = index_->extractor_settings();
+    batch_images.push_back(index::BatchImage{item.id, &features[i], std::move(info)});
+    batch_index.push_back(i);
+  }
+  if (batch_images.empty()) return response;  // every image failed on its own: no transaction to make
+  // The thumbnails are durable before the images are indexed: an acknowledged add always has one. Those
+  // of images that then fail are removed again (their ids were not indexed, so nothing else used them).
+  auto drop_thumbnails = [&](auto failed) {
+    for (size_t b = 0; b < batch_index.size(); ++b) {
+      if (!failed(b)) continue;
+      if (auto dropped = thumbnails_->Remove(batch_images[b].id); !dropped) {
+        OXBOW_LOG(kWarning) << "thumbnail of '" << batch_images[b].id << "', not added, stays: " << dropped.error().ToString();
+      }
+    }
+  };
+  for (size_t b = 0; b < batch_index.size(); ++b) {
+    const size_t i = batch_index[b];
+    ThumbnailStore::Entry entry{std::move(thumbnails[i]), features[i].image_width, features[i].image_height,
+                                batch_images[b].info.source_path};
+    if (auto stored = thumbnails_->Put(batch_images[b].id, entry); !stored) {
+      drop_thumbnails([&](size_t k) { return k < b; });
+      return std::unexpected(stored.error());
+    }
+  }
+  auto records = index_->AddBatch(batch_images);
+  for (size_t b = 0; b < records.size(); ++b) {
+    if (!records[b] && records[b].error().code == ErrorCode::kIoError) {  // the catalogue failed: nothing added
+      drop_thumbnails([](size_t) { return true; });
+      return std::unexpected(records[b].error());
+    }
+  }
+  drop_thumbnails([&](size_t b) { return !records[b]; });
+  for (size_t b = 0; b < records.size(); ++b) response.results[batch_index[b]] = std::move(records[b]);
+  response.add_ms = MsSince(add_start);
   return response;
 }
 

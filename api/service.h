@@ -3,6 +3,7 @@
 // bytes into index operations:
 //
 //   AddImage     decode + extract (bounded concurrency) -> ImageIndex::Add (durable when it returns)
+//   AddImages    several decodes + extractions in parallel -> one ImageIndex::AddBatch
 //   Search       decode + extract -> ImageIndex::Query (tf-idf, spatial re-ranking, query expansion)
 //   SearchSimilar ImageIndex::QuerySimilar (an indexed image's stored features; no decoding)
 //   Match        decode + extract both -> MatchPair (api/pair_match.h)
@@ -15,7 +16,7 @@
 // waiting longer than extraction_wait_ms fails with kResourceExhausted -> 503; a request whose decode +
 // extraction runs past processing_timeout_ms, whose client has gone, or that still runs
 // shutdown_grace_ms after StopExtractions() is abandoned at the extractor's next check, its slot freed,
-// nothing stored, kResourceExhausted -> 503) and (2) AddImage /
+// nothing stored, kResourceExhausted -> 503) and (2) AddImage(s) /
 // DeleteImage serialise among themselves on write_mutex_ (the index serialises writers anyway; the
 // service lock makes the thumbnail and the index change one step for other writers; a replacement is one
 // transaction in the index, ImageIndex::Replace). Searches take no service lock.
@@ -106,6 +107,26 @@ struct AddImageResponse {
   double add_ms = 0;                    // quantise + durable commit + publish
 };
 
+// One image of Service::AddImages.
+struct AddBatchItem {
+  std::string id;                       // as AddImageRequest::id
+  std::span<const uint8_t> image;       // encoded image bytes; not owned
+  std::string metadata_json;            // a JSON document or ""
+  std::string source_name;              // informational, as AddImageRequest::source_name
+};
+
+struct AddBatchRequest {
+  std::vector<AddBatchItem> images;
+  // As AddImageRequest::client_gone: the whole batch is abandoned, nothing stored.
+  sift::StopRequested client_gone;
+};
+
+struct AddBatchResponse {
+  std::vector<Result<index::ImageRecord>> results;  // one per image, in order
+  double decode_extract_ms = 0;         // wall time of all decodes + extractions (run in parallel)
+  double add_ms = 0;                    // thumbnails + quantise + one durable commit + publish
+};
+
 struct SearchResponse {
   index::QueryResponse index;           // results + per-stage timings of the index
   index::QueryOptions options;          // the options the query ran with
@@ -161,6 +182,14 @@ class Service {
                                                              const index::IndexOptions& index_options = {});
 
   [[nodiscard]] Result<AddImageResponse> AddImage(const AddImageRequest& request);
+  // Adds several new images (no replacement) as AddImage does each, but with one ImageIndex::AddBatch:
+  // one durable transaction and one published snapshot for the batch. Decodes and extractions run in
+  // parallel within the extraction slots, each image with its own processing deadline. An image that
+  // fails (bad id, id taken or repeated earlier in the batch, undecodable, too large, its deadline or
+  // slot wait passed) gets its own error and the others are added. The whole call fails, nothing
+  // stored, when the client goes or the server stops meanwhile (kResourceExhausted) or the thumbnail
+  // store or the catalogue fails (kIoError).
+  [[nodiscard]] Result<AddBatchResponse> AddImages(const AddBatchRequest& request);
   [[nodiscard]] Result<index::ImageRecord> GetImage(const std::string& id) const;
   [[nodiscard]] Status DeleteImage(const std::string& id);
   [[nodiscard]] Result<ListResponse> ListImages(uint64_t offset, uint64_t limit) const;

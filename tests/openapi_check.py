@@ -382,6 +382,7 @@ def run(args):
         c.fail("replace: replaced is not true")
     c.check("add without id", url, "POST", "/v1/images", 400, "invalid_argument", headers=png_type, body=image)
     c.check("add sub-route id", url, "POST", "/v1/images?id=x%2Fsimilar", 400, "invalid_argument", headers=png_type, body=image)
+    c.check("add id batch", url, "POST", "/v1/images?id=batch", 400, "invalid_argument", headers=png_type, body=image)
     c.check("add metadata not JSON", url, "POST", "/v1/images?id=m&metadata=nope", 400, "invalid_argument", headers=png_type, body=image)
     deep = urllib.parse.quote("[" * 65 + "]" * 65)
     c.check("add metadata too deep", url, "POST", f"/v1/images?id=m&metadata={deep}", 400, "invalid_argument", headers=png_type, body=image)
@@ -397,6 +398,26 @@ def run(args):
     c.check("add pixel bomb", url, "POST", "/v1/images?id=m", 413, "image_too_large", headers=png_type, body=png(60000, 60000))
     c.check("add over upload limit", url, "POST", "/v1/images?id=m", 413, "payload_too_large",
             raw=build("POST", "/v1/images?id=m", {**png_type, "Content-Length": str(2 << 20)}))
+
+    # Adding several images in one request: each answered on its own; refusals of the whole request.
+    def batch(parts, expect, code=None, base=url, name="batch", headers=None):
+        ctype, body = multipart(parts)
+        return c.check(name, base, "POST", "/v1/images/batch", expect, code, headers={"Content-Type": ctype, **(headers or {})}, body=body)
+    r = batch([("image", image, "ba.png"), ("id", b"ba", None), ("metadata", b'{"k": 1}', None),
+               ("image", other, "bb.png"), ("id", b"bb", None), ("metadata", b"", None)], 200)
+    if r.status == 200 and ([x["status"] for x in r.json()["results"]] != [201, 201] or r.json()["added"] != 2):
+        c.fail(f"batch of two new images: not both added: {r.body[:300]!r}")
+    r = batch([("image", b"not an image", "bc.png"), ("id", b"bc", None), ("image", image, "ba.png"), ("id", b"ba", None),
+               ("image", image, "bd.png"), ("id", b"bd", None)], 200)
+    if r.status == 200 and [x["status"] for x in r.json()["results"]] != [400, 409, 201]:
+        c.fail(f"batch with an undecodable image and a taken id: {r.body[:300]!r}")
+    tiny = png(32, 32)
+    batch([p for i in range(65) for p in (("image", tiny, f"t{i}.png"), ("id", f"t{i}".encode(), None))], 413, "payload_too_large")
+    batch([("image", image, "be.png")], 400, "invalid_argument", name="batch without id")
+    batch([("image", image, "be.png"), ("id", b"be", None), ("replace", b"true", None)], 400, "invalid_argument", name="batch unknown part")
+    c.check("batch not multipart", url, "POST", "/v1/images/batch", 415, "unsupported_format", headers=png_type, body=image)
+    if exchange(url, build("GET", "/v1/images/be")).status != 404:
+        c.fail("a refused batch stored an image")
 
     # Records, list, thumbnails.
     c.check("get", url, "GET", "/v1/images/b", 200)
@@ -481,6 +502,11 @@ def run(args):
     c.check("add wrong key", keyed, "POST", "/v1/images?id=k", 403, "permission_denied",
             headers={**png_type, "Authorization": "Bearer wrong"}, body=image)
     c.check("add with key", keyed, "POST", "/v1/images?id=k", 201, headers={**png_type, "Authorization": f"Bearer {key}"}, body=image)
+    batch([("image", image, "k.png"), ("id", b"kb", None)], 401, "unauthenticated", base=keyed, name="batch without key")
+    batch([("image", image, "k.png"), ("id", b"kb", None)], 403, "permission_denied", base=keyed, name="batch wrong key",
+          headers={"X-API-Key": "wrong"})
+    batch([("image", image, "k.png"), ("id", b"kb", None)], 200, base=keyed, name="batch with key",
+          headers={"Authorization": f"Bearer {key}"})
     c.check("search without key", keyed, "POST", "/v1/search", 200, headers=png_type, body=image)
     c.check("delete without key", keyed, "DELETE", "/v1/images/k", 401, "unauthenticated")
     c.check("delete wrong key", keyed, "DELETE", "/v1/images/k", 403, "permission_denied", headers={"X-API-Key": "wrong"})

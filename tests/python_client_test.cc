@@ -31,7 +31,8 @@ TEST_F(PythonClientTest, ClientTestsPassAgainstARealServer) {
   for (const auto& [name, picture] : pictures) ASSERT_TRUE(cv::imwrite(images + "/" + name, picture));
 
   const std::string key = "python-client-test-key";
-  auto server = StartServer({"--api-key", key});
+  // A small batch cap, so that add_many's batching into several requests is exercised.
+  auto server = StartServer({"--api-key", key, "--max-batch-images", "2"});
   ASSERT_GT(server->port(), 0);
   const std::string command = "OXBOW_URL=http://127.0.0.1:" + std::to_string(server->port()) +
                               " OXBOW_API_KEY=" + key + " OXBOW_TEST_IMAGES='" + images + "' PYTHONDONTWRITEBYTECODE=1 python3 " +

@@ -184,13 +184,17 @@ def _quote_header_param(text: str) -> str:
     return text.replace('"', "%22").replace("\r", "%0D").replace("\n", "%0A")
 
 
-def _multipart(fields: Mapping[str, str], files: Mapping[str, tuple[bytes, str]]) -> tuple[bytes, str]:
-    """A multipart/form-data body (RFC 7578) and its Content-Type."""
+Fields = Union[Mapping[str, str], list[tuple[str, str]]]
+Files = Union[Mapping[str, tuple[bytes, str]], list[tuple[str, tuple[bytes, str]]]]
+
+
+def _multipart(fields: Fields, files: Files) -> tuple[bytes, str]:
+    """A multipart/form-data body (RFC 7578) and its Content-Type; lists of pairs repeat names, in order."""
     parts: list[bytes] = []
-    for name, value in fields.items():
+    for name, value in (fields.items() if isinstance(fields, Mapping) else fields):
         parts.append(f'Content-Disposition: form-data; name="{_quote_header_param(name)}"\r\n\r\n'.encode()
                      + value.encode("utf-8"))
-    for name, (data, filename) in files.items():
+    for name, (data, filename) in (files.items() if isinstance(files, Mapping) else files):
         content_type = mimetypes.guess_type(filename)[0] or "application/octet-stream"
         head = (f'Content-Disposition: form-data; name="{_quote_header_param(name)}"; '
                 f'filename="{_quote_header_param(filename)}"\r\nContent-Type: {content_type}\r\n\r\n')
@@ -272,22 +276,54 @@ class Client:
 
         items: (id, image) or (id, image, metadata) tuples, or mappings with keys id, image and
           optionally metadata.
-        Returns one AddResult per item, in order: the add's answer, or the OxbowError it raised.
-        The images are sent one by one (the server has no batch route yet), so the ones before a failure
-        stay added; each is acknowledged, hence durable, when its AddResult is ok.
+        Returns one AddResult per item, in order: the stored record (as get() returns it), or the
+        OxbowError of that image. Every image whose AddResult is ok is acknowledged, hence durable.
+
+        The images go in batches (POST /v1/images/batch), each at most the server's max_batch_images
+        images and max_upload_bytes bytes (GET /v1), each batch one index transaction; a batch that fails
+        as a whole (server unreachable or stopping, a storage failure) gives its error to each of its
+        images, and the batches before it stay added. With replace=True the images are sent one by one
+        (POST /v1/images?replace=true; the batch route adds new ids only) and the response is add()'s.
         """
         normalized = [_add_item(item) for item in items]
-        return self._add_sequentially(normalized, replace)
+        if replace:
+            return self._add_one_by_one(normalized)
+        if not normalized:
+            return []
+        limits = self._request("GET", "/v1")["limits"]
+        results: list[AddResult] = []
+        # Read lazily: one batch of images in memory at a time.
+        for batch in _batches(((id, _image_bytes(image), metadata) for id, image, metadata in normalized),
+                              limits["max_batch_images"], limits["max_upload_bytes"]):
+            results += self._add_batch(batch)
+        return results
 
-    def _add_sequentially(self, items: list[tuple[str, Image, Any]], replace: bool) -> list[AddResult]:
-        # The transport of add_many: one POST /v1/images per image. A batch route would replace this
-        # function alone, keeping add_many's arguments and results.
+    def _add_one_by_one(self, items: list[tuple[str, Image, Any]]) -> list[AddResult]:
         results = []
         for id, image, metadata in items:
             try:
-                results.append(AddResult(id, response=self.add(id, image, metadata=metadata, replace=replace)))
+                results.append(AddResult(id, response=self.add(id, image, metadata=metadata, replace=True)))
             except OxbowError as e:
                 results.append(AddResult(id, error=e))
+        return results
+
+    def _add_batch(self, batch: list[tuple[str, tuple[bytes, str], Any]]) -> list[AddResult]:
+        fields = [("id", id) for id, _, _ in batch]
+        if any(metadata is not None for _, _, metadata in batch):
+            fields += [("metadata", "" if metadata is None else json.dumps(metadata, separators=(",", ":")))
+                       for _, _, metadata in batch]
+        files = [("image", image) for _, image, _ in batch]
+        try:
+            answer = self._request("POST", "/v1/images/batch", multipart=(fields, files))
+        except OxbowError as e:
+            return [AddResult(id, error=e) for id, _, _ in batch]
+        results = []
+        for (id, _, _), result in zip(batch, answer["results"]):
+            if "image" in result:
+                results.append(AddResult(id, response=result["image"]))
+            else:
+                body = json.dumps({"error": result["error"]}).encode()
+                results.append(AddResult(id, error=_error_from_response(result["status"], {}, body)))
         return results
 
     def get(self, id: str) -> dict:
@@ -337,7 +373,7 @@ class Client:
     # -- transport
 
     def _request(self, method: str, path: str, *, query: Mapping[str, Any] | None = None,
-                 multipart: tuple[Mapping[str, str], Mapping[str, tuple[bytes, str]]] | None = None,
+                 multipart: tuple[Fields, Files] | None = None,
                  raw: bool = False) -> Any:
         url = self.url + path
         if query:
@@ -381,6 +417,25 @@ def _search_fields(bbox: Any, options: Mapping[str, Any]) -> dict[str, str]:
             raise ValueError("bbox is (x1, y1, x2, y2)")
         fields["bbox"] = _field_value(bbox)
     return fields
+
+
+def _batches(items: Iterable[tuple[str, tuple[bytes, str], Any]], max_images: int,
+             max_bytes: int) -> Iterable[list[tuple[str, tuple[bytes, str], Any]]]:
+    """Consecutive runs of items of at most max_images images and (roughly) max_bytes of request body;
+    an image too large on its own goes alone (the server answers it 413)."""
+    batch: list[tuple[str, tuple[bytes, str], Any]] = []
+    size = 0
+    for item in items:
+        id, (data, filename), metadata = item
+        # The multipart headers of its parts (~300 bytes) and its id, file name and metadata.
+        cost = len(data) + 512 + 3 * (len(id) + len(filename)) + len(json.dumps(metadata))
+        if batch and (len(batch) == max_images or size + cost > max_bytes):
+            yield batch
+            batch, size = [], 0
+        batch.append(item)
+        size += cost
+    if batch:
+        yield batch
 
 
 def _add_item(item: Any) -> tuple[str, Image, Any]:

@@ -2,7 +2,8 @@
 
 tests/python_client_test.cc runs it (ctest python_client_test) with a fresh server; by hand:
     OXBOW_URL=http://127.0.0.1:PORT OXBOW_API_KEY=KEY OXBOW_TEST_IMAGES=DIR python3 -m unittest -v oxbow_client_test
-where the server was started with --api-key KEY over an empty index, and DIR holds a.png, b.png and c.png:
+where the server was started with --api-key KEY --max-batch-images 2 over an empty index (add_many then
+needs several batches), and DIR holds a.png, b.png and c.png:
 three different textured pictures. The tests add, replace and delete images with ids starting "py-".
 """
 
@@ -131,11 +132,49 @@ class ClientTest(unittest.TestCase):
             self.assertEqual(self.client.get(id)["id"], id)
         with self.assertRaises(ox.NotFoundError):
             self.client.get("py-many-bad")
+        self.assertNotIn("replaced", results[0].response)  # the record, as get() returns it
         again = self.client.add_many([("py-many-1", self.a)])
         self.assertIsInstance(again[0].error, ox.ConflictError)
         self.assertTrue(self.client.add_many([("py-many-1", self.a)], replace=True)[0].response["replaced"])
         for id in ("py-many-1", "py-many-2", "py-many-3"):
             self.client.delete(id)
+
+    def test_add_many_sends_batches_of_the_servers_size(self):
+        limit = self.client._request("GET", "/v1")["limits"]["max_batch_images"]
+        self.assertLess(limit, 5, "start the server with --max-batch-images 2 (see the module docstring)")
+        posts = []
+        request = self.client._request
+
+        def counting(method, path, **kwargs):
+            if path == "/v1/images/batch":
+                posts.append(len([f for f in kwargs["multipart"][0] if f[0] == "id"]))
+            return request(method, path, **kwargs)
+
+        self.client._request = counting
+        try:
+            items = [("py-batch-1", self.a), ("py-batch-2", self.b_path), ("py-batch-1", self.c_path),
+                     ("py-batch-3", self.c_path), ("py-batch-4", io.BytesIO(self.a))]
+            results = self.client.add_many(items)
+        finally:
+            del self.client._request
+        self.assertEqual(sum(posts), len(items))
+        self.assertTrue(all(n <= limit for n in posts), posts)
+        self.assertEqual(len(posts), -(-len(items) // limit))
+        self.assertEqual([r.id for r in results], [id for id, _ in items])
+        self.assertEqual([r.ok for r in results], [True, True, False, True, True])
+        self.assertIsInstance(results[2].error, ox.ConflictError)  # taken by an earlier batch or this one
+        for id in ("py-batch-1", "py-batch-2", "py-batch-3", "py-batch-4"):
+            self.assertEqual(self.client.get(id)["id"], id)
+            self.client.delete(id)
+
+    def test_add_many_without_the_key_fails_each_image(self):
+        results = ox.Client(URL, timeout=60).add_many([("py-nokey-1", self.a), ("py-nokey-2", self.b_path)])
+        self.assertEqual([r.ok for r in results], [False, False])
+        for r in results:
+            self.assertIsInstance(r.error, ox.UnauthenticatedError)
+        with self.assertRaises(ox.NotFoundError):
+            self.client.get("py-nokey-1")
+        self.assertEqual(ox.Client(URL, timeout=60).add_many([]), [])
 
     def test_unknown_ids(self):
         for call in (self.client.get, self.client.delete, self.client.similar, self.client.thumbnail):

@@ -149,6 +149,11 @@ void SetUpServe(CLI::App& app) {
       ->envname("OXBOW_API_KEY");
   cmd->add_option("--max-upload-mb", flags->max_upload_mb, "largest request body and image file, MiB (413 above)")
       ->capture_default_str();
+  cmd->add_option("--max-batch-images", flags->http.max_batch_images,
+                  "images in one POST /v1/images/batch at most (413 above); the request also counts against "
+                  "--max-upload-mb")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 10000));
   AddImageFlags(cmd, &flags->image);  // over --max-megapixels: 413
   cmd->add_option("--extractions", flags->service.max_concurrent_extractions,
                   "decode+extract operations at once (bounds memory); 0 = CPU cores")

@@ -237,6 +237,7 @@ std::optional<std::string> HttpServerOptions::Check() const {
   if (max_connections_per_client < 1 || max_connections_per_client > 100000) {
     return "max_connections_per_client must be in [1, 100000]";
   }
+  if (max_batch_images < 1 || max_batch_images > 10000) return "max_batch_images must be in [1, 10000]";
   if (max_inflight_body_bytes < max_body_bytes || max_inflight_body_bytes > (1ull << 40)) {
     return "max_inflight_body_bytes must be in [max_body_bytes, 2^40] (at least one largest upload must fit)";
   }
@@ -272,6 +273,8 @@ const HttpServer::RouteTable& Routes() {
       {"/metrics", std::regex("/metrics"), "GET"},
       {"/v1/stats", std::regex("/v1/stats"), "GET"},
       {"/v1/images", std::regex("/v1/images"), "GET, POST"},
+      // Before {id}: "batch" is refused as a new image's id (api::CheckNewImageId).
+      {"/v1/images/batch", std::regex("/v1/images/batch"), "POST"},
       {"/v1/images/{id}/similar", std::regex("/v1/images/.+/similar"), "GET"},
       {"/v1/images/{id}/thumbnail", std::regex("/v1/images/.+/thumbnail"), "GET"},
       {"/v1/images/{id}", std::regex("/v1/images/.+"), "GET, DELETE"},
@@ -283,10 +286,13 @@ const HttpServer::RouteTable& Routes() {
 
 // ---- Route handlers (run by HttpServer::ServiceRoute once the service is available)
 
-void DescribeApi(const httplib::Request&, httplib::Response& res) {
+// The routes, and the limits a client sizes its requests by (the Python client's add_many chunks its
+// batches by max_batch_images).
+void DescribeApi(const HttpServerOptions& options, httplib::Response& res) {
   json routes = json::array();
   for (const auto& r : Routes().routes) routes.push_back({{"route", r.label}, {"methods", r.methods}});
-  SendJson(res, 200, {{"service", "oxbow"}, {"api_version", "v1"}, {"routes", routes}});
+  const json limits = {{"max_batch_images", options.max_batch_images}, {"max_upload_bytes", options.max_body_bytes}};
+  SendJson(res, 200, {{"service", "oxbow"}, {"api_version", "v1"}, {"routes", routes}, {"limits", limits}});
 }
 
 // The document is fixed at build time; clients revalidate with its ETag (304).
@@ -325,6 +331,95 @@ void PostImage(api::Service& s, const httplib::Request& req, httplib::Response& 
   RecordStages(res, {{"decode_extract", added->decode_extract_ms}, {"add", added->add_ms}});
   res.set_header("Location", "/v1/images/" + added->record.id);
   SendJson(res, added->replaced ? 200 : 201, api::AddImageResponseToJson(*added));
+}
+
+// One image of a batch add's answer: {"id", "status": 201, "image": record} or {"id", "status", "error"}.
+json BatchResultToJson(const std::string& id, const Result<index::ImageRecord>& result) {
+  if (result) return {{"id", id}, {"status", 201}, {"image", api::ImageRecordToJson(*result)}};
+  const api::HttpError error = api::ToHttpError(result.error());
+  return {{"id", id}, {"status", error.status}, {"error", api::ErrorBody(error, t_request.id)["error"]}};
+}
+
+// POST /v1/images/batch: multipart parts `image` (the images, in order), `id` (one per image, same
+// order), `metadata` (none or one per image); api::ParseBatchAddParams. httplib keeps the parts of one
+// name in the order sent. 200 with one result per image, or, when the whole batch failed (catalogue,
+// client gone, shutdown), that error's status with the error body plus the per-image results.
+void PostImageBatch(api::Service& s, const httplib::Request& req, httplib::Response& res, int max_images) {
+  const auto start = Clock::now();
+  if (!req.is_multipart_form_data()) {
+    return SendError(res, Error{ErrorCode::kUnsupportedFormat,
+                                "POST /v1/images/batch takes multipart/form-data: parts 'image' (the images), 'id' "
+                                "(one per image, in the same order) and optionally 'metadata'"});
+  }
+  std::vector<std::string_view> images;
+  std::vector<std::string> filenames, ids, metadata;
+  api::Params others(req.params.begin(), req.params.end());
+  for (const auto& [name, part] : req.files) {
+    if (name == "image") {
+      images.push_back(part.content);
+      filenames.push_back(part.filename);
+    } else if (name == "id") {
+      ids.push_back(part.content);
+    } else if (name == "metadata") {
+      metadata.push_back(part.content);
+    } else {
+      others.emplace(name, part.content);
+    }
+  }
+  if (images.size() > static_cast<size_t>(max_images)) {
+    return SendError(res, api::HttpError{413, "payload_too_large",
+                                         std::to_string(images.size()) + " images in one request, over the server's "
+                                         "limit of " + std::to_string(max_images) +
+                                         " (oxbow serve --max-batch-images); nothing was added"});
+  }
+  auto items = api::ParseBatchAddParams(ids, metadata, images.size(), others);
+  if (!items) return SendError(res, items.error());
+
+  std::vector<Result<index::ImageRecord>> results(images.size(), Fail(ErrorCode::kInternal, "not processed"));
+  api::AddBatchRequest batch;
+  std::vector<size_t> position;  // of each image of `batch` in the request
+  for (size_t i = 0; i < images.size(); ++i) {
+    auto& item = (*items)[i];
+    if (!item.status) {
+      results[i] = std::unexpected(item.status.error());
+    } else if (images[i].empty()) {
+      results[i] = Fail(ErrorCode::kInvalidImage, "multipart part 'image' number " + std::to_string(i + 1) + " is empty");
+    } else {
+      batch.images.push_back({std::move(item.id), Bytes(images[i]), std::move(item.metadata_json),
+                              filenames[i].empty() ? "http" : "http:" + filenames[i]});
+      position.push_back(i);
+    }
+  }
+  batch.client_gone = ClientGone();
+  auto added = s.AddImages(batch);
+  for (size_t b = 0; b < position.size(); ++b) {
+    if (added) {
+      results[position[b]] = std::move(added->results[b]);
+    } else {
+      results[position[b]] = std::unexpected(added.error());
+    }
+  }
+  json body = json::object();
+  json list = json::array();
+  size_t ok = 0;
+  for (size_t i = 0; i < results.size(); ++i) {
+    ok += results[i].has_value() ? 1 : 0;
+    list.push_back(BatchResultToJson(ids[i], results[i]));
+  }
+  int status = 200;
+  if (!added) {
+    const api::HttpError error = api::ToHttpError(added.error());
+    status = error.status;
+    body = api::ErrorBody(error, t_request.id);
+  } else {
+    RecordStages(res, {{"decode_extract", added->decode_extract_ms}, {"add", added->add_ms}});
+    body["timings_ms"] = {{"decode_extract", added->decode_extract_ms}, {"add", added->add_ms},
+                          {"total", std::chrono::duration<double, std::milli>(Clock::now() - start).count()}};
+  }
+  body["results"] = std::move(list);
+  body["added"] = ok;
+  body["failed"] = results.size() - ok;
+  SendJson(res, status, body);
 }
 
 void ListImages(api::Service& s, const httplib::Request& req, httplib::Response& res) {
@@ -676,7 +771,7 @@ void HttpServer::RegisterStatusRoutes() {
   http.Get(R"(/static/(.+))", [](const httplib::Request& req, httplib::Response& res) {
     SendWebAsset(req, res, req.matches[1].str());
   });
-  http.Get(R"(/v1/?)", DescribeApi);
+  http.Get(R"(/v1/?)", [this](const httplib::Request&, httplib::Response& res) { DescribeApi(options_, res); });
   http.Get("/v1/openapi.json", ServeOpenApi);
   http.Get("/metrics", [this](const httplib::Request&, httplib::Response& res) { ServeMetrics(res); });
   http.Get("/v1/stats", ServiceRoute(Access::kOpen, [](api::Service& s, const httplib::Request&, httplib::Response& res) {
@@ -707,6 +802,10 @@ void HttpServer::ServeMetrics(httplib::Response& res) const {
 void HttpServer::RegisterImageRoutes() {
   auto& http = *http_;
   http.Post("/v1/images", ServiceRoute(Access::kWrite, PostImage));
+  http.Post("/v1/images/batch", ServiceRoute(Access::kWrite, [this](api::Service& s, const httplib::Request& req,
+                                                                    httplib::Response& res) {
+              PostImageBatch(s, req, res, options_.max_batch_images);
+            }));
   http.Get("/v1/images", ServiceRoute(Access::kOpen, ListImages));
   http.Get(R"(/v1/images/(.+))", ServiceRoute(Access::kOpen, GetImageOrSubresource));
   http.Delete(R"(/v1/images/(.+))", ServiceRoute(Access::kWrite, DeleteImage));

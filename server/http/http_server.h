@@ -16,7 +16,7 @@
 //  - Every request gets an id (the client's X-Request-Id when it is 1..64 of [A-Za-z0-9._-], else a new
 //    random one), echoed in the X-Request-Id response header, and one log line (sift/log.h):
 //      http <id> <method> <path> route=<pattern> status=<code> ms=<latency> [stage timings]
-//  - Optional API key: POST and DELETE on /v1/images need `Authorization: Bearer KEY` or `X-API-Key: KEY`
+//  - Optional API key: POST and DELETE on /v1/images (and POST /v1/images/batch) need `Authorization: Bearer KEY` or `X-API-Key: KEY`
 //    (compared in constant time); missing -> 401, wrong -> 403. Reads and searches are open.
 //  - Shutdown() (from the SIGTERM/SIGINT handler) stops accepting, lets in-flight requests finish but
 //    abandons decodes and extractions still running after the service's shutdown grace (their requests
@@ -91,6 +91,9 @@ struct HttpServerOptions {
   // Open connections from one client address at most (served, queued or being refused); over -> 503.
   // [1, 100000].
   int max_connections_per_client = 64;
+  // Images in one POST /v1/images/batch at most; more -> 413, nothing stored. [1, 10000]. The whole
+  // request also counts against max_body_bytes.
+  int max_batch_images = 64;
 
   std::optional<std::string> Check() const;
 };
