@@ -962,13 +962,20 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
   tfidf.transitive_depth = 0;
   for (const auto& [name, query_options] : {std::pair<const char*, QueryOptions>{"tf-idf only", tfidf},
                                             std::pair<const char*, QueryOptions>{"full default search", QueryOptions{}}}) {
-    std::vector<double> ms;
+    std::vector<double> ms, quantize, score, verify, qe;
     for (const auto* q : queries) {
       const auto r = idx->Query(*q, query_options);
-      if (r) ms.push_back(r->timings.total_ms);
+      if (!r) continue;
+      ms.push_back(r->timings.total_ms);
+      quantize.push_back(r->timings.quantize_ms);
+      score.push_back(r->timings.score_ms);
+      verify.push_back(r->timings.verify_ms);
+      qe.push_back(r->timings.qe_ms);
     }
-    std::printf("%s: p50 %.1f ms, p99 %.1f ms (%zu real photos, quantisation included)\n", name, Percentile(ms, .5),
-                Percentile(ms, .99), ms.size());
+    std::printf("%s: p50 %.1f ms, p99 %.1f ms (%zu real photos, quantisation included; stage p50s: quantize %.1f, "
+                "score %.1f, verify %.1f (transitive included), qe %.1f)\n",
+                name, Percentile(ms, .5), Percentile(ms, .99), ms.size(), Percentile(quantize, .5),
+                Percentile(score, .5), Percentile(verify, .5), Percentile(qe, .5));
   }
 
   // Adds of single images while another thread searches, then their removal.

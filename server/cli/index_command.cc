@@ -4,6 +4,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <map>
 #include <optional>
 #include <string>
@@ -60,6 +61,23 @@ std::unique_ptr<index::ImageIndex> OpenOrCreate(const std::string& dir, const vo
   return ValueOrExit(index::ImageIndex::Create(dir, vocabulary, SettingsFor(vocabulary), options));
 }
 
+// One job per path, id = id_of(path); a path whose id an earlier one took is reported and skipped.
+std::vector<ImageJob> UniqueIdJobs(const std::vector<std::string>& paths,
+                                   const std::function<std::string(const fs::path&)>& id_of) {
+  std::vector<ImageJob> jobs;
+  std::map<std::string, std::string> seen;
+  for (const auto& p : paths) {
+    const std::string id = id_of(p);
+    auto [it, inserted] = seen.emplace(id, p);
+    if (!inserted) {
+      OXBOW_LOG(kWarning) << "skipping " << p << ": id '" << id << "' already used by " << it->second;
+      continue;
+    }
+    jobs.push_back({id, p});
+  }
+  return jobs;
+}
+
 std::vector<ImageJob> CollectImages(const std::string& images_dir, const std::string& list_file) {
   std::vector<std::string> paths;
   if (!images_dir.empty()) {
@@ -78,18 +96,7 @@ std::vector<ImageJob> CollectImages(const std::string& images_dir, const std::st
       paths.push_back(p.string());
     }
   }
-  std::vector<ImageJob> jobs;
-  std::map<std::string, std::string> seen;
-  for (const auto& p : paths) {
-    const std::string id = fs::path(p).stem().string();
-    auto [it, inserted] = seen.emplace(id, p);
-    if (!inserted) {
-      OXBOW_LOG(kWarning) << "skipping " << p << ": id '" << id << "' already used by " << it->second;
-      continue;
-    }
-    jobs.push_back({id, p});
-  }
-  return jobs;
+  return UniqueIdJobs(paths, [](const fs::path& p) { return p.stem().string(); });
 }
 
 // Every .oxfeat file under `folder` (recursively), id = the image name without its extension
@@ -106,18 +113,7 @@ std::vector<ImageJob> CollectFeatureFiles(const std::string& folder) {
   }
   if (ec) throw CommandError(ExitCodeFor(ErrorCode::kIoError), "cannot list " + folder + ": " + ec.message());
   std::sort(paths.begin(), paths.end());
-  std::vector<ImageJob> jobs;
-  std::map<std::string, std::string> seen;
-  for (const auto& p : paths) {
-    const std::string id = fs::path(p).stem().stem().string();
-    auto [it, inserted] = seen.emplace(id, p);
-    if (!inserted) {
-      OXBOW_LOG(kWarning) << "skipping " << p << ": id '" << id << "' already used by " << it->second;
-      continue;
-    }
-    jobs.push_back({id, p});
-  }
-  return jobs;
+  return UniqueIdJobs(paths, [](const fs::path& p) { return p.stem().stem().string(); });
 }
 
 void PrintJson(const nlohmann::json& j) { std::printf("%s\n", j.dump(2).c_str()); }
