@@ -168,6 +168,7 @@ TEST_F(BatchAddTest, MalformedBatchesAreRefusedWhole) {
   auto server = StartServer({"--max-batch-images", "3"});
   auto client = server->Client();
   std::vector<Upload> four;
+  four.reserve(4);
   for (int i = 0; i < 4; ++i) four.push_back({"cap-" + std::to_string(i), images_[static_cast<size_t>(i)], ""});
   auto res = PostBatch(*server, four);
   ASSERT_TRUE(res);

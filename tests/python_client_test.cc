@@ -28,7 +28,11 @@ TEST_F(PythonClientTest, ClientTestsPassAgainstARealServer) {
       {"a.png", oxbow::testing::Texture(400, 300, "graf1.png", 0, 0)},
       {"b.png", oxbow::testing::Texture(400, 300, "box_in_scene.png", 0, 0)},
       {"c.png", oxbow::testing::Texture(320, 240, "fruits.jpg", 40, 30)}};
-  for (const auto& [name, picture] : pictures) ASSERT_TRUE(cv::imwrite(images + "/" + name, picture));
+  for (const auto& [name, picture] : pictures) {
+    std::string path = images;
+    path.append("/").append(name);
+    ASSERT_TRUE(cv::imwrite(path, picture));
+  }
 
   const std::string key = "python-client-test-key";
   // A small batch cap, so that add_many's batching into several requests is exercised.
