@@ -340,25 +340,44 @@ void InvertedFile::RefreshIfDue() {
 
 // Every live image's sums from the postings. Words are dealt round-robin, in chunks, to a fixed number
 // of groups with their own partial sums, added in group order at the end: the floating-point order,
-// hence the result, is the same for any thread count.
+// hence the result, is the same for any thread count. Each group walks the images in blocks small enough
+// for its partial sums to stay in cache (one cursor per word and segment carries on where the previous
+// block stopped): a posting list's images are far apart, so unblocked updates would miss the cache at
+// almost every posting. Within a block an image still gets its terms in word order, segment order.
 void InvertedFile::RefreshStatistics(int num_threads) {
   stats_df_ = df_;
   stats_num_live_ = num_live_;
   changes_since_refresh_ = 0;
   const size_t num_images = images_.size();
+  std::vector<uint8_t> live(num_images);
+  for (size_t i = 0; i < num_images; ++i) live[i] = images_[i].live != 0 ? 1 : 0;
   constexpr size_t kWordsPerChunk = 4096;
   const size_t num_chunks = (vocabulary_size_ + kWordsPerChunk - 1) / kWordsPerChunk;
   constexpr size_t kGroups = 4;
-  struct Sums {
-    std::vector<double> a, b, c;
+  constexpr size_t kImagesPerBlock = 16384;  // 16384 x 24 bytes of sums per group
+  struct Sum {
+    double a = 0, b = 0, c = 0;
   };
-  std::vector<Sums> partial(kGroups);
+  struct Cursor {
+    const uint8_t* p;
+    const uint8_t* end;
+    uint32_t image;  // of the posting decoded next (p points past it)
+    uint32_t tf;
+    double log_df;
+  };
+  const auto advance = [](Cursor& c) {
+    if (c.p >= c.end) {
+      c.image = std::numeric_limits<uint32_t>::max();
+      return;
+    }
+    const uint64_t v = GetVarint(c.p);
+    c.image += static_cast<uint32_t>(v >> 1);
+    c.tf = (v & 1) != 0 ? static_cast<uint32_t>(GetVarint(c.p)) + 2 : 1;
+  };
+  std::vector<std::vector<Sum>> partial(kGroups);
   ParallelFor(kGroups, num_threads, 1, [&](size_t g0, size_t g1, int) {
     for (size_t g = g0; g < g1; ++g) {
-      Sums& sums = partial[g];
-      sums.a.assign(num_images, 0);
-      sums.b.assign(num_images, 0);
-      sums.c.assign(num_images, 0);
+      std::vector<Cursor> cursors;  // word-major, then segment order
       for (size_t chunk = g; chunk < num_chunks; chunk += kGroups) {
         const size_t w_end = std::min(vocabulary_size_, (chunk + 1) * kWordsPerChunk);
         for (size_t w = chunk * kWordsPerChunk; w < w_end; ++w) {
@@ -366,27 +385,41 @@ void InvertedFile::RefreshStatistics(int num_threads) {
           if (df == 0) continue;
           const double l = std::log(static_cast<double>(df));
           for (const auto& segment : segments_) {
-            segment->ForEach(static_cast<uint32_t>(w), [&](uint32_t image, uint32_t tf) {
-              if (images_[image].live == 0) return;
-              const double t2 = TermWeightSquared(options_.sqrt_tf, tf);
-              sums.a[image] += t2;
-              sums.b[image] += t2 * l;
-              sums.c[image] += t2 * l * l;
-            });
+            const auto [p, list_end] = segment->List(static_cast<uint32_t>(w));
+            if (p == list_end) continue;
+            Cursor c{p, list_end, segment->first_image, 0, l};
+            advance(c);
+            cursors.push_back(c);
           }
         }
+      }
+      std::vector<Sum>& sums = partial[g];
+      sums.assign(num_images, Sum{});
+      for (size_t block_end = kImagesPerBlock;; block_end += kImagesPerBlock) {
+        const auto limit = static_cast<uint32_t>(std::min(block_end, num_images));
+        for (Cursor& c : cursors) {
+          for (; c.image < limit; advance(c)) {
+            if (live[c.image] == 0) continue;
+            const double t2 = TermWeightSquared(options_.sqrt_tf, c.tf);
+            Sum& sum = sums[c.image];
+            sum.a += t2;
+            sum.b += t2 * c.log_df;
+            sum.c += t2 * c.log_df * c.log_df;
+          }
+        }
+        if (block_end >= num_images) break;
       }
     }
   });
   CowArray<ImageState>::Editor editor(&images_);
   for (size_t i = 0; i < num_images; ++i) {
-    if (images_[i].live == 0) continue;
+    if (live[i] == 0) continue;
     ImageState& s = editor.Mutable(i);
     s.a = s.b = s.c = 0;
-    for (const Sums& sums : partial) {
-      s.a += sums.a[i];
-      s.b += sums.b[i];
-      s.c += sums.c[i];
+    for (const std::vector<Sum>& sums : partial) {
+      s.a += sums[i].a;
+      s.b += sums[i].b;
+      s.c += sums[i].c;
     }
   }
 }
@@ -434,8 +467,19 @@ InvertedFile InvertedFile::WithAdded(std::span<const uint32_t> images, std::span
     next.num_live_features_ += s.features;
   }
   next.changes_since_refresh_ += images.size();
-  std::sort(triples.begin(), triples.end(),
-            [](const Triple& x, const Triple& y) { return x.word != y.word ? x.word < y.word : x.image < y.image; });
+  // Into (word, image) order. The triples come in image order, so a stable sort by word suffices: a
+  // counting sort when the batch is large next to the vocabulary (bulk ingest; O(triples + words)),
+  // a comparison sort otherwise (single adds would pay for a vocabulary-sized count table).
+  if (triples.size() * 4 >= vocabulary_size_) {
+    std::vector<uint64_t> start(vocabulary_size_ + 1, 0);
+    for (const Triple& t : triples) ++start[t.word + 1];
+    for (size_t w = 0; w < vocabulary_size_; ++w) start[w + 1] += start[w];
+    std::vector<Triple> sorted(triples.size());
+    for (const Triple& t : triples) sorted[start[t.word]++] = t;
+    triples = std::move(sorted);
+  } else {
+    std::stable_sort(triples.begin(), triples.end(), [](const Triple& x, const Triple& y) { return x.word < y.word; });
+  }
   auto segment = std::make_shared<Segment>();
   segment->first_image = images.front();
   segment->end_image = images.back() + 1;

@@ -272,6 +272,53 @@ TEST(InvertedFileTest, RefreshIsIndependentOfThreads) {
   for (const auto& [id, bag] : live) ASSERT_EQ(one.Norm(id), three.Norm(id)) << id;
 }
 
+// The refresh walks the images in blocks, resuming every posting list where the previous block left it:
+// every image of a collection spanning several blocks and segments, with removed images among them, gets
+// the norm of its tf-idf vector computed from the definition.
+TEST(InvertedFileTest, RefreshGivesEveryImageItsNormAcrossImageBlocks) {
+  std::mt19937_64 rng(11);
+  const size_t vocab = 5000;
+  const TfIdfOptions options{.exact_statistics_postings = 0, .statistics_refresh_fraction = 1};
+  std::map<uint32_t, BagOfWords> live;
+  InvertedFile file(vocab, options);
+  constexpr uint32_t kBatch = 12000;  // four batches: several segments, images beyond two 16384-image blocks
+  for (uint32_t first = 0; first < 4 * kBatch; first += kBatch) {
+    std::vector<uint32_t> ids;
+    std::vector<const BagOfWords*> bags;
+    for (uint32_t i = first; i < first + kBatch; ++i) {
+      std::uniform_int_distribution<uint32_t> word(0, static_cast<uint32_t>(vocab - 1));
+      std::uniform_int_distribution<uint32_t> frequent(0, 3);  // in most images, twice in a quarter of them
+      const std::vector<uint32_t> words = {word(rng), word(rng), word(rng), frequent(rng), frequent(rng)};
+      live[i] = BagOfWords::FromWords(words);
+      ids.push_back(i);
+      bags.push_back(&live[i]);
+    }
+    file = file.WithAdded(ids, bags);
+  }
+  std::vector<uint32_t> gone;
+  std::vector<const BagOfWords*> gone_bags;
+  for (uint32_t i = 5; i < 4 * kBatch; i += 997) {
+    gone.push_back(i);
+    gone_bags.push_back(&live[i]);
+  }
+  file = file.WithRemoved(gone, gone_bags);
+  for (uint32_t i : gone) live.erase(i);
+  const InvertedFile refreshed = file.WithRefreshedStatistics(2);
+  std::vector<double> df(vocab, 0);
+  for (const auto& [id, bag] : live) {
+    for (uint32_t w : bag.words) df[w] += 1;
+  }
+  const auto n = static_cast<double>(live.size());
+  for (const auto& [id, bag] : live) {
+    double sq = 0;
+    for (size_t k = 0; k < bag.words.size(); ++k) {
+      const double x = std::sqrt(static_cast<double>(bag.counts[k])) * std::log(n / df[bag.words[k]]);
+      sq += x * x;
+    }
+    ASSERT_NEAR(refreshed.Norm(id), std::sqrt(sq), 1e-9 * std::sqrt(sq)) << "image " << id;
+  }
+}
+
 TEST(InvertedFileTest, RemovingEverythingLeavesAnEmptyIndex) {
   InvertedFile file(10, {});
   const BagOfWords b0 = Bag({1, 2}), b1 = Bag({2, 3});
