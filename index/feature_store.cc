@@ -25,15 +25,18 @@ PackedFeatures PackedFeatures::Pack(std::span<const sift::Keypoint> keypoints, s
                                     int width, int height) {
   OXBOW_CHECK(keypoints.size() == words.size());
   OXBOW_CHECK(width > 0 && height > 0);
-  std::vector<uint32_t> order(words.size());
-  std::iota(order.begin(), order.end(), 0u);
-  std::stable_sort(order.begin(), order.end(), [&](uint32_t a, uint32_t b) { return words[a] < words[b]; });
+  // By word, ties in input order: sorting (word, position) keys as integers is that stable order and
+  // several times faster than a stable sort of positions through the words.
+  std::vector<uint64_t> order(words.size());
+  for (size_t i = 0; i < words.size(); ++i) order[i] = (static_cast<uint64_t>(words[i]) << 32) | i;
+  std::sort(order.begin(), order.end());
   PackedFeatures out;
   out.width_ = width;
   out.height_ = height;
   out.bytes_.resize(words.size() * kPackedFeatureBytes);
   uint8_t* p = out.bytes_.data();
-  for (const uint32_t i : order) {
+  for (const uint64_t key : order) {
+    const auto i = static_cast<uint32_t>(key);
     const uint32_t w = words[i];
     OXBOW_CHECK(w <= kMaxPackedWord, "word id does not fit 24 bits");
     const sift::Keypoint& k = keypoints[i];
