@@ -34,6 +34,15 @@
 //     another thread searches, remove p50/p99. --reuse 1 skips the ingest and measures the rest on the
 //     folder an earlier run left in DIR (give the same --images and --features).
 //
+//   index_benchmark features --features DIR --vocab V.oxvoc [--threads 1,2] [--repeat 3] [--oxbow PATH]
+//     Ingest of feature files (.oxfeat from `oxbow extract`) against the quantiser's own speed, per
+//     thread count T: the real command `oxbow index build --features DIR --vocab V --threads T` into a
+//     fresh folder (process start, reading the files, quantisation with the index's quantiser settings,
+//     AddBatch, SQLite; wall time of the process), and its peer, the quantiser alone:
+//     Vocabulary::Quantize of the same descriptors (read before the timer) with the same settings and T
+//     threads (parallel over images, as AddBatch). Run alternately, medians of --repeat runs; prints
+//     descriptors/s per thread of both and the ratio.
+//
 //   index_benchmark paris [--data DIR] [--words K] [--max-side PX] [--repeat N] [--cache DIR]
 //                         [--vocab FILE] [--threads T] [--filter TEXT] [--verbose 1]
 //     The Paris subset protocol (../shared/data/README.md): extracts RootSIFT from the 250 images,
@@ -1021,16 +1030,89 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
   return 0;
 }
 
+
+// The real `oxbow index build --features` against the quantiser alone on the same descriptors.
+int RunFeatures(const std::map<std::string, std::string>& flags) {
+  namespace fs = std::filesystem;
+  if (!flags.count("--features") || !flags.count("--vocab")) {
+    std::fprintf(stderr, "usage: index_benchmark features --features DIR --vocab V.oxvoc [...] (see the file comment)\n");
+    return 2;
+  }
+  const std::string folder = flags.at("--features"), vocab_path = flags.at("--vocab");
+  const std::string oxbow = flags.count("--oxbow") ? flags.at("--oxbow")
+                                                   : (fs::canonical("/proc/self/exe").parent_path().parent_path() /
+                                                      "server" / "oxbow").string();
+  const int repeat = static_cast<int>(Flag(flags, "--repeat", 3));
+  std::vector<int> thread_counts;
+  {
+    std::stringstream list(flags.count("--threads") ? flags.at("--threads") : std::string("1,2"));
+    for (std::string t; std::getline(list, t, ',');) thread_counts.push_back(std::stoi(t));
+  }
+  auto vocabulary = vocab::Vocabulary::Read(vocab_path);
+  if (!vocabulary) {
+    std::printf("vocabulary: %s\n", vocabulary.error().ToString().c_str());
+    return 1;
+  }
+  std::vector<sift::FeatureSet> sets;
+  for (const auto& e : fs::recursive_directory_iterator(folder)) {
+    if (e.path().extension() != ".oxfeat") continue;
+    auto file = sift::ReadFeatureFile(e.path().string());
+    if (!file) {
+      std::printf("%s: %s\n", e.path().c_str(), file.error().ToString().c_str());
+      return 1;
+    }
+    sets.push_back(std::move(file->features));
+  }
+  uint64_t descriptors = 0;
+  for (const auto& f : sets) descriptors += f.size();
+  std::printf("%zu feature files, %llu descriptors; vocabulary %zu words; quantiser as the index adds: %d probes\n",
+              sets.size(), static_cast<unsigned long long>(descriptors), vocabulary->size(),
+              IndexOptions{}.quantizer.num_probes);
+  std::printf("| threads | index build --features, descriptors/s per thread | quantiser alone | build / quantiser |\n|---|---|---|---|\n");
+  const fs::path out = fs::temp_directory_path() / ("oxbow-features-bench-" + std::to_string(getpid()));
+  for (const int threads : thread_counts) {
+    std::vector<double> command_s, quantiser_s;
+    for (int r = 0; r < repeat; ++r) {
+      fs::remove_all(out);
+      const std::string command = oxbow + " index build --features '" + folder + "' --vocab '" + vocab_path +
+                                  "' --out '" + out.string() + "' --threads " + std::to_string(threads) +
+                                  " > /dev/null 2>&1";
+      auto t0 = Clock::now();
+      if (std::system(command.c_str()) != 0) {
+        std::printf("failed: %s\n", command.c_str());
+        return 1;
+      }
+      command_s.push_back(Ms(t0, Clock::now()) / 1000);
+      t0 = Clock::now();
+      ParallelFor(sets.size(), threads, 1, [&](size_t b, size_t e, int) {
+        std::vector<uint32_t> words;
+        for (size_t i = b; i < e; ++i) {
+          words.resize(sets[i].size());
+          vocabulary->Quantize(sets[i].descriptors, words, IndexOptions{}.quantizer);
+        }
+      });
+      quantiser_s.push_back(Ms(t0, Clock::now()) / 1000);
+    }
+    const double c = Percentile(command_s, .5), q = Percentile(quantiser_s, .5);
+    const double per_thread = static_cast<double>(descriptors) / threads;
+    std::printf("| %d | %.0f (%.2f s) | %.0f (%.2f s) | %.3f |\n", threads, per_thread / c, c, per_thread / q, q, c / q);
+  }
+  fs::remove_all(out);
+  std::printf("(medians of %d alternating runs; 1-minute load average %.2f)\n", repeat, LoadAverage1());
+  return 0;
+}
+
 }  // namespace
 }  // namespace oxbow::index
 
 int main(int argc, char** argv) {
   const std::string mode = argc >= 2 ? argv[1] : "";
-  if (mode != "synthetic" && mode != "paris" && mode != "storage") {
-    std::fprintf(stderr, "usage: index_benchmark synthetic|paris|storage [--flag value ...] (see the file comment)\n");
+  if (mode != "synthetic" && mode != "paris" && mode != "storage" && mode != "features") {
+    std::fprintf(stderr, "usage: index_benchmark synthetic|paris|storage|features [--flag value ...] (see the file comment)\n");
     return 2;
   }
   const auto flags = oxbow::index::ParseFlags(argc, argv, 2);
   if (mode == "storage") return oxbow::index::RunStorage(flags);
+  if (mode == "features") return oxbow::index::RunFeatures(flags);
   return mode == "synthetic" ? oxbow::index::RunSynthetic(flags) : oxbow::index::RunParis(flags);
 }
