@@ -499,8 +499,8 @@ void SetUp(CLI::App& app) {
       "  oxbow eval --protocol restricted --images ../shared/data/paris6k/images \\\n"
       "             --gt ../shared/data/paris6k/gt --out eval-report\n"
       "Groups protocol (every image queries the rest of the database; positives = the other images of its\n"
-      "group folder; image ids are <group>__<file name without extension>, so groups may reuse file names;\n"
-      "AP non-interpolated; also recall@1, top-4 score with its ceiling, AP per group):\n"
+      "group folder; image ids are <group>__<path inside the group without extension, '/' as __>, so groups\n"
+      "may reuse file names; AP non-interpolated; also recall@1, top-4 score with its ceiling, AP per group):\n"
       "  oxbow eval --protocol groups --images ../shared/data/groups_hard \\\n"
       "             --distractors ../shared/data/distractors --out eval-report");
   cmd->add_option("--protocol", args->protocol,
@@ -516,7 +516,7 @@ void SetUp(CLI::App& app) {
   cmd->add_option("--setting", args->setting, "revisited difficulty: easy, medium, hard")->capture_default_str();
   cmd->add_option("--train-images", args->train_images,
                   "train the vocabulary on these images (recursively) instead of the database (with distractors)");
-  cmd->add_option("--work", args->work, "folder caching vocabularies and indexes between runs")->capture_default_str();
+  cmd->add_option("--work", args->work, "folder caching vocabularies and indexes between runs (one database per folder)")->capture_default_str();
   cmd->add_option("--out", args->out, "report folder (report.md, results.json, plots/)")->capture_default_str();
   cmd->add_option("--features", args->features, "descriptor kinds to compare: sift, rootsift")->delimiter(',')->capture_default_str();
   cmd->add_option("--words", args->words, "vocabulary sizes to compare, e.g. 10000,50000")->delimiter(',')->capture_default_str();
