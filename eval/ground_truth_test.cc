@@ -199,7 +199,9 @@ TEST(ParisSubsetSharedData, RestrictedProtocolMatchesDataReadme) {
 // groups_dev and groups_hard as shipped (tests/shared_data.h), when present: the counts their READMEs state.
 TEST(GroupsSharedData, ShippedSetsLoadWithTheirReadmeCounts) {
   const fs::path data = oxbow::testing::SharedDataDir();
-  if (!fs::exists(data / "groups_dev")) GTEST_SKIP() << "groups data not present at " << data << " (set OXBOW_SHARED_DATA)";
+  for (const char* set : {"groups_dev", "groups_hard", "distractors"}) {
+    if (!fs::exists(data / set)) GTEST_SKIP() << set << " not present in " << data << " (set OXBOW_SHARED_DATA)";
+  }
   auto dev = LoadGroupsProtocol((data / "groups_dev").string());
   ASSERT_TRUE(dev) << dev.error().ToString();  // two of its groups each hold a "03.*"
   EXPECT_EQ(dev->database.size(), 187u);
