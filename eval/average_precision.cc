@@ -35,6 +35,28 @@ double AveragePrecision(std::span<const std::string> ranked, const Relevance& re
   return ap;
 }
 
+double NonInterpolatedAveragePrecision(std::span<const std::string> ranked, const Relevance& relevance) {
+  if (relevance.positives.empty()) return 0.0;
+  const std::vector<int> ranks = PositiveRanks(ranked, relevance);
+  double sum = 0.0;
+  for (size_t j = 0; j < ranks.size(); ++j) sum += static_cast<double>(j + 1) / (ranks[j] + 1.0);
+  return sum / static_cast<double>(relevance.positives.size());
+}
+
+double AveragePrecision(std::span<const std::string> ranked, const Relevance& relevance, ApDefinition definition) {
+  return definition == ApDefinition::kNonInterpolated ? NonInterpolatedAveragePrecision(ranked, relevance)
+                                                      : AveragePrecision(ranked, relevance);
+}
+
+const char* ApDefinitionName(ApDefinition definition) {
+  return definition == ApDefinition::kNonInterpolated ? "non-interpolated" : "Oxford trapezoid";
+}
+
+int PositivesInTopK(std::span<const std::string> ranked, const Relevance& relevance, int k) {
+  const std::vector<int> ranks = PositiveRanks(ranked, relevance);
+  return static_cast<int>(std::count_if(ranks.begin(), ranks.end(), [&](int r) { return r < k; }));
+}
+
 double PrecisionAtK(std::span<const std::string> ranked, const Relevance& relevance, int k) {
   const std::vector<int> ranks = PositiveRanks(ranked, relevance);
   if (ranks.empty() || k <= 0) return 0.0;

@@ -9,6 +9,12 @@
 // Positives never returned contribute nothing (their recall is never reached). With no positives AP is
 // undefined: the reference divides by zero; we return 0 and callers should not include such queries.
 //
+// Groups protocol (groups_dev/groups_hard READMEs, UKBench/Holidays style): non-interpolated AP, the mean
+// over all positives of the precision at the rank where each is found (a positive never returned adds 0):
+//   AP = (1 / |positives|) * sum_j (j + 1) / (r_j + 1),   r_j = 0-based rank of the j-th positive found.
+// The trapezoid averages each positive's precision with the lower one just before it, so it is never
+// above this AP (equal only when no negative precedes a positive): the two are not comparable.
+//
 // Revisited Oxford/Paris (Radenovic et al. 2018, `compute_map` in revisitop): the same AP, and
 // mP@k where for each query kq = min(k, rank of the last retrieved positive) and P = |positives in the
 // first kq| / kq (ranks after junk removal, 1-based); queries without positives are skipped.
@@ -26,8 +32,18 @@ struct Relevance {
   std::unordered_set<std::string> junk;       // ignored: neither helps nor hurts
 };
 
+// Which AP a protocol reports (see above).
+enum class ApDefinition { kOxfordTrapezoid, kNonInterpolated };
+const char* ApDefinitionName(ApDefinition definition);  // "Oxford trapezoid" | "non-interpolated"
+
 // AP of one ranked list of image ids (best first). Duplicated ids count once (later copies are skipped).
 double AveragePrecision(std::span<const std::string> ranked, const Relevance& relevance);
+double NonInterpolatedAveragePrecision(std::span<const std::string> ranked, const Relevance& relevance);
+double AveragePrecision(std::span<const std::string> ranked, const Relevance& relevance, ApDefinition definition);
+
+// Positives among the first k results (junk and duplicates removed): k = 1 gives recall@1 (0 or 1),
+// k = 4 the UKBench-style top-4 score.
+int PositivesInTopK(std::span<const std::string> ranked, const Relevance& relevance, int k);
 
 // Positions (0-based, junk removed, duplicates removed) at which positives appear in the ranked list.
 std::vector<int> PositiveRanks(std::span<const std::string> ranked, const Relevance& relevance);

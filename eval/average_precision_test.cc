@@ -79,6 +79,43 @@ TEST(AveragePrecision, MatchesReferenceLoopOnRandomRankings) {
   }
 }
 
+TEST(NonInterpolatedAveragePrecision, HandComputed) {
+  // The query q is junk (left out of its own ranking). Positives a, b, c; found at ranks 0, 2 (junk
+  // removed); c never returned: AP = (1/1 + 2/3 + 0) / 3.
+  const Relevance rel{{"a", "b", "c"}, {"q"}};
+  const std::vector<std::string> ranked = {"q", "a", "x", "b", "y"};
+  EXPECT_NEAR(NonInterpolatedAveragePrecision(ranked, rel), (1.0 + 2.0 / 3.0) / 3.0, 1e-12);
+  // The same ranking under the Oxford trapezoid: (1/3) * [(1 + 1) / 2 + (1/2 + 2/3) / 2], lower.
+  EXPECT_NEAR(AveragePrecision(ranked, rel), (1.0 + (0.5 + 2.0 / 3.0) / 2.0) / 3.0, 1e-12);
+  EXPECT_DOUBLE_EQ(AveragePrecision(ranked, rel, ApDefinition::kNonInterpolated),
+                   NonInterpolatedAveragePrecision(ranked, rel));
+  EXPECT_DOUBLE_EQ(AveragePrecision(ranked, rel, ApDefinition::kOxfordTrapezoid), AveragePrecision(ranked, rel));
+  // One positive at rank 3 (1-based 4): AP = 1/4 (the trapezoid gives (0 + 1/4) / 2).
+  const Relevance one{{"p"}, {}};
+  const std::vector<std::string> late = {"x", "y", "z", "p"};
+  EXPECT_DOUBLE_EQ(NonInterpolatedAveragePrecision(late, one), 0.25);
+  EXPECT_DOUBLE_EQ(AveragePrecision(late, one), 0.125);
+  // Perfect, empty and duplicated rankings.
+  EXPECT_DOUBLE_EQ(NonInterpolatedAveragePrecision(std::vector<std::string>{"b", "a", "c"}, rel), 1.0);
+  EXPECT_DOUBLE_EQ(NonInterpolatedAveragePrecision({}, rel), 0.0);
+  EXPECT_DOUBLE_EQ(NonInterpolatedAveragePrecision(std::vector<std::string>{"a"}, Relevance{}), 0.0);
+  EXPECT_NEAR(NonInterpolatedAveragePrecision(std::vector<std::string>{"a", "a", "x", "b"}, rel),
+              (1.0 + 2.0 / 3.0) / 3.0, 1e-12);
+}
+
+TEST(PositivesInTopK, RecallAtOneAndTopFour) {
+  // Junk (the query itself) is skipped before counting: the first four results are a, x, b, y.
+  const Relevance rel{{"a", "b", "c", "d", "e"}, {"q"}};
+  const std::vector<std::string> ranked = {"q", "a", "x", "b", "y", "c", "d"};
+  EXPECT_EQ(PositivesInTopK(ranked, rel, 1), 1);
+  EXPECT_EQ(PositivesInTopK(ranked, rel, 4), 2);
+  EXPECT_EQ(PositivesInTopK(ranked, rel, 100), 4);
+  const std::vector<std::string> miss_first = {"x", "a", "b", "c", "d"};
+  EXPECT_EQ(PositivesInTopK(miss_first, rel, 1), 0);
+  EXPECT_EQ(PositivesInTopK(miss_first, rel, 4), 3);
+  EXPECT_EQ(PositivesInTopK(miss_first, rel, 0), 0);
+}
+
 TEST(PrecisionAtK, RevisitedDefinition) {
   // Positives at ranks 1, 3 (1-based, junk removed); the last positive is at rank 3, so kq = min(k, 3).
   const Relevance rel{{"a", "b"}, {"j"}};

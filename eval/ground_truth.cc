@@ -201,47 +201,77 @@ Result<std::vector<std::string>> ListImageIds(const std::string& dir) {
   return ids;
 }
 
-Result<Protocol> LoadGroupsProtocol(const std::string& dir) {
+namespace {
+
+// "<prefix>__<path of file inside root, without extension, '/' written "__">".
+std::string GroupsId(const std::string& prefix, const fs::path& root, const fs::path& file) {
+  std::string id = prefix;
+  const fs::path relative = file.lexically_relative(root);
+  for (auto part = relative.begin(); part != relative.end(); ++part) {
+    id += "__";
+    id += std::next(part) == relative.end() ? part->stem().string() : part->string();
+  }
+  return id;
+}
+
+// Adds every image under `root` to `protocol->files` as GroupsId(prefix, ...); returns the ids added.
+Result<std::vector<std::string>> AddGroupsImages(const std::string& prefix, const fs::path& root,
+                                                 Protocol* protocol) {
+  auto files = sift::ListImageFiles(root.string());
+  if (!files) return std::unexpected(files.error());
+  std::vector<std::string> ids;
+  ids.reserve(files->size());
+  for (const std::string& file : *files) {
+    const std::string id = GroupsId(prefix, root, file);
+    if (const auto [it, added] = protocol->files.emplace(id, file); !added) {
+      std::string message = "'" + file;
+      message += "' and '";
+      message += it->second;
+      message += "' both get the image id '" + id + "'; rename one";
+      return Fail(ErrorCode::kInvalidArgument, message);
+    }
+    protocol->database.push_back(id);
+    ids.push_back(id);
+  }
+  return ids;
+}
+
+}  // namespace
+
+Result<Protocol> LoadGroupsProtocol(const std::string& dir, const std::string& distractors_dir) {
   std::error_code ec;
   if (!fs::is_directory(dir, ec)) return Fail(ErrorCode::kNotFound, "folder '" + dir + "' does not exist");
   Protocol protocol;
   protocol.name = "groups";
-  std::vector<std::vector<std::string>> groups;
+  protocol.ap = ApDefinition::kNonInterpolated;
   std::vector<fs::path> group_dirs;
   for (const auto& entry : fs::directory_iterator(dir)) {
     if (entry.is_directory()) group_dirs.push_back(entry.path());
   }
   std::sort(group_dirs.begin(), group_dirs.end());
-  std::set<std::string> seen;
   for (const fs::path& group_dir : group_dirs) {
-    auto ids = ListImageIds(group_dir.string());
-    if (!ids) return std::unexpected(ids.error());
-    std::vector<std::string> members;
-    for (const std::string& id : *ids) {
-      if (!seen.insert(id).second) {
-        std::string message = "image name '" + id;
-        message += "' appears in more than one group of '";
-        message += dir;
-        message += "': ids are file names and must be unique";
-        return Fail(ErrorCode::kInvalidArgument, message);
-      }
-      members.push_back(id);
-    }
-    if (!members.empty()) groups.push_back(std::move(members));
-  }
-  if (groups.empty()) return Fail(ErrorCode::kNotFound, "no sub-folders with images in '" + dir + "'");
-  for (const auto& members : groups) {
-    for (const std::string& id : members) {
-      protocol.database.push_back(id);
+    const std::string group = group_dir.filename().string();
+    auto members = AddGroupsImages(group, group_dir, &protocol);
+    if (!members) return std::unexpected(members.error());
+    for (const std::string& id : *members) {
       EvalQuery query;
       query.name = id;
       query.image = id;
-      for (const std::string& other : members) {
+      query.group = group;
+      for (const std::string& other : *members) {
         if (other != id) query.relevance.positives.insert(other);
       }
       query.relevance.junk.insert(id);
       if (!query.relevance.positives.empty()) protocol.queries.push_back(std::move(query));
     }
+  }
+  if (protocol.database.empty()) return Fail(ErrorCode::kNotFound, "no sub-folders with images in '" + dir + "'");
+  if (!distractors_dir.empty()) {
+    auto distractors = AddGroupsImages("distractor", distractors_dir, &protocol);
+    if (!distractors) return std::unexpected(distractors.error());
+    if (distractors->empty()) return Fail(ErrorCode::kNotFound, "no images in '" + distractors_dir + "'");
+    protocol.distractors = distractors->size();
+    protocol.name += "+distractors";
   }
   std::sort(protocol.database.begin(), protocol.database.end());
   return protocol;

@@ -11,11 +11,14 @@
 //    scripts/revisited_gt_to_json.py (python3's own pickle); Easy: positives easy, junk junk+hard;
 //    Medium: positives easy+hard, junk junk; Hard: positives hard, junk junk+easy. Queries are not in the
 //    database.
-//  - Groups (UKBench/Holidays style): a folder of sub-folders, one per object; every image queries the
-//    rest; the query itself is junk for its own ranking (it is in the database).
+//  - Groups (UKBench/Holidays style; ../shared/data/groups_dev/README.md): a folder of sub-folders, one
+//    per object; every image queries the rest; the query itself is junk for its own ranking (it is in the
+//    database); optionally a folder of distractors added to the database (never queries, never
+//    positives). Non-interpolated AP.
 #pragma once
 
 #include <array>
+#include <map>
 #include <optional>
 #include <string>
 #include <vector>
@@ -30,12 +33,18 @@ struct EvalQuery {
   std::string image;                           // database image id of the query photo (no extension)
   std::optional<std::array<float, 4>> bbox;    // x1,y1,x2,y2 pixels of the query region
   Relevance relevance;
+  std::string group;                           // groups protocol: the query's group folder
 };
 
 struct Protocol {
   std::string name;                   // e.g. "paris6k-restricted", "roxford5k-medium", "groups"
   std::vector<std::string> database;  // image ids (file name without extension), sorted
   std::vector<EvalQuery> queries;     // sorted by name
+  ApDefinition ap = ApDefinition::kOxfordTrapezoid;
+  // Image file of every database id when ids are not the files' names (groups); empty otherwise: the
+  // id is then the file name without extension in the images folder.
+  std::map<std::string, std::string> files;
+  size_t distractors = 0;             // database images that no query may count as positive
 };
 
 // Reads an Oxford/Paris ground-truth folder. The database is every image named in any list.
@@ -56,9 +65,12 @@ const char* RevisitedSettingName(RevisitedSetting setting);  // "easy" | "medium
                                                      const std::string& name);
 
 // A folder of sub-folders, one per object or place; images with extensions jpg/jpeg/png/ppm/pgm/bmp/
-// tif/tiff/webp. Every image is a query; positives = the other images of its group. Ids are file names
-// without extension, as `oxbow index build` assigns them, so they must be unique across groups.
-[[nodiscard]] Result<Protocol> LoadGroupsProtocol(const std::string& dir);
+// tif/tiff/webp (recursively within a group). Every image is a query; positives = the other images of
+// its group. Photos of different groups may share a file name, so ids are "<group>__<name>" (the path
+// inside the group without extension, each '/' written "__"), mapped to their files in `files`.
+// `distractors_dir` (optional): every image under it, recursively, joins the database as
+// "distractor__<name>". Ids that still collide are refused (kInvalidArgument).
+[[nodiscard]] Result<Protocol> LoadGroupsProtocol(const std::string& dir, const std::string& distractors_dir = "");
 
 // Image ids (file names without extension) of the image files directly inside `dir`, sorted.
 [[nodiscard]] Result<std::vector<std::string>> ListImageIds(const std::string& dir);

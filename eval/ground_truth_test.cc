@@ -4,6 +4,7 @@
 
 #include <filesystem>
 #include <fstream>
+#include <set>
 
 #include "tests/shared_data.h"
 
@@ -104,22 +105,69 @@ TEST_F(GroundTruthTest, RevisitedSettingsFollowRadenovic) {
 }
 
 TEST_F(GroundTruthTest, GroupsProtocol) {
-  fs::create_directories(dir_ / "mug");
-  fs::create_directories(dir_ / "shoe");
-  for (const char* f : {"mug/m1.jpg", "mug/m2.png", "mug/notes.txt", "shoe/s1.jpg", "shoe/s2.jpg", "shoe/s3.JPG"}) {
+  for (const char* f : {"groups/mug/m1.jpg", "groups/mug/m2.png", "groups/mug/notes.txt", "groups/shoe/s1.jpg",
+                        "groups/shoe/s2.jpg", "groups/shoe/s3.JPG", "groups/lonely/only.jpg", "groups/loose.jpg"}) {
+    fs::create_directories((dir_ / f).parent_path());
     Write(f, "x");
   }
-  auto protocol = LoadGroupsProtocol(dir_.string());
+  auto protocol = LoadGroupsProtocol((dir_ / "groups").string());
   ASSERT_TRUE(protocol) << protocol.error().ToString();
-  EXPECT_EQ(protocol->database.size(), 5u);
+  EXPECT_EQ(protocol->name, "groups");
+  EXPECT_EQ(protocol->ap, ApDefinition::kNonInterpolated);
+  // Images directly in the folder belong to no group; a group of one is in the database but queries nothing.
+  EXPECT_EQ(protocol->database, (std::vector<std::string>{"lonely__only", "mug__m1", "mug__m2", "shoe__s1",
+                                                          "shoe__s2", "shoe__s3"}));
+  EXPECT_EQ(protocol->files.at("mug__m2"), (dir_ / "groups/mug/m2.png").string());
+  EXPECT_EQ(protocol->distractors, 0u);
   ASSERT_EQ(protocol->queries.size(), 5u);
-  EXPECT_EQ(protocol->queries[0].image, "m1");
-  EXPECT_EQ(protocol->queries[0].relevance.positives, (std::unordered_set<std::string>{"m2"}));
-  EXPECT_TRUE(protocol->queries[0].relevance.junk.contains("m1"));
-  Write("shoe/m1.jpg", "x");  // same name in two groups: ambiguous ids
-  auto ambiguous = LoadGroupsProtocol(dir_.string());
+  const EvalQuery& m1 = protocol->queries[0];
+  EXPECT_EQ(m1.image, "mug__m1");
+  EXPECT_EQ(m1.group, "mug");
+  EXPECT_EQ(m1.relevance.positives, (std::unordered_set<std::string>{"mug__m2"}));
+  EXPECT_EQ(m1.relevance.junk, (std::unordered_set<std::string>{"mug__m1"}));
+  EXPECT_EQ(protocol->queries[4].relevance.positives, (std::unordered_set<std::string>{"shoe__s1", "shoe__s2"}));
+}
+
+TEST_F(GroundTruthTest, GroupsMayReuseFileNamesAndNestFolders) {
+  // groups_dev ships two groups that each hold a "03.*": their ids differ by group.
+  for (const char* f : {"g/a/03.jpg", "g/a/04.jpg", "g/b/03.png", "g/b/x/03.jpg"}) {
+    fs::create_directories((dir_ / f).parent_path());
+    Write(f, "x");
+  }
+  auto protocol = LoadGroupsProtocol((dir_ / "g").string());
+  ASSERT_TRUE(protocol) << protocol.error().ToString();
+  EXPECT_EQ(protocol->database, (std::vector<std::string>{"a__03", "a__04", "b__03", "b__x__03"}));
+  ASSERT_EQ(protocol->queries.size(), 4u);
+  EXPECT_EQ(protocol->queries[2].name, "b__03");
+  EXPECT_EQ(protocol->queries[2].relevance.positives, (std::unordered_set<std::string>{"b__x__03"}));
+  // Two files of one folder with the same name but another extension would share an id: refused.
+  Write("g/a/04.png", "x");
+  auto ambiguous = LoadGroupsProtocol((dir_ / "g").string());
   ASSERT_FALSE(ambiguous);
   EXPECT_EQ(ambiguous.error().code, ErrorCode::kInvalidArgument);
+  EXPECT_NE(ambiguous.error().message.find("a__04"), std::string::npos) << ambiguous.error().message;
+}
+
+TEST_F(GroundTruthTest, GroupsDistractorsJoinTheDatabaseOnly) {
+  for (const char* f : {"g/a/1.jpg", "g/a/2.jpg", "g/b/1.jpg", "g/b/2.jpg", "d/1.jpg", "d/street/1.jpg",
+                        "d/street/night/2.png", "d/readme.md"}) {
+    fs::create_directories((dir_ / f).parent_path());
+    Write(f, "x");
+  }
+  auto protocol = LoadGroupsProtocol((dir_ / "g").string(), (dir_ / "d").string());
+  ASSERT_TRUE(protocol) << protocol.error().ToString();
+  EXPECT_EQ(protocol->name, "groups+distractors");
+  EXPECT_EQ(protocol->distractors, 3u);
+  EXPECT_EQ(protocol->database.size(), 7u);
+  EXPECT_EQ(protocol->files.at("distractor__street__night__2"), (dir_ / "d/street/night/2.png").string());
+  ASSERT_EQ(protocol->queries.size(), 4u);  // distractors never query
+  for (const EvalQuery& q : protocol->queries) {
+    EXPECT_EQ(q.relevance.positives.size(), 1u) << q.name;  // nor count as positives
+    for (const std::string& id : q.relevance.positives) EXPECT_FALSE(id.starts_with("distractor")) << id;
+  }
+  auto missing = LoadGroupsProtocol((dir_ / "g").string(), (dir_ / "nope").string());
+  ASSERT_FALSE(missing);
+  EXPECT_EQ(missing.error().code, ErrorCode::kNotFound);
 }
 
 // The official Paris ground truth restricted to the 250-image subset (tests/shared_data.h), when present:
@@ -146,6 +194,31 @@ TEST(ParisSubsetSharedData, RestrictedProtocolMatchesDataReadme) {
       EXPECT_EQ(q.relevance.junk.size(), 16u);
     }
   }
+}
+
+// groups_dev and groups_hard as shipped (tests/shared_data.h), when present: the counts their READMEs state.
+TEST(GroupsSharedData, ShippedSetsLoadWithTheirReadmeCounts) {
+  const fs::path data = oxbow::testing::SharedDataDir();
+  for (const char* set : {"groups_dev", "groups_hard", "distractors"}) {
+    if (!fs::exists(data / set)) GTEST_SKIP() << set << " not present in " << data << " (set OXBOW_SHARED_DATA)";
+  }
+  auto dev = LoadGroupsProtocol((data / "groups_dev").string());
+  ASSERT_TRUE(dev) << dev.error().ToString();  // two of its groups each hold a "03.*"
+  EXPECT_EQ(dev->database.size(), 187u);
+  EXPECT_EQ(dev->queries.size(), 187u);
+  std::set<std::string> groups;
+  size_t top4_ceiling = 0;
+  for (const EvalQuery& q : dev->queries) {
+    groups.insert(q.group);
+    top4_ceiling += std::min<size_t>(4, q.relevance.positives.size());
+  }
+  EXPECT_EQ(groups.size(), 36u);
+  EXPECT_NEAR(static_cast<double>(top4_ceiling) / 187.0, 3.47, 0.005);  // the ceiling its README states
+  auto hard = LoadGroupsProtocol((data / "groups_hard").string(), (data / "distractors").string());
+  ASSERT_TRUE(hard) << hard.error().ToString();
+  EXPECT_EQ(hard->queries.size(), 126u);
+  EXPECT_EQ(hard->distractors, 277u);
+  EXPECT_EQ(hard->database.size(), 126u + 277u);
 }
 
 }  // namespace

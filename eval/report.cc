@@ -44,11 +44,15 @@ double Percentile(std::vector<double> values, double p) {
   return values[lo] + (values[hi] - values[lo]) * (rank - lo);
 }
 
-QueryOutcome ScoreRanking(const EvalQuery& query, const std::vector<std::string>& ranking) {
+QueryOutcome ScoreRanking(const EvalQuery& query, const std::vector<std::string>& ranking, ApDefinition definition) {
   QueryOutcome outcome;
   outcome.name = query.name;
-  outcome.ap = AveragePrecision(ranking, query.relevance);
+  outcome.group = query.group;
+  outcome.ap = AveragePrecision(ranking, query.relevance, definition);
   for (int k : kPrecisionKs) outcome.precision_at.push_back(PrecisionAtK(ranking, query.relevance, k));
+  outcome.top1_hits = PositivesInTopK(ranking, query.relevance, 1);
+  outcome.top4_hits = PositivesInTopK(ranking, query.relevance, 4);
+  outcome.top4_ceiling = static_cast<int>(std::min<size_t>(4, query.relevance.positives.size()));
   outcome.pr_curve = PrecisionRecallCurve(ranking, query.relevance);
   outcome.top.assign(ranking.begin(), ranking.begin() + std::min<size_t>(10, ranking.size()));
   return outcome;
@@ -56,10 +60,20 @@ QueryOutcome ScoreRanking(const EvalQuery& query, const std::vector<std::string>
 
 void Summarise(RunResult* run) {
   run->map = 0;
+  run->recall_at_1 = run->top4 = run->top4_ceiling = 0;
+  run->group_ap.clear();
   run->mean_precision_at.assign(std::size(kPrecisionKs), 0.0);
+  std::map<std::string, int> group_queries;
   std::vector<double> latencies, extract, search;
   for (const QueryOutcome& q : run->queries) {
     run->map += q.ap;
+    run->recall_at_1 += q.top1_hits;
+    run->top4 += q.top4_hits;
+    run->top4_ceiling += q.top4_ceiling;
+    if (!q.group.empty()) {
+      run->group_ap[q.group] += q.ap;
+      ++group_queries[q.group];
+    }
     for (size_t i = 0; i < q.precision_at.size() && i < run->mean_precision_at.size(); ++i) {
       run->mean_precision_at[i] += q.precision_at[i];
     }
@@ -72,9 +86,11 @@ void Summarise(RunResult* run) {
     search.push_back(s);
   }
   if (!run->queries.empty()) {
-    run->map /= run->queries.size();
-    for (double& p : run->mean_precision_at) p /= run->queries.size();
+    const auto n = static_cast<double>(run->queries.size());
+    for (double* mean : {&run->map, &run->recall_at_1, &run->top4, &run->top4_ceiling}) *mean /= n;
+    for (double& p : run->mean_precision_at) p /= n;
   }
+  for (auto& [group, ap] : run->group_ap) ap /= group_queries[group];
   run->query_p50_ms = Percentile(latencies, 50);
   run->query_p95_ms = Percentile(latencies, 95);
   run->extract_p50_ms = Percentile(extract, 50);
@@ -96,7 +112,13 @@ nlohmann::json RunToJson(const RunResult& run) {
   r["protocol"] = run.protocol;
   r["label"] = run.label;
   r["settings"] = run.settings;
+  r["ap_definition"] = ApDefinitionName(run.ap_definition);
   r["map"] = run.map;
+  r["recall_at_1"] = run.recall_at_1;
+  r["top4"] = run.top4;
+  r["top4_ceiling"] = run.top4_ceiling;
+  r["group_ap"] = run.group_ap;
+  r["distractors"] = run.distractors;
   r["mean_precision_at"] = {{"1", run.mean_precision_at.at(0)}, {"5", run.mean_precision_at.at(1)},
                             {"10", run.mean_precision_at.at(2)}};
   r["build_vocab_s"] = run.build_vocab_s;
@@ -114,7 +136,9 @@ nlohmann::json RunToJson(const RunResult& run) {
     nlohmann::json pr = nlohmann::json::array();
     for (const PrPoint& p : q.pr_curve) pr.push_back({p.recall, p.precision});
     r["queries"].push_back({{"name", q.name},
+                            {"group", q.group},
                             {"ap", q.ap},
+                            {"top4_hits", q.top4_hits},
                             {"precision_at", q.precision_at},
                             {"latency_ms", q.latency_ms},
                             {"stage_ms", q.stage_ms},
@@ -221,15 +245,17 @@ Status WriteMapVsVocabularyChart(const std::string& dir, const std::vector<RunRe
 }
 
 void WriteSummaryTable(std::ostream& md, const std::vector<RunResult>& runs) {
-  md << "| protocol | configuration | mAP | mP@1 | mP@5 | mP@10 | query p50 ms | p95 ms | extract p50 ms | "
-        "search p50 ms | images | features | B/feature |\n";
-  md << "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
+  md << "| protocol | configuration | mAP | AP | recall@1 | top-4 (ceiling) | mP@1 | mP@5 | mP@10 | "
+        "query p50 ms | p95 ms | extract p50 ms | search p50 ms | images | distractors | features | B/feature |\n";
+  md << "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
   for (const RunResult& run : runs) {
     md << "| " << run.protocol << " | " << run.label << " | **" << Fixed(run.map) << "** | "
-       << Fixed(run.mean_precision_at.at(0)) << " | " << Fixed(run.mean_precision_at.at(1)) << " | "
-       << Fixed(run.mean_precision_at.at(2)) << " | " << Fixed(run.query_p50_ms, 1) << " | "
+       << ApDefinitionName(run.ap_definition) << " | " << Fixed(run.recall_at_1) << " | " << Fixed(run.top4, 2)
+       << " (" << Fixed(run.top4_ceiling, 2) << ") | " << Fixed(run.mean_precision_at.at(0)) << " | "
+       << Fixed(run.mean_precision_at.at(1)) << " | " << Fixed(run.mean_precision_at.at(2)) << " | "
+       << Fixed(run.query_p50_ms, 1) << " | "
        << Fixed(run.query_p95_ms, 1) << " | " << Fixed(run.extract_p50_ms, 1) << " | " << Fixed(run.search_p50_ms, 1)
-       << " | " << run.index_images << " | " << run.index_features << " | " << Fixed(run.index_bytes_per_feature, 1)
+       << " | " << run.index_images << " | " << run.distractors << " | " << run.index_features << " | " << Fixed(run.index_bytes_per_feature, 1)
        << " |\n";
   }
 }
@@ -268,6 +294,26 @@ void WriteSettings(std::ostream& md, const std::vector<RunResult>& runs) {
     }
     md << "; vocabulary build " << Fixed(run.build_vocab_s, 1) << " s, index build " << Fixed(run.build_index_s, 1)
        << " s\n";
+  }
+}
+
+// Groups protocol: one row per group of the first run, one column per run.
+void WriteGroupApTable(std::ostream& md, const std::vector<RunResult>& runs) {
+  if (runs.empty() || runs[0].group_ap.empty()) return;
+  std::map<std::string, int> queries_per_group;
+  for (const QueryOutcome& q : runs[0].queries) ++queries_per_group[q.group];
+  md << "\n## AP per group (" << ApDefinitionName(runs[0].ap_definition) << ", mean over its queries)\n\n| group | queries |";
+  for (const RunResult& run : runs) md << " " << run.label << " |";
+  md << "\n|---|---|";
+  for (size_t i = 0; i < runs.size(); ++i) md << "---|";
+  md << "\n";
+  for (const auto& [group, count] : queries_per_group) {
+    md << "| " << group << " | " << count << " |";
+    for (const RunResult& run : runs) {
+      const auto it = run.group_ap.find(group);
+      md << " " << (it == run.group_ap.end() ? "-" : Fixed(it->second)) << " |";
+    }
+    md << "\n";
   }
 }
 
@@ -310,6 +356,7 @@ Status WriteReport(const std::string& dir, const std::vector<RunResult>& runs, c
   WriteSummaryTable(md, runs);
   WriteStageTable(md, runs);
   WriteSettings(md, runs);
+  WriteGroupApTable(md, runs);
   WriteApTable(md, runs);
   md << "\n## Plots\n\n";
   for (const std::string& f : plot_files) md << "![" << f << "](" << f << ")\n\n";

@@ -21,6 +21,10 @@ struct QueryOutcome {
   double latency_ms = 0;                  // client-observed wall time of the search request
   std::map<std::string, double> stage_ms; // server-reported stage timings
   std::vector<std::string> top;           // first ids of the ranking (for the report)
+  std::string group;                      // groups protocol: the query's group
+  int top1_hits = 0;                      // positives among the first 1 / 4 results
+  int top4_hits = 0;
+  int top4_ceiling = 0;                   // min(4, positives): the best top4_hits possible
 };
 
 // One configuration evaluated on one protocol.
@@ -28,8 +32,13 @@ struct RunResult {
   std::string protocol;                          // e.g. "paris6k-restricted"
   std::string label;                             // short configuration label, e.g. "rootsift 20k +rerank"
   std::map<std::string, std::string> settings;   // every setting that shaped the numbers
+  ApDefinition ap_definition = ApDefinition::kOxfordTrapezoid;
   double map = 0;                                // mean AP over queries
   std::vector<double> mean_precision_at;         // mP@1, @5, @10
+  double recall_at_1 = 0;                        // share of queries whose first result is a positive
+  double top4 = 0, top4_ceiling = 0;             // mean positives in the first 4 results, and its best value
+  std::map<std::string, double> group_ap;        // groups protocol: mean AP of each group's queries
+  size_t distractors = 0;                        // database images that are never positives (groups)
   std::vector<QueryOutcome> queries;
   double build_vocab_s = 0, build_index_s = 0;   // wall time (0 when reused from the work folder)
   double query_p50_ms = 0, query_p95_ms = 0;     // per-query latency
@@ -40,11 +49,13 @@ struct RunResult {
   uint64_t vocabulary_words = 0;
 };
 
-// Fills map, mean_precision_at and the latency percentiles from the per-query outcomes.
+// Fills map, mean_precision_at, recall@1, top-4, per-group AP and the latency percentiles from the
+// per-query outcomes.
 void Summarise(RunResult* run);
 
-// Scores a ranking against a query's relevance (AP, mP@1/5/10, PR curve, top 10).
-QueryOutcome ScoreRanking(const EvalQuery& query, const std::vector<std::string>& ranking);
+// Scores a ranking against a query's relevance (AP as `definition`, mP@1/5/10, recall@1, top-4, PR
+// curve, top 10).
+QueryOutcome ScoreRanking(const EvalQuery& query, const std::vector<std::string>& ranking, ApDefinition definition);
 
 // Writes report.md, results.json and plots/*.png into `dir` (created if missing).
 [[nodiscard]] Status WriteReport(const std::string& dir, const std::vector<RunResult>& runs,

@@ -1,13 +1,15 @@
-// A tiny end-to-end evaluation in CI: `oxbow eval --protocol groups` on a dozen opencv-doc photos
-// (four pairs of views of one object or scene, plus unrelated photos as distractors) trains a
-// vocabulary, builds an index, serves it on an ephemeral loopback port, runs every query through the
-// HTTP API and writes the report. The full Paris evaluation is a command (README), not a test.
+// A tiny end-to-end evaluation in CI: `oxbow eval --protocol groups --distractors` on a dozen opencv-doc
+// photos (four pairs of views of one object or scene, named 1.* and 2.* in every group as groups_dev
+// reuses names; unrelated photos in a nested distractor folder) trains a vocabulary, builds an index,
+// serves it on an ephemeral loopback port, runs every query through the HTTP API and writes the report.
+// The full Paris and groups evaluations are commands (README), not tests.
 #include <gtest/gtest.h>
 #include <sys/wait.h>
 
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <set>
 #include <string>
 
 #include <nlohmann/json.hpp>
@@ -36,22 +38,25 @@ TEST(EvalEndToEnd, GroupsProtocolThroughTheHttpServer) {
       {"graf", {"graf1.png", "graf3.png"}},
       {"leuven", {"leuvenA.jpg", "leuvenB.jpg"}},
       {"aero", {"aero1.jpg", "aero3.jpg"}},
-      {"d1", {"baboon.jpg"}},
-      {"d2", {"fruits.jpg"}},
-      {"d3", {"building.jpg"}},
-      {"d4", {"home.jpg"}},
   };
   for (const auto& [group, files] : groups) {
     fs::create_directories(dir / "images" / group);
-    for (const std::string& file : files) {
-      ASSERT_TRUE(fs::exists(kSamples / file)) << "opencv-doc sample missing: " << file;
-      fs::copy_file(kSamples / file, dir / "images" / group / file);
+    for (size_t i = 0; i < files.size(); ++i) {
+      ASSERT_TRUE(fs::exists(kSamples / files[i])) << "opencv-doc sample missing: " << files[i];
+      fs::copy_file(kSamples / files[i], dir / "images" / group / (std::to_string(i + 1) + fs::path(files[i]).extension().string()));
     }
   }
-  const std::string command = std::string(OXBOW_BINARY) + " eval --protocol groups --images " +
-                              (dir / "images").string() + " --work " + (dir / "work").string() + " --out " +
-                              (dir / "report").string() +
-                              " --features rootsift --words 400 --sample 60000 --rerank 0,100 --qe off --threads 2";
+  for (const char* file : {"baboon.jpg", "fruits.jpg", "building.jpg", "home.jpg"}) {
+    ASSERT_TRUE(fs::exists(kSamples / file)) << "opencv-doc sample missing: " << file;
+    const fs::path target = dir / "distractors" / (std::string(file) == "building.jpg" ? "city" : "") / file;
+    fs::create_directories(target.parent_path());
+    fs::copy_file(kSamples / file, target);
+  }
+  const std::string base = std::string(OXBOW_BINARY) + " eval --protocol groups --images " +
+                           (dir / "images").string() + " --work " + (dir / "work").string() + " --out " +
+                           (dir / "report").string() +
+                           " --features rootsift --words 400 --sample 60000 --rerank 0,100 --qe off --threads 2";
+  const std::string command = base + " --distractors " + (dir / "distractors").string();
   std::string output;
   const int exit_code = RunShell(command, &output);
   ASSERT_EQ(exit_code, 0) << output;
@@ -67,6 +72,19 @@ TEST(EvalEndToEnd, GroupsProtocolThroughTheHttpServer) {
   EXPECT_EQ(reranked["settings"]["path"], "http");
   EXPECT_EQ(reranked["queries"].size(), 8u);  // every image of the four pairs queries the rest
   EXPECT_EQ(reranked["index"]["images"].get<int>(), 12);
+  EXPECT_EQ(reranked["distractors"].get<int>(), 4);
+  EXPECT_EQ(reranked["settings"]["distractors"], "4 images from " + (dir / "distractors").string());
+  EXPECT_EQ(reranked["ap_definition"], "non-interpolated");
+  EXPECT_EQ(reranked["group_ap"].size(), 4u);
+  EXPECT_DOUBLE_EQ(reranked["top4_ceiling"].get<double>(), 1.0);  // one positive per query
+  // Ids are <group>__<name>: every group's "1" is its own image, and the distractors are listed too.
+  std::set<std::string> returned;
+  for (const auto& q : reranked["queries"]) {
+    for (const auto& id : q["top"]) returned.insert(id.get<std::string>());
+  }
+  for (const char* id : {"box__1", "graf__1", "leuven__2", "aero__2", "distractor__city__building"}) {
+    EXPECT_TRUE(returned.contains(id)) << id << "\n" << output;
+  }
   // Each image's other view should rank at or near the top once verified; an unrelated pipeline
   // (random ranking of 11 candidates) scores about 0.27 here.
   EXPECT_GT(reranked["map"].get<double>(), 0.6) << output;
@@ -80,6 +98,10 @@ TEST(EvalEndToEnd, GroupsProtocolThroughTheHttpServer) {
   const auto second = nlohmann::json::parse(in2);
   EXPECT_EQ(second["runs"][1]["build_index_s"].get<double>(), 0.0);
   EXPECT_DOUBLE_EQ(second["runs"][1]["map"].get<double>(), reranked["map"].get<double>());
+  // The cached index holds the distractors: a run without them must not score it as if it did not.
+  std::string without;
+  EXPECT_EQ(RunShell(base, &without), 2) << without;
+  EXPECT_NE(without.find("use another --work"), std::string::npos) << without;
   fs::remove_all(dir);
 }
 

@@ -43,6 +43,7 @@ using Clock = std::chrono::steady_clock;
 struct EvalArgs {
   std::string protocol = "oxford";       // oxford | restricted | revisited | groups
   std::string images;                    // database images folder
+  std::string distractors;               // groups: images added to the database, never queries or positives
   std::string gt;                        // ground-truth folder (oxford/restricted) or JSON (revisited)
   std::string setting = "medium";        // revisited: easy | medium | hard
   std::string train_images;              // vocabulary training images (default: the database images)
@@ -171,21 +172,46 @@ class ServerProcess {
   std::thread reader_;
 };
 
-// Image files under `dir` (recursively, as the groups protocol nests them), by id (file name without
-// extension), in name order.
-// Image files under `dir` by id (file name without extension), listed as every command lists a folder.
-std::map<std::string, std::string> ImageFiles(const std::string& dir) {
+// The database image files by id: the protocol's own map (groups), else the files of --images by name
+// without extension (listed as every command lists a folder).
+std::map<std::string, std::string> DatabaseFiles(const EvalArgs& a, const eval::Protocol& protocol) {
+  if (!protocol.files.empty()) return protocol.files;
   std::map<std::string, std::string> files;
-  for (const std::string& path : ValueOrExit(sift::ListImageFiles(dir))) files.emplace(fs::path(path).stem().string(), path);
+  for (const std::string& path : ValueOrExit(sift::ListImageFiles(a.images))) {
+    files.emplace(fs::path(path).stem().string(), path);
+  }
   return files;
 }
 
-// Writes the paths of `files` to a list file for `oxbow vocab train --list` / `oxbow index build --list`.
-std::string WriteList(const std::map<std::string, std::string>& files, const fs::path& path) {
+// Writes `paths` to a list file for `oxbow vocab train --list` / `oxbow index build --list`.
+std::string WriteList(const std::vector<std::string>& paths, const fs::path& path) {
   std::ofstream out(path);
-  for (const auto& [id, file] : files) out << file << "\n";
+  for (const std::string& file : paths) out << file << "\n";
   if (!out) throw CommandError(7, "cannot write '" + path.string() + "'");
   return path.string();
+}
+
+// Paths under which `oxbow index build` gives each file its id: `index build` names an image after its
+// file, so a file whose name is not its id is listed through a symbolic link <id><extension> in
+// `links_dir` (made once, kept with the work folder).
+std::vector<std::string> PathsNamedById(const std::map<std::string, std::string>& files, const fs::path& links_dir) {
+  std::vector<std::string> paths;
+  paths.reserve(files.size());
+  for (const auto& [id, file] : files) {
+    if (fs::path(file).stem().string() == id) {
+      paths.push_back(file);
+      continue;
+    }
+    const fs::path link = links_dir / (id + fs::path(file).extension().string());
+    std::error_code ec;
+    fs::create_directories(links_dir, ec);
+    const fs::path target = fs::absolute(file, ec);
+    if (fs::is_symlink(link, ec) && fs::read_symlink(link, ec) != target) fs::remove(link, ec);
+    if (!fs::is_symlink(link, ec)) fs::create_symlink(target, link, ec);
+    if (ec) throw CommandError(7, "cannot link '" + link.string() + "' to '" + file + "': " + ec.message());
+    paths.push_back(link.string());
+  }
+  return paths;
 }
 
 std::string ReadBytes(const std::string& path) {
@@ -202,13 +228,16 @@ struct Config {
 };
 
 // Trains the vocabulary and builds the index of one configuration unless the work folder has them.
-void Prepare(const EvalArgs& a, const Config& c, const std::string& exe, eval::RunResult* base) {
+void Prepare(const EvalArgs& a, const Config& c, const std::map<std::string, std::string>& database,
+             const std::string& exe, eval::RunResult* base) {
   fs::create_directories(c.Dir(a.work));
   const std::string vocab = (fs::path(c.Dir(a.work)) / "vocabulary.oxvoc").string();
   const std::string index = (fs::path(c.Dir(a.work)) / "index").string();
+  const std::vector<std::string> database_paths = PathsNamedById(database, fs::path(a.work) / "images-by-id");
   if (!fs::exists(vocab)) {
-    const std::string list = WriteList(ImageFiles(a.train_images.empty() ? a.images : a.train_images),
-                                       fs::path(c.Dir(a.work)) / "train_images.txt");
+    const std::vector<std::string> training =
+        a.train_images.empty() ? database_paths : ValueOrExit(sift::ListImageFiles(a.train_images));
+    const std::string list = WriteList(training, fs::path(c.Dir(a.work)) / "train_images.txt");
     std::vector<std::string> args = {exe, "vocab", "train", "--list", list,
                                      "--words", std::to_string(c.words), "--out", vocab, "--sample",
                                      std::to_string(a.sample), "--seed", std::to_string(a.seed)};
@@ -220,14 +249,24 @@ void Prepare(const EvalArgs& a, const Config& c, const std::string& exe, eval::R
     RunChild(args);
     base->build_vocab_s = std::chrono::duration<double>(Clock::now() - t0).count();
   }
-  if (!index::ImageIndex::Exists(index) || !fs::exists(fs::path(c.Dir(a.work)) / "index.complete")) {
-    const std::string list = WriteList(ImageFiles(a.images), fs::path(c.Dir(a.work)) / "database_images.txt");
+  const fs::path list_path = fs::path(c.Dir(a.work)) / "database_images.txt";
+  const fs::path complete = fs::path(c.Dir(a.work)) / "index.complete";
+  if (index::ImageIndex::Exists(index) && fs::exists(complete)) {
+    // A cached index of other images (another folder, distractors or not) would score the wrong database.
+    std::string listed;
+    for (const std::string& p : database_paths) listed += p + "\n";
+    if (ReadBytes(list_path.string()) != listed) {
+      throw CommandError(2, "the work folder " + a.work + " holds an index of other images than " + list_path.string() +
+                                " lists for this run; use another --work");
+    }
+  } else {
+    const std::string list = WriteList(database_paths, list_path);
     std::vector<std::string> args = {exe, "index", "build", "--vocab", vocab, "--list", list, "--out", index};
     if (a.threads > 0) args.insert(args.end(), {"--threads", std::to_string(a.threads)});
     const auto t0 = Clock::now();
     RunChild(args);
     base->build_index_s = std::chrono::duration<double>(Clock::now() - t0).count();
-    std::ofstream(fs::path(c.Dir(a.work)) / "index.complete") << "ok\n";
+    std::ofstream(complete) << "ok\n";
   }
 }
 
@@ -237,9 +276,8 @@ std::string BoxParam(const std::array<float, 4>& b) {
   return s.str();
 }
 
-void RunHttp(const EvalArgs& a, const eval::Protocol& protocol, int port, int rerank, bool qe, bool transitive,
-             int top_k, eval::RunResult* run) {
-  const auto files = ImageFiles(a.images);
+void RunHttp(const EvalArgs& a, const eval::Protocol& protocol, const std::map<std::string, std::string>& files,
+             int port, int rerank, bool qe, bool transitive, int top_k, eval::RunResult* run) {
   httplib::Client client("127.0.0.1", port);
   client.set_read_timeout(300, 0);
   client.set_write_timeout(60, 0);
@@ -262,7 +300,7 @@ void RunHttp(const EvalArgs& a, const eval::Protocol& protocol, int port, int re
     const auto json = nlohmann::json::parse(response->body);
     std::vector<std::string> ranking;
     for (const auto& r : json.at("results")) ranking.push_back(r.at("id").get<std::string>());
-    eval::QueryOutcome outcome = eval::ScoreRanking(q, ranking);
+    eval::QueryOutcome outcome = eval::ScoreRanking(q, ranking, protocol.ap);
     outcome.latency_ms = ms;
     for (const auto& [stage, value] : json.at("timings_ms").items()) {
       outcome.stage_ms[stage == "decode_extract" ? "extract" : stage] = value.get<double>();
@@ -272,9 +310,8 @@ void RunHttp(const EvalArgs& a, const eval::Protocol& protocol, int port, int re
   }
 }
 
-void RunInProcess(const EvalArgs& a, const eval::Protocol& protocol, const index::ImageIndex& idx, int rerank, bool qe,
-                  bool transitive, int top_k, eval::RunResult* run) {
-  const auto files = ImageFiles(a.images);
+void RunInProcess(const EvalArgs& a, const eval::Protocol& protocol, const std::map<std::string, std::string>& files,
+                  const index::ImageIndex& idx, int rerank, bool qe, bool transitive, int top_k, eval::RunResult* run) {
   auto options = ValueOrExit(sift::SiftOptions::FromDescription(idx.extractor_settings()));
   options.num_threads = a.threads;
   const auto extractor = ValueOrExit(sift::SiftExtractor::Create(options));
@@ -296,7 +333,7 @@ void RunInProcess(const EvalArgs& a, const eval::Protocol& protocol, const index
     std::vector<std::string> ranking;
     ranking.reserve(response.results.size());
     for (const auto& r : response.results) ranking.push_back(r.id);
-    eval::QueryOutcome outcome = eval::ScoreRanking(q, ranking);
+    eval::QueryOutcome outcome = eval::ScoreRanking(q, ranking, protocol.ap);
     outcome.latency_ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
     outcome.stage_ms = {{"extract", extract_ms},
                         {"quantize", response.timings.quantize_ms},
@@ -309,7 +346,8 @@ void RunInProcess(const EvalArgs& a, const eval::Protocol& protocol, const index
 }
 
 eval::Protocol LoadProtocol(const EvalArgs& a) {
-  if (a.protocol == "groups") return ValueOrExit(eval::LoadGroupsProtocol(a.images));
+  if (a.protocol == "groups") return ValueOrExit(eval::LoadGroupsProtocol(a.images, a.distractors));
+  if (!a.distractors.empty()) throw CommandError(2, "--distractors is for the groups protocol");
   if (a.protocol == "revisited") {
     eval::RevisitedSetting setting = eval::RevisitedSetting::kMedium;
     if (a.setting == "easy") setting = eval::RevisitedSetting::kEasy;
@@ -365,7 +403,9 @@ void Run(const EvalArgs& a, const std::string& command_line) {
   }
   if (protocol.queries.empty()) throw CommandError(2, "the protocol has no query with a positive image");
   OXBOW_LOG(kInfo) << "eval: protocol " << protocol.name << ": " << protocol.queries.size() << " queries, "
-                   << protocol.database.size() << " database images";
+                   << protocol.database.size() << " database images (" << protocol.distractors << " distractors), AP "
+                   << eval::ApDefinitionName(protocol.ap);
+  const std::map<std::string, std::string> database = DatabaseFiles(a, protocol);
   const int top_k = a.top_k > 0 ? a.top_k : static_cast<int>(std::min<size_t>(10000, protocol.database.size()));
   const std::string exe = SelfExe();
   fs::create_directories(a.work);
@@ -376,7 +416,9 @@ void Run(const EvalArgs& a, const std::string& command_line) {
       const Config config{features, words};
       eval::RunResult base;
       base.protocol = protocol.name;
-      Prepare(a, config, exe, &base);
+      base.ap_definition = protocol.ap;
+      base.distractors = protocol.distractors;
+      Prepare(a, config, database, exe, &base);
       const std::string index_dir = (fs::path(config.Dir(a.work)) / "index").string();
       auto idx = ValueOrExit(index::ImageIndex::Open(index_dir));
       const index::IndexStats stats = idx->Stats();
@@ -412,18 +454,22 @@ void Run(const EvalArgs& a, const std::string& command_line) {
                             {"transitive", rerank > 0 && transitive ? "on" : "off"},
                             {"search_defaults", SearchDefaults()},
                             {"query_region", a.full_image ? "full image" : "ground-truth box"},
+                            {"ap", eval::ApDefinitionName(protocol.ap)},
+                            {"distractors", a.distractors.empty() ? "none"
+                                                                  : std::to_string(protocol.distractors) +
+                                                                        " images from " + a.distractors},
                             {"top_k", std::to_string(top_k)},
                             {"path", mode},
                             {"extractor", stats.vocabulary_size ? "oxbow SIFT (index settings)" : ""}};
             if (mode == "http") {
-              RunHttp(a, protocol, server->port(), rerank, qe, transitive, top_k, &run);
+              RunHttp(a, protocol, database, server->port(), rerank, qe, transitive, top_k, &run);
             } else {
               if (!idx) idx = ValueOrExit(index::ImageIndex::Open(index_dir));
-              RunInProcess(a, protocol, *idx, rerank, qe, transitive, top_k, &run);
+              RunInProcess(a, protocol, database, *idx, rerank, qe, transitive, top_k, &run);
             }
             eval::Summarise(&run);
             OXBOW_LOG(kInfo) << "eval: " << protocol.name << " | " << run.label << " | mAP " << run.map
-                             << " | query p50 " << run.query_p50_ms << " ms";
+                             << " | recall@1 " << run.recall_at_1 << " | query p50 " << run.query_p50_ms << " ms";
             runs.push_back(std::move(run));
           }
         }
@@ -431,10 +477,13 @@ void Run(const EvalArgs& a, const std::string& command_line) {
     }
   }
   OkOrExit(eval::WriteReport(a.out, runs, command_line));
-  std::printf("%-28s %-36s %8s %10s\n", "protocol", "configuration", "mAP", "p50 ms");
+  std::printf("%-28s %-36s %8s %9s %13s %10s\n", "protocol", "configuration", "mAP", "recall@1", "top-4 (max)",
+              "p50 ms");
   for (const auto& run : runs) {
-    std::printf("%-28s %-36s %8.4f %10.1f\n", run.protocol.c_str(), run.label.c_str(), run.map, run.query_p50_ms);
+    std::printf("%-28s %-36s %8.4f %9.4f %5.2f (%5.2f) %10.1f\n", run.protocol.c_str(), run.label.c_str(), run.map,
+                run.recall_at_1, run.top4, run.top4_ceiling, run.query_p50_ms);
   }
+  std::printf("AP: %s\n", eval::ApDefinitionName(protocol.ap));
   std::printf("report: %s/report.md\n", a.out.c_str());
 }
 
@@ -448,16 +497,26 @@ void SetUp(CLI::App& app) {
       "ephemeral loopback port and runs every query through the HTTP API.\n"
       "Example (the Paris subset, restricted protocol):\n"
       "  oxbow eval --protocol restricted --images ../shared/data/paris6k/images \\\n"
-      "             --gt ../shared/data/paris6k/gt --out eval-report");
+      "             --gt ../shared/data/paris6k/gt --out eval-report\n"
+      "Groups protocol (every image queries the rest of the database; positives = the other images of its\n"
+      "group folder; image ids are <group>__<path inside the group without extension, '/' as __>, so groups\n"
+      "may reuse file names; AP non-interpolated; also recall@1, top-4 score with its ceiling, AP per group):\n"
+      "  oxbow eval --protocol groups --images ../shared/data/groups_hard \\\n"
+      "             --distractors ../shared/data/distractors --out eval-report");
   cmd->add_option("--protocol", args->protocol,
                   "oxford (good/ok/junk folder), restricted (the same, limited to the images present), "
-                  "revisited (JSON from scripts/revisited_gt_to_json.py), groups (a folder of sub-folders)")
+                  "revisited (JSON from scripts/revisited_gt_to_json.py), groups (a folder of sub-folders, one per "
+                  "object or place)")
       ->capture_default_str();
   cmd->add_option("--images", args->images, "database images folder (groups: the folder of group folders)")->required();
+  cmd->add_option("--distractors", args->distractors,
+                  "groups: every image under this folder (recursively) joins the database as "
+                  "distractor__<name>; never a query, never a positive");
   cmd->add_option("--gt", args->gt, "ground truth: folder of *_query.txt etc. (oxford, restricted) or JSON (revisited)");
   cmd->add_option("--setting", args->setting, "revisited difficulty: easy, medium, hard")->capture_default_str();
-  cmd->add_option("--train-images", args->train_images, "train the vocabulary on these images instead of the database");
-  cmd->add_option("--work", args->work, "folder caching vocabularies and indexes between runs")->capture_default_str();
+  cmd->add_option("--train-images", args->train_images,
+                  "train the vocabulary on these images (recursively) instead of the database (with distractors)");
+  cmd->add_option("--work", args->work, "folder caching vocabularies and indexes between runs (one database per folder)")->capture_default_str();
   cmd->add_option("--out", args->out, "report folder (report.md, results.json, plots/)")->capture_default_str();
   cmd->add_option("--features", args->features, "descriptor kinds to compare: sift, rootsift")->delimiter(',')->capture_default_str();
   cmd->add_option("--words", args->words, "vocabulary sizes to compare, e.g. 10000,50000")->delimiter(',')->capture_default_str();
