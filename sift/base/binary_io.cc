@@ -3,8 +3,8 @@
 #include <fcntl.h>
 #include <sys/stat.h>
 #include <unistd.h>
+#include <zlib.h>
 
-#include <array>
 #include <cerrno>
 #include <filesystem>
 #include <random>
@@ -13,16 +13,6 @@ namespace oxbow::io {
 namespace {
 
 constexpr uint32_t kByteOrderTag = 0x01020304u;
-
-std::array<uint32_t, 256> MakeCrcTable() {
-  std::array<uint32_t, 256> table{};
-  for (uint32_t i = 0; i < 256; ++i) {
-    uint32_t c = i;
-    for (int k = 0; k < 8; ++k) c = (c & 1) ? 0xEDB88320u ^ (c >> 1) : c >> 1;
-    table[i] = c;
-  }
-  return table;
-}
 
 std::string ErrnoText() { return std::strerror(errno); }
 
@@ -81,11 +71,13 @@ Status WritePiecesAtomically(const std::string& path, std::span<const std::span<
 
 }  // namespace
 
+// zlib's CRC-32 is the same function (IEEE polynomial, same pre- and post-inversion, so stored
+// checksums keep their values) and several times faster than a byte-at-a-time table; every index open
+// and feature BLOB write checksums gigabytes at scale. zlib returns 0 for a null buffer: an empty span
+// leaves the running value unchanged.
 uint32_t Crc32(std::span<const uint8_t> bytes, uint32_t crc) {
-  static const std::array<uint32_t, 256> table = MakeCrcTable();
-  crc = ~crc;
-  for (uint8_t b : bytes) crc = table[(crc ^ b) & 0xFFu] ^ (crc >> 8);
-  return ~crc;
+  if (bytes.empty()) return crc;
+  return static_cast<uint32_t>(crc32_z(crc, bytes.data(), bytes.size()));
 }
 
 Status WriteFileAtomically(const std::string& path, std::span<const uint8_t> bytes) {

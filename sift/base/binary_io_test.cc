@@ -44,6 +44,17 @@ TEST(Crc32, MatchesKnownValue) {
             0xCBF43926u);
 }
 
+// Checksums are chained over pieces (a file header, then its payload): the running value carries over,
+// and an empty piece (possibly a null pointer) leaves it unchanged.
+TEST(Crc32, ChainsOverPiecesAndSkipsEmptyOnes) {
+  const std::string text = "123456789";
+  const auto bytes = std::span<const uint8_t>(reinterpret_cast<const uint8_t*>(text.data()), text.size());
+  const uint32_t head = Crc32(bytes.first(4));
+  EXPECT_EQ(Crc32(bytes.subspan(4), head), 0xCBF43926u);
+  EXPECT_EQ(Crc32(std::span<const uint8_t>(), head), head);
+  EXPECT_EQ(Crc32(std::span<const uint8_t>()), 0u);
+}
+
 TEST_F(BinaryIoTest, RoundTrip) {
   ASSERT_TRUE(WriteContainerFile(path_, "OXBWTEST", 3, 5, Payload()));
   auto read = ReadContainerFile(path_, "OXBWTEST", 1, 3);
