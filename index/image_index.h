@@ -93,7 +93,7 @@
 
 namespace oxbow::index {
 
-inline constexpr int kSchemaVersion = 1;  // version of catalogue.sqlite's schema and of the feature BLOBs
+inline constexpr int kSchemaVersion = 2;  // version of catalogue.sqlite's schema (1 is migrated at open)
 
 // Options fixed for the life of an open index (scoring behaviour and performance).
 struct IndexOptions {
