@@ -109,6 +109,9 @@ Result<std::shared_ptr<const MappedFile>> MappedFile::Open(const std::string& pa
       ::close(fd);
       return Fail(ErrorCode::kIoError, "cannot map " + path + ": " + message);
     }
+    // Re-ranking reads a few images' features at random places: no read-ahead around them, so that
+    // only the pages in use are resident.
+    ::madvise(data, size, MADV_RANDOM);
   }
   ::close(fd);  // the mapping stays valid
   return std::shared_ptr<const MappedFile>(new MappedFile(static_cast<const uint8_t*>(data), size));

@@ -266,11 +266,15 @@ namespace {
 
 using SnapshotPtr = std::shared_ptr<ImageIndex::Snapshot>;
 
+bool RecordMatches(const ImageRecord& record, const PackedFeatures& features) {
+  return features.size() == record.num_features && features.width() == record.width &&
+         features.height() == record.height;
+}
+
 // What Open's validation of a BLOB also checks: the record agrees with its features.
 Status CheckEntry(const ImageRecord& record, const PackedFeatures& features, size_t vocabulary_size,
                   const std::string& where) {
-  if (features.size() != record.num_features || features.width() != record.width ||
-      features.height() != record.height) {
+  if (!RecordMatches(record, features)) {
     return Fail(ErrorCode::kCorruptData, where + ": image '" + record.id + "' record disagrees with its features");
   }
   if (features.size() > 0 && features.word(features.size() - 1) >= vocabulary_size) {
@@ -414,7 +418,9 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
           return Ok();
         }
         const auto n = static_cast<uint32_t>(row.number);
-        if (!stored[n] || !inverted->IsLive(n) || !CheckEntry(row.record, *stored[n], vocab_size, path)) {
+        // The words were checked when the image was added; reading them here would page in every
+        // mapped geometry page.
+        if (!stored[n] || !inverted->IsLive(n) || !RecordMatches(row.record, *stored[n])) {
           if (inconsistency.empty()) inconsistency = "image '" + row.record.id + "' differs from the catalogue";
           return Ok();
         }
