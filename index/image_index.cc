@@ -7,7 +7,9 @@
 #include <filesystem>
 #include <functional>
 #include <map>
+#include <condition_variable>
 #include <mutex>
+#include <thread>
 #include <numeric>
 #include <optional>
 #include <span>
@@ -131,6 +133,7 @@ struct QueryFeatures {
 std::optional<std::string> IndexOptions::Check() const {
   if (auto e = ToTfIdf(*this).Check()) return e;
   if (num_threads < 0 || num_threads > 256) return "num_threads must be in [0, 256]";
+  if (checkpoint_changes < 1 || checkpoint_changes >= (uint64_t{1} << 32)) return "checkpoint_changes must be in [1, 2^32)";
   if (auto e = quantizer.Check()) return "quantizer: " + *e;
   return std::nullopt;
 }
@@ -201,6 +204,11 @@ struct ImageIndex::Impl {
 
   CheckpointManifest checkpoint;                // the last committed one; guarded by writer_mutex
   uint64_t changes_since_checkpoint = 0;        // images added + removed since; guarded by writer_mutex
+  bool checkpoint_forced = false;               // Open rebuilt: checkpoint now; guarded by writer_mutex
+  bool closing = false;                         // guarded by writer_mutex
+  uint64_t pending_after_failure = 0;           // changes of failed background checkpoints (for Close)
+  std::condition_variable checkpoint_due;       // with writer_mutex: wakes the checkpointer
+  std::thread checkpointer;                     // runs CheckpointLoop
 
   mutable std::mutex snapshot_mutex;            // guards only the `snapshot` pointer
   std::shared_ptr<const Snapshot> snapshot;
@@ -220,10 +228,19 @@ struct ImageIndex::Impl {
   Result<QueryResponse> Run(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
                             QueryTimings timings) const;
 
-  // Writes a checkpoint of `snap` (which must reflect every committed catalogue change) and makes it
-  // the current one (checkpoint.h); writer_mutex held or the index not yet shared.
-  Status WriteCheckpoint(const Snapshot& snap);
-  // Checkpoints pending changes at clean close; a failure is logged (the next open replays them).
+  // A checkpoint of `snap` (which must reflect every committed catalogue change) in two steps
+  // (checkpoint.h): CheckpointFiles writes the files without holding writer_mutex, after `previous`
+  // (the current checkpoint, copied under the lock); CommitCheckpoint (writer_mutex held) records the
+  // manifest and deletes unreferenced files. The checkpoint covers `changes` of changes_since_checkpoint.
+  Result<CheckpointManifest> CheckpointFiles(const Snapshot& snap, const CheckpointManifest& previous) const;
+  Status CommitCheckpoint(CheckpointManifest next, uint64_t changes);
+  bool CheckpointDue() const;  // writer_mutex held
+  // Writes checkpoints in the background while the index is open (started by Open and Create).
+  void CheckpointLoop();
+  // After a write (writer_mutex held): counts it and wakes the checkpointer when one is due.
+  void Changed(uint64_t images);
+  // Stops the checkpointer and checkpoints pending changes; a failure is logged (the next open
+  // replays them from the catalogue).
   void Close();
 
   // An image ready to commit: validated, quantised, packed and serialised (no shared state used).
@@ -478,15 +495,16 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
 ImageIndex::ImageIndex(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
 ImageIndex::~ImageIndex() { impl_->Close(); }
 
-Status ImageIndex::Impl::WriteCheckpoint(const Snapshot& snap) {
+Result<CheckpointManifest> ImageIndex::Impl::CheckpointFiles(const Snapshot& snap,
+                                                             const CheckpointManifest& previous) const {
   CheckpointManifest next;
-  next.generation = checkpoint.generation + 1;
+  next.generation = previous.generation + 1;
   next.sqrt_tf = index_options.sqrt_tf;
   const size_t num_numbers = snap.entries.size();
   next.high_water = num_numbers > 0 ? static_cast<int64_t>(num_numbers) - 1 : 0;
   // Geometry files are immutable: the previous ones stay (images removed since are skipped at open),
   // new ones hold the images above the previous high water.
-  for (const CheckpointFile& f : checkpoint.files) {
+  for (const CheckpointFile& f : previous.files) {
     if (f.name.starts_with("geometry-")) next.files.push_back(f);
   }
   const std::string generation = std::to_string(next.generation);
@@ -502,41 +520,87 @@ Status ImageIndex::Impl::WriteCheckpoint(const Snapshot& snap) {
     part_bytes = 0;
     return Ok();
   };
-  const size_t first = checkpoint.files.empty() ? 0 : static_cast<size_t>(checkpoint.high_water) + 1;
+  const size_t first = previous.files.empty() ? 0 : static_cast<size_t>(previous.high_water) + 1;
   for (size_t n = first; n < num_numbers; ++n) {
     const Entry* entry = snap.entries[n].get();
     if (!entry) continue;
     part.push_back({static_cast<uint32_t>(n), entry->features});
     part_bytes += entry->features.bytes().size();
     if (part_bytes >= kGeometryPartBytes) {
-      if (auto s = write_part(); !s) return s;
+      if (auto s = write_part(); !s) return std::unexpected(s.error());
     }
   }
   if (!part.empty()) {
-    if (auto s = write_part(); !s) return s;
+    if (auto s = write_part(); !s) return std::unexpected(s.error());
   }
   auto postings = WriteCheckpointFile(dir, "postings-" + generation + ".oxck",
                                       [&](const ByteSink& sink) { snap.inverted.Serialize(sink); });
   if (!postings) return std::unexpected(postings.error());
   next.files.push_back(std::move(*postings));
   CheckpointStage("files-written");
+  return next;
+}
+
+Status ImageIndex::Impl::CommitCheckpoint(CheckpointManifest next, uint64_t changes) {
   if (auto s = catalogue->SetCheckpoint(next.Format()); !s) return s;
   CheckpointStage("manifest-committed");
   checkpoint = std::move(next);
+  changes_since_checkpoint -= changes;
+  checkpoint_forced = false;
   RemoveUnreferencedCheckpointFiles(dir, checkpoint);
   CheckpointStage("cleaned");
   return Ok();
 }
 
-void ImageIndex::Impl::Close() {
-  std::lock_guard<std::mutex> writer(writer_mutex);
-  if (changes_since_checkpoint == 0 || !catalogue) return;
-  if (auto s = WriteCheckpoint(*Current()); !s) {
-    OXBOW_LOG(kWarning) << "index " << dir << ": cannot write a checkpoint at close (" << s.error().message
-                        << "); the next open replays the changes from the catalogue";
-    return;
+bool ImageIndex::Impl::CheckpointDue() const {
+  const uint64_t live = Current()->inverted.num_images();
+  return checkpoint_forced || changes_since_checkpoint >= std::max(index_options.checkpoint_changes, live / 10);
+}
+
+void ImageIndex::Impl::Changed(uint64_t images) {
+  changes_since_checkpoint += images;
+  if (CheckpointDue()) checkpoint_due.notify_one();
+}
+
+void ImageIndex::Impl::CheckpointLoop() {
+  std::unique_lock<std::mutex> lock(writer_mutex);
+  while (true) {
+    checkpoint_due.wait(lock, [&] { return closing || CheckpointDue(); });
+    if (closing) return;
+    const auto snap = Current();
+    const uint64_t changes = changes_since_checkpoint;
+    const CheckpointManifest previous = checkpoint;
+    lock.unlock();  // writers go on while the files are written
+    auto next = CheckpointFiles(*snap, previous);
+    lock.lock();
+    const Status status = next ? CommitCheckpoint(std::move(*next), changes) : Status(std::unexpected(next.error()));
+    if (!status) {
+      OXBOW_LOG(kWarning) << "index " << dir << ": cannot write a checkpoint (" << status.error().message
+                          << "); trying again after as many changes, and at close";
+      changes_since_checkpoint -= std::min(changes_since_checkpoint, changes);
+      checkpoint_forced = false;
+      pending_after_failure += changes;
+    }
   }
-  changes_since_checkpoint = 0;
+}
+
+void ImageIndex::Impl::Close() {
+  {
+    std::lock_guard<std::mutex> writer(writer_mutex);
+    closing = true;
+  }
+  checkpoint_due.notify_one();
+  if (checkpointer.joinable()) checkpointer.join();
+  std::lock_guard<std::mutex> writer(writer_mutex);
+  changes_since_checkpoint += pending_after_failure;
+  if ((changes_since_checkpoint == 0 && !checkpoint_forced) || !catalogue) return;
+  auto next = CheckpointFiles(*Current(), checkpoint);
+  const Status status = next ? CommitCheckpoint(std::move(*next), changes_since_checkpoint)
+                             : Status(std::unexpected(next.error()));
+  if (!status) {
+    OXBOW_LOG(kWarning) << "index " << dir << ": cannot write a checkpoint at close (" << status.error().message
+                        << "); the next open replays the changes from the catalogue";
+  }
 }
 
 bool ImageIndex::Exists(const std::string& dir) {
@@ -574,6 +638,7 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Create(const std::string& dir, c
   auto snap = std::make_shared<Snapshot>(InvertedFile(vocabulary.size(), ToTfIdf(options)));
   for (auto& shard : snap->ids) shard = std::make_shared<IdShard>();
   impl->snapshot = std::move(snap);
+  impl->checkpointer = std::thread([raw = impl.get()] { raw->CheckpointLoop(); });
   return std::unique_ptr<ImageIndex>(new ImageIndex(std::move(impl)));
 }
 
@@ -623,14 +688,12 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, con
   if (auto writable = (*catalogue)->OpenForWriting(); !writable) return std::unexpected(writable.error());
   impl->catalogue = std::move(*catalogue);
   if (rebuild) {
-    if (auto s = impl->WriteCheckpoint(*snap); !s) {
-      OXBOW_LOG(kWarning) << "index " << dir << ": cannot write a checkpoint (" << s.error().message
-                          << "); the next open rebuilds from the catalogue again";
-    }
+    impl->checkpoint_forced = true;  // written in the background: the index is ready now
   } else {
     RemoveUnreferencedCheckpointFiles(dir, impl->checkpoint);  // leftovers of a crash
   }
   impl->snapshot = std::move(snap);
+  impl->checkpointer = std::thread([raw = impl.get()] { raw->CheckpointLoop(); });
   return std::unique_ptr<ImageIndex>(new ImageIndex(std::move(impl)));
 }
 
@@ -725,7 +788,7 @@ Result<ImageRecord> ImageIndex::Impl::Write(const std::string& id, const sift::F
   const std::array<Prepared*, 1> images = {&*prepared};
   Link(numbers, images, *next);
   Publish(std::move(next));
-  changes_since_checkpoint += old ? 2 : 1;
+  Changed(old ? 2 : 1);
   return record;
 }
 
@@ -782,7 +845,7 @@ std::vector<Result<ImageRecord>> ImageIndex::AddBatch(std::span<const BatchImage
   auto next = std::make_shared<Snapshot>(*current);
   Impl::Link(committed, linked, *next);
   impl_->Publish(std::move(next));
-  impl_->changes_since_checkpoint += committed.size();
+  impl_->Changed(committed.size());
   for (const size_t i : chosen) results[i] = prepared[i].entry->record;
   return results;
 }
@@ -813,7 +876,7 @@ Status ImageIndex::Remove(const std::string& id) {
   auto next = std::make_shared<Snapshot>(*current);
   Impl::Unlink(*current, n, *entry, *next);
   impl_->Publish(std::move(next));
-  ++impl_->changes_since_checkpoint;
+  impl_->Changed(1);
   return Ok();
 }
 

@@ -118,6 +118,10 @@ struct IndexOptions {
   // Threads used by Open to rebuild the index and by Query for re-ranking; 0 = all hardware threads.
   // [0, 256]. Results do not depend on it.
   int num_threads = 0;
+  // Checkpoints (index/checkpoint.h): a background thread writes one once the images added + removed
+  // since the last exceed max(checkpoint_changes, 10% of the live images); Open replays at most that
+  // many images from their BLOBs. Close writes one when anything changed. [1, 2^32).
+  uint64_t checkpoint_changes = 10000;
   // Search parameters of the vocabulary quantiser: Add uses them as they are, Query with
   // QueryOptions::quantizer_probes instead of num_probes. Deliberately more probes when adding (16,
   // vocab::QuantizerOptions) than when querying (8): adding is paid once per image, and 8 probes at

@@ -959,7 +959,8 @@ class CheckpointFixture : public Fixture {
   }
   // In a child process: opens the index, runs `body`, then dies by SIGKILL (no close, no checkpoint),
   // at the end of body or at checkpoint stage `kill_at`.
-  void InChildThenKill(const std::function<void(ImageIndex&)>& body, const std::string& kill_at = "") {
+  void InChildThenKill(const std::function<void(ImageIndex&)>& body, const std::string& kill_at = "",
+                       const IndexOptions& options = {}) {
     const pid_t pid = fork();
     ASSERT_GE(pid, 0);
     if (pid == 0) {
@@ -968,9 +969,10 @@ class CheckpointFixture : public Fixture {
           if (stage == kill_at) ::raise(SIGKILL);
         });
       }
-      auto index = ImageIndex::Open(dir_.string());
+      auto index = ImageIndex::Open(dir_.string(), options);
       if (!index) ::_exit(2);
       body(**index);
+      if (::testing::Test::HasFailure()) ::_exit(3);  // the parent's check of the exit status fails
       if (!kill_at.empty()) index->reset();  // close: writes the checkpoint, killed at `kill_at`
       ::raise(SIGKILL);
     }
@@ -1081,9 +1083,11 @@ TEST_F(CheckpointFixture, DamagedTruncatedOrMissingFilesAreRepairedFromTheCatalo
       damage(dir_ / target);
       auto index = ImageIndex::Open(dir_.string());
       ASSERT_TRUE(index) << index.error().ToString();
-      // Rebuilt from the catalogue and checkpointed again (generation 2); the old files are gone.
-      EXPECT_EQ(CheckpointFiles(dir_), (std::vector<std::string>{"geometry-2-0.oxck", "postings-2.oxck"}));
       ExpectEqualsFresh(**index, Range(0, 20));
+      // Rebuilt from the catalogue and checkpointed again (generation 2, in the background or at the
+      // latest at close); the old files are gone.
+      index->reset();
+      EXPECT_EQ(CheckpointFiles(dir_), (std::vector<std::string>{"geometry-2-0.oxck", "postings-2.oxck"}));
     }
   }
 }
@@ -1165,6 +1169,33 @@ TEST_F(CheckpointFixture, VersionOneCatalogueIsMigratedInPlace) {
   ASSERT_TRUE(index) << index.error().ToString();
   std::vector<int> live = Range(0, 11);
   live.push_back(12);
+  ExpectEqualsFresh(**index, live);
+}
+
+TEST_F(CheckpointFixture, BackgroundCheckpointWhileWritingIsConsistent) {
+  CreateIndex();
+  IndexOptions options;
+  options.checkpoint_changes = 4;
+  InChildThenKill([&](ImageIndex& index) {
+    for (int i = 0; i < 40; ++i) ASSERT_TRUE(index.Add("i" + std::to_string(i), Image(i), {}));
+    ASSERT_TRUE(index.Remove("i7"));
+    // Wait (at most 60 s) for a background checkpoint after the one of the open's rebuild (there was
+    // none before), then die without closing.
+    const auto later_checkpoint = [&] {
+      const auto files = CheckpointFiles(dir_);
+      return std::any_of(files.begin(), files.end(),
+                         [](const std::string& f) { return f.starts_with("postings-") && f != "postings-1.oxck"; });
+    };
+    for (int t = 0; t < 600 && !later_checkpoint(); ++t) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    ASSERT_TRUE(later_checkpoint());
+  }, "", options);
+  std::vector<int> live = Range(0, 40);
+  live.erase(live.begin() + 7);
+  auto index = ImageIndex::Open(dir_.string());
+  ASSERT_TRUE(index) << index.error().ToString();
+  // Opened from a background checkpoint (no rebuild: no generation above the last one written).
+  const auto files = CheckpointFiles(dir_);
+  EXPECT_EQ(std::count_if(files.begin(), files.end(), [](const std::string& f) { return f.starts_with("postings-"); }), 1);
   ExpectEqualsFresh(**index, live);
 }
 
