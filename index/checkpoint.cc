@@ -199,9 +199,11 @@ Status VerifyCheckpointFile(const std::string& dir, const CheckpointFile& file) 
     const ssize_t n = ::read(fd, buffer.data(), buffer.size());
     if (n < 0 && errno == EINTR) continue;
     if (n < 0) {
-      const std::string message = Errno();
+      std::string message = "cannot read checkpoint file " + path;
+      message += ": ";
+      message += Errno();
       ::close(fd);
-      return Fail(ErrorCode::kIoError, "cannot read checkpoint file " + path + ": " + message);
+      return Fail(ErrorCode::kIoError, message);
     }
     if (n == 0) break;
     crc = Crc(crc, std::span(buffer.data(), static_cast<size_t>(n)));

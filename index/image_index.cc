@@ -458,6 +458,7 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
     removed_bags.push_back(stored[n]->Bag());
   }
   std::vector<const BagOfWords*> bag_pointers;
+  bag_pointers.reserve(removed_bags.size());
   for (const BagOfWords& bag : removed_bags) bag_pointers.push_back(&bag);
   *inverted = inverted->WithRemoved(removed, bag_pointers);
 
@@ -483,6 +484,7 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
     return Fail(ErrorCode::kCorruptData, path + " is damaged: image '" + added.begin()->second.id + "' has no features");
   }
   bag_pointers.clear();
+  bag_pointers.reserve(added_bags.size());
   for (const BagOfWords& bag : added_bags) bag_pointers.push_back(&bag);
   *inverted = inverted->WithAdded(added_numbers, bag_pointers);
   out.changes = removed.size() + added_numbers.size();
