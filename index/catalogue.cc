@@ -259,6 +259,9 @@ Status Catalogue::OpenForWriting() {
       return s;
     }
     meta_.schema_version = kSchemaVersion;
+    // The migration went through the WAL (about twice the BLOBs' size): copy it into the database and
+    // give its space back now rather than when the index closes. Best effort: a reader may hold it.
+    sqlite3_exec((*db)->handle, "PRAGMA wal_checkpoint(TRUNCATE)", nullptr, nullptr, nullptr);
   }
   if (auto s = Prepare(db->get(), path_); !s) return s;
   db_ = std::move(*db);  // closes the read-only connection, which never checkpoints
