@@ -356,6 +356,7 @@ struct LoadedCheckpoint {
 // inconsistent checkpoint file gives a null snapshot (and a log line); an error is a catalogue failure.
 Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue& catalogue, size_t vocab_size,
                                         const IndexOptions& options) {
+  const auto t0 = Clock::now();
   LoadedCheckpoint out;
   const auto unusable = [&](const std::string& why) {
     OXBOW_LOG(kWarning) << "index " << dir << ": checkpoint unusable (" << why
@@ -419,6 +420,7 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
     }
   }
 
+  const double files_ms = MsSince(t0);
   // The catalogue's records (not its BLOBs): those up to the high water take their features from
   // the checkpoint; those above were added since.
   std::vector<std::shared_ptr<const Entry>> by_number(stored.size());
@@ -448,6 +450,7 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
   if (!status) return std::unexpected(status.error());
   if (!inconsistency.empty()) return unusable(inconsistency);
 
+  const double records_ms = MsSince(t0) - files_ms;
   // Removed since: live in the checkpoint, gone from the catalogue.
   std::vector<uint32_t> removed;
   std::vector<BagOfWords> removed_bags;
@@ -488,6 +491,10 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
   for (const BagOfWords& bag : added_bags) bag_pointers.push_back(&bag);
   *inverted = inverted->WithAdded(added_numbers, bag_pointers);
   out.changes = removed.size() + added_numbers.size();
+  OXBOW_LOG(kInfo) << "index " << dir << ": opened from checkpoint generation " << manifest->generation << " in "
+                   << MsSince(t0) << " ms (files verified and loaded " << files_ms << " ms, records " << records_ms
+                   << " ms, replay of " << out.changes << " changes " << MsSince(t0) - files_ms - records_ms
+                   << " ms)";
   out.snapshot = MakeSnapshot(std::move(*inverted), by_number);
   return out;
 }
