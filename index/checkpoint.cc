@@ -4,7 +4,7 @@
 #include <sys/mman.h>
 #include <sys/stat.h>
 #include <unistd.h>
-#include <zlib.h>
+#include <xxhash.h>
 
 #include <algorithm>
 #include <cerrno>
@@ -37,15 +37,22 @@ bool IsCheckpointFileName(const std::string& name) {
   return ours && (name.ends_with(".oxck") || name.ends_with(".oxck.tmp"));
 }
 
-uint32_t Crc(uint32_t crc, std::span<const uint8_t> bytes) {
-  // zlib takes a uInt length: feed it in pieces.
-  constexpr size_t kPiece = size_t{1} << 30;
-  for (size_t i = 0; i < bytes.size(); i += kPiece) {
-    const size_t n = std::min(kPiece, bytes.size() - i);
-    crc = static_cast<uint32_t>(crc32(crc, bytes.data() + i, static_cast<uInt>(n)));
+// XXH3-64 of a byte stream.
+class Checksum {
+ public:
+  Checksum() : state_(XXH3_createState()) {
+    OXBOW_CHECK(state_ != nullptr, "out of memory");
+    XXH3_64bits_reset(state_);
   }
-  return crc;
-}
+  ~Checksum() { XXH3_freeState(state_); }
+  Checksum(const Checksum&) = delete;
+  Checksum& operator=(const Checksum&) = delete;
+  void Update(std::span<const uint8_t> bytes) { XXH3_64bits_update(state_, bytes.data(), bytes.size()); }
+  uint64_t Digest() const { return XXH3_64bits_digest(state_); }
+
+ private:
+  XXH3_state_t* state_;
+};
 
 std::function<void(std::string_view)>& StageHook() {
   static std::function<void(std::string_view)> hook;
@@ -64,7 +71,7 @@ std::string CheckpointManifest::Format() const {
   std::ostringstream out;
   out << kManifestHeader << "\ngeneration " << generation << "\nhigh_water " << high_water << "\nsqrt_tf "
       << (sqrt_tf ? 1 : 0) << "\n";
-  for (const CheckpointFile& f : files) out << "file " << f.name << " " << f.size_bytes << " " << f.crc32 << "\n";
+  for (const CheckpointFile& f : files) out << "file " << f.name << " " << f.size_bytes << " " << f.checksum << "\n";
   return out.str();
 }
 
@@ -82,7 +89,7 @@ Result<CheckpointManifest> CheckpointManifest::Parse(const std::string& text) {
   m.sqrt_tf = sqrt_tf != 0;
   while (in >> key) {
     CheckpointFile f;
-    if (key != "file" || !(in >> f.name >> f.size_bytes >> f.crc32)) return bad();
+    if (key != "file" || !(in >> f.name >> f.size_bytes >> f.checksum)) return bad();
     // Names come from this code; anything else (a path) is not ours to open or delete.
     if (!IsCheckpointFileName(f.name) || f.name.find('/') != std::string::npos) return bad();
     m.files.push_back(std::move(f));
@@ -128,6 +135,7 @@ Result<CheckpointFile> WriteCheckpointFile(const std::string& dir, const std::st
   const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
   if (fd < 0) return Fail(ErrorCode::kIoError, "cannot create " + tmp + ": " + Errno());
   CheckpointFile file{.name = name};
+  Checksum checksum;
   std::vector<uint8_t> buffer;
   buffer.reserve(size_t{1} << 20);
   bool ok = true;
@@ -147,7 +155,7 @@ Result<CheckpointFile> WriteCheckpointFile(const std::string& dir, const std::st
     buffer.clear();
   };
   produce([&](std::span<const uint8_t> bytes) {
-    file.crc32 = Crc(file.crc32, bytes);
+    checksum.Update(bytes);
     file.size_bytes += bytes.size();
     if (buffer.size() + bytes.size() > buffer.capacity()) flush();
     if (bytes.size() >= buffer.capacity()) {
@@ -158,6 +166,7 @@ Result<CheckpointFile> WriteCheckpointFile(const std::string& dir, const std::st
     }
   });
   flush();
+  file.checksum = checksum.Digest();
   CheckpointStage("file-unsynced");
   if (ok && ::fsync(fd) != 0) {
     ok = false;
@@ -194,7 +203,7 @@ Status VerifyCheckpointFile(const std::string& dir, const CheckpointFile& file) 
   }
   std::vector<uint8_t> buffer(size_t{4} << 20);
   uint64_t size = 0;
-  uint32_t crc = 0;
+  Checksum checksum;
   while (true) {
     const ssize_t n = ::read(fd, buffer.data(), buffer.size());
     if (n < 0 && errno == EINTR) continue;
@@ -206,7 +215,7 @@ Status VerifyCheckpointFile(const std::string& dir, const CheckpointFile& file) 
       return Fail(ErrorCode::kIoError, message);
     }
     if (n == 0) break;
-    crc = Crc(crc, std::span(buffer.data(), static_cast<size_t>(n)));
+    checksum.Update(std::span(buffer.data(), static_cast<size_t>(n)));
     size += static_cast<uint64_t>(n);
   }
   ::close(fd);
@@ -214,7 +223,7 @@ Status VerifyCheckpointFile(const std::string& dir, const CheckpointFile& file) 
     return Fail(ErrorCode::kCorruptData, "checkpoint file " + path + " has " + std::to_string(size) +
                                              " bytes, its manifest says " + std::to_string(file.size_bytes));
   }
-  if (crc != file.crc32) return Fail(ErrorCode::kCorruptData, "checkpoint file " + path + " fails its checksum");
+  if (checksum.Digest() != file.checksum) return Fail(ErrorCode::kCorruptData, "checkpoint file " + path + " fails its checksum");
   return Ok();
 }
 

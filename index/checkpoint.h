@@ -14,7 +14,7 @@
 // The manifest (CheckpointManifest::Format(), stored in catalogue meta key `checkpoint`) names the
 // generation, the high water (every image number up to it is covered: the catalogue's rows up to it
 // are the checkpoint's images minus those removed since; rows above it were added since) and each
-// file with its size and CRC-32 (zlib). Writing a checkpoint:
+// file with its size and XXH3-64 checksum. Writing a checkpoint:
 //   1. each file: written as <name>.tmp, fsync'ed, renamed to <name>, the folder fsync'ed;
 //   2. the manifest committed in one SQLite transaction: the commit point;
 //   3. files no manifest names deleted (also at every open: the leftovers of a crash).
@@ -42,7 +42,7 @@ inline constexpr uint64_t kGeometryPartBytes = uint64_t{256} << 20;
 struct CheckpointFile {
   std::string name;      // relative to the index folder
   uint64_t size_bytes = 0;
-  uint32_t crc32 = 0;    // zlib CRC-32 of the whole file
+  uint64_t checksum = 0; // XXH3-64 of the whole file
   bool operator==(const CheckpointFile&) const = default;
 };
 
@@ -78,7 +78,7 @@ using ByteSink = std::function<void(std::span<const uint8_t>)>;
 // returns its manifest entry. kIoError on any failure (the temporary file is removed).
 [[nodiscard]] Result<CheckpointFile> WriteCheckpointFile(const std::string& dir, const std::string& name,
                                                          const std::function<void(const ByteSink&)>& produce);
-// Size and CRC of dir/file.name against the manifest, read with pread (the pages stay in the page
+// Size and checksum of dir/file.name against the manifest, read with pread (the pages stay in the page
 // cache, not in this process's resident memory). kNotFound if missing, kCorruptData if different.
 [[nodiscard]] Status VerifyCheckpointFile(const std::string& dir, const CheckpointFile& file);
 
