@@ -48,14 +48,20 @@
 //
 // An index is a folder:
 //   catalogue.sqlite   SQLite (WAL, synchronous=FULL): table `meta` (schema version, vocabulary
-//                      fingerprint, extractor settings) and table `images` (internal number, id, source
-//                      path, width, height, feature count, metadata JSON, added time, and the image's
-//                      words + geometry as a checksummed BLOB). Add/Remove commit one transaction before
-//                      they return, so an acknowledged change survives a crash or kill -9 at any moment
-//                      and a half-done one is rolled back by SQLite.
+//                      fingerprint, extractor settings, checkpoint manifest), table `images` (internal
+//                      number, id, source path, width, height, feature count, metadata JSON, added
+//                      time) and table `features` (the image's words + geometry as a checksummed BLOB;
+//                      catalogue.h). Add/Remove commit one transaction before they return, so an
+//                      acknowledged change survives a crash or kill -9 at any moment and a half-done
+//                      one is rolled back by SQLite.
+//   *.oxck             checkpoint files (checkpoint.h): the inverted file and the packed geometry as
+//                      of the manifest in `meta`, written by a background thread and at close.
 //   vocabulary.oxvoc   a copy of the vocabulary (vocab::Vocabulary file format, CRC-checked); its
 //                      fingerprint must equal the one in `meta`.
-// Open rebuilds the in-memory inverted file from the BLOBs (one pass, O(total features)).
+// Open loads the checkpoint (files verified by checksum; geometry memory-mapped) and replays the
+// catalogue's changes since; without a usable checkpoint (none yet, or a file missing, damaged or
+// inconsistent: logged) it rebuilds from the BLOBs (one pass, O(total features)) and checkpoints
+// again in the background.
 // Open refuses: a folder without a catalogue, an unknown schema version, a vocabulary copy whose
 // fingerprint differs from the catalogue's, a damaged BLOB (checksum) or a damaged SQLite file; and,
 // with kIoError, a folder it cannot write (read-only permissions or file system): the index is always
@@ -274,7 +280,8 @@ class ImageIndex {
                                                                   const vocab::Vocabulary& vocabulary,
                                                                   std::string extractor_settings,
                                                                   const IndexOptions& options = {});
-  // Opens an existing index (see "Storage" above for what is refused). O(total features).
+  // Opens an existing index (see "Storage" above for what is refused). O(images + changes since the
+  // checkpoint + checkpoint file bytes verified); O(total features) when it must rebuild.
   [[nodiscard]] static Result<std::unique_ptr<ImageIndex>> Open(const std::string& dir,
                                                                 const IndexOptions& options = {});
   // True when `dir` holds an index catalogue (cheap check, no validation).
