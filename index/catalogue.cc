@@ -1,5 +1,7 @@
 #include "index/catalogue.h"
 
+#include "sift/base/log.h"
+
 #include <sqlite3.h>
 #include <unistd.h>
 
@@ -18,10 +20,14 @@ namespace oxbow::index {
 struct Catalogue::Db {
   sqlite3* handle = nullptr;
   sqlite3_stmt* insert = nullptr;
+  sqlite3_stmt* insert_features = nullptr;
   sqlite3_stmt* remove = nullptr;
+  sqlite3_stmt* remove_features = nullptr;
   ~Db() {
     sqlite3_finalize(insert);
+    sqlite3_finalize(insert_features);
     sqlite3_finalize(remove);
+    sqlite3_finalize(remove_features);
     if (handle) sqlite3_close(handle);
   }
 };
@@ -107,10 +113,14 @@ std::string Quote(const std::string& s) {
 
 Status Prepare(Catalogue::Db* db, const std::string& path) {
   const char* insert_sql =
-      "INSERT INTO images(id, source_path, width, height, num_features, metadata_json, added_unix_ms, features) "
-      "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)";
+      "INSERT INTO images(id, source_path, width, height, num_features, metadata_json, added_unix_ms) "
+      "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)";
   if (sqlite3_prepare_v2(db->handle, insert_sql, -1, &db->insert, nullptr) != SQLITE_OK ||
-      sqlite3_prepare_v2(db->handle, "DELETE FROM images WHERE number = ?1", -1, &db->remove, nullptr) != SQLITE_OK) {
+      sqlite3_prepare_v2(db->handle, "INSERT INTO features(number, blob) VALUES (?1, ?2)", -1, &db->insert_features,
+                         nullptr) != SQLITE_OK ||
+      sqlite3_prepare_v2(db->handle, "DELETE FROM images WHERE number = ?1", -1, &db->remove, nullptr) != SQLITE_OK ||
+      sqlite3_prepare_v2(db->handle, "DELETE FROM features WHERE number = ?1", -1, &db->remove_features, nullptr) !=
+          SQLITE_OK) {
     return Fail(ErrorCode::kCorruptData, path + ": not an oxbow catalogue (" + SqliteMessage(db->handle) + ")");
   }
   return Ok();
@@ -146,8 +156,8 @@ Result<std::unique_ptr<Catalogue>> Catalogue::Create(const std::string& path, co
       "CREATE TABLE meta(key TEXT PRIMARY KEY, value TEXT NOT NULL);"
       "CREATE TABLE images(number INTEGER PRIMARY KEY AUTOINCREMENT, id TEXT NOT NULL UNIQUE,"
       " source_path TEXT NOT NULL, width INTEGER NOT NULL, height INTEGER NOT NULL,"
-      " num_features INTEGER NOT NULL, metadata_json TEXT NOT NULL, added_unix_ms INTEGER NOT NULL,"
-      " features BLOB NOT NULL);"
+      " num_features INTEGER NOT NULL, metadata_json TEXT NOT NULL, added_unix_ms INTEGER NOT NULL);"
+      "CREATE TABLE features(number INTEGER PRIMARY KEY, blob BLOB NOT NULL);"
       "INSERT INTO meta VALUES ('schema_version', " + Quote(std::to_string(meta.schema_version)) + ");"
       "INSERT INTO meta VALUES ('vocabulary_fingerprint', " + Quote(fingerprint) + ");"
       "INSERT INTO meta VALUES ('vocabulary_size', " + Quote(std::to_string(meta.vocabulary_size)) + ");"
@@ -209,7 +219,8 @@ Result<std::unique_ptr<Catalogue>> Catalogue::Open(const std::string& path) {
   }
   meta.descriptor_kind = values["descriptor_kind"];
   meta.extractor_settings = values["extractor_settings"];
-  if (meta.schema_version != kSchemaVersion) {
+  meta.checkpoint = values["checkpoint"];
+  if (meta.schema_version != kSchemaVersion && meta.schema_version != 1) {
     return Fail(ErrorCode::kIncompatible, path + " has schema version " + std::to_string(meta.schema_version) +
                                               "; this build reads version " + std::to_string(kSchemaVersion) +
                                               " (rebuild the index with this version)");
@@ -233,6 +244,25 @@ Status Catalogue::OpenForWriting() {
     return Fail(ErrorCode::kIoError, path_ + " is read-only: oxbow needs to write it" + Hint(SQLITE_READONLY));
   }
   if (auto s = ConfigureDurability((*db)->handle, path_); !s) return s;
+  if (meta_.schema_version == 1) {
+    // The BLOBs move to their own table; DROP COLUMN rewrites `images` without them. One transaction.
+    OXBOW_LOG(kInfo) << "migrating the catalogue " << path_ << " from schema version 1 to 2 (one transaction)";
+    const std::string sql =
+        "BEGIN IMMEDIATE;"
+        "CREATE TABLE features(number INTEGER PRIMARY KEY, blob BLOB NOT NULL);"
+        "INSERT INTO features(number, blob) SELECT number, features FROM images;"
+        "ALTER TABLE images DROP COLUMN features;"
+        "UPDATE meta SET value = '2' WHERE key = 'schema_version';"
+        "COMMIT;";
+    if (auto s = Exec((*db)->handle, sql, path_); !s) {
+      sqlite3_exec((*db)->handle, "ROLLBACK", nullptr, nullptr, nullptr);
+      return s;
+    }
+    meta_.schema_version = kSchemaVersion;
+    // The migration went through the WAL (about twice the BLOBs' size): copy it into the database and
+    // give its space back now rather than when the index closes. Best effort: a reader may hold it.
+    sqlite3_exec((*db)->handle, "PRAGMA wal_checkpoint(TRUNCATE)", nullptr, nullptr, nullptr);
+  }
   if (auto s = Prepare(db->get(), path_); !s) return s;
   db_ = std::move(*db);  // closes the read-only connection, which never checkpoints
   return Ok();
@@ -284,6 +314,17 @@ Result<std::vector<int64_t>> Catalogue::InsertMany(std::span<const ImageRecord> 
 
 Result<int64_t> Catalogue::Insert(const ImageRecord& r, std::span<const uint8_t> features) {
   OXBOW_CHECK(db_->insert != nullptr, "catalogue opened without OpenForWriting");
+  if (sqlite3_get_autocommit(db_->handle) != 0) {  // not inside InTransaction: the two rows commit together
+    int64_t number = 0;
+    auto status = InTransaction([&]() -> Status {
+      auto inserted = Insert(r, features);
+      if (!inserted) return std::unexpected(inserted.error());
+      number = *inserted;
+      return Ok();
+    });
+    if (!status) return std::unexpected(status.error());
+    return number;
+  }
   sqlite3_stmt* s = db_->insert;
   sqlite3_reset(s);
   sqlite3_clear_bindings(s);
@@ -294,48 +335,123 @@ Result<int64_t> Catalogue::Insert(const ImageRecord& r, std::span<const uint8_t>
   sqlite3_bind_int64(s, 5, r.num_features);
   sqlite3_bind_text(s, 6, r.metadata_json.data(), static_cast<int>(r.metadata_json.size()), SQLITE_TRANSIENT);
   sqlite3_bind_int64(s, 7, r.added_unix_ms);
-  sqlite3_bind_blob64(s, 8, features.data(), features.size(), SQLITE_TRANSIENT);
-  // Outside BEGIN a single statement is its own transaction: committed (and fsync'ed) when step returns.
-  const int rc = sqlite3_step(s);
+  int rc = sqlite3_step(s);
   sqlite3_reset(s);
   if (rc == SQLITE_CONSTRAINT_UNIQUE || rc == SQLITE_CONSTRAINT_PRIMARYKEY) {
     return Fail(ErrorCode::kAlreadyExists, "an image with id '" + r.id + "' is already indexed");
   }
+  const int64_t number = sqlite3_last_insert_rowid(db_->handle);
+  if (rc == SQLITE_DONE) {
+    sqlite3_stmt* f = db_->insert_features;
+    sqlite3_reset(f);
+    sqlite3_bind_int64(f, 1, number);
+    sqlite3_bind_blob64(f, 2, features.data(), features.size(), SQLITE_TRANSIENT);
+    rc = sqlite3_step(f);
+    sqlite3_reset(f);
+  }
   if (rc != SQLITE_DONE) {
     return Fail(CodeFor(rc), path_ + ": cannot add '" + r.id + "': " + SqliteMessage(db_->handle) + Hint(rc));
   }
-  return sqlite3_last_insert_rowid(db_->handle);
+  return number;
 }
 
 Status Catalogue::Delete(int64_t number) {
   OXBOW_CHECK(db_->remove != nullptr, "catalogue opened without OpenForWriting");
+  if (sqlite3_get_autocommit(db_->handle) != 0) return InTransaction([&] { return Delete(number); });
   sqlite3_stmt* s = db_->remove;
   sqlite3_reset(s);
   sqlite3_bind_int64(s, 1, number);
-  const int rc = sqlite3_step(s);
+  int rc = sqlite3_step(s);
   sqlite3_reset(s);
+  const bool found = rc == SQLITE_DONE && sqlite3_changes(db_->handle) > 0;
+  if (found) {
+    sqlite3_stmt* f = db_->remove_features;
+    sqlite3_reset(f);
+    sqlite3_bind_int64(f, 1, number);
+    rc = sqlite3_step(f);
+    sqlite3_reset(f);
+  }
   if (rc != SQLITE_DONE) {
     return Fail(CodeFor(rc), path_ + ": cannot remove image: " + SqliteMessage(db_->handle) + Hint(rc));
   }
-  if (sqlite3_changes(db_->handle) == 0) return Fail(ErrorCode::kNotFound, "no image number " + std::to_string(number));
+  if (!found) return Fail(ErrorCode::kNotFound, "no image number " + std::to_string(number));
   return Ok();
 }
 
-Status Catalogue::ForEach(const std::function<Status(CatalogueRow&&)>& fn) const {
+Status Catalogue::SetCheckpoint(const std::string& manifest) {
+  return InTransaction([&]() -> Status {
+    sqlite3_stmt* stmt = nullptr;
+    if (sqlite3_prepare_v2(db_->handle, "INSERT OR REPLACE INTO meta(key, value) VALUES ('checkpoint', ?1)", -1,
+                           &stmt, nullptr) != SQLITE_OK) {
+      return Fail(ErrorCode::kIoError, path_ + ": " + SqliteMessage(db_->handle));
+    }
+    sqlite3_bind_text(stmt, 1, manifest.data(), static_cast<int>(manifest.size()), SQLITE_TRANSIENT);
+    const int rc = sqlite3_step(stmt);
+    sqlite3_finalize(stmt);
+    if (rc != SQLITE_DONE) {
+      return Fail(CodeFor(rc), path_ + ": cannot record the checkpoint: " + SqliteMessage(db_->handle) + Hint(rc));
+    }
+    meta_.checkpoint = manifest;
+    return Ok();
+  });
+}
+
+namespace {
+
+// Steps `stmt` to its end, calling row() for each row; the error of row() or of SQLite.
+Status StepAll(sqlite3* db, sqlite3_stmt* stmt, const std::string& path, const std::function<Status()>& row) {
+  int rc;
+  Status status = Ok();
+  while ((rc = sqlite3_step(stmt)) == SQLITE_ROW) {
+    status = row();
+    if (!status) break;
+  }
+  const bool done = rc == SQLITE_DONE || !status;
+  const std::string message = SqliteMessage(db);
+  sqlite3_finalize(stmt);
+  if (!status) return status;
+  if (!done && IsEnvironmentFailure(rc)) return Fail(ErrorCode::kIoError, path + " cannot be read: " + message + Hint(rc));
+  if (!done) return Fail(ErrorCode::kCorruptData, path + " is damaged: " + message);
+  return Ok();
+}
+
+}  // namespace
+
+Status Catalogue::ForEachFeaturesAfter(int64_t after,
+                                       const std::function<Status(int64_t, std::span<const uint8_t>)>& fn) const {
+  OXBOW_CHECK(meta_.schema_version == kSchemaVersion);
   sqlite3_stmt* stmt = nullptr;
-  const char* sql =
-      "SELECT number, id, source_path, width, height, num_features, metadata_json, added_unix_ms, features "
-      "FROM images ORDER BY number";
-  if (sqlite3_prepare_v2(db_->handle, sql, -1, &stmt, nullptr) != SQLITE_OK) {
+  if (sqlite3_prepare_v2(db_->handle, "SELECT number, blob FROM features WHERE number > ?1 ORDER BY number", -1,
+                         &stmt, nullptr) != SQLITE_OK) {
+    return Fail(ErrorCode::kCorruptData, path_ + ": " + SqliteMessage(db_->handle));
+  }
+  sqlite3_bind_int64(stmt, 1, after);
+  return StepAll(db_->handle, stmt, path_, [&] {
+    const auto* blob = static_cast<const uint8_t*>(sqlite3_column_blob(stmt, 1));
+    return fn(sqlite3_column_int64(stmt, 0),
+              std::span<const uint8_t>(blob, static_cast<size_t>(sqlite3_column_bytes(stmt, 1))));
+  });
+}
+
+Status Catalogue::ForEach(const std::function<Status(CatalogueRow&&)>& fn, bool with_features) const {
+  sqlite3_stmt* stmt = nullptr;
+  const std::string columns = "i.number, i.id, i.source_path, i.width, i.height, i.num_features, i.metadata_json, "
+                              "i.added_unix_ms";
+  std::string sql = "SELECT " + columns + " FROM images i ORDER BY i.number";
+  if (with_features) {
+    sql = meta_.schema_version == 1
+              ? "SELECT " + columns + ", i.features FROM images i ORDER BY i.number"
+              : "SELECT " + columns + ", f.blob FROM images i LEFT JOIN features f ON f.number = i.number "
+                                      "ORDER BY i.number";
+  }
+  if (sqlite3_prepare_v2(db_->handle, sql.c_str(), -1, &stmt, nullptr) != SQLITE_OK) {
     return Fail(ErrorCode::kCorruptData, path_ + ": " + SqliteMessage(db_->handle));
   }
   auto text = [&](int col) {
     const auto* p = reinterpret_cast<const char*>(sqlite3_column_text(stmt, col));
     return std::string(p ? p : "", static_cast<size_t>(sqlite3_column_bytes(stmt, col)));
   };
-  int rc;
-  Status status = Ok();
-  while ((rc = sqlite3_step(stmt)) == SQLITE_ROW) {
+  return StepAll(db_->handle, stmt, path_, [&]() -> Status {
     CatalogueRow row;
     row.number = sqlite3_column_int64(stmt, 0);
     row.record.id = text(1);
@@ -345,18 +461,15 @@ Status Catalogue::ForEach(const std::function<Status(CatalogueRow&&)>& fn) const
     row.record.num_features = static_cast<uint32_t>(sqlite3_column_int64(stmt, 5));
     row.record.metadata_json = text(6);
     row.record.added_unix_ms = sqlite3_column_int64(stmt, 7);
-    const auto* blob = static_cast<const uint8_t*>(sqlite3_column_blob(stmt, 8));
-    row.features.assign(blob, blob + sqlite3_column_bytes(stmt, 8));
-    status = fn(std::move(row));
-    if (!status) break;
-  }
-  const bool done = rc == SQLITE_DONE || !status;
-  const std::string message = SqliteMessage(db_->handle);
-  sqlite3_finalize(stmt);
-  if (!status) return status;
-  if (!done && IsEnvironmentFailure(rc)) return Fail(ErrorCode::kIoError, path_ + " cannot be read: " + message + Hint(rc));
-  if (!done) return Fail(ErrorCode::kCorruptData, path_ + " is damaged: " + message);
-  return Ok();
+    if (with_features) {
+      if (sqlite3_column_type(stmt, 8) == SQLITE_NULL) {
+        return Fail(ErrorCode::kCorruptData, path_ + " is damaged: image '" + row.record.id + "' has no features");
+      }
+      const auto* blob = static_cast<const uint8_t*>(sqlite3_column_blob(stmt, 8));
+      row.features.assign(blob, blob + sqlite3_column_bytes(stmt, 8));
+    }
+    return fn(std::move(row));
+  });
 }
 
 }  // namespace oxbow::index

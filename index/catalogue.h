@@ -3,14 +3,20 @@
 // kill -9 at any moment leaves either the old or the new state (SQLite's journal rolls back a half-done
 // transaction at the next open).
 //
-// Schema (version kSchemaVersion, image_index.h):
+// Schema (version kSchemaVersion = 2, image_index.h):
 //   meta(key TEXT PRIMARY KEY, value TEXT)      schema_version, vocabulary_fingerprint (hex),
 //                                               vocabulary_size, descriptor_kind, extractor_settings,
-//                                               created_unix_ms
+//                                               created_unix_ms, and `checkpoint` (the manifest of the
+//                                               index's checkpoint files, checkpoint.h) once one exists
 //   images(number INTEGER PRIMARY KEY AUTOINCREMENT,   internal image number, never reused
 //          id TEXT UNIQUE, source_path TEXT, width INTEGER, height INTEGER, num_features INTEGER,
-//          metadata_json TEXT, added_unix_ms INTEGER,
-//          features BLOB)                              PackedFeatures::Serialize() (feature_store.h)
+//          metadata_json TEXT, added_unix_ms INTEGER)
+//   features(number INTEGER PRIMARY KEY,               the image's row in `images`
+//            blob BLOB)                                PackedFeatures::Serialize() (feature_store.h)
+// The BLOBs live in their own table so that reading every record (Open from a checkpoint) reads only
+// the small `images` pages. Version 1 kept the BLOB as the last column of `images`; OpenForWriting
+// migrates such a catalogue to version 2 in one transaction (a crash leaves version 1, migrated again
+// at the next open).
 //
 // Opening never writes before the catalogue is validated: Open reads through a read-only connection
 // (which cannot checkpoint a WAL into the file), and only OpenForWriting, called once the caller has
@@ -41,12 +47,13 @@ struct CatalogueMeta {
   std::string descriptor_kind;      // sift::DescriptorKindName
   std::string extractor_settings;   // sift::SiftOptions::Describe()
   int64_t created_unix_ms = 0;
+  std::string checkpoint;           // the checkpoint manifest (checkpoint.h); empty when none
 };
 
 struct CatalogueRow {
   int64_t number = 0;
   ImageRecord record;
-  std::vector<uint8_t> features;  // the BLOB
+  std::vector<uint8_t> features;  // the BLOB (empty when read without features)
 };
 
 class Catalogue {
@@ -57,11 +64,13 @@ class Catalogue {
   // Opens an existing catalogue read-only and reads its meta; nothing is written to the folder's files
   // but SQLite's shared-memory index (catalogue.sqlite-shm). kNotFound if missing; kCorruptData for a
   // file that is not a SQLite database or lacks the tables/meta rows; kIncompatible for another schema
-  // version; kIoError when it cannot be read (permissions, I/O errors, locked by another process).
+  // version (1, which OpenForWriting migrates, and 2 are read); kIoError when it cannot be read
+  // (permissions, I/O errors, locked by another process).
   [[nodiscard]] static Result<std::unique_ptr<Catalogue>> Open(const std::string& path);
   // Switches an opened catalogue to a read-write connection (WAL, synchronous=FULL) for Insert, Replace
-  // and Delete; call it only once the content read through Open is validated. kIoError when the file,
-  // its folder or the file system is read-only (the message says so), or SQLite fails.
+  // and Delete; call it only once the content read through Open is validated. Migrates a version 1
+  // catalogue to version 2 (one transaction, logged). kIoError when the file, its folder or the file
+  // system is read-only (the message says so), or SQLite fails.
   [[nodiscard]] Status OpenForWriting();
   ~Catalogue();
   Catalogue(const Catalogue&) = delete;
@@ -84,8 +93,14 @@ class Catalogue {
                                         std::span<const uint8_t> features);
   // Deletes the row with this number in a committed transaction. kNotFound if absent.
   [[nodiscard]] Status Delete(int64_t number);
-  // Calls fn for every row in number order; stops at and returns the first error.
-  [[nodiscard]] Status ForEach(const std::function<Status(CatalogueRow&&)>& fn) const;
+  // Calls fn for every row in number order, with its BLOB when `with_features` (else the BLOB's pages
+  // are not read); stops at and returns the first error. kCorruptData for a record without BLOB.
+  [[nodiscard]] Status ForEach(const std::function<Status(CatalogueRow&&)>& fn, bool with_features = true) const;
+  // Calls fn(number, blob) for every image numbered above `after`, in number order (schema 2 only).
+  [[nodiscard]] Status ForEachFeaturesAfter(int64_t after,
+                                            const std::function<Status(int64_t, std::span<const uint8_t>)>& fn) const;
+  // Records the checkpoint manifest in one committed transaction: the commit point of a checkpoint.
+  [[nodiscard]] Status SetCheckpoint(const std::string& manifest);
 
   struct Db;  // the SQLite connection (catalogue.cc)
 

@@ -33,8 +33,10 @@ PackedFeatures PackedFeatures::Pack(std::span<const sift::Keypoint> keypoints, s
   PackedFeatures out;
   out.width_ = width;
   out.height_ = height;
-  out.bytes_.resize(words.size() * kPackedFeatureBytes);
-  uint8_t* p = out.bytes_.data();
+  auto storage = std::make_shared<std::vector<uint8_t>>(words.size() * kPackedFeatureBytes);
+  out.bytes_ = *storage;
+  out.storage_ = storage;
+  uint8_t* p = storage->data();
   for (const uint64_t key : order) {
     const auto i = static_cast<uint32_t>(key);
     const uint32_t w = words[i];
@@ -141,12 +143,29 @@ Result<PackedFeatures> PackedFeatures::Deserialize(std::span<const uint8_t> blob
     return corrupt("length " + std::to_string(reader.remaining()) + " bytes does not match " +
                    std::to_string(count) + " features");
   }
-  out.bytes_.resize(reader.remaining());
-  if (!reader.GetArray<uint8_t>(out.bytes_)) return corrupt("truncated");
-  if (io::Crc32(out.bytes_) != crc) return corrupt("checksum mismatch");
-  for (size_t i = 1; i < out.size(); ++i) {
-    if (out.word(i - 1) > out.word(i)) return corrupt("features not sorted by word");
+  auto storage = std::make_shared<std::vector<uint8_t>>(reader.remaining());
+  if (!reader.GetArray<uint8_t>(*storage)) return corrupt("truncated");
+  if (io::Crc32(*storage) != crc) return corrupt("checksum mismatch");
+  auto viewed = View(*storage, out.width_, out.height_, storage, what);
+  if (!viewed) return viewed;
+  for (size_t i = 1; i < viewed->size(); ++i) {
+    if (viewed->word(i - 1) > viewed->word(i)) return corrupt("features not sorted by word");
   }
+  return viewed;
+}
+
+Result<PackedFeatures> PackedFeatures::View(std::span<const uint8_t> bytes, int width, int height,
+                                            std::shared_ptr<const void> storage, const std::string& what) {
+  auto corrupt = [&](const std::string& why) {
+    return Fail(ErrorCode::kCorruptData, "damaged features of " + what + ": " + why);
+  };
+  if (width <= 0 || height <= 0) return corrupt("non-positive image size");
+  if (bytes.size() % kPackedFeatureBytes != 0) return corrupt("length is not a whole number of features");
+  PackedFeatures out;
+  out.width_ = width;
+  out.height_ = height;
+  out.bytes_ = bytes;
+  out.storage_ = std::move(storage);
   return out;
 }
 

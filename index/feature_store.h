@@ -21,6 +21,7 @@
 
 #include <array>
 #include <cstdint>
+#include <memory>
 #include <span>
 #include <string>
 #include <vector>
@@ -58,7 +59,16 @@ class PackedFeatures {
   // Bag of the features whose dequantised position lies in the box x1,y1,x2,y2 (inclusive).
   BagOfWords BagInside(const std::array<float, 4>& box) const;
 
-  size_t MemoryBytes() const { return bytes_.capacity() + sizeof(*this); }
+  // Bytes of the packed features (in memory, or in a mapped checkpoint file) + this object.
+  size_t MemoryBytes() const { return bytes_.size() + sizeof(*this); }
+
+  // The packed features, count * kPackedFeatureBytes bytes (checkpoint files store them as they are).
+  std::span<const uint8_t> bytes() const { return bytes_; }
+  // Features over `bytes` (as bytes() gave them) without copying; `storage` keeps them alive (e.g. a
+  // memory-mapped checkpoint file). kCorruptData when the size or the length is wrong; the bytes are
+  // not read (a mapped file's pages stay on disk until used), so their source must vouch for them.
+  [[nodiscard]] static Result<PackedFeatures> View(std::span<const uint8_t> bytes, int width, int height,
+                                                   std::shared_ptr<const void> storage, const std::string& what);
 
   std::vector<uint8_t> Serialize() const;
   // `what` names the source in error messages (e.g. "image 'foo' in /idx/catalogue.sqlite").
@@ -67,7 +77,8 @@ class PackedFeatures {
  private:
   int width_ = 0;
   int height_ = 0;
-  std::vector<uint8_t> bytes_;
+  std::shared_ptr<const void> storage_;  // owns what bytes_ views (a vector or a mapped file)
+  std::span<const uint8_t> bytes_;
 };
 
 }  // namespace oxbow::index

@@ -7,13 +7,16 @@
 #include <filesystem>
 #include <functional>
 #include <map>
+#include <condition_variable>
 #include <mutex>
+#include <thread>
 #include <numeric>
 #include <optional>
 #include <span>
 #include <unordered_map>
 
 #include "index/catalogue.h"
+#include "index/checkpoint.h"
 #include "index/cow_array.h"
 #include "index/feature_store.h"
 #include "index/inverted_file.h"
@@ -130,6 +133,7 @@ struct QueryFeatures {
 std::optional<std::string> IndexOptions::Check() const {
   if (auto e = ToTfIdf(*this).Check()) return e;
   if (num_threads < 0 || num_threads > 256) return "num_threads must be in [0, 256]";
+  if (checkpoint_changes < 1 || checkpoint_changes >= (uint64_t{1} << 32)) return "checkpoint_changes must be in [1, 2^32)";
   if (auto e = quantizer.Check()) return "quantizer: " + *e;
   return std::nullopt;
 }
@@ -198,6 +202,14 @@ struct ImageIndex::Impl {
   mutable std::mutex writer_mutex;              // guards catalogue and the building of the next snapshot
   std::unique_ptr<Catalogue> catalogue;         // guarded by writer_mutex
 
+  CheckpointManifest checkpoint;                // the last committed one; guarded by writer_mutex
+  uint64_t changes_since_checkpoint = 0;        // images added + removed since; guarded by writer_mutex
+  bool checkpoint_forced = false;               // Open rebuilt: checkpoint now; guarded by writer_mutex
+  bool closing = false;                         // guarded by writer_mutex
+  uint64_t pending_after_failure = 0;           // changes of failed background checkpoints (for Close)
+  std::condition_variable checkpoint_due;       // with writer_mutex: wakes the checkpointer
+  std::thread checkpointer;                     // runs CheckpointLoop
+
   mutable std::mutex snapshot_mutex;            // guards only the `snapshot` pointer
   std::shared_ptr<const Snapshot> snapshot;
 
@@ -215,6 +227,21 @@ struct ImageIndex::Impl {
 
   Result<QueryResponse> Run(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
                             QueryTimings timings) const;
+
+  // A checkpoint of `snap` (which must reflect every committed catalogue change) in two steps
+  // (checkpoint.h): CheckpointFiles writes the files without holding writer_mutex, after `previous`
+  // (the current checkpoint, copied under the lock); CommitCheckpoint (writer_mutex held) records the
+  // manifest and deletes unreferenced files. The checkpoint covers `changes` of changes_since_checkpoint.
+  Result<CheckpointManifest> CheckpointFiles(const Snapshot& snap, const CheckpointManifest& previous) const;
+  Status CommitCheckpoint(CheckpointManifest next, uint64_t changes);
+  bool CheckpointDue() const;  // writer_mutex held
+  // Writes checkpoints in the background while the index is open (started by Open and Create).
+  void CheckpointLoop();
+  // After a write (writer_mutex held): counts it and wakes the checkpointer when one is due.
+  void Changed(uint64_t images);
+  // Stops the checkpointer and checkpoints pending changes; a failure is logged (the next open
+  // replays them from the catalogue).
+  void Close();
 
   // An image ready to commit: validated, quantised, packed and serialised (no shared state used).
   struct Prepared {
@@ -252,8 +279,338 @@ struct ImageIndex::Impl {
       const std::vector<QueryResult>& results, size_t first, size_t last, ScoreScratch* scratch);
 };
 
+namespace {
+
+using SnapshotPtr = std::shared_ptr<ImageIndex::Snapshot>;
+
+bool RecordMatches(const ImageRecord& record, const PackedFeatures& features) {
+  return features.size() == record.num_features && features.width() == record.width &&
+         features.height() == record.height;
+}
+
+// What Open's validation of a BLOB also checks: the record agrees with its features.
+Status CheckEntry(const ImageRecord& record, const PackedFeatures& features, size_t vocabulary_size,
+                  const std::string& where) {
+  if (!RecordMatches(record, features)) {
+    return Fail(ErrorCode::kCorruptData, where + ": image '" + record.id + "' record disagrees with its features");
+  }
+  if (features.size() > 0 && features.word(features.size() - 1) >= vocabulary_size) {
+    return Fail(ErrorCode::kCorruptData, where + ": image '" + record.id + "' has a word outside the vocabulary");
+  }
+  return Ok();
+}
+
+// The snapshot of `inverted` with the entries by_number[n] (moved from; null where no image).
+SnapshotPtr MakeSnapshot(InvertedFile inverted, std::vector<std::shared_ptr<const Entry>>& by_number) {
+  auto snap = std::make_shared<ImageIndex::Snapshot>(std::move(inverted));
+  const auto num_numbers = static_cast<uint32_t>(std::max<size_t>(by_number.size(), snap->inverted.num_numbers()));
+  std::array<std::shared_ptr<IdShard>, kIdShards> shards;
+  for (auto& shard : shards) shard = std::make_shared<IdShard>();
+  CowArray<std::shared_ptr<const Entry>>::Editor editor(&snap->entries);
+  editor.Resize(num_numbers);
+  for (uint32_t n = 0; n < by_number.size(); ++n) {
+    if (!by_number[n]) continue;
+    shards[ShardOf(by_number[n]->record.id)]->emplace(by_number[n]->record.id, n);
+    snap->geometry_bytes += by_number[n]->features.MemoryBytes();
+    editor.Mutable(n) = std::move(by_number[n]);
+  }
+  for (size_t i = 0; i < kIdShards; ++i) snap->ids[i] = std::move(shards[i]);
+  return snap;
+}
+
+// Open without a checkpoint: every row and BLOB read and validated, the inverted file built in one pass.
+Result<SnapshotPtr> BuildFromCatalogue(const Catalogue& catalogue, size_t vocab_size, const IndexOptions& options) {
+  std::vector<std::shared_ptr<const Entry>> by_number;
+  const std::string& path = catalogue.path();
+  auto status = catalogue.ForEach([&](CatalogueRow&& row) -> Status {
+    if (row.number <= 0 || row.number >= (int64_t{1} << 31)) {
+      return Fail(ErrorCode::kCorruptData, path + ": image number out of range");
+    }
+    auto features = PackedFeatures::Deserialize(row.features, "image '" + row.record.id + "' in " + path);
+    if (!features) return std::unexpected(features.error());
+    if (auto s = CheckEntry(row.record, *features, vocab_size, path); !s) return s;
+    const auto number = static_cast<size_t>(row.number);
+    if (by_number.size() <= number) by_number.resize(number + 1);
+    by_number[number] = std::make_shared<Entry>(Entry{std::move(row.record), std::move(*features)});
+    return Ok();
+  });
+  if (!status) return std::unexpected(status.error());
+  InvertedFile inverted = InvertedFile::Build(
+      vocab_size, ToTfIdf(options), static_cast<uint32_t>(by_number.size()),
+      [&](uint32_t number, BagOfWords* bag) {
+        if (!by_number[number]) return false;
+        *bag = by_number[number]->features.Bag();
+        return true;
+      },
+      options.num_threads);
+  return MakeSnapshot(std::move(inverted), by_number);
+}
+
+struct LoadedCheckpoint {
+  SnapshotPtr snapshot;          // null: the checkpoint is unusable (logged), rebuild from the catalogue
+  CheckpointManifest manifest;   // generation 0 when unreadable
+  uint64_t changes = 0;          // images added + removed since the checkpoint (replayed)
+};
+
+// Open from the checkpoint the catalogue names, replaying the changes since. A damaged, missing or
+// inconsistent checkpoint file gives a null snapshot (and a log line); an error is a catalogue failure.
+Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue& catalogue, size_t vocab_size,
+                                        const IndexOptions& options) {
+  const auto t0 = Clock::now();
+  LoadedCheckpoint out;
+  const auto unusable = [&](const std::string& why) {
+    OXBOW_LOG(kWarning) << "index " << dir << ": checkpoint unusable (" << why
+                        << "); rebuilding the index from the catalogue and writing a new checkpoint";
+    out.snapshot = nullptr;
+    return out;
+  };
+  auto manifest = CheckpointManifest::Parse(catalogue.meta().checkpoint);
+  if (!manifest) return unusable(manifest.error().message);
+  out.manifest = *manifest;
+  if (manifest->sqrt_tf != options.sqrt_tf) return unusable("written with another sqrt_tf setting");
+
+  // Verify and load every file in parallel; the first failure in file order is reported.
+  const std::vector<CheckpointFile>& files = manifest->files;
+  std::vector<Status> failures(files.size(), Ok());
+  std::vector<std::vector<GeometryImage>> geometry(files.size());
+  std::optional<InvertedFile> inverted;
+  std::mutex inverted_mutex;
+  ParallelFor(files.size(), options.num_threads, 1, [&](size_t begin, size_t end, int) {
+    for (size_t i = begin; i < end; ++i) {
+      const std::string what = "checkpoint file " + (std::filesystem::path(dir) / files[i].name).string();
+      failures[i] = VerifyCheckpointFile(dir, files[i]);
+      if (!failures[i]) continue;
+      auto mapped = MappedFile::Open((std::filesystem::path(dir) / files[i].name).string());
+      if (!mapped) {
+        failures[i] = std::unexpected(mapped.error());
+      } else if (files[i].name.starts_with("postings-")) {
+        auto file = InvertedFile::Deserialize((*mapped)->bytes(), vocab_size, ToTfIdf(options));
+        if (!file) {
+          failures[i] = Fail(file.error().code, what + ": " + file.error().message);
+          continue;
+        }
+        std::lock_guard<std::mutex> lock(inverted_mutex);
+        if (inverted) {
+          failures[i] = Fail(ErrorCode::kCorruptData, "two postings files");
+        } else {
+          inverted = std::move(*file);
+        }
+      } else {
+        auto images = ReadGeometry(*mapped, what);
+        if (images) {
+          geometry[i] = std::move(*images);
+        } else {
+          failures[i] = std::unexpected(images.error());
+        }
+      }
+    }
+  });
+  for (const Status& failure : failures) {
+    if (!failure) return unusable(failure.error().message);
+  }
+  if (!inverted) return unusable("no postings file");
+  const int64_t high_water = manifest->high_water;
+  if (static_cast<int64_t>(inverted->num_numbers()) > high_water + 1) return unusable("postings above the high water");
+
+  std::vector<const PackedFeatures*> stored(static_cast<size_t>(high_water) + 1, nullptr);
+  for (const auto& images : geometry) {
+    for (const GeometryImage& image : images) {
+      if (image.number > high_water || stored[image.number]) return unusable("geometry files overlap");
+      stored[image.number] = &image.features;
+    }
+  }
+
+  const double files_ms = MsSince(t0);
+  // The catalogue's records (not its BLOBs): those up to the high water take their features from
+  // the checkpoint; those above were added since.
+  std::vector<std::shared_ptr<const Entry>> by_number(stored.size());
+  std::map<int64_t, ImageRecord> added;
+  std::string inconsistency;
+  const std::string& path = catalogue.path();
+  auto status = catalogue.ForEach(
+      [&](CatalogueRow&& row) -> Status {
+        if (row.number <= 0 || row.number >= (int64_t{1} << 31)) {
+          return Fail(ErrorCode::kCorruptData, path + ": image number out of range");
+        }
+        if (row.number > high_water) {
+          added.emplace(row.number, std::move(row.record));
+          return Ok();
+        }
+        const auto n = static_cast<uint32_t>(row.number);
+        // The words were checked when the image was added; reading them here would page in every
+        // mapped geometry page.
+        if (!stored[n] || !inverted->IsLive(n) || !RecordMatches(row.record, *stored[n])) {
+          if (inconsistency.empty()) inconsistency = "image '" + row.record.id + "' differs from the catalogue";
+          return Ok();
+        }
+        by_number[n] = std::make_shared<Entry>(Entry{std::move(row.record), *stored[n]});
+        return Ok();
+      },
+      /*with_features=*/false);
+  if (!status) return std::unexpected(status.error());
+  if (!inconsistency.empty()) return unusable(inconsistency);
+
+  const double records_ms = MsSince(t0) - files_ms;
+  // Removed since: live in the checkpoint, gone from the catalogue.
+  std::vector<uint32_t> removed;
+  std::vector<BagOfWords> removed_bags;
+  for (uint32_t n = 0; n < inverted->num_numbers(); ++n) {
+    if (!inverted->IsLive(n) || by_number[n]) continue;
+    if (!stored[n]) return unusable("a live image without geometry");
+    removed.push_back(n);
+    removed_bags.push_back(stored[n]->Bag());
+  }
+  std::vector<const BagOfWords*> bag_pointers;
+  bag_pointers.reserve(removed_bags.size());
+  for (const BagOfWords& bag : removed_bags) bag_pointers.push_back(&bag);
+  *inverted = inverted->WithRemoved(removed, bag_pointers);
+
+  // Added since: their BLOBs, validated as a full open would.
+  std::vector<uint32_t> added_numbers;
+  std::vector<BagOfWords> added_bags;
+  status = catalogue.ForEachFeaturesAfter(high_water, [&](int64_t number, std::span<const uint8_t> blob) -> Status {
+    const auto it = added.find(number);
+    if (it == added.end()) return Fail(ErrorCode::kCorruptData, path + " is damaged: features without a record");
+    auto features = PackedFeatures::Deserialize(blob, "image '" + it->second.id + "' in " + path);
+    if (!features) return std::unexpected(features.error());
+    if (auto s = CheckEntry(it->second, *features, vocab_size, path); !s) return s;
+    const auto n = static_cast<size_t>(number);
+    if (by_number.size() <= n) by_number.resize(n + 1);
+    added_numbers.push_back(static_cast<uint32_t>(n));
+    added_bags.push_back(features->Bag());
+    by_number[n] = std::make_shared<Entry>(Entry{std::move(it->second), std::move(*features)});
+    added.erase(it);
+    return Ok();
+  });
+  if (!status) return std::unexpected(status.error());
+  if (!added.empty()) {
+    return Fail(ErrorCode::kCorruptData, path + " is damaged: image '" + added.begin()->second.id + "' has no features");
+  }
+  bag_pointers.clear();
+  bag_pointers.reserve(added_bags.size());
+  for (const BagOfWords& bag : added_bags) bag_pointers.push_back(&bag);
+  *inverted = inverted->WithAdded(added_numbers, bag_pointers);
+  out.changes = removed.size() + added_numbers.size();
+  OXBOW_LOG(kInfo) << "index " << dir << ": opened from checkpoint generation " << manifest->generation << " in "
+                   << MsSince(t0) << " ms (files verified and loaded " << files_ms << " ms, records " << records_ms
+                   << " ms, replay of " << out.changes << " changes " << MsSince(t0) - files_ms - records_ms
+                   << " ms)";
+  out.snapshot = MakeSnapshot(std::move(*inverted), by_number);
+  return out;
+}
+
+}  // namespace
+
 ImageIndex::ImageIndex(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
-ImageIndex::~ImageIndex() = default;
+ImageIndex::~ImageIndex() { impl_->Close(); }
+
+Result<CheckpointManifest> ImageIndex::Impl::CheckpointFiles(const Snapshot& snap,
+                                                             const CheckpointManifest& previous) const {
+  CheckpointManifest next;
+  next.generation = previous.generation + 1;
+  next.sqrt_tf = index_options.sqrt_tf;
+  const size_t num_numbers = snap.entries.size();
+  next.high_water = num_numbers > 0 ? static_cast<int64_t>(num_numbers) - 1 : 0;
+  // Geometry files are immutable: the previous ones stay (images removed since are skipped at open),
+  // new ones hold the images above the previous high water.
+  for (const CheckpointFile& f : previous.files) {
+    if (f.name.starts_with("geometry-")) next.files.push_back(f);
+  }
+  const std::string generation = std::to_string(next.generation);
+  std::vector<GeometryImage> part;
+  uint64_t part_bytes = 0;
+  int parts = 0;
+  const auto write_part = [&]() -> Status {
+    auto file = WriteCheckpointFile(dir, "geometry-" + generation + "-" + std::to_string(parts++) + ".oxck",
+                                    [&](const ByteSink& sink) { WriteGeometry(part, sink); });
+    if (!file) return std::unexpected(file.error());
+    next.files.push_back(std::move(*file));
+    part.clear();
+    part_bytes = 0;
+    return Ok();
+  };
+  const size_t first = previous.files.empty() ? 0 : static_cast<size_t>(previous.high_water) + 1;
+  for (size_t n = first; n < num_numbers; ++n) {
+    const Entry* entry = snap.entries[n].get();
+    if (!entry) continue;
+    part.push_back({static_cast<uint32_t>(n), entry->features});
+    part_bytes += entry->features.bytes().size();
+    if (part_bytes >= kGeometryPartBytes) {
+      if (auto s = write_part(); !s) return std::unexpected(s.error());
+    }
+  }
+  if (!part.empty()) {
+    if (auto s = write_part(); !s) return std::unexpected(s.error());
+  }
+  auto postings = WriteCheckpointFile(dir, "postings-" + generation + ".oxck",
+                                      [&](const ByteSink& sink) { snap.inverted.Serialize(sink); });
+  if (!postings) return std::unexpected(postings.error());
+  next.files.push_back(std::move(*postings));
+  CheckpointStage("files-written");
+  return next;
+}
+
+Status ImageIndex::Impl::CommitCheckpoint(CheckpointManifest next, uint64_t changes) {
+  if (auto s = catalogue->SetCheckpoint(next.Format()); !s) return s;
+  CheckpointStage("manifest-committed");
+  checkpoint = std::move(next);
+  changes_since_checkpoint -= changes;
+  checkpoint_forced = false;
+  RemoveUnreferencedCheckpointFiles(dir, checkpoint);
+  CheckpointStage("cleaned");
+  return Ok();
+}
+
+bool ImageIndex::Impl::CheckpointDue() const {
+  const uint64_t live = Current()->inverted.num_images();
+  return checkpoint_forced || changes_since_checkpoint >= std::max(index_options.checkpoint_changes, live / 10);
+}
+
+void ImageIndex::Impl::Changed(uint64_t images) {
+  changes_since_checkpoint += images;
+  if (CheckpointDue()) checkpoint_due.notify_one();
+}
+
+void ImageIndex::Impl::CheckpointLoop() {
+  std::unique_lock<std::mutex> lock(writer_mutex);
+  while (true) {
+    checkpoint_due.wait(lock, [&] { return closing || CheckpointDue(); });
+    if (closing) return;
+    const auto snap = Current();
+    const uint64_t changes = changes_since_checkpoint;
+    const CheckpointManifest previous = checkpoint;
+    lock.unlock();  // writers go on while the files are written
+    auto next = CheckpointFiles(*snap, previous);
+    lock.lock();
+    const Status status = next ? CommitCheckpoint(std::move(*next), changes) : Status(std::unexpected(next.error()));
+    if (!status) {
+      OXBOW_LOG(kWarning) << "index " << dir << ": cannot write a checkpoint (" << status.error().message
+                          << "); trying again after as many changes, and at close";
+      changes_since_checkpoint -= std::min(changes_since_checkpoint, changes);
+      checkpoint_forced = false;
+      pending_after_failure += changes;
+    }
+  }
+}
+
+void ImageIndex::Impl::Close() {
+  {
+    std::lock_guard<std::mutex> writer(writer_mutex);
+    closing = true;
+  }
+  checkpoint_due.notify_one();
+  if (checkpointer.joinable()) checkpointer.join();
+  std::lock_guard<std::mutex> writer(writer_mutex);
+  changes_since_checkpoint += pending_after_failure;
+  if ((changes_since_checkpoint == 0 && !checkpoint_forced) || !catalogue) return;
+  auto next = CheckpointFiles(*Current(), checkpoint);
+  const Status status = next ? CommitCheckpoint(std::move(*next), changes_since_checkpoint)
+                             : Status(std::unexpected(next.error()));
+  if (!status) {
+    OXBOW_LOG(kWarning) << "index " << dir << ": cannot write a checkpoint at close (" << status.error().message
+                        << "); the next open replays the changes from the catalogue";
+  }
+}
 
 bool ImageIndex::Exists(const std::string& dir) {
   std::error_code ec;
@@ -290,6 +647,7 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Create(const std::string& dir, c
   auto snap = std::make_shared<Snapshot>(InvertedFile(vocabulary.size(), ToTfIdf(options)));
   for (auto& shard : snap->ids) shard = std::make_shared<IdShard>();
   impl->snapshot = std::move(snap);
+  impl->checkpointer = std::thread([raw = impl.get()] { raw->CheckpointLoop(); });
   return std::unique_ptr<ImageIndex>(new ImageIndex(std::move(impl)));
 }
 
@@ -314,60 +672,37 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, con
     return Fail(ErrorCode::kIncompatible, "index " + dir + ": descriptor kind of the catalogue and vocabulary differ");
   }
 
-  // Load every row (validating each BLOB), then build the inverted file in one pass.
-  std::vector<std::shared_ptr<const Entry>> by_number;
   const size_t vocab_size = vocabulary->size();
-  auto status = (*catalogue)->ForEach([&](CatalogueRow&& row) -> Status {
-    if (row.number <= 0 || row.number >= (int64_t{1} << 31)) {
-      return Fail(ErrorCode::kCorruptData, catalogue_path + ": image number out of range");
-    }
-    auto features = PackedFeatures::Deserialize(row.features, "image '" + row.record.id + "' in " + catalogue_path);
-    if (!features) return std::unexpected(features.error());
-    if (features->size() != row.record.num_features || features->width() != row.record.width ||
-        features->height() != row.record.height) {
-      return Fail(ErrorCode::kCorruptData, catalogue_path + ": image '" + row.record.id +
-                                               "' record disagrees with its features");
-    }
-    if (features->size() > 0 && features->word(features->size() - 1) >= vocab_size) {
-      return Fail(ErrorCode::kCorruptData, catalogue_path + ": image '" + row.record.id +
-                                               "' has a word outside the vocabulary");
-    }
-    const auto number = static_cast<size_t>(row.number);
-    if (by_number.size() <= number) by_number.resize(number + 1);
-    by_number[number] = std::make_shared<Entry>(Entry{std::move(row.record), std::move(*features)});
-    return Ok();
-  });
-  if (!status) return std::unexpected(status.error());
-  // Everything read is validated: only now may the catalogue be opened for writing (catalogue.h).
-  if (auto writable = (*catalogue)->OpenForWriting(); !writable) return std::unexpected(writable.error());
-
-  const auto num_numbers = static_cast<uint32_t>(by_number.size());
-  InvertedFile inverted = InvertedFile::Build(
-      vocab_size, ToTfIdf(options), num_numbers,
-      [&](uint32_t number, BagOfWords* bag) {
-        if (!by_number[number]) return false;
-        *bag = by_number[number]->features.Bag();
-        return true;
-      },
-      options.num_threads);
-  auto snap = std::make_shared<Snapshot>(std::move(inverted));
-  std::array<std::shared_ptr<IdShard>, kIdShards> shards;
-  for (auto& shard : shards) shard = std::make_shared<IdShard>();
-  {
-    CowArray<std::shared_ptr<const Entry>>::Editor editor(&snap->entries);
-    editor.Resize(num_numbers);
-    for (uint32_t n = 0; n < num_numbers; ++n) {
-      if (!by_number[n]) continue;
-      shards[ShardOf(by_number[n]->record.id)]->emplace(by_number[n]->record.id, n);
-      snap->geometry_bytes += by_number[n]->features.MemoryBytes();
-      editor.Mutable(n) = std::move(by_number[n]);
+  auto impl = std::make_unique<Impl>(dir, options, std::move(*vocabulary), meta.extractor_settings);
+  std::shared_ptr<Snapshot> snap;
+  if (meta.schema_version == kSchemaVersion && !meta.checkpoint.empty()) {
+    auto loaded = LoadCheckpoint(dir, **catalogue, vocab_size, options);
+    if (!loaded) return std::unexpected(loaded.error());
+    if (loaded->snapshot) {
+      snap = std::move(loaded->snapshot);
+      impl->checkpoint = std::move(loaded->manifest);
+      impl->changes_since_checkpoint = loaded->changes;
+    } else {
+      // Keep the generation: the new files must not take the names of those the old manifest lists.
+      impl->checkpoint.generation = loaded->manifest.generation;
     }
   }
-  for (size_t i = 0; i < kIdShards; ++i) snap->ids[i] = std::move(shards[i]);
-
-  auto impl = std::make_unique<Impl>(dir, options, std::move(*vocabulary), meta.extractor_settings);
+  const bool rebuild = snap == nullptr;
+  if (rebuild) {
+    auto built = BuildFromCatalogue(**catalogue, vocab_size, options);
+    if (!built) return std::unexpected(built.error());
+    snap = std::move(*built);
+  }
+  // Everything read is validated: only now may the catalogue be opened for writing (catalogue.h).
+  if (auto writable = (*catalogue)->OpenForWriting(); !writable) return std::unexpected(writable.error());
   impl->catalogue = std::move(*catalogue);
+  if (rebuild) {
+    impl->checkpoint_forced = true;  // written in the background: the index is ready now
+  } else {
+    RemoveUnreferencedCheckpointFiles(dir, impl->checkpoint);  // leftovers of a crash
+  }
   impl->snapshot = std::move(snap);
+  impl->checkpointer = std::thread([raw = impl.get()] { raw->CheckpointLoop(); });
   return std::unique_ptr<ImageIndex>(new ImageIndex(std::move(impl)));
 }
 
@@ -462,6 +797,7 @@ Result<ImageRecord> ImageIndex::Impl::Write(const std::string& id, const sift::F
   const std::array<Prepared*, 1> images = {&*prepared};
   Link(numbers, images, *next);
   Publish(std::move(next));
+  Changed(old ? 2 : 1);
   return record;
 }
 
@@ -518,6 +854,7 @@ std::vector<Result<ImageRecord>> ImageIndex::AddBatch(std::span<const BatchImage
   auto next = std::make_shared<Snapshot>(*current);
   Impl::Link(committed, linked, *next);
   impl_->Publish(std::move(next));
+  impl_->Changed(committed.size());
   for (const size_t i : chosen) results[i] = prepared[i].entry->record;
   return results;
 }
@@ -548,6 +885,7 @@ Status ImageIndex::Remove(const std::string& id) {
   auto next = std::make_shared<Snapshot>(*current);
   Impl::Unlink(*current, n, *entry, *next);
   impl_->Publish(std::move(next));
+  impl_->Changed(1);
   return Ok();
 }
 

@@ -48,14 +48,20 @@
 //
 // An index is a folder:
 //   catalogue.sqlite   SQLite (WAL, synchronous=FULL): table `meta` (schema version, vocabulary
-//                      fingerprint, extractor settings) and table `images` (internal number, id, source
-//                      path, width, height, feature count, metadata JSON, added time, and the image's
-//                      words + geometry as a checksummed BLOB). Add/Remove commit one transaction before
-//                      they return, so an acknowledged change survives a crash or kill -9 at any moment
-//                      and a half-done one is rolled back by SQLite.
+//                      fingerprint, extractor settings, checkpoint manifest), table `images` (internal
+//                      number, id, source path, width, height, feature count, metadata JSON, added
+//                      time) and table `features` (the image's words + geometry as a checksummed BLOB;
+//                      catalogue.h). Add/Remove commit one transaction before they return, so an
+//                      acknowledged change survives a crash or kill -9 at any moment and a half-done
+//                      one is rolled back by SQLite.
+//   *.oxck             checkpoint files (checkpoint.h): the inverted file and the packed geometry as
+//                      of the manifest in `meta`, written by a background thread and at close.
 //   vocabulary.oxvoc   a copy of the vocabulary (vocab::Vocabulary file format, CRC-checked); its
 //                      fingerprint must equal the one in `meta`.
-// Open rebuilds the in-memory inverted file from the BLOBs (one pass, O(total features)).
+// Open loads the checkpoint (files verified by checksum; geometry memory-mapped) and replays the
+// catalogue's changes since; without a usable checkpoint (none yet, or a file missing, damaged or
+// inconsistent: logged) it rebuilds from the BLOBs (one pass, O(total features)) and checkpoints
+// again in the background.
 // Open refuses: a folder without a catalogue, an unknown schema version, a vocabulary copy whose
 // fingerprint differs from the catalogue's, a damaged BLOB (checksum) or a damaged SQLite file; and,
 // with kIoError, a folder it cannot write (read-only permissions or file system): the index is always
@@ -93,7 +99,7 @@
 
 namespace oxbow::index {
 
-inline constexpr int kSchemaVersion = 1;  // version of catalogue.sqlite's schema and of the feature BLOBs
+inline constexpr int kSchemaVersion = 2;  // version of catalogue.sqlite's schema (1 is migrated at open)
 
 // Options fixed for the life of an open index (scoring behaviour and performance).
 struct IndexOptions {
@@ -118,6 +124,10 @@ struct IndexOptions {
   // Threads used by Open to rebuild the index and by Query for re-ranking; 0 = all hardware threads.
   // [0, 256]. Results do not depend on it.
   int num_threads = 0;
+  // Checkpoints (index/checkpoint.h): a background thread writes one once the images added + removed
+  // since the last exceed max(checkpoint_changes, 10% of the live images); Open replays at most that
+  // many images from their BLOBs. Close writes one when anything changed. [1, 2^32).
+  uint64_t checkpoint_changes = 10000;
   // Search parameters of the vocabulary quantiser: Add uses them as they are, Query with
   // QueryOptions::quantizer_probes instead of num_probes. Deliberately more probes when adding (16,
   // vocab::QuantizerOptions) than when querying (8): adding is paid once per image, and 8 probes at
@@ -270,7 +280,8 @@ class ImageIndex {
                                                                   const vocab::Vocabulary& vocabulary,
                                                                   std::string extractor_settings,
                                                                   const IndexOptions& options = {});
-  // Opens an existing index (see "Storage" above for what is refused). O(total features).
+  // Opens an existing index (see "Storage" above for what is refused). O(images + changes since the
+  // checkpoint + checkpoint file bytes verified); O(total features) when it must rebuild.
   [[nodiscard]] static Result<std::unique_ptr<ImageIndex>> Open(const std::string& dir,
                                                                 const IndexOptions& options = {});
   // True when `dir` holds an index catalogue (cheap check, no validation).

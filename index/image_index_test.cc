@@ -14,9 +14,12 @@
 #include <random>
 #include <thread>
 
+#include <csignal>
+#include <functional>
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include "index/checkpoint.h"
 #include "index/feature_store.h"
 
 namespace oxbow::index {
@@ -543,9 +546,11 @@ TEST_F(Fixture, DamagedFeatureBlobIsRefused) {
     std::mt19937_64 rng(8);
     ASSERT_TRUE(index->Add("a", RandomImage(rng, 30), {}));
   }
-  // Flip one byte inside the packed features (after the 24-byte header): the checksum must catch it.
+  // Flip one byte inside the packed features (after the 24-byte header): the checksum must catch it
+  // when Open reads the BLOBs (no checkpoint: a full rebuild).
   ExecSql(dir_ / "catalogue.sqlite",
-          "UPDATE images SET features = substr(features, 1, 30) || x'ff' || substr(features, 32) WHERE id = 'a'");
+          "UPDATE features SET blob = substr(blob, 1, 30) || x'ff' || substr(blob, 32) "
+          "WHERE number = (SELECT number FROM images WHERE id = 'a'); DELETE FROM meta WHERE key = 'checkpoint'");
   const auto r = ImageIndex::Open(dir_.string());
   ASSERT_FALSE(r);
   EXPECT_EQ(r.error().code, ErrorCode::kCorruptData);
@@ -929,6 +934,284 @@ TEST_F(Fixture, ReadersRunWhileWritersAdd) {
   EXPECT_EQ(failures.load(), 0);
   EXPECT_GT(queries.load(), 0);
   EXPECT_EQ(index->Stats().num_images, 60u - 14u);
+}
+
+
+// ==== Checkpoints (checkpoint.h) =====================================================================
+
+// Checkpoint files in the index folder, sorted.
+std::vector<std::string> CheckpointFiles(const fs::path& dir) {
+  std::vector<std::string> out;
+  for (const auto& item : fs::directory_iterator(dir)) {
+    const std::string name = item.path().filename().string();
+    if (name.find(".oxck") != std::string::npos) out.push_back(name);
+  }
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
+class CheckpointFixture : public Fixture {
+ protected:
+  // Images i0..i(n-1), deterministic.
+  sift::FeatureSet Image(int i) const {
+    std::mt19937_64 rng(1000 + static_cast<uint64_t>(i));
+    return RandomImage(rng, 30 + i % 50);
+  }
+  // In a child process: opens the index, runs `body`, then dies by SIGKILL (no close, no checkpoint),
+  // at the end of body or at checkpoint stage `kill_at`.
+  void InChildThenKill(const std::function<void(ImageIndex&)>& body, const std::string& kill_at = "",
+                       const IndexOptions& options = {}) {
+    const pid_t pid = fork();
+    ASSERT_GE(pid, 0);
+    if (pid == 0) {
+      if (!kill_at.empty()) {
+        SetCheckpointStageHookForTesting([kill_at](std::string_view stage) {
+          if (stage == kill_at) ::raise(SIGKILL);
+        });
+      }
+      auto index = ImageIndex::Open(dir_.string(), options);
+      if (!index) ::_exit(2);
+      body(**index);
+      if (::testing::Test::HasFailure()) ::_exit(3);  // the parent's check of the exit status fails
+      if (!kill_at.empty()) index->reset();  // close: writes the checkpoint, killed at `kill_at`
+      ::raise(SIGKILL);
+    }
+    int status = 0;
+    ASSERT_EQ(::waitpid(pid, &status, 0), pid);
+    ASSERT_TRUE(WIFSIGNALED(status) && WTERMSIG(status) == SIGKILL) << "child status " << status;
+  }
+  // The scores of `index` equal those of a fresh index holding images `live` (exact statistics).
+  void ExpectEqualsFresh(ImageIndex& index, const std::vector<int>& live) {
+    const fs::path fresh_dir = dir_.string() + "_fresh";
+    fs::remove_all(fresh_dir);
+    {
+      auto fresh = ImageIndex::Create(fresh_dir.string(), vocabulary_, "test-extractor/1");
+      ASSERT_TRUE(fresh);
+      for (const int i : live) ASSERT_TRUE((*fresh)->Add("i" + std::to_string(i), Image(i), {}));
+      EXPECT_EQ(index.Stats().num_images, live.size());
+      std::mt19937_64 rng(77);
+      for (int q = 0; q < 5; ++q) {
+        const auto query = RandomImage(rng, 60);
+        const auto a = index.Query(query, Opts(1000, 10));
+        const auto b = (*fresh)->Query(query, Opts(1000, 10));
+        ASSERT_TRUE(a && b);
+        ASSERT_EQ(a->results.size(), b->results.size());
+        for (size_t k = 0; k < a->results.size(); ++k) {
+          EXPECT_EQ(a->results[k].id, b->results[k].id);
+          EXPECT_NEAR(a->results[k].score, b->results[k].score, 1e-6);
+          EXPECT_EQ(a->results[k].inliers, b->results[k].inliers);
+        }
+      }
+    }
+    fs::remove_all(fresh_dir);
+  }
+  std::vector<int> Range(int begin, int end) {
+    std::vector<int> out;
+    for (int i = begin; i < end; ++i) out.push_back(i);
+    return out;
+  }
+};
+
+TEST_F(CheckpointFixture, CloseWritesACheckpointThatOpenUsesWithoutRebuilding) {
+  {
+    auto index = CreateIndex();
+    for (int i = 0; i < 30; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+  }
+  const std::vector<std::string> written = CheckpointFiles(dir_);
+  EXPECT_EQ(written, (std::vector<std::string>{"geometry-1-0.oxck", "postings-1.oxck"}));
+  // Reopened with nothing changed: no new checkpoint at open or close.
+  {
+    auto index = ImageIndex::Open(dir_.string());
+    ASSERT_TRUE(index) << index.error().ToString();
+    ExpectEqualsFresh(**index, Range(0, 30));
+  }
+  EXPECT_EQ(CheckpointFiles(dir_), written);
+}
+
+TEST_F(CheckpointFixture, OpenReplaysChangesAfterTheCheckpointAndEqualsAFreshIndex) {
+  {
+    auto index = CreateIndex();
+    for (int i = 0; i < 30; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+  }
+  // Killed after more adds, removes (of checkpointed and new images) and a replace: only the catalogue
+  // has them.
+  InChildThenKill([&](ImageIndex& index) {
+    for (int i = 30; i < 45; ++i) ASSERT_TRUE(index.Add("i" + std::to_string(i), Image(i), {}));
+    for (const int i : {3, 17, 40}) ASSERT_TRUE(index.Remove("i" + std::to_string(i)));
+    ASSERT_TRUE(index.Replace("i5", Image(5), {}));
+  });
+  std::vector<int> live;
+  for (int i = 0; i < 45; ++i) {
+    if (i != 3 && i != 17 && i != 40) live.push_back(i);
+  }
+  {
+    auto index = ImageIndex::Open(dir_.string());
+    ASSERT_TRUE(index) << index.error().ToString();
+    EXPECT_EQ(CheckpointFiles(dir_), (std::vector<std::string>{"geometry-1-0.oxck", "postings-1.oxck"}))
+        << "open replays the delta instead of rebuilding";
+    ExpectEqualsFresh(**index, live);
+    EXPECT_FALSE((*index)->Contains("i3"));
+  }
+  // The close checkpointed the replayed changes: generation 2 adds geometry for the new numbers only.
+  EXPECT_EQ(CheckpointFiles(dir_),
+            (std::vector<std::string>{"geometry-1-0.oxck", "geometry-2-0.oxck", "postings-2.oxck"}));
+  auto index = ImageIndex::Open(dir_.string());
+  ASSERT_TRUE(index) << index.error().ToString();
+  ExpectEqualsFresh(**index, live);
+}
+
+TEST_F(CheckpointFixture, DamagedTruncatedOrMissingFilesAreRepairedFromTheCatalogue) {
+  const std::vector<std::pair<std::string, std::function<void(const fs::path&)>>> damages = {
+      {"flipped byte", [](const fs::path& p) {
+         std::fstream f(p, std::ios::in | std::ios::out | std::ios::binary);
+         f.seekg(40);
+         const char c = static_cast<char>(f.get());
+         f.seekp(40);
+         f.put(static_cast<char>(c ^ 0x5a));
+       }},
+      {"truncated", [](const fs::path& p) { fs::resize_file(p, fs::file_size(p) / 2); }},
+      {"missing", [](const fs::path& p) { fs::remove(p); }},
+  };
+  for (const std::string target : {"postings-1.oxck", "geometry-1-0.oxck"}) {
+    for (const auto& [what, damage] : damages) {
+      SCOPED_TRACE(target + " " + what);
+      fs::remove_all(dir_);
+      {
+        auto index = CreateIndex();
+        for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+      }
+      damage(dir_ / target);
+      auto index = ImageIndex::Open(dir_.string());
+      ASSERT_TRUE(index) << index.error().ToString();
+      ExpectEqualsFresh(**index, Range(0, 20));
+      // Rebuilt from the catalogue and checkpointed again (generation 2, in the background or at the
+      // latest at close); the old files are gone.
+      index->reset();
+      EXPECT_EQ(CheckpointFiles(dir_), (std::vector<std::string>{"geometry-2-0.oxck", "postings-2.oxck"}));
+    }
+  }
+}
+
+TEST_F(CheckpointFixture, KillAtEveryStageOfACheckpointLosesNothing) {
+  for (const std::string stage : {"file-unsynced", "files-written", "manifest-committed", "cleaned"}) {
+    SCOPED_TRACE(stage);
+    fs::remove_all(dir_);
+    {
+      auto index = CreateIndex();
+      for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+    }
+    InChildThenKill(
+        [&](ImageIndex& index) {
+          for (int i = 20; i < 30; ++i) ASSERT_TRUE(index.Add("i" + std::to_string(i), Image(i), {}));
+          ASSERT_TRUE(index.Remove("i2"));
+        },
+        stage);
+    std::vector<int> live = Range(0, 30);
+    live.erase(live.begin() + 2);
+    auto index = ImageIndex::Open(dir_.string());
+    ASSERT_TRUE(index) << index.error().ToString();
+    ExpectEqualsFresh(**index, live);
+    // Whichever manifest is committed, the open deleted every file it does not name.
+    const std::vector<std::string> files = CheckpointFiles(dir_);
+    const bool committed = stage == "manifest-committed" || stage == "cleaned";
+    const std::vector<std::string> expected =
+        committed ? std::vector<std::string>{"geometry-1-0.oxck", "geometry-2-0.oxck", "postings-2.oxck"}
+                  : std::vector<std::string>{"geometry-1-0.oxck", "postings-1.oxck"};
+    EXPECT_EQ(files, expected);
+  }
+}
+
+// A version-1 catalogue (features as the last column of `images`) as the previous code wrote it,
+// made from a version-2 index's rows.
+TEST_F(CheckpointFixture, VersionOneCatalogueIsMigratedInPlace) {
+  {
+    auto index = CreateIndex();
+    for (int i = 0; i < 12; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+    ASSERT_TRUE(index->Remove("i11"));  // the sequence is above the highest number left
+  }
+  const fs::path v2 = dir_ / "v2.sqlite";
+  fs::rename(dir_ / "catalogue.sqlite", v2);
+  for (const auto& name : CheckpointFiles(dir_)) fs::remove(dir_ / name);
+  ExecSql(dir_ / "catalogue.sqlite",
+          "CREATE TABLE meta(key TEXT PRIMARY KEY, value TEXT NOT NULL);"
+          "CREATE TABLE images(number INTEGER PRIMARY KEY AUTOINCREMENT, id TEXT NOT NULL UNIQUE,"
+          " source_path TEXT NOT NULL, width INTEGER NOT NULL, height INTEGER NOT NULL,"
+          " num_features INTEGER NOT NULL, metadata_json TEXT NOT NULL, added_unix_ms INTEGER NOT NULL,"
+          " features BLOB NOT NULL);"
+          "ATTACH '" + v2.string() + "' AS v2;"
+          "INSERT INTO meta SELECT key, value FROM v2.meta WHERE key != 'checkpoint';"
+          "UPDATE meta SET value = '1' WHERE key = 'schema_version';"
+          "INSERT INTO images SELECT i.*, f.blob FROM v2.images i JOIN v2.features f USING (number);"
+          "UPDATE sqlite_sequence SET seq = (SELECT seq FROM v2.sqlite_sequence WHERE name = 'images');");
+  fs::remove(v2);
+  {
+    auto index = ImageIndex::Open(dir_.string());
+    ASSERT_TRUE(index) << index.error().ToString();
+    ExpectEqualsFresh(**index, Range(0, 11));
+    // Numbers continue above the removed one: a new image gets number 13.
+    ASSERT_TRUE((*index)->Add("i12", Image(12), {}));
+  }
+  sqlite3* db = nullptr;
+  ASSERT_EQ(sqlite3_open((dir_ / "catalogue.sqlite").c_str(), &db), SQLITE_OK);
+  sqlite3_stmt* stmt = nullptr;
+  ASSERT_EQ(sqlite3_prepare_v2(db,
+                               "SELECT (SELECT value FROM meta WHERE key = 'schema_version'),"
+                               " (SELECT number FROM images WHERE id = 'i12'), (SELECT count(*) FROM features)",
+                               -1, &stmt, nullptr),
+            SQLITE_OK);
+  ASSERT_EQ(sqlite3_step(stmt), SQLITE_ROW);
+  EXPECT_STREQ(reinterpret_cast<const char*>(sqlite3_column_text(stmt, 0)), "2");
+  EXPECT_EQ(sqlite3_column_int(stmt, 1), 13);
+  EXPECT_EQ(sqlite3_column_int(stmt, 2), 12);
+  sqlite3_finalize(stmt);
+  sqlite3_close(db);
+  auto index = ImageIndex::Open(dir_.string());
+  ASSERT_TRUE(index) << index.error().ToString();
+  std::vector<int> live = Range(0, 11);
+  live.push_back(12);
+  ExpectEqualsFresh(**index, live);
+}
+
+TEST_F(CheckpointFixture, BackgroundCheckpointWhileWritingIsConsistent) {
+  CreateIndex();
+  IndexOptions options;
+  options.checkpoint_changes = 4;
+  InChildThenKill([&](ImageIndex& index) {
+    for (int i = 0; i < 40; ++i) ASSERT_TRUE(index.Add("i" + std::to_string(i), Image(i), {}));
+    ASSERT_TRUE(index.Remove("i7"));
+    // Wait (at most 60 s) for a background checkpoint after the one of the open's rebuild (there was
+    // none before), then die without closing.
+    const auto later_checkpoint = [&] {
+      const auto files = CheckpointFiles(dir_);
+      return std::any_of(files.begin(), files.end(),
+                         [](const std::string& f) { return f.starts_with("postings-") && f != "postings-1.oxck"; });
+    };
+    for (int t = 0; t < 600 && !later_checkpoint(); ++t) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    ASSERT_TRUE(later_checkpoint());
+  }, "", options);
+  std::vector<int> live = Range(0, 40);
+  live.erase(live.begin() + 7);
+  auto index = ImageIndex::Open(dir_.string());
+  ASSERT_TRUE(index) << index.error().ToString();
+  // Opened from a background checkpoint (no rebuild: no generation above the last one written).
+  const auto files = CheckpointFiles(dir_);
+  EXPECT_EQ(std::count_if(files.begin(), files.end(), [](const std::string& f) { return f.starts_with("postings-"); }), 1);
+  ExpectEqualsFresh(**index, live);
+}
+
+TEST_F(CheckpointFixture, DamagedBlobAddedAfterTheCheckpointIsRefused) {
+  {
+    auto index = CreateIndex();
+    for (int i = 0; i < 5; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+  }
+  InChildThenKill([&](ImageIndex& index) { ASSERT_TRUE(index.Add("late", Image(9), {})); });
+  ExecSql(dir_ / "catalogue.sqlite",
+          "UPDATE features SET blob = substr(blob, 1, 30) || x'ff' || substr(blob, 32) "
+          "WHERE number = (SELECT number FROM images WHERE id = 'late')");
+  const auto r = ImageIndex::Open(dir_.string());
+  ASSERT_FALSE(r);
+  EXPECT_EQ(r.error().code, ErrorCode::kCorruptData);
+  EXPECT_NE(r.error().message.find("checksum"), std::string::npos) << r.error().message;
 }
 
 }  // namespace

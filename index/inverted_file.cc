@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
+#include <type_traits>
 #include <limits>
 #include <queue>
 
@@ -707,6 +709,174 @@ std::vector<ScoredImage> InvertedFile::Score(std::span<const QueryTerm> query, s
   for (size_t i = out.size(); i-- > 0;) {
     out[i] = heap.top();
     heap.pop();
+  }
+  return out;
+}
+
+namespace {
+
+constexpr char kFileMagic[4] = {'O', 'X', 'I', 'F'};
+constexpr uint32_t kFileVersion = 1;
+constexpr uint32_t kByteOrderMark = 0x01020304;
+
+template <typename T>
+std::span<const uint8_t> AsBytes(const T& value) {
+  return {reinterpret_cast<const uint8_t*>(&value), sizeof(T)};
+}
+
+template <typename T>
+std::span<const uint8_t> AsBytes(std::span<const T> values) {
+  return {reinterpret_cast<const uint8_t*>(values.data()), values.size_bytes()};
+}
+
+// Bounds-checked reads of the serialised form; a short read sets `ok` to false and yields zeros.
+struct FileReader {
+  std::span<const uint8_t> bytes;
+  size_t at = 0;
+  bool ok = true;
+
+  template <typename T>
+  T Get() {
+    T value{};
+    Copy(&value, sizeof(T));
+    return value;
+  }
+  template <typename T>
+  std::vector<T> GetVector(uint64_t max_count) {
+    const auto count = Get<uint64_t>();
+    if (!ok || count > max_count || count > (bytes.size() - at) / sizeof(T)) {
+      ok = false;
+      return {};
+    }
+    std::vector<T> out(count);
+    Copy(out.data(), count * sizeof(T));
+    return out;
+  }
+  void Copy(void* out, size_t n) {
+    if (!ok || bytes.size() - at < n) {
+      ok = false;
+      return;
+    }
+    std::memcpy(out, bytes.data() + at, n);
+    at += n;
+  }
+};
+
+}  // namespace
+
+void InvertedFile::Serialize(const std::function<void(std::span<const uint8_t>)>& write) const {
+  write(AsBytes(kFileMagic));
+  write(AsBytes(kFileVersion));
+  write(AsBytes(kByteOrderMark));
+  write(AsBytes(uint64_t{vocabulary_size_}));
+  write(AsBytes(uint8_t{options_.sqrt_tf ? uint8_t{1} : uint8_t{0}}));
+  for (const uint64_t v : {stats_num_live_, changes_since_refresh_, num_live_, num_live_features_, num_postings_,
+                           num_dead_postings_}) {
+    write(AsBytes(v));
+  }
+  // Arrays as a count then the elements; CowArrays chunk by chunk.
+  auto put_cow = [&](const auto& array) {
+    write(AsBytes(uint64_t{array.size()}));
+    for (size_t i = 0; i < array.size(); i += std::remove_reference_t<decltype(array)>::kChunk) {
+      const size_t n = std::min(array.size() - i, std::remove_reference_t<decltype(array)>::kChunk);
+      write(AsBytes(std::span(&array[i], n)));
+    }
+  };
+  put_cow(df_);
+  put_cow(stats_df_);
+  put_cow(images_);
+  write(AsBytes(uint64_t{segments_.size()}));
+  for (const auto& segment : segments_) {
+    write(AsBytes(segment->first_image));
+    write(AsBytes(segment->end_image));
+    write(AsBytes(uint8_t{segment->dense ? uint8_t{1} : uint8_t{0}}));
+    write(AsBytes(segment->num_postings));
+    write(AsBytes(uint64_t{segment->words.size()}));
+    write(AsBytes(std::span<const uint32_t>(segment->words)));
+    write(AsBytes(uint64_t{segment->offsets.size()}));
+    write(AsBytes(std::span<const uint64_t>(segment->offsets)));
+    write(AsBytes(uint64_t{segment->bytes.size()}));
+    write(AsBytes(std::span<const uint8_t>(segment->bytes)));
+  }
+}
+
+Result<InvertedFile> InvertedFile::Deserialize(std::span<const uint8_t> bytes, size_t vocabulary_size,
+                                               const TfIdfOptions& options) {
+  const auto corrupt = [](const std::string& why) {
+    return Fail(ErrorCode::kCorruptData, "inconsistent inverted file: " + why);
+  };
+  FileReader in{bytes};
+  char magic[4] = {};
+  in.Copy(magic, sizeof(magic));
+  if (!in.ok || !std::equal(magic, magic + 4, kFileMagic)) return corrupt("bad magic");
+  const auto version = in.Get<uint32_t>();
+  if (version != kFileVersion || in.Get<uint32_t>() != kByteOrderMark) {
+    return Fail(ErrorCode::kIncompatible, "inverted file format version " + std::to_string(version) +
+                                              " or byte order not readable by this build");
+  }
+  const auto stored_vocabulary_size = in.Get<uint64_t>();
+  const bool sqrt_tf = in.Get<uint8_t>() != 0;
+  if (stored_vocabulary_size != vocabulary_size || sqrt_tf != options.sqrt_tf) {
+    return Fail(ErrorCode::kIncompatible, "inverted file made for another vocabulary size or sqrt_tf setting");
+  }
+  InvertedFile out(vocabulary_size, options);
+  out.stats_num_live_ = in.Get<uint64_t>();
+  out.changes_since_refresh_ = in.Get<uint64_t>();
+  out.num_live_ = in.Get<uint64_t>();
+  out.num_live_features_ = in.Get<uint64_t>();
+  out.num_postings_ = in.Get<uint64_t>();
+  out.num_dead_postings_ = in.Get<uint64_t>();
+  // expected_size: the only size accepted (any when max).
+  auto get_cow = [&](auto& array, uint64_t expected_size) {
+    using Array = std::remove_reference_t<decltype(array)>;
+    using T = std::remove_cvref_t<decltype(array[0])>;
+    const auto size = in.Get<uint64_t>();
+    if (!in.ok || (size != expected_size && expected_size != std::numeric_limits<uint64_t>::max()) ||
+        size >= (uint64_t{1} << 32) || size > (bytes.size() - in.at) / sizeof(T)) {
+      in.ok = false;
+      return;
+    }
+    Array fresh;
+    typename Array::Editor editor(&fresh);
+    editor.Resize(size);
+    for (size_t i = 0; i < size; ++i) in.Copy(&editor.Mutable(i), sizeof(T));
+    array = std::move(fresh);
+  };
+  get_cow(out.df_, vocabulary_size);
+  get_cow(out.stats_df_, vocabulary_size);
+  get_cow(out.images_, std::numeric_limits<uint64_t>::max());
+  const uint64_t num_numbers = out.images_.size();
+  const auto num_segments = in.Get<uint64_t>();
+  if (!in.ok || num_segments > num_numbers + 1) return corrupt("truncated or bad segment count");
+  uint64_t postings = 0;
+  uint32_t previous_end = 0;
+  for (uint64_t i = 0; i < num_segments; ++i) {
+    auto segment = std::make_shared<Segment>();
+    segment->first_image = in.Get<uint32_t>();
+    segment->end_image = in.Get<uint32_t>();
+    segment->dense = in.Get<uint8_t>() != 0;
+    segment->num_postings = in.Get<uint64_t>();
+    segment->words = in.GetVector<uint32_t>(vocabulary_size);
+    segment->offsets = in.GetVector<uint64_t>(vocabulary_size + 1);
+    segment->bytes = in.GetVector<uint8_t>(std::numeric_limits<uint64_t>::max());
+    if (!in.ok) return corrupt("truncated segment");
+    const size_t expected_offsets = segment->dense ? vocabulary_size + 1 : segment->words.size() + 1;
+    if (segment->first_image < previous_end || segment->first_image > segment->end_image ||
+        segment->end_image > num_numbers || segment->offsets.size() != expected_offsets ||
+        segment->offsets.back() != segment->bytes.size() || (segment->dense && !segment->words.empty()) ||
+        !std::is_sorted(segment->offsets.begin(), segment->offsets.end()) ||
+        std::adjacent_find(segment->words.begin(), segment->words.end(), std::greater_equal<>()) !=
+            segment->words.end() ||
+        (!segment->words.empty() && segment->words.back() >= vocabulary_size)) {
+      return corrupt("segment " + std::to_string(i) + " is inconsistent");
+    }
+    previous_end = segment->end_image;
+    postings += segment->num_postings;
+    out.segments_.push_back(std::move(segment));
+  }
+  if (in.at != bytes.size()) return corrupt("trailing bytes");
+  if (postings != out.num_postings_ || out.num_live_ > num_numbers || out.stats_num_live_ > num_numbers) {
+    return corrupt("counts disagree");
   }
   return out;
 }

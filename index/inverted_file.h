@@ -46,6 +46,7 @@
 #include <vector>
 
 #include "index/cow_array.h"
+#include "sift/base/error.h"
 
 namespace oxbow::index {
 
@@ -173,6 +174,16 @@ class InvertedFile {
   size_t vocabulary_size() const { return vocabulary_size_; }
   const TfIdfOptions& options() const { return options_; }
   InvertedFileStats Stats() const;
+
+  // The checkpoint form (checkpoint.h) of the whole state: segments, document frequencies, the
+  // statistics of the last refresh and every image's sums, so that a deserialised copy scores exactly
+  // as this one. Little-endian; `write` receives the bytes in order.
+  void Serialize(const std::function<void(std::span<const uint8_t>)>& write) const;
+  // Reads what Serialize wrote. Checks the structure, not the content (the caller checksums the file):
+  // kCorruptData for inconsistent bytes; kIncompatible when the vocabulary size or sqrt_tf differ
+  // (image sums depend on sqrt_tf).
+  [[nodiscard]] static Result<InvertedFile> Deserialize(std::span<const uint8_t> bytes, size_t vocabulary_size,
+                                                        const TfIdfOptions& options);
 
  private:
   std::vector<QueryTerm> WeightedQueryVector(std::span<const uint32_t> words, std::span<const float> tf,

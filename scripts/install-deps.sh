@@ -13,6 +13,7 @@ build_packages=(
   libflann-dev           # randomised kd-forests (matching, approximate k-means)
   libsqlite3-dev         # the index catalogue
   zlib1g-dev             # CRC-32 of stored files and feature BLOBs (sift/base/binary_io.cc)
+  libxxhash-dev          # XXH3 checksums of the index checkpoint files (verified at every open)
   nlohmann-json3-dev     # JSON in the CLI and the HTTP API
   libcli11-dev           # the oxbow CLI
   libcpp-httplib-dev     # the HTTP server

@@ -1,0 +1,294 @@
+#include "index/checkpoint.h"
+
+#include <fcntl.h>
+#include <sys/mman.h>
+#include <sys/stat.h>
+#include <unistd.h>
+#include <xxhash.h>
+
+#include <algorithm>
+#include <cerrno>
+#include <cstring>
+#include <filesystem>
+#include <set>
+#include <sstream>
+
+namespace oxbow::index {
+namespace {
+
+constexpr char kGeometryMagic[4] = {'O', 'X', 'G', 'E'};
+constexpr uint32_t kGeometryVersion = 1;
+constexpr uint32_t kByteOrderMark = 0x01020304;
+constexpr const char* kManifestHeader = "oxbow-checkpoint 1";
+
+struct GeometryEntry {
+  uint32_t number;
+  int32_t width;
+  int32_t height;
+  uint32_t count;
+  uint64_t offset;
+};
+static_assert(sizeof(GeometryEntry) == 24);
+
+std::string Errno() { return std::strerror(errno); }
+
+bool IsCheckpointFileName(const std::string& name) {
+  const bool ours = name.starts_with("postings-") || name.starts_with("geometry-");
+  return ours && (name.ends_with(".oxck") || name.ends_with(".oxck.tmp"));
+}
+
+// XXH3-64 of a byte stream.
+class Checksum {
+ public:
+  Checksum() : state_(XXH3_createState()) {
+    OXBOW_CHECK(state_ != nullptr, "out of memory");
+    XXH3_64bits_reset(state_);
+  }
+  ~Checksum() { XXH3_freeState(state_); }
+  Checksum(const Checksum&) = delete;
+  Checksum& operator=(const Checksum&) = delete;
+  void Update(std::span<const uint8_t> bytes) { XXH3_64bits_update(state_, bytes.data(), bytes.size()); }
+  uint64_t Digest() const { return XXH3_64bits_digest(state_); }
+
+ private:
+  XXH3_state_t* state_;
+};
+
+std::function<void(std::string_view)>& StageHook() {
+  static std::function<void(std::string_view)> hook;
+  return hook;
+}
+
+}  // namespace
+
+void SetCheckpointStageHookForTesting(std::function<void(std::string_view)> hook) { StageHook() = std::move(hook); }
+
+void CheckpointStage(std::string_view stage) {
+  if (StageHook()) StageHook()(stage);
+}
+
+std::string CheckpointManifest::Format() const {
+  std::ostringstream out;
+  out << kManifestHeader << "\ngeneration " << generation << "\nhigh_water " << high_water << "\nsqrt_tf "
+      << (sqrt_tf ? 1 : 0) << "\n";
+  for (const CheckpointFile& f : files) out << "file " << f.name << " " << f.size_bytes << " " << f.checksum << "\n";
+  return out.str();
+}
+
+Result<CheckpointManifest> CheckpointManifest::Parse(const std::string& text) {
+  const auto bad = [] { return Fail(ErrorCode::kCorruptData, "unreadable checkpoint manifest"); };
+  std::istringstream in(text);
+  std::string line;
+  if (!std::getline(in, line) || line != kManifestHeader) return bad();
+  CheckpointManifest m;
+  std::string key;
+  int sqrt_tf = 0;
+  if (!(in >> key >> m.generation) || key != "generation") return bad();
+  if (!(in >> key >> m.high_water) || key != "high_water") return bad();
+  if (!(in >> key >> sqrt_tf) || key != "sqrt_tf") return bad();
+  m.sqrt_tf = sqrt_tf != 0;
+  while (in >> key) {
+    CheckpointFile f;
+    if (key != "file" || !(in >> f.name >> f.size_bytes >> f.checksum)) return bad();
+    // Names come from this code; anything else (a path) is not ours to open or delete.
+    if (!IsCheckpointFileName(f.name) || f.name.find('/') != std::string::npos) return bad();
+    m.files.push_back(std::move(f));
+  }
+  if (m.generation == 0 || m.high_water < 0) return bad();
+  return m;
+}
+
+Result<std::shared_ptr<const MappedFile>> MappedFile::Open(const std::string& path) {
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) return Fail(errno == ENOENT ? ErrorCode::kNotFound : ErrorCode::kIoError, path + ": " + Errno());
+  struct stat st {};
+  if (::fstat(fd, &st) != 0) {
+    const std::string message = Errno();
+    ::close(fd);
+    return Fail(ErrorCode::kIoError, path + ": " + message);
+  }
+  const auto size = static_cast<size_t>(st.st_size);
+  void* data = nullptr;
+  if (size > 0) {
+    data = ::mmap(nullptr, size, PROT_READ, MAP_SHARED, fd, 0);
+    if (data == MAP_FAILED) {
+      const std::string message = Errno();
+      ::close(fd);
+      return Fail(ErrorCode::kIoError, "cannot map " + path + ": " + message);
+    }
+    // Re-ranking reads a few images' features at random places: no read-ahead around them, so that
+    // only the pages in use are resident.
+    ::madvise(data, size, MADV_RANDOM);
+  }
+  ::close(fd);  // the mapping stays valid
+  return std::shared_ptr<const MappedFile>(new MappedFile(static_cast<const uint8_t*>(data), size));
+}
+
+MappedFile::~MappedFile() {
+  if (size_ > 0) ::munmap(const_cast<uint8_t*>(data_), size_);
+}
+
+Result<CheckpointFile> WriteCheckpointFile(const std::string& dir, const std::string& name,
+                                           const std::function<void(const ByteSink&)>& produce) {
+  const std::string path = (std::filesystem::path(dir) / name).string();
+  const std::string tmp = path + ".tmp";
+  const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+  if (fd < 0) return Fail(ErrorCode::kIoError, "cannot create " + tmp + ": " + Errno());
+  CheckpointFile file{.name = name};
+  Checksum checksum;
+  std::vector<uint8_t> buffer;
+  buffer.reserve(size_t{1} << 20);
+  bool ok = true;
+  std::string error;
+  auto flush = [&] {
+    size_t done = 0;
+    while (ok && done < buffer.size()) {
+      const ssize_t n = ::write(fd, buffer.data() + done, buffer.size() - done);
+      if (n < 0 && errno == EINTR) continue;
+      if (n <= 0) {
+        ok = false;
+        error = Errno();
+      } else {
+        done += static_cast<size_t>(n);
+      }
+    }
+    buffer.clear();
+  };
+  produce([&](std::span<const uint8_t> bytes) {
+    checksum.Update(bytes);
+    file.size_bytes += bytes.size();
+    if (buffer.size() + bytes.size() > buffer.capacity()) flush();
+    if (bytes.size() >= buffer.capacity()) {
+      buffer.assign(bytes.begin(), bytes.end());
+      flush();
+    } else {
+      buffer.insert(buffer.end(), bytes.begin(), bytes.end());
+    }
+  });
+  flush();
+  file.checksum = checksum.Digest();
+  CheckpointStage("file-unsynced");
+  if (ok && ::fsync(fd) != 0) {
+    ok = false;
+    error = Errno();
+  }
+  if (::close(fd) != 0 && ok) {
+    ok = false;
+    error = Errno();
+  }
+  if (ok && ::rename(tmp.c_str(), path.c_str()) != 0) {
+    ok = false;
+    error = Errno();
+  }
+  if (!ok) {
+    ::unlink(tmp.c_str());
+    return Fail(ErrorCode::kIoError, "cannot write " + path + ": " + error);
+  }
+  // The rename is durable once the folder is.
+  const int dir_fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  if (dir_fd < 0 || ::fsync(dir_fd) != 0) {
+    error = Errno();
+    if (dir_fd >= 0) ::close(dir_fd);
+    return Fail(ErrorCode::kIoError, "cannot sync the folder " + dir + ": " + error);
+  }
+  ::close(dir_fd);
+  return file;
+}
+
+Status VerifyCheckpointFile(const std::string& dir, const CheckpointFile& file) {
+  const std::string path = (std::filesystem::path(dir) / file.name).string();
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) {
+    return Fail(errno == ENOENT ? ErrorCode::kNotFound : ErrorCode::kIoError, "checkpoint file " + path + ": " + Errno());
+  }
+  std::vector<uint8_t> buffer(size_t{4} << 20);
+  uint64_t size = 0;
+  Checksum checksum;
+  while (true) {
+    const ssize_t n = ::read(fd, buffer.data(), buffer.size());
+    if (n < 0 && errno == EINTR) continue;
+    if (n < 0) {
+      std::string message = "cannot read checkpoint file " + path;
+      message += ": ";
+      message += Errno();
+      ::close(fd);
+      return Fail(ErrorCode::kIoError, message);
+    }
+    if (n == 0) break;
+    checksum.Update(std::span(buffer.data(), static_cast<size_t>(n)));
+    size += static_cast<uint64_t>(n);
+  }
+  ::close(fd);
+  if (size != file.size_bytes) {
+    return Fail(ErrorCode::kCorruptData, "checkpoint file " + path + " has " + std::to_string(size) +
+                                             " bytes, its manifest says " + std::to_string(file.size_bytes));
+  }
+  if (checksum.Digest() != file.checksum) return Fail(ErrorCode::kCorruptData, "checkpoint file " + path + " fails its checksum");
+  return Ok();
+}
+
+void WriteGeometry(std::span<const GeometryImage> images, const ByteSink& sink) {
+  const auto put = [&](const auto& value) {
+    sink(std::span(reinterpret_cast<const uint8_t*>(&value), sizeof(value)));
+  };
+  sink(std::span(reinterpret_cast<const uint8_t*>(kGeometryMagic), sizeof(kGeometryMagic)));
+  put(kGeometryVersion);
+  put(kByteOrderMark);
+  put(uint64_t{images.size()});
+  uint64_t offset = 0;
+  for (const GeometryImage& image : images) {
+    const GeometryEntry entry{image.number, image.features.width(), image.features.height(),
+                              static_cast<uint32_t>(image.features.size()), offset};
+    put(entry);
+    offset += image.features.bytes().size();
+  }
+  for (const GeometryImage& image : images) sink(image.features.bytes());
+}
+
+Result<std::vector<GeometryImage>> ReadGeometry(const std::shared_ptr<const MappedFile>& file, const std::string& what) {
+  const std::span<const uint8_t> bytes = file->bytes();
+  const auto corrupt = [&](const std::string& why) { return Fail(ErrorCode::kCorruptData, what + ": " + why); };
+  constexpr size_t kHeader = 4 + 4 + 4 + 8;
+  if (bytes.size() < kHeader || !std::equal(kGeometryMagic, kGeometryMagic + 4, bytes.begin())) {
+    return corrupt("not a geometry file");
+  }
+  uint32_t version = 0, mark = 0;
+  uint64_t count = 0;
+  std::memcpy(&version, bytes.data() + 4, 4);
+  std::memcpy(&mark, bytes.data() + 8, 4);
+  std::memcpy(&count, bytes.data() + 12, 8);
+  if (version != kGeometryVersion || mark != kByteOrderMark) return corrupt("format version or byte order not readable");
+  if (count > (bytes.size() - kHeader) / sizeof(GeometryEntry)) return corrupt("truncated image table");
+  const size_t data_start = kHeader + count * sizeof(GeometryEntry);
+  std::vector<GeometryImage> out;
+  out.reserve(count);
+  uint64_t expected_offset = 0;
+  for (uint64_t i = 0; i < count; ++i) {
+    GeometryEntry e{};
+    std::memcpy(&e, bytes.data() + kHeader + i * sizeof(GeometryEntry), sizeof(e));
+    const uint64_t length = uint64_t{e.count} * kPackedFeatureBytes;
+    if (e.offset != expected_offset || length > bytes.size() - data_start - e.offset ||
+        (!out.empty() && e.number <= out.back().number)) {
+      return corrupt("inconsistent image table");
+    }
+    expected_offset += length;
+    auto features = PackedFeatures::View(bytes.subspan(data_start + e.offset, length), e.width, e.height, file,
+                                         "image number " + std::to_string(e.number) + " in " + what);
+    if (!features) return std::unexpected(features.error());
+    out.push_back({e.number, std::move(*features)});
+  }
+  if (data_start + expected_offset != bytes.size()) return corrupt("trailing bytes");
+  return out;
+}
+
+void RemoveUnreferencedCheckpointFiles(const std::string& dir, const CheckpointManifest& manifest) {
+  std::set<std::string> keep;
+  for (const CheckpointFile& f : manifest.files) keep.insert(f.name);
+  std::error_code ec;
+  for (const auto& item : std::filesystem::directory_iterator(dir, ec)) {
+    const std::string name = item.path().filename().string();
+    if (IsCheckpointFileName(name) && !keep.count(name)) std::filesystem::remove(item.path(), ec);
+  }
+}
+
+}  // namespace oxbow::index

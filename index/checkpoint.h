@@ -1,0 +1,106 @@
+// Checkpoints of an index folder: what ImageIndex::Open would otherwise rebuild from every image's
+// BLOB (the inverted file with its statistics, and every image's packed words + geometry), saved in
+// immutable, checksummed files so that Open reads them and replays only what changed since.
+//
+// Files (in the index folder, never rewritten once named in a manifest):
+//   postings-<generation>.oxck           InvertedFile::Serialize() of the checkpointed snapshot
+//   geometry-<generation>-<part>.oxck    the packed features of the images live at that checkpoint
+//                                        whose numbers lie above the previous checkpoint's high water
+//                                        (parts of at most kGeometryPartBytes, verified in parallel)
+// A geometry file: magic "OXGE", u32 format version, u32 byte-order mark 0x01020304, u64 image count,
+// then per image {u32 number, i32 width, i32 height, u32 feature count, u64 byte offset}, then the
+// packed features (PackedFeatures::bytes()) back to back. Little-endian.
+//
+// The manifest (CheckpointManifest::Format(), stored in catalogue meta key `checkpoint`) names the
+// generation, the high water (every image number up to it is covered: the catalogue's rows up to it
+// are the checkpoint's images minus those removed since; rows above it were added since) and each
+// file with its size and XXH3-64 checksum. Writing a checkpoint:
+//   1. each file: written as <name>.tmp, fsync'ed, renamed to <name>, the folder fsync'ed;
+//   2. the manifest committed in one SQLite transaction: the commit point;
+//   3. files no manifest names deleted (also at every open: the leftovers of a crash).
+// A crash before 2 leaves the previous manifest, whose files are untouched (new files have a new
+// generation in their names); a crash after 2 leaves the new one, whose files are complete on disk.
+//
+// Thread safety: functions only; distinct files may be written and read from different threads.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <span>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "index/feature_store.h"
+#include "sift/base/error.h"
+
+namespace oxbow::index {
+
+inline constexpr uint64_t kGeometryPartBytes = uint64_t{256} << 20;
+
+struct CheckpointFile {
+  std::string name;      // relative to the index folder
+  uint64_t size_bytes = 0;
+  uint64_t checksum = 0; // XXH3-64 of the whole file
+  bool operator==(const CheckpointFile&) const = default;
+};
+
+struct CheckpointManifest {
+  uint64_t generation = 0;  // 0: no checkpoint
+  int64_t high_water = 0;   // every image number <= this is covered
+  bool sqrt_tf = true;      // IndexOptions::sqrt_tf of the image sums
+  std::vector<CheckpointFile> files;
+
+  std::string Format() const;
+  // kCorruptData for text Format() did not write.
+  [[nodiscard]] static Result<CheckpointManifest> Parse(const std::string& text);
+};
+
+// A read-only memory mapping of a whole file.
+class MappedFile {
+ public:
+  [[nodiscard]] static Result<std::shared_ptr<const MappedFile>> Open(const std::string& path);
+  ~MappedFile();
+  MappedFile(const MappedFile&) = delete;
+  MappedFile& operator=(const MappedFile&) = delete;
+  std::span<const uint8_t> bytes() const { return {data_, size_}; }
+
+ private:
+  MappedFile(const uint8_t* data, size_t size) : data_(data), size_(size) {}
+  const uint8_t* data_;
+  size_t size_;
+};
+
+using ByteSink = std::function<void(std::span<const uint8_t>)>;
+
+// Writes dir/name durably and atomically (step 1 above) with the bytes `produce` gives its sink, and
+// returns its manifest entry. kIoError on any failure (the temporary file is removed).
+[[nodiscard]] Result<CheckpointFile> WriteCheckpointFile(const std::string& dir, const std::string& name,
+                                                         const std::function<void(const ByteSink&)>& produce);
+// Size and checksum of dir/file.name against the manifest, read with pread (the pages stay in the page
+// cache, not in this process's resident memory). kNotFound if missing, kCorruptData if different.
+[[nodiscard]] Status VerifyCheckpointFile(const std::string& dir, const CheckpointFile& file);
+
+// One image of a geometry file.
+struct GeometryImage {
+  uint32_t number = 0;
+  PackedFeatures features;  // views the mapping
+};
+// Writes the geometry file format for `images` (numbers ascending).
+void WriteGeometry(std::span<const GeometryImage> images, const ByteSink& sink);
+// The images of a mapped geometry file (each keeps the mapping alive). kCorruptData when inconsistent.
+[[nodiscard]] Result<std::vector<GeometryImage>> ReadGeometry(const std::shared_ptr<const MappedFile>& file,
+                                                              const std::string& what);
+
+// Deletes the checkpoint files (and temporaries) in `dir` that `manifest` does not name. Best effort:
+// a file that cannot be deleted now is deleted at a later call.
+void RemoveUnreferencedCheckpointFiles(const std::string& dir, const CheckpointManifest& manifest);
+
+// Test seam: called at each step of writing a checkpoint ("file-unsynced": a file's bytes written to
+// its temporary, before fsync and rename; "files-written", "manifest-committed", "cleaned"), e.g. to
+// kill the process there. Not thread-safe; set it before the index is used.
+void SetCheckpointStageHookForTesting(std::function<void(std::string_view stage)> hook);
+void CheckpointStage(std::string_view stage);
+
+}  // namespace oxbow::index
