@@ -239,17 +239,23 @@ struct ImageIndex::Impl {
   static void ExpandQuery(const Snapshot& snap, const std::vector<QueryTerm>& terms, const QueryOptions& options,
                           size_t num_verified, ScoreScratch* scratch, std::vector<QueryResult>& results);
   void VerifyTransitively(const Snapshot& snap, const QueryOptions& options, size_t num_verified,
-                          ScoreScratch* scratch, std::vector<QueryResult>& results) const;
+                          std::vector<QueryResult>& results) const;
 
   // A candidate of transitive verification and an anchor to try it against.
   struct TransitiveAttempt {
     float score;      // the candidate's tf-idf score against the anchor's region
     uint32_t anchor;  // index into this round's anchors
   };
-  // For each of results[first, last), the anchors to try, in anchor order.
-  static std::vector<std::vector<TransitiveAttempt>> PlanTransitiveAttempts(
+  // An image of transitive verification's window, results[first, last): its number and bag of words
+  // (the bag empty for results verified before the window was taken).
+  struct WindowImage {
+    uint32_t number = 0;
+    BagOfWords bag;
+  };
+  // For each of results[first, last) not verified yet, the anchors to try, in anchor order.
+  std::vector<std::vector<TransitiveAttempt>> PlanTransitiveAttempts(
       const Snapshot& snap, const QueryOptions& options, const std::vector<std::span<const uint32_t>>& anchor_words,
-      const std::vector<QueryResult>& results, size_t first, size_t last, ScoreScratch* scratch);
+      const std::vector<QueryResult>& results, size_t first, const std::vector<WindowImage>& window) const;
 };
 
 ImageIndex::ImageIndex(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
@@ -686,7 +692,7 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
   // 4. Transitive verification.
   if (options.transitive_depth > 0 && num_verified > 0) {
     t = Clock::now();
-    VerifyTransitively(snap, options, num_verified, &scratch, results);
+    VerifyTransitively(snap, options, num_verified, results);
     timings.verify_ms += MsSince(t);
   }
 
@@ -771,11 +777,19 @@ void ImageIndex::Impl::ExpandQuery(const Snapshot& snap, const std::vector<Query
 // candidate verified in one round is an anchor of the next, up to transitive_anchors anchors in all. A
 // candidate stops at its first anchor that verifies it.
 void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptions& options, size_t num_verified,
-                                          ScoreScratch* scratch, std::vector<QueryResult>& results) const {
+                                          std::vector<QueryResult>& results) const {
   const size_t first = num_verified;
   const size_t last = std::min(results.size(), first + static_cast<size_t>(options.transitive_depth));
   std::vector<size_t> pool(num_verified);  // anchor candidates: positions in `results`, in anchor order
   std::iota(pool.begin(), pool.end(), size_t{0});
+  std::vector<WindowImage> window(last - first);
+  ParallelFor(last - first, index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
+    for (size_t c = first + begin; c < first + end; ++c) {
+      if (results[c].verified) continue;
+      const Entry* entry = snap.Find(results[c].id, &window[c - first].number);
+      window[c - first].bag = entry->features.Bag();
+    }
+  });
   const auto max_anchors = static_cast<size_t>(options.transitive_anchors);
   size_t used = 0;
   while (used < std::min(pool.size(), max_anchors)) {
@@ -803,7 +817,7 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
       anchor_words.emplace_back(anchors[a].words);
     }
     const std::vector<std::vector<TransitiveAttempt>> attempts =
-        PlanTransitiveAttempts(snap, options, anchor_words, results, first, last, scratch);
+        PlanTransitiveAttempts(snap, options, anchor_words, results, first, window);
     std::vector<uint8_t> found(last - first, 0);
     ParallelFor(last - first, index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
       for (size_t c = first + begin; c < first + end; ++c) {
@@ -839,26 +853,44 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
                    });
 }
 
-// Each anchor only verifies its own nearest tf-idf neighbours (its region's bag scored against the
-// index): most candidates share nothing with most anchors, and the verifier is the expensive part.
+// Each anchor only verifies its own nearest tf-idf neighbours among the window's candidates (its
+// region's bag scored against each candidate's image vector, the scores a tf-idf query with that bag
+// would give them): most candidates share little with most anchors, and the verifier is the expensive
+// part. Scoring only the window keeps the cost independent of the collection size (a pass over the
+// whole index per anchor cost about 50 ms each at 1M images).
 // A candidate is tried against at most transitive_attempts anchors, those whose regions score it
 // highest, in anchor order: a view of the object verifies against one of its closest anchors or
 // rarely at all, while a negative would otherwise pay one verification per anchor listing it.
 std::vector<std::vector<ImageIndex::Impl::TransitiveAttempt>> ImageIndex::Impl::PlanTransitiveAttempts(
     const Snapshot& snap, const QueryOptions& options, const std::vector<std::span<const uint32_t>>& anchor_words,
-    const std::vector<QueryResult>& results, size_t first, size_t last, ScoreScratch* scratch) {
-  std::unordered_map<uint32_t, size_t> window;  // image number -> position in `results`
-  for (size_t c = first; c < last; ++c) {
-    uint32_t number = 0;
-    if (!results[c].verified && snap.Find(results[c].id, &number)) window.emplace(number, c);
-  }
-  std::vector<std::vector<TransitiveAttempt>> attempts(last - first);
-  for (size_t a = 0; a < anchor_words.size(); ++a) {
-    const std::vector<QueryTerm> anchor_terms = snap.inverted.QueryVector(BagOfWords::FromWords(anchor_words[a]));
-    for (const ScoredImage& s : snap.inverted.Score(anchor_terms, static_cast<size_t>(options.transitive_neighbours) + 1, scratch)) {
-      const auto it = window.find(s.image);
-      if (it != window.end()) attempts[it->second - first].push_back({s.score, static_cast<uint32_t>(a)});
+    const std::vector<QueryResult>& results, size_t first, const std::vector<WindowImage>& window) const {
+  struct Neighbour {
+    float score;
+    uint32_t number;
+    size_t position;  // in `window`
+  };
+  std::vector<std::vector<Neighbour>> neighbours(anchor_words.size());
+  ParallelFor(anchor_words.size(), index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
+    for (size_t a = begin; a < end; ++a) {
+      const std::vector<QueryTerm> terms = snap.inverted.QueryVector(BagOfWords::FromWords(anchor_words[a]));
+      std::vector<Neighbour>& list = neighbours[a];
+      for (size_t c = 0; c < window.size(); ++c) {
+        if (results[first + c].verified) continue;
+        const float score = snap.inverted.ScoreImage(terms, window[c].number, window[c].bag);
+        if (score > 0) list.push_back({score, window[c].number, c});
+      }
+      // Best first, ties by image number (InvertedFile::Score's order).
+      const size_t keep = std::min(list.size(), static_cast<size_t>(options.transitive_neighbours));
+      std::partial_sort(list.begin(), list.begin() + static_cast<std::ptrdiff_t>(keep), list.end(),
+                        [](const Neighbour& x, const Neighbour& y) {
+                          return x.score != y.score ? x.score > y.score : x.number < y.number;
+                        });
+      list.resize(keep);
     }
+  });
+  std::vector<std::vector<TransitiveAttempt>> attempts(window.size());
+  for (size_t a = 0; a < neighbours.size(); ++a) {
+    for (const Neighbour& n : neighbours[a]) attempts[n.position].push_back({n.score, static_cast<uint32_t>(a)});
   }
   const auto max_attempts = static_cast<size_t>(options.transitive_attempts);
   for (auto& list : attempts) {

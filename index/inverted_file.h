@@ -64,11 +64,14 @@ struct TfIdfOptions {
   bool sqrt_tf = true;
   // Query words contained in more than this fraction of the live images are left out of the query
   // vector (a stop list of the most frequent words). (0, 1].
-  double max_document_frequency = 1.0;
-  // ... but never a word contained in at most this many live images, so that a small collection keeps
-  // its words (with N = 20 and 0.1, a word in 3 images would otherwise be dropped). [0, 2^32).
-  // The product default; ImageIndex's IndexOptions takes it from here.
-  uint32_t stop_list_min_images = 10;
+  double max_document_frequency = 0.1;
+  // ... but never a word contained in at most this many live images. [0, 2^32).
+  // With the defaults the stop list adapts to the collection: it drops nothing while the index holds at
+  // most 10,000 images (a word cannot be in more images than there are), so small collections keep
+  // every word (a 5k-word vocabulary would lose most of its words to a bare 10% rule); from 100,000
+  // images on it drops the words of more than 10% of them, whose postings are a large share of a query's
+  // scan and whose idf (< log 10) adds little. The product defaults; IndexOptions takes them from here.
+  uint32_t stop_list_min_images = 10'000;
   // Segments of one size level merged at once (see the file comment). [2, 64].
   int merge_factor = 8;
   // Statistics refresh (file comment): after every write while the index holds at most this many
@@ -156,6 +159,10 @@ class InvertedFile {
   // Cost O(postings of the query words + number of images ever added).
   std::vector<ScoredImage> Score(std::span<const QueryTerm> query, size_t max_results, ScoreScratch* scratch,
                                  uint64_t* candidates = nullptr) const;
+  // The score Score() gives one live image (bitwise the same; 0 when it would not list the image),
+  // computed from the image's bag (the one it was added with) instead of the postings: O(query terms +
+  // bag words) whatever the collection size. For scoring a few known images (transitive verification).
+  float ScoreImage(std::span<const QueryTerm> query, uint32_t image, const BagOfWords& bag) const;
 
   // A new version whose statistics are those of the live images now (one pass over every posting,
   // on `num_threads` threads; 0 = all). Scores then equal those of Build() on the live images.
