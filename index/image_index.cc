@@ -246,16 +246,16 @@ struct ImageIndex::Impl {
     float score;      // the candidate's tf-idf score against the anchor's region
     uint32_t anchor;  // index into this round's anchors
   };
-  // An image of transitive verification's window, results[first, last): its number and bag of words
-  // (the bag empty for results verified before the window was taken).
-  struct WindowImage {
-    uint32_t number = 0;
-    BagOfWords bag;
+  // Transitive verification's ranking so far, results[0, last): image numbers and bags of words.
+  struct Ranked {
+    std::vector<uint32_t> numbers;
+    std::vector<BagOfWords> bags;
+    std::vector<const BagOfWords*> bag_pointers;
   };
   // For each of results[first, last) not verified yet, the anchors to try, in anchor order.
   std::vector<std::vector<TransitiveAttempt>> PlanTransitiveAttempts(
       const Snapshot& snap, const QueryOptions& options, const std::vector<std::span<const uint32_t>>& anchor_words,
-      const std::vector<QueryResult>& results, size_t first, const std::vector<WindowImage>& window) const;
+      const std::vector<QueryResult>& results, size_t first, const Ranked& ranked) const;
 };
 
 ImageIndex::ImageIndex(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
@@ -782,14 +782,11 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
   const size_t last = std::min(results.size(), first + static_cast<size_t>(options.transitive_depth));
   std::vector<size_t> pool(num_verified);  // anchor candidates: positions in `results`, in anchor order
   std::iota(pool.begin(), pool.end(), size_t{0});
-  std::vector<WindowImage> window(last - first);
-  ParallelFor(last - first, index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
-    for (size_t c = first + begin; c < first + end; ++c) {
-      if (results[c].verified) continue;
-      const Entry* entry = snap.Find(results[c].id, &window[c - first].number);
-      window[c - first].bag = entry->features.Bag();
-    }
-  });
+  Ranked ranked;
+  ranked.numbers.resize(last);
+  ranked.bags.resize(last);
+  for (size_t c = 0; c < last; ++c) ranked.bags[c] = snap.Find(results[c].id, &ranked.numbers[c])->features.Bag();
+  for (const BagOfWords& bag : ranked.bags) ranked.bag_pointers.push_back(&bag);
   const auto max_anchors = static_cast<size_t>(options.transitive_anchors);
   size_t used = 0;
   while (used < std::min(pool.size(), max_anchors)) {
@@ -817,7 +814,7 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
       anchor_words.emplace_back(anchors[a].words);
     }
     const std::vector<std::vector<TransitiveAttempt>> attempts =
-        PlanTransitiveAttempts(snap, options, anchor_words, results, first, window);
+        PlanTransitiveAttempts(snap, options, anchor_words, results, first, ranked);
     std::vector<uint8_t> found(last - first, 0);
     ParallelFor(last - first, index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
       for (size_t c = first + begin; c < first + end; ++c) {
@@ -853,34 +850,35 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
                    });
 }
 
-// Each anchor only verifies its own nearest tf-idf neighbours among the window's candidates (its
-// region's bag scored against each candidate's image vector, the scores a tf-idf query with that bag
-// would give them): most candidates share little with most anchors, and the verifier is the expensive
-// part. Scoring only the window keeps the cost independent of the collection size (a pass over the
-// whole index per anchor cost about 50 ms each at 1M images).
+// Each anchor only verifies its own nearest tf-idf neighbours (its region's bag scored as a tf-idf
+// query): most candidates share little with most anchors, and the verifier is the expensive part.
+// Neighbours are ranked among the ranking so far, results[0, last) (the anchors themselves, the other
+// verified results and the window), scored from their bags: the cost no longer grows with the
+// collection (a pass over the whole index per anchor cost about 50 ms at 1M images), and on a small
+// collection, where the ranking holds an anchor's nearest images, the neighbours are those of a whole
+// index pass.
 // A candidate is tried against at most transitive_attempts anchors, those whose regions score it
 // highest, in anchor order: a view of the object verifies against one of its closest anchors or
 // rarely at all, while a negative would otherwise pay one verification per anchor listing it.
 std::vector<std::vector<ImageIndex::Impl::TransitiveAttempt>> ImageIndex::Impl::PlanTransitiveAttempts(
     const Snapshot& snap, const QueryOptions& options, const std::vector<std::span<const uint32_t>>& anchor_words,
-    const std::vector<QueryResult>& results, size_t first, const std::vector<WindowImage>& window) const {
+    const std::vector<QueryResult>& results, size_t first, const Ranked& ranked) const {
   struct Neighbour {
     float score;
     uint32_t number;
-    size_t position;  // in `window`
+    size_t position;  // in `results`
   };
   std::vector<std::vector<Neighbour>> neighbours(anchor_words.size());
   ParallelFor(anchor_words.size(), index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
     for (size_t a = begin; a < end; ++a) {
       const std::vector<QueryTerm> terms = snap.inverted.QueryVector(BagOfWords::FromWords(anchor_words[a]));
+      const std::vector<float> scores = snap.inverted.ScoreImages(terms, ranked.numbers, ranked.bag_pointers);
       std::vector<Neighbour>& list = neighbours[a];
-      for (size_t c = 0; c < window.size(); ++c) {
-        if (results[first + c].verified) continue;
-        const float score = snap.inverted.ScoreImage(terms, window[c].number, window[c].bag);
-        if (score > 0) list.push_back({score, window[c].number, c});
+      for (size_t c = 0; c < scores.size(); ++c) {
+        if (scores[c] > 0) list.push_back({scores[c], ranked.numbers[c], c});
       }
-      // Best first, ties by image number (InvertedFile::Score's order).
-      const size_t keep = std::min(list.size(), static_cast<size_t>(options.transitive_neighbours));
+      // Best first, ties by image number (InvertedFile::Score's order); one more for the anchor itself.
+      const size_t keep = std::min(list.size(), static_cast<size_t>(options.transitive_neighbours) + 1);
       std::partial_sort(list.begin(), list.begin() + static_cast<std::ptrdiff_t>(keep), list.end(),
                         [](const Neighbour& x, const Neighbour& y) {
                           return x.score != y.score ? x.score > y.score : x.number < y.number;
@@ -888,9 +886,13 @@ std::vector<std::vector<ImageIndex::Impl::TransitiveAttempt>> ImageIndex::Impl::
       list.resize(keep);
     }
   });
-  std::vector<std::vector<TransitiveAttempt>> attempts(window.size());
+  std::vector<std::vector<TransitiveAttempt>> attempts(ranked.numbers.size() - first);
   for (size_t a = 0; a < neighbours.size(); ++a) {
-    for (const Neighbour& n : neighbours[a]) attempts[n.position].push_back({n.score, static_cast<uint32_t>(a)});
+    for (const Neighbour& n : neighbours[a]) {
+      if (n.position >= first && !results[n.position].verified) {
+        attempts[n.position - first].push_back({n.score, static_cast<uint32_t>(a)});
+      }
+    }
   }
   const auto max_attempts = static_cast<size_t>(options.transitive_attempts);
   for (auto& list : attempts) {

@@ -667,27 +667,36 @@ std::vector<ScoredImage> InvertedFile::Score(std::span<const QueryTerm> query, s
   return out;
 }
 
-float InvertedFile::ScoreImage(std::span<const QueryTerm> query, uint32_t image, const BagOfWords& bag) const {
-  if (!IsLive(image) || stats_num_live_ == 0) return 0;
-  // The same float operations in the same order as Score(): one posting per (word, image), query
-  // terms in their order.
+std::vector<float> InvertedFile::ScoreImages(std::span<const QueryTerm> query, std::span<const uint32_t> images,
+                                             std::span<const BagOfWords* const> bags) const {
+  OXBOW_CHECK(images.size() == bags.size());
+  std::vector<float> out(images.size(), 0.0f);
+  if (stats_num_live_ == 0) return out;
+  // Score()'s per-term weights, then its float operations in its order (one posting per word and
+  // image, query terms in their order) over each bag.
   const double n = static_cast<double>(stats_num_live_);
-  float dot = 0;
-  size_t k = 0;
+  std::vector<QueryTerm> weighted;
+  weighted.reserve(query.size());
   for (const QueryTerm& term : query) {
     if (term.word >= vocabulary_size_ || term.weight == 0) continue;
-    while (k < bag.words.size() && bag.words[k] < term.word) ++k;
-    if (k == bag.words.size()) break;
-    if (bag.words[k] != term.word) continue;
     const uint32_t df = stats_df_[term.word];
     if (df == 0) continue;
     const float weight = static_cast<float>(static_cast<double>(term.weight) * std::log(n / static_cast<double>(df)));
-    if (weight == 0) continue;
-    dot += weight * (bag.counts[k] == 1 ? 1.0f : TermWeight(bag.counts[k]));
+    if (weight != 0) weighted.push_back({term.word, weight});
   }
-  const double norm = Norm(image);
-  if (dot == 0 || !(norm > 0)) return 0;
-  return static_cast<float>(static_cast<double>(dot) / norm);
+  for (size_t i = 0; i < images.size(); ++i) {
+    const BagOfWords& bag = *bags[i];
+    float dot = 0;
+    size_t k = 0;
+    for (const QueryTerm& term : weighted) {
+      while (k < bag.words.size() && bag.words[k] < term.word) ++k;
+      if (k == bag.words.size()) break;
+      if (bag.words[k] == term.word) dot += term.weight * (bag.counts[k] == 1 ? 1.0f : TermWeight(bag.counts[k]));
+    }
+    const double norm = Norm(images[i]);
+    if (dot != 0 && norm > 0) out[i] = static_cast<float>(static_cast<double>(dot) / norm);
+  }
+  return out;
 }
 
 InvertedFileStats InvertedFile::Stats() const {

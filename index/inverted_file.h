@@ -159,10 +159,12 @@ class InvertedFile {
   // Cost O(postings of the query words + number of images ever added).
   std::vector<ScoredImage> Score(std::span<const QueryTerm> query, size_t max_results, ScoreScratch* scratch,
                                  uint64_t* candidates = nullptr) const;
-  // The score Score() gives one live image (bitwise the same; 0 when it would not list the image),
-  // computed from the image's bag (the one it was added with) instead of the postings: O(query terms +
-  // bag words) whatever the collection size. For scoring a few known images (transitive verification).
-  float ScoreImage(std::span<const QueryTerm> query, uint32_t image, const BagOfWords& bag) const;
+  // The scores Score() gives `images` (bitwise the same; 0 for an image it would not list), computed
+  // from their bags (bags[i]: the bag images[i] was added with) instead of the postings: O(query terms
+  // + the bags' words) whatever the collection size. For scoring a few known images (transitive
+  // verification ranks anchors' neighbours with it).
+  std::vector<float> ScoreImages(std::span<const QueryTerm> query, std::span<const uint32_t> images,
+                                 std::span<const BagOfWords* const> bags) const;
 
   // A new version whose statistics are those of the live images now (one pass over every posting,
   // on `num_threads` threads; 0 = all). Scores then equal those of Build() on the live images.

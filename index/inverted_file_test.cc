@@ -132,7 +132,7 @@ TEST(InvertedFileTest, MatchesDenseReferenceOnRandomCorpus) {
   }
 }
 
-TEST(InvertedFileTest, ScoreImageEqualsScoreBitwise) {
+TEST(InvertedFileTest, ScoreImagesEqualsScoreBitwise) {
   // Several segments, a removed image and statistics older than the live images (no refresh after
   // the last adds), as a large index has them; also a stop list.
   std::mt19937_64 rng(19);
@@ -158,9 +158,16 @@ TEST(InvertedFileTest, ScoreImageEqualsScoreBitwise) {
     ASSERT_FALSE(terms.empty());
     std::map<uint32_t, float> listed;
     for (const ScoredImage& s : file.Score(terms, corpus.size(), &scratch)) listed[s.image] = s.score;
+    std::vector<uint32_t> images;
+    std::vector<const BagOfWords*> bags;
+    for (uint32_t i = 0; i < corpus.size(); ++i) {
+      images.push_back(i);
+      bags.push_back(&corpus[i]);
+    }
+    const std::vector<float> got = file.ScoreImages(terms, images, bags);
     for (uint32_t i = 0; i < corpus.size(); ++i) {
       const float expected = listed.count(i) ? listed.at(i) : 0.0f;
-      EXPECT_EQ(file.ScoreImage(terms, i, corpus[i]), expected) << "query " << q << " image " << i;
+      EXPECT_EQ(got[i], expected) << "query " << q << " image " << i;
     }
   }
 }
