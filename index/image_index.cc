@@ -246,16 +246,12 @@ struct ImageIndex::Impl {
     float score;      // the candidate's tf-idf score against the anchor's region
     uint32_t anchor;  // index into this round's anchors
   };
-  // Transitive verification's ranking so far, results[0, last): image numbers and bags of words.
-  struct Ranked {
-    std::vector<uint32_t> numbers;
-    std::vector<BagOfWords> bags;
-    std::vector<const BagOfWords*> bag_pointers;
-  };
-  // For each of results[first, last) not verified yet, the anchors to try, in anchor order.
+  // For each of results[first, last) not verified yet, the anchors to try, in anchor order. `ranked`:
+  // results[0, last) (`numbers`: their image numbers).
   std::vector<std::vector<TransitiveAttempt>> PlanTransitiveAttempts(
       const Snapshot& snap, const QueryOptions& options, const std::vector<std::span<const uint32_t>>& anchor_words,
-      const std::vector<QueryResult>& results, size_t first, const Ranked& ranked) const;
+      const std::vector<QueryResult>& results, size_t first, const InvertedFile::Subset& ranked,
+      const std::vector<uint32_t>& numbers) const;
 };
 
 ImageIndex::ImageIndex(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
@@ -782,11 +778,14 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
   const size_t last = std::min(results.size(), first + static_cast<size_t>(options.transitive_depth));
   std::vector<size_t> pool(num_verified);  // anchor candidates: positions in `results`, in anchor order
   std::iota(pool.begin(), pool.end(), size_t{0});
-  Ranked ranked;
-  ranked.numbers.resize(last);
-  ranked.bags.resize(last);
-  for (size_t c = 0; c < last; ++c) ranked.bags[c] = snap.Find(results[c].id, &ranked.numbers[c])->features.Bag();
-  for (const BagOfWords& bag : ranked.bags) ranked.bag_pointers.push_back(&bag);
+  std::vector<uint32_t> numbers(last);
+  std::vector<BagOfWords> bags(last);
+  std::vector<const BagOfWords*> bag_pointers(last);
+  for (size_t c = 0; c < last; ++c) {
+    bags[c] = snap.Find(results[c].id, &numbers[c])->features.Bag();
+    bag_pointers[c] = &bags[c];
+  }
+  const InvertedFile::Subset ranked(snap.inverted, numbers, bag_pointers);
   const auto max_anchors = static_cast<size_t>(options.transitive_anchors);
   size_t used = 0;
   while (used < std::min(pool.size(), max_anchors)) {
@@ -814,7 +813,7 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
       anchor_words.emplace_back(anchors[a].words);
     }
     const std::vector<std::vector<TransitiveAttempt>> attempts =
-        PlanTransitiveAttempts(snap, options, anchor_words, results, first, ranked);
+        PlanTransitiveAttempts(snap, options, anchor_words, results, first, ranked, numbers);
     std::vector<uint8_t> found(last - first, 0);
     ParallelFor(last - first, index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
       for (size_t c = first + begin; c < first + end; ++c) {
@@ -862,7 +861,8 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
 // rarely at all, while a negative would otherwise pay one verification per anchor listing it.
 std::vector<std::vector<ImageIndex::Impl::TransitiveAttempt>> ImageIndex::Impl::PlanTransitiveAttempts(
     const Snapshot& snap, const QueryOptions& options, const std::vector<std::span<const uint32_t>>& anchor_words,
-    const std::vector<QueryResult>& results, size_t first, const Ranked& ranked) const {
+    const std::vector<QueryResult>& results, size_t first, const InvertedFile::Subset& ranked,
+    const std::vector<uint32_t>& numbers) const {
   struct Neighbour {
     float score;
     uint32_t number;
@@ -872,10 +872,10 @@ std::vector<std::vector<ImageIndex::Impl::TransitiveAttempt>> ImageIndex::Impl::
   ParallelFor(anchor_words.size(), index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
     for (size_t a = begin; a < end; ++a) {
       const std::vector<QueryTerm> terms = snap.inverted.QueryVector(BagOfWords::FromWords(anchor_words[a]));
-      const std::vector<float> scores = snap.inverted.ScoreImages(terms, ranked.numbers, ranked.bag_pointers);
+      const std::vector<float> scores = ranked.Score(terms);
       std::vector<Neighbour>& list = neighbours[a];
       for (size_t c = 0; c < scores.size(); ++c) {
-        if (scores[c] > 0) list.push_back({scores[c], ranked.numbers[c], c});
+        if (scores[c] > 0) list.push_back({scores[c], numbers[c], c});
       }
       // Best first, ties by image number (InvertedFile::Score's order); one more for the anchor itself.
       const size_t keep = std::min(list.size(), static_cast<size_t>(options.transitive_neighbours) + 1);
@@ -886,7 +886,7 @@ std::vector<std::vector<ImageIndex::Impl::TransitiveAttempt>> ImageIndex::Impl::
       list.resize(keep);
     }
   });
-  std::vector<std::vector<TransitiveAttempt>> attempts(ranked.numbers.size() - first);
+  std::vector<std::vector<TransitiveAttempt>> attempts(numbers.size() - first);
   for (size_t a = 0; a < neighbours.size(); ++a) {
     for (const Neighbour& n : neighbours[a]) {
       if (n.position >= first && !results[n.position].verified) {

@@ -159,12 +159,29 @@ class InvertedFile {
   // Cost O(postings of the query words + number of images ever added).
   std::vector<ScoredImage> Score(std::span<const QueryTerm> query, size_t max_results, ScoreScratch* scratch,
                                  uint64_t* candidates = nullptr) const;
-  // The scores Score() gives `images` (bitwise the same; 0 for an image it would not list), computed
-  // from their bags (bags[i]: the bag images[i] was added with) instead of the postings: O(query terms
-  // + the bags' words) whatever the collection size. For scoring a few known images (transitive
-  // verification ranks anchors' neighbours with it).
-  std::vector<float> ScoreImages(std::span<const QueryTerm> query, std::span<const uint32_t> images,
-                                 std::span<const BagOfWords* const> bags) const;
+  // Score() restricted to a fixed set of images and computed from their bags instead of the postings,
+  // for scoring several queries against a few known images (transitive verification ranks anchors'
+  // neighbours with it): the bags are inverted once, O(their words + vocabulary_size), then each
+  // query costs O(its terms + their occurrences in the bags), whatever the collection size. The
+  // scores are those of Score() (0 for an image it would not list) up to float rounding (the same
+  // operations in the same order; the compiler may fuse a multiply-add in one loop and not the other).
+  // Keeps a reference to the InvertedFile.
+  class Subset {
+   public:
+    // bags[i]: the bag images[i] was added with.
+    Subset(const InvertedFile& file, std::span<const uint32_t> images, std::span<const BagOfWords* const> bags);
+    std::vector<float> Score(std::span<const QueryTerm> query) const;  // one score per image, in order
+
+   private:
+    struct Occurrence {
+      uint32_t image;  // index into `images`
+      float t;         // t(tf)
+    };
+    const InvertedFile& file_;
+    std::vector<uint32_t> first_;           // per word: its occurrences are [first_[w], first_[w + 1])
+    std::vector<Occurrence> occurrences_;   // by word, then image
+    std::vector<double> norms_;             // per image
+  };
 
   // A new version whose statistics are those of the live images now (one pass over every posting,
   // on `num_threads` threads; 0 = all). Scores then equal those of Build() on the live images.
@@ -184,6 +201,8 @@ class InvertedFile {
   InvertedFileStats Stats() const;
 
  private:
+  // Score()'s per-posting factor of a query term: its weight times idf, in float; 0 to skip the term.
+  float ScoringWeight(const QueryTerm& term) const;
   std::vector<QueryTerm> WeightedQueryVector(std::span<const uint32_t> words, std::span<const float> tf,
                                              bool use_stop_list) const;
   void MergeTail(bool everything);
