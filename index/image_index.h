@@ -41,8 +41,9 @@
 //    `transitive_anchors` verified results (directly verified first, then the transitively verified
 //    ones of earlier rounds), and those that pass are ranked right after the directly verified ones
 //    (by inliers). Their db_from_query is the composition through the result they matched. Each anchor
-//    only checks its own `transitive_neighbours` best tf-idf matches, and each candidate is verified
-//    against at most `transitive_attempts` anchors (those that score it highest).
+//    only checks its own `transitive_neighbours` best tf-idf matches among the results so far, and
+//    each candidate is verified against at most `transitive_attempts` anchors (those that score it
+//    highest).
 //
 // ==== Storage and durability ========================================================================
 //
@@ -171,9 +172,11 @@ struct QueryOptions {
   // At most this many anchors in all. [1, 1000].
   int transitive_anchors = 20;
   // An anchor is only verified against candidates among its own `transitive_neighbours` best tf-idf
-  // matches (its matched region's words scored against the index, one more tf-idf pass per anchor).
-  // Cost: at most transitive_anchors * min(transitive_depth, transitive_neighbours) verifications
-  // (a candidate stops at its first verifying anchor). [1, 10000].
+  // matches (its matched region's words as a tf-idf query), ranked among the results so far (the
+  // verified ones and the transitive_depth candidates, scored from their bags: no pass over the index,
+  // so the cost does not grow with the collection; on a small collection these are its nearest images
+  // in the whole index). Cost: at most transitive_anchors * min(transitive_depth,
+  // transitive_neighbours) verifications (a candidate stops at its first verifying anchor). [1, 10000].
   int transitive_neighbours = 30;
   // A candidate is verified against at most this many anchors: those among whose neighbours it scores
   // highest (ties: earlier anchor first). Bounds the cost of candidates that verify against none
