@@ -749,6 +749,11 @@ void ImageIndex::Impl::ExpandQuery(const Snapshot& snap, const std::vector<Query
   for (const auto& [word, weight] : average) norm_sq += weight * weight;
   const double inv = norm_sq > 0 ? 1.0 / std::sqrt(norm_sq) : 0.0;
   for (const auto& [word, weight] : average) expanded.push_back({word, static_cast<float>(weight * inv)});
+  // Only the strongest words, twice as many as the query's: the average of the query and 5 regions has
+  // about 3x the query's words, most from one region only with small weights, and its pass over every
+  // posting of those words was the costliest stage at 1M images (339 ms p50). Measured: that pass about
+  // 35% cheaper (100k images), mAP Paris subset 0.896 -> 0.900, groups_dev 0.985 -> 0.986 (README).
+  expanded = StrongestTerms(std::move(expanded), 2 * terms.size());
   // Deep enough for transitive verification's window as well as for top_k.
   const size_t expanded_depth =
       static_cast<size_t>(std::max(options.top_k, options.transitive_depth > 0 ? options.transitive_depth : 0));

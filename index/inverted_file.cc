@@ -590,6 +590,17 @@ std::vector<QueryTerm> InvertedFile::WeightedQueryVector(std::span<const uint32_
   return out;
 }
 
+std::vector<QueryTerm> StrongestTerms(std::vector<QueryTerm> terms, size_t n) {
+  if (terms.size() <= n) return terms;
+  std::nth_element(terms.begin(), terms.begin() + static_cast<std::ptrdiff_t>(n), terms.end(),
+                   [](const QueryTerm& x, const QueryTerm& y) {
+                     return x.weight != y.weight ? x.weight > y.weight : x.word < y.word;
+                   });
+  terms.resize(n);
+  std::sort(terms.begin(), terms.end(), [](const QueryTerm& x, const QueryTerm& y) { return x.word < y.word; });
+  return terms;
+}
+
 float InvertedFile::ScoringWeight(const QueryTerm& term) const {
   if (term.word >= vocabulary_size_ || term.weight == 0 || stats_num_live_ == 0) return 0;
   const uint32_t df = stats_df_[term.word];

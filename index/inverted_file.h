@@ -90,6 +90,10 @@ struct QueryTerm {
   float weight = 0;
 };
 
+// The `n` terms of largest weight (ties: smaller word first), sorted by word; all of them when there
+// are at most n.
+std::vector<QueryTerm> StrongestTerms(std::vector<QueryTerm> terms, size_t n);
+
 struct ScoredImage {
   uint32_t image = 0;  // image number
   float score = 0;     // cosine similarity in [0, 1]

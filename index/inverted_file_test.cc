@@ -379,6 +379,21 @@ TEST(InvertedFileTest, DefaultStopListAdaptsToTheCollectionSize) {
   }
 }
 
+TEST(InvertedFileTest, StrongestTermsKeepsTheLargestWeightsInWordOrder) {
+  const std::vector<QueryTerm> terms = {{1, 0.1f}, {3, 0.5f}, {4, 0.2f}, {7, 0.5f}, {9, 0.3f}, {12, 0.2f}};
+  auto words = [](const std::vector<QueryTerm>& t) {
+    std::vector<uint32_t> w;
+    for (const QueryTerm& x : t) w.push_back(x.word);
+    return w;
+  };
+  EXPECT_EQ(words(StrongestTerms(terms, 3)), (std::vector<uint32_t>{3, 7, 9}));
+  // A tie at the cut keeps the smaller word.
+  EXPECT_EQ(words(StrongestTerms(terms, 4)), (std::vector<uint32_t>{3, 4, 7, 9}));
+  EXPECT_EQ(words(StrongestTerms(terms, 6)), words(terms));
+  EXPECT_EQ(words(StrongestTerms(terms, 10)), words(terms));
+  EXPECT_TRUE(StrongestTerms(terms, 0).empty());
+}
+
 TEST(InvertedFileTest, FractionalQueryVectorMatchesCountsAndReference) {
   std::mt19937_64 rng(5);
   const size_t vocab = 60;
