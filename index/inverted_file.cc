@@ -636,6 +636,25 @@ std::vector<QueryTerm> InvertedFile::WeightedQueryVector(std::span<const uint32_
   return out;
 }
 
+std::vector<QueryTerm> StrongestTerms(std::vector<QueryTerm> terms, size_t n) {
+  if (terms.size() <= n) return terms;
+  std::nth_element(terms.begin(), terms.begin() + static_cast<std::ptrdiff_t>(n), terms.end(),
+                   [](const QueryTerm& x, const QueryTerm& y) {
+                     return x.weight != y.weight ? x.weight > y.weight : x.word < y.word;
+                   });
+  terms.resize(n);
+  std::sort(terms.begin(), terms.end(), [](const QueryTerm& x, const QueryTerm& y) { return x.word < y.word; });
+  return terms;
+}
+
+float InvertedFile::ScoringWeight(const QueryTerm& term) const {
+  if (term.word >= vocabulary_size_ || term.weight == 0 || stats_num_live_ == 0) return 0;
+  const uint32_t df = stats_df_[term.word];
+  if (df == 0) return 0;
+  return static_cast<float>(static_cast<double>(term.weight) *
+                            std::log(static_cast<double>(stats_num_live_) / static_cast<double>(df)));
+}
+
 std::vector<ScoredImage> InvertedFile::Score(std::span<const QueryTerm> query, size_t max_results,
                                              ScoreScratch* scratch, uint64_t* candidates) const {
   OXBOW_CHECK(scratch != nullptr);
@@ -646,10 +665,7 @@ std::vector<ScoredImage> InvertedFile::Score(std::span<const QueryTerm> query, s
 
   const double n = static_cast<double>(stats_num_live_);
   for (const QueryTerm& term : query) {
-    if (term.word >= vocabulary_size_ || term.weight == 0) continue;
-    const uint32_t df = stats_df_[term.word];
-    if (df == 0) continue;
-    const float weight = static_cast<float>(static_cast<double>(term.weight) * std::log(n / static_cast<double>(df)));
+    const float weight = ScoringWeight(term);
     if (weight == 0) continue;
     for (const auto& segment : segments_) {
       auto [p, end] = segment->List(term.word);
@@ -877,6 +893,47 @@ Result<InvertedFile> InvertedFile::Deserialize(std::span<const uint8_t> bytes, s
   if (in.at != bytes.size()) return corrupt("trailing bytes");
   if (postings != out.num_postings_ || out.num_live_ > num_numbers || out.stats_num_live_ > num_numbers) {
     return corrupt("counts disagree");
+  }
+  return out;
+}
+
+InvertedFile::Subset::Subset(const InvertedFile& file, std::span<const uint32_t> images,
+                             std::span<const BagOfWords* const> bags)
+    : file_(file), first_(file.vocabulary_size_ + 1, 0), norms_(images.size()) {
+  OXBOW_CHECK(images.size() == bags.size());
+  // Counting sort by word: images in order within each word, as in a posting list.
+  for (const BagOfWords* bag : bags) {
+    for (const uint32_t w : bag->words) {
+      OXBOW_CHECK(w < file.vocabulary_size_);
+      ++first_[w + 1];
+    }
+  }
+  for (size_t w = 0; w < file.vocabulary_size_; ++w) first_[w + 1] += first_[w];
+  occurrences_.resize(first_.back());
+  std::vector<uint32_t> next(first_.begin(), first_.end() - 1);
+  for (size_t i = 0; i < bags.size(); ++i) {
+    for (size_t k = 0; k < bags[i]->words.size(); ++k) {
+      const uint32_t tf = bags[i]->counts[k];
+      occurrences_[next[bags[i]->words[k]]++] = {static_cast<uint32_t>(i), tf == 1 ? 1.0f : file.TermWeight(tf)};
+    }
+    norms_[i] = file.Norm(images[i]);
+  }
+}
+
+std::vector<float> InvertedFile::Subset::Score(std::span<const QueryTerm> query) const {
+  // Score()'s float operations in its order: query terms in their order, one posting per word and image.
+  std::vector<float> dot(norms_.size(), 0.0f);
+  for (const QueryTerm& term : query) {
+    if (term.word >= file_.vocabulary_size_) continue;
+    const uint32_t begin = first_[term.word], end = first_[term.word + 1];
+    if (begin == end) continue;
+    const float weight = file_.ScoringWeight(term);
+    if (weight == 0) continue;
+    for (uint32_t o = begin; o < end; ++o) dot[occurrences_[o].image] += weight * occurrences_[o].t;
+  }
+  std::vector<float> out(norms_.size(), 0.0f);
+  for (size_t i = 0; i < out.size(); ++i) {
+    if (dot[i] != 0 && norms_[i] > 0) out[i] = static_cast<float>(static_cast<double>(dot[i]) / norms_[i]);
   }
   return out;
 }

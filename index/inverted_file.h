@@ -65,11 +65,14 @@ struct TfIdfOptions {
   bool sqrt_tf = true;
   // Query words contained in more than this fraction of the live images are left out of the query
   // vector (a stop list of the most frequent words). (0, 1].
-  double max_document_frequency = 1.0;
-  // ... but never a word contained in at most this many live images, so that a small collection keeps
-  // its words (with N = 20 and 0.1, a word in 3 images would otherwise be dropped). [0, 2^32).
-  // The product default; ImageIndex's IndexOptions takes it from here.
-  uint32_t stop_list_min_images = 10;
+  double max_document_frequency = 0.1;
+  // ... but never a word contained in at most this many live images. [0, 2^32).
+  // With the defaults the stop list adapts to the collection: it drops nothing while the index holds at
+  // most 10,000 images (a word cannot be in more images than there are), so small collections keep
+  // every word (a 5k-word vocabulary would lose most of its words to a bare 10% rule); from 100,000
+  // images on it drops the words of more than 10% of them, whose postings are a large share of a query's
+  // scan and whose idf (< log 10) adds little. The product defaults; IndexOptions takes them from here.
+  uint32_t stop_list_min_images = 10'000;
   // Segments of one size level merged at once (see the file comment). [2, 64].
   int merge_factor = 8;
   // Statistics refresh (file comment): after every write while the index holds at most this many
@@ -87,6 +90,10 @@ struct QueryTerm {
   uint32_t word = 0;
   float weight = 0;
 };
+
+// The `n` terms of largest weight (ties: smaller word first), sorted by word; all of them when there
+// are at most n.
+std::vector<QueryTerm> StrongestTerms(std::vector<QueryTerm> terms, size_t n);
 
 struct ScoredImage {
   uint32_t image = 0;  // image number
@@ -157,6 +164,29 @@ class InvertedFile {
   // Cost O(postings of the query words + number of images ever added).
   std::vector<ScoredImage> Score(std::span<const QueryTerm> query, size_t max_results, ScoreScratch* scratch,
                                  uint64_t* candidates = nullptr) const;
+  // Score() restricted to a fixed set of images and computed from their bags instead of the postings,
+  // for scoring several queries against a few known images (transitive verification ranks anchors'
+  // neighbours with it): the bags are inverted once, O(their words + vocabulary_size), then each
+  // query costs O(its terms + their occurrences in the bags), whatever the collection size. The
+  // scores are those of Score() (0 for an image it would not list) up to float rounding (the same
+  // operations in the same order; the compiler may fuse a multiply-add in one loop and not the other).
+  // Keeps a reference to the InvertedFile.
+  class Subset {
+   public:
+    // bags[i]: the bag images[i] was added with.
+    Subset(const InvertedFile& file, std::span<const uint32_t> images, std::span<const BagOfWords* const> bags);
+    std::vector<float> Score(std::span<const QueryTerm> query) const;  // one score per image, in order
+
+   private:
+    struct Occurrence {
+      uint32_t image;  // index into `images`
+      float t;         // t(tf)
+    };
+    const InvertedFile& file_;
+    std::vector<uint32_t> first_;           // per word: its occurrences are [first_[w], first_[w + 1])
+    std::vector<Occurrence> occurrences_;   // by word, then image
+    std::vector<double> norms_;             // per image
+  };
 
   // A new version whose statistics are those of the live images now (one pass over every posting,
   // on `num_threads` threads; 0 = all). Scores then equal those of Build() on the live images.
@@ -186,6 +216,8 @@ class InvertedFile {
                                                         const TfIdfOptions& options);
 
  private:
+  // Score()'s per-posting factor of a query term: its weight times idf, in float; 0 to skip the term.
+  float ScoringWeight(const QueryTerm& term) const;
   std::vector<QueryTerm> WeightedQueryVector(std::span<const uint32_t> words, std::span<const float> tf,
                                              bool use_stop_list) const;
   void MergeTail(bool everything);

@@ -132,6 +132,48 @@ TEST(InvertedFileTest, MatchesDenseReferenceOnRandomCorpus) {
   }
 }
 
+TEST(InvertedFileTest, SubsetScoresEqualScore) {
+  // Several segments, a removed image and statistics older than the live images (no refresh after
+  // the last adds), as a large index has them; also a stop list.
+  std::mt19937_64 rng(19);
+  const size_t vocab = 200;
+  const TfIdfOptions options{.max_document_frequency = 0.3, .stop_list_min_images = 0, .merge_factor = 4,
+                             .exact_statistics_postings = 0, .statistics_refresh_fraction = 1};
+  InvertedFile file(vocab, options);
+  std::vector<BagOfWords> corpus;
+  for (uint32_t i = 0; i < 90; ++i) {
+    corpus.push_back(RandomBag(rng, vocab));
+    const std::vector<uint32_t> ids = {i};
+    const std::vector<const BagOfWords*> bags = {&corpus.back()};
+    file = file.WithAdded(ids, bags);
+  }
+  const std::vector<uint32_t> removed = {5};
+  const std::vector<const BagOfWords*> removed_bags = {&corpus[5]};
+  file = file.WithRemoved(removed, removed_bags);
+  ASSERT_GT(file.Stats().num_segments, 1u);
+  ASSERT_GT(file.changes_since_refresh(), 0u);
+  ScoreScratch scratch;
+  for (int q = 0; q < 10; ++q) {
+    const auto terms = file.QueryVector(RandomBag(rng, vocab));
+    ASSERT_FALSE(terms.empty());
+    std::map<uint32_t, float> listed;
+    for (const ScoredImage& s : file.Score(terms, corpus.size(), &scratch)) listed[s.image] = s.score;
+    std::vector<uint32_t> images;
+    std::vector<const BagOfWords*> bags;
+    for (uint32_t i = 0; i < corpus.size(); ++i) {
+      images.push_back(i);
+      bags.push_back(&corpus[i]);
+    }
+    const std::vector<float> got = InvertedFile::Subset(file, images, bags).Score(terms);
+    for (uint32_t i = 0; i < corpus.size(); ++i) {
+      const float expected = listed.count(i) ? listed.at(i) : 0.0f;
+      // Equal up to the rounding of a fused multiply-add, which the compiler may use in one loop only.
+      EXPECT_NEAR(got[i], expected, 1e-6 * expected) << "query " << q << " image " << i;
+      EXPECT_EQ(got[i] == 0, expected == 0) << "query " << q << " image " << i;
+    }
+  }
+}
+
 TEST(InvertedFileTest, RandomAddRemoveSequenceEqualsRebuild) {
   std::mt19937_64 rng(12345);
   const size_t vocab = 500;
@@ -337,7 +379,7 @@ TEST(InvertedFileTest, StopListDropsFrequentQueryWords) {
   const std::vector<uint32_t> ids = {0, 1, 2, 3};
   const std::vector<const BagOfWords*> bags = {&b0, &b1, &b2, &b3};
   InvertedFile all = InvertedFile(5, {}).WithAdded(ids, bags);
-  // No floor (the default floor of 10 images would keep every word of this 4-image collection).
+  // No floor (the default floor of 10,000 images keeps every word of this 4-image collection).
   InvertedFile stopped =
       InvertedFile(5, TfIdfOptions{.max_document_frequency = 0.5, .stop_list_min_images = 0}).WithAdded(ids, bags);
   EXPECT_EQ(all.QueryVector(Bag({0, 1})).size(), 2u);
@@ -363,6 +405,40 @@ TEST(InvertedFileTest, StopListFloorKeepsWordsOfFewImages) {
   const auto q = floor2.QueryVector(Bag({0, 1}));
   ASSERT_EQ(q.size(), 1u);
   EXPECT_EQ(q[0].word, 1u);
+}
+
+TEST(InvertedFileTest, DefaultStopListAdaptsToTheCollectionSize) {
+  // Word 0 is in 95% of the images, word 1 in 50%, word 2 in 1%: with the defaults nothing is dropped
+  // at 10,000 images (the floor), and the two frequent words are at 30,000 (10% of them is 3,000).
+  for (const uint32_t n : {10'000u, 30'000u}) {
+    const InvertedFile file = InvertedFile::Build(3, {}, n, [](uint32_t image, BagOfWords* bag) {
+      bag->words.clear();
+      bag->counts.clear();
+      if (image % 20 != 0) bag->words.push_back(0);
+      if (image % 2 == 0) bag->words.push_back(1);
+      if (image % 100 == 0) bag->words.push_back(2);
+      bag->counts.assign(bag->words.size(), 1);
+      return true;
+    });
+    std::vector<uint32_t> kept;
+    for (const QueryTerm& t : file.QueryVector(Bag({0, 1, 2}))) kept.push_back(t.word);
+    EXPECT_EQ(kept, (n <= 10'000 ? std::vector<uint32_t>{0, 1, 2} : std::vector<uint32_t>{2})) << n << " images";
+  }
+}
+
+TEST(InvertedFileTest, StrongestTermsKeepsTheLargestWeightsInWordOrder) {
+  const std::vector<QueryTerm> terms = {{1, 0.1f}, {3, 0.5f}, {4, 0.2f}, {7, 0.5f}, {9, 0.3f}, {12, 0.2f}};
+  auto words = [](const std::vector<QueryTerm>& t) {
+    std::vector<uint32_t> w;
+    for (const QueryTerm& x : t) w.push_back(x.word);
+    return w;
+  };
+  EXPECT_EQ(words(StrongestTerms(terms, 3)), (std::vector<uint32_t>{3, 7, 9}));
+  // A tie at the cut keeps the smaller word.
+  EXPECT_EQ(words(StrongestTerms(terms, 4)), (std::vector<uint32_t>{3, 4, 7, 9}));
+  EXPECT_EQ(words(StrongestTerms(terms, 6)), words(terms));
+  EXPECT_EQ(words(StrongestTerms(terms, 10)), words(terms));
+  EXPECT_TRUE(StrongestTerms(terms, 0).empty());
 }
 
 TEST(InvertedFileTest, FractionalQueryVectorMatchesCountsAndReference) {
