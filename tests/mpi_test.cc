@@ -62,7 +62,8 @@ class Mpi : public ::testing::Test {
 };
 
 TEST_F(Mpi, VocabularyIsTheSameForOneAndThreeRanks) {
-  const std::string train = "vocab train --mpi --images " + images_ + " --words 200 --per-image 600 --threads 1 --out ";
+  const std::string train =
+      "vocab train --mpi --root-sift --images " + images_ + " --words 200 --per-image 600 --threads 1 --out ";
   Run(Mpirun(1, train + Path("np1.oxvoc")));
   Run(Mpirun(3, train + Path("np3.oxvoc")));
   Run(std::string(OXBOW_BINARY) + " " + train + Path("singleton.oxvoc") + " 2>&1");  // no mpirun: one rank
@@ -164,9 +165,14 @@ TEST_F(Mpi, PartitionedBuildMatchesASingleNodeBuild) {
   EXPECT_NE(again.find("\"already_indexed\": 4"), std::string::npos) << again;
   EXPECT_TRUE(ReadBytes(frequency_files[1]) == before);
 
+  // Resuming with another number of partitions would misroute images: refused.
+  int code = 0;
+  const std::string other_p = RunCommand(Mpirun(2, std::regex_replace(build, std::regex("--partitions 3"), "--partitions 2")), &code);
+  EXPECT_NE(code, 0) << other_p;
+  EXPECT_NE(other_p.find("more than 2 partitions"), std::string::npos) << other_p;
+
   // A partition whose recorded words do not cover its images is refused rather than counted wrong.
   fs::remove(api::PartitionFolder(Path("cluster"), 2) + "/partition-frequencies.oxdf");
-  int code = 0;
   const std::string refused = RunCommand(Mpirun(2, build), &code);
   EXPECT_NE(code, 0) << refused;
   EXPECT_NE(refused.find("changed outside"), std::string::npos) << refused;

@@ -32,7 +32,8 @@ double FixedPointScale(double bound, uint64_t count) {
   return std::ldexp(1.0, std::clamp(exponent, -60, 60));
 }
 
-int64_t ToFixed(double value, double scale) { return std::llround(value * scale); }
+// Truncation (not rounding): as deterministic, and a single instruction in the hot loop.
+int64_t ToFixed(double value, double scale) { return static_cast<int64_t>(value * scale); }
 
 template <typename T>
 std::vector<T> FromBytes(std::span<const uint8_t> bytes) {
@@ -320,6 +321,7 @@ Result<DistributedTrainResult> TrainDistributed(const DistributedSample& sample,
   std::vector<float> dist(nl);
   // [changed rows, objective sum, counts per word, sums per word and dimension], fixed point.
   std::vector<int64_t> totals(2 + k + k * dim);
+  std::vector<uint32_t> member_start(k + 1), members(nl);
   const int first_this_run = state.done_iterations + 1;
   for (int it = first_this_run; !state.finished && it <= train.max_iterations; ++it) {
     const auto t0 = Clock::now();
@@ -335,11 +337,25 @@ Result<DistributedTrainResult> TrainDistributed(const DistributedSample& sample,
     int64_t* sums = counts + k;
     for (size_t i = 0; i < nl; ++i) {
       totals[1] += ToFixed(dist[i], dist_scale);
-      const uint32_t c = state.assign[i];
-      ++counts[c];
-      int64_t* s = sums + size_t{c} * dim;
-      for (int d = 0; d < dim; ++d) s[d] += ToFixed(x[i * dim + d], value_scale);
+      ++counts[state.assign[i]];
     }
+    // Per-word sums over the word's rows (a counting sort by word), words in parallel: integer sums, so
+    // neither the thread count nor the order matters.
+    member_start[0] = 0;
+    for (size_t c = 0; c < k; ++c) member_start[c + 1] = member_start[c] + static_cast<uint32_t>(counts[c]);
+    {
+      std::vector<uint32_t> fill(member_start.begin(), member_start.end() - 1);
+      for (size_t i = 0; i < nl; ++i) members[fill[state.assign[i]]++] = static_cast<uint32_t>(i);
+    }
+    ParallelFor(k, threads, 256, [&](size_t begin, size_t end, int) {
+      for (size_t c = begin; c < end; ++c) {
+        int64_t* s = sums + c * dim;
+        for (uint32_t m = member_start[c]; m < member_start[c + 1]; ++m) {
+          const float* xi = x + size_t{members[m]} * dim;
+          for (int d = 0; d < dim; ++d) s[d] += ToFixed(xi[d], value_scale);
+        }
+      }
+    });
     comm.SumInPlace(totals);
     stats.objective = static_cast<double>(totals[1]) / dist_scale / static_cast<double>(n);
     stats.reassigned_share = static_cast<double>(totals[0]) / static_cast<double>(n);
@@ -399,6 +415,7 @@ Result<DistributedTrainResult> TrainDistributed(const DistributedSample& sample,
     state.done_iterations = it;
     if (small_gain || totals[0] == 0) rep.converged = true;
     state.finished = rep.converged || it == train.max_iterations;
+    const auto checkpoint_start = Clock::now();
     if (!options.checkpoint_path.empty()) {
       io::ByteWriter w;
       for (size_t i = 0; i < nl; ++i) {
@@ -422,7 +439,7 @@ Result<DistributedTrainResult> TrainDistributed(const DistributedSample& sample,
     rep.iterations.push_back(stats);
     OXBOW_LOG(kInfo) << "k-means iteration " << it << ": objective " << stats.objective << ", reassigned "
                      << 100.0 * stats.reassigned_share << "%, empty " << stats.empty_clusters << ", "
-                     << stats.seconds << " s";
+                     << stats.seconds << " s (checkpoint " << SecondsSince(checkpoint_start) << " s)";
     if (!state.finished && options.stop_after_iterations > 0 &&
         it - first_this_run + 1 >= options.stop_after_iterations) {
       rep.total_seconds = SecondsSince(start);
