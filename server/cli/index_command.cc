@@ -276,7 +276,7 @@ BuildCounts IngestJobs(const BuildArgs& build, index::ImageIndex& idx, std::vect
   const size_t batch = from_features ? 256 : std::max<size_t>(32, static_cast<size_t>(split.workers) * 2);
   for (size_t begin = 0; begin < todo.size(); begin += batch) {
     const size_t n = std::min(batch, todo.size() - begin);
-    std::vector<std::optional<Result<sift::FeatureFile>>> loaded(n);
+    std::vector<Result<sift::FeatureFile>> loaded(n);  // every slot is assigned below
     std::vector<std::vector<uint32_t>> words(journal ? n : 0);
     // Extract (one image per worker) or read feature files in parallel, add in order.
     ParallelFor(n, from_features ? build.threads : split.workers, 1, [&](size_t lo, size_t hi, int) {
@@ -289,7 +289,7 @@ BuildCounts IngestJobs(const BuildArgs& build, index::ImageIndex& idx, std::vect
         } else {
           loaded[i] = std::unexpected(f.error());
         }
-        const Result<sift::FeatureFile>& f = *loaded[i];
+        const Result<sift::FeatureFile>& f = loaded[i];
         if (journal && f && f->features.descriptors.size() == f->features.size() * idx.vocabulary().dimension()) {
           words[i].resize(f->features.size());
           idx.vocabulary().Quantize(f->features.descriptors, words[i], quantizer);
@@ -301,7 +301,7 @@ BuildCounts IngestJobs(const BuildArgs& build, index::ImageIndex& idx, std::vect
     std::vector<std::pair<std::string, std::vector<uint32_t>>> distinct;
     for (size_t i = 0; i < n; ++i) {
       const ImageJob& job = todo[begin + i];
-      const Result<sift::FeatureFile>& f = *loaded[i];
+      const Result<sift::FeatureFile>& f = loaded[i];
       if (!f) {
         OXBOW_LOG(kWarning) << "skipping " << job.path << ": " << f.error().ToString();
         ++counts.failed;

@@ -56,6 +56,9 @@ struct TrainingInputs {
 };
 
 TrainingInputs CollectInputs(const VocabTrainArgs& args) {
+  const int sources = args.images_dir.has_value() + args.list_file.has_value() + args.features_dir.has_value();
+  if (sources != 1)
+    throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), "give exactly one of --images, --list, --features");
   TrainingInputs in;
   if (args.features_dir) {
     in.paths = ListFolder(*args.features_dir, [](const std::string& p) { return fs::path(p).extension() == ".oxfeat"; });
@@ -98,9 +101,10 @@ std::string ReadDescriptors(const VocabTrainArgs& args, const TrainingInputs& in
         settings = file.extractor_description;
         first_file = path;
       } else if (file.extractor_description != settings) {
-        throw CommandError(ExitCodeFor(ErrorCode::kIncompatible),
-                           "'" + path + "' was extracted with other settings (" + file.extractor_description +
-                               ") than '" + first_file + "' (" + settings + "); a vocabulary needs one extractor");
+        std::string message = "'" + path + "' was extracted with other settings (";
+        message.append(file.extractor_description).append(") than '").append(first_file).append("' (");
+        message.append(settings).append("); a vocabulary needs one extractor");
+        throw CommandError(ExitCodeFor(ErrorCode::kIncompatible), message);
       }
       if (file.features.kind != kind) {
         if (file.features.kind == sift::DescriptorKind::kRootSift)
@@ -186,9 +190,6 @@ void PrintTrainSummary(const VocabTrainArgs& args, const vocab::Vocabulary& voca
 }
 
 void RunVocabTrain(const VocabTrainArgs& args) {
-  const int sources = args.images_dir.has_value() + args.list_file.has_value() + args.features_dir.has_value();
-  if (sources != 1)
-    throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), "give exactly one of --images, --list, --features");
   const vocab::SampleOptions sample = SampleOptionsFrom(args);
   const vocab::TrainOptions train = TrainOptionsFrom(args);
   const TrainingInputs inputs = CollectInputs(args);
@@ -218,19 +219,17 @@ std::string AgreeOnSettings(vocab::Communicator& comm, const std::string& mine) 
   for (int rank = 0; rank < comm.size(); ++rank) {
     const std::string s = ValueOrExit(r.GetString());
     if (s.empty()) continue;
-    if (!agreed.empty() && s != agreed)
-      throw CommandError(ExitCodeFor(ErrorCode::kIncompatible),
-                         "the feature files were extracted with different settings (" + agreed + " and " + s +
-                             "); a vocabulary needs one extractor");
+    if (!agreed.empty() && s != agreed) {
+      std::string message = "the feature files were extracted with different settings (" + agreed;
+      message.append(" and ").append(s).append("); a vocabulary needs one extractor");
+      throw CommandError(ExitCodeFor(ErrorCode::kIncompatible), message);
+    }
     agreed = s;
   }
   return agreed;
 }
 
 void RunVocabTrainMpi(const VocabTrainArgs& args, vocab::Communicator& comm) {
-  const int sources = args.images_dir.has_value() + args.list_file.has_value() + args.features_dir.has_value();
-  if (sources != 1)
-    throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), "give exactly one of --images, --list, --features");
   if (args.assignment == "kdforest")
     throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument),
                        "--mpi needs a reproducible assignment: --assignment auto, exact or ivf (FLANN's kd-forest "
@@ -265,10 +264,12 @@ void RunVocabTrainMpi(const VocabTrainArgs& args, vocab::Communicator& comm) {
                 options.checkpoint_path.c_str(), result.resumed_after_iteration + static_cast<int>(report.iterations.size()));
     return;
   }
-  OkOrExit(result.vocabulary->Write(args.out));
+  OXBOW_CHECK(result.vocabulary.has_value(), "rank 0 of a finished training holds the vocabulary");
+  const vocab::Vocabulary& vocabulary = *result.vocabulary;
+  OkOrExit(vocabulary.Write(args.out));
   std::error_code ec;
   fs::remove(options.checkpoint_path, ec);  // the vocabulary is durable: the checkpoint has served
-  PrintTrainSummary(args, *result.vocabulary, report);
+  PrintTrainSummary(args, vocabulary, report);
 }
 
 void SetUpVocab(CLI::App& app) {
