@@ -61,6 +61,7 @@ class DistributedTrain : public ::testing::Test {
     options_.train.max_iterations = 6;
     options_.train.min_relative_improvement = 0;
     options_.train.assignment = AssignmentMethod::kInvertedFile;
+    options_.train.ivf_probes = 1;  // approximate enough that a row's previous word matters
     options_.train.num_threads = 2;
     options_.train.quantizer.num_threads = 1;
   }
