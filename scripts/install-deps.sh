@@ -11,6 +11,7 @@ build_packages=(
   libopencv-dev          # decode/resize/draw; cv::SIFT only as a reference peer in tests and benchmarks
   libeigen3-dev          # least squares in verification, exact k-means path
   libflann-dev           # randomised kd-forests (matching, approximate k-means)
+  libopenmpi-dev openmpi-bin  # `--mpi` in vocab train / index build (mpirun; tests/mpi_test.cc)
   libsqlite3-dev         # the index catalogue
   zlib1g-dev             # CRC-32 of stored files and feature BLOBs (sift/base/binary_io.cc)
   libxxhash-dev          # XXH3 checksums of the index checkpoint files (verified at every open)
@@ -36,7 +37,7 @@ build_packages=(
 )
 runtime_packages=(
   libopencv-core406 libopencv-imgproc406 libopencv-imgcodecs406 libopencv-features2d406 libopencv-calib3d406
-  libopencv-flann406 libflann1.9 libsqlite3-0 libcpp-httplib0.11 libjpeg62-turbo libtiff6 curl ca-certificates
+  libopencv-flann406 libflann1.9 libopenmpi3 libsqlite3-0 libcpp-httplib0.11 libjpeg62-turbo libtiff6 curl ca-certificates
 )
 
 packages=("${build_packages[@]}")

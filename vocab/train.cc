@@ -19,6 +19,7 @@
 #include "sift/base/parallel.h"
 #include "vocab/kernels.h"
 #include "vocab/search.h"
+#include "vocab/train_internal.h"
 #include "vocab/vocabulary.h"
 
 namespace oxbow::vocab {
@@ -75,7 +76,15 @@ std::vector<float> SeedKMeansPlusPlus(const float* x, size_t n, int dim, size_t 
   for (size_t i = 0; i < m; ++i) std::swap(order[i], order[i + rng.Below(n - i)]);
   std::vector<float> sample(m * dim);
   for (size_t i = 0; i < m; ++i) std::copy_n(x + size_t{order[i]} * dim, dim, sample.data() + i * dim);
+  return internal::KMeansPlusPlus(sample, dim, k, rng, threads);
+}
 
+}  // namespace
+
+namespace internal {
+
+std::vector<float> KMeansPlusPlus(const std::vector<float>& sample, int dim, size_t k, SplitMix64& rng, int threads) {
+  const size_t m = sample.size() / dim;
   std::vector<float> centroids(k * dim);
   std::vector<float> nearest(m, std::numeric_limits<float>::infinity());
   size_t chosen = rng.Below(m);
@@ -108,6 +117,10 @@ std::vector<float> SeedKMeansPlusPlus(const float* x, size_t n, int dim, size_t 
   return centroids;
 }
 
+}  // namespace internal
+
+namespace {
+
 // k distinct descriptors chosen uniformly at random.
 std::vector<float> SeedRandom(const float* x, size_t n, int dim, size_t k, internal::SplitMix64& rng) {
   std::vector<uint32_t> order(n);
@@ -118,7 +131,10 @@ std::vector<float> SeedRandom(const float* x, size_t n, int dim, size_t k, inter
   return centroids;
 }
 
-// Nearest centroid of every descriptor by `method` (never kAuto here).
+}  // namespace
+
+namespace internal {
+
 void Assign(AssignmentMethod method, const std::vector<float>& centroids, size_t k, const float* x, size_t n,
             int dim, const TrainOptions& options, uint64_t iteration_seed, int threads, std::vector<uint32_t>& out) {
   std::vector<float> norms(k);
@@ -173,6 +189,43 @@ void Assign(AssignmentMethod method, const std::vector<float>& centroids, size_t
   });
 }
 
+uint64_t AcceptAssignments(bool approximate, bool first_iteration, const std::vector<float>& centroids, const float* x,
+                           size_t n, int dim, int threads, const std::vector<uint32_t>& proposal,
+                           std::vector<uint32_t>& assign, std::vector<float>& dist) {
+  const size_t chunks = (n + kGrain - 1) / kGrain;
+  std::vector<uint64_t> changed_in_chunk(chunks, 0);
+  ParallelFor(n, threads, kGrain, [&](size_t begin, size_t end, int) {
+    uint64_t changed = 0;
+    for (size_t i = begin; i < end; ++i) {
+      const float* xi = x + i * dim;
+      float d = SquaredL2(xi, centroids.data() + size_t{proposal[i]} * dim, dim);
+      uint32_t w = proposal[i];
+      if (approximate && !first_iteration && w != assign[i]) {
+        const float d_old = SquaredL2(xi, centroids.data() + size_t{assign[i]} * dim, dim);
+        if (d_old <= d) {
+          d = d_old;
+          w = assign[i];
+        }
+      }
+      if (first_iteration || w != assign[i]) ++changed;
+      assign[i] = w;
+      dist[i] = d;
+    }
+    changed_in_chunk[begin / kGrain] = changed;
+  });
+  return std::accumulate(changed_in_chunk.begin(), changed_in_chunk.end(), uint64_t{0});
+}
+
+AssignmentMethod ResolveAssignment(const TrainOptions& options) {
+  if (options.assignment != AssignmentMethod::kAuto) return options.assignment;
+  return options.num_words <= options.exact_assignment_max_words ? AssignmentMethod::kExact
+                                                                 : AssignmentMethod::kInvertedFile;
+}
+
+}  // namespace internal
+
+namespace {
+
 std::string FormatSeconds(double s) {
   std::ostringstream out;
   if (s < 120) {
@@ -205,9 +258,7 @@ Result<Vocabulary> Train(std::span<const float> descriptors, int dimension, sift
   const int threads = ResolveThreadCount(options.num_threads);
   const float* x = descriptors.data();
   const int dim = dimension;
-  AssignmentMethod method = options.assignment;
-  if (method == AssignmentMethod::kAuto)
-    method = k <= options.exact_assignment_max_words ? AssignmentMethod::kExact : AssignmentMethod::kInvertedFile;
+  const AssignmentMethod method = internal::ResolveAssignment(options);
   const bool approximate = method != AssignmentMethod::kExact;
 
   TrainReport local_report;
@@ -231,31 +282,10 @@ Result<Vocabulary> Train(std::span<const float> descriptors, int dimension, sift
     const auto t0 = Clock::now();
     IterationStats stats;
     stats.iteration = it;
-    Assign(method, centroids, k, x, n, dim, options, options.seed * 1000003ull + static_cast<uint64_t>(it), threads,
+    internal::Assign(method, centroids, k, x, n, dim, options, options.seed * 1000003ull + static_cast<uint64_t>(it), threads,
            proposal);
-    // Exact distances; an approximate proposal farther than the previous word is rejected.
-    const size_t chunks = (n + kGrain - 1) / kGrain;
-    std::vector<uint64_t> changed_in_chunk(chunks, 0);
-    ParallelFor(n, threads, kGrain, [&](size_t begin, size_t end, int) {
-      uint64_t changed = 0;
-      for (size_t i = begin; i < end; ++i) {
-        const float* xi = x + i * dim;
-        float d = internal::SquaredL2(xi, centroids.data() + size_t{proposal[i]} * dim, dim);
-        uint32_t w = proposal[i];
-        if (approximate && it > 1 && w != assign[i]) {
-          const float d_old = internal::SquaredL2(xi, centroids.data() + size_t{assign[i]} * dim, dim);
-          if (d_old <= d) {
-            d = d_old;
-            w = assign[i];
-          }
-        }
-        if (it == 1 || w != assign[i]) ++changed;
-        assign[i] = w;
-        dist[i] = d;
-      }
-      changed_in_chunk[begin / kGrain] = changed;
-    });
-    const uint64_t changed = std::accumulate(changed_in_chunk.begin(), changed_in_chunk.end(), uint64_t{0});
+    const uint64_t changed =
+        internal::AcceptAssignments(approximate, it == 1, centroids, x, n, dim, threads, proposal, assign, dist);
     stats.objective = DeterministicSum(dist.data(), n, threads) / static_cast<double>(n);
     stats.reassigned_share = static_cast<double>(changed) / static_cast<double>(n);
 

@@ -13,9 +13,12 @@
 #include <nlohmann/json.hpp>
 
 #include "api/params.h"
+#include "api/partition.h"
 #include "index/image_index.h"
 #include "server/cli/cli.h"
 #include "server/cli/common_flags.h"
+#include "server/cli/mpi_communicator.h"
+#include "sift/base/binary_io.h"
 #include "sift/base/log.h"
 #include "sift/base/parallel.h"
 #include "sift/features_io.h"
@@ -133,17 +136,304 @@ nlohmann::json StatsJson(const index::ImageIndex& idx) {
           {"extractor_settings", idx.extractor_settings()}};
 }
 
+struct BuildArgs {
+  std::string vocab, images, list, features, out;
+  int threads = 0;
+  int probes = vocab::QuantizerOptions{}.num_probes;
+  ImageFlags image;
+  bool mpi = false;
+  uint32_t partitions = 1;
+};
+
+index::IndexOptions IndexOptionsFor(const BuildArgs& build) {
+  index::IndexOptions options;
+  options.num_threads = build.threads;
+  options.quantizer.num_threads = build.threads;
+  options.quantizer.num_probes = build.probes;
+  return options;
+}
+
+std::vector<ImageJob> CollectJobs(const BuildArgs& build) {
+  return build.features.empty() ? CollectImages(build.images, build.list) : CollectFeatureFiles(build.features);
+}
+
+// The document frequencies of one partition's images, kept durable beside the partition while it is
+// built (partition-frequencies.oxdf, container "OXBWPDFJ" v1), so that a resumed --mpi build knows the
+// words of the images an earlier run indexed. Before each batch is committed to the index the journal
+// is written with that batch as "pending" (ids and distinct words); on open, the pending images the
+// index holds are counted, the others (never committed) dropped. Payload: u64 vocabulary fingerprint,
+// u64 images counted, u64 num_words, u32 df[num_words], u64 pending count, per pending image: u32 id
+// length, id bytes, u64 word count, u32 words.
+class FrequencyJournal {
+ public:
+  static constexpr std::string_view kFile = "partition-frequencies.oxdf";
+
+  FrequencyJournal(std::string path, const vocab::Vocabulary& vocabulary)
+      : path_(std::move(path)), fingerprint_(vocabulary.fingerprint()), df_(vocabulary.size(), 0) {}
+
+  // Loads the journal (if any) and settles its pending batch against `idx`; the counted images must
+  // then be exactly the index's images.
+  void Recover(const index::ImageIndex& idx) {
+    std::error_code ec;
+    if (fs::exists(path_, ec)) {
+      const io::Container c = ValueOrExit(io::ReadContainerFile(path_, kMagic, kVersion, kVersion));
+      io::ByteReader r(c.payload, "partition frequencies " + path_);
+      const uint64_t fingerprint = ValueOrExit(r.Get<uint64_t>());
+      if (fingerprint != fingerprint_)
+        throw CommandError(ExitCodeFor(ErrorCode::kIncompatible), path_ + " counts another vocabulary's words");
+      images_ = ValueOrExit(r.Get<uint64_t>());
+      if (ValueOrExit(r.Get<uint64_t>()) != df_.size())
+        throw CommandError(ExitCodeFor(ErrorCode::kCorruptData), path_ + ": wrong number of words");
+      OkOrExit(r.GetArray(std::span<uint32_t>(df_)));
+      const uint64_t pending = ValueOrExit(r.Get<uint64_t>());
+      for (uint64_t i = 0; i < pending; ++i) {
+        const std::string id = ValueOrExit(r.GetString());
+        std::vector<uint32_t> words(ValueOrExit(r.Get<uint64_t>()));
+        OkOrExit(r.GetArray(std::span<uint32_t>(words)));
+        if (idx.Contains(id)) Count(words);
+      }
+    }
+    const uint64_t indexed = idx.Stats().num_images;
+    if (indexed != images_)
+      throw CommandError(ExitCodeFor(ErrorCode::kIncompatible),
+                         idx.directory() + " holds " + std::to_string(indexed) + " images but the words of " +
+                             std::to_string(images_) + " were recorded (" + path_ +
+                             "): it was changed outside `index build --mpi`; build the cluster into a new --out");
+  }
+
+  // Durably records `batch` (ids and distinct words) as about to be committed.
+  void Prepare(std::vector<std::pair<std::string, std::vector<uint32_t>>> batch) {
+    pending_ = std::move(batch);
+    Write();
+  }
+  // The pending images that the index accepted (`added[i]` for pending_[i]) are counted.
+  void Commit(const std::vector<bool>& added) {
+    for (size_t i = 0; i < pending_.size(); ++i)
+      if (added[i]) Count(pending_[i].second);
+    pending_.clear();
+  }
+  void Write() const {
+    io::ByteWriter w;
+    w.Put(fingerprint_);
+    w.Put(images_);
+    w.Put(uint64_t{df_.size()});
+    w.PutArray(std::span<const uint32_t>(df_));
+    w.Put(uint64_t{pending_.size()});
+    for (const auto& [id, words] : pending_) {
+      w.PutString(id);
+      w.Put(uint64_t{words.size()});
+      w.PutArray(std::span<const uint32_t>(words));
+    }
+    OkOrExit(io::WriteContainerFile(path_, kMagic, kVersion, 0, w.bytes()));
+  }
+
+  uint64_t images() const { return images_; }
+  const std::vector<uint32_t>& document_frequency() const { return df_; }
+
+ private:
+  static constexpr std::string_view kMagic = "OXBWPDFJ";
+  static constexpr uint32_t kVersion = 1;
+  void Count(const std::vector<uint32_t>& distinct_words) {
+    ++images_;
+    for (uint32_t w : distinct_words) ++df_.at(w);
+  }
+
+  std::string path_;
+  uint64_t fingerprint_;
+  uint64_t images_ = 0;
+  std::vector<uint32_t> df_;
+  std::vector<std::pair<std::string, std::vector<uint32_t>>> pending_;
+};
+
+struct BuildCounts {
+  size_t added = 0, failed = 0, skipped = 0;
+  uint64_t features = 0;
+};
+
+// Adds the jobs `idx` does not hold yet, in batches. With a journal, the words are assigned here (the
+// index's own quantiser settings) and each batch's distinct words recorded in it before the commit.
+BuildCounts IngestJobs(const BuildArgs& build, index::ImageIndex& idx, std::vector<ImageJob> all,
+                       FrequencyJournal* journal) {
+  const bool from_features = !build.features.empty();
+  const sift::DecodeOptions decode = build.image.ToDecodeOptions();
+  BuildCounts counts;
+  std::vector<ImageJob> todo;
+  for (auto& job : all) {
+    if (!idx.Contains(job.id)) todo.push_back(std::move(job));
+  }
+  counts.skipped = all.size() - todo.size();
+  if (counts.skipped) {
+    OXBOW_LOG(kInfo) << counts.skipped << " images already indexed in " << idx.directory() << ", skipped";
+  }
+  const ThreadSplit split = SplitThreads(build.threads, todo.size());
+  std::optional<sift::SiftExtractor> extractor;
+  if (!from_features) extractor.emplace(ExtractorFor(idx, split.per_item));
+  vocab::QuantizerOptions quantizer;
+  quantizer.num_probes = build.probes;
+  log::Progress progress("indexing", todo.size(), "images");
+  // One committed transaction per batch (ImageIndex::AddBatch quantises it on every thread): a
+  // crash loses at most the batch in flight, which the next run redoes.
+  const size_t batch = from_features ? 256 : std::max<size_t>(32, static_cast<size_t>(split.workers) * 2);
+  for (size_t begin = 0; begin < todo.size(); begin += batch) {
+    const size_t n = std::min(batch, todo.size() - begin);
+    std::vector<Result<sift::FeatureFile>> loaded(n);  // every slot is assigned below
+    std::vector<std::vector<uint32_t>> words(journal ? n : 0);
+    // Extract (one image per worker) or read feature files in parallel, add in order.
+    ParallelFor(n, from_features ? build.threads : split.workers, 1, [&](size_t lo, size_t hi, int) {
+      for (size_t i = lo; i < hi; ++i) {
+        const std::string& path = todo[begin + i].path;
+        if (from_features) {
+          loaded[i] = sift::ReadFeatureFile(path);
+        } else if (auto f = extractor->ExtractFromFile(path, decode)) {
+          loaded[i] = sift::FeatureFile{.features = std::move(*f), .extractor_description = idx.extractor_settings()};
+        } else {
+          loaded[i] = std::unexpected(f.error());
+        }
+        const Result<sift::FeatureFile>& f = loaded[i];
+        if (journal && f && f->features.descriptors.size() == f->features.size() * idx.vocabulary().dimension()) {
+          words[i].resize(f->features.size());
+          idx.vocabulary().Quantize(f->features.descriptors, words[i], quantizer);
+        }
+      }
+    });
+    std::vector<index::BatchImage> items;
+    std::vector<size_t> positions;
+    std::vector<std::pair<std::string, std::vector<uint32_t>>> distinct;
+    for (size_t i = 0; i < n; ++i) {
+      const ImageJob& job = todo[begin + i];
+      const Result<sift::FeatureFile>& f = loaded[i];
+      if (!f) {
+        OXBOW_LOG(kWarning) << "skipping " << job.path << ": " << f.error().ToString();
+        ++counts.failed;
+        progress.Advance();
+        continue;
+      }
+      index::ImageInfo info;
+      info.source_path = fs::absolute(job.path).string();
+      info.extractor_settings = f->extractor_description;
+      items.push_back({job.id, &f->features, std::move(info), {}});
+      positions.push_back(i);
+      if (journal) {
+        items.back().words = words[i];
+        std::vector<uint32_t> d = words[i];
+        std::sort(d.begin(), d.end());
+        d.erase(std::unique(d.begin(), d.end()), d.end());
+        distinct.emplace_back(job.id, std::move(d));
+      }
+    }
+    if (journal) journal->Prepare(std::move(distinct));
+    const auto results = idx.AddBatch(items);
+    std::vector<bool> added(results.size(), false);
+    for (size_t k = 0; k < results.size(); ++k) {
+      const auto& record = results[k];
+      if (!record) {
+        if (record.error().code == ErrorCode::kIoError) throw CommandError(record.error());
+        OXBOW_LOG(kWarning) << "skipping " << todo[begin + positions[k]].path << ": " << record.error().ToString();
+        ++counts.failed;
+      } else {
+        added[k] = true;
+        ++counts.added;
+        counts.features += record->num_features;
+      }
+      progress.Advance();
+    }
+    if (journal) journal->Commit(added);
+  }
+  if (journal) journal->Write();
+  return counts;
+}
+
+nlohmann::json BuildSummary(const index::ImageIndex& idx, const BuildCounts& counts, double seconds) {
+  nlohmann::json summary = StatsJson(idx);
+  summary["added"] = counts.added;
+  summary["already_indexed"] = counts.skipped;
+  summary["failed"] = counts.failed;
+  summary["added_features"] = counts.features;
+  summary["seconds"] = seconds;
+  summary["images_per_second"] = seconds > 0 ? static_cast<double>(counts.added) / seconds : 0.0;
+  return summary;
+}
+
+// `index build --mpi`: every rank builds the partitions p with p mod ranks == rank, then the ranks sum
+// their partitions' document frequencies and each writes the totals beside its partitions.
+void RunClusterBuild(const BuildArgs& build, vocab::Communicator& comm) {
+  const auto t0 = std::chrono::steady_clock::now();
+  const vocab::Vocabulary vocabulary = ValueOrExit(vocab::Vocabulary::Read(build.vocab));
+  const uint32_t partitions = build.partitions;
+  std::vector<std::vector<ImageJob>> jobs(partitions);
+  for (ImageJob& job : CollectJobs(build)) jobs[api::PartitionOf(job.id, partitions)].push_back(std::move(job));
+  std::vector<uint32_t> mine;
+  for (uint32_t p = static_cast<uint32_t>(comm.rank()); p < partitions; p += static_cast<uint32_t>(comm.size()))
+    mine.push_back(p);
+  // Resuming with another P would route images to other partitions than the ones holding them.
+  std::error_code ec;
+  if (comm.rank() == 0 && fs::exists(api::PartitionFolder(build.out, partitions), ec))
+    throw CommandError(ExitCodeFor(ErrorCode::kIncompatible),
+                       build.out + " holds a cluster of more than " + std::to_string(partitions) +
+                           " partitions; resume it with its own --partitions or build into a new --out");
+  for (uint32_t p : mine) {
+    const std::string path = api::PartitionFolder(build.out, p) + "/" + std::string(api::kGlobalFrequenciesFile);
+    if (!fs::exists(path, ec)) continue;
+    const api::GlobalFrequencies previous = ValueOrExit(api::ReadGlobalFrequencies(path));
+    if (previous.num_partitions != partitions)
+      throw CommandError(ExitCodeFor(ErrorCode::kIncompatible),
+                         build.out + " is a cluster of " + std::to_string(previous.num_partitions) +
+                             " partitions; resume it with --partitions " + std::to_string(previous.num_partitions) +
+                             " or build into a new --out");
+  }
+
+  // [images, df per word], summed over this rank's partitions, then over all ranks.
+  std::vector<int64_t> totals(1 + vocabulary.size(), 0);
+  nlohmann::json summaries = nlohmann::json::array();
+  std::vector<std::string> folders;
+  for (uint32_t p : mine) {
+    const std::string dir = api::PartitionFolder(build.out, p);
+    auto idx = OpenOrCreate(dir, vocabulary, IndexOptionsFor(build));
+    FrequencyJournal journal((fs::path(dir) / FrequencyJournal::kFile).string(), vocabulary);
+    journal.Recover(*idx);
+    const auto tp = std::chrono::steady_clock::now();
+    const BuildCounts counts = IngestJobs(build, *idx, std::move(jobs[p]), &journal);
+    const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - tp).count();
+    nlohmann::json summary = BuildSummary(*idx, counts, seconds);
+    summary["partition"] = p;
+    summary["rank"] = comm.rank();
+    summaries.push_back(std::move(summary));
+    totals[0] += static_cast<int64_t>(journal.images());
+    const auto& df = journal.document_frequency();
+    for (size_t w = 0; w < df.size(); ++w) totals[1 + w] += df[w];
+    folders.push_back(dir);
+  }
+  comm.SumInPlace(totals);
+  api::GlobalFrequencies global;
+  global.num_partitions = partitions;
+  global.vocabulary_fingerprint = vocabulary.fingerprint();
+  global.num_images = static_cast<uint64_t>(totals[0]);
+  global.document_frequency.resize(vocabulary.size());
+  for (size_t w = 0; w < vocabulary.size(); ++w) global.document_frequency[w] = static_cast<uint32_t>(totals[1 + w]);
+  for (size_t i = 0; i < mine.size(); ++i) {
+    global.partition = mine[i];
+    OkOrExit(api::WriteGlobalFrequencies((fs::path(folders[i]) / api::kGlobalFrequenciesFile).string(), global));
+  }
+  // Rank 0 prints one summary of all partitions.
+  io::ByteWriter w;
+  w.PutString(summaries.dump());
+  const std::vector<uint8_t> gathered = comm.Allgather(w.bytes());
+  if (comm.rank() != 0) return;
+  io::ByteReader r(gathered, "partition summaries");
+  nlohmann::json all = nlohmann::json::array();
+  for (int rank = 0; rank < comm.size(); ++rank)
+    for (auto& part : nlohmann::json::parse(ValueOrExit(r.GetString(1u << 30)))) all.push_back(std::move(part));
+  std::sort(all.begin(), all.end(), [](const auto& a, const auto& b) { return a["partition"] < b["partition"]; });
+  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  PrintJson({{"cluster", build.out}, {"partitions", partitions}, {"ranks", comm.size()}, {"images", global.num_images},
+             {"seconds", seconds}, {"partition_builds", all}});
+}
+
 void SetUpIndex(CLI::App& app) {
   CLI::App* cmd = app.add_subcommand("index", "Build and maintain an image index (build, add, remove, info)");
   cmd->require_subcommand(1);
 
   // ---- build
-  struct BuildArgs {
-    std::string vocab, images, list, features, out;
-    int threads = 0;
-    int probes = vocab::QuantizerOptions{}.num_probes;
-    ImageFlags image;
-  };
   auto build = std::make_shared<BuildArgs>();
   CLI::App* b = cmd->add_subcommand("build", "Index every image of a folder or list (resumable: indexed ids are skipped)");
   b->add_option("--vocab", build->vocab, "vocabulary file (oxbow vocab train)")->required();
@@ -161,97 +451,31 @@ void SetUpIndex(CLI::App& app) {
                 "coarse quantiser lists probed per indexed descriptor (searches set their own, default 8)")
       ->capture_default_str()
       ->check(CLI::Range(1, 4096));
+  b->add_flag("--mpi", build->mpi,
+              "distributed build under mpirun (one rank without it): --out becomes a cluster folder of --partitions "
+              "index folders partition-0 .. partition-(P-1); image id -> partition FNV-1a 64(id) mod P; partition p is "
+              "written by rank p mod ranks; every partition also gets the cluster's document frequencies "
+              "(global-frequencies.oxdf). Resumable like a single build")
+      ->group("Distributed (MPI)");
+  b->add_option("--partitions", build->partitions, "--mpi: number of partitions P of the cluster")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 65536))
+      ->group("Distributed (MPI)");
   b->callback([build] {
     if (build->images.empty() && build->list.empty() && build->features.empty()) {
       throw CommandError(2, "give --images DIR, --list FILE or --features DIR");
     }
-    const bool from_features = !build->features.empty();
+    if (build->mpi) {
+      RunWithMpi([&](vocab::Communicator& comm) { RunClusterBuild(*build, comm); });
+      return;
+    }
+    if (build->partitions != 1) throw CommandError(2, "--partitions needs --mpi");
     const auto t0 = std::chrono::steady_clock::now();
     const vocab::Vocabulary vocabulary = ValueOrExit(vocab::Vocabulary::Read(build->vocab));
-    index::IndexOptions options;
-    options.num_threads = build->threads;
-    options.quantizer.num_threads = build->threads;
-    options.quantizer.num_probes = build->probes;
-    auto idx = OpenOrCreate(build->out, vocabulary, options);
-    const sift::DecodeOptions decode = build->image.ToDecodeOptions();
-
-    std::vector<ImageJob> all =
-        from_features ? CollectFeatureFiles(build->features) : CollectImages(build->images, build->list);
-    std::vector<ImageJob> todo;
-    for (auto& job : all) {
-      if (!idx->Contains(job.id)) todo.push_back(std::move(job));
-    }
-    const size_t skipped = all.size() - todo.size();
-    if (skipped) {
-      OXBOW_LOG(kInfo) << skipped << " images already indexed, skipped";
-    }
-    const ThreadSplit split = SplitThreads(build->threads, todo.size());
-    std::optional<sift::SiftExtractor> extractor;
-    if (!from_features) extractor.emplace(ExtractorFor(*idx, split.per_item));
-    size_t added = 0, failed = 0;
-    uint64_t features = 0;
-    {
-      log::Progress progress("indexing", todo.size(), "images");
-      // One committed transaction per batch (ImageIndex::AddBatch quantises it on every thread): a
-      // crash loses at most the batch in flight, which the next run redoes.
-      const size_t batch = from_features ? 256 : std::max<size_t>(32, static_cast<size_t>(split.workers) * 2);
-      for (size_t begin = 0; begin < todo.size(); begin += batch) {
-        const size_t n = std::min(batch, todo.size() - begin);
-        std::vector<std::optional<Result<sift::FeatureFile>>> loaded(n);
-        // Extract (one image per worker) or read feature files in parallel, add in order.
-        ParallelFor(n, from_features ? build->threads : split.workers, 1, [&](size_t lo, size_t hi, int) {
-          for (size_t i = lo; i < hi; ++i) {
-            const std::string& path = todo[begin + i].path;
-            if (from_features) {
-              loaded[i] = sift::ReadFeatureFile(path);
-            } else if (auto f = extractor->ExtractFromFile(path, decode)) {
-              loaded[i] = sift::FeatureFile{.features = std::move(*f), .extractor_description = idx->extractor_settings()};
-            } else {
-              loaded[i] = std::unexpected(f.error());
-            }
-          }
-        });
-        std::vector<index::BatchImage> items;
-        std::vector<size_t> positions;
-        for (size_t i = 0; i < n; ++i) {
-          const ImageJob& job = todo[begin + i];
-          const Result<sift::FeatureFile>& f = *loaded[i];
-          if (!f) {
-            OXBOW_LOG(kWarning) << "skipping " << job.path << ": " << f.error().ToString();
-            ++failed;
-            progress.Advance();
-            continue;
-          }
-          index::ImageInfo info;
-          info.source_path = fs::absolute(job.path).string();
-          info.extractor_settings = f->extractor_description;
-          items.push_back({job.id, &f->features, std::move(info), {}});
-          positions.push_back(i);
-        }
-        const auto results = idx->AddBatch(items);
-        for (size_t k = 0; k < results.size(); ++k) {
-          const auto& record = results[k];
-          if (!record) {
-            if (record.error().code == ErrorCode::kIoError) throw CommandError(record.error());
-            OXBOW_LOG(kWarning) << "skipping " << todo[begin + positions[k]].path << ": " << record.error().ToString();
-            ++failed;
-          } else {
-            ++added;
-            features += record->num_features;
-          }
-          progress.Advance();
-        }
-      }
-    }
+    auto idx = OpenOrCreate(build->out, vocabulary, IndexOptionsFor(*build));
+    const BuildCounts counts = IngestJobs(*build, *idx, CollectJobs(*build), nullptr);
     const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-    nlohmann::json summary = StatsJson(*idx);
-    summary["added"] = added;
-    summary["already_indexed"] = skipped;
-    summary["failed"] = failed;
-    summary["added_features"] = features;
-    summary["seconds"] = seconds;
-    summary["images_per_second"] = seconds > 0 ? static_cast<double>(added) / seconds : 0.0;
-    PrintJson(summary);
+    PrintJson(BuildSummary(*idx, counts, seconds));
   });
 
   // ---- add

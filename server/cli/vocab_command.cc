@@ -4,15 +4,20 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <functional>
+#include <span>
 #include <optional>
 #include <string>
 #include <vector>
 
 #include "server/cli/cli.h"
 #include "server/cli/common_flags.h"
+#include "server/cli/mpi_communicator.h"
+#include "sift/base/binary_io.h"
 #include "sift/features_io.h"
 #include "sift/base/log.h"
 #include "sift/sift.h"
+#include "vocab/distributed.h"
 #include "vocab/vocabulary.h"
 
 namespace oxbow::cli {
@@ -33,6 +38,9 @@ struct VocabTrainArgs {
   std::string assignment = "auto";
   int probes = vocab::TrainOptions{}.ivf_probes;
   ImageFlags image;
+  bool mpi = false;
+  std::string checkpoint;  // --mpi: k-means checkpoint file ("" = <out>.checkpoint)
+  int stop_after = 0;      // --mpi: iterations this run (0 = to the end)
 };
 
 // Files under `dir` (recursively, sorted by path: the sample depends on this order) that `keep` accepts.
@@ -40,15 +48,105 @@ std::vector<std::string> ListFolder(const std::string& dir, const std::function<
   return ValueOrExit(sift::ListFiles(dir, keep));
 }
 
-void RunVocabTrain(const VocabTrainArgs& args) {
+// The images (or feature files) to train on, in path order, each with a name that identifies it on
+// every machine (its path relative to the folder, or the list's line) for the --mpi sampling.
+struct TrainingInputs {
+  std::vector<std::string> paths;
+  std::vector<std::string> names;
+};
+
+TrainingInputs CollectInputs(const VocabTrainArgs& args) {
   const int sources = args.images_dir.has_value() + args.list_file.has_value() + args.features_dir.has_value();
   if (sources != 1)
     throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), "give exactly one of --images, --list, --features");
-  vocab::SampleOptions sample;
-  sample.max_total = args.sample;
-  sample.max_per_image = args.per_image;
-  sample.seed = args.seed;
-  if (auto problem = sample.Check()) throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), *problem);
+  TrainingInputs in;
+  if (args.features_dir) {
+    in.paths = ListFolder(*args.features_dir, [](const std::string& p) { return fs::path(p).extension() == ".oxfeat"; });
+    if (in.paths.empty()) throw CommandError(ExitCodeFor(ErrorCode::kNotFound), "no .oxfeat files in '" + *args.features_dir + "'");
+    for (const auto& p : in.paths) in.names.push_back(fs::path(p).lexically_relative(*args.features_dir).string());
+    return in;
+  }
+  if (args.images_dir) {
+    in.paths = ListFolder(*args.images_dir, sift::IsImageFile);
+    for (const auto& p : in.paths) in.names.push_back(fs::path(p).lexically_relative(*args.images_dir).string());
+  } else {
+    std::ifstream list(*args.list_file);
+    if (!list) throw CommandError(ExitCodeFor(ErrorCode::kNotFound), "cannot read the list '" + *args.list_file + "'");
+    for (std::string line; std::getline(list, line);) {
+      while (!line.empty() && (line.back() == '\r' || line.back() == ' ')) line.pop_back();
+      if (!line.empty() && line[0] != '#') in.paths.push_back(line);
+    }
+    in.names = in.paths;
+  }
+  if (in.paths.empty()) throw CommandError(ExitCodeFor(ErrorCode::kNotFound), "no images to train on");
+  return in;
+}
+
+// The descriptors of inputs first, first + stride, ... (converted to `args.descriptor`), each handed to
+// `take(name, descriptors)`. Returns the extractor settings they were made with ("" when this share
+// is empty); `failures` counts unreadable images (skipped with a warning).
+std::string ReadDescriptors(const VocabTrainArgs& args, const TrainingInputs& inputs, size_t first, size_t stride,
+                            const std::function<void(const std::string&, std::span<const float>)>& take,
+                            size_t& failures) {
+  const sift::DescriptorKind kind = args.descriptor;
+  const size_t share = first < inputs.paths.size() ? (inputs.paths.size() - first + stride - 1) / stride : 0;
+  std::string settings;
+  if (args.features_dir) {
+    log::Progress progress("sampling feature files", share, "files");
+    std::string first_file;
+    for (size_t i = first; i < inputs.paths.size(); i += stride) {
+      const std::string& path = inputs.paths[i];
+      sift::FeatureFile file = ValueOrExit(sift::ReadFeatureFile(path));
+      if (first_file.empty()) {
+        settings = file.extractor_description;
+        first_file = path;
+      } else if (file.extractor_description != settings) {
+        std::string message = "'" + path + "' was extracted with other settings (";
+        message.append(file.extractor_description).append(") than '").append(first_file).append("' (");
+        message.append(settings).append("); a vocabulary needs one extractor");
+        throw CommandError(ExitCodeFor(ErrorCode::kIncompatible), message);
+      }
+      if (file.features.kind != kind) {
+        if (file.features.kind == sift::DescriptorKind::kRootSift)
+          throw CommandError(ExitCodeFor(ErrorCode::kIncompatible),
+                             "'" + path + "' holds RootSIFT descriptors; raw SIFT cannot be recovered from them: "
+                             "train with --descriptor rootsift");
+        for (size_t r = 0; r < file.features.size(); ++r)  // SIFT files, RootSIFT asked: convert
+          sift::ToRootSift({file.features.descriptors.data() + r * sift::kDescriptorDim, size_t{sift::kDescriptorDim}});
+      }
+      take(inputs.names[i], file.features.descriptors);
+      progress.Advance();
+    }
+    if (settings.empty()) return settings;
+    // The vocabulary records the extractor whose output it was trained on, so that `index build` and
+    // `serve` extract the same way. SIFT files converted to RootSIFT: the files' extractor with the
+    // RootSIFT descriptor, which extracts exactly what the conversion produced.
+    sift::SiftOptions extractor = ValueOrExit(sift::SiftOptions::FromDescription(settings));
+    extractor.descriptor = kind;
+    return extractor.Describe();
+  }
+  sift::SiftOptions options;
+  options.descriptor = kind;
+  options.num_threads = args.threads;
+  const sift::SiftExtractor extractor = ValueOrExit(sift::SiftExtractor::Create(options));
+  settings = options.Describe();
+  const sift::DecodeOptions decode = args.image.ToDecodeOptions();
+  log::Progress progress("extracting and sampling", share, "images");
+  for (size_t i = first; i < inputs.paths.size(); i += stride) {
+    const std::string& path = inputs.paths[i];
+    auto features = extractor.ExtractFromFile(path, decode);
+    progress.Advance();
+    if (!features) {
+      ++failures;
+      OXBOW_LOG(kWarning) << "skipping " << path << ": " << features.error().ToString();
+      continue;
+    }
+    take(inputs.names[i], features->descriptors);
+  }
+  return settings;
+}
+
+vocab::TrainOptions TrainOptionsFrom(const VocabTrainArgs& args) {
   vocab::TrainOptions train;
   train.num_words = args.words;
   train.max_iterations = args.iterations;
@@ -61,91 +159,117 @@ void RunVocabTrain(const VocabTrainArgs& args) {
   if (args.assignment == "ivf") train.assignment = vocab::AssignmentMethod::kInvertedFile;
   train.ivf_probes = args.probes;
   if (auto problem = train.Check()) throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), *problem);
+  return train;
+}
+
+vocab::SampleOptions SampleOptionsFrom(const VocabTrainArgs& args) {
+  vocab::SampleOptions sample;
+  sample.max_total = args.sample;
+  sample.max_per_image = args.per_image;
+  sample.seed = args.seed;
+  if (auto problem = sample.Check()) throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), *problem);
   if (args.sample < args.words)
     throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument),
                        "--sample (" + std::to_string(args.sample) + ") must be at least --words (" +
                            std::to_string(args.words) + ")");
+  return sample;
+}
+
+void CheckEnoughDescriptors(uint64_t sampled, const VocabTrainArgs& args) {
+  if (sampled < args.words)
+    throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument),
+                       "only " + std::to_string(sampled) + " descriptors for " + std::to_string(args.words) +
+                           " words: add images, raise --per-image or lower --words");
+}
+
+void PrintTrainSummary(const VocabTrainArgs& args, const vocab::Vocabulary& vocabulary, const vocab::TrainReport& report) {
+  std::printf("%s: %zu words, %s, %zu iterations%s, objective %.6g, %.1f s (seeding %.1f s), fingerprint %016llx\n",
+              args.out.c_str(), vocabulary.size(), sift::DescriptorKindName(args.descriptor), report.iterations.size(),
+              report.converged ? " (converged)" : "", report.iterations.empty() ? 0.0 : report.iterations.back().objective,
+              report.total_seconds, report.seeding_seconds, static_cast<unsigned long long>(vocabulary.fingerprint()));
+}
+
+void RunVocabTrain(const VocabTrainArgs& args) {
+  const vocab::SampleOptions sample = SampleOptionsFrom(args);
+  const vocab::TrainOptions train = TrainOptionsFrom(args);
+  const TrainingInputs inputs = CollectInputs(args);
 
   vocab::DescriptorSampler sampler(sample, sift::kDescriptorDim);
-  const sift::DescriptorKind kind = args.descriptor;
-  std::string settings;
   size_t failures = 0;
-  if (args.features_dir) {
-    const auto files = ListFolder(*args.features_dir, [](const std::string& p) { return fs::path(p).extension() == ".oxfeat"; });
-    if (files.empty()) throw CommandError(ExitCodeFor(ErrorCode::kNotFound), "no .oxfeat files in '" + *args.features_dir + "'");
-    log::Progress progress("sampling feature files", files.size(), "files");
-    for (size_t i = 0; i < files.size(); ++i) {
-      sift::FeatureFile file = ValueOrExit(sift::ReadFeatureFile(files[i]));
-      if (i == 0) {
-        settings = file.extractor_description;
-      } else if (file.extractor_description != settings) {
-        throw CommandError(ExitCodeFor(ErrorCode::kIncompatible),
-                           "'" + files[i] + "' was extracted with other settings (" + file.extractor_description +
-                               ") than '" + files[0] + "' (" + settings + "); a vocabulary needs one extractor");
-      }
-      if (file.features.kind != kind) {
-        if (file.features.kind == sift::DescriptorKind::kRootSift)
-          throw CommandError(ExitCodeFor(ErrorCode::kIncompatible),
-                             "'" + files[i] + "' holds RootSIFT descriptors; raw SIFT cannot be recovered from them: "
-                             "train with --descriptor rootsift");
-        for (size_t r = 0; r < file.features.size(); ++r)  // SIFT files, RootSIFT asked: convert
-          sift::ToRootSift({file.features.descriptors.data() + r * sift::kDescriptorDim, size_t{sift::kDescriptorDim}});
-      }
-      sampler.AddImage(file.features.descriptors);
-      progress.Advance();
-    }
-    // The vocabulary records the extractor whose output it was trained on, so that `index build` and
-    // `serve` extract the same way. SIFT files converted to RootSIFT: the files' extractor with the
-    // RootSIFT descriptor, which extracts exactly what the conversion produced.
-    sift::SiftOptions extractor = ValueOrExit(sift::SiftOptions::FromDescription(settings));
-    extractor.descriptor = kind;
-    settings = extractor.Describe();
-  } else {
-    std::vector<std::string> images;
-    if (args.images_dir) {
-      images = ListFolder(*args.images_dir, sift::IsImageFile);
-    } else {
-      std::ifstream in(*args.list_file);
-      if (!in) throw CommandError(ExitCodeFor(ErrorCode::kNotFound), "cannot read the list '" + *args.list_file + "'");
-      for (std::string line; std::getline(in, line);) {
-        while (!line.empty() && (line.back() == '\r' || line.back() == ' ')) line.pop_back();
-        if (!line.empty() && line[0] != '#') images.push_back(line);
-      }
-    }
-    if (images.empty()) throw CommandError(ExitCodeFor(ErrorCode::kNotFound), "no images to train on");
-    sift::SiftOptions options;
-    options.descriptor = kind;
-    options.num_threads = args.threads;
-    const sift::SiftExtractor extractor = ValueOrExit(sift::SiftExtractor::Create(options));
-    settings = options.Describe();
-    const sift::DecodeOptions decode = args.image.ToDecodeOptions();
-    log::Progress progress("extracting and sampling", images.size(), "images");
-    for (const std::string& path : images) {
-      auto features = extractor.ExtractFromFile(path, decode);
-      progress.Advance();
-      if (!features) {
-        ++failures;
-        OXBOW_LOG(kWarning) << "skipping " << path << ": " << features.error().ToString();
-        continue;
-      }
-      sampler.AddImage(features->descriptors);
-    }
-  }
+  const std::string settings = ReadDescriptors(
+      args, inputs, 0, 1, [&](const std::string&, std::span<const float> d) { sampler.AddImage(d); }, failures);
   OXBOW_LOG(kInfo) << "sampled " << sampler.size() << " of " << sampler.rows_seen() << " descriptors from "
                    << sampler.images_seen() << " images" << (failures ? " (" + std::to_string(failures) + " unreadable)" : "");
-  if (sampler.size() < args.words)
-    throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument),
-                       "only " + std::to_string(sampler.size()) + " descriptors for " + std::to_string(args.words) +
-                           " words: add images, raise --per-image or lower --words");
+  CheckEnoughDescriptors(sampler.size(), args);
   const std::vector<float> descriptors = sampler.TakeDescriptors();
   vocab::TrainReport report;
   const vocab::Vocabulary vocabulary =
-      ValueOrExit(vocab::Train(descriptors, sift::kDescriptorDim, kind, settings, train, &report));
+      ValueOrExit(vocab::Train(descriptors, sift::kDescriptorDim, args.descriptor, settings, train, &report));
   OkOrExit(vocabulary.Write(args.out));
-  std::printf("%s: %zu words, %s, %zu iterations%s, objective %.6g, %.1f s (seeding %.1f s), fingerprint %016llx\n",
-              args.out.c_str(), vocabulary.size(), sift::DescriptorKindName(kind), report.iterations.size(),
-              report.converged ? " (converged)" : "", report.iterations.empty() ? 0.0 : report.iterations.back().objective,
-              report.total_seconds, report.seeding_seconds, static_cast<unsigned long long>(vocabulary.fingerprint()));
+  PrintTrainSummary(args, vocabulary, report);
+}
+
+// The one extractor setting string of all ranks' shares (ranks without inputs have none).
+std::string AgreeOnSettings(vocab::Communicator& comm, const std::string& mine) {
+  io::ByteWriter w;
+  w.PutString(mine);
+  const std::vector<uint8_t> all = comm.Allgather(w.bytes());
+  io::ByteReader r(all, "extractor settings of the ranks");
+  std::string agreed;
+  for (int rank = 0; rank < comm.size(); ++rank) {
+    const std::string s = ValueOrExit(r.GetString());
+    if (s.empty()) continue;
+    if (!agreed.empty() && s != agreed) {
+      std::string message = "the feature files were extracted with different settings (" + agreed;
+      message.append(" and ").append(s).append("); a vocabulary needs one extractor");
+      throw CommandError(ExitCodeFor(ErrorCode::kIncompatible), message);
+    }
+    agreed = s;
+  }
+  return agreed;
+}
+
+void RunVocabTrainMpi(const VocabTrainArgs& args, vocab::Communicator& comm) {
+  if (args.assignment == "kdforest")
+    throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument),
+                       "--mpi needs a reproducible assignment: --assignment auto, exact or ivf (FLANN's kd-forest "
+                       "differs from run to run)");
+  const vocab::SampleOptions sample_options = SampleOptionsFrom(args);
+  vocab::DistributedTrainOptions options;
+  options.train = TrainOptionsFrom(args);
+  options.checkpoint_path = args.checkpoint.empty() ? args.out + ".checkpoint" : args.checkpoint;
+  options.stop_after_iterations = args.stop_after;
+  const TrainingInputs inputs = CollectInputs(args);
+
+  // Images are dealt out round-robin in path order; the sample does not depend on who reads what.
+  vocab::NamedSampler sampler(sample_options, sift::kDescriptorDim);
+  size_t failures = 0;
+  const std::string mine = ReadDescriptors(
+      args, inputs, static_cast<size_t>(comm.rank()), static_cast<size_t>(comm.size()),
+      [&](const std::string& name, std::span<const float> d) { sampler.AddImage(name, d); }, failures);
+  const std::string settings = AgreeOnSettings(comm, mine);
+  std::vector<int64_t> unreadable = {static_cast<int64_t>(failures)};
+  comm.SumInPlace(unreadable);
+  const vocab::DistributedSample sample = sampler.Finish(comm);
+  OXBOW_LOG(kInfo) << "sampled " << sample.total_rows << " of " << sample.rows_seen << " descriptors from "
+                   << sample.images_seen << " images on " << comm.size() << " ranks"
+                   << (unreadable[0] ? " (" + std::to_string(unreadable[0]) + " unreadable)" : "");
+  CheckEnoughDescriptors(sample.total_rows, args);
+  vocab::TrainReport report;
+  const vocab::DistributedTrainResult result =
+      ValueOrExit(vocab::TrainDistributed(sample, comm, args.descriptor, settings, options, &report));
+  if (comm.rank() != 0) return;
+  if (!result.finished) {
+    std::printf("%s: stopped after iteration %d (--stop-after-iterations); run the same command again to continue\n",
+                options.checkpoint_path.c_str(), result.resumed_after_iteration + static_cast<int>(report.iterations.size()));
+    return;
+  }
+  OXBOW_CHECK(result.vocabulary.has_value(), "rank 0 of a finished training holds the vocabulary");
+  const vocab::Vocabulary& vocabulary = *result.vocabulary;
+  OkOrExit(vocabulary.Write(args.out));
+  std::error_code ec;
+  fs::remove(options.checkpoint_path, ec);  // the vocabulary is durable: the checkpoint has served
+  PrintTrainSummary(args, vocabulary, report);
 }
 
 void SetUpVocab(CLI::App& app) {
@@ -180,6 +304,8 @@ void SetUpVocab(CLI::App& app) {
   train->add_option("--words", args->words, "vocabulary size k (number of visual words)")->required()->check(CLI::PositiveNumber);
   train->add_option("--out", args->out, "vocabulary file to write (atomically)")->required();
   AddDescriptorFlag(train, &args->descriptor);  // with --features, SIFT files are converted to RootSIFT
+  train->add_flag_callback("--root-sift", [args] { args->descriptor = sift::DescriptorKind::kRootSift; },
+                           "same as --descriptor rootsift (the default; the spelling of issue 15's interface)");
   train->add_option("--sample", args->sample, "maximum training descriptors in total")->capture_default_str()->check(CLI::PositiveNumber);
   train->add_option("--per-image", args->per_image, "maximum descriptors kept per image")->capture_default_str()->check(CLI::PositiveNumber);
   train->add_option("--iterations", args->iterations, "maximum Lloyd iterations")->capture_default_str()->check(CLI::Range(1, 1000));
@@ -193,7 +319,30 @@ void SetUpVocab(CLI::App& app) {
       ->capture_default_str()
       ->check(CLI::Range(1, 1 << 20));
   AddImageFlags(train, &args->image);
-  train->callback([args] { RunVocabTrain(*args); });
+  train->add_flag("--mpi", args->mpi,
+                  "distributed training under mpirun (one rank without it): each rank extracts and samples its "
+                  "share of the images, sums are combined exactly, so any number of ranks gives the same vocabulary "
+                  "(not the one training without --mpi gives: the sample is drawn by image name)")
+      ->group("Distributed (MPI)");
+  train->add_option("--checkpoint", args->checkpoint,
+                    "--mpi: k-means state written after every iteration and resumed from when present (the images "
+                    "are read again); default <out>.checkpoint, deleted once the vocabulary is written")
+      ->group("Distributed (MPI)");
+  train->add_option("--stop-after-iterations", args->stop_after,
+                    "--mpi: end this run after N iterations, keeping the checkpoint (batch schedulers' time limits); "
+                    "0 = run to the end")
+      ->capture_default_str()
+      ->check(CLI::Range(0, 1000))
+      ->group("Distributed (MPI)");
+  train->callback([args] {
+    if (!args->mpi) {
+      if (!args->checkpoint.empty() || args->stop_after != 0)
+        throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), "--checkpoint and --stop-after-iterations need --mpi");
+      RunVocabTrain(*args);
+      return;
+    }
+    RunWithMpi([&](vocab::Communicator& comm) { RunVocabTrainMpi(*args, comm); });
+  });
 
   auto path = std::make_shared<std::string>();
   auto* info = cmd->add_subcommand("info", "Print a vocabulary file's words, dimension, descriptor kind, extractor settings, "

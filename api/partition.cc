@@ -1,0 +1,60 @@
+// Partition routing and the global frequency file (see partition.h).
+#include "api/partition.h"
+
+#include "sift/base/binary_io.h"
+#include "sift/base/hash.h"
+
+namespace oxbow::api {
+namespace {
+constexpr std::string_view kMagic = "OXBWGLDF";
+constexpr uint32_t kVersion = 1;
+}  // namespace
+
+uint32_t PartitionOf(std::string_view id, uint32_t num_partitions) {
+  OXBOW_CHECK(num_partitions >= 1, "a cluster has at least one partition");
+  return static_cast<uint32_t>(Fnv1a64(id) % num_partitions);
+}
+
+std::string PartitionFolder(const std::string& cluster, uint32_t partition) {
+  return cluster + "/partition-" + std::to_string(partition);
+}
+
+Status WriteGlobalFrequencies(const std::string& path, const GlobalFrequencies& f) {
+  io::ByteWriter w;
+  w.Put(f.num_partitions);
+  w.Put(f.partition);
+  w.Put(f.vocabulary_fingerprint);
+  w.Put(f.num_images);
+  w.Put(uint64_t{f.document_frequency.size()});
+  w.PutArray(std::span<const uint32_t>(f.document_frequency));
+  return io::WriteContainerFile(path, kMagic, kVersion, 0, w.bytes());
+}
+
+Result<GlobalFrequencies> ReadGlobalFrequencies(const std::string& path) {
+  auto container = io::ReadContainerFile(path, kMagic, kVersion, kVersion);
+  if (!container) return std::unexpected(container.error());
+  io::ByteReader r(container->payload, "global frequencies " + path);
+  GlobalFrequencies f;
+  auto partitions = r.Get<uint32_t>();
+  auto partition = r.Get<uint32_t>();
+  auto fingerprint = r.Get<uint64_t>();
+  auto images = r.Get<uint64_t>();
+  auto words = r.Get<uint64_t>();
+  if (!partitions || !partition || !fingerprint || !images || !words)
+    return Fail(ErrorCode::kCorruptData, "global frequencies " + path + ": truncated header");
+  if (*partitions == 0 || *partition >= *partitions || *words != r.remaining() / sizeof(uint32_t) ||
+      r.remaining() % sizeof(uint32_t) != 0)
+    return Fail(ErrorCode::kCorruptData, "global frequencies " + path + ": inconsistent header");
+  f.num_partitions = *partitions;
+  f.partition = *partition;
+  f.vocabulary_fingerprint = *fingerprint;
+  f.num_images = *images;
+  f.document_frequency.resize(*words);
+  if (auto s = r.GetArray(std::span<uint32_t>(f.document_frequency)); !s) return std::unexpected(s.error());
+  for (uint32_t df : f.document_frequency)
+    if (df > f.num_images)
+      return Fail(ErrorCode::kCorruptData, "global frequencies " + path + ": a frequency exceeds the image count");
+  return f;
+}
+
+}  // namespace oxbow::api

@@ -1,0 +1,52 @@
+// A cluster: an index split into P partitions by image id (issue 15), built by `oxbow index build --mpi`
+// and served by one `oxbow serve --index CLUSTER/partition-k` per partition behind a front.
+//
+// Layout of a cluster folder:
+//   CLUSTER/partition-0 .. partition-(P-1)   ordinary index folders (index/image_index.h)
+//   CLUSTER/partition-k/global-frequencies.oxdf
+//                                            the document frequency of every word over the whole
+//                                            cluster and the cluster's image count (GlobalFrequencies),
+//                                            so that every partition can score with the global idf
+//
+// An image belongs to partition PartitionOf(id, P): FNV-1a 64 of the id's bytes, modulo P. Builders
+// and the front that routes writes must both call this function; changing it moves every image.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "sift/base/error.h"
+
+namespace oxbow::api {
+
+// The partition of image `id` among `num_partitions` (>= 1): Fnv1a64(id) % num_partitions.
+uint32_t PartitionOf(std::string_view id, uint32_t num_partitions);
+
+// "<cluster>/partition-<partition>".
+std::string PartitionFolder(const std::string& cluster, uint32_t partition);
+
+// File name of the global frequencies inside a partition folder.
+inline constexpr std::string_view kGlobalFrequenciesFile = "global-frequencies.oxdf";
+
+// Document frequencies over a whole cluster, as stored beside each partition. File: a binary_io.h
+// container, magic "OXBWGLDF", version 1, payload (host byte order, recorded in the header):
+//   u32 num_partitions, u32 partition, u64 vocabulary_fingerprint, u64 num_images,
+//   u64 num_words, u32 document_frequency[num_words]
+struct GlobalFrequencies {
+  uint32_t num_partitions = 0;              // P of the cluster
+  uint32_t partition = 0;                   // the partition this copy sits in, < P
+  uint64_t vocabulary_fingerprint = 0;      // vocab::Vocabulary::fingerprint() of the words counted
+  uint64_t num_images = 0;                  // images in the whole cluster (N of the idf)
+  std::vector<uint32_t> document_frequency; // per word: images of the whole cluster containing it
+
+  bool operator==(const GlobalFrequencies&) const = default;
+};
+
+// Atomic write (temp file, fsync, rename). kIoError on failure.
+[[nodiscard]] Status WriteGlobalFrequencies(const std::string& path, const GlobalFrequencies& frequencies);
+// kNotFound, kCorruptData (damaged, truncated, inconsistent), kIncompatible (unknown version).
+[[nodiscard]] Result<GlobalFrequencies> ReadGlobalFrequencies(const std::string& path);
+
+}  // namespace oxbow::api

@@ -1,0 +1,102 @@
+// MPI implementation of vocab::Communicator (see mpi_communicator.h).
+#include "server/cli/mpi_communicator.h"
+
+#include <mpi.h>
+
+#include <climits>
+#include <cstdio>
+#include <exception>
+#include <string>
+#include <vector>
+
+#include "server/cli/cli.h"
+#include "sift/base/log.h"
+
+namespace oxbow::cli {
+namespace {
+
+// MPI counts are int: large buffers go in pieces of at most kChunk elements.
+constexpr size_t kChunk = size_t{1} << 30;
+
+class MpiWorld final : public vocab::Communicator {
+ public:
+  MpiWorld() {
+    MPI_Comm_rank(MPI_COMM_WORLD, &rank_);
+    MPI_Comm_size(MPI_COMM_WORLD, &size_);
+  }
+  int rank() const override { return rank_; }
+  int size() const override { return size_; }
+
+  void SumInPlace(std::span<int64_t> values) override {
+    for (size_t at = 0; at < values.size(); at += kChunk) {
+      const int count = static_cast<int>(std::min(kChunk, values.size() - at));
+      MPI_Allreduce(MPI_IN_PLACE, values.data() + at, count, MPI_INT64_T, MPI_SUM, MPI_COMM_WORLD);
+    }
+  }
+  double Max(double value) override {
+    double out = value;
+    MPI_Allreduce(&value, &out, 1, MPI_DOUBLE, MPI_MAX, MPI_COMM_WORLD);
+    return out;
+  }
+  void Broadcast(std::span<uint8_t> bytes) override {
+    for (size_t at = 0; at < bytes.size(); at += kChunk) {
+      const int count = static_cast<int>(std::min(kChunk, bytes.size() - at));
+      MPI_Bcast(bytes.data() + at, count, MPI_BYTE, 0, MPI_COMM_WORLD);
+    }
+  }
+  std::vector<uint8_t> Allgather(std::span<const uint8_t> bytes) override {
+    if (bytes.size() > INT_MAX) throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), "MPI message over 2 GiB");
+    const int mine = static_cast<int>(bytes.size());
+    std::vector<int> counts(size_), offsets(size_);
+    MPI_Allgather(&mine, 1, MPI_INT, counts.data(), 1, MPI_INT, MPI_COMM_WORLD);
+    int64_t total = 0;
+    for (int r = 0; r < size_; ++r) {
+      if (total > INT_MAX) throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), "MPI gather over 2 GiB");
+      offsets[r] = static_cast<int>(total);
+      total += counts[r];
+    }
+    if (total > INT_MAX) throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), "MPI gather over 2 GiB");
+    std::vector<uint8_t> out(static_cast<size_t>(total));
+    MPI_Allgatherv(bytes.data(), mine, MPI_BYTE, out.data(), counts.data(), offsets.data(), MPI_BYTE, MPI_COMM_WORLD);
+    return out;
+  }
+
+ private:
+  int rank_ = 0;
+  int size_ = 1;
+};
+
+[[noreturn]] void AbortJob(int rank, const std::string& message, int exit_code) {
+  std::fprintf(stderr, "oxbow: error (rank %d): %s\n", rank, message.c_str());
+  std::fflush(stderr);
+  MPI_Abort(MPI_COMM_WORLD, exit_code);
+  std::_Exit(exit_code);  // MPI_Abort does not return; this keeps the compiler's view honest
+}
+
+}  // namespace
+
+void RunWithMpi(const std::function<void(vocab::Communicator&)>& body) {
+  int initialized = 0;
+  MPI_Initialized(&initialized);
+  if (!initialized) MPI_Init(nullptr, nullptr);
+  MpiWorld world;
+  if (world.rank() != 0 && log::GetLevel() < log::Level::kWarning) log::SetLevel(log::Level::kWarning);
+  try {
+    body(world);
+  } catch (const CommandError& e) {
+    if (world.size() == 1) {
+      MPI_Finalize();
+      throw;
+    }
+    AbortJob(world.rank(), e.what(), e.exit_code());
+  } catch (const std::exception& e) {
+    if (world.size() == 1) {
+      MPI_Finalize();
+      throw;
+    }
+    AbortJob(world.rank(), std::string("internal error: ") + e.what(), 1);
+  }
+  MPI_Finalize();
+}
+
+}  // namespace oxbow::cli

@@ -1,0 +1,182 @@
+// `--mpi` batch work under a real `mpirun --oversubscribe` (issue 15 items 1 and 2): the vocabulary does
+// not depend on the number of ranks, a stopped training resumes to the same file, and a partitioned
+// build puts every image in the partition PartitionOf names with the cluster's document frequencies
+// stored beside each partition. CI runs as root, which Open MPI refuses unless told otherwise: the
+// two OMPI_ALLOW_RUN_AS_ROOT variables are set for the mpirun child only.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <filesystem>
+#include <fstream>
+#include <iterator>
+#include <map>
+#include <regex>
+#include <set>
+
+#include "api/partition.h"
+#include "api/testing.h"
+#include "index/image_index.h"
+#include "sift/sift.h"
+// After the project headers: <httplib.h> (through e2e_testing.h) defines a `_res` macro that breaks Eigen.
+#include "e2e_testing.h"
+
+namespace oxbow {
+namespace {
+
+namespace fs = std::filesystem;
+using testing::RunCommand;
+
+std::string Mpirun(int ranks, const std::string& args) {
+  return "env OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 OMPI_MCA_rmaps_base_oversubscribe=1 "
+         "mpirun --oversubscribe -np " + std::to_string(ranks) + " " + OXBOW_BINARY + " " + args + " 2>&1";
+}
+
+std::string ReadBytes(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+}
+
+class Mpi : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = std::make_unique<api::testing::TempDir>("oxbow-mpi");
+    images_ = dir_->path() + "/images";
+    fs::create_directories(images_ + "/sub");
+    // Ten small textured pictures (crops of opencv-doc photos, noise without them), one in a sub-folder.
+    const char* samples[] = {"graf1.png", "box.png", "baboon.jpg", "fruits.jpg", "building.jpg"};
+    for (int i = 0; i < 10; ++i) {
+      const std::string name = (i == 3 ? "/sub/img" : "/img") + std::to_string(i) + ".png";
+      ASSERT_TRUE(cv::imwrite(images_ + name, testing::Texture(320, 240, samples[i % 5], 40 * (i / 5), 30 * (i / 5))));
+    }
+  }
+  std::string Path(const std::string& name) const { return dir_->path() + "/" + name; }
+  std::string Run(const std::string& command) {
+    int code = -1;
+    std::string out = RunCommand(command, &code);
+    EXPECT_EQ(code, 0) << command << "\n" << out;
+    return out;
+  }
+
+  std::unique_ptr<api::testing::TempDir> dir_;
+  std::string images_;
+};
+
+TEST_F(Mpi, VocabularyIsTheSameForOneAndThreeRanks) {
+  const std::string train =
+      "vocab train --mpi --root-sift --images " + images_ + " --words 200 --per-image 600 --threads 1 --out ";
+  Run(Mpirun(1, train + Path("np1.oxvoc")));
+  Run(Mpirun(3, train + Path("np3.oxvoc")));
+  Run(std::string(OXBOW_BINARY) + " " + train + Path("singleton.oxvoc") + " 2>&1");  // no mpirun: one rank
+  const std::string np1 = ReadBytes(Path("np1.oxvoc"));
+  ASSERT_GT(np1.size(), 200u * 128u * 4u);
+  EXPECT_TRUE(np1 == ReadBytes(Path("np3.oxvoc"))) << "np=1 and np=3 vocabularies differ";
+  EXPECT_TRUE(np1 == ReadBytes(Path("singleton.oxvoc"))) << "mpirun -np 1 and a singleton differ";
+  EXPECT_FALSE(fs::exists(Path("np3.oxvoc.checkpoint"))) << "the checkpoint outlives a finished training";
+}
+
+TEST_F(Mpi, StoppedTrainingResumesToTheUninterruptedVocabulary) {
+  // ivf assignment (approximate: a row's previous word matters) and empty words to re-seed: random seeding
+  // (above 4096 words) over a folder where every picture is there twice puts some centres on identical
+  // rows, one of which then stays empty. The checkpoint must carry all of that state.
+  fs::copy(images_, Path("copy"), fs::copy_options::recursive);
+  fs::rename(Path("copy"), images_ + "/copy");
+  const std::string train = "vocab train --mpi --images " + images_ +
+                            " --words 4200 --per-image 300 --assignment ivf --iterations 6 --threads 1 --out ";
+  const std::string whole = Run(Mpirun(3, train + Path("whole.oxvoc")));
+  EXPECT_TRUE(std::regex_search(whole, std::regex("empty [1-9]"))) << "no empty word was re-seeded:\n" << whole;
+
+  const std::string first = Run(Mpirun(2, train + Path("resumed.oxvoc") + " --stop-after-iterations 2"));
+  EXPECT_NE(first.find("stopped after iteration 2"), std::string::npos) << first;
+  ASSERT_TRUE(fs::exists(Path("resumed.oxvoc.checkpoint")));
+  ASSERT_FALSE(fs::exists(Path("resumed.oxvoc")));
+  // Resumed on another number of ranks.
+  const std::string second = Run(Mpirun(1, train + Path("resumed.oxvoc")));
+  EXPECT_NE(second.find("resuming from"), std::string::npos) << second;
+  EXPECT_TRUE(ReadBytes(Path("whole.oxvoc")) == ReadBytes(Path("resumed.oxvoc"))) << "resumed vocabulary differs";
+  EXPECT_FALSE(fs::exists(Path("resumed.oxvoc.checkpoint")));
+
+  // A checkpoint of other options is refused, not silently mixed in.
+  Run(Mpirun(1, train + Path("other.oxvoc") + " --stop-after-iterations 1"));
+  int code = 0;
+  const std::string refused = RunCommand(
+      Mpirun(2, "vocab train --mpi --images " + images_ + " --words 4200 --per-image 300 --assignment ivf --seed 2 "
+                "--threads 1 --out " + Path("other.oxvoc")), &code);
+  EXPECT_NE(code, 0) << refused;
+  EXPECT_NE(refused.find("belongs to other images"), std::string::npos) << refused;
+}
+
+TEST_F(Mpi, PartitionedBuildMatchesASingleNodeBuild) {
+  const std::string settings = sift::SiftOptions{}.Describe();
+  const vocab::Vocabulary vocabulary = testing::RandomVocabulary(settings, 256).value();
+  ASSERT_TRUE(vocabulary.Write(Path("v.oxvoc")));
+  Run(std::string(OXBOW_BINARY) + " -q index build --vocab " + Path("v.oxvoc") + " --images " + images_ +
+      " --threads 1 --out " + Path("single") + " 2>&1");
+  const std::string build = "-q index build --mpi --vocab " + Path("v.oxvoc") + " --images " + images_ +
+                            " --partitions 3 --threads 1 --out " + Path("cluster");
+  Run(Mpirun(2, build));
+
+  const auto ids_in = [](const std::string& dir) {
+    const auto idx = index::ImageIndex::Open(dir).value();
+    const std::vector<index::ImageRecord> records = idx->List(0, 100).value();
+    std::vector<std::string> ids;
+    for (const auto& r : records) ids.push_back(r.id);
+    return ids;
+  };
+  std::set<std::string> single_ids;
+  for (const auto& id : ids_in(Path("single"))) single_ids.insert(id);
+  ASSERT_EQ(single_ids.size(), 10u);
+  std::set<std::string> cluster_ids;
+  std::vector<std::string> frequency_files;
+  for (uint32_t p = 0; p < 3; ++p) {
+    const std::string dir = api::PartitionFolder(Path("cluster"), p);
+    for (const auto& id : ids_in(dir)) {
+      EXPECT_EQ(api::PartitionOf(id, 3), p) << id << " is in the wrong partition";
+      EXPECT_TRUE(cluster_ids.insert(id).second) << id << " is in two partitions";
+    }
+    frequency_files.push_back(dir + "/" + std::string(api::kGlobalFrequenciesFile));
+  }
+  EXPECT_EQ(cluster_ids, single_ids);
+
+  // The document frequencies, computed here from scratch: extract, quantise as `index build` does.
+  const sift::SiftExtractor extractor = sift::SiftExtractor::Create(sift::SiftOptions{}).value();
+  std::vector<uint32_t> expected(vocabulary.size(), 0);
+  const std::vector<std::string> paths = sift::ListImageFiles(images_).value();
+  ASSERT_EQ(paths.size(), 10u);
+  for (const auto& path : paths) {
+    const sift::FeatureSet f = extractor.ExtractFromFile(path).value();
+    std::vector<uint32_t> words(f.size());
+    vocabulary.Quantize(f.descriptors, words);
+    std::set<uint32_t> distinct(words.begin(), words.end());
+    for (uint32_t w : distinct) ++expected[w];
+  }
+  for (uint32_t p = 0; p < 3; ++p) {
+    const auto stored = api::ReadGlobalFrequencies(frequency_files[p]);
+    ASSERT_TRUE(stored) << stored.error().ToString();
+    EXPECT_EQ(stored->partition, p);
+    EXPECT_EQ(stored->num_partitions, 3u);
+    EXPECT_EQ(stored->num_images, 10u);
+    EXPECT_EQ(stored->vocabulary_fingerprint, vocabulary.fingerprint());
+    EXPECT_EQ(stored->document_frequency, expected) << "partition " << p;
+  }
+
+  // Resumed (here: nothing left to do) on three ranks: every image is known, the frequencies stay.
+  const std::string before = ReadBytes(frequency_files[1]);
+  const std::string again = Run(Mpirun(3, build));
+  EXPECT_NE(again.find("\"already_indexed\": 4"), std::string::npos) << again;
+  EXPECT_TRUE(ReadBytes(frequency_files[1]) == before);
+
+  // Resuming with another number of partitions would misroute images: refused.
+  int code = 0;
+  const std::string other_p = RunCommand(Mpirun(2, std::regex_replace(build, std::regex("--partitions 3"), "--partitions 2")), &code);
+  EXPECT_NE(code, 0) << other_p;
+  EXPECT_NE(other_p.find("more than 2 partitions"), std::string::npos) << other_p;
+
+  // A partition whose recorded words do not cover its images is refused rather than counted wrong.
+  fs::remove(api::PartitionFolder(Path("cluster"), 2) + "/partition-frequencies.oxdf");
+  const std::string refused = RunCommand(Mpirun(2, build), &code);
+  EXPECT_NE(code, 0) << refused;
+  EXPECT_NE(refused.find("changed outside"), std::string::npos) << refused;
+}
+
+}  // namespace
+}  // namespace oxbow
