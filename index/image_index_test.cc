@@ -1074,7 +1074,10 @@ TEST_F(CheckpointFixture, DamagedTruncatedOrMissingFilesAreRepairedFromTheCatalo
   };
   for (const std::string target : {"postings-1.oxck", "geometry-1-0.oxck"}) {
     for (const auto& [what, damage] : damages) {
-      SCOPED_TRACE(target + " " + what);
+      std::string trace = target;
+      trace += " ";
+      trace += what;
+      SCOPED_TRACE(trace);
       fs::remove_all(dir_);
       {
         auto index = CreateIndex();

@@ -1086,9 +1086,12 @@ int RunFeatures(const std::map<std::string, std::string>& flags) {
     std::vector<double> command_s, quantiser_s;
     for (int r = 0; r < repeat; ++r) {
       fs::remove_all(out);
-      const std::string command = oxbow + " index build --features '" + folder + "' --vocab '" + vocab_path +
-                                  "' --out '" + out.string() + "' --threads " + std::to_string(threads) +
-                                  " > /dev/null 2>&1";
+      std::string command = oxbow;
+      command += " index build --features '" + folder;
+      command += "' --vocab '" + vocab_path;
+      command += "' --out '" + out.string();
+      command += "' --threads " + std::to_string(threads);
+      command += " > /dev/null 2>&1";
       auto t0 = Clock::now();
       if (std::system(command.c_str()) != 0) {
         std::printf("failed: %s\n", command.c_str());

@@ -430,6 +430,7 @@ TEST(InvertedFileTest, StrongestTermsKeepsTheLargestWeightsInWordOrder) {
   const std::vector<QueryTerm> terms = {{1, 0.1f}, {3, 0.5f}, {4, 0.2f}, {7, 0.5f}, {9, 0.3f}, {12, 0.2f}};
   auto words = [](const std::vector<QueryTerm>& t) {
     std::vector<uint32_t> w;
+    w.reserve(t.size());
     for (const QueryTerm& x : t) w.push_back(x.word);
     return w;
   };

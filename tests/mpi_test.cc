@@ -119,6 +119,7 @@ TEST_F(Mpi, PartitionedBuildMatchesASingleNodeBuild) {
     const auto idx = index::ImageIndex::Open(dir).value();
     const std::vector<index::ImageRecord> records = idx->List(0, 100).value();
     std::vector<std::string> ids;
+    ids.reserve(records.size());
     for (const auto& r : records) ids.push_back(r.id);
     return ids;
   };
