@@ -249,9 +249,10 @@ struct ImageIndex::Impl {
     BagOfWords bag;
     std::vector<uint8_t> blob;
   };
-  // `words`: pre-assigned words (BatchImage::words), or empty to quantise the descriptors.
+  // `words`: pre-assigned words (BatchImage::words), or empty to quantise the descriptors with
+  // `quantizer_threads` threads (a single add uses the index's threads, a batch one per image).
   Result<Prepared> Prepare(const std::string& id, const sift::FeatureSet& features, const ImageInfo& info,
-                           std::span<const uint32_t> words = {}) const;
+                           std::span<const uint32_t> words, int quantizer_threads) const;
   // Add (replace false) and Replace (true): prepare, commit, publish one new snapshot.
   Result<ImageRecord> Write(const std::string& id, const sift::FeatureSet& features, const ImageInfo& info,
                             bool replace);
@@ -719,7 +720,8 @@ Result<ImageRecord> ImageIndex::Replace(const std::string& id, const sift::Featu
 
 Result<ImageIndex::Impl::Prepared> ImageIndex::Impl::Prepare(const std::string& id, const sift::FeatureSet& features,
                                                               const ImageInfo& info,
-                                                              std::span<const uint32_t> assigned) const {
+                                                              std::span<const uint32_t> assigned,
+                                                              int quantizer_threads) const {
   if (auto s = CheckId(id); !s) return std::unexpected(s.error());
   const std::string what = "image '" + id + "'";
   if (auto s = CheckFeatures(features, vocabulary, what, !assigned.empty()); !s) return std::unexpected(s.error());
@@ -738,7 +740,9 @@ Result<ImageIndex::Impl::Prepared> ImageIndex::Impl::Prepare(const std::string& 
   std::vector<uint32_t> words(assigned.begin(), assigned.end());
   if (assigned.empty()) {
     words.resize(features.size());
-    vocabulary.Quantize(features.descriptors, words, index_options.quantizer);
+    vocab::QuantizerOptions quantizer = index_options.quantizer;
+    quantizer.num_threads = quantizer_threads;
+    vocabulary.Quantize(features.descriptors, words, quantizer);
   }
   Prepared out;
   out.entry = std::make_shared<Entry>();
@@ -778,7 +782,7 @@ Result<ImageRecord> ImageIndex::Impl::Write(const std::string& id, const sift::F
   const auto taken = [&] { return Fail(ErrorCode::kAlreadyExists, "an image with id '" + id + "' is already indexed"); };
   if (!replace && Current()->Find(id)) return taken();
   // Quantise outside the writer lock: it is the expensive part and needs no shared state.
-  auto prepared = Prepare(id, features, info);
+  auto prepared = Prepare(id, features, info, {}, index_options.num_threads);
   if (!prepared) return std::unexpected(prepared.error());
 
   std::lock_guard<std::mutex> writer(writer_mutex);
@@ -813,7 +817,7 @@ std::vector<Result<ImageRecord>> ImageIndex::AddBatch(std::span<const BatchImage
         results[i] = Fail(ErrorCode::kInvalidArgument, "image '" + images[i].id + "': no features");
         continue;
       }
-      auto p = impl_->Prepare(images[i].id, *images[i].features, images[i].info, images[i].words);
+      auto p = impl_->Prepare(images[i].id, *images[i].features, images[i].info, images[i].words, 1);
       if (p) {
         prepared[i] = std::move(*p);
         ready[i] = 1;
@@ -936,8 +940,10 @@ Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const Que
   }
   QueryTimings timings;
   q.words.resize(q.keypoints.size());
+  // A query's descriptors on the index's threads, as its re-ranking: latency, not throughput.
   vocab::QuantizerOptions quantizer = impl_->index_options.quantizer;
   quantizer.num_probes = options.quantizer_probes;
+  quantizer.num_threads = impl_->index_options.num_threads;
   if (options.query_assignments == 1) {
     impl_->vocabulary.Quantize(descriptors, q.words, quantizer);
   } else {

@@ -123,15 +123,16 @@ struct IndexOptions {
   // Merge policy of the segment log: at most this many segments of about the same size before they are
   // merged into one. [2, 64].
   int merge_factor = 8;
-  // Threads used by Open to rebuild the index and by Query for re-ranking; 0 = all hardware threads.
-  // [0, 256]. Results do not depend on it.
+  // Threads used by Open to rebuild the index, by AddBatch (one image per thread), and by a single
+  // Add or Query to quantise its descriptors and re-rank; 0 = all hardware threads. [0, 256]. Results
+  // do not depend on it.
   int num_threads = 0;
   // Checkpoints (index/checkpoint.h): a background thread writes one once the images added + removed
   // since the last exceed max(checkpoint_changes, 10% of the live images); Open replays at most that
   // many images from their BLOBs. Close writes one when anything changed. [1, 2^32).
   uint64_t checkpoint_changes = 10000;
-  // Search parameters of the vocabulary quantiser: Add uses them as they are, Query with
-  // QueryOptions::quantizer_probes instead of num_probes. Deliberately more probes when adding (16,
+  // Search parameters of the vocabulary quantiser: Add uses them as they are (num_threads aside, see
+  // num_threads), Query with QueryOptions::quantizer_probes instead of num_probes. Deliberately more probes when adding (16,
   // vocab::QuantizerOptions) than when querying (8): adding is paid once per image, and 8 probes at
   // index time measured 0.006-0.008 lower mAP (Paris subset, 20k words, three vocabulary seeds) and
   // 0.003 lower on groups_dev for 5-15% less indexing CPU (README, Vocabulary).
