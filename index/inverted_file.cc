@@ -773,6 +773,7 @@ struct FileReader {
       ok = false;
       return;
     }
+    if (n == 0) return;  // an empty vector's data() may be null, which memcpy must not get
     std::memcpy(out, bytes.data() + at, n);
     at += n;
   }

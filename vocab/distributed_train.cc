@@ -251,8 +251,11 @@ Result<DistributedTrainResult> TrainDistributed(const DistributedSample& sample,
   max_abs = comm.Max(max_abs);
   const double value_scale = FixedPointScale(max_abs, n);
   const double dist_scale = FixedPointScale(4.0 * max_abs * max_abs * dim, n);
+  // The checkpoint's fingerprint of the sample adds every coordinate (n x dim values, not n per sum as
+  // in the iterations), so its scale bounds that total.
+  const double data_scale = FixedPointScale(max_abs, static_cast<uint64_t>(n) * static_cast<uint64_t>(dim));
   std::vector<int64_t> data_sum = {0};
-  for (float v : sample.descriptors) data_sum[0] += ToFixed(v, value_scale);
+  for (float v : sample.descriptors) data_sum[0] += ToFixed(v, data_scale);
   comm.SumInPlace(data_sum);
 
   const int threads = ResolveThreadCount(train.num_threads);
