@@ -26,9 +26,22 @@ namespace {
 namespace fs = std::filesystem;
 using testing::RunCommand;
 
+// Under ASan, leak checking is off for the ranks only: Open MPI 4.1 leaves allocations of its
+// dlopen'ed components at MPI_Finalize, which LeakSanitizer reports from modules already unloaded (so no
+// suppression can name them). The same training and build code runs leak-checked without mpirun in
+// distributed_train_test and the CLI tests.
+#if defined(__SANITIZE_ADDRESS__)
+constexpr const char* kRankEnvironment = "LSAN_OPTIONS=detect_leaks=0 ";
+#else
+constexpr const char* kRankEnvironment = "";
+#endif
+
 std::string Mpirun(int ranks, const std::string& args) {
-  return "env OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 OMPI_MCA_rmaps_base_oversubscribe=1 "
-         "mpirun --oversubscribe -np " + std::to_string(ranks) + " " + OXBOW_BINARY + " " + args + " 2>&1";
+  std::string command = "env OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 OMPI_MCA_rmaps_base_oversubscribe=1 ";
+  command += kRankEnvironment;
+  command += "mpirun --oversubscribe -np " + std::to_string(ranks);
+  command += " " OXBOW_BINARY " " + args + " 2>&1";
+  return command;
 }
 
 std::string ReadBytes(const std::string& path) {
@@ -66,7 +79,10 @@ TEST_F(Mpi, VocabularyIsTheSameForOneAndThreeRanks) {
       "vocab train --mpi --root-sift --images " + images_ + " --words 200 --per-image 600 --threads 1 --out ";
   Run(Mpirun(1, train + Path("np1.oxvoc")));
   Run(Mpirun(3, train + Path("np3.oxvoc")));
-  Run(std::string(OXBOW_BINARY) + " " + train + Path("singleton.oxvoc") + " 2>&1");  // no mpirun: one rank
+  std::string singleton = "env ";  // no mpirun: one rank (MPI_Init as a singleton)
+  singleton += kRankEnvironment;
+  singleton += OXBOW_BINARY " " + train;
+  Run(singleton + Path("singleton.oxvoc") + " 2>&1");
   const std::string np1 = ReadBytes(Path("np1.oxvoc"));
   ASSERT_GT(np1.size(), 200u * 128u * 4u);
   EXPECT_TRUE(np1 == ReadBytes(Path("np3.oxvoc"))) << "np=1 and np=3 vocabularies differ";
