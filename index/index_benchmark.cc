@@ -16,7 +16,7 @@
 //
 //   index_benchmark storage --images N --out DIR [--features F] [--vocab V.oxvoc] [--words K]
 //                           [--threads T] [--batch B] [--queries Q] [--data DIR] [--cache DIR] [--reuse 1]
-//                           [--max-df D] [--stop-list-min-images M]
+//                           [--max-df D] [--stop-list-min-images M] [--photos P] [--export-features DIR2]
 //     Creates DIR as a normal index folder through ImageIndex (Create, AddBatch in batches of B = 1000,
 //     the SQLite catalogue: the code the server uses), servable as it is by `oxbow serve --index DIR`.
 //     Its N synthetic images (1024 x 768) have F = 1000 features each, drawn with replacement from the
@@ -35,6 +35,11 @@
 //     not), add p50/p99 of single images while another thread searches, remove p50/p99. --reuse 1
 //     skips the ingest and measures the rest on the folder an earlier run left in DIR (give the same
 //     --images and --features). --max-df and --stop-list-min-images replace IndexOptions' stop list.
+//     --photos P uses only the first P real photos. --export-features DIR2 also writes every synthetic
+//     image as DIR2/<id>.oxfeat (each feature with its real photo's descriptor), so that
+//     `oxbow index build --features DIR2 --vocab V` builds the same collection through the CLI
+//     (tests/storage_path_test.cc compares the two). The words are assigned with the quantiser settings
+//     Add uses (IndexOptions::quantizer), so both paths give every feature the same word.
 //
 //   index_benchmark features --features DIR --vocab V.oxvoc [--threads 1,2] [--repeat 3] [--oxbow PATH]
 //     Ingest of feature files (.oxfeat from `oxbow extract`) against the quantiser's own speed, per
@@ -859,6 +864,11 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
     std::printf("no real photos found (Paris subset or opencv-doc)\n");
     return 1;
   }
+  if (const auto limit = static_cast<size_t>(Flag(flags, "--photos", 0)); limit > 0 && photos.size() > limit) {
+    photos.resize(limit);
+    std::printf("using the first %zu photos\n", limit);
+  }
+  const fs::path export_dir = flags.count("--export-features") ? fs::path(flags.at("--export-features")) : fs::path();
   sift::SiftOptions sift_options;
   sift_options.descriptor = sift::DescriptorKind::kRootSift;
   sift_options.num_threads = 1;
@@ -867,19 +877,26 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
   auto vocabulary = ReadOrTrainVocabulary(flags, real, words, sift_options, kMaxSide, cache);
   if (!vocabulary) return 1;
 
-  // The pool: every real feature's word and keypoint (position relative to its image).
+  IndexOptions options;
+  options.num_threads = threads;
+  // The pool: every real feature's word and keypoint (position relative to its image), and with
+  // --export-features where its descriptor is (photo, feature).
   struct PoolFeature {
     uint32_t word;
     float rx, ry, scale, orientation;
+    uint32_t photo, feature;
   };
   std::vector<PoolFeature> pool;
-  for (const auto& f : real) {
+  vocab::QuantizerOptions quantizer = options.quantizer;  // the words Add would assign
+  quantizer.num_threads = threads;
+  for (size_t p = 0; p < real.size(); ++p) {
+    const sift::FeatureSet& f = real[p];
     std::vector<uint32_t> w(f.size());
-    vocabulary->Quantize(f.descriptors, w, {.num_threads = 0});
+    vocabulary->Quantize(f.descriptors, w, quantizer);
     for (size_t i = 0; i < f.size(); ++i) {
       const sift::Keypoint& k = f.keypoints[i];
       pool.push_back({w[i], k.x / static_cast<float>(f.image_width), k.y / static_cast<float>(f.image_height), k.scale,
-                      k.orientation});
+                      k.orientation, static_cast<uint32_t>(p), static_cast<uint32_t>(i)});
     }
   }
   std::printf("pool: %zu real features, vocabulary %zu words\n", pool.size(), vocabulary->size());
@@ -900,13 +917,15 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
       s.features.keypoints.push_back(sift::Keypoint{.x = p.rx * 1023.0f, .y = p.ry * 767.0f, .scale = p.scale,
                                                     .orientation = p.orientation});
       s.words.push_back(p.word);
+      if (!export_dir.empty()) {
+        const float* d = real[p.photo].descriptors.data() + static_cast<size_t>(p.feature) * sift::kDescriptorDim;
+        s.features.descriptors.insert(s.features.descriptors.end(), d, d + sift::kDescriptorDim);
+      }
     }
     return s;
   };
 
   // Ingest.
-  IndexOptions options;
-  options.num_threads = threads;
   // Query-time stop list (the defaults unless given): compare settings on one folder with --reuse 1.
   options.max_document_frequency = Flag(flags, "--max-df", options.max_document_frequency);
   options.stop_list_min_images =
@@ -939,6 +958,18 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
         if (!r) {
           std::printf("add failed: %s\n", r.error().ToString().c_str());
           return 1;
+        }
+      }
+      if (!export_dir.empty()) {
+        fs::create_directories(export_dir);
+        for (const BatchImage& item : items) {
+          const sift::FeatureFile file{.features = *item.features,
+                                       .extractor_fingerprint = sift_options.Fingerprint(),
+                                       .extractor_description = sift_options.Describe()};
+          if (const Status st = sift::WriteFeatureFile((export_dir / (item.id + ".oxfeat")).string(), file); !st) {
+            std::printf("export failed: %s\n", st.error().ToString().c_str());
+            return 1;
+          }
         }
       }
       if (begin + n >= next_report) {
