@@ -11,6 +11,7 @@
 #include <optional>
 #include <sstream>
 
+#include "sift/base/hash.h"
 #include "sift/base/parallel.h"
 #include "sift/scale_space.h"
 #include "sift/sift_internal.h"
@@ -147,14 +148,7 @@ std::string SiftOptions::Describe() const {
   return s.str();
 }
 
-uint64_t SiftOptions::Fingerprint() const {
-  uint64_t hash = 0xcbf29ce484222325ull;  // FNV-1a 64 offset basis
-  for (const unsigned char c : Describe()) {
-    hash ^= c;
-    hash *= 0x100000001b3ull;  // FNV-1a 64 prime
-  }
-  return hash;
-}
+uint64_t SiftOptions::Fingerprint() const { return Fnv1a64(Describe()); }
 
 namespace internal {
 namespace {

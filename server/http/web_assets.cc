@@ -4,14 +4,12 @@
 #include <cstdio>
 #include <map>
 
+#include "sift/base/hash.h"
+
 namespace oxbow::server {
 
 std::string StrongEtag(std::string_view content) {
-  uint64_t hash = 1469598103934665603ull;  // FNV-1a 64
-  for (unsigned char c : content) {
-    hash ^= c;
-    hash *= 1099511628211ull;
-  }
+  const uint64_t hash = Fnv1a64(content);
   char buf[24];
   std::snprintf(buf, sizeof buf, "\"%016llx\"", static_cast<unsigned long long>(hash));
   return buf;
