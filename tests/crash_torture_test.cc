@@ -5,10 +5,13 @@
 //  - a write sent but never answered is either fully there (record with features, its thumbnail, found
 //    by a search with its own image) or fully absent; the model then follows what was observed;
 //  - the catalogue lists nothing else (no phantom ids);
-//  - the restarted server (its index rebuilt from catalogue.sqlite at start-up) answers a fixed set of
-//    searches exactly as an index built from scratch in this process from the same surviving images
+//  - the restarted server (its index loaded from the last checkpoint plus the catalogue's changes since)
+//    answers a fixed set of searches exactly as an index built from scratch in this process from the same
+//    surviving images
 //    (ids in order, scores to 1e-9, verified, inliers): the crash left no trace in the scores (document
 //    frequencies, norms) or in the geometry.
+// The servers run with `--checkpoint-changes 1`, so background checkpoints are written throughout and the
+// kills land before, during and after them; the test checks that checkpoints were written between kills.
 // Every added id has its own picture (a distinct crop of an opencv-doc photo), so results have no ties.
 //
 // CI runs 3 rounds with seed 1. Longer runs: OXBOW_TORTURE_ROUNDS=100 [OXBOW_TORTURE_SEED=n]
@@ -26,6 +29,7 @@
 #include <memory>
 #include <mutex>
 #include <random>
+#include <regex>
 #include <string>
 #include <thread>
 #include <vector>
@@ -292,12 +296,19 @@ TEST_F(CrashTortureTest, KillNineAtRandomMomentsLosesNothingAcknowledged) {
   std::vector<ClientModel> models(kClients);
   for (int c = 0; c < kClients; ++c) models[static_cast<size_t>(c)].client = c;
   Counts counts;
+  std::vector<uint64_t> generations;  // the checkpoint each restart opened
   for (int round = 0; round <= rounds; ++round) {
-    std::vector<std::string> args = {"serve", "--index", index_dir, "--port", "0", "--http-workers", "4", "--index-threads", "1"};
+    std::vector<std::string> args = {"serve", "--index", index_dir, "--port", "0", "--http-workers", "4",
+                                     "--index-threads", "1", "--checkpoint-changes", "1"};
     if (round == 0) args.insert(args.end(), {"--vocab", vocab_path_});
     oxbow::testing::ServerProcess server(args, dir_->path() + "/server-" + std::to_string(round) + ".log");
     ASSERT_TRUE(server.port() > 0 && server.WaitReady()) << "round " << round << ": no restart without repair\n" << server.Log();
     if (round > 0) {
+      std::smatch m;
+      const std::string log = server.Log();
+      if (std::regex_search(log, m, std::regex("opened from checkpoint generation ([0-9]+)"))) {
+        generations.push_back(std::stoull(m[1].str()));
+      }
       Verify(server, models, &counts, round);
       if (HasFatalFailure()) return;
     }
@@ -339,7 +350,14 @@ TEST_F(CrashTortureTest, KillNineAtRandomMomentsLosesNothingAcknowledged) {
               static_cast<unsigned long long>(seed), rounds, counts.acked_adds, counts.acked_deletes, counts.unanswered,
               counts.unknown_found_present, counts.unknown_found_absent, counts.checked_present, counts.searched_by_itself, counts.lost,
               counts.resurrected, counts.half_present, counts.phantom, counts.query_mismatches, counts.refused);
+  std::printf("crash torture: the restarts opened checkpoint generations");
+  for (const uint64_t g : generations) std::printf(" %llu", static_cast<unsigned long long>(g));
+  std::printf("\n");
   EXPECT_GT(counts.acked_adds, 0);
+  // Killed servers write no checkpoint at close: a later generation was written in the background. (A
+  // restart after a round killed before its first checkpoint rebuilds from the catalogue instead.)
+  ASSERT_GE(generations.size(), 2u) << "fewer than two restarts opened from a checkpoint";
+  EXPECT_GT(generations.back(), generations.front()) << "no checkpoint written in the background between kills";
   EXPECT_EQ(counts.lost + counts.resurrected + counts.half_present + counts.phantom + counts.query_mismatches, 0);
 }
 

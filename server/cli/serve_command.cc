@@ -191,6 +191,12 @@ void SetUpServe(CLI::App& app) {
   cmd->add_option("--index-threads", flags->index_threads, "threads for loading the index and re-ranking; 0 = all cores")
       ->capture_default_str()
       ->check(CLI::Range(0, 256));
+  cmd->add_option("--checkpoint-changes", flags->index_options.checkpoint_changes,
+                  "write a checkpoint of the index (README, \"Storage layout and crash safety\") in the background once "
+                  "more than max(N, 10% of the images) images were added or removed since the last; a restart "
+                  "replays at most that many images")
+      ->capture_default_str()
+      ->check(CLI::Range(uint64_t{1}, (uint64_t{1} << 32) - 1));
   cmd->add_option("--log-format", flags->log_format,
                   "stderr log lines: text, or json (one object per line; fields in the README, \"Log format\")")
       ->capture_default_str();
