@@ -342,10 +342,12 @@ void InvertedFile::RefreshIfDue() {
 
 // Every live image's sums from the postings. Words are dealt round-robin, in chunks, to a fixed number
 // of groups with their own partial sums, added in group order at the end: the floating-point order,
-// hence the result, is the same for any thread count. Each group walks the images in blocks small enough
-// for its partial sums to stay in cache (one cursor per word and segment carries on where the previous
-// block stopped): a posting list's images are far apart, so unblocked updates would miss the cache at
-// almost every posting. Within a block an image still gets its terms in word order, segment order.
+// hence the result, is the same for any thread count. Segments hold disjoint, ascending image ranges and
+// an image's postings all lie in one segment, so each group walks the segments in turn and, within a
+// segment, its images in blocks small enough for the partial sums to stay in cache (one cursor per word
+// of the segment carries on where the previous block stopped): a posting list's images are far apart, so
+// unblocked updates would miss the cache at almost every posting. Only the cursors of the segment that
+// holds a block are visited for it, and an image gets its terms in word order.
 void InvertedFile::RefreshStatistics(int num_threads) {
   stats_df_ = df_;
   stats_num_live_ = num_live_;
@@ -353,6 +355,10 @@ void InvertedFile::RefreshStatistics(int num_threads) {
   const size_t num_images = images_.size();
   std::vector<uint8_t> live(num_images);
   for (size_t i = 0; i < num_images; ++i) live[i] = images_[i].live != 0 ? 1 : 0;
+  std::vector<double> log_df(vocabulary_size_, 0.0);
+  for (size_t w = 0; w < vocabulary_size_; ++w) {
+    if (stats_df_[w] != 0) log_df[w] = std::log(static_cast<double>(stats_df_[w]));
+  }
   constexpr size_t kWordsPerChunk = 4096;
   const size_t num_chunks = (vocabulary_size_ + kWordsPerChunk - 1) / kWordsPerChunk;
   constexpr size_t kGroups = 4;
@@ -379,37 +385,35 @@ void InvertedFile::RefreshStatistics(int num_threads) {
   std::vector<std::vector<Sum>> partial(kGroups);
   ParallelFor(kGroups, num_threads, 1, [&](size_t g0, size_t g1, int) {
     for (size_t g = g0; g < g1; ++g) {
-      std::vector<Cursor> cursors;  // word-major, then segment order
-      for (size_t chunk = g; chunk < num_chunks; chunk += kGroups) {
-        const size_t w_end = std::min(vocabulary_size_, (chunk + 1) * kWordsPerChunk);
-        for (size_t w = chunk * kWordsPerChunk; w < w_end; ++w) {
-          const uint32_t df = stats_df_[w];
-          if (df == 0) continue;
-          const double l = std::log(static_cast<double>(df));
-          for (const auto& segment : segments_) {
+      std::vector<Sum>& sums = partial[g];
+      sums.assign(num_images, Sum{});
+      std::vector<Cursor> cursors;  // of one segment, in word order
+      for (const auto& segment : segments_) {
+        cursors.clear();
+        for (size_t chunk = g; chunk < num_chunks; chunk += kGroups) {
+          const size_t w_end = std::min(vocabulary_size_, (chunk + 1) * kWordsPerChunk);
+          for (size_t w = chunk * kWordsPerChunk; w < w_end; ++w) {
+            if (stats_df_[w] == 0) continue;
             const auto [p, list_end] = segment->List(static_cast<uint32_t>(w));
             if (p == list_end) continue;
-            Cursor c{p, list_end, segment->first_image, 0, l};
+            Cursor c{p, list_end, segment->first_image, 0, log_df[w]};
             advance(c);
             cursors.push_back(c);
           }
         }
-      }
-      std::vector<Sum>& sums = partial[g];
-      sums.assign(num_images, Sum{});
-      for (size_t block_end = kImagesPerBlock;; block_end += kImagesPerBlock) {
-        const auto limit = static_cast<uint32_t>(std::min(block_end, num_images));
-        for (Cursor& c : cursors) {
-          for (; c.image < limit; advance(c)) {
-            if (live[c.image] == 0) continue;
-            const double t2 = TermWeightSquared(options_.sqrt_tf, c.tf);
-            Sum& sum = sums[c.image];
-            sum.a += t2;
-            sum.b += t2 * c.log_df;
-            sum.c += t2 * c.log_df * c.log_df;
+        for (size_t block = segment->first_image; block < segment->end_image; block += kImagesPerBlock) {
+          const auto limit = static_cast<uint32_t>(std::min<size_t>(block + kImagesPerBlock, segment->end_image));
+          for (Cursor& c : cursors) {
+            for (; c.image < limit; advance(c)) {
+              if (live[c.image] == 0) continue;
+              const double t2 = TermWeightSquared(options_.sqrt_tf, c.tf);
+              Sum& sum = sums[c.image];
+              sum.a += t2;
+              sum.b += t2 * c.log_df;
+              sum.c += t2 * c.log_df * c.log_df;
+            }
           }
         }
-        if (block_end >= num_images) break;
       }
     }
   });
