@@ -264,8 +264,8 @@ struct ImageIndex::Impl {
   // The stages of Run after scoring. Each rewrites `results`; Rerank returns how many it verified.
   size_t Rerank(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
                 const std::vector<ScoredImage>& scored, std::vector<QueryResult>& results) const;
-  static void ExpandQuery(const Snapshot& snap, const std::vector<QueryTerm>& terms, const QueryOptions& options,
-                          size_t num_verified, ScoreScratch* scratch, std::vector<QueryResult>& results);
+  void ExpandQuery(const Snapshot& snap, const std::vector<QueryTerm>& terms, const QueryOptions& options,
+                          size_t num_verified, ScoreScratch* scratch, std::vector<QueryResult>& results) const;
   void VerifyTransitively(const Snapshot& snap, const QueryOptions& options, size_t num_verified,
                           std::vector<QueryResult>& results) const;
 
@@ -1008,7 +1008,7 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
                                             ? snap.inverted.QueryVector(BagOfWords::FromWords(query.words))
                                             : snap.inverted.QueryVector(query.soft_words, query.soft_tf);
   const size_t depth = std::max<size_t>(static_cast<size_t>(options.top_k), static_cast<size_t>(options.rerank_depth));
-  const std::vector<ScoredImage> scored = snap.inverted.Score(terms, depth, &scratch, &response.candidates);
+  const std::vector<ScoredImage> scored = snap.inverted.Score(terms, depth, &scratch, &response.candidates, index_options.num_threads);
   timings.score_ms = MsSince(t);
 
   std::vector<QueryResult> results(scored.size());
@@ -1078,7 +1078,7 @@ size_t ImageIndex::Impl::Rerank(const Snapshot& snap, const QueryFeatures& query
 
 void ImageIndex::Impl::ExpandQuery(const Snapshot& snap, const std::vector<QueryTerm>& terms,
                                    const QueryOptions& options, size_t num_verified, ScoreScratch* scratch,
-                                   std::vector<QueryResult>& results) {
+                                   std::vector<QueryResult>& results) const {
   std::map<uint32_t, double> average;
   for (const QueryTerm& term : terms) average[term.word] += term.weight;
   const size_t used = std::min(num_verified, static_cast<size_t>(options.qe_images));
@@ -1101,7 +1101,7 @@ void ImageIndex::Impl::ExpandQuery(const Snapshot& snap, const std::vector<Query
   // Deep enough for transitive verification's window as well as for top_k.
   const size_t expanded_depth =
       static_cast<size_t>(std::max(options.top_k, options.transitive_depth > 0 ? options.transitive_depth : 0));
-  const std::vector<ScoredImage> rescored = snap.inverted.Score(expanded, expanded_depth + num_verified, scratch);
+  const std::vector<ScoredImage> rescored = snap.inverted.Score(expanded, expanded_depth + num_verified, scratch, nullptr, index_options.num_threads);
   std::vector<QueryResult> merged(results.begin(), results.begin() + static_cast<std::ptrdiff_t>(num_verified));
   std::unordered_map<std::string, const QueryResult*> first_stage;
   for (const QueryResult& r : results) first_stage[r.id] = &r;

@@ -659,57 +659,87 @@ float InvertedFile::ScoringWeight(const QueryTerm& term) const {
                             std::log(static_cast<double>(stats_num_live_) / static_cast<double>(df)));
 }
 
+std::vector<size_t> InvertedFile::ScoreGroups(std::span<const QueryTerm> query) const {
+  uint64_t total = 0;  // postings the query scans, estimated by the document frequencies
+  std::vector<uint64_t> cost(query.size(), 0);
+  for (size_t i = 0; i < query.size(); ++i) {
+    if (query[i].word < vocabulary_size_ && ScoringWeight(query[i]) != 0) cost[i] = stats_df_[query[i].word];
+    total += cost[i];
+  }
+  const size_t groups = static_cast<size_t>(std::clamp<uint64_t>(total / kPostingsPerScoreGroup, 1, kMaxScoreGroups));
+  std::vector<size_t> starts = {0};
+  uint64_t sum = 0;
+  for (size_t i = 0; i < query.size() && starts.size() < groups; ++i) {
+    sum += cost[i];
+    if (sum * groups >= total * starts.size()) starts.push_back(i + 1);
+  }
+  starts.push_back(query.size());
+  return starts;
+}
+
 std::vector<ScoredImage> InvertedFile::Score(std::span<const QueryTerm> query, size_t max_results,
-                                             ScoreScratch* scratch, uint64_t* candidates) const {
+                                             ScoreScratch* scratch, uint64_t* candidates, int num_threads) const {
   OXBOW_CHECK(scratch != nullptr);
-  std::vector<float>& acc = scratch->accumulator;
-  if (acc.size() < images_.size()) acc.resize(images_.size(), 0.0f);
   if (candidates) *candidates = 0;
   if (num_live_ == 0 || stats_num_live_ == 0 || max_results == 0) return {};
 
-  const double n = static_cast<double>(stats_num_live_);
-  for (const QueryTerm& term : query) {
-    const float weight = ScoringWeight(term);
-    if (weight == 0) continue;
-    for (const auto& segment : segments_) {
-      auto [p, end] = segment->List(term.word);
-      uint32_t image = segment->first_image;
-      float* a = acc.data();
-      // Hot loop: one varint (usually one byte) per posting, one multiply-add.
-      while (p < end) {
-        uint64_t v = *p++;
-        if (v >= 128) {
-          v &= 127;
-          int shift = 7;
-          while (true) {
-            const uint64_t b = *p++;
-            v |= (b & 127) << shift;
-            if (b < 128) break;
-            shift += 7;
+  const std::vector<size_t> starts = ScoreGroups(query);
+  const size_t num_groups = starts.size() - 1;
+  for (size_t g = 0; g < num_groups; ++g) {
+    std::vector<float>& acc = scratch->accumulators[g];
+    if (acc.size() < images_.size()) acc.resize(images_.size(), 0.0f);
+  }
+  ParallelFor(num_groups, num_threads, 1, [&](size_t g0, size_t g1, int) {
+    for (size_t g = g0; g < g1; ++g) {
+      float* a = scratch->accumulators[g].data();
+      for (size_t q = starts[g]; q < starts[g + 1]; ++q) {
+        const float weight = ScoringWeight(query[q]);
+        if (weight == 0) continue;
+        for (const auto& segment : segments_) {
+          auto [p, end] = segment->List(query[q].word);
+          uint32_t image = segment->first_image;
+          // Hot loop: one varint (usually one byte) per posting, one multiply-add.
+          while (p < end) {
+            uint64_t v = *p++;
+            if (v >= 128) {
+              v &= 127;
+              int shift = 7;
+              while (true) {
+                const uint64_t b = *p++;
+                v |= (b & 127) << shift;
+                if (b < 128) break;
+                shift += 7;
+              }
+            }
+            image += static_cast<uint32_t>(v >> 1);
+            float t = 1.0f;
+            if (v & 1) t = TermWeight(static_cast<uint32_t>(GetVarint(p)) + 2);
+            a[image] += weight * t;
           }
         }
-        image += static_cast<uint32_t>(v >> 1);
-        float t = 1.0f;
-        if (v & 1) t = TermWeight(static_cast<uint32_t>(GetVarint(p)) + 2);
-        a[image] += weight * t;
       }
     }
-  }
+  });
 
   // Normalise, select the best max_results (min-heap on (score, -image)), and re-zero the accumulator.
   auto better = [](const ScoredImage& x, const ScoredImage& y) {
     return x.score != y.score ? x.score > y.score : x.image < y.image;
   };
   std::priority_queue<ScoredImage, std::vector<ScoredImage>, decltype(better)> heap(better);  // top = worst kept
-  const double l = std::log(n);
+  const double l = std::log(static_cast<double>(stats_num_live_));
   uint64_t touched = 0;
   const size_t end = images_.size();
+  float* acc = scratch->accumulators[0].data();
   for (size_t chunk = 0; chunk < end; chunk += CowArray<ImageState>::kChunk) {
     const size_t chunk_end = std::min(end, chunk + CowArray<ImageState>::kChunk);
     for (size_t i = chunk; i < chunk_end; ++i) {
-      const float v = acc[i];
-      if (v == 0) continue;
+      float v = acc[i];
       acc[i] = 0;
+      for (size_t g = 1; g < num_groups; ++g) {
+        v += scratch->accumulators[g][i];
+        scratch->accumulators[g][i] = 0;
+      }
+      if (v == 0) continue;
       const ImageState& s = images_[i];
       if (s.live == 0) continue;
       const double sq = l * l * s.a - 2 * l * s.b + s.c;
@@ -926,15 +956,27 @@ InvertedFile::Subset::Subset(const InvertedFile& file, std::span<const uint32_t>
 }
 
 std::vector<float> InvertedFile::Subset::Score(std::span<const QueryTerm> query) const {
-  // Score()'s float operations in its order: query terms in their order, one posting per word and image.
-  std::vector<float> dot(norms_.size(), 0.0f);
-  for (const QueryTerm& term : query) {
-    if (term.word >= file_.vocabulary_size_) continue;
-    const uint32_t begin = first_[term.word], end = first_[term.word + 1];
-    if (begin == end) continue;
-    const float weight = file_.ScoringWeight(term);
-    if (weight == 0) continue;
-    for (uint32_t o = begin; o < end; ++o) dot[occurrences_[o].image] += weight * occurrences_[o].t;
+  // Score()'s float operations in its order: the same term groups, query terms in their order within a
+  // group, one posting per word and image; the groups' dot products added in group order.
+  const std::vector<size_t> starts = file_.ScoreGroups(query);
+  std::vector<float> dot(norms_.size(), 0.0f), group(starts.size() > 2 ? norms_.size() : 0, 0.0f);
+  for (size_t g = 0; g + 1 < starts.size(); ++g) {
+    std::vector<float>& into = g == 0 ? dot : group;
+    for (size_t q = starts[g]; q < starts[g + 1]; ++q) {
+      const QueryTerm& term = query[q];
+      if (term.word >= file_.vocabulary_size_) continue;
+      const uint32_t begin = first_[term.word], end = first_[term.word + 1];
+      if (begin == end) continue;
+      const float weight = file_.ScoringWeight(term);
+      if (weight == 0) continue;
+      for (uint32_t o = begin; o < end; ++o) into[occurrences_[o].image] += weight * occurrences_[o].t;
+    }
+    if (g > 0) {
+      for (size_t i = 0; i < dot.size(); ++i) {
+        dot[i] += group[i];
+        group[i] = 0;
+      }
+    }
   }
   std::vector<float> out(norms_.size(), 0.0f);
   for (size_t i = 0; i < out.size(); ++i) {

@@ -100,10 +100,19 @@ struct ScoredImage {
   float score = 0;     // cosine similarity in [0, 1]
 };
 
-// Per-thread scratch memory of Score() (a dense accumulator over image numbers). Reuse it across
-// queries on one thread; never share one between threads at the same time.
+// Score() splits a long query into at most this many groups of consecutive terms, about one per
+// kPostingsPerScoreGroup postings it scans; each group accumulates on its own (on its own thread when
+// Score() is given several) and the groups' dot products are added in group order. The split depends
+// on the query and the statistics only, never on the thread count, so neither do the scores. Queries
+// over small collections stay in one group: splitting pays once a scan costs more than the extra pass
+// over the accumulators (about 2M postings, ~8 ms on one core).
+inline constexpr size_t kMaxScoreGroups = 4;
+inline constexpr uint64_t kPostingsPerScoreGroup = 2'000'000;
+
+// Per-thread scratch memory of Score() (dense accumulators over image numbers, one per term group).
+// Reuse it across queries on one thread; never share one between threads at the same time.
 struct ScoreScratch {
-  std::vector<float> accumulator;
+  std::array<std::vector<float>, kMaxScoreGroups> accumulators;
 };
 
 struct InvertedFileStats {
@@ -161,9 +170,13 @@ class InvertedFile {
   // Scores every live image against `query` (terms sorted by word, weights of an L2-normalised vector;
   // any real weights are accepted) and returns the best `max_results` by cosine, best first.
   // `candidates` (optional) receives the number of live images with a non-zero dot product.
-  // Cost O(postings of the query words + number of images ever added).
+  // Cost O(postings of the query words + number of images ever added), on up to `num_threads` threads
+  // (0 = all cores) for long queries (kMaxScoreGroups); the result does not depend on num_threads.
   std::vector<ScoredImage> Score(std::span<const QueryTerm> query, size_t max_results, ScoreScratch* scratch,
-                                 uint64_t* candidates = nullptr) const;
+                                 uint64_t* candidates = nullptr, int num_threads = 1) const;
+  // Where Score() splits `query` into term groups (kMaxScoreGroups): the first term of each group, then
+  // query.size().
+  std::vector<size_t> ScoreGroups(std::span<const QueryTerm> query) const;
   // Score() restricted to a fixed set of images and computed from their bags instead of the postings,
   // for scoring several queries against a few known images (transitive verification ranks anchors'
   // neighbours with it): the bags are inverted once, O(their words + vocabulary_size), then each
@@ -218,6 +231,7 @@ class InvertedFile {
  private:
   // Score()'s per-posting factor of a query term: its weight times idf, in float; 0 to skip the term.
   float ScoringWeight(const QueryTerm& term) const;
+
   std::vector<QueryTerm> WeightedQueryVector(std::span<const uint32_t> words, std::span<const float> tf,
                                              bool use_stop_list) const;
   void MergeTail(bool everything);

@@ -496,7 +496,83 @@ TEST(InvertedFileTest, TopKIsOrderedAndTruncated) {
   for (size_t i = 1; i < top.size(); ++i) EXPECT_GE(top[i - 1].score, top[i].score);
   EXPECT_GE(candidates, 5u);
   // The scratch accumulator is left zeroed for the next query.
-  for (float v : scratch.accumulator) ASSERT_EQ(v, 0.0f);
+  for (float v : scratch.accumulators[0]) ASSERT_EQ(v, 0.0f);
+}
+
+// A query that scans millions of postings is split into term groups scored on their own threads; the
+// scores are the same for every thread count, equal the subset scorer's (same float operations), match
+// a double-precision dot product, and leave every accumulator zeroed.
+TEST(InvertedFileTest, LongQueriesScoreInGroupsIndependentlyOfThreads) {
+  constexpr size_t kVocab = 400;
+  constexpr uint32_t kImages = 40000;
+  std::mt19937 rng(5);
+  std::vector<BagOfWords> corpus(kImages);
+  for (auto& bag : corpus) {
+    for (uint32_t w = 0; w < kVocab; ++w) {
+      if (rng() % 4 != 0) {  // 3 in 4 words: ~30k images per word
+        bag.words.push_back(w);
+        bag.counts.push_back(1 + rng() % 3);
+      }
+    }
+  }
+  const InvertedFile file = InvertedFile::Build(kVocab, {}, kImages, [&](uint32_t image, BagOfWords* bag) {
+    *bag = corpus[image];
+    return true;
+  }, 2);
+  const auto q = file.QueryVector(corpus[123]);
+  const std::vector<size_t> groups = file.ScoreGroups(q);
+  ASSERT_EQ(groups.size(), kMaxScoreGroups + 1) << "the query should scan enough postings for every group";
+  EXPECT_EQ(groups.front(), 0u);
+  EXPECT_EQ(groups.back(), q.size());
+  ScoreScratch scratch;
+  const auto one = file.Score(q, 50, &scratch, nullptr, 1);
+  for (const int threads : {2, 4}) {
+    const auto many = file.Score(q, 50, &scratch, nullptr, threads);
+    ASSERT_EQ(many.size(), one.size());
+    for (size_t i = 0; i < one.size(); ++i) {
+      EXPECT_EQ(many[i].image, one[i].image);
+      EXPECT_EQ(many[i].score, one[i].score);
+    }
+  }
+  EXPECT_EQ(one[0].image, 123u);
+  for (const auto& acc : scratch.accumulators) {
+    for (float v : acc) ASSERT_EQ(v, 0.0f);
+  }
+  std::vector<uint32_t> images;
+  std::vector<const BagOfWords*> bags;
+  for (const ScoredImage& s : one) {
+    images.push_back(s.image);
+    bags.push_back(&corpus[s.image]);
+  }
+  std::vector<size_t> order(images.size());
+  for (size_t i = 0; i < order.size(); ++i) order[i] = i;
+  std::sort(order.begin(), order.end(), [&](size_t a, size_t b) { return images[a] < images[b]; });
+  std::vector<uint32_t> sorted_images;
+  std::vector<const BagOfWords*> sorted_bags;
+  for (const size_t i : order) {
+    sorted_images.push_back(images[i]);
+    sorted_bags.push_back(bags[i]);
+  }
+  const std::vector<float> subset = InvertedFile::Subset(file, sorted_images, sorted_bags).Score(q);
+  for (size_t k = 0; k < order.size(); ++k) {
+    // Equal up to the rounding of a fused multiply-add, which the compiler may use in one loop only.
+    const float expected = one[order[k]].score;
+    EXPECT_NEAR(subset[k], expected, 1e-6 * expected) << "image " << sorted_images[k];
+  }
+  // Against the cosine computed in double precision from the bags.
+  const auto weight = [&](uint32_t tf) { return std::sqrt(static_cast<double>(tf)); };
+  for (const ScoredImage& s : one) {
+    const BagOfWords& bag = corpus[s.image];
+    double dot = 0, norm = 0;
+    for (size_t k = 0; k < bag.words.size(); ++k) {
+      const double v = weight(bag.counts[k]) * file.Idf(bag.words[k]);
+      norm += v * v;
+      for (const QueryTerm& t : q) {
+        if (t.word == bag.words[k]) dot += t.weight * v;
+      }
+    }
+    EXPECT_NEAR(s.score, dot / std::sqrt(norm), 1e-4) << "image " << s.image;
+  }
 }
 
 TEST(InvertedFileTest, OptionsAreChecked) {
