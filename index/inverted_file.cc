@@ -656,7 +656,8 @@ float InvertedFile::ScoringWeight(const QueryTerm& term) const {
 }
 
 std::vector<ScoredImage> InvertedFile::Score(std::span<const QueryTerm> query, size_t max_results,
-                                             ScoreScratch* scratch, uint64_t* candidates) const {
+                                             ScoreScratch* scratch, uint64_t* candidates,
+                                             const std::vector<uint8_t>* allowed) const {
   OXBOW_CHECK(scratch != nullptr);
   std::vector<float>& acc = scratch->accumulator;
   if (acc.size() < images_.size()) acc.resize(images_.size(), 0.0f);
@@ -708,6 +709,7 @@ std::vector<ScoredImage> InvertedFile::Score(std::span<const QueryTerm> query, s
       acc[i] = 0;
       const ImageState& s = images_[i];
       if (s.live == 0) continue;
+      if (allowed != nullptr && (i >= allowed->size() || (*allowed)[i] == 0)) continue;
       const double sq = l * l * s.a - 2 * l * s.b + s.c;
       if (!(sq > 0)) continue;
       ++touched;

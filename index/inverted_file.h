@@ -161,9 +161,13 @@ class InvertedFile {
   // Scores every live image against `query` (terms sorted by word, weights of an L2-normalised vector;
   // any real weights are accepted) and returns the best `max_results` by cosine, best first.
   // `candidates` (optional) receives the number of live images with a non-zero dot product.
-  // Cost O(postings of the query words + number of images ever added).
+  // `allowed` (filtered search, optional): only images n with n < allowed->size() and (*allowed)[n]
+  // != 0 are ranked and counted; the postings are still accumulated (a test per posting would cost
+  // more than the one per touched image). Cost O(postings of the query words + number of images ever
+  // added).
   std::vector<ScoredImage> Score(std::span<const QueryTerm> query, size_t max_results, ScoreScratch* scratch,
-                                 uint64_t* candidates = nullptr) const;
+                                 uint64_t* candidates = nullptr,
+                                 const std::vector<uint8_t>* allowed = nullptr) const;
   // Score() restricted to a fixed set of images and computed from their bags instead of the postings,
   // for scoring several queries against a few known images (transitive verification ranks anchors'
   // neighbours with it): the bags are inverted once, O(their words + vocabulary_size), then each
