@@ -27,7 +27,7 @@
 namespace oxbow::api {
 
 inline constexpr size_t kMaxFilterBytes = 16 * 1024;  // filter text, checked before parsing
-inline constexpr size_t kMaxFilterKeys = 64;          // keys of the filter object
+inline constexpr size_t kMaxFilterKeys = 64;          // keys of the filter object (a bit each when matching)
 inline constexpr size_t kMaxFilterValues = 1000;      // operands of one "in"
 
 // Parses and checks a filter (the grammar above); kInvalidArgument naming the problem and the value

@@ -46,7 +46,10 @@ class FilteredQueryTest : public ::testing::Test {
     for (uint32_t w = 0; w < kVocabularyWords; ++w) {
       float* c = &centroids_[static_cast<size_t>(w) * kDimension];
       float norm = 0;
-      for (int d = 0; d < kDimension; ++d) norm += (c[d] = normal(rng)) * c[d];
+      for (int d = 0; d < kDimension; ++d) {
+        c[d] = normal(rng);
+        norm += c[d] * c[d];
+      }
       for (int d = 0; d < kDimension; ++d) c[d] /= std::sqrt(norm);
     }
     auto vocabulary = vocab::Vocabulary::FromCentroids(centroids_, kDimension, sift::DescriptorKind::kRootSift, "t/1");

@@ -207,6 +207,7 @@ class ClientTest(unittest.TestCase):
     def test_filtered_search_and_similar(self):
         self.client.add("py-filter-paris", self.a, metadata={"city": "Paris", "year": 2004})
         self.client.add("py-filter-lyon", self.a, metadata={"city": "Lyon", "year": 1999})
+        self.client.add("py-filter-other", self.b_path)  # so that a's words have idf > 0
         try:
             found = self.client.search(self.a, filter={"city": "Lyon"}, top_k=5)
             self.assertEqual([r["id"] for r in found["results"]], ["py-filter-lyon"])
@@ -221,6 +222,7 @@ class ClientTest(unittest.TestCase):
         finally:
             self.client.delete("py-filter-paris")
             self.client.delete("py-filter-lyon")
+            self.client.delete("py-filter-other")
 
     def test_search_bad_parameters(self):
         cases = [({"top_k": 0}, "top_k"), ({"topk": 5}, "topk"), ({"bbox": (10, 10, 5, 5)}, "bbox"),
