@@ -5,6 +5,7 @@
 #include <cstdint>
 #include <optional>
 #include <string>
+#include <string_view>
 #include <utility>
 #include <vector>
 
@@ -76,8 +77,7 @@ struct Condition {
 
 // Reads a metadata document as events (nlohmann's SAX interface: no document tree is built, and the
 // parser keeps its own stack, so any nesting is safe) and checks each top-level member a condition
-// names as it goes by, stopping at the first that fails: most images of a selective filter cost part
-// of one pass over their text and no allocation but the compared strings (README, Filtered search).
+// names as it goes by, stopping at the first that fails (README, Filtered search).
 class Matcher final : public nlohmann::json_sax<nlohmann::json> {
  public:
   explicit Matcher(const std::vector<Condition>& conditions)
@@ -150,16 +150,53 @@ class Matcher final : public nlohmann::json_sax<nlohmann::json> {
   bool root_is_object_ = false;
 };
 
+// The texts one of which a document whose every string is written without escapes must contain when
+// the condition can hold: "\"v\"" for a string v, "true"/"false" for a boolean. Empty (no quick test)
+// when a number is among the values (2004 can be written 2004.0 or 2.004e3), for a string that would
+// need escaping, or for a condition of bounds only.
+std::vector<std::string> Needles(const Condition& c) {
+  std::vector<std::string> needles;
+  for (const nlohmann::json& v : c.any_of) {
+    if (v.is_boolean()) {
+      needles.emplace_back(v.get<bool>() ? "true" : "false");
+      continue;
+    }
+    if (!v.is_string()) return {};
+    const auto& text = v.get_ref<const std::string&>();
+    const auto needs_escape = [](char ch) { return ch == '"' || ch == '\\' || static_cast<unsigned char>(ch) < 0x20; };
+    if (std::any_of(text.begin(), text.end(), needs_escape)) return {};
+    needles.push_back('"' + text + '"');
+  }
+  return needles;
+}
+
 class MetadataFilter final : public index::ImageFilter {
  public:
-  explicit MetadataFilter(std::vector<Condition> conditions) : conditions_(std::move(conditions)) {}
+  explicit MetadataFilter(std::vector<Condition> conditions) : conditions_(std::move(conditions)) {
+    for (const Condition& c : conditions_) needles_.push_back(Needles(c));
+  }
 
   bool Matches(const index::ImageRecord& record) const override {
-    return !record.metadata_json.empty() && Matcher(conditions_).Run(record.metadata_json);
+    const std::string_view text = record.metadata_json;
+    if (text.empty()) return false;
+    // Quick rejection before parsing (a selective filter rejects most images): in a text without a
+    // backslash every string is written as its bytes, so a member equal to one of a condition's
+    // values puts one of its needles in the text.
+    if (text.find('\\') == std::string_view::npos) {
+      for (const std::vector<std::string>& needles : needles_) {
+        if (!needles.empty() && std::none_of(needles.begin(), needles.end(), [&](const std::string& n) {
+              return text.find(n) != std::string_view::npos;
+            })) {
+          return false;
+        }
+      }
+    }
+    return Matcher(conditions_).Run(record.metadata_json);
   }
 
  private:
   std::vector<Condition> conditions_;
+  std::vector<std::vector<std::string>> needles_;  // per condition (Needles)
 };
 
 using Failure = std::unexpected<Error>;

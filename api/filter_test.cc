@@ -56,6 +56,18 @@ TEST(FilterTest, TypeMismatchesAndMissingKeysDoNotMatch) {
   EXPECT_FALSE(Matches(R"({"date": {"gte": "2000"}})", R"({"date":2004})"));
 }
 
+TEST(FilterTest, EscapedTextsMatchAsTheirValues) {
+  // Written with escapes (another serialiser): the quick text test must not reject them.
+  EXPECT_TRUE(Matches(R"({"city": "Z\u00fcrich"})", R"({"city":"Z\u00fcrich"})"));
+  EXPECT_TRUE(Matches(R"({"city": "Zürich"})", R"({"city":"Z\u00fcrich"})"));
+  EXPECT_TRUE(Matches(R"({"city": "Paris"})", R"({"note":"a\"b","city":"Paris"})"));
+  EXPECT_TRUE(Matches(R"({"name": "a\"b"})", R"({"name":"a\"b"})"));
+  EXPECT_TRUE(Matches(R"({"name": {"in": ["x", "tab\there"]}})", R"({"name":"tab\there"})"));
+  // The value's text elsewhere (a key, another member) is not a match.
+  EXPECT_FALSE(Matches(R"({"city": "Paris"})", R"({"Paris":"x","city":"Lyon"})"));
+  EXPECT_FALSE(Matches(R"({"public": true})", R"({"public":false,"other":true})"));
+}
+
 TEST(FilterTest, KeysAreLiteralTopLevelMembers) {
   EXPECT_FALSE(Matches(R"({"place.city": "Paris"})", R"({"place":{"city":"Paris"}})"));
   EXPECT_TRUE(Matches(R"({"place.city": "Paris"})", R"({"place.city":"Paris"})"));

@@ -104,7 +104,7 @@ TEST_F(FilteredSearchTest, SearchAndSimilarReturnOnlyMatchingImages) {
   EXPECT_FALSE(Ids(Ok(Search(*server, "{}"))).empty());
 
   auto client = server->Client();
-  const std::string lyon = httplib::detail::encode_url(R"({"city":{"in":["Lyon"]}})");
+  const std::string lyon = httplib::detail::encode_query_param(R"({"city":{"in":["Lyon"]}})");
   EXPECT_EQ(Ids(Ok(client.Get("/v1/images/graf-paris/similar?filter=" + lyon))),
             std::vector<std::string>{"graf-lyon"});
   // The queried image itself is filtered like any other.
@@ -124,7 +124,7 @@ TEST_F(FilteredSearchTest, MalformedFiltersAre400NamingTheProblem) {
   ExpectRefused(Search(*server, R"({"a": {"in": [[[1]]]}})"), "nests deeper than 3 levels");
   ExpectRefused(Search(*server, "{\"k\": \"" + std::string(20000, 'x') + "\"}"), "must be at most 16384 bytes");
   auto client = server->Client();
-  ExpectRefused(client.Get("/v1/images/graf-paris/similar?filter=" + httplib::detail::encode_url(R"({"city": {}})")),
+  ExpectRefused(client.Get("/v1/images/graf-paris/similar?filter=" + httplib::detail::encode_query_param(R"({"city": {}})")),
                 "needs at least one of");
   EXPECT_EQ(server->Stop(), 0) << server->Log();
 }
