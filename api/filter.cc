@@ -89,12 +89,13 @@ class Matcher final : public nlohmann::json_sax<nlohmann::json> {
     return nlohmann::json::sax_parse(text, this) && root_is_object_ && seen_ == all_;
   }
 
-  bool null() override { return Value(nlohmann::json()); }
-  bool boolean(bool v) override { return Value(v); }
-  bool number_integer(number_integer_t v) override { return Value(v); }
-  bool number_unsigned(number_unsigned_t v) override { return Value(v); }
-  bool number_float(number_float_t v, const string_t& /*text*/) override { return Value(v); }
-  bool string(string_t& v) override { return Value(v); }
+  // A value no condition looks at is not converted (a string would be copied).
+  bool null() override { return Ignored() || Value(nlohmann::json()); }
+  bool boolean(bool v) override { return Ignored() || Value(v); }
+  bool number_integer(number_integer_t v) override { return Ignored() || Value(v); }
+  bool number_unsigned(number_unsigned_t v) override { return Ignored() || Value(v); }
+  bool number_float(number_float_t v, const string_t& /*text*/) override { return Ignored() || Value(v); }
+  bool string(string_t& v) override { return Ignored() || Value(v); }
   bool binary(binary_t& /*v*/) override { return false; }  // not produced by the JSON text format
   bool start_object(std::size_t /*elements*/) override {
     if (depth_ == 0) root_is_object_ = true;
@@ -126,11 +127,11 @@ class Matcher final : public nlohmann::json_sax<nlohmann::json> {
  private:
   static constexpr size_t kNone = static_cast<size_t>(-1);
 
-  // A top-level member's value (or the root itself, depth 0, which is not an object: no match).
+  // Inside a member's object or array, or in a member no condition names.
+  bool Ignored() const { return depth_ > 1 || (depth_ == 1 && current_ == kNone); }
+  // A top-level member's value a condition names, or the root itself (depth 0: not an object, no match).
   bool Value(const nlohmann::json& v) {
-    if (depth_ != 1) return depth_ > 1;
-    if (current_ == kNone) return true;
-    if (!conditions_[current_].Matches(v)) return false;
+    if (depth_ == 0 || !conditions_[current_].Matches(v)) return false;
     seen_ |= uint64_t{1} << current_;
     current_ = kNone;
     return true;
@@ -205,6 +206,39 @@ Failure Invalid(std::string_view label, const std::string& problem) {
   return Fail(ErrorCode::kInvalidArgument, std::string(label) + ": " + problem);
 }
 
+// One operator of a condition's object into `c`; `bound_type`: the first bound seen (null: none yet).
+Status ParseOperator(std::string_view label, const std::string& where, const std::string& op,
+                     const nlohmann::json& operand, Condition* c, const nlohmann::json** bound_type) {
+  if (std::find(kOperators.begin(), kOperators.end(), op) == kOperators.end()) {
+    return Invalid(label, "unknown operator '" + op + "' for " + where + " (known: in, gt, gte, lt, lte)");
+  }
+  const std::string named = "operator '" + op + "' of " + where;
+  if (op == "in") {
+    if (!operand.is_array() || operand.empty() || operand.size() > kMaxFilterValues) {
+      return Invalid(label, named + " needs an array of 1 to " + std::to_string(kMaxFilterValues) + " values");
+    }
+    for (const nlohmann::json& v : operand) {
+      if (!IsScalar(v)) return Invalid(label, named + " takes strings, numbers and booleans, got " + v.type_name());
+      c->any_of.push_back(v);
+    }
+    return Ok();
+  }
+  if (!operand.is_number() && !operand.is_string()) {
+    return Invalid(label, named + " needs a number or a string, got " + operand.type_name());
+  }
+  if (*bound_type != nullptr && (*bound_type)->is_number() != operand.is_number()) {
+    return Invalid(label, "the bounds of " + where + " mix numbers and strings");
+  }
+  *bound_type = &operand;
+  const Bound bound{operand, op.size() == 3};  // gte, lte
+  if (op[0] == 'g') {
+    c->lower = bound;
+  } else {
+    c->upper = bound;
+  }
+  return Ok();
+}
+
 Result<Condition> ParseCondition(std::string_view label, const std::string& key, const nlohmann::json& spec) {
   Condition c;
   c.key = key;
@@ -220,36 +254,8 @@ Result<Condition> ParseCondition(std::string_view label, const std::string& key,
   if (spec.empty()) return Invalid(label, where + ": an operator object needs at least one of in, gt, gte, lt, lte");
   const nlohmann::json* bound_type = nullptr;
   for (const auto& [op, operand] : spec.items()) {
-    if (std::find(kOperators.begin(), kOperators.end(), op) == kOperators.end()) {
-      return Invalid(label, "unknown operator '" + op + "' for " + where + " (known: in, gt, gte, lt, lte)");
-    }
-    if (op == "in") {
-      if (!operand.is_array() || operand.empty() || operand.size() > kMaxFilterValues) {
-        return Invalid(label, "operator 'in' of " + where + " needs an array of 1 to " +
-                                  std::to_string(kMaxFilterValues) + " values");
-      }
-      for (const nlohmann::json& v : operand) {
-        if (!IsScalar(v)) {
-          return Invalid(label, "operator 'in' of " + where + " takes strings, numbers and booleans, got " +
-                                    v.type_name());
-        }
-        c.any_of.push_back(v);
-      }
-      continue;
-    }
-    if (!operand.is_number() && !operand.is_string()) {
-      return Invalid(label, "operator '" + op + "' of " + where + " needs a number or a string, got " +
-                                operand.type_name());
-    }
-    if (bound_type != nullptr && bound_type->is_number() != operand.is_number()) {
-      return Invalid(label, "the bounds of " + where + " mix numbers and strings");
-    }
-    bound_type = &operand;
-    Bound bound{operand, op.size() == 3};  // gte, lte
-    if (op[0] == 'g') {
-      c.lower = bound;
-    } else {
-      c.upper = bound;
+    if (auto parsed = ParseOperator(label, where, op, operand, &c, &bound_type); !parsed) {
+      return std::unexpected(parsed.error());
     }
   }
   return c;
