@@ -7,6 +7,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "api/filter.h"
 #include "api/json.h"
 
 namespace oxbow::api {
@@ -145,7 +146,7 @@ constexpr IntQueryParam kIntQueryParams[] = {
 
 const std::set<std::string>& QueryParamNames() {
   static const std::set<std::string> names = [] {
-    std::set<std::string> n = {"rerank", "bbox", "qe", "min_inliers"};
+    std::set<std::string> n = {"rerank", "bbox", "qe", "min_inliers", "filter"};
     for (const IntQueryParam& p : kIntQueryParams) n.insert(p.name);
     return n;
   }();
@@ -180,6 +181,11 @@ Result<index::QueryOptions> ParseQueryParams(const Params& params, const index::
     auto parsed = ParseBox("bbox", *v);
     if (!parsed) return std::unexpected(parsed.error());
     options.region = *parsed;
+  }
+  if (const auto* v = Find(params, "filter")) {
+    auto parsed = ParseFilter(*v, "parameter 'filter'");
+    if (!parsed) return std::unexpected(parsed.error());
+    options.filter = std::move(*parsed);
   }
   const auto* qe_param = Find(params, "qe");
   if (qe_param != nullptr) {

@@ -265,7 +265,10 @@ struct ImageIndex::Impl {
   size_t Rerank(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
                 const std::vector<ScoredImage>& scored, std::vector<QueryResult>& results) const;
   void ExpandQuery(const Snapshot& snap, const std::vector<QueryTerm>& terms, const QueryOptions& options,
-                          size_t num_verified, ScoreScratch* scratch, std::vector<QueryResult>& results) const;
+                   size_t num_verified, const std::vector<uint8_t>* allowed, ScoreScratch* scratch,
+                   std::vector<QueryResult>& results) const;
+  // The allow-bitmap of a filtered query: 1 for each live image number options.filter matches.
+  std::vector<uint8_t> AllowedImages(const Snapshot& snap, const ImageFilter& filter) const;
   void VerifyTransitively(const Snapshot& snap, const QueryOptions& options, size_t num_verified,
                           std::vector<QueryResult>& results) const;
 
@@ -1008,7 +1011,11 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
                                             ? snap.inverted.QueryVector(BagOfWords::FromWords(query.words))
                                             : snap.inverted.QueryVector(query.soft_words, query.soft_tf);
   const size_t depth = std::max<size_t>(static_cast<size_t>(options.top_k), static_cast<size_t>(options.rerank_depth));
-  const std::vector<ScoredImage> scored = snap.inverted.Score(terms, depth, &scratch, &response.candidates, index_options.num_threads);
+  std::vector<uint8_t> allowed_bitmap;
+  if (options.filter) allowed_bitmap = AllowedImages(snap, *options.filter);
+  const std::vector<uint8_t>* allowed = options.filter ? &allowed_bitmap : nullptr;
+  const std::vector<ScoredImage> scored =
+      snap.inverted.Score(terms, depth, &scratch, &response.candidates, allowed, index_options.num_threads);
   timings.score_ms = MsSince(t);
 
   std::vector<QueryResult> results(scored.size());
@@ -1025,7 +1032,7 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
   // 3. Average query expansion over the verified results.
   if (options.query_expansion && num_verified > 0) {
     t = Clock::now();
-    ExpandQuery(snap, terms, options, num_verified, &scratch, results);
+    ExpandQuery(snap, terms, options, num_verified, allowed, &scratch, results);
     timings.qe_ms = MsSince(t);
   }
 
@@ -1041,6 +1048,18 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
   response.results = std::move(results);
   response.timings = timings;
   return response;
+}
+
+// One Matches call per image number, in parallel: the filter parses each image's metadata (api/filter.h).
+std::vector<uint8_t> ImageIndex::Impl::AllowedImages(const Snapshot& snap, const ImageFilter& filter) const {
+  std::vector<uint8_t> allowed(snap.entries.size(), 0);
+  ParallelFor(allowed.size(), index_options.num_threads, 4096, [&](size_t begin, size_t end, int) {
+    for (size_t n = begin; n < end; ++n) {
+      const Entry* entry = snap.entries[n].get();
+      allowed[n] = entry != nullptr && filter.Matches(entry->record) ? 1 : 0;
+    }
+  });
+  return allowed;
 }
 
 size_t ImageIndex::Impl::Rerank(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
@@ -1077,7 +1096,8 @@ size_t ImageIndex::Impl::Rerank(const Snapshot& snap, const QueryFeatures& query
 }
 
 void ImageIndex::Impl::ExpandQuery(const Snapshot& snap, const std::vector<QueryTerm>& terms,
-                                   const QueryOptions& options, size_t num_verified, ScoreScratch* scratch,
+                                   const QueryOptions& options, size_t num_verified,
+                                   const std::vector<uint8_t>* allowed, ScoreScratch* scratch,
                                    std::vector<QueryResult>& results) const {
   std::map<uint32_t, double> average;
   for (const QueryTerm& term : terms) average[term.word] += term.weight;
@@ -1101,7 +1121,8 @@ void ImageIndex::Impl::ExpandQuery(const Snapshot& snap, const std::vector<Query
   // Deep enough for transitive verification's window as well as for top_k.
   const size_t expanded_depth =
       static_cast<size_t>(std::max(options.top_k, options.transitive_depth > 0 ? options.transitive_depth : 0));
-  const std::vector<ScoredImage> rescored = snap.inverted.Score(expanded, expanded_depth + num_verified, scratch, nullptr, index_options.num_threads);
+  const std::vector<ScoredImage> rescored = snap.inverted.Score(expanded, expanded_depth + num_verified, scratch,
+                                                                nullptr, allowed, index_options.num_threads);
   std::vector<QueryResult> merged(results.begin(), results.begin() + static_cast<std::ptrdiff_t>(num_verified));
   std::unordered_map<std::string, const QueryResult*> first_stage;
   for (const QueryResult& r : results) first_stage[r.id] = &r;

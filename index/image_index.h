@@ -141,6 +141,19 @@ struct IndexOptions {
   std::optional<std::string> Check() const;  // message for an invalid field, nullopt when valid
 };
 
+struct ImageRecord;
+
+// Filtered search: which indexed images a query may return (api/filter.h builds one from the `filter`
+// search parameter). A query asks it about every live image once, from several threads at once, and
+// keeps the answers in an allow-bitmap over image numbers that tf-idf scoring (first pass and query
+// expansion) consults, so re-ranking, expansion and transitive verification only ever see allowed
+// images and the top-k are the best allowed ones, not a post-filtered top-k.
+class ImageFilter {
+ public:
+  virtual ~ImageFilter() = default;
+  [[nodiscard]] virtual bool Matches(const ImageRecord& record) const = 0;  // thread-safe
+};
+
 // Per-query options. CLI flags and HTTP parameters map 1:1 onto these fields.
 struct QueryOptions {
   // Number of results returned. [1, 10000].
@@ -201,6 +214,10 @@ struct QueryOptions {
   sift::HoughVerifyOptions verify;
   // When non-empty, must equal the index's extractor settings (refuses features from another extractor).
   std::string extractor_settings;
+  // Only images this allows are scored and returned (null: every image). Cost: one Matches call per
+  // live image per query (README, Filtered search); QuerySimilar's own image too must match to be
+  // returned.
+  std::shared_ptr<const ImageFilter> filter;
 
   std::optional<std::string> Check() const;
 };
@@ -259,7 +276,7 @@ struct QueryTimings {
 struct QueryResponse {
   std::vector<QueryResult> results;  // best first, at most top_k
   uint32_t query_features = 0;       // features used (inside the region)
-  uint64_t candidates = 0;           // images with a non-zero tf-idf score
+  uint64_t candidates = 0;           // images with a non-zero tf-idf score (allowed ones, with a filter)
   QueryTimings timings;
 };
 

@@ -678,7 +678,8 @@ std::vector<size_t> InvertedFile::ScoreGroups(std::span<const QueryTerm> query) 
 }
 
 std::vector<ScoredImage> InvertedFile::Score(std::span<const QueryTerm> query, size_t max_results,
-                                             ScoreScratch* scratch, uint64_t* candidates, int num_threads) const {
+                                             ScoreScratch* scratch, uint64_t* candidates,
+                                             const std::vector<uint8_t>* allowed, int num_threads) const {
   OXBOW_CHECK(scratch != nullptr);
   if (candidates) *candidates = 0;
   if (num_live_ == 0 || stats_num_live_ == 0 || max_results == 0) return {};
@@ -742,6 +743,7 @@ std::vector<ScoredImage> InvertedFile::Score(std::span<const QueryTerm> query, s
       if (v == 0) continue;
       const ImageState& s = images_[i];
       if (s.live == 0) continue;
+      if (allowed != nullptr && (i >= allowed->size() || (*allowed)[i] == 0)) continue;
       const double sq = l * l * s.a - 2 * l * s.b + s.c;
       if (!(sq > 0)) continue;
       ++touched;

@@ -170,10 +170,14 @@ class InvertedFile {
   // Scores every live image against `query` (terms sorted by word, weights of an L2-normalised vector;
   // any real weights are accepted) and returns the best `max_results` by cosine, best first.
   // `candidates` (optional) receives the number of live images with a non-zero dot product.
-  // Cost O(postings of the query words + number of images ever added), on up to `num_threads` threads
-  // (0 = all cores) for long queries (kMaxScoreGroups); the result does not depend on num_threads.
+  // `allowed` (filtered search, optional): only images n with n < allowed->size() and (*allowed)[n]
+  // != 0 are ranked and counted; the postings are still accumulated (a test per posting would cost
+  // more than the one per touched image). Cost O(postings of the query words + number of images ever
+  // added), on up to `num_threads` threads (0 = all cores) for long queries (kMaxScoreGroups); the
+  // result does not depend on num_threads.
   std::vector<ScoredImage> Score(std::span<const QueryTerm> query, size_t max_results, ScoreScratch* scratch,
-                                 uint64_t* candidates = nullptr, int num_threads = 1) const;
+                                 uint64_t* candidates = nullptr, const std::vector<uint8_t>* allowed = nullptr,
+                                 int num_threads = 1) const;
   // Where Score() splits `query` into term groups (kMaxScoreGroups): the first term of each group, then
   // query.size().
   std::vector<size_t> ScoreGroups(std::span<const QueryTerm> query) const;

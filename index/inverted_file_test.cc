@@ -525,9 +525,9 @@ TEST(InvertedFileTest, LongQueriesScoreInGroupsIndependentlyOfThreads) {
   EXPECT_EQ(groups.front(), 0u);
   EXPECT_EQ(groups.back(), q.size());
   ScoreScratch scratch;
-  const auto one = file.Score(q, 50, &scratch, nullptr, 1);
+  const auto one = file.Score(q, 50, &scratch, nullptr, nullptr, 1);
   for (const int threads : {2, 4}) {
-    const auto many = file.Score(q, 50, &scratch, nullptr, threads);
+    const auto many = file.Score(q, 50, &scratch, nullptr, nullptr, threads);
     ASSERT_EQ(many.size(), one.size());
     for (size_t i = 0; i < one.size(); ++i) {
       EXPECT_EQ(many[i].image, one[i].image);

@@ -346,20 +346,26 @@ class Client:
     # -- search
 
     def search(self, image: Image, *, bbox: tuple[float, float, float, float] | None = None,
-               **options: Any) -> dict:
+               filter: Mapping[str, Any] | str | None = None, **options: Any) -> dict:
         """POST /v1/search with an image; bbox = (x1, y1, x2, y2) in the image's pixels.
+
+        filter: only images whose metadata matches, a dict (or its JSON text) as README "Filtered
+        search" describes, e.g. {"city": {"in": ["Paris", "Lyon"]}, "year": {"gte": 2000}}; a malformed
+        one raises InvalidArgumentError.
 
         options: the server's search parameters (README "Search options"): top_k, rerank, qe, qe_images,
         min_inliers, max_pairs_per_word, transitive_depth, transitive_anchors, transitive_neighbours,
         transitive_attempts, query_assignments, quantizer_probes. Unknown names and out-of-range values
         raise InvalidArgumentError (the server refuses them).
         """
-        fields = _search_fields(bbox, options)
+        fields = _search_fields(bbox, filter, options)
         return self._request("POST", "/v1/search", multipart=(fields, {"file": _image_bytes(image)}))
 
-    def similar(self, id: str, **options: Any) -> dict:
-        """GET /v1/images/{id}/similar: a search with an indexed image's stored features; options as search."""
-        return self._request("GET", "/v1/images/" + _quote_id(id) + "/similar", query=_search_fields(None, options))
+    def similar(self, id: str, *, filter: Mapping[str, Any] | str | None = None, **options: Any) -> dict:
+        """GET /v1/images/{id}/similar: a search with an indexed image's stored features; filter and
+        options as search."""
+        return self._request("GET", "/v1/images/" + _quote_id(id) + "/similar",
+                             query=_search_fields(None, filter, options))
 
     def match(self, a: Image, b: Image, **options: Any) -> dict:
         """POST /v1/match: matches and verifies two images (no index involved).
@@ -410,8 +416,11 @@ def _quote_id(id: str) -> str:
     return urllib.parse.quote(id, safe="")
 
 
-def _search_fields(bbox: Any, options: Mapping[str, Any]) -> dict[str, str]:
+def _search_fields(bbox: Any, filter: Mapping[str, Any] | str | None,
+                   options: Mapping[str, Any]) -> dict[str, str]:
     fields = {name: _field_value(value) for name, value in options.items() if value is not None}
+    if filter is not None:
+        fields["filter"] = _field_value(filter)
     if bbox is not None:
         if len(bbox) != 4:
             raise ValueError("bbox is (x1, y1, x2, y2)")

@@ -204,6 +204,26 @@ class ClientTest(unittest.TestCase):
             self.client.delete("py-search-a")
             self.client.delete("py-search-b")
 
+    def test_filtered_search_and_similar(self):
+        self.client.add("py-filter-paris", self.a, metadata={"city": "Paris", "year": 2004})
+        self.client.add("py-filter-lyon", self.a, metadata={"city": "Lyon", "year": 1999})
+        self.client.add("py-filter-other", self.b_path)  # so that a's words have idf > 0
+        try:
+            found = self.client.search(self.a, filter={"city": "Lyon"}, top_k=5)
+            self.assertEqual([r["id"] for r in found["results"]], ["py-filter-lyon"])
+            text = self.client.search(self.a, filter='{"year": {"gte": 2000, "lt": 2010}}', top_k=5)
+            self.assertEqual([r["id"] for r in text["results"]], ["py-filter-paris"])
+            similar = self.client.similar("py-filter-paris", filter={"city": {"in": ["Lyon", "Nice"]}}, top_k=5)
+            self.assertEqual([r["id"] for r in similar["results"]], ["py-filter-lyon"])
+            with self.assertRaises(ox.InvalidArgumentError) as e:
+                self.client.search(self.a, filter={"city": {"like": "P%"}})
+            self.assertServerError(e, ox.InvalidArgumentError, 400, "invalid_argument")
+            self.assertIn("unknown operator 'like'", e.exception.message)
+        finally:
+            self.client.delete("py-filter-paris")
+            self.client.delete("py-filter-lyon")
+            self.client.delete("py-filter-other")
+
     def test_search_bad_parameters(self):
         cases = [({"top_k": 0}, "top_k"), ({"topk": 5}, "topk"), ({"bbox": (10, 10, 5, 5)}, "bbox"),
                  ({"qe_images": 101}, "qe_images")]

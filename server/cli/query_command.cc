@@ -7,6 +7,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "api/filter.h"
 #include "api/json.h"
 #include "index/image_index.h"
 #include "server/cli/cli.h"
@@ -54,7 +55,7 @@ nlohmann::json ResultJson(const index::QueryResult& r) {
 
 void SetUpQuery(CLI::App& app) {
   struct Args {
-    std::string index, image, bbox;
+    std::string index, image, bbox, filter;
     index::QueryOptions options;
     index::IndexOptions index_options;
     ImageFlags image_flags;
@@ -65,6 +66,10 @@ void SetUpQuery(CLI::App& app) {
   cmd->add_option("--index", args->index, "index folder")->required();
   cmd->add_option("image", args->image, "query image file")->required();
   cmd->add_option("--bbox", args->bbox, "query region x1,y1,x2,y2 in pixels: only features inside are used");
+  cmd->add_option("--filter", args->filter,
+                  "only rank images whose metadata matches this JSON object, keys ANDed: "
+                  "'{\"city\": \"Paris\"}', '{\"city\": {\"in\": [\"Paris\", \"Lyon\"]}}', "
+                  "'{\"year\": {\"gte\": 2000, \"lt\": 2010}}' (README, Filtered search)");
   cmd->add_option("--top-k", args->options.top_k, "results returned")->capture_default_str();
   cmd->add_option("--rerank", args->options.rerank_depth, "spatially verify the top R (0: tf-idf only)")
       ->capture_default_str();
@@ -80,6 +85,7 @@ void SetUpQuery(CLI::App& app) {
     const auto t0 = Clock::now();
     if (!args->bbox.empty()) args->options.region = ParseBox(args->bbox);
     if (args->options.rerank_depth == 0 && qe->count() == 0) args->options.query_expansion = false;
+    if (!args->filter.empty()) args->options.filter = ValueOrExit(api::ParseFilter(args->filter, "--filter"));
     if (auto e = args->options.Check()) throw CommandError(2, *e);
     if (auto e = args->index_options.Check()) throw CommandError(2, *e);
     const sift::DecodeOptions decode = args->image_flags.ToDecodeOptions();
