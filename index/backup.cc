@@ -205,8 +205,9 @@ Result<bool> Prepare(const std::string& dir, const BackupOptions& options, int n
   attempt.images = std::stoll(images->value_or("0"));
   auto text = attempt.catalogue->Value("SELECT value FROM meta WHERE key = 'checkpoint'");
   if (!text) return std::unexpected(text.error());
-  if (!*text || (*text)->empty()) return true;
-  auto manifest = CheckpointManifest::Parse(**text);
+  const std::string manifest_text = text->value_or("");
+  if (manifest_text.empty()) return true;
+  auto manifest = CheckpointManifest::Parse(manifest_text);
   if (!manifest) {
     return Fail(ErrorCode::kCorruptData, "the checkpoint manifest of " + dir + " is damaged: " +
                                              manifest.error().message);

@@ -71,6 +71,14 @@ class BackupTest : public ::testing::Test {
   void Add(ImageIndex& index, int i) {
     ASSERT_TRUE(index.Add("img-" + std::to_string(i), Image(i), {}).has_value());
   }
+  // A new index with images 0 .. n-1, checkpointing every `checkpoint_changes` changes.
+  std::unique_ptr<ImageIndex> CreateWithImages(uint64_t checkpoint_changes, int n) {
+    IndexOptions options;
+    options.checkpoint_changes = checkpoint_changes;
+    auto index = Create(options);
+    for (int i = 0; index && i < n; ++i) Add(*index, i);
+    return index;
+  }
 
   static std::set<std::string> Ids(const ImageIndex& index) {
     std::set<std::string> ids;
@@ -109,11 +117,8 @@ class BackupTest : public ::testing::Test {
 // them, at least the prefix acknowledged before the backup started and at most the prefix started
 // before it returned.
 TEST_F(BackupTest, EqualsOnePrefixOfTheAcknowledgedWritesUnderConcurrentWrites) {
-  IndexOptions options;
-  options.checkpoint_changes = 4;
-  auto index = Create(options);
+  auto index = CreateWithImages(4, 20);
   ASSERT_TRUE(index);
-  for (int i = 0; i < 20; ++i) Add(*index, i);
 
   // Op k: add image 20 + k, or (every third op) remove an image added earlier and not yet removed.
   struct Op {
@@ -188,11 +193,7 @@ TEST_F(BackupTest, EqualsOnePrefixOfTheAcknowledgedWritesUnderConcurrentWrites) 
 TEST_F(BackupTest, RetriesWhenACheckpointDeletesTheSnapshotsFiles) {
   IndexOptions options;
   options.checkpoint_changes = 10;  // the 10 adds below start exactly one checkpoint
-  {
-    auto index = Create(options);
-    ASSERT_TRUE(index);
-    for (int i = 0; i < 10; ++i) Add(*index, i);
-  }  // Close checkpoints
+  ASSERT_TRUE(CreateWithImages(options.checkpoint_changes, 10));  // Close checkpoints
   auto opened = ImageIndex::Open(Source(), options);
   ASSERT_TRUE(opened.has_value());
   auto& index = **opened;
@@ -234,11 +235,7 @@ TEST_F(BackupTest, RetriesWhenACheckpointDeletesTheSnapshotsFiles) {
 TEST_F(BackupTest, RestoredCopySearchesLikeTheSource) {
   IndexOptions options;
   options.checkpoint_changes = 1000;
-  {
-    auto index = Create(options);
-    ASSERT_TRUE(index);
-    for (int i = 0; i < 30; ++i) Add(*index, i);
-  }
+  ASSERT_TRUE(CreateWithImages(options.checkpoint_changes, 30));  // Close checkpoints
   auto source = ImageIndex::Open(Source(), options);
   ASSERT_TRUE(source.has_value());
   for (int i = 30; i < 40; ++i) Add(**source, i);
@@ -267,11 +264,7 @@ TEST_F(BackupTest, RestoredCopySearchesLikeTheSource) {
 }
 
 TEST_F(BackupTest, DamagedCheckpointFileIsReportedAndNothingIsLeft) {
-  {
-    auto index = Create({});
-    ASSERT_TRUE(index);
-    for (int i = 0; i < 10; ++i) Add(*index, i);
-  }
+  ASSERT_TRUE(CreateWithImages(IndexOptions{}.checkpoint_changes, 10));  // Close checkpoints
   fs::path postings;
   for (const auto& entry : fs::directory_iterator(Source())) {
     if (entry.path().filename().string().starts_with("postings-")) postings = entry.path();
