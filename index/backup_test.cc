@@ -1,6 +1,7 @@
 #include "index/backup.h"
 
 #include <gtest/gtest.h>
+#include <sqlite3.h>
 #include <unistd.h>
 
 #include <atomic>
@@ -279,6 +280,43 @@ TEST_F(BackupTest, DamagedCheckpointFileIsReportedAndNothingIsLeft) {
   ASSERT_FALSE(result.has_value());
   EXPECT_EQ(result.error().code, ErrorCode::kCorruptData);
   EXPECT_NE(result.error().message.find(postings.filename().string()), std::string::npos) << result.error().message;
+  EXPECT_FALSE(fs::exists(Out()));
+  EXPECT_FALSE(fs::exists(Out() + ".tmp"));
+}
+
+// A damaged page that the backup's own reads never touch (the `features` table): the page copy takes it
+// as it is, SQLite's quick_check of the copy finds it.
+TEST_F(BackupTest, DamagedCatalogueIsReportedAndNothingIsLeft) {
+  ASSERT_TRUE(CreateWithImages(IndexOptions{}.checkpoint_changes, 10));
+  const std::string catalogue = (fs::path(Source()) / kCatalogueFile).string();
+  ASSERT_FALSE(fs::exists(catalogue + "-wal"));  // closed: everything is in the file
+  int64_t page = 0, page_size = 0;
+  {
+    sqlite3* db = nullptr;
+    ASSERT_EQ(sqlite3_open_v2(catalogue.c_str(), &db, SQLITE_OPEN_READONLY, nullptr), SQLITE_OK);
+    auto integer = [&](const char* sql) {
+      sqlite3_stmt* stmt = nullptr;
+      sqlite3_prepare_v2(db, sql, -1, &stmt, nullptr);
+      const int64_t value = sqlite3_step(stmt) == SQLITE_ROW ? sqlite3_column_int64(stmt, 0) : 0;
+      sqlite3_finalize(stmt);
+      return value;
+    };
+    page = integer("SELECT rootpage FROM sqlite_master WHERE name = 'features'");
+    page_size = integer("PRAGMA page_size");
+    sqlite3_close(db);
+  }
+  ASSERT_GT(page, 1);
+  {
+    std::fstream f(catalogue, std::ios::in | std::ios::out | std::ios::binary);
+    f.seekp((page - 1) * page_size);
+    const std::string garbage(static_cast<size_t>(page_size), '\xff');
+    f.write(garbage.data(), static_cast<std::streamsize>(garbage.size()));
+  }
+  auto result = BackupIndex(Source(), Out());
+  ASSERT_FALSE(result.has_value());
+  EXPECT_EQ(result.error().code, ErrorCode::kCorruptData) << result.error().ToString();
+  EXPECT_NE(result.error().message.find("quick_check"), std::string::npos) << result.error().message;
+  EXPECT_NE(result.error().message.find(kCatalogueFile), std::string::npos) << result.error().message;
   EXPECT_FALSE(fs::exists(Out()));
   EXPECT_FALSE(fs::exists(Out() + ".tmp"));
 }
