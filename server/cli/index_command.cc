@@ -555,12 +555,13 @@ void SetUpIndex(CLI::App& app) {
     std::string out;
   };
   auto backup = std::make_shared<BackupArgs>();
-  CLI::App* k = cmd->add_subcommand(
-      "backup",
-      "Copy an index, consistently, into a new folder while `oxbow serve` may keep serving and adding to it. The copy "
-      "is the index as committed at one instant (every write acknowledged before the command started, none "
-      "started after it ended), verified, fsync'ed and renamed into place only when complete. Restore: "
-      "oxbow serve --index OUT. Prints {out, images, generation, bytes, attempts} as JSON.");
+  CLI::App* k = cmd->add_subcommand("backup", "Copy an index into a new folder, also while `oxbow serve` uses it");
+  k->footer(
+      "The copy is the index as committed at one instant: every write acknowledged before the command started, "
+      "none started after it ended. It is verified (checksums, SQLite quick_check), fsync'ed and renamed into "
+      "place only when complete; a damaged source file fails the backup and leaves nothing. Restore: oxbow serve "
+      "--index OUT. Prints {out, images, generation, bytes, attempts} as JSON. Through a running server: POST "
+      "/v1/admin/backup (README, Backup and restore).");
   k->add_option("--index", backup->index, "index folder to back up")->required();
   k->add_option("--out", backup->out,
                 "new folder for the copy (absent or empty; written as OUT.tmp, then renamed; its parent must exist)")
