@@ -114,6 +114,14 @@ nlohmann::json MatchResponseToJson(const MatchResponse& response) {
                                           .total = response.total_ms});
 }
 
+nlohmann::json BackupToJson(const std::string& out, const index::BackupResult& result) {
+  return {{"out", out},
+          {"images", result.images},
+          {"generation", result.generation},
+          {"bytes", result.bytes},
+          {"attempts", result.attempts}};
+}
+
 nlohmann::json StatsToJson(const ServiceStats& stats) {
   const auto& s = stats.index;
   char fingerprint[17];

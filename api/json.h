@@ -31,6 +31,9 @@ nlohmann::json MatchResponseToJson(const MatchResponse& response);
 // {"images", "features", "words", "bytes_per_feature", "index_bytes": {...}, "memory_rss_bytes",
 //  "uptime_s", "extractions_in_flight", "max_concurrent_extractions", "segments", "vocabulary_fingerprint"}
 nlohmann::json StatsToJson(const ServiceStats& stats);
+// The answer of a backup (POST /v1/admin/backup, `oxbow index backup`): {out, images, generation,
+// bytes, attempts}.
+nlohmann::json BackupToJson(const std::string& out, const index::BackupResult& result);
 
 // The deepest nesting of arrays and objects accepted in a JSON document from a client (fixed). nlohmann-json
 // parses without recursion but dumps, copies and compares recursively: a document nested ~74,000 levels

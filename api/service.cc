@@ -25,6 +25,7 @@ namespace oxbow::api {
 namespace {
 
 using Clock = std::chrono::steady_clock;
+constexpr const char* kThumbnailFile = "thumbnails.sqlite";  // in the index folder
 
 double MsSince(Clock::time_point start) {
   return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
@@ -208,7 +209,7 @@ Result<std::unique_ptr<Service>> Service::Open(const std::string& index_dir,
   sift_options->num_threads = options.threads_per_request;
   auto extractor = sift::SiftExtractor::Create(*sift_options);
   if (!extractor) return std::unexpected(extractor.error());
-  auto thumbnails = ThumbnailStore::Open(index_dir + "/thumbnails.sqlite");
+  auto thumbnails = ThumbnailStore::Open(index_dir + "/" + kThumbnailFile);
   if (!thumbnails) return std::unexpected(thumbnails.error());
   std::unique_ptr<Service> service(new Service(std::move(index), *extractor, options));
   service->thumbnails_ = std::move(*thumbnails);
@@ -472,6 +473,19 @@ Status Service::DeleteImage(const std::string& id) {
     OXBOW_LOG(kWarning) << "image '" << id << "' deleted but its thumbnail stays: " << dropped.error().ToString();
   }
   return Ok();
+}
+
+Result<index::BackupResult> Service::Backup(const std::string& out) const {
+  index::BackupOptions options;
+  options.extra_databases = {kThumbnailFile};
+  options.snapshot_mutex = &write_mutex_;
+  return index::BackupIndex(index_->directory(), out, options);
+}
+
+Result<index::BackupResult> Service::BackupFolder(const std::string& index_dir, const std::string& out) {
+  index::BackupOptions options;
+  options.extra_databases = {kThumbnailFile};
+  return index::BackupIndex(index_dir, out, options);
 }
 
 Result<ListResponse> Service::ListImages(uint64_t offset, uint64_t limit) const {

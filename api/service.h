@@ -37,6 +37,7 @@
 
 #include "api/pair_match.h"
 #include "api/thumbnails.h"
+#include "index/backup.h"
 #include "index/image_index.h"
 #include "sift/base/error.h"
 #include "sift/image.h"
@@ -207,6 +208,14 @@ class Service {
   // kNotFound for an unknown id or when neither exists; kInvalidArgument for a size out of range.
   [[nodiscard]] Result<ThumbnailResponse> GetThumbnail(const std::string& id, int max_side_px) const;
   ServiceStats Stats() const;
+  // Backs up the index folder and its thumbnail cache into the new folder `out` while serving
+  // (index/backup.h; serve the copy to restore). The snapshots begin under the writers' lock, so the
+  // copy's thumbnails are those of its images.
+  [[nodiscard]] Result<index::BackupResult> Backup(const std::string& out) const;
+  // The same from outside a server process (`oxbow index backup`), with `serve` running or not: the
+  // thumbnail cache's snapshot begins just after the catalogue's, so an uploaded image deleted in
+  // between may lack its thumbnail in the copy.
+  [[nodiscard]] static Result<index::BackupResult> BackupFolder(const std::string& index_dir, const std::string& out);
   // Test seam: `hook` runs in GetThumbnail after it made a thumbnail from a source file and before it
   // stores it (lets a test change the image in exactly that window). Set it before concurrent use.
   void SetThumbnailMadeHookForTesting(std::function<void(const std::string& id)> hook) {

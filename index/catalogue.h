@@ -40,6 +40,10 @@
 
 namespace oxbow::index {
 
+// The files of an index folder beside its checkpoint files (checkpoint.h).
+inline constexpr const char* kCatalogueFile = "catalogue.sqlite";
+inline constexpr const char* kVocabularyFile = "vocabulary.oxvoc";
+
 struct CatalogueMeta {
   int schema_version = kSchemaVersion;
   uint64_t vocabulary_fingerprint = 0;

@@ -28,8 +28,6 @@
 namespace oxbow::index {
 namespace {
 
-constexpr const char* kCatalogueFile = "catalogue.sqlite";
-constexpr const char* kVocabularyFile = "vocabulary.oxvoc";
 constexpr size_t kIdShards = 64;
 constexpr size_t kMaxIdBytes = 256;
 

@@ -16,10 +16,13 @@ vocabulary. Exit 0: every check passed; 1: failures (listed); 77: python3-jsonsc
 
 import argparse
 import json
+import os
 import re
+import shutil
 import socket
 import struct
 import sys
+import tempfile
 import time
 import urllib.parse
 import zlib
@@ -511,6 +514,28 @@ def run(args):
     c.check("delete without key", keyed, "DELETE", "/v1/images/k", 401, "unauthenticated")
     c.check("delete wrong key", keyed, "DELETE", "/v1/images/k", 403, "permission_denied", headers={"X-API-Key": "wrong"})
     c.check("delete with key", keyed, "DELETE", "/v1/images/k", 200, headers={"X-API-Key": key})
+    # Backups: a new folder on the server's machine, which is this one.
+    backups = tempfile.mkdtemp(prefix="oxbow-openapi-backup-")
+    try:
+        json_type = {"Content-Type": "application/json"}
+        target = json.dumps({"out": os.path.join(backups, "copy")}).encode()
+        c.check("backup on a server without key", url, "POST", "/v1/admin/backup", 403, "permission_denied",
+                headers=json_type, body=target)
+        c.check("backup without key", keyed, "POST", "/v1/admin/backup", 401, "unauthenticated", headers=json_type, body=target)
+        c.check("backup wrong key", keyed, "POST", "/v1/admin/backup", 403, "permission_denied",
+                headers={**json_type, "X-API-Key": "wrong"}, body=target)
+        c.check("backup relative", keyed, "POST", "/v1/admin/backup", 400, "invalid_argument",
+                headers={**json_type, "X-API-Key": key}, body=b'{"out": "copy"}')
+        r = c.check("backup", keyed, "POST", "/v1/admin/backup", 200, headers={**json_type, "X-API-Key": key}, body=target)
+        if r.status == 200 and not os.path.isfile(os.path.join(backups, "copy", "catalogue.sqlite")):
+            c.fail("backup: no catalogue in the copy")
+        c.check("backup form, existing folder", keyed, "POST", "/v1/admin/backup", 409, "already_exists",
+                headers={"Content-Type": "application/x-www-form-urlencoded", "X-API-Key": key},
+                body=b"out=" + urllib.parse.quote(os.path.join(backups, "copy")).encode())
+        c.check("backup without parent", keyed, "POST", "/v1/admin/backup", 404, "not_found",
+                headers={**json_type, "X-API-Key": key}, body=json.dumps({"out": os.path.join(backups, "no", "copy")}).encode())
+    finally:
+        shutil.rmtree(backups, ignore_errors=True)
     # A body that never completes (the keyed server's request timeout is 1 s).
     c.check("late body", keyed, "POST", "/v1/search", 408, "request_timeout",
             raw=build("POST", "/v1/search", {**png_type, "Content-Length": "1000"}) + b"12345", partial_wait=2.5)

@@ -334,6 +334,13 @@ class Client:
         """DELETE /v1/images/{id}: {"id": id, "deleted": true} (NotFoundError if unknown)."""
         return self._request("DELETE", "/v1/images/" + _quote_id(id))
 
+    def backup(self, out: str) -> dict:
+        """POST /v1/admin/backup: copies the index into the new folder `out`, an absolute path on the
+        server's machine, while the server keeps serving; restore by serving that folder. Needs the API
+        key (the server refuses the route without one). {"out", "images", "generation", "bytes",
+        "attempts"}; ConflictError when `out` exists and is not empty."""
+        return self._request("POST", "/v1/admin/backup", multipart=({"out": out}, {}))
+
     def list(self, offset: int = 0, limit: int = 100) -> dict:
         """GET /v1/images: {"images": [...], "offset", "limit", "total"}, by id; limit 1..1000."""
         return self._request("GET", "/v1/images", query={"offset": offset, "limit": limit})

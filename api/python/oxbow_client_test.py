@@ -13,6 +13,7 @@ import pathlib
 import re
 import socket
 import sys
+import tempfile
 import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -263,6 +264,19 @@ class ClientTest(unittest.TestCase):
             self.assertServerError(e, ox.PermissionDeniedError, 403, "permission_denied")
         with self.assertRaises(ox.NotFoundError):
             self.client.get("py-anonymous")
+
+    def test_backup(self):
+        with tempfile.TemporaryDirectory() as folder:
+            out = os.path.join(folder, "copy")
+            with self.assertRaises(ox.UnauthorizedError) as e:
+                ox.Client(URL, timeout=60).backup(out)
+            self.assertServerError(e, ox.UnauthenticatedError, 401, "unauthenticated")
+            answer = self.client.backup(out)
+            self.assertEqual(answer["out"], out)
+            self.assertGreaterEqual(answer["images"], 0)
+            self.assertTrue(os.path.isfile(os.path.join(out, "catalogue.sqlite")))
+            with self.assertRaises(ox.ConflictError):
+                self.client.backup(out)
 
     def test_unreachable_server(self):
         with socket.socket() as s:

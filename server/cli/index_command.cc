@@ -1,4 +1,4 @@
-// `oxbow index build|add|remove|info`: create and maintain an image index (index/image_index.h).
+// `oxbow index build|add|remove|info|backup`: create and maintain an image index (index/image_index.h).
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -12,8 +12,10 @@
 
 #include <nlohmann/json.hpp>
 
+#include "api/json.h"
 #include "api/params.h"
 #include "api/partition.h"
+#include "api/service.h"
 #include "index/image_index.h"
 #include "server/cli/cli.h"
 #include "server/cli/common_flags.h"
@@ -430,7 +432,7 @@ void RunClusterBuild(const BuildArgs& build, vocab::Communicator& comm) {
 }
 
 void SetUpIndex(CLI::App& app) {
-  CLI::App* cmd = app.add_subcommand("index", "Build and maintain an image index (build, add, remove, info)");
+  CLI::App* cmd = app.add_subcommand("index", "Build and maintain an image index (build, add, remove, info, backup)");
   cmd->require_subcommand(1);
 
   // ---- build
@@ -545,6 +547,27 @@ void SetUpIndex(CLI::App& app) {
   i->callback([info_index] {
     auto idx = ValueOrExit(index::ImageIndex::Open(*info_index));
     PrintJson(StatsJson(*idx));
+  });
+
+  // ---- backup
+  struct BackupArgs {
+    std::string index;
+    std::string out;
+  };
+  auto backup = std::make_shared<BackupArgs>();
+  CLI::App* k = cmd->add_subcommand("backup", "Copy an index into a new folder, also while `oxbow serve` uses it");
+  k->footer(
+      "The copy is the index as committed at one instant: every write acknowledged before the command started, "
+      "none started after it ended. It is verified (checksums, SQLite quick_check), fsync'ed and renamed into "
+      "place only when complete; a damaged source file fails the backup and leaves nothing. Restore: oxbow serve "
+      "--index OUT. Prints {out, images, generation, bytes, attempts} as JSON. Through a running server: POST "
+      "/v1/admin/backup (README, Backup and restore).");
+  k->add_option("--index", backup->index, "index folder to back up")->required();
+  k->add_option("--out", backup->out,
+                "new folder for the copy (absent or empty; written as OUT.tmp, then renamed; its parent must exist)")
+      ->required();
+  k->callback([backup] {
+    PrintJson(api::BackupToJson(backup->out, ValueOrExit(api::Service::BackupFolder(backup->index, backup->out))));
   });
 }
 

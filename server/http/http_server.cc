@@ -280,6 +280,7 @@ const HttpServer::RouteTable& Routes() {
       {"/v1/images/{id}", std::regex("/v1/images/.+"), "GET, DELETE"},
       {"/v1/search", std::regex("/v1/search"), "POST"},
       {"/v1/match", std::regex("/v1/match"), "POST"},
+      {"/v1/admin/backup", std::regex("/v1/admin/backup"), "POST"},
   }};
   return table;
 }
@@ -499,6 +500,26 @@ void PostSearch(api::Service& s, const httplib::Request& req, httplib::Response&
   RecordStages(res, {{"decode_extract", found->decode_extract_ms}, {"quantize", t.quantize_ms},
                      {"score", t.score_ms}, {"verify", t.verify_ms}, {"qe", t.qe_ms}});
   SendJson(res, 200, api::SearchResponseToJson(*found));
+}
+
+// The folder is named by the client but written by the server, on its machine: absolute, so that it
+// does not depend on the server's working directory.
+void PostBackup(api::Service& s, const httplib::Request& req, httplib::Response& res) {
+  std::string out;
+  if (req.get_header_value("Content-Type").rfind("application/json", 0) == 0) {
+    const json body = json::parse(req.body, nullptr, false);
+    if (body.is_object() && body.contains("out") && body["out"].is_string()) out = body["out"].get<std::string>();
+  } else if (auto params = CollectParams(req, {}); params.count("out") == 1) {
+    out = params.find("out")->second;
+  }
+  if (out.empty() || out.front() != '/') {
+    return SendError(res, Error{ErrorCode::kInvalidArgument,
+                                "POST /v1/admin/backup needs 'out', the absolute path of a new folder on the server's "
+                                "machine: JSON {\"out\": \"/backups/index-1\"} or the form or query parameter out"});
+  }
+  auto done = s.Backup(out);
+  if (!done) return SendError(res, done.error());
+  SendJson(res, 200, api::BackupToJson(out, *done));
 }
 
 void PostMatch(api::Service& s, const httplib::Request& req, httplib::Response& res) {
@@ -723,7 +744,12 @@ void HttpServer::RegisterErrorHandlers() {
 HttpServer::Handler HttpServer::ServiceRoute(Access access, ServiceHandler body) {
   return [this, access, body = std::move(body)](const httplib::Request& req, httplib::Response& res) {
     try {
-      if (access == Access::kWrite && !options_.api_key.empty()) {
+      if (access == Access::kAdmin && options_.api_key.empty()) {
+        SendError(res, api::PermissionDenied("this route writes on the server's file system and is enabled only with "
+                                             "an API key (oxbow serve --api-key)"));
+        return;
+      }
+      if (access != Access::kOpen && !options_.api_key.empty()) {
         // The whole values: httplib's get_header_value stops at a NUL byte ("KEY\0junk" would pass).
         std::string key = FullHeaderValue(req, "X-API-Key");
         const std::string auth = FullHeaderValue(req, "Authorization");
@@ -809,6 +835,7 @@ void HttpServer::RegisterImageRoutes() {
   http.Get("/v1/images", ServiceRoute(Access::kOpen, ListImages));
   http.Get(R"(/v1/images/(.+))", ServiceRoute(Access::kOpen, GetImageOrSubresource));
   http.Delete(R"(/v1/images/(.+))", ServiceRoute(Access::kWrite, DeleteImage));
+  http.Post("/v1/admin/backup", ServiceRoute(Access::kAdmin, PostBackup));
 }
 
 void HttpServer::RegisterSearchRoutes() {

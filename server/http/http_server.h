@@ -18,6 +18,8 @@
 //      http <id> <method> <path> route=<pattern> status=<code> ms=<latency> [stage timings]
 //  - Optional API key: POST and DELETE on /v1/images (and POST /v1/images/batch) need `Authorization: Bearer KEY` or `X-API-Key: KEY`
 //    (compared in constant time); missing -> 401, wrong -> 403. Reads and searches are open.
+//    POST /v1/admin/backup needs the key too and is refused (403) on a server without one: it creates a
+//    folder on the server's machine.
 //  - Shutdown() (from the SIGTERM/SIGINT handler) stops accepting, lets in-flight requests finish but
 //    abandons decodes and extractions still running after the service's shutdown grace (their requests
 //    get 503, nothing stored: api::Service::StopExtractions), and returns from Run(); the index's state
@@ -122,7 +124,8 @@ class HttpServer {
 
  private:
   // Whether a /v1 route needs the API key (when one is set).
-  enum class Access { kOpen, kWrite };
+  // kAdmin: as kWrite, and refused when the server has no key.
+  enum class Access { kOpen, kWrite, kAdmin };
   using Handler = std::function<void(const httplib::Request&, httplib::Response&)>;
   using ServiceHandler = std::function<void(api::Service&, const httplib::Request&, httplib::Response&)>;
 

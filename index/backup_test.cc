@@ -1,0 +1,350 @@
+#include "index/backup.h"
+
+#include <gtest/gtest.h>
+#include <sqlite3.h>
+#include <unistd.h>
+
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <optional>
+#include <random>
+#include <set>
+#include <thread>
+
+#include "index/catalogue.h"
+#include "index/checkpoint.h"
+#include "index/image_index.h"
+
+namespace oxbow::index {
+namespace {
+
+namespace fs = std::filesystem;
+constexpr int kWords = 64;
+
+class BackupTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    root_ = fs::temp_directory_path() / ("oxbow_backup_test_" + std::to_string(::getpid()) + "_" +
+                                         ::testing::UnitTest::GetInstance()->current_test_info()->name());
+    fs::remove_all(root_);
+    fs::create_directories(root_);
+    std::mt19937_64 rng(1);
+    std::normal_distribution<float> g(0, 1);
+    std::vector<float> c(static_cast<size_t>(kWords) * 128);
+    for (int w = 0; w < kWords; ++w) {
+      double n = 0;
+      for (int d = 0; d < 128; ++d) n += std::pow(c[w * 128 + d] = g(rng), 2);
+      for (int d = 0; d < 128; ++d) c[w * 128 + d] /= static_cast<float>(std::sqrt(n));
+    }
+    auto v = vocab::Vocabulary::FromCentroids(std::move(c), 128, sift::DescriptorKind::kRootSift, "test/1");
+    ASSERT_TRUE(v.has_value());
+    vocabulary_ = std::make_unique<vocab::Vocabulary>(std::move(*v));
+  }
+  void TearDown() override { fs::remove_all(root_); }
+
+  // An image of 30 features on centroids (so each quantises to its word), seeded by `seed`.
+  sift::FeatureSet Image(uint64_t seed) const {
+    std::mt19937_64 rng(seed);
+    std::uniform_int_distribution<int> word(0, kWords - 1);
+    std::uniform_real_distribution<float> x(0, 600), y(0, 400), s(1.5f, 10.0f), o(0, 6.28f);
+    sift::FeatureSet f;
+    f.image_width = 640;
+    f.image_height = 480;
+    f.kind = sift::DescriptorKind::kRootSift;
+    const auto centroids = vocabulary_->centroids();
+    for (int i = 0; i < 30; ++i) {
+      const int w = word(rng);
+      f.keypoints.push_back({x(rng), y(rng), s(rng), o(rng), 1.0f, 0});
+      f.descriptors.insert(f.descriptors.end(), centroids.begin() + w * 128, centroids.begin() + (w + 1) * 128);
+    }
+    return f;
+  }
+
+  std::unique_ptr<ImageIndex> Create(const IndexOptions& options) {
+    auto index = ImageIndex::Create(Source(), *vocabulary_, "test/1", options);
+    EXPECT_TRUE(index.has_value()) << (index ? "" : index.error().ToString());
+    return index ? std::move(*index) : nullptr;
+  }
+  void Add(ImageIndex& index, int i) {
+    ASSERT_TRUE(index.Add("img-" + std::to_string(i), Image(i), {}).has_value());
+  }
+  // A new index with images 0 .. n-1, checkpointing every `checkpoint_changes` changes.
+  std::unique_ptr<ImageIndex> CreateWithImages(uint64_t checkpoint_changes, int n) {
+    IndexOptions options;
+    options.checkpoint_changes = checkpoint_changes;
+    auto index = Create(options);
+    for (int i = 0; index && i < n; ++i) Add(*index, i);
+    return index;
+  }
+
+  static std::set<std::string> Ids(const ImageIndex& index) {
+    std::set<std::string> ids;
+    auto list = index.List(0, 1u << 20);
+    EXPECT_TRUE(list.has_value());
+    if (list) {
+      for (const auto& r : *list) ids.insert(r.id);
+    }
+    return ids;
+  }
+
+  // Every file the backup's manifest names is there and passes its check: Open uses the checkpoint
+  // instead of rebuilding.
+  static void ExpectCompleteCheckpoint(const std::string& dir) {
+    auto catalogue = Catalogue::Open((fs::path(dir) / kCatalogueFile).string());
+    ASSERT_TRUE(catalogue.has_value());
+    if ((*catalogue)->meta().checkpoint.empty()) return;
+    auto manifest = CheckpointManifest::Parse((*catalogue)->meta().checkpoint);
+    ASSERT_TRUE(manifest.has_value());
+    for (const auto& file : manifest->files) {
+      auto s = VerifyCheckpointFile(dir, file);
+      EXPECT_TRUE(s.has_value()) << file.name << ": " << (s ? "" : s.error().ToString());
+    }
+  }
+
+  std::string Source() const { return (root_ / "source").string(); }
+  std::string Out(int n = 0) const { return (root_ / ("backup" + std::to_string(n))).string(); }
+
+  fs::path root_;
+  std::unique_ptr<vocab::Vocabulary> vocabulary_;
+};
+
+// One writer adds and removes images (each op acknowledged when its call returns) while backups run and
+// the index checkpoints every few changes (deleting the previous checkpoint's files). The writes are
+// serial, so the committed states are the prefixes of the op sequence: each backup must equal one of
+// them, at least the prefix acknowledged before the backup started and at most the prefix started
+// before it returned.
+TEST_F(BackupTest, EqualsOnePrefixOfTheAcknowledgedWritesUnderConcurrentWrites) {
+  auto index = CreateWithImages(4, 20);
+  ASSERT_TRUE(index);
+
+  // Op k: add image 20 + k, or (every third op) remove an image added earlier and not yet removed.
+  struct Op {
+    bool add;
+    int image;
+  };
+  std::vector<Op> ops;
+  std::vector<std::set<std::string>> states{Ids(*index)};  // states[k]: after the first k ops
+  int next_image = 20, next_removed = 0;
+  for (int k = 0; k < 240; ++k) {
+    const Op op = k % 3 == 2 ? Op{false, next_removed++ * 2} : Op{true, next_image++};
+    std::set<std::string> state = states.back();
+    const std::string id = "img-" + std::to_string(op.image);
+    if (op.add) {
+      state.insert(id);
+    } else {
+      ASSERT_EQ(state.erase(id), 1u);
+    }
+    ops.push_back(op);
+    states.push_back(std::move(state));
+  }
+
+  std::atomic<size_t> started{0}, acknowledged{0};
+  std::thread writer([&] {
+    for (const Op& op : ops) {
+      started.fetch_add(1);
+      const std::string id = "img-" + std::to_string(op.image);
+      if (op.add) {
+        EXPECT_TRUE(index->Add(id, Image(op.image), {}).has_value());
+      } else {
+        EXPECT_TRUE(index->Remove(id).has_value());
+      }
+      acknowledged.fetch_add(1);
+    }
+  });
+  int backups = 0, retried = 0;
+  std::vector<size_t> matched;
+  while (acknowledged.load() < ops.size() || backups < 2) {
+    const size_t before = acknowledged.load();
+    auto result = BackupIndex(Source(), Out(backups));
+    const size_t after = started.load();
+    if (!result) {
+      ADD_FAILURE() << result.error().ToString();
+      break;
+    }
+    retried += result->attempts > 1;
+    ExpectCompleteCheckpoint(Out(backups));
+    auto copy = ImageIndex::Open(Out(backups));
+    if (!copy) {
+      ADD_FAILURE() << copy.error().ToString();
+      break;
+    }
+    const std::set<std::string> ids = Ids(**copy);
+    EXPECT_EQ(result->images, static_cast<int64_t>(ids.size()));
+    std::optional<size_t> prefix;
+    for (size_t k = before; k <= after && !prefix; ++k) {
+      if (states[k] == ids) prefix = k;
+    }
+    EXPECT_TRUE(prefix.has_value()) << "backup " << backups << " (" << ids.size()
+                                    << " images) equals no state between ops " << before << " and " << after;
+    if (prefix) matched.push_back(*prefix);
+    ++backups;
+  }
+  writer.join();
+  // The test means something only when backups saw different states.
+  EXPECT_GE(std::set<size_t>(matched.begin(), matched.end()).size(), 2u);
+  std::cout << backups << " backups, " << retried << " retried after a checkpoint replaced their files\n";
+}
+
+// A checkpoint that commits after the snapshot and deletes the files it names: the backup takes a new
+// snapshot and holds the writes before it.
+TEST_F(BackupTest, RetriesWhenACheckpointDeletesTheSnapshotsFiles) {
+  IndexOptions options;
+  options.checkpoint_changes = 10;  // the 10 adds below start exactly one checkpoint
+  ASSERT_TRUE(CreateWithImages(options.checkpoint_changes, 10));  // Close checkpoints
+  auto opened = ImageIndex::Open(Source(), options);
+  ASSERT_TRUE(opened.has_value());
+  auto& index = **opened;
+  auto first = Catalogue::Open((fs::path(Source()) / kCatalogueFile).string());
+  ASSERT_TRUE(first.has_value());
+  auto manifest = CheckpointManifest::Parse((*first)->meta().checkpoint);
+  ASSERT_TRUE(manifest.has_value());
+  first->reset();
+  // The postings file: a new checkpoint keeps the older geometry files and replaces only it.
+  fs::path old_postings;
+  for (const auto& file : manifest->files) {
+    if (file.name.starts_with("postings-")) old_postings = fs::path(Source()) / file.name;
+  }
+  ASSERT_TRUE(fs::exists(old_postings));
+
+  BackupOptions backup_options;
+  backup_options.after_snapshot_for_testing = [&](int attempt) {
+    if (attempt != 1) return;
+    for (int i = 10; i < 20; ++i) Add(index, i);
+    // The background checkpoint commits and deletes the previous generation's files.
+    for (int waited = 0; fs::exists(old_postings) && waited < 600; ++waited) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    }
+    ASSERT_FALSE(fs::exists(old_postings)) << "no checkpoint within 60 s";
+  };
+  auto result = BackupIndex(Source(), Out(), backup_options);
+  ASSERT_TRUE(result.has_value()) << result.error().ToString();
+  EXPECT_EQ(result->attempts, 2);
+  EXPECT_GT(result->generation, manifest->generation);
+  ExpectCompleteCheckpoint(Out());
+  auto copy = ImageIndex::Open(Out());
+  ASSERT_TRUE(copy.has_value());
+  EXPECT_EQ(Ids(**copy), Ids(index));
+  EXPECT_EQ(Ids(**copy).size(), 20u);
+}
+
+// The restored copy answers queries as the source does: same ids, same scores (source with a checkpoint
+// and changes after it, so the copy replays them as the source would).
+TEST_F(BackupTest, RestoredCopySearchesLikeTheSource) {
+  IndexOptions options;
+  options.checkpoint_changes = 1000;
+  ASSERT_TRUE(CreateWithImages(options.checkpoint_changes, 30));  // Close checkpoints
+  auto source = ImageIndex::Open(Source(), options);
+  ASSERT_TRUE(source.has_value());
+  for (int i = 30; i < 40; ++i) Add(**source, i);
+  for (int i = 0; i < 5; ++i) ASSERT_TRUE((*source)->Remove("img-" + std::to_string(i * 3)).has_value());
+
+  auto result = BackupIndex(Source(), Out());
+  ASSERT_TRUE(result.has_value()) << result.error().ToString();
+  EXPECT_EQ(result->images, 35);
+  EXPECT_GT(result->generation, 0u);
+  auto copy = ImageIndex::Open(Out(), options);
+  ASSERT_TRUE(copy.has_value()) << copy.error().ToString();
+  EXPECT_EQ(Ids(**copy), Ids(**source));
+  QueryOptions query;
+  query.top_k = 10;
+  query.rerank_depth = 10;
+  for (int q = 100; q < 105; ++q) {
+    auto a = (*source)->Query(Image(q), query);
+    auto b = (*copy)->Query(Image(q), query);
+    ASSERT_TRUE(a.has_value() && b.has_value());
+    ASSERT_EQ(a->results.size(), b->results.size());
+    for (size_t i = 0; i < a->results.size(); ++i) {
+      EXPECT_EQ(a->results[i].id, b->results[i].id);
+      EXPECT_DOUBLE_EQ(a->results[i].score, b->results[i].score);
+    }
+  }
+}
+
+TEST_F(BackupTest, DamagedCheckpointFileIsReportedAndNothingIsLeft) {
+  ASSERT_TRUE(CreateWithImages(IndexOptions{}.checkpoint_changes, 10));  // Close checkpoints
+  fs::path postings;
+  for (const auto& entry : fs::directory_iterator(Source())) {
+    if (entry.path().filename().string().starts_with("postings-")) postings = entry.path();
+  }
+  ASSERT_FALSE(postings.empty());
+  {
+    std::fstream f(postings, std::ios::in | std::ios::out | std::ios::binary);
+    f.seekp(40);
+    f.put('\x5a');
+  }
+  auto result = BackupIndex(Source(), Out());
+  ASSERT_FALSE(result.has_value());
+  EXPECT_EQ(result.error().code, ErrorCode::kCorruptData);
+  EXPECT_NE(result.error().message.find(postings.filename().string()), std::string::npos) << result.error().message;
+  EXPECT_FALSE(fs::exists(Out()));
+  EXPECT_FALSE(fs::exists(Out() + ".tmp"));
+}
+
+// A damaged page that the backup's own reads never touch (the `features` table): the page copy takes it
+// as it is, SQLite's quick_check of the copy finds it.
+TEST_F(BackupTest, DamagedCatalogueIsReportedAndNothingIsLeft) {
+  ASSERT_TRUE(CreateWithImages(IndexOptions{}.checkpoint_changes, 10));
+  const std::string catalogue = (fs::path(Source()) / kCatalogueFile).string();
+  ASSERT_FALSE(fs::exists(catalogue + "-wal"));  // closed: everything is in the file
+  int64_t page = 0, page_size = 0;
+  {
+    sqlite3* db = nullptr;
+    ASSERT_EQ(sqlite3_open_v2(catalogue.c_str(), &db, SQLITE_OPEN_READONLY, nullptr), SQLITE_OK);
+    auto integer = [&](const char* sql) {
+      sqlite3_stmt* stmt = nullptr;
+      sqlite3_prepare_v2(db, sql, -1, &stmt, nullptr);
+      const int64_t value = sqlite3_step(stmt) == SQLITE_ROW ? sqlite3_column_int64(stmt, 0) : 0;
+      sqlite3_finalize(stmt);
+      return value;
+    };
+    page = integer("SELECT rootpage FROM sqlite_master WHERE name = 'features'");
+    page_size = integer("PRAGMA page_size");
+    sqlite3_close(db);
+  }
+  ASSERT_GT(page, 1);
+  {
+    std::fstream f(catalogue, std::ios::in | std::ios::out | std::ios::binary);
+    f.seekp((page - 1) * page_size);
+    const std::string garbage(static_cast<size_t>(page_size), '\xff');
+    f.write(garbage.data(), static_cast<std::streamsize>(garbage.size()));
+  }
+  auto result = BackupIndex(Source(), Out());
+  ASSERT_FALSE(result.has_value());
+  EXPECT_EQ(result.error().code, ErrorCode::kCorruptData) << result.error().ToString();
+  EXPECT_NE(result.error().message.find("quick_check"), std::string::npos) << result.error().message;
+  EXPECT_NE(result.error().message.find(kCatalogueFile), std::string::npos) << result.error().message;
+  EXPECT_FALSE(fs::exists(Out()));
+  EXPECT_FALSE(fs::exists(Out() + ".tmp"));
+}
+
+TEST_F(BackupTest, DestinationMustBeNewOrEmpty) {
+  { auto index = Create({}); }
+  fs::create_directories(Out(1));
+  std::ofstream(fs::path(Out(1)) / "keep") << "x";
+  auto taken = BackupIndex(Source(), Out(1));
+  ASSERT_FALSE(taken.has_value());
+  EXPECT_EQ(taken.error().code, ErrorCode::kAlreadyExists);
+  EXPECT_TRUE(fs::exists(fs::path(Out(1)) / "keep"));
+
+  fs::create_directories(Out(2) + ".tmp");
+  auto leftover = BackupIndex(Source(), Out(2));
+  ASSERT_FALSE(leftover.has_value());
+  EXPECT_EQ(leftover.error().code, ErrorCode::kAlreadyExists);
+  EXPECT_FALSE(fs::exists(Out(2)));
+
+  fs::create_directories(Out(3));  // empty: used
+  ASSERT_TRUE(BackupIndex(Source(), Out(3) + "/").has_value());
+  EXPECT_TRUE(ImageIndex::Open(Out(3)).has_value());
+
+  auto missing = BackupIndex((root_ / "nothing").string(), Out(4));
+  ASSERT_FALSE(missing.has_value());
+  EXPECT_EQ(missing.error().code, ErrorCode::kNotFound);
+  EXPECT_FALSE(fs::exists(Out(4) + ".tmp"));
+}
+
+}  // namespace
+}  // namespace oxbow::index
