@@ -145,7 +145,7 @@ constexpr IntQueryParam kIntQueryParams[] = {
 
 const std::set<std::string>& QueryParamNames() {
   static const std::set<std::string> names = [] {
-    std::set<std::string> n = {"rerank", "bbox", "qe", "min_inliers"};
+    std::set<std::string> n = {"rerank", "bbox", "qe", "min_inliers", "hamming"};
     for (const IntQueryParam& p : kIntQueryParams) n.insert(p.name);
     return n;
   }();
@@ -186,6 +186,11 @@ Result<index::QueryOptions> ParseQueryParams(const Params& params, const index::
     auto parsed = ParseBool("qe", *qe_param);
     if (!parsed) return std::unexpected(parsed.error());
     options.query_expansion = *parsed;
+  }
+  if (const auto* v = Find(params, "hamming")) {
+    auto parsed = ParseBool("hamming", *v);
+    if (!parsed) return std::unexpected(parsed.error());
+    options.hamming = *parsed;
   }
   if (options.query_expansion && options.rerank_depth == 0) {
     // QE averages verified results, so it needs re-ranking. Asked for explicitly, that is an error;

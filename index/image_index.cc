@@ -19,6 +19,7 @@
 #include "index/checkpoint.h"
 #include "index/cow_array.h"
 #include "index/feature_store.h"
+#include "index/hamming.h"
 #include "index/inverted_file.h"
 #include "index/rerank.h"
 #include "sift/base/log.h"
@@ -124,6 +125,7 @@ struct QueryFeatures {
   std::vector<uint32_t> words;        // nearest word of each keypoint
   std::vector<uint32_t> soft_words;   // with multiple assignment: distinct words ascending, else empty
   std::vector<float> soft_tf;         // their weighted counts
+  std::vector<uint64_t> signatures;   // Hamming-embedding signature of each keypoint, or empty
   int width = 0;
   int height = 0;
 };
@@ -171,6 +173,13 @@ std::optional<std::string> QueryOptions::Check() const {
   if (transitive_anchors < 1 || transitive_anchors > 1000) {
     return "transitive_anchors must be in [1, 1000], got " + std::to_string(transitive_anchors);
   }
+  if (hamming_shortlist < 1 || hamming_shortlist > 10000) {
+    return "hamming_shortlist must be in [1, 10000], got " + std::to_string(hamming_shortlist);
+  }
+  if (hamming_threshold < 0 || hamming_threshold > vocab::kHammingBits) {
+    return "hamming_threshold must be in [0, 64], got " + std::to_string(hamming_threshold);
+  }
+  if (!(hamming_sigma > 0 && hamming_sigma <= vocab::kHammingBits)) return std::string("hamming_sigma must be in (0, 64]");
   if (auto e = verify.Check()) return "verify: " + *e;
   return std::nullopt;
 }
@@ -261,6 +270,10 @@ struct ImageIndex::Impl {
   // Makes `next` (a copy of `current`) lose image `n` (`entry`): postings, entry, id, geometry bytes.
   static void Unlink(const Snapshot& current, uint32_t n, const Entry& entry, Snapshot& next);
 
+  // Re-scores the first options.hamming_shortlist of `scored` (tf-idf order) with query.signatures
+  // and sorts them by that score; candidates without signatures follow in their tf-idf order.
+  void RescoreHamming(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
+                      std::vector<ScoredImage>& scored) const;
   // The stages of Run after scoring. Each rewrites `results`; Rerank returns how many it verified.
   size_t Rerank(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
                 const std::vector<ScoredImage>& scored, std::vector<QueryResult>& results) const;
@@ -537,7 +550,7 @@ Result<CheckpointManifest> ImageIndex::Impl::CheckpointFiles(const Snapshot& sna
     const Entry* entry = snap.entries[n].get();
     if (!entry) continue;
     part.push_back({static_cast<uint32_t>(n), entry->features});
-    part_bytes += entry->features.bytes().size();
+    part_bytes += entry->features.bytes().size() + entry->features.signature_bytes().size();
     if (part_bytes >= kGeometryPartBytes) {
       if (auto s = write_part(); !s) return std::unexpected(s.error());
     }
@@ -744,9 +757,16 @@ Result<ImageIndex::Impl::Prepared> ImageIndex::Impl::Prepare(const std::string& 
     quantizer.num_threads = quantizer_threads;
     vocabulary.Quantize(features.descriptors, words, quantizer);
   }
+  // Signatures need the descriptors, which pre-assigned words may come without.
+  std::vector<uint64_t> signatures;
+  if (vocabulary.has_hamming() && features.descriptors.size() == words.size() * vocabulary.dimension()) {
+    signatures.resize(words.size());
+    vocabulary.Signatures(features.descriptors, words, signatures);
+  }
   Prepared out;
   out.entry = std::make_shared<Entry>();
-  out.entry->features = PackedFeatures::Pack(features.keypoints, words, features.image_width, features.image_height);
+  out.entry->features =
+      PackedFeatures::Pack(features.keypoints, words, features.image_width, features.image_height, signatures);
   out.entry->record = ImageRecord{.id = id, .source_path = info.source_path, .width = features.image_width,
                                   .height = features.image_height,
                                   .num_features = static_cast<uint32_t>(features.size()),
@@ -967,6 +987,10 @@ Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const Que
       q.soft_tf.push_back(c);
     }
   }
+  if (options.hamming && impl_->vocabulary.has_hamming()) {
+    q.signatures.resize(q.words.size());
+    impl_->vocabulary.Signatures(descriptors, q.words, q.signatures);
+  }
   timings.quantize_ms = MsSince(t0);
   auto response = impl_->Run(*snap, q, options, timings);
   if (response) response->timings.total_ms = MsSince(t0);
@@ -990,6 +1014,9 @@ Result<QueryResponse> ImageIndex::QuerySimilar(const std::string& id, const Quer
     }
     q.keypoints.push_back(k);
     q.words.push_back(entry->features.word(i));
+    if (options.hamming && !entry->features.signature_bytes().empty()) {
+      q.signatures.push_back(entry->features.signature(i));
+    }
   }
   auto response = impl_->Run(*snap, q, options, QueryTimings{});
   if (response) response->timings.total_ms = MsSince(t0);
@@ -1007,9 +1034,18 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
   const std::vector<QueryTerm> terms = query.soft_words.empty()
                                             ? snap.inverted.QueryVector(BagOfWords::FromWords(query.words))
                                             : snap.inverted.QueryVector(query.soft_words, query.soft_tf);
-  const size_t depth = std::max<size_t>(static_cast<size_t>(options.top_k), static_cast<size_t>(options.rerank_depth));
-  const std::vector<ScoredImage> scored = snap.inverted.Score(terms, depth, &scratch, &response.candidates);
+  const bool hamming = !query.signatures.empty();
+  const size_t depth = std::max({static_cast<size_t>(options.top_k), static_cast<size_t>(options.rerank_depth),
+                                 hamming ? static_cast<size_t>(options.hamming_shortlist) : size_t{0}});
+  std::vector<ScoredImage> scored = snap.inverted.Score(terms, depth, &scratch, &response.candidates);
   timings.score_ms = MsSince(t);
+
+  // 1b. Hamming-embedding re-scoring of the shortlist.
+  if (hamming) {
+    t = Clock::now();
+    RescoreHamming(snap, query, options, scored);
+    timings.hamming_ms = MsSince(t);
+  }
 
   std::vector<QueryResult> results(scored.size());
   for (size_t i = 0; i < scored.size(); ++i) {
@@ -1041,6 +1077,30 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
   response.results = std::move(results);
   response.timings = timings;
   return response;
+}
+
+void ImageIndex::Impl::RescoreHamming(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
+                                      std::vector<ScoredImage>& scored) const {
+  const size_t shortlist = std::min(scored.size(), static_cast<size_t>(options.hamming_shortlist));
+  const QuerySignatures signatures(
+      query.words, query.signatures, [&snap](uint32_t w) { return snap.inverted.Idf(w); },
+      HammingWeighting{.threshold = options.hamming_threshold, .sigma = options.hamming_sigma});
+  std::vector<uint8_t> has_signatures(shortlist, 0);
+  ParallelFor(shortlist, index_options.num_threads, 8, [&](size_t begin, size_t end, int) {
+    for (size_t c = begin; c < end; ++c) {
+      const PackedFeatures& features = snap.entries[scored[c].image]->features;
+      if (features.signature_bytes().empty() && features.size() > 0) continue;
+      has_signatures[c] = 1;
+      scored[c].score = static_cast<float>(signatures.Score(features));
+    }
+  });
+  std::vector<std::pair<ScoredImage, uint8_t>> ranked(shortlist);
+  for (size_t c = 0; c < shortlist; ++c) ranked[c] = {scored[c], has_signatures[c]};
+  std::stable_sort(ranked.begin(), ranked.end(), [](const auto& a, const auto& b) {
+    if (a.second != b.second) return a.second > b.second;
+    return a.second != 0 && a.first.score > b.first.score;
+  });
+  for (size_t c = 0; c < shortlist; ++c) scored[c] = ranked[c].first;
 }
 
 size_t ImageIndex::Impl::Rerank(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,

@@ -171,6 +171,19 @@ struct QueryOptions {
   // Kernel width of the assignment weights, in squared descriptor distance (RootSIFT descriptors have
   // unit L2 norm, so squared distances lie in [0, 4]). (0, 4].
   double assignment_sigma_sq = 0.02;
+  // Hamming-embedding re-scoring (index/hamming.h; Jegou et al. 2008, with burstiness normalisation,
+  // Jegou et al. 2009): the `hamming_shortlist` best tf-idf candidates are re-scored by matching the
+  // query's features to theirs word by word, each match weighted by the similarity of their 64-bit
+  // signatures, and re-ordered by that score before spatial re-ranking. Needs a vocabulary with
+  // Hamming-embedding parameters (`oxbow vocab train --hamming`) and images added with it; ignored
+  // otherwise, and for images without signatures (they keep their tf-idf order after the re-scored ones).
+  bool hamming = false;
+  // Candidates re-scored. [1, 10000].
+  int hamming_shortlist = 1000;
+  // Largest Hamming distance between two signatures that still matches. [0, 64].
+  int hamming_threshold = 24;
+  // Width of the match weight exp(-h^2 / sigma^2), in bits. (0, 64].
+  double hamming_sigma = 16;
   // Verified results averaged into the expanded query. [1, 100].
   int qe_images = 5;
   // Transitive verification, the transitive closure of Chum et al. 2007 ("Total recall"): the first
@@ -239,7 +252,8 @@ struct BatchImage {
 
 struct QueryResult {
   std::string id;
-  double score = 0;            // tf-idf cosine in [0, 1] (of the expanded query for QE-only results)
+  double score = 0;            // tf-idf cosine in [0, 1] (of the expanded query for QE-only results;
+                               // the Hamming-embedding score with QueryOptions::hamming)
   bool verified = false;       // passed spatial verification
   int inliers = 0;             // inlier correspondences (0 when not re-ranked)
   sift::Affine2D db_from_query;  // query-image pixels -> db-image pixels (identity when not verified)
@@ -251,6 +265,7 @@ struct QueryResult {
 struct QueryTimings {
   double quantize_ms = 0;      // descriptors -> words
   double score_ms = 0;         // tf-idf over the inverted file (+ top-R selection)
+  double hamming_ms = 0;       // Hamming-embedding re-scoring of the shortlist (signatures included)
   double verify_ms = 0;        // spatial re-ranking
   double qe_ms = 0;            // query expansion (second scoring)
   double total_ms = 0;
