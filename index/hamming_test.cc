@@ -14,6 +14,7 @@
 #include "index/checkpoint.h"
 #include "index/feature_store.h"
 #include "index/image_index.h"
+#include "index/rerank.h"
 #include "sift/base/log.h"
 
 namespace oxbow::index {
@@ -130,6 +131,34 @@ TEST(PackedSignaturesTest, BlobAndCheckpointRoundTripAndOldFormatsStillLoad) {
     }
   }
   fs::remove_all(dir);
+}
+
+TEST(HammingRerankTest, TentativeMatchesNeedCloseSignatures) {
+  // 30 features of distinct words, the db image a translated copy: they verify with every feature.
+  std::mt19937_64 rng(8);
+  std::vector<sift::Keypoint> query = RandomKeypoints(rng, 30), shifted = query;
+  for (auto& k : shifted) k.x += 5;
+  std::vector<uint32_t> words(30);
+  for (uint32_t i = 0; i < 30; ++i) words[i] = i;
+  std::vector<uint64_t> query_signatures(30), close(30), far(30);
+  for (size_t i = 0; i < 30; ++i) {
+    query_signatures[i] = rng();
+    close[i] = query_signatures[i] ^ 0xFFull;  // 8 bits apart
+    far[i] = ~query_signatures[i];             // 64 bits apart
+  }
+  const std::array<float, 4> region = {0, 0, 640, 480};
+  const QueryGeometry plain(query, words, region);
+  const QueryGeometry hamming(query, words, region, query_signatures, 24);
+  const sift::HoughVerifyOptions verify;
+  const auto db_close = PackedFeatures::Pack(shifted, words, 640, 480, close);
+  const auto db_far = PackedFeatures::Pack(shifted, words, 640, 480, far);
+  EXPECT_TRUE(plain.Verify(db_far, 4, verify).verified);
+  EXPECT_TRUE(hamming.Verify(db_close, 4, verify).verified);
+  EXPECT_EQ(hamming.Verify(db_close, 4, verify).num_inliers, plain.Verify(db_far, 4, verify).num_inliers);
+  EXPECT_FALSE(hamming.Verify(db_far, 4, verify).verified);
+  EXPECT_EQ(hamming.Verify(db_far, 4, verify).num_inliers, 0);
+  // A db image without signatures is matched as without Hamming embedding.
+  EXPECT_TRUE(hamming.Verify(PackedFeatures::Pack(shifted, words, 640, 480), 4, verify).verified);
 }
 
 // Two database images with the query's words, only one with its descriptors (hence signatures): tf-idf

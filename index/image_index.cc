@@ -1110,7 +1110,8 @@ size_t ImageIndex::Impl::Rerank(const Snapshot& snap, const QueryFeatures& query
   const std::array<float, 4> query_region =
       options.region ? *options.region
                      : std::array<float, 4>{0, 0, static_cast<float>(query.width), static_cast<float>(query.height)};
-  const QueryGeometry geometry(query.keypoints, query.words, query_region);
+  const QueryGeometry geometry(query.keypoints, query.words, query_region, query.signatures,
+                               options.hamming_threshold);
   ParallelFor(rerank, index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
     for (size_t c = begin; c < end; ++c) {
       const sift::VerificationResult v =
