@@ -157,6 +157,18 @@ TEST(HammingRerankTest, TentativeMatchesNeedCloseSignatures) {
   EXPECT_EQ(hamming.Verify(db_close, 4, verify).num_inliers, plain.Verify(db_far, 4, verify).num_inliers);
   EXPECT_FALSE(hamming.Verify(db_far, 4, verify).verified);
   EXPECT_EQ(hamming.Verify(db_far, 4, verify).num_inliers, 0);
+  // One bursty word (6 features on each side: more than max_pairs_per_word 4) gives no pair without
+  // signatures; with them, its close pairs count.
+  std::vector<sift::Keypoint> six(query.begin(), query.begin() + 6), six_shifted(shifted.begin(), shifted.begin() + 6);
+  std::vector<uint32_t> six_words(6, 0);
+  std::vector<uint64_t> six_signatures(query_signatures.begin(), query_signatures.begin() + 6),
+      six_close(close.begin(), close.begin() + 6);
+  const QueryGeometry burst_plain(six, six_words, region);
+  const QueryGeometry burst_hamming(six, six_words, region, six_signatures, 24);
+  const auto db_burst = PackedFeatures::Pack(six_shifted, six_words, 640, 480, six_close);
+  EXPECT_FALSE(burst_plain.Verify(db_burst, 4, verify).verified);
+  EXPECT_TRUE(burst_hamming.Verify(db_burst, 4, verify).verified);
+  EXPECT_EQ(burst_hamming.Verify(db_burst, 4, verify).num_inliers, 6);
   // A db image without signatures is matched as without Hamming embedding.
   EXPECT_TRUE(hamming.Verify(PackedFeatures::Pack(shifted, words, 640, 480), 4, verify).verified);
 }

@@ -1038,14 +1038,9 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
   const size_t depth = std::max({static_cast<size_t>(options.top_k), static_cast<size_t>(options.rerank_depth),
                                  hamming ? static_cast<size_t>(options.hamming_shortlist) : size_t{0}});
   std::vector<ScoredImage> scored = snap.inverted.Score(terms, depth, &scratch, &response.candidates);
-  timings.score_ms = MsSince(t);
-
   // 1b. Hamming-embedding re-scoring of the shortlist.
-  if (hamming) {
-    t = Clock::now();
-    RescoreHamming(snap, query, options, scored);
-    timings.hamming_ms = MsSince(t);
-  }
+  if (hamming) RescoreHamming(snap, query, options, scored);
+  timings.score_ms = MsSince(t);
 
   std::vector<QueryResult> results(scored.size());
   for (size_t i = 0; i < scored.size(); ++i) {

@@ -208,7 +208,8 @@ struct QueryOptions {
   // (negatives) to transitive_attempts verifications each. [1, 1000].
   int transitive_attempts = 2;
   // A shared word contributes all its query x image feature pairs as tentative matches when both sides
-  // have at most this many features with that word; burstier words are skipped. [1, 100].
+  // have at most this many features with that word; burstier words are skipped (not with Hamming
+  // embedding, whose signatures filter the pairs instead). [1, 100].
   int max_pairs_per_word = 4;
   // Verifier settings (sift/verify.h); min_inliers decides what counts as verified.
   sift::HoughVerifyOptions verify;
@@ -263,9 +264,9 @@ struct QueryResult {
 
 // Wall time of each stage of a query, milliseconds.
 struct QueryTimings {
-  double quantize_ms = 0;      // descriptors -> words
-  double score_ms = 0;         // tf-idf over the inverted file (+ top-R selection)
-  double hamming_ms = 0;       // Hamming-embedding re-scoring of the shortlist (signatures included)
+  double quantize_ms = 0;      // descriptors -> words (and Hamming-embedding signatures)
+  double score_ms = 0;         // tf-idf over the inverted file (+ top-R selection), and with
+                               // QueryOptions::hamming the re-scoring of the shortlist
   double verify_ms = 0;        // spatial re-ranking
   double qe_ms = 0;            // query expansion (second scoring)
   double total_ms = 0;

@@ -57,7 +57,7 @@ sift::VerificationResult QueryGeometry::Verify(const PackedFeatures& db, int max
                               run_words_.begin());
       const size_t i = run_begin_[r];
       const size_t cq = run_begin_[r + 1] - i, cd = j2 - j;
-      if (cq <= limit && cd <= limit && hamming) {
+      if (hamming) {
         // Pairs within the threshold, one-to-one closest first (ties in (query, db) index order).
         const auto distance = static_cast<float>(cq * cd);
         close.clear();

@@ -11,7 +11,9 @@
 //
 // With Hamming-embedding signatures on both sides (QueryOptions::hamming), a word's pairs are first
 // filtered by the signatures' Hamming distance (at most the threshold: Jegou et al. 2008 use the same
-// test to reject tentative matches before verification), then made one-to-one closest signatures first.
+// test to reject tentative matches before verification), then made one-to-one closest signatures first;
+// bursty words are not skipped then, since the filter keeps only their plausible pairs (measured on
+// groups_hard + distractors, Hamming search without QE: mAP 0.615 -> 0.620, README).
 //
 // Thread safety: a QueryGeometry is immutable after construction; Verify may run concurrently (its
 // scratch buffers are thread-local).
