@@ -269,5 +269,62 @@ TEST_F(HammingIndexTest, SignaturesDecideBetweenImagesWithTheSameWords) {
   }
 }
 
+TEST_F(HammingIndexTest, QueryExpansionRanksByTheSignaturesOfTheVerifiedRegions) {
+  const auto centroids = vocabulary_->centroids();
+  std::mt19937_64 rng(21);
+  std::normal_distribution<float> tiny(0, 0.001f);
+  const auto near = [&](std::vector<float> d) {
+    for (float& v : d) v += tiny(rng);
+    return d;
+  };
+  const std::vector<float> query = Around(centroids.first(20 * kDim), 1, 300);          // words 0..19
+  const std::vector<float> region = Around(centroids.subspan(20 * kDim, 20 * kDim), 1, 301);  // words 20..39
+  // Both candidates share words 0..4 with the query through unrelated descriptors (tf-idf finds them,
+  // neither is like the query), and words 20..39 with the verified image: "expanded" with its very
+  // descriptors, "unrelated" with others.
+  const std::vector<float> weak_a = Around(centroids.first(5 * kDim), 1, 302);
+  const std::vector<float> weak_b = Around(centroids.first(5 * kDim), 1, 303);
+  std::vector<float> expanded = weak_a, unrelated = weak_b;
+  const std::vector<float> region_copy = near(region), other_region = Around(centroids.subspan(20 * kDim, 20 * kDim), 1, 304);
+  expanded.insert(expanded.end(), region_copy.begin(), region_copy.end());
+  unrelated.insert(unrelated.end(), other_region.begin(), other_region.end());
+  // The verified image: the query's features at the query's keypoints shifted, plus words 20..39.
+  sift::FeatureSet q = Image(query, 9);
+  sift::FeatureSet verified = q;
+  verified.descriptors = near(query);
+  for (auto& k : verified.keypoints) k.x += 3;
+  verified.descriptors.insert(verified.descriptors.end(), region.begin(), region.end());
+  const auto extra = RandomKeypoints(rng, 20);
+  verified.keypoints.insert(verified.keypoints.end(), extra.begin(), extra.end());
+  auto index = ImageIndex::Create(dir_.string(), *vocabulary_, "test-extractor/1");
+  ASSERT_TRUE(index) << index.error().ToString();
+  ASSERT_TRUE((*index)->Add("unrelated", Image(unrelated, 1), {}));  // first: wins ties
+  ASSERT_TRUE((*index)->Add("expanded", Image(expanded, 2), {}));
+  ASSERT_TRUE((*index)->Add("verified", verified, {}));
+  for (int i = 0; i < 3; ++i) {
+    ASSERT_TRUE((*index)->Add("filler" + std::to_string(i),
+                              Image(Around(centroids.subspan((40 + 5 * i) * kDim, 5 * kDim), 2, i), 30 + i), {}));
+  }
+  QueryOptions options;
+  options.top_k = 3;
+  options.transitive_depth = 0;
+  options.hamming = true;
+  options.query_expansion = false;
+  auto plain = (*index)->Query(q, options);
+  ASSERT_TRUE(plain);
+  ASSERT_EQ(plain->results.size(), 3u);
+  EXPECT_EQ(plain->results[0].id, "verified");
+  EXPECT_TRUE(plain->results[0].verified);
+  EXPECT_FALSE(plain->results[1].verified);
+  options.query_expansion = true;
+  auto with_qe = (*index)->Query(q, options);
+  ASSERT_TRUE(with_qe);
+  ASSERT_EQ(with_qe->results.size(), 3u);
+  EXPECT_EQ(with_qe->results[0].id, "verified");
+  EXPECT_EQ(with_qe->results[1].id, "expanded");
+  EXPECT_EQ(with_qe->results[2].id, "unrelated");
+  EXPECT_GT(with_qe->results[1].score, with_qe->results[2].score);
+}
+
 }  // namespace
 }  // namespace oxbow::index

@@ -274,6 +274,11 @@ struct ImageIndex::Impl {
   // and sorts them by that score; candidates without signatures follow in their tf-idf order.
   void RescoreHamming(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
                       std::vector<ScoredImage>& scored) const;
+  // Query expansion with Hamming embedding: the unverified results (after the first num_verified)
+  // re-ordered by their Hamming-embedding score against the query's features plus those inside the
+  // matched regions of its first qe_images verified results (with their signatures).
+  void ExpandQueryHamming(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
+                          size_t num_verified, std::vector<QueryResult>& results) const;
   // The stages of Run after scoring. Each rewrites `results`; Rerank returns how many it verified.
   size_t Rerank(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
                 const std::vector<ScoredImage>& scored, std::vector<QueryResult>& results) const;
@@ -1056,7 +1061,11 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
   // 3. Average query expansion over the verified results.
   if (options.query_expansion && num_verified > 0) {
     t = Clock::now();
-    ExpandQuery(snap, terms, options, num_verified, &scratch, results);
+    if (hamming) {
+      ExpandQueryHamming(snap, query, options, num_verified, results);
+    } else {
+      ExpandQuery(snap, terms, options, num_verified, &scratch, results);
+    }
     timings.qe_ms = MsSince(t);
   }
 
@@ -1074,28 +1083,85 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
   return response;
 }
 
+namespace {
+
+// The Hamming-embedding score of each image (by number) against `signatures`, or NaN for an image
+// stored without signatures (pre-assigned words), on `threads` threads.
+std::vector<double> HammingScores(const ImageIndex::Snapshot& snap, const QuerySignatures& signatures,
+                                  std::span<const uint32_t> images, int threads) {
+  std::vector<double> out(images.size());
+  ParallelFor(images.size(), threads, 8, [&](size_t begin, size_t end, int) {
+    for (size_t c = begin; c < end; ++c) {
+      const PackedFeatures& features = snap.entries[images[c]]->features;
+      out[c] = features.signature_bytes().empty() && features.size() > 0 ? std::nan("")
+                                                                        : signatures.Score(features);
+    }
+  });
+  return out;
+}
+
+// Indices 0..n-1 ordered by descending score, NaN (no signatures) last, ties and NaNs in index order.
+std::vector<size_t> ByScore(const std::vector<double>& scores) {
+  std::vector<size_t> order(scores.size());
+  std::iota(order.begin(), order.end(), size_t{0});
+  std::stable_sort(order.begin(), order.end(), [&](size_t a, size_t b) {
+    if (std::isnan(scores[a]) || std::isnan(scores[b])) return !std::isnan(scores[a]) && std::isnan(scores[b]);
+    return scores[a] > scores[b];
+  });
+  return order;
+}
+
+HammingWeighting WeightingOf(const QueryOptions& options) {
+  return {.threshold = options.hamming_threshold, .sigma = options.hamming_sigma};
+}
+
+}  // namespace
+
 void ImageIndex::Impl::RescoreHamming(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
                                       std::vector<ScoredImage>& scored) const {
   const size_t shortlist = std::min(scored.size(), static_cast<size_t>(options.hamming_shortlist));
   const QuerySignatures signatures(
-      query.words, query.signatures, [&snap](uint32_t w) { return snap.inverted.Idf(w); },
-      HammingWeighting{.threshold = options.hamming_threshold, .sigma = options.hamming_sigma});
-  std::vector<uint8_t> has_signatures(shortlist, 0);
-  ParallelFor(shortlist, index_options.num_threads, 8, [&](size_t begin, size_t end, int) {
-    for (size_t c = begin; c < end; ++c) {
-      const PackedFeatures& features = snap.entries[scored[c].image]->features;
-      if (features.signature_bytes().empty() && features.size() > 0) continue;
-      has_signatures[c] = 1;
-      scored[c].score = static_cast<float>(signatures.Score(features));
+      query.words, query.signatures, [&snap](uint32_t w) { return snap.inverted.Idf(w); }, WeightingOf(options));
+  std::vector<uint32_t> images(shortlist);
+  for (size_t c = 0; c < shortlist; ++c) images[c] = scored[c].image;
+  const std::vector<double> scores = HammingScores(snap, signatures, images, index_options.num_threads);
+  const std::vector<ScoredImage> before(scored.begin(), scored.begin() + static_cast<std::ptrdiff_t>(shortlist));
+  const std::vector<size_t> order = ByScore(scores);
+  for (size_t c = 0; c < shortlist; ++c) {
+    scored[c] = before[order[c]];
+    if (!std::isnan(scores[order[c]])) scored[c].score = static_cast<float>(scores[order[c]]);
+  }
+}
+
+void ImageIndex::Impl::ExpandQueryHamming(const Snapshot& snap, const QueryFeatures& query,
+                                          const QueryOptions& options, size_t num_verified,
+                                          std::vector<QueryResult>& results) const {
+  std::vector<uint32_t> words = query.words;
+  std::vector<uint64_t> signatures = query.signatures;
+  const size_t used = std::min(num_verified, static_cast<size_t>(options.qe_images));
+  for (size_t c = 0; c < used; ++c) {
+    const PackedFeatures& features = snap.Find(results[c].id)->features;
+    if (features.signature_bytes().empty()) continue;
+    const auto& box = results[c].db_region;
+    for (size_t i = 0; i < features.size(); ++i) {
+      const sift::Keypoint k = features.keypoint(i);
+      if (k.x < box[0] || k.x > box[2] || k.y < box[1] || k.y > box[3]) continue;
+      words.push_back(features.word(i));
+      signatures.push_back(features.signature(i));
     }
-  });
-  std::vector<std::pair<ScoredImage, uint8_t>> ranked(shortlist);
-  for (size_t c = 0; c < shortlist; ++c) ranked[c] = {scored[c], has_signatures[c]};
-  std::stable_sort(ranked.begin(), ranked.end(), [](const auto& a, const auto& b) {
-    if (a.second != b.second) return a.second > b.second;
-    return a.second != 0 && a.first.score > b.first.score;
-  });
-  for (size_t c = 0; c < shortlist; ++c) scored[c] = ranked[c].first;
+  }
+  const QuerySignatures expanded(
+      words, signatures, [&snap](uint32_t w) { return snap.inverted.Idf(w); }, WeightingOf(options));
+  std::vector<uint32_t> images(results.size() - num_verified);
+  for (size_t c = num_verified; c < results.size(); ++c) snap.Find(results[c].id, &images[c - num_verified]);
+  const std::vector<double> scores = HammingScores(snap, expanded, images, index_options.num_threads);
+  const std::vector<QueryResult> unverified(results.begin() + static_cast<std::ptrdiff_t>(num_verified), results.end());
+  const std::vector<size_t> order = ByScore(scores);
+  for (size_t c = 0; c < order.size(); ++c) {
+    QueryResult& r = results[num_verified + c];
+    r = unverified[order[c]];
+    if (!std::isnan(scores[order[c]])) r.score = scores[order[c]];
+  }
 }
 
 size_t ImageIndex::Impl::Rerank(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
