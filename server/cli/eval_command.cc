@@ -247,7 +247,7 @@ void Prepare(const EvalArgs& a, const Config& c, const std::map<std::string, std
     if (a.per_image > 0) args.insert(args.end(), {"--per-image", std::to_string(a.per_image)});
     if (a.iterations > 0) args.insert(args.end(), {"--iterations", std::to_string(a.iterations)});
     if (a.threads > 0) args.insert(args.end(), {"--threads", std::to_string(a.threads)});
-    if (std::find(a.hamming.begin(), a.hamming.end(), "on") != a.hamming.end()) args.push_back("--hamming");
+    if (std::find(a.hamming.begin(), a.hamming.end(), "on") != a.hamming.end()) args.emplace_back("--hamming");
     const auto t0 = Clock::now();
     RunChild(args);
     base->build_vocab_s = std::chrono::duration<double>(Clock::now() - t0).count();

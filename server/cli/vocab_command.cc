@@ -200,19 +200,30 @@ vocab::Vocabulary WithHamming(const vocab::Vocabulary& vocabulary, std::span<con
   return ValueOrExit(vocabulary.WithHamming(sample, args.seed, quantizer));
 }
 
-void RunVocabTrain(const VocabTrainArgs& args) {
-  const vocab::SampleOptions sample = SampleOptionsFrom(args);
-  const vocab::TrainOptions train = TrainOptionsFrom(args);
+// The seeded sample of the inputs' descriptors (at least args.words of them), and the extractor
+// settings they were made with.
+struct Sample {
+  std::vector<float> descriptors;
+  std::string settings;
+};
+Sample SampleDescriptors(const VocabTrainArgs& args) {
+  const vocab::SampleOptions options = SampleOptionsFrom(args);
   const TrainingInputs inputs = CollectInputs(args);
-
-  vocab::DescriptorSampler sampler(sample, sift::kDescriptorDim);
+  vocab::DescriptorSampler sampler(options, sift::kDescriptorDim);
   size_t failures = 0;
-  const std::string settings = ReadDescriptors(
+  Sample out;
+  out.settings = ReadDescriptors(
       args, inputs, 0, 1, [&](const std::string&, std::span<const float> d) { sampler.AddImage(d); }, failures);
   OXBOW_LOG(kInfo) << "sampled " << sampler.size() << " of " << sampler.rows_seen() << " descriptors from "
                    << sampler.images_seen() << " images" << (failures ? " (" + std::to_string(failures) + " unreadable)" : "");
   CheckEnoughDescriptors(sampler.size(), args);
-  const std::vector<float> descriptors = sampler.TakeDescriptors();
+  out.descriptors = sampler.TakeDescriptors();
+  return out;
+}
+
+void RunVocabTrain(const VocabTrainArgs& args) {
+  const vocab::TrainOptions train = TrainOptionsFrom(args);
+  const auto [descriptors, settings] = SampleDescriptors(args);
   vocab::TrainReport report;
   vocab::Vocabulary vocabulary =
       ValueOrExit(vocab::Train(descriptors, sift::kDescriptorDim, args.descriptor, settings, train, &report));
@@ -226,20 +237,13 @@ void RunVocabHamming(VocabTrainArgs args) {
   const vocab::Vocabulary vocabulary = ValueOrExit(vocab::Vocabulary::Read(args.vocab_in));
   args.descriptor = vocabulary.descriptor_kind();
   args.words = 1;  // any sample size will do: no k-means
-  const vocab::SampleOptions sample = SampleOptionsFrom(args);
-  const TrainingInputs inputs = CollectInputs(args);
-  vocab::DescriptorSampler sampler(sample, sift::kDescriptorDim);
-  size_t failures = 0;
-  const std::string settings = ReadDescriptors(
-      args, inputs, 0, 1, [&](const std::string&, std::span<const float> d) { sampler.AddImage(d); }, failures);
+  const auto [descriptors, settings] = SampleDescriptors(args);
   if (!vocabulary.extractor_settings().empty() && settings != vocabulary.extractor_settings()) {
     throw CommandError(ExitCodeFor(ErrorCode::kIncompatible),
                        "the sample was extracted with '" + settings + "', the vocabulary with '" +
                            vocabulary.extractor_settings() + "': give the same image flags");
   }
-  OXBOW_LOG(kInfo) << "sampled " << sampler.size() << " descriptors from " << sampler.images_seen() << " images";
-  CheckEnoughDescriptors(sampler.size(), args);
-  const vocab::Vocabulary out = WithHamming(vocabulary, sampler.descriptors(), args);
+  const vocab::Vocabulary out = WithHamming(vocabulary, descriptors, args);
   OkOrExit(out.Write(args.out));
   std::printf("%s: %zu words with Hamming embedding, fingerprint %016llx\n", args.out.c_str(), out.size(),
               static_cast<unsigned long long>(out.fingerprint()));
