@@ -32,6 +32,12 @@
 //    Geometry is stored per indexed feature in 9 bytes: word (24 bits), x and y quantised to 1/65535 of
 //    the image size (16 bits each), log2 scale in 1/16 octave steps (8 bits), orientation in 1/256 turns
 //    (8 bits).
+//    With QueryOptions::hamming (and an index whose vocabulary has Hamming-embedding parameters, so
+//    every feature carries a 64-bit signature: vocab/vocabulary.h), the best hamming_shortlist tf-idf
+//    candidates are first re-ordered by their Hamming-embedding score (index/hamming.h), tentative
+//    matches must have close signatures (index/rerank.h), and query expansion re-orders the unverified
+//    results by the Hamming score of the query plus the verified regions' features instead of the
+//    averaged tf-idf vector below.
 // 5. Average query expansion (Chum et al. 2007, "Total recall"), optional: the query's tf-idf vector
 //    and those of the first `qe_images` verified results (each restricted to the features inside the
 //    region it matched, all L2-normalised) are averaged and the index is queried again; the verified
