@@ -146,7 +146,7 @@ constexpr IntQueryParam kIntQueryParams[] = {
 
 const std::set<std::string>& QueryParamNames() {
   static const std::set<std::string> names = [] {
-    std::set<std::string> n = {"rerank", "bbox", "qe", "min_inliers", "filter"};
+    std::set<std::string> n = {"rerank", "bbox", "qe", "min_inliers", "filter", "hamming"};
     for (const IntQueryParam& p : kIntQueryParams) n.insert(p.name);
     return n;
   }();
@@ -192,6 +192,11 @@ Result<index::QueryOptions> ParseQueryParams(const Params& params, const index::
     auto parsed = ParseBool("qe", *qe_param);
     if (!parsed) return std::unexpected(parsed.error());
     options.query_expansion = *parsed;
+  }
+  if (const auto* v = Find(params, "hamming")) {
+    auto parsed = ParseBool("hamming", *v);
+    if (!parsed) return std::unexpected(parsed.error());
+    options.hamming = *parsed;
   }
   if (options.query_expansion && options.rerank_depth == 0) {
     // QE averages verified results, so it needs re-ranking. Asked for explicitly, that is an error;

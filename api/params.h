@@ -54,6 +54,7 @@ using Params = std::multimap<std::string, std::string>;
 //   transitive_attempts    [1, 1000]     QueryOptions::transitive_attempts
 //   query_assignments      [1, 8]        QueryOptions::query_assignments
 //   quantizer_probes       [1, 4096]     QueryOptions::quantizer_probes
+//   hamming                bool          QueryOptions::hamming
 //   filter     a JSON object over the image metadata (api/filter.h)  QueryOptions::filter
 // Starts from `defaults`; the result passes QueryOptions::Check().
 [[nodiscard]] Result<index::QueryOptions> ParseQueryParams(const Params& params, const index::QueryOptions& defaults);

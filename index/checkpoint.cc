@@ -18,6 +18,7 @@ namespace {
 
 constexpr char kGeometryMagic[4] = {'O', 'X', 'G', 'E'};
 constexpr uint32_t kGeometryVersion = 1;
+constexpr uint32_t kSignedGeometryVersion = 2;
 constexpr uint32_t kByteOrderMark = 0x01020304;
 constexpr const char* kManifestHeader = "oxbow-checkpoint 1";
 
@@ -29,6 +30,13 @@ struct GeometryEntry {
   uint64_t offset;
 };
 static_assert(sizeof(GeometryEntry) == 24);
+// Version 2's entry: an image's data is its features, then its signatures when `has_signatures` is 1.
+struct SignedGeometryEntry {
+  GeometryEntry entry;
+  uint32_t has_signatures;
+  uint32_t reserved;  // 0
+};
+static_assert(sizeof(SignedGeometryEntry) == 32);
 
 std::string Errno() { return std::strerror(errno); }
 
@@ -231,18 +239,30 @@ void WriteGeometry(std::span<const GeometryImage> images, const ByteSink& sink) 
   const auto put = [&](const auto& value) {
     sink(std::span(reinterpret_cast<const uint8_t*>(&value), sizeof(value)));
   };
+  // Without signatures, version 1 (readable by older builds).
+  const bool any_signed = std::any_of(images.begin(), images.end(), [](const GeometryImage& image) {
+    return !image.features.signature_bytes().empty();
+  });
   sink(std::span(reinterpret_cast<const uint8_t*>(kGeometryMagic), sizeof(kGeometryMagic)));
-  put(kGeometryVersion);
+  put(any_signed ? kSignedGeometryVersion : kGeometryVersion);
   put(kByteOrderMark);
   put(uint64_t{images.size()});
   uint64_t offset = 0;
   for (const GeometryImage& image : images) {
     const GeometryEntry entry{image.number, image.features.width(), image.features.height(),
                               static_cast<uint32_t>(image.features.size()), offset};
-    put(entry);
-    offset += image.features.bytes().size();
+    const bool has_signatures = !image.features.signature_bytes().empty();
+    if (any_signed) {
+      put(SignedGeometryEntry{entry, has_signatures ? 1u : 0u, 0});
+    } else {
+      put(entry);
+    }
+    offset += image.features.bytes().size() + image.features.signature_bytes().size();
   }
-  for (const GeometryImage& image : images) sink(image.features.bytes());
+  for (const GeometryImage& image : images) {
+    sink(image.features.bytes());
+    if (!image.features.signature_bytes().empty()) sink(image.features.signature_bytes());
+  }
 }
 
 Result<std::vector<GeometryImage>> ReadGeometry(const std::shared_ptr<const MappedFile>& file, const std::string& what) {
@@ -257,22 +277,29 @@ Result<std::vector<GeometryImage>> ReadGeometry(const std::shared_ptr<const Mapp
   std::memcpy(&version, bytes.data() + 4, 4);
   std::memcpy(&mark, bytes.data() + 8, 4);
   std::memcpy(&count, bytes.data() + 12, 8);
-  if (version != kGeometryVersion || mark != kByteOrderMark) return corrupt("format version or byte order not readable");
-  if (count > (bytes.size() - kHeader) / sizeof(GeometryEntry)) return corrupt("truncated image table");
-  const size_t data_start = kHeader + count * sizeof(GeometryEntry);
+  if ((version != kGeometryVersion && version != kSignedGeometryVersion) || mark != kByteOrderMark) {
+    return corrupt("format version or byte order not readable");
+  }
+  const size_t entry_bytes = version == kSignedGeometryVersion ? sizeof(SignedGeometryEntry) : sizeof(GeometryEntry);
+  if (count > (bytes.size() - kHeader) / entry_bytes) return corrupt("truncated image table");
+  const size_t data_start = kHeader + count * entry_bytes;
   std::vector<GeometryImage> out;
   out.reserve(count);
   uint64_t expected_offset = 0;
   for (uint64_t i = 0; i < count; ++i) {
-    GeometryEntry e{};
-    std::memcpy(&e, bytes.data() + kHeader + i * sizeof(GeometryEntry), sizeof(e));
-    const uint64_t length = uint64_t{e.count} * kPackedFeatureBytes;
+    SignedGeometryEntry signed_entry{};
+    std::memcpy(&signed_entry, bytes.data() + kHeader + i * entry_bytes, entry_bytes);
+    const GeometryEntry& e = signed_entry.entry;
+    if (signed_entry.has_signatures > 1 || signed_entry.reserved != 0) return corrupt("inconsistent image table");
+    const uint64_t feature_length = uint64_t{e.count} * kPackedFeatureBytes;
+    const uint64_t length = feature_length + (signed_entry.has_signatures != 0 ? uint64_t{e.count} * kSignatureBytes : 0);
     if (e.offset != expected_offset || length > bytes.size() - data_start - e.offset ||
         (!out.empty() && e.number <= out.back().number)) {
       return corrupt("inconsistent image table");
     }
     expected_offset += length;
-    auto features = PackedFeatures::View(bytes.subspan(data_start + e.offset, length), e.width, e.height, file,
+    const std::span<const uint8_t> data = bytes.subspan(data_start + e.offset, length);
+    auto features = PackedFeatures::View(data.first(feature_length), data.subspan(feature_length), e.width, e.height, file,
                                          "image number " + std::to_string(e.number) + " in " + what);
     if (!features) return std::unexpected(features.error());
     out.push_back({e.number, std::move(*features)});

@@ -9,7 +9,9 @@
 //                                        (parts of at most kGeometryPartBytes, verified in parallel)
 // A geometry file: magic "OXGE", u32 format version, u32 byte-order mark 0x01020304, u64 image count,
 // then per image {u32 number, i32 width, i32 height, u32 feature count, u64 byte offset}, then the
-// packed features (PackedFeatures::bytes()) back to back. Little-endian.
+// packed features (PackedFeatures::bytes()) back to back. Little-endian. Version 2, written when an
+// image has Hamming-embedding signatures, adds {u32 has signatures (0 or 1), u32 0} to each image's
+// entry, and an image's data is its packed features followed by its PackedFeatures::signature_bytes().
 //
 // The manifest (CheckpointManifest::Format(), stored in catalogue meta key `checkpoint`) names the
 // generation, the high water (every image number up to it is covered: the catalogue's rows up to it

@@ -12,6 +12,7 @@ namespace {
 
 constexpr char kMagic[4] = {'O', 'X', 'F', 'T'};
 constexpr uint32_t kBlobVersion = 1;
+constexpr uint32_t kSignedBlobVersion = 2;
 constexpr size_t kBlobHeaderBytes = 4 + 4 * 5;
 
 inline uint16_t QuantizeCoordinate(float v, int size) {
@@ -22,8 +23,9 @@ inline uint16_t QuantizeCoordinate(float v, int size) {
 }  // namespace
 
 PackedFeatures PackedFeatures::Pack(std::span<const sift::Keypoint> keypoints, std::span<const uint32_t> words,
-                                    int width, int height) {
+                                    int width, int height, std::span<const uint64_t> signatures) {
   OXBOW_CHECK(keypoints.size() == words.size());
+  OXBOW_CHECK(signatures.empty() || signatures.size() == words.size());
   OXBOW_CHECK(width > 0 && height > 0);
   // By word, ties in input order: sorting (word, position) keys as integers is that stable order and
   // several times faster than a stable sort of positions through the words.
@@ -33,10 +35,13 @@ PackedFeatures PackedFeatures::Pack(std::span<const sift::Keypoint> keypoints, s
   PackedFeatures out;
   out.width_ = width;
   out.height_ = height;
-  auto storage = std::make_shared<std::vector<uint8_t>>(words.size() * kPackedFeatureBytes);
-  out.bytes_ = *storage;
+  const size_t feature_bytes = words.size() * kPackedFeatureBytes;
+  auto storage = std::make_shared<std::vector<uint8_t>>(feature_bytes + signatures.size() * kSignatureBytes);
+  out.bytes_ = std::span<const uint8_t>(*storage).first(feature_bytes);
+  out.signature_bytes_ = std::span<const uint8_t>(*storage).subspan(feature_bytes);
   out.storage_ = storage;
   uint8_t* p = storage->data();
+  uint8_t* signature = storage->data() + feature_bytes;
   for (const uint64_t key : order) {
     const auto i = static_cast<uint32_t>(key);
     const uint32_t w = words[i];
@@ -59,6 +64,8 @@ PackedFeatures PackedFeatures::Pack(std::span<const sift::Keypoint> keypoints, s
     p[7] = static_cast<uint8_t>(s);
     p[8] = static_cast<uint8_t>(o);
     p += kPackedFeatureBytes;
+    if (signatures.empty()) continue;
+    for (size_t b = 0; b < kSignatureBytes; ++b) *signature++ = static_cast<uint8_t>(signatures[i] >> (8 * b));
   }
   return out;
 }
@@ -111,12 +118,15 @@ BagOfWords PackedFeatures::BagInside(const std::array<float, 4>& box) const {
 std::vector<uint8_t> PackedFeatures::Serialize() const {
   io::ByteWriter writer;
   for (char c : kMagic) writer.Put<char>(c);
-  writer.Put<uint32_t>(kBlobVersion);
+  const bool signed_features = !signature_bytes_.empty();
+  std::vector<uint8_t> body(bytes_.begin(), bytes_.end());
+  body.insert(body.end(), signature_bytes_.begin(), signature_bytes_.end());
+  writer.Put<uint32_t>(signed_features ? kSignedBlobVersion : kBlobVersion);
   writer.Put<int32_t>(width_);
   writer.Put<int32_t>(height_);
   writer.Put<uint32_t>(static_cast<uint32_t>(size()));
-  writer.Put<uint32_t>(io::Crc32(bytes_));
-  writer.PutArray<uint8_t>(bytes_);
+  writer.Put<uint32_t>(io::Crc32(body));
+  writer.PutArray<uint8_t>(body);
   return writer.Release();
 }
 
@@ -128,25 +138,29 @@ Result<PackedFeatures> PackedFeatures::Deserialize(std::span<const uint8_t> blob
   if (!std::equal(kMagic, kMagic + 4, blob.begin())) return corrupt("not an oxbow feature record (bad magic)");
   io::ByteReader reader(blob.subspan(4), what);
   const uint32_t version = *reader.Get<uint32_t>();
-  if (version != kBlobVersion) {
+  if (version != kBlobVersion && version != kSignedBlobVersion) {
     return Fail(ErrorCode::kIncompatible, "features of " + what + " have format version " +
-                                              std::to_string(version) + "; this build reads version " +
-                                              std::to_string(kBlobVersion));
+                                              std::to_string(version) + "; this build reads versions " +
+                                              std::to_string(kBlobVersion) + " and " +
+                                              std::to_string(kSignedBlobVersion));
   }
+  const size_t per_feature = kPackedFeatureBytes + (version == kSignedBlobVersion ? kSignatureBytes : 0);
   PackedFeatures out;
   out.width_ = *reader.Get<int32_t>();
   out.height_ = *reader.Get<int32_t>();
   const uint32_t count = *reader.Get<uint32_t>();
   const uint32_t crc = *reader.Get<uint32_t>();
   if (out.width_ <= 0 || out.height_ <= 0) return corrupt("non-positive image size");
-  if (reader.remaining() != uint64_t{count} * kPackedFeatureBytes) {
+  if (reader.remaining() != uint64_t{count} * per_feature) {
     return corrupt("length " + std::to_string(reader.remaining()) + " bytes does not match " +
                    std::to_string(count) + " features");
   }
   auto storage = std::make_shared<std::vector<uint8_t>>(reader.remaining());
   if (!reader.GetArray<uint8_t>(*storage)) return corrupt("truncated");
   if (io::Crc32(*storage) != crc) return corrupt("checksum mismatch");
-  auto viewed = View(*storage, out.width_, out.height_, storage, what);
+  const std::span<const uint8_t> body(*storage);
+  const size_t feature_bytes = size_t{count} * kPackedFeatureBytes;
+  auto viewed = View(body.first(feature_bytes), body.subspan(feature_bytes), out.width_, out.height_, storage, what);
   if (!viewed) return viewed;
   for (size_t i = 1; i < viewed->size(); ++i) {
     if (viewed->word(i - 1) > viewed->word(i)) return corrupt("features not sorted by word");
@@ -154,14 +168,19 @@ Result<PackedFeatures> PackedFeatures::Deserialize(std::span<const uint8_t> blob
   return viewed;
 }
 
-Result<PackedFeatures> PackedFeatures::View(std::span<const uint8_t> bytes, int width, int height,
-                                            std::shared_ptr<const void> storage, const std::string& what) {
+Result<PackedFeatures> PackedFeatures::View(std::span<const uint8_t> bytes, std::span<const uint8_t> signature_bytes,
+                                            int width, int height, std::shared_ptr<const void> storage,
+                                            const std::string& what) {
   auto corrupt = [&](const std::string& why) {
     return Fail(ErrorCode::kCorruptData, "damaged features of " + what + ": " + why);
   };
   if (width <= 0 || height <= 0) return corrupt("non-positive image size");
   if (bytes.size() % kPackedFeatureBytes != 0) return corrupt("length is not a whole number of features");
+  if (!signature_bytes.empty() && signature_bytes.size() != bytes.size() / kPackedFeatureBytes * kSignatureBytes) {
+    return corrupt("signatures do not match the features");
+  }
   PackedFeatures out;
+  out.signature_bytes_ = signature_bytes;
   out.width_ = width;
   out.height_ = height;
   out.bytes_ = bytes;

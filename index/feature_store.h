@@ -12,9 +12,15 @@
 // The quantisation errors are far below the tolerances of the Hough verifier (30 degree, factor 2 bins,
 // 12 px residual), so re-ranking with dequantised keypoints matches re-ranking with the originals.
 //
-// Serialised form (the catalogue BLOB, format version 1): magic "OXFT", u32 version, i32 width,
-// i32 height, u32 count, u32 CRC-32 of the packed bytes, then count * 9 bytes. A BLOB whose magic,
-// version, length or checksum is wrong is refused (kCorruptData / kIncompatible) with a message.
+// Optionally, per feature, its 64-bit Hamming-embedding signature (vocab::Vocabulary::Signatures),
+// kept apart from the 9-byte records (in the same word order) so that code reading geometry only
+// touches the same bytes as without them.
+//
+// Serialised form (the catalogue BLOB): magic "OXFT", u32 version, i32 width, i32 height, u32 count,
+// u32 CRC-32 of everything after the header, then count * 9 bytes; version 2 (features with
+// signatures) then count * 8 bytes of little-endian signatures. Features without signatures are
+// written as version 1, readable by older builds. A BLOB whose magic, version, length or checksum is
+// wrong is refused (kCorruptData / kIncompatible) with a message.
 //
 // Thread safety: immutable after construction; const members are safe from any number of threads.
 #pragma once
@@ -33,16 +39,18 @@
 namespace oxbow::index {
 
 inline constexpr size_t kPackedFeatureBytes = 9;
+inline constexpr size_t kSignatureBytes = 8;
 inline constexpr uint32_t kMaxPackedWord = (1u << 24) - 1;
 
 class PackedFeatures {
  public:
   PackedFeatures() = default;
 
-  // Packs keypoints[i] with words[i] (same length; every word <= kMaxPackedWord; OXBOW_CHECK) for an
-  // image of width x height pixels (> 0). Features are reordered by (word, original order).
+  // Packs keypoints[i] with words[i] and signatures[i] (same length, or no signatures; every word <=
+  // kMaxPackedWord; OXBOW_CHECK) for an image of width x height pixels (> 0). Features are reordered
+  // by (word, original order).
   static PackedFeatures Pack(std::span<const sift::Keypoint> keypoints, std::span<const uint32_t> words,
-                             int width, int height);
+                             int width, int height, std::span<const uint64_t> signatures = {});
 
   size_t size() const { return bytes_.size() / kPackedFeatureBytes; }
   int width() const { return width_; }
@@ -50,6 +58,14 @@ class PackedFeatures {
   uint32_t word(size_t i) const {
     const uint8_t* p = bytes_.data() + i * kPackedFeatureBytes;
     return uint32_t{p[0]} | (uint32_t{p[1]} << 8) | (uint32_t{p[2]} << 16);
+  }
+  bool has_signatures() const { return !signature_bytes_.empty() || bytes_.empty(); }
+  // The Hamming-embedding signature of feature i (has_signatures()).
+  uint64_t signature(size_t i) const {
+    const uint8_t* p = signature_bytes_.data() + i * kSignatureBytes;
+    uint64_t v = 0;
+    for (size_t b = 0; b < kSignatureBytes; ++b) v |= uint64_t{p[b]} << (8 * b);
+    return v;
   }
   // The dequantised keypoint of feature i (response 0, octave 0).
   sift::Keypoint keypoint(size_t i) const;
@@ -60,14 +76,18 @@ class PackedFeatures {
   BagOfWords BagInside(const std::array<float, 4>& box) const;
 
   // Bytes of the packed features (in memory, or in a mapped checkpoint file) + this object.
-  size_t MemoryBytes() const { return bytes_.size() + sizeof(*this); }
+  size_t MemoryBytes() const { return bytes_.size() + signature_bytes_.size() + sizeof(*this); }
 
   // The packed features, count * kPackedFeatureBytes bytes (checkpoint files store them as they are).
   std::span<const uint8_t> bytes() const { return bytes_; }
-  // Features over `bytes` (as bytes() gave them) without copying; `storage` keeps them alive (e.g. a
-  // memory-mapped checkpoint file). kCorruptData when the size or the length is wrong; the bytes are
-  // not read (a mapped file's pages stay on disk until used), so their source must vouch for them.
-  [[nodiscard]] static Result<PackedFeatures> View(std::span<const uint8_t> bytes, int width, int height,
+  // The signatures, count * kSignatureBytes bytes, or none.
+  std::span<const uint8_t> signature_bytes() const { return signature_bytes_; }
+  // Features over `bytes` and `signature_bytes` (as bytes() and signature_bytes() gave them; the
+  // latter may be empty) without copying; `storage` keeps them alive (e.g. a memory-mapped checkpoint
+  // file). kCorruptData when the size or a length is wrong; the bytes are not read (a mapped file's
+  // pages stay on disk until used), so their source must vouch for them.
+  [[nodiscard]] static Result<PackedFeatures> View(std::span<const uint8_t> bytes,
+                                                   std::span<const uint8_t> signature_bytes, int width, int height,
                                                    std::shared_ptr<const void> storage, const std::string& what);
 
   std::vector<uint8_t> Serialize() const;
@@ -79,6 +99,7 @@ class PackedFeatures {
   int height_ = 0;
   std::shared_ptr<const void> storage_;  // owns what bytes_ views (a vector or a mapped file)
   std::span<const uint8_t> bytes_;
+  std::span<const uint8_t> signature_bytes_;
 };
 
 }  // namespace oxbow::index

@@ -19,6 +19,7 @@
 #include "index/checkpoint.h"
 #include "index/cow_array.h"
 #include "index/feature_store.h"
+#include "index/hamming.h"
 #include "index/inverted_file.h"
 #include "index/rerank.h"
 #include "sift/base/log.h"
@@ -122,6 +123,7 @@ struct QueryFeatures {
   std::vector<uint32_t> words;        // nearest word of each keypoint
   std::vector<uint32_t> soft_words;   // with multiple assignment: distinct words ascending, else empty
   std::vector<float> soft_tf;         // their weighted counts
+  std::vector<uint64_t> signatures;   // Hamming-embedding signature of each keypoint, or empty
   int width = 0;
   int height = 0;
 };
@@ -169,6 +171,13 @@ std::optional<std::string> QueryOptions::Check() const {
   if (transitive_anchors < 1 || transitive_anchors > 1000) {
     return "transitive_anchors must be in [1, 1000], got " + std::to_string(transitive_anchors);
   }
+  if (hamming_shortlist < 1 || hamming_shortlist > 10000) {
+    return "hamming_shortlist must be in [1, 10000], got " + std::to_string(hamming_shortlist);
+  }
+  if (hamming_threshold < 0 || hamming_threshold > vocab::kHammingBits) {
+    return "hamming_threshold must be in [0, 64], got " + std::to_string(hamming_threshold);
+  }
+  if (!(hamming_sigma > 0 && hamming_sigma <= vocab::kHammingBits)) return std::string("hamming_sigma must be in (0, 64]");
   if (auto e = verify.Check()) return "verify: " + *e;
   return std::nullopt;
 }
@@ -259,6 +268,15 @@ struct ImageIndex::Impl {
   // Makes `next` (a copy of `current`) lose image `n` (`entry`): postings, entry, id, geometry bytes.
   static void Unlink(const Snapshot& current, uint32_t n, const Entry& entry, Snapshot& next);
 
+  // Re-scores the first options.hamming_shortlist of `scored` (tf-idf order) with query.signatures
+  // and sorts them by that score; candidates without signatures follow in their tf-idf order.
+  void RescoreHamming(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
+                      std::vector<ScoredImage>& scored) const;
+  // Query expansion with Hamming embedding: the unverified results (after the first num_verified)
+  // re-ordered by their Hamming-embedding score against the query's features plus those inside the
+  // matched regions of its first qe_images verified results (with their signatures).
+  void ExpandQueryHamming(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
+                          size_t num_verified, std::vector<QueryResult>& results) const;
   // The stages of Run after scoring. Each rewrites `results`; Rerank returns how many it verified.
   size_t Rerank(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
                 const std::vector<ScoredImage>& scored, std::vector<QueryResult>& results) const;
@@ -538,7 +556,7 @@ Result<CheckpointManifest> ImageIndex::Impl::CheckpointFiles(const Snapshot& sna
     const Entry* entry = snap.entries[n].get();
     if (!entry) continue;
     part.push_back({static_cast<uint32_t>(n), entry->features});
-    part_bytes += entry->features.bytes().size();
+    part_bytes += entry->features.bytes().size() + entry->features.signature_bytes().size();
     if (part_bytes >= kGeometryPartBytes) {
       if (auto s = write_part(); !s) return std::unexpected(s.error());
     }
@@ -745,9 +763,16 @@ Result<ImageIndex::Impl::Prepared> ImageIndex::Impl::Prepare(const std::string& 
     quantizer.num_threads = quantizer_threads;
     vocabulary.Quantize(features.descriptors, words, quantizer);
   }
+  // Signatures need the descriptors, which pre-assigned words may come without.
+  std::vector<uint64_t> signatures;
+  if (vocabulary.has_hamming() && features.descriptors.size() == words.size() * vocabulary.dimension()) {
+    signatures.resize(words.size());
+    vocabulary.Signatures(features.descriptors, words, signatures);
+  }
   Prepared out;
   out.entry = std::make_shared<Entry>();
-  out.entry->features = PackedFeatures::Pack(features.keypoints, words, features.image_width, features.image_height);
+  out.entry->features =
+      PackedFeatures::Pack(features.keypoints, words, features.image_width, features.image_height, signatures);
   out.entry->record = ImageRecord{.id = id, .source_path = info.source_path, .width = features.image_width,
                                   .height = features.image_height,
                                   .num_features = static_cast<uint32_t>(features.size()),
@@ -968,6 +993,10 @@ Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const Que
       q.soft_tf.push_back(c);
     }
   }
+  if (options.hamming && impl_->vocabulary.has_hamming()) {
+    q.signatures.resize(q.words.size());
+    impl_->vocabulary.Signatures(descriptors, q.words, q.signatures);
+  }
   timings.quantize_ms = MsSince(t0);
   auto response = impl_->Run(*snap, q, options, timings);
   if (response) response->timings.total_ms = MsSince(t0);
@@ -991,6 +1020,9 @@ Result<QueryResponse> ImageIndex::QuerySimilar(const std::string& id, const Quer
     }
     q.keypoints.push_back(k);
     q.words.push_back(entry->features.word(i));
+    if (options.hamming && !entry->features.signature_bytes().empty()) {
+      q.signatures.push_back(entry->features.signature(i));
+    }
   }
   auto response = impl_->Run(*snap, q, options, QueryTimings{});
   if (response) response->timings.total_ms = MsSince(t0);
@@ -1008,12 +1040,16 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
   const std::vector<QueryTerm> terms = query.soft_words.empty()
                                             ? snap.inverted.QueryVector(BagOfWords::FromWords(query.words))
                                             : snap.inverted.QueryVector(query.soft_words, query.soft_tf);
-  const size_t depth = std::max<size_t>(static_cast<size_t>(options.top_k), static_cast<size_t>(options.rerank_depth));
+  const bool hamming = !query.signatures.empty();
+  const size_t depth = std::max({static_cast<size_t>(options.top_k), static_cast<size_t>(options.rerank_depth),
+                                 hamming ? static_cast<size_t>(options.hamming_shortlist) : size_t{0}});
   std::vector<uint8_t> allowed_bitmap;
   if (options.filter) allowed_bitmap = AllowedImages(snap, *options.filter);
   const std::vector<uint8_t>* allowed = options.filter ? &allowed_bitmap : nullptr;
-  const std::vector<ScoredImage> scored =
+  std::vector<ScoredImage> scored =
       snap.inverted.Score(terms, depth, &scratch, &response.candidates, allowed, index_options.num_threads);
+  // 1b. Hamming-embedding re-scoring of the shortlist.
+  if (hamming) RescoreHamming(snap, query, options, scored);
   timings.score_ms = MsSince(t);
 
   std::vector<QueryResult> results(scored.size());
@@ -1030,7 +1066,11 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
   // 3. Average query expansion over the verified results.
   if (options.query_expansion && num_verified > 0) {
     t = Clock::now();
-    ExpandQuery(snap, terms, options, num_verified, allowed, &scratch, results);
+    if (hamming) {
+      ExpandQueryHamming(snap, query, options, num_verified, results);
+    } else {
+      ExpandQuery(snap, terms, options, num_verified, allowed, &scratch, results);
+    }
     timings.qe_ms = MsSince(t);
   }
 
@@ -1060,6 +1100,87 @@ std::vector<uint8_t> ImageIndex::Impl::AllowedImages(const Snapshot& snap, const
   return allowed;
 }
 
+namespace {
+
+// The Hamming-embedding score of each image (by number) against `signatures`, or NaN for an image
+// stored without signatures (pre-assigned words), on `threads` threads.
+std::vector<double> HammingScores(const ImageIndex::Snapshot& snap, const QuerySignatures& signatures,
+                                  std::span<const uint32_t> images, int threads) {
+  std::vector<double> out(images.size());
+  ParallelFor(images.size(), threads, 8, [&](size_t begin, size_t end, int) {
+    for (size_t c = begin; c < end; ++c) {
+      const PackedFeatures& features = snap.entries[images[c]]->features;
+      out[c] = features.signature_bytes().empty() && features.size() > 0 ? std::nan("")
+                                                                        : signatures.Score(features);
+    }
+  });
+  return out;
+}
+
+// Indices 0..n-1 ordered by descending score, NaN (no signatures) last, ties and NaNs in index order.
+std::vector<size_t> ByScore(const std::vector<double>& scores) {
+  std::vector<size_t> order(scores.size());
+  std::iota(order.begin(), order.end(), size_t{0});
+  std::stable_sort(order.begin(), order.end(), [&](size_t a, size_t b) {
+    if (std::isnan(scores[a]) || std::isnan(scores[b])) return !std::isnan(scores[a]) && std::isnan(scores[b]);
+    return scores[a] > scores[b];
+  });
+  return order;
+}
+
+HammingWeighting WeightingOf(const QueryOptions& options) {
+  return {.threshold = options.hamming_threshold, .sigma = options.hamming_sigma};
+}
+
+}  // namespace
+
+void ImageIndex::Impl::RescoreHamming(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
+                                      std::vector<ScoredImage>& scored) const {
+  const size_t shortlist = std::min(scored.size(), static_cast<size_t>(options.hamming_shortlist));
+  const QuerySignatures signatures(
+      query.words, query.signatures, [&snap](uint32_t w) { return snap.inverted.Idf(w); }, WeightingOf(options));
+  std::vector<uint32_t> images(shortlist);
+  for (size_t c = 0; c < shortlist; ++c) images[c] = scored[c].image;
+  const std::vector<double> scores = HammingScores(snap, signatures, images, index_options.num_threads);
+  const std::vector<ScoredImage> before(scored.begin(), scored.begin() + static_cast<std::ptrdiff_t>(shortlist));
+  const std::vector<size_t> order = ByScore(scores);
+  for (size_t c = 0; c < shortlist; ++c) {
+    scored[c] = before[order[c]];
+    if (!std::isnan(scores[order[c]])) scored[c].score = static_cast<float>(scores[order[c]]);
+  }
+}
+
+void ImageIndex::Impl::ExpandQueryHamming(const Snapshot& snap, const QueryFeatures& query,
+                                          const QueryOptions& options, size_t num_verified,
+                                          std::vector<QueryResult>& results) const {
+  std::vector<uint32_t> words = query.words;
+  std::vector<uint64_t> signatures = query.signatures;
+  const size_t used = std::min(num_verified, static_cast<size_t>(options.qe_images));
+  for (size_t c = 0; c < used; ++c) {
+    const PackedFeatures& features = snap.Find(results[c].id)->features;
+    if (features.signature_bytes().empty()) continue;
+    const auto& box = results[c].db_region;
+    for (size_t i = 0; i < features.size(); ++i) {
+      const sift::Keypoint k = features.keypoint(i);
+      if (k.x < box[0] || k.x > box[2] || k.y < box[1] || k.y > box[3]) continue;
+      words.push_back(features.word(i));
+      signatures.push_back(features.signature(i));
+    }
+  }
+  const QuerySignatures expanded(
+      words, signatures, [&snap](uint32_t w) { return snap.inverted.Idf(w); }, WeightingOf(options));
+  std::vector<uint32_t> images(results.size() - num_verified);
+  for (size_t c = num_verified; c < results.size(); ++c) snap.Find(results[c].id, &images[c - num_verified]);
+  const std::vector<double> scores = HammingScores(snap, expanded, images, index_options.num_threads);
+  const std::vector<QueryResult> unverified(results.begin() + static_cast<std::ptrdiff_t>(num_verified), results.end());
+  const std::vector<size_t> order = ByScore(scores);
+  for (size_t c = 0; c < order.size(); ++c) {
+    QueryResult& r = results[num_verified + c];
+    r = unverified[order[c]];
+    if (!std::isnan(scores[order[c]])) r.score = scores[order[c]];
+  }
+}
+
 size_t ImageIndex::Impl::Rerank(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
                                 const std::vector<ScoredImage>& scored, std::vector<QueryResult>& results) const {
   const size_t rerank = std::min(scored.size(), static_cast<size_t>(options.rerank_depth));
@@ -1067,7 +1188,8 @@ size_t ImageIndex::Impl::Rerank(const Snapshot& snap, const QueryFeatures& query
   const std::array<float, 4> query_region =
       options.region ? *options.region
                      : std::array<float, 4>{0, 0, static_cast<float>(query.width), static_cast<float>(query.height)};
-  const QueryGeometry geometry(query.keypoints, query.words, query_region);
+  const QueryGeometry geometry(query.keypoints, query.words, query_region, query.signatures,
+                               options.hamming_threshold);
   ParallelFor(rerank, index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
     for (size_t c = begin; c < end; ++c) {
       const sift::VerificationResult v =

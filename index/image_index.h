@@ -32,6 +32,12 @@
 //    Geometry is stored per indexed feature in 9 bytes: word (24 bits), x and y quantised to 1/65535 of
 //    the image size (16 bits each), log2 scale in 1/16 octave steps (8 bits), orientation in 1/256 turns
 //    (8 bits).
+//    With QueryOptions::hamming (and an index whose vocabulary has Hamming-embedding parameters, so
+//    every feature carries a 64-bit signature: vocab/vocabulary.h), the best hamming_shortlist tf-idf
+//    candidates are first re-ordered by their Hamming-embedding score (index/hamming.h), tentative
+//    matches must have close signatures (index/rerank.h), and query expansion re-orders the unverified
+//    results by the Hamming score of the query plus the verified regions' features instead of the
+//    averaged tf-idf vector below.
 // 5. Average query expansion (Chum et al. 2007, "Total recall"), optional: the query's tf-idf vector
 //    and those of the first `qe_images` verified results (each restricted to the features inside the
 //    region it matched, all L2-normalised) are averaged and the index is queried again; the verified
@@ -184,6 +190,19 @@ struct QueryOptions {
   // Kernel width of the assignment weights, in squared descriptor distance (RootSIFT descriptors have
   // unit L2 norm, so squared distances lie in [0, 4]). (0, 4].
   double assignment_sigma_sq = 0.02;
+  // Hamming-embedding re-scoring (index/hamming.h; Jegou et al. 2008, with burstiness normalisation,
+  // Jegou et al. 2009): the `hamming_shortlist` best tf-idf candidates are re-scored by matching the
+  // query's features to theirs word by word, each match weighted by the similarity of their 64-bit
+  // signatures, and re-ordered by that score before spatial re-ranking. Needs a vocabulary with
+  // Hamming-embedding parameters (`oxbow vocab train --hamming`) and images added with it; ignored
+  // otherwise, and for images without signatures (they keep their tf-idf order after the re-scored ones).
+  bool hamming = false;
+  // Candidates re-scored. [1, 10000].
+  int hamming_shortlist = 1000;
+  // Largest Hamming distance between two signatures that still matches. [0, 64].
+  int hamming_threshold = 24;
+  // Width of the match weight exp(-h^2 / sigma^2), in bits. (0, 64].
+  double hamming_sigma = 16;
   // Verified results averaged into the expanded query. [1, 100].
   int qe_images = 5;
   // Transitive verification, the transitive closure of Chum et al. 2007 ("Total recall"): the first
@@ -208,7 +227,8 @@ struct QueryOptions {
   // (negatives) to transitive_attempts verifications each. [1, 1000].
   int transitive_attempts = 2;
   // A shared word contributes all its query x image feature pairs as tentative matches when both sides
-  // have at most this many features with that word; burstier words are skipped. [1, 100].
+  // have at most this many features with that word; burstier words are skipped (not with Hamming
+  // embedding, whose signatures filter the pairs instead). [1, 100].
   int max_pairs_per_word = 4;
   // Verifier settings (sift/verify.h); min_inliers decides what counts as verified.
   sift::HoughVerifyOptions verify;
@@ -256,7 +276,8 @@ struct BatchImage {
 
 struct QueryResult {
   std::string id;
-  double score = 0;            // tf-idf cosine in [0, 1] (of the expanded query for QE-only results)
+  double score = 0;            // tf-idf cosine in [0, 1] (of the expanded query for QE-only results;
+                               // the Hamming-embedding score with QueryOptions::hamming)
   bool verified = false;       // passed spatial verification
   int inliers = 0;             // inlier correspondences (0 when not re-ranked)
   sift::Affine2D db_from_query;  // query-image pixels -> db-image pixels (identity when not verified)
@@ -266,8 +287,9 @@ struct QueryResult {
 
 // Wall time of each stage of a query, milliseconds.
 struct QueryTimings {
-  double quantize_ms = 0;      // descriptors -> words
-  double score_ms = 0;         // tf-idf over the inverted file (+ top-R selection)
+  double quantize_ms = 0;      // descriptors -> words (and Hamming-embedding signatures)
+  double score_ms = 0;         // tf-idf over the inverted file (+ top-R selection), and with
+                               // QueryOptions::hamming the re-scoring of the shortlist
   double verify_ms = 0;        // spatial re-ranking
   double qe_ms = 0;            // query expansion (second scoring)
   double total_ms = 0;

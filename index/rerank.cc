@@ -1,15 +1,23 @@
 #include "index/rerank.h"
 
 #include <algorithm>
+#include <bit>
 #include <numeric>
 #include <vector>
 
 namespace oxbow::index {
 
 QueryGeometry::QueryGeometry(std::span<const sift::Keypoint> keypoints, std::span<const uint32_t> words,
-                             const std::array<float, 4>& region)
-    : keypoints_(keypoints), words_(words), order_(words.size()), region_(region) {
+                             const std::array<float, 4>& region, std::span<const uint64_t> signatures,
+                             int hamming_threshold)
+    : keypoints_(keypoints),
+      words_(words),
+      signatures_(signatures),
+      hamming_threshold_(hamming_threshold),
+      order_(words.size()),
+      region_(region) {
   OXBOW_CHECK(keypoints.size() == words.size());
+  OXBOW_CHECK(signatures.empty() || signatures.size() == words.size());
   std::iota(order_.begin(), order_.end(), 0u);
   std::stable_sort(order_.begin(), order_.end(), [&](uint32_t a, uint32_t b) { return words_[a] < words_[b]; });
   for (uint32_t i = 0; i < order_.size(); ++i) {
@@ -31,7 +39,10 @@ sift::VerificationResult QueryGeometry::Verify(const PackedFeatures& db, int max
   // Scratch reused by every call on this thread: a re-ranking pass verifies hundreds of candidates.
   thread_local std::vector<sift::Match> matches;
   thread_local std::vector<sift::Keypoint> db_keypoints;
+  thread_local std::vector<std::array<uint32_t, 3>> close;  // Hamming distance, query k, db k of a word's pairs
+  thread_local std::vector<uint8_t> query_used, db_used;
   matches.clear();
+  const bool hamming = !signatures_.empty() && !db.signature_bytes().empty();
   const size_t nd = db.size();
   const auto limit = static_cast<size_t>(max_pairs_per_word);
   const size_t bitmap_words = has_word_.size() * 64;
@@ -46,7 +57,25 @@ sift::VerificationResult QueryGeometry::Verify(const PackedFeatures& db, int max
                               run_words_.begin());
       const size_t i = run_begin_[r];
       const size_t cq = run_begin_[r + 1] - i, cd = j2 - j;
-      if (cq <= limit && cd <= limit) {
+      if (hamming) {
+        // Pairs within the threshold, one-to-one closest first (ties in (query, db) index order).
+        const auto distance = static_cast<float>(cq * cd);
+        close.clear();
+        for (size_t a = 0; a < cq; ++a) {
+          for (size_t b = 0; b < cd; ++b) {
+            const auto h = static_cast<uint32_t>(std::popcount(signatures_[order_[i + a]] ^ db.signature(j + b)));
+            if (h <= static_cast<uint32_t>(hamming_threshold_)) close.push_back({h, static_cast<uint32_t>(a), static_cast<uint32_t>(b)});
+          }
+        }
+        std::sort(close.begin(), close.end());
+        query_used.assign(cq, 0);
+        db_used.assign(cd, 0);
+        for (const auto& [h, a, b] : close) {
+          if (query_used[a] != 0 || db_used[b] != 0) continue;
+          query_used[a] = db_used[b] = 1;
+          matches.push_back({order_[i + a], static_cast<uint32_t>(j + b), distance});
+        }
+      } else if (cq <= limit && cd <= limit) {
         // The word's cq x cd pairs made one-to-one, as sift::EnforceOneToOne does for them: features of
         // different words never share a pair, all pairs of a word have the same "distance" cq * cd
         // (pairs from a word seen once on each side are the most reliable), and its tie-break by

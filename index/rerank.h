@@ -9,6 +9,12 @@
 // options.min_inliers the verifier is skipped (it could not verify). Only the matched db keypoints are
 // dequantised.
 //
+// With Hamming-embedding signatures on both sides (QueryOptions::hamming), a word's pairs are first
+// filtered by the signatures' Hamming distance (at most the threshold: Jegou et al. 2008 use the same
+// test to reject tentative matches before verification), then made one-to-one closest signatures first;
+// bursty words are not skipped then, since the filter keeps only their plausible pairs (measured on
+// groups_hard + distractors, Hamming search without QE: mAP 0.615 -> 0.620, README).
+//
 // Thread safety: a QueryGeometry is immutable after construction; Verify may run concurrently (its
 // scratch buffers are thread-local).
 // Cost of Verify: O(|query| + |candidate|) for the merge join, O(m log m) for m matches, plus the
@@ -28,10 +34,11 @@ namespace oxbow::index {
 
 class QueryGeometry {
  public:
-  // keypoints[i] has word words[i]; region x1,y1,x2,y2 is the query object (the whole image if unknown).
-  // The spans must outlive this object.
+  // keypoints[i] has word words[i] (and signature signatures[i], or no signatures); region x1,y1,x2,y2
+  // is the query object (the whole image if unknown). The spans must outlive this object.
   QueryGeometry(std::span<const sift::Keypoint> keypoints, std::span<const uint32_t> words,
-                const std::array<float, 4>& region);
+                const std::array<float, 4>& region, std::span<const uint64_t> signatures = {},
+                int hamming_threshold = 64);
 
   sift::VerificationResult Verify(const PackedFeatures& candidate, int max_pairs_per_word,
                                   const sift::HoughVerifyOptions& options) const;
@@ -39,6 +46,8 @@ class QueryGeometry {
  private:
   std::span<const sift::Keypoint> keypoints_;
   std::span<const uint32_t> words_;
+  std::span<const uint64_t> signatures_;
+  int hamming_threshold_;
   std::vector<uint32_t> order_;        // feature indices sorted by word
   std::vector<uint32_t> run_words_;    // the distinct words, ascending
   std::vector<uint32_t> run_begin_;    // run_words_[r]'s features: order_[run_begin_[r] .. run_begin_[r + 1])

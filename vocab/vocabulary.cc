@@ -1,16 +1,20 @@
 // Vocabulary: immutable centroids + two-level quantiser, and its file format.
 //
-// File (binary_io.h container, magic "OXBWVOCB", version 1), payload in host byte order (the
+// File (binary_io.h container, magic "OXBWVOCB", version 1 or 2), payload in host byte order (the
 // container records it):
 //   u32 dimension | u64 num_words | u8 descriptor kind (0 SIFT, 1 RootSIFT) | string extractor settings
 //   (u32 length + bytes) | u64 fingerprint | u64 num_lists | u64 offsets[num_lists + 1]
 //   | f32 coarse[num_lists x dimension] | f32 centroids[num_words x dimension]
+// Version 2 (written only by a vocabulary with Hamming-embedding parameters; one without is still
+// written as version 1, readable by older builds) appends
+//   f32 projection[64 x dimension] | f32 medians[num_words x 64]   (medians in stored word order)
 // The words are stored in coarse-list order (list l holds rows offsets[l]..offsets[l+1]), and a word's
 // id is its row, so the quantiser needs no id table and loading is one read plus one copy. The coarse
 // level is stored, not rebuilt, because rebuilding it for 1M words costs minutes.
 #include "vocab/vocabulary.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstring>
 #include <limits>
@@ -25,6 +29,7 @@ namespace oxbow::vocab {
 namespace {
 constexpr char kMagic[] = "OXBWVOCB";
 constexpr uint32_t kVersion = 1;
+constexpr uint32_t kHammingVersion = 2;
 constexpr int kMaxDimension = 4096;
 
 // 64-bit hash of bytes (8-byte words folded through the SplitMix64 finaliser; tail bytewise).
@@ -48,6 +53,45 @@ uint64_t HashBytes(const void* data, size_t size, uint64_t h) {
 bool AllFinite(std::span<const float> values) {
   return std::all_of(values.begin(), values.end(), [](float v) { return std::isfinite(v); });
 }
+
+// kHammingBits x dimension orthonormal rows: Gram-Schmidt over Gaussian rows (SplitMix64 + Box-Muller,
+// so the matrix depends on the seed only, not on the standard library).
+std::vector<float> RandomOrthogonalRows(int dimension, uint64_t seed) {
+  uint64_t state = seed;
+  auto uniform = [&state] {  // in (0, 1]
+    uint64_t z = (state += 0x9E3779B97F4A7C15ull);
+    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
+    z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
+    return (static_cast<double>((z ^ (z >> 31)) >> 11) + 1.0) / 9007199254740992.0;
+  };
+  const auto d = static_cast<size_t>(dimension);
+  std::vector<double> rows(kHammingBits * d);
+  for (size_t r = 0; r < kHammingBits; ++r) {
+    double* row = rows.data() + r * d;
+    for (size_t c = 0; c < d; ++c) {
+      row[c] = std::sqrt(-2.0 * std::log(uniform())) * std::cos(2.0 * 3.14159265358979323846 * uniform());
+    }
+    for (size_t p = 0; p < r; ++p) {  // twice: numerically orthogonal
+      for (int pass = 0; pass < 2; ++pass) {
+        const double* prev = rows.data() + p * d;
+        const double dot = std::inner_product(row, row + d, prev, 0.0);
+        for (size_t c = 0; c < d; ++c) row[c] -= dot * prev[c];
+      }
+    }
+    const double norm = std::sqrt(std::inner_product(row, row + d, row, 0.0));
+    for (size_t c = 0; c < d; ++c) row[c] /= norm;
+  }
+  return {rows.begin(), rows.end()};
+}
+
+// out[0, 64) = projection x descriptor.
+void Project(const std::vector<float>& projection, const float* descriptor, int dimension, float* out) {
+  const auto d = static_cast<size_t>(dimension);
+  for (size_t r = 0; r < kHammingBits; ++r) {
+    const float* row = projection.data() + r * d;
+    out[r] = std::inner_product(row, row + d, descriptor, 0.0f);
+  }
+}
 }  // namespace
 
 struct Vocabulary::State {
@@ -58,6 +102,8 @@ struct Vocabulary::State {
   std::vector<float> centroids;  // k x dimension, in coarse-list order
   std::vector<float> norms;      // k squared norms
   internal::TwoLevelIndex index;
+  std::vector<float> projection;  // Hamming embedding: kHammingBits x dimension, empty without it
+  std::vector<float> medians;     // k x kHammingBits
 
   // Finishes a state whose dimension, kind, settings, centroids, index.coarse and index.offsets are set.
   void Finish() {
@@ -75,7 +121,10 @@ struct Vocabulary::State {
     const auto kind_byte = static_cast<uint8_t>(kind);
     h = HashBytes(&kind_byte, 1, h);
     h = HashBytes(settings.data(), settings.size(), h);
-    return HashBytes(centroids.data(), centroids.size() * sizeof(float), h);
+    h = HashBytes(centroids.data(), centroids.size() * sizeof(float), h);
+    if (projection.empty()) return h;  // the fingerprints of vocabularies without embedding are unchanged
+    h = HashBytes(projection.data(), projection.size() * sizeof(float), h);
+    return HashBytes(medians.data(), medians.size() * sizeof(float), h);
   }
 };
 
@@ -141,11 +190,14 @@ Status Vocabulary::Write(const std::string& path) const {
   w.PutArray(std::span<const uint64_t>(s.index.offsets));
   w.PutArray(std::span<const float>(s.index.coarse));
   w.PutArray(std::span<const float>(s.centroids));
-  return io::WriteContainerFile(path, std::string_view(kMagic, 8), kVersion, 0, w.bytes());
+  if (!has_hamming()) return io::WriteContainerFile(path, std::string_view(kMagic, 8), kVersion, 0, w.bytes());
+  w.PutArray(std::span<const float>(s.projection));
+  w.PutArray(std::span<const float>(s.medians));
+  return io::WriteContainerFile(path, std::string_view(kMagic, 8), kHammingVersion, 0, w.bytes());
 }
 
 Result<Vocabulary> Vocabulary::Read(const std::string& path) {
-  auto container = io::ReadContainerFile(path, std::string_view(kMagic, 8), kVersion, kVersion);
+  auto container = io::ReadContainerFile(path, std::string_view(kMagic, 8), kVersion, kHammingVersion);
   if (!container) return std::unexpected(container.error());
   io::ByteReader r(container->payload, "vocabulary file '" + path + "'");
   auto corrupt = [&](const std::string& what) {
@@ -172,7 +224,9 @@ Result<Vocabulary> Vocabulary::Read(const std::string& path) {
   if (*k < 1 || *lists < 1 || *lists > *k) return corrupt("bad word or list count");
   // Sizes must match the remaining bytes exactly before anything large is allocated.
   const uint64_t d = *dim;
-  const uint64_t expected = (*lists + 1) * 8 + (*lists * d + *k * d) * 4;
+  const bool hamming = container->version == kHammingVersion;
+  const uint64_t expected =
+      (*lists + 1) * 8 + (*lists * d + *k * d) * 4 + (hamming ? (kHammingBits * d + *k * kHammingBits) * 4 : 0);
   if (*k > (uint64_t{1} << 32) - 2 || *lists > *k || r.remaining() != expected)
     return corrupt("payload size does not match its " + std::to_string(*k) + " words and " + std::to_string(*lists) +
                    " lists");
@@ -182,6 +236,13 @@ Result<Vocabulary> Vocabulary::Read(const std::string& path) {
   if (auto s = r.GetArray(std::span<uint64_t>(state->index.offsets)); !s) return std::unexpected(s.error());
   if (auto s = r.GetArray(std::span<float>(state->index.coarse)); !s) return std::unexpected(s.error());
   if (auto s = r.GetArray(std::span<float>(state->centroids)); !s) return std::unexpected(s.error());
+  if (hamming) {
+    state->projection.resize(kHammingBits * d);
+    state->medians.resize(*k * kHammingBits);
+    if (auto s = r.GetArray(std::span<float>(state->projection)); !s) return std::unexpected(s.error());
+    if (auto s = r.GetArray(std::span<float>(state->medians)); !s) return std::unexpected(s.error());
+    if (!AllFinite(state->projection) || !AllFinite(state->medians)) return corrupt("NaN or infinite embedding values");
+  }
   const auto& off = state->index.offsets;
   if (off.front() != 0 || off.back() != *k || !std::is_sorted(off.begin(), off.end()))
     return corrupt("list offsets are not a partition of the words");
@@ -198,6 +259,73 @@ const std::string& Vocabulary::extractor_settings() const { return state_->setti
 uint64_t Vocabulary::fingerprint() const { return state_->fingerprint; }
 std::span<const float> Vocabulary::centroids() const { return state_->centroids; }
 size_t Vocabulary::num_lists() const { return state_->index.num_lists(); }
+bool Vocabulary::has_hamming() const { return !state_->projection.empty(); }
+
+void Vocabulary::Signatures(std::span<const float> descriptors, std::span<const uint32_t> words,
+                            std::span<uint64_t> signatures) const {
+  const State& s = *state_;
+  OXBOW_CHECK(has_hamming(), "the vocabulary has no Hamming-embedding parameters");
+  OXBOW_CHECK(descriptors.size() == words.size() * s.dimension && signatures.size() == words.size(),
+              "one word and one signature per descriptor");
+  std::array<float, kHammingBits> projected{};
+  for (size_t i = 0; i < words.size(); ++i) {
+    OXBOW_CHECK(words[i] < size(), "word outside the vocabulary");
+    Project(s.projection, descriptors.data() + i * s.dimension, s.dimension, projected.data());
+    const float* median = s.medians.data() + size_t{words[i]} * kHammingBits;
+    uint64_t bits = 0;
+    for (int b = 0; b < kHammingBits; ++b) bits |= uint64_t{projected[b] > median[b]} << b;
+    signatures[i] = bits;
+  }
+}
+
+Result<Vocabulary> Vocabulary::WithHamming(std::span<const float> training, uint64_t seed,
+                                           const QuantizerOptions& quantizer) const {
+  const State& s = *state_;
+  if (s.dimension < kHammingBits) {
+    return Fail(ErrorCode::kInvalidArgument, "Hamming embedding needs descriptors of at least 64 dimensions");
+  }
+  if (training.empty() || training.size() % s.dimension != 0) {
+    return Fail(ErrorCode::kInvalidArgument, "the Hamming-embedding sample must be a non-empty n x " +
+                                                 std::to_string(s.dimension) + " matrix");
+  }
+  if (!AllFinite(training)) return Fail(ErrorCode::kInvalidArgument, "the Hamming-embedding sample is not finite");
+  if (auto problem = quantizer.Check()) return Fail(ErrorCode::kInvalidArgument, *problem);
+  const size_t n = training.size() / s.dimension;
+  const size_t k = size();
+  auto state = std::make_shared<State>(s);
+  state->projection = RandomOrthogonalRows(s.dimension, seed);
+  std::vector<uint32_t> words(n);
+  Quantize(training, words, quantizer);
+  // Rows of the sample grouped by word (counting sort), projected once.
+  std::vector<size_t> begin(k + 1, 0);
+  for (const uint32_t w : words) ++begin[w + 1];
+  std::partial_sum(begin.begin(), begin.end(), begin.begin());
+  std::vector<size_t> next(begin.begin(), begin.end() - 1);
+  std::vector<float> projected(n * kHammingBits);
+  for (size_t i = 0; i < n; ++i) {
+    Project(state->projection, training.data() + i * s.dimension, s.dimension,
+            projected.data() + next[words[i]]++ * kHammingBits);
+  }
+  state->medians.resize(k * kHammingBits);
+  std::vector<float> column;
+  for (size_t w = 0; w < k; ++w) {
+    float* median = state->medians.data() + w * kHammingBits;
+    const size_t count = begin[w + 1] - begin[w];
+    if (count == 0) {
+      Project(state->projection, s.centroids.data() + w * s.dimension, s.dimension, median);
+      continue;
+    }
+    for (size_t b = 0; b < kHammingBits; ++b) {
+      column.resize(count);
+      for (size_t r = 0; r < count; ++r) column[r] = projected[(begin[w] + r) * kHammingBits + b];
+      const auto mid = column.begin() + static_cast<std::ptrdiff_t>(count / 2);
+      std::nth_element(column.begin(), mid, column.end());
+      median[b] = *mid;
+    }
+  }
+  state->Finish();
+  return Vocabulary(std::move(state));
+}
 
 void Vocabulary::Quantize(std::span<const float> descriptors, std::span<uint32_t> words,
                           const QuantizerOptions& options) const {

@@ -12,6 +12,13 @@
 // with every coarse centroid, then with the words of the `num_probes` nearest coarse lists. See
 // QuantizerOptions for the measured speed/recall trade-off.
 //
+// Hamming embedding (Jegou, Douze & Schmid 2008, "Hamming embedding and weak geometric consistency"):
+// a vocabulary may carry a random orthogonal projection P (64 x dimension) and, per word, the 64
+// medians of the projected training descriptors assigned to it (WithHamming). A descriptor x of word
+// w then gets the 64-bit signature b_i = [(P x)_i > median_{w,i}]: two descriptors of the same word
+// that are close in descriptor space have a small Hamming distance, which separates true matches
+// from the many unrelated descriptors that share a coarse word.
+//
 // Thread safety: a Vocabulary is immutable after construction; every const member may be called from
 // any number of threads at once. Copies are cheap (shared immutable state).
 #pragma once
@@ -31,6 +38,9 @@ namespace oxbow::vocab {
 
 // Search parameters of Vocabulary::Quantize / QuantizeMulti. They trade speed for the share of
 // descriptors that receive their exact nearest word (recall@1).
+// Bits of a Hamming-embedding signature (one uint64_t per feature).
+inline constexpr int kHammingBits = 64;
+
 struct QuantizerOptions {
   // Threads used inside one Quantize call: 1 = the calling thread only (the right choice when the
   // caller already parallelises over images), 0 = all hardware threads. Range >= 0.
@@ -82,6 +92,21 @@ class Vocabulary {
   uint64_t fingerprint() const;                      // hash of centroids, kind and settings
   std::span<const float> centroids() const;          // k x dimension, row-major
   size_t num_lists() const;                          // coarse lists of the quantiser
+  bool has_hamming() const;                          // carries Hamming-embedding parameters
+
+  // The Hamming-embedding signature of each of n descriptors (n x dimension row-major) given its word
+  // (n entries, each < size()). OXBOW_CHECKs has_hamming() and the sizes. Cost O(n * 64 * dimension).
+  void Signatures(std::span<const float> descriptors, std::span<const uint32_t> words,
+                  std::span<uint64_t> signatures) const;
+
+  // A copy of this vocabulary with Hamming-embedding parameters learnt from `training` (n x dimension
+  // row-major, normally the k-means training sample): a random orthogonal projection drawn from
+  // `seed` and, per word, the medians of the projected descriptors that `quantizer` assigns to it
+  // (a word no descriptor reaches uses its projected centroid). Replaces existing parameters. The
+  // fingerprint changes (it covers them): an index built without signatures does not open with it.
+  // kInvalidArgument for an empty or ragged sample or non-finite values.
+  [[nodiscard]] Result<Vocabulary> WithHamming(std::span<const float> training, uint64_t seed,
+                                               const QuantizerOptions& quantizer = {}) const;
 
   // Nearest word of each of n descriptors (`descriptors` is n x dimension row-major, `words` has n
   // entries). Batched: pass many descriptors per call. Cost about (num_lists + num_probes * k /

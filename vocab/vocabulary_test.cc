@@ -128,7 +128,7 @@ TEST_F(VocabularyTest, RefusesDamagedTruncatedForeignAndNewerFiles) {
   write(std::vector<char>(100, 'a'));
   EXPECT_FALSE(Vocabulary::Read(path));
   // A newer format version.
-  ASSERT_TRUE(io::WriteContainerFile(path, "OXBWVOCB", 2, 0,
+  ASSERT_TRUE(io::WriteContainerFile(path, "OXBWVOCB", 3, 0,
                                      std::vector<uint8_t>(bytes.begin() + io::kHeaderBytes, bytes.end())));
   auto r4 = Vocabulary::Read(path);
   ASSERT_FALSE(r4);

@@ -7,6 +7,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
@@ -54,6 +55,7 @@ struct EvalArgs {
   std::vector<int> rerank = {index::QueryOptions{}.rerank_depth};  // the server's default
   std::vector<std::string> qe = {"on"};
   std::vector<std::string> transitive = {"on"};  // transitive verification (the server's default) on/off
+  std::vector<std::string> hamming = {"off"};     // Hamming-embedding re-scoring on/off
   int top_k = 0;                         // results requested per query; 0 = the whole database (max 10000)
   int sample = 1000000;                  // vocabulary training sample
   int per_image = 0;                     // per-image cap on the training sample; 0 = the command's default
@@ -245,6 +247,7 @@ void Prepare(const EvalArgs& a, const Config& c, const std::map<std::string, std
     if (a.per_image > 0) args.insert(args.end(), {"--per-image", std::to_string(a.per_image)});
     if (a.iterations > 0) args.insert(args.end(), {"--iterations", std::to_string(a.iterations)});
     if (a.threads > 0) args.insert(args.end(), {"--threads", std::to_string(a.threads)});
+    if (std::find(a.hamming.begin(), a.hamming.end(), "on") != a.hamming.end()) args.emplace_back("--hamming");
     const auto t0 = Clock::now();
     RunChild(args);
     base->build_vocab_s = std::chrono::duration<double>(Clock::now() - t0).count();
@@ -277,7 +280,7 @@ std::string BoxParam(const std::array<float, 4>& b) {
 }
 
 void RunHttp(const EvalArgs& a, const eval::Protocol& protocol, const std::map<std::string, std::string>& files,
-             int port, int rerank, bool qe, bool transitive, int top_k, eval::RunResult* run) {
+             int port, int rerank, bool qe, bool transitive, bool hamming, int top_k, eval::RunResult* run) {
   httplib::Client client("127.0.0.1", port);
   client.set_read_timeout(300, 0);
   client.set_write_timeout(60, 0);
@@ -287,7 +290,8 @@ void RunHttp(const EvalArgs& a, const eval::Protocol& protocol, const std::map<s
     if (found == files.end()) throw CommandError(4, "query image '" + q.image + "' not found in " + a.images);
     const std::string& path = found->second;
     std::string target = "/v1/search?top_k=" + std::to_string(top_k) + "&rerank=" + std::to_string(rerank) +
-                         "&qe=" + (qe ? "true" : "false") + (transitive ? "" : "&transitive_depth=0");
+                         "&qe=" + (qe ? "true" : "false") + (transitive ? "" : "&transitive_depth=0") +
+                         "&hamming=" + (hamming ? "true" : "false");
     if (q.bbox && !a.full_image) target += "&bbox=" + BoxParam(*q.bbox);
     const std::string body = ReadBytes(path);
     const auto t0 = Clock::now();
@@ -311,7 +315,8 @@ void RunHttp(const EvalArgs& a, const eval::Protocol& protocol, const std::map<s
 }
 
 void RunInProcess(const EvalArgs& a, const eval::Protocol& protocol, const std::map<std::string, std::string>& files,
-                  const index::ImageIndex& idx, int rerank, bool qe, bool transitive, int top_k, eval::RunResult* run) {
+                  const index::ImageIndex& idx, int rerank, bool qe, bool transitive, bool hamming, int top_k,
+                  eval::RunResult* run) {
   auto options = ValueOrExit(sift::SiftOptions::FromDescription(idx.extractor_settings()));
   options.num_threads = a.threads;
   const auto extractor = ValueOrExit(sift::SiftExtractor::Create(options));
@@ -327,6 +332,7 @@ void RunInProcess(const EvalArgs& a, const eval::Protocol& protocol, const std::
     qo.top_k = top_k;
     qo.rerank_depth = rerank;
     qo.query_expansion = qe;
+    qo.hamming = hamming;
     if (!transitive) qo.transitive_depth = 0;
     if (q.bbox && !a.full_image) qo.region = *q.bbox;
     auto response = ValueOrExit(idx.Query(features, qo));
@@ -437,12 +443,13 @@ void Run(const EvalArgs& a, const std::string& command_line) {
           const bool qe = qe_text == "on", transitive = transitive_text == "on";
           // QE and transitive verification build on verified results: both need re-ranking.
           if ((qe || !transitive) && rerank == 0) continue;
-          for (const std::string& mode : {std::string("http"), std::string("in-process")}) {
+          for (const auto& [hamming_text, mode] : Combinations(a.hamming, {"http", "in-process"})) {
             if (a.mode != "both" && a.mode != mode) continue;
+            const bool hamming = hamming_text == "on";
             eval::RunResult run = base;
             run.label = features + " " + std::to_string(words / 1000) + "k" +
                         (rerank > 0 ? " +rerank" + std::to_string(rerank) : "") +
-                        (rerank > 0 && transitive ? " +tv" : "") + (qe ? " +qe" : "") +
+                        (rerank > 0 && transitive ? " +tv" : "") + (qe ? " +qe" : "") + (hamming ? " +he" : "") +
                         (a.mode == "both" ? " (" + mode + ")" : "");
             run.settings = {{"features", features},
                             {"words", std::to_string(words)},
@@ -452,6 +459,7 @@ void Run(const EvalArgs& a, const std::string& command_line) {
                             {"rerank", std::to_string(rerank)},
                             {"qe", qe ? "on" : "off"},
                             {"transitive", rerank > 0 && transitive ? "on" : "off"},
+                            {"hamming", hamming ? "on" : "off"},
                             {"search_defaults", SearchDefaults()},
                             {"query_region", a.full_image ? "full image" : "ground-truth box"},
                             {"ap", eval::ApDefinitionName(protocol.ap)},
@@ -462,10 +470,10 @@ void Run(const EvalArgs& a, const std::string& command_line) {
                             {"path", mode},
                             {"extractor", stats.vocabulary_size ? "oxbow SIFT (index settings)" : ""}};
             if (mode == "http") {
-              RunHttp(a, protocol, database, server->port(), rerank, qe, transitive, top_k, &run);
+              RunHttp(a, protocol, database, server->port(), rerank, qe, transitive, hamming, top_k, &run);
             } else {
               if (!idx) idx = ValueOrExit(index::ImageIndex::Open(index_dir));
-              RunInProcess(a, protocol, database, *idx, rerank, qe, transitive, top_k, &run);
+              RunInProcess(a, protocol, database, *idx, rerank, qe, transitive, hamming, top_k, &run);
             }
             eval::Summarise(&run);
             OXBOW_LOG(kInfo) << "eval: " << protocol.name << " | " << run.label << " | mAP " << run.map
@@ -526,6 +534,12 @@ void SetUp(CLI::App& app) {
                   "transitive verification settings to compare: off, on (the server's default)")
       ->delimiter(',')
       ->capture_default_str();
+  cmd->add_option("--hamming", args->hamming,
+                  "Hamming-embedding re-scoring settings to compare: off, on (a vocabulary trained here gets the "
+                  "parameters when on is listed; a cached one must have them: 'oxbow vocab hamming')")
+      ->delimiter(',')
+      ->capture_default_str()
+      ->check(CLI::IsMember({"off", "on"}));
   cmd->add_option("--top-k", args->top_k, "results per query (0 = the whole database, at most 10000)");
   cmd->add_option("--sample", args->sample, "descriptors sampled to train each vocabulary")->capture_default_str();
   cmd->add_option("--per-image", args->per_image, "cap of training descriptors per image (0 = vocab train's default)");

@@ -32,6 +32,14 @@ inline void AddSearchFlags(CLI::App* cmd, index::QueryOptions* o) {
       "multiple assignment: nearest words each query descriptor counts for (1 = hard)", 1, 8);
   add("--assignment-sigma-sq", &o->assignment_sigma_sq, "multiple assignment: kernel width (squared distance)", 1e-9,
       4.0);
+  cmd->add_flag("--hamming,!--no-hamming", o->hamming,
+                "Hamming embedding: re-score the tf-idf shortlist by matching signatures (needs a vocabulary from "
+                "'vocab train --hamming' or 'vocab hamming' and images indexed with it)")
+      ->group("Search");
+  add("--hamming-shortlist", &o->hamming_shortlist, "Hamming embedding: tf-idf candidates re-scored", 1, 10000);
+  add("--hamming-threshold", &o->hamming_threshold, "Hamming embedding: largest distance (bits) that matches", 0, 64);
+  add("--hamming-sigma", &o->hamming_sigma, "Hamming embedding: width (bits) of the weight exp(-h^2/sigma^2)", 1e-9,
+      64.0);
   add("--quantizer-probes", &o->quantizer_probes,
       "coarse quantiser lists probed per query descriptor (more: slower, closer to exact)", 1, 4096);
 }

@@ -41,6 +41,8 @@ struct VocabTrainArgs {
   bool mpi = false;
   std::string checkpoint;  // --mpi: k-means checkpoint file ("" = <out>.checkpoint)
   int stop_after = 0;      // --mpi: iterations this run (0 = to the end)
+  bool hamming = false;    // also learn Hamming-embedding parameters from the sample
+  std::string vocab_in;    // `vocab hamming`: the vocabulary to extend
 };
 
 // Files under `dir` (recursively, sorted by path: the sample depends on this order) that `keep` accepts.
@@ -189,24 +191,62 @@ void PrintTrainSummary(const VocabTrainArgs& args, const vocab::Vocabulary& voca
               report.total_seconds, report.seeding_seconds, static_cast<unsigned long long>(vocabulary.fingerprint()));
 }
 
-void RunVocabTrain(const VocabTrainArgs& args) {
-  const vocab::SampleOptions sample = SampleOptionsFrom(args);
-  const vocab::TrainOptions train = TrainOptionsFrom(args);
-  const TrainingInputs inputs = CollectInputs(args);
+vocab::Vocabulary WithHamming(const vocab::Vocabulary& vocabulary, std::span<const float> sample,
+                              const VocabTrainArgs& args) {
+  vocab::QuantizerOptions quantizer;
+  quantizer.num_threads = args.threads;
+  OXBOW_LOG(kInfo) << "learning Hamming-embedding medians from " << sample.size() / sift::kDescriptorDim
+                   << " descriptors";
+  return ValueOrExit(vocabulary.WithHamming(sample, args.seed, quantizer));
+}
 
-  vocab::DescriptorSampler sampler(sample, sift::kDescriptorDim);
+// The seeded sample of the inputs' descriptors (at least args.words of them), and the extractor
+// settings they were made with.
+struct Sample {
+  std::vector<float> descriptors;
+  std::string settings;
+};
+Sample SampleDescriptors(const VocabTrainArgs& args) {
+  const vocab::SampleOptions options = SampleOptionsFrom(args);
+  const TrainingInputs inputs = CollectInputs(args);
+  vocab::DescriptorSampler sampler(options, sift::kDescriptorDim);
   size_t failures = 0;
-  const std::string settings = ReadDescriptors(
+  Sample out;
+  out.settings = ReadDescriptors(
       args, inputs, 0, 1, [&](const std::string&, std::span<const float> d) { sampler.AddImage(d); }, failures);
   OXBOW_LOG(kInfo) << "sampled " << sampler.size() << " of " << sampler.rows_seen() << " descriptors from "
                    << sampler.images_seen() << " images" << (failures ? " (" + std::to_string(failures) + " unreadable)" : "");
   CheckEnoughDescriptors(sampler.size(), args);
-  const std::vector<float> descriptors = sampler.TakeDescriptors();
+  out.descriptors = sampler.TakeDescriptors();
+  return out;
+}
+
+void RunVocabTrain(const VocabTrainArgs& args) {
+  const vocab::TrainOptions train = TrainOptionsFrom(args);
+  const auto [descriptors, settings] = SampleDescriptors(args);
   vocab::TrainReport report;
-  const vocab::Vocabulary vocabulary =
+  vocab::Vocabulary vocabulary =
       ValueOrExit(vocab::Train(descriptors, sift::kDescriptorDim, args.descriptor, settings, train, &report));
+  if (args.hamming) vocabulary = WithHamming(vocabulary, descriptors, args);
   OkOrExit(vocabulary.Write(args.out));
   PrintTrainSummary(args, vocabulary, report);
+}
+
+// `vocab hamming`: an existing vocabulary with Hamming-embedding parameters learnt from a new sample.
+void RunVocabHamming(VocabTrainArgs args) {
+  const vocab::Vocabulary vocabulary = ValueOrExit(vocab::Vocabulary::Read(args.vocab_in));
+  args.descriptor = vocabulary.descriptor_kind();
+  args.words = 1;  // any sample size will do: no k-means
+  const auto [descriptors, settings] = SampleDescriptors(args);
+  if (!vocabulary.extractor_settings().empty() && settings != vocabulary.extractor_settings()) {
+    throw CommandError(ExitCodeFor(ErrorCode::kIncompatible),
+                       "the sample was extracted with '" + settings + "', the vocabulary with '" +
+                           vocabulary.extractor_settings() + "': give the same image flags");
+  }
+  const vocab::Vocabulary out = WithHamming(vocabulary, descriptors, args);
+  OkOrExit(out.Write(args.out));
+  std::printf("%s: %zu words with Hamming embedding, fingerprint %016llx\n", args.out.c_str(), out.size(),
+              static_cast<unsigned long long>(out.fingerprint()));
 }
 
 // The one extractor setting string of all ranks' shares (ranks without inputs have none).
@@ -334,7 +374,14 @@ void SetUpVocab(CLI::App& app) {
       ->capture_default_str()
       ->check(CLI::Range(0, 1000))
       ->group("Distributed (MPI)");
+  train->add_flag("--hamming", args->hamming,
+                  "also learn Hamming-embedding parameters (a random orthogonal projection to 64 bits, seeded by "
+                  "--seed, and per word the medians of the projected sample: Jegou et al. 2008), used by searches "
+                  "with --hamming; adds 256 bytes per word to the file");
   train->callback([args] {
+    if (args->hamming && args->mpi)
+      throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), "--hamming is not available with --mpi: add the "
+                                                                   "parameters afterwards with 'oxbow vocab hamming'");
     if (!args->mpi) {
       if (!args->checkpoint.empty() || args->stop_after != 0)
         throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), "--checkpoint and --stop-after-iterations need --mpi");
@@ -343,6 +390,29 @@ void SetUpVocab(CLI::App& app) {
     }
     RunWithMpi([&](vocab::Communicator& comm) { RunVocabTrainMpi(*args, comm); });
   });
+
+  auto hargs = std::make_shared<VocabTrainArgs>();
+  auto* hamming = cmd->add_subcommand(
+      "hamming",
+      "Add Hamming-embedding parameters to an existing vocabulary (what 'vocab train --hamming' learns):\n"
+      "a random orthogonal projection of descriptors to 64 bits (seeded by --seed) and, per word, the medians of\n"
+      "the projected sample descriptors assigned to it (Jegou et al. 2008). Extract the sample with the image\n"
+      "flags the vocabulary was trained with. The result has a new fingerprint: index images with it.\n"
+      "Example:\n"
+      "  oxbow vocab hamming --vocab paris20k.oxvoc --images photos/ --out paris20k-he.oxvoc");
+  hamming->add_option("--vocab", hargs->vocab_in, "vocabulary to extend (not modified)")->required();
+  auto* hsource = hamming->add_option_group("source", "where the sample comes from (exactly one)");
+  hsource->add_option("--images", hargs->images_dir, "folder of images, searched recursively");
+  hsource->add_option("--list", hargs->list_file, "text file with one image path per line ('#' starts a comment)");
+  hsource->add_option("--features", hargs->features_dir, "folder of .oxfeat feature files, searched recursively");
+  hsource->require_option(1);
+  hamming->add_option("--out", hargs->out, "vocabulary file to write (atomically)")->required();
+  hamming->add_option("--sample", hargs->sample, "maximum sample descriptors in total")->capture_default_str()->check(CLI::PositiveNumber);
+  hamming->add_option("--per-image", hargs->per_image, "maximum descriptors kept per image")->capture_default_str()->check(CLI::PositiveNumber);
+  hamming->add_option("--seed", hargs->seed, "seed of the sampling and of the projection")->capture_default_str();
+  AddThreadsFlag(hamming, &hargs->threads);
+  AddImageFlags(hamming, &hargs->image);
+  hamming->callback([hargs] { RunVocabHamming(*hargs); });
 
   auto path = std::make_shared<std::string>();
   auto* info = cmd->add_subcommand("info", "Print a vocabulary file's words, dimension, descriptor kind, extractor settings, "
@@ -353,10 +423,12 @@ void SetUpVocab(CLI::App& app) {
     std::error_code ec;
     const auto bytes = fs::file_size(*path, ec);
     std::printf("%s\n  words        %zu\n  dimension    %d\n  descriptor   %s\n  extractor    %s\n"
-                "  fingerprint  %016llx\n  lists        %zu (two-level quantiser)\n  file size    %llu bytes (%.1f MiB)\n",
+                "  fingerprint  %016llx\n  lists        %zu (two-level quantiser)\n  hamming      %s\n"
+                "  file size    %llu bytes (%.1f MiB)\n",
                 path->c_str(), v.size(), v.dimension(), sift::DescriptorKindName(v.descriptor_kind()),
                 v.extractor_settings().empty() ? "(unknown)" : v.extractor_settings().c_str(),
-                static_cast<unsigned long long>(v.fingerprint()), v.num_lists(), static_cast<unsigned long long>(bytes),
+                static_cast<unsigned long long>(v.fingerprint()), v.num_lists(),
+                v.has_hamming() ? "64-bit embedding" : "none", static_cast<unsigned long long>(bytes),
                 static_cast<double>(bytes) / (1 << 20));
   });
 }

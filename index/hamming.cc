@@ -1,0 +1,81 @@
+#include "index/hamming.h"
+
+#include <algorithm>
+#include <bit>
+#include <cmath>
+#include <numeric>
+
+namespace oxbow::index {
+namespace {
+// idf^2 of a word, 0 for a word in no image.
+double IdfSquared(const std::function<double(uint32_t)>& idf, uint32_t word) {
+  const double v = idf(word);
+  return std::isfinite(v) ? v * v : 0.0;
+}
+}  // namespace
+
+double HammingWeight(uint64_t a, uint64_t b, const HammingWeighting& weighting) {
+  const int h = std::popcount(a ^ b);
+  if (h > weighting.threshold) return 0;
+  return std::exp(-static_cast<double>(h * h) / (weighting.sigma * weighting.sigma));
+}
+
+QuerySignatures::QuerySignatures(std::span<const uint32_t> words, std::span<const uint64_t> signatures,
+                                 std::function<double(uint32_t)> idf, const HammingWeighting& weighting)
+    : idf_(std::move(idf)), weighting_(weighting) {
+  OXBOW_CHECK(words.size() == signatures.size());
+  std::vector<uint32_t> order(words.size());
+  std::iota(order.begin(), order.end(), 0u);
+  std::stable_sort(order.begin(), order.end(), [&](uint32_t a, uint32_t b) { return words[a] < words[b]; });
+  for (const uint32_t i : order) {
+    words_.push_back(words[i]);
+    signatures_.push_back(signatures[i]);
+    self_ += IdfSquared(idf_, words[i]);
+  }
+}
+
+double QuerySignatures::Score(const PackedFeatures& db) const {
+  OXBOW_CHECK(db.has_signatures(), "Hamming scoring needs the candidate's signatures");
+  thread_local std::vector<double> strength, query_total, db_total;
+  const size_t nq = words_.size(), nd = db.size();
+  double self_db = 0, votes = 0;
+  size_t i = 0;
+  for (size_t j = 0; j < nd;) {
+    const uint32_t w = db.word(j);
+    size_t j2 = j + 1;
+    while (j2 < nd && db.word(j2) == w) ++j2;
+    const double idf2 = IdfSquared(idf_, w);
+    self_db += idf2 * static_cast<double>(j2 - j);
+    while (i < nq && words_[i] < w) ++i;
+    size_t i2 = i;
+    while (i2 < nq && words_[i2] == w) ++i2;
+    if (i2 > i && idf2 > 0) {
+      const size_t cq = i2 - i, cd = j2 - j;
+      strength.assign(cq * cd, 0.0);
+      query_total.assign(cq, 0.0);
+      db_total.assign(cd, 0.0);
+      for (size_t a = 0; a < cq; ++a) {
+        for (size_t b = 0; b < cd; ++b) {
+          const double s = HammingWeight(signatures_[i + a], db.signature(j + b), weighting_);
+          strength[a * cd + b] = s;
+          query_total[a] += s;
+          db_total[b] += s;
+        }
+      }
+      double word_votes = 0;
+      for (size_t a = 0; a < cq; ++a) {
+        for (size_t b = 0; b < cd; ++b) {
+          const double s = strength[a * cd + b];
+          if (s > 0) word_votes += s * s / std::sqrt(query_total[a] * db_total[b]);
+        }
+      }
+      votes += idf2 * word_votes;
+    }
+    i = i2;
+    j = j2;
+  }
+  if (votes <= 0 || self_ <= 0 || self_db <= 0) return 0;
+  return votes / std::sqrt(self_ * self_db);
+}
+
+}  // namespace oxbow::index

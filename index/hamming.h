@@ -1,0 +1,54 @@
+// Hamming-embedding scoring of a candidate image (Jegou, Douze & Schmid 2008, "Hamming embedding and
+// weak geometric consistency for large scale image search"), with intra-image burstiness
+// normalisation (Jegou, Douze & Schmid 2009, "On the burstiness of visual elements").
+//
+// A query feature i and a db feature j of the same word w match with strength
+//   s_ij = exp(-h_ij^2 / sigma^2) when their signatures' Hamming distance h_ij <= threshold, else 0.
+// Burstiness: a feature matching many features of the other image (repeated texture, a word that
+// covers a whole facade) would otherwise vote many times; each match is divided by the geometric mean
+// of the total strengths of its two features in this image pair:
+//   s'_ij = s_ij^2 / sqrt(S_i S_j),  S_i = sum_j s_ij,  S_j = sum_i s_ij,
+// so a one-to-one match keeps s_ij and m equal matches of one feature count sqrt(m) together.
+// The score is  sum_w idf_w^2 sum_ij s'_ij / sqrt(N_q N_d)  with N_x = sum_w idf_w^2 tf_w(x) (the
+// score of an image against itself when each feature matches only itself), in [0, about 1].
+//
+// Thread safety: a QuerySignatures is immutable after construction; Score may run concurrently.
+// Cost of Score: O(|query| + |candidate|) for the merge join, plus O(cq * cd) per shared word.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <span>
+#include <vector>
+
+#include "index/feature_store.h"
+
+namespace oxbow::index {
+
+struct HammingWeighting {
+  int threshold = 24;   // largest Hamming distance that matches, [0, 64]
+  double sigma = 16;    // kernel width in bits, > 0
+};
+
+// The match strength of two signatures (s_ij above).
+double HammingWeight(uint64_t a, uint64_t b, const HammingWeighting& weighting);
+
+class QuerySignatures {
+ public:
+  // words[i] and signatures[i] of each query feature (same length); idf(w) the inverse document
+  // frequency of word w (+infinity or NaN for a word in no image: such words are ignored).
+  QuerySignatures(std::span<const uint32_t> words, std::span<const uint64_t> signatures,
+                  std::function<double(uint32_t)> idf, const HammingWeighting& weighting);
+
+  // The score of `candidate` (which must have signatures). 0 when nothing matches.
+  double Score(const PackedFeatures& candidate) const;
+
+ private:
+  std::vector<uint32_t> words_;       // sorted
+  std::vector<uint64_t> signatures_;  // in words_' order
+  std::function<double(uint32_t)> idf_;
+  HammingWeighting weighting_;
+  double self_ = 0;                   // N_q
+};
+
+}  // namespace oxbow::index

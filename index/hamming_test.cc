@@ -1,0 +1,330 @@
+// Hamming embedding in the index: the match weight, the scoring of index/hamming.h, signatures in the
+// packed features (BLOB version 2, geometry checkpoint version 2, old versions still read), and a
+// query where the signatures decide the ranking.
+#include "index/hamming.h"
+
+#include <gtest/gtest.h>
+
+#include <bit>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <random>
+
+#include "index/checkpoint.h"
+#include "index/feature_store.h"
+#include "index/image_index.h"
+#include "index/rerank.h"
+#include "sift/base/log.h"
+
+namespace oxbow::index {
+namespace {
+
+namespace fs = std::filesystem;
+constexpr int kDim = 128;
+constexpr int kWords = 64;
+
+std::vector<float> RandomUnitRows(size_t rows, uint64_t seed) {
+  std::mt19937_64 rng(seed);
+  std::normal_distribution<float> g(0, 1);
+  std::vector<float> out(rows * kDim);
+  for (size_t r = 0; r < rows; ++r) {
+    double n = 0;
+    for (int d = 0; d < kDim; ++d) n += std::pow(out[r * kDim + d] = g(rng), 2);
+    for (int d = 0; d < kDim; ++d) out[r * kDim + d] /= static_cast<float>(std::sqrt(n));
+  }
+  return out;
+}
+
+std::vector<sift::Keypoint> RandomKeypoints(std::mt19937_64& rng, size_t n) {
+  std::uniform_real_distribution<float> x(0, 600), s(1.5f, 12.0f), o(0, 6.28f);
+  std::vector<sift::Keypoint> out;
+  for (size_t i = 0; i < n; ++i) out.push_back({x(rng), x(rng) * 0.75f, s(rng), o(rng), 1.0f, 0});
+  return out;
+}
+
+TEST(HammingWeightTest, GaussianOfTheDistanceUpToTheThreshold) {
+  const HammingWeighting w{.threshold = 24, .sigma = 16};
+  EXPECT_DOUBLE_EQ(HammingWeight(0xABCDull, 0xABCDull, w), 1.0);
+  EXPECT_NEAR(HammingWeight(0, 0xFFull, w), std::exp(-64.0 / 256), 1e-12);      // h = 8
+  EXPECT_NEAR(HammingWeight(0, 0xFFFFFFull, w), std::exp(-576.0 / 256), 1e-12);  // h = 24: still matches
+  EXPECT_EQ(HammingWeight(0, 0x1FFFFFFull, w), 0.0);                            // h = 25
+  EXPECT_EQ(HammingWeight(0, ~0ull, w), 0.0);
+}
+
+// Features of words `words` with the given signatures, at arbitrary positions.
+PackedFeatures Packed(const std::vector<uint32_t>& words, const std::vector<uint64_t>& signatures) {
+  std::mt19937_64 rng(words.size());
+  return PackedFeatures::Pack(RandomKeypoints(rng, words.size()), words, 640, 480, signatures);
+}
+
+TEST(QuerySignaturesTest, ScoresMatchingSignaturesAndDownWeightsBursts) {
+  const auto idf = [](uint32_t w) { return w == 99 ? std::numeric_limits<double>::infinity() : 1.0 + w; };
+  const HammingWeighting weighting;
+  // Query: words 1, 2, 99 (99 is in no image: ignored).
+  const std::vector<uint32_t> words = {1, 2, 99};
+  const std::vector<uint64_t> signatures = {0x0ull, 0xFFFF0000ull, 0x1ull};
+  const QuerySignatures query(words, signatures, idf, weighting);
+  // The same image scores 1 (each feature matches itself only): N_q = 2^2 + 3^2 = N_d.
+  EXPECT_NEAR(query.Score(Packed({1, 2}, {0x0ull, 0xFFFF0000ull})), 1.0, 1e-12);
+  // Word 2's signature far away: only word 1 matches, 4 / sqrt(13 * 13).
+  EXPECT_NEAR(query.Score(Packed({1, 2}, {0x0ull, 0x0000FFFFull})), 4.0 / 13, 1e-12);
+  // Nothing shared.
+  EXPECT_EQ(query.Score(Packed({3, 4}, {0x0ull, 0x0ull})), 0.0);
+  // A burst: word 1 four times in the db image, all matching the query's one feature exactly. Each match
+  // is s^2 / sqrt(S_i S_j) = 1 / sqrt(4 * 1): 4 matches vote 2 (sqrt(4)), not 4.
+  const double burst = query.Score(Packed({1, 1, 1, 1}, {0, 0, 0, 0}));
+  EXPECT_NEAR(burst, 4.0 * 2.0 / std::sqrt(13.0 * 16.0), 1e-12);
+}
+
+TEST(PackedSignaturesTest, BlobAndCheckpointRoundTripAndOldFormatsStillLoad) {
+  std::mt19937_64 rng(5);
+  const std::vector<uint32_t> words = {7, 3, 7, 1, 3};
+  const std::vector<uint64_t> signatures = {70, 30, 71, 10, 31};
+  const auto keypoints = RandomKeypoints(rng, words.size());
+  const PackedFeatures with = PackedFeatures::Pack(keypoints, words, 640, 480, signatures);
+  const PackedFeatures without = PackedFeatures::Pack(keypoints, words, 640, 480);
+  ASSERT_TRUE(with.has_signatures());
+  EXPECT_TRUE(without.signature_bytes().empty());
+  // Signatures follow their features into word order (ties in input order).
+  const std::vector<uint64_t> sorted = {10, 30, 31, 70, 71};
+  for (size_t i = 0; i < sorted.size(); ++i) EXPECT_EQ(with.signature(i), sorted[i]);
+  EXPECT_EQ(with.MemoryBytes() - without.MemoryBytes(), words.size() * kSignatureBytes);
+
+  const auto blob = with.Serialize();
+  const auto old_blob = without.Serialize();
+  EXPECT_EQ(blob[4], 2);      // version 2 with signatures
+  EXPECT_EQ(old_blob[4], 1);  // version 1 without: what older builds wrote and read
+  EXPECT_EQ(blob.size() - old_blob.size(), words.size() * kSignatureBytes);
+  auto back = PackedFeatures::Deserialize(blob, "test");
+  auto old_back = PackedFeatures::Deserialize(old_blob, "test");
+  ASSERT_TRUE(back && old_back);
+  EXPECT_EQ(back->Words(), with.Words());
+  for (size_t i = 0; i < sorted.size(); ++i) EXPECT_EQ(back->signature(i), sorted[i]);
+  EXPECT_TRUE(old_back->signature_bytes().empty());
+  EXPECT_EQ(old_back->Words(), without.Words());
+  auto damaged = blob;
+  damaged[damaged.size() - 1] ^= 1;  // a signature bit: the checksum covers them
+  EXPECT_EQ(PackedFeatures::Deserialize(damaged, "test").error().code, ErrorCode::kCorruptData);
+
+  // Geometry files: version 1 while no image has signatures, version 2 (mixed images) otherwise.
+  const fs::path dir = fs::temp_directory_path() / ("oxbow_hamming_geometry_" + std::to_string(::getpid()));
+  fs::create_directories(dir);
+  for (const bool signed_images : {false, true}) {
+    std::vector<GeometryImage> images = {{2, without}, {5, signed_images ? with : without}};
+    std::vector<uint8_t> file;
+    WriteGeometry(images, [&](std::span<const uint8_t> b) { file.insert(file.end(), b.begin(), b.end()); });
+    EXPECT_EQ(file[4], signed_images ? 2 : 1);
+    const std::string path = (dir / "geometry.oxck").string();
+    std::ofstream(path, std::ios::binary).write(reinterpret_cast<const char*>(file.data()),
+                                                static_cast<std::streamsize>(file.size()));
+    auto mapped = MappedFile::Open(path);
+    ASSERT_TRUE(mapped);
+    auto read = ReadGeometry(*mapped, "test");
+    ASSERT_TRUE(read) << read.error().ToString();
+    ASSERT_EQ(read->size(), 2u);
+    EXPECT_TRUE((*read)[0].features.signature_bytes().empty());
+    EXPECT_EQ((*read)[1].features.Words(), with.Words());
+    EXPECT_EQ((*read)[1].features.signature_bytes().empty(), !signed_images);
+    if (signed_images) {
+      for (size_t i = 0; i < sorted.size(); ++i) EXPECT_EQ((*read)[1].features.signature(i), sorted[i]);
+    }
+  }
+  fs::remove_all(dir);
+}
+
+TEST(HammingRerankTest, TentativeMatchesNeedCloseSignatures) {
+  // 30 features of distinct words, the db image a translated copy: they verify with every feature.
+  std::mt19937_64 rng(8);
+  std::vector<sift::Keypoint> query = RandomKeypoints(rng, 30), shifted = query;
+  for (auto& k : shifted) k.x += 5;
+  std::vector<uint32_t> words(30);
+  for (uint32_t i = 0; i < 30; ++i) words[i] = i;
+  std::vector<uint64_t> query_signatures(30), close(30), far(30);
+  for (size_t i = 0; i < 30; ++i) {
+    query_signatures[i] = rng();
+    close[i] = query_signatures[i] ^ 0xFFull;  // 8 bits apart
+    far[i] = ~query_signatures[i];             // 64 bits apart
+  }
+  const std::array<float, 4> region = {0, 0, 640, 480};
+  const QueryGeometry plain(query, words, region);
+  const QueryGeometry hamming(query, words, region, query_signatures, 24);
+  const sift::HoughVerifyOptions verify;
+  const auto db_close = PackedFeatures::Pack(shifted, words, 640, 480, close);
+  const auto db_far = PackedFeatures::Pack(shifted, words, 640, 480, far);
+  EXPECT_TRUE(plain.Verify(db_far, 4, verify).verified);
+  EXPECT_TRUE(hamming.Verify(db_close, 4, verify).verified);
+  EXPECT_EQ(hamming.Verify(db_close, 4, verify).num_inliers, plain.Verify(db_far, 4, verify).num_inliers);
+  EXPECT_FALSE(hamming.Verify(db_far, 4, verify).verified);
+  EXPECT_EQ(hamming.Verify(db_far, 4, verify).num_inliers, 0);
+  // One bursty word (6 features on each side: more than max_pairs_per_word 4) gives no pair without
+  // signatures; with them, its close pairs count.
+  std::vector<sift::Keypoint> six(query.begin(), query.begin() + 6), six_shifted(shifted.begin(), shifted.begin() + 6);
+  std::vector<uint32_t> six_words(6, 0);
+  std::vector<uint64_t> six_signatures(query_signatures.begin(), query_signatures.begin() + 6),
+      six_close(close.begin(), close.begin() + 6);
+  const QueryGeometry burst_plain(six, six_words, region);
+  const QueryGeometry burst_hamming(six, six_words, region, six_signatures, 24);
+  const auto db_burst = PackedFeatures::Pack(six_shifted, six_words, 640, 480, six_close);
+  EXPECT_FALSE(burst_plain.Verify(db_burst, 4, verify).verified);
+  EXPECT_TRUE(burst_hamming.Verify(db_burst, 4, verify).verified);
+  EXPECT_EQ(burst_hamming.Verify(db_burst, 4, verify).num_inliers, 6);
+  // A db image without signatures is matched as without Hamming embedding.
+  EXPECT_TRUE(hamming.Verify(PackedFeatures::Pack(shifted, words, 640, 480), 4, verify).verified);
+}
+
+// Two database images with the query's words, only one with its descriptors (hence signatures): tf-idf
+// cannot tell them apart, Hamming embedding ranks the right one first; the index reopens (from its
+// checkpoint and from its BLOBs) with the same signatures.
+class HammingIndexTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    log::SetLevel(log::Level::kWarning);
+    dir_ = fs::temp_directory_path() / ("oxbow_hamming_index_" + std::to_string(::getpid()));
+    fs::remove_all(dir_);
+    auto plain = vocab::Vocabulary::FromCentroids(RandomUnitRows(kWords, 1), kDim, sift::DescriptorKind::kRootSift,
+                                                  "test-extractor/1");
+    ASSERT_TRUE(plain);
+    auto he = plain->WithHamming(Around(plain->centroids(), 50, 9), 3, {.exact = true});
+    ASSERT_TRUE(he);
+    vocabulary_ = std::make_unique<vocab::Vocabulary>(*he);
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+
+  // `per_word` descriptors around each centroid (sigma 0.02 per dimension: they stay in their word).
+  static std::vector<float> Around(std::span<const float> centroids, size_t per_word, uint64_t seed) {
+    std::mt19937_64 rng(seed);
+    std::normal_distribution<float> g(0, 0.02f);
+    std::vector<float> out;
+    for (size_t w = 0; w < centroids.size() / kDim; ++w) {
+      for (size_t i = 0; i < per_word; ++i) {
+        for (int d = 0; d < kDim; ++d) out.push_back(centroids[w * kDim + d] + g(rng));
+      }
+    }
+    return out;
+  }
+  sift::FeatureSet Image(std::vector<float> descriptors, uint64_t seed) const {
+    std::mt19937_64 rng(seed);
+    sift::FeatureSet f;
+    f.image_width = 640;
+    f.image_height = 480;
+    f.kind = sift::DescriptorKind::kRootSift;
+    f.descriptors = std::move(descriptors);
+    f.keypoints = RandomKeypoints(rng, f.descriptors.size() / kDim);
+    return f;
+  }
+
+  fs::path dir_;
+  std::unique_ptr<vocab::Vocabulary> vocabulary_;
+};
+
+TEST_F(HammingIndexTest, SignaturesDecideBetweenImagesWithTheSameWords) {
+  const auto centroids = vocabulary_->centroids();
+  const std::vector<float> query = Around(centroids.first(20 * kDim), 1, 100);  // words 0..19, one each
+  std::vector<float> same = query;                                             // the query's descriptors
+  std::mt19937_64 rng(4);
+  std::normal_distribution<float> tiny(0, 0.001f);
+  for (float& v : same) v += tiny(rng);
+  const std::vector<float> other = Around(centroids.first(20 * kDim), 1, 200);  // same words, other descriptors
+  {
+    auto index = ImageIndex::Create(dir_.string(), *vocabulary_, "test-extractor/1");
+    ASSERT_TRUE(index) << index.error().ToString();
+    // Added first, so a tie in tf-idf keeps it first: Hamming embedding must overturn that.
+    ASSERT_TRUE((*index)->Add("other", Image(other, 1), {}));
+    ASSERT_TRUE((*index)->Add("same", Image(same, 2), {}));
+    for (int i = 0; i < 3; ++i) {  // images without the query's words: the words get a non-zero idf
+      ASSERT_TRUE((*index)->Add("filler" + std::to_string(i),
+                                Image(Around(centroids.subspan((30 + 10 * i) * kDim, 10 * kDim), 2, i), 3 + i), {}));
+    }
+  }
+  for (int reopen = 0; reopen < 2; ++reopen) {
+    if (reopen == 1) {  // without a checkpoint: rebuilt from the BLOBs
+      for (const auto& e : fs::directory_iterator(dir_)) {
+        if (e.path().extension() == ".oxck") fs::remove(e.path());
+      }
+    }
+    auto index = ImageIndex::Open(dir_.string());
+    ASSERT_TRUE(index) << index.error().ToString();
+    QueryOptions options;
+    options.top_k = 5;
+    options.rerank_depth = 0;
+    options.query_expansion = false;
+    auto tfidf = (*index)->Query(Image(query, 9), options);
+    ASSERT_TRUE(tfidf);
+    ASSERT_GE(tfidf->results.size(), 2u);
+    EXPECT_DOUBLE_EQ(tfidf->results[0].score, tfidf->results[1].score);
+    options.hamming = true;
+    auto he = (*index)->Query(Image(query, 9), options);
+    ASSERT_TRUE(he);
+    ASSERT_GE(he->results.size(), 2u);
+    EXPECT_EQ(he->results[0].id, "same");
+    EXPECT_EQ(he->results[1].id, "other");
+    EXPECT_GT(he->results[0].score, 0.9);  // every feature matches its twin
+    EXPECT_LT(he->results[1].score, 0.3);  // independent descriptors rarely come within 24 bits
+    // QuerySimilar uses the stored signatures the same way.
+    auto similar = (*index)->QuerySimilar("same", options);
+    ASSERT_TRUE(similar);
+    EXPECT_EQ(similar->results[0].id, "same");
+    EXPECT_EQ(similar->results[1].id, "other");
+  }
+}
+
+TEST_F(HammingIndexTest, QueryExpansionRanksByTheSignaturesOfTheVerifiedRegions) {
+  const auto centroids = vocabulary_->centroids();
+  std::mt19937_64 rng(21);
+  std::normal_distribution<float> tiny(0, 0.001f);
+  const auto near = [&](std::vector<float> d) {
+    for (float& v : d) v += tiny(rng);
+    return d;
+  };
+  const std::vector<float> query = Around(centroids.first(20 * kDim), 1, 300);          // words 0..19
+  const std::vector<float> region = Around(centroids.subspan(20 * kDim, 20 * kDim), 1, 301);  // words 20..39
+  // Both candidates share words 0..4 with the query through unrelated descriptors (tf-idf finds them,
+  // neither is like the query), and words 20..39 with the verified image: "expanded" with its very
+  // descriptors, "unrelated" with others.
+  const std::vector<float> weak_a = Around(centroids.first(5 * kDim), 1, 302);
+  const std::vector<float> weak_b = Around(centroids.first(5 * kDim), 1, 303);
+  std::vector<float> expanded = weak_a, unrelated = weak_b;
+  const std::vector<float> region_copy = near(region), other_region = Around(centroids.subspan(20 * kDim, 20 * kDim), 1, 304);
+  expanded.insert(expanded.end(), region_copy.begin(), region_copy.end());
+  unrelated.insert(unrelated.end(), other_region.begin(), other_region.end());
+  // The verified image: the query's features at the query's keypoints shifted, plus words 20..39.
+  sift::FeatureSet q = Image(query, 9);
+  sift::FeatureSet verified = q;
+  verified.descriptors = near(query);
+  for (auto& k : verified.keypoints) k.x += 3;
+  verified.descriptors.insert(verified.descriptors.end(), region.begin(), region.end());
+  const auto extra = RandomKeypoints(rng, 20);
+  verified.keypoints.insert(verified.keypoints.end(), extra.begin(), extra.end());
+  auto index = ImageIndex::Create(dir_.string(), *vocabulary_, "test-extractor/1");
+  ASSERT_TRUE(index) << index.error().ToString();
+  ASSERT_TRUE((*index)->Add("unrelated", Image(unrelated, 1), {}));  // first: wins ties
+  ASSERT_TRUE((*index)->Add("expanded", Image(expanded, 2), {}));
+  ASSERT_TRUE((*index)->Add("verified", verified, {}));
+  for (int i = 0; i < 3; ++i) {
+    ASSERT_TRUE((*index)->Add("filler" + std::to_string(i),
+                              Image(Around(centroids.subspan((40 + 5 * i) * kDim, 5 * kDim), 2, i), 30 + i), {}));
+  }
+  QueryOptions options;
+  options.top_k = 3;
+  options.transitive_depth = 0;
+  options.hamming = true;
+  options.query_expansion = false;
+  auto plain = (*index)->Query(q, options);
+  ASSERT_TRUE(plain);
+  ASSERT_EQ(plain->results.size(), 3u);
+  EXPECT_EQ(plain->results[0].id, "verified");
+  EXPECT_TRUE(plain->results[0].verified);
+  EXPECT_FALSE(plain->results[1].verified);
+  options.query_expansion = true;
+  auto with_qe = (*index)->Query(q, options);
+  ASSERT_TRUE(with_qe);
+  ASSERT_EQ(with_qe->results.size(), 3u);
+  EXPECT_EQ(with_qe->results[0].id, "verified");
+  EXPECT_EQ(with_qe->results[1].id, "expanded");
+  EXPECT_EQ(with_qe->results[2].id, "unrelated");
+  EXPECT_GT(with_qe->results[1].score, with_qe->results[2].score);
+}
+
+}  // namespace
+}  // namespace oxbow::index

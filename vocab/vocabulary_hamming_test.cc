@@ -1,0 +1,160 @@
+// Hamming-embedding parameters of a vocabulary (Vocabulary::WithHamming, Signatures, file format 2).
+#include <gtest/gtest.h>
+
+#include <bit>
+#include <cmath>
+#include <filesystem>
+#include <random>
+
+#include "sift/base/binary_io.h"
+#include "sift/base/log.h"
+#include "vocab/vocabulary.h"
+
+namespace oxbow::vocab {
+namespace {
+
+namespace fs = std::filesystem;
+constexpr int kDim = 128;
+constexpr size_t kWords = 32;
+
+std::string TempPath(const std::string& name) {
+  return (fs::temp_directory_path() / ("oxbow_hamming_test_" + std::to_string(::getpid()) + "_" + name)).string();
+}
+
+std::vector<float> RandomUnitRows(size_t rows, uint64_t seed) {
+  std::mt19937_64 rng(seed);
+  std::normal_distribution<float> g(0, 1);
+  std::vector<float> out(rows * kDim);
+  for (size_t r = 0; r < rows; ++r) {
+    double n = 0;
+    for (int d = 0; d < kDim; ++d) n += std::pow(out[r * kDim + d] = g(rng), 2);
+    for (int d = 0; d < kDim; ++d) out[r * kDim + d] /= static_cast<float>(std::sqrt(n));
+  }
+  return out;
+}
+
+// `per_word` descriptors around every centroid (per-dimension noise sigma).
+std::vector<float> SampleAround(std::span<const float> centroids, size_t per_word, float sigma, uint64_t seed) {
+  std::mt19937_64 rng(seed);
+  std::normal_distribution<float> g(0, sigma);
+  std::vector<float> out;
+  const size_t k = centroids.size() / kDim;
+  for (size_t w = 0; w < k; ++w) {
+    for (size_t i = 0; i < per_word; ++i) {
+      for (int d = 0; d < kDim; ++d) out.push_back(centroids[w * kDim + d] + g(rng));
+    }
+  }
+  return out;
+}
+
+class HammingVocabularyTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    log::SetLevel(log::Level::kWarning);
+    auto v = Vocabulary::FromCentroids(RandomUnitRows(kWords, 1), kDim, sift::DescriptorKind::kRootSift, "x");
+    ASSERT_TRUE(v) << v.error().ToString();
+    plain_ = std::make_unique<Vocabulary>(*v);
+    sample_ = SampleAround(v->centroids(), 101, 0.03f, 2);
+    auto he = v->WithHamming(sample_, 7, QuantizerOptions{.exact = true});
+    ASSERT_TRUE(he) << he.error().ToString();
+    hamming_ = std::make_unique<Vocabulary>(*he);
+  }
+  std::unique_ptr<Vocabulary> plain_, hamming_;
+  std::vector<float> sample_;
+};
+
+TEST_F(HammingVocabularyTest, MediansSplitEachWordsSampleInHalves) {
+  EXPECT_FALSE(plain_->has_hamming());
+  EXPECT_TRUE(hamming_->has_hamming());
+  const size_t n = sample_.size() / kDim;
+  std::vector<uint32_t> words(n);
+  hamming_->Quantize(sample_, words, {.exact = true});
+  std::vector<uint64_t> signatures(n);
+  hamming_->Signatures(sample_, words, signatures);
+  // Per word and bit: the median is one of the word's projected values, so exactly the values above it
+  // set the bit: (count - 1) / 2 of them when they are distinct (count odd).
+  std::vector<std::array<int, kHammingBits>> ones(kWords);
+  std::vector<int> count(kWords, 0);
+  for (size_t i = 0; i < n; ++i) {
+    ++count[words[i]];
+    for (int b = 0; b < kHammingBits; ++b) ones[words[i]][b] += static_cast<int>(signatures[i] >> b & 1);
+  }
+  for (size_t w = 0; w < kWords; ++w) {
+    ASSERT_EQ(count[w], 101) << "the sample's descriptors stay in their word";
+    for (int b = 0; b < kHammingBits; ++b) EXPECT_EQ(ones[w][b], 50) << "word " << w << " bit " << b;
+  }
+}
+
+TEST_F(HammingVocabularyTest, NearDescriptorsHaveNearSignatures) {
+  const std::vector<float> a = SampleAround(hamming_->centroids().first(kDim), 200, 0.03f, 11);
+  std::vector<float> near = a;
+  std::mt19937_64 rng(3);
+  std::normal_distribution<float> tiny(0, 0.002f);
+  for (float& v : near) v += tiny(rng);
+  const std::vector<float> other = SampleAround(hamming_->centroids().first(kDim), 200, 0.03f, 12);
+  const std::vector<uint32_t> words(200, 0);
+  std::vector<uint64_t> sa(200), sn(200), so(200);
+  hamming_->Signatures(a, words, sa);
+  hamming_->Signatures(near, words, sn);
+  hamming_->Signatures(other, words, so);
+  double near_sum = 0, other_sum = 0;
+  for (size_t i = 0; i < 200; ++i) {
+    near_sum += std::popcount(sa[i] ^ sn[i]);
+    other_sum += std::popcount(sa[i] ^ so[i]);
+  }
+  EXPECT_LT(near_sum / 200, 6);        // a small perturbation flips few bits
+  EXPECT_GT(other_sum / 200, 24);      // independent descriptors of the word: about half of the 64
+  EXPECT_LT(other_sum / 200, 40);
+}
+
+TEST_F(HammingVocabularyTest, FileFormatsRoundTripAndOldFilesStayVersionOne) {
+  EXPECT_NE(hamming_->fingerprint(), plain_->fingerprint());
+  const std::string plain_path = TempPath("plain.oxvoc"), he_path = TempPath("he.oxvoc");
+  ASSERT_TRUE(plain_->Write(plain_path));
+  ASSERT_TRUE(hamming_->Write(he_path));
+  auto plain_container = io::ReadContainerFile(plain_path, "OXBWVOCB", 1, 2);
+  auto he_container = io::ReadContainerFile(he_path, "OXBWVOCB", 1, 2);
+  ASSERT_TRUE(plain_container && he_container);
+  EXPECT_EQ(plain_container->version, 1u);  // older builds still read vocabularies without embedding
+  EXPECT_EQ(he_container->version, 2u);
+  auto plain = Vocabulary::Read(plain_path);
+  auto he = Vocabulary::Read(he_path);
+  ASSERT_TRUE(plain && he);
+  EXPECT_FALSE(plain->has_hamming());
+  EXPECT_EQ(plain->fingerprint(), plain_->fingerprint());
+  ASSERT_TRUE(he->has_hamming());
+  EXPECT_EQ(he->fingerprint(), hamming_->fingerprint());
+  const size_t n = sample_.size() / kDim;
+  std::vector<uint32_t> words(n);
+  hamming_->Quantize(sample_, words);
+  std::vector<uint64_t> a(n), b(n);
+  hamming_->Signatures(sample_, words, a);
+  he->Signatures(sample_, words, b);
+  EXPECT_EQ(a, b);
+  // Same seed, same sample: the same parameters; another seed: another projection.
+  auto again = plain_->WithHamming(sample_, 7, {.exact = true});
+  auto reseeded = plain_->WithHamming(sample_, 8, {.exact = true});
+  ASSERT_TRUE(again && reseeded);
+  EXPECT_EQ(again->fingerprint(), hamming_->fingerprint());
+  EXPECT_NE(reseeded->fingerprint(), hamming_->fingerprint());
+  // A truncated embedding is damage, not a smaller vocabulary.
+  auto container = *he_container;
+  container.payload.resize(container.payload.size() - 4);
+  ASSERT_TRUE(io::WriteContainerFile(he_path, "OXBWVOCB", 2, 0, container.payload));
+  auto truncated = Vocabulary::Read(he_path);
+  ASSERT_FALSE(truncated);
+  EXPECT_EQ(truncated.error().code, ErrorCode::kCorruptData);
+  fs::remove(plain_path);
+  fs::remove(he_path);
+}
+
+TEST_F(HammingVocabularyTest, RefusesUnusableSamples) {
+  EXPECT_FALSE(plain_->WithHamming({}, 1));
+  EXPECT_FALSE(plain_->WithHamming(std::span<const float>(sample_).first(100), 1));
+  std::vector<float> bad = sample_;
+  bad[5] = std::nanf("");
+  EXPECT_FALSE(plain_->WithHamming(bad, 1));
+}
+
+}  // namespace
+}  // namespace oxbow::vocab
