@@ -1,0 +1,224 @@
+// A cluster served by shards and a front (issue 15 items 3 and 4, README "Serving a cluster"): the same
+// images built as one index and as 3 partitions (`index build --mpi --partitions 3`, an MPI singleton),
+// each partition served by `oxbow serve --grpc-port`, the front (cluster::ClusterFront) asking them over
+// gRPC. With no write in flight the front's rankings equal the single node's: ids, order, scores,
+// verified flags and inliers.
+#include <gtest/gtest.h>
+
+#include <signal.h>
+
+#include <filesystem>
+#include <fstream>
+#include <regex>
+
+#include "api/partition.h"
+#include "api/testing.h"
+#include "index/image_index.h"
+#include "server/cluster/front.h"
+#include "sift/sift.h"
+// After the project headers: <httplib.h> (through e2e_testing.h) defines a `_res` macro that breaks Eigen.
+#include "e2e_testing.h"
+
+namespace oxbow {
+namespace {
+
+namespace fs = std::filesystem;
+using testing::RunCommand;
+
+constexpr int kPartitions = 3;
+
+// Open MPI refuses to run as root (CI) unless told otherwise: set for the child only.
+const std::string kMpiEnvironment = "env OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 ";
+
+class Cluster : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    dir_ = new api::testing::TempDir("oxbow-cluster");
+    const std::string images = dir_->path() + "/images";
+    fs::create_directories(images);
+    // Twelve pictures: crops of four opencv-doc photos at three offsets each (views of one scene verify
+    // against each other), so that re-ranking and query expansion have something to do.
+    const char* samples[] = {"graf1.png", "box.png", "baboon.jpg", "building.jpg"};
+    for (int i = 0; i < 12; ++i) {
+      ASSERT_TRUE(cv::imwrite(images + "/img" + std::to_string(i) + ".png",
+                              testing::Texture(320, 240, samples[i % 4], 25 * (i / 4), 20 * (i / 4))));
+    }
+    const std::string vocab = dir_->path() + "/v.oxvoc";
+    ASSERT_TRUE(testing::RandomVocabulary(sift::SiftOptions{}.Describe(), 512)->Write(vocab));
+    Run(std::string(OXBOW_BINARY) + " -q index build --vocab " + vocab + " --images " + images +
+        " --threads 1 --out " + dir_->path() + "/single 2>&1");
+    Run(kMpiEnvironment + OXBOW_BINARY + " -q index build --mpi --vocab " + vocab + " --images " + images +
+        " --partitions " + std::to_string(kPartitions) + " --threads 1 --out " + dir_->path() + "/cluster 2>&1");
+    auto extractor = sift::SiftExtractor::Create(sift::SiftOptions{});
+    ASSERT_TRUE(extractor);
+    for (int i = 0; i < 12; ++i) {
+      auto features = extractor->ExtractFromFile(images + "/img" + std::to_string(i) + ".png");
+      ASSERT_TRUE(features);
+      queries_->push_back(std::move(*features));
+    }
+  }
+  static void TearDownTestSuite() {
+    delete dir_;
+    dir_ = nullptr;
+  }
+  static void Run(const std::string& command) {
+    int code = -1;
+    const std::string out = RunCommand(command, &code);
+    ASSERT_EQ(code, 0) << command << "\n" << out;
+  }
+
+  // `oxbow serve --grpc-port 0` on partition p (or the index folder `folder`); its gRPC address ("" when
+  // it failed).
+  std::string StartShard(int p, const std::string& folder = "") {
+    const std::string n = std::to_string(started_++);  // a fresh log (ServerProcess appends)
+    shards_.push_back(std::make_unique<testing::ServerProcess>(
+        std::vector<std::string>{"serve", "--index",
+                                 folder.empty() ? api::PartitionFolder(dir_->path() + "/cluster", p) : folder, "--port", "0",
+                                 "--grpc-port", "0", "--index-threads", "1"},
+        dir_->path() + "/shard-" + n + ".log"));
+    const testing::ServerProcess& shard = *shards_.back();
+    EXPECT_TRUE(shard.port() > 0 && shard.WaitReady()) << shard.Log();
+    std::smatch m;
+    const std::string log = shard.Log();
+    if (!std::regex_search(log, m, std::regex(R"(gRPC\) on (127\.0\.0\.1:\d+))"))) return "";
+    return m[1];
+  }
+
+  static void ExpectSameRanking(const index::QueryResponse& single, const index::QueryResponse& front,
+                                const std::string& what) {
+    ASSERT_EQ(single.results.size(), front.results.size()) << what;
+    for (size_t i = 0; i < single.results.size(); ++i) {
+      const index::QueryResult& a = single.results[i];
+      const index::QueryResult& b = front.results[i];
+      EXPECT_EQ(a.id, b.id) << what << " rank " << i;
+      EXPECT_EQ(a.score, b.score) << what << " rank " << i;
+      EXPECT_EQ(a.verified, b.verified) << what << " rank " << i;
+      EXPECT_EQ(a.inliers, b.inliers) << what << " rank " << i;
+      EXPECT_EQ(a.db_region, b.db_region) << what << " rank " << i;
+      EXPECT_EQ(a.record.id, b.record.id) << what << " rank " << i;
+      EXPECT_EQ(a.record.num_features, b.record.num_features) << what << " rank " << i;
+      EXPECT_EQ(a.record.width, b.record.width) << what << " rank " << i;
+    }
+    EXPECT_EQ(single.candidates, front.candidates) << what;
+  }
+
+  static inline api::testing::TempDir* dir_ = nullptr;
+  static inline std::vector<sift::FeatureSet>* queries_ = new std::vector<sift::FeatureSet>;
+  static inline int started_ = 0;
+  std::vector<std::unique_ptr<testing::ServerProcess>> shards_;
+};
+
+// The hook under the front: a partition that pins the cluster's statistics scores each of its images
+// exactly as the single node does; with its own statistics it does not.
+TEST_F(Cluster, PartitionsScoreWithTheClusterStatistics) {
+  const auto single = index::ImageIndex::Open(dir_->path() + "/single").value();
+  for (int p = 0; p < kPartitions; ++p) {
+    const std::string folder = api::PartitionFolder(dir_->path() + "/cluster", p);
+    const auto partition = index::ImageIndex::Open(folder).value();
+    const sift::FeatureSet& query = (*queries_)[static_cast<size_t>(p)];
+    std::vector<uint32_t> words(query.size());
+    single->vocabulary().Quantize(query.descriptors, words, {});
+    const index::BagOfWords bag = index::BagOfWords::FromWords(words);
+    const std::vector<float> tf(bag.counts.begin(), bag.counts.end());
+    const auto scores_of = [&](const index::ImageIndex& idx) {
+      std::map<std::string, float> out;
+      for (const auto& s : idx.ScoreTerms(idx.TermsOf(bag.words, tf), 100, nullptr)) out[s.id] = s.score;
+      return out;
+    };
+    const std::map<std::string, float> everything = scores_of(*single);
+    const std::map<std::string, float> own = scores_of(*partition);
+    ASSERT_TRUE(api::PinClusterStatistics(folder, *partition));
+    const std::map<std::string, float> pinned = scores_of(*partition);
+    ASSERT_FALSE(pinned.empty());
+    bool differs = false;
+    for (const auto& [id, score] : pinned) {
+      EXPECT_EQ(score, everything.at(id)) << "partition " << p << " image " << id;
+      differs = differs || own.at(id) != score;
+    }
+    EXPECT_TRUE(differs) << "partition " << p << " scores with its own statistics as with the cluster's";
+  }
+}
+
+TEST_F(Cluster, FrontRankingsEqualTheSingleNode) {
+  cluster::ClusterConfig config;
+  config.vocabulary = dir_->path() + "/v.oxvoc";
+  for (int p = 0; p < kPartitions; ++p) {
+    const std::string address = StartShard(p);
+    ASSERT_FALSE(address.empty()) << shards_.back()->Log();
+    config.partitions.push_back({address});
+  }
+  const auto front = cluster::ClusterFront::Open(config).value();
+  const auto single = index::ImageIndex::Open(dir_->path() + "/single").value();
+
+  index::QueryOptions options;
+  options.top_k = 12;
+  options.transitive_depth = 0;  // not served by the front yet
+  index::QueryOptions plain = options;
+  plain.query_expansion = false;
+  index::QueryOptions region = options;
+  region.region = std::array<float, 4>{40, 30, 260, 200};
+  size_t verified = 0;
+  for (size_t q = 0; q < queries_->size(); ++q) {
+    for (const auto& [name, o] : {std::pair{"qe", options}, std::pair{"plain", plain}, std::pair{"region", region}}) {
+      const auto expected = single->Query((*queries_)[q], o);
+      const auto got = front->Query((*queries_)[q], o);
+      ASSERT_TRUE(expected && got) << (got ? "" : got.error().ToString());
+      ExpectSameRanking(*expected, *got, std::string(name) + " query " + std::to_string(q));
+      for (const auto& r : got->results) verified += r.verified ? 1 : 0;
+    }
+  }
+  EXPECT_GT(verified, queries_->size()) << "nothing but the queries themselves verified: the test proves little";
+  for (const cluster::ReplicaMetrics& m : front->Metrics()) {
+    EXPECT_GT(m.calls, 0u) << m.address;
+    EXPECT_EQ(m.errors, 0u) << m.address;
+  }
+}
+
+TEST_F(Cluster, AReplicaDownIsSkippedAndAPartitionDownFailsTheQuery) {
+  cluster::ClusterConfig config;
+  config.vocabulary = dir_->path() + "/v.oxvoc";
+  for (int p = 0; p < kPartitions; ++p) {
+    const std::string address = StartShard(p);
+    ASSERT_FALSE(address.empty()) << shards_.back()->Log();
+    config.partitions.push_back({address});
+  }
+  // Partition 0 gets a second replica (a copy of its folder); the first is killed.
+  const std::string copy = dir_->path() + "/replica-" + std::to_string(started_);
+  fs::copy(api::PartitionFolder(dir_->path() + "/cluster", 0), copy, fs::copy_options::recursive);
+  const std::string second = StartShard(0, copy);
+  ASSERT_FALSE(second.empty());
+  config.partitions[0].push_back(second);
+  cluster::FrontOptions front_options;
+  front_options.shard_deadline_ms = 2000;
+  const auto front = cluster::ClusterFront::Open(config, front_options).value();
+  index::QueryOptions options;
+  options.transitive_depth = 0;
+  const auto before = front->Query((*queries_)[0], options);
+  ASSERT_TRUE(before) << before.error().ToString();
+  kill(shards_[0]->pid(), SIGKILL);
+  for (int repeat = 0; repeat < 3; ++repeat) {  // round-robin reaches the dead replica
+    const auto after = front->Query((*queries_)[0], options);
+    ASSERT_TRUE(after) << after.error().ToString();
+    ExpectSameRanking(*before, *after, "with a replica down");
+  }
+  kill(shards_[3]->pid(), SIGKILL);
+  const auto down = front->Query((*queries_)[0], options);
+  ASSERT_FALSE(down);
+  EXPECT_EQ(down.error().code, ErrorCode::kResourceExhausted) << down.error().ToString();
+}
+
+TEST(ClusterConfigFile, ReadsReplicasAndResolvesTheVocabularyBesideIt) {
+  api::testing::TempDir dir("oxbow-cluster-config");
+  const std::string path = dir.path() + "/cluster.json";
+  std::ofstream(path) << R"({"vocabulary": "v.oxvoc", "partitions": [{"replicas": ["a:1", "b:2"]}, {"replicas": ["c:3"]}]})";
+  const auto config = cluster::ClusterConfig::Read(path);
+  ASSERT_TRUE(config) << config.error().ToString();
+  EXPECT_EQ(config->vocabulary, dir.path() + "/v.oxvoc");
+  ASSERT_EQ(config->partitions.size(), 2u);
+  EXPECT_EQ(config->partitions[0], (std::vector<std::string>{"a:1", "b:2"}));
+  std::ofstream(path) << R"({"vocabulary": "v.oxvoc", "partitions": [{"replicas": []}]})";
+  EXPECT_EQ(cluster::ClusterConfig::Read(path).error().code, ErrorCode::kInvalidArgument);
+}
+
+}  // namespace
+}  // namespace oxbow
