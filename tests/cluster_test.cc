@@ -11,6 +11,8 @@
 #include <fstream>
 #include <regex>
 
+#include <nlohmann/json.hpp>
+
 #include "api/partition.h"
 #include "api/testing.h"
 #include "index/image_index.h"
@@ -205,6 +207,49 @@ TEST_F(Cluster, AReplicaDownIsSkippedAndAPartitionDownFailsTheQuery) {
   const auto down = front->Query((*queries_)[0], options);
   ASSERT_FALSE(down);
   EXPECT_EQ(down.error().code, ErrorCode::kResourceExhausted) << down.error().ToString();
+}
+
+// `serve --cluster`: the front's HTTP search answers as a single node's `serve` does; its metrics count
+// the shard calls; routes it does not serve yet say so.
+TEST_F(Cluster, HttpFrontAnswersAsASingleNodeServer) {
+  std::string partitions;
+  for (int p = 0; p < kPartitions; ++p) {
+    const std::string address = StartShard(p);
+    ASSERT_FALSE(address.empty()) << shards_.back()->Log();
+    partitions += std::string(p == 0 ? "" : ", ") + "{\"replicas\": [\"" + address + "\"]}";
+  }
+  const std::string config = dir_->path() + "/cluster-" + std::to_string(started_) + ".json";
+  std::ofstream(config) << "{\"vocabulary\": \"v.oxvoc\", \"partitions\": [" << partitions << "]}";
+  testing::ServerProcess front({"serve", "--cluster", config, "--port", "0"}, config + ".log");
+  ASSERT_TRUE(front.port() > 0 && front.WaitReady()) << front.Log();
+  testing::ServerProcess single({"serve", "--index", dir_->path() + "/single", "--port", "0"},
+                                dir_->path() + "/single-" + std::to_string(started_++) + ".log");
+  ASSERT_TRUE(single.port() > 0 && single.WaitReady()) << single.Log();
+
+  std::ifstream in(dir_->path() + "/images/img5.png", std::ios::binary);
+  const std::string image((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const std::string path = "/v1/search?top_k=8&transitive_depth=0";
+  auto expected = single.Client().Post(path, image, "image/png");
+  auto got = front.Client().Post(path, image, "image/png");
+  ASSERT_TRUE(expected && got);
+  ASSERT_EQ(expected->status, 200) << expected->body;
+  ASSERT_EQ(got->status, 200) << got->body;
+  const auto a = nlohmann::json::parse(expected->body)["results"];
+  const auto b = nlohmann::json::parse(got->body)["results"];
+  ASSERT_EQ(a.size(), b.size()) << got->body;
+  ASSERT_GE(a.size(), 3u);
+  for (size_t i = 0; i < a.size(); ++i) {
+    for (const char* field : {"id", "score", "verified", "inliers", "region", "width", "height"})
+      EXPECT_EQ(a[i][field], b[i][field]) << field << " of rank " << i;
+  }
+  EXPECT_EQ(nlohmann::json::parse(expected->body)["candidates"], nlohmann::json::parse(got->body)["candidates"]);
+
+  auto metrics = front.Client().Get("/metrics");
+  ASSERT_TRUE(metrics);
+  EXPECT_NE(metrics->body.find("oxbow_shard_calls_total{partition=\"2\""), std::string::npos) << metrics->body;
+  auto list = front.Client().Get("/v1/images");
+  ASSERT_TRUE(list);
+  EXPECT_EQ(list->status, 501) << list->body;
 }
 
 TEST(ClusterConfigFile, ReadsReplicasAndResolvesTheVocabularyBesideIt) {
