@@ -176,7 +176,7 @@ TEST_F(Cluster, FrontRankingsEqualTheSingleNode) {
   }
 }
 
-TEST_F(Cluster, AReplicaDownIsSkippedAndAPartitionDownFailsTheQuery) {
+TEST_F(Cluster, AReplicaDownChangesNothingAPartitionDownIsPartialOrRefused) {
   cluster::ClusterConfig config;
   config.vocabulary = dir_->path() + "/v.oxvoc";
   for (int p = 0; p < kPartitions; ++p) {
@@ -203,10 +203,27 @@ TEST_F(Cluster, AReplicaDownIsSkippedAndAPartitionDownFailsTheQuery) {
     ASSERT_TRUE(after) << after.error().ToString();
     ExpectSameRanking(*before, *after, "with a replica down");
   }
+  // Partition 0 entirely down: 503 (kResourceExhausted), or a partial answer without its images.
   kill(shards_[3]->pid(), SIGKILL);
   const auto down = front->Query((*queries_)[0], options);
   ASSERT_FALSE(down);
   EXPECT_EQ(down.error().code, ErrorCode::kResourceExhausted) << down.error().ToString();
+  cluster::ClusterFront::Coverage coverage;
+  const auto partial = front->Query((*queries_)[0], options, /*allow_partial=*/true, &coverage);
+  ASSERT_TRUE(partial) << partial.error().ToString();
+  EXPECT_EQ(coverage.total, 3u);
+  EXPECT_EQ(coverage.ok, 2u);
+  EXPECT_EQ(coverage.failed, std::vector<uint32_t>{0});
+  ASSERT_FALSE(partial->results.empty());
+  for (const auto& r : partial->results) EXPECT_NE(api::PartitionOf(r.id, kPartitions), 0u) << r.id;
+
+  // A shard that hangs (SIGSTOP) is given up at the deadline, not waited for.
+  kill(shards_[1]->pid(), SIGSTOP);
+  const auto hung = front->Query((*queries_)[0], options, /*allow_partial=*/true, &coverage);
+  kill(shards_[1]->pid(), SIGCONT);
+  ASSERT_TRUE(hung) << hung.error().ToString();
+  EXPECT_EQ(coverage.failed, (std::vector<uint32_t>{0, 1}));
+  for (const auto& r : hung->results) EXPECT_EQ(api::PartitionOf(r.id, kPartitions), 2u) << r.id;
 }
 
 // `serve --cluster`: the front's HTTP search answers as a single node's `serve` does; its metrics count
@@ -244,9 +261,26 @@ TEST_F(Cluster, HttpFrontAnswersAsASingleNodeServer) {
   }
   EXPECT_EQ(nlohmann::json::parse(expected->body)["candidates"], nlohmann::json::parse(got->body)["candidates"]);
 
+  EXPECT_EQ(nlohmann::json::parse(got->body)["partial"], false);
+  EXPECT_EQ(nlohmann::json::parse(got->body)["shards"], (nlohmann::json{{"total", 3}, {"ok", 3}, {"failed", nlohmann::json::array()}}));
+
+  // Partition 2 down: a partial answer by default, 503 with allow_partial=false.
+  kill(shards_[2]->pid(), SIGKILL);
+  auto partial = front.Client().Post(path, image, "image/png");
+  ASSERT_TRUE(partial);
+  ASSERT_EQ(partial->status, 200) << partial->body;
+  const auto body = nlohmann::json::parse(partial->body);
+  EXPECT_EQ(body["partial"], true);
+  EXPECT_EQ(body["shards"], (nlohmann::json{{"total", 3}, {"ok", 2}, {"failed", {2}}}));
+  auto refused = front.Client().Post(path + "&allow_partial=false", image, "image/png");
+  ASSERT_TRUE(refused);
+  EXPECT_EQ(refused->status, 503) << refused->body;
+
   auto metrics = front.Client().Get("/metrics");
   ASSERT_TRUE(metrics);
   EXPECT_NE(metrics->body.find("oxbow_shard_calls_total{partition=\"2\""), std::string::npos) << metrics->body;
+  EXPECT_TRUE(std::regex_search(metrics->body, std::regex(R"(oxbow_shard_errors_total\{partition="2",replica="[^"]+"\} [1-9])")))
+      << metrics->body;
   auto list = front.Client().Get("/v1/images");
   ASSERT_TRUE(list);
   EXPECT_EQ(list->status, 501) << list->body;

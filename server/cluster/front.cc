@@ -12,6 +12,8 @@
 #include <functional>
 #include <map>
 #include <mutex>
+#include <optional>
+#include <set>
 #include <thread>
 
 #include <nlohmann/json.hpp>
@@ -38,6 +40,23 @@ void PutTerms(std::span<const index::QueryTerm> terms, google::protobuf::Repeate
     term->set_weight(t.weight);
   }
 }
+
+// The partitions that failed during one query, with the first error.
+class Failures {
+ public:
+  void Record(uint32_t partition, const Status& status) {
+    if (status) return;
+    if (!error_) error_ = status.error();
+    failed_.insert(partition);
+  }
+  bool Contains(uint32_t partition) const { return failed_.contains(partition); }
+  const std::set<uint32_t>& partitions() const { return failed_; }
+  const std::optional<Error>& error() const { return error_; }
+
+ private:
+  std::set<uint32_t> failed_;
+  std::optional<Error> error_;
+};
 
 // One shard image of a merged ranking.
 struct Candidate {
@@ -131,24 +150,24 @@ class ClusterFront::Impl {
                 "partition " + std::to_string(partition) + " did not answer (" + failures + ")");
   }
 
-  // fn(partition) on every partition at once; the first error.
-  static Status ForEachPartition(size_t n, const std::function<Status(uint32_t)>& fn) {
+  // fn(i) for i in [0, n), all at once; every call's status.
+  static std::vector<Status> ForEach(size_t n, const std::function<Status(uint32_t)>& fn) {
     std::vector<Status> statuses(n, Ok());
     std::vector<std::thread> threads;
     threads.reserve(n);
-    for (uint32_t p = 0; p < n; ++p) threads.emplace_back([&, p] { statuses[p] = fn(p); });
+    for (uint32_t i = 0; i < n; ++i) threads.emplace_back([&, i] { statuses[i] = fn(i); });
     for (std::thread& t : threads) t.join();
-    for (Status& s : statuses)
-      if (!s) return s;
-    return Ok();
+    return statuses;
   }
 
-  // Scores `request` on every partition; the best `depth` over the cluster, best first (ties: smaller id).
-  Result<std::vector<Candidate>> Scatter(ScoreRequest request, size_t depth, std::vector<index::QueryTerm>* terms,
-                                         uint64_t* candidates) const {
+  // Scores `request` on every partition that has not failed yet; the best `depth` over them, best first
+  // (ties: smaller id). A partition that fails joins `failed`.
+  std::vector<Candidate> Scatter(ScoreRequest request, size_t depth, std::vector<index::QueryTerm>* terms,
+                                 uint64_t* candidates, Failures& failed) const {
     request.set_max_results(static_cast<uint32_t>(depth));
     std::vector<ScoreReply> replies(partitions.size());
-    auto s = ForEachPartition(partitions.size(), [&](uint32_t p) -> Status {
+    const std::vector<Status> statuses = ForEach(partitions.size(), [&](uint32_t p) -> Status {
+      if (failed.Contains(p)) return Ok();
       auto reply = Call<ScoreReply>(p, [&](Shard::Stub& stub, grpc::ClientContext& context, ScoreReply* out) {
         return stub.Score(&context, request, out);
       });
@@ -156,10 +175,11 @@ class ClusterFront::Impl {
       replies[p] = std::move(*reply);
       return Ok();
     });
-    if (!s) return std::unexpected(s.error());
+    for (uint32_t p = 0; p < statuses.size(); ++p) failed.Record(p, statuses[p]);
     std::vector<Candidate> merged;
     if (candidates) *candidates = 0;
     for (uint32_t p = 0; p < replies.size(); ++p) {
+      if (failed.Contains(p)) continue;
       if (candidates) *candidates += replies[p].candidates();
       for (const Scored& scored : replies[p].images()) merged.push_back(FromScored(scored, p));
     }
@@ -218,7 +238,8 @@ std::vector<ReplicaMetrics> ClusterFront::Metrics() const {
   return out;
 }
 
-Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, const index::QueryOptions& options) const {
+Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, const index::QueryOptions& options,
+                                                 bool allow_partial, Coverage* coverage) const {
   const auto t0 = Clock::now();
   const auto ms_since = [](Clock::time_point t) { return std::chrono::duration<double, std::milli>(Clock::now() - t).count(); };
   if (auto e = options.Check()) return Fail(ErrorCode::kInvalidArgument, "query options: " + *e);
@@ -227,6 +248,14 @@ Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, 
   if (query.kind != impl_->vocabulary.descriptor_kind())
     return Fail(ErrorCode::kIncompatible, "the query's descriptors are not of the vocabulary's kind");
   index::QueryResponse response;
+  Failures failed;
+  const size_t num_partitions = impl_->partitions.size();
+  // After each stage: with failures, the answer is partial (allowed) or none.
+  const auto check = [&]() -> Status {
+    if (failed.partitions().empty()) return Ok();
+    if (!allow_partial || failed.partitions().size() == num_partitions) return std::unexpected(*failed.error());
+    return Ok();
+  };
 
   // Quantise the features inside the region once, as ImageIndex::Query does.
   std::vector<sift::Keypoint> keypoints;
@@ -259,21 +288,21 @@ Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, 
   }
   const size_t depth = std::max<size_t>(static_cast<size_t>(options.top_k), static_cast<size_t>(options.rerank_depth));
   std::vector<index::QueryTerm> terms;
-  auto scored = impl_->Scatter(score, depth, &terms, &response.candidates);
-  if (!scored) return std::unexpected(scored.error());
+  std::vector<Candidate> scored = impl_->Scatter(score, depth, &terms, &response.candidates, failed);
+  if (auto s = check(); !s) return std::unexpected(s.error());
   response.timings.score_ms = ms_since(t);
-  std::vector<index::QueryResult> results(scored->size());
+  std::vector<index::QueryResult> results(scored.size());
   std::map<std::string, uint32_t> owner;
-  for (size_t i = 0; i < scored->size(); ++i) {
-    results[i].id = (*scored)[i].id;
-    results[i].score = (*scored)[i].score;
-    results[i].record = std::move((*scored)[i].record);
-    owner[results[i].id] = (*scored)[i].partition;
+  for (size_t i = 0; i < scored.size(); ++i) {
+    results[i].id = scored[i].id;
+    results[i].score = scored[i].score;
+    results[i].record = std::move(scored[i].record);
+    owner[results[i].id] = scored[i].partition;
   }
 
   // 2. Spatial re-ranking of the top R, each candidate on its own shard.
   t = Clock::now();
-  const size_t rerank = std::min(results.size(), static_cast<size_t>(options.rerank_depth));
+  size_t rerank = std::min(results.size(), static_cast<size_t>(options.rerank_depth));
   size_t num_verified = 0;
   if (rerank > 0) {
     const std::array<float, 4> region =
@@ -291,9 +320,9 @@ Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, 
     for (float v : region) verify.add_region(v);
     verify.set_max_pairs_per_word(options.max_pairs_per_word);
     verify.set_min_inliers(options.verify.min_inliers);
-    std::vector<std::vector<size_t>> positions(impl_->partitions.size());  // per partition: its candidates
+    std::vector<std::vector<size_t>> positions(num_partitions);  // per partition: its candidates
     for (size_t c = 0; c < rerank; ++c) positions[owner[results[c].id]].push_back(c);
-    auto s = Impl::ForEachPartition(impl_->partitions.size(), [&](uint32_t p) -> Status {
+    const std::vector<Status> statuses = Impl::ForEach(num_partitions, [&](uint32_t p) -> Status {
       if (positions[p].empty()) return Ok();
       VerifyRequest request = verify;
       for (size_t c : positions[p]) request.add_ids(results[c].id);
@@ -315,7 +344,12 @@ Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, 
       }
       return Ok();
     });
-    if (!s) return std::unexpected(s.error());
+    for (uint32_t p = 0; p < num_partitions; ++p) failed.Record(p, statuses[p]);
+    if (auto s = check(); !s) return std::unexpected(s.error());
+    // A partition that failed here has no place in a partial answer: its images go.
+    std::erase_if(results, [&](const index::QueryResult& r) { return failed.Contains(owner[r.id]); });
+    rerank = 0;
+    for (uint32_t p = 0; p < num_partitions; ++p) rerank += failed.Contains(p) ? 0 : positions[p].size();
     index::SortVerifiedFirst(std::span(results).first(rerank));
     for (size_t c = 0; c < rerank; ++c) num_verified += results[c].verified ? 1 : 0;
   }
@@ -326,7 +360,7 @@ Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, 
     t = Clock::now();
     const size_t used = std::min(num_verified, static_cast<size_t>(options.qe_images));
     std::vector<std::vector<index::QueryTerm>> region_terms(used);
-    auto s = Impl::ForEachPartition(used, [&](uint32_t c) -> Status {
+    const std::vector<Status> statuses = Impl::ForEach(used, [&](uint32_t c) -> Status {
       RegionTermsRequest request;
       request.set_id(results[c].id);
       for (float v : results[c].db_region) request.add_region(v);
@@ -338,18 +372,21 @@ Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, 
       region_terms[c] = TermsFrom(reply->terms());
       return Ok();
     });
-    if (!s) return std::unexpected(s.error());
+    for (size_t c = 0; c < used; ++c) failed.Record(owner[results[c].id], statuses[c]);
+    if (auto s = check(); !s) return std::unexpected(s.error());
     const std::vector<index::QueryTerm> expanded = index::ExpandedQuery(terms, region_terms);
     const size_t expanded_depth =
         static_cast<size_t>(std::max(options.top_k, options.transitive_depth > 0 ? options.transitive_depth : 0));
     ScoreRequest rescore;
     PutTerms(expanded, rescore.mutable_terms());
-    auto rescored = impl_->Scatter(rescore, expanded_depth + num_verified, nullptr, nullptr);
-    if (!rescored) return std::unexpected(rescored.error());
-    std::vector<index::QueryResult> merged(results.begin(), results.begin() + static_cast<std::ptrdiff_t>(num_verified));
+    const std::vector<Candidate> rescored = impl_->Scatter(rescore, expanded_depth + num_verified, nullptr, nullptr, failed);
+    if (auto s = check(); !s) return std::unexpected(s.error());
+    std::vector<index::QueryResult> merged;
+    for (size_t c = 0; c < num_verified; ++c)
+      if (!failed.Contains(owner[results[c].id])) merged.push_back(results[c]);
     std::map<std::string, const index::QueryResult*> first_stage;
     for (const index::QueryResult& r : results) first_stage[r.id] = &r;
-    for (const Candidate& c : *rescored) {
+    for (const Candidate& c : rescored) {
       const auto it = first_stage.find(c.id);
       if (it != first_stage.end() && it->second->verified) continue;
       index::QueryResult r;
@@ -366,6 +403,11 @@ Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, 
   if (results.size() > static_cast<size_t>(options.top_k)) results.resize(static_cast<size_t>(options.top_k));
   response.results = std::move(results);
   response.timings.total_ms = ms_since(t0);
+  if (coverage) {
+    coverage->total = static_cast<uint32_t>(num_partitions);
+    coverage->failed.assign(failed.partitions().begin(), failed.partitions().end());
+    coverage->ok = coverage->total - static_cast<uint32_t>(coverage->failed.size());
+  }
   return response;
 }
 

@@ -15,7 +15,9 @@
 //
 // Each partition is asked through one of its replicas, in turn; a replica that fails (unreachable,
 // past the deadline) is skipped for the next one of the same partition. A partition none of whose
-// replicas answers fails the query with kResourceExhausted (503).
+// replicas answers fails the query with kResourceExhausted (503), or, when partial answers are allowed,
+// is left out of it: its images are missing from the ranking and Coverage names it (a query that no
+// partition answers fails all the same).
 //
 // Thread safety: Query and Metrics may be called from any number of threads at once.
 #pragma once
@@ -66,9 +68,16 @@ class ClusterFront {
   ClusterFront(const ClusterFront&) = delete;
   ClusterFront& operator=(const ClusterFront&) = delete;
 
-  // index::ImageIndex::Query over the cluster (see the file comment).
-  [[nodiscard]] Result<index::QueryResponse> Query(const sift::FeatureSet& query,
-                                                   const index::QueryOptions& options) const;
+  // Which partitions answered a query.
+  struct Coverage {
+    uint32_t total = 0;            // partitions in the cluster
+    uint32_t ok = 0;               // those that answered every call
+    std::vector<uint32_t> failed;  // the others, ascending
+  };
+  // index::ImageIndex::Query over the cluster (see the file comment). `coverage` (optional) receives
+  // which partitions answered.
+  [[nodiscard]] Result<index::QueryResponse> Query(const sift::FeatureSet& query, const index::QueryOptions& options,
+                                                   bool allow_partial = false, Coverage* coverage = nullptr) const;
 
   std::vector<ReplicaMetrics> Metrics() const;
   const vocab::Vocabulary& vocabulary() const;

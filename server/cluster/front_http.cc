@@ -42,6 +42,14 @@ class FrontHttpServer::Impl {
       else
         params.emplace(name, part.content);
     }
+    // The front's own parameter (Elasticsearch's allow_partial_search_results): on by default.
+    bool allow_partial = true;
+    if (const auto it = params.find("allow_partial"); it != params.end()) {
+      if (it->second != "true" && it->second != "false")
+        return SendError(res, api::ToHttpError({ErrorCode::kInvalidArgument, "allow_partial must be true or false"}));
+      allow_partial = it->second == "true";
+      params.erase("allow_partial");
+    }
     auto query = api::ParseQueryParams(params, options.default_query);
     if (!query) return SendError(res, api::ToHttpError(query.error()));
     if (body.empty()) return SendError(res, api::ToHttpError({ErrorCode::kInvalidArgument, "no image in the request"}));
@@ -55,11 +63,15 @@ class FrontHttpServer::Impl {
     response.query_width = features->image_width;
     response.query_height = features->image_height;
     response.extracted_features = static_cast<uint32_t>(features->size());
-    auto found = front->Query(*features, *query);
+    ClusterFront::Coverage coverage;
+    auto found = front->Query(*features, *query, allow_partial, &coverage);
     if (!found) return SendError(res, api::ToHttpError(found.error()));
     response.index = std::move(*found);
     response.total_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
-    SendJson(res, 200, api::SearchResponseToJson(response));
+    nlohmann::json answer = api::SearchResponseToJson(response);
+    answer["partial"] = !coverage.failed.empty();
+    answer["shards"] = {{"total", coverage.total}, {"ok", coverage.ok}, {"failed", coverage.failed}};
+    SendJson(res, 200, answer);
   }
 
   void Metrics(httplib::Response& res) const {

@@ -1,6 +1,8 @@
 // The HTTP side of a cluster front (`oxbow serve --cluster cluster.json`): the public API's search over
 // a ClusterFront (front.h). Served so far: POST /v1/search (the image as the raw body, or the multipart
-// part "file"/"image"; the same parameters as a single node, api/params.h), GET /healthz, GET /readyz
+// part "file"/"image"; the same parameters as a single node, api/params.h, plus allow_partial=true|false,
+// default true: with a partition down the answer is 200 with "partial": true, else 503; every answer has
+// "partial" and "shards": {"total", "ok", "failed": [partition, ...]}), GET /healthz, GET /readyz
 // and GET /metrics (per shard replica: calls, errors, latency). Every other /v1 route answers 501
 // {"error": {"code": "not_implemented", ...}}: writes, get, list and stats through a front are not
 // served yet (README "Serving a cluster").
