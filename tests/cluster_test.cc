@@ -141,6 +141,34 @@ TEST_F(Cluster, PartitionsScoreWithTheClusterStatistics) {
   }
 }
 
+// Pinned statistics stay after a write (the cluster's frequencies describe the cluster as built; a
+// partition's own add does not replace them), and the added image is scored with them.
+TEST_F(Cluster, PinnedStatisticsStayAfterAWrite) {
+  const std::string folder = dir_->path() + "/written-partition";
+  fs::copy(api::PartitionFolder(dir_->path() + "/cluster", 1), folder, fs::copy_options::recursive);
+  const auto partition = index::ImageIndex::Open(folder).value();
+  ASSERT_TRUE(api::PinClusterStatistics(folder, *partition));
+  const sift::FeatureSet& query = (*queries_)[1];
+  std::vector<uint32_t> words(query.size());
+  partition->vocabulary().Quantize(query.descriptors, words, {});
+  const index::BagOfWords bag = index::BagOfWords::FromWords(words);
+  const std::vector<float> tf(bag.counts.begin(), bag.counts.end());
+  const auto scores = [&] {
+    std::map<std::string, float> out;
+    for (const auto& s : partition->ScoreTerms(partition->TermsOf(bag.words, tf), 100, nullptr)) out[s.id] = s.score;
+    return out;
+  };
+  const std::map<std::string, float> before = scores();
+  index::ImageInfo info;
+  info.extractor_settings = partition->extractor_settings();
+  ASSERT_TRUE(partition->Add("added", query, info));
+  std::map<std::string, float> after = scores();
+  ASSERT_TRUE(after.contains("added"));
+  EXPECT_GT(after["added"], 0.99f);  // the query itself, scored with the cluster's statistics
+  after.erase("added");
+  EXPECT_EQ(before, after) << "a write replaced the cluster's statistics";
+}
+
 TEST_F(Cluster, FrontRankingsEqualTheSingleNode) {
   cluster::ClusterConfig config;
   config.vocabulary = dir_->path() + "/v.oxvoc";
