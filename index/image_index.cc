@@ -928,16 +928,7 @@ Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const Que
   q.width = query.image_width;
   q.height = query.image_height;
   std::vector<float> descriptors;
-  for (size_t i = 0; i < query.size(); ++i) {
-    const sift::Keypoint& k = query.keypoints[i];
-    if (options.region) {
-      const auto& r = *options.region;
-      if (k.x < r[0] || k.x > r[2] || k.y < r[1] || k.y > r[3]) continue;
-    }
-    q.keypoints.push_back(k);
-    const auto d = query.Descriptor(i);
-    descriptors.insert(descriptors.end(), d.begin(), d.end());
-  }
+  SelectInRegion(query, options.region, &q.keypoints, &descriptors);
   QueryTimings timings;
   q.words.resize(q.keypoints.size());
   // A query's descriptors on the index's threads, as its re-ranking: latency, not throughput.
@@ -1041,6 +1032,20 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
   response.results = std::move(results);
   response.timings = timings;
   return response;
+}
+
+void SelectInRegion(const sift::FeatureSet& features, const std::optional<std::array<float, 4>>& region,
+                    std::vector<sift::Keypoint>* keypoints, std::vector<float>* descriptors) {
+  for (size_t i = 0; i < features.size(); ++i) {
+    const sift::Keypoint& k = features.keypoints[i];
+    if (region) {
+      const auto& r = *region;
+      if (k.x < r[0] || k.x > r[2] || k.y < r[1] || k.y > r[3]) continue;
+    }
+    keypoints->push_back(k);
+    const auto d = features.Descriptor(i);
+    descriptors->insert(descriptors->end(), d.begin(), d.end());
+  }
 }
 
 void SortVerifiedFirst(std::span<QueryResult> results) {

@@ -276,6 +276,9 @@ struct IndexStats {
 };
 
 // Stages of Query shared with a cluster's front (server/cluster/front.h), which runs them over shards.
+// The query's features inside `region` (QueryOptions::region; all without one), appended.
+void SelectInRegion(const sift::FeatureSet& features, const std::optional<std::array<float, 4>>& region,
+                    std::vector<sift::Keypoint>* keypoints, std::vector<float>* descriptors);
 // Re-ranking's order: verified first by inliers (then score), the unverified after them in the order
 // given (stable).
 void SortVerifiedFirst(std::span<QueryResult> results);

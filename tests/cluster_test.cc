@@ -86,6 +86,16 @@ class Cluster : public ::testing::Test {
     return m[1];
   }
 
+  // One shard per partition, in `config`.
+  void StartCluster(cluster::ClusterConfig* config) {
+    config->vocabulary = dir_->path() + "/v.oxvoc";
+    for (int p = 0; p < kPartitions; ++p) {
+      const std::string address = StartShard(p);
+      ASSERT_FALSE(address.empty()) << shards_.back()->Log();
+      config->partitions.push_back({address});
+    }
+  }
+
   static void ExpectSameRanking(const index::QueryResponse& single, const index::QueryResponse& front,
                                 const std::string& what) {
     ASSERT_EQ(single.results.size(), front.results.size()) << what;
@@ -171,12 +181,7 @@ TEST_F(Cluster, PinnedStatisticsStayAfterAWrite) {
 
 TEST_F(Cluster, FrontRankingsEqualTheSingleNode) {
   cluster::ClusterConfig config;
-  config.vocabulary = dir_->path() + "/v.oxvoc";
-  for (int p = 0; p < kPartitions; ++p) {
-    const std::string address = StartShard(p);
-    ASSERT_FALSE(address.empty()) << shards_.back()->Log();
-    config.partitions.push_back({address});
-  }
+  ASSERT_NO_FATAL_FAILURE(StartCluster(&config));
   const auto front = cluster::ClusterFront::Open(config).value();
   const auto single = index::ImageIndex::Open(dir_->path() + "/single").value();
 
@@ -206,12 +211,7 @@ TEST_F(Cluster, FrontRankingsEqualTheSingleNode) {
 
 TEST_F(Cluster, AReplicaDownChangesNothingAPartitionDownIsPartialOrRefused) {
   cluster::ClusterConfig config;
-  config.vocabulary = dir_->path() + "/v.oxvoc";
-  for (int p = 0; p < kPartitions; ++p) {
-    const std::string address = StartShard(p);
-    ASSERT_FALSE(address.empty()) << shards_.back()->Log();
-    config.partitions.push_back({address});
-  }
+  ASSERT_NO_FATAL_FAILURE(StartCluster(&config));
   // Partition 0 gets a second replica (a copy of its folder); the first is killed.
   const std::string copy = dir_->path() + "/replica-" + std::to_string(started_);
   fs::copy(api::PartitionFolder(dir_->path() + "/cluster", 0), copy, fs::copy_options::recursive);

@@ -260,16 +260,7 @@ Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, 
   // Quantise the features inside the region once, as ImageIndex::Query does.
   std::vector<sift::Keypoint> keypoints;
   std::vector<float> descriptors;
-  for (size_t i = 0; i < query.size(); ++i) {
-    const sift::Keypoint& k = query.keypoints[i];
-    if (options.region) {
-      const auto& r = *options.region;
-      if (k.x < r[0] || k.x > r[2] || k.y < r[1] || k.y > r[3]) continue;
-    }
-    keypoints.push_back(k);
-    const auto d = query.Descriptor(i);
-    descriptors.insert(descriptors.end(), d.begin(), d.end());
-  }
+  index::SelectInRegion(query, options.region, &keypoints, &descriptors);
   std::vector<uint32_t> words(keypoints.size());
   vocab::QuantizerOptions quantizer = index::IndexOptions{}.quantizer;
   quantizer.num_probes = options.quantizer_probes;

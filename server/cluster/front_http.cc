@@ -29,8 +29,8 @@ void SendError(httplib::Response& res, const api::HttpError& error) {
 
 class FrontHttpServer::Impl {
  public:
-  Impl(std::shared_ptr<const ClusterFront> f, sift::SiftExtractor e, const FrontHttpOptions& o)
-      : front(std::move(f)), extractor(std::move(e)), options(o) {}
+  Impl(std::shared_ptr<const ClusterFront> f, const sift::SiftExtractor& e, const FrontHttpOptions& o)
+      : front(std::move(f)), extractor(e), options(o) {}
 
   void Search(const httplib::Request& req, httplib::Response& res) const {
     const auto start = std::chrono::steady_clock::now();
@@ -112,7 +112,7 @@ Result<std::unique_ptr<FrontHttpServer>> FrontHttpServer::Create(std::shared_ptr
   if (!sift_options) return std::unexpected(sift_options.error());
   auto extractor = sift::SiftExtractor::Create(*sift_options);
   if (!extractor) return std::unexpected(extractor.error());
-  auto impl = std::make_unique<Impl>(std::move(front), std::move(*extractor), options);
+  auto impl = std::make_unique<Impl>(std::move(front), *extractor, options);
   Impl* i = impl.get();
   i->http.new_task_queue = [threads = options.threads] { return new httplib::ThreadPool(static_cast<size_t>(threads)); };
   i->http.set_payload_max_length(options.max_body_bytes);
@@ -123,11 +123,9 @@ Result<std::unique_ptr<FrontHttpServer>> FrontHttpServer::Create(std::shared_ptr
   const auto not_yet = [](const httplib::Request& req, httplib::Response& res) {
     SendError(res, {501, "not_implemented", req.method + " " + req.path + " is not served by a cluster front yet"});
   };
-  for (const char* pattern : {"/v1/.*"}) {
-    i->http.Get(pattern, not_yet);
-    i->http.Post(pattern, not_yet);
-    i->http.Delete(pattern, not_yet);
-  }
+  i->http.Get("/v1/.*", not_yet);
+  i->http.Post("/v1/.*", not_yet);
+  i->http.Delete("/v1/.*", not_yet);
   return std::unique_ptr<FrontHttpServer>(new FrontHttpServer(std::move(impl)));
 }
 
