@@ -52,6 +52,7 @@ void ServeFront(const ServeFlags& flags, const server::HttpServerOptions& http, 
   options.threads = http.threads;
   options.max_body_bytes = http.max_body_bytes;
   options.decode = flags.image.ToDecodeOptions();
+  options.threads_per_request = flags.service.threads_per_request;
   options.default_query = flags.service.default_query;
   auto server = ValueOrExit(cluster::FrontHttpServer::Create(front, options));
   const int port = ValueOrExit(server->Bind());

@@ -110,6 +110,7 @@ Result<std::unique_ptr<FrontHttpServer>> FrontHttpServer::Create(std::shared_ptr
   }
   auto sift_options = sift::SiftOptions::FromDescription(settings);
   if (!sift_options) return std::unexpected(sift_options.error());
+  sift_options->num_threads = options.threads_per_request;
   auto extractor = sift::SiftExtractor::Create(*sift_options);
   if (!extractor) return std::unexpected(extractor.error());
   auto impl = std::make_unique<Impl>(std::move(front), *extractor, options);

@@ -11,6 +11,7 @@
 #include <memory>
 #include <string>
 
+#include "api/service.h"
 #include "index/image_index.h"
 #include "server/cluster/front.h"
 #include "sift/base/error.h"
@@ -28,6 +29,7 @@ struct FrontHttpOptions {
   int threads = 8;                      // requests served at once
   uint64_t max_body_bytes = 32ull << 20;  // larger uploads: 413
   sift::DecodeOptions decode;           // limits of the uploaded image
+  int threads_per_request = api::ServiceOptions{}.threads_per_request;  // extraction threads; 0 = all cores
   index::QueryOptions default_query;    // a search's own parameters override these
 };
 
