@@ -3,6 +3,7 @@
 
 #include "sift/base/binary_io.h"
 #include "sift/base/hash.h"
+#include "sift/base/log.h"
 
 namespace oxbow::api {
 namespace {
@@ -55,6 +56,19 @@ Result<GlobalFrequencies> ReadGlobalFrequencies(const std::string& path) {
     if (df > f.num_images)
       return Fail(ErrorCode::kCorruptData, "global frequencies " + path + ": a frequency exceeds the image count");
   return f;
+}
+
+Status PinClusterStatistics(const std::string& index_dir, index::ImageIndex& index) {
+  const std::string path = index_dir + "/" + std::string(kGlobalFrequenciesFile);
+  auto frequencies = ReadGlobalFrequencies(path);
+  if (!frequencies && frequencies.error().code == ErrorCode::kNotFound) return Ok();
+  if (!frequencies) return std::unexpected(frequencies.error());
+  if (frequencies->vocabulary_fingerprint != index.vocabulary().fingerprint())
+    return Fail(ErrorCode::kIncompatible, path + " counts the words of another vocabulary than the index's");
+  if (auto s = index.PinCollectionStatistics(frequencies->num_images, frequencies->document_frequency); !s) return s;
+  OXBOW_LOG(kInfo) << "partition " << frequencies->partition << " of " << frequencies->num_partitions
+                   << ": scoring with the cluster's statistics (" << frequencies->num_images << " images)";
+  return Ok();
 }
 
 }  // namespace oxbow::api

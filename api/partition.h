@@ -17,6 +17,7 @@
 #include <string_view>
 #include <vector>
 
+#include "index/image_index.h"
 #include "sift/base/error.h"
 
 namespace oxbow::api {
@@ -48,5 +49,10 @@ struct GlobalFrequencies {
 [[nodiscard]] Status WriteGlobalFrequencies(const std::string& path, const GlobalFrequencies& frequencies);
 // kNotFound, kCorruptData (damaged, truncated, inconsistent), kIncompatible (unknown version).
 [[nodiscard]] Result<GlobalFrequencies> ReadGlobalFrequencies(const std::string& path);
+
+// When `index_dir` holds kGlobalFrequenciesFile (a partition of a cluster), makes `index` score with
+// those statistics (index::ImageIndex::PinCollectionStatistics), so that its scores are the ones a
+// single index of the whole cluster gives. Ok without the file; kIncompatible for another vocabulary.
+[[nodiscard]] Status PinClusterStatistics(const std::string& index_dir, index::ImageIndex& index);
 
 }  // namespace oxbow::api

@@ -16,6 +16,7 @@
 #include <set>
 #include <thread>
 
+#include "api/partition.h"
 #include "sift/base/log.h"
 #include "sift/base/parallel.h"
 #include "vocab/vocabulary.h"
@@ -203,6 +204,8 @@ Result<std::unique_ptr<Service>> Service::Open(const std::string& index_dir,
     return Fail(ErrorCode::kNotFound, "no index in '" + index_dir +
                                           "'; pass --vocab VOCAB to create an empty one there (see `oxbow vocab train`)");
   }
+
+  if (auto s = PinClusterStatistics(index_dir, *index); !s) return std::unexpected(s.error());
 
   auto sift_options = sift::SiftOptions::FromDescription(index->extractor_settings());
   if (!sift_options) return std::unexpected(sift_options.error());

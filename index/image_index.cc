@@ -954,16 +954,7 @@ Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const Que
   q.width = query.image_width;
   q.height = query.image_height;
   std::vector<float> descriptors;
-  for (size_t i = 0; i < query.size(); ++i) {
-    const sift::Keypoint& k = query.keypoints[i];
-    if (options.region) {
-      const auto& r = *options.region;
-      if (k.x < r[0] || k.x > r[2] || k.y < r[1] || k.y > r[3]) continue;
-    }
-    q.keypoints.push_back(k);
-    const auto d = query.Descriptor(i);
-    descriptors.insert(descriptors.end(), d.begin(), d.end());
-  }
+  SelectInRegion(query, options.region, &q.keypoints, &descriptors);
   QueryTimings timings;
   q.words.resize(q.keypoints.size());
   // A query's descriptors on the index's threads, as its re-ranking: latency, not throughput.
@@ -1181,6 +1172,47 @@ void ImageIndex::Impl::ExpandQueryHamming(const Snapshot& snap, const QueryFeatu
   }
 }
 
+void SelectInRegion(const sift::FeatureSet& features, const std::optional<std::array<float, 4>>& region,
+                    std::vector<sift::Keypoint>* keypoints, std::vector<float>* descriptors) {
+  for (size_t i = 0; i < features.size(); ++i) {
+    const sift::Keypoint& k = features.keypoints[i];
+    if (region) {
+      const auto& r = *region;
+      if (k.x < r[0] || k.x > r[2] || k.y < r[1] || k.y > r[3]) continue;
+    }
+    keypoints->push_back(k);
+    const auto d = features.Descriptor(i);
+    descriptors->insert(descriptors->end(), d.begin(), d.end());
+  }
+}
+
+void SortVerifiedFirst(std::span<QueryResult> results) {
+  // Verified first (by inliers, then score), then the rest in tf-idf order; stable keeps ties by rank.
+  std::stable_sort(results.begin(), results.end(), [](const QueryResult& a, const QueryResult& b) {
+    if (a.verified != b.verified) return a.verified;
+    if (a.verified && a.inliers != b.inliers) return a.inliers > b.inliers;
+    return a.score > b.score;
+  });
+}
+
+std::vector<QueryTerm> ExpandedQuery(std::span<const QueryTerm> terms, std::span<const std::vector<QueryTerm>> regions) {
+  std::map<uint32_t, double> average;
+  for (const QueryTerm& term : terms) average[term.word] += term.weight;
+  for (const std::vector<QueryTerm>& region : regions)
+    for (const QueryTerm& term : region) average[term.word] += term.weight;
+  std::vector<QueryTerm> expanded;
+  expanded.reserve(average.size());
+  double norm_sq = 0;
+  for (const auto& [word, weight] : average) norm_sq += weight * weight;
+  const double inv = norm_sq > 0 ? 1.0 / std::sqrt(norm_sq) : 0.0;
+  for (const auto& [word, weight] : average) expanded.push_back({word, static_cast<float>(weight * inv)});
+  // Only the strongest words, twice as many as the query's: the average of the query and 5 regions has
+  // about 3x the query's words, most from one region only with small weights, and its pass over every
+  // posting of those words was the costliest stage at 1M images (339 ms p50). Measured: that pass about
+  // 35% cheaper (100k images), mAP Paris subset 0.896 -> 0.900, groups_dev 0.985 -> 0.986 (README).
+  return StrongestTerms(std::move(expanded), 2 * terms.size());
+}
+
 size_t ImageIndex::Impl::Rerank(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
                                 const std::vector<ScoredImage>& scored, std::vector<QueryResult>& results) const {
   const size_t rerank = std::min(scored.size(), static_cast<size_t>(options.rerank_depth));
@@ -1203,13 +1235,7 @@ size_t ImageIndex::Impl::Rerank(const Snapshot& snap, const QueryFeatures& query
       }
     }
   });
-  // Verified first (by inliers, then score), then the rest in tf-idf order; stable keeps ties by rank.
-  std::stable_sort(results.begin(), results.begin() + static_cast<std::ptrdiff_t>(rerank),
-                   [](const QueryResult& a, const QueryResult& b) {
-                     if (a.verified != b.verified) return a.verified;
-                     if (a.verified && a.inliers != b.inliers) return a.inliers > b.inliers;
-                     return a.score > b.score;
-                   });
+  SortVerifiedFirst(std::span(results).first(rerank));
   size_t num_verified = 0;
   for (size_t c = 0; c < rerank; ++c) num_verified += results[c].verified ? 1 : 0;
   return num_verified;
@@ -1219,25 +1245,13 @@ void ImageIndex::Impl::ExpandQuery(const Snapshot& snap, const std::vector<Query
                                    const QueryOptions& options, size_t num_verified,
                                    const std::vector<uint8_t>* allowed, ScoreScratch* scratch,
                                    std::vector<QueryResult>& results) const {
-  std::map<uint32_t, double> average;
-  for (const QueryTerm& term : terms) average[term.word] += term.weight;
   const size_t used = std::min(num_verified, static_cast<size_t>(options.qe_images));
+  std::vector<std::vector<QueryTerm>> regions(used);
   for (size_t c = 0; c < used; ++c) {
     const Entry* entry = snap.Find(results[c].id);
-    const BagOfWords region_bag = entry->features.BagInside(results[c].db_region);
-    for (const QueryTerm& term : snap.inverted.QueryVector(region_bag)) average[term.word] += term.weight;
+    regions[c] = snap.inverted.QueryVector(entry->features.BagInside(results[c].db_region));
   }
-  std::vector<QueryTerm> expanded;
-  expanded.reserve(average.size());
-  double norm_sq = 0;
-  for (const auto& [word, weight] : average) norm_sq += weight * weight;
-  const double inv = norm_sq > 0 ? 1.0 / std::sqrt(norm_sq) : 0.0;
-  for (const auto& [word, weight] : average) expanded.push_back({word, static_cast<float>(weight * inv)});
-  // Only the strongest words, twice as many as the query's: the average of the query and 5 regions has
-  // about 3x the query's words, most from one region only with small weights, and its pass over every
-  // posting of those words was the costliest stage at 1M images (339 ms p50). Measured: that pass about
-  // 35% cheaper (100k images), mAP Paris subset 0.896 -> 0.900, groups_dev 0.985 -> 0.986 (README).
-  expanded = StrongestTerms(std::move(expanded), 2 * terms.size());
+  const std::vector<QueryTerm> expanded = ExpandedQuery(terms, regions);
   // Deep enough for transitive verification's window as well as for top_k.
   const size_t expanded_depth =
       static_cast<size_t>(std::max(options.top_k, options.transitive_depth > 0 ? options.transitive_depth : 0));
@@ -1395,6 +1409,60 @@ std::vector<std::vector<ImageIndex::Impl::TransitiveAttempt>> ImageIndex::Impl::
               [](const TransitiveAttempt& x, const TransitiveAttempt& y) { return x.anchor < y.anchor; });
   }
   return attempts;
+}
+
+Status ImageIndex::PinCollectionStatistics(uint64_t num_images, std::span<const uint32_t> document_frequency) {
+  if (document_frequency.size() != impl_->vocabulary.size())
+    return Fail(ErrorCode::kInvalidArgument, "collection statistics of " + std::to_string(document_frequency.size()) +
+                                                 " words for a vocabulary of " + std::to_string(impl_->vocabulary.size()));
+  std::lock_guard<std::mutex> writer(impl_->writer_mutex);
+  auto next = std::make_shared<Snapshot>(*impl_->Current());
+  next->inverted = next->inverted.WithPinnedStatistics(num_images, document_frequency, impl_->index_options.num_threads);
+  impl_->Publish(std::move(next));
+  return Ok();
+}
+
+std::vector<QueryTerm> ImageIndex::TermsOf(std::span<const uint32_t> words, std::span<const float> tf) const {
+  return impl_->Current()->inverted.QueryVector(words, tf);
+}
+
+Result<std::vector<QueryTerm>> ImageIndex::RegionTerms(const std::string& id, const std::array<float, 4>& region) const {
+  const auto snap = impl_->Current();
+  const Entry* entry = snap->Find(id);
+  if (!entry) return Fail(ErrorCode::kNotFound, "no image with id '" + id + "'");
+  return snap->inverted.QueryVector(entry->features.BagInside(region));
+}
+
+std::vector<ImageIndex::ScoredId> ImageIndex::ScoreTerms(std::span<const QueryTerm> terms, size_t max_results,
+                                                         uint64_t* candidates) const {
+  thread_local ScoreScratch scratch;
+  const auto snap = impl_->Current();
+  std::vector<ScoredId> out;
+  for (const ScoredImage& s : snap->inverted.Score(terms, max_results, &scratch, candidates))
+    out.push_back({snap->entries[s.image]->record.id, s.score});
+  return out;
+}
+
+Result<std::vector<sift::VerificationResult>> ImageIndex::VerifyImages(std::span<const sift::Keypoint> keypoints,
+                                                                     std::span<const uint32_t> words,
+                                                                     const std::array<float, 4>& query_region,
+                                                                     std::span<const std::string> ids,
+                                                                     const QueryOptions& options) const {
+  if (keypoints.size() != words.size()) return Fail(ErrorCode::kInvalidArgument, "one word per query keypoint");
+  const auto snap = impl_->Current();
+  std::vector<const Entry*> entries;
+  for (const std::string& id : ids) {
+    const Entry* entry = snap->Find(id);
+    if (!entry) return Fail(ErrorCode::kNotFound, "no image with id '" + id + "'");
+    entries.push_back(entry);
+  }
+  const QueryGeometry geometry(keypoints, words, query_region);
+  std::vector<sift::VerificationResult> out(ids.size());
+  ParallelFor(ids.size(), impl_->index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
+    for (size_t c = begin; c < end; ++c)
+      out[c] = geometry.Verify(entries[c]->features, options.max_pairs_per_word, options.verify);
+  });
+  return out;
 }
 
 IndexStats ImageIndex::Stats() const {

@@ -314,6 +314,17 @@ struct IndexStats {
   uint64_t vocabulary_fingerprint = 0;
 };
 
+// Stages of Query shared with a cluster's front (server/cluster/front.h), which runs them over shards.
+// The query's features inside `region` (QueryOptions::region; all without one), appended.
+void SelectInRegion(const sift::FeatureSet& features, const std::optional<std::array<float, 4>>& region,
+                    std::vector<sift::Keypoint>* keypoints, std::vector<float>* descriptors);
+// Re-ranking's order: verified first by inliers (then score), the unverified after them in the order
+// given (stable).
+void SortVerifiedFirst(std::span<QueryResult> results);
+// Query expansion's vector: the L2-normalised average of the query's tf-idf vector and the regions'
+// (added in order), restricted to the 2 x terms.size() strongest words.
+std::vector<QueryTerm> ExpandedQuery(std::span<const QueryTerm> terms, std::span<const std::vector<QueryTerm>> regions);
+
 class ImageIndex {
  public:
   struct Snapshot;  // implementation detail (image_index.cc)
@@ -369,6 +380,30 @@ class ImageIndex {
   // Queries with an indexed image's own stored words and geometry (the image itself ranks first).
   // kNotFound for an unknown id. `options.region` applies to that image's coordinates.
   [[nodiscard]] Result<QueryResponse> QuerySimilar(const std::string& id, const QueryOptions& options) const;
+
+  // --- A partition of a cluster (api/partition.h, server/cluster/): the front runs the query's stages
+  // and each partition does its part on its own images.
+  // Scores with the whole cluster's statistics from now on (InvertedFile::WithPinnedStatistics; not
+  // stored: the caller pins again after Open). kInvalidArgument unless one frequency per word.
+  [[nodiscard]] Status PinCollectionStatistics(uint64_t num_images, std::span<const uint32_t> document_frequency);
+  // The L2-normalised tf-idf vector of a bag (InvertedFile::QueryVector with this index's statistics).
+  std::vector<QueryTerm> TermsOf(std::span<const uint32_t> words, std::span<const float> tf) const;
+  // The terms of image `id`'s own features inside `region` (query expansion's regions). kNotFound.
+  [[nodiscard]] Result<std::vector<QueryTerm>> RegionTerms(const std::string& id,
+                                                           const std::array<float, 4>& region) const;
+  struct ScoredId {
+    std::string id;
+    float score = 0;
+  };
+  // The best `max_results` images for `terms` (InvertedFile::Score), best first.
+  std::vector<ScoredId> ScoreTerms(std::span<const QueryTerm> terms, size_t max_results, uint64_t* candidates) const;
+  // Spatial verification of images `ids` against query features (keypoints with their words) inside
+  // `query_region`, as Query's re-ranking does. kNotFound for an id not indexed here.
+  [[nodiscard]] Result<std::vector<sift::VerificationResult>> VerifyImages(std::span<const sift::Keypoint> keypoints,
+                                                                         std::span<const uint32_t> words,
+                                                                         const std::array<float, 4>& query_region,
+                                                                         std::span<const std::string> ids,
+                                                                         const QueryOptions& options) const;
 
   IndexStats Stats() const;
   const vocab::Vocabulary& vocabulary() const;

@@ -331,8 +331,23 @@ InvertedFile InvertedFile::WithRefreshedStatistics(int num_threads) const {
   return next;
 }
 
+InvertedFile InvertedFile::WithPinnedStatistics(uint64_t num_images, std::span<const uint32_t> document_frequency,
+                                                int num_threads) const {
+  OXBOW_CHECK(document_frequency.size() == vocabulary_size_, "one document frequency per word");
+  InvertedFile next = *this;
+  {
+    CowArray<uint32_t>::Editor editor(&next.stats_df_);
+    for (size_t w = 0; w < vocabulary_size_; ++w) editor.Mutable(w) = document_frequency[w];
+  }
+  next.stats_num_live_ = num_images;
+  next.changes_since_refresh_ = 0;
+  next.pinned_statistics_ = true;
+  next.RecomputeSums(num_threads);
+  return next;
+}
+
 void InvertedFile::RefreshIfDue() {
-  if (changes_since_refresh_ == 0) return;
+  if (changes_since_refresh_ == 0 || pinned_statistics_) return;
   if (num_postings_ <= options_.exact_statistics_postings ||
       static_cast<double>(changes_since_refresh_) >
           options_.statistics_refresh_fraction * static_cast<double>(stats_num_live_)) {
@@ -352,6 +367,11 @@ void InvertedFile::RefreshStatistics(int num_threads) {
   stats_df_ = df_;
   stats_num_live_ = num_live_;
   changes_since_refresh_ = 0;
+  pinned_statistics_ = false;
+  RecomputeSums(num_threads);
+}
+
+void InvertedFile::RecomputeSums(int num_threads) {
   const size_t num_images = images_.size();
   std::vector<uint8_t> live(num_images);
   for (size_t i = 0; i < num_images; ++i) live[i] = images_[i].live != 0 ? 1 : 0;

@@ -208,6 +208,12 @@ class InvertedFile {
   // A new version whose statistics are those of the live images now (one pass over every posting,
   // on `num_threads` threads; 0 = all). Scores then equal those of Build() on the live images.
   InvertedFile WithRefreshedStatistics(int num_threads = 0) const;
+  // A new version scoring with the given collection statistics instead of its own (a cluster partition
+  // scoring with the whole cluster's N and n_w, api/partition.h): every live image's norm is recomputed
+  // (one pass, as a refresh) and the statistics stay pinned: later writes compute their images' norms
+  // with them and no refresh replaces them. document_frequency.size() == vocabulary_size (OXBOW_CHECK).
+  InvertedFile WithPinnedStatistics(uint64_t num_images, std::span<const uint32_t> document_frequency,
+                                    int num_threads = 0) const;
   // Images added + removed since the last refresh (0: the statistics are those of the live images).
   uint64_t changes_since_refresh() const { return changes_since_refresh_; }
 
@@ -240,6 +246,7 @@ class InvertedFile {
                                              bool use_stop_list) const;
   void MergeTail(bool everything);
   void RefreshStatistics(int num_threads);
+  void RecomputeSums(int num_threads);  // every live image's sums with the current statistics
   void RefreshIfDue();
   // Sums a, b, c of one image's bag with the current statistics (words unknown to them left out).
   void SetSums(const BagOfWords& bag, ImageState* s) const;
@@ -252,6 +259,7 @@ class InvertedFile {
   CowArray<ImageState> images_;                            // per image number
   uint64_t stats_num_live_ = 0;                            // N at the last refresh
   uint64_t changes_since_refresh_ = 0;
+  bool pinned_statistics_ = false;  // WithPinnedStatistics: refreshes keep the given statistics
   uint64_t num_live_ = 0;
   uint64_t num_live_features_ = 0;
   uint64_t num_postings_ = 0;       // stored in segments, live or not

@@ -18,6 +18,8 @@ build_packages=(
   nlohmann-json3-dev     # JSON in the CLI and the HTTP API
   libcli11-dev           # the oxbow CLI
   libcpp-httplib-dev     # the HTTP server
+  libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler  # a cluster's front <-> shard calls
+                         # (server/cluster/shard.proto): deadlines, status codes, health checking
   libgtest-dev libgmock-dev
   libjpeg-dev            # sift/image.cc checks JPEG data with libjpeg (damage, scan limit); tests: a CMYK JPEG fixture
   libtiff-dev            # sift/image.cc checks TIFF data with libtiff (damage, the dimensions libtiff decodes)
@@ -37,7 +39,7 @@ build_packages=(
 )
 runtime_packages=(
   libopencv-core406 libopencv-imgproc406 libopencv-imgcodecs406 libopencv-features2d406 libopencv-calib3d406
-  libopencv-flann406 libflann1.9 libopenmpi3 libsqlite3-0 libcpp-httplib0.11 libjpeg62-turbo libtiff6 curl ca-certificates
+  libopencv-flann406 libflann1.9 libopenmpi3 libsqlite3-0 libcpp-httplib0.11 libgrpc++1.51 libprotobuf32 libjpeg62-turbo libtiff6 curl ca-certificates
 )
 
 packages=("${build_packages[@]}")

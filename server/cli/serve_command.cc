@@ -12,6 +12,9 @@
 #include "api/service.h"
 #include "server/cli/cli.h"
 #include "server/cli/common_flags.h"
+#include "server/cluster/front.h"
+#include "server/cluster/front_http.h"
+#include "server/cluster/shard_server.h"
 #include "server/http/http_server.h"
 #include "server/cli/search_flags.h"
 #include "sift/base/log.h"
@@ -34,7 +37,40 @@ struct ServeFlags {
   int index_threads = 0;
   index::IndexOptions index_options;  // scoring options (--max-df, ...); num_threads from --index-threads
   std::string log_format = "text";
+  int grpc_port = -1;  // -1: no gRPC (not a cluster shard)
+  std::string cluster_file;  // the front of a cluster instead of an index
+  cluster::FrontOptions front;
 };
+
+// `serve --cluster`: the front (server/cluster/front_http.h) over the shards cluster.json names.
+void ServeFront(const ServeFlags& flags, const server::HttpServerOptions& http, const sigset_t& signals) {
+  const cluster::ClusterConfig config = ValueOrExit(cluster::ClusterConfig::Read(flags.cluster_file));
+  std::shared_ptr<const cluster::ClusterFront> front = ValueOrExit(cluster::ClusterFront::Open(config, flags.front));
+  cluster::FrontHttpOptions options;
+  options.host = http.host;
+  options.port = http.port;
+  options.threads = http.threads;
+  options.max_body_bytes = http.max_body_bytes;
+  options.decode = flags.image.ToDecodeOptions();
+  options.threads_per_request = flags.service.threads_per_request;
+  options.default_query = flags.service.default_query;
+  auto server = ValueOrExit(cluster::FrontHttpServer::Create(front, options));
+  const int port = ValueOrExit(server->Bind());
+  std::printf("listening on http://%s:%d\n", http.host.c_str(), port);
+  std::fflush(stdout);
+  OXBOW_LOG(kInfo) << "cluster front on http://" << http.host << ":" << port << " over " << front->num_partitions()
+                   << " partitions (" << flags.cluster_file << ")";
+  std::thread signal_waiter([&] {
+    int signal_number = 0;
+    sigwait(&signals, &signal_number);
+    OXBOW_LOG(kInfo) << "received a stop signal: finishing in-flight requests";
+    server->Shutdown();
+  });
+  server->Run();
+  pthread_kill(signal_waiter.native_handle(), SIGTERM);  // NOLINT(bugprone-bad-signal-to-kill-thread)
+  signal_waiter.join();
+  OXBOW_LOG(kInfo) << "stopped";
+}
 
 void Serve(const ServeFlags& flags) {
   log::Format log_format = log::Format::kText;
@@ -70,9 +106,18 @@ void Serve(const ServeFlags& flags) {
   sigaddset(&signals, SIGINT);
   sigaddset(&signals, SIGTERM);
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);  // inherited by every thread started below
+  if (flags.cluster_file.empty() == flags.index_dir.empty()) throw CommandError(2, "give either --index or --cluster (one of them)");
+  if (!flags.cluster_file.empty()) return ServeFront(flags, http, signals);
 
   server::HttpServer server(http);
   const int port = ValueOrExit(server.Bind());
+  cluster::ShardServer shard;
+  if (flags.grpc_port >= 0) {
+    const int grpc_port = ValueOrExit(shard.Start(http.host, flags.grpc_port));
+    // Printed before the HTTP line, which tests and scripts wait for.
+    std::printf("shard listening on grpc://%s:%d\n", http.host.c_str(), grpc_port);
+    OXBOW_LOG(kInfo) << "cluster shard API (gRPC) on " << http.host << ":" << grpc_port;
+  }
   // Tests and scripts parse this line for the port (it is printed once the socket accepts connections).
   std::printf("listening on http://%s:%d\n", http.host.c_str(), port);
   std::fflush(stdout);
@@ -98,7 +143,9 @@ void Serve(const ServeFlags& flags) {
     OXBOW_LOG(kInfo) << "index " << flags.index_dir << " ready: " << stats.index.num_images << " images, "
                      << stats.index.num_features << " features, " << stats.index.vocabulary_size << " words, loaded in "
                      << std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() << " s";
-    server.SetService(std::shared_ptr<api::Service>(std::move(*service)));
+    std::shared_ptr<api::Service> shared(std::move(*service));
+    shard.SetService(shared);
+    server.SetService(std::move(shared));
   });
 
   std::thread signal_waiter([&] {
@@ -112,6 +159,7 @@ void Serve(const ServeFlags& flags) {
 
   server.Run();  // returns after Shutdown(), once in-flight requests are done
   loader.join();
+  shard.Shutdown();
   // Wake the signal thread if the server stopped for another reason (index failed to load).
   // The waiter blocks SIGTERM and consumes it in sigwait(): this wakes it, it does not terminate anything.
   pthread_kill(signal_waiter.native_handle(), SIGTERM);  // NOLINT(bugprone-bad-signal-to-kill-thread)
@@ -127,10 +175,27 @@ void SetUpServe(CLI::App& app) {
       "Serve an index over HTTP (JSON API under /v1, the search page at /; see the README).\n"
       "  oxbow serve --index idx --vocab vocab.oxvoc        # creates idx if it holds no index yet\n"
       "  curl -s --data-binary @photo.jpg 'http://127.0.0.1:8080/v1/search?top_k=5'\n"
+      "A cluster (`index build --mpi --partitions P`): one shard per partition and a front:\n"
+      "  oxbow serve --index cluster/partition-0 --port 9101 --grpc-port 9001      # ... one per partition\n"
+      "  oxbow serve --cluster cluster.json --port 8080\n"
       "Prints 'listening on http://HOST:PORT' on stdout once bound. SIGINT/SIGTERM stop it gracefully.");
-  cmd->add_option("--index", flags->index_dir, "index folder (created when empty and --vocab is given)")->required();
+  cmd->add_option("--index", flags->index_dir, "index folder (created when empty and --vocab is given)");
+  cmd->add_option("--cluster", flags->cluster_file,
+                  "serve as the front of a cluster instead of an index: cluster.json names the vocabulary and each "
+                  "partition's shard replicas (`serve --grpc-port`); only POST /v1/search so far (README, "
+                  "\"Serving a cluster\")")
+      ->check(CLI::ExistingFile);
+  cmd->add_option("--shard-deadline-ms", flags->front.shard_deadline_ms,
+                  "--cluster: a call to one shard replica fails after this long; the partition's next replica is asked")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 600000));
   cmd->add_option("--vocab", flags->vocab_path, "vocabulary file; needed only to create a new index")
       ->check(CLI::ExistingFile);
+  cmd->add_option("--grpc-port", flags->grpc_port,
+                  "also serve the cluster shard API (gRPC, for a front: `serve --cluster`) on this port of --host; "
+                  "0 picks a free one (printed as 'shard listening on grpc://HOST:PORT'); off when not given. "
+                  "A partition of `index build --partitions` scores with the cluster's global-frequencies.oxdf")
+      ->check(CLI::Range(0, 65535));
   cmd->add_option("--host", flags->http.host, "address to bind (loopback by default; 0.0.0.0 exposes it)")
       ->capture_default_str();
   cmd->add_option("--port", flags->http.port, "TCP port; 0 picks a free one (printed)")

@@ -1,0 +1,93 @@
+// The front of a cluster (issue 15; README "Serving a cluster"): it holds the vocabulary, quantises a
+// query once and runs the stages of index::ImageIndex::Query over the partitions' shards
+// (shard.proto):
+//   1. Score: every partition scores the query's bag with the cluster's statistics (its shard pins them,
+//      api::PinClusterStatistics) and returns its best max(top_k, rerank_depth); the front merges them
+//      into the global ranking (ties: smaller id first, where a single node takes the smaller image
+//      number).
+//   2. Verify: each of the top rerank_depth candidates is verified by the shard that holds it (the
+//      geometry stays there); verified first by inliers, as on one node.
+//   3. Query expansion: the owners give the tf-idf vectors of the matched regions, the front averages
+//      them with the query's and scatters Score again with the expanded vector.
+// With no write in flight the ranking (ids, order, scores, verified, inliers) is the single node's.
+// Not yet: transitive verification (the front answers as a single node with transitive_depth 0) and
+// soft assignment (query_assignments > 1 is refused).
+//
+// Each partition is asked through one of its replicas, in turn; a replica that fails (unreachable,
+// past the deadline) is skipped for the next one of the same partition. A partition none of whose
+// replicas answers fails the query with kResourceExhausted (503), or, when partial answers are allowed,
+// is left out of it: its images are missing from the ranking and Coverage names it (a query that no
+// partition answers fails all the same).
+//
+// Thread safety: Query and Metrics may be called from any number of threads at once.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "index/image_index.h"
+#include "sift/base/error.h"
+#include "sift/types.h"
+
+namespace oxbow::cluster {
+
+// cluster.json: {"vocabulary": "V.oxvoc", "partitions": [{"replicas": ["host:port", ...]}, ...]}; the
+// vocabulary path is relative to the file's folder unless absolute. Partition k is the k-th entry.
+struct ClusterConfig {
+  std::string vocabulary;
+  std::vector<std::vector<std::string>> partitions;  // per partition, its replicas' gRPC addresses
+
+  // kNotFound, kInvalidArgument (not JSON, missing fields, a partition without replicas).
+  [[nodiscard]] static Result<ClusterConfig> Read(const std::string& path);
+};
+
+struct FrontOptions {
+  // Deadline of one call to one shard, milliseconds. [1, 600000].
+  int shard_deadline_ms = 5000;
+  // Threads that quantise a query's descriptors; 0 = all cores.
+  int num_threads = 0;
+};
+
+// Per replica: calls made, calls failed, and their total latency.
+struct ReplicaMetrics {
+  uint32_t partition = 0;
+  std::string address;
+  uint64_t calls = 0;
+  uint64_t errors = 0;
+  double total_ms = 0;
+};
+
+class ClusterFront {
+ public:
+  // Reads the vocabulary and connects (lazily: a shard down now is tried at the first query).
+  [[nodiscard]] static Result<std::unique_ptr<ClusterFront>> Open(const ClusterConfig& config,
+                                                                  const FrontOptions& options = {});
+  ~ClusterFront();
+  ClusterFront(const ClusterFront&) = delete;
+  ClusterFront& operator=(const ClusterFront&) = delete;
+
+  // Which partitions answered a query.
+  struct Coverage {
+    uint32_t total = 0;            // partitions in the cluster
+    uint32_t ok = 0;               // those that answered every call
+    std::vector<uint32_t> failed;  // the others, ascending
+  };
+  // index::ImageIndex::Query over the cluster (see the file comment). `coverage` (optional) receives
+  // which partitions answered.
+  [[nodiscard]] Result<index::QueryResponse> Query(const sift::FeatureSet& query, const index::QueryOptions& options,
+                                                   bool allow_partial = false, Coverage* coverage = nullptr) const;
+
+  std::vector<ReplicaMetrics> Metrics() const;
+  const vocab::Vocabulary& vocabulary() const;
+  size_t num_partitions() const;
+
+  class Impl;
+
+ private:
+  explicit ClusterFront(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace oxbow::cluster
