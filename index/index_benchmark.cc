@@ -98,17 +98,34 @@
 #include "vocab/vocabulary.h"
 
 // Counts heap allocations through operator new (the verifier's containers use it), for the
-// re-ranking table.
+// re-ranking table. Every unaligned form is replaced, nothrow and array ones included: the standard
+// library allocates through them too (std::stable_sort's temporary buffer uses nothrow new), and a
+// form left to the runtime would pair its allocation with this file's free() (AddressSanitizer
+// reports that as alloc-dealloc-mismatch).
 std::atomic<uint64_t> g_allocations{0};
 
-void* operator new(size_t size) {
+namespace {
+void* CountedMalloc(size_t size) noexcept {
   g_allocations.fetch_add(1, std::memory_order_relaxed);
-  if (void* p = std::malloc(size == 0 ? 1 : size)) return p;
+  return std::malloc(size == 0 ? 1 : size);
+}
+void* CountedNew(size_t size) {
+  if (void* p = CountedMalloc(size)) return p;
   throw std::bad_alloc();
 }
+}  // namespace
+
+void* operator new(size_t size) { return CountedNew(size); }
+void* operator new[](size_t size) { return CountedNew(size); }
+void* operator new(size_t size, const std::nothrow_t&) noexcept { return CountedMalloc(size); }
+void* operator new[](size_t size, const std::nothrow_t&) noexcept { return CountedMalloc(size); }
 // Not inlined: GCC would otherwise see free() on a pointer from a new-expression and warn.
 [[gnu::noinline]] void operator delete(void* p) noexcept { std::free(p); }
+[[gnu::noinline]] void operator delete[](void* p) noexcept { std::free(p); }
 [[gnu::noinline]] void operator delete(void* p, size_t) noexcept { std::free(p); }
+[[gnu::noinline]] void operator delete[](void* p, size_t) noexcept { std::free(p); }
+[[gnu::noinline]] void operator delete(void* p, const std::nothrow_t&) noexcept { std::free(p); }
+[[gnu::noinline]] void operator delete[](void* p, const std::nothrow_t&) noexcept { std::free(p); }
 
 namespace oxbow::index {
 namespace {

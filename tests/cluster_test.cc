@@ -29,9 +29,6 @@ using testing::RunCommand;
 
 constexpr int kPartitions = 3;
 
-// Open MPI refuses to run as root (CI) unless told otherwise: set for the child only.
-const std::string kMpiEnvironment = "env OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 ";
-
 class Cluster : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
@@ -49,8 +46,9 @@ class Cluster : public ::testing::Test {
     ASSERT_TRUE(testing::RandomVocabulary(sift::SiftOptions{}.Describe(), 512)->Write(vocab));
     Run(std::string(OXBOW_BINARY) + " -q index build --vocab " + vocab + " --images " + images +
         " --threads 1 --out " + dir_->path() + "/single 2>&1");
-    Run(kMpiEnvironment + OXBOW_BINARY + " -q index build --mpi --vocab " + vocab + " --images " + images +
-        " --partitions " + std::to_string(kPartitions) + " --threads 1 --out " + dir_->path() + "/cluster 2>&1");
+    Run(std::string(testing::kMpiChildEnvironment) + OXBOW_BINARY + " -q index build --mpi --vocab " + vocab +
+        " --images " + images + " --partitions " + std::to_string(kPartitions) + " --threads 1 --out " +
+        dir_->path() + "/cluster 2>&1");
     auto extractor = sift::SiftExtractor::Create(sift::SiftOptions{});
     ASSERT_TRUE(extractor);
     for (int i = 0; i < 12; ++i) {

@@ -26,19 +26,10 @@ namespace {
 namespace fs = std::filesystem;
 using testing::RunCommand;
 
-// Under ASan, leak checking is off for the ranks only: Open MPI 4.1 leaves allocations of its
-// dlopen'ed components at MPI_Finalize, which LeakSanitizer reports from modules already unloaded (so no
-// suppression can name them). The same training and build code runs leak-checked without mpirun in
-// distributed_train_test and the CLI tests.
-#if defined(__SANITIZE_ADDRESS__)
-constexpr const char* kRankEnvironment = "LSAN_OPTIONS=detect_leaks=0 ";
-#else
-constexpr const char* kRankEnvironment = "";
-#endif
 
 std::string Mpirun(int ranks, const std::string& args) {
-  std::string command = "env OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 OMPI_MCA_rmaps_base_oversubscribe=1 ";
-  command += kRankEnvironment;
+  std::string command = testing::kMpiChildEnvironment;
+  command += "OMPI_MCA_rmaps_base_oversubscribe=1 ";
   command += "mpirun --oversubscribe -np " + std::to_string(ranks);
   command += " " OXBOW_BINARY " " + args + " 2>&1";
   return command;
@@ -79,8 +70,7 @@ TEST_F(Mpi, VocabularyIsTheSameForOneAndThreeRanks) {
       "vocab train --mpi --root-sift --images " + images_ + " --words 200 --per-image 600 --threads 1 --out ";
   Run(Mpirun(1, train + Path("np1.oxvoc")));
   Run(Mpirun(3, train + Path("np3.oxvoc")));
-  std::string singleton = "env ";  // no mpirun: one rank (MPI_Init as a singleton)
-  singleton += kRankEnvironment;
+  std::string singleton = testing::kMpiChildEnvironment;  // no mpirun: one rank (MPI_Init as a singleton)
   singleton += OXBOW_BINARY " " + train;
   Run(singleton + Path("singleton.oxvoc") + " 2>&1");
   const std::string np1 = ReadBytes(Path("np1.oxvoc"));

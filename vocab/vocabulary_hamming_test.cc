@@ -72,17 +72,25 @@ TEST_F(HammingVocabularyTest, MediansSplitEachWordsSampleInHalves) {
   std::vector<uint64_t> signatures(n);
   hamming_->Signatures(sample_, words, signatures);
   // Per word and bit: the median is one of the word's projected values, so exactly the values above it
-  // set the bit: (count - 1) / 2 of them when they are distinct (count odd).
+  // set the bit: (count - 1) / 2 of them when they are distinct (count odd). Two float32 projections
+  // can round to the median's value (which ones depends on the build's floating-point code: the
+  // ASan build at -O1 has such a tie where the -O2 build has none), and a tie only lowers the count.
   std::vector<std::array<int, kHammingBits>> ones(kWords);
   std::vector<int> count(kWords, 0);
   for (size_t i = 0; i < n; ++i) {
     ++count[words[i]];
     for (int b = 0; b < kHammingBits; ++b) ones[words[i]][b] += static_cast<int>(signatures[i] >> b & 1);
   }
+  int exact = 0;
   for (size_t w = 0; w < kWords; ++w) {
     ASSERT_EQ(count[w], 101) << "the sample's descriptors stay in their word";
-    for (int b = 0; b < kHammingBits; ++b) EXPECT_EQ(ones[w][b], 50) << "word " << w << " bit " << b;
+    for (int b = 0; b < kHammingBits; ++b) {
+      EXPECT_LE(ones[w][b], 50) << "word " << w << " bit " << b;
+      EXPECT_GE(ones[w][b], 48) << "word " << w << " bit " << b;
+      exact += ones[w][b] == 50;
+    }
   }
+  EXPECT_GE(exact, static_cast<int>(kWords * kHammingBits) - 3) << "more ties than float32 rounding explains";
 }
 
 TEST_F(HammingVocabularyTest, NearDescriptorsHaveNearSignatures) {
