@@ -30,9 +30,9 @@ int RunShell(const std::string& command, std::string* output) {
   return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
 }
 
-TEST(EvalEndToEnd, GroupsProtocolThroughTheHttpServer) {
-  const fs::path dir = fs::temp_directory_path() / ("oxbow_eval_e2e_" + std::to_string(::getpid()));
-  fs::remove_all(dir);
+// Four groups of two views (box, graf, leuven, aero) under DIR/images and four unrelated photos under
+// DIR/distractors (one in a nested folder).
+void WriteGroups(const fs::path& dir) {
   const std::vector<std::pair<std::string, std::vector<std::string>>> groups = {
       {"box", {"box.png", "box_in_scene.png"}},
       {"graf", {"graf1.png", "graf3.png"}},
@@ -52,6 +52,12 @@ TEST(EvalEndToEnd, GroupsProtocolThroughTheHttpServer) {
     fs::create_directories(target.parent_path());
     fs::copy_file(kSamples / file, target);
   }
+}
+
+TEST(EvalEndToEnd, GroupsProtocolThroughTheHttpServer) {
+  const fs::path dir = fs::temp_directory_path() / ("oxbow_eval_e2e_" + std::to_string(::getpid()));
+  fs::remove_all(dir);
+  ASSERT_NO_FATAL_FAILURE(WriteGroups(dir));
   const std::string base = std::string(OXBOW_BINARY) + " eval --protocol groups --images " +
                            (dir / "images").string() + " --work " + (dir / "work").string() + " --out " +
                            (dir / "report").string() +
@@ -102,6 +108,45 @@ TEST(EvalEndToEnd, GroupsProtocolThroughTheHttpServer) {
   std::string without;
   EXPECT_EQ(RunShell(base, &without), 2) << without;
   EXPECT_NE(without.find("use another --work"), std::string::npos) << without;
+  fs::remove_all(dir);
+}
+
+// Hamming-embedding settings to compare: `--hamming off,on` trains the vocabulary with the embedding,
+// and every listed threshold (and width) is a run of its own, in process, with its values in the
+// report. Threshold 0 matches only identical signatures, 64 every pair in a word: the rankings differ.
+TEST(EvalEndToEnd, ComparesHammingThresholdsInProcess) {
+  const fs::path dir = fs::temp_directory_path() / ("oxbow_eval_he_" + std::to_string(::getpid()));
+  fs::remove_all(dir);
+  ASSERT_NO_FATAL_FAILURE(WriteGroups(dir));
+  const std::string base = std::string(OXBOW_BINARY) + " eval --protocol groups --images " +
+                           (dir / "images").string() + " --work " + (dir / "work").string() + " --out " +
+                           (dir / "report").string() +
+                           " --features rootsift --words 400 --sample 60000 --rerank 0 --qe off --threads 2"
+                           " --hamming off,on --hamming-threshold 0,64";
+  std::string refused;
+  EXPECT_EQ(RunShell(base, &refused), 2) << "the HTTP path cannot set the threshold: " << refused;
+  EXPECT_NE(refused.find("--mode in-process"), std::string::npos) << refused;
+  std::string output;
+  ASSERT_EQ(RunShell(base + " --mode in-process", &output), 0) << output;
+  std::ifstream in(dir / "report" / "results.json");
+  ASSERT_TRUE(in) << output;
+  const auto runs = nlohmann::json::parse(in)["runs"];
+  ASSERT_EQ(runs.size(), 3u) << output;
+  EXPECT_EQ(runs[0]["settings"]["hamming"], "off");
+  EXPECT_EQ(runs[0]["settings"]["hamming_threshold"], "-");
+  EXPECT_EQ(runs[1]["settings"]["hamming_threshold"], "0");
+  EXPECT_EQ(runs[2]["settings"]["hamming_threshold"], "64");
+  for (const auto& run : {runs[1], runs[2]}) {
+    EXPECT_EQ(run["settings"]["hamming"], "on");
+    EXPECT_EQ(run["settings"]["hamming_sigma"], "16");
+    EXPECT_EQ(run["settings"]["path"], "in-process");
+  }
+  EXPECT_NE(runs[1]["label"].get<std::string>().find("+he0/16"), std::string::npos) << runs[1]["label"];
+  bool differ = false;
+  for (size_t q = 0; q < runs[1]["queries"].size(); ++q) {
+    differ = differ || runs[1]["queries"][q]["top"] != runs[2]["queries"][q]["top"];
+  }
+  EXPECT_TRUE(differ) << "thresholds 0 and 64 ranked every query alike: the setting did not reach the query";
   fs::remove_all(dir);
 }
 

@@ -8,6 +8,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
@@ -56,6 +57,9 @@ struct EvalArgs {
   std::vector<std::string> qe = {"on"};
   std::vector<std::string> transitive = {"on"};  // transitive verification (the server's default) on/off
   std::vector<std::string> hamming = {"off"};     // Hamming-embedding re-scoring on/off
+  // With hamming on: the match thresholds and weight widths to compare (the server's defaults).
+  std::vector<int> hamming_threshold = {index::QueryOptions{}.hamming_threshold};
+  std::vector<double> hamming_sigma = {index::QueryOptions{}.hamming_sigma};
   int top_k = 0;                         // results requested per query; 0 = the whole database (max 10000)
   int sample = 1000000;                  // vocabulary training sample
   int per_image = 0;                     // per-image cap on the training sample; 0 = the command's default
@@ -279,8 +283,16 @@ std::string BoxParam(const std::array<float, 4>& b) {
   return s.str();
 }
 
+// One Hamming-embedding setting of a run.
+struct HammingSetting {
+  bool on = false;
+  int threshold = index::QueryOptions{}.hamming_threshold;
+  double sigma = index::QueryOptions{}.hamming_sigma;
+};
+
 void RunHttp(const EvalArgs& a, const eval::Protocol& protocol, const std::map<std::string, std::string>& files,
-             int port, int rerank, bool qe, bool transitive, bool hamming, int top_k, eval::RunResult* run) {
+             int port, int rerank, bool qe, bool transitive, const HammingSetting& hamming, int top_k,
+             eval::RunResult* run) {
   httplib::Client client("127.0.0.1", port);
   client.set_read_timeout(300, 0);
   client.set_write_timeout(60, 0);
@@ -291,7 +303,7 @@ void RunHttp(const EvalArgs& a, const eval::Protocol& protocol, const std::map<s
     const std::string& path = found->second;
     std::string target = "/v1/search?top_k=" + std::to_string(top_k) + "&rerank=" + std::to_string(rerank) +
                          "&qe=" + (qe ? "true" : "false") + (transitive ? "" : "&transitive_depth=0") +
-                         "&hamming=" + (hamming ? "true" : "false");
+                         "&hamming=" + (hamming.on ? "true" : "false");
     if (q.bbox && !a.full_image) target += "&bbox=" + BoxParam(*q.bbox);
     const std::string body = ReadBytes(path);
     const auto t0 = Clock::now();
@@ -315,7 +327,8 @@ void RunHttp(const EvalArgs& a, const eval::Protocol& protocol, const std::map<s
 }
 
 void RunInProcess(const EvalArgs& a, const eval::Protocol& protocol, const std::map<std::string, std::string>& files,
-                  const index::ImageIndex& idx, int rerank, bool qe, bool transitive, bool hamming, int top_k,
+                  const index::ImageIndex& idx, int rerank, bool qe, bool transitive, const HammingSetting& hamming,
+                  int top_k,
                   eval::RunResult* run) {
   auto options = ValueOrExit(sift::SiftOptions::FromDescription(idx.extractor_settings()));
   options.num_threads = a.threads;
@@ -332,7 +345,9 @@ void RunInProcess(const EvalArgs& a, const eval::Protocol& protocol, const std::
     qo.top_k = top_k;
     qo.rerank_depth = rerank;
     qo.query_expansion = qe;
-    qo.hamming = hamming;
+    qo.hamming = hamming.on;
+    qo.hamming_threshold = hamming.threshold;
+    qo.hamming_sigma = hamming.sigma;
     if (!transitive) qo.transitive_depth = 0;
     if (q.bbox && !a.full_image) qo.region = *q.bbox;
     auto response = ValueOrExit(idx.Query(features, qo));
@@ -391,6 +406,43 @@ std::vector<std::pair<std::string, std::string>> Combinations(const std::vector<
   return out;
 }
 
+std::string FormatSigma(double sigma) {
+  std::ostringstream s;
+  s << sigma;
+  return s.str();
+}
+
+// off and/or on x every listed threshold x every listed width. Only in-process runs can set the two
+// (the HTTP API takes hamming on/off and the server's settings).
+std::vector<HammingSetting> HammingSettings(const EvalArgs& a) {
+  const index::QueryOptions defaults;
+  const bool tuned = a.hamming_threshold != std::vector<int>{defaults.hamming_threshold} ||
+                     a.hamming_sigma != std::vector<double>{defaults.hamming_sigma};
+  if (tuned && a.mode != "in-process") {
+    throw CommandError(2, "--hamming-threshold and --hamming-sigma other than the server's defaults need "
+                          "--mode in-process");
+  }
+  std::vector<HammingSetting> out;
+  for (const std::string& text : a.hamming) {
+    if (text == "off") {
+      out.push_back({});
+      continue;
+    }
+    for (const int threshold : a.hamming_threshold) {
+      for (const double sigma : a.hamming_sigma) out.push_back({true, threshold, sigma});
+    }
+  }
+  return out;
+}
+
+// " +he", with the threshold and width when they are not the server's defaults.
+std::string HammingLabel(const HammingSetting& h) {
+  if (!h.on) return "";
+  const index::QueryOptions defaults;
+  if (h.threshold == defaults.hamming_threshold && h.sigma == defaults.hamming_sigma) return " +he";
+  return " +he" + std::to_string(h.threshold) + "/" + FormatSigma(h.sigma);
+}
+
 // The search settings every run shares (the server's defaults, index/image_index.h), for the report.
 std::string SearchDefaults() {
   const index::QueryOptions o;
@@ -414,6 +466,8 @@ void Run(const EvalArgs& a, const std::string& command_line) {
   const std::map<std::string, std::string> database = DatabaseFiles(a, protocol);
   const int top_k = a.top_k > 0 ? a.top_k : static_cast<int>(std::min<size_t>(10000, protocol.database.size()));
   const std::string exe = SelfExe();
+  const std::vector<HammingSetting> hamming_settings = HammingSettings(a);
+  const std::array<std::string, 2> kModes = {"http", "in-process"};
   fs::create_directories(a.work);
   std::vector<eval::RunResult> runs;
   for (const std::string& features : a.features) {
@@ -443,42 +497,45 @@ void Run(const EvalArgs& a, const std::string& command_line) {
           const bool qe = qe_text == "on", transitive = transitive_text == "on";
           // QE and transitive verification build on verified results: both need re-ranking.
           if ((qe || !transitive) && rerank == 0) continue;
-          for (const auto& [hamming_text, mode] : Combinations(a.hamming, {"http", "in-process"})) {
-            if (a.mode != "both" && a.mode != mode) continue;
-            const bool hamming = hamming_text == "on";
-            eval::RunResult run = base;
-            run.label = features + " " + std::to_string(words / 1000) + "k" +
-                        (rerank > 0 ? " +rerank" + std::to_string(rerank) : "") +
-                        (rerank > 0 && transitive ? " +tv" : "") + (qe ? " +qe" : "") + (hamming ? " +he" : "") +
-                        (a.mode == "both" ? " (" + mode + ")" : "");
-            run.settings = {{"features", features},
-                            {"words", std::to_string(words)},
-                            {"vocabulary_trained_on", a.train_images.empty() ? "the database images" : a.train_images},
-                            {"training_sample", std::to_string(a.sample)},
-                            {"seed", std::to_string(a.seed)},
-                            {"rerank", std::to_string(rerank)},
-                            {"qe", qe ? "on" : "off"},
-                            {"transitive", rerank > 0 && transitive ? "on" : "off"},
-                            {"hamming", hamming ? "on" : "off"},
-                            {"search_defaults", SearchDefaults()},
-                            {"query_region", a.full_image ? "full image" : "ground-truth box"},
-                            {"ap", eval::ApDefinitionName(protocol.ap)},
-                            {"distractors", a.distractors.empty() ? "none"
-                                                                  : std::to_string(protocol.distractors) +
-                                                                        " images from " + a.distractors},
-                            {"top_k", std::to_string(top_k)},
-                            {"path", mode},
-                            {"extractor", stats.vocabulary_size ? "oxbow SIFT (index settings)" : ""}};
-            if (mode == "http") {
-              RunHttp(a, protocol, database, server->port(), rerank, qe, transitive, hamming, top_k, &run);
-            } else {
-              if (!idx) idx = ValueOrExit(index::ImageIndex::Open(index_dir));
-              RunInProcess(a, protocol, database, *idx, rerank, qe, transitive, hamming, top_k, &run);
+          for (const HammingSetting& hamming : hamming_settings) {
+            for (const std::string& mode : kModes) {
+              if (a.mode != "both" && a.mode != mode) continue;
+              eval::RunResult run = base;
+              run.label = features + " " + std::to_string(words / 1000) + "k" +
+                          (rerank > 0 ? " +rerank" + std::to_string(rerank) : "") +
+                          (rerank > 0 && transitive ? " +tv" : "") + (qe ? " +qe" : "") + HammingLabel(hamming) +
+                          (a.mode == "both" ? " (" + mode + ")" : "");
+              run.settings = {{"features", features},
+                              {"words", std::to_string(words)},
+                              {"vocabulary_trained_on", a.train_images.empty() ? "the database images" : a.train_images},
+                              {"training_sample", std::to_string(a.sample)},
+                              {"seed", std::to_string(a.seed)},
+                              {"rerank", std::to_string(rerank)},
+                              {"qe", qe ? "on" : "off"},
+                              {"transitive", rerank > 0 && transitive ? "on" : "off"},
+                              {"hamming", hamming.on ? "on" : "off"},
+                              {"hamming_threshold", hamming.on ? std::to_string(hamming.threshold) : "-"},
+                              {"hamming_sigma", hamming.on ? FormatSigma(hamming.sigma) : "-"},
+                              {"search_defaults", SearchDefaults()},
+                              {"query_region", a.full_image ? "full image" : "ground-truth box"},
+                              {"ap", eval::ApDefinitionName(protocol.ap)},
+                              {"distractors", a.distractors.empty() ? "none"
+                                                                    : std::to_string(protocol.distractors) +
+                                                                          " images from " + a.distractors},
+                              {"top_k", std::to_string(top_k)},
+                              {"path", mode},
+                              {"extractor", stats.vocabulary_size ? "oxbow SIFT (index settings)" : ""}};
+              if (mode == "http") {
+                RunHttp(a, protocol, database, server->port(), rerank, qe, transitive, hamming, top_k, &run);
+              } else {
+                if (!idx) idx = ValueOrExit(index::ImageIndex::Open(index_dir));
+                RunInProcess(a, protocol, database, *idx, rerank, qe, transitive, hamming, top_k, &run);
+              }
+              eval::Summarise(&run);
+              OXBOW_LOG(kInfo) << "eval: " << protocol.name << " | " << run.label << " | mAP " << run.map
+                               << " | recall@1 " << run.recall_at_1 << " | query p50 " << run.query_p50_ms << " ms";
+              runs.push_back(std::move(run));
             }
-            eval::Summarise(&run);
-            OXBOW_LOG(kInfo) << "eval: " << protocol.name << " | " << run.label << " | mAP " << run.map
-                             << " | recall@1 " << run.recall_at_1 << " | query p50 " << run.query_p50_ms << " ms";
-            runs.push_back(std::move(run));
           }
         }
       }
@@ -540,6 +597,18 @@ void SetUp(CLI::App& app) {
       ->delimiter(',')
       ->capture_default_str()
       ->check(CLI::IsMember({"off", "on"}));
+  cmd->add_option("--hamming-threshold", args->hamming_threshold,
+                  "with --hamming on: largest matching distances (bits) to compare (other than the default: "
+                  "--mode in-process)")
+      ->delimiter(',')
+      ->capture_default_str()
+      ->check(CLI::Range(0, 64));
+  cmd->add_option("--hamming-sigma", args->hamming_sigma,
+                  "with --hamming on: weight widths (bits) of exp(-h^2/sigma^2) to compare (other than the default: "
+                  "--mode in-process)")
+      ->delimiter(',')
+      ->capture_default_str()
+      ->check(CLI::Range(1e-9, 64.0));
   cmd->add_option("--top-k", args->top_k, "results per query (0 = the whole database, at most 10000)");
   cmd->add_option("--sample", args->sample, "descriptors sampled to train each vocabulary")->capture_default_str();
   cmd->add_option("--per-image", args->per_image, "cap of training descriptors per image (0 = vocab train's default)");
