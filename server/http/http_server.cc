@@ -221,6 +221,20 @@ bool ConstantTimeEquals(const std::string& given, const std::string& expected) {
   return diff == 0;
 }
 
+std::optional<api::HttpError> CheckApiKey(const httplib::Request& req, const std::string& api_key) {
+  if (api_key.empty()) return std::nullopt;
+  // The whole values: httplib's get_header_value stops at a NUL byte ("KEY\0junk" would pass).
+  std::string key = FullHeaderValue(req, "X-API-Key");
+  const std::string auth = FullHeaderValue(req, "Authorization");
+  if (key.empty() && auth.rfind("Bearer ", 0) == 0) key = auth.substr(7);
+  if (key.empty()) {
+    return api::ToHttpError(
+        {ErrorCode::kUnauthenticated, "this route needs the API key: header 'Authorization: Bearer KEY' or 'X-API-Key: KEY'"});
+  }
+  if (!ConstantTimeEquals(key, api_key)) return api::PermissionDenied("wrong API key");
+  return std::nullopt;
+}
+
 std::optional<std::string> HttpServerOptions::Check() const {
   if (host.empty()) return "host must not be empty";
   if (port < 0 || port > 65535) return "port must be in [0, 65535]";
@@ -749,20 +763,8 @@ HttpServer::Handler HttpServer::ServiceRoute(Access access, ServiceHandler body)
                                              "an API key (oxbow serve --api-key)"));
         return;
       }
-      if (access != Access::kOpen && !options_.api_key.empty()) {
-        // The whole values: httplib's get_header_value stops at a NUL byte ("KEY\0junk" would pass).
-        std::string key = FullHeaderValue(req, "X-API-Key");
-        const std::string auth = FullHeaderValue(req, "Authorization");
-        if (key.empty() && auth.rfind("Bearer ", 0) == 0) key = auth.substr(7);
-        if (key.empty()) {
-          SendError(res, Error{ErrorCode::kUnauthenticated,
-                               "this route needs the API key: header 'Authorization: Bearer KEY' or 'X-API-Key: KEY'"});
-          return;
-        }
-        if (!ConstantTimeEquals(key, options_.api_key)) {
-          SendError(res, api::PermissionDenied("wrong API key"));
-          return;
-        }
+      if (access != Access::kOpen) {
+        if (auto refused = CheckApiKey(req, options_.api_key)) return SendError(res, *refused);
       }
       auto service = this->service();
       if (!service) {

@@ -40,6 +40,7 @@
 #include <utility>
 #include <vector>
 
+#include "api/errors.h"
 #include "api/metrics.h"
 #include "api/service.h"
 #include "sift/base/error.h"
@@ -159,5 +160,8 @@ class HttpServer {
 
 // True when `given` equals `expected`; the time taken depends only on their lengths.
 bool ConstantTimeEquals(const std::string& given, const std::string& expected);
+// A write route's key check (also the cluster front's): nullopt when `api_key` is empty or the request
+// carries it ('Authorization: Bearer KEY' or 'X-API-Key: KEY'), else 401 without a key, 403 with another.
+std::optional<api::HttpError> CheckApiKey(const httplib::Request& req, const std::string& api_key);
 
 }  // namespace oxbow::server
