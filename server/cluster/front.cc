@@ -19,6 +19,7 @@
 #include <nlohmann/json.hpp>
 
 #include "api/partition.h"
+#include "server/cluster/proto_convert.h"
 #include "server/cluster/shard.grpc.pb.h"
 #include "vocab/vocabulary.h"
 
@@ -26,21 +27,6 @@ namespace oxbow::cluster {
 namespace {
 
 using Clock = std::chrono::steady_clock;
-
-std::vector<index::QueryTerm> TermsFrom(const google::protobuf::RepeatedPtrField<Term>& terms) {
-  std::vector<index::QueryTerm> out;
-  out.reserve(static_cast<size_t>(terms.size()));
-  for (const Term& t : terms) out.push_back({t.word(), t.weight()});
-  return out;
-}
-
-void PutTerms(std::span<const index::QueryTerm> terms, google::protobuf::RepeatedPtrField<Term>* out) {
-  for (const index::QueryTerm& t : terms) {
-    Term* term = out->Add();
-    term->set_word(t.word);
-    term->set_weight(t.weight);
-  }
-}
 
 // The partitions that failed during one query, with the first error.
 class Failures {
@@ -77,11 +63,6 @@ Candidate FromScored(const Scored& s, uint32_t partition) {
   c.record.source_path = s.source_path();
   c.record.added_unix_ms = s.added_unix_ms();
   return c;
-}
-
-index::ImageRecord FromRecord(const Record& r) {
-  return {.id = r.id(), .source_path = r.source_path(), .width = r.width(), .height = r.height(),
-          .num_features = r.num_features(), .metadata_json = r.metadata_json(), .added_unix_ms = r.added_unix_ms()};
 }
 
 // A shard's own refusal (shard.proto: the ErrorCode's name in the details), or nullopt for a failure
@@ -355,7 +336,7 @@ Result<index::ImageRecord> ClusterFront::Get(const std::string& id) const {
     return stub.Get(&context, request, out);
   });
   if (!record) return std::unexpected(record.error());
-  return FromRecord(*record);
+  return FromProto(*record);
 }
 
 Result<api::ListResponse> ClusterFront::List(uint64_t offset, uint64_t limit) const {
@@ -380,7 +361,7 @@ Result<api::ListResponse> ClusterFront::List(uint64_t offset, uint64_t limit) co
   std::vector<index::ImageRecord> all;
   for (const ListReply& reply : replies) {
     response.total += reply.total();
-    for (const Record& r : reply.images()) all.push_back(FromRecord(r));
+    for (const Record& r : reply.images()) all.push_back(FromProto(r));
   }
   std::sort(all.begin(), all.end(), [](const index::ImageRecord& a, const index::ImageRecord& b) { return a.id < b.id; });
   for (uint64_t i = offset; i < all.size() && response.images.size() < limit; ++i) response.images.push_back(std::move(all[i]));
@@ -435,7 +416,7 @@ Result<api::AddImageResponse> ClusterFront::Add(const api::AddImageRequest& requ
                                          });
   if (!reply) return std::unexpected(reply.error());
   api::AddImageResponse response;
-  response.record = FromRecord(reply->record());
+  response.record = FromProto(reply->record());
   response.replaced = reply->replaced();
   response.decode_extract_ms = reply->decode_extract_ms();
   response.add_ms = reply->add_ms();
@@ -493,7 +474,7 @@ Result<api::SearchResponse> ClusterFront::QuerySimilar(const std::string& id, co
   api::SearchResponse response;
   response.options = options;
   response.query_id = id;
-  const index::ImageRecord record = FromRecord(stored->record());
+  const index::ImageRecord record = FromProto(stored->record());
   response.query_width = record.width;
   response.query_height = record.height;
   response.extracted_features = record.num_features;
@@ -506,12 +487,7 @@ Result<api::SearchResponse> ClusterFront::QuerySimilar(const std::string& id, co
       const auto& r = *options.region;
       if (k.x() < r[0] || k.x() > r[2] || k.y() < r[1] || k.y() > r[3]) continue;
     }
-    sift::Keypoint p;
-    p.x = k.x();
-    p.y = k.y();
-    p.scale = k.scale();
-    p.orientation = k.orientation();
-    keypoints.push_back(p);
+    keypoints.push_back(FromProto(k));
     words.push_back(stored->words(i));
   }
   auto found = impl_->Run(keypoints, words, record.width, record.height, options, allow_partial, coverage);
@@ -570,11 +546,7 @@ Result<index::QueryResponse> ClusterFront::Impl::Run(const std::vector<sift::Key
                        : std::array<float, 4>{0, 0, static_cast<float>(width), static_cast<float>(height)};
     VerifyRequest verify;
     for (size_t i = 0; i < keypoints.size(); ++i) {
-      Keypoint* k = verify.add_keypoints();
-      k->set_x(keypoints[i].x);
-      k->set_y(keypoints[i].y);
-      k->set_scale(keypoints[i].scale);
-      k->set_orientation(keypoints[i].orientation);
+      PutKeypoint(keypoints[i], verify.add_keypoints());
       verify.add_words(words[i]);
     }
     for (float v : region) verify.add_region(v);

@@ -6,6 +6,7 @@
 
 #include <mutex>
 
+#include "server/cluster/proto_convert.h"
 #include "server/cluster/shard.grpc.pb.h"
 
 namespace oxbow::cluster {
@@ -15,14 +16,6 @@ std::array<float, 4> Box(const google::protobuf::RepeatedField<float>& v) {
   return {v[0], v[1], v[2], v[3]};
 }
 
-void PutTerms(const std::vector<index::QueryTerm>& terms, google::protobuf::RepeatedPtrField<Term>* out) {
-  for (const index::QueryTerm& t : terms) {
-    Term* term = out->Add();
-    term->set_word(t.word);
-    term->set_weight(t.weight);
-  }
-}
-
 // The front reads the ErrorCode back from the details (shard.proto) and answers as a single node would.
 grpc::Status ToGrpc(const Error& e) {
   const grpc::StatusCode code = e.code == ErrorCode::kNotFound          ? grpc::StatusCode::NOT_FOUND
@@ -30,16 +23,6 @@ grpc::Status ToGrpc(const Error& e) {
                                 : e.code == ErrorCode::kAlreadyExists   ? grpc::StatusCode::ALREADY_EXISTS
                                                                         : grpc::StatusCode::INTERNAL;
   return {code, e.message, std::string(ErrorCodeName(e.code))};
-}
-
-void PutRecord(const index::ImageRecord& record, Record* out) {
-  out->set_id(record.id);
-  out->set_width(record.width);
-  out->set_height(record.height);
-  out->set_num_features(record.num_features);
-  out->set_metadata_json(record.metadata_json);
-  out->set_source_path(record.source_path);
-  out->set_added_unix_ms(record.added_unix_ms);
 }
 
 }  // namespace
@@ -90,14 +73,7 @@ class ShardServer::Impl final : public Shard::Service {
       return {grpc::StatusCode::INVALID_ARGUMENT, "one word per keypoint and a region of 4 values"};
     std::vector<sift::Keypoint> keypoints;
     keypoints.reserve(static_cast<size_t>(request->keypoints_size()));
-    for (const Keypoint& k : request->keypoints()) {
-      sift::Keypoint p;
-      p.x = k.x();
-      p.y = k.y();
-      p.scale = k.scale();
-      p.orientation = k.orientation();
-      keypoints.push_back(p);
-    }
+    for (const Keypoint& k : request->keypoints()) keypoints.push_back(FromProto(k));
     index::QueryOptions options;
     options.max_pairs_per_word = request->max_pairs_per_word();
     options.verify.min_inliers = request->min_inliers();
@@ -171,13 +147,7 @@ class ShardServer::Impl final : public Shard::Service {
     auto features = service->index().FeaturesOf(request->id());
     if (!features) return ToGrpc(features.error());
     PutRecord(*record, reply->mutable_record());
-    for (const sift::Keypoint& k : features->keypoints) {
-      Keypoint* out = reply->add_keypoints();
-      out->set_x(k.x);
-      out->set_y(k.y);
-      out->set_scale(k.scale);
-      out->set_orientation(k.orientation);
-    }
+    for (const sift::Keypoint& k : features->keypoints) PutKeypoint(k, reply->add_keypoints());
     reply->mutable_words()->Add(features->words.begin(), features->words.end());
     return grpc::Status::OK;
   }
