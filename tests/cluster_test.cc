@@ -440,6 +440,12 @@ TEST_F(Cluster, HttpFrontReadsAnswerAsASingleNodeServer) {
   auto deleted = front->Client().Delete("/v1/images/no-such-image");
   ASSERT_TRUE(deleted);
   EXPECT_EQ(deleted->status, 404) << deleted->body;
+  // Request ids as a single node (openapi.json: the header on every answer, the same in error bodies).
+  auto named = front->Client().Get("/v1/images/no-such-image", {{"X-Request-Id", "front-test-1"}});
+  ASSERT_TRUE(named);
+  EXPECT_EQ(named->get_header_value("X-Request-Id"), "front-test-1");
+  EXPECT_EQ(nlohmann::json::parse(named->body)["error"]["request_id"], "front-test-1");
+  EXPECT_FALSE(front->Client().Get("/v1/stats")->get_header_value("X-Request-Id").empty());
 }
 
 // POST /v1/images and DELETE /v1/images/{id} through the front land on every replica of the owner

@@ -22,8 +22,12 @@ void SendJson(httplib::Response& res, int status, const nlohmann::json& body) {
   res.set_content(body.dump(), "application/json");
 }
 
+// The id of the request this thread serves (httplib serves a request start to finish on one thread),
+// set by the pre-routing handler: in the X-Request-Id header and error bodies, as a single node.
+thread_local std::string t_request_id;
+
 void SendError(httplib::Response& res, const api::HttpError& error) {
-  SendJson(res, error.status, api::ErrorBody(error, ""));
+  SendJson(res, error.status, api::ErrorBody(error, t_request_id));
 }
 
 }  // namespace
@@ -213,6 +217,11 @@ Result<std::unique_ptr<FrontHttpServer>> FrontHttpServer::Create(std::shared_ptr
   Impl* i = impl.get();
   i->http.new_task_queue = [threads = options.threads] { return new httplib::ThreadPool(static_cast<size_t>(threads)); };
   i->http.set_payload_max_length(options.max_body_bytes);
+  i->http.set_pre_routing_handler([](const httplib::Request& req, httplib::Response& res) {
+    t_request_id = server::RequestIdFor(req);
+    res.set_header("X-Request-Id", t_request_id);
+    return httplib::Server::HandlerResponse::Unhandled;
+  });
   i->http.Get("/healthz", [](const httplib::Request&, httplib::Response& res) { SendJson(res, 200, {{"status", "ok"}}); });
   i->http.Get("/readyz", [](const httplib::Request&, httplib::Response& res) { SendJson(res, 200, {{"status", "ready"}}); });
   i->http.Get("/metrics", [i](const httplib::Request&, httplib::Response& res) { i->Metrics(res); });

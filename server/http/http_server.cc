@@ -221,6 +221,11 @@ bool ConstantTimeEquals(const std::string& given, const std::string& expected) {
   return diff == 0;
 }
 
+std::string RequestIdFor(const httplib::Request& req) {
+  const std::string given = req.get_header_value("X-Request-Id");
+  return IsSaneRequestId(given) ? given : NewRequestId();
+}
+
 std::optional<api::HttpError> CheckApiKey(const httplib::Request& req, const std::string& api_key) {
   if (api_key.empty()) return std::nullopt;
   // The whole values: httplib's get_header_value stops at a NUL byte ("KEY\0junk" would pass).
@@ -657,8 +662,7 @@ void HttpServer::RegisterRequestHooks() {
     t_request = RequestContext{};
     t_request.active = true;
     t_request.start = Clock::now();
-    const std::string given = req.get_header_value("X-Request-Id");
-    t_request.id = IsSaneRequestId(given) ? given : NewRequestId();
+    t_request.id = RequestIdFor(req);
     res.set_header("X-Request-Id", t_request.id);
     if (const auto* route = Routes().Find(req.path)) t_request.route = route->label;
     TakeFormEncodedBodyAsImage(req);

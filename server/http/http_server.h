@@ -160,6 +160,8 @@ class HttpServer {
 
 // True when `given` equals `expected`; the time taken depends only on their lengths.
 bool ConstantTimeEquals(const std::string& given, const std::string& expected);
+// The request's id: the client's X-Request-Id when 1-64 characters of [A-Za-z0-9._-], else a new one.
+std::string RequestIdFor(const httplib::Request& req);
 // A write route's key check (also the cluster front's): nullopt when `api_key` is empty or the request
 // carries it ('Authorization: Bearer KEY' or 'X-API-Key: KEY'), else 401 without a key, 403 with another.
 std::optional<api::HttpError> CheckApiKey(const httplib::Request& req, const std::string& api_key);
