@@ -356,6 +356,11 @@ TEST_F(Cluster, HttpFrontAnswersAsASingleNodeServer) {
       EXPECT_EQ(a[i][field], b[i][field]) << field << " of rank " << i;
   }
   EXPECT_EQ(nlohmann::json::parse(expected->body)["candidates"], nlohmann::json::parse(got->body)["candidates"]);
+  // The image as `curl --data-binary @photo.png` sends it (labelled a form): the same answer.
+  auto as_form = front.Client().Post(path, image, "application/x-www-form-urlencoded");
+  ASSERT_TRUE(as_form);
+  ASSERT_EQ(as_form->status, 200) << as_form->body;
+  EXPECT_EQ(nlohmann::json::parse(as_form->body)["results"], b);
 
   EXPECT_EQ(nlohmann::json::parse(got->body)["partial"], false);
   EXPECT_EQ(nlohmann::json::parse(got->body)["shards"], (nlohmann::json{{"total", 3}, {"ok", 3}, {"failed", nlohmann::json::array()}}));
@@ -515,6 +520,10 @@ TEST_F(Cluster, HttpFrontWritesOnEveryReplicaOfTheOwnerPartition) {
   ASSERT_EQ(add(*front, other).first, 201);
   EXPECT_EQ(holders(other), shard_of[2]);
   EXPECT_EQ(add(*front, other).first, 409);  // taken: refused by the owner, as a single node
+  // The raw image as `curl --data-binary @photo.png` sends it (labelled a form), as a single node takes it.
+  auto raw = front->Client().Post("/v1/images?id=" + id_in(1, "raw-"), image, "application/x-www-form-urlencoded");
+  ASSERT_TRUE(raw);
+  EXPECT_EQ(raw->status, 201) << raw->body;
 
   // A delete leaves no replica with the image.
   auto removed = front->Client().Delete("/v1/images/" + added);

@@ -220,6 +220,7 @@ Result<std::unique_ptr<FrontHttpServer>> FrontHttpServer::Create(std::shared_ptr
   i->http.set_pre_routing_handler([](const httplib::Request& req, httplib::Response& res) {
     t_request_id = server::RequestIdFor(req);
     res.set_header("X-Request-Id", t_request_id);
+    server::TakeFormEncodedBodyAsImage(req);
     return httplib::Server::HandlerResponse::Unhandled;
   });
   i->http.Get("/healthz", [](const httplib::Request&, httplib::Response& res) { SendJson(res, 200, {{"status", "ok"}}); });

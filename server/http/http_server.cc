@@ -86,20 +86,6 @@ void SendError(httplib::Response& res, const api::HttpError& error) {
 
 void SendError(httplib::Response& res, const Error& error) { SendError(res, api::ToHttpError(error)); }
 
-// curl --data-binary @photo.jpg without -H 'Content-Type: ...' labels the photo
-// application/x-www-form-urlencoded. httplib 0.11 would then cap the body at 8 KiB (413) and parse it
-// as form fields, so on the routes taking raw image bytes (POST /v1/images and /v1/search) such a body
-// is relabelled application/octet-stream before it is read: the decoder decides whether it is an image.
-// The Request is owned (non-const) by httplib's connection loop; this hook runs before the body is read.
-void TakeFormEncodedBodyAsImage(const httplib::Request& req) {
-  if (req.method != "POST" || (req.path != "/v1/images" && req.path != "/v1/search")) return;
-  auto& headers = const_cast<httplib::Request&>(req).headers;
-  auto it = headers.find("Content-Type");
-  if (it != headers.end() && it->second.rfind("application/x-www-form-urlencoded", 0) == 0) {
-    it->second = "application/octet-stream";
-  }
-}
-
 // Slow-client protection (server/request_guard.h). A request whose body does not fit the upload budget
 // is answered 503 before its body is read.
 httplib::Server::HandlerResponse RefuseOverUploadBudget(const httplib::Request& req, httplib::Response& res,
@@ -219,6 +205,16 @@ bool ConstantTimeEquals(const std::string& given, const std::string& expected) {
     diff |= static_cast<unsigned char>(a ^ b);
   }
   return diff == 0;
+}
+
+// The Request is owned (non-const) by httplib's connection loop; this hook runs before the body is read.
+void TakeFormEncodedBodyAsImage(const httplib::Request& req) {
+  if (req.method != "POST" || (req.path != "/v1/images" && req.path != "/v1/search")) return;
+  auto& headers = const_cast<httplib::Request&>(req).headers;
+  auto it = headers.find("Content-Type");
+  if (it != headers.end() && it->second.rfind("application/x-www-form-urlencoded", 0) == 0) {
+    it->second = "application/octet-stream";
+  }
 }
 
 std::string RequestIdFor(const httplib::Request& req) {
