@@ -98,13 +98,15 @@ class Cluster : public ::testing::Test {
   }
 
   // cluster.json over `partitions` (per partition its replicas' gRPC addresses) and `serve --cluster`.
-  std::unique_ptr<testing::ServerProcess> StartFront(const std::vector<std::vector<std::string>>& partitions) {
+  std::unique_ptr<testing::ServerProcess> StartFront(const std::vector<std::vector<std::string>>& partitions,
+                                                     const std::vector<std::string>& flags = {}) {
     nlohmann::json list = nlohmann::json::array();
     for (const auto& replicas : partitions) list.push_back({{"replicas", replicas}});
     const std::string config = dir_->path() + "/cluster-" + std::to_string(started_++) + ".json";
     std::ofstream(config) << nlohmann::json{{"vocabulary", "v.oxvoc"}, {"partitions", list}}.dump();
-    auto front = std::make_unique<testing::ServerProcess>(std::vector<std::string>{"serve", "--cluster", config, "--port", "0"},
-                                                          config + ".log");
+    std::vector<std::string> args = {"serve", "--cluster", config, "--port", "0"};
+    args.insert(args.end(), flags.begin(), flags.end());
+    auto front = std::make_unique<testing::ServerProcess>(args, config + ".log");
     EXPECT_TRUE(front->port() > 0 && front->WaitReady()) << front->Log();
     return front;
   }
@@ -524,6 +526,19 @@ TEST_F(Cluster, HttpFrontWritesOnEveryReplicaOfTheOwnerPartition) {
   auto raw = front->Client().Post("/v1/images?id=" + id_in(1, "raw-"), image, "application/x-www-form-urlencoded");
   ASSERT_TRUE(raw);
   EXPECT_EQ(raw->status, 201) << raw->body;
+
+  // A front with an API key asks for it on writes, as a single node: 401 without, 403 with another.
+  const auto keyed = StartFront(partitions, {"--api-key", "cluster-key"});
+  const std::string key_id = id_in(2, "keyed-");
+  EXPECT_EQ(add(*keyed, key_id).first, 401);
+  EXPECT_EQ(keyed->Client().Delete("/v1/images/" + other, {{"X-API-Key", "wrong"}})->status, 403);
+  EXPECT_TRUE(holders(key_id).empty());
+  EXPECT_EQ(holders(other), shard_of[2]);
+  EXPECT_EQ(GetJson(*keyed, "/v1/images/" + other).first, 200);  // reads stay open
+  auto with_key = keyed->Client().Delete("/v1/images/" + other, {{"Authorization", "Bearer cluster-key"}});
+  ASSERT_TRUE(with_key);
+  EXPECT_EQ(with_key->status, 200) << with_key->body;
+  EXPECT_TRUE(holders(other).empty());
 
   // A delete leaves no replica with the image.
   auto removed = front->Client().Delete("/v1/images/" + added);
