@@ -1020,6 +1020,18 @@ Result<QueryResponse> ImageIndex::QuerySimilar(const std::string& id, const Quer
   return response;
 }
 
+Result<ImageIndex::StoredFeatures> ImageIndex::FeaturesOf(const std::string& id) const {
+  const auto snap = impl_->Current();
+  const Entry* entry = snap->Find(id);
+  if (!entry) return Fail(ErrorCode::kNotFound, "no image with id '" + id + "'");
+  StoredFeatures out;
+  for (size_t i = 0; i < entry->features.size(); ++i) {
+    out.keypoints.push_back(entry->features.keypoint(i));
+    out.words.push_back(entry->features.word(i));
+  }
+  return out;
+}
+
 Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFeatures& query,
                                             const QueryOptions& options, QueryTimings timings) const {
   thread_local ScoreScratch scratch;

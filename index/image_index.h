@@ -404,6 +404,13 @@ class ImageIndex {
                                                                          const std::array<float, 4>& query_region,
                                                                          std::span<const std::string> ids,
                                                                          const QueryOptions& options) const;
+  struct StoredFeatures {
+    std::vector<sift::Keypoint> keypoints;
+    std::vector<uint32_t> words;  // one per keypoint
+  };
+  // Image `id`'s stored keypoints and words, what QuerySimilar queries with (a front runs that query
+  // over the partitions). kNotFound.
+  [[nodiscard]] Result<StoredFeatures> FeaturesOf(const std::string& id) const;
 
   IndexStats Stats() const;
   const vocab::Vocabulary& vocabulary() const;

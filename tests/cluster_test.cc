@@ -6,6 +6,7 @@
 #include <gtest/gtest.h>
 
 #include <signal.h>
+#include <sys/wait.h>
 
 #include <filesystem>
 #include <fstream>
@@ -91,6 +92,61 @@ class Cluster : public ::testing::Test {
       const std::string address = StartShard(p);
       ASSERT_FALSE(address.empty()) << shards_.back()->Log();
       config->partitions.push_back({address});
+    }
+  }
+
+  // cluster.json over `partitions` (per partition its replicas' gRPC addresses) and `serve --cluster`.
+  std::unique_ptr<testing::ServerProcess> StartFront(const std::vector<std::vector<std::string>>& partitions,
+                                                     const std::vector<std::string>& flags = {}) {
+    nlohmann::json list = nlohmann::json::array();
+    for (const auto& replicas : partitions) list.push_back({{"replicas", replicas}});
+    const std::string config = dir_->path() + "/cluster-" + std::to_string(started_++) + ".json";
+    std::ofstream(config) << nlohmann::json{{"vocabulary", "v.oxvoc"}, {"partitions", list}}.dump();
+    std::vector<std::string> args = {"serve", "--cluster", config, "--port", "0"};
+    args.insert(args.end(), flags.begin(), flags.end());
+    auto front = std::make_unique<testing::ServerProcess>(args, config + ".log");
+    EXPECT_TRUE(front->port() > 0 && front->WaitReady()) << front->Log();
+    return front;
+  }
+
+  // `serve --index FOLDER` (a single node).
+  std::unique_ptr<testing::ServerProcess> StartSingle(const std::string& folder) {
+    auto single = std::make_unique<testing::ServerProcess>(
+        std::vector<std::string>{"serve", "--index", folder, "--port", "0"},
+        dir_->path() + "/single-" + std::to_string(started_++) + ".log");
+    EXPECT_TRUE(single->port() > 0 && single->WaitReady()) << single->Log();
+    return single;
+  }
+
+  // GET `path` on `server`: {status, body as JSON (null when not JSON)}.
+  static std::pair<int, nlohmann::json> GetJson(testing::ServerProcess& server, const std::string& path) {
+    auto res = server.Client().Get(path);
+    if (!res) return {0, nullptr};
+    return {res->status, nlohmann::json::parse(res->body, nullptr, false)};
+  }
+
+  // An image record of the front against the single node's: every field but added_unix_ms (each
+  // index took its own time).
+  static void ExpectSameRecord(nlohmann::json single, nlohmann::json front, const std::string& what) {
+    ASSERT_TRUE(single.is_object() && front.is_object()) << what;
+    single.erase("added_unix_ms");
+    front.erase("added_unix_ms");
+    EXPECT_EQ(single, front) << what;
+  }
+
+  // Search answers (POST /v1/search, GET similar): the query, the counts and every result's fields.
+  static void ExpectSameSearch(const nlohmann::json& single, const nlohmann::json& front, const std::string& what) {
+    for (const char* field : {"query", "params", "candidates"}) {
+      nlohmann::json a = single[field];
+      nlohmann::json b = front[field];
+      EXPECT_EQ(a, b) << what << ": " << field;
+    }
+    const auto& a = single["results"];
+    const auto& b = front["results"];
+    ASSERT_EQ(a.size(), b.size()) << what << "\n" << front.dump();
+    for (size_t i = 0; i < a.size(); ++i) {
+      for (const char* field : {"rank", "id", "score", "verified", "inliers", "transform", "region", "width", "height", "metadata"})
+        EXPECT_EQ(a[i][field], b[i][field]) << what << ": " << field << " of rank " << i;
     }
   }
 
@@ -276,19 +332,12 @@ TEST_F(Cluster, AReplicaDownChangesNothingAPartitionDownIsPartialOrRefused) {
 // `serve --cluster`: the front's HTTP search answers as a single node's `serve` does; its metrics count
 // the shard calls; routes it does not serve yet say so.
 TEST_F(Cluster, HttpFrontAnswersAsASingleNodeServer) {
-  std::string partitions;
-  for (int p = 0; p < kPartitions; ++p) {
-    const std::string address = StartShard(p);
-    ASSERT_FALSE(address.empty()) << shards_.back()->Log();
-    partitions += std::string(p == 0 ? "" : ", ") + "{\"replicas\": [\"" + address + "\"]}";
-  }
-  const std::string config = dir_->path() + "/cluster-" + std::to_string(started_) + ".json";
-  std::ofstream(config) << "{\"vocabulary\": \"v.oxvoc\", \"partitions\": [" << partitions << "]}";
-  testing::ServerProcess front({"serve", "--cluster", config, "--port", "0"}, config + ".log");
-  ASSERT_TRUE(front.port() > 0 && front.WaitReady()) << front.Log();
-  testing::ServerProcess single({"serve", "--index", dir_->path() + "/single", "--port", "0"},
-                                dir_->path() + "/single-" + std::to_string(started_++) + ".log");
-  ASSERT_TRUE(single.port() > 0 && single.WaitReady()) << single.Log();
+  cluster::ClusterConfig config;
+  ASSERT_NO_FATAL_FAILURE(StartCluster(&config));
+  const auto front_process = StartFront(config.partitions);
+  const auto single_process = StartSingle(dir_->path() + "/single");
+  testing::ServerProcess& front = *front_process;
+  testing::ServerProcess& single = *single_process;
 
   std::ifstream in(dir_->path() + "/images/img5.png", std::ios::binary);
   const std::string image((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
@@ -307,6 +356,11 @@ TEST_F(Cluster, HttpFrontAnswersAsASingleNodeServer) {
       EXPECT_EQ(a[i][field], b[i][field]) << field << " of rank " << i;
   }
   EXPECT_EQ(nlohmann::json::parse(expected->body)["candidates"], nlohmann::json::parse(got->body)["candidates"]);
+  // The image as `curl --data-binary @photo.png` sends it (labelled a form): the same answer.
+  auto as_form = front.Client().Post(path, image, "application/x-www-form-urlencoded");
+  ASSERT_TRUE(as_form);
+  ASSERT_EQ(as_form->status, 200) << as_form->body;
+  EXPECT_EQ(nlohmann::json::parse(as_form->body)["results"], b);
 
   EXPECT_EQ(nlohmann::json::parse(got->body)["partial"], false);
   EXPECT_EQ(nlohmann::json::parse(got->body)["shards"], (nlohmann::json{{"total", 3}, {"ok", 3}, {"failed", nlohmann::json::array()}}));
@@ -328,9 +382,199 @@ TEST_F(Cluster, HttpFrontAnswersAsASingleNodeServer) {
   EXPECT_NE(metrics->body.find("oxbow_shard_calls_total{partition=\"2\""), std::string::npos) << metrics->body;
   EXPECT_TRUE(std::regex_search(metrics->body, std::regex(R"(oxbow_shard_errors_total\{partition="2",replica="[^"]+"\} [1-9])")))
       << metrics->body;
-  auto list = front.Client().Get("/v1/images");
-  ASSERT_TRUE(list);
-  EXPECT_EQ(list->status, 501) << list->body;
+  auto thumbnail = front.Client().Get("/v1/images/img1/thumbnail");
+  ASSERT_TRUE(thumbnail);
+  EXPECT_EQ(thumbnail->status, 501) << thumbnail->body;
+}
+
+// GET /v1/images/{id}, /v1/images (pages), /v1/stats and /v1/images/{id}/similar through the front
+// answer as the single node over the same images; an unknown id is 404 on every route.
+TEST_F(Cluster, HttpFrontReadsAnswerAsASingleNodeServer) {
+  cluster::ClusterConfig config;
+  ASSERT_NO_FATAL_FAILURE(StartCluster(&config));
+  const auto front = StartFront(config.partitions);
+  const auto single = StartSingle(dir_->path() + "/single");
+
+  const auto [status, all] = GetJson(*single, "/v1/images");
+  ASSERT_EQ(status, 200);
+  ASSERT_EQ(all["images"].size(), 12u) << all.dump();
+  for (const auto& page : {"/v1/images", "/v1/images?limit=5", "/v1/images?offset=3&limit=4", "/v1/images?offset=10",
+                           "/v1/images?offset=20"}) {
+    const auto [a_status, a] = GetJson(*single, page);
+    const auto [b_status, b] = GetJson(*front, page);
+    ASSERT_EQ(a_status, 200) << page;
+    ASSERT_EQ(b_status, 200) << page << " " << b.dump();
+    for (const char* field : {"offset", "limit", "total"}) EXPECT_EQ(a[field], b[field]) << page << ": " << field;
+    ASSERT_EQ(a["images"].size(), b["images"].size()) << page;
+    for (size_t i = 0; i < a["images"].size(); ++i) ExpectSameRecord(a["images"][i], b["images"][i], page);
+  }
+  size_t verified_others = 0;
+  for (const auto& image : all["images"]) {
+    const std::string id = image["id"];
+    const auto [a_status, a] = GetJson(*single, "/v1/images/" + id);
+    const auto [b_status, b] = GetJson(*front, "/v1/images/" + id);
+    ASSERT_EQ(b_status, 200) << b.dump();
+    ExpectSameRecord(a, b, id);
+    for (const std::string params : {"?top_k=12&transitive_depth=0", "?top_k=5&qe=false&transitive_depth=0",
+                                     "?bbox=40,30,260,200&transitive_depth=0"}) {
+      const auto [sa_status, sa] = GetJson(*single, "/v1/images/" + id + "/similar" + params);
+      const auto [sb_status, sb] = GetJson(*front, "/v1/images/" + id + "/similar" + params);
+      ASSERT_EQ(sa_status, 200) << sa.dump();
+      ASSERT_EQ(sb_status, 200) << sb.dump();
+      ExpectSameSearch(sa, sb, "similar " + id + params);
+      EXPECT_EQ(sb["partial"], false);
+      for (const auto& r : sb["results"]) verified_others += r["verified"] == true && r["id"] != id ? 1 : 0;
+    }
+  }
+  EXPECT_GT(verified_others, 0u) << "no image verified another one: the similar comparison proves little";
+
+  const auto [sa_status, sa] = GetJson(*single, "/v1/stats");
+  const auto [sb_status, sb] = GetJson(*front, "/v1/stats");
+  ASSERT_EQ(sb_status, 200) << sb.dump();
+  for (const char* field : {"images", "features", "words", "vocabulary_fingerprint"}) EXPECT_EQ(sa[field], sb[field]) << field;
+  for (const auto& [field, value] : sa.items()) EXPECT_TRUE(sb.contains(field)) << field;
+  for (const auto& [field, value] : sb.items()) EXPECT_TRUE(sa.contains(field)) << field;
+
+  for (const std::string path : {"/v1/images/no-such-image", "/v1/images/no-such-image/similar"}) {
+    const auto [a_status, a] = GetJson(*single, path);
+    const auto [b_status, b] = GetJson(*front, path);
+    EXPECT_EQ(a_status, 404) << path;
+    EXPECT_EQ(b_status, 404) << path << " " << b.dump();
+    EXPECT_EQ(b["error"]["code"], "not_found") << b.dump();
+  }
+  auto deleted = front->Client().Delete("/v1/images/no-such-image");
+  ASSERT_TRUE(deleted);
+  EXPECT_EQ(deleted->status, 404) << deleted->body;
+  // Request ids as a single node (openapi.json: the header on every answer, the same in error bodies).
+  auto named = front->Client().Get("/v1/images/no-such-image", {{"X-Request-Id", "front-test-1"}});
+  ASSERT_TRUE(named);
+  EXPECT_EQ(named->get_header_value("X-Request-Id"), "front-test-1");
+  EXPECT_EQ(nlohmann::json::parse(named->body)["error"]["request_id"], "front-test-1");
+  EXPECT_FALSE(front->Client().Get("/v1/stats")->get_header_value("X-Request-Id").empty());
+}
+
+// POST /v1/images and DELETE /v1/images/{id} through the front land on every replica of the owner
+// partition (each shard asked directly) and nowhere else; with a replica of the owner down they answer
+// 503 and nothing is written anywhere; a replica that refuses after another applied the write is named.
+TEST_F(Cluster, HttpFrontWritesOnEveryReplicaOfTheOwnerPartition) {
+  // Writes change the folders: a copy of the cluster (and of the single node), with partition 0 served
+  // by two replicas (two copies of its folder).
+  const std::string copy = dir_->path() + "/written-" + std::to_string(started_++);
+  fs::create_directories(copy);
+  fs::copy(dir_->path() + "/cluster", copy + "/cluster", fs::copy_options::recursive);
+  fs::copy(dir_->path() + "/single", copy + "/single", fs::copy_options::recursive);
+  fs::copy(api::PartitionFolder(copy + "/cluster", 0), copy + "/replica", fs::copy_options::recursive);
+  std::vector<std::vector<std::string>> partitions;
+  std::vector<std::vector<size_t>> shard_of(kPartitions);  // per partition: its shards_ positions
+  for (int p = 0; p < kPartitions; ++p) {
+    shard_of[p].push_back(shards_.size());
+    partitions.push_back({StartShard(p, api::PartitionFolder(copy + "/cluster", p))});
+  }
+  shard_of[0].push_back(shards_.size());
+  partitions[0].push_back(StartShard(0, copy + "/replica"));
+  for (const auto& replicas : partitions)
+    for (const std::string& address : replicas) ASSERT_FALSE(address.empty());
+  const auto front = StartFront(partitions);
+  const auto single = StartSingle(copy + "/single");
+
+  // Ids of each partition, and the image to add (another crop: its own features).
+  const auto id_in = [](uint32_t partition, const std::string& stem) {
+    for (int k = 0;; ++k) {
+      const std::string id = stem + std::to_string(k);
+      if (api::PartitionOf(id, kPartitions) == partition) return id;
+    }
+  };
+  std::vector<uchar> png;
+  ASSERT_TRUE(cv::imencode(".png", testing::Texture(300, 220, "box.png", 60, 40), png));
+  const std::string image(png.begin(), png.end());
+  const auto add = [&](testing::ServerProcess& server, const std::string& id) {
+    httplib::MultipartFormDataItems items = {{"file", image, "new.png", "image/png"},
+                                             {"id", id, "", ""},
+                                             {"metadata", R"({"kind": "added"})", "", ""}};
+    auto res = server.Client().Post("/v1/images", items);
+    return res ? std::pair{res->status, nlohmann::json::parse(res->body, nullptr, false)} : std::pair{0, nlohmann::json()};
+  };
+  // Which shards hold `id` (asked directly, on their own HTTP API).
+  const auto holders = [&](const std::string& id) {
+    std::vector<size_t> out;
+    for (size_t i = 0; i < shards_.size(); ++i) {
+      if (kill(shards_[i]->pid(), 0) != 0) continue;
+      auto res = shards_[i]->Client().Get("/v1/images/" + id);
+      if (res && res->status == 200) out.push_back(i);
+    }
+    return out;
+  };
+
+  // An add lands on both replicas of partition 0 and nowhere else; the answer is the single node's.
+  const std::string added = id_in(0, "added-");
+  const auto [a_status, a] = add(*single, added);
+  const auto [b_status, b] = add(*front, added);
+  ASSERT_EQ(a_status, 201) << a.dump();
+  ASSERT_EQ(b_status, 201) << b.dump();
+  for (const char* field : {"id", "width", "height", "features", "source", "metadata", "replaced"})
+    EXPECT_EQ(a[field], b[field]) << field;
+  EXPECT_EQ(holders(added), shard_of[0]);
+  ExpectSameRecord(GetJson(*single, "/v1/images/" + added).second, GetJson(*front, "/v1/images/" + added).second, added);
+  EXPECT_EQ(GetJson(*front, "/v1/images").second["total"], 13);
+  const std::string other = id_in(2, "added-");
+  ASSERT_EQ(add(*front, other).first, 201);
+  EXPECT_EQ(holders(other), shard_of[2]);
+  EXPECT_EQ(add(*front, other).first, 409);  // taken: refused by the owner, as a single node
+  // The raw image as `curl --data-binary @photo.png` sends it (labelled a form), as a single node takes it.
+  auto raw = front->Client().Post("/v1/images?id=" + id_in(1, "raw-"), image, "application/x-www-form-urlencoded");
+  ASSERT_TRUE(raw);
+  EXPECT_EQ(raw->status, 201) << raw->body;
+
+  // A front with an API key asks for it on writes, as a single node: 401 without, 403 with another.
+  const auto keyed = StartFront(partitions, {"--api-key", "cluster-key"});
+  const std::string key_id = id_in(2, "keyed-");
+  EXPECT_EQ(add(*keyed, key_id).first, 401);
+  EXPECT_EQ(keyed->Client().Delete("/v1/images/" + other, {{"X-API-Key", "wrong"}})->status, 403);
+  EXPECT_TRUE(holders(key_id).empty());
+  EXPECT_EQ(holders(other), shard_of[2]);
+  EXPECT_EQ(GetJson(*keyed, "/v1/images/" + other).first, 200);  // reads stay open
+  auto with_key = keyed->Client().Delete("/v1/images/" + other, {{"Authorization", "Bearer cluster-key"}});
+  ASSERT_TRUE(with_key);
+  EXPECT_EQ(with_key->status, 200) << with_key->body;
+  EXPECT_TRUE(holders(other).empty());
+
+  // A delete leaves no replica with the image.
+  auto removed = front->Client().Delete("/v1/images/" + added);
+  ASSERT_TRUE(removed);
+  ASSERT_EQ(removed->status, 200) << removed->body;
+  EXPECT_EQ(nlohmann::json::parse(removed->body), (nlohmann::json{{"id", added}, {"deleted", true}}));
+  EXPECT_TRUE(holders(added).empty());
+  EXPECT_EQ(GetJson(*front, "/v1/images/" + added).first, 404);
+
+  // A replica that already holds the id (it diverged) refuses after the other applied the add: 503
+  // naming both.
+  const std::string diverged = id_in(0, "diverged-");
+  ASSERT_EQ(add(*shards_[shard_of[0][1]], diverged).first, 201);
+  const auto [d_status, d] = add(*front, diverged);
+  EXPECT_EQ(d_status, 503) << d.dump();
+  const std::string message = d["error"]["message"];
+  EXPECT_NE(message.find("applied on " + partitions[0][0]), std::string::npos) << message;
+  EXPECT_NE(message.find("not on " + partitions[0][1]), std::string::npos) << message;
+  EXPECT_EQ(holders(diverged), shard_of[0]);
+
+  // A replica of partition 0 down: its writes are refused with 503 and nothing is written anywhere;
+  // other partitions still take writes.
+  kill(shards_[shard_of[0][1]]->pid(), SIGKILL);
+  waitpid(shards_[shard_of[0][1]]->pid(), nullptr, 0);
+  const std::string refused = id_in(0, "refused-");
+  const auto [r_status, r] = add(*front, refused);
+  EXPECT_EQ(r_status, 503) << r.dump();
+  EXPECT_TRUE(holders(refused).empty());
+  std::string kept;  // an image of partition 0
+  const nlohmann::json listed = GetJson(*front, "/v1/images").second;
+  for (const auto& record : listed["images"])
+    if (api::PartitionOf(record["id"].get<std::string>(), kPartitions) == 0) kept = record["id"];
+  ASSERT_FALSE(kept.empty());
+  auto not_removed = front->Client().Delete("/v1/images/" + kept);
+  ASSERT_TRUE(not_removed);
+  EXPECT_EQ(not_removed->status, 503) << not_removed->body;
+  EXPECT_EQ(holders(kept), std::vector<size_t>{shard_of[0][0]});
+  EXPECT_EQ(add(*front, id_in(1, "still-")).first, 201);
 }
 
 TEST(ClusterConfigFile, ReadsReplicasAndResolvesTheVocabularyBesideIt) {

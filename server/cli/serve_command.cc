@@ -54,6 +54,7 @@ void ServeFront(const ServeFlags& flags, const server::HttpServerOptions& http, 
   options.decode = flags.image.ToDecodeOptions();
   options.threads_per_request = flags.service.threads_per_request;
   options.default_query = flags.service.default_query;
+  options.api_key = http.api_key;
   auto server = ValueOrExit(cluster::FrontHttpServer::Create(front, options));
   const int port = ValueOrExit(server->Bind());
   std::printf("listening on http://%s:%d\n", http.host.c_str(), port);
@@ -182,8 +183,9 @@ void SetUpServe(CLI::App& app) {
   cmd->add_option("--index", flags->index_dir, "index folder (created when empty and --vocab is given)");
   cmd->add_option("--cluster", flags->cluster_file,
                   "serve as the front of a cluster instead of an index: cluster.json names the vocabulary and each "
-                  "partition's shard replicas (`serve --grpc-port`); only POST /v1/search so far (README, "
-                  "\"Serving a cluster\")")
+                  "partition's shard replicas (`serve --grpc-port`); serves search, similar, get, list, stats, add and "
+                  "delete (writes on every replica of the image's partition); not yet batch add, thumbnails, match, "
+                  "backup (README, \"Serving a cluster\")")
       ->check(CLI::ExistingFile);
   cmd->add_option("--shard-deadline-ms", flags->front.shard_deadline_ms,
                   "--cluster: a call to one shard replica fails after this long; the partition's next replica is asked")

@@ -18,6 +18,8 @@
 
 #include <nlohmann/json.hpp>
 
+#include "api/partition.h"
+#include "server/cluster/proto_convert.h"
 #include "server/cluster/shard.grpc.pb.h"
 #include "vocab/vocabulary.h"
 
@@ -25,21 +27,6 @@ namespace oxbow::cluster {
 namespace {
 
 using Clock = std::chrono::steady_clock;
-
-std::vector<index::QueryTerm> TermsFrom(const google::protobuf::RepeatedPtrField<Term>& terms) {
-  std::vector<index::QueryTerm> out;
-  out.reserve(static_cast<size_t>(terms.size()));
-  for (const Term& t : terms) out.push_back({t.word(), t.weight()});
-  return out;
-}
-
-void PutTerms(std::span<const index::QueryTerm> terms, google::protobuf::RepeatedPtrField<Term>* out) {
-  for (const index::QueryTerm& t : terms) {
-    Term* term = out->Add();
-    term->set_word(t.word);
-    term->set_weight(t.weight);
-  }
-}
 
 // The partitions that failed during one query, with the first error.
 class Failures {
@@ -77,6 +64,30 @@ Candidate FromScored(const Scored& s, uint32_t partition) {
   c.record.added_unix_ms = s.added_unix_ms();
   return c;
 }
+
+// A shard's own refusal (shard.proto: the ErrorCode's name in the details), or nullopt for a failure
+// of the call itself (unreachable, deadline, still loading).
+std::optional<Error> ShardRefusal(const grpc::Status& status) {
+  for (int c = 0; c <= static_cast<int>(ErrorCode::kInternal); ++c) {
+    const auto code = static_cast<ErrorCode>(c);
+    if (status.error_details() == ErrorCodeName(code)) return Error{code, status.error_message()};
+  }
+  return std::nullopt;
+}
+
+// Options the front refuses rather than ignores: an unfiltered or differently scored answer would look
+// like a valid one.
+Status CheckServed(const index::QueryOptions& options) {
+  if (auto e = options.Check()) return Fail(ErrorCode::kInvalidArgument, "query options: " + *e);
+  if (options.query_assignments != 1)
+    return Fail(ErrorCode::kInvalidArgument, "query_assignments > 1 is not served by a cluster front yet");
+  if (options.filter) return Fail(ErrorCode::kInvalidArgument, "filter is not served by a cluster front yet");
+  if (options.hamming) return Fail(ErrorCode::kInvalidArgument, "hamming is not served by a cluster front yet");
+  return Ok();
+}
+
+// Writes of one id through a front run one at a time: lock stripes by the id's hash.
+constexpr uint32_t kWriteStripes = 64;
 
 }  // namespace
 
@@ -119,36 +130,109 @@ class ClusterFront::Impl {
     std::atomic<uint64_t> total_us{0};
   };
 
-  Impl(vocab::Vocabulary v, const FrontOptions& o) : vocabulary(std::move(v)), options(o) {}
+  template <typename Reply>
+  using ShardCall = std::function<grpc::Status(Shard::Stub&, grpc::ClientContext&, Reply*)>;
+
+  Impl(vocab::Vocabulary v, const FrontOptions& o) : vocabulary(std::move(v)), settings(o) {}
+
+  // One call to one replica within `deadline_ms`, counted in its metrics.
+  template <typename Reply>
+  static grpc::Status Invoke(Replica& replica, int deadline_ms, const ShardCall<Reply>& call, Reply* reply) {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + std::chrono::milliseconds(deadline_ms));
+    const auto t0 = Clock::now();
+    grpc::Status status = call(*replica.stub, context, reply);
+    replica.calls.fetch_add(1);
+    replica.total_us.fetch_add(
+        static_cast<uint64_t>(std::chrono::duration_cast<std::chrono::microseconds>(Clock::now() - t0).count()));
+    if (!status.ok()) replica.errors.fetch_add(1);
+    return status;
+  }
 
   // Calls `call` on the partition's replicas in turn (starting with the next one round-robin) until one
-  // answers; the last failure otherwise.
+  // answers; the last failure otherwise. A shard's own refusal (unknown id, invalid request) is what
+  // every replica would answer: returned at once.
   template <typename Reply>
-  Result<Reply> Call(uint32_t partition,
-                     const std::function<grpc::Status(Shard::Stub&, grpc::ClientContext&, Reply*)>& call) const {
+  Result<Reply> Call(uint32_t partition, const ShardCall<Reply>& call) const {
     const std::vector<std::unique_ptr<Replica>>& replicas = partitions[partition];
     const size_t start = next[partition]->fetch_add(1) % replicas.size();
     std::string failures;
     for (size_t k = 0; k < replicas.size(); ++k) {
       Replica& replica = *replicas[(start + k) % replicas.size()];
-      grpc::ClientContext context;
-      context.set_deadline(std::chrono::system_clock::now() + std::chrono::milliseconds(options.shard_deadline_ms));
       Reply reply;
-      const auto t0 = Clock::now();
-      const grpc::Status status = call(*replica.stub, context, &reply);
-      replica.calls.fetch_add(1);
-      replica.total_us.fetch_add(
-          static_cast<uint64_t>(std::chrono::duration_cast<std::chrono::microseconds>(Clock::now() - t0).count()));
+      const grpc::Status status = Invoke(replica, settings.shard_deadline_ms, call, &reply);
       if (status.ok()) return reply;
-      replica.errors.fetch_add(1);
-      // A shard that answered with its own error (not found, invalid) would answer the same elsewhere.
-      if (status.error_code() == grpc::StatusCode::NOT_FOUND || status.error_code() == grpc::StatusCode::INVALID_ARGUMENT)
-        return Fail(ErrorCode::kInternal, "shard " + replica.address + ": " + status.error_message());
+      if (auto refusal = ShardRefusal(status)) return std::unexpected(*refusal);
       failures += (failures.empty() ? "" : "; ") + replica.address + ": " + status.error_message();
     }
     return Fail(ErrorCode::kResourceExhausted,
                 "partition " + std::to_string(partition) + " did not answer (" + failures + ")");
   }
+
+  // A write on every replica of `partition` (front.h): Ping all, then the first replica, then the others.
+  template <typename Reply>
+  Result<Reply> WriteAll(uint32_t partition, const ShardCall<Reply>& call) const {
+    const std::vector<std::unique_ptr<Replica>>& replicas = partitions[partition];
+    const std::string where = "partition " + std::to_string(partition) + ": ";
+    std::vector<std::string> why(replicas.size());  // per replica: its failure, "" when it answered
+    ForEach(replicas.size(), [&](uint32_t r) -> Status {
+      PingReply pong;
+      const grpc::Status status = Invoke<PingReply>(
+          *replicas[r], settings.shard_deadline_ms,
+          [](Shard::Stub& stub, grpc::ClientContext& context, PingReply* out) { return stub.Ping(&context, {}, out); },
+          &pong);
+      if (!status.ok()) why[r] = replicas[r]->address + " (" + status.error_message() + ")";
+      return Ok();
+    });
+    const std::string down = Join(why);
+    if (!down.empty())
+      return Fail(ErrorCode::kResourceExhausted, where + "replica " + down + " did not answer; nothing was written");
+
+    Reply first;
+    const grpc::Status status = Invoke(*replicas[0], settings.write_deadline_ms, call, &first);
+    if (!status.ok()) {
+      if (auto refusal = ShardRefusal(status)) return std::unexpected(*refusal);
+      return Fail(ErrorCode::kResourceExhausted, where + "replica " + replicas[0]->address + " failed during the write (" +
+                                                     status.error_message() +
+                                                     "): it may have applied it; the other replicas did not");
+    }
+    std::vector<std::string> applied(replicas.size());
+    applied[0] = replicas[0]->address;
+    ForEach(replicas.size() - 1, [&](uint32_t k) -> Status {
+      const uint32_t r = k + 1;
+      Reply reply;
+      const grpc::Status s = Invoke(*replicas[r], settings.write_deadline_ms, call, &reply);
+      if (s.ok()) {
+        applied[r] = replicas[r]->address;
+      } else {
+        why[r] = replicas[r]->address + " (" + s.error_message() + ")";
+      }
+      return Ok();
+    });
+    if (const std::string failed = Join(why); !failed.empty())
+      return Fail(ErrorCode::kResourceExhausted, where + "the write was applied on " + Join(applied) +
+                                                     " but not on " + failed +
+                                                     ": the replicas differ until it is repeated there");
+    return first;
+  }
+
+  // The non-empty strings, comma-separated.
+  static std::string Join(const std::vector<std::string>& parts) {
+    std::string out;
+    for (const std::string& p : parts)
+      if (!p.empty()) out += (out.empty() ? "" : ", ") + p;
+    return out;
+  }
+
+  uint32_t OwnerOf(const std::string& id) const {
+    return api::PartitionOf(id, static_cast<uint32_t>(partitions.size()));
+  }
+  std::mutex& WriteLockOf(const std::string& id) const { return write_locks[api::PartitionOf(id, kWriteStripes)]; }
+
+  // Query's stages for features already quantised (front.h).
+  Result<index::QueryResponse> Run(const std::vector<sift::Keypoint>& keypoints, const std::vector<uint32_t>& words,
+                                   int width, int height, const index::QueryOptions& options, bool allow_partial,
+                                   Coverage* coverage) const;
 
   // fn(i) for i in [0, n), all at once; every call's status.
   static std::vector<Status> ForEach(size_t n, const std::function<Status(uint32_t)>& fn) {
@@ -198,14 +282,21 @@ class ClusterFront::Impl {
   }
 
   vocab::Vocabulary vocabulary;
-  FrontOptions options;
+  FrontOptions settings;
   std::vector<std::vector<std::unique_ptr<Replica>>> partitions;
   std::vector<std::unique_ptr<std::atomic<uint64_t>>> next;  // per partition: round-robin position
+  mutable std::array<std::mutex, kWriteStripes> write_locks;
+  Clock::time_point opened = Clock::now();
 };
 
 Result<std::unique_ptr<ClusterFront>> ClusterFront::Open(const ClusterConfig& config, const FrontOptions& options) {
   if (options.shard_deadline_ms < 1 || options.shard_deadline_ms > 600000)
     return Fail(ErrorCode::kInvalidArgument, "the shard deadline must be in [1, 600000] ms");
+  if (options.write_deadline_ms < 1 || options.write_deadline_ms > 600000)
+    return Fail(ErrorCode::kInvalidArgument, "the write deadline must be in [1, 600000] ms");
+  // A list of deep pages and an image's stored features can pass gRPC's default 4 MiB per message.
+  grpc::ChannelArguments channel;
+  channel.SetMaxReceiveMessageSize(-1);
   auto vocabulary = vocab::Vocabulary::Read(config.vocabulary);
   if (!vocabulary) return std::unexpected(vocabulary.error());
   auto impl = std::make_unique<Impl>(std::move(*vocabulary), options);
@@ -215,7 +306,7 @@ Result<std::unique_ptr<ClusterFront>> ClusterFront::Open(const ClusterConfig& co
       auto replica = std::make_unique<Impl::Replica>();
       replica->partition = p;
       replica->address = address;
-      replica->stub = Shard::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()));
+      replica->stub = Shard::NewStub(grpc::CreateCustomChannel(address, grpc::InsecureChannelCredentials(), channel));
       replicas.push_back(std::move(replica));
     }
     impl->partitions.push_back(std::move(replicas));
@@ -238,28 +329,118 @@ std::vector<ReplicaMetrics> ClusterFront::Metrics() const {
   return out;
 }
 
+Result<index::ImageRecord> ClusterFront::Get(const std::string& id) const {
+  ImageRequest request;
+  request.set_id(id);
+  auto record = impl_->Call<Record>(impl_->OwnerOf(id), [&](Shard::Stub& stub, grpc::ClientContext& context, Record* out) {
+    return stub.Get(&context, request, out);
+  });
+  if (!record) return std::unexpected(record.error());
+  return FromProto(*record);
+}
+
+Result<api::ListResponse> ClusterFront::List(uint64_t offset, uint64_t limit) const {
+  // Each partition's first offset + limit by id hold the cluster's page: deep pages cost O(offset).
+  ListRequest request;
+  request.set_offset(0);
+  request.set_limit(offset + limit);
+  std::vector<ListReply> replies(impl_->partitions.size());
+  const std::vector<Status> statuses = Impl::ForEach(replies.size(), [&](uint32_t p) -> Status {
+    auto reply = impl_->Call<ListReply>(p, [&](Shard::Stub& stub, grpc::ClientContext& context, ListReply* out) {
+      return stub.List(&context, request, out);
+    });
+    if (!reply) return std::unexpected(reply.error());
+    replies[p] = std::move(*reply);
+    return Ok();
+  });
+  for (const Status& status : statuses)
+    if (!status) return std::unexpected(status.error());
+  api::ListResponse response;
+  response.offset = offset;
+  response.limit = limit;
+  std::vector<index::ImageRecord> all;
+  for (const ListReply& reply : replies) {
+    response.total += reply.total();
+    for (const Record& r : reply.images()) all.push_back(FromProto(r));
+  }
+  std::sort(all.begin(), all.end(), [](const index::ImageRecord& a, const index::ImageRecord& b) { return a.id < b.id; });
+  for (uint64_t i = offset; i < all.size() && response.images.size() < limit; ++i) response.images.push_back(std::move(all[i]));
+  return response;
+}
+
+Result<api::ServiceStats> ClusterFront::Stats() const {
+  std::vector<StatsReply> replies(impl_->partitions.size());
+  const std::vector<Status> statuses = Impl::ForEach(replies.size(), [&](uint32_t p) -> Status {
+    auto reply = impl_->Call<StatsReply>(p, [&](Shard::Stub& stub, grpc::ClientContext& context, StatsReply* out) {
+      return stub.Stats(&context, {}, out);
+    });
+    if (!reply) return std::unexpected(reply.error());
+    replies[p] = *reply;
+    return Ok();
+  });
+  for (const Status& status : statuses)
+    if (!status) return std::unexpected(status.error());
+  api::ServiceStats stats;
+  index::IndexStats& s = stats.index;
+  for (const StatsReply& r : replies) {
+    s.num_images += r.images();
+    s.num_features += r.features();
+    s.postings_bytes += r.postings_bytes();
+    s.geometry_bytes += r.geometry_bytes();
+    s.other_bytes += r.other_bytes();
+    s.num_segments += r.segments();
+    stats.rss_bytes += r.rss_bytes();
+    stats.extractions_in_flight += r.extractions_in_flight();
+    stats.max_concurrent_extractions += r.max_concurrent_extractions();
+  }
+  // As ImageIndex::Stats, over the sums.
+  if (s.num_features > 0)
+    s.bytes_per_feature = static_cast<double>(s.postings_bytes + s.geometry_bytes + s.other_bytes) / static_cast<double>(s.num_features);
+  s.vocabulary_size = impl_->vocabulary.size();
+  s.vocabulary_fingerprint = impl_->vocabulary.fingerprint();
+  stats.uptime_s = std::chrono::duration<double>(Clock::now() - impl_->opened).count();
+  return stats;
+}
+
+Result<api::AddImageResponse> ClusterFront::Add(const api::AddImageRequest& request) const {
+  AddRequest add;
+  add.set_id(request.id);
+  add.set_image(request.image.data(), request.image.size());
+  add.set_metadata_json(request.metadata_json);
+  add.set_source_name(request.source_name);
+  add.set_replace(request.replace);
+  const std::lock_guard<std::mutex> lock(impl_->WriteLockOf(request.id));
+  auto reply = impl_->WriteAll<AddReply>(impl_->OwnerOf(request.id),
+                                         [&](Shard::Stub& stub, grpc::ClientContext& context, AddReply* out) {
+                                           return stub.Add(&context, add, out);
+                                         });
+  if (!reply) return std::unexpected(reply.error());
+  api::AddImageResponse response;
+  response.record = FromProto(reply->record());
+  response.replaced = reply->replaced();
+  response.decode_extract_ms = reply->decode_extract_ms();
+  response.add_ms = reply->add_ms();
+  return response;
+}
+
+Status ClusterFront::Delete(const std::string& id) const {
+  ImageRequest request;
+  request.set_id(id);
+  const std::lock_guard<std::mutex> lock(impl_->WriteLockOf(id));
+  auto reply = impl_->WriteAll<DeleteReply>(impl_->OwnerOf(id),
+                                            [&](Shard::Stub& stub, grpc::ClientContext& context, DeleteReply* out) {
+                                              return stub.Delete(&context, request, out);
+                                            });
+  if (!reply) return std::unexpected(reply.error());
+  return Ok();
+}
+
 Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, const index::QueryOptions& options,
                                                  bool allow_partial, Coverage* coverage) const {
   const auto t0 = Clock::now();
-  const auto ms_since = [](Clock::time_point t) { return std::chrono::duration<double, std::milli>(Clock::now() - t).count(); };
-  if (auto e = options.Check()) return Fail(ErrorCode::kInvalidArgument, "query options: " + *e);
-  if (options.query_assignments != 1)
-    return Fail(ErrorCode::kInvalidArgument, "query_assignments > 1 is not served by a cluster front yet");
-  // Refused rather than ignored: an unfiltered or differently scored answer would look like a valid one.
-  if (options.filter) return Fail(ErrorCode::kInvalidArgument, "filter is not served by a cluster front yet");
-  if (options.hamming) return Fail(ErrorCode::kInvalidArgument, "hamming is not served by a cluster front yet");
+  if (auto s = CheckServed(options); !s) return std::unexpected(s.error());
   if (query.kind != impl_->vocabulary.descriptor_kind())
     return Fail(ErrorCode::kIncompatible, "the query's descriptors are not of the vocabulary's kind");
-  index::QueryResponse response;
-  Failures failed;
-  const size_t num_partitions = impl_->partitions.size();
-  // After each stage: with failures, the answer is partial (allowed) or none.
-  const auto check = [&]() -> Status {
-    if (failed.partitions().empty()) return Ok();
-    if (!allow_partial || failed.partitions().size() == num_partitions) return std::unexpected(*failed.error());
-    return Ok();
-  };
-
   // Quantise the features inside the region once, as ImageIndex::Query does.
   std::vector<sift::Keypoint> keypoints;
   std::vector<float> descriptors;
@@ -267,10 +448,71 @@ Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, 
   std::vector<uint32_t> words(keypoints.size());
   vocab::QuantizerOptions quantizer = index::IndexOptions{}.quantizer;
   quantizer.num_probes = options.quantizer_probes;
-  quantizer.num_threads = impl_->options.num_threads;
+  quantizer.num_threads = impl_->settings.num_threads;
   impl_->vocabulary.Quantize(descriptors, words, quantizer);
+  const double quantize_ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+  auto response = impl_->Run(keypoints, words, query.image_width, query.image_height, options, allow_partial, coverage);
+  if (!response) return response;
+  response->timings.quantize_ms = quantize_ms;
+  response->timings.total_ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+  return response;
+}
+
+Result<api::SearchResponse> ClusterFront::QuerySimilar(const std::string& id, const index::QueryOptions& options,
+                                                       bool allow_partial, Coverage* coverage) const {
+  const auto t0 = Clock::now();
+  if (auto s = CheckServed(options); !s) return std::unexpected(s.error());
+  ImageRequest request;
+  request.set_id(id);
+  auto stored = impl_->Call<FeaturesReply>(
+      impl_->OwnerOf(id), [&](Shard::Stub& stub, grpc::ClientContext& context, FeaturesReply* out) {
+        return stub.Features(&context, request, out);
+      });
+  if (!stored) return std::unexpected(stored.error());
+  if (stored->keypoints_size() != stored->words_size())
+    return Fail(ErrorCode::kInternal, "a shard gave another number of words than keypoints");
+  api::SearchResponse response;
+  response.options = options;
+  response.query_id = id;
+  const index::ImageRecord record = FromProto(stored->record());
+  response.query_width = record.width;
+  response.query_height = record.height;
+  response.extracted_features = record.num_features;
+  // The stored features inside the region, as ImageIndex::QuerySimilar selects them.
+  std::vector<sift::Keypoint> keypoints;
+  std::vector<uint32_t> words;
+  for (int i = 0; i < stored->keypoints_size(); ++i) {
+    const Keypoint& k = stored->keypoints(i);
+    if (options.region) {
+      const auto& r = *options.region;
+      if (k.x() < r[0] || k.x() > r[2] || k.y() < r[1] || k.y() > r[3]) continue;
+    }
+    keypoints.push_back(FromProto(k));
+    words.push_back(stored->words(i));
+  }
+  auto found = impl_->Run(keypoints, words, record.width, record.height, options, allow_partial, coverage);
+  if (!found) return std::unexpected(found.error());
+  response.index = std::move(*found);
+  response.index.timings.total_ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+  response.total_ms = response.index.timings.total_ms;
+  return response;
+}
+
+Result<index::QueryResponse> ClusterFront::Impl::Run(const std::vector<sift::Keypoint>& keypoints,
+                                                     const std::vector<uint32_t>& words, int width, int height,
+                                                     const index::QueryOptions& options, bool allow_partial,
+                                                     Coverage* coverage) const {
+  const auto ms_since = [](Clock::time_point t) { return std::chrono::duration<double, std::milli>(Clock::now() - t).count(); };
+  index::QueryResponse response;
   response.query_features = static_cast<uint32_t>(words.size());
-  response.timings.quantize_ms = ms_since(t0);
+  Failures failed;
+  const size_t num_partitions = partitions.size();
+  // After each stage: with failures, the answer is partial (allowed) or none.
+  const auto check = [&]() -> Status {
+    if (failed.partitions().empty()) return Ok();
+    if (!allow_partial || failed.partitions().size() == num_partitions) return std::unexpected(*failed.error());
+    return Ok();
+  };
 
   // 1. TF-IDF scoring on every partition.
   auto t = Clock::now();
@@ -282,7 +524,7 @@ Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, 
   }
   const size_t depth = std::max<size_t>(static_cast<size_t>(options.top_k), static_cast<size_t>(options.rerank_depth));
   std::vector<index::QueryTerm> terms;
-  std::vector<Candidate> scored = impl_->Scatter(score, depth, &terms, &response.candidates, failed);
+  std::vector<Candidate> scored = Scatter(score, depth, &terms, &response.candidates, failed);
   if (auto s = check(); !s) return std::unexpected(s.error());
   response.timings.score_ms = ms_since(t);
   std::vector<index::QueryResult> results(scored.size());
@@ -301,14 +543,10 @@ Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, 
   if (rerank > 0) {
     const std::array<float, 4> region =
         options.region ? *options.region
-                       : std::array<float, 4>{0, 0, static_cast<float>(query.image_width), static_cast<float>(query.image_height)};
+                       : std::array<float, 4>{0, 0, static_cast<float>(width), static_cast<float>(height)};
     VerifyRequest verify;
     for (size_t i = 0; i < keypoints.size(); ++i) {
-      Keypoint* k = verify.add_keypoints();
-      k->set_x(keypoints[i].x);
-      k->set_y(keypoints[i].y);
-      k->set_scale(keypoints[i].scale);
-      k->set_orientation(keypoints[i].orientation);
+      PutKeypoint(keypoints[i], verify.add_keypoints());
       verify.add_words(words[i]);
     }
     for (float v : region) verify.add_region(v);
@@ -316,11 +554,11 @@ Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, 
     verify.set_min_inliers(options.verify.min_inliers);
     std::vector<std::vector<size_t>> positions(num_partitions);  // per partition: its candidates
     for (size_t c = 0; c < rerank; ++c) positions[owner[results[c].id]].push_back(c);
-    const std::vector<Status> statuses = Impl::ForEach(num_partitions, [&](uint32_t p) -> Status {
+    const std::vector<Status> statuses = ForEach(num_partitions, [&](uint32_t p) -> Status {
       if (positions[p].empty()) return Ok();
       VerifyRequest request = verify;
       for (size_t c : positions[p]) request.add_ids(results[c].id);
-      auto reply = impl_->Call<VerifyReply>(p, [&](Shard::Stub& stub, grpc::ClientContext& context, VerifyReply* out) {
+      auto reply = Call<VerifyReply>(p, [&](Shard::Stub& stub, grpc::ClientContext& context, VerifyReply* out) {
         return stub.Verify(&context, request, out);
       });
       if (!reply) return std::unexpected(reply.error());
@@ -354,11 +592,11 @@ Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, 
     t = Clock::now();
     const size_t used = std::min(num_verified, static_cast<size_t>(options.qe_images));
     std::vector<std::vector<index::QueryTerm>> region_terms(used);
-    const std::vector<Status> statuses = Impl::ForEach(used, [&](uint32_t c) -> Status {
+    const std::vector<Status> statuses = ForEach(used, [&](uint32_t c) -> Status {
       RegionTermsRequest request;
       request.set_id(results[c].id);
       for (float v : results[c].db_region) request.add_region(v);
-      auto reply = impl_->Call<RegionTermsReply>(
+      auto reply = Call<RegionTermsReply>(
           owner[results[c].id], [&](Shard::Stub& stub, grpc::ClientContext& context, RegionTermsReply* out) {
             return stub.RegionTerms(&context, request, out);
           });
@@ -373,7 +611,7 @@ Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, 
         static_cast<size_t>(std::max(options.top_k, options.transitive_depth > 0 ? options.transitive_depth : 0));
     ScoreRequest rescore;
     PutTerms(expanded, rescore.mutable_terms());
-    const std::vector<Candidate> rescored = impl_->Scatter(rescore, expanded_depth + num_verified, nullptr, nullptr, failed);
+    const std::vector<Candidate> rescored = Scatter(rescore, expanded_depth + num_verified, nullptr, nullptr, failed);
     if (auto s = check(); !s) return std::unexpected(s.error());
     std::vector<index::QueryResult> merged;
     for (size_t c = 0; c < num_verified; ++c)
@@ -396,7 +634,6 @@ Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, 
 
   if (results.size() > static_cast<size_t>(options.top_k)) results.resize(static_cast<size_t>(options.top_k));
   response.results = std::move(results);
-  response.timings.total_ms = ms_since(t0);
   if (coverage) {
     coverage->total = static_cast<uint32_t>(num_partitions);
     coverage->failed.assign(failed.partitions().begin(), failed.partitions().end());

@@ -10,6 +10,20 @@
 //   3. Query expansion: the owners give the tf-idf vectors of the matched regions, the front averages
 //      them with the query's and scatters Score again with the expanded vector.
 // With no write in flight the ranking (ids, order, scores, verified, inliers) is the single node's.
+// QuerySimilar runs the same stages with an indexed image's stored keypoints and words, which its owner
+// gives (the image itself is among the results, as on a single node).
+//
+// Reads and writes of one image go to its owner, partition api::PartitionOf(id, P) (the function
+// `index build --partitions` places images with). Get and Features ask one replica (failover as
+// above); List and Stats ask every partition and need them all (kResourceExhausted otherwise: a sum or
+// a page without a partition would look complete). Add and Delete are applied on EVERY replica of the
+// owner: first every replica must answer Ping (else kResourceExhausted, nothing written); then the
+// first replica applies the write (its refusal, e.g. id taken or undecodable image, is every replica's:
+// returned as is, nothing written), then the others at once. A replica that fails after the first
+// applied the write leaves the replicas different: kResourceExhausted naming the replicas that applied
+// it and those that did not (README "Serving a cluster"). Writes of one id through this front run one
+// at a time (replicas apply them in the same order); two fronts writing one id do not coordinate.
+//
 // Not yet: transitive verification (the front answers as a single node with transitive_depth 0) and
 // soft assignment (query_assignments > 1 is refused).
 //
@@ -19,7 +33,7 @@
 // is left out of it: its images are missing from the ranking and Coverage names it (a query that no
 // partition answers fails all the same).
 //
-// Thread safety: Query and Metrics may be called from any number of threads at once.
+// Thread safety: every member may be called from any number of threads at once.
 #pragma once
 
 #include <cstdint>
@@ -27,6 +41,7 @@
 #include <string>
 #include <vector>
 
+#include "api/service.h"
 #include "index/image_index.h"
 #include "sift/base/error.h"
 #include "sift/types.h"
@@ -48,6 +63,10 @@ struct FrontOptions {
   int shard_deadline_ms = 5000;
   // Threads that quantise a query's descriptors; 0 = all cores.
   int num_threads = 0;
+  // Deadline of one write (Add, Delete) on one replica, milliseconds: an add decodes and extracts on the
+  // shard (up to its --processing-timeout-s after waiting for an extraction slot). A write past it may
+  // still be applied there. [1, 600000].
+  int write_deadline_ms = 60000;
 };
 
 // Per replica: calls made, calls failed, and their total latency.
@@ -78,6 +97,23 @@ class ClusterFront {
   // which partitions answered.
   [[nodiscard]] Result<index::QueryResponse> Query(const sift::FeatureSet& query, const index::QueryOptions& options,
                                                    bool allow_partial = false, Coverage* coverage = nullptr) const;
+
+  // index::ImageIndex::QuerySimilar over the cluster: the owner gives the image's stored features, then
+  // the stages of Query. As api::Service::SearchSimilar (query_id, size, features).
+  [[nodiscard]] Result<api::SearchResponse> QuerySimilar(const std::string& id, const index::QueryOptions& options,
+                                                         bool allow_partial = false, Coverage* coverage = nullptr) const;
+
+  // api::Service's reads and writes over the cluster (see the file comment). kNotFound for an unknown
+  // id, as a single node.
+  [[nodiscard]] Result<index::ImageRecord> Get(const std::string& id) const;
+  // Live images of every partition ordered by id, [offset, offset + limit); total over the cluster.
+  [[nodiscard]] Result<api::ListResponse> List(uint64_t offset, uint64_t limit) const;
+  // Sums over the partitions (one replica each): images, features, index bytes, segments, shard memory,
+  // extractions in flight and slots; the vocabulary's words and fingerprint; the front's uptime.
+  [[nodiscard]] Result<api::ServiceStats> Stats() const;
+  // `request.client_gone` is not used: a write once started goes to every replica.
+  [[nodiscard]] Result<api::AddImageResponse> Add(const api::AddImageRequest& request) const;
+  [[nodiscard]] Status Delete(const std::string& id) const;
 
   std::vector<ReplicaMetrics> Metrics() const;
   const vocab::Vocabulary& vocabulary() const;

@@ -1,11 +1,15 @@
-// The HTTP side of a cluster front (`oxbow serve --cluster cluster.json`): the public API's search over
-// a ClusterFront (front.h). Served so far: POST /v1/search (the image as the raw body, or the multipart
-// part "file"/"image"; the same parameters as a single node, api/params.h, plus allow_partial=true|false,
-// default true: with a partition down the answer is 200 with "partial": true, else 503; every answer has
-// "partial" and "shards": {"total", "ok", "failed": [partition, ...]}), GET /healthz, GET /readyz
-// and GET /metrics (per shard replica: calls, errors, latency). Every other /v1 route answers 501
-// {"error": {"code": "not_implemented", ...}}: writes, get, list and stats through a front are not
-// served yet (README "Serving a cluster").
+// The HTTP side of a cluster front (`oxbow serve --cluster cluster.json`): the public API over a
+// ClusterFront (front.h), with a single node's parameters (api/params.h) and answers (api/json.h):
+//   POST /v1/search, GET /v1/images/{id}/similar: plus allow_partial=true|false, default true: with a
+//     partition down the answer is 200 with "partial": true, else 503; every answer has "partial" and
+//     "shards": {"total", "ok", "failed": [partition, ...]}. The image as the raw body or the multipart
+//     part "file"/"image".
+//   GET /v1/images/{id}, GET /v1/images (list), GET /v1/stats (sums over the partitions).
+//   POST /v1/images, DELETE /v1/images/{id}: on every replica of the owner partition, or 503 (front.h);
+//     the API key (FrontHttpOptions::api_key) as a single node asks for it.
+//   GET /healthz, GET /readyz, GET /metrics (per shard replica: calls, errors, latency).
+// Every other /v1 route (batch add, thumbnails, match, backup) answers 501
+// {"error": {"code": "not_implemented", ...}} (README "Serving a cluster").
 #pragma once
 
 #include <memory>
@@ -31,6 +35,7 @@ struct FrontHttpOptions {
   sift::DecodeOptions decode;           // limits of the uploaded image
   int threads_per_request = api::ServiceOptions{}.threads_per_request;  // extraction threads; 0 = all cores
   index::QueryOptions default_query;    // a search's own parameters override these
+  std::string api_key;                  // when set, writes need it (server::CheckApiKey)
 };
 
 class FrontHttpServer {

@@ -6,6 +6,7 @@
 
 #include <mutex>
 
+#include "server/cluster/proto_convert.h"
 #include "server/cluster/shard.grpc.pb.h"
 
 namespace oxbow::cluster {
@@ -15,26 +16,20 @@ std::array<float, 4> Box(const google::protobuf::RepeatedField<float>& v) {
   return {v[0], v[1], v[2], v[3]};
 }
 
-void PutTerms(const std::vector<index::QueryTerm>& terms, google::protobuf::RepeatedPtrField<Term>* out) {
-  for (const index::QueryTerm& t : terms) {
-    Term* term = out->Add();
-    term->set_word(t.word);
-    term->set_weight(t.weight);
-  }
-}
-
+// The front reads the ErrorCode back from the details (shard.proto) and answers as a single node would.
 grpc::Status ToGrpc(const Error& e) {
   const grpc::StatusCode code = e.code == ErrorCode::kNotFound          ? grpc::StatusCode::NOT_FOUND
                                 : e.code == ErrorCode::kInvalidArgument ? grpc::StatusCode::INVALID_ARGUMENT
+                                : e.code == ErrorCode::kAlreadyExists   ? grpc::StatusCode::ALREADY_EXISTS
                                                                         : grpc::StatusCode::INTERNAL;
-  return {code, e.ToString()};
+  return {code, e.message, std::string(ErrorCodeName(e.code))};
 }
 
 }  // namespace
 
 class ShardServer::Impl final : public Shard::Service {
  public:
-  void SetService(std::shared_ptr<const api::Service> service) {
+  void SetService(std::shared_ptr<api::Service> service) {
     std::lock_guard<std::mutex> lock(mutex_);
     service_ = std::move(service);
   }
@@ -78,14 +73,7 @@ class ShardServer::Impl final : public Shard::Service {
       return {grpc::StatusCode::INVALID_ARGUMENT, "one word per keypoint and a region of 4 values"};
     std::vector<sift::Keypoint> keypoints;
     keypoints.reserve(static_cast<size_t>(request->keypoints_size()));
-    for (const Keypoint& k : request->keypoints()) {
-      sift::Keypoint p;
-      p.x = k.x();
-      p.y = k.y();
-      p.scale = k.scale();
-      p.orientation = k.orientation();
-      keypoints.push_back(p);
-    }
+    for (const Keypoint& k : request->keypoints()) keypoints.push_back(FromProto(k));
     index::QueryOptions options;
     options.max_pairs_per_word = request->max_pairs_per_word();
     options.verify.min_inliers = request->min_inliers();
@@ -116,15 +104,92 @@ class ShardServer::Impl final : public Shard::Service {
     return grpc::Status::OK;
   }
 
+  grpc::Status Get(grpc::ServerContext* /*context*/, const ImageRequest* request, Record* reply) override {
+    const auto service = Current();
+    if (!service) return NotReady();
+    auto record = service->GetImage(request->id());
+    if (!record) return ToGrpc(record.error());
+    PutRecord(*record, reply);
+    return grpc::Status::OK;
+  }
+
+  grpc::Status List(grpc::ServerContext* /*context*/, const ListRequest* request, ListReply* reply) override {
+    const auto service = Current();
+    if (!service) return NotReady();
+    auto list = service->ListImages(request->offset(), request->limit());
+    if (!list) return ToGrpc(list.error());
+    for (const index::ImageRecord& record : list->images) PutRecord(record, reply->add_images());
+    reply->set_total(list->total);
+    return grpc::Status::OK;
+  }
+
+  grpc::Status Stats(grpc::ServerContext* /*context*/, const StatsRequest* /*request*/, StatsReply* reply) override {
+    const auto service = Current();
+    if (!service) return NotReady();
+    const api::ServiceStats stats = service->Stats();
+    reply->set_images(stats.index.num_images);
+    reply->set_features(stats.index.num_features);
+    reply->set_postings_bytes(stats.index.postings_bytes);
+    reply->set_geometry_bytes(stats.index.geometry_bytes);
+    reply->set_other_bytes(stats.index.other_bytes);
+    reply->set_segments(stats.index.num_segments);
+    reply->set_rss_bytes(stats.rss_bytes);
+    reply->set_extractions_in_flight(stats.extractions_in_flight);
+    reply->set_max_concurrent_extractions(stats.max_concurrent_extractions);
+    return grpc::Status::OK;
+  }
+
+  grpc::Status Features(grpc::ServerContext* /*context*/, const ImageRequest* request, FeaturesReply* reply) override {
+    const auto service = Current();
+    if (!service) return NotReady();
+    auto record = service->GetImage(request->id());
+    if (!record) return ToGrpc(record.error());
+    auto features = service->index().FeaturesOf(request->id());
+    if (!features) return ToGrpc(features.error());
+    PutRecord(*record, reply->mutable_record());
+    for (const sift::Keypoint& k : features->keypoints) PutKeypoint(k, reply->add_keypoints());
+    reply->mutable_words()->Add(features->words.begin(), features->words.end());
+    return grpc::Status::OK;
+  }
+
+  grpc::Status Ping(grpc::ServerContext* /*context*/, const PingRequest* /*request*/, PingReply* /*reply*/) override {
+    return Current() ? grpc::Status::OK : NotReady();
+  }
+
+  grpc::Status Add(grpc::ServerContext* /*context*/, const AddRequest* request, AddReply* reply) override {
+    const auto service = Current();
+    if (!service) return NotReady();
+    api::AddImageRequest add;
+    add.id = request->id();
+    add.image = {reinterpret_cast<const uint8_t*>(request->image().data()), request->image().size()};
+    add.metadata_json = request->metadata_json();
+    add.source_name = request->source_name();
+    add.replace = request->replace();
+    auto added = service->AddImage(add);
+    if (!added) return ToGrpc(added.error());
+    PutRecord(added->record, reply->mutable_record());
+    reply->set_replaced(added->replaced);
+    reply->set_decode_extract_ms(added->decode_extract_ms);
+    reply->set_add_ms(added->add_ms);
+    return grpc::Status::OK;
+  }
+
+  grpc::Status Delete(grpc::ServerContext* /*context*/, const ImageRequest* request, DeleteReply* /*reply*/) override {
+    const auto service = Current();
+    if (!service) return NotReady();
+    if (auto removed = service->DeleteImage(request->id()); !removed) return ToGrpc(removed.error());
+    return grpc::Status::OK;
+  }
+
  private:
-  std::shared_ptr<const api::Service> Current() const {
+  std::shared_ptr<api::Service> Current() const {
     std::lock_guard<std::mutex> lock(mutex_);
     return service_;
   }
   static grpc::Status NotReady() { return {grpc::StatusCode::UNAVAILABLE, "the index is still loading"}; }
 
   mutable std::mutex mutex_;
-  std::shared_ptr<const api::Service> service_;
+  std::shared_ptr<api::Service> service_;
 };
 
 ShardServer::ShardServer() : impl_(std::make_unique<Impl>()) {}
@@ -136,6 +201,8 @@ Result<int> ShardServer::Start(const std::string& host, int port) {
   grpc::ServerBuilder builder;
   int bound = 0;
   builder.AddListeningPort(host + ":" + std::to_string(port), grpc::InsecureServerCredentials(), &bound);
+  // An add carries the image (the shard's own --max-upload-mb bounds it), over gRPC's default 4 MiB.
+  builder.SetMaxReceiveMessageSize(-1);
   builder.RegisterService(impl_.get());
   server_ = builder.BuildAndStart();
   if (!server_ || bound == 0)
@@ -144,7 +211,7 @@ Result<int> ShardServer::Start(const std::string& host, int port) {
   return bound;
 }
 
-void ShardServer::SetService(std::shared_ptr<const api::Service> service) {
+void ShardServer::SetService(std::shared_ptr<api::Service> service) {
   impl_->SetService(std::move(service));
   if (server_) server_->GetHealthCheckService()->SetServingStatus(true);
 }

@@ -86,20 +86,6 @@ void SendError(httplib::Response& res, const api::HttpError& error) {
 
 void SendError(httplib::Response& res, const Error& error) { SendError(res, api::ToHttpError(error)); }
 
-// curl --data-binary @photo.jpg without -H 'Content-Type: ...' labels the photo
-// application/x-www-form-urlencoded. httplib 0.11 would then cap the body at 8 KiB (413) and parse it
-// as form fields, so on the routes taking raw image bytes (POST /v1/images and /v1/search) such a body
-// is relabelled application/octet-stream before it is read: the decoder decides whether it is an image.
-// The Request is owned (non-const) by httplib's connection loop; this hook runs before the body is read.
-void TakeFormEncodedBodyAsImage(const httplib::Request& req) {
-  if (req.method != "POST" || (req.path != "/v1/images" && req.path != "/v1/search")) return;
-  auto& headers = const_cast<httplib::Request&>(req).headers;
-  auto it = headers.find("Content-Type");
-  if (it != headers.end() && it->second.rfind("application/x-www-form-urlencoded", 0) == 0) {
-    it->second = "application/octet-stream";
-  }
-}
-
 // Slow-client protection (server/request_guard.h). A request whose body does not fit the upload budget
 // is answered 503 before its body is read.
 httplib::Server::HandlerResponse RefuseOverUploadBudget(const httplib::Request& req, httplib::Response& res,
@@ -219,6 +205,35 @@ bool ConstantTimeEquals(const std::string& given, const std::string& expected) {
     diff |= static_cast<unsigned char>(a ^ b);
   }
   return diff == 0;
+}
+
+// The Request is owned (non-const) by httplib's connection loop; this hook runs before the body is read.
+void TakeFormEncodedBodyAsImage(const httplib::Request& req) {
+  if (req.method != "POST" || (req.path != "/v1/images" && req.path != "/v1/search")) return;
+  auto& headers = const_cast<httplib::Request&>(req).headers;
+  auto it = headers.find("Content-Type");
+  if (it != headers.end() && it->second.rfind("application/x-www-form-urlencoded", 0) == 0) {
+    it->second = "application/octet-stream";
+  }
+}
+
+std::string RequestIdFor(const httplib::Request& req) {
+  const std::string given = req.get_header_value("X-Request-Id");
+  return IsSaneRequestId(given) ? given : NewRequestId();
+}
+
+std::optional<api::HttpError> CheckApiKey(const httplib::Request& req, const std::string& api_key) {
+  if (api_key.empty()) return std::nullopt;
+  // The whole values: httplib's get_header_value stops at a NUL byte ("KEY\0junk" would pass).
+  std::string key = FullHeaderValue(req, "X-API-Key");
+  const std::string auth = FullHeaderValue(req, "Authorization");
+  if (key.empty() && auth.rfind("Bearer ", 0) == 0) key = auth.substr(7);
+  if (key.empty()) {
+    return api::ToHttpError(
+        {ErrorCode::kUnauthenticated, "this route needs the API key: header 'Authorization: Bearer KEY' or 'X-API-Key: KEY'"});
+  }
+  if (!ConstantTimeEquals(key, api_key)) return api::PermissionDenied("wrong API key");
+  return std::nullopt;
 }
 
 std::optional<std::string> HttpServerOptions::Check() const {
@@ -643,8 +658,7 @@ void HttpServer::RegisterRequestHooks() {
     t_request = RequestContext{};
     t_request.active = true;
     t_request.start = Clock::now();
-    const std::string given = req.get_header_value("X-Request-Id");
-    t_request.id = IsSaneRequestId(given) ? given : NewRequestId();
+    t_request.id = RequestIdFor(req);
     res.set_header("X-Request-Id", t_request.id);
     if (const auto* route = Routes().Find(req.path)) t_request.route = route->label;
     TakeFormEncodedBodyAsImage(req);
@@ -749,20 +763,8 @@ HttpServer::Handler HttpServer::ServiceRoute(Access access, ServiceHandler body)
                                              "an API key (oxbow serve --api-key)"));
         return;
       }
-      if (access != Access::kOpen && !options_.api_key.empty()) {
-        // The whole values: httplib's get_header_value stops at a NUL byte ("KEY\0junk" would pass).
-        std::string key = FullHeaderValue(req, "X-API-Key");
-        const std::string auth = FullHeaderValue(req, "Authorization");
-        if (key.empty() && auth.rfind("Bearer ", 0) == 0) key = auth.substr(7);
-        if (key.empty()) {
-          SendError(res, Error{ErrorCode::kUnauthenticated,
-                               "this route needs the API key: header 'Authorization: Bearer KEY' or 'X-API-Key: KEY'"});
-          return;
-        }
-        if (!ConstantTimeEquals(key, options_.api_key)) {
-          SendError(res, api::PermissionDenied("wrong API key"));
-          return;
-        }
+      if (access != Access::kOpen) {
+        if (auto refused = CheckApiKey(req, options_.api_key)) return SendError(res, *refused);
       }
       auto service = this->service();
       if (!service) {

@@ -40,6 +40,7 @@
 #include <utility>
 #include <vector>
 
+#include "api/errors.h"
 #include "api/metrics.h"
 #include "api/service.h"
 #include "sift/base/error.h"
@@ -159,5 +160,16 @@ class HttpServer {
 
 // True when `given` equals `expected`; the time taken depends only on their lengths.
 bool ConstantTimeEquals(const std::string& given, const std::string& expected);
+// curl --data-binary @photo.jpg without -H 'Content-Type: ...' labels the photo
+// application/x-www-form-urlencoded. httplib 0.11 would then cap the body at 8 KiB (413) and parse it
+// as form fields, so on the routes taking raw image bytes (POST /v1/images and /v1/search) such a body
+// is relabelled application/octet-stream before it is read: the decoder decides whether it is an image.
+// For a pre-routing handler (also the cluster front's).
+void TakeFormEncodedBodyAsImage(const httplib::Request& req);
+// The request's id: the client's X-Request-Id when 1-64 characters of [A-Za-z0-9._-], else a new one.
+std::string RequestIdFor(const httplib::Request& req);
+// A write route's key check (also the cluster front's): nullopt when `api_key` is empty or the request
+// carries it ('Authorization: Bearer KEY' or 'X-API-Key: KEY'), else 401 without a key, 403 with another.
+std::optional<api::HttpError> CheckApiKey(const httplib::Request& req, const std::string& api_key);
 
 }  // namespace oxbow::server

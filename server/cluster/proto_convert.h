@@ -1,0 +1,25 @@
+// Conversions between shard.proto's messages and the index's types, shared by the front (front.cc) and
+// the shard (shard_server.cc). Internal to server/cluster: the generated header is not public.
+#pragma once
+
+#include <span>
+#include <vector>
+
+#include <google/protobuf/repeated_ptr_field.h>
+
+#include "index/image_index.h"
+#include "server/cluster/shard.pb.h"
+#include "sift/types.h"
+
+namespace oxbow::cluster {
+
+sift::Keypoint FromProto(const Keypoint& k);
+void PutKeypoint(const sift::Keypoint& k, Keypoint* out);
+
+std::vector<index::QueryTerm> TermsFrom(const google::protobuf::RepeatedPtrField<Term>& terms);
+void PutTerms(std::span<const index::QueryTerm> terms, google::protobuf::RepeatedPtrField<Term>* out);
+
+index::ImageRecord FromProto(const Record& r);
+void PutRecord(const index::ImageRecord& record, Record* out);
+
+}  // namespace oxbow::cluster
