@@ -70,6 +70,7 @@ class FilteredQueryTest : public ::testing::Test {
       std::shuffle(words.begin(), words.end(), rng);
       words.resize(allowed ? kQueryWords / 2 : kQueryWords * 4 / 5);
       std::vector<sift::Keypoint> keypoints;
+      keypoints.reserve(words.size() + 20);
       for (uint32_t w : words) keypoints.push_back(positions_[w]);
       for (int n = 0; n < 20; ++n) {
         words.push_back(noise(rng));

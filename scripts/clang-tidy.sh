@@ -23,6 +23,8 @@ fi
 if [[ ! -f "$build_dir/compile_commands.json" ]]; then
   cmake -S "$root" -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=Release >/dev/null
 fi
+# Sources that include generated headers (server/cluster: shard.proto's) need them in the build tree.
+cmake --build "$build_dir" --target oxbow_generated_sources >/dev/null
 out=$build_dir/clang-tidy
 rm -rf "$out" && mkdir -p "$out"
 mapfile -t files < <(python3 - "$build_dir/compile_commands.json" "$files_regex" <<'EOF'

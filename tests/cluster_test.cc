@@ -137,9 +137,7 @@ class Cluster : public ::testing::Test {
   // Search answers (POST /v1/search, GET similar): the query, the counts and every result's fields.
   static void ExpectSameSearch(const nlohmann::json& single, const nlohmann::json& front, const std::string& what) {
     for (const char* field : {"query", "params", "candidates"}) {
-      nlohmann::json a = single[field];
-      nlohmann::json b = front[field];
-      EXPECT_EQ(a, b) << what << ": " << field;
+      EXPECT_EQ(single.at(field), front.at(field)) << what << ": " << field;
     }
     const auto& a = single["results"];
     const auto& b = front["results"];
@@ -415,13 +413,16 @@ TEST_F(Cluster, HttpFrontReadsAnswerAsASingleNodeServer) {
     const auto [b_status, b] = GetJson(*front, "/v1/images/" + id);
     ASSERT_EQ(b_status, 200) << b.dump();
     ExpectSameRecord(a, b, id);
-    for (const std::string params : {"?top_k=12&transitive_depth=0", "?top_k=5&qe=false&transitive_depth=0",
-                                     "?bbox=40,30,260,200&transitive_depth=0"}) {
-      const auto [sa_status, sa] = GetJson(*single, "/v1/images/" + id + "/similar" + params);
-      const auto [sb_status, sb] = GetJson(*front, "/v1/images/" + id + "/similar" + params);
+    for (const char* params : {"?top_k=12&transitive_depth=0", "?top_k=5&qe=false&transitive_depth=0",
+                               "?bbox=40,30,260,200&transitive_depth=0"}) {
+      std::string target = "/v1/images/" + id;
+      target += "/similar";
+      target += params;
+      const auto [sa_status, sa] = GetJson(*single, target);
+      const auto [sb_status, sb] = GetJson(*front, target);
       ASSERT_EQ(sa_status, 200) << sa.dump();
       ASSERT_EQ(sb_status, 200) << sb.dump();
-      ExpectSameSearch(sa, sb, "similar " + id + params);
+      ExpectSameSearch(sa, sb, "similar " + target);
       EXPECT_EQ(sb["partial"], false);
       for (const auto& r : sb["results"]) verified_others += r["verified"] == true && r["id"] != id ? 1 : 0;
     }
@@ -480,7 +481,7 @@ TEST_F(Cluster, HttpFrontWritesOnEveryReplicaOfTheOwnerPartition) {
   // Ids of each partition, and the image to add (another crop: its own features).
   const auto id_in = [](uint32_t partition, const std::string& stem) {
     for (int k = 0;; ++k) {
-      const std::string id = stem + std::to_string(k);
+      std::string id = stem + std::to_string(k);
       if (api::PartitionOf(id, kPartitions) == partition) return id;
     }
   };

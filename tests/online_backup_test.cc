@@ -96,6 +96,7 @@ TEST_F(OnlineBackupTest, RouteAndCliCopyAPrefixOfTheAcknowledgedAddsWhileServing
 
   // The order of the adds, the number started and the number acknowledged, as the client sees them.
   std::vector<std::string> order;
+  order.reserve(400);
   for (int i = 0; i < 400; ++i) order.push_back("img-" + std::to_string(i));
   std::atomic<size_t> started{0}, acknowledged{0};
   std::atomic<bool> stop{false};
