@@ -71,4 +71,23 @@ Status PinClusterStatistics(const std::string& index_dir, index::ImageIndex& ind
   return Ok();
 }
 
+Status StoreClusterStatistics(const std::string& index_dir, index::ImageIndex& index,
+                              const GlobalFrequencies& frequencies) {
+  if (frequencies.vocabulary_fingerprint != index.vocabulary().fingerprint())
+    return Fail(ErrorCode::kIncompatible, "cluster statistics of another vocabulary than the index's");
+  if (frequencies.document_frequency.size() != index.vocabulary().size())
+    return Fail(ErrorCode::kInvalidArgument, "cluster statistics need one frequency per word of the vocabulary");
+  if (frequencies.num_partitions == 0 || frequencies.partition >= frequencies.num_partitions)
+    return Fail(ErrorCode::kInvalidArgument, "cluster statistics: the partition must be < the number of partitions");
+  for (uint32_t df : frequencies.document_frequency)
+    if (df > frequencies.num_images)
+      return Fail(ErrorCode::kInvalidArgument, "cluster statistics: a frequency exceeds the image count");
+  const std::string path = index_dir + "/" + std::string(kGlobalFrequenciesFile);
+  if (auto s = WriteGlobalFrequencies(path, frequencies); !s) return s;
+  if (auto s = index.PinCollectionStatistics(frequencies.num_images, frequencies.document_frequency); !s) return s;
+  OXBOW_LOG(kInfo) << "partition " << frequencies.partition << " of " << frequencies.num_partitions
+                   << ": scoring with refreshed cluster statistics (" << frequencies.num_images << " images)";
+  return Ok();
+}
+
 }  // namespace oxbow::api

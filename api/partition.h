@@ -55,4 +55,11 @@ struct GlobalFrequencies {
 // single index of the whole cluster gives. Ok without the file; kIncompatible for another vocabulary.
 [[nodiscard]] Status PinClusterStatistics(const std::string& index_dir, index::ImageIndex& index);
 
+// Writes `frequencies` as `index_dir`'s kGlobalFrequenciesFile (atomic), then pins them on `index`: a
+// refresh of the cluster's statistics (server/cluster/front.h). The file first, so that a restart
+// scores as before it. kIncompatible for another vocabulary, kInvalidArgument (a frequency per word, each
+// <= the image count, partition < partitions), kIoError.
+[[nodiscard]] Status StoreClusterStatistics(const std::string& index_dir, index::ImageIndex& index,
+                                            const GlobalFrequencies& frequencies);
+
 }  // namespace oxbow::api

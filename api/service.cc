@@ -468,6 +468,11 @@ Result<AddBatchResponse> Service::AddImages(const AddBatchRequest& request) {
 
 Result<index::ImageRecord> Service::GetImage(const std::string& id) const { return index_->Get(id); }
 
+Status Service::StoreClusterStatistics(const GlobalFrequencies& frequencies) {
+  std::lock_guard<std::mutex> lock(write_mutex_);
+  return api::StoreClusterStatistics(index_->directory(), *index_, frequencies);
+}
+
 Status Service::DeleteImage(const std::string& id) {
   std::lock_guard<std::mutex> lock(write_mutex_);
   if (auto removed = index_->Remove(id); !removed) return removed;

@@ -36,6 +36,7 @@
 #include <vector>
 
 #include "api/pair_match.h"
+#include "api/partition.h"
 #include "api/thumbnails.h"
 #include "index/backup.h"
 #include "index/image_index.h"
@@ -225,6 +226,10 @@ class Service {
   // their next check (their requests fail with 503, nothing stored), as do later ones, so that stopping
   // the server does not wait for them. Irreversible; a second call does not extend the grace.
   void StopExtractions();
+
+  // api::StoreClusterStatistics on this service's index (a cluster front's refresh, through the shard
+  // API); one at a time.
+  [[nodiscard]] Status StoreClusterStatistics(const GlobalFrequencies& frequencies);
 
   const ServiceOptions& options() const { return options_; }
   const index::ImageIndex& index() const { return *index_; }

@@ -355,6 +355,32 @@ Result<int64_t> Catalogue::Insert(const ImageRecord& r, std::span<const uint8_t>
   return number;
 }
 
+Result<uint64_t> Catalogue::WriteSequence() const {
+  sqlite3_stmt* stmt = nullptr;
+  int rc = sqlite3_prepare_v2(db_->handle,
+                              "SELECT COALESCE((SELECT seq FROM sqlite_sequence WHERE name = 'images'), 0),"
+                              " (SELECT COUNT(*) FROM images)",
+                              -1, &stmt, nullptr);
+  int64_t inserted = 0;
+  int64_t live = 0;
+  if (rc == SQLITE_OK) {
+    rc = sqlite3_step(stmt);
+    if (rc == SQLITE_ROW) {
+      inserted = sqlite3_column_int64(stmt, 0);
+      live = sqlite3_column_int64(stmt, 1);
+      rc = SQLITE_OK;
+    }
+  }
+  sqlite3_finalize(stmt);
+  if (rc != SQLITE_OK) {
+    return Fail(CodeFor(rc), path_ + ": cannot read the write sequence: " + SqliteMessage(db_->handle) + Hint(rc));
+  }
+  if (live > inserted || live < 0) {
+    return Fail(ErrorCode::kCorruptData, path_ + " is damaged: more image rows than numbers ever given");
+  }
+  return static_cast<uint64_t>(2 * inserted - live);
+}
+
 Status Catalogue::Delete(int64_t number) {
   OXBOW_CHECK(db_->remove != nullptr, "catalogue opened without OpenForWriting");
   if (sqlite3_get_autocommit(db_->handle) != 0) return InTransaction([&] { return Delete(number); });

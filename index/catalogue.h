@@ -105,6 +105,12 @@ class Catalogue {
                                             const std::function<Status(int64_t, std::span<const uint8_t>)>& fn) const;
   // Records the checkpoint manifest in one committed transaction: the commit point of a checkpoint.
   [[nodiscard]] Status SetCheckpoint(const std::string& manifest);
+  // The number of image rows ever inserted or deleted (a replacement is both): 2 x the highest number
+  // ever given (AUTOINCREMENT numbers are never reused) - the live rows. Each Insert, Delete and each
+  // row of InsertMany adds 1, Replace 2, in the same commit. Two copies of one index that applied the
+  // same writes (in any order) have the same value: a cluster front compares replicas by it
+  // (server/cluster/front.h). kIoError/kCorruptData when SQLite fails.
+  [[nodiscard]] Result<uint64_t> WriteSequence() const;
 
   struct Db;  // the SQLite connection (catalogue.cc)
 

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <array>
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <filesystem>
@@ -211,6 +212,7 @@ struct ImageIndex::Impl {
 
   CheckpointManifest checkpoint;                // the last committed one; guarded by writer_mutex
   uint64_t changes_since_checkpoint = 0;        // images added + removed since; guarded by writer_mutex
+  std::atomic<uint64_t> write_sequence{0};      // Catalogue::WriteSequence of the last commit
   bool checkpoint_forced = false;               // Open rebuilt: checkpoint now; guarded by writer_mutex
   bool closing = false;                         // guarded by writer_mutex
   uint64_t pending_after_failure = 0;           // changes of failed background checkpoints (for Close)
@@ -590,6 +592,7 @@ bool ImageIndex::Impl::CheckpointDue() const {
 
 void ImageIndex::Impl::Changed(uint64_t images) {
   changes_since_checkpoint += images;
+  write_sequence.fetch_add(images);  // as the commit moved Catalogue::WriteSequence
   if (CheckpointDue()) checkpoint_due.notify_one();
 }
 
@@ -717,6 +720,9 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, con
   }
   // Everything read is validated: only now may the catalogue be opened for writing (catalogue.h).
   if (auto writable = (*catalogue)->OpenForWriting(); !writable) return std::unexpected(writable.error());
+  auto sequence = (*catalogue)->WriteSequence();
+  if (!sequence) return std::unexpected(sequence.error());
+  impl->write_sequence = *sequence;
   impl->catalogue = std::move(*catalogue);
   if (rebuild) {
     impl->checkpoint_forced = true;  // written in the background: the index is ready now
@@ -920,6 +926,8 @@ Status ImageIndex::Remove(const std::string& id) {
   impl_->Changed(1);
   return Ok();
 }
+
+uint64_t ImageIndex::write_sequence() const { return impl_->write_sequence.load(); }
 
 Result<ImageRecord> ImageIndex::Get(const std::string& id) const {
   const auto snap = impl_->Current();
@@ -1432,6 +1440,16 @@ Status ImageIndex::PinCollectionStatistics(uint64_t num_images, std::span<const 
   next->inverted = next->inverted.WithPinnedStatistics(num_images, document_frequency, impl_->index_options.num_threads);
   impl_->Publish(std::move(next));
   return Ok();
+}
+
+ImageIndex::LiveCounts ImageIndex::CountLive() const {
+  const auto snap = impl_->Current();
+  LiveCounts counts;
+  counts.num_images = snap->inverted.num_images();
+  counts.document_frequency.resize(impl_->vocabulary.size());
+  for (uint32_t w = 0; w < counts.document_frequency.size(); ++w)
+    counts.document_frequency[w] = snap->inverted.DocumentFrequency(w);
+  return counts;
 }
 
 std::vector<QueryTerm> ImageIndex::TermsOf(std::span<const uint32_t> words, std::span<const float> tf) const {

@@ -386,6 +386,13 @@ class ImageIndex {
   // Scores with the whole cluster's statistics from now on (InvertedFile::WithPinnedStatistics; not
   // stored: the caller pins again after Open). kInvalidArgument unless one frequency per word.
   [[nodiscard]] Status PinCollectionStatistics(uint64_t num_images, std::span<const uint32_t> document_frequency);
+  // This index's own live counts: its images, and per word the images containing it now (a cluster's
+  // statistics are their sums over the partitions). O(vocabulary size).
+  struct LiveCounts {
+    uint64_t num_images = 0;
+    std::vector<uint32_t> document_frequency;
+  };
+  LiveCounts CountLive() const;
   // The L2-normalised tf-idf vector of a bag (InvertedFile::QueryVector with this index's statistics).
   std::vector<QueryTerm> TermsOf(std::span<const uint32_t> words, std::span<const float> tf) const;
   // The terms of image `id`'s own features inside `region` (query expansion's regions). kNotFound.
@@ -413,6 +420,9 @@ class ImageIndex {
   [[nodiscard]] Result<StoredFeatures> FeaturesOf(const std::string& id) const;
 
   IndexStats Stats() const;
+  // Catalogue::WriteSequence as of the last committed write: images inserted + removed over the index's
+  // life (a replacement counts 2). Replicas of a cluster partition that applied the same writes agree.
+  uint64_t write_sequence() const;
   const vocab::Vocabulary& vocabulary() const;
   const std::string& extractor_settings() const;
   const std::string& directory() const;

@@ -808,6 +808,48 @@ TEST_F(Fixture, AddBatchWithAssignedWordsEqualsQuantising) {
 
 // A folder the process may not write (permissions; root ignores them, so as root the check runs in a
 // child that drops to user nobody) is an I/O problem, not damage, and the catalogue is left unchanged.
+// The write sequence counts every committed insert and removal (a replacement is both), survives a
+// restart (it is the catalogue's), and two indexes that applied the same writes in another order agree.
+TEST_F(Fixture, WriteSequenceCountsCommittedWritesAndSurvivesARestart) {
+  std::mt19937_64 rng(23);
+  std::vector<sift::FeatureSet> images;
+  images.reserve(6);
+  for (int i = 0; i < 6; ++i) images.push_back(RandomImage(rng, 40));
+  uint64_t expected = 0;
+  {
+    auto index = CreateIndex();
+    EXPECT_EQ(index->write_sequence(), 0u);
+    ASSERT_TRUE(index->Add("a", images[0], {}));
+    ASSERT_TRUE(index->Add("b", images[1], {}));
+    EXPECT_EQ(index->write_sequence(), 2u);
+    EXPECT_FALSE(index->Add("a", images[2], {}));  // refused: nothing committed
+    EXPECT_EQ(index->write_sequence(), 2u);
+    ASSERT_TRUE(index->Replace("a", images[2], {}));
+    EXPECT_EQ(index->write_sequence(), 4u);
+    ASSERT_TRUE(index->Remove("b"));
+    EXPECT_FALSE(index->Remove("b"));
+    EXPECT_EQ(index->write_sequence(), 5u);
+    std::vector<BatchImage> batch = {{"c", &images[3], {}, {}}, {"d", &images[4], {}, {}}, {"a", &images[5], {}, {}}};
+    const auto results = index->AddBatch(batch);
+    EXPECT_FALSE(results[2]);  // "a" is taken
+    EXPECT_EQ(index->write_sequence(), 7u);
+    expected = index->write_sequence();
+  }
+  auto reopened = ImageIndex::Open(dir_.string());
+  ASSERT_TRUE(reopened) << reopened.error().ToString();
+  EXPECT_EQ((*reopened)->write_sequence(), expected);
+  // The same writes in another order: the same sequence.
+  auto other = ImageIndex::Create((dir_ / "other").string(), vocabulary_, "test-extractor/1");
+  ASSERT_TRUE(other);
+  ASSERT_TRUE((*other)->Add("d", images[4], {}));
+  ASSERT_TRUE((*other)->Add("b", images[1], {}));
+  ASSERT_TRUE((*other)->Add("c", images[3], {}));
+  ASSERT_TRUE((*other)->Remove("b"));
+  ASSERT_TRUE((*other)->Add("a", images[0], {}));
+  ASSERT_TRUE((*other)->Replace("a", images[2], {}));
+  EXPECT_EQ((*other)->write_sequence(), expected);
+}
+
 TEST_F(Fixture, ReadOnlyFolderIsAnIoErrorNotDamage) {
   {
     auto index = CreateIndex();

@@ -11,6 +11,8 @@
 #include <filesystem>
 #include <fstream>
 #include <regex>
+#include <set>
+#include <thread>
 
 #include <nlohmann/json.hpp>
 
@@ -68,14 +70,14 @@ class Cluster : public ::testing::Test {
     ASSERT_EQ(code, 0) << command << "\n" << out;
   }
 
-  // `oxbow serve --grpc-port 0` on partition p (or the index folder `folder`); its gRPC address ("" when
-  // it failed).
-  std::string StartShard(int p, const std::string& folder = "") {
+  // `oxbow serve --grpc-port GRPC_PORT` (0: a free one) on partition p (or the index folder `folder`);
+  // its gRPC address ("" when it failed).
+  std::string StartShard(int p, const std::string& folder = "", int grpc_port = 0) {
     const std::string n = std::to_string(started_++);  // a fresh log (ServerProcess appends)
     shards_.push_back(std::make_unique<testing::ServerProcess>(
         std::vector<std::string>{"serve", "--index",
                                  folder.empty() ? api::PartitionFolder(dir_->path() + "/cluster", p) : folder, "--port", "0",
-                                 "--grpc-port", "0", "--index-threads", "1"},
+                                 "--grpc-port", std::to_string(grpc_port), "--index-threads", "1"},
         dir_->path() + "/shard-" + n + ".log"));
     const testing::ServerProcess& shard = *shards_.back();
     EXPECT_TRUE(shard.port() > 0 && shard.WaitReady()) << shard.Log();
@@ -145,6 +147,14 @@ class Cluster : public ::testing::Test {
     for (size_t i = 0; i < a.size(); ++i) {
       for (const char* field : {"rank", "id", "score", "verified", "inliers", "transform", "region", "width", "height", "metadata"})
         EXPECT_EQ(a[i][field], b[i][field]) << what << ": " << field << " of rank " << i;
+    }
+  }
+
+  // The first id stem0, stem1, ... that belongs to `partition`.
+  static std::string IdIn(uint32_t partition, const std::string& stem) {
+    for (int k = 0;; ++k) {
+      std::string id = stem + std::to_string(k);
+      if (api::PartitionOf(id, kPartitions) == partition) return id;
     }
   }
 
@@ -478,13 +488,7 @@ TEST_F(Cluster, HttpFrontWritesOnEveryReplicaOfTheOwnerPartition) {
   const auto front = StartFront(partitions);
   const auto single = StartSingle(copy + "/single");
 
-  // Ids of each partition, and the image to add (another crop: its own features).
-  const auto id_in = [](uint32_t partition, const std::string& stem) {
-    for (int k = 0;; ++k) {
-      std::string id = stem + std::to_string(k);
-      if (api::PartitionOf(id, kPartitions) == partition) return id;
-    }
-  };
+  // The image to add (another crop: its own features).
   std::vector<uchar> png;
   ASSERT_TRUE(cv::imencode(".png", testing::Texture(300, 220, "box.png", 60, 40), png));
   const std::string image(png.begin(), png.end());
@@ -507,7 +511,7 @@ TEST_F(Cluster, HttpFrontWritesOnEveryReplicaOfTheOwnerPartition) {
   };
 
   // An add lands on both replicas of partition 0 and nowhere else; the answer is the single node's.
-  const std::string added = id_in(0, "added-");
+  const std::string added = IdIn(0, "added-");
   const auto [a_status, a] = add(*single, added);
   const auto [b_status, b] = add(*front, added);
   ASSERT_EQ(a_status, 201) << a.dump();
@@ -517,18 +521,18 @@ TEST_F(Cluster, HttpFrontWritesOnEveryReplicaOfTheOwnerPartition) {
   EXPECT_EQ(holders(added), shard_of[0]);
   ExpectSameRecord(GetJson(*single, "/v1/images/" + added).second, GetJson(*front, "/v1/images/" + added).second, added);
   EXPECT_EQ(GetJson(*front, "/v1/images").second["total"], 13);
-  const std::string other = id_in(2, "added-");
+  const std::string other = IdIn(2, "added-");
   ASSERT_EQ(add(*front, other).first, 201);
   EXPECT_EQ(holders(other), shard_of[2]);
   EXPECT_EQ(add(*front, other).first, 409);  // taken: refused by the owner, as a single node
   // The raw image as `curl --data-binary @photo.png` sends it (labelled a form), as a single node takes it.
-  auto raw = front->Client().Post("/v1/images?id=" + id_in(1, "raw-"), image, "application/x-www-form-urlencoded");
+  auto raw = front->Client().Post("/v1/images?id=" + IdIn(1, "raw-"), image, "application/x-www-form-urlencoded");
   ASSERT_TRUE(raw);
   EXPECT_EQ(raw->status, 201) << raw->body;
 
   // A front with an API key asks for it on writes, as a single node: 401 without, 403 with another.
   const auto keyed = StartFront(partitions, {"--api-key", "cluster-key"});
-  const std::string key_id = id_in(2, "keyed-");
+  const std::string key_id = IdIn(2, "keyed-");
   EXPECT_EQ(add(*keyed, key_id).first, 401);
   EXPECT_EQ(keyed->Client().Delete("/v1/images/" + other, {{"X-API-Key", "wrong"}})->status, 403);
   EXPECT_TRUE(holders(key_id).empty());
@@ -548,9 +552,11 @@ TEST_F(Cluster, HttpFrontWritesOnEveryReplicaOfTheOwnerPartition) {
   EXPECT_EQ(GetJson(*front, "/v1/images/" + added).first, 404);
 
   // A replica that already holds the id (it diverged) refuses after the other applied the add: 503
-  // naming both.
-  const std::string diverged = id_in(0, "diverged-");
+  // naming both. (Each replica took one add directly, so that their write sequences stay equal: with one
+  // add the other would be behind, and the front would refuse before writing; see the next test.)
+  const std::string diverged = IdIn(0, "diverged-");
   ASSERT_EQ(add(*shards_[shard_of[0][1]], diverged).first, 201);
+  ASSERT_EQ(add(*shards_[shard_of[0][0]], IdIn(0, "direct-")).first, 201);
   const auto [d_status, d] = add(*front, diverged);
   EXPECT_EQ(d_status, 503) << d.dump();
   const std::string message = d["error"]["message"];
@@ -562,7 +568,7 @@ TEST_F(Cluster, HttpFrontWritesOnEveryReplicaOfTheOwnerPartition) {
   // other partitions still take writes.
   kill(shards_[shard_of[0][1]]->pid(), SIGKILL);
   waitpid(shards_[shard_of[0][1]]->pid(), nullptr, 0);
-  const std::string refused = id_in(0, "refused-");
+  const std::string refused = IdIn(0, "refused-");
   const auto [r_status, r] = add(*front, refused);
   EXPECT_EQ(r_status, 503) << r.dump();
   EXPECT_TRUE(holders(refused).empty());
@@ -575,7 +581,201 @@ TEST_F(Cluster, HttpFrontWritesOnEveryReplicaOfTheOwnerPartition) {
   ASSERT_TRUE(not_removed);
   EXPECT_EQ(not_removed->status, 503) << not_removed->body;
   EXPECT_EQ(holders(kept), std::vector<size_t>{shard_of[0][0]});
-  EXPECT_EQ(add(*front, id_in(1, "still-")).first, 201);
+  EXPECT_EQ(add(*front, IdIn(1, "still-")).first, 201);
+}
+
+// After writes the partitions score with the build's statistics, so rankings drift from a single node
+// that took the same writes; a refresh (POST /v1/admin/refresh-statistics) makes them equal again, and
+// a shard restarted afterwards scores with the refreshed statistics (stored beside its index).
+TEST_F(Cluster, RankingsEqualTheSingleNodeAfterWritesAndARefresh) {
+  const std::string copy = dir_->path() + "/refresh-" + std::to_string(started_++);
+  fs::create_directories(copy);
+  fs::copy(dir_->path() + "/cluster", copy + "/cluster", fs::copy_options::recursive);
+  fs::copy(dir_->path() + "/single", copy + "/single", fs::copy_options::recursive);
+  std::vector<std::vector<std::string>> partitions;
+  partitions.reserve(kPartitions);
+  const size_t first = shards_.size();
+  for (int p = 0; p < kPartitions; ++p) {
+    partitions.push_back({StartShard(p, api::PartitionFolder(copy + "/cluster", p))});
+    ASSERT_FALSE(partitions.back()[0].empty());
+  }
+  const auto front = StartFront(partitions, {"--refresh-fraction", "0"});
+  const auto single = StartSingle(copy + "/single");
+  const auto search = [](testing::ServerProcess& server, const std::string& image) {
+    auto res = server.Client().Post("/v1/search?top_k=20&transitive_depth=0", image, "image/png");
+    return res && res->status == 200 ? nlohmann::json::parse(res->body) : nlohmann::json();
+  };
+  std::vector<std::string> queries;
+  queries.reserve(3);
+  for (int i : {0, 5, 10}) {
+    std::ifstream in(dir_->path() + "/images/img" + std::to_string(i) + ".png", std::ios::binary);
+    queries.emplace_back((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  }
+  // The same writes on both: two adds (another crop each) and a delete.
+  for (const auto& [id, sample] : {std::pair{"new-a", "box.png"}, std::pair{"new-b", "graf1.png"}}) {
+    std::vector<uchar> png;
+    ASSERT_TRUE(cv::imencode(".png", testing::Texture(300, 220, sample, 70, 30), png));
+    const std::string image(png.begin(), png.end());
+    for (testing::ServerProcess* server : {single.get(), front.get()}) {
+      auto res = server->Client().Post(std::string("/v1/images?id=") + id, image, "image/png");
+      ASSERT_TRUE(res);
+      ASSERT_EQ(res->status, 201) << res->body;
+    }
+  }
+  for (testing::ServerProcess* server : {single.get(), front.get()}) ASSERT_EQ(server->Client().Delete("/v1/images/img3")->status, 200);
+
+  // Before the refresh the scores differ (N and the frequencies are the build's on the partitions).
+  bool differs = false;
+  for (const std::string& image : queries) {
+    const nlohmann::json a = search(*single, image);
+    const nlohmann::json b = search(*front, image);
+    ASSERT_FALSE(a.is_null() || b.is_null());
+    for (size_t i = 0; i < std::min(a["results"].size(), b["results"].size()); ++i)
+      differs = differs || a["results"][i]["score"] != b["results"][i]["score"];
+  }
+  EXPECT_TRUE(differs);
+
+  auto refreshed = front->Client().Post("/v1/admin/refresh-statistics", "", "application/json");
+  ASSERT_TRUE(refreshed);
+  ASSERT_EQ(refreshed->status, 200) << refreshed->body;
+  const nlohmann::json summary = nlohmann::json::parse(refreshed->body);
+  EXPECT_EQ(summary["images"], 13);
+  EXPECT_EQ(summary["partitions"], kPartitions);
+  EXPECT_EQ(summary["replicas"], kPartitions);
+  for (size_t q = 0; q < queries.size(); ++q)
+    ExpectSameSearch(search(*single, queries[q]), search(*front, queries[q]), "after the refresh, query " + std::to_string(q));
+
+  // A shard restarted on its folder scores with the refreshed statistics.
+  const std::string restarted = partitions[1][0];
+  kill(shards_[first + 1]->pid(), SIGKILL);
+  waitpid(shards_[first + 1]->pid(), nullptr, 0);
+  ASSERT_EQ(StartShard(1, api::PartitionFolder(copy + "/cluster", 1), std::stoi(restarted.substr(restarted.rfind(':') + 1))),
+            restarted);
+  nlohmann::json again;
+  for (int wait = 0; wait < 200; ++wait) {  // until the front has reconnected to it
+    again = search(*front, queries[0]);
+    if (!again.is_null() && again["partial"] == false) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  ExpectSameSearch(search(*single, queries[0]), again, "after a shard restart");
+}
+
+// The value of a front metric for one replica (-1 when absent).
+double ReplicaMetric(const std::string& metrics, const std::string& name, int partition, const std::string& address) {
+  const std::string key = name + "{partition=\"" + std::to_string(partition) + "\",replica=\"" + address + "\"} ";
+  const size_t at = metrics.find(key);
+  return at == std::string::npos ? -1 : std::stod(metrics.substr(at + key.size()));
+}
+
+// A replica that missed writes (here: it came back from a copy taken before two adds) is detected by its
+// write sequence: reads never use it, writes to its partition are refused with 503 and nothing written;
+// once caught up from an up-to-date replica (`oxbow index backup` of it, served on the same address) it
+// is used again (README "Serving a cluster").
+TEST_F(Cluster, AReplicaThatMissedWritesIsKeptOutOfReadsUntilItCatchesUp) {
+  const std::string copy = dir_->path() + "/stale-" + std::to_string(started_++);
+  fs::create_directories(copy);
+  fs::copy(dir_->path() + "/cluster", copy + "/cluster", fs::copy_options::recursive);
+  fs::copy(api::PartitionFolder(copy + "/cluster", 0), copy + "/replica", fs::copy_options::recursive);
+  std::vector<std::vector<std::string>> partitions;
+  partitions.reserve(kPartitions);
+  const size_t first = shards_.size();  // partition 0's first replica
+  for (int p = 0; p < kPartitions; ++p) partitions.push_back({StartShard(p, api::PartitionFolder(copy + "/cluster", p))});
+  size_t second = shards_.size();
+  partitions[0].push_back(StartShard(0, copy + "/replica"));
+  for (const auto& replicas : partitions)
+    for (const std::string& address : replicas) ASSERT_FALSE(address.empty());
+  const std::string stale = partitions[0][1];
+  const int stale_port = std::stoi(stale.substr(stale.rfind(':') + 1));
+  // No background check (the reads below must find the replica behind by themselves) and no background
+  // refresh of the statistics (its calls would blur the count of reads below).
+  const auto front = StartFront(partitions, {"--replica-check-ms", "600000", "--refresh-fraction", "0"});
+  // The second replica as it is now, copied while it serves.
+  Run(std::string(OXBOW_BINARY) + " -q index backup --index " + copy + "/replica --out " + copy + "/old 2>&1");
+
+  std::vector<uchar> png;
+  ASSERT_TRUE(cv::imencode(".png", testing::Texture(300, 220, "baboon.jpg", 60, 40), png));
+  const std::string image(png.begin(), png.end());
+  const auto add = [&](testing::ServerProcess& server, const std::string& id) {
+    auto res = server.Client().Post("/v1/images?id=" + id, image, "image/png");
+    return res ? std::pair{res->status, res->body} : std::pair{0, std::string()};
+  };
+  const auto metrics = [&] {
+    auto res = front->Client().Get("/metrics");
+    return res ? res->body : std::string();
+  };
+  const std::string added = IdIn(0, "late-");
+  const std::string also = IdIn(0, "later-");
+  ASSERT_EQ(add(*front, added).first, 201);
+  ASSERT_EQ(add(*front, also).first, 201);
+
+  // The second replica comes back from the old copy, on its address: it missed both adds.
+  kill(shards_[second]->pid(), SIGKILL);
+  waitpid(shards_[second]->pid(), nullptr, 0);
+  second = shards_.size();
+  ASSERT_EQ(StartShard(0, copy + "/old", stale_port), stale);
+  EXPECT_EQ(shards_[second]->Client().Get("/v1/images/" + added)->status, 404);  // it really lacks them
+  // From its first answer on (once the front has reconnected to it), reads see it behind: even its
+  // refusals (it lacks the image: 404) are dropped and the other replica answers.
+  std::string seen;
+  for (int wait = 0; wait < 200 && ReplicaMetric(seen, "oxbow_shard_behind", 0, stale) != 1; ++wait) {
+    EXPECT_EQ(GetJson(*front, "/v1/images/" + added).first, 200) << "read " << wait;
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    seen = metrics();
+  }
+  ASSERT_EQ(ReplicaMetric(seen, "oxbow_shard_behind", 0, stale), 1) << seen;
+  EXPECT_EQ(ReplicaMetric(seen, "oxbow_shard_behind", 0, partitions[0][0]), 0) << seen;
+  EXPECT_LT(ReplicaMetric(seen, "oxbow_shard_write_sequence", 0, stale),
+            ReplicaMetric(seen, "oxbow_shard_write_sequence", 0, partitions[0][0]));
+  EXPECT_NE(front->Log().find("replica " + stale + " of partition 0 is behind"), std::string::npos) << front->Log();
+
+  // Reads never ask it: every get and search finds the adds (round-robin would ask it every other time).
+  const double calls_before = ReplicaMetric(seen, "oxbow_shard_calls_total", 0, stale);
+  for (int k = 0; k < 4; ++k) {
+    for (const std::string& id : {added, also}) EXPECT_EQ(GetJson(*front, "/v1/images/" + id).first, 200) << id;
+    auto found = front->Client().Post("/v1/search?top_k=20&transitive_depth=0", image, "image/png");
+    ASSERT_TRUE(found);
+    ASSERT_EQ(found->status, 200) << found->body;
+    const nlohmann::json answer = nlohmann::json::parse(found->body);
+    std::set<std::string> ids;
+    for (const auto& r : answer["results"]) ids.insert(r["id"].get<std::string>());
+    EXPECT_TRUE(ids.contains(added) && ids.contains(also)) << found->body;
+  }
+  EXPECT_EQ(GetJson(*front, "/v1/images").second["total"], 14);
+  EXPECT_EQ(ReplicaMetric(metrics(), "oxbow_shard_calls_total", 0, stale), calls_before);
+
+  // Writes to partition 0 are refused, naming it, and nothing is written; other partitions take writes.
+  const std::string refused = IdIn(0, "refused-");
+  const auto [r_status, r_body] = add(*front, refused);
+  EXPECT_EQ(r_status, 503) << r_body;
+  EXPECT_NE(r_body.find(stale), std::string::npos) << r_body;
+  EXPECT_NE(r_body.find("missed writes"), std::string::npos) << r_body;
+  EXPECT_EQ(shards_[first]->Client().Get("/v1/images/" + refused)->status, 404);
+  EXPECT_EQ(shards_[second]->Client().Get("/v1/images/" + refused)->status, 404);
+  EXPECT_EQ(add(*front, IdIn(1, "elsewhere-")).first, 201);
+
+  // Caught up: a copy of the up-to-date replica, served on its address. It is used again.
+  kill(shards_[second]->pid(), SIGKILL);
+  waitpid(shards_[second]->pid(), nullptr, 0);
+  Run(std::string(OXBOW_BINARY) + " -q index backup --index " + api::PartitionFolder(copy + "/cluster", 0) + " --out " +
+      copy + "/caught-up 2>&1");
+  second = shards_.size();
+  ASSERT_EQ(StartShard(0, copy + "/caught-up", stale_port), stale);
+  const std::string after = IdIn(0, "after-");
+  std::pair<int, std::string> written;
+  for (int wait = 0; wait < 200; ++wait) {  // 503 (nothing written) until the front reconnects to it
+    written = add(*front, after);
+    if (written.first != 503) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  EXPECT_EQ(written.first, 201) << written.second;
+  EXPECT_EQ(shards_[second]->Client().Get("/v1/images/" + after)->status, 200);
+  EXPECT_EQ(shards_[second]->Client().Get("/v1/images/" + added)->status, 200);
+  seen = metrics();
+  EXPECT_EQ(ReplicaMetric(seen, "oxbow_shard_behind", 0, stale), 0) << seen;
+  const double calls_caught_up = ReplicaMetric(seen, "oxbow_shard_calls_total", 0, stale);
+  for (int k = 0; k < 4; ++k) EXPECT_EQ(GetJson(*front, "/v1/images/" + added).first, 200);
+  EXPECT_GT(ReplicaMetric(metrics(), "oxbow_shard_calls_total", 0, stale), calls_caught_up);
+  EXPECT_NE(front->Log().find("replica " + stale + " of partition 0 has caught up"), std::string::npos) << front->Log();
 }
 
 TEST(ClusterConfigFile, ReadsReplicasAndResolvesTheVocabularyBesideIt) {

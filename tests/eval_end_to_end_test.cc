@@ -6,13 +6,17 @@
 #include <gtest/gtest.h>
 #include <sys/wait.h>
 
+#include <algorithm>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <set>
 #include <string>
 
 #include <nlohmann/json.hpp>
+
+#include "e2e_testing.h"
 
 namespace {
 
@@ -108,6 +112,39 @@ TEST(EvalEndToEnd, GroupsProtocolThroughTheHttpServer) {
   std::string without;
   EXPECT_EQ(RunShell(base, &without), 2) << without;
   EXPECT_NE(without.find("use another --work"), std::string::npos) << without;
+
+  // --server: the same evaluation of a running `oxbow serve` over the cached index gives the same mAP;
+  // a server that holds other images than the protocol's database is refused, with the list to index.
+  {
+    oxbow::testing::ServerProcess server(
+        {"serve", "--index", (dir / "work" / "rootsift-400" / "index").string(), "--port", "0"}, (dir / "serve.log").string());
+    ASSERT_TRUE(server.port() > 0 && server.WaitReady()) << server.Log();
+    const std::string url = "http://127.0.0.1:" + std::to_string(server.port());
+    const std::string against = std::string(OXBOW_BINARY) + " eval --protocol groups --images " +
+                                (dir / "images").string() + " --rerank 100 --qe off --server " + url;
+    std::string via;
+    ASSERT_EQ(RunShell(against + " --distractors " + (dir / "distractors").string() + " --work " +
+                           (dir / "work-server").string() + " --out " + (dir / "report-server").string(),
+                       &via),
+              0)
+        << via;
+    std::ifstream in3(dir / "report-server" / "results.json");
+    const auto served = nlohmann::json::parse(in3);
+    ASSERT_EQ(served["runs"].size(), 1u);
+    EXPECT_DOUBLE_EQ(served["runs"][0]["map"].get<double>(), reranked["map"].get<double>());
+    EXPECT_EQ(served["runs"][0]["settings"]["path"], "http, a running server: " + url);
+    EXPECT_EQ(served["runs"][0]["index"]["vocabulary_words"], 400);
+    EXPECT_EQ(served["runs"][0]["index"]["images"], 12);
+    std::string other;
+    EXPECT_EQ(RunShell(against + " --work " + (dir / "work-other").string() + " --out " + (dir / "report-other").string(),
+                       &other),
+              2)
+        << other;
+    EXPECT_NE(other.find("holds 12 images; the protocol's database has 8"), std::string::npos) << other;
+    std::ifstream list(dir / "work-other" / "database.list");
+    const std::string listed((std::istreambuf_iterator<char>(list)), std::istreambuf_iterator<char>());
+    EXPECT_EQ(std::count(listed.begin(), listed.end(), '\n'), 8) << listed;
+  }
   fs::remove_all(dir);
 }
 

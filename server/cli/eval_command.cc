@@ -69,6 +69,7 @@ struct EvalArgs {
   bool full_image = false;               // ignore the query boxes
   std::string mode = "http";             // http | in-process | both
   int max_queries = 0;                   // evaluate only the first N queries (0 = all), for smoke runs
+  std::string server;                    // a running server or cluster front to evaluate (http://HOST:PORT)
 };
 
 std::string SelfExe() {
@@ -291,9 +292,9 @@ struct HammingSetting {
 };
 
 void RunHttp(const EvalArgs& a, const eval::Protocol& protocol, const std::map<std::string, std::string>& files,
-             int port, int rerank, bool qe, bool transitive, const HammingSetting& hamming, int top_k,
+             const std::string& url, int rerank, bool qe, bool transitive, const HammingSetting& hamming, int top_k,
              eval::RunResult* run) {
-  httplib::Client client("127.0.0.1", port);
+  httplib::Client client(url);
   client.set_read_timeout(300, 0);
   client.set_write_timeout(60, 0);
   log::Progress progress("eval " + run->label, protocol.queries.size(), "queries");
@@ -314,8 +315,21 @@ void RunHttp(const EvalArgs& a, const eval::Protocol& protocol, const std::map<s
       throw CommandError(1, "search for " + q.name + " answered " + std::to_string(response->status) + ": " + response->body);
     }
     const auto json = nlohmann::json::parse(response->body);
+    // A cluster front answers without a partition that failed ("partial"): such a ranking would score
+    // as a worse mAP, not as an error. An evaluation needs every partition.
+    if (json.value("partial", false)) {
+      throw CommandError(1, "search for " + q.name + " through " + url + " is partial (partitions " +
+                                json["shards"].value("failed", nlohmann::json::array()).dump() +
+                                " did not answer): an evaluation needs every partition; bring them up and run it again");
+    }
     std::vector<std::string> ranking;
-    for (const auto& r : json.at("results")) ranking.push_back(r.at("id").get<std::string>());
+    for (const auto& r : json.at("results")) {
+      ranking.push_back(r.at("id").get<std::string>());
+      if (!std::binary_search(protocol.database.begin(), protocol.database.end(), ranking.back()))
+        throw CommandError(2, url + " answered image '" + ranking.back() +
+                                  "', which is not in the protocol's database: the server must hold exactly the "
+                                  "database images under eval's ids (README \"Evaluating a running server\")");
+    }
     eval::QueryOutcome outcome = eval::ScoreRanking(q, ranking, protocol.ap);
     outcome.latency_ms = ms;
     for (const auto& [stage, value] : json.at("timings_ms").items()) {
@@ -443,6 +457,34 @@ std::string HammingLabel(const HammingSetting& h) {
   return " +he" + std::to_string(h.threshold) + "/" + FormatSigma(h.sigma);
 }
 
+// --server: the running server's index figures (GET /v1/stats), after checking that it holds as many
+// images as the protocol's database (else the list to index them is written and the run stops).
+index::IndexStats ServerStats(const EvalArgs& a, const std::string& url, const std::map<std::string, std::string>& database) {
+  httplib::Client client(url);
+  client.set_read_timeout(60, 0);
+  auto response = client.Get("/v1/stats");
+  if (!response) throw CommandError(7, "cannot reach " + url + ": " + httplib::to_string(response.error()));
+  if (response->status != 200)
+    throw CommandError(7, url + "/v1/stats answered " + std::to_string(response->status) + ": " + response->body);
+  const auto json = nlohmann::json::parse(response->body, nullptr, /*allow_exceptions=*/false);
+  if (!json.is_object() || !json.contains("images") || !json.contains("words"))
+    throw CommandError(7, url + "/v1/stats is not an oxbow server's answer");
+  index::IndexStats stats;
+  stats.num_images = json["images"].get<uint64_t>();
+  stats.num_features = json.value("features", uint64_t{0});
+  stats.bytes_per_feature = json.value("bytes_per_feature", 0.0);
+  stats.vocabulary_size = json["words"].get<uint64_t>();
+  if (stats.num_images != database.size()) {
+    const fs::path list = fs::path(a.work) / "database.list";
+    WriteList(PathsNamedById(database, fs::path(a.work) / "images-by-id"), list);
+    throw CommandError(2, url + " holds " + std::to_string(stats.num_images) + " images; the protocol's database has " +
+                              std::to_string(database.size()) + ". Index exactly these under eval's ids: `oxbow index build "
+                              "--vocab V.oxvoc --list " + list.string() + " --out DIR` (add --mpi --partitions P for a "
+                              "cluster), serve it, and run eval again");
+  }
+  return stats;
+}
+
 // The search settings every run shares (the server's defaults, index/image_index.h), for the report.
 std::string SearchDefaults() {
   const index::QueryOptions o;
@@ -469,25 +511,38 @@ void Run(const EvalArgs& a, const std::string& command_line) {
   const std::vector<HammingSetting> hamming_settings = HammingSettings(a);
   const std::array<std::string, 2> kModes = {"http", "in-process"};
   fs::create_directories(a.work);
+  const bool external = !a.server.empty();
+  const std::string server_url =
+      !external || a.server.find("://") != std::string::npos ? a.server : "http://" + a.server;
+  if (external && a.mode == "in-process") throw CommandError(2, "--server evaluates over HTTP: --mode in-process does not apply");
   std::vector<eval::RunResult> runs;
-  for (const std::string& features : a.features) {
-    if (features != "sift" && features != "rootsift") throw CommandError(2, "--features takes sift and/or rootsift");
-    for (int words : a.words) {
+  for (const std::string& features : external ? std::vector<std::string>{"server"} : a.features) {
+    if (!external && features != "sift" && features != "rootsift")
+      throw CommandError(2, "--features takes sift and/or rootsift");
+    for (int words : external ? std::vector<int>{0} : a.words) {
       const Config config{features, words};
       eval::RunResult base;
       base.protocol = protocol.name;
       base.ap_definition = protocol.ap;
       base.distractors = protocol.distractors;
-      Prepare(a, config, database, exe, &base);
-      const std::string index_dir = (fs::path(config.Dir(a.work)) / "index").string();
-      auto idx = ValueOrExit(index::ImageIndex::Open(index_dir));
-      const index::IndexStats stats = idx->Stats();
+      index::IndexStats stats;
+      std::unique_ptr<index::ImageIndex> idx;
+      std::unique_ptr<ServerProcess> server;
+      std::string index_dir;
+      if (external) {
+        stats = ServerStats(a, server_url, database);
+        words = static_cast<int>(stats.vocabulary_size);
+      } else {
+        Prepare(a, config, database, exe, &base);
+        index_dir = (fs::path(config.Dir(a.work)) / "index").string();
+        idx = ValueOrExit(index::ImageIndex::Open(index_dir));
+        stats = idx->Stats();
+      }
       base.index_images = stats.num_images;
       base.index_features = stats.num_features;
       base.index_bytes_per_feature = stats.bytes_per_feature;
       base.vocabulary_words = stats.vocabulary_size;
-      std::unique_ptr<ServerProcess> server;
-      if (a.mode != "in-process") {
+      if (!external && a.mode != "in-process") {
         idx.reset();  // the server opens the index itself
         server = std::make_unique<ServerProcess>(exe, index_dir, (fs::path(config.Dir(a.work)) / "serve.log").string(),
                                                  a.threads);
@@ -499,15 +554,17 @@ void Run(const EvalArgs& a, const std::string& command_line) {
           if ((qe || !transitive) && rerank == 0) continue;
           for (const HammingSetting& hamming : hamming_settings) {
             for (const std::string& mode : kModes) {
-              if (a.mode != "both" && a.mode != mode) continue;
+              if (external ? mode != "http" : a.mode != "both" && a.mode != mode) continue;
               eval::RunResult run = base;
-              run.label = features + " " + std::to_string(words / 1000) + "k" +
+              run.label = (external ? server_url : features) + " " + std::to_string(words / 1000) + "k" +
                           (rerank > 0 ? " +rerank" + std::to_string(rerank) : "") +
                           (rerank > 0 && transitive ? " +tv" : "") + (qe ? " +qe" : "") + HammingLabel(hamming) +
-                          (a.mode == "both" ? " (" + mode + ")" : "");
-              run.settings = {{"features", features},
+                          (a.mode == "both" && !external ? " (" + mode + ")" : "");
+              run.settings = {{"features", external ? "the server's" : features},
                               {"words", std::to_string(words)},
-                              {"vocabulary_trained_on", a.train_images.empty() ? "the database images" : a.train_images},
+                              {"vocabulary_trained_on", external ? "the server's"
+                                                        : a.train_images.empty() ? "the database images"
+                                                                                 : a.train_images},
                               {"training_sample", std::to_string(a.sample)},
                               {"seed", std::to_string(a.seed)},
                               {"rerank", std::to_string(rerank)},
@@ -523,10 +580,11 @@ void Run(const EvalArgs& a, const std::string& command_line) {
                                                                     : std::to_string(protocol.distractors) +
                                                                           " images from " + a.distractors},
                               {"top_k", std::to_string(top_k)},
-                              {"path", mode},
+                              {"path", external ? "http, a running server: " + server_url : mode},
                               {"extractor", stats.vocabulary_size ? "oxbow SIFT (index settings)" : ""}};
               if (mode == "http") {
-                RunHttp(a, protocol, database, server->port(), rerank, qe, transitive, hamming, top_k, &run);
+                RunHttp(a, protocol, database, external ? server_url : "http://127.0.0.1:" + std::to_string(server->port()),
+                        rerank, qe, transitive, hamming, top_k, &run);
               } else {
                 if (!idx) idx = ValueOrExit(index::ImageIndex::Open(index_dir));
                 RunInProcess(a, protocol, database, *idx, rerank, qe, transitive, hamming, top_k, &run);
@@ -618,6 +676,11 @@ void SetUp(CLI::App& app) {
   cmd->add_flag("--full-image", args->full_image, "query with the whole query image instead of its box");
   cmd->add_option("--mode", args->mode, "http (through oxbow serve), in-process, or both")->capture_default_str();
   cmd->add_option("--max-queries", args->max_queries, "evaluate only the first N queries (smoke runs)");
+  cmd->add_option("--server", args->server,
+                  "evaluate a running server or cluster front (http://HOST:PORT) instead of building one: it must "
+                  "hold exactly the database images under eval's ids (when it does not, eval writes the list to "
+                  "index: WORK/database.list); --features, --words, --train-images and --mode do not apply; a "
+                  "partial answer (a partition down) stops the evaluation");
   cmd->callback([args, command_line, &app] {
     std::string line = "oxbow eval";
     for (const auto* opt : app.get_subcommand("eval")->get_options()) {

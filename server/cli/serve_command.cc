@@ -191,6 +191,18 @@ void SetUpServe(CLI::App& app) {
                   "--cluster: a call to one shard replica fails after this long; the partition's next replica is asked")
       ->capture_default_str()
       ->check(CLI::Range(1, 600000));
+  cmd->add_option("--replica-check-ms", flags->front.replica_check_ms,
+                  "--cluster: how often every replica is asked for its write sequence; a replica behind its "
+                  "partition's (it missed writes) is kept out of reads and its partition refuses writes until it "
+                  "catches up (README, \"Serving a cluster\")")
+      ->capture_default_str()
+      ->check(CLI::Range(10, 3600000));
+  cmd->add_option("--refresh-fraction", flags->front.refresh_fraction,
+                  "--cluster: refresh the cluster's statistics (idf) by itself once the writes through this front "
+                  "since the last refresh reach this fraction of its images; 0: only on demand "
+                  "(POST /v1/admin/refresh-statistics)")
+      ->capture_default_str()
+      ->check(CLI::Range(0.0, 1.0));
   cmd->add_option("--vocab", flags->vocab_path, "vocabulary file; needed only to create a new index")
       ->check(CLI::ExistingFile);
   cmd->add_option("--grpc-port", flags->grpc_port,

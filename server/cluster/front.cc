@@ -6,6 +6,8 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <condition_variable>
+#include <cstdlib>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -14,11 +16,13 @@
 #include <mutex>
 #include <optional>
 #include <set>
+#include <shared_mutex>
 #include <thread>
 
 #include <nlohmann/json.hpp>
 
 #include "api/partition.h"
+#include "sift/base/log.h"
 #include "server/cluster/proto_convert.h"
 #include "server/cluster/shard.grpc.pb.h"
 #include "vocab/vocabulary.h"
@@ -128,25 +132,164 @@ class ClusterFront::Impl {
     std::atomic<uint64_t> calls{0};
     std::atomic<uint64_t> errors{0};
     std::atomic<uint64_t> total_us{0};
+    std::atomic<int64_t> sequence{-1};  // the write sequence of its last answer; -1: none yet
+    std::atomic<bool> reported_behind{false};
+  };
+
+  // Refreshes hold writes back: a write holds it shared, a refresh exclusively (front.h).
+  mutable std::shared_mutex refresh_mutex;
+  mutable std::atomic<uint64_t> writes_since_refresh{0};
+  mutable std::atomic<uint64_t> images_at_refresh{0};  // 0: not known yet
+
+  // Per partition: the floor of its replicas' write sequences and this front's writes (front.h).
+  struct PartitionState {
+    std::atomic<uint64_t> floor{0};
+    std::atomic<uint64_t> writes_started{0};
+    std::atomic<int> writes_in_flight{0};
   };
 
   template <typename Reply>
   using ShardCall = std::function<grpc::Status(Shard::Stub&, grpc::ClientContext&, Reply*)>;
 
   Impl(vocab::Vocabulary v, const FrontOptions& o) : vocabulary(std::move(v)), settings(o) {}
+  ~Impl() {
+    {
+      const std::lock_guard<std::mutex> lock(checker_mutex);
+      stopping = true;
+    }
+    checker_wake.notify_all();
+    if (checker.joinable()) checker.join();
+  }
+  Impl(const Impl&) = delete;
+  Impl& operator=(const Impl&) = delete;
 
-  // One call to one replica within `deadline_ms`, counted in its metrics.
+  // One call to one replica within `deadline_ms`, counted in its metrics (unless `counted` is false: the
+  // background check). The write sequence the replica stamped on its answer (-1 when none) goes to
+  // `sequence` and to the replica.
   template <typename Reply>
-  static grpc::Status Invoke(Replica& replica, int deadline_ms, const ShardCall<Reply>& call, Reply* reply) {
+  grpc::Status Invoke(Replica& replica, int deadline_ms, const ShardCall<Reply>& call, Reply* reply,
+                      int64_t* sequence = nullptr, bool counted = true) const {
     grpc::ClientContext context;
     context.set_deadline(std::chrono::system_clock::now() + std::chrono::milliseconds(deadline_ms));
     const auto t0 = Clock::now();
     grpc::Status status = call(*replica.stub, context, reply);
-    replica.calls.fetch_add(1);
-    replica.total_us.fetch_add(
-        static_cast<uint64_t>(std::chrono::duration_cast<std::chrono::microseconds>(Clock::now() - t0).count()));
-    if (!status.ok()) replica.errors.fetch_add(1);
+    if (counted) {
+      replica.calls.fetch_add(1);
+      replica.total_us.fetch_add(
+          static_cast<uint64_t>(std::chrono::duration_cast<std::chrono::microseconds>(Clock::now() - t0).count()));
+      if (!status.ok()) replica.errors.fetch_add(1);
+    }
+    int64_t stamped = -1;
+    if (status.ok() || ShardRefusal(status)) {
+      const auto& metadata = context.GetServerInitialMetadata();
+      if (const auto it = metadata.find(kWriteSequenceKey); it != metadata.end()) {
+        const std::string value(it->second.data(), it->second.size());
+        char* end = nullptr;
+        const unsigned long long parsed = std::strtoull(value.c_str(), &end, 10);
+        if (!value.empty() && end != nullptr && *end == '\0') stamped = static_cast<int64_t>(parsed);
+      }
+      if (stamped >= 0) {
+        replica.sequence.store(stamped);
+        Reassess(replica);
+      }
+    }
+    if (sequence) *sequence = stamped;
     return status;
+  }
+
+  // Whether `replica` is below its partition's floor (front.h).
+  bool Behind(const Replica& replica) const {
+    const int64_t sequence = replica.sequence.load();
+    return sequence >= 0 && static_cast<uint64_t>(sequence) < states[replica.partition]->floor.load();
+  }
+  // Logs a replica falling behind or catching up, once per change.
+  void Reassess(Replica& replica) const {
+    const bool behind = Behind(replica);
+    if (behind == replica.reported_behind.load() || replica.reported_behind.exchange(behind) == behind) return;
+    if (behind) {
+      OXBOW_LOG(kWarning) << "replica " << replica.address << " of partition " << replica.partition
+                          << " is behind: write sequence " << replica.sequence.load() << ", the partition's is "
+                          << states[replica.partition]->floor.load()
+                          << "; it missed writes and is kept out of reads, and writes to the partition are refused, "
+                             "until it catches up from an up-to-date replica (README \"Serving a cluster\")";
+    } else {
+      OXBOW_LOG(kInfo) << "replica " << replica.address << " of partition " << replica.partition
+                       << " has caught up (write sequence " << replica.sequence.load() << "): used again";
+    }
+  }
+  // Raises partition p's floor to `sequence` (never lowers it).
+  void RaiseFloor(uint32_t p, uint64_t sequence) const {
+    std::atomic<uint64_t>& floor = states[p]->floor;
+    uint64_t current = floor.load();
+    while (current < sequence && !floor.compare_exchange_weak(current, sequence)) {
+    }
+    for (const auto& replica : partitions[p]) Reassess(*replica);
+  }
+  // "behind (write sequence s < floor)" for a replica below its partition's floor.
+  std::string BehindText(const Replica& replica) const {
+    return replica.address + " (behind: write sequence " + std::to_string(replica.sequence.load()) + ", the partition's is " +
+           std::to_string(states[replica.partition]->floor.load()) + ")";
+  }
+
+  // Asks every replica of partition p for its write sequence (uncounted); returns them (-1: no answer).
+  std::vector<int64_t> PingAll(uint32_t p, std::vector<std::string>* why = nullptr) const {
+    const std::vector<std::unique_ptr<Replica>>& replicas = partitions[p];
+    std::vector<int64_t> sequences(replicas.size(), -1);
+    ForEach(replicas.size(), [&](uint32_t r) -> Status {
+      PingReply pong;
+      const grpc::Status status = Invoke<PingReply>(
+          *replicas[r], settings.shard_deadline_ms,
+          [](Shard::Stub& stub, grpc::ClientContext& context, PingReply* out) { return stub.Ping(&context, {}, out); },
+          &pong, &sequences[r], /*counted=*/why != nullptr);
+      if (!status.ok() && why) (*why)[r] = replicas[r]->address + " (" + status.error_message() + ")";
+      if (status.ok() && sequences[r] < 0 && why)
+        (*why)[r] = replicas[r]->address + " (it reports no write sequence: an older oxbow?)";
+      return Ok();
+    });
+    return sequences;
+  }
+
+  // The background check (front.h): every replica's sequence; a partition with no write of this front
+  // in flight during the round raises its floor to the highest.
+  void CheckReplicas() const {
+    ForEach(partitions.size(), [&](uint32_t p) -> Status {
+      PartitionState& state = *states[p];
+      const uint64_t started = state.writes_started.load();
+      if (state.writes_in_flight.load() != 0) return Ok();
+      const std::vector<int64_t> sequences = PingAll(p);
+      if (state.writes_in_flight.load() != 0 || state.writes_started.load() != started) return Ok();
+      const int64_t highest = *std::max_element(sequences.begin(), sequences.end());
+      if (highest >= 0) RaiseFloor(p, static_cast<uint64_t>(highest));
+      return Ok();
+    });
+  }
+  Result<StatisticsRefresh> Refresh() const;
+  // The background refresh rule (front.h).
+  bool RefreshDue() const {
+    const uint64_t writes = writes_since_refresh.load();
+    return settings.refresh_fraction > 0 && writes > 0 &&
+           static_cast<double>(writes) >= settings.refresh_fraction * static_cast<double>(images_at_refresh.load());
+  }
+  void CheckerLoop() {
+    std::unique_lock<std::mutex> lock(checker_mutex);
+    while (!checker_wake.wait_for(lock, std::chrono::milliseconds(settings.replica_check_ms), [&] { return stopping; })) {
+      lock.unlock();
+      CheckReplicas();
+      if (RefreshDue()) {
+        const uint64_t writes = writes_since_refresh.load();
+        if (auto refreshed = Refresh()) {
+          OXBOW_LOG(kInfo) << "refreshed the cluster's statistics after " << writes << " writes: " << refreshed->images
+                           << " images, " << refreshed->replicas << " replicas, " << refreshed->ms << " ms";
+          last_refresh_error.clear();
+        } else if (refreshed.error().message != last_refresh_error) {  // once per distinct failure
+          last_refresh_error = refreshed.error().message;
+          OXBOW_LOG(kWarning) << "the cluster's statistics are due for a refresh (" << writes
+                              << " writes since the last) but it failed; retried every check: "
+                              << refreshed.error().ToString();
+        }
+      }
+      lock.lock();
+    }
   }
 
   // Calls `call` on the partition's replicas in turn (starting with the next one round-robin) until one
@@ -159,8 +302,17 @@ class ClusterFront::Impl {
     std::string failures;
     for (size_t k = 0; k < replicas.size(); ++k) {
       Replica& replica = *replicas[(start + k) % replicas.size()];
+      if (Behind(replica)) {
+        failures += (failures.empty() ? "" : "; ") + BehindText(replica);
+        continue;
+      }
       Reply reply;
       const grpc::Status status = Invoke(replica, settings.shard_deadline_ms, call, &reply);
+      // An answer (or refusal: an image it lacks) from a replica that shows itself behind is not used.
+      if ((status.ok() || ShardRefusal(status)) && Behind(replica)) {
+        failures += (failures.empty() ? "" : "; ") + BehindText(replica);
+        continue;
+      }
       if (status.ok()) return reply;
       if (auto refusal = ShardRefusal(status)) return std::unexpected(*refusal);
       failures += (failures.empty() ? "" : "; ") + replica.address + ": " + status.error_message();
@@ -174,22 +326,33 @@ class ClusterFront::Impl {
   Result<Reply> WriteAll(uint32_t partition, const ShardCall<Reply>& call) const {
     const std::vector<std::unique_ptr<Replica>>& replicas = partitions[partition];
     const std::string where = "partition " + std::to_string(partition) + ": ";
+    PartitionState& state = *states[partition];
+    const std::shared_lock<std::shared_mutex> no_refresh(refresh_mutex);
+    const uint64_t started = state.writes_started.fetch_add(1) + 1;
+    state.writes_in_flight.fetch_add(1);
+    struct Done {
+      std::atomic<int>& in_flight;
+      ~Done() { in_flight.fetch_sub(1); }
+    } done{state.writes_in_flight};
     std::vector<std::string> why(replicas.size());  // per replica: its failure, "" when it answered
-    ForEach(replicas.size(), [&](uint32_t r) -> Status {
-      PingReply pong;
-      const grpc::Status status = Invoke<PingReply>(
-          *replicas[r], settings.shard_deadline_ms,
-          [](Shard::Stub& stub, grpc::ClientContext& context, PingReply* out) { return stub.Ping(&context, {}, out); },
-          &pong);
-      if (!status.ok()) why[r] = replicas[r]->address + " (" + status.error_message() + ")";
-      return Ok();
-    });
+    const std::vector<int64_t> before = PingAll(partition, &why);
     const std::string down = Join(why);
     if (!down.empty())
       return Fail(ErrorCode::kResourceExhausted, where + "replica " + down + " did not answer; nothing was written");
+    // No other write of this front in flight: the replicas should agree; the highest is the floor.
+    if (state.writes_in_flight.load() == 1 && state.writes_started.load() == started)
+      RaiseFloor(partition, static_cast<uint64_t>(*std::max_element(before.begin(), before.end())));
+    for (size_t r = 0; r < replicas.size(); ++r)
+      if (Behind(*replicas[r])) why[r] = BehindText(*replicas[r]);
+    if (const std::string behind = Join(why); !behind.empty())
+      return Fail(ErrorCode::kResourceExhausted,
+                  where + "replica " + behind +
+                      " missed writes; nothing was written: writes to this partition are refused until it catches up "
+                      "from an up-to-date replica (README \"Serving a cluster\")");
 
+    std::vector<int64_t> after(replicas.size(), -1);
     Reply first;
-    const grpc::Status status = Invoke(*replicas[0], settings.write_deadline_ms, call, &first);
+    const grpc::Status status = Invoke(*replicas[0], settings.write_deadline_ms, call, &first, &after[0]);
     if (!status.ok()) {
       if (auto refusal = ShardRefusal(status)) return std::unexpected(*refusal);
       return Fail(ErrorCode::kResourceExhausted, where + "replica " + replicas[0]->address + " failed during the write (" +
@@ -201,7 +364,7 @@ class ClusterFront::Impl {
     ForEach(replicas.size() - 1, [&](uint32_t k) -> Status {
       const uint32_t r = k + 1;
       Reply reply;
-      const grpc::Status s = Invoke(*replicas[r], settings.write_deadline_ms, call, &reply);
+      const grpc::Status s = Invoke(*replicas[r], settings.write_deadline_ms, call, &reply, &after[r]);
       if (s.ok()) {
         applied[r] = replicas[r]->address;
       } else {
@@ -213,6 +376,10 @@ class ClusterFront::Impl {
       return Fail(ErrorCode::kResourceExhausted, where + "the write was applied on " + Join(applied) +
                                                      " but not on " + failed +
                                                      ": the replicas differ until it is repeated there");
+    writes_since_refresh.fetch_add(1);
+    // Every replica applied it: each one is now at least at the smallest sequence they reported.
+    if (const int64_t lowest = *std::min_element(after.begin(), after.end()); lowest >= 0)
+      RaiseFloor(partition, static_cast<uint64_t>(lowest));
     return first;
   }
 
@@ -285,8 +452,14 @@ class ClusterFront::Impl {
   FrontOptions settings;
   std::vector<std::vector<std::unique_ptr<Replica>>> partitions;
   std::vector<std::unique_ptr<std::atomic<uint64_t>>> next;  // per partition: round-robin position
+  std::vector<std::unique_ptr<PartitionState>> states;        // per partition
   mutable std::array<std::mutex, kWriteStripes> write_locks;
   Clock::time_point opened = Clock::now();
+  std::mutex checker_mutex;  // guards stopping
+  std::condition_variable checker_wake;
+  bool stopping = false;
+  std::thread checker;  // runs CheckerLoop
+  std::string last_refresh_error;  // CheckerLoop's own
 };
 
 Result<std::unique_ptr<ClusterFront>> ClusterFront::Open(const ClusterConfig& config, const FrontOptions& options) {
@@ -294,9 +467,18 @@ Result<std::unique_ptr<ClusterFront>> ClusterFront::Open(const ClusterConfig& co
     return Fail(ErrorCode::kInvalidArgument, "the shard deadline must be in [1, 600000] ms");
   if (options.write_deadline_ms < 1 || options.write_deadline_ms > 600000)
     return Fail(ErrorCode::kInvalidArgument, "the write deadline must be in [1, 600000] ms");
+  if (!(options.refresh_fraction >= 0 && options.refresh_fraction <= 1))
+    return Fail(ErrorCode::kInvalidArgument, "the refresh fraction must be in [0, 1]");
+  if (options.replica_check_ms < 10 || options.replica_check_ms > 3600000)
+    return Fail(ErrorCode::kInvalidArgument, "the replica check interval must be in [10, 3600000] ms");
   // A list of deep pages and an image's stored features can pass gRPC's default 4 MiB per message.
   grpc::ChannelArguments channel;
   channel.SetMaxReceiveMessageSize(-1);
+  // A replica back after a restart is used again within about a second (gRPC's default reconnect
+  // backoff grows to 2 minutes). Not GRPC_ARG_MIN_RECONNECT_BACKOFF_MS: gRPC core takes it as the
+  // minimum connect timeout (default 20 s), and a short one fails connections on a loaded machine.
+  channel.SetInt(GRPC_ARG_INITIAL_RECONNECT_BACKOFF_MS, 200);
+  channel.SetInt(GRPC_ARG_MAX_RECONNECT_BACKOFF_MS, 1000);
   auto vocabulary = vocab::Vocabulary::Read(config.vocabulary);
   if (!vocabulary) return std::unexpected(vocabulary.error());
   auto impl = std::make_unique<Impl>(std::move(*vocabulary), options);
@@ -311,8 +493,15 @@ Result<std::unique_ptr<ClusterFront>> ClusterFront::Open(const ClusterConfig& co
     }
     impl->partitions.push_back(std::move(replicas));
     impl->next.push_back(std::make_unique<std::atomic<uint64_t>>(0));
+    impl->states.push_back(std::make_unique<Impl::PartitionState>());
   }
-  return std::unique_ptr<ClusterFront>(new ClusterFront(std::move(impl)));
+  // The partitions' floors before the first query, then in the background.
+  impl->CheckReplicas();
+  impl->checker = std::thread([raw = impl.get()] { raw->CheckerLoop(); });
+  auto front = std::unique_ptr<ClusterFront>(new ClusterFront(std::move(impl)));
+  // The cluster's images, for the background refresh rule (best effort: unknown, the first write is due).
+  if (auto stats = front->Stats()) front->impl_->images_at_refresh = stats->index.num_images;
+  return front;
 }
 
 ClusterFront::ClusterFront(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
@@ -325,7 +514,8 @@ std::vector<ReplicaMetrics> ClusterFront::Metrics() const {
   std::vector<ReplicaMetrics> out;
   for (const auto& replicas : impl_->partitions)
     for (const auto& r : replicas)
-      out.push_back({r->partition, r->address, r->calls.load(), r->errors.load(), static_cast<double>(r->total_us.load()) / 1000});
+      out.push_back({r->partition, r->address, r->calls.load(), r->errors.load(),
+                     static_cast<double>(r->total_us.load()) / 1000, r->sequence.load(), impl_->Behind(*r)});
   return out;
 }
 
@@ -400,6 +590,90 @@ Result<api::ServiceStats> ClusterFront::Stats() const {
   s.vocabulary_fingerprint = impl_->vocabulary.fingerprint();
   stats.uptime_s = std::chrono::duration<double>(Clock::now() - impl_->opened).count();
   return stats;
+}
+
+Result<StatisticsRefresh> ClusterFront::RefreshStatistics() const { return impl_->Refresh(); }
+
+Result<StatisticsRefresh> ClusterFront::Impl::Refresh() const {
+  const auto t0 = Clock::now();
+  const std::unique_lock<std::shared_mutex> no_writes(refresh_mutex);
+  const uint32_t num_partitions = static_cast<uint32_t>(partitions.size());
+  // Every replica up, and none behind (no write of this front in flight: the highest is the floor).
+  std::vector<std::string> problems;
+  for (uint32_t p = 0; p < num_partitions; ++p) {
+    std::vector<std::string> why(partitions[p].size());
+    const std::vector<int64_t> sequences = PingAll(p, &why);
+    const int64_t highest = *std::max_element(sequences.begin(), sequences.end());
+    if (highest >= 0) RaiseFloor(p, static_cast<uint64_t>(highest));
+    for (size_t r = 0; r < why.size(); ++r) {
+      if (!why[r].empty()) problems.push_back(why[r] + " did not answer");
+      else if (Behind(*partitions[p][r])) problems.push_back(BehindText(*partitions[p][r]));
+    }
+  }
+  if (!problems.empty())
+    return Fail(ErrorCode::kResourceExhausted, "a refresh of the cluster's statistics needs every replica: " +
+                                                   Join(problems) + "; nothing changed");
+  // The sums of the partitions' live counts, one replica each.
+  std::vector<CountsReply> counts(num_partitions);
+  const std::vector<Status> statuses = ForEach(num_partitions, [&](uint32_t p) -> Status {
+    auto reply = Call<CountsReply>(p, [](Shard::Stub& stub, grpc::ClientContext& context, CountsReply* out) {
+      return stub.Counts(&context, {}, out);
+    });
+    if (!reply) return std::unexpected(reply.error());
+    counts[p] = std::move(*reply);
+    return Ok();
+  });
+  for (const Status& status : statuses)
+    if (!status) return std::unexpected(status.error());
+  PinRequest pin;
+  pin.set_vocabulary_fingerprint(vocabulary.fingerprint());
+  pin.set_num_partitions(num_partitions);
+  std::vector<uint64_t> sums(vocabulary.size(), 0);
+  uint64_t images = 0;
+  for (uint32_t p = 0; p < num_partitions; ++p) {
+    if (counts[p].vocabulary_fingerprint() != vocabulary.fingerprint() ||
+        static_cast<size_t>(counts[p].document_frequency_size()) != sums.size())
+      return Fail(ErrorCode::kIncompatible, "partition " + std::to_string(p) + " counts another vocabulary's words");
+    images += counts[p].images();
+    for (size_t w = 0; w < sums.size(); ++w) sums[w] += counts[p].document_frequency(static_cast<int>(w));
+  }
+  pin.set_images(images);
+  for (const uint64_t df : sums) pin.add_document_frequency(static_cast<uint32_t>(std::min<uint64_t>(df, UINT32_MAX)));
+  // Every replica stores and pins them.
+  std::vector<Replica*> all;
+  for (const auto& replicas : partitions)
+    for (const auto& replica : replicas) all.push_back(replica.get());
+  std::vector<std::string> pinned(all.size());
+  std::vector<std::string> failed(all.size());
+  ForEach(all.size(), [&](uint32_t k) -> Status {
+    PinRequest request = pin;
+    request.set_partition(all[k]->partition);
+    PinReply reply;
+    const grpc::Status status = Invoke<PinReply>(
+        *all[k], settings.write_deadline_ms,
+        [&](Shard::Stub& stub, grpc::ClientContext& context, PinReply* out) {
+          return stub.PinStatistics(&context, request, out);
+        },
+        &reply);
+    if (status.ok()) {
+      pinned[k] = all[k]->address;
+    } else {
+      failed[k] = all[k]->address + " (" + status.error_message() + ")";
+    }
+    return Ok();
+  });
+  if (const std::string not_pinned = Join(failed); !not_pinned.empty())
+    return Fail(ErrorCode::kResourceExhausted, "the cluster's statistics were refreshed on " + Join(pinned) +
+                                                   " but not on " + not_pinned +
+                                                   ": partitions score with different statistics until it is repeated");
+  writes_since_refresh = 0;
+  images_at_refresh = images;
+  StatisticsRefresh refresh;
+  refresh.images = images;
+  refresh.partitions = num_partitions;
+  refresh.replicas = static_cast<uint32_t>(all.size());
+  refresh.ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+  return refresh;
 }
 
 Result<api::AddImageResponse> ClusterFront::Add(const api::AddImageRequest& request) const {

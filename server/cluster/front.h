@@ -24,6 +24,31 @@
 // it and those that did not (README "Serving a cluster"). Writes of one id through this front run one
 // at a time (replicas apply them in the same order); two fronts writing one id do not coordinate.
 //
+// Replicas that missed writes. Every shard answer carries the shard's write sequence (images inserted
+// + removed over its index's life, index::ImageIndex::write_sequence; equal on replicas that applied
+// the same writes). Per partition the front keeps a floor: a sequence every up-to-date replica has
+// reached. It rises after a write that every replica applied (to the smallest sequence they reported),
+// and to the highest sequence seen when every replica is asked while no write of this front is in flight
+// (at Open, every FrontOptions::replica_check_ms in the background, and before each write). A replica
+// below the floor is behind: it missed writes (it was down, restored from an old backup, written to
+// directly, or a write failed half-way). It is kept out of reads (an answer that shows it behind is
+// dropped and the next replica asked), writes to its partition are refused (kResourceExhausted, nothing
+// written), a warning is logged; once it reports the floor again (it was caught up from an up-to-date
+// replica, README "Serving a cluster") it is used again. Limits: the front compares counts, so replicas
+// that applied different writes of the same number look equal; a front that has seen no up-to-date
+// replica of a partition since it started cannot know that the ones it sees are behind.
+//
+// The cluster's statistics (the N and document frequencies every partition scores with, pinned from
+// global-frequencies.oxdf) are those of the build until a refresh: RefreshStatistics sums every
+// partition's live counts (shard Counts) and has every replica store and pin the sums (PinStatistics;
+// the file first, so a restarted shard scores the same). It needs every replica up and none behind, and
+// holds this front's writes back while it runs; afterwards, with no write in flight, rankings equal a
+// single node's over the same live images again. It runs on demand (POST /v1/admin/refresh-statistics)
+// and by itself in the background once the writes through this front since the last refresh reach
+// FrontOptions::refresh_fraction of the cluster's images then (the single node's
+// statistics_refresh_fraction rule). Between a refresh's first and last pin, partitions score with
+// different statistics.
+//
 // Not yet: transitive verification (the front answers as a single node with transitive_depth 0) and
 // soft assignment (query_assignments > 1 is refused).
 //
@@ -67,6 +92,20 @@ struct FrontOptions {
   // shard (up to its --processing-timeout-s after waiting for an extraction slot). A write past it may
   // still be applied there. [1, 600000].
   int write_deadline_ms = 60000;
+  // How often every replica is asked for its write sequence in the background (see the file comment),
+  // milliseconds. [10, 3600000].
+  int replica_check_ms = 1000;
+  // Refresh the cluster's statistics by itself (see the file comment) once the writes through this front
+  // since the last refresh reach this fraction of the cluster's images then; 0: only on demand. [0, 1].
+  double refresh_fraction = 0.1;
+};
+
+// What a refresh of the cluster's statistics did.
+struct StatisticsRefresh {
+  uint64_t images = 0;    // N: live images over the partitions
+  uint32_t partitions = 0;
+  uint32_t replicas = 0;  // replicas that pinned the new statistics (all of them)
+  double ms = 0;
 };
 
 // Per replica: calls made, calls failed, and their total latency.
@@ -76,6 +115,8 @@ struct ReplicaMetrics {
   uint64_t calls = 0;
   uint64_t errors = 0;
   double total_ms = 0;
+  int64_t write_sequence = -1;  // the last one it reported; -1 before its first answer
+  bool behind = false;          // below its partition's floor (see the file comment)
 };
 
 class ClusterFront {
@@ -114,6 +155,11 @@ class ClusterFront {
   // `request.client_gone` is not used: a write once started goes to every replica.
   [[nodiscard]] Result<api::AddImageResponse> Add(const api::AddImageRequest& request) const;
   [[nodiscard]] Status Delete(const std::string& id) const;
+
+  // Refreshes the cluster's statistics (see the file comment). kResourceExhausted when a replica does not
+  // answer or is behind (nothing changed), or when some replicas pinned and others failed (named; repeat
+  // it); kIncompatible when a shard counts another vocabulary's words.
+  [[nodiscard]] Result<StatisticsRefresh> RefreshStatistics() const;
 
   std::vector<ReplicaMetrics> Metrics() const;
   const vocab::Vocabulary& vocabulary() const;

@@ -170,6 +170,14 @@ class FrontHttpServer::Impl {
     SendJson(res, 200, {{"id", id}, {"deleted", true}});
   }
 
+  void RefreshStatistics(const httplib::Request& req, httplib::Response& res) const {
+    if (auto refused = server::CheckApiKey(req, options.api_key)) return SendError(res, *refused);
+    auto refreshed = front->RefreshStatistics();
+    if (!refreshed) return SendError(res, api::ToHttpError(refreshed.error()));
+    SendJson(res, 200, {{"images", refreshed->images}, {"partitions", refreshed->partitions},
+                        {"replicas", refreshed->replicas}, {"ms", refreshed->ms}});
+  }
+
   static void NotYet(const httplib::Request& req, httplib::Response& res) {
     SendError(res, {501, "not_implemented", req.method + " " + req.path + " is not served by a cluster front yet"});
   }
@@ -189,6 +197,12 @@ class FrontHttpServer::Impl {
     out << "# HELP oxbow_shard_call_seconds_total Time spent in calls to a shard replica.\n"
            "# TYPE oxbow_shard_call_seconds_total counter\n";
     for (const auto& m : metrics) out << "oxbow_shard_call_seconds_total" << labels(m) << " " << m.total_ms / 1000 << "\n";
+    out << "# HELP oxbow_shard_write_sequence The write sequence a shard replica last reported (-1: none yet).\n"
+           "# TYPE oxbow_shard_write_sequence gauge\n";
+    for (const auto& m : metrics) out << "oxbow_shard_write_sequence" << labels(m) << " " << m.write_sequence << "\n";
+    out << "# HELP oxbow_shard_behind 1 for a replica that missed writes (kept out of reads until it catches up).\n"
+           "# TYPE oxbow_shard_behind gauge\n";
+    for (const auto& m : metrics) out << "oxbow_shard_behind" << labels(m) << " " << (m.behind ? 1 : 0) << "\n";
     res.set_content(out.str(), "text/plain; version=0.0.4");
   }
 
@@ -232,6 +246,8 @@ Result<std::unique_ptr<FrontHttpServer>> FrontHttpServer::Create(std::shared_ptr
   i->http.Post("/v1/images", [i](const httplib::Request& req, httplib::Response& res) { i->Add(req, res); });
   i->http.Get(R"(/v1/images/(.+))", [i](const httplib::Request& req, httplib::Response& res) { i->GetImageOrSimilar(req, res); });
   i->http.Delete(R"(/v1/images/(.+))", [i](const httplib::Request& req, httplib::Response& res) { i->Delete(req, res); });
+  i->http.Post("/v1/admin/refresh-statistics",
+               [i](const httplib::Request& req, httplib::Response& res) { i->RefreshStatistics(req, res); });
   i->http.Get("/v1/.*", Impl::NotYet);
   i->http.Post("/v1/.*", Impl::NotYet);
   i->http.Delete("/v1/.*", Impl::NotYet);

@@ -13,6 +13,11 @@
 
 namespace oxbow::cluster {
 
+// The gRPC metadata key of a shard's write sequence (index::ImageIndex::write_sequence), on every
+// answer of a loaded shard: what the front compares replicas by (front.h). Reads carry it as of the
+// start of the call, writes as of their commit.
+inline constexpr const char* kWriteSequenceKey = "oxbow-write-sequence";
+
 sift::Keypoint FromProto(const Keypoint& k);
 void PutKeypoint(const sift::Keypoint& k, Keypoint* out);
 

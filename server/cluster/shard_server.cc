@@ -34,9 +34,10 @@ class ShardServer::Impl final : public Shard::Service {
     service_ = std::move(service);
   }
 
-  grpc::Status Score(grpc::ServerContext* /*context*/, const ScoreRequest* request, ScoreReply* reply) override {
+  grpc::Status Score(grpc::ServerContext* context, const ScoreRequest* request, ScoreReply* reply) override {
     const auto service = Current();
     if (!service) return NotReady();
+    Stamp(context, *service);
     const index::ImageIndex& idx = service->index();
     if (request->words_size() != request->tf_size())
       return {grpc::StatusCode::INVALID_ARGUMENT, "one tf per word"};
@@ -66,9 +67,10 @@ class ShardServer::Impl final : public Shard::Service {
     return grpc::Status::OK;
   }
 
-  grpc::Status Verify(grpc::ServerContext* /*context*/, const VerifyRequest* request, VerifyReply* reply) override {
+  grpc::Status Verify(grpc::ServerContext* context, const VerifyRequest* request, VerifyReply* reply) override {
     const auto service = Current();
     if (!service) return NotReady();
+    Stamp(context, *service);
     if (request->keypoints_size() != request->words_size() || request->region_size() != 4)
       return {grpc::StatusCode::INVALID_ARGUMENT, "one word per keypoint and a region of 4 values"};
     std::vector<sift::Keypoint> keypoints;
@@ -93,10 +95,11 @@ class ShardServer::Impl final : public Shard::Service {
     return grpc::Status::OK;
   }
 
-  grpc::Status RegionTerms(grpc::ServerContext* /*context*/, const RegionTermsRequest* request,
+  grpc::Status RegionTerms(grpc::ServerContext* context, const RegionTermsRequest* request,
                            RegionTermsReply* reply) override {
     const auto service = Current();
     if (!service) return NotReady();
+    Stamp(context, *service);
     if (request->region_size() != 4) return {grpc::StatusCode::INVALID_ARGUMENT, "a region of 4 values"};
     auto terms = service->index().RegionTerms(request->id(), Box(request->region()));
     if (!terms) return ToGrpc(terms.error());
@@ -104,18 +107,20 @@ class ShardServer::Impl final : public Shard::Service {
     return grpc::Status::OK;
   }
 
-  grpc::Status Get(grpc::ServerContext* /*context*/, const ImageRequest* request, Record* reply) override {
+  grpc::Status Get(grpc::ServerContext* context, const ImageRequest* request, Record* reply) override {
     const auto service = Current();
     if (!service) return NotReady();
+    Stamp(context, *service);
     auto record = service->GetImage(request->id());
     if (!record) return ToGrpc(record.error());
     PutRecord(*record, reply);
     return grpc::Status::OK;
   }
 
-  grpc::Status List(grpc::ServerContext* /*context*/, const ListRequest* request, ListReply* reply) override {
+  grpc::Status List(grpc::ServerContext* context, const ListRequest* request, ListReply* reply) override {
     const auto service = Current();
     if (!service) return NotReady();
+    Stamp(context, *service);
     auto list = service->ListImages(request->offset(), request->limit());
     if (!list) return ToGrpc(list.error());
     for (const index::ImageRecord& record : list->images) PutRecord(record, reply->add_images());
@@ -123,9 +128,10 @@ class ShardServer::Impl final : public Shard::Service {
     return grpc::Status::OK;
   }
 
-  grpc::Status Stats(grpc::ServerContext* /*context*/, const StatsRequest* /*request*/, StatsReply* reply) override {
+  grpc::Status Stats(grpc::ServerContext* context, const StatsRequest* /*request*/, StatsReply* reply) override {
     const auto service = Current();
     if (!service) return NotReady();
+    Stamp(context, *service);
     const api::ServiceStats stats = service->Stats();
     reply->set_images(stats.index.num_images);
     reply->set_features(stats.index.num_features);
@@ -139,9 +145,10 @@ class ShardServer::Impl final : public Shard::Service {
     return grpc::Status::OK;
   }
 
-  grpc::Status Features(grpc::ServerContext* /*context*/, const ImageRequest* request, FeaturesReply* reply) override {
+  grpc::Status Features(grpc::ServerContext* context, const ImageRequest* request, FeaturesReply* reply) override {
     const auto service = Current();
     if (!service) return NotReady();
+    Stamp(context, *service);
     auto record = service->GetImage(request->id());
     if (!record) return ToGrpc(record.error());
     auto features = service->index().FeaturesOf(request->id());
@@ -152,11 +159,14 @@ class ShardServer::Impl final : public Shard::Service {
     return grpc::Status::OK;
   }
 
-  grpc::Status Ping(grpc::ServerContext* /*context*/, const PingRequest* /*request*/, PingReply* /*reply*/) override {
-    return Current() ? grpc::Status::OK : NotReady();
+  grpc::Status Ping(grpc::ServerContext* context, const PingRequest* /*request*/, PingReply* /*reply*/) override {
+    const auto service = Current();
+    if (!service) return NotReady();
+    Stamp(context, *service);
+    return grpc::Status::OK;
   }
 
-  grpc::Status Add(grpc::ServerContext* /*context*/, const AddRequest* request, AddReply* reply) override {
+  grpc::Status Add(grpc::ServerContext* context, const AddRequest* request, AddReply* reply) override {
     const auto service = Current();
     if (!service) return NotReady();
     api::AddImageRequest add;
@@ -166,6 +176,7 @@ class ShardServer::Impl final : public Shard::Service {
     add.source_name = request->source_name();
     add.replace = request->replace();
     auto added = service->AddImage(add);
+    Stamp(context, *service);
     if (!added) return ToGrpc(added.error());
     PutRecord(added->record, reply->mutable_record());
     reply->set_replaced(added->replaced);
@@ -174,10 +185,38 @@ class ShardServer::Impl final : public Shard::Service {
     return grpc::Status::OK;
   }
 
-  grpc::Status Delete(grpc::ServerContext* /*context*/, const ImageRequest* request, DeleteReply* /*reply*/) override {
+  grpc::Status Delete(grpc::ServerContext* context, const ImageRequest* request, DeleteReply* /*reply*/) override {
     const auto service = Current();
     if (!service) return NotReady();
-    if (auto removed = service->DeleteImage(request->id()); !removed) return ToGrpc(removed.error());
+    const Status removed = service->DeleteImage(request->id());
+    Stamp(context, *service);
+    if (!removed) return ToGrpc(removed.error());
+    return grpc::Status::OK;
+  }
+
+  grpc::Status Counts(grpc::ServerContext* context, const CountsRequest* /*request*/, CountsReply* reply) override {
+    const auto service = Current();
+    if (!service) return NotReady();
+    Stamp(context, *service);
+    const index::ImageIndex::LiveCounts counts = service->index().CountLive();
+    reply->set_images(counts.num_images);
+    reply->mutable_document_frequency()->Add(counts.document_frequency.begin(), counts.document_frequency.end());
+    reply->set_vocabulary_fingerprint(service->index().vocabulary().fingerprint());
+    return grpc::Status::OK;
+  }
+
+  grpc::Status PinStatistics(grpc::ServerContext* context, const PinRequest* request, PinReply* /*reply*/) override {
+    const auto service = Current();
+    if (!service) return NotReady();
+    api::GlobalFrequencies frequencies;
+    frequencies.num_partitions = request->num_partitions();
+    frequencies.partition = request->partition();
+    frequencies.vocabulary_fingerprint = request->vocabulary_fingerprint();
+    frequencies.num_images = request->images();
+    frequencies.document_frequency.assign(request->document_frequency().begin(), request->document_frequency().end());
+    const Status stored = service->StoreClusterStatistics(frequencies);
+    Stamp(context, *service);
+    if (!stored) return ToGrpc(stored.error());
     return grpc::Status::OK;
   }
 
@@ -185,6 +224,11 @@ class ShardServer::Impl final : public Shard::Service {
   std::shared_ptr<api::Service> Current() const {
     std::lock_guard<std::mutex> lock(mutex_);
     return service_;
+  }
+  // Reads stamp the sequence before they read: a value at or above the front's floor then guarantees
+  // the answer holds every write the floor counts (front.h).
+  static void Stamp(grpc::ServerContext* context, const api::Service& service) {
+    context->AddInitialMetadata(kWriteSequenceKey, std::to_string(service.index().write_sequence()));
   }
   static grpc::Status NotReady() { return {grpc::StatusCode::UNAVAILABLE, "the index is still loading"}; }
 
