@@ -62,14 +62,6 @@ TfIdfOptions ToTfIdf(const IndexOptions& o) {
                       .stop_list_min_images = o.stop_list_min_images, .merge_factor = o.merge_factor};
 }
 
-// outer(inner(p)): the affine map that applies `inner` first.
-sift::Affine2D Compose(const sift::Affine2D& outer, const sift::Affine2D& inner) {
-  const auto& b = outer.m;
-  const auto& a = inner.m;
-  return sift::Affine2D{{b[0] * a[0] + b[1] * a[3], b[0] * a[1] + b[1] * a[4], b[0] * a[2] + b[1] * a[5] + b[2],
-                         b[3] * a[0] + b[4] * a[3], b[3] * a[1] + b[4] * a[4], b[3] * a[2] + b[4] * a[5] + b[5]}};
-}
-
 Status CheckId(const std::string& id) {
   if (id.empty() || id.size() > kMaxIdBytes) {
     return Fail(ErrorCode::kInvalidArgument, "image id must be 1.." + std::to_string(kMaxIdBytes) + " bytes");
@@ -290,17 +282,13 @@ struct ImageIndex::Impl {
   void VerifyTransitively(const Snapshot& snap, const QueryOptions& options, size_t num_verified,
                           std::vector<QueryResult>& results) const;
 
-  // A candidate of transitive verification and an anchor to try it against.
-  struct TransitiveAttempt {
-    float score;      // the candidate's tf-idf score against the anchor's region
-    uint32_t anchor;  // index into this round's anchors
-  };
-  // For each of results[first, last) not verified yet, the anchors to try, in anchor order. `ranked`:
-  // results[0, last) (`numbers`: their image numbers).
-  std::vector<std::vector<TransitiveAttempt>> PlanTransitiveAttempts(
-      const Snapshot& snap, const QueryOptions& options, const std::vector<std::span<const uint32_t>>& anchor_words,
-      const std::vector<QueryResult>& results, size_t first, const InvertedFile::Subset& ranked,
-      const std::vector<uint32_t>& numbers) const;
+  // For each of results[first, last) not verified yet, the anchors to try (PlanTransitiveAttempts).
+  // `ranked`: results[0, last) (`numbers`: their image numbers, the tie-break).
+  std::vector<std::vector<TransitiveAttempt>> PlanAttempts(const Snapshot& snap, const QueryOptions& options,
+                                                           const std::vector<std::span<const uint32_t>>& anchor_words,
+                                                           const std::vector<QueryResult>& results, size_t first,
+                                                           const InvertedFile::Subset& ranked,
+                                                           const std::vector<uint32_t>& numbers) const;
 };
 
 namespace {
@@ -1337,7 +1325,7 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
       anchor_words.emplace_back(anchors[a].words);
     }
     const std::vector<std::vector<TransitiveAttempt>> attempts =
-        PlanTransitiveAttempts(snap, options, anchor_words, results, first, ranked, numbers);
+        PlanAttempts(snap, options, anchor_words, results, first, ranked, numbers);
     std::vector<uint8_t> found(last - first, 0);
     ParallelFor(last - first, index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
       for (size_t c = first + begin; c < first + end; ++c) {
@@ -1373,6 +1361,19 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
                    });
 }
 
+// The anchors' regions scored against the ranking so far, one anchor per task, then the shared plan.
+std::vector<std::vector<TransitiveAttempt>> ImageIndex::Impl::PlanAttempts(
+    const Snapshot& snap, const QueryOptions& options, const std::vector<std::span<const uint32_t>>& anchor_words,
+    const std::vector<QueryResult>& results, size_t first, const InvertedFile::Subset& ranked,
+    const std::vector<uint32_t>& numbers) const {
+  std::vector<std::vector<float>> scores(anchor_words.size());
+  ParallelFor(anchor_words.size(), index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
+    for (size_t a = begin; a < end; ++a)
+      scores[a] = ranked.Score(snap.inverted.QueryVector(BagOfWords::FromWords(anchor_words[a])));
+  });
+  return PlanTransitiveAttempts(scores, numbers, results, first, options);
+}
+
 // Each anchor only verifies its own nearest tf-idf neighbours (its region's bag scored as a tf-idf
 // query): most candidates share little with most anchors, and the verifier is the expensive part.
 // Neighbours are ranked among the ranking so far, results[0, last) (the anchors themselves, the other
@@ -1383,36 +1384,31 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
 // A candidate is tried against at most transitive_attempts anchors, those whose regions score it
 // highest, in anchor order: a view of the object verifies against one of its closest anchors or
 // rarely at all, while a negative would otherwise pay one verification per anchor listing it.
-std::vector<std::vector<ImageIndex::Impl::TransitiveAttempt>> ImageIndex::Impl::PlanTransitiveAttempts(
-    const Snapshot& snap, const QueryOptions& options, const std::vector<std::span<const uint32_t>>& anchor_words,
-    const std::vector<QueryResult>& results, size_t first, const InvertedFile::Subset& ranked,
-    const std::vector<uint32_t>& numbers) const {
+std::vector<std::vector<TransitiveAttempt>> PlanTransitiveAttempts(std::span<const std::vector<float>> scores,
+                                                                   std::span<const uint32_t> tie,
+                                                                   std::span<const QueryResult> results, size_t first,
+                                                                   const QueryOptions& options) {
   struct Neighbour {
     float score;
-    uint32_t number;
+    uint32_t tie;
     size_t position;  // in `results`
   };
-  std::vector<std::vector<Neighbour>> neighbours(anchor_words.size());
-  ParallelFor(anchor_words.size(), index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
-    for (size_t a = begin; a < end; ++a) {
-      const std::vector<QueryTerm> terms = snap.inverted.QueryVector(BagOfWords::FromWords(anchor_words[a]));
-      const std::vector<float> scores = ranked.Score(terms);
-      std::vector<Neighbour>& list = neighbours[a];
-      for (size_t c = 0; c < scores.size(); ++c) {
-        if (scores[c] > 0) list.push_back({scores[c], numbers[c], c});
-      }
-      // Best first, ties by image number (InvertedFile::Score's order); one more for the anchor itself.
-      const size_t keep = std::min(list.size(), static_cast<size_t>(options.transitive_neighbours) + 1);
-      std::partial_sort(list.begin(), list.begin() + static_cast<std::ptrdiff_t>(keep), list.end(),
-                        [](const Neighbour& x, const Neighbour& y) {
-                          return x.score != y.score ? x.score > y.score : x.number < y.number;
-                        });
-      list.resize(keep);
+  const size_t last = tie.size();
+  std::vector<std::vector<TransitiveAttempt>> attempts(last - first);
+  for (size_t a = 0; a < scores.size(); ++a) {
+    std::vector<Neighbour> list;
+    for (size_t c = 0; c < scores[a].size(); ++c) {
+      if (scores[a][c] > 0) list.push_back({scores[a][c], tie[c], c});
     }
-  });
-  std::vector<std::vector<TransitiveAttempt>> attempts(numbers.size() - first);
-  for (size_t a = 0; a < neighbours.size(); ++a) {
-    for (const Neighbour& n : neighbours[a]) {
+    // Best first, ties by `tie` (a single node's image numbers: InvertedFile::Score's order); one more
+    // for the anchor itself.
+    const size_t keep = std::min(list.size(), static_cast<size_t>(options.transitive_neighbours) + 1);
+    std::partial_sort(list.begin(), list.begin() + static_cast<std::ptrdiff_t>(keep), list.end(),
+                      [](const Neighbour& x, const Neighbour& y) {
+                        return x.score != y.score ? x.score > y.score : x.tie < y.tie;
+                      });
+    list.resize(keep);
+    for (const Neighbour& n : list) {
       if (n.position >= first && !results[n.position].verified) {
         attempts[n.position - first].push_back({n.score, static_cast<uint32_t>(a)});
       }
@@ -1429,6 +1425,14 @@ std::vector<std::vector<ImageIndex::Impl::TransitiveAttempt>> ImageIndex::Impl::
               [](const TransitiveAttempt& x, const TransitiveAttempt& y) { return x.anchor < y.anchor; });
   }
   return attempts;
+}
+
+// outer(inner(p)): the affine map that applies `inner` first.
+sift::Affine2D Compose(const sift::Affine2D& outer, const sift::Affine2D& inner) {
+  const auto& b = outer.m;
+  const auto& a = inner.m;
+  return sift::Affine2D{{b[0] * a[0] + b[1] * a[3], b[0] * a[1] + b[1] * a[4], b[0] * a[2] + b[1] * a[5] + b[2],
+                         b[3] * a[0] + b[4] * a[3], b[3] * a[1] + b[4] * a[4], b[3] * a[2] + b[4] * a[5] + b[5]}};
 }
 
 Status ImageIndex::PinCollectionStatistics(uint64_t num_images, std::span<const uint32_t> document_frequency) {
@@ -1473,6 +1477,31 @@ std::vector<ImageIndex::ScoredId> ImageIndex::ScoreTerms(std::span<const QueryTe
   return out;
 }
 
+Result<std::vector<std::vector<float>>> ImageIndex::ScoreAmong(std::span<const std::vector<uint32_t>> queries,
+                                                               std::span<const std::string> ids) const {
+  const auto snap = impl_->Current();
+  std::vector<size_t> present;  // positions in `ids` of the images indexed here
+  std::vector<uint32_t> numbers;
+  std::vector<BagOfWords> bags;
+  for (size_t c = 0; c < ids.size(); ++c) {
+    uint32_t number = 0;
+    const Entry* entry = snap->Find(ids[c], &number);
+    if (!entry) continue;
+    present.push_back(c);
+    numbers.push_back(number);
+    bags.push_back(entry->features.Bag());
+  }
+  std::vector<const BagOfWords*> bag_pointers(bags.size());
+  for (size_t k = 0; k < bags.size(); ++k) bag_pointers[k] = &bags[k];
+  const InvertedFile::Subset among(snap->inverted, numbers, bag_pointers);
+  std::vector<std::vector<float>> scores(queries.size(), std::vector<float>(ids.size(), 0.0f));
+  for (size_t q = 0; q < queries.size(); ++q) {
+    const std::vector<float> found = among.Score(snap->inverted.QueryVector(BagOfWords::FromWords(queries[q])));
+    for (size_t k = 0; k < present.size(); ++k) scores[q][present[k]] = found[k];
+  }
+  return scores;
+}
+
 Result<std::vector<sift::VerificationResult>> ImageIndex::VerifyImages(std::span<const sift::Keypoint> keypoints,
                                                                      std::span<const uint32_t> words,
                                                                      const std::array<float, 4>& query_region,
@@ -1481,16 +1510,14 @@ Result<std::vector<sift::VerificationResult>> ImageIndex::VerifyImages(std::span
   if (keypoints.size() != words.size()) return Fail(ErrorCode::kInvalidArgument, "one word per query keypoint");
   const auto snap = impl_->Current();
   std::vector<const Entry*> entries;
-  for (const std::string& id : ids) {
-    const Entry* entry = snap->Find(id);
-    if (!entry) return Fail(ErrorCode::kNotFound, "no image with id '" + id + "'");
-    entries.push_back(entry);
-  }
+  for (const std::string& id : ids) entries.push_back(snap->Find(id));  // nullptr: not indexed (any more)
   const QueryGeometry geometry(keypoints, words, query_region);
   std::vector<sift::VerificationResult> out(ids.size());
   ParallelFor(ids.size(), impl_->index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
-    for (size_t c = begin; c < end; ++c)
-      out[c] = geometry.Verify(entries[c]->features, options.max_pairs_per_word, options.verify);
+    for (size_t c = begin; c < end; ++c) {
+      if (entries[c] != nullptr)
+        out[c] = geometry.Verify(entries[c]->features, options.max_pairs_per_word, options.verify);
+    }
   });
   return out;
 }

@@ -324,6 +324,22 @@ void SortVerifiedFirst(std::span<QueryResult> results);
 // Query expansion's vector: the L2-normalised average of the query's tf-idf vector and the regions'
 // (added in order), restricted to the 2 x terms.size() strongest words.
 std::vector<QueryTerm> ExpandedQuery(std::span<const QueryTerm> terms, std::span<const std::vector<QueryTerm>> regions);
+// Transitive verification's plan. scores[a][c]: anchor a's matched region (its features inside
+// db_region, as a tf-idf query) scored against results[c], c < last = tie.size(); tie[c] orders equal
+// scores (smaller first). Each anchor keeps its transitive_neighbours + 1 best-scoring results (one for
+// itself); each candidate of results[first, last) not verified yet is tried against at most
+// transitive_attempts of the anchors keeping it, those that score it highest, listed in anchor order.
+struct TransitiveAttempt {
+  float score = 0;      // the candidate's tf-idf score against the anchor's region
+  uint32_t anchor = 0;  // index into the round's anchors
+};
+std::vector<std::vector<TransitiveAttempt>> PlanTransitiveAttempts(std::span<const std::vector<float>> scores,
+                                                                   std::span<const uint32_t> tie,
+                                                                   std::span<const QueryResult> results, size_t first,
+                                                                   const QueryOptions& options);
+// outer(inner(p)): the affine map that applies `inner` first (a transitively verified result's
+// db_from_query: its own map from the anchor composed with the anchor's).
+sift::Affine2D Compose(const sift::Affine2D& outer, const sift::Affine2D& inner);
 
 class ImageIndex {
  public:
@@ -404,8 +420,14 @@ class ImageIndex {
   };
   // The best `max_results` images for `terms` (InvertedFile::Score), best first.
   std::vector<ScoredId> ScoreTerms(std::span<const QueryTerm> terms, size_t max_results, uint64_t* candidates) const;
+  // Per query (words, one per feature, as a bag), its tf-idf scores against images `ids` only, in order,
+  // from their bags (InvertedFile::Subset: transitive verification's neighbours). An id not indexed
+  // here (removed since a front scored it) scores 0.
+  [[nodiscard]] Result<std::vector<std::vector<float>>> ScoreAmong(std::span<const std::vector<uint32_t>> queries,
+                                                                   std::span<const std::string> ids) const;
   // Spatial verification of images `ids` against query features (keypoints with their words) inside
-  // `query_region`, as Query's re-ranking does. kNotFound for an id not indexed here.
+  // `query_region`, as Query's re-ranking does. An id not indexed here (removed since a front scored
+  // it) is not verified.
   [[nodiscard]] Result<std::vector<sift::VerificationResult>> VerifyImages(std::span<const sift::Keypoint> keypoints,
                                                                          std::span<const uint32_t> words,
                                                                          const std::array<float, 4>& query_region,

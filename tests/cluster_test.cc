@@ -247,24 +247,42 @@ TEST_F(Cluster, FrontRankingsEqualTheSingleNode) {
   const auto front = cluster::ClusterFront::Open(config).value();
   const auto single = index::ImageIndex::Open(dir_->path() + "/single").value();
 
-  index::QueryOptions options;
+  index::QueryOptions options;  // the defaults: re-ranking, query expansion, transitive verification
   options.top_k = 12;
-  options.transitive_depth = 0;  // not served by the front yet
   index::QueryOptions plain = options;
   plain.query_expansion = false;
+  plain.transitive_depth = 0;
   index::QueryOptions region = options;
   region.region = std::array<float, 4>{40, 30, 260, 200};
+  // Only the best candidate re-ranked: the other views of its scene can only verify transitively,
+  // against it (and against each other in later rounds).
+  index::QueryOptions transitive = options;
+  transitive.rerank_depth = 1;
+  transitive.query_expansion = false;
+  index::QueryOptions transitive_qe = transitive;
+  transitive_qe.query_expansion = true;
   size_t verified = 0;
+  size_t verified_transitively = 0;
   for (size_t q = 0; q < queries_->size(); ++q) {
-    for (const auto& [name, o] : {std::pair{"qe", options}, std::pair{"plain", plain}, std::pair{"region", region}}) {
+    for (const auto& [name, o] : {std::pair{"default", options}, std::pair{"plain", plain}, std::pair{"region", region},
+                                  std::pair{"transitive", transitive}, std::pair{"transitive+qe", transitive_qe}}) {
       const auto expected = single->Query((*queries_)[q], o);
       const auto got = front->Query((*queries_)[q], o);
       ASSERT_TRUE(expected && got) << (got ? "" : got.error().ToString());
       ExpectSameRanking(*expected, *got, std::string(name) + " query " + std::to_string(q));
-      for (const auto& r : got->results) verified += r.verified ? 1 : 0;
+      for (size_t i = 0; i < got->results.size(); ++i) {
+        const index::QueryResult& r = got->results[i];
+        verified += r.verified ? 1 : 0;
+        if (o.rerank_depth == 1 && i > 0 && r.verified) {
+          ++verified_transitively;
+          for (size_t k = 0; k < r.db_from_query.m.size(); ++k)
+            EXPECT_NEAR(r.db_from_query.m[k], expected->results[i].db_from_query.m[k], 1e-9) << name << " query " << q;
+        }
+      }
     }
   }
   EXPECT_GT(verified, queries_->size()) << "nothing but the queries themselves verified: the test proves little";
+  EXPECT_GE(verified_transitively, queries_->size()) << "transitive verification found little: the test proves little";
   for (const cluster::ReplicaMetrics& m : front->Metrics()) {
     EXPECT_GT(m.calls, 0u) << m.address;
     EXPECT_EQ(m.errors, 0u) << m.address;
@@ -349,7 +367,7 @@ TEST_F(Cluster, HttpFrontAnswersAsASingleNodeServer) {
 
   std::ifstream in(dir_->path() + "/images/img5.png", std::ios::binary);
   const std::string image((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-  const std::string path = "/v1/search?top_k=8&transitive_depth=0";
+  const std::string path = "/v1/search?top_k=8";  // the defaults, transitive verification included
   auto expected = single.Client().Post(path, image, "image/png");
   auto got = front.Client().Post(path, image, "image/png");
   ASSERT_TRUE(expected && got);
@@ -423,7 +441,7 @@ TEST_F(Cluster, HttpFrontReadsAnswerAsASingleNodeServer) {
     const auto [b_status, b] = GetJson(*front, "/v1/images/" + id);
     ASSERT_EQ(b_status, 200) << b.dump();
     ExpectSameRecord(a, b, id);
-    for (const char* params : {"?top_k=12&transitive_depth=0", "?top_k=5&qe=false&transitive_depth=0",
+    for (const char* params : {"?top_k=12", "?top_k=5&qe=false&transitive_depth=0",
                                "?bbox=40,30,260,200&transitive_depth=0"}) {
       std::string target = "/v1/images/" + id;
       target += "/similar";

@@ -14,6 +14,7 @@
 #include <functional>
 #include <map>
 #include <mutex>
+#include <numeric>
 #include <optional>
 #include <set>
 #include <shared_mutex>
@@ -400,6 +401,13 @@ class ClusterFront::Impl {
   Result<index::QueryResponse> Run(const std::vector<sift::Keypoint>& keypoints, const std::vector<uint32_t>& words,
                                    int width, int height, const index::QueryOptions& options, bool allow_partial,
                                    Coverage* coverage) const;
+
+  // Stage 4 of Run, transitive verification as index::ImageIndex::Query runs it (see the file
+  // comment): results[0, num_verified) are verified; `owner`: each result's partition. A partition
+  // that fails joins `failed` (its results are not verified further; the caller drops them).
+  void VerifyTransitively(const index::QueryOptions& options, size_t num_verified,
+                          const std::map<std::string, uint32_t>& owner, std::vector<index::QueryResult>& results,
+                          Failures& failed) const;
 
   // fn(i) for i in [0, n), all at once; every call's status.
   static std::vector<Status> ForEach(size_t n, const std::function<Status(uint32_t)>& fn) {
@@ -900,10 +908,23 @@ Result<index::QueryResponse> ClusterFront::Impl::Run(const std::vector<sift::Key
       r.id = c.id;
       r.score = c.score;
       r.record = c.record;
+      owner[c.id] = c.partition;
       merged.push_back(std::move(r));
     }
     results = std::move(merged);
+    num_verified = 0;
+    while (num_verified < results.size() && results[num_verified].verified) ++num_verified;
     response.timings.qe_ms = ms_since(t);
+  }
+
+  // 4. Transitive verification: anchors' features from their owners, neighbours scored and candidates
+  // verified on theirs.
+  if (options.transitive_depth > 0 && num_verified > 0) {
+    t = Clock::now();
+    VerifyTransitively(options, num_verified, owner, results, failed);
+    if (auto s = check(); !s) return std::unexpected(s.error());
+    std::erase_if(results, [&](const index::QueryResult& r) { return failed.Contains(owner[r.id]); });
+    response.timings.verify_ms += ms_since(t);
   }
 
   if (results.size() > static_cast<size_t>(options.top_k)) results.resize(static_cast<size_t>(options.top_k));
@@ -914,6 +935,153 @@ Result<index::QueryResponse> ClusterFront::Impl::Run(const std::vector<sift::Key
     coverage->ok = coverage->total - static_cast<uint32_t>(coverage->failed.size());
   }
   return response;
+}
+
+// Rounds as on a single node (ImageIndex::Impl::VerifyTransitively): this round's anchors are the next
+// verified results, up to transitive_anchors in all; each anchor's region is scored against the ranking
+// so far, results[0, last), by the partitions holding them (ScoreAmong), index::PlanTransitiveAttempts
+// picks each candidate's anchors (ties by id where a single node takes image numbers), and the owners
+// verify: a candidate's first attempts at once, then the second ones of those still unverified, and so
+// on, which stops each candidate at its first verifying anchor in anchor order, as a single node does.
+void ClusterFront::Impl::VerifyTransitively(const index::QueryOptions& options, size_t num_verified,
+                                            const std::map<std::string, uint32_t>& owner,
+                                            std::vector<index::QueryResult>& results, Failures& failed) const {
+  const size_t first = num_verified;
+  const size_t last = std::min(results.size(), first + static_cast<size_t>(options.transitive_depth));
+  const size_t num_partitions = partitions.size();
+  const auto owner_of = [&](size_t c) { return owner.at(results[c].id); };
+  // Ties among equal scores by id: each result's rank among the ids of results[0, last).
+  std::vector<uint32_t> tie(last);
+  {
+    std::vector<size_t> by_id(last);
+    std::iota(by_id.begin(), by_id.end(), size_t{0});
+    std::sort(by_id.begin(), by_id.end(), [&](size_t x, size_t y) { return results[x].id < results[y].id; });
+    for (size_t k = 0; k < last; ++k) tie[by_id[k]] = static_cast<uint32_t>(k);
+  }
+  std::vector<std::vector<size_t>> held(num_partitions);  // per partition: its positions in [0, last)
+  for (size_t c = 0; c < last; ++c) held[owner_of(c)].push_back(c);
+
+  std::vector<size_t> pool(num_verified);  // anchor candidates: positions in `results`, in anchor order
+  std::iota(pool.begin(), pool.end(), size_t{0});
+  const auto max_anchors = static_cast<size_t>(options.transitive_anchors);
+  size_t used = 0;
+  while (used < std::min(pool.size(), max_anchors)) {
+    const size_t round_end = std::min(pool.size(), max_anchors);
+    const size_t num_anchors = round_end - used;
+    // The anchors' stored features inside their matched regions, from their owners.
+    VerifyRequest anchor_template;
+    anchor_template.set_max_pairs_per_word(options.max_pairs_per_word);
+    anchor_template.set_min_inliers(options.verify.min_inliers);
+    std::vector<VerifyRequest> anchors(num_anchors, anchor_template);
+    std::vector<std::vector<uint32_t>> anchor_words(num_anchors);
+    const std::vector<Status> fetched = ForEach(num_anchors, [&](uint32_t a) -> Status {
+      const index::QueryResult& anchor = results[pool[used + a]];
+      const uint32_t p = owner.at(anchor.id);
+      if (failed.Contains(p)) return Ok();
+      ImageRequest request;
+      request.set_id(anchor.id);
+      auto stored = Call<FeaturesReply>(p, [&](Shard::Stub& stub, grpc::ClientContext& context, FeaturesReply* out) {
+        return stub.Features(&context, request, out);
+      });
+      if (!stored) return std::unexpected(stored.error());
+      if (stored->keypoints_size() != stored->words_size())
+        return Fail(ErrorCode::kInternal, "a shard gave another number of words than keypoints");
+      const auto& box = anchor.db_region;
+      for (int i = 0; i < stored->keypoints_size(); ++i) {
+        const Keypoint& k = stored->keypoints(i);
+        if (k.x() < box[0] || k.x() > box[2] || k.y() < box[1] || k.y() > box[3]) continue;
+        *anchors[a].add_keypoints() = k;
+        anchors[a].add_words(stored->words(i));
+        anchor_words[a].push_back(stored->words(i));
+      }
+      for (float v : box) anchors[a].add_region(v);
+      return Ok();
+    });
+    for (size_t a = 0; a < num_anchors; ++a) failed.Record(owner.at(results[pool[used + a]].id), fetched[a]);
+
+    // Each anchor's region scored against results[0, last), by the partitions holding them.
+    std::vector<std::vector<float>> scores(num_anchors, std::vector<float>(last, 0.0f));
+    ScoreAmongRequest among;
+    for (const std::vector<uint32_t>& words : anchor_words) among.add_queries()->mutable_words()->Add(words.begin(), words.end());
+    const std::vector<Status> scored = ForEach(num_partitions, [&](uint32_t p) -> Status {
+      if (held[p].empty() || failed.Contains(p)) return Ok();
+      ScoreAmongRequest request = among;
+      for (size_t c : held[p]) request.add_ids(results[c].id);
+      auto reply = Call<ScoreAmongReply>(p, [&](Shard::Stub& stub, grpc::ClientContext& context, ScoreAmongReply* out) {
+        return stub.ScoreAmong(&context, request, out);
+      });
+      if (!reply) return std::unexpected(reply.error());
+      if (static_cast<size_t>(reply->rows_size()) != num_anchors)
+        return Fail(ErrorCode::kInternal, "a shard scored another number of anchors than asked");
+      for (size_t a = 0; a < num_anchors; ++a) {
+        const ScoreRow& row = reply->rows(static_cast<int>(a));
+        if (static_cast<size_t>(row.scores_size()) != held[p].size())
+          return Fail(ErrorCode::kInternal, "a shard scored another number of images than asked");
+        for (size_t i = 0; i < held[p].size(); ++i) scores[a][held[p][i]] = row.scores(static_cast<int>(i));
+      }
+      return Ok();
+    });
+    for (uint32_t p = 0; p < num_partitions; ++p) failed.Record(p, scored[p]);
+    const std::vector<std::vector<index::TransitiveAttempt>> attempts =
+        index::PlanTransitiveAttempts(scores, tie, results, first, options);
+
+    // Verification, attempt by attempt: (anchor, partition) -> the candidates to verify.
+    std::vector<uint8_t> found(last - first, 0);
+    for (size_t j = 0; j < static_cast<size_t>(options.transitive_attempts); ++j) {
+      std::map<std::pair<uint32_t, uint32_t>, std::vector<size_t>> groups;
+      for (size_t c = first; c < last; ++c) {
+        const auto& list = attempts[c - first];
+        if (results[c].verified || j >= list.size() || failed.Contains(owner_of(c))) continue;
+        groups[{list[j].anchor, owner_of(c)}].push_back(c);
+      }
+      if (groups.empty()) break;
+      const std::vector<std::pair<std::pair<uint32_t, uint32_t>, std::vector<size_t>>> work(groups.begin(), groups.end());
+      std::vector<VerifyReply> replies(work.size());
+      const std::vector<Status> verified = ForEach(work.size(), [&](uint32_t g) -> Status {
+        const auto& [key, positions] = work[g];
+        VerifyRequest request = anchors[key.first];
+        for (size_t c : positions) request.add_ids(results[c].id);
+        auto reply = Call<VerifyReply>(key.second, [&](Shard::Stub& stub, grpc::ClientContext& context, VerifyReply* out) {
+          return stub.Verify(&context, request, out);
+        });
+        if (!reply) return std::unexpected(reply.error());
+        if (static_cast<size_t>(reply->results_size()) != positions.size())
+          return Fail(ErrorCode::kInternal, "a shard verified another number of images than asked");
+        replies[g] = std::move(*reply);
+        return Ok();
+      });
+      for (size_t g = 0; g < work.size(); ++g) {
+        failed.Record(work[g].first.second, verified[g]);
+        if (!verified[g]) continue;
+        const index::QueryResult& anchor = results[pool[used + work[g].first.first]];
+        for (size_t i = 0; i < work[g].second.size(); ++i) {
+          const Verification& v = replies[g].results(static_cast<int>(i));
+          if (!v.verified() || v.db_from_query_size() != 6 || v.db_region_size() != 4) continue;
+          index::QueryResult& r = results[work[g].second[i]];
+          sift::Affine2D from_anchor;
+          std::copy(v.db_from_query().begin(), v.db_from_query().end(), from_anchor.m.begin());
+          r.verified = true;
+          r.inliers = v.inliers();
+          r.db_from_query = index::Compose(from_anchor, anchor.db_from_query);
+          std::copy(v.db_region().begin(), v.db_region().end(), r.db_region.begin());
+          found[work[g].second[i] - first] = 1;
+        }
+      }
+    }
+    used = round_end;
+    std::vector<size_t> fresh;
+    for (size_t c = first; c < last; ++c) {
+      if (found[c - first]) fresh.push_back(c);
+    }
+    std::stable_sort(fresh.begin(), fresh.end(), [&](size_t x, size_t y) { return results[x].inliers > results[y].inliers; });
+    pool.insert(pool.end(), fresh.begin(), fresh.end());
+  }
+  std::stable_sort(results.begin() + static_cast<std::ptrdiff_t>(first),
+                   results.begin() + static_cast<std::ptrdiff_t>(last),
+                   [](const index::QueryResult& a, const index::QueryResult& b) {
+                     if (a.verified != b.verified) return a.verified;
+                     return a.verified && a.inliers > b.inliers;
+                   });
 }
 
 }  // namespace oxbow::cluster

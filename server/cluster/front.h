@@ -9,7 +9,13 @@
 //      geometry stays there); verified first by inliers, as on one node.
 //   3. Query expansion: the owners give the tf-idf vectors of the matched regions, the front averages
 //      them with the query's and scatters Score again with the expanded vector.
-// With no write in flight the ranking (ids, order, scores, verified, inliers) is the single node's.
+//   4. Transitive verification, in rounds as on one node: the owners give the anchors' (verified
+//      results') stored features, the front keeps those inside each anchor's matched region; the
+//      partitions score these regions against the ranking so far (ScoreAmong, from the images' bags),
+//      index::PlanTransitiveAttempts picks each unverified candidate's anchors, and the candidates'
+//      owners verify them against the anchors' features (Verify), attempt after attempt.
+// With no write in flight the ranking (ids, order, scores, verified, inliers) is the single node's
+// (ties in tf-idf score, and in an anchor's neighbour scores, are broken by id instead of image number).
 // QuerySimilar runs the same stages with an indexed image's stored keypoints and words, which its owner
 // gives (the image itself is among the results, as on a single node).
 //
@@ -49,8 +55,7 @@
 // statistics_refresh_fraction rule). Between a refresh's first and last pin, partitions score with
 // different statistics.
 //
-// Not yet: transitive verification (the front answers as a single node with transitive_depth 0) and
-// soft assignment (query_assignments > 1 is refused).
+// Not yet: soft assignment (query_assignments > 1), filters and Hamming embedding: refused.
 //
 // Each partition is asked through one of its replicas, in turn; a replica that fails (unreachable,
 // past the deadline) is skipped for the next one of the same partition. A partition none of whose

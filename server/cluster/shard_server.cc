@@ -95,6 +95,21 @@ class ShardServer::Impl final : public Shard::Service {
     return grpc::Status::OK;
   }
 
+  grpc::Status ScoreAmong(grpc::ServerContext* context, const ScoreAmongRequest* request,
+                          ScoreAmongReply* reply) override {
+    const auto service = Current();
+    if (!service) return NotReady();
+    Stamp(context, *service);
+    std::vector<std::vector<uint32_t>> queries;
+    queries.reserve(static_cast<size_t>(request->queries_size()));
+    for (const WordList& q : request->queries()) queries.emplace_back(q.words().begin(), q.words().end());
+    const std::vector<std::string> ids(request->ids().begin(), request->ids().end());
+    auto scores = service->index().ScoreAmong(queries, ids);
+    if (!scores) return ToGrpc(scores.error());
+    for (const std::vector<float>& row : *scores) reply->add_rows()->mutable_scores()->Add(row.begin(), row.end());
+    return grpc::Status::OK;
+  }
+
   grpc::Status RegionTerms(grpc::ServerContext* context, const RegionTermsRequest* request,
                            RegionTermsReply* reply) override {
     const auto service = Current();
