@@ -1346,19 +1346,9 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
       }
     });
     used = round_end;
-    std::vector<size_t> fresh;
-    for (size_t c = first; c < last; ++c) {
-      if (found[c - first]) fresh.push_back(c);
-    }
-    std::stable_sort(fresh.begin(), fresh.end(), [&](size_t x, size_t y) { return results[x].inliers > results[y].inliers; });
-    pool.insert(pool.end(), fresh.begin(), fresh.end());
+    AdmitTransitiveAnchors(results, first, found, pool);
   }
-  std::stable_sort(results.begin() + static_cast<std::ptrdiff_t>(first),
-                   results.begin() + static_cast<std::ptrdiff_t>(last),
-                   [](const QueryResult& a, const QueryResult& b) {
-                     if (a.verified != b.verified) return a.verified;
-                     return a.verified && a.inliers > b.inliers;
-                   });
+  SortTransitiveWindow(std::span(results).subspan(first, last - first));
 }
 
 // The anchors' regions scored against the ranking so far, one anchor per task, then the shared plan.
@@ -1425,6 +1415,23 @@ std::vector<std::vector<TransitiveAttempt>> PlanTransitiveAttempts(std::span<con
               [](const TransitiveAttempt& x, const TransitiveAttempt& y) { return x.anchor < y.anchor; });
   }
   return attempts;
+}
+
+void AdmitTransitiveAnchors(std::span<const QueryResult> results, size_t first, std::span<const uint8_t> found,
+                            std::vector<size_t>& pool) {
+  std::vector<size_t> fresh;
+  for (size_t c = first; c < first + found.size(); ++c) {
+    if (found[c - first]) fresh.push_back(c);
+  }
+  std::stable_sort(fresh.begin(), fresh.end(), [&](size_t x, size_t y) { return results[x].inliers > results[y].inliers; });
+  pool.insert(pool.end(), fresh.begin(), fresh.end());
+}
+
+void SortTransitiveWindow(std::span<QueryResult> window) {
+  std::stable_sort(window.begin(), window.end(), [](const QueryResult& a, const QueryResult& b) {
+    if (a.verified != b.verified) return a.verified;
+    return a.verified && a.inliers > b.inliers;
+  });
 }
 
 // outer(inner(p)): the affine map that applies `inner` first.

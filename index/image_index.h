@@ -337,6 +337,13 @@ std::vector<std::vector<TransitiveAttempt>> PlanTransitiveAttempts(std::span<con
                                                                    std::span<const uint32_t> tie,
                                                                    std::span<const QueryResult> results, size_t first,
                                                                    const QueryOptions& options);
+// The end of a transitive round: the candidates results[first + i] it verified (found[i] != 0) join
+// `pool`, the anchors of later rounds (positions in `results`), most inliers first.
+void AdmitTransitiveAnchors(std::span<const QueryResult> results, size_t first, std::span<const uint8_t> found,
+                            std::vector<size_t>& pool);
+// The window of transitive verification once done: verified first by inliers, the rest in the order
+// given (stable).
+void SortTransitiveWindow(std::span<QueryResult> window);
 // outer(inner(p)): the affine map that applies `inner` first (a transitively verified result's
 // db_from_query: its own map from the anchor composed with the anchor's).
 sift::Affine2D Compose(const sift::Affine2D& outer, const sift::Affine2D& inner);

@@ -973,7 +973,6 @@ void ClusterFront::Impl::VerifyTransitively(const index::QueryOptions& options, 
     anchor_template.set_max_pairs_per_word(options.max_pairs_per_word);
     anchor_template.set_min_inliers(options.verify.min_inliers);
     std::vector<VerifyRequest> anchors(num_anchors, anchor_template);
-    std::vector<std::vector<uint32_t>> anchor_words(num_anchors);
     const std::vector<Status> fetched = ForEach(num_anchors, [&](uint32_t a) -> Status {
       const index::QueryResult& anchor = results[pool[used + a]];
       const uint32_t p = owner.at(anchor.id);
@@ -992,7 +991,6 @@ void ClusterFront::Impl::VerifyTransitively(const index::QueryOptions& options, 
         if (k.x() < box[0] || k.x() > box[2] || k.y() < box[1] || k.y() > box[3]) continue;
         *anchors[a].add_keypoints() = k;
         anchors[a].add_words(stored->words(i));
-        anchor_words[a].push_back(stored->words(i));
       }
       for (float v : box) anchors[a].add_region(v);
       return Ok();
@@ -1002,7 +1000,7 @@ void ClusterFront::Impl::VerifyTransitively(const index::QueryOptions& options, 
     // Each anchor's region scored against results[0, last), by the partitions holding them.
     std::vector<std::vector<float>> scores(num_anchors, std::vector<float>(last, 0.0f));
     ScoreAmongRequest among;
-    for (const std::vector<uint32_t>& words : anchor_words) among.add_queries()->mutable_words()->Add(words.begin(), words.end());
+    for (const VerifyRequest& anchor : anchors) *among.add_queries()->mutable_words() = anchor.words();
     const std::vector<Status> scored = ForEach(num_partitions, [&](uint32_t p) -> Status {
       if (held[p].empty() || failed.Contains(p)) return Ok();
       ScoreAmongRequest request = among;
@@ -1069,19 +1067,9 @@ void ClusterFront::Impl::VerifyTransitively(const index::QueryOptions& options, 
       }
     }
     used = round_end;
-    std::vector<size_t> fresh;
-    for (size_t c = first; c < last; ++c) {
-      if (found[c - first]) fresh.push_back(c);
-    }
-    std::stable_sort(fresh.begin(), fresh.end(), [&](size_t x, size_t y) { return results[x].inliers > results[y].inliers; });
-    pool.insert(pool.end(), fresh.begin(), fresh.end());
+    index::AdmitTransitiveAnchors(results, first, found, pool);
   }
-  std::stable_sort(results.begin() + static_cast<std::ptrdiff_t>(first),
-                   results.begin() + static_cast<std::ptrdiff_t>(last),
-                   [](const index::QueryResult& a, const index::QueryResult& b) {
-                     if (a.verified != b.verified) return a.verified;
-                     return a.verified && a.inliers > b.inliers;
-                   });
+  index::SortTransitiveWindow(std::span(results).subspan(first, last - first));
 }
 
 }  // namespace oxbow::cluster
