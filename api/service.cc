@@ -1,11 +1,8 @@
 #include "api/service.h"
 
-#include <sys/resource.h>
 #include <unistd.h>
 
 #include <algorithm>
-#include <condition_variable>
-#include <deque>
 #include <exception>
 #include <functional>
 
@@ -32,94 +29,7 @@ double MsSince(Clock::time_point start) {
   return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
 }
 
-// Releases an extraction slot when the extraction ends, also on an early return or an exception.
-class SlotGuard {
- public:
-  SlotGuard(std::counting_semaphore<1024>* semaphore, std::atomic<int>* in_flight)
-      : semaphore_(semaphore), in_flight_(in_flight) {
-    in_flight_->fetch_add(1);
-  }
-  ~SlotGuard() {
-    in_flight_->fetch_sub(1);
-    semaphore_->release();
-  }
-  SlotGuard(const SlotGuard&) = delete;
-  SlotGuard& operator=(const SlotGuard&) = delete;
-
- private:
-  std::counting_semaphore<1024>* semaphore_;
-  std::atomic<int>* in_flight_;
-};
-
 }  // namespace
-
-// Threads that run jobs at a lower CPU priority (a higher nice value, set per thread on Linux). A nice
-// value cannot be lowered again without privileges, hence dedicated threads rather than re-nicing the
-// caller's. Run() blocks the caller until its job is done.
-class Service::BackgroundThreads {
- public:
-  BackgroundThreads(int threads, int nice) {
-    for (int i = 0; i < threads; ++i) {
-      threads_.emplace_back([this, nice] {
-        if (nice > 0 && setpriority(PRIO_PROCESS, static_cast<id_t>(gettid()), nice) != 0) {
-          OXBOW_LOG(kWarning) << "cannot lower the priority of an add thread; adds run at normal priority";
-        }
-        Work();
-      });
-    }
-  }
-  ~BackgroundThreads() {
-    {
-      std::lock_guard<std::mutex> lock(mutex_);
-      stop_ = true;
-    }
-    cond_.notify_all();
-    for (auto& t : threads_) t.join();
-  }
-  void Run(const std::function<void()>& job) {
-    std::mutex done_mutex;
-    std::condition_variable done_cond;
-    bool done = false;
-    std::exception_ptr error;
-    {
-      std::lock_guard<std::mutex> lock(mutex_);
-      jobs_.emplace_back([&] {
-        try {
-          job();
-        } catch (...) {
-          error = std::current_exception();  // rethrown in the caller's thread
-        }
-        std::lock_guard<std::mutex> done_lock(done_mutex);
-        done = true;
-        done_cond.notify_one();
-      });
-    }
-    cond_.notify_one();
-    std::unique_lock<std::mutex> done_lock(done_mutex);
-    done_cond.wait(done_lock, [&] { return done; });
-    if (error) std::rethrow_exception(error);
-  }
-
- private:
-  void Work() {
-    for (;;) {
-      std::function<void()> job;
-      {
-        std::unique_lock<std::mutex> lock(mutex_);
-        cond_.wait(lock, [&] { return stop_ || !jobs_.empty(); });
-        if (jobs_.empty()) return;
-        job = std::move(jobs_.front());
-        jobs_.pop_front();
-      }
-      job();
-    }
-  }
-  std::mutex mutex_;  // guards jobs_, stop_
-  std::condition_variable cond_;
-  std::deque<std::function<void()>> jobs_;
-  bool stop_ = false;
-  std::vector<std::thread> threads_;
-};
 
 std::optional<std::string> ServiceOptions::Check() const {
   if (max_image_bytes < 1) return "max_image_bytes must be >= 1";
@@ -136,6 +46,17 @@ std::optional<std::string> ServiceOptions::Check() const {
   if (auto message = default_query.Check()) return "default query: " + *message;
   if (auto message = thumbnails.Check()) return *message;
   return std::nullopt;
+}
+
+ExtractionOptions ServiceOptions::Extraction() const {
+  ExtractionOptions extraction;
+  extraction.slots = std::min(1024, ResolveThreadCount(max_concurrent_extractions));
+  extraction.extraction_wait_ms = extraction_wait_ms;
+  extraction.processing_timeout_ms = processing_timeout_ms;
+  extraction.shutdown_grace_ms = shutdown_grace_ms;
+  extraction.add_nice = add_nice;
+  extraction.decode = Decode();
+  return extraction;
 }
 
 sift::DecodeOptions ServiceOptions::Decode() const {
@@ -157,14 +78,9 @@ uint64_t ResidentMemoryBytes() {
 Service::Service(std::unique_ptr<index::ImageIndex> index, const sift::SiftExtractor& extractor,
                  const ServiceOptions& options)
     : index_(std::move(index)),
-      extractor_(extractor),
       options_(options),
-      extraction_slots_(std::min(1024, ResolveThreadCount(options.max_concurrent_extractions))),
-      extraction_semaphore_(extraction_slots_),
-      opened_(Clock::now()) {
-  if (options_.add_nice > 0) add_threads_ = std::make_unique<BackgroundThreads>(extraction_slots_, options_.add_nice);
-  extract_threads_ = std::make_unique<BackgroundThreads>(extraction_slots_, 0);
-}
+      extractions_(std::make_unique<Extractions>(extractor, options.Extraction())),
+      opened_(Clock::now()) {}
 
 Service::~Service() = default;
 
@@ -219,67 +135,7 @@ Result<std::unique_ptr<Service>> Service::Open(const std::string& index_dir,
   return service;
 }
 
-Service::Work Service::StartWork(const sift::StopRequested& client_gone) const {
-  return Work{Clock::now() + std::chrono::milliseconds(options_.processing_timeout_ms), &client_gone};
-}
-
-void Service::StopExtractions() {
-  const auto at = (Clock::now() + std::chrono::milliseconds(options_.shutdown_grace_ms)).time_since_epoch().count();
-  Clock::rep current = stop_at_.load();
-  while (at < current && !stop_at_.compare_exchange_weak(current, at)) {
-  }
-}
-
-std::optional<Error> Service::StopReason(const Work& work) const {
-  const auto now = Clock::now();
-  if (now.time_since_epoch().count() >= stop_at_.load()) {
-    return Error{ErrorCode::kResourceExhausted, "the server is shutting down; retry on another instance"};
-  }
-  if (work.client_gone != nullptr && *work.client_gone && (*work.client_gone)()) {
-    return Error{ErrorCode::kResourceExhausted, "the client closed its connection"};
-  }
-  if (now >= work.deadline) {
-    return Error{ErrorCode::kResourceExhausted, "decoding and extracting the image took longer than the server's limit of " +
-                                                    std::to_string(options_.processing_timeout_ms) +
-                                                    " ms (oxbow serve --processing-timeout-s); send a smaller image"};
-  }
-  return std::nullopt;
-}
-
-Result<sift::FeatureSet> Service::Extract(std::span<const uint8_t> image, const Work& work, double* elapsed_ms,
-                                          const std::function<void()>& also, BackgroundThreads* threads) const {
-  // The wait for a slot is taken in short steps, so that a request abandoned meanwhile stops waiting.
-  const auto wait_until = Clock::now() + std::chrono::milliseconds(options_.extraction_wait_ms);
-  for (;;) {
-    const auto step = std::clamp(std::chrono::duration_cast<std::chrono::milliseconds>(wait_until - Clock::now()),
-                                 std::chrono::milliseconds(0), std::chrono::milliseconds(20));
-    if (extraction_semaphore_.try_acquire_for(step)) break;
-    if (auto reason = StopReason(work)) return std::unexpected(*reason);
-    if (Clock::now() >= wait_until) {
-      return Fail(ErrorCode::kResourceExhausted,
-                  "all " + std::to_string(extraction_slots_) + " extraction slots stayed busy for " +
-                      std::to_string(options_.extraction_wait_ms) + " ms; retry later");
-    }
-  }
-  SlotGuard slot(&extraction_semaphore_, &extractions_in_flight_);
-  // At most extraction_slots_ jobs hold a slot, and each pool has that many threads: no job waits here.
-  Result<sift::FeatureSet> features = Fail(ErrorCode::kInternal, "extraction did not run");
-  const sift::StopRequested stop = [this, &work] { return StopReason(work).has_value(); };
-  threads->Run([&] {
-    const auto start = Clock::now();
-    features = extractor_.ExtractFromBytes(image, options_.Decode(), stop);
-    *elapsed_ms = MsSince(start);
-    if (features && also) also();
-  });
-  if (!features && features.error().code == ErrorCode::kResourceExhausted) {
-    if (auto reason = StopReason(work)) {
-      OXBOW_LOG(kInfo) << "extraction stopped after " << *elapsed_ms << " ms (" << features.error().message
-                       << "): " << reason->message;
-      return std::unexpected(*reason);
-    }
-  }
-  return features;
-}
+void Service::StopExtractions() { extractions_->Stop(); }
 
 Result<AddImageResponse> Service::AddImage(const AddImageRequest& request) {
   // Cheap checks first, so a bad id or a taken id costs no extraction.
@@ -293,13 +149,13 @@ Result<AddImageResponse> Service::AddImage(const AddImageRequest& request) {
   AddImageResponse response;
   Result<sift::FeatureSet> features = Fail(ErrorCode::kInternal, "extraction did not run");
   Result<api::Thumbnail> thumbnail = Fail(ErrorCode::kInternal, "thumbnail not made");
-  features = Extract(
-      request.image, StartWork(request.client_gone), &response.decode_extract_ms,
+  features = extractions_->Extract(
+      request.image, extractions_->Start(request.client_gone), &response.decode_extract_ms,
       [&] {
         thumbnail = MakeThumbnail(request.image, options_.thumbnails.stored_side_px, options_.thumbnails.jpeg_quality,
                                   options_.Decode());
       },
-      add_threads_ ? add_threads_.get() : extract_threads_.get());
+      Extractions::Priority::kAdd);
   if (!features) return std::unexpected(features.error());
   if (!thumbnail) return std::unexpected(thumbnail.error());
 
@@ -365,22 +221,22 @@ Result<AddBatchResponse> Service::AddImages(const AddBatchRequest& request) {
 
   // Each image gets the deadline of one add from when its extraction is asked; the batch as a whole
   // stops only for a client gone or a shutdown (no deadline).
-  const Work batch{Clock::time_point::max(), &request.client_gone};
+  const Extractions::Work batch{Clock::time_point::max(), &request.client_gone};
   const auto extract_start = Clock::now();
   std::atomic<size_t> next{0};
   auto work = [&] {
-    for (size_t k = next++; k < todo.size() && !StopReason(batch); k = next++) {
+    for (size_t k = next++; k < todo.size() && !extractions_->StopReason(batch); k = next++) {
       const size_t i = todo[k];
       const AddBatchItem& item = request.images[i];
       Result<api::Thumbnail> thumbnail = Fail(ErrorCode::kInternal, "thumbnail not made");
       double ms = 0;
-      auto extracted = Extract(
-          item.image, StartWork(request.client_gone), &ms,
+      auto extracted = extractions_->Extract(
+          item.image, extractions_->Start(request.client_gone), &ms,
           [&] {
             thumbnail = MakeThumbnail(item.image, options_.thumbnails.stored_side_px, options_.thumbnails.jpeg_quality,
                                       options_.Decode());
           },
-          add_threads_ ? add_threads_.get() : extract_threads_.get());
+          Extractions::Priority::kAdd);
       if (!extracted) {
         response.results[i] = std::unexpected(extracted.error());
       } else if (!thumbnail) {
@@ -406,13 +262,13 @@ Result<AddBatchResponse> Service::AddImages(const AddBatchRequest& request) {
   };
   {
     std::vector<std::jthread> callers;
-    const size_t count = std::min(todo.size(), static_cast<size_t>(extraction_slots_));
+    const size_t count = std::min(todo.size(), static_cast<size_t>(extractions_->slots()));
     for (size_t t = 1; t < count; ++t) callers.emplace_back(caller);
     caller();
   }
   if (error) std::rethrow_exception(error);
   response.decode_extract_ms = MsSince(extract_start);
-  if (auto reason = StopReason(batch)) return std::unexpected(*reason);
+  if (auto reason = extractions_->StopReason(batch)) return std::unexpected(*reason);
 
   const auto add_start = Clock::now();
   std::lock_guard<std::mutex> lock(write_mutex_);
@@ -512,7 +368,7 @@ Result<SearchResponse> Service::Search(std::span<const uint8_t> image, const ind
   const auto start = Clock::now();
   SearchResponse response;
   response.options = options;
-  auto features = Extract(image, StartWork(client_gone), &response.decode_extract_ms, nullptr, extract_threads_.get());
+  auto features = extractions_->Extract(image, extractions_->Start(client_gone), &response.decode_extract_ms);
   if (!features) return std::unexpected(features.error());
   response.query_width = features->image_width;
   response.query_height = features->image_height;
@@ -545,23 +401,29 @@ Result<SearchResponse> Service::SearchSimilar(const std::string& id, const index
 
 Result<MatchResponse> Service::Match(std::span<const uint8_t> image_a, std::span<const uint8_t> image_b,
                                      const PairMatchOptions& options, const sift::StopRequested& client_gone) const {
+  return MatchImages(*extractions_, options_.threads_per_request, image_a, image_b, options, client_gone);
+}
+
+Result<MatchResponse> MatchImages(const Extractions& extractions, int threads_per_request,
+                                  std::span<const uint8_t> image_a, std::span<const uint8_t> image_b,
+                                  const PairMatchOptions& options, const sift::StopRequested& client_gone) {
   const auto start = Clock::now();
   MatchResponse response;
-  const Work work = StartWork(client_gone);  // one deadline for both images
-  auto a = Extract(image_a, work, &response.decode_extract_a_ms, nullptr, extract_threads_.get());
+  const Extractions::Work work = extractions.Start(client_gone);  // one deadline for both images
+  auto a = extractions.Extract(image_a, work, &response.decode_extract_a_ms);
   if (!a) {
     Error error = a.error();
     error.message = "image a: " + error.message;
     return std::unexpected(error);
   }
-  auto b = Extract(image_b, work, &response.decode_extract_b_ms, nullptr, extract_threads_.get());
+  auto b = extractions.Extract(image_b, work, &response.decode_extract_b_ms);
   if (!b) {
     Error error = b.error();
     error.message = "image b: " + error.message;
     return std::unexpected(error);
   }
   PairMatchOptions pair = options;
-  pair.match.num_threads = options_.threads_per_request;
+  pair.match.num_threads = threads_per_request;
   auto match = MatchPair(*a, *b, pair);
   if (!match) return std::unexpected(match.error());
   response.match = std::move(*match);
@@ -650,8 +512,8 @@ ServiceStats Service::Stats() const {
   stats.index = index_->Stats();
   stats.rss_bytes = ResidentMemoryBytes();
   stats.uptime_s = std::chrono::duration<double>(Clock::now() - opened_).count();
-  stats.extractions_in_flight = extractions_in_flight_.load();
-  stats.max_concurrent_extractions = extraction_slots_;
+  stats.extractions_in_flight = extractions_->in_flight();
+  stats.max_concurrent_extractions = extractions_->slots();
   return stats;
 }
 

@@ -30,11 +30,11 @@
 #include <memory>
 #include <mutex>
 #include <optional>
-#include <semaphore>
 #include <span>
 #include <string>
 #include <vector>
 
+#include "api/extractions.h"
 #include "api/pair_match.h"
 #include "api/partition.h"
 #include "api/thumbnails.h"
@@ -89,6 +89,7 @@ struct ServiceOptions {
 
   std::optional<std::string> Check() const;
   sift::DecodeOptions Decode() const;  // the decode limits above as DecodeOptions
+  ExtractionOptions Extraction() const;  // the limits above as api::Extractions takes them
 };
 
 
@@ -233,47 +234,30 @@ class Service {
 
   const ServiceOptions& options() const { return options_; }
   const index::ImageIndex& index() const { return *index_; }
-  const sift::SiftExtractor& extractor() const { return extractor_; }
+  const sift::SiftExtractor& extractor() const { return extractions_->extractor(); }
 
   ~Service();
 
  private:
-  class BackgroundThreads;
   Service(std::unique_ptr<index::ImageIndex> index, const sift::SiftExtractor& extractor, const ServiceOptions& options);
-  // Decode + extract under an extraction slot; kResourceExhausted when no slot frees up in time. After a
-  // successful extraction `also` (when given) runs under the same slot (the add's thumbnail decode), so
-  // the slots bound its memory too. The slot is taken on the calling thread; the work runs on one of
-  // `threads` (the add threads, else extract_threads_): SIFT keeps its pyramid buffers per thread that
-  // extracts (SiftOptions::thread_cache_mib), so extracting on the HTTP workers would let every worker
-  // keep ~200 MiB of buffers (32 workers: 7 GiB measured) whatever the slot count.
-  // `work` bounds the request (deadline, client): see StopReason.
-  struct Work {
-    Clock::time_point deadline;               // processing_timeout_ms after the service was asked
-    const sift::StopRequested* client_gone;  // not owned; may be null or empty
-  };
-  [[nodiscard]] Work StartWork(const sift::StopRequested& client_gone) const;
-  // Why `work` must stop now (StopExtractions, client gone, deadline passed), or nullopt. Monotonic.
-  [[nodiscard]] std::optional<Error> StopReason(const Work& work) const;
-  [[nodiscard]] Result<sift::FeatureSet> Extract(std::span<const uint8_t> image, const Work& work, double* elapsed_ms,
-                                                 const std::function<void()>& also, BackgroundThreads* threads) const;
 
   std::unique_ptr<index::ImageIndex> index_;
-  sift::SiftExtractor extractor_;
   ServiceOptions options_;
-  int extraction_slots_ = 1;
-  mutable std::counting_semaphore<1024> extraction_semaphore_;
-  mutable std::atomic<int> extractions_in_flight_{0};
   // Serialises AddImage/DeleteImage and GetThumbnail's storing of a thumbnail it made, so that the check
   // "still the same image" and the store are one step for writers.
   mutable std::mutex write_mutex_;
   std::function<void(const std::string& id)> thumbnail_made_for_testing_;
-  // When StopExtractions' grace ends (Clock ticks since its epoch); the maximum until it is called.
-  std::atomic<Clock::rep> stop_at_{Clock::time_point::max().time_since_epoch().count()};
-  std::unique_ptr<BackgroundThreads> add_threads_;      // low-priority extraction for adds (add_nice > 0)
-  std::unique_ptr<BackgroundThreads> extract_threads_;  // every other extraction (normal priority)
+  std::unique_ptr<Extractions> extractions_;  // slots, deadlines and threads of every decode + extraction
   std::unique_ptr<ThumbnailStore> thumbnails_;      // <index>/thumbnails.sqlite (thread-safe itself)
   std::chrono::steady_clock::time_point opened_;
 };
+
+// Service::Match's work, for a server without an index (the cluster front): decode and extract both
+// images under `extractions` (one deadline for both), then MatchPair with `threads_per_request` threads.
+[[nodiscard]] Result<MatchResponse> MatchImages(const Extractions& extractions, int threads_per_request,
+                                                std::span<const uint8_t> image_a, std::span<const uint8_t> image_b,
+                                                const PairMatchOptions& options,
+                                                const sift::StopRequested& client_gone = {});
 
 // Resident set size of this process in bytes (Linux /proc/self/statm), 0 when unavailable.
 uint64_t ResidentMemoryBytes();

@@ -408,9 +408,6 @@ TEST_F(Cluster, HttpFrontAnswersAsASingleNodeServer) {
   EXPECT_NE(metrics->body.find("oxbow_shard_calls_total{partition=\"2\""), std::string::npos) << metrics->body;
   EXPECT_TRUE(std::regex_search(metrics->body, std::regex(R"(oxbow_shard_errors_total\{partition="2",replica="[^"]+"\} [1-9])")))
       << metrics->body;
-  auto thumbnail = front.Client().Get("/v1/images/img1/thumbnail");
-  ASSERT_TRUE(thumbnail);
-  EXPECT_EQ(thumbnail->status, 501) << thumbnail->body;
 }
 
 // GET /v1/images/{id}, /v1/images (pages), /v1/stats and /v1/images/{id}/similar through the front
@@ -474,6 +471,51 @@ TEST_F(Cluster, HttpFrontReadsAnswerAsASingleNodeServer) {
   auto deleted = front->Client().Delete("/v1/images/no-such-image");
   ASSERT_TRUE(deleted);
   EXPECT_EQ(deleted->status, 404) << deleted->body;
+
+  // Thumbnails come from the owner: the single node's bytes.
+  for (const auto& image : all["images"]) {
+    const std::string target = "/v1/images/" + image["id"].get<std::string>() + "/thumbnail?size=64";
+    auto a = single->Client().Get(target);
+    auto b = front->Client().Get(target);
+    ASSERT_TRUE(a && b);
+    ASSERT_EQ(a->status, 200) << a->body;
+    ASSERT_EQ(b->status, 200) << target << " " << b->body;
+    EXPECT_EQ(b->get_header_value("Content-Type"), "image/jpeg");
+    EXPECT_EQ(a->body, b->body) << target;
+  }
+  EXPECT_EQ(GetJson(*front, "/v1/images/no-such-image/thumbnail").first, 404);
+  EXPECT_EQ(GetJson(*front, "/v1/images/img1/thumbnail?size=1").first, 400);
+
+  // POST /v1/match runs at the front (no index needed): the single node's answer.
+  std::ifstream file_a(dir_->path() + "/images/img0.png", std::ios::binary), file_b(dir_->path() + "/images/img4.png", std::ios::binary);
+  const std::string bytes_a((std::istreambuf_iterator<char>(file_a)), {}), bytes_b((std::istreambuf_iterator<char>(file_b)), {});
+  const httplib::MultipartFormDataItems pair = {{"a", bytes_a, "a.png", "image/png"}, {"b", bytes_b, "b.png", "image/png"}};
+  auto ma = single->Client().Post("/v1/match", pair);
+  auto mb = front->Client().Post("/v1/match", pair);
+  ASSERT_TRUE(ma && mb);
+  ASSERT_EQ(ma->status, 200) << ma->body;
+  ASSERT_EQ(mb->status, 200) << mb->body;
+  nlohmann::json match_a = nlohmann::json::parse(ma->body), match_b = nlohmann::json::parse(mb->body);
+  match_a.erase("timings_ms");
+  match_b.erase("timings_ms");
+  EXPECT_EQ(match_a, match_b);
+  EXPECT_GT(match_b["inliers"].get<int>(), 10) << mb->body;
+
+  // The single node's HTTP guards and error bodies: too many headers (431, before httplib reads them),
+  // an unknown route (404) and a known route's wrong method (405), each a JSON error.
+  httplib::Headers many;
+  for (int k = 0; k < 150; ++k) many.emplace("X-Filler-" + std::to_string(k), "1");
+  auto crowded = front->Client().Get("/v1/stats", many);
+  ASSERT_TRUE(crowded);
+  EXPECT_EQ(crowded->status, 431) << crowded->body;
+  EXPECT_EQ(nlohmann::json::parse(crowded->body)["error"]["code"], "headers_too_large") << crowded->body;
+  auto unknown = front->Client().Get("/v1/nothing-here");
+  ASSERT_TRUE(unknown);
+  EXPECT_EQ(unknown->status, 404) << unknown->body;
+  auto wrong_method = front->Client().Delete("/v1/search");
+  ASSERT_TRUE(wrong_method);
+  EXPECT_EQ(wrong_method->status, 405) << wrong_method->body;
+  EXPECT_EQ(wrong_method->get_header_value("Allow"), "POST");
   // Request ids as a single node (openapi.json: the header on every answer, the same in error bodies).
   auto named = front->Client().Get("/v1/images/no-such-image", {{"X-Request-Id", "front-test-1"}});
   ASSERT_TRUE(named);
@@ -560,6 +602,49 @@ TEST_F(Cluster, HttpFrontWritesOnEveryReplicaOfTheOwnerPartition) {
   ASSERT_TRUE(with_key);
   EXPECT_EQ(with_key->status, 200) << with_key->body;
   EXPECT_TRUE(holders(other).empty());
+
+  // A batch: each image lands on its owner's replicas; per-image results as on a single node (the id
+  // taken: 409, the others added).
+  const std::vector<std::string> batch_ids = {IdIn(0, "batch-"), IdIn(1, "batch-"), IdIn(2, "batch-"), added};
+  httplib::MultipartFormDataItems batch;
+  for (const std::string& id : batch_ids) {
+    batch.push_back({"image", image, id + ".png", "image/png"});
+    batch.push_back({"id", id, "", ""});
+  }
+  auto batched = front->Client().Post("/v1/images/batch", batch);
+  ASSERT_TRUE(batched);
+  ASSERT_EQ(batched->status, 200) << batched->body;
+  const auto batch_answer = nlohmann::json::parse(batched->body);
+  EXPECT_EQ(batch_answer["added"], 3) << batched->body;
+  EXPECT_EQ(batch_answer["failed"], 1) << batched->body;
+  for (size_t k = 0; k < 3; ++k) {
+    EXPECT_EQ(batch_answer["results"][k]["status"], 201) << batched->body;
+    EXPECT_EQ(batch_answer["results"][k]["image"]["id"], batch_ids[k]);
+    EXPECT_EQ(holders(batch_ids[k]), shard_of[k]) << batch_ids[k];
+  }
+  EXPECT_EQ(batch_answer["results"][3]["status"], 409) << batched->body;
+  EXPECT_EQ(keyed->Client().Post("/v1/images/batch", batch)->status, 401);
+
+  // A backup: every partition into out/partition-k, made by one of its replicas; an admin route (the
+  // API key, and refused on a front without one).
+  const std::string backup = copy + "/backup";
+  const std::string backup_body = R"({"out": ")" + backup + R"("})";
+  EXPECT_EQ(front->Client().Post("/v1/admin/backup", backup_body, "application/json")->status, 403);
+  auto backed = keyed->Client().Post("/v1/admin/backup", {{"X-API-Key", "cluster-key"}}, backup_body, "application/json");
+  ASSERT_TRUE(backed);
+  ASSERT_EQ(backed->status, 200) << backed->body;
+  const auto backup_answer = nlohmann::json::parse(backed->body);
+  ASSERT_EQ(backup_answer["partitions"].size(), 3u) << backed->body;
+  int64_t backed_up = 0;
+  for (int p = 0; p < kPartitions; ++p) {
+    const auto& part = backup_answer["partitions"][p];
+    EXPECT_EQ(part["partition"], p);
+    EXPECT_EQ(part["out"], api::PartitionFolder(backup, p)) << backed->body;
+    EXPECT_TRUE(index::ImageIndex::Exists(api::PartitionFolder(backup, p)));
+    EXPECT_EQ(part["images"], GetJson(*shards_[shard_of[p][0]], "/v1/stats").second["images"]) << p;
+    backed_up += part["images"].get<int64_t>();
+  }
+  EXPECT_EQ(backed_up, GetJson(*front, "/v1/images").second["total"].get<int64_t>());
 
   // A delete leaves no replica with the image.
   auto removed = front->Client().Delete("/v1/images/" + added);

@@ -43,18 +43,13 @@ struct ServeFlags {
 };
 
 // `serve --cluster`: the front (server/cluster/front_http.h) over the shards cluster.json names.
-void ServeFront(const ServeFlags& flags, const server::HttpServerOptions& http, const sigset_t& signals) {
+void ServeFront(const ServeFlags& flags, const server::HttpServerOptions& http,
+                const api::ServiceOptions& service_options, const sigset_t& signals) {
   const cluster::ClusterConfig config = ValueOrExit(cluster::ClusterConfig::Read(flags.cluster_file));
   std::shared_ptr<const cluster::ClusterFront> front = ValueOrExit(cluster::ClusterFront::Open(config, flags.front));
   cluster::FrontHttpOptions options;
-  options.host = http.host;
-  options.port = http.port;
-  options.threads = http.threads;
-  options.max_body_bytes = http.max_body_bytes;
-  options.decode = flags.image.ToDecodeOptions();
-  options.threads_per_request = flags.service.threads_per_request;
-  options.default_query = flags.service.default_query;
-  options.api_key = http.api_key;
+  options.http = http;
+  options.service = service_options;
   auto server = ValueOrExit(cluster::FrontHttpServer::Create(front, options));
   const int port = ValueOrExit(server->Bind());
   std::printf("listening on http://%s:%d\n", http.host.c_str(), port);
@@ -108,7 +103,7 @@ void Serve(const ServeFlags& flags) {
   sigaddset(&signals, SIGTERM);
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);  // inherited by every thread started below
   if (flags.cluster_file.empty() == flags.index_dir.empty()) throw CommandError(2, "give either --index or --cluster (one of them)");
-  if (!flags.cluster_file.empty()) return ServeFront(flags, http, signals);
+  if (!flags.cluster_file.empty()) return ServeFront(flags, http, service_options, signals);
 
   server::HttpServer server(http);
   const int port = ValueOrExit(server.Bind());

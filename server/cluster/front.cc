@@ -294,10 +294,10 @@ class ClusterFront::Impl {
   }
 
   // Calls `call` on the partition's replicas in turn (starting with the next one round-robin) until one
-  // answers; the last failure otherwise. A shard's own refusal (unknown id, invalid request) is what
+  // answers; the last failure otherwise. `deadline_ms`: per replica, 0 for settings.shard_deadline_ms. A shard's own refusal (unknown id, invalid request) is what
   // every replica would answer: returned at once.
   template <typename Reply>
-  Result<Reply> Call(uint32_t partition, const ShardCall<Reply>& call) const {
+  Result<Reply> Call(uint32_t partition, const ShardCall<Reply>& call, int deadline_ms = 0) const {
     const std::vector<std::unique_ptr<Replica>>& replicas = partitions[partition];
     const size_t start = next[partition]->fetch_add(1) % replicas.size();
     std::string failures;
@@ -308,7 +308,7 @@ class ClusterFront::Impl {
         continue;
       }
       Reply reply;
-      const grpc::Status status = Invoke(replica, settings.shard_deadline_ms, call, &reply);
+      const grpc::Status status = Invoke(replica, deadline_ms > 0 ? deadline_ms : settings.shard_deadline_ms, call, &reply);
       // An answer (or refusal: an image it lacks) from a replica that shows itself behind is not used.
       if ((status.ok() || ShardRefusal(status)) && Behind(replica)) {
         failures += (failures.empty() ? "" : "; ") + BehindText(replica);
@@ -715,6 +715,70 @@ Status ClusterFront::Delete(const std::string& id) const {
                                             });
   if (!reply) return std::unexpected(reply.error());
   return Ok();
+}
+
+Result<api::AddBatchResponse> ClusterFront::AddBatch(const api::AddBatchRequest& request) const {
+  const auto start = std::chrono::steady_clock::now();
+  std::vector<std::vector<size_t>> by_partition(impl_->partitions.size());
+  for (size_t i = 0; i < request.images.size(); ++i) by_partition[impl_->OwnerOf(request.images[i].id)].push_back(i);
+  api::AddBatchResponse response;
+  response.results.assign(request.images.size(), Fail(ErrorCode::kInternal, "not processed"));
+  std::vector<double> extract_ms(request.images.size(), 0);
+  Impl::ForEach(by_partition.size(), [&](uint32_t p) -> Status {
+    for (const size_t i : by_partition[p]) {
+      const api::AddBatchItem& item = request.images[i];
+      api::AddImageRequest add;
+      add.id = item.id;
+      add.image = item.image;
+      add.metadata_json = item.metadata_json;
+      add.source_name = item.source_name;
+      auto added = Add(add);
+      if (added) {
+        extract_ms[i] = added->decode_extract_ms;
+        response.results[i] = std::move(added->record);
+      } else {
+        response.results[i] = std::unexpected(added.error());
+      }
+    }
+    return Ok();
+  });
+  response.decode_extract_ms = std::accumulate(extract_ms.begin(), extract_ms.end(), 0.0);
+  response.add_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+  return response;
+}
+
+Result<std::string> ClusterFront::Thumbnail(const std::string& id, int max_side_px) const {
+  ThumbnailRequest request;
+  request.set_id(id);
+  request.set_max_side_px(max_side_px);
+  auto reply = impl_->Call<ThumbnailReply>(
+      impl_->OwnerOf(id), [&](Shard::Stub& stub, grpc::ClientContext& context, ThumbnailReply* out) {
+        return stub.Thumbnail(&context, request, out);
+      });
+  if (!reply) return std::unexpected(reply.error());
+  return std::move(*reply->mutable_jpeg());
+}
+
+Result<std::vector<ClusterFront::PartitionBackup>> ClusterFront::Backup(const std::string& out) const {
+  std::vector<PartitionBackup> done(impl_->partitions.size());
+  const std::vector<Status> statuses = Impl::ForEach(done.size(), [&](uint32_t p) -> Status {
+    BackupRequest request;
+    request.set_out(out + "/partition-" + std::to_string(p));
+    // A backup copies the whole partition: the write deadline, not a search's.
+    auto reply = impl_->Call<BackupReply>(
+        p, [&](Shard::Stub& stub, grpc::ClientContext& context, BackupReply* answer) {
+          return stub.Backup(&context, request, answer);
+        }, impl_->settings.write_deadline_ms);
+    if (!reply) return std::unexpected(reply.error());
+    done[p] = {p, request.out(), {reply->images(), reply->generation(), reply->bytes(), reply->attempts()}};
+    return Ok();
+  });
+  std::string failed;
+  for (uint32_t p = 0; p < statuses.size(); ++p)
+    if (!statuses[p]) failed += (failed.empty() ? "" : "; ") + std::string("partition ") + std::to_string(p) + ": " +
+                                statuses[p].error().message;
+  if (!failed.empty()) return Fail(ErrorCode::kResourceExhausted, "the backup is incomplete (" + failed + ")");
+  return done;
 }
 
 Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, const index::QueryOptions& options,

@@ -160,6 +160,23 @@ class ClusterFront {
   // `request.client_gone` is not used: a write once started goes to every replica.
   [[nodiscard]] Result<api::AddImageResponse> Add(const api::AddImageRequest& request) const;
   [[nodiscard]] Status Delete(const std::string& id) const;
+  // POST /v1/images/batch over the cluster: the images go to their owners' replicas as Add does, one
+  // at a time per partition and the partitions in parallel (one commit per image, not one per batch as
+  // on a single node). Per-image results as api::Service::AddImages (an image whose partition cannot be
+  // written gets 503); the call itself does not fail.
+  [[nodiscard]] Result<api::AddBatchResponse> AddBatch(const api::AddBatchRequest& request) const;
+  // api::Service::GetThumbnail, asked of the owner partition (one replica, with failover).
+  [[nodiscard]] Result<std::string> Thumbnail(const std::string& id, int max_side_px) const;
+  // A backup of every partition (api::Service::Backup) into `out`/partition-k on the machine of the
+  // replica that makes it (one per partition, the partitions in parallel); each partition's copy is
+  // consistent, but writes between two partitions' snapshots may be in one and not the other. Fails
+  // (naming the partitions) when one could not be backed up; the others' copies stay.
+  struct PartitionBackup {
+    uint32_t partition = 0;
+    std::string out;  // its folder
+    index::BackupResult result;
+  };
+  [[nodiscard]] Result<std::vector<PartitionBackup>> Backup(const std::string& out) const;
 
   // Refreshes the cluster's statistics (see the file comment). kResourceExhausted when a replica does not
   // answer or is behind (nothing changed), or when some replicas pinned and others failed (named; repeat

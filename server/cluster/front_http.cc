@@ -2,14 +2,15 @@
 #include "server/cluster/front_http.h"
 
 #include <chrono>
-#include <cstdio>
 #include <sstream>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
 
 #include "api/errors.h"
 #include "api/json.h"
 #include "api/params.h"
-#include "api/service.h"
-#include "server/http/http_server.h"
 #include "sift/sift.h"
 // After the project headers: <httplib.h> defines a `_res` macro that breaks Eigen.
 #include <httplib.h>
@@ -17,204 +18,244 @@
 namespace oxbow::cluster {
 namespace {
 
-void SendJson(httplib::Response& res, int status, const nlohmann::json& body) {
-  res.status = status;
-  res.set_content(body.dump(), "application/json");
+using server::SendJsonAnswer;
+
+void SendError(httplib::Response& res, const Error& error) { server::SendJsonError(res, api::ToHttpError(error)); }
+
+std::span<const uint8_t> Bytes(std::string_view text) {
+  return {reinterpret_cast<const uint8_t*>(text.data()), text.size()};
 }
 
-// The id of the request this thread serves (httplib serves a request start to finish on one thread),
-// set by the pre-routing handler: in the X-Request-Id header and error bodies, as a single node.
-thread_local std::string t_request_id;
+// The front's own parameter allow_partial (Elasticsearch's allow_partial_search_results): on by
+// default; taken out of `params`.
+Result<bool> TakeAllowPartial(api::Params& params) {
+  const auto it = params.find("allow_partial");
+  if (it == params.end()) return true;
+  if (params.count("allow_partial") > 1) return Fail(ErrorCode::kInvalidArgument, "allow_partial given twice");
+  if (it->second != "true" && it->second != "false")
+    return Fail(ErrorCode::kInvalidArgument, "allow_partial must be true or false");
+  const bool allow = it->second == "true";
+  params.erase("allow_partial");
+  return allow;
+}
 
-void SendError(httplib::Response& res, const api::HttpError& error) {
-  SendJson(res, error.status, api::ErrorBody(error, t_request_id));
+void SendSearch(httplib::Response& res, const api::SearchResponse& response, const ClusterFront::Coverage& coverage) {
+  const auto& t = response.index.timings;
+  server::RecordStages(res, {{"decode_extract", response.decode_extract_ms}, {"quantize", t.quantize_ms},
+                             {"score", t.score_ms}, {"verify", t.verify_ms}, {"qe", t.qe_ms}});
+  nlohmann::json answer = api::SearchResponseToJson(response);
+  answer["partial"] = !coverage.failed.empty();
+  answer["shards"] = {{"total", coverage.total}, {"ok", coverage.ok}, {"failed", coverage.failed}};
+  SendJsonAnswer(res, 200, answer);
 }
 
 }  // namespace
 
 class FrontHttpServer::Impl {
  public:
-  Impl(std::shared_ptr<const ClusterFront> f, const sift::SiftExtractor& e, const FrontHttpOptions& o)
-      : front(std::move(f)), extractor(e), options(o) {}
+  using Clock = std::chrono::steady_clock;
 
-  // A request's parameters (query string and multipart text parts) and its image: the multipart part
-  // "file" or "image", else the raw body.
-  struct Parts {
-    api::Params params;
-    std::string_view image;
-    std::string filename;
-  };
-  static Parts PartsOf(const httplib::Request& req) {
-    Parts parts{api::Params(req.params.begin(), req.params.end()), req.body, ""};
-    for (const auto& [name, part] : req.files) {
-      if (name == "file" || name == "image") {
-        parts.image = part.content;
-        parts.filename = part.filename;
-      } else {
-        parts.params.emplace(name, part.content);
-      }
+  Impl(std::shared_ptr<const ClusterFront> f, const sift::SiftExtractor& extractor, const FrontHttpOptions& o)
+      : front(std::move(f)), options(o), extractions(extractor, o.service.Extraction()) {}
+
+  // As the single node's route wrapper: the API key of writes; admin routes need a key to be set.
+  enum class Access { kWrite, kAdmin };
+  bool Refused(Access access, const httplib::Request& req, httplib::Response& res) const {
+    if (access == Access::kAdmin && options.http.api_key.empty()) {
+      server::SendJsonError(res, api::PermissionDenied("this route writes on the shards' file systems and is enabled "
+                                                       "only with an API key (oxbow serve --api-key)"));
+      return true;
     }
-    return parts;
-  }
-
-  // The front's own parameter allow_partial (Elasticsearch's allow_partial_search_results): on by
-  // default; taken out of `params`.
-  static Result<bool> TakeAllowPartial(api::Params& params) {
-    const auto it = params.find("allow_partial");
-    if (it == params.end()) return true;
-    if (it->second != "true" && it->second != "false")
-      return Fail(ErrorCode::kInvalidArgument, "allow_partial must be true or false");
-    const bool allow = it->second == "true";
-    params.erase("allow_partial");
-    return allow;
-  }
-
-  static void SendSearch(httplib::Response& res, const api::SearchResponse& response,
-                         const ClusterFront::Coverage& coverage) {
-    nlohmann::json answer = api::SearchResponseToJson(response);
-    answer["partial"] = !coverage.failed.empty();
-    answer["shards"] = {{"total", coverage.total}, {"ok", coverage.ok}, {"failed", coverage.failed}};
-    SendJson(res, 200, answer);
+    if (auto refused = server::CheckApiKey(req, options.http.api_key)) {
+      server::SendJsonError(res, *refused);
+      return true;
+    }
+    return false;
   }
 
   void Search(const httplib::Request& req, httplib::Response& res) const {
-    const auto start = std::chrono::steady_clock::now();
-    Parts parts = PartsOf(req);
-    const auto allow_partial = TakeAllowPartial(parts.params);
-    if (!allow_partial) return SendError(res, api::ToHttpError(allow_partial.error()));
-    auto query = api::ParseQueryParams(parts.params, options.default_query);
-    if (!query) return SendError(res, api::ToHttpError(query.error()));
-    if (parts.image.empty()) return SendError(res, api::ToHttpError({ErrorCode::kInvalidArgument, "no image in the request"}));
+    const auto start = Clock::now();
+    api::Params params = server::CollectParams(req, {"file", "image"});
+    const auto allow_partial = TakeAllowPartial(params);
+    if (!allow_partial) return SendError(res, allow_partial.error());
+    auto query = api::ParseQueryParams(params, options.service.default_query);
+    if (!query) return SendError(res, query.error());
+    std::string filename;
+    auto image = server::RequestImage(req, "file", "image", &filename);
+    if (!image) return SendError(res, image.error());
     api::SearchResponse response;
     response.options = *query;
-    const auto* bytes = reinterpret_cast<const uint8_t*>(parts.image.data());
-    auto features = extractor.ExtractFromBytes({bytes, parts.image.size()}, options.decode);
-    if (!features) return SendError(res, api::ToHttpError(features.error()));
-    response.decode_extract_ms =
-        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+    const sift::StopRequested client_gone = server::ClientGone();
+    auto features = extractions.Extract(Bytes(*image), extractions.Start(client_gone), &response.decode_extract_ms);
+    if (!features) return SendError(res, features.error());
     response.query_width = features->image_width;
     response.query_height = features->image_height;
     response.extracted_features = static_cast<uint32_t>(features->size());
     ClusterFront::Coverage coverage;
     auto found = front->Query(*features, *query, *allow_partial, &coverage);
-    if (!found) return SendError(res, api::ToHttpError(found.error()));
+    if (!found) return SendError(res, found.error());
     response.index = std::move(*found);
-    response.total_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+    response.total_ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
     SendSearch(res, response, coverage);
   }
 
   void Similar(const std::string& id, const httplib::Request& req, httplib::Response& res) const {
-    api::Params params(req.params.begin(), req.params.end());
+    api::Params params = server::CollectParams(req, {});
     const auto allow_partial = TakeAllowPartial(params);
-    if (!allow_partial) return SendError(res, api::ToHttpError(allow_partial.error()));
-    auto query = api::ParseQueryParams(params, options.default_query);
-    if (!query) return SendError(res, api::ToHttpError(query.error()));
+    if (!allow_partial) return SendError(res, allow_partial.error());
+    auto query = api::ParseQueryParams(params, options.service.default_query);
+    if (!query) return SendError(res, query.error());
     ClusterFront::Coverage coverage;
     auto found = front->QuerySimilar(id, *query, *allow_partial, &coverage);
-    if (!found) return SendError(res, api::ToHttpError(found.error()));
+    if (!found) return SendError(res, found.error());
     SendSearch(res, *found, coverage);
   }
 
-  // GET /v1/images/{id} and {id}/similar, told apart on the request target as sent, as a single node
-  // does: a slash sent encoded (%2F) belongs to the id.
-  void GetImageOrSimilar(const httplib::Request& req, httplib::Response& res) const {
-    constexpr std::string_view kPrefix = "/v1/images/";
-    const std::string_view path(req.path);
-    const std::string_view target = std::string_view(req.target).substr(0, req.target.find('?'));
-    for (const std::string_view sub : {std::string_view("/similar"), std::string_view("/thumbnail")}) {
-      if (!target.ends_with(sub) || path.size() <= kPrefix.size() + sub.size()) continue;
-      if (sub == "/thumbnail") return NotYet(req, res);
-      return Similar(std::string(path.substr(kPrefix.size(), path.size() - kPrefix.size() - sub.size())), req, res);
+  void GetImageOrSubresource(const httplib::Request& req, httplib::Response& res) const {
+    const server::ImagePath path = server::ImagePathOf(req);
+    if (path.sub == "similar") return Similar(path.id, req, res);
+    if (path.sub == "thumbnail") {
+      auto size = server::ThumbnailSizeParam(req);
+      if (!size) return SendError(res, size.error());
+      auto jpeg = front->Thumbnail(path.id, *size);
+      if (!jpeg) return SendError(res, jpeg.error());
+      return server::SendThumbnail(req, res, *jpeg);
     }
-    auto record = front->Get(std::string(path.substr(kPrefix.size())));
-    if (!record) return SendError(res, api::ToHttpError(record.error()));
-    SendJson(res, 200, api::ImageRecordToJson(*record));
+    auto record = front->Get(path.id);
+    if (!record) return SendError(res, record.error());
+    SendJsonAnswer(res, 200, api::ImageRecordToJson(*record));
   }
 
   void List(const httplib::Request& req, httplib::Response& res) const {
-    auto params = api::ParseListParams(api::Params(req.params.begin(), req.params.end()));
-    if (!params) return SendError(res, api::ToHttpError(params.error()));
+    auto params = api::ParseListParams(server::CollectParams(req, {}));
+    if (!params) return SendError(res, params.error());
     auto list = front->List(params->offset, params->limit);
-    if (!list) return SendError(res, api::ToHttpError(list.error()));
-    SendJson(res, 200, api::ListResponseToJson(*list));
+    if (!list) return SendError(res, list.error());
+    SendJsonAnswer(res, 200, api::ListResponseToJson(*list));
   }
 
   void Stats(httplib::Response& res) const {
     auto stats = front->Stats();
-    if (!stats) return SendError(res, api::ToHttpError(stats.error()));
-    SendJson(res, 200, api::StatsToJson(*stats));
+    if (!stats) return SendError(res, stats.error());
+    SendJsonAnswer(res, 200, api::StatsToJson(*stats));
   }
 
   void Add(const httplib::Request& req, httplib::Response& res) const {
-    if (auto refused = server::CheckApiKey(req, options.api_key)) return SendError(res, *refused);
-    const Parts parts = PartsOf(req);
-    auto params = api::ParseAddParams(parts.params);
-    if (!params) return SendError(res, api::ToHttpError(params.error()));
-    if (parts.image.empty()) return SendError(res, api::ToHttpError({ErrorCode::kInvalidImage, "no image in the request"}));
+    if (Refused(Access::kWrite, req, res)) return;
+    auto params = api::ParseAddParams(server::CollectParams(req, {"file", "image"}));
+    if (!params) return SendError(res, params.error());
+    std::string filename;
+    auto image = server::RequestImage(req, "file", "image", &filename);
+    if (!image) return SendError(res, image.error());
     api::AddImageRequest add;
     add.id = params->id;
-    add.image = {reinterpret_cast<const uint8_t*>(parts.image.data()), parts.image.size()};
+    add.image = Bytes(*image);
     add.metadata_json = params->metadata_json;
     add.replace = params->replace;
-    add.source_name = parts.filename.empty() ? "http" : "http:" + parts.filename;
+    add.source_name = filename.empty() ? "http" : "http:" + filename;
     auto added = front->Add(add);
-    if (!added) return SendError(res, api::ToHttpError(added.error()));
+    if (!added) return SendError(res, added.error());
+    server::RecordStages(res, {{"decode_extract", added->decode_extract_ms}, {"add", added->add_ms}});
     res.set_header("Location", "/v1/images/" + added->record.id);
-    SendJson(res, added->replaced ? 200 : 201, api::AddImageResponseToJson(*added));
+    SendJsonAnswer(res, added->replaced ? 200 : 201, api::AddImageResponseToJson(*added));
+  }
+
+  void AddBatch(const httplib::Request& req, httplib::Response& res) const {
+    if (Refused(Access::kWrite, req, res)) return;
+    server::ServeImageBatch(req, res, options.http.max_batch_images,
+                            [&](api::AddBatchRequest& batch) { return front->AddBatch(batch); });
   }
 
   void Delete(const httplib::Request& req, httplib::Response& res) const {
-    if (auto refused = server::CheckApiKey(req, options.api_key)) return SendError(res, *refused);
+    if (Refused(Access::kWrite, req, res)) return;
     const std::string id = req.matches[1];
-    if (auto removed = front->Delete(id); !removed) return SendError(res, api::ToHttpError(removed.error()));
-    SendJson(res, 200, {{"id", id}, {"deleted", true}});
+    if (auto removed = front->Delete(id); !removed) return SendError(res, removed.error());
+    SendJsonAnswer(res, 200, {{"id", id}, {"deleted", true}});
+  }
+
+  void Match(const httplib::Request& req, httplib::Response& res) const {
+    const sift::StopRequested client_gone = server::ClientGone();
+    server::ServeMatch(req, res, [&](std::span<const uint8_t> a, std::span<const uint8_t> b,
+                                     const api::PairMatchOptions& match) {
+      return api::MatchImages(extractions, options.service.threads_per_request, a, b, match, client_gone);
+    });
+  }
+
+  // {"out", "partitions": [{"partition", "out", "images", ...}]}: each partition's folder is on the
+  // machine of the replica that made it.
+  void Backup(const httplib::Request& req, httplib::Response& res) const {
+    if (Refused(Access::kAdmin, req, res)) return;
+    auto out = server::BackupFolderParam(req);
+    if (!out) return SendError(res, out.error());
+    auto done = front->Backup(*out);
+    if (!done) return SendError(res, done.error());
+    nlohmann::json partitions = nlohmann::json::array();
+    for (const ClusterFront::PartitionBackup& p : *done) {
+      nlohmann::json one = api::BackupToJson(p.out, p.result);
+      one["partition"] = p.partition;
+      partitions.push_back(std::move(one));
+    }
+    SendJsonAnswer(res, 200, {{"out", *out}, {"partitions", std::move(partitions)}});
   }
 
   void RefreshStatistics(const httplib::Request& req, httplib::Response& res) const {
-    if (auto refused = server::CheckApiKey(req, options.api_key)) return SendError(res, *refused);
+    if (Refused(Access::kWrite, req, res)) return;
     auto refreshed = front->RefreshStatistics();
-    if (!refreshed) return SendError(res, api::ToHttpError(refreshed.error()));
-    SendJson(res, 200, {{"images", refreshed->images}, {"partitions", refreshed->partitions},
-                        {"replicas", refreshed->replicas}, {"ms", refreshed->ms}});
+    if (!refreshed) return SendError(res, refreshed.error());
+    SendJsonAnswer(res, 200, {{"images", refreshed->images}, {"partitions", refreshed->partitions},
+                              {"replicas", refreshed->replicas}, {"ms", refreshed->ms}});
   }
 
-  static void NotYet(const httplib::Request& req, httplib::Response& res) {
-    SendError(res, {501, "not_implemented", req.method + " " + req.path + " is not served by a cluster front yet"});
-  }
-
-  void Metrics(httplib::Response& res) const {
+  // Per shard replica, after the HTTP metrics.
+  std::string ShardMetrics() const {
     std::ostringstream out;
-    out << "# HELP oxbow_shard_calls_total Calls from this front to a shard replica.\n"
-           "# TYPE oxbow_shard_calls_total counter\n";
     const auto metrics = front->Metrics();
     const auto labels = [](const ReplicaMetrics& m) {
       return "{partition=\"" + std::to_string(m.partition) + "\",replica=\"" + m.address + "\"}";
     };
-    for (const auto& m : metrics) out << "oxbow_shard_calls_total" << labels(m) << " " << m.calls << "\n";
-    out << "# HELP oxbow_shard_errors_total Calls to a shard replica that failed (unreachable, deadline, error).\n"
-           "# TYPE oxbow_shard_errors_total counter\n";
-    for (const auto& m : metrics) out << "oxbow_shard_errors_total" << labels(m) << " " << m.errors << "\n";
-    out << "# HELP oxbow_shard_call_seconds_total Time spent in calls to a shard replica.\n"
-           "# TYPE oxbow_shard_call_seconds_total counter\n";
-    for (const auto& m : metrics) out << "oxbow_shard_call_seconds_total" << labels(m) << " " << m.total_ms / 1000 << "\n";
-    out << "# HELP oxbow_shard_write_sequence The write sequence a shard replica last reported (-1: none yet).\n"
-           "# TYPE oxbow_shard_write_sequence gauge\n";
-    for (const auto& m : metrics) out << "oxbow_shard_write_sequence" << labels(m) << " " << m.write_sequence << "\n";
-    out << "# HELP oxbow_shard_behind 1 for a replica that missed writes (kept out of reads until it catches up).\n"
-           "# TYPE oxbow_shard_behind gauge\n";
-    for (const auto& m : metrics) out << "oxbow_shard_behind" << labels(m) << " " << (m.behind ? 1 : 0) << "\n";
-    res.set_content(out.str(), "text/plain; version=0.0.4");
+    const auto family = [&](const char* name, const char* type, const char* help, auto value) {
+      out << "# HELP " << name << " " << help << "\n# TYPE " << name << " " << type << "\n";
+      for (const auto& m : metrics) out << name << labels(m) << " " << value(m) << "\n";
+    };
+    family("oxbow_shard_calls_total", "counter", "Calls from this front to a shard replica.",
+           [](const ReplicaMetrics& m) { return static_cast<double>(m.calls); });
+    family("oxbow_shard_errors_total", "counter",
+           "Calls to a shard replica that failed (unreachable, deadline, error).",
+           [](const ReplicaMetrics& m) { return static_cast<double>(m.errors); });
+    family("oxbow_shard_call_seconds_total", "counter", "Time spent in calls to a shard replica.",
+           [](const ReplicaMetrics& m) { return m.total_ms / 1000; });
+    family("oxbow_shard_write_sequence", "gauge", "The write sequence a shard replica last reported (-1: none yet).",
+           [](const ReplicaMetrics& m) { return static_cast<double>(m.write_sequence); });
+    family("oxbow_shard_behind", "gauge",
+           "1 for a replica that missed writes (kept out of reads until it catches up).",
+           [](const ReplicaMetrics& m) { return m.behind ? 1.0 : 0.0; });
+    return out.str();
+  }
+
+  void Register(httplib::Server& http) {
+    using Req = const httplib::Request&;
+    using Res = httplib::Response&;
+    http.Post("/v1/search", [this](Req req, Res res) { Search(req, res); });
+    http.Post("/v1/match", [this](Req req, Res res) { Match(req, res); });
+    http.Get("/v1/stats", [this](Req, Res res) { Stats(res); });
+    http.Get("/v1/images", [this](Req req, Res res) { List(req, res); });
+    http.Post("/v1/images", [this](Req req, Res res) { Add(req, res); });
+    http.Post("/v1/images/batch", [this](Req req, Res res) { AddBatch(req, res); });
+    http.Get(R"(/v1/images/(.+))", [this](Req req, Res res) { GetImageOrSubresource(req, res); });
+    http.Delete(R"(/v1/images/(.+))", [this](Req req, Res res) { Delete(req, res); });
+    http.Post("/v1/admin/backup", [this](Req req, Res res) { Backup(req, res); });
+    http.Post("/v1/admin/refresh-statistics", [this](Req req, Res res) { RefreshStatistics(req, res); });
   }
 
   std::shared_ptr<const ClusterFront> front;
-  sift::SiftExtractor extractor;
   FrontHttpOptions options;
-  httplib::Server http;
-  int port = 0;
+  api::Extractions extractions;
+  std::unique_ptr<server::HttpServer> http;  // last: its routes use the members above
 };
 
 Result<std::unique_ptr<FrontHttpServer>> FrontHttpServer::Create(std::shared_ptr<const ClusterFront> front,
                                                                   const FrontHttpOptions& options) {
+  if (auto message = options.service.Check()) return Fail(ErrorCode::kInvalidArgument, "front options: " + *message);
   // As api::Service does for an index made from a vocabulary without recorded settings.
   std::string settings = front->vocabulary().extractor_settings();
   if (settings.empty()) {
@@ -224,52 +265,27 @@ Result<std::unique_ptr<FrontHttpServer>> FrontHttpServer::Create(std::shared_ptr
   }
   auto sift_options = sift::SiftOptions::FromDescription(settings);
   if (!sift_options) return std::unexpected(sift_options.error());
-  sift_options->num_threads = options.threads_per_request;
+  sift_options->num_threads = options.service.threads_per_request;
   auto extractor = sift::SiftExtractor::Create(*sift_options);
   if (!extractor) return std::unexpected(extractor.error());
   auto impl = std::make_unique<Impl>(std::move(front), *extractor, options);
   Impl* i = impl.get();
-  i->http.new_task_queue = [threads = options.threads] { return new httplib::ThreadPool(static_cast<size_t>(threads)); };
-  i->http.set_payload_max_length(options.max_body_bytes);
-  i->http.set_pre_routing_handler([](const httplib::Request& req, httplib::Response& res) {
-    t_request_id = server::RequestIdFor(req);
-    res.set_header("X-Request-Id", t_request_id);
-    server::TakeFormEncodedBodyAsImage(req);
-    return httplib::Server::HandlerResponse::Unhandled;
-  });
-  i->http.Get("/healthz", [](const httplib::Request&, httplib::Response& res) { SendJson(res, 200, {{"status", "ok"}}); });
-  i->http.Get("/readyz", [](const httplib::Request&, httplib::Response& res) { SendJson(res, 200, {{"status", "ready"}}); });
-  i->http.Get("/metrics", [i](const httplib::Request&, httplib::Response& res) { i->Metrics(res); });
-  i->http.Post("/v1/search", [i](const httplib::Request& req, httplib::Response& res) { i->Search(req, res); });
-  i->http.Get("/v1/stats", [i](const httplib::Request&, httplib::Response& res) { i->Stats(res); });
-  i->http.Get("/v1/images", [i](const httplib::Request& req, httplib::Response& res) { i->List(req, res); });
-  i->http.Post("/v1/images", [i](const httplib::Request& req, httplib::Response& res) { i->Add(req, res); });
-  i->http.Get(R"(/v1/images/(.+))", [i](const httplib::Request& req, httplib::Response& res) { i->GetImageOrSimilar(req, res); });
-  i->http.Delete(R"(/v1/images/(.+))", [i](const httplib::Request& req, httplib::Response& res) { i->Delete(req, res); });
-  i->http.Post("/v1/admin/refresh-statistics",
-               [i](const httplib::Request& req, httplib::Response& res) { i->RefreshStatistics(req, res); });
-  i->http.Get("/v1/.*", Impl::NotYet);
-  i->http.Post("/v1/.*", Impl::NotYet);
-  i->http.Delete("/v1/.*", Impl::NotYet);
+  i->http = std::make_unique<server::HttpServer>(
+      options.http, server::CustomRoutes{[i](httplib::Server& http) { i->Register(http); },
+                                         [i] { return i->ShardMetrics(); }});
   return std::unique_ptr<FrontHttpServer>(new FrontHttpServer(std::move(impl)));
 }
 
 FrontHttpServer::FrontHttpServer(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
 FrontHttpServer::~FrontHttpServer() = default;
 
-Result<int> FrontHttpServer::Bind() {
-  const int port = impl_->options.port == 0 ? impl_->http.bind_to_any_port(impl_->options.host)
-                                            : (impl_->http.bind_to_port(impl_->options.host, impl_->options.port)
-                                                   ? impl_->options.port
-                                                   : -1);
-  if (port <= 0)
-    return Fail(ErrorCode::kIoError, "cannot listen on " + impl_->options.host + ":" + std::to_string(impl_->options.port));
-  impl_->port = port;
-  return port;
+Result<int> FrontHttpServer::Bind() { return impl_->http->Bind(); }
+
+void FrontHttpServer::Run() { impl_->http->Run(); }
+
+void FrontHttpServer::Shutdown() {
+  impl_->extractions.Stop();
+  impl_->http->Shutdown();
 }
-
-void FrontHttpServer::Run() { impl_->http.listen_after_bind(); }
-
-void FrontHttpServer::Shutdown() { impl_->http.stop(); }
 
 }  // namespace oxbow::cluster

@@ -4,7 +4,9 @@
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/health_check_service_interface.h>
 
+#include <filesystem>
 #include <mutex>
+#include <system_error>
 
 #include "server/cluster/proto_convert.h"
 #include "server/cluster/shard.grpc.pb.h"
@@ -232,6 +234,35 @@ class ShardServer::Impl final : public Shard::Service {
     const Status stored = service->StoreClusterStatistics(frequencies);
     Stamp(context, *service);
     if (!stored) return ToGrpc(stored.error());
+    return grpc::Status::OK;
+  }
+
+  grpc::Status Thumbnail(grpc::ServerContext* context, const ThumbnailRequest* request, ThumbnailReply* reply) override {
+    const auto service = Current();
+    if (!service) return NotReady();
+    Stamp(context, *service);
+    auto found = service->GetThumbnail(request->id(), request->max_side_px());
+    if (!found) return ToGrpc(found.error());
+    reply->set_jpeg(std::move(found->thumbnail.jpeg));
+    return grpc::Status::OK;
+  }
+
+  // A cluster backup (the front's POST /v1/admin/backup) puts every partition in its own folder of
+  // `out`'s parent, which the first partition to get there creates.
+  grpc::Status Backup(grpc::ServerContext* context, const BackupRequest* request, BackupReply* reply) override {
+    const auto service = Current();
+    if (!service) return NotReady();
+    Stamp(context, *service);
+    const std::filesystem::path out(request->out());
+    if (!out.is_absolute() || !out.has_parent_path()) return {grpc::StatusCode::INVALID_ARGUMENT, "an absolute folder"};
+    std::error_code ignored;  // BackupIndex says what is wrong with the parent
+    std::filesystem::create_directory(out.parent_path(), ignored);
+    auto done = service->Backup(out.string());
+    if (!done) return ToGrpc(done.error());
+    reply->set_images(done->images);
+    reply->set_generation(done->generation);
+    reply->set_bytes(done->bytes);
+    reply->set_attempts(done->attempts);
     return grpc::Status::OK;
   }
 

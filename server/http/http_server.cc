@@ -109,7 +109,9 @@ httplib::Server::HandlerResponse AnswerRequestTimeout(httplib::Response& res) {
   return httplib::Server::HandlerResponse::Handled;
 }
 
-// Stage timings -> the log context and a Server-Timing header (RFC: W3C Server Timing).
+}  // namespace
+
+// W3C Server Timing.
 void RecordStages(httplib::Response& res, const std::vector<std::pair<const char*, double>>& stages) {
   std::string header;
   for (const auto& [name, ms] : stages) {
@@ -122,9 +124,6 @@ void RecordStages(httplib::Response& res, const std::vector<std::pair<const char
   t_request.stages = stages;
 }
 
-// Query-string parameters plus multipart text fields (everything but the named file fields), every
-// occurrence: the api/params.h parsers refuse a name given twice, also once in each. A repeated image
-// part is as ambiguous (which image is meant?), so it enters as a repeated parameter without its bytes.
 api::Params CollectParams(const httplib::Request& req, const std::vector<std::string>& file_fields) {
   api::Params params(req.params.begin(), req.params.end());
   for (const auto& [name, part] : req.files) {
@@ -137,8 +136,6 @@ api::Params CollectParams(const httplib::Request& req, const std::vector<std::st
   return params;
 }
 
-// The image of a request: the multipart part `field` (or `alt_field`), else the raw body. Refuses
-// bodies that are clearly not an image (JSON, text) with 415, and empty ones with 400.
 Result<std::string_view> RequestImage(const httplib::Request& req, const std::string& field,
                                       const std::string& alt_field, std::string* filename) {
   if (req.is_multipart_form_data()) {
@@ -163,6 +160,8 @@ Result<std::string_view> RequestImage(const httplib::Request& req, const std::st
   if (req.body.empty()) return Fail(ErrorCode::kInvalidImage, "empty request body: send the image bytes");
   return std::string_view(req.body);
 }
+
+namespace {
 
 // Bytes with a strong ETag: 304 without a body when the client already holds them (If-None-Match).
 void SendCacheable(const httplib::Request& req, httplib::Response& res, std::string_view content,
@@ -318,17 +317,6 @@ void ServeOpenApi(const httplib::Request& req, httplib::Response& res) {
   SendCacheable(req, res, document, "application/json", etag, "no-cache");
 }
 
-// True once the client of the request this thread serves has closed or reset its connection (a client
-// that only half-closes its sending side counts too). Called by the service on its extraction thread
-// while this handler waits, hence the socket captured here.
-sift::StopRequested ClientGone() {
-  const int sock = CurrentConnectionSocket();
-  return [sock] {
-    pollfd p{sock, POLLRDHUP, 0};
-    return sock >= 0 && ::poll(&p, 1, 0) > 0 && (p.revents & (POLLRDHUP | POLLHUP | POLLERR)) != 0;
-  };
-}
-
 void PostImage(api::Service& s, const httplib::Request& req, httplib::Response& res) {
   auto params = api::ParseAddParams(CollectParams(req, {"file", "image"}));
   if (!params) return SendError(res, params.error());
@@ -349,18 +337,134 @@ void PostImage(api::Service& s, const httplib::Request& req, httplib::Response& 
   SendJson(res, added->replaced ? 200 : 201, api::AddImageResponseToJson(*added));
 }
 
+void ListImages(api::Service& s, const httplib::Request& req, httplib::Response& res) {
+  auto params = api::ParseListParams(CollectParams(req, {}));
+  if (!params) return SendError(res, params.error());
+  auto list = s.ListImages(params->offset, params->limit);
+  if (!list) return SendError(res, list.error());
+  SendJson(res, 200, api::ListResponseToJson(*list));
+}
+
+void GetSimilar(api::Service& s, const std::string& id, const httplib::Request& req, httplib::Response& res) {
+  auto options = api::ParseQueryParams(CollectParams(req, {}), s.options().default_query);
+  if (!options) return SendError(res, options.error());
+  auto found = s.SearchSimilar(id, *options);
+  if (!found) return SendError(res, found.error());
+  const auto& t = found->index.timings;
+  RecordStages(res, {{"quantize", t.quantize_ms}, {"score", t.score_ms}, {"verify", t.verify_ms}, {"qe", t.qe_ms}});
+  SendJson(res, 200, api::SearchResponseToJson(*found));
+}
+
+void GetThumbnail(api::Service& s, const std::string& id, const httplib::Request& req, httplib::Response& res) {
+  auto size = ThumbnailSizeParam(req);
+  if (!size) return SendError(res, size.error());
+  auto found = s.GetThumbnail(id, *size);
+  if (!found) return SendError(res, found.error());
+  SendThumbnail(req, res, found->thumbnail.jpeg);
+}
+
+void GetImage(api::Service& s, const std::string& id, httplib::Response& res) {
+  auto record = s.GetImage(id);
+  if (!record) return SendError(res, record.error());
+  SendJson(res, 200, api::ImageRecordToJson(*record));
+}
+
+void GetImageOrSubresource(api::Service& s, const httplib::Request& req, httplib::Response& res) {
+  const ImagePath path = ImagePathOf(req);
+  t_request.route = path.sub.empty() ? "/v1/images/{id}" : "/v1/images/{id}/" + path.sub;
+  if (path.sub == "similar") return GetSimilar(s, path.id, req, res);
+  if (path.sub == "thumbnail") return GetThumbnail(s, path.id, req, res);
+  GetImage(s, path.id, res);
+}
+
+void DeleteImage(api::Service& s, const httplib::Request& req, httplib::Response& res) {
+  const std::string id = req.matches[1];
+  if (auto removed = s.DeleteImage(id); !removed) return SendError(res, removed.error());
+  SendJson(res, 200, {{"id", id}, {"deleted", true}});
+}
+
+void PostSearch(api::Service& s, const httplib::Request& req, httplib::Response& res) {
+  auto options = api::ParseQueryParams(CollectParams(req, {"file", "image"}), s.options().default_query);
+  if (!options) return SendError(res, options.error());
+  std::string filename;
+  auto image = RequestImage(req, "file", "image", &filename);
+  if (!image) return SendError(res, image.error());
+  auto found = s.Search(Bytes(*image), *options, ClientGone());
+  if (!found) return SendError(res, found.error());
+  const auto& t = found->index.timings;
+  RecordStages(res, {{"decode_extract", found->decode_extract_ms}, {"quantize", t.quantize_ms},
+                     {"score", t.score_ms}, {"verify", t.verify_ms}, {"qe", t.qe_ms}});
+  SendJson(res, 200, api::SearchResponseToJson(*found));
+}
+
+void PostMatch(api::Service& s, const httplib::Request& req, httplib::Response& res) {
+  ServeMatch(req, res, [&](std::span<const uint8_t> a, std::span<const uint8_t> b, const api::PairMatchOptions& options) {
+    return s.Match(a, b, options, ClientGone());
+  });
+}
+
+void PostImageBatch(api::Service& s, const httplib::Request& req, httplib::Response& res, int max_images) {
+  ServeImageBatch(req, res, max_images, [&](api::AddBatchRequest& batch) { return s.AddImages(batch); });
+}
+
+void PostBackup(api::Service& s, const httplib::Request& req, httplib::Response& res) {
+  auto out = BackupFolderParam(req);
+  if (!out) return SendError(res, out.error());
+  auto done = s.Backup(*out);
+  if (!done) return SendError(res, done.error());
+  SendJson(res, 200, api::BackupToJson(*out, *done));
+}
+}  // namespace
+
+void SendJsonAnswer(httplib::Response& res, int status, const nlohmann::json& body) { SendJson(res, status, body); }
+void SendJsonError(httplib::Response& res, const api::HttpError& error) { SendError(res, error); }
+
+// A client that only half-closes its sending side counts as gone too. Called by the service on its
+// extraction thread while the handler waits, hence the socket captured here.
+sift::StopRequested ClientGone() {
+  const int sock = CurrentConnectionSocket();
+  return [sock] {
+    pollfd p{sock, POLLRDHUP, 0};
+    return sock >= 0 && ::poll(&p, 1, 0) > 0 && (p.revents & (POLLRDHUP | POLLHUP | POLLERR)) != 0;
+  };
+}
+
+void ServeMatch(const httplib::Request& req, httplib::Response& res, const PairMatcher& match_pair) {
+  if (!req.is_multipart_form_data()) {
+    return SendError(res, Error{ErrorCode::kUnsupportedFormat,
+                                "POST /v1/match takes multipart/form-data with image parts 'a' and 'b'"});
+  }
+  auto params = api::ParseMatchParams(CollectParams(req, {"a", "b"}));
+  if (!params) return SendError(res, params.error());
+  std::string name_a, name_b;
+  auto a = RequestImage(req, "a", "a", &name_a);
+  if (!a) return SendError(res, a.error());
+  auto b = RequestImage(req, "b", "b", &name_b);
+  if (!b) return SendError(res, b.error());
+  api::PairMatchOptions options;
+  options.model = params->model;
+  options.match = params->match;
+  options.min_inliers = params->min_inliers;
+  options.correspondences = params->correspondences;
+  auto matched = match_pair(Bytes(*a), Bytes(*b), options);
+  if (!matched) return SendError(res, matched.error());
+  RecordStages(res, {{"decode_extract_a", matched->decode_extract_a_ms},
+                     {"decode_extract_b", matched->decode_extract_b_ms},
+                     {"match", matched->match.match_ms}, {"verify", matched->match.verify_ms}});
+  SendJson(res, 200, api::MatchResponseToJson(*matched));
+}
+
 // One image of a batch add's answer: {"id", "status": 201, "image": record} or {"id", "status", "error"}.
+namespace {
 json BatchResultToJson(const std::string& id, const Result<index::ImageRecord>& result) {
   if (result) return {{"id", id}, {"status", 201}, {"image", api::ImageRecordToJson(*result)}};
   const api::HttpError error = api::ToHttpError(result.error());
   return {{"id", id}, {"status", error.status}, {"error", api::ErrorBody(error, t_request.id)["error"]}};
 }
+}  // namespace
 
-// POST /v1/images/batch: multipart parts `image` (the images, in order), `id` (one per image, same
-// order), `metadata` (none or one per image); api::ParseBatchAddParams. httplib keeps the parts of one
-// name in the order sent. 200 with one result per image, or, when the whole batch failed (catalogue,
-// client gone, shutdown), that error's status with the error body plus the per-image results.
-void PostImageBatch(api::Service& s, const httplib::Request& req, httplib::Response& res, int max_images) {
+// httplib keeps the parts of one name in the order sent.
+void ServeImageBatch(const httplib::Request& req, httplib::Response& res, int max_images, const BatchAdder& add) {
   const auto start = Clock::now();
   if (!req.is_multipart_form_data()) {
     return SendError(res, Error{ErrorCode::kUnsupportedFormat,
@@ -407,7 +511,7 @@ void PostImageBatch(api::Service& s, const httplib::Request& req, httplib::Respo
     }
   }
   batch.client_gone = ClientGone();
-  auto added = s.AddImages(batch);
+  auto added = add(batch);
   for (size_t b = 0; b < position.size(); ++b) {
     if (added) {
       results[position[b]] = std::move(added->results[b]);
@@ -438,88 +542,9 @@ void PostImageBatch(api::Service& s, const httplib::Request& req, httplib::Respo
   SendJson(res, status, body);
 }
 
-void ListImages(api::Service& s, const httplib::Request& req, httplib::Response& res) {
-  auto params = api::ParseListParams(CollectParams(req, {}));
-  if (!params) return SendError(res, params.error());
-  auto list = s.ListImages(params->offset, params->limit);
-  if (!list) return SendError(res, list.error());
-  SendJson(res, 200, api::ListResponseToJson(*list));
-}
-
-void GetSimilar(api::Service& s, const std::string& id, const httplib::Request& req, httplib::Response& res) {
-  auto options = api::ParseQueryParams(CollectParams(req, {}), s.options().default_query);
-  if (!options) return SendError(res, options.error());
-  auto found = s.SearchSimilar(id, *options);
-  if (!found) return SendError(res, found.error());
-  const auto& t = found->index.timings;
-  RecordStages(res, {{"quantize", t.quantize_ms}, {"score", t.score_ms}, {"verify", t.verify_ms}, {"qe", t.qe_ms}});
-  SendJson(res, 200, api::SearchResponseToJson(*found));
-}
-
-void GetThumbnail(api::Service& s, const std::string& id, const httplib::Request& req, httplib::Response& res) {
-  const api::Params params = CollectParams(req, {});
-  if (auto known = api::CheckKnownParams(params, {"size"}); !known) return SendError(res, known.error());
-  int size = 256;  // a larger size than the server stores gets the stored one
-  if (auto it = params.find("size"); it != params.end()) {
-    auto parsed = api::ParseInt("size", it->second, api::kMinThumbnailPx, api::kMaxThumbnailPx);
-    if (!parsed) return SendError(res, parsed.error());
-    size = static_cast<int>(*parsed);
-  }
-  auto found = s.GetThumbnail(id, size);
-  if (!found) return SendError(res, found.error());
-  const auto& jpeg = found->thumbnail.jpeg;
-  SendCacheable(req, res, jpeg, "image/jpeg", StrongEtag(jpeg), "private, max-age=60");
-}
-
-void GetImage(api::Service& s, const std::string& id, httplib::Response& res) {
-  auto record = s.GetImage(id);
-  if (!record) return SendError(res, record.error());
-  SendJson(res, 200, api::ImageRecordToJson(*record));
-}
-
-// GET /v1/images/{id}, {id}/similar and {id}/thumbnail, told apart on the request target as the client
-// sent it: httplib matches routes on the decoded path, where the id "a/similar" sent as a%2Fsimilar
-// would read as the similar images of "a". A slash sent encoded belongs to the id (RFC 3986 2.2), so an
-// id stored before ParseAddParams refused such ids stays reachable.
-void GetImageOrSubresource(api::Service& s, const httplib::Request& req, httplib::Response& res) {
-  constexpr size_t kPrefix = std::string_view("/v1/images/").size();  // matched by the route's pattern
-  const std::string_view path(req.path);
-  const std::string_view target = std::string_view(req.target).substr(0, req.target.find('?'));
-  const std::string last = httplib::detail::decode_url(std::string(target.substr(target.rfind('/') + 1)), false);
-  // Decoding never joins bytes across a literal '/', so the decoded path ends in "/" + last.
-  const size_t id_size = path.size() - kPrefix - std::min(path.size() - kPrefix, last.size() + 1);
-  if ((last == "similar" || last == "thumbnail") && id_size > 0) {
-    const std::string id(path.substr(kPrefix, id_size));
-    t_request.route = "/v1/images/{id}/" + last;
-    return last == "similar" ? GetSimilar(s, id, req, res) : GetThumbnail(s, id, req, res);
-  }
-  t_request.route = "/v1/images/{id}";
-  GetImage(s, std::string(path.substr(kPrefix)), res);
-}
-
-void DeleteImage(api::Service& s, const httplib::Request& req, httplib::Response& res) {
-  const std::string id = req.matches[1];
-  if (auto removed = s.DeleteImage(id); !removed) return SendError(res, removed.error());
-  SendJson(res, 200, {{"id", id}, {"deleted", true}});
-}
-
-void PostSearch(api::Service& s, const httplib::Request& req, httplib::Response& res) {
-  auto options = api::ParseQueryParams(CollectParams(req, {"file", "image"}), s.options().default_query);
-  if (!options) return SendError(res, options.error());
-  std::string filename;
-  auto image = RequestImage(req, "file", "image", &filename);
-  if (!image) return SendError(res, image.error());
-  auto found = s.Search(Bytes(*image), *options, ClientGone());
-  if (!found) return SendError(res, found.error());
-  const auto& t = found->index.timings;
-  RecordStages(res, {{"decode_extract", found->decode_extract_ms}, {"quantize", t.quantize_ms},
-                     {"score", t.score_ms}, {"verify", t.verify_ms}, {"qe", t.qe_ms}});
-  SendJson(res, 200, api::SearchResponseToJson(*found));
-}
-
 // The folder is named by the client but written by the server, on its machine: absolute, so that it
 // does not depend on the server's working directory.
-void PostBackup(api::Service& s, const httplib::Request& req, httplib::Response& res) {
+Result<std::string> BackupFolderParam(const httplib::Request& req) {
   std::string out;
   if (req.get_header_value("Content-Type").rfind("application/json", 0) == 0) {
     const json body = json::parse(req.body, nullptr, false);
@@ -528,43 +553,50 @@ void PostBackup(api::Service& s, const httplib::Request& req, httplib::Response&
     out = params.find("out")->second;
   }
   if (out.empty() || out.front() != '/') {
-    return SendError(res, Error{ErrorCode::kInvalidArgument,
-                                "POST /v1/admin/backup needs 'out', the absolute path of a new folder on the server's "
-                                "machine: JSON {\"out\": \"/backups/index-1\"} or the form or query parameter out"});
+    return Fail(ErrorCode::kInvalidArgument,
+                "POST /v1/admin/backup needs 'out', the absolute path of a new folder on the server's "
+                "machine: JSON {\"out\": \"/backups/index-1\"} or the form or query parameter out");
   }
-  auto done = s.Backup(out);
-  if (!done) return SendError(res, done.error());
-  SendJson(res, 200, api::BackupToJson(out, *done));
+  return out;
 }
 
-void PostMatch(api::Service& s, const httplib::Request& req, httplib::Response& res) {
-  if (!req.is_multipart_form_data()) {
-    return SendError(res, Error{ErrorCode::kUnsupportedFormat,
-                                "POST /v1/match takes multipart/form-data with image parts 'a' and 'b'"});
-  }
-  auto params = api::ParseMatchParams(CollectParams(req, {"a", "b"}));
-  if (!params) return SendError(res, params.error());
-  std::string name_a, name_b;
-  auto a = RequestImage(req, "a", "a", &name_a);
-  if (!a) return SendError(res, a.error());
-  auto b = RequestImage(req, "b", "b", &name_b);
-  if (!b) return SendError(res, b.error());
-  api::PairMatchOptions options;
-  options.model = params->model;
-  options.match = params->match;
-  options.min_inliers = params->min_inliers;
-  options.correspondences = params->correspondences;
-  auto matched = s.Match(Bytes(*a), Bytes(*b), options, ClientGone());
-  if (!matched) return SendError(res, matched.error());
-  RecordStages(res, {{"decode_extract_a", matched->decode_extract_a_ms},
-                     {"decode_extract_b", matched->decode_extract_b_ms},
-                     {"match", matched->match.match_ms}, {"verify", matched->match.verify_ms}});
-  SendJson(res, 200, api::MatchResponseToJson(*matched));
+// httplib matches routes on the decoded path, where the id "a/similar" sent as a%2Fsimilar would read as
+// the similar images of "a". A slash sent encoded belongs to the id (RFC 3986 2.2), so an id stored
+// before ParseAddParams refused such ids stays reachable.
+ImagePath ImagePathOf(const httplib::Request& req) {
+  constexpr size_t kPrefix = std::string_view("/v1/images/").size();  // matched by the route's pattern
+  const std::string_view path(req.path);
+  const std::string_view target = std::string_view(req.target).substr(0, req.target.find('?'));
+  const std::string last = httplib::detail::decode_url(std::string(target.substr(target.rfind('/') + 1)), false);
+  // Decoding never joins bytes across a literal '/', so the decoded path ends in "/" + last.
+  const size_t id_size = path.size() - kPrefix - std::min(path.size() - kPrefix, last.size() + 1);
+  if ((last == "similar" || last == "thumbnail") && id_size > 0) return {std::string(path.substr(kPrefix, id_size)), last};
+  return {std::string(path.substr(kPrefix)), ""};
 }
-}  // namespace
 
-HttpServer::HttpServer(const HttpServerOptions& options)
-    : options_(options), upload_budget_(std::make_unique<UploadBudget>(options.max_inflight_body_bytes)) {
+Result<int> ThumbnailSizeParam(const httplib::Request& req) {
+  const api::Params params = CollectParams(req, {});
+  if (auto known = api::CheckKnownParams(params, {"size"}); !known) return std::unexpected(known.error());
+  int size = 256;  // a larger size than the server stores gets the stored one
+  if (auto it = params.find("size"); it != params.end()) {
+    auto parsed = api::ParseInt("size", it->second, api::kMinThumbnailPx, api::kMaxThumbnailPx);
+    if (!parsed) return std::unexpected(parsed.error());
+    size = static_cast<int>(*parsed);
+  }
+  return size;
+}
+
+void SendThumbnail(const httplib::Request& req, httplib::Response& res, const std::string& jpeg) {
+  SendCacheable(req, res, jpeg, "image/jpeg", StrongEtag(jpeg), "private, max-age=60");
+}
+
+
+HttpServer::HttpServer(const HttpServerOptions& options) : HttpServer(options, CustomRoutes{}) {}
+
+HttpServer::HttpServer(const HttpServerOptions& options, CustomRoutes routes)
+    : options_(options),
+      custom_routes_(std::move(routes)),
+      upload_budget_(std::make_unique<UploadBudget>(options.max_inflight_body_bytes)) {
   GuardOptions guard;
   guard.request_timeout = std::chrono::seconds(options_.request_timeout_s);
   guard.threads = options_.threads;
@@ -604,7 +636,7 @@ void HttpServer::SetService(std::shared_ptr<api::Service> service) {
   service_ = std::move(service);
 }
 
-bool HttpServer::ready() const { return service() != nullptr && !shutting_down_.load(); }
+bool HttpServer::ready() const { return (custom_routes_.add || service() != nullptr) && !shutting_down_.load(); }
 
 Result<int> HttpServer::Bind() {
   if (auto message = options_.Check()) return Fail(ErrorCode::kInvalidArgument, "server options: " + *message);
@@ -648,6 +680,13 @@ void HttpServer::RegisterRoutes() {
   RegisterRequestHooks();
   RegisterErrorHandlers();
   RegisterStatusRoutes();
+  if (custom_routes_.add) {
+    custom_routes_.add(*http_);
+    return;
+  }
+  http_->Get("/v1/stats", ServiceRoute(Access::kOpen, [](api::Service& s, const httplib::Request&, httplib::Response& res) {
+               SendJson(res, 200, api::StatsToJson(s.Stats()));
+             }));
   RegisterImageRoutes();
   RegisterSearchRoutes();
 }
@@ -788,7 +827,7 @@ void HttpServer::RegisterStatusRoutes() {
   http.Get("/readyz", [this](const httplib::Request&, httplib::Response& res) {
     if (shutting_down_) {
       SendError(res, api::Unavailable("shutting down"));
-    } else if (!service()) {
+    } else if (!ready()) {
       SendError(res, api::Unavailable("the index is still loading"));
     } else {
       SendJson(res, 200, {{"status", "ready"}});
@@ -802,9 +841,6 @@ void HttpServer::RegisterStatusRoutes() {
   http.Get(R"(/v1/?)", [this](const httplib::Request&, httplib::Response& res) { DescribeApi(options_, res); });
   http.Get("/v1/openapi.json", ServeOpenApi);
   http.Get("/metrics", [this](const httplib::Request&, httplib::Response& res) { ServeMetrics(res); });
-  http.Get("/v1/stats", ServiceRoute(Access::kOpen, [](api::Service& s, const httplib::Request&, httplib::Response& res) {
-             SendJson(res, 200, api::StatsToJson(s.Stats()));
-           }));
 }
 
 void HttpServer::ServeMetrics(httplib::Response& res) const {
@@ -824,7 +860,9 @@ void HttpServer::ServeMetrics(httplib::Response& res) const {
     gauges.push_back({"oxbow_uptime_seconds", "Seconds since the index was opened.", stats.uptime_s});
   }
   res.status = 200;
-  res.set_content(metrics_.Render(gauges), "text/plain; version=0.0.4");
+  std::string text = metrics_.Render(gauges);
+  if (custom_routes_.metrics) text += custom_routes_.metrics();
+  res.set_content(text, "text/plain; version=0.0.4");
 }
 
 void HttpServer::RegisterImageRoutes() {

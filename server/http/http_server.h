@@ -36,14 +36,19 @@
 #include <memory>
 #include <mutex>
 #include <optional>
+#include <span>
 #include <string>
 #include <utility>
 #include <vector>
 
+#include <nlohmann/json_fwd.hpp>
+
 #include "api/errors.h"
 #include "api/metrics.h"
+#include "api/params.h"
 #include "api/service.h"
 #include "sift/base/error.h"
+#include "sift/sift.h"
 
 namespace httplib {
 class Server;
@@ -101,9 +106,22 @@ struct HttpServerOptions {
   std::optional<std::string> Check() const;
 };
 
+// The /v1 routes of a server that is not one index (the cluster front, server/cluster/front_http.h),
+// served by HttpServer in place of the single node's, behind the same guards (request timeout, upload
+// budget, connection limits, strict request heads), request ids, log lines, HTTP metrics, JSON error
+// bodies and status routes (/healthz, /readyz, /metrics, /v1, the web page). Such a server has no
+// api::Service: it is ready from the start.
+struct CustomRoutes {
+  // Registers the routes, /v1/stats included. Handlers answer errors with SendJsonError (below).
+  std::function<void(httplib::Server&)> add;
+  // More Prometheus text for /metrics (HELP/TYPE lines included); may be empty.
+  std::function<std::string()> metrics;
+};
+
 class HttpServer {
  public:
   explicit HttpServer(const HttpServerOptions& options);
+  HttpServer(const HttpServerOptions& options, CustomRoutes routes);
   ~HttpServer();
   HttpServer(const HttpServer&) = delete;
   HttpServer& operator=(const HttpServer&) = delete;
@@ -149,6 +167,7 @@ class HttpServer {
   std::shared_ptr<api::Service> service() const;
 
   HttpServerOptions options_;
+  CustomRoutes custom_routes_;  // set: serves these instead of a service's routes
   std::unique_ptr<UploadBudget> upload_budget_;  // declared before http_, which uses it
   std::unique_ptr<httplib::Server> http_;
   api::Metrics metrics_;
@@ -157,6 +176,50 @@ class HttpServer {
   std::atomic<bool> shutting_down_{false};
   int port_ = 0;
 };
+
+// ---- For route handlers, the single node's and CustomRoutes' (the request is the one this thread serves).
+// A JSON answer, and an error body ({"error": {"code", "message", "request_id"}}, WWW-Authenticate on a 401).
+void SendJsonAnswer(httplib::Response& res, int status, const nlohmann::json& body);
+void SendJsonError(httplib::Response& res, const api::HttpError& error);
+// Stage timings, ms: a Server-Timing header and the request's log line.
+void RecordStages(httplib::Response& res, const std::vector<std::pair<const char*, double>>& stages);
+// Query-string parameters plus multipart text parts (every part but `file_fields`), every occurrence, so
+// that the api/params.h parsers refuse a name given twice; a repeated image part enters as a repeated
+// parameter without its bytes.
+api::Params CollectParams(const httplib::Request& req, const std::vector<std::string>& file_fields);
+// The image of a request: the multipart part `field` (or `alt_field`; its file name in `filename`), else
+// the raw body. 415 for a JSON or text body, 400 for an empty one or a multipart request without it.
+Result<std::string_view> RequestImage(const httplib::Request& req, const std::string& field,
+                                      const std::string& alt_field, std::string* filename);
+// GET /v1/images/{id}, {id}/similar and {id}/thumbnail told apart on the request target as the client
+// sent it (route pattern /v1/images/(.+)): a slash sent encoded (%2F) belongs to the id. `sub` is "",
+// "similar" or "thumbnail".
+struct ImagePath {
+  std::string id;
+  std::string sub;
+};
+ImagePath ImagePathOf(const httplib::Request& req);
+// GET .../thumbnail's `size` parameter: [api::kMinThumbnailPx, api::kMaxThumbnailPx], default 256.
+Result<int> ThumbnailSizeParam(const httplib::Request& req);
+// A JPEG thumbnail with a strong ETag (304 when the client holds it).
+void SendThumbnail(const httplib::Request& req, httplib::Response& res, const std::string& jpeg);
+// True once the client of the request this thread serves has closed its connection (for an extraction
+// to stop at its next check).
+sift::StopRequested ClientGone();
+// POST /v1/match: multipart parts 'a' and 'b' and api::ParseMatchParams' parameters; `match_pair`
+// decodes, extracts and matches the two images.
+using PairMatcher = std::function<Result<api::MatchResponse>(std::span<const uint8_t> a, std::span<const uint8_t> b,
+                                                             const api::PairMatchOptions& options)>;
+void ServeMatch(const httplib::Request& req, httplib::Response& res, const PairMatcher& match_pair);
+// POST /v1/images/batch: multipart parts `image` (the images, in order), `id` (one per image, same
+// order), `metadata` (none or one per image; api::ParseBatchAddParams), at most `max_images`. `add` gets
+// the images that passed those checks (as api::Service::AddImages). 200 with one result per image, or,
+// when the whole batch failed (catalogue, client gone, shutdown), that error's status with the error
+// body plus the per-image results.
+using BatchAdder = std::function<Result<api::AddBatchResponse>(api::AddBatchRequest& batch)>;
+void ServeImageBatch(const httplib::Request& req, httplib::Response& res, int max_images, const BatchAdder& add);
+// POST /v1/admin/backup's folder: JSON {"out": "/abs/path"} or the parameter out; must be absolute.
+Result<std::string> BackupFolderParam(const httplib::Request& req);
 
 // True when `given` equals `expected`; the time taken depends only on their lengths.
 bool ConstantTimeEquals(const std::string& given, const std::string& expected);
