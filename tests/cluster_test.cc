@@ -332,6 +332,12 @@ TEST_F(Cluster, AReplicaDownChangesNothingAPartitionDownIsPartialOrRefused) {
     ASSERT_TRUE(after) << after.error().ToString();
     ExpectSameRanking(*before, *after, "with a replica down");
   }
+  // The dead replica failed one call; after that its partition's other replica was asked first.
+  for (const cluster::ReplicaMetrics& m : front->Metrics()) {
+    if (m.address == config.partitions[0][0]) {
+      EXPECT_EQ(m.errors, 1u) << m.address << " of " << m.calls << " calls";
+    }
+  }
   // Partition 0 entirely down: 503 (kResourceExhausted), or a partial answer without its images.
   kill(shards_[3]->pid(), SIGKILL);
   const auto down = front->Query((*queries_)[0], options);

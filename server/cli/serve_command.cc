@@ -178,9 +178,9 @@ void SetUpServe(CLI::App& app) {
   cmd->add_option("--index", flags->index_dir, "index folder (created when empty and --vocab is given)");
   cmd->add_option("--cluster", flags->cluster_file,
                   "serve as the front of a cluster instead of an index: cluster.json names the vocabulary and each "
-                  "partition's shard replicas (`serve --grpc-port`); serves search, similar, get, list, stats, add and "
-                  "delete (writes on every replica of the image's partition); not yet batch add, thumbnails, match, "
-                  "backup (README, \"Serving a cluster\")")
+                  "partition's shard replicas (`serve --grpc-port`); serves the public API with the same limits and "
+                  "options as an index (writes on every replica of the image's partition, a backup per partition "
+                  "on its shard's machine; README, \"Serving a cluster\")")
       ->check(CLI::ExistingFile);
   cmd->add_option("--shard-deadline-ms", flags->front.shard_deadline_ms,
                   "--cluster: a call to one shard replica fails after this long; the partition's next replica is asked")

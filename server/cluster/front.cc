@@ -93,6 +93,9 @@ Status CheckServed(const index::QueryOptions& options) {
 
 // Writes of one id through a front run one at a time: lock stripes by the id's hash.
 constexpr uint32_t kWriteStripes = 64;
+// How long reads ask a replica that failed after its partition's others (Impl::Replica::failing_until),
+// unless the background check (every replica_check_ms) hears from it sooner.
+constexpr std::chrono::seconds kFailingFor{5};
 
 }  // namespace
 
@@ -135,6 +138,10 @@ class ClusterFront::Impl {
     std::atomic<uint64_t> total_us{0};
     std::atomic<int64_t> sequence{-1};  // the write sequence of its last answer; -1: none yet
     std::atomic<bool> reported_behind{false};
+    // After a call that failed without an answer (unreachable, past its deadline, still loading), reads
+    // ask the partition's other replicas first until then (Clock ticks); the background check keeps
+    // asking it, and its first answer clears this.
+    std::atomic<Clock::rep> failing_until{0};
   };
 
   // Refreshes hold writes back: a write holds it shared, a refresh exclusively (front.h).
@@ -179,6 +186,17 @@ class ClusterFront::Impl {
       replica.total_us.fetch_add(
           static_cast<uint64_t>(std::chrono::duration_cast<std::chrono::microseconds>(Clock::now() - t0).count()));
       if (!status.ok()) replica.errors.fetch_add(1);
+    }
+    const bool answered = status.ok() || ShardRefusal(status);
+    const Clock::rep until = answered ? 0 : (Clock::now() + kFailingFor).time_since_epoch().count();
+    if (const Clock::rep before = replica.failing_until.exchange(until); (before == 0) != (until == 0)) {
+      if (answered) {
+        OXBOW_LOG(kInfo) << "replica " << replica.address << " of partition " << replica.partition << " answers again";
+      } else {
+        OXBOW_LOG(kWarning) << "replica " << replica.address << " of partition " << replica.partition
+                            << " failed (" << status.error_message() << "): the partition's other replicas are asked "
+                            << "first until it answers the background check";
+      }
     }
     int64_t stamped = -1;
     if (status.ok() || ShardRefusal(status)) {
@@ -300,9 +318,19 @@ class ClusterFront::Impl {
   Result<Reply> Call(uint32_t partition, const ShardCall<Reply>& call, int deadline_ms = 0) const {
     const std::vector<std::unique_ptr<Replica>>& replicas = partitions[partition];
     const size_t start = next[partition]->fetch_add(1) % replicas.size();
+    // Replicas that failed recently go last (a dead or hung one would otherwise cost every call its
+    // deadline or a failed connection), but are still asked when the others fail.
+    std::vector<Replica*> order;
+    order.reserve(replicas.size());
+    const Clock::rep now = Clock::now().time_since_epoch().count();
+    for (const bool failing : {false, true})
+      for (size_t k = 0; k < replicas.size(); ++k) {
+        Replica* replica = replicas[(start + k) % replicas.size()].get();
+        if ((replica->failing_until.load() > now) == failing) order.push_back(replica);
+      }
     std::string failures;
-    for (size_t k = 0; k < replicas.size(); ++k) {
-      Replica& replica = *replicas[(start + k) % replicas.size()];
+    for (Replica* candidate : order) {
+      Replica& replica = *candidate;
       if (Behind(replica)) {
         failures += (failures.empty() ? "" : "; ") + BehindText(replica);
         continue;
