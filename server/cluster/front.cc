@@ -139,7 +139,7 @@ class ClusterFront::Impl {
     std::atomic<int64_t> sequence{-1};  // the write sequence of its last answer; -1: none yet
     std::atomic<bool> reported_behind{false};
     // After a call that failed without an answer (unreachable, past its deadline, still loading), reads
-    // ask the partition's other replicas first until then (Clock ticks); the background check keeps
+    // start with the partition's other replicas until then (Clock ticks); the background check keeps
     // asking it, and its first answer clears this.
     std::atomic<Clock::rep> failing_until{0};
   };
@@ -187,17 +187,7 @@ class ClusterFront::Impl {
           static_cast<uint64_t>(std::chrono::duration_cast<std::chrono::microseconds>(Clock::now() - t0).count()));
       if (!status.ok()) replica.errors.fetch_add(1);
     }
-    const bool answered = status.ok() || ShardRefusal(status);
-    const Clock::rep until = answered ? 0 : (Clock::now() + kFailingFor).time_since_epoch().count();
-    if (const Clock::rep before = replica.failing_until.exchange(until); (before == 0) != (until == 0)) {
-      if (answered) {
-        OXBOW_LOG(kInfo) << "replica " << replica.address << " of partition " << replica.partition << " answers again";
-      } else {
-        OXBOW_LOG(kWarning) << "replica " << replica.address << " of partition " << replica.partition
-                            << " failed (" << status.error_message() << "): the partition's other replicas are asked "
-                            << "first until it answers the background check";
-      }
-    }
+    NoteOutcome(replica, status);
     int64_t stamped = -1;
     if (status.ok() || ShardRefusal(status)) {
       const auto& metadata = context.GetServerInitialMetadata();
@@ -214,6 +204,22 @@ class ClusterFront::Impl {
     }
     if (sequence) *sequence = stamped;
     return status;
+  }
+
+  // Replica::failing_until after a call: set when it failed without an answer, cleared when it answered;
+  // each change logged.
+  static void NoteOutcome(Replica& replica, const grpc::Status& status) {
+    const bool answered = status.ok() || ShardRefusal(status);
+    const Clock::rep until = answered ? 0 : (Clock::now() + kFailingFor).time_since_epoch().count();
+    const Clock::rep before = replica.failing_until.exchange(until);
+    if ((before == 0) == (until == 0)) return;
+    if (answered) {
+      OXBOW_LOG(kInfo) << "replica " << replica.address << " of partition " << replica.partition << " answers again";
+      return;
+    }
+    OXBOW_LOG(kWarning) << "replica " << replica.address << " of partition " << replica.partition << " failed ("
+                        << status.error_message()
+                        << "): its partition's other replicas are asked first until it answers the background check";
   }
 
   // Whether `replica` is below its partition's floor (front.h).
@@ -317,20 +323,10 @@ class ClusterFront::Impl {
   template <typename Reply>
   Result<Reply> Call(uint32_t partition, const ShardCall<Reply>& call, int deadline_ms = 0) const {
     const std::vector<std::unique_ptr<Replica>>& replicas = partitions[partition];
-    const size_t start = next[partition]->fetch_add(1) % replicas.size();
-    // Replicas that failed recently go last (a dead or hung one would otherwise cost every call its
-    // deadline or a failed connection), but are still asked when the others fail.
-    std::vector<Replica*> order;
-    order.reserve(replicas.size());
-    const Clock::rep now = Clock::now().time_since_epoch().count();
-    for (const bool failing : {false, true})
-      for (size_t k = 0; k < replicas.size(); ++k) {
-        Replica* replica = replicas[(start + k) % replicas.size()].get();
-        if ((replica->failing_until.load() > now) == failing) order.push_back(replica);
-      }
+    const size_t start = AnsweringFrom(partition, next[partition]->fetch_add(1) % replicas.size());
     std::string failures;
-    for (Replica* candidate : order) {
-      Replica& replica = *candidate;
+    for (size_t k = 0; k < replicas.size(); ++k) {
+      Replica& replica = *replicas[(start + k) % replicas.size()];
       if (Behind(replica)) {
         failures += (failures.empty() ? "" : "; ") + BehindText(replica);
         continue;
@@ -348,6 +344,19 @@ class ClusterFront::Impl {
     }
     return Fail(ErrorCode::kResourceExhausted,
                 "partition " + std::to_string(partition) + " did not answer (" + failures + ")");
+  }
+
+  // The first replica of partition p from `start` on (round-robin order) that has not failed recently
+  // (Replica::failing_until), else `start`: a dead or hung replica would otherwise cost a failed
+  // connection or its deadline on every call that starts with it.
+  size_t AnsweringFrom(uint32_t p, size_t start) const {
+    const std::vector<std::unique_ptr<Replica>>& replicas = partitions[p];
+    const Clock::rep now = Clock::now().time_since_epoch().count();
+    for (size_t k = 0; k < replicas.size(); ++k) {
+      const size_t r = (start + k) % replicas.size();
+      if (replicas[r]->failing_until.load() <= now) return r;
+    }
+    return start;
   }
 
   // A write on every replica of `partition` (front.h): Ping all, then the first replica, then the others.

@@ -232,19 +232,19 @@ class FrontHttpServer::Impl {
     return out.str();
   }
 
-  void Register(httplib::Server& http) {
+  void Register(httplib::Server& server) {
     using Req = const httplib::Request&;
     using Res = httplib::Response&;
-    http.Post("/v1/search", [this](Req req, Res res) { Search(req, res); });
-    http.Post("/v1/match", [this](Req req, Res res) { Match(req, res); });
-    http.Get("/v1/stats", [this](Req, Res res) { Stats(res); });
-    http.Get("/v1/images", [this](Req req, Res res) { List(req, res); });
-    http.Post("/v1/images", [this](Req req, Res res) { Add(req, res); });
-    http.Post("/v1/images/batch", [this](Req req, Res res) { AddBatch(req, res); });
-    http.Get(R"(/v1/images/(.+))", [this](Req req, Res res) { GetImageOrSubresource(req, res); });
-    http.Delete(R"(/v1/images/(.+))", [this](Req req, Res res) { Delete(req, res); });
-    http.Post("/v1/admin/backup", [this](Req req, Res res) { Backup(req, res); });
-    http.Post("/v1/admin/refresh-statistics", [this](Req req, Res res) { RefreshStatistics(req, res); });
+    server.Post("/v1/search", [this](Req req, Res res) { Search(req, res); });
+    server.Post("/v1/match", [this](Req req, Res res) { Match(req, res); });
+    server.Get("/v1/stats", [this](Req, Res res) { Stats(res); });
+    server.Get("/v1/images", [this](Req req, Res res) { List(req, res); });
+    server.Post("/v1/images", [this](Req req, Res res) { Add(req, res); });
+    server.Post("/v1/images/batch", [this](Req req, Res res) { AddBatch(req, res); });
+    server.Get(R"(/v1/images/(.+))", [this](Req req, Res res) { GetImageOrSubresource(req, res); });
+    server.Delete(R"(/v1/images/(.+))", [this](Req req, Res res) { Delete(req, res); });
+    server.Post("/v1/admin/backup", [this](Req req, Res res) { Backup(req, res); });
+    server.Post("/v1/admin/refresh-statistics", [this](Req req, Res res) { RefreshStatistics(req, res); });
   }
 
   std::shared_ptr<const ClusterFront> front;
