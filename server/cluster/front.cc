@@ -1124,46 +1124,61 @@ void ClusterFront::Impl::VerifyTransitively(const index::QueryOptions& options, 
     const std::vector<std::vector<index::TransitiveAttempt>> attempts =
         index::PlanTransitiveAttempts(scores, tie, results, first, options);
 
-    // Verification, attempt by attempt: (anchor, partition) -> the candidates to verify.
+    // Verification, attempt by attempt: per partition one call (VerifyBatch) with, per anchor, the
+    // candidates it holds whose attempt uses that anchor.
     std::vector<uint8_t> found(last - first, 0);
     for (size_t j = 0; j < static_cast<size_t>(options.transitive_attempts); ++j) {
-      std::map<std::pair<uint32_t, uint32_t>, std::vector<size_t>> groups;
+      std::vector<std::map<uint32_t, std::vector<size_t>>> by_partition(num_partitions);  // anchor -> candidates
+      bool any = false;
       for (size_t c = first; c < last; ++c) {
         const auto& list = attempts[c - first];
         if (results[c].verified || j >= list.size() || failed.Contains(owner_of(c))) continue;
-        groups[{list[j].anchor, owner_of(c)}].push_back(c);
+        by_partition[owner_of(c)][list[j].anchor].push_back(c);
+        any = true;
       }
-      if (groups.empty()) break;
-      const std::vector<std::pair<std::pair<uint32_t, uint32_t>, std::vector<size_t>>> work(groups.begin(), groups.end());
-      std::vector<VerifyReply> replies(work.size());
-      const std::vector<Status> verified = ForEach(work.size(), [&](uint32_t g) -> Status {
-        const auto& [key, positions] = work[g];
-        VerifyRequest request = anchors[key.first];
-        for (size_t c : positions) request.add_ids(results[c].id);
-        auto reply = Call<VerifyReply>(key.second, [&](Shard::Stub& stub, grpc::ClientContext& context, VerifyReply* out) {
-          return stub.Verify(&context, request, out);
+      if (!any) break;
+      std::vector<VerifyBatchReply> replies(num_partitions);
+      const std::vector<Status> verified = ForEach(num_partitions, [&](uint32_t p) -> Status {
+        if (by_partition[p].empty()) return Ok();
+        VerifyBatchRequest request;
+        for (const auto& [anchor, positions] : by_partition[p]) {
+          VerifyRequest* one = request.add_requests();
+          *one = anchors[anchor];
+          for (size_t c : positions) one->add_ids(results[c].id);
+        }
+        auto reply = Call<VerifyBatchReply>(p, [&](Shard::Stub& stub, grpc::ClientContext& context, VerifyBatchReply* out) {
+          return stub.VerifyBatch(&context, request, out);
         });
         if (!reply) return std::unexpected(reply.error());
-        if (static_cast<size_t>(reply->results_size()) != positions.size())
-          return Fail(ErrorCode::kInternal, "a shard verified another number of images than asked");
-        replies[g] = std::move(*reply);
+        if (static_cast<size_t>(reply->replies_size()) != by_partition[p].size())
+          return Fail(ErrorCode::kInternal, "a shard answered another number of verifications than asked");
+        size_t g = 0;
+        for (const auto& [anchor, positions] : by_partition[p])
+          if (static_cast<size_t>(reply->replies(static_cast<int>(g++)).results_size()) != positions.size())
+            return Fail(ErrorCode::kInternal, "a shard verified another number of images than asked");
+        replies[p] = std::move(*reply);
         return Ok();
       });
-      for (size_t g = 0; g < work.size(); ++g) {
-        failed.Record(work[g].first.second, verified[g]);
-        if (!verified[g]) continue;
-        const index::QueryResult& anchor = results[pool[used + work[g].first.first]];
-        for (size_t i = 0; i < work[g].second.size(); ++i) {
-          const Verification& v = replies[g].results(static_cast<int>(i));
-          if (!v.verified() || v.db_from_query_size() != 6 || v.db_region_size() != 4) continue;
-          index::QueryResult& r = results[work[g].second[i]];
-          sift::Affine2D from_anchor;
-          std::copy(v.db_from_query().begin(), v.db_from_query().end(), from_anchor.m.begin());
-          r.verified = true;
-          r.inliers = v.inliers();
-          r.db_from_query = index::Compose(from_anchor, anchor.db_from_query);
-          std::copy(v.db_region().begin(), v.db_region().end(), r.db_region.begin());
-          found[work[g].second[i] - first] = 1;
+      for (uint32_t p = 0; p < num_partitions; ++p) {
+        if (by_partition[p].empty()) continue;
+        failed.Record(p, verified[p]);
+        if (!verified[p]) continue;
+        size_t g = 0;
+        for (const auto& [anchor_index, positions] : by_partition[p]) {
+          const VerifyReply& reply = replies[p].replies(static_cast<int>(g++));
+          const index::QueryResult& anchor = results[pool[used + anchor_index]];
+          for (size_t i = 0; i < positions.size(); ++i) {
+            const Verification& v = reply.results(static_cast<int>(i));
+            if (!v.verified() || v.db_from_query_size() != 6 || v.db_region_size() != 4) continue;
+            index::QueryResult& r = results[positions[i]];
+            sift::Affine2D from_anchor;
+            std::copy(v.db_from_query().begin(), v.db_from_query().end(), from_anchor.m.begin());
+            r.verified = true;
+            r.inliers = v.inliers();
+            r.db_from_query = index::Compose(from_anchor, anchor.db_from_query);
+            std::copy(v.db_region().begin(), v.db_region().end(), r.db_region.begin());
+            found[positions[i] - first] = 1;
+          }
         }
       }
     }

@@ -13,7 +13,8 @@
 //      results') stored features, the front keeps those inside each anchor's matched region; the
 //      partitions score these regions against the ranking so far (ScoreAmong, from the images' bags),
 //      index::PlanTransitiveAttempts picks each unverified candidate's anchors, and the candidates'
-//      owners verify them against the anchors' features (Verify), attempt after attempt.
+//      owners verify them against the anchors' features, attempt after attempt (VerifyBatch: one call
+//      per partition and attempt).
 // With no write in flight the ranking (ids, order, scores, verified, inliers) is the single node's
 // (ties in tf-idf score, and in an anchor's neighbour scores, are broken by id instead of image number).
 // QuerySimilar runs the same stages with an indexed image's stored keypoints and words, which its owner

@@ -73,26 +73,16 @@ class ShardServer::Impl final : public Shard::Service {
     const auto service = Current();
     if (!service) return NotReady();
     Stamp(context, *service);
-    if (request->keypoints_size() != request->words_size() || request->region_size() != 4)
-      return {grpc::StatusCode::INVALID_ARGUMENT, "one word per keypoint and a region of 4 values"};
-    std::vector<sift::Keypoint> keypoints;
-    keypoints.reserve(static_cast<size_t>(request->keypoints_size()));
-    for (const Keypoint& k : request->keypoints()) keypoints.push_back(FromProto(k));
-    index::QueryOptions options;
-    options.max_pairs_per_word = request->max_pairs_per_word();
-    options.verify.min_inliers = request->min_inliers();
-    if (auto message = options.Check()) return {grpc::StatusCode::INVALID_ARGUMENT, *message};
-    const std::vector<std::string> ids(request->ids().begin(), request->ids().end());
-    auto verified = service->index().VerifyImages(
-        keypoints, {request->words().data(), static_cast<size_t>(request->words_size())}, Box(request->region()), ids,
-        options);
-    if (!verified) return ToGrpc(verified.error());
-    for (const sift::VerificationResult& v : *verified) {
-      Verification* out = reply->add_results();
-      out->set_verified(v.verified);
-      out->set_inliers(v.num_inliers);
-      for (double m : v.db_from_query.m) out->add_db_from_query(m);
-      for (float b : v.db_region) out->add_db_region(b);
+    return VerifyOne(*service, *request, reply);
+  }
+
+  grpc::Status VerifyBatch(grpc::ServerContext* context, const VerifyBatchRequest* request,
+                           VerifyBatchReply* reply) override {
+    const auto service = Current();
+    if (!service) return NotReady();
+    Stamp(context, *service);
+    for (const VerifyRequest& one : request->requests()) {
+      if (grpc::Status status = VerifyOne(*service, one, reply->add_replies()); !status.ok()) return status;
     }
     return grpc::Status::OK;
   }
@@ -267,6 +257,31 @@ class ShardServer::Impl final : public Shard::Service {
   }
 
  private:
+  static grpc::Status VerifyOne(const api::Service& service, const VerifyRequest& request, VerifyReply* reply) {
+    if (request.keypoints_size() != request.words_size() || request.region_size() != 4)
+      return {grpc::StatusCode::INVALID_ARGUMENT, "one word per keypoint and a region of 4 values"};
+    std::vector<sift::Keypoint> keypoints;
+    keypoints.reserve(static_cast<size_t>(request.keypoints_size()));
+    for (const Keypoint& k : request.keypoints()) keypoints.push_back(FromProto(k));
+    index::QueryOptions options;
+    options.max_pairs_per_word = request.max_pairs_per_word();
+    options.verify.min_inliers = request.min_inliers();
+    if (auto message = options.Check()) return {grpc::StatusCode::INVALID_ARGUMENT, *message};
+    const std::vector<std::string> ids(request.ids().begin(), request.ids().end());
+    auto verified = service.index().VerifyImages(
+        keypoints, {request.words().data(), static_cast<size_t>(request.words_size())}, Box(request.region()), ids,
+        options);
+    if (!verified) return ToGrpc(verified.error());
+    for (const sift::VerificationResult& v : *verified) {
+      Verification* out = reply->add_results();
+      out->set_verified(v.verified);
+      out->set_inliers(v.num_inliers);
+      for (double m : v.db_from_query.m) out->add_db_from_query(m);
+      for (float b : v.db_region) out->add_db_region(b);
+    }
+    return grpc::Status::OK;
+  }
+
   std::shared_ptr<api::Service> Current() const {
     std::lock_guard<std::mutex> lock(mutex_);
     return service_;
