@@ -324,6 +324,17 @@ Result<AddBatchResponse> Service::AddImages(const AddBatchRequest& request) {
 
 Result<index::ImageRecord> Service::GetImage(const std::string& id) const { return index_->Get(id); }
 
+namespace {
+// What a backup copies beside the index: the thumbnails and, in a cluster partition, the cluster's
+// statistics it scores with (a restored partition then scores as before).
+index::BackupOptions BackupOptionsOfAFolder() {
+  index::BackupOptions options;
+  options.extra_databases = {kThumbnailFile};
+  options.extra_files = {std::string(kGlobalFrequenciesFile)};
+  return options;
+}
+}  // namespace
+
 Status Service::StoreClusterStatistics(const GlobalFrequencies& frequencies) {
   std::lock_guard<std::mutex> lock(write_mutex_);
   return api::StoreClusterStatistics(index_->directory(), *index_, frequencies);
@@ -340,16 +351,13 @@ Status Service::DeleteImage(const std::string& id) {
 }
 
 Result<index::BackupResult> Service::Backup(const std::string& out) const {
-  index::BackupOptions options;
-  options.extra_databases = {kThumbnailFile};
+  index::BackupOptions options = BackupOptionsOfAFolder();
   options.snapshot_mutex = &write_mutex_;
   return index::BackupIndex(index_->directory(), out, options);
 }
 
 Result<index::BackupResult> Service::BackupFolder(const std::string& index_dir, const std::string& out) {
-  index::BackupOptions options;
-  options.extra_databases = {kThumbnailFile};
-  return index::BackupIndex(index_dir, out, options);
+  return index::BackupIndex(index_dir, out, BackupOptionsOfAFolder());
 }
 
 Result<ListResponse> Service::ListImages(uint64_t offset, uint64_t limit) const {

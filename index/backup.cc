@@ -274,6 +274,15 @@ Result<BackupResult> WriteBackup(const std::string& dir, const std::string& tmp,
   auto bytes = CopyFile(fd, vocabulary, (fs::path(tmp) / kVocabularyFile).string());
   if (!bytes) return std::unexpected(bytes.error());
   result.bytes += *bytes;
+  for (const std::string& name : options.extra_files) {
+    const std::string source = (fs::path(dir) / name).string();
+    Fd extra(::open(source.c_str(), O_RDONLY | O_CLOEXEC));
+    if (extra.get() < 0 && errno == ENOENT) continue;
+    if (extra.get() < 0) return Fail(ErrorCode::kIoError, "cannot open " + source + ": " + Errno());
+    auto extra_bytes = CopyFile(extra, source, (fs::path(tmp) / name).string());
+    if (!extra_bytes) return std::unexpected(extra_bytes.error());
+    result.bytes += *extra_bytes;
+  }
   if (auto s = SyncPath(tmp, O_RDONLY | O_DIRECTORY); !s) return std::unexpected(s.error());
   return result;
 }

@@ -29,6 +29,10 @@ struct BackupOptions {
   // Further SQLite files of the folder (names relative to it) copied like the catalogue, each in a read
   // transaction begun right after the catalogue's; skipped when absent.
   std::vector<std::string> extra_databases;
+  // Further plain files of the folder copied as they are, when present: files only ever replaced whole
+  // (written beside and renamed), such as a cluster partition's statistics. Copied after the snapshots:
+  // one replaced meanwhile is copied as it is then.
+  std::vector<std::string> extra_files;
   // When set, held while the read transactions begin: a writer of this process that commits to the
   // catalogue and the extra databases under this mutex then cannot commit between them.
   std::mutex* snapshot_mutex = nullptr;

@@ -647,6 +647,12 @@ TEST_F(Cluster, HttpFrontWritesOnEveryReplicaOfTheOwnerPartition) {
     EXPECT_EQ(part["partition"], p);
     EXPECT_EQ(part["out"], api::PartitionFolder(backup, p)) << backed->body;
     EXPECT_TRUE(index::ImageIndex::Exists(api::PartitionFolder(backup, p)));
+    // With the cluster's statistics the partition scores with (a restored partition scores as before).
+    const auto statistics = api::ReadGlobalFrequencies(
+        (fs::path(api::PartitionFolder(backup, p)) / api::kGlobalFrequenciesFile).string());
+    ASSERT_TRUE(statistics) << statistics.error().ToString();
+    EXPECT_EQ(statistics->partition, static_cast<uint32_t>(p));
+    EXPECT_EQ(statistics->num_partitions, static_cast<uint32_t>(kPartitions));
     EXPECT_EQ(part["images"], GetJson(*shards_[shard_of[p][0]], "/v1/stats").second["images"]) << p;
     backed_up += part["images"].get<int64_t>();
   }
