@@ -6,14 +6,6 @@
 #include <numeric>
 
 namespace oxbow::index {
-namespace {
-// idf^2 of a word, 0 for a word in no image.
-double IdfSquared(const std::function<double(uint32_t)>& idf, uint32_t word) {
-  const double v = idf(word);
-  return std::isfinite(v) ? v * v : 0.0;
-}
-}  // namespace
-
 double HammingWeight(uint64_t a, uint64_t b, const HammingWeighting& weighting) {
   const int h = std::popcount(a ^ b);
   if (h > weighting.threshold) return 0;
@@ -21,17 +13,35 @@ double HammingWeight(uint64_t a, uint64_t b, const HammingWeighting& weighting) 
 }
 
 QuerySignatures::QuerySignatures(std::span<const uint32_t> words, std::span<const uint64_t> signatures,
-                                 std::function<double(uint32_t)> idf, const HammingWeighting& weighting)
-    : idf_(std::move(idf)), weighting_(weighting) {
+                                 std::function<double(uint32_t)> idf, size_t vocabulary_size,
+                                 const HammingWeighting& weighting)
+    : idf_(std::move(idf)), idf_squared_(vocabulary_size) {
   OXBOW_CHECK(words.size() == signatures.size());
+  for (auto& v : idf_squared_) v.store(-1.0, std::memory_order_relaxed);
+  // Same values as HammingWeight: popcount(a ^ b) is the distance.
+  for (size_t h = 0; h < weight_.size(); ++h) {
+    weight_[h] = HammingWeight(0, h == 64 ? ~0ull : (1ull << h) - 1, weighting);
+  }
   std::vector<uint32_t> order(words.size());
   std::iota(order.begin(), order.end(), 0u);
   std::stable_sort(order.begin(), order.end(), [&](uint32_t a, uint32_t b) { return words[a] < words[b]; });
   for (const uint32_t i : order) {
     words_.push_back(words[i]);
     signatures_.push_back(signatures[i]);
-    self_ += IdfSquared(idf_, words[i]);
+    self_ += IdfSquared(words[i]);
   }
+}
+
+double QuerySignatures::IdfSquared(uint32_t word) const {
+  OXBOW_CHECK(word < idf_squared_.size(), "word outside the vocabulary");
+  std::atomic<double>& slot = idf_squared_[word];
+  double v = slot.load(std::memory_order_relaxed);
+  if (v < 0) {  // several threads may compute the same value; each stores it
+    const double idf = idf_(word);
+    v = std::isfinite(idf) ? idf * idf : 0.0;
+    slot.store(v, std::memory_order_relaxed);
+  }
+  return v;
 }
 
 double QuerySignatures::Score(const PackedFeatures& db) const {
@@ -44,7 +54,7 @@ double QuerySignatures::Score(const PackedFeatures& db) const {
     const uint32_t w = db.word(j);
     size_t j2 = j + 1;
     while (j2 < nd && db.word(j2) == w) ++j2;
-    const double idf2 = IdfSquared(idf_, w);
+    const double idf2 = IdfSquared(w);
     self_db += idf2 * static_cast<double>(j2 - j);
     while (i < nq && words_[i] < w) ++i;
     size_t i2 = i;
@@ -56,7 +66,7 @@ double QuerySignatures::Score(const PackedFeatures& db) const {
       db_total.assign(cd, 0.0);
       for (size_t a = 0; a < cq; ++a) {
         for (size_t b = 0; b < cd; ++b) {
-          const double s = HammingWeight(signatures_[i + a], db.signature(j + b), weighting_);
+          const double s = weight_[std::popcount(signatures_[i + a] ^ db.signature(j + b))];
           strength[a * cd + b] = s;
           query_total[a] += s;
           db_total[b] += s;

@@ -16,8 +16,11 @@
 // Cost of Score: O(|query| + |candidate|) for the merge join, plus O(cq * cd) per shared word.
 #pragma once
 
+#include <array>
+#include <atomic>
 #include <cstdint>
 #include <functional>
+#include <memory>
 #include <span>
 #include <vector>
 
@@ -36,18 +39,25 @@ double HammingWeight(uint64_t a, uint64_t b, const HammingWeighting& weighting);
 class QuerySignatures {
  public:
   // words[i] and signatures[i] of each query feature (same length); idf(w) the inverse document
-  // frequency of word w (+infinity or NaN for a word in no image: such words are ignored).
+  // frequency of word w (+infinity or NaN for a word in no image: such words are ignored), for words
+  // below vocabulary_size (every word of the query and of the candidates).
   QuerySignatures(std::span<const uint32_t> words, std::span<const uint64_t> signatures,
-                  std::function<double(uint32_t)> idf, const HammingWeighting& weighting);
+                  std::function<double(uint32_t)> idf, size_t vocabulary_size, const HammingWeighting& weighting);
 
   // The score of `candidate` (which must have signatures). 0 when nothing matches.
   double Score(const PackedFeatures& candidate) const;
 
  private:
+  // idf(w)^2, 0 for a word in no image; computed once per word and query, from any thread.
+  double IdfSquared(uint32_t word) const;
+
   std::vector<uint32_t> words_;       // sorted
   std::vector<uint64_t> signatures_;  // in words_' order
   std::function<double(uint32_t)> idf_;
-  HammingWeighting weighting_;
+  std::array<double, 65> weight_{};   // s_ij by Hamming distance (0 above the threshold)
+  // idf^2 by word, grown on demand (a negative entry: not computed yet). Candidates share most words,
+  // and a logarithm per word of every candidate was most of Score's time.
+  mutable std::vector<std::atomic<double>> idf_squared_;
   double self_ = 0;                   // N_q
 };
 

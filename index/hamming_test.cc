@@ -64,7 +64,7 @@ TEST(QuerySignaturesTest, ScoresMatchingSignaturesAndDownWeightsBursts) {
   // Query: words 1, 2, 99 (99 is in no image: ignored).
   const std::vector<uint32_t> words = {1, 2, 99};
   const std::vector<uint64_t> signatures = {0x0ull, 0xFFFF0000ull, 0x1ull};
-  const QuerySignatures query(words, signatures, idf, weighting);
+  const QuerySignatures query(words, signatures, idf, 100, weighting);
   // The same image scores 1 (each feature matches itself only): N_q = 2^2 + 3^2 = N_d.
   EXPECT_NEAR(query.Score(Packed({1, 2}, {0x0ull, 0xFFFF0000ull})), 1.0, 1e-12);
   // Word 2's signature far away: only word 1 matches, 4 / sqrt(13 * 13).
@@ -249,6 +249,7 @@ TEST_F(HammingIndexTest, SignaturesDecideBetweenImagesWithTheSameWords) {
     options.top_k = 5;
     options.rerank_depth = 0;
     options.query_expansion = false;
+    options.hamming = false;
     auto tfidf = (*index)->Query(Image(query, 9), options);
     ASSERT_TRUE(tfidf);
     ASSERT_GE(tfidf->results.size(), 2u);

@@ -1137,7 +1137,8 @@ void ImageIndex::Impl::RescoreHamming(const Snapshot& snap, const QueryFeatures&
                                       std::vector<ScoredImage>& scored) const {
   const size_t shortlist = std::min(scored.size(), static_cast<size_t>(options.hamming_shortlist));
   const QuerySignatures signatures(
-      query.words, query.signatures, [&snap](uint32_t w) { return snap.inverted.Idf(w); }, WeightingOf(options));
+      query.words, query.signatures, [&snap](uint32_t w) { return snap.inverted.Idf(w); }, snap.inverted.vocabulary_size(),
+      WeightingOf(options));
   std::vector<uint32_t> images(shortlist);
   for (size_t c = 0; c < shortlist; ++c) images[c] = scored[c].image;
   const std::vector<double> scores = HammingScores(snap, signatures, images, index_options.num_threads);
@@ -1167,7 +1168,8 @@ void ImageIndex::Impl::ExpandQueryHamming(const Snapshot& snap, const QueryFeatu
     }
   }
   const QuerySignatures expanded(
-      words, signatures, [&snap](uint32_t w) { return snap.inverted.Idf(w); }, WeightingOf(options));
+      words, signatures, [&snap](uint32_t w) { return snap.inverted.Idf(w); }, snap.inverted.vocabulary_size(),
+      WeightingOf(options));
   std::vector<uint32_t> images(results.size() - num_verified);
   for (size_t c = num_verified; c < results.size(); ++c) snap.Find(results[c].id, &images[c - num_verified]);
   const std::vector<double> scores = HammingScores(snap, expanded, images, index_options.num_threads);

@@ -33,7 +33,8 @@ TEST(HammingCli, TrainIndexAndSearchWithSignatures) {
   fs::create_directories(path("photos"));
   for (const char* name : {"box.png", "graf1.png", "graf3.png"}) fs::copy_file(kSamples / name, path("photos/") + name);
   int rc = 0;
-  std::string out = RunCommand(Oxbow("vocab train --images " + path("photos") + " --words 1000 --hamming --out " +
+  // The parameters are learnt by default.
+  std::string out = RunCommand(Oxbow("vocab train --images " + path("photos") + " --words 1000 --out " +
                                      path("he.oxvoc")),
                                &rc);
   ASSERT_EQ(rc, 0) << out;
@@ -41,7 +42,8 @@ TEST(HammingCli, TrainIndexAndSearchWithSignatures) {
   ASSERT_EQ(rc, 0) << out;
   EXPECT_NE(out.find("hamming      64-bit embedding"), std::string::npos) << out;
 
-  out = RunCommand(Oxbow("vocab train --images " + path("photos") + " --words 64 --out " + path("plain.oxvoc")), &rc);
+  out = RunCommand(
+      Oxbow("vocab train --images " + path("photos") + " --words 64 --no-hamming --out " + path("plain.oxvoc")), &rc);
   ASSERT_EQ(rc, 0) << out;
   out = RunCommand(Oxbow("vocab hamming --vocab " + path("plain.oxvoc") + " --images " + path("photos") + " --out " +
                          path("added.oxvoc")),

@@ -84,13 +84,27 @@ std::vector<float> RandomOrthogonalRows(int dimension, uint64_t seed) {
   return {rows.begin(), rows.end()};
 }
 
-// out[0, 64) = projection x descriptor.
-void Project(const std::vector<float>& projection, const float* descriptor, int dimension, float* out) {
+// The 64 x dimension projection (row-major) transposed to dimension x 64, which Project reads.
+std::vector<float> Transposed(const std::vector<float>& projection, int dimension) {
   const auto d = static_cast<size_t>(dimension);
+  std::vector<float> out(projection.size());
   for (size_t r = 0; r < kHammingBits; ++r) {
-    const float* row = projection.data() + r * d;
-    out[r] = std::inner_product(row, row + d, descriptor, 0.0f);
+    for (size_t c = 0; c < d; ++c) out[c * kHammingBits + r] = projection[r * d + c];
   }
+  return out;
+}
+
+// out = projection * descriptor, from the transposed projection: the 64 sums run side by side (the
+// compiler vectorises the inner loop); 64 dot products, each a serial float reduction, were about 19x
+// slower (3000 descriptors: 12 ms against 0.6 ms, -O3 -march=native, one core).
+void Project(const std::vector<float>& transposed, const float* descriptor, int dimension, float* out) {
+  std::array<float, kHammingBits> sum{};
+  for (size_t c = 0; c < static_cast<size_t>(dimension); ++c) {
+    const float x = descriptor[c];
+    const float* column = transposed.data() + c * kHammingBits;
+    for (size_t r = 0; r < kHammingBits; ++r) sum[r] += column[r] * x;
+  }
+  std::copy(sum.begin(), sum.end(), out);
 }
 }  // namespace
 
@@ -268,9 +282,10 @@ void Vocabulary::Signatures(std::span<const float> descriptors, std::span<const 
   OXBOW_CHECK(descriptors.size() == words.size() * s.dimension && signatures.size() == words.size(),
               "one word and one signature per descriptor");
   std::array<float, kHammingBits> projected{};
+  const std::vector<float> transposed = Transposed(s.projection, s.dimension);
   for (size_t i = 0; i < words.size(); ++i) {
     OXBOW_CHECK(words[i] < size(), "word outside the vocabulary");
-    Project(s.projection, descriptors.data() + i * s.dimension, s.dimension, projected.data());
+    Project(transposed, descriptors.data() + i * s.dimension, s.dimension, projected.data());
     const float* median = s.medians.data() + size_t{words[i]} * kHammingBits;
     uint64_t bits = 0;
     for (int b = 0; b < kHammingBits; ++b) bits |= uint64_t{projected[b] > median[b]} << b;
@@ -302,8 +317,9 @@ Result<Vocabulary> Vocabulary::WithHamming(std::span<const float> training, uint
   std::partial_sum(begin.begin(), begin.end(), begin.begin());
   std::vector<size_t> next(begin.begin(), begin.end() - 1);
   std::vector<float> projected(n * kHammingBits);
+  const std::vector<float> transposed = Transposed(state->projection, s.dimension);
   for (size_t i = 0; i < n; ++i) {
-    Project(state->projection, training.data() + i * s.dimension, s.dimension,
+    Project(transposed, training.data() + i * s.dimension, s.dimension,
             projected.data() + next[words[i]]++ * kHammingBits);
   }
   state->medians.resize(k * kHammingBits);
@@ -312,7 +328,7 @@ Result<Vocabulary> Vocabulary::WithHamming(std::span<const float> training, uint
     float* median = state->medians.data() + w * kHammingBits;
     const size_t count = begin[w + 1] - begin[w];
     if (count == 0) {
-      Project(state->projection, s.centroids.data() + w * s.dimension, s.dimension, median);
+      Project(transposed, s.centroids.data() + w * s.dimension, s.dimension, median);
       continue;
     }
     for (size_t b = 0; b < kHammingBits; ++b) {

@@ -29,6 +29,7 @@
 #include "server/cli/common_flags.h"
 #include "sift/base/log.h"
 #include "sift/sift.h"
+#include "vocab/vocabulary.h"
 
 // After Eigen (via index/ and sift/ headers): httplib pulls in <resolv.h>, whose `_res` macro breaks
 // Eigen's headers when they come later.
@@ -56,7 +57,8 @@ struct EvalArgs {
   std::vector<int> rerank = {index::QueryOptions{}.rerank_depth};  // the server's default
   std::vector<std::string> qe = {"on"};
   std::vector<std::string> transitive = {"on"};  // transitive verification (the server's default) on/off
-  std::vector<std::string> hamming = {"off"};     // Hamming-embedding re-scoring on/off
+  // Hamming-embedding re-scoring on/off (the server's default).
+  std::vector<std::string> hamming = {index::QueryOptions{}.hamming ? "on" : "off"};
   // With hamming on: the match thresholds and weight widths to compare (the server's defaults).
   std::vector<int> hamming_threshold = {index::QueryOptions{}.hamming_threshold};
   std::vector<double> hamming_sigma = {index::QueryOptions{}.hamming_sigma};
@@ -252,10 +254,19 @@ void Prepare(const EvalArgs& a, const Config& c, const std::map<std::string, std
     if (a.per_image > 0) args.insert(args.end(), {"--per-image", std::to_string(a.per_image)});
     if (a.iterations > 0) args.insert(args.end(), {"--iterations", std::to_string(a.iterations)});
     if (a.threads > 0) args.insert(args.end(), {"--threads", std::to_string(a.threads)});
-    if (std::find(a.hamming.begin(), a.hamming.end(), "on") != a.hamming.end()) args.emplace_back("--hamming");
+    const bool hamming = std::find(a.hamming.begin(), a.hamming.end(), "on") != a.hamming.end();
+    args.emplace_back(hamming ? "--hamming" : "--no-hamming");
     const auto t0 = Clock::now();
     RunChild(args);
     base->build_vocab_s = std::chrono::duration<double>(Clock::now() - t0).count();
+  }
+  // A cached vocabulary from before Hamming embedding was the default would make the "+he" rows
+  // measure plain tf-idf (an index without signatures ignores the switch).
+  if (std::find(a.hamming.begin(), a.hamming.end(), "on") != a.hamming.end() &&
+      !ValueOrExit(vocab::Vocabulary::Read(vocab)).has_hamming()) {
+    throw CommandError(2, "--hamming on: " + vocab + " has no Hamming-embedding parameters; add them with 'oxbow vocab "
+                          "hamming --vocab " + vocab + " --list " + (fs::path(c.Dir(a.work)) / "train_images.txt").string() +
+                          " --out V2' and replace it (then delete the index beside it), or pass --hamming off");
   }
   const fs::path list_path = fs::path(c.Dir(a.work)) / "database_images.txt";
   const fs::path complete = fs::path(c.Dir(a.work)) / "index.complete";

@@ -33,8 +33,9 @@ inline void AddSearchFlags(CLI::App* cmd, index::QueryOptions* o) {
   add("--assignment-sigma-sq", &o->assignment_sigma_sq, "multiple assignment: kernel width (squared distance)", 1e-9,
       4.0);
   cmd->add_flag("--hamming,!--no-hamming", o->hamming,
-                "Hamming embedding: re-score the tf-idf shortlist by matching signatures (needs a vocabulary from "
-                "'vocab train --hamming' or 'vocab hamming' and images indexed with it)")
+                "Hamming embedding, on by default: re-score the tf-idf shortlist by matching signatures (needs a "
+                "vocabulary with the parameters, which 'vocab train' learns by default or 'vocab hamming' adds, and "
+                "images indexed with it; ignored otherwise)")
       ->group("Search");
   add("--hamming-shortlist", &o->hamming_shortlist, "Hamming embedding: tf-idf candidates re-scored", 1, 10000);
   add("--hamming-threshold", &o->hamming_threshold, "Hamming embedding: largest distance (bits) that matches", 0, 64);

@@ -41,7 +41,7 @@ struct VocabTrainArgs {
   bool mpi = false;
   std::string checkpoint;  // --mpi: k-means checkpoint file ("" = <out>.checkpoint)
   int stop_after = 0;      // --mpi: iterations this run (0 = to the end)
-  bool hamming = false;    // also learn Hamming-embedding parameters from the sample
+  bool hamming = true;     // also learn Hamming-embedding parameters from the sample
   std::string vocab_in;    // `vocab hamming`: the vocabulary to extend
 };
 
@@ -374,14 +374,20 @@ void SetUpVocab(CLI::App& app) {
       ->capture_default_str()
       ->check(CLI::Range(0, 1000))
       ->group("Distributed (MPI)");
-  train->add_flag("--hamming", args->hamming,
-                  "also learn Hamming-embedding parameters (a random orthogonal projection to 64 bits, seeded by "
-                  "--seed, and per word the medians of the projected sample: Jegou et al. 2008), used by searches "
-                  "with --hamming; adds 256 bytes per word to the file");
-  train->callback([args] {
-    if (args->hamming && args->mpi)
+  auto* hamming_flag = train->add_flag(
+      "--hamming,!--no-hamming", args->hamming,
+      "also learn Hamming-embedding parameters (a random orthogonal projection to 64 bits, seeded by --seed, and "
+      "per word the medians of the projected sample: Jegou et al. 2008), which searches use by default; adds 256 "
+      "bytes per word to the file. On by default, except with --mpi");
+  train->callback([args, hamming_flag] {
+    if (args->mpi && hamming_flag->count() > 0 && args->hamming)
       throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), "--hamming is not available with --mpi: add the "
                                                                    "parameters afterwards with 'oxbow vocab hamming'");
+    if (args->mpi && args->hamming) {
+      args->hamming = false;
+      OXBOW_LOG(kInfo) << "--mpi: the vocabulary gets no Hamming-embedding parameters (searches then score without "
+                          "them); add them afterwards with 'oxbow vocab hamming'";
+    }
     if (!args->mpi) {
       if (!args->checkpoint.empty() || args->stop_after != 0)
         throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), "--checkpoint and --stop-after-iterations need --mpi");

@@ -81,13 +81,17 @@ std::optional<Error> ShardRefusal(const grpc::Status& status) {
 }
 
 // Options the front refuses rather than ignores: an unfiltered or differently scored answer would look
-// like a valid one.
-Status CheckServed(const index::QueryOptions& options) {
+// like a valid one. Hamming embedding only changes anything with a vocabulary that has its parameters
+// (a single node ignores it otherwise, and so does the front).
+Status CheckServed(const index::QueryOptions& options, const vocab::Vocabulary& vocabulary) {
   if (auto e = options.Check()) return Fail(ErrorCode::kInvalidArgument, "query options: " + *e);
   if (options.query_assignments != 1)
     return Fail(ErrorCode::kInvalidArgument, "query_assignments > 1 is not served by a cluster front yet");
   if (options.filter) return Fail(ErrorCode::kInvalidArgument, "filter is not served by a cluster front yet");
-  if (options.hamming) return Fail(ErrorCode::kInvalidArgument, "hamming is not served by a cluster front yet");
+  if (options.hamming && vocabulary.has_hamming()) {
+    return Fail(ErrorCode::kInvalidArgument,
+                "hamming is not served by a cluster front yet: search with hamming=false (the front's default)");
+  }
   return Ok();
 }
 
@@ -821,7 +825,7 @@ Result<std::vector<ClusterFront::PartitionBackup>> ClusterFront::Backup(const st
 Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, const index::QueryOptions& options,
                                                  bool allow_partial, Coverage* coverage) const {
   const auto t0 = Clock::now();
-  if (auto s = CheckServed(options); !s) return std::unexpected(s.error());
+  if (auto s = CheckServed(options, impl_->vocabulary); !s) return std::unexpected(s.error());
   if (query.kind != impl_->vocabulary.descriptor_kind())
     return Fail(ErrorCode::kIncompatible, "the query's descriptors are not of the vocabulary's kind");
   // Quantise the features inside the region once, as ImageIndex::Query does.
@@ -844,7 +848,7 @@ Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, 
 Result<api::SearchResponse> ClusterFront::QuerySimilar(const std::string& id, const index::QueryOptions& options,
                                                        bool allow_partial, Coverage* coverage) const {
   const auto t0 = Clock::now();
-  if (auto s = CheckServed(options); !s) return std::unexpected(s.error());
+  if (auto s = CheckServed(options, impl_->vocabulary); !s) return std::unexpected(s.error());
   ImageRequest request;
   request.set_id(id);
   auto stored = impl_->Call<FeaturesReply>(

@@ -11,6 +11,7 @@
 #include "api/errors.h"
 #include "api/json.h"
 #include "api/params.h"
+#include "sift/base/log.h"
 #include "sift/sift.h"
 // After the project headers: <httplib.h> defines a `_res` macro that breaks Eigen.
 #include <httplib.h>
@@ -268,7 +269,13 @@ Result<std::unique_ptr<FrontHttpServer>> FrontHttpServer::Create(std::shared_ptr
   sift_options->num_threads = options.service.threads_per_request;
   auto extractor = sift::SiftExtractor::Create(*sift_options);
   if (!extractor) return std::unexpected(extractor.error());
-  auto impl = std::make_unique<Impl>(std::move(front), *extractor, options);
+  FrontHttpOptions served = options;
+  if (served.service.default_query.hamming && front->vocabulary().has_hamming()) {
+    served.service.default_query.hamming = false;
+    OXBOW_LOG(kWarning) << "the cluster front searches without Hamming embedding (not served across partitions yet): "
+                           "its rankings are a single node's with --no-hamming, and hamming=true is refused";
+  }
+  auto impl = std::make_unique<Impl>(std::move(front), *extractor, served);
   Impl* i = impl.get();
   i->http = std::make_unique<server::HttpServer>(
       options.http, server::CustomRoutes{[i](httplib::Server& http) { i->Register(http); },
