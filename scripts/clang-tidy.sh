@@ -7,6 +7,17 @@
 # exceeds it fails the run, so a pathological analysis cannot stall CI). Prints every finding, the
 # slowest files and the total; exit 0 only when every file is clean. Per-file output: BUILD_DIR/clang-tidy/.
 #
+# Files analysed clean before with exactly the same input are not analysed again. A file's key is the
+# SHA-256 of: clang-tidy's version, .clang-tidy, this script's check options, the file's compile command,
+# and its whole translation unit as clang 16 preprocesses it with that command (every header it
+# includes, comments kept so NOLINT markers count, line markers kept), with the checkout's path replaced
+# by a placeholder so clones anywhere share keys. .ci/clang-tidy-clean.txt lists the keys of clean
+# files ($OXBOW_TIDY_LEDGER overrides it; "none" disables the ledger). A file whose key is listed is
+# reported as unchanged; any other file is analysed. Every run writes the keys of its clean files to
+# BUILD_DIR/clang-tidy/clean-ledger.txt; OXBOW_TIDY_LEDGER_UPDATE=1 also copies it over the ledger
+# (commit it with the change that was analysed). The ledger only saves time: without it, or with a
+# stale one, every changed file is analysed as before.
+#
 # oxbow is C++23 built with GCC 12; clang-tidy 16 parses it as C++2b. libstdc++ 12 only declares
 # std::expected when __cpp_concepts >= 202002L, which clang 16 implements (P0848, conditionally trivial
 # special members) but still advertises as 201907L, so the macro is raised (-U then -D, which warns
@@ -27,19 +38,43 @@ fi
 cmake --build "$build_dir" --target oxbow_generated_sources >/dev/null
 out=$build_dir/clang-tidy
 rm -rf "$out" && mkdir -p "$out"
-mapfile -t files < <(python3 - "$build_dir/compile_commands.json" "$files_regex" <<'EOF'
-import json, os, re, sys
+# Each selected file, and beside it (in $out/<path with / as _>.pp) the command that preprocesses it as
+# the analysis sees it: its compile command run by clang++-16 with -E -C, without -c and -o.
+mapfile -t files < <(python3 - "$build_dir/compile_commands.json" "$files_regex" "$out" <<'EOF'
+import json, os, re, shlex, sys
 entries = json.load(open(sys.argv[1]))
 pattern = re.compile(sys.argv[2])
-paths = {os.path.normpath(os.path.join(e["directory"], e["file"])) for e in entries}
-print("\n".join(sorted(p for p in paths if pattern.search(p))))
+selected = {}
+for e in entries:
+    path = os.path.normpath(os.path.join(e["directory"], e["file"]))
+    if pattern.search(path):
+        selected[path] = e
+for path in sorted(selected):
+    e = selected[path]
+    args = shlex.split(e["command"]) if "command" in e else list(e["arguments"])
+    pp, skip = ["clang++-16"], False
+    for a in args[1:]:
+        if skip:
+            skip = False
+        elif a == "-o":
+            skip = True
+        elif a != "-c":
+            pp.append(a)
+    pp += ["-E", "-C", "-o", "-"]
+    with open(os.path.join(sys.argv[3], path.replace("/", "_") + ".pp"), "w") as f:
+        f.write("cd " + shlex.quote(e["directory"]) + " && " + shlex.join(pp) + "\n")
+    print(path)
 EOF
 )
 if [[ ${#files[@]} -eq 0 ]]; then
   echo "clang-tidy.sh: no file of $build_dir/compile_commands.json matches $files_regex" >&2
   exit 1
 fi
-export tidy build_dir out
+ledger=${OXBOW_TIDY_LEDGER:-$root/.ci/clang-tidy-clean.txt}
+[[ "$ledger" == none || -f "$ledger" ]] || ledger=none
+# What every key starts with: the analyser, its profile, and this script's check options below.
+tidy_context=$({ "$tidy" --version; cat "$root/.clang-tidy"; sed -n '/^check_one() {/,/^}/p' "$0"; } | sha256sum | cut -d' ' -f1)
+export tidy build_dir out root ledger tidy_context
 export limit=${OXBOW_TIDY_FILE_TIMEOUT:-600}
 # One file: its findings go to $out/<n>.log, its line "seconds status path" to $out/<n>.time.
 # GoogleTest files (*_test.cc) get every check but two:
@@ -50,14 +85,27 @@ export limit=${OXBOW_TIDY_FILE_TIMEOUT:-600}
 #    for (null dereferences, use after free, leaks) the asan phase checks while running every test.
 # Both still check all non-test code (the modules, the server, the benchmarks, the fuzz targets).
 check_one() {
-  local n=$1 file=$2 start status=0 extra=()
+  local n=$1 file=$2 start status=0 extra=() pp key
   if [[ $file == *_test.cc ]]; then extra=(--checks=-bugprone-unchecked-optional-access,-clang-analyzer-*); fi
   start=$(date +%s%N)
+  pp=$(cat "$out/${file//\//_}.pp")
+  # The key (see the top of this file); a failed preprocessing gives a key no ledger holds.
+  key=$({ echo "$tidy_context ${extra[*]}"; echo "$pp";
+          bash -c "$pp -std=c++2b -U__cpp_concepts -D__cpp_concepts=202002L -Wno-builtin-macro-redefined \
+                   -Wno-unknown-warning-option -w" 2>&1 || echo "preprocessing failed $(date +%s%N)"; } |
+        sed "s|$root|@ROOT@|g" | sha256sum | cut -d' ' -f1)
+  if [[ "$ledger" != none ]] && grep -q "^$key " "$ledger"; then
+    echo "$key ${file#"$root"/}" >"$out/$n.key"
+    printf '%6.1f %3d %s (unchanged since a clean analysis)\n' "$(( ($(date +%s%N) - start) / 1000000 ))e-3" 0 "$file" >"$out/$n.time"
+    : >"$out/$n.log"
+    return
+  fi
   timeout "$limit" "$tidy" -p "$build_dir" --quiet "${extra[@]}" --extra-arg=-std=c++2b --extra-arg=-U__cpp_concepts \
     --extra-arg=-D__cpp_concepts=202002L --extra-arg=-Wno-builtin-macro-redefined \
     --extra-arg=-Wno-unknown-warning-option "$file" >"$out/$n.log" 2>&1 || status=$?
   if [[ $status -eq 124 ]]; then echo "$file: error: clang-tidy took over $limit s (OXBOW_TIDY_FILE_TIMEOUT)" >>"$out/$n.log"; fi
   printf '%6.1f %3d %s\n' "$(( ($(date +%s%N) - start) / 1000000 ))e-3" "$status" "$file" >"$out/$n.time"
+  if [[ $status -eq 0 ]]; then echo "$key ${file#"$root"/}" >"$out/$n.key"; fi
 }
 export -f check_one
 start=$(date +%s)
@@ -65,7 +113,13 @@ for i in "${!files[@]}"; do printf '%s\0%s\0' "$i" "${files[$i]}"; done |
   xargs -0 -n 2 -P "${OXBOW_JOBS:-$(nproc)}" bash -c 'check_one "$1" "$2"' _
 cat "$out"/*.log | grep -E "(warning|error): " | sort -u || true
 failed=$(cat "$out"/*.time | awk '$2 != 0' | wc -l)
-echo "clang-tidy.sh: slowest files (s, exit status):"
-cat "$out"/*.time | sort -rn | head -5 | sed 's/^/  /'
-echo "clang-tidy.sh: ${#files[@]} files, $failed with findings, $(( $(date +%s) - start )) s wall (load average $(cut -d' ' -f1-3 /proc/loadavg)); per-file output in $out/"
+unchanged=$(cat "$out"/*.time | grep -c "unchanged since a clean analysis" || true)
+cat "$out"/*.key 2>/dev/null | sort >"$out/clean-ledger.txt" || true
+if [[ "${OXBOW_TIDY_LEDGER_UPDATE:-0}" == 1 ]]; then
+  cp "$out/clean-ledger.txt" "$root/.ci/clang-tidy-clean.txt"
+  echo "clang-tidy.sh: wrote the keys of $(wc -l <"$out/clean-ledger.txt") clean files to .ci/clang-tidy-clean.txt"
+fi
+echo "clang-tidy.sh: slowest files analysed (s, exit status):"
+cat "$out"/*.time | grep -v "unchanged since a clean analysis" | sort -rn | head -5 | sed 's/^/  /' || true
+echo "clang-tidy.sh: ${#files[@]} files: $(( ${#files[@]} - unchanged )) analysed, $unchanged unchanged since a clean analysis ($([[ "$ledger" == none ]] && echo "no ledger" || echo "${ledger#"$root"/}")), $failed with findings, $(( $(date +%s) - start )) s wall (load average $(cut -d' ' -f1-3 /proc/loadavg)); per-file output in $out/"
 [[ $failed -eq 0 ]]
