@@ -31,6 +31,7 @@ build_packages=(
   chromium nodejs        # the web page's end-to-end test (tests/browser: playwright-core drives /usr/bin/chromium)
   libclang-rt-14-dev     # libFuzzer runtime for the fuzz targets (scripts/fuzz.sh; GCC-instrumented, cmake/OxbowFuzz.cmake)
   clang-tidy-16          # static checks (scripts/clang-tidy.sh): the first Debian 12 clang-tidy that parses libstdc++ 12's <expected>
+  clang-16               # clang++-16 -E: the preprocessed input that keys scripts/clang-tidy.sh's ledger (clang-tidy-16 pulls it in too)
   libomp-16-dev          # <omp.h> for clang-tidy 16 (faiss's headers include it; GCC's copy does not parse with clang)
   help2man               # the Debian package's man pages, from `oxbow ... --help` (cmake/packaging/make-manpages.sh)
   lintian                # checks the Debian package (scripts/package-test.sh); dpkg-shlibdeps, which computes its
