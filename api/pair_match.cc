@@ -66,13 +66,21 @@ Result<PairMatchResult> MatchPair(const sift::FeatureSet& a, const sift::Feature
   const std::array<float, 4> a_region = {0, 0, static_cast<float>(a.image_width), static_cast<float>(a.image_height)};
   const std::array<int, 2> b_size = {b.image_width, b.image_height};
   Eigen::Matrix3d transform;
-  if (options.model == sift::GeometricModel::kHoughAffine) {
+  if (options.model == sift::GeometricModel::kHoughAffine || options.model == sift::GeometricModel::kHoughHomography) {
     sift::VerificationResult v =
         sift::VerifyHoughAffine(a.keypoints, b.keypoints, result.matches, a_region, b_size, fit_options.hough);
     result.verified = v.verified;  // min_inliers and the plausible-affine test
-    result.inliers = std::move(v.inliers);
     const auto& m = v.db_from_query.m;
     transform << m[0], m[1], m[2], m[3], m[4], m[5], 0, 0, 1;
+    if (options.model == sift::GeometricModel::kHoughHomography && v.verified) {
+      auto refined = sift::HomographyAgreeingWith(a.keypoints, b.keypoints, result.matches, v.inliers, fit_options);
+      if (!refined) return std::unexpected(refined.error());
+      if (*refined) {
+        transform = (*refined)->db_from_query;
+        v.inliers = std::move((*refined)->inliers);
+      }
+    }
+    result.inliers = std::move(v.inliers);
   } else {
     auto fit = sift::FitRobust(options.model, a.keypoints, b.keypoints, result.matches, fit_options);
     if (!fit) return std::unexpected(fit.error());

@@ -341,7 +341,7 @@ Result<MatchParams> ParseMatchParams(const Params& params) {
     auto model = sift::ParseGeometricModel(*v);
     if (!model) {
       return Fail(ErrorCode::kInvalidArgument,
-                  "parameter 'model' must be hough-affine, similarity, affine, homography or fundamental, got " + Quote(*v));
+                  "parameter 'model' must be hough-homography, hough-affine, similarity, affine, homography or fundamental, got " + Quote(*v));
     }
     match.model = *model;
   }

@@ -100,11 +100,12 @@ struct ListParams {
 };
 [[nodiscard]] Result<ListParams> ParseListParams(const Params& params);
 
-// POST /v1/match: model (hough-affine|similarity|affine|homography|fundamental, default hough-affine),
+// POST /v1/match: model (hough-homography|hough-affine|similarity|affine|homography|fundamental, default
+// PairMatchOptions's: hough-homography),
 // ratio (0, 1], mutual (bool), method (brute|kdtree), min_inliers [3, 1000000] (default 6, as search),
 // correspondences (bool, default false: return the inlier pairs).
 struct MatchParams {
-  sift::GeometricModel model = sift::GeometricModel::kHoughAffine;
+  sift::GeometricModel model = PairMatchOptions{}.model;
   sift::MatchOptions match;
   int min_inliers = PairMatchOptions{}.min_inliers;
   bool correspondences = false;

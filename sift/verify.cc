@@ -471,6 +471,7 @@ std::array<float, 4> ProjectBox(const Eigen::Matrix3d& target_from_source, const
 const char* GeometricModelName(GeometricModel model) {
   switch (model) {
     case GeometricModel::kHoughAffine: return "hough-affine";
+    case GeometricModel::kHoughHomography: return "hough-homography";
     case GeometricModel::kSimilarity: return "similarity";
     case GeometricModel::kAffine: return "affine";
     case GeometricModel::kHomography: return "homography";
@@ -480,8 +481,8 @@ const char* GeometricModelName(GeometricModel model) {
 }
 
 std::optional<GeometricModel> ParseGeometricModel(std::string_view name) {
-  for (GeometricModel m : {GeometricModel::kHoughAffine, GeometricModel::kSimilarity, GeometricModel::kAffine,
-                           GeometricModel::kHomography, GeometricModel::kFundamental}) {
+  for (GeometricModel m : {GeometricModel::kHoughAffine, GeometricModel::kHoughHomography, GeometricModel::kSimilarity,
+                           GeometricModel::kAffine, GeometricModel::kHomography, GeometricModel::kFundamental}) {
     if (name == GeometricModelName(m)) return m;
   }
   return std::nullopt;
@@ -514,7 +515,7 @@ Result<RobustFitResult> FitRobust(GeometricModel model, std::span<const Keypoint
   RobustFitResult result;
   result.model = model;
 
-  if (model == GeometricModel::kHoughAffine) {
+  if (model == GeometricModel::kHoughAffine || model == GeometricModel::kHoughHomography) {
     float x1 = std::numeric_limits<float>::max(), y1 = x1, x2 = std::numeric_limits<float>::lowest(), y2 = x2;
     float dw = 1, dh = 1;
     for (const Keypoint& k : query) {
@@ -532,6 +533,15 @@ Result<RobustFitResult> FitRobust(GeometricModel model, std::span<const Keypoint
     result.inliers = v.inliers;
     const auto& m = v.db_from_query.m;
     result.db_from_query << m[0], m[1], m[2], m[3], m[4], m[5], 0, 0, 1;
+    if (model == GeometricModel::kHoughHomography && v.verified) {
+      auto refined = HomographyAgreeingWith(query, db, matches, v.inliers, options);
+      if (!refined) return std::unexpected(refined.error());
+      if (*refined) {
+        result.num_inliers = (*refined)->num_inliers;
+        result.inliers = std::move((*refined)->inliers);
+        result.db_from_query = (*refined)->db_from_query;
+      }
+    }
     return result;
   }
 
@@ -571,6 +581,7 @@ Result<RobustFitResult> FitRobust(GeometricModel model, std::span<const Keypoint
                                           options.max_iterations, mask);
         break;
       case GeometricModel::kHoughAffine:
+      case GeometricModel::kHoughHomography:
         break;
     }
   } catch (const cv::Exception&) {
@@ -599,6 +610,29 @@ Result<RobustFitResult> FitRobust(GeometricModel model, std::span<const Keypoint
     result.db_from_query = Eigen::Matrix3d::Identity();
   }
   return result;
+}
+
+Result<std::optional<RobustFitResult>> HomographyAgreeingWith(std::span<const Keypoint> query,
+                                                              std::span<const Keypoint> db,
+                                                              std::span<const Match> matches,
+                                                              std::span<const uint32_t> hough_inliers,
+                                                              const RobustFitOptions& options) {
+  auto fit = FitRobust(GeometricModel::kHomography, query, db, matches, options);
+  if (!fit) return std::unexpected(fit.error());
+  if (!fit->success) return std::optional<RobustFitResult>();
+  // Both lists are ascending indices into `matches`.
+  size_t kept = 0;
+  for (size_t i = 0, j = 0; i < hough_inliers.size() && j < fit->inliers.size();) {
+    if (hough_inliers[i] == fit->inliers[j]) {
+      ++kept, ++i, ++j;
+    } else if (hough_inliers[i] < fit->inliers[j]) {
+      ++i;
+    } else {
+      ++j;
+    }
+  }
+  if (2 * kept < hough_inliers.size()) return std::optional<RobustFitResult>();
+  return std::optional<RobustFitResult>(std::move(*fit));
 }
 
 }  // namespace oxbow::sift

@@ -117,6 +117,12 @@ VerificationResult VerifyHoughAffine(std::span<const Keypoint> query, std::span<
 
 enum class GeometricModel {
   kHoughAffine,  // VerifyHoughAffine (region = keypoint bounding boxes)
+  // VerifyHoughAffine decides (its inliers, its plausible-affine test); when it verifies, a homography
+  // fitted to the tentative matches (as kHomography) replaces the affine transform and the inliers if
+  // it keeps at least half of the Hough inliers (HomographyAgreeingWith). Affine maps cannot follow a
+  // perspective change: graf 1 -> 3 corner error 48.6 px with kHoughAffine, 0.93 px with this
+  // (api/pair_match_accuracy_benchmark.cc).
+  kHoughHomography,
   kSimilarity,   // 4 dof: rotation, uniform scale, translation (cv::estimateAffinePartial2D)
   kAffine,       // 6 dof (cv::estimateAffine2D)
   kHomography,   // 8 dof, planar scenes (cv::findHomography)
@@ -160,6 +166,15 @@ struct RobustFitResult {
 [[nodiscard]] Result<RobustFitResult> FitRobust(GeometricModel model, std::span<const Keypoint> query,
                                                 std::span<const Keypoint> db, std::span<const Match> matches,
                                                 const RobustFitOptions& options = {});
+
+// A homography fitted to `matches` (FitRobust with kHomography and `options`) when it succeeds and
+// keeps at least half of `hough_inliers` (indices into `matches`, e.g. VerificationResult::inliers)
+// among its own inliers; nullopt otherwise (the affine answer stands). Errors as FitRobust's.
+[[nodiscard]] Result<std::optional<RobustFitResult>> HomographyAgreeingWith(std::span<const Keypoint> query,
+                                                                            std::span<const Keypoint> db,
+                                                                            std::span<const Match> matches,
+                                                                            std::span<const uint32_t> hough_inliers,
+                                                                            const RobustFitOptions& options);
 
 // Maps the box x1,y1,x2,y2 through a 3x3 projective/affine transform and returns the axis-aligned
 // bounding box of its four corners clipped to [0, width] x [0, height]; zeros when a corner maps to

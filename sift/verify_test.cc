@@ -480,6 +480,52 @@ TEST(RealImagesSharedData, BoatSequenceHomographiesMatchGroundTruth) {
   }
 }
 
+// hough-homography: the Hough verifier decides, and a homography that keeps most of its inliers
+// replaces the affine map; one that disagrees with them is not taken.
+TEST(FitRobust, HoughHomographyTakesOnlyAHomographyThatAgreesWithTheHoughInliers) {
+  const Scenario s = MakeScenario(kTruths[2].transform, 200, 200, 1.0, 7);
+  const std::vector<uint32_t> inliers(s.true_inliers.begin(), s.true_inliers.end());
+  auto agreeing = HomographyAgreeingWith(s.query, s.db, s.matches, inliers, {});
+  ASSERT_TRUE(agreeing.has_value()) << agreeing.error().ToString();
+  ASSERT_TRUE(agreeing->has_value());
+  EXPECT_GE(KeptShare((*agreeing)->inliers, s.true_inliers), 0.95);
+  // "Hough inliers" that are the outliers: the homography keeps none of them.
+  std::vector<uint32_t> outliers;
+  for (uint32_t i = 0; i < s.matches.size(); ++i) {
+    if (s.true_inliers.count(i) == 0) outliers.push_back(i);
+  }
+  auto disagreeing = HomographyAgreeingWith(s.query, s.db, s.matches, outliers, {});
+  ASSERT_TRUE(disagreeing.has_value());
+  EXPECT_FALSE(disagreeing->has_value());
+}
+
+// Under a 40-degree viewpoint change an affine map is off by tens of pixels at graf1's corners; the
+// default model of `oxbow match` (hough-homography) follows the perspective.
+TEST(RealImages, HoughHomographyFollowsThePerspectiveOfGraf1ToGraf3) {
+  cv::FileStorage fs(OpenCvData("H1to3p.xml"), cv::FileStorage::READ);
+  ASSERT_TRUE(fs.isOpened());
+  cv::Mat h;
+  fs.getFirstTopLevelNode() >> h;
+  Eigen::Matrix3d truth;
+  for (int i = 0; i < 9; ++i) truth(i / 3, i % 3) = h.at<double>(i / 3, i % 3);
+  const FeatureSet& a = Features(OpenCvData("graf1.png"));
+  const FeatureSet& b = Features(OpenCvData("graf3.png"));
+  const std::vector<Match> matches = MatchPair(a, b);
+  const double w = a.image_width - 1, hh = a.image_height - 1;
+  auto affine = FitRobust(GeometricModel::kHoughAffine, a.keypoints, b.keypoints, matches);
+  auto refined = FitRobust(GeometricModel::kHoughHomography, a.keypoints, b.keypoints, matches);
+  ASSERT_TRUE(affine && refined);
+  ASSERT_TRUE(affine->success && refined->success);
+  EXPECT_EQ(refined->model, GeometricModel::kHoughHomography);
+  const double affine_error = MeanCornerError(affine->db_from_query, truth, w, hh);
+  const double refined_error = MeanCornerError(refined->db_from_query, truth, w, hh);
+  std::printf("graf1 -> graf3 corner error: hough-affine %.2f px (%d inliers), hough-homography %.2f px (%d inliers)\n",
+              affine_error, affine->num_inliers, refined_error, refined->num_inliers);
+  EXPECT_GT(affine_error, 10.0);
+  EXPECT_LT(refined_error, 6.0);  // this file's features and matches; `oxbow match`'s defaults: 0.93 px
+  EXPECT_GT(refined->num_inliers, affine->num_inliers);
+}
+
 TEST(RealImages, UnrelatedPairsAreRejected) {
   std::vector<std::pair<std::string, std::string>> pairs = {
       {OpenCvData("graf1.png"), OpenCvData("box_in_scene.png")},

@@ -377,7 +377,7 @@ class Client:
     def match(self, a: Image, b: Image, **options: Any) -> dict:
         """POST /v1/match: matches and verifies two images (no index involved).
 
-        options: model (hough-affine, similarity, affine, homography, fundamental), ratio, mutual,
+        options: model (hough-homography, hough-affine, similarity, affine, homography, fundamental), ratio, mutual,
         method (brute, kdtree), min_inliers, correspondences (True adds the inlier pairs).
         """
         fields = {name: _field_value(value) for name, value in options.items() if value is not None}

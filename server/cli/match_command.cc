@@ -104,9 +104,11 @@ void SetUpMatch(CLI::App& app) {
   cmd->add_option("query", args->query_path, "image a (the query)")->required()->check(CLI::ExistingFile);
   cmd->add_option("db", args->db_path, "image b (the db image)")->required()->check(CLI::ExistingFile);
   cmd->add_option("--model", args->model,
-                  "geometric model: hough-affine (Lowe's pose clustering + affine, fast), similarity, affine, "
-                  "homography (planar scenes) or fundamental (general 3D scenes)")
-      ->check(CLI::IsMember({"hough-affine", "similarity", "affine", "homography", "fundamental"}))
+                  "geometric model: hough-homography (Lowe's pose clustering + affine decides, then a homography "
+                  "that agrees with it gives the transform: accurate under perspective), hough-affine (the affine "
+                  "only, as search re-ranking), similarity, affine, homography (planar scenes) or fundamental "
+                  "(general 3D scenes)")
+      ->check(CLI::IsMember({"hough-homography", "hough-affine", "similarity", "affine", "homography", "fundamental"}))
       ->capture_default_str();
   cmd->add_option("--ratio", args->ratio, "Lowe's ratio test threshold, (0, 1]; 1 disables it")
       ->check(CLI::Range(0.0f, 1.0f))
