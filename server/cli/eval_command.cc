@@ -264,9 +264,11 @@ void Prepare(const EvalArgs& a, const Config& c, const std::map<std::string, std
   // measure plain tf-idf (an index without signatures ignores the switch).
   if (std::find(a.hamming.begin(), a.hamming.end(), "on") != a.hamming.end() &&
       !ValueOrExit(vocab::Vocabulary::Read(vocab)).has_hamming()) {
+    const fs::path list = fs::path(c.Dir(a.work)) / "train_images.txt";
+    const std::string source = fs::exists(list) ? "--list " + list.string() : "--images <its training images>";
     throw CommandError(2, "--hamming on: " + vocab + " has no Hamming-embedding parameters; add them with 'oxbow vocab "
-                          "hamming --vocab " + vocab + " --list " + (fs::path(c.Dir(a.work)) / "train_images.txt").string() +
-                          " --out V2' and replace it (then delete the index beside it), or pass --hamming off");
+                          "hamming --vocab " + vocab + " " + source +
+                          " --out V2', put V2 in its place and delete the index beside it, or pass --hamming off");
   }
   const fs::path list_path = fs::path(c.Dir(a.work)) / "database_images.txt";
   const fs::path complete = fs::path(c.Dir(a.work)) / "index.complete";
