@@ -116,8 +116,13 @@ failed=$(cat "$out"/*.time | awk '$2 != 0' | wc -l)
 unchanged=$(cat "$out"/*.time | grep -c "unchanged since a clean analysis" || true)
 cat "$out"/*.key 2>/dev/null | sort >"$out/clean-ledger.txt" || true
 if [[ "${OXBOW_TIDY_LEDGER_UPDATE:-0}" == 1 ]]; then
-  cp "$out/clean-ledger.txt" "$root/.ci/clang-tidy-clean.txt"
-  echo "clang-tidy.sh: wrote the keys of $(wc -l <"$out/clean-ledger.txt") clean files to .ci/clang-tidy-clean.txt"
+  # This run's files get this run's keys (none when not clean); the other files' lines stay.
+  printf '%s\n' "${files[@]#"$root"/}" >"$out/run-files.txt"
+  touch "$root/.ci/clang-tidy-clean.txt"
+  { awk 'NR == FNR { run[$0] = 1; next } !($2 in run)' "$out/run-files.txt" "$root/.ci/clang-tidy-clean.txt"
+    cat "$out/clean-ledger.txt"; } | sort -k2 >"$out/ledger.new"
+  mv "$out/ledger.new" "$root/.ci/clang-tidy-clean.txt"
+  echo "clang-tidy.sh: .ci/clang-tidy-clean.txt now lists $(wc -l <"$root/.ci/clang-tidy-clean.txt") clean files ($(wc -l <"$out/clean-ledger.txt") of this run's ${#files[@]})"
 fi
 echo "clang-tidy.sh: slowest files analysed (s, exit status):"
 cat "$out"/*.time | grep -v "unchanged since a clean analysis" | sort -rn | head -5 | sed 's/^/  /' || true
