@@ -75,9 +75,10 @@ Result<PairMatchResult> MatchPair(const sift::FeatureSet& a, const sift::Feature
     if (options.model == sift::GeometricModel::kHoughHomography && v.verified) {
       auto refined = sift::HomographyAgreeingWith(a.keypoints, b.keypoints, result.matches, v.inliers, fit_options);
       if (!refined) return std::unexpected(refined.error());
-      if (*refined) {
-        transform = (*refined)->db_from_query;
-        v.inliers = std::move((*refined)->inliers);
+      std::optional<sift::RobustFitResult> homography = std::move(*refined);
+      if (homography.has_value()) {
+        transform = homography->db_from_query;
+        v.inliers = std::move(homography->inliers);
       }
     }
     result.inliers = std::move(v.inliers);

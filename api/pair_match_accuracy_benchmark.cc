@@ -72,9 +72,10 @@ Outcome Oxbow(const sift::FeatureSet& a, const sift::FeatureSet& b, sift::Geomet
   }
   out.matches = static_cast<int>(result->matches.size());
   out.inliers = static_cast<int>(result->inliers.size());
-  if (!result->transform) return out;
+  const std::optional<Eigen::Matrix3d> transform = result->transform;
+  if (!transform.has_value()) return out;
   out.ok = true;
-  CornerErrors(*result->transform, truth, a.image_width, a.image_height, &out);
+  CornerErrors(*transform, truth, a.image_width, a.image_height, &out);
   return out;
 }
 

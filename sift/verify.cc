@@ -536,10 +536,11 @@ Result<RobustFitResult> FitRobust(GeometricModel model, std::span<const Keypoint
     if (model == GeometricModel::kHoughHomography && v.verified) {
       auto refined = HomographyAgreeingWith(query, db, matches, v.inliers, options);
       if (!refined) return std::unexpected(refined.error());
-      if (*refined) {
-        result.num_inliers = (*refined)->num_inliers;
-        result.inliers = std::move((*refined)->inliers);
-        result.db_from_query = (*refined)->db_from_query;
+      std::optional<RobustFitResult> homography = std::move(*refined);
+      if (homography.has_value()) {
+        result.num_inliers = homography->num_inliers;
+        result.inliers = std::move(homography->inliers);
+        result.db_from_query = homography->db_from_query;
       }
     }
     return result;
