@@ -120,7 +120,9 @@ TEST(Params, SearchOptionParamsMapOntoQueryOptions) {
                              {"quantizer_probes", "32"},
                              {"max_pairs_per_word", "1"},
                              {"min_inliers", "9"},
-                             {"qe_images", "4"}},
+                             {"qe_images", "4"},
+                             {"max_query_features", "0"},
+                             {"max_tentative_matches", "250"}},
                             defaults);
   ASSERT_TRUE(q) << q.error().message;
   EXPECT_EQ(q->transitive_depth, 0);
@@ -132,6 +134,8 @@ TEST(Params, SearchOptionParamsMapOntoQueryOptions) {
   EXPECT_EQ(q->max_pairs_per_word, 1);
   EXPECT_EQ(q->verify.min_inliers, 9);
   EXPECT_EQ(q->qe_images, 4);
+  EXPECT_EQ(q->max_query_features, 0);
+  EXPECT_EQ(q->max_tentative_matches, 250);
   // Untouched fields keep the defaults.
   EXPECT_EQ(q->rerank_depth, defaults.rerank_depth);
   EXPECT_EQ(q->top_k, defaults.top_k);
@@ -142,7 +146,8 @@ TEST(Params, SearchOptionParamsMapOntoQueryOptions) {
       {"transitive_anchors", "1001"},  {"transitive_neighbours", "0"}, {"transitive_attempts", "0"},
       {"transitive_attempts", "1001"}, {"query_assignments", "9"},    {"quantizer_probes", "0"},
       {"quantizer_probes", "4097"},    {"max_pairs_per_word", "101"}, {"min_inliers", "2"},
-      {"qe_images", "0"},              {"transitive_depth", "2.5"},   {"quantizer_probes", "many"}};
+      {"qe_images", "0"},              {"transitive_depth", "2.5"},   {"quantizer_probes", "many"},
+      {"max_query_features", "-1"},    {"max_query_features", "1000001"}, {"max_tentative_matches", "-5"}};
   for (const auto& [name, value] : bad) {
     auto refused = ParseQueryParams({{name, value}}, defaults);
     ASSERT_FALSE(refused) << name << "=" << value;
@@ -151,7 +156,8 @@ TEST(Params, SearchOptionParamsMapOntoQueryOptions) {
   }
   // Every parameter is known, near misses are not.
   for (const char* name : {"transitive_depth", "transitive_anchors", "transitive_neighbours", "transitive_attempts",
-                           "query_assignments", "quantizer_probes", "max_pairs_per_word", "min_inliers"}) {
+                           "query_assignments", "quantizer_probes", "max_pairs_per_word", "min_inliers",
+                           "max_query_features", "max_tentative_matches"}) {
     EXPECT_TRUE(QueryParamNames().contains(name)) << name;
   }
   EXPECT_FALSE(ParseQueryParams({{"transitive_neighbors", "5"}}, defaults));

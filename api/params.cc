@@ -140,6 +140,8 @@ constexpr IntQueryParam kIntQueryParams[] = {
     {"transitive_attempts", 1, 1000, &index::QueryOptions::transitive_attempts},
     {"query_assignments", 1, 8, &index::QueryOptions::query_assignments},
     {"quantizer_probes", 1, 4096, &index::QueryOptions::quantizer_probes},
+    {"max_query_features", 0, 1000000, &index::QueryOptions::max_query_features},
+    {"max_tentative_matches", 0, 1000000, &index::QueryOptions::max_tentative_matches},
 };
 
 }  // namespace

@@ -54,6 +54,8 @@ using Params = std::multimap<std::string, std::string>;
 //   transitive_attempts    [1, 1000]     QueryOptions::transitive_attempts
 //   query_assignments      [1, 8]        QueryOptions::query_assignments
 //   quantizer_probes       [1, 4096]     QueryOptions::quantizer_probes
+//   max_query_features     [0, 1000000]  QueryOptions::max_query_features (0 = all)
+//   max_tentative_matches  [0, 1000000]  QueryOptions::max_tentative_matches (0 = no limit)
 //   hamming                bool          QueryOptions::hamming
 //   filter     a JSON object over the image metadata (api/filter.h)  QueryOptions::filter
 // Starts from `defaults`; the result passes QueryOptions::Check().

@@ -25,11 +25,19 @@ QuerySignatures::QuerySignatures(std::span<const uint32_t> words, std::span<cons
   std::vector<uint32_t> order(words.size());
   std::iota(order.begin(), order.end(), 0u);
   std::stable_sort(order.begin(), order.end(), [&](uint32_t a, uint32_t b) { return words[a] < words[b]; });
+  has_word_.assign(vocabulary_size / 64 + 1, 0);
   for (const uint32_t i : order) {
-    words_.push_back(words[i]);
+    const uint32_t w = words[i];
+    if (words_.empty() || words_.back() != w) {
+      run_words_.push_back(w);
+      run_begin_.push_back(static_cast<uint32_t>(words_.size()));
+      if (w < vocabulary_size) has_word_[w / 64] |= uint64_t{1} << (w % 64);
+    }
+    words_.push_back(w);
     signatures_.push_back(signatures[i]);
-    self_ += IdfSquared(words[i]);
+    self_ += IdfSquared(w);
   }
+  run_begin_.push_back(static_cast<uint32_t>(words_.size()));
 }
 
 double QuerySignatures::IdfSquared(uint32_t word) const {
@@ -47,19 +55,29 @@ double QuerySignatures::IdfSquared(uint32_t word) const {
 double QuerySignatures::Score(const PackedFeatures& db) const {
   OXBOW_CHECK(db.has_signatures(), "Hamming scoring needs the candidate's signatures");
   thread_local std::vector<double> strength, query_total, db_total;
-  const size_t nq = words_.size(), nd = db.size();
+  const size_t nd = db.size();
   double self_db = 0, votes = 0;
-  size_t i = 0;
+  size_t r = 0;  // first query run whose word may still occur in the db (db words ascend)
   for (size_t j = 0; j < nd;) {
     const uint32_t w = db.word(j);
     size_t j2 = j + 1;
     while (j2 < nd && db.word(j2) == w) ++j2;
     const double idf2 = IdfSquared(w);
     self_db += idf2 * static_cast<double>(j2 - j);
-    while (i < nq && words_[i] < w) ++i;
-    size_t i2 = i;
-    while (i2 < nq && words_[i2] == w) ++i2;
-    if (i2 > i && idf2 > 0) {
+    // The query's run of w, [i, i2): empty for most db words, which one bit test tells (an expanded
+    // query holds tens of thousands of features: a merge step per feature was most of Score's time).
+    size_t i = 0, i2 = 0;
+    if (w / 64 < has_word_.size() && (has_word_[w / 64] >> (w % 64) & 1) != 0) {
+      r = static_cast<size_t>(std::lower_bound(run_words_.begin() + static_cast<std::ptrdiff_t>(r), run_words_.end(), w) -
+                              run_words_.begin());
+      i = run_begin_[r];
+      i2 = run_begin_[r + 1];
+    }
+    if (i2 == i + 1 && j2 == j + 1 && idf2 > 0) {
+      // Most shared words: one feature on each side (the general case below, without its scratch).
+      const double s = weight_[std::popcount(signatures_[i] ^ db.signature(j))];
+      if (s > 0) votes += idf2 * (s * s / std::sqrt(s * s));
+    } else if (i2 > i && idf2 > 0) {
       const size_t cq = i2 - i, cd = j2 - j;
       strength.assign(cq * cd, 0.0);
       query_total.assign(cq, 0.0);
@@ -81,7 +99,6 @@ double QuerySignatures::Score(const PackedFeatures& db) const {
       }
       votes += idf2 * word_votes;
     }
-    i = i2;
     j = j2;
   }
   if (votes <= 0 || self_ <= 0 || self_db <= 0) return 0;

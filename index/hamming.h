@@ -13,14 +13,13 @@
 // score of an image against itself when each feature matches only itself), in [0, about 1].
 //
 // Thread safety: a QuerySignatures is immutable after construction; Score may run concurrently.
-// Cost of Score: O(|query| + |candidate|) for the merge join, plus O(cq * cd) per shared word.
+// Cost of Score: O(|candidate|) plus a binary search per shared word, plus O(cq * cd) per shared word.
 #pragma once
 
 #include <array>
 #include <atomic>
 #include <cstdint>
 #include <functional>
-#include <memory>
 #include <span>
 #include <vector>
 
@@ -53,6 +52,9 @@ class QuerySignatures {
 
   std::vector<uint32_t> words_;       // sorted
   std::vector<uint64_t> signatures_;  // in words_' order
+  std::vector<uint32_t> run_words_;   // the distinct words, ascending
+  std::vector<uint32_t> run_begin_;   // run_words_[r]'s features: [run_begin_[r], run_begin_[r + 1])
+  std::vector<uint64_t> has_word_;    // bit w set when the query has word w
   std::function<double(uint32_t)> idf_;
   std::array<double, 65> weight_{};   // s_ij by Hamming distance (0 above the threshold)
   // idf^2 by word, grown on demand (a negative entry: not computed yet). Candidates share most words,

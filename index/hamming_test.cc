@@ -173,6 +173,43 @@ TEST(HammingRerankTest, TentativeMatchesNeedCloseSignatures) {
   EXPECT_TRUE(hamming.Verify(PackedFeatures::Pack(shifted, words, 640, 480), 4, verify).verified);
 }
 
+TEST(HammingRerankTest, MaxMatchesKeepsTheClosestSignatures) {
+  // Features 0-9 of the db image are a translated copy of the query's (Hamming distances 0-4);
+  // features 10-29 lie elsewhere (distance 20: within the threshold, so they are tentative matches).
+  std::mt19937_64 rng(11);
+  std::vector<sift::Keypoint> query = RandomKeypoints(rng, 30), db = RandomKeypoints(rng, 30);
+  for (size_t i = 0; i < 10; ++i) {
+    db[i] = query[i];
+    db[i].x += 5;
+  }
+  std::vector<uint32_t> words(30);
+  std::vector<uint64_t> query_signatures(30), db_signatures(30);
+  for (uint32_t i = 0; i < 30; ++i) {
+    words[i] = i;
+    query_signatures[i] = rng();
+    const int distance = i < 10 ? static_cast<int>(i / 2) : 20;
+    db_signatures[i] = query_signatures[i] ^ ((uint64_t{1} << distance) - 1);
+  }
+  const std::array<float, 4> region = {0, 0, 640, 480};
+  const auto packed = PackedFeatures::Pack(db, words, 640, 480, db_signatures);
+  const sift::HoughVerifyOptions verify;
+  const QueryGeometry all(query, words, region, query_signatures, 24);
+  const QueryGeometry unlimited(query, words, region, query_signatures, 24, 0);
+  const QueryGeometry closest8(query, words, region, query_signatures, 24, 8);
+  const QueryGeometry closest5(query, words, region, query_signatures, 24, 5);
+  EXPECT_EQ(all.Verify(packed, 4, verify).num_inliers, 10);
+  EXPECT_EQ(unlimited.Verify(packed, 4, verify).num_inliers, 10);
+  // The 8 closest are all copies (the far 20 are dropped first): 8 inliers, still verified.
+  const sift::VerificationResult eight = closest8.Verify(packed, 4, verify);
+  EXPECT_TRUE(eight.verified);
+  EXPECT_EQ(eight.num_inliers, 8);
+  // Fewer than min_inliers (6) matches cannot verify.
+  EXPECT_FALSE(closest5.Verify(packed, 4, verify).verified);
+  // Without signatures on the db side the limit does not apply (no distances to rank by).
+  EXPECT_EQ(closest8.Verify(PackedFeatures::Pack(db, words, 640, 480), 4, verify).num_inliers,
+            QueryGeometry(query, words, region).Verify(PackedFeatures::Pack(db, words, 640, 480), 4, verify).num_inliers);
+}
+
 // Two database images with the query's words, only one with its descriptors (hence signatures): tf-idf
 // cannot tell them apart, Hamming embedding ranks the right one first; the index reopens (from its
 // checkpoint and from its BLOBs) with the same signatures.

@@ -167,6 +167,12 @@ std::optional<std::string> QueryOptions::Check() const {
   if (hamming_shortlist < 1 || hamming_shortlist > 10000) {
     return "hamming_shortlist must be in [1, 10000], got " + std::to_string(hamming_shortlist);
   }
+  if (max_query_features < 0 || max_query_features > 1000000) {
+    return "max_query_features must be in [0, 1000000], got " + std::to_string(max_query_features);
+  }
+  if (max_tentative_matches < 0 || max_tentative_matches > 1000000) {
+    return "max_tentative_matches must be in [0, 1000000], got " + std::to_string(max_tentative_matches);
+  }
   if (hamming_threshold < 0 || hamming_threshold > vocab::kHammingBits) {
     return "hamming_threshold must be in [0, 64], got " + std::to_string(hamming_threshold);
   }
@@ -279,7 +285,9 @@ struct ImageIndex::Impl {
                    std::vector<QueryResult>& results) const;
   // The allow-bitmap of a filtered query: 1 for each live image number options.filter matches.
   std::vector<uint8_t> AllowedImages(const Snapshot& snap, const ImageFilter& filter) const;
-  void VerifyTransitively(const Snapshot& snap, const QueryOptions& options, size_t num_verified,
+  // With `hamming` (a Hamming-embedding search), tentative matches are filtered by signature as in
+  // re-ranking.
+  void VerifyTransitively(const Snapshot& snap, const QueryOptions& options, bool hamming, size_t num_verified,
                           std::vector<QueryResult>& results) const;
 
   // For each of results[first, last) not verified yet, the anchors to try (PlanTransitiveAttempts).
@@ -950,7 +958,7 @@ Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const Que
   q.width = query.image_width;
   q.height = query.image_height;
   std::vector<float> descriptors;
-  SelectInRegion(query, options.region, &q.keypoints, &descriptors);
+  SelectInRegion(query, options.region, static_cast<size_t>(options.max_query_features), &q.keypoints, &descriptors);
   QueryTimings timings;
   q.words.resize(q.keypoints.size());
   // A query's descriptors on the index's threads, as its re-ranking: latency, not throughput.
@@ -1076,7 +1084,7 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
   // 4. Transitive verification.
   if (options.transitive_depth > 0 && num_verified > 0) {
     t = Clock::now();
-    VerifyTransitively(snap, options, num_verified, results);
+    VerifyTransitively(snap, options, hamming, num_verified, results);
     timings.verify_ms += MsSince(t);
   }
 
@@ -1183,14 +1191,28 @@ void ImageIndex::Impl::ExpandQueryHamming(const Snapshot& snap, const QueryFeatu
 }
 
 void SelectInRegion(const sift::FeatureSet& features, const std::optional<std::array<float, 4>>& region,
-                    std::vector<sift::Keypoint>* keypoints, std::vector<float>* descriptors) {
+                    size_t max_features, std::vector<sift::Keypoint>* keypoints, std::vector<float>* descriptors) {
+  std::vector<uint32_t> selected;
   for (size_t i = 0; i < features.size(); ++i) {
     const sift::Keypoint& k = features.keypoints[i];
     if (region) {
       const auto& r = *region;
       if (k.x < r[0] || k.x > r[2] || k.y < r[1] || k.y > r[3]) continue;
     }
-    keypoints->push_back(k);
+    selected.push_back(static_cast<uint32_t>(i));
+  }
+  if (max_features > 0 && selected.size() > max_features) {
+    const auto stronger = [&](uint32_t a, uint32_t b) {
+      const float ra = std::abs(features.keypoints[a].response), rb = std::abs(features.keypoints[b].response);
+      return ra != rb ? ra > rb : a < b;
+    };
+    std::nth_element(selected.begin(), selected.begin() + static_cast<std::ptrdiff_t>(max_features), selected.end(),
+                     stronger);
+    selected.resize(max_features);
+    std::sort(selected.begin(), selected.end());
+  }
+  for (const uint32_t i : selected) {
+    keypoints->push_back(features.keypoints[i]);
     const auto d = features.Descriptor(i);
     descriptors->insert(descriptors->end(), d.begin(), d.end());
   }
@@ -1231,7 +1253,7 @@ size_t ImageIndex::Impl::Rerank(const Snapshot& snap, const QueryFeatures& query
       options.region ? *options.region
                      : std::array<float, 4>{0, 0, static_cast<float>(query.width), static_cast<float>(query.height)};
   const QueryGeometry geometry(query.keypoints, query.words, query_region, query.signatures,
-                               options.hamming_threshold);
+                               options.hamming_threshold, options.max_tentative_matches);
   ParallelFor(rerank, index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
     for (size_t c = begin; c < end; ++c) {
       const sift::VerificationResult v =
@@ -1286,7 +1308,8 @@ void ImageIndex::Impl::ExpandQuery(const Snapshot& snap, const std::vector<Query
 // Unverified candidates against the matched regions of verified results (anchors), in rounds; a
 // candidate verified in one round is an anchor of the next, up to transitive_anchors anchors in all. A
 // candidate stops at its first anchor that verifies it.
-void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptions& options, size_t num_verified,
+void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptions& options, bool hamming,
+                                          size_t num_verified,
                                           std::vector<QueryResult>& results) const {
   const size_t first = num_verified;
   const size_t last = std::min(results.size(), first + static_cast<size_t>(options.transitive_depth));
@@ -1295,10 +1318,12 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
   std::vector<uint32_t> numbers(last);
   std::vector<BagOfWords> bags(last);
   std::vector<const BagOfWords*> bag_pointers(last);
-  for (size_t c = 0; c < last; ++c) {
-    bags[c] = snap.Find(results[c].id, &numbers[c])->features.Bag();
-    bag_pointers[c] = &bags[c];
-  }
+  ParallelFor(last, index_options.num_threads, 16, [&](size_t begin, size_t end, int) {
+    for (size_t c = begin; c < end; ++c) {
+      bags[c] = snap.Find(results[c].id, &numbers[c])->features.Bag();
+      bag_pointers[c] = &bags[c];
+    }
+  });
   const InvertedFile::Subset ranked(snap.inverted, numbers, bag_pointers);
   const auto max_anchors = static_cast<size_t>(options.transitive_anchors);
   size_t used = 0;
@@ -1306,7 +1331,9 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
     const size_t round_end = std::min(pool.size(), max_anchors);
     struct Anchor {
       std::vector<sift::Keypoint> keypoints;
-      std::vector<uint32_t> words;
+      std::vector<uint32_t> words;           // of every feature in the region (its neighbours' query)
+      std::vector<uint32_t> geometry_words;  // of `keypoints`
+      std::vector<uint64_t> signatures;      // of `keypoints`, with `hamming`, when the anchor has them
     };
     std::vector<Anchor> anchors(round_end - used);
     std::vector<QueryGeometry> geometries;
@@ -1317,13 +1344,37 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
       const QueryResult& anchor = results[pool[used + a]];
       const PackedFeatures& f = snap.Find(anchor.id)->features;
       const auto& box = anchor.db_region;
+      std::vector<uint32_t> inside;
       for (size_t i = 0; i < f.size(); ++i) {
         const sift::Keypoint k = f.keypoint(i);
         if (k.x < box[0] || k.x > box[2] || k.y < box[1] || k.y > box[3]) continue;
-        anchors[a].keypoints.push_back(k);
+        inside.push_back(static_cast<uint32_t>(i));
         anchors[a].words.push_back(f.word(i));
       }
-      geometries.emplace_back(anchors[a].keypoints, anchors[a].words, box);
+      // With Hamming embedding the anchor's region is verified against as a query is: with at most
+      // max_query_features features, those of its rarest words (stored features keep no DoG
+      // response). An anchor may be a whole 37000-feature image. (Without it, all: what a cluster's
+      // front does, which serves no Hamming embedding.)
+      const size_t cap = hamming ? static_cast<size_t>(options.max_query_features) : 0;
+      if (cap > 0 && inside.size() > cap) {
+        std::vector<double> idf(inside.size());
+        for (size_t k = 0; k < inside.size(); ++k) idf[k] = snap.inverted.Idf(f.word(inside[k]));
+        std::vector<uint32_t> order(inside.size());
+        std::iota(order.begin(), order.end(), 0u);
+        std::nth_element(order.begin(), order.begin() + static_cast<std::ptrdiff_t>(cap), order.end(),
+                         [&](uint32_t x, uint32_t y) { return idf[x] != idf[y] ? idf[x] > idf[y] : x < y; });
+        order.resize(cap);
+        std::sort(order.begin(), order.end());
+        for (size_t k = 0; k < cap; ++k) order[k] = inside[order[k]];
+        inside = std::move(order);
+      }
+      for (const uint32_t i : inside) {
+        anchors[a].keypoints.push_back(f.keypoint(i));
+        anchors[a].geometry_words.push_back(f.word(i));
+        if (hamming && f.has_signatures()) anchors[a].signatures.push_back(f.signature(i));
+      }
+      geometries.emplace_back(anchors[a].keypoints, anchors[a].geometry_words, box, anchors[a].signatures,
+                              options.hamming_threshold, options.max_tentative_matches);
       anchor_words.emplace_back(anchors[a].words);
     }
     const std::vector<std::vector<TransitiveAttempt>> attempts =

@@ -430,6 +430,75 @@ TEST_F(Fixture, RegionQueryUsesOnlyFeaturesInside) {
   EXPECT_EQ(left->results[0].id, "a");
 }
 
+TEST_F(Fixture, MaxQueryFeaturesKeepsTheStrongestInsideTheRegion) {
+  auto index = CreateIndex();
+  std::mt19937_64 rng(4);
+  const auto a = RandomImage(rng, 80), b = RandomImage(rng, 80);
+  ASSERT_TRUE(index->Add("a", a, {}));
+  ASSERT_TRUE(index->Add("b", b, {}));
+  for (int i = 0; i < 10; ++i) ASSERT_TRUE(index->Add("noise" + std::to_string(i), RandomImage(rng, 80), {}));
+  // Query: 30 of a's features (strong, on the left), then 70 of b's (weak, on the right).
+  sift::FeatureSet q = Features({}, {}, 640, 480);
+  auto append = [&](const sift::FeatureSet& src, size_t count, float x0, float response) {
+    for (size_t i = 0; i < count; ++i) {
+      sift::Keypoint k = src.keypoints[i];
+      k.x = x0 + std::fmod(k.x, 290.0f);
+      k.response = (i % 2 == 0 ? 1.0f : -1.0f) * response;  // the magnitude counts
+      q.keypoints.push_back(k);
+      const auto d = src.Descriptor(i);
+      q.descriptors.insert(q.descriptors.end(), d.begin(), d.end());
+    }
+  };
+  append(a, 30, 0, 0.05f);
+  append(b, 70, 330, 0.01f);
+  QueryOptions all = Opts(3, 0);
+  all.max_query_features = 0;
+  const auto whole = index->Query(q, all);
+  ASSERT_TRUE(whole);
+  EXPECT_EQ(whole->query_features, 100u);
+  EXPECT_EQ(whole->results[0].id, "b");
+  QueryOptions strongest = Opts(3, 0);
+  strongest.max_query_features = 30;
+  const auto capped = index->Query(q, strongest);
+  ASSERT_TRUE(capped);
+  EXPECT_EQ(capped->query_features, 30u);
+  EXPECT_EQ(capped->results[0].id, "a");
+  // The limit applies to the features inside the region.
+  strongest.region = std::array<float, 4>{320, 0, 640, 480};
+  const auto right = index->Query(q, strongest);
+  ASSERT_TRUE(right);
+  EXPECT_EQ(right->query_features, 30u);
+  EXPECT_EQ(right->results[0].id, "b");
+
+  // SelectInRegion: the strongest, ties by index, in their order.
+  sift::FeatureSet f = Features({}, {}, 640, 480);
+  for (const float r : {0.5f, -0.9f, 0.5f, 0.1f, 0.5f}) {
+    f.keypoints.push_back({static_cast<float>(f.keypoints.size()), 0, 2, 0, r, 0});
+    f.descriptors.insert(f.descriptors.end(), sift::kDescriptorDim, static_cast<float>(f.keypoints.size()));
+  }
+  std::vector<sift::Keypoint> kept;
+  std::vector<float> descriptors;
+  SelectInRegion(f, std::nullopt, 3, &kept, &descriptors);
+  ASSERT_EQ(kept.size(), 3u);
+  EXPECT_EQ(kept[0].x, 0);  // 0.5, the first of the three ties kept
+  EXPECT_EQ(kept[1].x, 1);  // |-0.9|
+  EXPECT_EQ(kept[2].x, 2);  // 0.5
+  ASSERT_EQ(descriptors.size(), 3u * sift::kDescriptorDim);
+  EXPECT_EQ(descriptors[2 * sift::kDescriptorDim], 3.0f);
+  kept.clear();
+  descriptors.clear();
+  SelectInRegion(f, std::nullopt, 0, &kept, &descriptors);
+  EXPECT_EQ(kept.size(), 5u);
+  QueryOptions bad = Opts(3, 0);
+  bad.max_query_features = -1;
+  EXPECT_FALSE(index->Query(q, bad));
+  bad = Opts(3, 0);
+  bad.max_tentative_matches = 1000001;
+  const auto refused = index->Query(q, bad);
+  ASSERT_FALSE(refused);
+  EXPECT_NE(refused.error().message.find("max_tentative_matches"), std::string::npos);
+}
+
 TEST_F(Fixture, AddRemoveSequenceEqualsFreshIndex) {
   std::mt19937_64 rng(5);
   std::map<std::string, sift::FeatureSet> live;

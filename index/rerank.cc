@@ -9,11 +9,12 @@ namespace oxbow::index {
 
 QueryGeometry::QueryGeometry(std::span<const sift::Keypoint> keypoints, std::span<const uint32_t> words,
                              const std::array<float, 4>& region, std::span<const uint64_t> signatures,
-                             int hamming_threshold)
+                             int hamming_threshold, int max_matches)
     : keypoints_(keypoints),
       words_(words),
       signatures_(signatures),
       hamming_threshold_(hamming_threshold),
+      max_matches_(static_cast<size_t>(std::max(0, max_matches))),
       order_(words.size()),
       region_(region) {
   OXBOW_CHECK(keypoints.size() == words.size());
@@ -57,9 +58,14 @@ sift::VerificationResult QueryGeometry::Verify(const PackedFeatures& db, int max
                               run_words_.begin());
       const size_t i = run_begin_[r];
       const size_t cq = run_begin_[r + 1] - i, cd = j2 - j;
-      if (hamming) {
-        // Pairs within the threshold, one-to-one closest first (ties in (query, db) index order).
-        const auto distance = static_cast<float>(cq * cd);
+      if (hamming && cq == 1 && cd == 1) {
+        // Most shared words: one feature on each side, one pair (the general case below, without its
+        // scratch).
+        const int h = std::popcount(signatures_[order_[i]] ^ db.signature(j));
+        if (h <= hamming_threshold_) matches.push_back({order_[i], static_cast<uint32_t>(j), static_cast<float>(h)});
+      } else if (hamming) {
+        // Pairs within the threshold, one-to-one closest first (ties in (query, db) index order). A
+        // match's distance is its Hamming distance.
         close.clear();
         for (size_t a = 0; a < cq; ++a) {
           for (size_t b = 0; b < cd; ++b) {
@@ -73,7 +79,7 @@ sift::VerificationResult QueryGeometry::Verify(const PackedFeatures& db, int max
         for (const auto& [h, a, b] : close) {
           if (query_used[a] != 0 || db_used[b] != 0) continue;
           query_used[a] = db_used[b] = 1;
-          matches.push_back({order_[i + a], static_cast<uint32_t>(j + b), distance});
+          matches.push_back({order_[i + a], static_cast<uint32_t>(j + b), static_cast<float>(h)});
         }
       } else if (cq <= limit && cd <= limit) {
         // The word's cq x cd pairs made one-to-one, as sift::EnforceOneToOne does for them: features of
@@ -93,6 +99,14 @@ sift::VerificationResult QueryGeometry::Verify(const PackedFeatures& db, int max
   // Inliers are a subset of the one-to-one matches: with fewer than min_inliers of them the candidate
   // cannot verify, so the verifier is not run (same result, no cost).
   if (matches.size() < static_cast<size_t>(std::max(3, options.min_inliers))) return {};
+  if (hamming && max_matches_ > 0 && matches.size() > max_matches_) {
+    // The closest max_matches_ (a query feature is in one match at most, so the order is total).
+    std::nth_element(matches.begin(), matches.begin() + static_cast<std::ptrdiff_t>(max_matches_), matches.end(),
+                     [](const sift::Match& a, const sift::Match& b) {
+                       return a.distance != b.distance ? a.distance < b.distance : a.query_index < b.query_index;
+                     });
+    matches.resize(max_matches_);
+  }
   std::sort(matches.begin(), matches.end(),
             [](const sift::Match& a, const sift::Match& b) { return a.query_index < b.query_index; });
   // Only the matched db keypoints are dequantised, into a compact array the matches index.

@@ -13,7 +13,10 @@
 // filtered by the signatures' Hamming distance (at most the threshold: Jegou et al. 2008 use the same
 // test to reject tentative matches before verification), then made one-to-one closest signatures first;
 // bursty words are not skipped then, since the filter keeps only their plausible pairs (measured on
-// groups_hard + distractors, Hamming search without QE: mAP 0.615 -> 0.620, README).
+// groups_hard + distractors, Hamming search without QE: mAP 0.615 -> 0.620, README). At most
+// max_matches of those go to the verifier, the closest signatures first (ties by query feature): an
+// unrelated image still shares thousands of words with a large query and passes the loose threshold
+// with about half of them, and the verifier's Hough votes for those were most of a transitive pass.
 //
 // Thread safety: a QueryGeometry is immutable after construction; Verify may run concurrently (its
 // scratch buffers are thread-local).
@@ -38,7 +41,7 @@ class QueryGeometry {
   // is the query object (the whole image if unknown). The spans must outlive this object.
   QueryGeometry(std::span<const sift::Keypoint> keypoints, std::span<const uint32_t> words,
                 const std::array<float, 4>& region, std::span<const uint64_t> signatures = {},
-                int hamming_threshold = 64);
+                int hamming_threshold = 64, int max_matches = 0);
 
   sift::VerificationResult Verify(const PackedFeatures& candidate, int max_pairs_per_word,
                                   const sift::HoughVerifyOptions& options) const;
@@ -48,6 +51,7 @@ class QueryGeometry {
   std::span<const uint32_t> words_;
   std::span<const uint64_t> signatures_;
   int hamming_threshold_;
+  size_t max_matches_;                 // with signatures; 0 = no limit
   std::vector<uint32_t> order_;        // feature indices sorted by word
   std::vector<uint32_t> run_words_;    // the distinct words, ascending
   std::vector<uint32_t> run_begin_;    // run_words_[r]'s features: order_[run_begin_[r] .. run_begin_[r + 1])

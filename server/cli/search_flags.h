@@ -41,6 +41,11 @@ inline void AddSearchFlags(CLI::App* cmd, index::QueryOptions* o) {
   add("--hamming-threshold", &o->hamming_threshold, "Hamming embedding: largest distance (bits) that matches", 0, 64);
   add("--hamming-sigma", &o->hamming_sigma, "Hamming embedding: width (bits) of the weight exp(-h^2/sigma^2)", 1e-9,
       64.0);
+  add("--max-query-features", &o->max_query_features,
+      "an image query uses at most this many of its features, the strongest (0 = all)", 0, 1000000);
+  add("--max-tentative-matches", &o->max_tentative_matches,
+      "Hamming embedding: tentative matches verified per candidate, the closest signatures (0 = no limit)", 0,
+      1000000);
   add("--quantizer-probes", &o->quantizer_probes,
       "coarse quantiser lists probed per query descriptor (more: slower, closer to exact)", 1, 4096);
 }

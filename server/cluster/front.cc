@@ -831,7 +831,8 @@ Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, 
   // Quantise the features inside the region once, as ImageIndex::Query does.
   std::vector<sift::Keypoint> keypoints;
   std::vector<float> descriptors;
-  index::SelectInRegion(query, options.region, &keypoints, &descriptors);
+  index::SelectInRegion(query, options.region, static_cast<size_t>(options.max_query_features), &keypoints,
+                        &descriptors);
   std::vector<uint32_t> words(keypoints.size());
   vocab::QuantizerOptions quantizer = index::IndexOptions{}.quantizer;
   quantizer.num_probes = options.quantizer_probes;
