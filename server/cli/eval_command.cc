@@ -505,7 +505,8 @@ std::string SearchDefaults() {
   s << "transitive_depth " << o.transitive_depth << ", anchors " << o.transitive_anchors << ", neighbours "
     << o.transitive_neighbours << ", attempts " << o.transitive_attempts << ", qe_images " << o.qe_images
     << ", quantizer_probes " << o.quantizer_probes << ", max_pairs_per_word " << o.max_pairs_per_word
-    << ", min_inliers " << o.verify.min_inliers;
+    << ", min_inliers " << o.verify.min_inliers << ", max_query_features " << o.max_query_features
+    << ", max_tentative_matches " << o.max_tentative_matches << ", hamming_shortlist " << o.hamming_shortlist;
   return s.str();
 }
 
