@@ -92,6 +92,32 @@ class Fixture : public ::testing::Test {
     return std::move(*index);
   }
 
+  // An index of images "a" and "b" (80 random features each) and 10 noise images; *query gets 30 of
+  // a's features on the left half (x < 300, DoG responses +-a_response) then 70 of b's on the right
+  // half (+-b_response).
+  std::unique_ptr<ImageIndex> TwoObjectIndex(sift::FeatureSet* query, float a_response, float b_response) {
+    auto index = CreateIndex();
+    std::mt19937_64 rng(4);
+    const auto a = RandomImage(rng, 80), b = RandomImage(rng, 80);
+    EXPECT_TRUE(index->Add("a", a, {}));
+    EXPECT_TRUE(index->Add("b", b, {}));
+    for (int i = 0; i < 10; ++i) EXPECT_TRUE(index->Add("noise" + std::to_string(i), RandomImage(rng, 80), {}));
+    *query = Features({}, {}, 640, 480);
+    auto append = [&](const sift::FeatureSet& src, size_t count, float x0, float response) {
+      for (size_t i = 0; i < count; ++i) {
+        sift::Keypoint k = src.keypoints[i];
+        k.x = x0 + std::fmod(k.x, 290.0f);
+        k.response = (i % 2 == 0 ? 1.0f : -1.0f) * response;  // the magnitude counts
+        query->keypoints.push_back(k);
+        const auto d = src.Descriptor(i);
+        query->descriptors.insert(query->descriptors.end(), d.begin(), d.end());
+      }
+    };
+    append(a, 30, 0, a_response);
+    append(b, 70, 330, b_response);
+    return index;
+  }
+
   fs::path dir_;
   vocab::Vocabulary vocabulary_ = MakeVocabulary(1);
 };
@@ -402,25 +428,9 @@ TEST_F(Fixture, MultipleAssignmentReachesTheSecondNearestWord) {
 }
 
 TEST_F(Fixture, RegionQueryUsesOnlyFeaturesInside) {
-  auto index = CreateIndex();
-  std::mt19937_64 rng(4);
-  const auto a = RandomImage(rng, 80), b = RandomImage(rng, 80);
-  ASSERT_TRUE(index->Add("a", a, {}));
-  ASSERT_TRUE(index->Add("b", b, {}));
-  for (int i = 0; i < 10; ++i) ASSERT_TRUE(index->Add("noise" + std::to_string(i), RandomImage(rng, 80), {}));
   // Query: a's features on the left half (x < 300), b's (more of them) on the right half.
-  sift::FeatureSet q = Features({}, {}, 640, 480);
-  auto append = [&](const sift::FeatureSet& src, size_t count, float x0) {
-    for (size_t i = 0; i < count; ++i) {
-      sift::Keypoint k = src.keypoints[i];
-      k.x = x0 + std::fmod(k.x, 290.0f);
-      q.keypoints.push_back(k);
-      const auto d = src.Descriptor(i);
-      q.descriptors.insert(q.descriptors.end(), d.begin(), d.end());
-    }
-  };
-  append(a, 30, 0);
-  append(b, 70, 330);
+  sift::FeatureSet q;
+  auto index = TwoObjectIndex(&q, 1, 1);
   const auto whole = index->Query(q, Opts(3, 0));
   ASSERT_TRUE(whole);
   EXPECT_EQ(whole->results[0].id, "b");
@@ -431,44 +441,22 @@ TEST_F(Fixture, RegionQueryUsesOnlyFeaturesInside) {
 }
 
 TEST_F(Fixture, MaxQueryFeaturesKeepsTheStrongestInsideTheRegion) {
-  auto index = CreateIndex();
-  std::mt19937_64 rng(4);
-  const auto a = RandomImage(rng, 80), b = RandomImage(rng, 80);
-  ASSERT_TRUE(index->Add("a", a, {}));
-  ASSERT_TRUE(index->Add("b", b, {}));
-  for (int i = 0; i < 10; ++i) ASSERT_TRUE(index->Add("noise" + std::to_string(i), RandomImage(rng, 80), {}));
   // Query: 30 of a's features (strong, on the left), then 70 of b's (weak, on the right).
-  sift::FeatureSet q = Features({}, {}, 640, 480);
-  auto append = [&](const sift::FeatureSet& src, size_t count, float x0, float response) {
-    for (size_t i = 0; i < count; ++i) {
-      sift::Keypoint k = src.keypoints[i];
-      k.x = x0 + std::fmod(k.x, 290.0f);
-      k.response = (i % 2 == 0 ? 1.0f : -1.0f) * response;  // the magnitude counts
-      q.keypoints.push_back(k);
-      const auto d = src.Descriptor(i);
-      q.descriptors.insert(q.descriptors.end(), d.begin(), d.end());
-    }
+  sift::FeatureSet q;
+  auto index = TwoObjectIndex(&q, 0.05f, 0.01f);
+  const auto expect_first = [&](int max_features, std::optional<std::array<float, 4>> region, uint32_t used,
+                                const std::string& first) {
+    QueryOptions o = Opts(3, 0, false, region);
+    o.max_query_features = max_features;
+    const auto r = index->Query(q, o);
+    ASSERT_TRUE(r) << r.error().ToString();
+    EXPECT_EQ(r->query_features, used) << max_features;
+    EXPECT_EQ(r->results[0].id, first) << max_features;
   };
-  append(a, 30, 0, 0.05f);
-  append(b, 70, 330, 0.01f);
-  QueryOptions all = Opts(3, 0);
-  all.max_query_features = 0;
-  const auto whole = index->Query(q, all);
-  ASSERT_TRUE(whole);
-  EXPECT_EQ(whole->query_features, 100u);
-  EXPECT_EQ(whole->results[0].id, "b");
-  QueryOptions strongest = Opts(3, 0);
-  strongest.max_query_features = 30;
-  const auto capped = index->Query(q, strongest);
-  ASSERT_TRUE(capped);
-  EXPECT_EQ(capped->query_features, 30u);
-  EXPECT_EQ(capped->results[0].id, "a");
+  expect_first(0, std::nullopt, 100, "b");
+  expect_first(30, std::nullopt, 30, "a");
   // The limit applies to the features inside the region.
-  strongest.region = std::array<float, 4>{320, 0, 640, 480};
-  const auto right = index->Query(q, strongest);
-  ASSERT_TRUE(right);
-  EXPECT_EQ(right->query_features, 30u);
-  EXPECT_EQ(right->results[0].id, "b");
+  expect_first(30, std::array<float, 4>{320, 0, 640, 480}, 30, "b");
 
   // SelectInRegion: the strongest, ties by index, in their order.
   sift::FeatureSet f = Features({}, {}, 640, 480);
