@@ -25,19 +25,12 @@ QuerySignatures::QuerySignatures(std::span<const uint32_t> words, std::span<cons
   std::vector<uint32_t> order(words.size());
   std::iota(order.begin(), order.end(), 0u);
   std::stable_sort(order.begin(), order.end(), [&](uint32_t a, uint32_t b) { return words[a] < words[b]; });
-  has_word_.assign(vocabulary_size / 64 + 1, 0);
   for (const uint32_t i : order) {
-    const uint32_t w = words[i];
-    if (words_.empty() || words_.back() != w) {
-      run_words_.push_back(w);
-      run_begin_.push_back(static_cast<uint32_t>(words_.size()));
-      if (w < vocabulary_size) has_word_[w / 64] |= uint64_t{1} << (w % 64);
-    }
-    words_.push_back(w);
+    words_.push_back(words[i]);
     signatures_.push_back(signatures[i]);
-    self_ += IdfSquared(w);
+    self_ += IdfSquared(words[i]);
   }
-  run_begin_.push_back(static_cast<uint32_t>(words_.size()));
+  runs_ = WordRuns(words_.size(), [&](size_t i) { return words_[i]; });
 }
 
 double QuerySignatures::IdfSquared(uint32_t word) const {
@@ -66,13 +59,7 @@ double QuerySignatures::Score(const PackedFeatures& db) const {
     self_db += idf2 * static_cast<double>(j2 - j);
     // The query's run of w, [i, i2): empty for most db words, which one bit test tells (an expanded
     // query holds tens of thousands of features: a merge step per feature was most of Score's time).
-    size_t i = 0, i2 = 0;
-    if (w / 64 < has_word_.size() && (has_word_[w / 64] >> (w % 64) & 1) != 0) {
-      r = static_cast<size_t>(std::lower_bound(run_words_.begin() + static_cast<std::ptrdiff_t>(r), run_words_.end(), w) -
-                              run_words_.begin());
-      i = run_begin_[r];
-      i2 = run_begin_[r + 1];
-    }
+    const auto [i, i2] = runs_.Find(w, r);
     if (i2 == i + 1 && j2 == j + 1 && idf2 > 0) {
       // Most shared words: one feature on each side (the general case below, without its scratch).
       const double s = weight_[std::popcount(signatures_[i] ^ db.signature(j))];

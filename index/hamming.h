@@ -24,6 +24,7 @@
 #include <vector>
 
 #include "index/feature_store.h"
+#include "index/word_runs.h"
 
 namespace oxbow::index {
 
@@ -52,9 +53,7 @@ class QuerySignatures {
 
   std::vector<uint32_t> words_;       // sorted
   std::vector<uint64_t> signatures_;  // in words_' order
-  std::vector<uint32_t> run_words_;   // the distinct words, ascending
-  std::vector<uint32_t> run_begin_;   // run_words_[r]'s features: [run_begin_[r], run_begin_[r + 1])
-  std::vector<uint64_t> has_word_;    // bit w set when the query has word w
+  WordRuns runs_;                     // of words_
   std::function<double(uint32_t)> idf_;
   std::array<double, 65> weight_{};   // s_ij by Hamming distance (0 above the threshold)
   // idf^2 by word, grown on demand (a negative entry: not computed yet). Candidates share most words,

@@ -21,18 +21,7 @@ QueryGeometry::QueryGeometry(std::span<const sift::Keypoint> keypoints, std::spa
   OXBOW_CHECK(signatures.empty() || signatures.size() == words.size());
   std::iota(order_.begin(), order_.end(), 0u);
   std::stable_sort(order_.begin(), order_.end(), [&](uint32_t a, uint32_t b) { return words_[a] < words_[b]; });
-  for (uint32_t i = 0; i < order_.size(); ++i) {
-    const uint32_t w = words_[order_[i]];
-    if (run_words_.empty() || run_words_.back() != w) {
-      run_words_.push_back(w);
-      run_begin_.push_back(i);
-    }
-  }
-  run_begin_.push_back(static_cast<uint32_t>(order_.size()));
-  if (!run_words_.empty()) {
-    has_word_.assign(run_words_.back() / 64 + 1, 0);
-    for (uint32_t w : run_words_) has_word_[w / 64] |= uint64_t{1} << (w % 64);
-  }
+  runs_ = WordRuns(order_.size(), [&](size_t i) { return words_[order_[i]]; });
 }
 
 sift::VerificationResult QueryGeometry::Verify(const PackedFeatures& db, int max_pairs_per_word,
@@ -46,18 +35,14 @@ sift::VerificationResult QueryGeometry::Verify(const PackedFeatures& db, int max
   const bool hamming = !signatures_.empty() && !db.signature_bytes().empty();
   const size_t nd = db.size();
   const auto limit = static_cast<size_t>(max_pairs_per_word);
-  const size_t bitmap_words = has_word_.size() * 64;
   size_t r = 0;  // first query run whose word may still occur in the db (db words ascend)
   for (size_t j = 0; j < nd;) {
     // The db image's run of word w: [j, j2). Most words are not in the query: one bit test skips them.
     const uint32_t w = db.word(j);
     size_t j2 = j + 1;
     while (j2 < nd && db.word(j2) == w) ++j2;
-    if (w < bitmap_words && (has_word_[w / 64] >> (w % 64) & 1) != 0) {
-      r = static_cast<size_t>(std::lower_bound(run_words_.begin() + static_cast<std::ptrdiff_t>(r), run_words_.end(), w) -
-                              run_words_.begin());
-      const size_t i = run_begin_[r];
-      const size_t cq = run_begin_[r + 1] - i, cd = j2 - j;
+    if (const auto [i, i_end] = runs_.Find(w, r); i_end > i) {
+      const size_t cq = i_end - i, cd = j2 - j;
       if (hamming && cq == 1 && cd == 1) {
         // Most shared words: one feature on each side, one pair (the general case below, without its
         // scratch).

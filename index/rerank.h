@@ -30,6 +30,7 @@
 #include <vector>
 
 #include "index/feature_store.h"
+#include "index/word_runs.h"
 #include "sift/types.h"
 #include "sift/verify.h"
 
@@ -53,9 +54,7 @@ class QueryGeometry {
   int hamming_threshold_;
   size_t max_matches_;                 // with signatures; 0 = no limit
   std::vector<uint32_t> order_;        // feature indices sorted by word
-  std::vector<uint32_t> run_words_;    // the distinct words, ascending
-  std::vector<uint32_t> run_begin_;    // run_words_[r]'s features: order_[run_begin_[r] .. run_begin_[r + 1])
-  std::vector<uint64_t> has_word_;     // bit w set when the query has word w (w below 64 * size)
+  WordRuns runs_;                      // of the words in order_'s order (positions into order_)
   std::array<float, 4> region_;
 };
 
