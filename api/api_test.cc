@@ -122,7 +122,8 @@ TEST(Params, SearchOptionParamsMapOntoQueryOptions) {
                              {"min_inliers", "9"},
                              {"qe_images", "4"},
                              {"max_query_features", "0"},
-                             {"max_tentative_matches", "250"}},
+                             {"max_tentative_matches", "250"},
+                             {"max_scored_postings", "2000000000"}},
                             defaults);
   ASSERT_TRUE(q) << q.error().message;
   EXPECT_EQ(q->transitive_depth, 0);
@@ -136,6 +137,7 @@ TEST(Params, SearchOptionParamsMapOntoQueryOptions) {
   EXPECT_EQ(q->qe_images, 4);
   EXPECT_EQ(q->max_query_features, 0);
   EXPECT_EQ(q->max_tentative_matches, 250);
+  EXPECT_EQ(q->max_scored_postings, 2000000000);
   // Untouched fields keep the defaults.
   EXPECT_EQ(q->rerank_depth, defaults.rerank_depth);
   EXPECT_EQ(q->top_k, defaults.top_k);
@@ -147,7 +149,8 @@ TEST(Params, SearchOptionParamsMapOntoQueryOptions) {
       {"transitive_attempts", "1001"}, {"query_assignments", "9"},    {"quantizer_probes", "0"},
       {"quantizer_probes", "4097"},    {"max_pairs_per_word", "101"}, {"min_inliers", "2"},
       {"qe_images", "0"},              {"transitive_depth", "2.5"},   {"quantizer_probes", "many"},
-      {"max_query_features", "-1"},    {"max_query_features", "1000001"}, {"max_tentative_matches", "-5"}};
+      {"max_query_features", "-1"},    {"max_query_features", "1000001"}, {"max_tentative_matches", "-5"},
+      {"max_scored_postings", "-1"},   {"max_scored_postings", "2000000001"}};
   for (const auto& [name, value] : bad) {
     auto refused = ParseQueryParams({{name, value}}, defaults);
     ASSERT_FALSE(refused) << name << "=" << value;
@@ -157,7 +160,7 @@ TEST(Params, SearchOptionParamsMapOntoQueryOptions) {
   // Every parameter is known, near misses are not.
   for (const char* name : {"transitive_depth", "transitive_anchors", "transitive_neighbours", "transitive_attempts",
                            "query_assignments", "quantizer_probes", "max_pairs_per_word", "min_inliers",
-                           "max_query_features", "max_tentative_matches"}) {
+                           "max_query_features", "max_tentative_matches", "max_scored_postings"}) {
     EXPECT_TRUE(QueryParamNames().contains(name)) << name;
   }
   EXPECT_FALSE(ParseQueryParams({{"transitive_neighbors", "5"}}, defaults));

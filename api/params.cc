@@ -142,6 +142,7 @@ constexpr IntQueryParam kIntQueryParams[] = {
     {"quantizer_probes", 1, 4096, &index::QueryOptions::quantizer_probes},
     {"max_query_features", 0, 1000000, &index::QueryOptions::max_query_features},
     {"max_tentative_matches", 0, 1000000, &index::QueryOptions::max_tentative_matches},
+    {"max_scored_postings", 0, 2000000000, &index::QueryOptions::max_scored_postings},
 };
 
 }  // namespace

@@ -56,6 +56,7 @@ using Params = std::multimap<std::string, std::string>;
 //   quantizer_probes       [1, 4096]     QueryOptions::quantizer_probes
 //   max_query_features     [0, 1000000]  QueryOptions::max_query_features (0 = all)
 //   max_tentative_matches  [0, 1000000]  QueryOptions::max_tentative_matches (0 = no limit)
+//   max_scored_postings    [0, 2000000000]  QueryOptions::max_scored_postings (0 = no limit)
 //   hamming                bool          QueryOptions::hamming
 //   filter     a JSON object over the image metadata (api/filter.h)  QueryOptions::filter
 // Starts from `defaults`; the result passes QueryOptions::Check().

@@ -170,6 +170,9 @@ std::optional<std::string> QueryOptions::Check() const {
   if (max_query_features < 0 || max_query_features > 1000000) {
     return "max_query_features must be in [0, 1000000], got " + std::to_string(max_query_features);
   }
+  if (max_scored_postings < 0 || max_scored_postings > 2000000000) {
+    return "max_scored_postings must be in [0, 2000000000], got " + std::to_string(max_scored_postings);
+  }
   if (max_tentative_matches < 0 || max_tentative_matches > 1000000) {
     return "max_tentative_matches must be in [0, 1000000], got " + std::to_string(max_tentative_matches);
   }
@@ -1054,7 +1057,8 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
   if (options.filter) allowed_bitmap = AllowedImages(snap, *options.filter);
   const std::vector<uint8_t>* allowed = options.filter ? &allowed_bitmap : nullptr;
   std::vector<ScoredImage> scored =
-      snap.inverted.Score(terms, depth, &scratch, &response.candidates, allowed, index_options.num_threads);
+      snap.inverted.Score(terms, depth, &scratch, &response.candidates, allowed, index_options.num_threads,
+                          static_cast<uint64_t>(options.max_scored_postings));
   // 1b. Hamming-embedding re-scoring of the shortlist.
   if (hamming) RescoreHamming(snap, query, options, scored);
   timings.score_ms = MsSince(t);
@@ -1287,8 +1291,9 @@ void ImageIndex::Impl::ExpandQuery(const Snapshot& snap, const std::vector<Query
   // Deep enough for transitive verification's window as well as for top_k.
   const size_t expanded_depth =
       static_cast<size_t>(std::max(options.top_k, options.transitive_depth > 0 ? options.transitive_depth : 0));
-  const std::vector<ScoredImage> rescored = snap.inverted.Score(expanded, expanded_depth + num_verified, scratch,
-                                                                nullptr, allowed, index_options.num_threads);
+  const std::vector<ScoredImage> rescored =
+      snap.inverted.Score(expanded, expanded_depth + num_verified, scratch, nullptr, allowed,
+                          index_options.num_threads, static_cast<uint64_t>(options.max_scored_postings));
   std::vector<QueryResult> merged(results.begin(), results.begin() + static_cast<std::ptrdiff_t>(num_verified));
   std::unordered_map<std::string, const QueryResult*> first_stage;
   for (const QueryResult& r : results) first_stage[r.id] = &r;
@@ -1528,11 +1533,11 @@ Result<std::vector<QueryTerm>> ImageIndex::RegionTerms(const std::string& id, co
 }
 
 std::vector<ImageIndex::ScoredId> ImageIndex::ScoreTerms(std::span<const QueryTerm> terms, size_t max_results,
-                                                         uint64_t* candidates) const {
+                                                         uint64_t* candidates, uint64_t max_postings) const {
   thread_local ScoreScratch scratch;
   const auto snap = impl_->Current();
   std::vector<ScoredId> out;
-  for (const ScoredImage& s : snap->inverted.Score(terms, max_results, &scratch, candidates))
+  for (const ScoredImage& s : snap->inverted.Score(terms, max_results, &scratch, candidates, nullptr, 1, max_postings))
     out.push_back({snap->entries[s.image]->record.id, s.score});
   return out;
 }

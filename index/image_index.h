@@ -180,6 +180,15 @@ struct QueryOptions {
   // features. Measured with 3000 (README, "Query cost"): mAP equal or better on the three dev sets than
   // without a limit before, p95 after extraction about a third lower. 0 = all. [0, 1000000].
   int max_query_features = 3000;
+  // Postings each tf-idf pass (the first one and query expansion's) may scan, at most, estimated from
+  // the document frequencies: a longer query keeps its words of largest per-posting contribution
+  // (InvertedFile::WithinPostingBudget: the rare words) and drops the most frequent ones, whose long
+  // lists are most of a search's time at 1M images. Off by default: measured at 1M images (README,
+  // "Through the storage path"), 4M postings made the search 2.5x faster but cost the Paris subset
+  // planted among the synthetic images a quarter of its mAP (0.473 -> 0.342), most of it through
+  // query expansion's pass. A collection of a few thousand images never reaches a budget of millions,
+  // so there it changes nothing. 0 = no limit. [0, 2000000000].
+  int max_scored_postings = 0;
   // Average query expansion (Chum et al. 2007): the query is re-issued as the average of itself and its
   // best `qe_images` verified results (its words of largest weight, twice as many as the query's,
   // which makes that pass cheaper and measured no worse on Paris and groups_dev). On by default (every command and the server): it raises mAP at
@@ -446,8 +455,10 @@ class ImageIndex {
     std::string id;
     float score = 0;
   };
-  // The best `max_results` images for `terms` (InvertedFile::Score), best first.
-  std::vector<ScoredId> ScoreTerms(std::span<const QueryTerm> terms, size_t max_results, uint64_t* candidates) const;
+  // The best `max_results` images for `terms` (InvertedFile::Score, with its posting budget
+  // `max_postings`, 0 = none), best first.
+  std::vector<ScoredId> ScoreTerms(std::span<const QueryTerm> terms, size_t max_results, uint64_t* candidates,
+                                   uint64_t max_postings = 0) const;
   // Per query (words, one per feature, as a bag), its tf-idf scores against images `ids` only, in order,
   // from their bags (InvertedFile::Subset: transitive verification's neighbours). An id not indexed
   // here (removed since a front scored it) scores 0.

@@ -487,6 +487,35 @@ TEST_F(Fixture, MaxQueryFeaturesKeepsTheStrongestInsideTheRegion) {
   EXPECT_NE(refused.error().message.find("max_tentative_matches"), std::string::npos);
 }
 
+TEST_F(Fixture, MaxScoredPostingsCutsTheTfIdfPass) {
+  sift::FeatureSet q;
+  auto index = TwoObjectIndex(&q, 1, 1);
+  const auto run = [&](int max_postings) {
+    QueryOptions o = Opts(12, 0);
+    o.max_scored_postings = max_postings;
+    auto r = index->Query(q, o);
+    EXPECT_TRUE(r) << r.error().ToString();
+    return *r;
+  };
+  // 12 small images: a budget of a million postings is never reached, and the results are those
+  // without one.
+  const QueryResponse unlimited = run(0), roomy = run(1'000'000);
+  ASSERT_EQ(unlimited.results.size(), roomy.results.size());
+  for (size_t i = 0; i < unlimited.results.size(); ++i) {
+    EXPECT_EQ(unlimited.results[i].id, roomy.results[i].id);
+    EXPECT_EQ(unlimited.results[i].score, roomy.results[i].score);
+  }
+  // A budget of one posting scans one word: fewer images get a score.
+  const QueryResponse one = run(1);
+  EXPECT_LT(one.candidates, unlimited.candidates);
+  EXPECT_GT(one.candidates, 0u);
+  QueryOptions bad = Opts(3, 0);
+  bad.max_scored_postings = -1;
+  const auto refused = index->Query(q, bad);
+  ASSERT_FALSE(refused);
+  EXPECT_NE(refused.error().message.find("max_scored_postings"), std::string::npos);
+}
+
 TEST_F(Fixture, AddRemoveSequenceEqualsFreshIndex) {
   std::mt19937_64 rng(5);
   std::map<std::string, sift::FeatureSet> live;

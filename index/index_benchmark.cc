@@ -17,6 +17,7 @@
 //   index_benchmark storage --images N --out DIR [--features F] [--vocab V.oxvoc] [--words K]
 //                           [--threads T] [--batch B] [--queries Q] [--data DIR] [--cache DIR] [--reuse 1]
 //                           [--max-df D] [--stop-list-min-images M] [--photos P] [--export-features DIR2]
+//                           [--max-scored-postings B1,B2,...] [--paris-map 1]
 //     Creates DIR as a normal index folder through ImageIndex (Create, AddBatch in batches of B = 1000,
 //     the SQLite catalogue: the code the server uses), servable as it is by `oxbow serve --index DIR`.
 //     Its N synthetic images (1024 x 768) have F = 1000 features each, drawn with replacement from the
@@ -35,6 +36,11 @@
 //     not), add p50/p99 of single images while another thread searches, remove p50/p99. --reuse 1
 //     skips the ingest and measures the rest on the folder an earlier run left in DIR (give the same
 //     --images and --features). --max-df and --stop-list-min-images replace IndexOptions' stop list.
+//     --max-scored-postings B1,B2,... (default 0,4000000: none, the default, and 4M) measures the full default
+//     search with each posting budget (QueryOptions::max_scored_postings), every query with each in turn.
+//     --paris-map 1 (the Paris subset as the real photos) adds its 250 photos to the collection, runs its
+//     12 cropped queries (restricted protocol, top 1000) with each budget and prints mAP among the N
+//     synthetic images, then removes them again.
 //     --photos P uses only the first P real photos. --export-features DIR2 also writes every synthetic
 //     image as DIR2/<id>.oxfeat (each feature with its real photo's descriptor), so that
 //     `oxbow index build --features DIR2 --vocab V` builds the same collection through the CLI
@@ -534,6 +540,37 @@ double AveragePrecision(const std::vector<std::string>& ranked, const std::set<s
   return ap;
 }
 
+// The Paris subset's 12 queries under the restricted protocol (../shared/data/README.md): official
+// good + ok (positives) and junk, intersected with the database `names` (file names, sorted).
+struct ParisQuery {
+  std::string name, image;
+  std::array<float, 4> box;
+  std::set<std::string> positives, junk;
+};
+std::vector<ParisQuery> ReadParisQueries(const std::filesystem::path& data, const std::vector<std::string>& names) {
+  std::vector<ParisQuery> queries;
+  for (const auto& line : ReadLines(data / "subset_queries_present.txt")) {
+    std::istringstream in(line);
+    ParisQuery q;
+    in >> q.name;
+    std::istringstream box_line(ReadLines(data / "gt" / (q.name + "_query.txt")).at(0));
+    box_line >> q.image >> q.box[0] >> q.box[1] >> q.box[2] >> q.box[3];
+    auto in_database = [&](const std::string& id) {
+      return std::binary_search(names.begin(), names.end(), id + ".jpg");
+    };
+    for (const char* kind : {"good", "ok"}) {
+      for (const auto& id : ReadLines(data / "gt" / (q.name + "_" + kind + ".txt"))) {
+        if (in_database(id)) q.positives.insert(id);
+      }
+    }
+    for (const auto& id : ReadLines(data / "gt" / (q.name + "_junk.txt"))) {
+      if (in_database(id)) q.junk.insert(id);
+    }
+    queries.push_back(std::move(q));
+  }
+  return queries;
+}
+
 // The search defaults before the latency work (server, 20k words: mAP 0.883, 110 ms CPU p50 / 215 p95).
 void PreviousDefaults(QueryOptions* o) {
   o->rerank_depth = 200;
@@ -660,32 +697,7 @@ int RunParis(const std::map<std::string, std::string>& flags) {
               static_cast<unsigned long long>(st.num_images), static_cast<unsigned long long>(st.num_features),
               Ms(t0, Clock::now()) / 1000, st.bytes_per_feature);
 
-  struct Query {
-    std::string name, image;
-    std::array<float, 4> box;
-    std::set<std::string> positives, junk;
-  };
-  std::vector<Query> queries;
-  for (const auto& line : ReadLines(data / "subset_queries_present.txt")) {
-    std::istringstream in(line);
-    Query q;
-    in >> q.name;
-    std::istringstream box_line(ReadLines(data / "gt" / (q.name + "_query.txt")).at(0));
-    box_line >> q.image >> q.box[0] >> q.box[1] >> q.box[2] >> q.box[3];
-    // Restricted protocol: official good + ok (positives) and junk, intersected with the 250 images.
-    auto in_database = [&](const std::string& id) {
-      return std::binary_search(names.begin(), names.end(), id + ".jpg");
-    };
-    for (const char* kind : {"good", "ok"}) {
-      for (const auto& id : ReadLines(data / "gt" / (q.name + "_" + kind + ".txt"))) {
-        if (in_database(id)) q.positives.insert(id);
-      }
-    }
-    for (const auto& id : ReadLines(data / "gt" / (q.name + "_junk.txt"))) {
-      if (in_database(id)) q.junk.insert(id);
-    }
-    queries.push_back(std::move(q));
-  }
+  const std::vector<ParisQuery> queries = ReadParisQueries(data, names);
   // The query features: the query image's features, with the box mapped into the (downscaled) frame.
   std::printf("\n| setting | mAP | quantise p50/p95 ms | score p50/p95 | verify p50/p95 | qe p50/p95 | total p50/p95 | CPU p50/p95 |\n");
   std::printf("|---|---|---|---|---|---|---|---|\n");
@@ -775,7 +787,7 @@ int RunParis(const std::map<std::string, std::string>& flags) {
     std::vector<double> aps, quantize, score, verify, qe, totals, cpu;
     const double load_before = LoadAverage1();
     for (int rep = 0; rep < repeat; ++rep) {
-      for (const Query& q : queries) {
+      for (const ParisQuery& q : queries) {
         const auto it = std::find(names.begin(), names.end(), q.image + ".jpg");
         if (it == names.end()) continue;
         QueryOptions options;
@@ -1054,6 +1066,86 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
                 "quantize %.1f, score %.1f, verify %.1f (transitive included), qe %.1f)\n",
                 name, Percentile(ms, .5), Percentile(ms, .95), Percentile(ms, .99), ms.size(), Percentile(quantize, .5),
                 Percentile(score, .5), Percentile(verify, .5), Percentile(qe, .5));
+  }
+  // The posting budget (QueryOptions::max_scored_postings), full default search otherwise: each value
+  // on every query in turn, so that the machine's drift falls on all of them alike.
+  std::vector<int> budgets;
+  {
+    std::stringstream list(flags.count("--max-scored-postings")
+                               ? flags.at("--max-scored-postings")
+                               : std::string("0,4000000"));
+    for (std::string b; std::getline(list, b, ',');) budgets.push_back(std::stoi(b));
+  }
+  {
+    std::vector<std::vector<double>> ms(budgets.size()), score(budgets.size()), qe(budgets.size());
+    for (const auto* q : queries) {
+      for (size_t b = 0; b < budgets.size(); ++b) {
+        QueryOptions o;
+        o.max_scored_postings = budgets[b];
+        const auto r = idx->Query(*q, o);
+        if (!r) continue;
+        ms[b].push_back(r->timings.total_ms);
+        score[b].push_back(r->timings.score_ms);
+        qe[b].push_back(r->timings.qe_ms);
+      }
+    }
+    for (size_t b = 0; b < budgets.size(); ++b) {
+      std::printf("full default search, max_scored_postings %d: p50 %.1f ms, p95 %.1f ms, p99 %.1f ms (score p50 %.1f, "
+                  "qe p50 %.1f; each budget on every query in turn)\n",
+                  budgets[b], Percentile(ms[b], .5), Percentile(ms[b], .95), Percentile(ms[b], .99),
+                  Percentile(score[b], .5), Percentile(qe[b], .5));
+    }
+  }
+  // --paris-map 1: the Paris subset's photos added to the collection (their real features), its 12
+  // cropped queries under the restricted protocol among the synthetic images, mAP per budget; then
+  // the photos are removed again.
+  if (Flag(flags, "--paris-map", 0) != 0) {
+    if (!fs::is_regular_file(paris / "subset_queries_present.txt") || photos.size() != real.size() ||
+        !fs::equivalent(fs::path(photos.front()).parent_path(), paris / "images")) {
+      std::printf("--paris-map needs the Paris subset (%s) as the real photos\n", paris.c_str());
+      return 1;
+    }
+    std::vector<std::string> names;
+    std::vector<BatchImage> items;
+    for (size_t i = 0; i < photos.size(); ++i) {
+      names.push_back(fs::path(photos[i]).filename().string());
+      items.push_back({fs::path(photos[i]).stem().string(), &real[i], {}, {}});
+    }
+    std::sort(names.begin(), names.end());
+    for (const auto& r : idx->AddBatch(items)) {
+      if (!r) {
+        std::printf("add failed: %s\n", r.error().ToString().c_str());
+        return 1;
+      }
+    }
+    const std::vector<ParisQuery> paris_queries = ReadParisQueries(paris, names);
+    for (const int budget : budgets) {
+      double sum = 0;
+      size_t n = 0;
+      std::vector<double> ms;
+      for (const ParisQuery& q : paris_queries) {
+        const auto it = std::find_if(items.begin(), items.end(), [&](const BatchImage& b) { return b.id == q.image; });
+        if (it == items.end()) continue;
+        QueryOptions o;
+        o.max_scored_postings = budget;
+        o.top_k = 1000;
+        o.region = q.box;
+        const auto r = idx->Query(*it->features, o);
+        if (!r) continue;
+        std::vector<std::string> ranked;
+        for (const auto& x : r->results) ranked.push_back(x.id);
+        sum += AveragePrecision(ranked, q.positives, q.junk);
+        ++n;
+        ms.push_back(r->timings.total_ms);
+      }
+      std::printf("Paris subset among the %llu synthetic images, max_scored_postings %d: mAP %.4f (%zu queries, "
+                  "restricted protocol, top 1000; search p50 %.1f ms)\n",
+                  static_cast<unsigned long long>(num_images), budget, sum / static_cast<double>(std::max<size_t>(1, n)),
+                  n, Percentile(ms, .5));
+    }
+    for (const BatchImage& item : items) {
+      if (!idx->Remove(item.id)) std::printf("remove failed: %s\n", item.id.c_str());
+    }
   }
   // Memory-mapped geometry (checkpoint files) becomes resident as searches read it.
   std::printf("resident after the searches: %.2f bytes per feature\n",

@@ -697,12 +697,50 @@ std::vector<size_t> InvertedFile::ScoreGroups(std::span<const QueryTerm> query) 
   return starts;
 }
 
+uint64_t InvertedFile::ScannedPostings(std::span<const QueryTerm> query) const {
+  uint64_t total = 0;
+  for (const QueryTerm& term : query)
+    if (ScoringWeight(term) != 0) total += stats_df_[term.word];
+  return total;
+}
+
+std::vector<QueryTerm> InvertedFile::WithinPostingBudget(std::span<const QueryTerm> query,
+                                                         uint64_t max_postings) const {
+  if (max_postings == 0 || ScannedPostings(query) <= max_postings) return {query.begin(), query.end()};
+  std::vector<std::pair<float, size_t>> order;  // (per-posting contribution, position), scored terms only
+  order.reserve(query.size());
+  for (size_t i = 0; i < query.size(); ++i) {
+    if (const float w = ScoringWeight(query[i]); w != 0) order.emplace_back(std::abs(w), i);
+  }
+  std::sort(order.begin(), order.end(), [&](const auto& x, const auto& y) {
+    return x.first != y.first ? x.first > y.first : query[x.second].word < query[y.second].word;
+  });
+  std::vector<uint8_t> keep(query.size(), 0);
+  uint64_t used = 0;
+  for (size_t k = 0; k < order.size(); ++k) {
+    const uint64_t cost = stats_df_[query[order[k].second].word];
+    if (k > 0 && used + cost > max_postings) continue;
+    used += cost;
+    keep[order[k].second] = 1;
+  }
+  std::vector<QueryTerm> out;
+  for (size_t i = 0; i < query.size(); ++i)
+    if (keep[i]) out.push_back(query[i]);
+  return out;
+}
+
 std::vector<ScoredImage> InvertedFile::Score(std::span<const QueryTerm> query, size_t max_results,
                                              ScoreScratch* scratch, uint64_t* candidates,
-                                             const std::vector<uint8_t>* allowed, int num_threads) const {
+                                             const std::vector<uint8_t>* allowed, int num_threads,
+                                             uint64_t max_postings) const {
   OXBOW_CHECK(scratch != nullptr);
   if (candidates) *candidates = 0;
   if (num_live_ == 0 || stats_num_live_ == 0 || max_results == 0) return {};
+  std::vector<QueryTerm> within_budget;
+  if (max_postings != 0 && ScannedPostings(query) > max_postings) {
+    within_budget = WithinPostingBudget(query, max_postings);
+    query = within_budget;
+  }
 
   const std::vector<size_t> starts = ScoreGroups(query);
   const size_t num_groups = starts.size() - 1;

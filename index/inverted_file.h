@@ -175,9 +175,22 @@ class InvertedFile {
   // more than the one per touched image). Cost O(postings of the query words + number of images ever
   // added), on up to `num_threads` threads (0 = all cores) for long queries (kMaxScoreGroups); the
   // result does not depend on num_threads.
+  // `max_postings` (0 = no limit): a query estimated to scan more postings than this is first cut to
+  // WithinPostingBudget(query, max_postings); the scores stay cosines with the full image norms.
   std::vector<ScoredImage> Score(std::span<const QueryTerm> query, size_t max_results, ScoreScratch* scratch,
                                  uint64_t* candidates = nullptr, const std::vector<uint8_t>* allowed = nullptr,
-                                 int num_threads = 1) const;
+                                 int num_threads = 1, uint64_t max_postings = 0) const;
+  // The terms of `query` that Score() scans under a budget of `max_postings` postings (a term's cost:
+  // its document frequency in the statistics). The whole query when it fits (0: no limit). Otherwise
+  // the terms are taken in order of their per-posting contribution (weight x idf, which is q_w idf_w:
+  // t(tf_q) idf_w^2 up to the query norm; ties: smaller word first), each kept when it still fits in
+  // what is left of the budget, else skipped; the first is always kept. The rare words that dominate
+  // the cosine are kept and the frequent words, whose long lists cost most for the least score, go
+  // first: the "quit" strategy of Moffat & Zobel 1996 with a posting count instead of an accumulator
+  // count. Sorted by word, as `query`. Depends on the query and the statistics only.
+  std::vector<QueryTerm> WithinPostingBudget(std::span<const QueryTerm> query, uint64_t max_postings) const;
+  // Postings Score() scans for `query` (terms it skips cost nothing), estimated by the statistics.
+  uint64_t ScannedPostings(std::span<const QueryTerm> query) const;
   // Where Score() splits `query` into term groups (kMaxScoreGroups): the first term of each group, then
   // query.size().
   std::vector<size_t> ScoreGroups(std::span<const QueryTerm> query) const;

@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <map>
 #include <random>
@@ -572,6 +573,121 @@ TEST(InvertedFileTest, LongQueriesScoreInGroupsIndependentlyOfThreads) {
       }
     }
     EXPECT_NEAR(s.score, dot / std::sqrt(norm), 1e-4) << "image " << s.image;
+  }
+}
+
+TEST(InvertedFileTest, PostingBudgetKeepsTheTermsOfLargestContributionThatFit) {
+  // Word w is in the images i with i % (w + 1) == 0 (w = 0: every image, weight 0, never scanned), so
+  // rarer words have larger idf; the query weights every word alike, so the per-posting contribution
+  // (weight x idf) ranks the words from the rarest down.
+  constexpr size_t kVocab = 12;
+  constexpr uint32_t kImages = 600;
+  std::vector<BagOfWords> corpus(kImages);
+  for (uint32_t i = 0; i < kImages; ++i) {
+    for (uint32_t w = 0; w < kVocab; ++w) {
+      if (i % (w + 1) == 0) {
+        corpus[i].words.push_back(w);
+        corpus[i].counts.push_back(1);
+      }
+    }
+  }
+  const InvertedFile file = InvertedFile::Build(kVocab, {}, kImages, [&](uint32_t image, BagOfWords* bag) {
+    *bag = corpus[image];
+    return true;
+  });
+  std::vector<QueryTerm> query;
+  for (uint32_t w = 0; w < kVocab; ++w) query.push_back({w, 0.25f});
+  uint64_t all = 0;
+  for (uint32_t w = 1; w < kVocab; ++w) all += file.DocumentFrequency(w);
+  EXPECT_EQ(file.ScannedPostings(query), all);
+  const auto words = [](const std::vector<QueryTerm>& terms) {
+    std::vector<uint32_t> out;
+    for (const QueryTerm& t : terms) out.push_back(t.word);
+    return out;
+  };
+  // No limit, or a budget the query fits in: every term, as given.
+  EXPECT_EQ(words(file.WithinPostingBudget(query, 0)), words(query));
+  EXPECT_EQ(words(file.WithinPostingBudget(query, all)), words(query));
+  const auto df = [&](uint32_t w) { return static_cast<uint64_t>(file.DocumentFrequency(w)); };
+  ASSERT_LT(df(11), df(10));
+  ASSERT_LT(df(10), df(9));
+  ASSERT_LT(df(9), df(8));
+  // The rarest three fit; the fourth and every later (more frequent) word do not fit what is left.
+  const uint64_t three = df(11) + df(10) + df(9);
+  EXPECT_EQ(words(file.WithinPostingBudget(query, three + df(8) - 1)), (std::vector<uint32_t>{9, 10, 11}));
+  EXPECT_EQ(words(file.WithinPostingBudget(query, three + df(8))), (std::vector<uint32_t>{8, 9, 10, 11}));
+  // The query's weights decide the order, not the frequencies alone, and a term that does not fit is
+  // skipped while a later one that fits is still taken: with w11 weighted least it comes last, after
+  // w8 .. w1, which do not fit once w10 and w9 are in.
+  std::vector<QueryTerm> light = query;
+  light[11].weight = 0.01f;
+  EXPECT_EQ(words(file.WithinPostingBudget(light, three)), (std::vector<uint32_t>{9, 10, 11}));
+  // A frequent word weighted far above the rest comes first.
+  std::vector<QueryTerm> heavy = query;
+  heavy[1].weight = 100.0f;
+  EXPECT_EQ(words(file.WithinPostingBudget(heavy, df(1) + df(11))), (std::vector<uint32_t>{1, 11}));
+  // The first term is kept even when it alone exceeds the budget.
+  EXPECT_EQ(words(file.WithinPostingBudget(query, 1)), (std::vector<uint32_t>{11}));
+
+  // Score() under a budget scores the kept terms only, with the full image norms.
+  ScoreScratch scratch;
+  const uint64_t budget = three + df(8);
+  const std::vector<QueryTerm> kept = file.WithinPostingBudget(query, budget);
+  const auto budgeted = file.Score(query, kImages, &scratch, nullptr, nullptr, 1, budget);
+  const auto by_hand = file.Score(kept, kImages, &scratch);
+  ASSERT_EQ(budgeted.size(), by_hand.size());
+  for (size_t i = 0; i < budgeted.size(); ++i) {
+    EXPECT_EQ(budgeted[i].image, by_hand[i].image);
+    EXPECT_EQ(budgeted[i].score, by_hand[i].score);
+  }
+  // Image 5 holds w0 (weight 0) and w4, which the budget drops: listed without the budget only.
+  const auto listed = [](const std::vector<ScoredImage>& r, uint32_t image) {
+    return std::any_of(r.begin(), r.end(), [&](const ScoredImage& s) { return s.image == image; });
+  };
+  EXPECT_FALSE(listed(budgeted, 5));
+  EXPECT_TRUE(listed(file.Score(query, kImages, &scratch), 5));
+  // A budget the query fits in changes nothing.
+  const auto exact = file.Score(query, kImages, &scratch);
+  const auto roomy = file.Score(query, kImages, &scratch, nullptr, nullptr, 1, all);
+  ASSERT_EQ(exact.size(), roomy.size());
+  for (size_t i = 0; i < exact.size(); ++i) {
+    EXPECT_EQ(exact[i].image, roomy[i].image);
+    EXPECT_EQ(exact[i].score, roomy[i].score);
+  }
+}
+
+TEST(InvertedFileTest, ScoresDecodeGapsOfEveryVarintLength) {
+  // Gaps between image numbers whose postings code in 1, 2, 3 and 4 bytes (value = gap << 1 | tf > 1:
+  // 4 bytes from gaps of 2^20), with tf 1 and > 1, lists ending at the very end of the segment's bytes.
+  const std::vector<uint32_t> numbers = {0,     1,     63,     64,     100,    8191,   8192,   8300,
+                                         70000, 1100000, 1100001, 2200000, 2200001, 2300000};
+  constexpr size_t kVocab = 4;
+  std::map<uint32_t, BagOfWords> corpus;
+  for (size_t i = 0; i < numbers.size(); ++i) {
+    std::vector<uint32_t> words = {0};  // word 0 everywhere: weight 0
+    for (uint32_t w = 1; w < kVocab; ++w) {
+      if ((i + w) % 3 != 0) words.insert(words.end(), 1 + (i * w) % 3, w);  // tf 1..3
+    }
+    corpus[numbers[i]] = BagOfWords::FromWords(words);
+  }
+  const InvertedFile file = InvertedFile::Build(kVocab, {}, numbers.back() + 1, [&](uint32_t image, BagOfWords* bag) {
+    const auto it = corpus.find(image);
+    if (it == corpus.end()) return false;
+    *bag = it->second;
+    return true;
+  });
+  for (uint32_t w = 1; w < kVocab; ++w) {
+    const BagOfWords query = BagOfWords::FromWords(std::vector<uint32_t>{w, w, 1});
+    const auto expected = ReferenceScores(corpus, query, kVocab, true);
+    const auto got = AllScores(file, query);
+    for (const auto& [image, score] : expected) {
+      if (score == 0) {
+        EXPECT_FALSE(got.count(image)) << "image " << image;
+      } else {
+        ASSERT_TRUE(got.count(image)) << "image " << image << ", word " << w;
+        EXPECT_NEAR(got.at(image), score, 1e-5) << "image " << image << ", word " << w;
+      }
+    }
   }
 }
 

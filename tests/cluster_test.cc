@@ -261,15 +261,26 @@ TEST_F(Cluster, FrontRankingsEqualTheSingleNode) {
   transitive.query_expansion = false;
   index::QueryOptions transitive_qe = transitive;
   transitive_qe.query_expansion = true;
+  // A posting budget small enough to drop words of these queries: every partition must drop the words
+  // the single node drops (both passes, the first and query expansion's).
+  index::QueryOptions budget = options;
+  budget.max_scored_postings = 40;
   size_t verified = 0;
   size_t verified_transitively = 0;
+  size_t budget_binds = 0;
   for (size_t q = 0; q < queries_->size(); ++q) {
     for (const auto& [name, o] : {std::pair{"default", options}, std::pair{"plain", plain}, std::pair{"region", region},
-                                  std::pair{"transitive", transitive}, std::pair{"transitive+qe", transitive_qe}}) {
+                                  std::pair{"transitive", transitive}, std::pair{"transitive+qe", transitive_qe},
+                                  std::pair{"budget", budget}}) {
       const auto expected = single->Query((*queries_)[q], o);
       const auto got = front->Query((*queries_)[q], o);
       ASSERT_TRUE(expected && got) << (got ? "" : got.error().ToString());
       ExpectSameRanking(*expected, *got, std::string(name) + " query " + std::to_string(q));
+      if (o.max_scored_postings == budget.max_scored_postings) {
+        const auto unlimited = single->Query((*queries_)[q], options);
+        ASSERT_TRUE(unlimited);
+        budget_binds += got->candidates < unlimited->candidates ? 1 : 0;
+      }
       for (size_t i = 0; i < got->results.size(); ++i) {
         const index::QueryResult& r = got->results[i];
         verified += r.verified ? 1 : 0;
@@ -283,6 +294,7 @@ TEST_F(Cluster, FrontRankingsEqualTheSingleNode) {
   }
   EXPECT_GT(verified, queries_->size()) << "nothing but the queries themselves verified: the test proves little";
   EXPECT_GE(verified_transitively, queries_->size()) << "transitive verification found little: the test proves little";
+  EXPECT_GT(budget_binds, 0u) << "the posting budget dropped no word: the budget case proves little";
   for (const cluster::ReplicaMetrics& m : front->Metrics()) {
     EXPECT_GT(m.calls, 0u) << m.address;
     EXPECT_EQ(m.errors, 0u) << m.address;

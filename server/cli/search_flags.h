@@ -43,6 +43,10 @@ inline void AddSearchFlags(CLI::App* cmd, index::QueryOptions* o) {
       64.0);
   add("--max-query-features", &o->max_query_features,
       "an image query uses at most this many of its features, the strongest (0 = all)", 0, 1000000);
+  add("--max-scored-postings", &o->max_scored_postings,
+      "postings a tf-idf pass scans at most: a longer query drops its most frequent words first; faster at "
+      "millions of images, less accurate (0 = no limit; README 'Through the storage path')",
+      0, 2000000000);
   add("--max-tentative-matches", &o->max_tentative_matches,
       "Hamming embedding: tentative matches verified per candidate, the closest signatures (0 = no limit)", 0,
       1000000);

@@ -910,6 +910,7 @@ Result<index::QueryResponse> ClusterFront::Impl::Run(const std::vector<sift::Key
     score.add_words(bag.words[k]);
     score.add_tf(static_cast<float>(bag.counts[k]));
   }
+  score.set_max_postings(static_cast<uint64_t>(options.max_scored_postings));
   const size_t depth = std::max<size_t>(static_cast<size_t>(options.top_k), static_cast<size_t>(options.rerank_depth));
   std::vector<index::QueryTerm> terms;
   std::vector<Candidate> scored = Scatter(score, depth, &terms, &response.candidates, failed);
@@ -999,6 +1000,7 @@ Result<index::QueryResponse> ClusterFront::Impl::Run(const std::vector<sift::Key
         static_cast<size_t>(std::max(options.top_k, options.transitive_depth > 0 ? options.transitive_depth : 0));
     ScoreRequest rescore;
     PutTerms(expanded, rescore.mutable_terms());
+    rescore.set_max_postings(static_cast<uint64_t>(options.max_scored_postings));
     const std::vector<Candidate> rescored = Scatter(rescore, expanded_depth + num_verified, nullptr, nullptr, failed);
     if (auto s = check(); !s) return std::unexpected(s.error());
     std::vector<index::QueryResult> merged;

@@ -51,7 +51,7 @@ class ShardServer::Impl final : public Shard::Service {
       for (const Term& t : request->terms()) terms.push_back({t.word(), t.weight()});
     }
     uint64_t candidates = 0;
-    for (const auto& s : idx.ScoreTerms(terms, request->max_results(), &candidates)) {
+    for (const auto& s : idx.ScoreTerms(terms, request->max_results(), &candidates, request->max_postings())) {
       Scored* out = reply->add_images();
       out->set_id(s.id);
       out->set_score(s.score);
