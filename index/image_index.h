@@ -184,7 +184,7 @@ struct QueryOptions {
   // the document frequencies: a longer query keeps its words of largest per-posting contribution
   // (InvertedFile::WithinPostingBudget: the rare words) and drops the most frequent ones, whose long
   // lists are most of a search's time at 1M images. Off by default: measured at 1M images (README,
-  // "Through the storage path"), 4M postings made the search 2.5x faster but cost the Paris subset
+  // "Through the storage path"), 4M postings made the search 2.4x faster but cost the Paris subset
   // planted among the synthetic images a quarter of its mAP (0.473 -> 0.342), most of it through
   // query expansion's pass. A collection of a few thousand images never reaches a budget of millions,
   // so there it changes nothing. 0 = no limit. [0, 2000000000].
