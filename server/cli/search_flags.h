@@ -27,7 +27,7 @@ inline void AddSearchFlags(CLI::App* cmd, index::QueryOptions* o) {
   add("--transitive-neighbours", &o->transitive_neighbours,
       "transitive verification: an anchor only verifies its own best tf-idf neighbours", 1, 10000);
   add("--transitive-attempts", &o->transitive_attempts,
-      "transitive verification: anchors a candidate is verified against at most", 1, 1000);
+      "transitive verification: anchors a candidate is verified against at most, in each round of anchors", 1, 1000);
   add("--query-assignments", &o->query_assignments,
       "multiple assignment: nearest words each query descriptor counts for (1 = hard)", 1, 8);
   add("--assignment-sigma-sq", &o->assignment_sigma_sq, "multiple assignment: kernel width (squared distance)", 1e-9,
