@@ -602,6 +602,7 @@ TEST(InvertedFileTest, PostingBudgetKeepsTheTermsOfLargestContributionThatFit) {
   EXPECT_EQ(file.ScannedPostings(query), all);
   const auto words = [](const std::vector<QueryTerm>& terms) {
     std::vector<uint32_t> out;
+    out.reserve(terms.size());
     for (const QueryTerm& t : terms) out.push_back(t.word);
     return out;
   };
