@@ -683,7 +683,7 @@ std::vector<size_t> InvertedFile::ScoreGroups(std::span<const QueryTerm> query) 
   uint64_t total = 0;  // postings the query scans, estimated by the document frequencies
   std::vector<uint64_t> cost(query.size(), 0);
   for (size_t i = 0; i < query.size(); ++i) {
-    if (query[i].word < vocabulary_size_ && ScoringWeight(query[i]) != 0) cost[i] = stats_df_[query[i].word];
+    cost[i] = TermCost(query[i]);
     total += cost[i];
   }
   const size_t groups = static_cast<size_t>(std::clamp<uint64_t>(total / kPostingsPerScoreGroup, 1, kMaxScoreGroups));
@@ -697,10 +697,13 @@ std::vector<size_t> InvertedFile::ScoreGroups(std::span<const QueryTerm> query) 
   return starts;
 }
 
+uint64_t InvertedFile::TermCost(const QueryTerm& term) const {
+  return ScoringWeight(term) != 0 ? stats_df_[term.word] : 0;
+}
+
 uint64_t InvertedFile::ScannedPostings(std::span<const QueryTerm> query) const {
   uint64_t total = 0;
-  for (const QueryTerm& term : query)
-    if (ScoringWeight(term) != 0) total += stats_df_[term.word];
+  for (const QueryTerm& term : query) total += TermCost(term);
   return total;
 }
 
@@ -718,7 +721,7 @@ std::vector<QueryTerm> InvertedFile::WithinPostingBudget(std::span<const QueryTe
   std::vector<uint8_t> keep(query.size(), 0);
   uint64_t used = 0;
   for (size_t k = 0; k < order.size(); ++k) {
-    const uint64_t cost = stats_df_[query[order[k].second].word];
+    const uint64_t cost = TermCost(query[order[k].second]);
     if (k > 0 && used + cost > max_postings) continue;
     used += cost;
     keep[order[k].second] = 1;
@@ -737,7 +740,7 @@ std::vector<ScoredImage> InvertedFile::Score(std::span<const QueryTerm> query, s
   if (candidates) *candidates = 0;
   if (num_live_ == 0 || stats_num_live_ == 0 || max_results == 0) return {};
   std::vector<QueryTerm> within_budget;
-  if (max_postings != 0 && ScannedPostings(query) > max_postings) {
+  if (max_postings != 0) {
     within_budget = WithinPostingBudget(query, max_postings);
     query = within_budget;
   }

@@ -254,6 +254,8 @@ class InvertedFile {
  private:
   // Score()'s per-posting factor of a query term: its weight times idf, in float; 0 to skip the term.
   float ScoringWeight(const QueryTerm& term) const;
+  // Postings Score() scans for one term: its document frequency in the statistics, 0 if skipped.
+  uint64_t TermCost(const QueryTerm& term) const;
 
   std::vector<QueryTerm> WeightedQueryVector(std::span<const uint32_t> words, std::span<const float> tf,
                                              bool use_stop_list) const;
