@@ -13,6 +13,7 @@
 #include <filesystem>
 #include <functional>
 #include <map>
+#include <optional>
 
 namespace oxbow::index {
 
@@ -457,6 +458,24 @@ Status Catalogue::ForEachFeaturesAfter(int64_t after,
     return fn(sqlite3_column_int64(stmt, 0),
               std::span<const uint8_t>(blob, static_cast<size_t>(sqlite3_column_bytes(stmt, 1))));
   });
+}
+
+Result<std::vector<uint8_t>> Catalogue::ReadFeatures(int64_t number) const {
+  OXBOW_CHECK(meta_.schema_version == kSchemaVersion);
+  sqlite3_stmt* stmt = nullptr;
+  if (sqlite3_prepare_v2(db_->handle, "SELECT blob FROM features WHERE number = ?1", -1, &stmt, nullptr) != SQLITE_OK) {
+    return Fail(ErrorCode::kCorruptData, path_ + ": " + SqliteMessage(db_->handle));
+  }
+  sqlite3_bind_int64(stmt, 1, number);
+  std::optional<std::vector<uint8_t>> out;
+  auto status = StepAll(db_->handle, stmt, path_, [&] {
+    const auto* blob = static_cast<const uint8_t*>(sqlite3_column_blob(stmt, 0));
+    out.emplace(blob, blob + sqlite3_column_bytes(stmt, 0));
+    return Ok();
+  });
+  if (!status) return std::unexpected(status.error());
+  if (!out) return Fail(ErrorCode::kNotFound, path_ + ": no features of image number " + std::to_string(number));
+  return std::move(*out);
 }
 
 Status Catalogue::ForEach(const std::function<Status(CatalogueRow&&)>& fn, bool with_features) const {

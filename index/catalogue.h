@@ -103,6 +103,8 @@ class Catalogue {
   // Calls fn(number, blob) for every image numbered above `after`, in number order (schema 2 only).
   [[nodiscard]] Status ForEachFeaturesAfter(int64_t after,
                                             const std::function<Status(int64_t, std::span<const uint8_t>)>& fn) const;
+  // The BLOB of image `number` (schema 2). kNotFound when there is no such image.
+  [[nodiscard]] Result<std::vector<uint8_t>> ReadFeatures(int64_t number) const;
   // Records the checkpoint manifest in one committed transaction: the commit point of a checkpoint.
   [[nodiscard]] Status SetCheckpoint(const std::string& manifest);
   // The number of image rows ever inserted or deleted (a replacement is both): 2 x the highest number

@@ -13,6 +13,7 @@
 #include <thread>
 #include <numeric>
 #include <optional>
+#include <set>
 #include <span>
 #include <unordered_map>
 
@@ -49,10 +50,81 @@ std::string JoinPath(const std::string& dir, const char* file) {
 
 size_t ShardOf(const std::string& id) { return std::hash<std::string>{}(id) % kIdShards; }
 
+// A geometry file of the checkpoint an index opened from. Open checks its size and image table but
+// not its checksum (reading every geometry byte took most of an open at 1M images); the file is
+// verified on first use instead: the checkpointer verifies every part right after open, and an image
+// used before that verifies its part first (the caller waits, concurrent callers wait for one check).
+// A part that fails its check is never served: its images are read from the catalogue's BLOBs (through
+// a read-only connection of its own, on demand) and the next checkpoint rewrites them into new files.
+class GeometryPart {
+ public:
+  GeometryPart(std::string dir, CheckpointFile file) : dir_(std::move(dir)), file_(std::move(file)) {}
+
+  const CheckpointFile& file() const { return file_; }
+  // True when the file matches its manifest entry; verifies it on the first call (logged when not).
+  bool Verified() const {
+    if (state_.load(std::memory_order_acquire) == kGood) return true;
+    std::call_once(once_, [&] {
+      const Status status = VerifyCheckpointFile(dir_, file_);
+      if (!status) {
+        OXBOW_LOG(kError) << "index " << dir_ << ": " << status.error().message
+                          << "; its images are read from the catalogue instead, and the next checkpoint rewrites them";
+      }
+      state_.store(status ? kGood : kDamaged, std::memory_order_release);
+    });
+    return state_.load(std::memory_order_acquire) == kGood;
+  }
+  // Verified and found damaged (false while not verified yet).
+  bool Damaged() const { return state_.load(std::memory_order_acquire) == kDamaged; }
+  // `stored` (image `number`'s view of this file) when the file is verified, else the image's features
+  // from the catalogue (no features when they cannot be read there, logged: a search then finds no
+  // matches in it, never wrong ones).
+  const PackedFeatures& Checked(uint32_t number, const PackedFeatures& stored) const {
+    if (Verified()) return stored;
+    std::lock_guard<std::mutex> lock(repair_mutex_);
+    auto& slot = repaired_[number];
+    if (!slot) slot = std::make_unique<const PackedFeatures>(FromCatalogue(number));
+    return *slot;
+  }
+
+ private:
+  static constexpr int kUnverified = 0, kGood = 1, kDamaged = 2;
+  PackedFeatures FromCatalogue(uint32_t number) const {  // repair_mutex_ held
+    const std::string what = "image number " + std::to_string(number) + " of " + JoinPath(dir_, kCatalogueFile);
+    if (!catalogue_) {
+      auto opened = Catalogue::Open(JoinPath(dir_, kCatalogueFile));
+      if (!opened) {
+        OXBOW_LOG(kError) << "index " << dir_ << ": cannot read " << what << ": " << opened.error().message;
+        return {};
+      }
+      catalogue_ = std::move(*opened);
+    }
+    auto blob = catalogue_->ReadFeatures(number);
+    auto features = blob ? PackedFeatures::Deserialize(*blob, what) : Result<PackedFeatures>(std::unexpected(blob.error()));
+    if (!features) {
+      OXBOW_LOG(kError) << "index " << dir_ << ": cannot read " << what << ": " << features.error().message;
+      return {};
+    }
+    return std::move(*features);
+  }
+
+  const std::string dir_;
+  const CheckpointFile file_;
+  mutable std::once_flag once_;
+  mutable std::atomic<int> state_{kUnverified};
+  mutable std::mutex repair_mutex_;
+  mutable std::unique_ptr<Catalogue> catalogue_;                                  // guarded by repair_mutex_
+  mutable std::map<uint32_t, std::unique_ptr<const PackedFeatures>> repaired_;   // guarded by repair_mutex_
+};
+
 // One indexed image: its catalogue record and packed words + geometry. Immutable once published.
 struct Entry {
   ImageRecord record;
-  PackedFeatures features;
+  PackedFeatures stored;                      // read it through features()
+  std::shared_ptr<const GeometryPart> part;   // set when `stored` views a checkpoint's geometry file
+  uint32_t number = 0;                        // with `part`: the image's number
+
+  const PackedFeatures& features() const { return part ? part->Checked(number, stored) : stored; }
 };
 
 using IdShard = std::unordered_map<std::string, uint32_t>;
@@ -219,6 +291,8 @@ struct ImageIndex::Impl {
   uint64_t pending_after_failure = 0;           // changes of failed background checkpoints (for Close)
   std::condition_variable checkpoint_due;       // with writer_mutex: wakes the checkpointer
   std::thread checkpointer;                     // runs CheckpointLoop
+  // The geometry files of the checkpoint Open loaded (set before the checkpointer starts, then read-only).
+  std::vector<std::shared_ptr<const GeometryPart>> geometry_parts;
 
   mutable std::mutex snapshot_mutex;            // guards only the `snapshot` pointer
   std::shared_ptr<const Snapshot> snapshot;
@@ -245,8 +319,11 @@ struct ImageIndex::Impl {
   Result<CheckpointManifest> CheckpointFiles(const Snapshot& snap, const CheckpointManifest& previous) const;
   Status CommitCheckpoint(CheckpointManifest next, uint64_t changes);
   bool CheckpointDue() const;  // writer_mutex held
-  // Writes checkpoints in the background while the index is open (started by Open and Create).
+  // Writes checkpoints in the background while the index is open (started by Open and Create), after
+  // VerifyParts.
   void CheckpointLoop();
+  // Verifies every part not verified yet (stops early when closing); forces a checkpoint when one is damaged.
+  void VerifyParts();
   // After a write (writer_mutex held): counts it and wakes the checkpointer when one is due.
   void Changed(uint64_t images);
   // Stops the checkpointer and checkpoints pending changes; a failure is logged (the next open
@@ -334,7 +411,7 @@ SnapshotPtr MakeSnapshot(InvertedFile inverted, std::vector<std::shared_ptr<cons
   for (uint32_t n = 0; n < by_number.size(); ++n) {
     if (!by_number[n]) continue;
     shards[ShardOf(by_number[n]->record.id)]->emplace(by_number[n]->record.id, n);
-    snap->geometry_bytes += by_number[n]->features.MemoryBytes();
+    snap->geometry_bytes += by_number[n]->stored.MemoryBytes();
     editor.Mutable(n) = std::move(by_number[n]);
   }
   for (size_t i = 0; i < kIdShards; ++i) snap->ids[i] = std::move(shards[i]);
@@ -354,7 +431,7 @@ Result<SnapshotPtr> BuildFromCatalogue(const Catalogue& catalogue, size_t vocab_
     if (auto s = CheckEntry(row.record, *features, vocab_size, path); !s) return s;
     const auto number = static_cast<size_t>(row.number);
     if (by_number.size() <= number) by_number.resize(number + 1);
-    by_number[number] = std::make_shared<Entry>(Entry{std::move(row.record), std::move(*features)});
+    by_number[number] = std::make_shared<Entry>(Entry{std::move(row.record), std::move(*features), nullptr, 0});
     return Ok();
   });
   if (!status) return std::unexpected(status.error());
@@ -362,7 +439,7 @@ Result<SnapshotPtr> BuildFromCatalogue(const Catalogue& catalogue, size_t vocab_
       vocab_size, ToTfIdf(options), static_cast<uint32_t>(by_number.size()),
       [&](uint32_t number, BagOfWords* bag) {
         if (!by_number[number]) return false;
-        *bag = by_number[number]->features.Bag();
+        *bag = by_number[number]->features().Bag();
         return true;
       },
       options.num_threads);
@@ -373,6 +450,7 @@ struct LoadedCheckpoint {
   SnapshotPtr snapshot;          // null: the checkpoint is unusable (logged), rebuild from the catalogue
   CheckpointManifest manifest;   // generation 0 when unreadable
   uint64_t changes = 0;          // images added + removed since the checkpoint (replayed)
+  std::vector<std::shared_ptr<const GeometryPart>> parts;  // its geometry files, not verified yet
 };
 
 // Open from the checkpoint the catalogue names, replaying the changes since. A damaged, missing or
@@ -392,7 +470,9 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
   out.manifest = *manifest;
   if (manifest->sqrt_tf != options.sqrt_tf) return unusable("written with another sqrt_tf setting");
 
-  // Verify and load every file in parallel; the first failure in file order is reported.
+  // Load every file in parallel; the first failure in file order is reported. The postings file is
+  // verified against its checksum here; a geometry file's size and image table are checked here, its
+  // checksum on first use (GeometryPart).
   const std::vector<CheckpointFile>& files = manifest->files;
   std::vector<Status> failures(files.size(), Ok());
   std::vector<std::vector<GeometryImage>> geometry(files.size());
@@ -401,12 +481,18 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
   ParallelFor(files.size(), options.num_threads, 1, [&](size_t begin, size_t end, int) {
     for (size_t i = begin; i < end; ++i) {
       const std::string what = "checkpoint file " + (std::filesystem::path(dir) / files[i].name).string();
-      failures[i] = VerifyCheckpointFile(dir, files[i]);
-      if (!failures[i]) continue;
+      const bool postings = files[i].name.starts_with("postings-");
+      if (postings) {
+        failures[i] = VerifyCheckpointFile(dir, files[i]);
+        if (!failures[i]) continue;
+      }
       auto mapped = MappedFile::Open((std::filesystem::path(dir) / files[i].name).string());
       if (!mapped) {
         failures[i] = std::unexpected(mapped.error());
-      } else if (files[i].name.starts_with("postings-")) {
+      } else if (!postings && (*mapped)->bytes().size() != files[i].size_bytes) {
+        failures[i] = Fail(ErrorCode::kCorruptData, what + " has " + std::to_string((*mapped)->bytes().size()) +
+                                                        " bytes, its manifest says " + std::to_string(files[i].size_bytes));
+      } else if (postings) {
         auto file = InvertedFile::Deserialize((*mapped)->bytes(), vocab_size, ToTfIdf(options));
         if (!file) {
           failures[i] = Fail(file.error().code, what + ": " + file.error().message);
@@ -436,10 +522,15 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
   if (static_cast<int64_t>(inverted->num_numbers()) > high_water + 1) return unusable("postings above the high water");
 
   std::vector<const PackedFeatures*> stored(static_cast<size_t>(high_water) + 1, nullptr);
-  for (const auto& images : geometry) {
-    for (const GeometryImage& image : images) {
+  std::vector<uint32_t> part_of(stored.size(), 0);  // index into out.parts
+  for (size_t i = 0; i < files.size(); ++i) {
+    if (geometry[i].empty()) continue;
+    const auto part = static_cast<uint32_t>(out.parts.size());
+    out.parts.push_back(std::make_shared<const GeometryPart>(dir, files[i]));
+    for (const GeometryImage& image : geometry[i]) {
       if (image.number > high_water || stored[image.number]) return unusable("geometry files overlap");
       stored[image.number] = &image.features;
+      part_of[image.number] = part;
     }
   }
 
@@ -466,7 +557,7 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
           if (inconsistency.empty()) inconsistency = "image '" + row.record.id + "' differs from the catalogue";
           return Ok();
         }
-        by_number[n] = std::make_shared<Entry>(Entry{std::move(row.record), *stored[n]});
+        by_number[n] = std::make_shared<Entry>(Entry{std::move(row.record), *stored[n], out.parts[part_of[n]], n});
         return Ok();
       },
       /*with_features=*/false);
@@ -480,6 +571,8 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
   for (uint32_t n = 0; n < inverted->num_numbers(); ++n) {
     if (!inverted->IsLive(n) || by_number[n]) continue;
     if (!stored[n]) return unusable("a live image without geometry");
+    // Their words leave the postings: the files that hold them are verified now.
+    if (!out.parts[part_of[n]]->Verified()) return unusable(out.parts[part_of[n]]->file().name + " fails its check");
     removed.push_back(n);
     removed_bags.push_back(stored[n]->Bag());
   }
@@ -501,7 +594,7 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
     if (by_number.size() <= n) by_number.resize(n + 1);
     added_numbers.push_back(static_cast<uint32_t>(n));
     added_bags.push_back(features->Bag());
-    by_number[n] = std::make_shared<Entry>(Entry{std::move(it->second), std::move(*features)});
+    by_number[n] = std::make_shared<Entry>(Entry{std::move(it->second), std::move(*features), nullptr, 0});
     added.erase(it);
     return Ok();
   });
@@ -515,7 +608,7 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
   *inverted = inverted->WithAdded(added_numbers, bag_pointers);
   out.changes = removed.size() + added_numbers.size();
   OXBOW_LOG(kInfo) << "index " << dir << ": opened from checkpoint generation " << manifest->generation << " in "
-                   << MsSince(t0) << " ms (files verified and loaded " << files_ms << " ms, records " << records_ms
+                   << MsSince(t0) << " ms (files loaded, postings verified " << files_ms << " ms, records " << records_ms
                    << " ms, replay of " << out.changes << " changes " << MsSince(t0) - files_ms - records_ms
                    << " ms)";
   out.snapshot = MakeSnapshot(std::move(*inverted), by_number);
@@ -535,10 +628,21 @@ Result<CheckpointManifest> ImageIndex::Impl::CheckpointFiles(const Snapshot& sna
   const size_t num_numbers = snap.entries.size();
   next.high_water = num_numbers > 0 ? static_cast<int64_t>(num_numbers) - 1 : 0;
   // Geometry files are immutable: the previous ones stay (images removed since are skipped at open),
-  // new ones hold the images above the previous high water.
-  for (const CheckpointFile& f : previous.files) {
-    if (f.name.starts_with("geometry-")) next.files.push_back(f);
+  // new ones hold the images above the previous high water, and those of the previous files found
+  // damaged (GeometryPart).
+  std::set<std::string> found_damaged, damaged;  // damaged: those `previous` names (not rewritten yet)
+  for (const auto& part : geometry_parts) {
+    if (part->Damaged()) found_damaged.insert(part->file().name);
   }
+  for (const CheckpointFile& f : previous.files) {
+    if (!f.name.starts_with("geometry-")) continue;
+    if (found_damaged.count(f.name)) {
+      damaged.insert(f.name);
+    } else {
+      next.files.push_back(f);
+    }
+  }
+  const bool rewrite = !damaged.empty();
   const std::string generation = std::to_string(next.generation);
   std::vector<GeometryImage> part;
   uint64_t part_bytes = 0;
@@ -553,11 +657,11 @@ Result<CheckpointManifest> ImageIndex::Impl::CheckpointFiles(const Snapshot& sna
     return Ok();
   };
   const size_t first = previous.files.empty() ? 0 : static_cast<size_t>(previous.high_water) + 1;
-  for (size_t n = first; n < num_numbers; ++n) {
+  for (size_t n = rewrite ? 0 : first; n < num_numbers; ++n) {
     const Entry* entry = snap.entries[n].get();
-    if (!entry) continue;
-    part.push_back({static_cast<uint32_t>(n), entry->features});
-    part_bytes += entry->features.bytes().size() + entry->features.signature_bytes().size();
+    if (!entry || (n < first && !(entry->part && damaged.count(entry->part->file().name)))) continue;
+    part.push_back({static_cast<uint32_t>(n), entry->features()});
+    part_bytes += entry->features().bytes().size() + entry->features().signature_bytes().size();
     if (part_bytes >= kGeometryPartBytes) {
       if (auto s = write_part(); !s) return std::unexpected(s.error());
     }
@@ -595,7 +699,27 @@ void ImageIndex::Impl::Changed(uint64_t images) {
   if (CheckpointDue()) checkpoint_due.notify_one();
 }
 
+void ImageIndex::Impl::VerifyParts() {
+  if (geometry_parts.empty()) return;
+  const auto t0 = Clock::now();
+  size_t damaged = 0;
+  for (const auto& part : geometry_parts) {
+    {
+      std::lock_guard<std::mutex> lock(writer_mutex);
+      if (closing) return;
+    }
+    if (!part->Verified()) ++damaged;
+  }
+  OXBOW_LOG(kInfo) << "index " << dir << ": " << geometry_parts.size() << " geometry files of the checkpoint verified in "
+                   << MsSince(t0) << " ms, " << damaged << " damaged";
+  if (damaged > 0) {
+    std::lock_guard<std::mutex> lock(writer_mutex);
+    checkpoint_forced = true;
+  }
+}
+
 void ImageIndex::Impl::CheckpointLoop() {
+  VerifyParts();
   std::unique_lock<std::mutex> lock(writer_mutex);
   while (true) {
     checkpoint_due.wait(lock, [&] { return closing || CheckpointDue(); });
@@ -705,6 +829,7 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, con
     if (loaded->snapshot) {
       snap = std::move(loaded->snapshot);
       impl->checkpoint = std::move(loaded->manifest);
+      impl->geometry_parts = std::move(loaded->parts);
       impl->changes_since_checkpoint = loaded->changes;
     } else {
       // Keep the generation: the new files must not take the names of those the old manifest lists.
@@ -776,14 +901,14 @@ Result<ImageIndex::Impl::Prepared> ImageIndex::Impl::Prepare(const std::string& 
   }
   Prepared out;
   out.entry = std::make_shared<Entry>();
-  out.entry->features =
+  out.entry->stored =
       PackedFeatures::Pack(features.keypoints, words, features.image_width, features.image_height, signatures);
   out.entry->record = ImageRecord{.id = id, .source_path = info.source_path, .width = features.image_width,
                                   .height = features.image_height,
                                   .num_features = static_cast<uint32_t>(features.size()),
                                   .metadata_json = info.metadata_json, .added_unix_ms = NowUnixMs()};
-  out.bag = out.entry->features.Bag();
-  out.blob = out.entry->features.Serialize();
+  out.bag = out.entry->stored.Bag();
+  out.blob = out.entry->stored.Serialize();
   return out;
 }
 
@@ -803,7 +928,7 @@ void ImageIndex::Impl::Link(std::span<const uint32_t> numbers, std::span<Prepare
     auto& shard = shards[ShardOf(id)];
     if (!shard) shard = std::make_shared<IdShard>(*next.ids[ShardOf(id)]);
     (*shard)[id] = numbers[i];
-    next.geometry_bytes += images[i]->entry->features.MemoryBytes();
+    next.geometry_bytes += images[i]->entry->stored.MemoryBytes();
   }
   for (auto& [i, shard] : shards) next.ids[i] = std::move(shard);
 }
@@ -897,11 +1022,11 @@ std::vector<Result<ImageRecord>> ImageIndex::AddBatch(std::span<const BatchImage
 }
 
 void ImageIndex::Impl::Unlink(const Snapshot& current, uint32_t n, const Entry& entry, Snapshot& next) {
-  const BagOfWords bag = entry.features.Bag();
+  const BagOfWords bag = entry.features().Bag();
   const std::array<uint32_t, 1> numbers = {n};
   const std::array<const BagOfWords*, 1> bags = {&bag};
   next.inverted = current.inverted.WithRemoved(numbers, bags);
-  next.geometry_bytes -= entry.features.MemoryBytes();
+  next.geometry_bytes -= entry.stored.MemoryBytes();
   {
     CowArray<std::shared_ptr<const Entry>>::Editor editor(&next.entries);
     editor.Mutable(n) = nullptr;
@@ -1007,19 +1132,20 @@ Result<QueryResponse> ImageIndex::QuerySimilar(const std::string& id, const Quer
   const auto snap = impl_->Current();
   const Entry* entry = snap->Find(id);
   if (!entry) return Fail(ErrorCode::kNotFound, "no image with id '" + id + "'");
+  const PackedFeatures& features = entry->features();
   QueryFeatures q;
-  q.width = entry->features.width();
-  q.height = entry->features.height();
-  for (size_t i = 0; i < entry->features.size(); ++i) {
-    const sift::Keypoint k = entry->features.keypoint(i);
+  q.width = features.width();
+  q.height = features.height();
+  for (size_t i = 0; i < features.size(); ++i) {
+    const sift::Keypoint k = features.keypoint(i);
     if (options.region) {
       const auto& r = *options.region;
       if (k.x < r[0] || k.x > r[2] || k.y < r[1] || k.y > r[3]) continue;
     }
     q.keypoints.push_back(k);
-    q.words.push_back(entry->features.word(i));
-    if (options.hamming && !entry->features.signature_bytes().empty()) {
-      q.signatures.push_back(entry->features.signature(i));
+    q.words.push_back(features.word(i));
+    if (options.hamming && !features.signature_bytes().empty()) {
+      q.signatures.push_back(features.signature(i));
     }
   }
   auto response = impl_->Run(*snap, q, options, QueryTimings{});
@@ -1031,10 +1157,11 @@ Result<ImageIndex::StoredFeatures> ImageIndex::FeaturesOf(const std::string& id)
   const auto snap = impl_->Current();
   const Entry* entry = snap->Find(id);
   if (!entry) return Fail(ErrorCode::kNotFound, "no image with id '" + id + "'");
+  const PackedFeatures& features = entry->features();
   StoredFeatures out;
-  for (size_t i = 0; i < entry->features.size(); ++i) {
-    out.keypoints.push_back(entry->features.keypoint(i));
-    out.words.push_back(entry->features.word(i));
+  for (size_t i = 0; i < features.size(); ++i) {
+    out.keypoints.push_back(features.keypoint(i));
+    out.words.push_back(features.word(i));
   }
   return out;
 }
@@ -1120,7 +1247,7 @@ std::vector<double> HammingScores(const ImageIndex::Snapshot& snap, const QueryS
   std::vector<double> out(images.size());
   ParallelFor(images.size(), threads, 8, [&](size_t begin, size_t end, int) {
     for (size_t c = begin; c < end; ++c) {
-      const PackedFeatures& features = snap.entries[images[c]]->features;
+      const PackedFeatures& features = snap.entries[images[c]]->features();
       out[c] = features.signature_bytes().empty() && features.size() > 0 ? std::nan("")
                                                                         : signatures.Score(features);
     }
@@ -1169,7 +1296,7 @@ void ImageIndex::Impl::ExpandQueryHamming(const Snapshot& snap, const QueryFeatu
   std::vector<uint64_t> signatures = query.signatures;
   const size_t used = std::min(num_verified, static_cast<size_t>(options.qe_images));
   for (size_t c = 0; c < used; ++c) {
-    const PackedFeatures& features = snap.Find(results[c].id)->features;
+    const PackedFeatures& features = snap.Find(results[c].id)->features();
     if (features.signature_bytes().empty()) continue;
     const auto& box = results[c].db_region;
     for (size_t i = 0; i < features.size(); ++i) {
@@ -1261,7 +1388,7 @@ size_t ImageIndex::Impl::Rerank(const Snapshot& snap, const QueryFeatures& query
   ParallelFor(rerank, index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
     for (size_t c = begin; c < end; ++c) {
       const sift::VerificationResult v =
-          geometry.Verify(snap.entries[scored[c].image]->features, options.max_pairs_per_word, options.verify);
+          geometry.Verify(snap.entries[scored[c].image]->features(), options.max_pairs_per_word, options.verify);
       QueryResult& r = results[c];
       r.inliers = v.num_inliers;
       if (v.verified) {
@@ -1285,7 +1412,7 @@ void ImageIndex::Impl::ExpandQuery(const Snapshot& snap, const std::vector<Query
   std::vector<std::vector<QueryTerm>> regions(used);
   for (size_t c = 0; c < used; ++c) {
     const Entry* entry = snap.Find(results[c].id);
-    regions[c] = snap.inverted.QueryVector(entry->features.BagInside(results[c].db_region));
+    regions[c] = snap.inverted.QueryVector(entry->features().BagInside(results[c].db_region));
   }
   const std::vector<QueryTerm> expanded = ExpandedQuery(terms, regions);
   // Deep enough for transitive verification's window as well as for top_k.
@@ -1325,7 +1452,7 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
   std::vector<const BagOfWords*> bag_pointers(last);
   ParallelFor(last, index_options.num_threads, 16, [&](size_t begin, size_t end, int) {
     for (size_t c = begin; c < end; ++c) {
-      bags[c] = snap.Find(results[c].id, &numbers[c])->features.Bag();
+      bags[c] = snap.Find(results[c].id, &numbers[c])->features().Bag();
       bag_pointers[c] = &bags[c];
     }
   });
@@ -1347,7 +1474,7 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
     anchor_words.reserve(anchors.size());
     for (size_t a = 0; a < anchors.size(); ++a) {
       const QueryResult& anchor = results[pool[used + a]];
-      const PackedFeatures& f = snap.Find(anchor.id)->features;
+      const PackedFeatures& f = snap.Find(anchor.id)->features();
       const auto& box = anchor.db_region;
       std::vector<uint32_t> inside;
       for (size_t i = 0; i < f.size(); ++i) {
@@ -1389,7 +1516,7 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
       for (size_t c = first + begin; c < first + end; ++c) {
         QueryResult& r = results[c];
         if (r.verified || attempts[c - first].empty()) continue;
-        const PackedFeatures& f = snap.Find(r.id)->features;
+        const PackedFeatures& f = snap.Find(r.id)->features();
         for (const TransitiveAttempt& attempt : attempts[c - first]) {
           const size_t a = attempt.anchor;
           const sift::VerificationResult v = geometries[a].Verify(f, options.max_pairs_per_word, options.verify);
@@ -1529,7 +1656,7 @@ Result<std::vector<QueryTerm>> ImageIndex::RegionTerms(const std::string& id, co
   const auto snap = impl_->Current();
   const Entry* entry = snap->Find(id);
   if (!entry) return Fail(ErrorCode::kNotFound, "no image with id '" + id + "'");
-  return snap->inverted.QueryVector(entry->features.BagInside(region));
+  return snap->inverted.QueryVector(entry->features().BagInside(region));
 }
 
 std::vector<ImageIndex::ScoredId> ImageIndex::ScoreTerms(std::span<const QueryTerm> terms, size_t max_results,
@@ -1554,7 +1681,7 @@ Result<std::vector<std::vector<float>>> ImageIndex::ScoreAmong(std::span<const s
     if (!entry) continue;
     present.push_back(c);
     numbers.push_back(number);
-    bags.push_back(entry->features.Bag());
+    bags.push_back(entry->features().Bag());
   }
   std::vector<const BagOfWords*> bag_pointers(bags.size());
   for (size_t k = 0; k < bags.size(); ++k) bag_pointers[k] = &bags[k];
@@ -1581,7 +1708,7 @@ Result<std::vector<sift::VerificationResult>> ImageIndex::VerifyImages(std::span
   ParallelFor(ids.size(), impl_->index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
     for (size_t c = begin; c < end; ++c) {
       if (entries[c] != nullptr)
-        out[c] = geometry.Verify(entries[c]->features, options.max_pairs_per_word, options.verify);
+        out[c] = geometry.Verify(entries[c]->features(), options.max_pairs_per_word, options.verify);
     }
   });
   return out;

@@ -4,10 +4,12 @@
 #include <sqlite3.h>
 
 #include <atomic>
+#include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <map>
 #include <optional>
 #include <numbers>
@@ -1232,6 +1234,77 @@ TEST_F(CheckpointFixture, DamagedTruncatedOrMissingFilesAreRepairedFromTheCatalo
       EXPECT_EQ(CheckpointFiles(dir_), (std::vector<std::string>{"geometry-2-0.oxck", "postings-2.oxck"}));
     }
   }
+}
+
+// Every stored keypoint and word of images i0..i(n-1).
+std::vector<std::pair<std::vector<float>, std::vector<uint32_t>>> AllFeatures(const ImageIndex& index, int n) {
+  std::vector<std::pair<std::vector<float>, std::vector<uint32_t>>> out;
+  for (int i = 0; i < n; ++i) {
+    auto features = index.FeaturesOf("i" + std::to_string(i));
+    EXPECT_TRUE(features) << features.error().ToString();
+    if (!features) return out;
+    std::vector<float> keypoints;
+    for (const sift::Keypoint& k : features->keypoints) keypoints.insert(keypoints.end(), {k.x, k.y, k.scale, k.orientation});
+    out.emplace_back(std::move(keypoints), features->words);
+  }
+  return out;
+}
+
+// Inverts every byte of the second half of a geometry file's feature data (its image table intact).
+void DamageGeometryData(const fs::path& path) {
+  std::fstream f(path, std::ios::in | std::ios::out | std::ios::binary);
+  std::vector<char> bytes((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+  ASSERT_GT(bytes.size(), 4000u);
+  for (size_t i = bytes.size() / 2; i < bytes.size(); ++i) bytes[i] = static_cast<char>(~bytes[i]);
+  f.seekp(0);
+  f.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+}
+
+// Open checks a geometry file's size and image table only; its checksum is checked on first use. Damaged
+// feature data is never served: whichever comes first (a query's use, or the background verification
+// after open), the images come from the catalogue, and the next checkpoint rewrites them.
+TEST_F(CheckpointFixture, DamagedGeometryDataIsFoundOnFirstUseAndNeverServed) {
+  std::vector<std::pair<std::vector<float>, std::vector<uint32_t>>> before;
+  {
+    auto index = CreateIndex();
+    for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+    before = AllFeatures(*index, 20);
+  }
+  ASSERT_EQ(CheckpointFiles(dir_), (std::vector<std::string>{"geometry-1-0.oxck", "postings-1.oxck"}));
+  DamageGeometryData(dir_ / "geometry-1-0.oxck");
+  {
+    auto index = ImageIndex::Open(dir_.string());
+    ASSERT_TRUE(index) << index.error().ToString() << " (open must not read the geometry data)";
+    EXPECT_EQ(AllFeatures(**index, 20), before);
+    ExpectEqualsFresh(**index, Range(0, 20));
+  }
+  // The damaged file was replaced by a new one holding its images (the postings file was sound).
+  EXPECT_EQ(CheckpointFiles(dir_), (std::vector<std::string>{"geometry-2-0.oxck", "postings-2.oxck"}));
+  {
+    auto index = ImageIndex::Open(dir_.string());
+    ASSERT_TRUE(index) << index.error().ToString();
+    EXPECT_EQ(AllFeatures(**index, 20), before);
+    ExpectEqualsFresh(**index, Range(0, 20));
+  }
+  EXPECT_EQ(CheckpointFiles(dir_), (std::vector<std::string>{"geometry-2-0.oxck", "postings-2.oxck"}));
+}
+
+// Without any use, the checkpointer verifies every geometry file after open and rewrites a damaged
+// one while the index stays open.
+TEST_F(CheckpointFixture, GeometryFilesAreVerifiedInTheBackgroundAfterOpen) {
+  {
+    auto index = CreateIndex();
+    for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+  }
+  DamageGeometryData(dir_ / "geometry-1-0.oxck");
+  auto index = ImageIndex::Open(dir_.string());
+  ASSERT_TRUE(index) << index.error().ToString();
+  const std::vector<std::string> rewritten = {"geometry-2-0.oxck", "postings-2.oxck"};
+  for (int i = 0; i < 600 && CheckpointFiles(dir_) != rewritten; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+  EXPECT_EQ(CheckpointFiles(dir_), rewritten) << "no rewrite within 60 s of open";
+  ExpectEqualsFresh(**index, Range(0, 20));
 }
 
 TEST_F(CheckpointFixture, KillAtEveryStageOfACheckpointLosesNothing) {
