@@ -19,6 +19,7 @@ namespace {
 constexpr char kGeometryMagic[4] = {'O', 'X', 'G', 'E'};
 constexpr uint32_t kGeometryVersion = 1;
 constexpr uint32_t kSignedGeometryVersion = 2;
+constexpr uint32_t kCheckedGeometryVersion = 3;
 constexpr uint32_t kByteOrderMark = 0x01020304;
 constexpr const char* kManifestHeader = "oxbow-checkpoint 1";
 
@@ -37,6 +38,12 @@ struct SignedGeometryEntry {
   uint32_t reserved;  // 0
 };
 static_assert(sizeof(SignedGeometryEntry) == 32);
+// Version 3's entry adds the XXH3-64 of the image's data (ImageChecksum).
+struct CheckedGeometryEntry {
+  SignedGeometryEntry signed_entry;
+  uint64_t checksum;
+};
+static_assert(sizeof(CheckedGeometryEntry) == 40);
 
 std::string Errno() { return std::strerror(errno); }
 
@@ -62,12 +69,29 @@ class Checksum {
   XXH3_state_t* state_;
 };
 
+uint32_t& GeometryVersion() {
+  static uint32_t version = kCheckedGeometryVersion;
+  return version;
+}
+
 std::function<void(std::string_view)>& StageHook() {
   static std::function<void(std::string_view)> hook;
   return hook;
 }
 
 }  // namespace
+
+uint64_t ImageChecksum(const PackedFeatures& features) {
+  Checksum checksum;
+  checksum.Update(features.bytes());
+  checksum.Update(features.signature_bytes());
+  return checksum.Digest();
+}
+
+void SetGeometryFormatVersionForTesting(uint32_t version) {
+  OXBOW_CHECK(version >= kGeometryVersion && version <= kCheckedGeometryVersion);
+  GeometryVersion() = version;
+}
 
 void SetCheckpointStageHookForTesting(std::function<void(std::string_view)> hook) { StageHook() = std::move(hook); }
 
@@ -239,12 +263,9 @@ void WriteGeometry(std::span<const GeometryImage> images, const ByteSink& sink) 
   const auto put = [&](const auto& value) {
     sink(std::span(reinterpret_cast<const uint8_t*>(&value), sizeof(value)));
   };
-  // Without signatures, version 1 (readable by older builds).
-  const bool any_signed = std::any_of(images.begin(), images.end(), [](const GeometryImage& image) {
-    return !image.features.signature_bytes().empty();
-  });
+  const uint32_t version = GeometryVersion();
   sink(std::span(reinterpret_cast<const uint8_t*>(kGeometryMagic), sizeof(kGeometryMagic)));
-  put(any_signed ? kSignedGeometryVersion : kGeometryVersion);
+  put(version);
   put(kByteOrderMark);
   put(uint64_t{images.size()});
   uint64_t offset = 0;
@@ -252,9 +273,13 @@ void WriteGeometry(std::span<const GeometryImage> images, const ByteSink& sink) 
     const GeometryEntry entry{image.number, image.features.width(), image.features.height(),
                               static_cast<uint32_t>(image.features.size()), offset};
     const bool has_signatures = !image.features.signature_bytes().empty();
-    if (any_signed) {
-      put(SignedGeometryEntry{entry, has_signatures ? 1u : 0u, 0});
+    const SignedGeometryEntry signed_entry{entry, has_signatures ? 1u : 0u, 0};
+    if (version == kCheckedGeometryVersion) {
+      put(CheckedGeometryEntry{signed_entry, ImageChecksum(image.features)});
+    } else if (version == kSignedGeometryVersion) {
+      put(signed_entry);
     } else {
+      OXBOW_CHECK(!has_signatures, "geometry format version 1 has no signatures");
       put(entry);
     }
     offset += image.features.bytes().size() + image.features.signature_bytes().size();
@@ -277,18 +302,21 @@ Result<std::vector<GeometryImage>> ReadGeometry(const std::shared_ptr<const Mapp
   std::memcpy(&version, bytes.data() + 4, 4);
   std::memcpy(&mark, bytes.data() + 8, 4);
   std::memcpy(&count, bytes.data() + 12, 8);
-  if ((version != kGeometryVersion && version != kSignedGeometryVersion) || mark != kByteOrderMark) {
+  if (version < kGeometryVersion || version > kCheckedGeometryVersion || mark != kByteOrderMark) {
     return corrupt("format version or byte order not readable");
   }
-  const size_t entry_bytes = version == kSignedGeometryVersion ? sizeof(SignedGeometryEntry) : sizeof(GeometryEntry);
+  const size_t entry_bytes = version == kCheckedGeometryVersion ? sizeof(CheckedGeometryEntry)
+                             : version == kSignedGeometryVersion ? sizeof(SignedGeometryEntry)
+                                                                 : sizeof(GeometryEntry);
   if (count > (bytes.size() - kHeader) / entry_bytes) return corrupt("truncated image table");
   const size_t data_start = kHeader + count * entry_bytes;
   std::vector<GeometryImage> out;
   out.reserve(count);
   uint64_t expected_offset = 0;
   for (uint64_t i = 0; i < count; ++i) {
-    SignedGeometryEntry signed_entry{};
-    std::memcpy(&signed_entry, bytes.data() + kHeader + i * entry_bytes, entry_bytes);
+    CheckedGeometryEntry checked_entry{};
+    std::memcpy(&checked_entry, bytes.data() + kHeader + i * entry_bytes, entry_bytes);
+    const SignedGeometryEntry& signed_entry = checked_entry.signed_entry;
     const GeometryEntry& e = signed_entry.entry;
     if (signed_entry.has_signatures > 1 || signed_entry.reserved != 0) return corrupt("inconsistent image table");
     const uint64_t feature_length = uint64_t{e.count} * kPackedFeatureBytes;
@@ -303,6 +331,7 @@ Result<std::vector<GeometryImage>> ReadGeometry(const std::shared_ptr<const Mapp
                                          "image number " + std::to_string(e.number) + " in " + what);
     if (!features) return std::unexpected(features.error());
     out.push_back({e.number, std::move(*features)});
+    if (version == kCheckedGeometryVersion) out.back().checksum = checked_entry.checksum;
   }
   if (data_start + expected_offset != bytes.size()) return corrupt("trailing bytes");
   return out;

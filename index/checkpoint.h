@@ -9,9 +9,11 @@
 //                                        (parts of at most kGeometryPartBytes, verified in parallel)
 // A geometry file: magic "OXGE", u32 format version, u32 byte-order mark 0x01020304, u64 image count,
 // then per image {u32 number, i32 width, i32 height, u32 feature count, u64 byte offset}, then the
-// packed features (PackedFeatures::bytes()) back to back. Little-endian. Version 2, written when an
-// image has Hamming-embedding signatures, adds {u32 has signatures (0 or 1), u32 0} to each image's
-// entry, and an image's data is its packed features followed by its PackedFeatures::signature_bytes().
+// packed features (PackedFeatures::bytes()) back to back. Little-endian. Version 2 adds {u32 has
+// signatures (0 or 1), u32 0} to each image's entry, and an image's data is its packed features
+// followed by its PackedFeatures::signature_bytes(). Version 3, the one written, adds {u64 XXH3-64 of
+// the image's data (ImageChecksum)}, so that an image can be checked alone when it is first used;
+// versions 1 and 2 (no per-image checksum) are still read.
 //
 // The manifest (CheckpointManifest::Format(), stored in catalogue meta key `checkpoint`) names the
 // generation, the high water (every image number up to it is covered: the catalogue's rows up to it
@@ -29,6 +31,7 @@
 #include <cstdint>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <span>
 #include <string>
 #include <string_view>
@@ -87,8 +90,11 @@ using ByteSink = std::function<void(std::span<const uint8_t>)>;
 // One image of a geometry file.
 struct GeometryImage {
   uint32_t number = 0;
-  PackedFeatures features;  // views the mapping
+  PackedFeatures features;            // views the mapping
+  std::optional<uint64_t> checksum;   // ImageChecksum of `features` (read: versions >= 3 only)
 };
+// XXH3-64 of an image's data in a geometry file: its packed features, then its signatures.
+uint64_t ImageChecksum(const PackedFeatures& features);
 // Writes the geometry file format for `images` (numbers ascending).
 void WriteGeometry(std::span<const GeometryImage> images, const ByteSink& sink);
 // The images of a mapped geometry file (each keeps the mapping alive). kCorruptData when inconsistent.
@@ -99,9 +105,14 @@ void WriteGeometry(std::span<const GeometryImage> images, const ByteSink& sink);
 // a file that cannot be deleted now is deleted at a later call.
 void RemoveUnreferencedCheckpointFiles(const std::string& dir, const CheckpointManifest& manifest);
 
+// Test seam: the geometry format version WriteGeometry writes (default and only otherwise written: 3;
+// 1 and 2, what older builds wrote, for tests of reading them). Not thread-safe.
+void SetGeometryFormatVersionForTesting(uint32_t version);
+
 // Test seam: called at each step of writing a checkpoint ("file-unsynced": a file's bytes written to
 // its temporary, before fsync and rename; "files-written", "manifest-committed", "cleaned"), e.g. to
-// kill the process there. Not thread-safe; set it before the index is used.
+// kill the process there, and when the checkpointer starts verifying the geometry files an open
+// loaded ("verifying-geometry"), e.g. to hold it back. Not thread-safe; set it before the index is used.
 void SetCheckpointStageHookForTesting(std::function<void(std::string_view stage)> hook);
 void CheckpointStage(std::string_view stage);
 

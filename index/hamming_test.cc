@@ -10,6 +10,8 @@
 #include <filesystem>
 #include <fstream>
 #include <random>
+#include <utility>
+#include <vector>
 
 #include "index/checkpoint.h"
 #include "index/feature_store.h"
@@ -107,14 +109,19 @@ TEST(PackedSignaturesTest, BlobAndCheckpointRoundTripAndOldFormatsStillLoad) {
   damaged[damaged.size() - 1] ^= 1;  // a signature bit: the checksum covers them
   EXPECT_EQ(PackedFeatures::Deserialize(damaged, "test").error().code, ErrorCode::kCorruptData);
 
-  // Geometry files: version 1 while no image has signatures, version 2 (mixed images) otherwise.
+  // Geometry files: version 3 (per-image checksums) is written; 1 (no signatures) and 2 (signatures),
+  // what older builds wrote, are read.
   const fs::path dir = fs::temp_directory_path() / ("oxbow_hamming_geometry_" + std::to_string(::getpid()));
   fs::create_directories(dir);
-  for (const bool signed_images : {false, true}) {
-    std::vector<GeometryImage> images = {{2, without}, {5, signed_images ? with : without}};
+  for (const auto& [version, signed_images] : std::vector<std::pair<uint32_t, bool>>{
+           {1, false}, {2, false}, {2, true}, {3, false}, {3, true}}) {
+    SCOPED_TRACE("version " + std::to_string(version) + (signed_images ? " with signatures" : ""));
+    std::vector<GeometryImage> images = {{2, without, std::nullopt}, {5, signed_images ? with : without, std::nullopt}};
     std::vector<uint8_t> file;
+    SetGeometryFormatVersionForTesting(version);
     WriteGeometry(images, [&](std::span<const uint8_t> b) { file.insert(file.end(), b.begin(), b.end()); });
-    EXPECT_EQ(file[4], signed_images ? 2 : 1);
+    SetGeometryFormatVersionForTesting(3);
+    EXPECT_EQ(file[4], version);
     const std::string path = (dir / "geometry.oxck").string();
     std::ofstream(path, std::ios::binary).write(reinterpret_cast<const char*>(file.data()),
                                                 static_cast<std::streamsize>(file.size()));
@@ -129,6 +136,11 @@ TEST(PackedSignaturesTest, BlobAndCheckpointRoundTripAndOldFormatsStillLoad) {
     if (signed_images) {
       for (size_t i = 0; i < sorted.size(); ++i) EXPECT_EQ((*read)[1].features.signature(i), sorted[i]);
     }
+    for (const GeometryImage& image : *read) {
+      EXPECT_EQ(image.checksum.has_value(), version == 3);
+      if (image.checksum) EXPECT_EQ(*image.checksum, ImageChecksum(image.features));
+    }
+    if (version == 3) EXPECT_NE(ImageChecksum(with), ImageChecksum(without)) << "the checksum covers the signatures";
   }
   fs::remove_all(dir);
 }

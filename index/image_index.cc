@@ -51,11 +51,13 @@ std::string JoinPath(const std::string& dir, const char* file) {
 size_t ShardOf(const std::string& id) { return std::hash<std::string>{}(id) % kIdShards; }
 
 // A geometry file of the checkpoint an index opened from. Open checks its size and image table but
-// not its checksum (reading every geometry byte took most of an open at 1M images); the file is
-// verified on first use instead: the checkpointer verifies every part right after open, and an image
-// used before that verifies its part first (the caller waits, concurrent callers wait for one check).
-// A part that fails its check is never served: its images are read from the catalogue's BLOBs (through
-// a read-only connection of its own, on demand) and the next checkpoint rewrites them into new files.
+// not its checksum (reading every geometry byte took most of an open at 1M images); its data is
+// checked on use instead: every use of an image checks that image's checksum (format version 3; ~9 KB
+// hashed per image), and the checkpointer checks the whole file once right after open. A file without
+// per-image checksums (versions 1 and 2) is checked whole at the first use of one of its images (the
+// caller waits, concurrent callers wait for the same check). A part that fails a check is never
+// served: its images are read from the catalogue's BLOBs (through a read-only connection of its own,
+// on demand) and the next checkpoint rewrites them into new files.
 class GeometryPart {
  public:
   GeometryPart(std::string dir, CheckpointFile file) : dir_(std::move(dir)), file_(std::move(file)) {}
@@ -67,20 +69,30 @@ class GeometryPart {
     std::call_once(once_, [&] {
       const Status status = VerifyCheckpointFile(dir_, file_);
       if (!status) {
-        OXBOW_LOG(kError) << "index " << dir_ << ": " << status.error().message
-                          << "; its images are read from the catalogue instead, and the next checkpoint rewrites them";
+        MarkDamaged(status.error().message);
+      } else {
+        int expected = kUnverified;  // a damaged image found meanwhile wins
+        state_.compare_exchange_strong(expected, kGood, std::memory_order_acq_rel);
       }
-      state_.store(status ? kGood : kDamaged, std::memory_order_release);
     });
     return state_.load(std::memory_order_acquire) == kGood;
   }
   // Verified and found damaged (false while not verified yet).
   bool Damaged() const { return state_.load(std::memory_order_acquire) == kDamaged; }
-  // `stored` (image `number`'s view of this file) when the file is verified, else the image's features
-  // from the catalogue (no features when they cannot be read there, logged: a search then finds no
-  // matches in it, never wrong ones).
-  const PackedFeatures& Checked(uint32_t number, const PackedFeatures& stored) const {
-    if (Verified()) return stored;
+  // `stored` (image `number`'s view of this file, with its checksum when the file has them) when it
+  // passes its check, else the image's features from the catalogue (no features when they cannot be
+  // read there, logged: a search then finds no matches in it, never wrong ones).
+  const PackedFeatures& Checked(uint32_t number, const PackedFeatures& stored, std::optional<uint64_t> checksum) const {
+    const int state = state_.load(std::memory_order_acquire);
+    if (state == kGood) return stored;
+    if (state == kUnverified) {
+      if (!checksum && Verified()) return stored;
+      if (checksum && ImageChecksum(stored) == *checksum) return stored;
+      if (checksum) {
+        MarkDamaged("checkpoint file " + JoinPath(dir_, file_.name.c_str()) + ": image number " +
+                    std::to_string(number) + " fails its checksum");
+      }
+    }
     std::lock_guard<std::mutex> lock(repair_mutex_);
     auto& slot = repaired_[number];
     if (!slot) slot = std::make_unique<const PackedFeatures>(FromCatalogue(number));
@@ -89,6 +101,11 @@ class GeometryPart {
 
  private:
   static constexpr int kUnverified = 0, kGood = 1, kDamaged = 2;
+  void MarkDamaged(const std::string& why) const {
+    if (state_.exchange(kDamaged, std::memory_order_acq_rel) == kDamaged) return;
+    OXBOW_LOG(kError) << "index " << dir_ << ": " << why
+                      << "; its images are read from the catalogue instead, and the next checkpoint rewrites them";
+  }
   PackedFeatures FromCatalogue(uint32_t number) const {  // repair_mutex_ held
     const std::string what = "image number " + std::to_string(number) + " of " + JoinPath(dir_, kCatalogueFile);
     if (!catalogue_) {
@@ -123,8 +140,9 @@ struct Entry {
   PackedFeatures stored;                      // read it through features()
   std::shared_ptr<const GeometryPart> part;   // set when `stored` views a checkpoint's geometry file
   uint32_t number = 0;                        // with `part`: the image's number
+  std::optional<uint64_t> checksum;           // with `part`: its checksum in the file, when it has them
 
-  const PackedFeatures& features() const { return part ? part->Checked(number, stored) : stored; }
+  const PackedFeatures& features() const { return part ? part->Checked(number, stored, checksum) : stored; }
 };
 
 using IdShard = std::unordered_map<std::string, uint32_t>;
@@ -319,10 +337,12 @@ struct ImageIndex::Impl {
   Result<CheckpointManifest> CheckpointFiles(const Snapshot& snap, const CheckpointManifest& previous) const;
   Status CommitCheckpoint(CheckpointManifest next, uint64_t changes);
   bool CheckpointDue() const;  // writer_mutex held
+  // A geometry file the current checkpoint names was found damaged (writer_mutex held).
+  bool DamagedGeometryNamed() const;
   // Writes checkpoints in the background while the index is open (started by Open and Create), after
   // VerifyParts.
   void CheckpointLoop();
-  // Verifies every part not verified yet (stops early when closing); forces a checkpoint when one is damaged.
+  // Verifies every part not verified yet (stops early when closing).
   void VerifyParts();
   // After a write (writer_mutex held): counts it and wakes the checkpointer when one is due.
   void Changed(uint64_t images);
@@ -431,7 +451,7 @@ Result<SnapshotPtr> BuildFromCatalogue(const Catalogue& catalogue, size_t vocab_
     if (auto s = CheckEntry(row.record, *features, vocab_size, path); !s) return s;
     const auto number = static_cast<size_t>(row.number);
     if (by_number.size() <= number) by_number.resize(number + 1);
-    by_number[number] = std::make_shared<Entry>(Entry{std::move(row.record), std::move(*features), nullptr, 0});
+    by_number[number] = std::make_shared<Entry>(Entry{std::move(row.record), std::move(*features), nullptr, 0, std::nullopt});
     return Ok();
   });
   if (!status) return std::unexpected(status.error());
@@ -521,7 +541,7 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
   const int64_t high_water = manifest->high_water;
   if (static_cast<int64_t>(inverted->num_numbers()) > high_water + 1) return unusable("postings above the high water");
 
-  std::vector<const PackedFeatures*> stored(static_cast<size_t>(high_water) + 1, nullptr);
+  std::vector<const GeometryImage*> stored(static_cast<size_t>(high_water) + 1, nullptr);
   std::vector<uint32_t> part_of(stored.size(), 0);  // index into out.parts
   for (size_t i = 0; i < files.size(); ++i) {
     if (geometry[i].empty()) continue;
@@ -529,7 +549,7 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
     out.parts.push_back(std::make_shared<const GeometryPart>(dir, files[i]));
     for (const GeometryImage& image : geometry[i]) {
       if (image.number > high_water || stored[image.number]) return unusable("geometry files overlap");
-      stored[image.number] = &image.features;
+      stored[image.number] = &image;
       part_of[image.number] = part;
     }
   }
@@ -553,11 +573,11 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
         const auto n = static_cast<uint32_t>(row.number);
         // The words were checked when the image was added; reading them here would page in every
         // mapped geometry page.
-        if (!stored[n] || !inverted->IsLive(n) || !RecordMatches(row.record, *stored[n])) {
+        if (!stored[n] || !inverted->IsLive(n) || !RecordMatches(row.record, stored[n]->features)) {
           if (inconsistency.empty()) inconsistency = "image '" + row.record.id + "' differs from the catalogue";
           return Ok();
         }
-        by_number[n] = std::make_shared<Entry>(Entry{std::move(row.record), *stored[n], out.parts[part_of[n]], n});
+        by_number[n] = std::make_shared<Entry>(Entry{std::move(row.record), stored[n]->features, out.parts[part_of[n]], n, stored[n]->checksum});
         return Ok();
       },
       /*with_features=*/false);
@@ -571,10 +591,12 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
   for (uint32_t n = 0; n < inverted->num_numbers(); ++n) {
     if (!inverted->IsLive(n) || by_number[n]) continue;
     if (!stored[n]) return unusable("a live image without geometry");
-    // Their words leave the postings: the files that hold them are verified now.
-    if (!out.parts[part_of[n]]->Verified()) return unusable(out.parts[part_of[n]]->file().name + " fails its check");
+    // Their words leave the postings: checked now (the image, or the whole file without per-image sums).
+    const GeometryPart& part = *out.parts[part_of[n]];
+    const bool sound = stored[n]->checksum ? ImageChecksum(stored[n]->features) == *stored[n]->checksum : part.Verified();
+    if (!sound) return unusable(part.file().name + ": the data of image number " + std::to_string(n) + " fails its check");
     removed.push_back(n);
-    removed_bags.push_back(stored[n]->Bag());
+    removed_bags.push_back(stored[n]->features.Bag());
   }
   std::vector<const BagOfWords*> bag_pointers;
   bag_pointers.reserve(removed_bags.size());
@@ -594,7 +616,7 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
     if (by_number.size() <= n) by_number.resize(n + 1);
     added_numbers.push_back(static_cast<uint32_t>(n));
     added_bags.push_back(features->Bag());
-    by_number[n] = std::make_shared<Entry>(Entry{std::move(it->second), std::move(*features), nullptr, 0});
+    by_number[n] = std::make_shared<Entry>(Entry{std::move(it->second), std::move(*features), nullptr, 0, std::nullopt});
     added.erase(it);
     return Ok();
   });
@@ -660,7 +682,7 @@ Result<CheckpointManifest> ImageIndex::Impl::CheckpointFiles(const Snapshot& sna
   for (size_t n = rewrite ? 0 : first; n < num_numbers; ++n) {
     const Entry* entry = snap.entries[n].get();
     if (!entry || (n < first && !(entry->part && damaged.count(entry->part->file().name)))) continue;
-    part.push_back({static_cast<uint32_t>(n), entry->features()});
+    part.push_back({static_cast<uint32_t>(n), entry->features(), std::nullopt});
     part_bytes += entry->features().bytes().size() + entry->features().signature_bytes().size();
     if (part_bytes >= kGeometryPartBytes) {
       if (auto s = write_part(); !s) return std::unexpected(s.error());
@@ -690,7 +712,18 @@ Status ImageIndex::Impl::CommitCheckpoint(CheckpointManifest next, uint64_t chan
 
 bool ImageIndex::Impl::CheckpointDue() const {
   const uint64_t live = Current()->inverted.num_images();
-  return checkpoint_forced || changes_since_checkpoint >= std::max(index_options.checkpoint_changes, live / 10);
+  return checkpoint_forced || changes_since_checkpoint >= std::max(index_options.checkpoint_changes, live / 10) ||
+         DamagedGeometryNamed();
+}
+
+bool ImageIndex::Impl::DamagedGeometryNamed() const {
+  for (const auto& part : geometry_parts) {
+    if (!part->Damaged()) continue;
+    for (const CheckpointFile& f : checkpoint.files) {
+      if (f.name == part->file().name) return true;
+    }
+  }
+  return false;
 }
 
 void ImageIndex::Impl::Changed(uint64_t images) {
@@ -701,6 +734,7 @@ void ImageIndex::Impl::Changed(uint64_t images) {
 
 void ImageIndex::Impl::VerifyParts() {
   if (geometry_parts.empty()) return;
+  CheckpointStage("verifying-geometry");
   const auto t0 = Clock::now();
   size_t damaged = 0;
   for (const auto& part : geometry_parts) {
@@ -712,10 +746,7 @@ void ImageIndex::Impl::VerifyParts() {
   }
   OXBOW_LOG(kInfo) << "index " << dir << ": " << geometry_parts.size() << " geometry files of the checkpoint verified in "
                    << MsSince(t0) << " ms, " << damaged << " damaged";
-  if (damaged > 0) {
-    std::lock_guard<std::mutex> lock(writer_mutex);
-    checkpoint_forced = true;
-  }
+  // A damaged file makes CheckpointDue() true: the loop that follows rewrites it.
 }
 
 void ImageIndex::Impl::CheckpointLoop() {
@@ -750,7 +781,7 @@ void ImageIndex::Impl::Close() {
   if (checkpointer.joinable()) checkpointer.join();
   std::lock_guard<std::mutex> writer(writer_mutex);
   changes_since_checkpoint += pending_after_failure;
-  if ((changes_since_checkpoint == 0 && !checkpoint_forced) || !catalogue) return;
+  if ((changes_since_checkpoint == 0 && !checkpoint_forced && !DamagedGeometryNamed()) || !catalogue) return;
   auto next = CheckpointFiles(*Current(), checkpoint);
   const Status status = next ? CommitCheckpoint(std::move(*next), changes_since_checkpoint)
                              : Status(std::unexpected(next.error()));

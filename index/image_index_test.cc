@@ -18,6 +18,8 @@
 
 #include <csignal>
 #include <functional>
+#include <future>
+#include <string_view>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -1145,6 +1147,8 @@ class CheckpointFixture : public Fixture {
     }
     fs::remove_all(fresh_dir);
   }
+  // Body of DamagedGeometryDataIsFoundOnFirstUseAndNeverServed for geometry files of `version`.
+  void ExpectDamagedGeometryDataNeverServed(uint32_t version);
   std::vector<int> Range(int begin, int end) {
     std::vector<int> out;
     for (int i = begin; i < end; ++i) out.push_back(i);
@@ -1260,23 +1264,44 @@ void DamageGeometryData(const fs::path& path) {
   f.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
 }
 
-// Open checks a geometry file's size and image table only; its checksum is checked on first use. Damaged
+// Open checks a geometry file's size and image table only; its data is checked on use (each image's
+// checksum, or the whole file for the versions without per-image sums that older builds wrote). Damaged
 // feature data is never served: whichever comes first (a query's use, or the background verification
 // after open), the images come from the catalogue, and the next checkpoint rewrites them.
 TEST_F(CheckpointFixture, DamagedGeometryDataIsFoundOnFirstUseAndNeverServed) {
+  for (const uint32_t version : {3u, 1u}) {
+    SCOPED_TRACE("geometry format version " + std::to_string(version));
+    fs::remove_all(dir_);
+    ExpectDamagedGeometryDataNeverServed(version);
+  }
+}
+
+void CheckpointFixture::ExpectDamagedGeometryDataNeverServed(uint32_t version) {
   std::vector<std::pair<std::vector<float>, std::vector<uint32_t>>> before;
   {
+    SetGeometryFormatVersionForTesting(version);
     auto index = CreateIndex();
     for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
     before = AllFeatures(*index, 20);
   }
+  SetGeometryFormatVersionForTesting(3);
   ASSERT_EQ(CheckpointFiles(dir_), (std::vector<std::string>{"geometry-1-0.oxck", "postings-1.oxck"}));
   DamageGeometryData(dir_ / "geometry-1-0.oxck");
   {
+    // The background verification waits until the images were used: their use finds the damage.
+    std::promise<void> used;
+    std::shared_future<void> released = used.get_future().share();
+    SetCheckpointStageHookForTesting([released](std::string_view stage) {
+      if (stage == "verifying-geometry") released.wait();
+    });
     auto index = ImageIndex::Open(dir_.string());
+    if (!index) used.set_value();
     ASSERT_TRUE(index) << index.error().ToString() << " (open must not read the geometry data)";
     EXPECT_EQ(AllFeatures(**index, 20), before);
     ExpectEqualsFresh(**index, Range(0, 20));
+    used.set_value();
+    index->reset();
+    SetCheckpointStageHookForTesting(nullptr);
   }
   // The damaged file was replaced by a new one holding its images (the postings file was sound).
   EXPECT_EQ(CheckpointFiles(dir_), (std::vector<std::string>{"geometry-2-0.oxck", "postings-2.oxck"}));
