@@ -366,7 +366,9 @@ struct ImageIndex::Impl {
   // `next` (a copy of the current snapshot) gains the committed images `numbers` (ascending).
   static void Link(std::span<const uint32_t> numbers, std::span<Prepared* const> images, Snapshot& next);
   // Makes `next` (a copy of `current`) lose image `n` (`entry`): postings, entry, id, geometry bytes.
-  static void Unlink(const Snapshot& current, uint32_t n, const Entry& entry, Snapshot& next);
+  // `bag`: entry.features().Bag(), read before the catalogue row is deleted (a damaged checkpoint
+  // image is read from that row).
+  static void Unlink(const Snapshot& current, uint32_t n, const Entry& entry, const BagOfWords& bag, Snapshot& next);
 
   // Re-scores the first options.hamming_shortlist of `scored` (tf-idf order) with query.signatures
   // and sorts them by that score; candidates without signatures follow in their tf-idf order.
@@ -977,6 +979,7 @@ Result<ImageRecord> ImageIndex::Impl::Write(const std::string& id, const sift::F
   uint32_t old_number = 0;
   const Entry* old = current->Find(id, &old_number);
   if (old && !replace) return taken();
+  const BagOfWords old_bag = old ? old->features().Bag() : BagOfWords{};
   // Durable first: once the catalogue returns, the row is committed (a replacement in the same
   // transaction as the removal of the old row); the snapshot then makes it visible.
   const ImageRecord& record = prepared->entry->record;
@@ -985,7 +988,7 @@ Result<ImageRecord> ImageIndex::Impl::Write(const std::string& id, const sift::F
 
   // One snapshot with both changes: a query sees the old image or the new one, never neither.
   auto next = std::make_shared<Snapshot>(*current);
-  if (old) Unlink(*current, old_number, *old, *next);
+  if (old) Unlink(*current, old_number, *old, old_bag, *next);
   const std::array<uint32_t, 1> numbers = {static_cast<uint32_t>(*number)};
   const std::array<Prepared*, 1> images = {&*prepared};
   Link(numbers, images, *next);
@@ -1052,8 +1055,8 @@ std::vector<Result<ImageRecord>> ImageIndex::AddBatch(std::span<const BatchImage
   return results;
 }
 
-void ImageIndex::Impl::Unlink(const Snapshot& current, uint32_t n, const Entry& entry, Snapshot& next) {
-  const BagOfWords bag = entry.features().Bag();
+void ImageIndex::Impl::Unlink(const Snapshot& current, uint32_t n, const Entry& entry, const BagOfWords& bag,
+                              Snapshot& next) {
   const std::array<uint32_t, 1> numbers = {n};
   const std::array<const BagOfWords*, 1> bags = {&bag};
   next.inverted = current.inverted.WithRemoved(numbers, bags);
@@ -1073,10 +1076,11 @@ Status ImageIndex::Remove(const std::string& id) {
   uint32_t n = 0;
   const Entry* entry = current->Find(id, &n);
   if (!entry) return Fail(ErrorCode::kNotFound, "no image with id '" + id + "'");
+  const BagOfWords bag = entry->features().Bag();
   if (auto s = impl_->catalogue->Delete(n); !s) return s;
 
   auto next = std::make_shared<Snapshot>(*current);
-  Impl::Unlink(*current, n, *entry, *next);
+  Impl::Unlink(*current, n, *entry, bag, *next);
   impl_->Publish(std::move(next));
   impl_->Changed(1);
   return Ok();

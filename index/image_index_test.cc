@@ -1314,6 +1314,37 @@ void CheckpointFixture::ExpectDamagedGeometryDataNeverServed(uint32_t version) {
   EXPECT_EQ(CheckpointFiles(dir_), (std::vector<std::string>{"geometry-2-0.oxck", "postings-2.oxck"}));
 }
 
+// A remove or replace of an image whose checkpoint data is damaged, before anything used it, takes
+// its words from its catalogue row before deleting that row: the statistics stay exact.
+TEST_F(CheckpointFixture, RemovingADamagedImageBeforeItsFirstUseKeepsTheIndexExact) {
+  {
+    auto index = CreateIndex();
+    for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+  }
+  DamageGeometryData(dir_ / "geometry-1-0.oxck");  // the data of the last images (i12 and i15 among them)
+  std::vector<int> live = Range(0, 20);
+  live.erase(live.begin() + 15);
+  {
+    std::promise<void> done;
+    std::shared_future<void> released = done.get_future().share();
+    SetCheckpointStageHookForTesting([released](std::string_view stage) {
+      if (stage == "verifying-geometry") released.wait();
+    });
+    auto index = ImageIndex::Open(dir_.string());
+    if (!index) done.set_value();
+    ASSERT_TRUE(index) << index.error().ToString();
+    EXPECT_TRUE((*index)->Remove("i15"));
+    EXPECT_TRUE((*index)->Replace("i12", Image(12), {}));
+    ExpectEqualsFresh(**index, live);
+    done.set_value();
+    index->reset();
+    SetCheckpointStageHookForTesting(nullptr);
+  }
+  auto index = ImageIndex::Open(dir_.string());
+  ASSERT_TRUE(index) << index.error().ToString();
+  ExpectEqualsFresh(**index, live);
+}
+
 // Without any use, the checkpointer verifies every geometry file after open and rewrites a damaged
 // one while the index stays open.
 TEST_F(CheckpointFixture, GeometryFilesAreVerifiedInTheBackgroundAfterOpen) {
