@@ -1147,6 +1147,16 @@ class CheckpointFixture : public Fixture {
     }
     fs::remove_all(fresh_dir);
   }
+  // Until the returned promise is set (or for 60 s), the checkpointer of the next index opened waits
+  // before it verifies the geometry files; reset the hook (SetCheckpointStageHookForTesting) after.
+  static std::promise<void> HoldBackGeometryVerification() {
+    std::promise<void> release;
+    std::shared_future<void> released = release.get_future().share();
+    SetCheckpointStageHookForTesting([released](std::string_view stage) {
+      if (stage == "verifying-geometry") released.wait_for(std::chrono::seconds(60));
+    });
+    return release;
+  }
   // Body of DamagedGeometryDataIsFoundOnFirstUseAndNeverServed for geometry files of `version`.
   void ExpectDamagedGeometryDataNeverServed(uint32_t version);
   std::vector<int> Range(int begin, int end) {
@@ -1289,13 +1299,8 @@ void CheckpointFixture::ExpectDamagedGeometryDataNeverServed(uint32_t version) {
   DamageGeometryData(dir_ / "geometry-1-0.oxck");
   {
     // The background verification waits until the images were used: their use finds the damage.
-    std::promise<void> used;
-    std::shared_future<void> released = used.get_future().share();
-    SetCheckpointStageHookForTesting([released](std::string_view stage) {
-      if (stage == "verifying-geometry") released.wait();
-    });
+    std::promise<void> used = HoldBackGeometryVerification();
     auto index = ImageIndex::Open(dir_.string());
-    if (!index) used.set_value();
     ASSERT_TRUE(index) << index.error().ToString() << " (open must not read the geometry data)";
     EXPECT_EQ(AllFeatures(**index, 20), before);
     ExpectEqualsFresh(**index, Range(0, 20));
@@ -1325,13 +1330,8 @@ TEST_F(CheckpointFixture, RemovingADamagedImageBeforeItsFirstUseKeepsTheIndexExa
   std::vector<int> live = Range(0, 20);
   live.erase(live.begin() + 15);
   {
-    std::promise<void> done;
-    std::shared_future<void> released = done.get_future().share();
-    SetCheckpointStageHookForTesting([released](std::string_view stage) {
-      if (stage == "verifying-geometry") released.wait();
-    });
+    std::promise<void> done = HoldBackGeometryVerification();
     auto index = ImageIndex::Open(dir_.string());
-    if (!index) done.set_value();
     ASSERT_TRUE(index) << index.error().ToString();
     EXPECT_TRUE((*index)->Remove("i15"));
     EXPECT_TRUE((*index)->Replace("i12", Image(12), {}));
