@@ -330,8 +330,8 @@ Result<std::vector<GeometryImage>> ReadGeometry(const std::shared_ptr<const Mapp
     auto features = PackedFeatures::View(data.first(feature_length), data.subspan(feature_length), e.width, e.height, file,
                                          "image number " + std::to_string(e.number) + " in " + what);
     if (!features) return std::unexpected(features.error());
-    out.push_back({e.number, std::move(*features)});
-    if (version == kCheckedGeometryVersion) out.back().checksum = checked_entry.checksum;
+    out.push_back({e.number, std::move(*features),
+                   version == kCheckedGeometryVersion ? std::optional<uint64_t>(checked_entry.checksum) : std::nullopt});
   }
   if (data_start + expected_offset != bytes.size()) return corrupt("trailing bytes");
   return out;

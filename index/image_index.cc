@@ -595,7 +595,8 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
     if (!stored[n]) return unusable("a live image without geometry");
     // Their words leave the postings: checked now (the image, or the whole file without per-image sums).
     const GeometryPart& part = *out.parts[part_of[n]];
-    const bool sound = stored[n]->checksum ? ImageChecksum(stored[n]->features) == *stored[n]->checksum : part.Verified();
+    const std::optional<uint64_t>& checksum = stored[n]->checksum;
+    const bool sound = checksum.has_value() ? ImageChecksum(stored[n]->features) == checksum.value() : part.Verified();
     if (!sound) return unusable(part.file().name + ": the data of image number " + std::to_string(n) + " fails its check");
     removed.push_back(n);
     removed_bags.push_back(stored[n]->features.Bag());
