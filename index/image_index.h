@@ -66,10 +66,12 @@
 //                      of the manifest in `meta`, written by a background thread and at close.
 //   vocabulary.oxvoc   a copy of the vocabulary (vocab::Vocabulary file format, CRC-checked); its
 //                      fingerprint must equal the one in `meta`.
-// Open loads the checkpoint (files verified by checksum; geometry memory-mapped) and replays the
-// catalogue's changes since; without a usable checkpoint (none yet, or a file missing, damaged or
-// inconsistent: logged) it rebuilds from the BLOBs (one pass, O(total features)) and checkpoints
-// again in the background.
+// Open loads the checkpoint (the postings file verified by checksum; geometry memory-mapped, its size
+// and image table checked at open and its data on use: each image's checksum at every use, each file
+// whole by the checkpointer right after open; damaged geometry is read from the catalogue's BLOBs and
+// rewritten by the next checkpoint) and replays the catalogue's changes since; without a usable
+// checkpoint (none yet, or a file missing, damaged or inconsistent: logged) it rebuilds from the
+// BLOBs (one pass, O(total features)) and checkpoints again in the background.
 // Open refuses: a folder without a catalogue, an unknown schema version, a vocabulary copy whose
 // fingerprint differs from the catalogue's, a damaged BLOB (checksum) or a damaged SQLite file; and,
 // with kIoError, a folder it cannot write (read-only permissions or file system): the index is always
