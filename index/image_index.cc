@@ -685,8 +685,9 @@ Result<CheckpointManifest> ImageIndex::Impl::CheckpointFiles(const Snapshot& sna
   for (size_t n = rewrite ? 0 : first; n < num_numbers; ++n) {
     const Entry* entry = snap.entries[n].get();
     if (!entry || (n < first && !(entry->part && damaged.count(entry->part->file().name)))) continue;
-    part.push_back({static_cast<uint32_t>(n), entry->features(), std::nullopt});
-    part_bytes += entry->features().bytes().size() + entry->features().signature_bytes().size();
+    const PackedFeatures& features = entry->features();
+    part.push_back({static_cast<uint32_t>(n), features, std::nullopt});
+    part_bytes += features.bytes().size() + features.signature_bytes().size();
     if (part_bytes >= kGeometryPartBytes) {
       if (auto s = write_part(); !s) return std::unexpected(s.error());
     }
