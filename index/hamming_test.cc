@@ -138,9 +138,13 @@ TEST(PackedSignaturesTest, BlobAndCheckpointRoundTripAndOldFormatsStillLoad) {
     }
     for (const GeometryImage& image : *read) {
       EXPECT_EQ(image.checksum.has_value(), version == 3);
-      if (image.checksum) EXPECT_EQ(*image.checksum, ImageChecksum(image.features));
+      if (image.checksum) {
+        EXPECT_EQ(*image.checksum, ImageChecksum(image.features));
+      }
     }
-    if (version == 3) EXPECT_NE(ImageChecksum(with), ImageChecksum(without)) << "the checksum covers the signatures";
+    if (version == 3) {
+      EXPECT_NE(ImageChecksum(with), ImageChecksum(without)) << "the checksum covers the signatures";
+    }
   }
   fs::remove_all(dir);
 }

@@ -79,20 +79,23 @@ class GeometryPart {
   }
   // Verified and found damaged (false while not verified yet).
   bool Damaged() const { return state_.load(std::memory_order_acquire) == kDamaged; }
+  // Whether `stored` (image `number`'s view of this file) may be served: the whole file passed its
+  // check, or, not checked yet, the image's own checksum matches (a mismatch marks the file damaged);
+  // a file without per-image checksums is checked whole now.
+  bool Sound(uint32_t number, const PackedFeatures& stored, std::optional<uint64_t> checksum) const {
+    const int state = state_.load(std::memory_order_acquire);
+    if (state != kUnverified) return state == kGood;
+    if (!checksum.has_value()) return Verified();
+    if (ImageChecksum(stored) == checksum.value()) return true;
+    MarkDamaged("checkpoint file " + JoinPath(dir_, file_.name.c_str()) + ": image number " + std::to_string(number) +
+                " fails its checksum");
+    return false;
+  }
   // `stored` (image `number`'s view of this file, with its checksum when the file has them) when it
   // passes its check, else the image's features from the catalogue (no features when they cannot be
   // read there, logged: a search then finds no matches in it, never wrong ones).
   const PackedFeatures& Checked(uint32_t number, const PackedFeatures& stored, std::optional<uint64_t> checksum) const {
-    const int state = state_.load(std::memory_order_acquire);
-    if (state == kGood) return stored;
-    if (state == kUnverified) {
-      if (!checksum && Verified()) return stored;
-      if (checksum && ImageChecksum(stored) == *checksum) return stored;
-      if (checksum) {
-        MarkDamaged("checkpoint file " + JoinPath(dir_, file_.name.c_str()) + ": image number " +
-                    std::to_string(number) + " fails its checksum");
-      }
-    }
+    if (Sound(number, stored, checksum)) return stored;
     std::lock_guard<std::mutex> lock(repair_mutex_);
     auto& slot = repaired_[number];
     if (!slot) slot = std::make_unique<const PackedFeatures>(FromCatalogue(number));
@@ -337,8 +340,8 @@ struct ImageIndex::Impl {
   Result<CheckpointManifest> CheckpointFiles(const Snapshot& snap, const CheckpointManifest& previous) const;
   Status CommitCheckpoint(CheckpointManifest next, uint64_t changes);
   bool CheckpointDue() const;  // writer_mutex held
-  // A geometry file the current checkpoint names was found damaged (writer_mutex held).
-  bool DamagedGeometryNamed() const;
+  // The geometry files `manifest` names that were found damaged (GeometryPart).
+  std::set<std::string> DamagedGeometry(const CheckpointManifest& manifest) const;
   // Writes checkpoints in the background while the index is open (started by Open and Create), after
   // VerifyParts.
   void CheckpointLoop();
@@ -595,9 +598,9 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
     if (!stored[n]) return unusable("a live image without geometry");
     // Their words leave the postings: checked now (the image, or the whole file without per-image sums).
     const GeometryPart& part = *out.parts[part_of[n]];
-    const std::optional<uint64_t>& checksum = stored[n]->checksum;
-    const bool sound = checksum.has_value() ? ImageChecksum(stored[n]->features) == checksum.value() : part.Verified();
-    if (!sound) return unusable(part.file().name + ": the data of image number " + std::to_string(n) + " fails its check");
+    if (!part.Sound(n, stored[n]->features, stored[n]->checksum)) {
+      return unusable(part.file().name + ": the data of image number " + std::to_string(n) + " fails its check");
+    }
     removed.push_back(n);
     removed_bags.push_back(stored[n]->features.Bag());
   }
@@ -655,17 +658,9 @@ Result<CheckpointManifest> ImageIndex::Impl::CheckpointFiles(const Snapshot& sna
   // Geometry files are immutable: the previous ones stay (images removed since are skipped at open),
   // new ones hold the images above the previous high water, and those of the previous files found
   // damaged (GeometryPart).
-  std::set<std::string> found_damaged, damaged;  // damaged: those `previous` names (not rewritten yet)
-  for (const auto& part : geometry_parts) {
-    if (part->Damaged()) found_damaged.insert(part->file().name);
-  }
+  const std::set<std::string> damaged = DamagedGeometry(previous);
   for (const CheckpointFile& f : previous.files) {
-    if (!f.name.starts_with("geometry-")) continue;
-    if (found_damaged.count(f.name)) {
-      damaged.insert(f.name);
-    } else {
-      next.files.push_back(f);
-    }
+    if (f.name.starts_with("geometry-") && !damaged.count(f.name)) next.files.push_back(f);
   }
   const bool rewrite = !damaged.empty();
   const std::string generation = std::to_string(next.generation);
@@ -717,17 +712,18 @@ Status ImageIndex::Impl::CommitCheckpoint(CheckpointManifest next, uint64_t chan
 bool ImageIndex::Impl::CheckpointDue() const {
   const uint64_t live = Current()->inverted.num_images();
   return checkpoint_forced || changes_since_checkpoint >= std::max(index_options.checkpoint_changes, live / 10) ||
-         DamagedGeometryNamed();
+         !DamagedGeometry(checkpoint).empty();
 }
 
-bool ImageIndex::Impl::DamagedGeometryNamed() const {
+std::set<std::string> ImageIndex::Impl::DamagedGeometry(const CheckpointManifest& manifest) const {
+  std::set<std::string> out;
   for (const auto& part : geometry_parts) {
     if (!part->Damaged()) continue;
-    for (const CheckpointFile& f : checkpoint.files) {
-      if (f.name == part->file().name) return true;
+    for (const CheckpointFile& f : manifest.files) {
+      if (f.name == part->file().name) out.insert(f.name);
     }
   }
-  return false;
+  return out;
 }
 
 void ImageIndex::Impl::Changed(uint64_t images) {
@@ -785,7 +781,7 @@ void ImageIndex::Impl::Close() {
   if (checkpointer.joinable()) checkpointer.join();
   std::lock_guard<std::mutex> writer(writer_mutex);
   changes_since_checkpoint += pending_after_failure;
-  if ((changes_since_checkpoint == 0 && !checkpoint_forced && !DamagedGeometryNamed()) || !catalogue) return;
+  if ((changes_since_checkpoint == 0 && !checkpoint_forced && DamagedGeometry(checkpoint).empty()) || !catalogue) return;
   auto next = CheckpointFiles(*Current(), checkpoint);
   const Status status = next ? CommitCheckpoint(std::move(*next), changes_since_checkpoint)
                              : Status(std::unexpected(next.error()));
