@@ -1,6 +1,7 @@
 #include "index/feature_store.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <numbers>
 #include <numeric>
@@ -15,9 +16,15 @@ constexpr uint32_t kBlobVersion = 1;
 constexpr uint32_t kSignedBlobVersion = 2;
 constexpr size_t kBlobHeaderBytes = 4 + 4 * 5;
 
+// std::round for 0 <= x < 2^52 (halves away from zero), without the libm call: x - trunc(x) is exact.
+// Pack rounds four values per feature; the call was a tenth of its time.
+inline int64_t RoundNonNegative(double x) {
+  const auto t = static_cast<int64_t>(x);
+  return t + (x - static_cast<double>(t) >= 0.5 ? 1 : 0);
+}
+
 inline uint16_t QuantizeCoordinate(float v, int size) {
-  const double q = std::round(std::clamp(static_cast<double>(v) / size, 0.0, 1.0) * 65535.0);
-  return static_cast<uint16_t>(q);
+  return static_cast<uint16_t>(RoundNonNegative(std::clamp(static_cast<double>(v) / size, 0.0, 1.0) * 65535.0));
 }
 
 }  // namespace
@@ -27,11 +34,21 @@ PackedFeatures PackedFeatures::Pack(std::span<const sift::Keypoint> keypoints, s
   OXBOW_CHECK(keypoints.size() == words.size());
   OXBOW_CHECK(signatures.empty() || signatures.size() == words.size());
   OXBOW_CHECK(width > 0 && height > 0);
-  // By word, ties in input order: sorting (word, position) keys as integers is that stable order and
-  // several times faster than a stable sort of positions through the words.
-  std::vector<uint64_t> order(words.size());
-  for (size_t i = 0; i < words.size(); ++i) order[i] = (static_cast<uint64_t>(words[i]) << 32) | i;
-  std::sort(order.begin(), order.end());
+  // By word, ties in input order: a least-significant-digit radix sort of the positions, 11 bits of
+  // the word per stable counting pass (two passes below 2^22 words). It is several times faster than
+  // sorting (word, position) keys, and Pack runs once per added image.
+  std::vector<uint32_t> order(words.size()), scratch(words.size());
+  std::iota(order.begin(), order.end(), 0u);
+  const uint32_t max_word = words.empty() ? 0 : *std::max_element(words.begin(), words.end());
+  constexpr int kDigitBits = 11;
+  constexpr uint32_t kDigits = 1u << kDigitBits;
+  for (int shift = 0; shift == 0 || (shift < 32 && (max_word >> shift) != 0); shift += kDigitBits) {
+    std::array<uint32_t, kDigits + 1> start{};
+    for (const uint32_t w : words) ++start[((w >> shift) & (kDigits - 1)) + 1];
+    for (uint32_t d = 0; d < kDigits; ++d) start[d + 1] += start[d];
+    for (const uint32_t i : order) scratch[start[(words[i] >> shift) & (kDigits - 1)]++] = i;
+    order.swap(scratch);
+  }
   PackedFeatures out;
   out.width_ = width;
   out.height_ = height;
@@ -42,18 +59,17 @@ PackedFeatures PackedFeatures::Pack(std::span<const sift::Keypoint> keypoints, s
   out.storage_ = storage;
   uint8_t* p = storage->data();
   uint8_t* signature = storage->data() + feature_bytes;
-  for (const uint64_t key : order) {
-    const auto i = static_cast<uint32_t>(key);
+  for (const uint32_t i : order) {
     const uint32_t w = words[i];
     OXBOW_CHECK(w <= kMaxPackedWord, "word id does not fit 24 bits");
     const sift::Keypoint& k = keypoints[i];
     const uint16_t x = QuantizeCoordinate(k.x, width), y = QuantizeCoordinate(k.y, height);
     const double log_scale = k.scale > 0 ? std::log2(static_cast<double>(k.scale)) : -4.0;
-    const int s = static_cast<int>(std::clamp(std::round((log_scale + 4.0) * 16.0), 0.0, 255.0));
+    const auto s = static_cast<int>(RoundNonNegative(std::clamp((log_scale + 4.0) * 16.0, 0.0, 255.0)));
     double turns = static_cast<double>(k.orientation) / (2 * std::numbers::pi);
     if (!std::isfinite(turns)) turns = 0;
     turns -= std::floor(turns);
-    const int o = static_cast<int>(std::lround(turns * 256.0)) & 255;
+    const int o = static_cast<int>(RoundNonNegative(turns * 256.0)) & 255;
     p[0] = static_cast<uint8_t>(w);
     p[1] = static_cast<uint8_t>(w >> 8);
     p[2] = static_cast<uint8_t>(w >> 16);

@@ -910,8 +910,9 @@ Result<ImageIndex::Impl::Prepared> ImageIndex::Impl::Prepare(const std::string& 
       return Fail(ErrorCode::kInvalidArgument, what + ": " + std::to_string(assigned.size()) + " words for " +
                                                    std::to_string(features.keypoints.size()) + " keypoints");
     }
+    const size_t vocabulary_size = vocabulary.size();
     for (const uint32_t w : assigned) {
-      if (w >= vocabulary.size()) return Fail(ErrorCode::kInvalidArgument, what + ": word outside the vocabulary");
+      if (w >= vocabulary_size) return Fail(ErrorCode::kInvalidArgument, what + ": word outside the vocabulary");
     }
   }
   if (auto s = CheckSettings(info.extractor_settings, extractor_settings, "features of '" + id + "'"); !s) {

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 #include <sqlite3.h>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cmath>
@@ -11,6 +12,7 @@
 #include <fstream>
 #include <iterator>
 #include <map>
+#include <numeric>
 #include <optional>
 #include <numbers>
 #include <random>
@@ -1021,6 +1023,57 @@ TEST_F(Fixture, PackedFeaturesRoundTrip) {
   auto future = blob;
   future[4] = 7;
   EXPECT_EQ(PackedFeatures::Deserialize(future, "test").error().code, ErrorCode::kIncompatible);
+}
+
+// Pack's bytes against the layout written out with libm's rounding and a stable sort: the radix sort
+// and the rounding without libm must give exactly these. Words span all 24 bits (three radix passes)
+// with many repeats (ties keep input order); coordinates include exact halves of a quantisation step.
+TEST(PackedFeaturesLayout, BytesEqualTheReferenceLayout) {
+  std::mt19937_64 rng(12);
+  for (const uint32_t max_word : {7u, 100'000u, kMaxPackedWord}) {
+    const int width = 65535, height = 480;  // x = m + 0.5 is then exactly half a quantisation step
+    std::vector<sift::Keypoint> keypoints;
+    std::vector<uint32_t> words;
+    std::vector<uint64_t> signatures;
+    std::uniform_real_distribution<float> unit(0.0f, 1.0f);
+    for (int i = 0; i < 3000; ++i) {
+      sift::Keypoint k;
+      k.x = i % 7 == 0 ? static_cast<float>(i % 65534) + 0.5f : unit(rng) * width;
+      k.y = i % 5 == 0 ? static_cast<float>(height) : unit(rng) * height * 1.1f - 0.05f * height;
+      k.scale = i % 11 == 0 ? 0.01f : std::exp2(unit(rng) * 12.0f - 4.5f);
+      k.orientation = (unit(rng) - 0.5f) * 20.0f;
+      keypoints.push_back(k);
+      words.push_back(i % 3 == 0 ? max_word : static_cast<uint32_t>(rng() % (max_word + 1)));
+      signatures.push_back(rng());
+    }
+    const PackedFeatures packed = PackedFeatures::Pack(keypoints, words, width, height, signatures);
+    std::vector<size_t> order(words.size());
+    std::iota(order.begin(), order.end(), size_t{0});
+    std::stable_sort(order.begin(), order.end(), [&](size_t a, size_t b) { return words[a] < words[b]; });
+    ASSERT_EQ(packed.bytes().size(), words.size() * kPackedFeatureBytes);
+    int halves = 0;
+    for (size_t j = 0; j < order.size(); ++j) {
+      const size_t i = order[j];
+      const sift::Keypoint& k = keypoints[i];
+      const double qx = std::clamp(static_cast<double>(k.x) / width, 0.0, 1.0) * 65535.0;
+      halves += qx - std::floor(qx) == 0.5 ? 1 : 0;
+      const auto x = static_cast<uint16_t>(std::round(std::clamp(static_cast<double>(k.x) / width, 0.0, 1.0) * 65535.0));
+      const auto y = static_cast<uint16_t>(std::round(std::clamp(static_cast<double>(k.y) / height, 0.0, 1.0) * 65535.0));
+      const double log_scale = std::log2(static_cast<double>(k.scale));
+      const int sc = static_cast<int>(std::clamp(std::round((log_scale + 4.0) * 16.0), 0.0, 255.0));
+      double turns = static_cast<double>(k.orientation) / (2 * std::numbers::pi);
+      turns -= std::floor(turns);
+      const int o = static_cast<int>(std::lround(turns * 256.0)) & 255;
+      const std::array<uint8_t, kPackedFeatureBytes> expected = {
+          static_cast<uint8_t>(words[i]), static_cast<uint8_t>(words[i] >> 8), static_cast<uint8_t>(words[i] >> 16),
+          static_cast<uint8_t>(x),        static_cast<uint8_t>(x >> 8),        static_cast<uint8_t>(y),
+          static_cast<uint8_t>(y >> 8),   static_cast<uint8_t>(sc),            static_cast<uint8_t>(o)};
+      const auto got = packed.bytes().subspan(j * kPackedFeatureBytes, kPackedFeatureBytes);
+      ASSERT_TRUE(std::equal(got.begin(), got.end(), expected.begin())) << "feature " << j << ", max word " << max_word;
+      ASSERT_EQ(packed.signature(j), signatures[i]) << "feature " << j;
+    }
+    EXPECT_GT(halves, 300) << "the exact halves this test relies on";
+  }
 }
 
 TEST_F(Fixture, ReadersRunWhileWritersAdd) {

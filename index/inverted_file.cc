@@ -475,54 +475,89 @@ InvertedFile InvertedFile::WithAdded(std::span<const uint32_t> images, std::span
   // The new images' own sums (with the statistics of the last refresh) and their segment.
   CowArray<ImageState>::Editor editor(&next.images_);
   editor.Resize(images.back() + size_t{1});
-  struct Triple {
-    uint32_t word, image, tf;
-  };
-  std::vector<Triple> triples;
+  uint64_t total = 0;
   for (size_t i = 0; i < images.size(); ++i) {
     ImageState& s = editor.Mutable(images[i]);
     s = ImageState{};
     next.SetSums(*bags[i], &s);
-    for (size_t k = 0; k < bags[i]->words.size(); ++k) {
-      const uint32_t w = bags[i]->words[k], tf = bags[i]->counts[k];
-      s.features += tf;
-      triples.push_back({w, images[i], tf});
-    }
+    for (const uint32_t tf : bags[i]->counts) s.features += tf;
     s.live = 1;
     ++next.num_live_;
     next.num_live_features_ += s.features;
+    total += bags[i]->words.size();
   }
   next.changes_since_refresh_ += images.size();
-  // Into (word, image) order. The triples come in image order, so a stable sort by word suffices: a
-  // counting sort when the batch is large next to the vocabulary (bulk ingest; O(triples + words)),
-  // a comparison sort otherwise (single adds would pay for a vocabulary-sized count table).
-  if (triples.size() * 4 >= vocabulary_size_) {
-    std::vector<uint64_t> start(vocabulary_size_ + 1, 0);
-    for (const Triple& t : triples) ++start[t.word + 1];
-    for (size_t w = 0; w < vocabulary_size_; ++w) start[w + 1] += start[w];
-    std::vector<Triple> sorted(triples.size());
-    for (const Triple& t : triples) sorted[start[t.word]++] = t;
-    triples = std::move(sorted);
-  } else {
-    std::stable_sort(triples.begin(), triples.end(), [](const Triple& x, const Triple& y) { return x.word < y.word; });
-  }
   auto segment = std::make_shared<Segment>();
   segment->first_image = images.front();
   segment->end_image = images.back() + 1;
-  segment->num_postings = triples.size();
-  for (size_t i = 0; i < triples.size();) {
-    segment->words.push_back(triples[i].word);
-    segment->offsets.push_back(segment->bytes.size());
-    uint32_t last = segment->first_image;
-    size_t j = i;
-    for (; j < triples.size() && triples[j].word == triples[i].word; ++j) {
-      PutPosting(&segment->bytes, triples[j].image - last, triples[j].tf);
-      last = triples[j].image;
+  segment->num_postings = total;
+  if (total * 4 >= vocabulary_size_) {
+    // A large batch next to the vocabulary (bulk ingest): as Build, one pass for the coded size of every
+    // word's list, one that writes the postings in place; O(postings + words), no intermediate copy.
+    std::vector<uint64_t> offsets(vocabulary_size_ + 1, 0);
+    std::vector<uint32_t> last(vocabulary_size_, segment->first_image);
+    for (size_t i = 0; i < images.size(); ++i) {
+      for (size_t k = 0; k < bags[i]->words.size(); ++k) {
+        const uint32_t w = bags[i]->words[k];
+        offsets[w + 1] += PostingSize(images[i] - last[w], bags[i]->counts[k]);
+        last[w] = images[i];
+      }
     }
-    i = j;
+    size_t distinct = 0;
+    for (size_t w = 0; w < vocabulary_size_; ++w) {
+      distinct += offsets[w + 1] > 0 ? 1 : 0;
+      offsets[w + 1] += offsets[w];
+    }
+    segment->bytes.resize(offsets[vocabulary_size_]);
+    std::vector<uint64_t> cursor(offsets.begin(), offsets.end() - 1);
+    std::fill(last.begin(), last.end(), segment->first_image);
+    for (size_t i = 0; i < images.size(); ++i) {
+      for (size_t k = 0; k < bags[i]->words.size(); ++k) {
+        const uint32_t w = bags[i]->words[k];
+        uint8_t* p = segment->bytes.data() + cursor[w];
+        cursor[w] = static_cast<uint64_t>(PutPosting(p, images[i] - last[w], bags[i]->counts[k]) - segment->bytes.data());
+        last[w] = images[i];
+      }
+    }
+    if (distinct * 8 >= vocabulary_size_) {
+      segment->offsets = std::move(offsets);
+      segment->dense = true;
+    } else {  // the sparse layout, as ChooseLayout would leave it
+      segment->words.reserve(distinct);
+      segment->offsets.reserve(distinct + 1);
+      for (size_t w = 0; w < vocabulary_size_; ++w) {
+        if (offsets[w + 1] == offsets[w]) continue;
+        segment->words.push_back(static_cast<uint32_t>(w));
+        segment->offsets.push_back(offsets[w]);
+      }
+      segment->offsets.push_back(offsets[vocabulary_size_]);
+    }
+  } else {
+    // Few postings (single adds): sorted (word, image) triples, so that no table has a vocabulary's size.
+    struct Triple {
+      uint32_t word, image, tf;
+    };
+    std::vector<Triple> triples;
+    triples.reserve(total);
+    for (size_t i = 0; i < images.size(); ++i) {
+      for (size_t k = 0; k < bags[i]->words.size(); ++k) triples.push_back({bags[i]->words[k], images[i], bags[i]->counts[k]});
+    }
+    // The triples come in image order, so a stable sort by word gives (word, image) order.
+    std::stable_sort(triples.begin(), triples.end(), [](const Triple& x, const Triple& y) { return x.word < y.word; });
+    for (size_t i = 0; i < triples.size();) {
+      segment->words.push_back(triples[i].word);
+      segment->offsets.push_back(segment->bytes.size());
+      uint32_t last = segment->first_image;
+      size_t j = i;
+      for (; j < triples.size() && triples[j].word == triples[i].word; ++j) {
+        PutPosting(&segment->bytes, triples[j].image - last, triples[j].tf);
+        last = triples[j].image;
+      }
+      i = j;
+    }
+    segment->offsets.push_back(segment->bytes.size());
+    segment->ChooseLayout(vocabulary_size_);
   }
-  segment->offsets.push_back(segment->bytes.size());
-  segment->ChooseLayout(vocabulary_size_);
   if (segment->num_postings > 0) {
     next.num_postings_ += segment->num_postings;
     next.segments_.push_back(std::move(segment));
