@@ -103,7 +103,8 @@ struct FrontOptions {
   int replica_check_ms = 1000;
   // Refresh the cluster's statistics by itself (see the file comment) once the writes through this front
   // since the last refresh reach this fraction of the cluster's images then; 0: only on demand. [0, 1].
-  double refresh_fraction = 0.1;
+  // The single node's default (index::TfIdfOptions::statistics_refresh_fraction).
+  double refresh_fraction = index::TfIdfOptions{}.statistics_refresh_fraction;
 };
 
 // What a refresh of the cluster's statistics did.
