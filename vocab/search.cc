@@ -51,6 +51,16 @@ void ScanAll(const WordMatrix& words, const float* const* query_ptrs, size_t cou
 
 constexpr size_t kQueryBatch = 2048;
 
+// Queries per batch: at most kQueryBatch, in a number of equal batches that is a multiple of the thread
+// count, so every thread gets the same share (2850 descriptors on 2 threads: 1425 + 1425, where batches
+// of 2048 left one thread 72% of the work and the other waiting). Results do not depend on the batch.
+size_t BalancedBatch(size_t n, int num_threads) {
+  const size_t threads = static_cast<size_t>(ResolveThreadCount(num_threads));
+  const size_t rounds = (n + threads * kQueryBatch - 1) / (threads * kQueryBatch);
+  const size_t batches = std::max<size_t>(1, rounds * threads);
+  return std::max<size_t>(1, (n + batches - 1) / batches);
+}
+
 }  // namespace
 
 size_t DefaultNumLists(size_t num_words) {
@@ -74,7 +84,7 @@ void TwoLevelIndex::Search(const float* queries, size_t n, int k, int num_probes
   const size_t lists = num_lists();
   const int probes = static_cast<int>(std::clamp<size_t>(static_cast<size_t>(std::max(1, num_probes)), 1, lists));
   const WordMatrix coarse_matrix{coarse.data(), coarse_norms.data(), lists, dim};
-  ParallelFor(n, num_threads, kQueryBatch, [&](size_t begin, size_t end, int) {
+  ParallelFor(n, num_threads, BalancedBatch(n, num_threads), [&](size_t begin, size_t end, int) {
     const size_t count = end - begin;
     std::vector<const float*> ptrs(count);
     for (size_t i = 0; i < count; ++i) ptrs[i] = queries + (begin + i) * dim;

@@ -164,7 +164,7 @@ TEST_F(VocabularyTest, QuantizerAgreesWithExactNearestWord) {
   const size_t k = 2000;
   auto vocab = Vocabulary::FromCentroids(WordsFrom(descriptors(), k, 3), 128, sift::DescriptorKind::kRootSift, "");
   ASSERT_TRUE(vocab);
-  std::vector<uint32_t> truth(n), fast(n), exact(n), fast_mt(n);
+  std::vector<uint32_t> truth(n), fast(n), exact(n), fast_mt(n), fast_one(n);
   const auto c = vocab->centroids();
   for (size_t i = 0; i < n; ++i) {
     double best = INFINITY;
@@ -179,8 +179,11 @@ TEST_F(VocabularyTest, QuantizerAgreesWithExactNearestWord) {
   }
   vocab->Quantize(descriptors(), fast);
   vocab->Quantize(descriptors(), fast_mt, {.num_threads = 3});
+  vocab->Quantize(descriptors(), fast_one, {.num_threads = 1});
   vocab->Quantize(descriptors(), exact, {.exact = true});
+  // The thread count also sets the batches (equal shares per thread): neither may change a word.
   EXPECT_EQ(fast, fast_mt) << "results must not depend on the thread count";
+  EXPECT_EQ(fast, fast_one) << "results must not depend on the thread count";
   const auto agreeing = [&](const std::vector<uint32_t>& words) {
     size_t agree = 0;
     for (size_t i = 0; i < n; ++i) agree += words[i] == truth[i];
