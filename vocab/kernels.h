@@ -23,6 +23,8 @@
 #if defined(__AVX2__) && defined(__FMA__)
 #include <immintrin.h>
 #define OXBOW_VOCAB_AVX2 1
+// Register tiles must be unrolled completely, or the compiler keeps the accumulators in memory.
+#define OXBOW_UNROLL _Pragma("GCC unroll 16")
 #endif
 
 namespace oxbow::vocab::internal {
@@ -69,12 +71,11 @@ inline float SquaredL2Avx2(const float* a, const float* b, int dim) {
 }
 #endif
 
-// True when the vector path handles this dimension (AVX2+FMA compiled in and dim % 8 == 0).
-inline bool VectorPathAvailable(int dim) {
+// True when the score kernel has a vector path (AVX2+FMA compiled in; any dimension).
+inline bool VectorPathAvailable() {
 #ifdef OXBOW_VOCAB_AVX2
-  return dim % 8 == 0;
+  return true;
 #else
-  (void)dim;
   return false;
 #endif
 }
@@ -86,75 +87,123 @@ inline float SquaredL2(const float* a, const float* b, int dim) {
   return SquaredL2Scalar(a, b, dim);
 }
 
-#ifdef OXBOW_VOCAB_AVX2
-// Scores of QN queries against WN consecutive words (register tile); dim % 8 == 0.
-template <int QN, int WN, typename Sink>
-inline void ScoreTileAvx2(const float* const* queries, size_t qi, const float* words, const float* norms, size_t wj,
-                          int dim, Sink& sink) {
-  __m256 acc[QN][WN];
-  for (int a = 0; a < QN; ++a)
-    for (int b = 0; b < WN; ++b) acc[a][b] = _mm256_setzero_ps();
-  const float* w[WN];
-  for (int b = 0; b < WN; ++b) w[b] = words + (wj + b) * static_cast<size_t>(dim);
-  const float* q[QN];
-  for (int a = 0; a < QN; ++a) q[a] = queries[qi + a];
-  for (int i = 0; i < dim; i += 8) {
-    __m256 wv[WN];
-    for (int b = 0; b < WN; ++b) wv[b] = _mm256_loadu_ps(w[b] + i);
-    for (int a = 0; a < QN; ++a) {
-      const __m256 qv = _mm256_loadu_ps(q[a] + i);
-      for (int b = 0; b < WN; ++b) acc[a][b] = _mm256_fmadd_ps(qv, wv[b], acc[a][b]);
+// Word panels. The score kernels read the words in panels of kPanelWidth consecutive words stored
+// dimension-major: panel p holds, for d = 0..dim-1, the d-th value of words 8p..8p+7 side by side, so one
+// 8-lane load gives one dimension of eight words and a query's value is broadcast against it (an outer
+// product per dimension, as a GEMM micro-kernel does: no horizontal sums, and eight scores come out
+// together, to be compared with the queries' current k-th best at once). A last panel of fewer than
+// eight words is padded with zero values and +inf norms, and the kernels never report padded lanes.
+inline constexpr size_t kPanelWidth = 8;
+
+inline size_t NumPanels(size_t num_words) { return (num_words + kPanelWidth - 1) / kPanelWidth; }
+
+// Writes the panels of `rows` (num_words x dim, row-major) with squared norms `norms` to `panels`
+// (NumPanels(num_words) * dim * kPanelWidth floats) and `panel_norms` (NumPanels(num_words) *
+// kPanelWidth floats).
+inline void MakePanels(const float* rows, const float* norms, size_t num_words, int dim, float* panels,
+                       float* panel_norms) {
+  const size_t stride = static_cast<size_t>(dim) * kPanelWidth;
+  for (size_t p = 0; p < NumPanels(num_words); ++p) {
+    for (size_t j = 0; j < kPanelWidth; ++j) {
+      const size_t w = p * kPanelWidth + j;
+      panel_norms[p * kPanelWidth + j] = w < num_words ? norms[w] : INFINITY;
+      for (int d = 0; d < dim; ++d)
+        panels[p * stride + static_cast<size_t>(d) * kPanelWidth + j] = w < num_words ? rows[w * dim + d] : 0.0f;
     }
-  }
-  const __m256 zero = _mm256_setzero_ps();
-  for (int b = 0; b < WN; ++b) {
-    const __m128 dots = HorizontalSum4(acc[0][b], QN > 1 ? acc[QN > 1 ? 1 : 0][b] : zero,
-                                       QN > 2 ? acc[QN > 2 ? 2 : 0][b] : zero, QN > 3 ? acc[QN > 3 ? 3 : 0][b] : zero);
-    const __m128 scores = _mm_sub_ps(_mm_set1_ps(norms[wj + b]), _mm_add_ps(dots, dots));
-    alignas(16) float out[4];
-    _mm_store_ps(out, scores);
-    for (int a = 0; a < QN; ++a) sink(qi + a, wj + b, out[a]);
   }
 }
 
-template <int QN, typename Sink>
-inline void ScoreRowAvx2(const float* const* queries, size_t qi, const float* words, const float* norms,
-                         size_t num_words, int dim, Sink& sink) {
-  size_t j = 0;
-  for (; j + 3 <= num_words; j += 3) ScoreTileAvx2<QN, 3>(queries, qi, words, norms, j, dim, sink);
-  if (num_words - j == 2) ScoreTileAvx2<QN, 2>(queries, qi, words, norms, j, dim, sink);
-  if (num_words - j == 1) ScoreTileAvx2<QN, 1>(queries, qi, words, norms, j, dim, sink);
+// Calls sink(query_index, word_index, score) for every pair of the queries (num_queries x dim,
+// row-major) and the words
+// [0..num_words) of `panels` whose score is <= bound(query_index), and for no other pair (a pair above
+// the bound may not be reported); score = |w|^2 - 2 <q, w>. `bound` is read before each group of
+// eight words of a query, so a sink that lowers it (a k-best list) sees fewer calls. The order of the
+// calls is unspecified; each pair is reported at most once. The dot product is one fused
+// multiply-add per dimension in increasing dimension order from 0, in both paths.
+template <typename Bound, typename Sink>
+inline void ScorePanelsScalar(const float* queries, size_t num_queries, const float* panels,
+                              const float* panel_norms, size_t num_words, int dim, Bound& bound, Sink& sink) {
+  const size_t stride = static_cast<size_t>(dim) * kPanelWidth;
+  for (size_t i = 0; i < num_queries; ++i) {
+    for (size_t w = 0; w < num_words; ++w) {
+      const float* panel = panels + (w / kPanelWidth) * stride + w % kPanelWidth;
+      float dot = 0;
+      for (int d = 0; d < dim; ++d) dot = std::fma(queries[i * dim + d], panel[static_cast<size_t>(d) * kPanelWidth], dot);
+      const float score = panel_norms[w] - (dot + dot);
+      if (score <= bound(i)) sink(i, w, score);
+    }
+  }
+}
+
+#ifdef OXBOW_VOCAB_AVX2
+// QN queries against PN consecutive panels from panel p0 (a register tile: QN x PN accumulators).
+template <int QN, int PN, typename Bound, typename Sink>
+inline void ScorePanelTileAvx2(const float* queries, size_t qi, const float* panels, const float* panel_norms,
+                               size_t p0, size_t num_words, int dim, Bound& bound, Sink& sink) {
+  const size_t stride = static_cast<size_t>(dim) * kPanelWidth;
+  __m256 acc[QN][PN];
+  OXBOW_UNROLL for (int a = 0; a < QN; ++a)
+    OXBOW_UNROLL for (int b = 0; b < PN; ++b) acc[a][b] = _mm256_setzero_ps();
+  const float* q = queries + qi * static_cast<size_t>(dim);
+  const float* w = panels + p0 * stride;
+  _Pragma("GCC unroll 4") for (int d = 0; d < dim; ++d) {
+    __m256 wv[PN];
+    OXBOW_UNROLL for (int b = 0; b < PN; ++b) wv[b] = _mm256_loadu_ps(w + b * stride + static_cast<size_t>(d) * kPanelWidth);
+    OXBOW_UNROLL for (int a = 0; a < QN; ++a) {
+      const __m256 qv = _mm256_broadcast_ss(q + static_cast<size_t>(a) * dim + d);
+      OXBOW_UNROLL for (int b = 0; b < PN; ++b) acc[a][b] = _mm256_fmadd_ps(qv, wv[b], acc[a][b]);
+    }
+  }
+  OXBOW_UNROLL for (int b = 0; b < PN; ++b) {
+    const size_t first = (p0 + b) * kPanelWidth;
+    const unsigned valid = num_words - first >= kPanelWidth ? 0xffu : (1u << (num_words - first)) - 1u;
+    const __m256 norm = _mm256_loadu_ps(panel_norms + first);
+    OXBOW_UNROLL for (int a = 0; a < QN; ++a) {
+      const __m256 score = _mm256_sub_ps(norm, _mm256_add_ps(acc[a][b], acc[a][b]));
+      unsigned mask = static_cast<unsigned>(_mm256_movemask_ps(
+                          _mm256_cmp_ps(score, _mm256_set1_ps(bound(qi + a)), _CMP_LE_OQ))) & valid;
+      if (mask == 0) continue;
+      alignas(32) float out[kPanelWidth];
+      _mm256_store_ps(out, score);
+      for (; mask != 0; mask &= mask - 1) {
+        const int j = __builtin_ctz(mask);
+        sink(qi + a, first + static_cast<size_t>(j), out[j]);
+      }
+    }
+  }
+}
+
+template <int QN, typename Bound, typename Sink>
+inline void ScorePanelRowAvx2(const float* queries, size_t qi, const float* panels, const float* panel_norms,
+                              size_t num_words, int dim, Bound& bound, Sink& sink) {
+  const size_t np = NumPanels(num_words);
+  size_t p = 0;
+  for (; p + 2 <= np; p += 2)
+    ScorePanelTileAvx2<QN, 2>(queries, qi, panels, panel_norms, p, num_words, dim, bound, sink);
+  if (p < np) ScorePanelTileAvx2<QN, 1>(queries, qi, panels, panel_norms, p, num_words, dim, bound, sink);
 }
 #endif
 
-// Calls sink(query_index, word_index, score) for every pair of queries[0..num_queries) and the rows
-// words[0..num_words) (contiguous, num_words x dim) with their squared norms `norms`; score = |w|^2 -
-// 2 <q, w>. The order of the calls is unspecified; each pair is scored exactly once.
-template <typename Sink>
-inline void ScoreBlockScalar(const float* const* queries, size_t num_queries, const float* words, const float* norms,
-                             size_t num_words, int dim, Sink& sink) {
-  for (size_t i = 0; i < num_queries; ++i)
-    for (size_t j = 0; j < num_words; ++j)
-      sink(i, j, norms[j] - 2.0f * DotScalar(queries[i], words + j * static_cast<size_t>(dim), dim));
-}
-
-template <typename Sink>
-inline void ScoreBlock(const float* const* queries, size_t num_queries, const float* words, const float* norms,
-                       size_t num_words, int dim, Sink& sink) {
+// ScorePanelsScalar's contract, on the vector path where there is one (bit-identical scores).
+template <typename Bound, typename Sink>
+inline void ScorePanels(const float* queries, size_t num_queries, const float* panels, const float* panel_norms,
+                        size_t num_words, int dim, Bound& bound, Sink& sink) {
 #ifdef OXBOW_VOCAB_AVX2
-  if (dim % 8 == 0) {
-    size_t i = 0;
-    for (; i + 4 <= num_queries; i += 4) ScoreRowAvx2<4>(queries, i, words, norms, num_words, dim, sink);
-    switch (num_queries - i) {
-      case 3: ScoreRowAvx2<3>(queries, i, words, norms, num_words, dim, sink); break;
-      case 2: ScoreRowAvx2<2>(queries, i, words, norms, num_words, dim, sink); break;
-      case 1: ScoreRowAvx2<1>(queries, i, words, norms, num_words, dim, sink); break;
-      default: break;
-    }
-    return;
+  constexpr int kRows = 6;  // 6 queries x 2 panels: 12 accumulators, 2 word vectors and a broadcast
+  size_t i = 0;
+  for (; i + kRows <= num_queries; i += kRows)
+    ScorePanelRowAvx2<kRows>(queries, i, panels, panel_norms, num_words, dim, bound, sink);
+  switch (num_queries - i) {
+    case 5: ScorePanelRowAvx2<5>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
+    case 4: ScorePanelRowAvx2<4>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
+    case 3: ScorePanelRowAvx2<3>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
+    case 2: ScorePanelRowAvx2<2>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
+    case 1: ScorePanelRowAvx2<1>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
+    default: break;
   }
+#else
+  ScorePanelsScalar(queries, num_queries, panels, panel_norms, num_words, dim, bound, sink);
 #endif
-  ScoreBlockScalar(queries, num_queries, words, norms, num_words, dim, sink);
 }
 
 // Squared L2 norms of n rows (same 8-lane formula as DotScalar(row, row)).

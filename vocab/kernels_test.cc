@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <random>
 #include <vector>
 
@@ -16,28 +17,85 @@ std::vector<float> RandomRows(size_t n, int dim, uint32_t seed) {
   return v;
 }
 
-// The vector and scalar score paths must agree bit for bit (same formula), for every tile shape
-// including the tails (query counts 1..9, word counts 1..8).
+// Panels of `w` (nw x dim) with their norms.
+struct TestPanels {
+  std::vector<float> data, norms;
+  TestPanels(const std::vector<float>& w, size_t nw, int dim) {
+    std::vector<float> row_norms(nw);
+    RowSquaredNorms(w.data(), nw, dim, row_norms.data());
+    data.resize(NumPanels(nw) * dim * kPanelWidth);
+    norms.resize(NumPanels(nw) * kPanelWidth);
+    MakePanels(w.data(), row_norms.data(), nw, dim, data.data(), norms.data());
+  }
+};
+
+// The dot product's definition: one fused multiply-add per dimension, in increasing order from 0.
+float SequentialScore(const float* q, const float* w, float norm, int dim) {
+  float dot = 0;
+  for (int d = 0; d < dim; ++d) dot = std::fma(q[d], w[d], dot);
+  return norm - (dot + dot);
+}
+
+// The vector and scalar score paths must agree bit for bit with the definition, for every tile shape
+// including the tails (query counts 1..13, word counts 1..17: partial panels and odd panel counts),
+// and for dimensions that are not multiples of 8.
 TEST(KernelsTest, VectorAndScalarScoresAreIdentical) {
-  for (int dim : {8, 16, 128}) {
-    if (!VectorPathAvailable(dim)) GTEST_SKIP() << "built without AVX2+FMA: only the scalar path exists";
-    for (size_t nq = 1; nq <= 9; ++nq) {
-      for (size_t nw = 1; nw <= 8; ++nw) {
+  if (!VectorPathAvailable()) GTEST_SKIP() << "built without AVX2+FMA: only the scalar path exists";
+  for (int dim : {1, 13, 128}) {
+    for (size_t nq = 1; nq <= 13; ++nq) {
+      for (size_t nw = 1; nw <= 17; ++nw) {
         const auto q = RandomRows(nq, dim, static_cast<uint32_t>(nq * 100 + nw));
         const auto w = RandomRows(nw, dim, static_cast<uint32_t>(nq * 1000 + nw));
-        std::vector<float> norms(nw);
-        RowSquaredNorms(w.data(), nw, dim, norms.data());
-        std::vector<const float*> ptrs(nq);
-        for (size_t i = 0; i < nq; ++i) ptrs[i] = q.data() + i * dim;
+        const TestPanels panels(w, nw, dim);
         std::vector<float> vec(nq * nw, -1.f), sca(nq * nw, -2.f);
         std::vector<int> calls(nq * nw, 0);
-        auto vsink = [&](size_t i, size_t j, float s) { vec[i * nw + j] = s; ++calls[i * nw + j]; };
+        auto all = [](size_t) { return INFINITY; };
+        auto vsink = [&](size_t i, size_t j, float s) {
+          ASSERT_LT(j, nw) << "a padded lane was reported";
+          vec[i * nw + j] = s;
+          ++calls[i * nw + j];
+        };
         auto ssink = [&](size_t i, size_t j, float s) { sca[i * nw + j] = s; };
-        ScoreBlock(ptrs.data(), nq, w.data(), norms.data(), nw, dim, vsink);
-        ScoreBlockScalar(ptrs.data(), nq, w.data(), norms.data(), nw, dim, ssink);
+        ScorePanels(q.data(), nq, panels.data.data(), panels.norms.data(), nw, dim, all, vsink);
+        ScorePanelsScalar(q.data(), nq, panels.data.data(), panels.norms.data(), nw, dim, all, ssink);
         for (size_t t = 0; t < nq * nw; ++t) {
           ASSERT_EQ(calls[t], 1) << "each pair scored once";
           ASSERT_EQ(vec[t], sca[t]) << "dim " << dim << " nq " << nq << " nw " << nw << " pair " << t;
+          const size_t i = t / nw, j = t % nw;
+          ASSERT_EQ(vec[t], SequentialScore(q.data() + i * dim, w.data() + j * dim, panels.norms[j], dim));
+        }
+      }
+    }
+  }
+}
+
+// A pair is reported exactly when its score is <= the query's bound (the k-best filter): the bound
+// set to a pair's own score keeps it, one ulp below drops it.
+TEST(KernelsTest, BoundFiltersExactly) {
+  const int dim = 128;
+  const size_t nq = 7, nw = 19;
+  const auto q = RandomRows(nq, dim, 11);
+  const auto w = RandomRows(nw, dim, 12);
+  const TestPanels panels(w, nw, dim);
+  std::vector<float> score(nq * nw);
+  auto all = [](size_t) { return INFINITY; };
+  auto keep = [&](size_t i, size_t j, float s) { score[i * nw + j] = s; };
+  ScorePanels(q.data(), nq, panels.data.data(), panels.norms.data(), nw, dim, all, keep);
+  for (size_t target = 0; target < nw; ++target) {
+    for (const bool below : {false, true}) {
+      std::vector<float> bounds(nq);
+      for (size_t i = 0; i < nq; ++i) {
+        const float s = score[i * nw + target];
+        bounds[i] = below ? std::nextafter(s, -INFINITY) : s;
+      }
+      auto bound = [&](size_t i) { return bounds[i]; };
+      std::vector<int> reported(nq * nw, 0);
+      auto count = [&](size_t i, size_t j, float) { ++reported[i * nw + j]; };
+      ScorePanels(q.data(), nq, panels.data.data(), panels.norms.data(), nw, dim, bound, count);
+      for (size_t i = 0; i < nq; ++i) {
+        for (size_t j = 0; j < nw; ++j) {
+          const bool expected = score[i * nw + j] <= bounds[i];
+          ASSERT_EQ(reported[i * nw + j], expected ? 1 : 0) << "query " << i << " word " << j << " below " << below;
         }
       }
     }
@@ -48,34 +106,20 @@ TEST(KernelsTest, ScoreOrdersLikeSquaredDistance) {
   const int dim = 128;
   const auto q = RandomRows(1, dim, 7);
   const auto w = RandomRows(50, dim, 8);
-  std::vector<float> norms(50);
-  RowSquaredNorms(w.data(), 50, dim, norms.data());
+  const TestPanels panels(w, 50, dim);
   const float qn = DotScalar(q.data(), q.data(), dim);
-  const float* ptr = q.data();
+  int calls = 0;
+  auto all = [](size_t) { return INFINITY; };
   auto sink = [&](size_t, size_t j, float s) {
+    ++calls;
     double exact = 0;
     for (int d = 0; d < dim; ++d) exact += double(q[d] - w[j * dim + d]) * double(q[d] - w[j * dim + d]);
     EXPECT_NEAR(s + qn, exact, 1e-3 * exact);
     EXPECT_NEAR(SquaredL2(q.data(), w.data() + j * dim, dim), exact, 1e-5 * exact);
     EXPECT_NEAR(SquaredL2Scalar(q.data(), w.data() + j * dim, dim), exact, 1e-5 * exact);
   };
-  ScoreBlock(&ptr, 1, w.data(), norms.data(), 50, dim, sink);
-}
-
-TEST(KernelsTest, OddDimensionUsesScalarPath) {
-  const int dim = 13;
-  const auto q = RandomRows(3, dim, 1);
-  const auto w = RandomRows(5, dim, 2);
-  std::vector<float> norms(5);
-  RowSquaredNorms(w.data(), 5, dim, norms.data());
-  std::vector<const float*> ptrs = {q.data(), q.data() + dim, q.data() + 2 * dim};
-  int calls = 0;
-  auto sink = [&](size_t i, size_t j, float s) {
-    ++calls;
-    EXPECT_FLOAT_EQ(s, norms[j] - 2 * DotScalar(ptrs[i], w.data() + j * dim, dim));
-  };
-  ScoreBlock(ptrs.data(), 3, w.data(), norms.data(), 5, dim, sink);
-  EXPECT_EQ(calls, 15);
+  ScorePanels(q.data(), 1, panels.data.data(), panels.norms.data(), 50, dim, all, sink);
+  EXPECT_EQ(calls, 50);
 }
 
 }  // namespace

@@ -5,6 +5,7 @@
 #include <limits>
 #include <numeric>
 
+#include "sift/base/error.h"
 #include "sift/base/parallel.h"
 #include "vocab/kernels.h"
 
@@ -32,20 +33,25 @@ void Reset(uint32_t* rows, float* scores, size_t count, uint32_t fill_row) {
   std::fill(scores, scores + count, kInf);
 }
 
-// Words per cache block when scanning a whole matrix: 512 x 128 floats = 256 KiB, half an L2.
-size_t WordBlock(int dim) { return std::max<size_t>(16, (size_t{1} << 16) / static_cast<size_t>(dim)); }
+// Panels per cache block when scanning a whole matrix: 64 panels x 8 words x 128 floats = 256 KiB.
+size_t PanelBlock(int dim) {
+  return std::max<size_t>(2, (size_t{1} << 16) / (static_cast<size_t>(dim) * kPanelWidth));
+}
 
-// Scores `query_ptrs` (count) against all of `words`, blocked over words, keeping k best per query in
-// rows/scores (indexed by position in query_ptrs).
-void ScanAll(const WordMatrix& words, const float* const* query_ptrs, size_t count, int k, uint32_t* rows,
-             float* scores) {
-  const size_t block = WordBlock(words.dim);
-  for (size_t w0 = 0; w0 < words.num_words; w0 += block) {
-    const size_t nw = std::min(block, words.num_words - w0);
+// Scores `queries` (count x dim) against all of `words`, blocked over panels, keeping k best per query
+// in rows/scores.
+void ScanAll(const PanelMatrix& words, const float* queries, size_t count, int k, uint32_t* rows, float* scores) {
+  const size_t block = PanelBlock(words.dim);
+  const size_t stride = static_cast<size_t>(words.dim) * kPanelWidth;
+  const size_t num_panels = NumPanels(words.num_words);
+  for (size_t p0 = 0; p0 < num_panels; p0 += block) {
+    const size_t w0 = p0 * kPanelWidth;
+    const size_t nw = std::min(block * kPanelWidth, words.num_words - w0);
+    auto bound = [&](size_t qi) { return scores[qi * k + k - 1]; };
     auto sink = [&](size_t qi, size_t wj, float score) {
       Insert(rows + qi * k, scores + qi * k, k, static_cast<uint32_t>(w0 + wj), score);
     };
-    ScoreBlock(query_ptrs, count, words.words + w0 * words.dim, words.norms + w0, nw, words.dim, sink);
+    ScorePanels(queries, count, words.panels + p0 * stride, words.norms + w0, nw, words.dim, bound, sink);
   }
 }
 
@@ -71,11 +77,10 @@ size_t DefaultNumLists(size_t num_words) {
 void ExactSearch(const WordMatrix& words, const float* queries, size_t n, int k, int num_threads, uint32_t* rows,
                  float* scores) {
   constexpr size_t kGrain = 256;
+  const Panels panels(words);
   ParallelFor(n, num_threads, kGrain, [&](size_t begin, size_t end, int) {
-    std::vector<const float*> ptrs(end - begin);
-    for (size_t i = begin; i < end; ++i) ptrs[i - begin] = queries + i * words.dim;
     Reset(rows + begin * k, scores + begin * k, (end - begin) * k, static_cast<uint32_t>(words.num_words));
-    ScanAll(words, ptrs.data(), ptrs.size(), k, rows + begin * k, scores + begin * k);
+    ScanAll(panels.View(), queries + begin * words.dim, end - begin, k, rows + begin * k, scores + begin * k);
   });
 }
 
@@ -83,16 +88,17 @@ void TwoLevelIndex::Search(const float* queries, size_t n, int k, int num_probes
                            float* scores) const {
   const size_t lists = num_lists();
   const int probes = static_cast<int>(std::clamp<size_t>(static_cast<size_t>(std::max(1, num_probes)), 1, lists));
-  const WordMatrix coarse_matrix{coarse.data(), coarse_norms.data(), lists, dim};
+  OXBOW_CHECK(coarse_panels.words.num_words == lists && panel_offsets.size() == lists + 1,
+              "TwoLevelIndex::BuildPanels was not called");
+  const size_t stride = static_cast<size_t>(dim) * kPanelWidth;
   ParallelFor(n, num_threads, BalancedBatch(n, num_threads), [&](size_t begin, size_t end, int) {
     const size_t count = end - begin;
-    std::vector<const float*> ptrs(count);
-    for (size_t i = 0; i < count; ++i) ptrs[i] = queries + (begin + i) * dim;
+    const float* batch = queries + begin * dim;
     // 1. The `probes` nearest coarse centroids of every query.
     std::vector<uint32_t> probe_lists(count * probes);
     std::vector<float> probe_scores(count * probes);
     Reset(probe_lists.data(), probe_scores.data(), probe_lists.size(), static_cast<uint32_t>(lists));
-    ScanAll(coarse_matrix, ptrs.data(), count, probes, probe_lists.data(), probe_scores.data());
+    ScanAll(coarse_panels.View(), batch, count, probes, probe_lists.data(), probe_scores.data());
     // 2. Group the queries by probed list (counting sort), so each list is read once per batch.
     std::vector<uint32_t> group_start(lists + 1, 0);
     for (uint32_t l : probe_lists) ++group_start[l + 1];
@@ -105,21 +111,47 @@ void TwoLevelIndex::Search(const float* queries, size_t n, int k, int num_probes
     uint32_t* out_rows = rows + begin * k;
     float* out_scores = scores + begin * k;
     Reset(out_rows, out_scores, count * k, static_cast<uint32_t>(words.num_words));
-    std::vector<const float*> group_ptrs;
+    std::vector<float> group_queries;  // a list's queries, copied side by side for the kernel
     for (size_t l = 0; l < lists; ++l) {
       const uint32_t g0 = group_start[l], g1 = group_start[l + 1];
       const uint64_t w0 = offsets[l], w1 = offsets[l + 1];
       if (g0 == g1 || w0 == w1) continue;
-      group_ptrs.resize(g1 - g0);
-      for (uint32_t g = g0; g < g1; ++g) group_ptrs[g - g0] = ptrs[members[g]];
+      group_queries.resize(size_t{g1 - g0} * dim);
+      for (uint32_t g = g0; g < g1; ++g)
+        std::copy_n(batch + size_t{members[g]} * dim, dim, group_queries.data() + size_t{g - g0} * dim);
       const uint32_t* group = members.data() + g0;
+      auto bound = [&](size_t gi) { return out_scores[size_t{group[gi]} * k + k - 1]; };
       auto sink = [&](size_t gi, size_t wj, float score) {
         const size_t q = group[gi];
         Insert(out_rows + q * k, out_scores + q * k, k, static_cast<uint32_t>(w0 + wj), score);
       };
-      ScoreBlock(group_ptrs.data(), group_ptrs.size(), words.words + w0 * dim, words.norms + w0, w1 - w0, dim, sink);
+      const uint64_t p0 = panel_offsets[l];
+      ScorePanels(group_queries.data(), g1 - g0, word_panels.data() + p0 * stride,
+                  word_panel_norms.data() + p0 * kPanelWidth, w1 - w0, dim, bound, sink);
     }
   });
+}
+
+Panels::Panels(const WordMatrix& rows) : words(rows) {
+  const size_t np = NumPanels(rows.num_words);
+  data.resize(np * static_cast<size_t>(rows.dim) * kPanelWidth);
+  norms.resize(np * kPanelWidth);
+  MakePanels(rows.words, rows.norms, rows.num_words, rows.dim, data.data(), norms.data());
+}
+
+void TwoLevelIndex::BuildPanels() {
+  const size_t lists = num_lists();
+  coarse_panels = Panels(WordMatrix{coarse.data(), coarse_norms.data(), lists, dim});
+  panel_offsets.assign(lists + 1, 0);
+  for (size_t l = 0; l < lists; ++l) panel_offsets[l + 1] = panel_offsets[l] + NumPanels(offsets[l + 1] - offsets[l]);
+  const size_t stride = static_cast<size_t>(dim) * kPanelWidth;
+  word_panels.assign(panel_offsets[lists] * stride, 0.0f);
+  word_panel_norms.assign(panel_offsets[lists] * kPanelWidth, 0.0f);
+  for (size_t l = 0; l < lists; ++l) {
+    const uint64_t w0 = offsets[l];
+    MakePanels(words.words + w0 * dim, words.norms + w0, offsets[l + 1] - w0, dim,
+               word_panels.data() + panel_offsets[l] * stride, word_panel_norms.data() + panel_offsets[l] * kPanelWidth);
+  }
 }
 
 CoarseClustering ClusterCoarse(const float* points, size_t n, int dim, size_t num_lists, int iterations,

@@ -27,6 +27,25 @@ struct WordMatrix {
   int dim = 0;
 };
 
+// Words in the score kernel's panel layout (kernels.h): NumPanels(num_words) panels and their norms.
+struct PanelMatrix {
+  const float* panels = nullptr;
+  const float* norms = nullptr;  // NumPanels(num_words) * kPanelWidth, padded lanes +inf
+  size_t num_words = 0;
+  int dim = 0;
+};
+
+// An owned copy of a WordMatrix in panels.
+struct Panels {
+  Panels() = default;
+  explicit Panels(const WordMatrix& rows);
+  PanelMatrix View() const { return {data.data(), norms.data(), words.num_words, words.dim}; }
+
+  WordMatrix words;  // the source's shape (its pointers are not used after construction)
+  std::vector<float> data;
+  std::vector<float> norms;
+};
+
 // k best rows per query (queries: n x dim). rows/scores: n x k; unfilled slots get row num_words and
 // score +inf. num_threads 0 = all hardware threads.
 void ExactSearch(const WordMatrix& words, const float* queries, size_t n, int k, int num_threads, uint32_t* rows,
@@ -38,6 +57,17 @@ struct TwoLevelIndex {
   std::vector<float> coarse_norms;  // num_lists
   std::vector<uint64_t> offsets;    // num_lists + 1; list l holds word rows [offsets[l], offsets[l+1])
   WordMatrix words;                 // rows in list order (not owned)
+  // The coarse centroids, and each list's words, in the score kernel's panels (BuildPanels()); a
+  // list's words start a panel of their own, at panel panel_offsets[l].
+  Panels coarse_panels;
+  std::vector<float> word_panels;
+  std::vector<float> word_panel_norms;
+  std::vector<uint64_t> panel_offsets;  // num_lists + 1
+
+  // Builds the panels from coarse, coarse_norms, offsets and words; call once they are set, before
+  // Search (which checks it). Holds a second copy of the words (the row-major ones serve exact
+  // distances and Hamming embedding).
+  void BuildPanels();
 
   size_t num_lists() const { return coarse_norms.size(); }
   // k best word rows per query among the num_probes nearest lists.

@@ -164,6 +164,7 @@ void Assign(AssignmentMethod method, const std::vector<float>& centroids, size_t
     for (uint32_t l : coarse.list_of_point) ++index.offsets[l + 1];
     std::partial_sum(index.offsets.begin(), index.offsets.end(), index.offsets.begin());
     index.words = {words.data(), norms.data(), k, dim};
+    index.BuildPanels();
     index.Search(x, n, 1, options.ivf_probes, threads, out.data(), scores.data());
     for (size_t i = 0; i < n; ++i) out[i] = order[out[i]];
     return;

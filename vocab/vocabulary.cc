@@ -128,6 +128,7 @@ struct Vocabulary::State {
     index.coarse_norms.resize(index.coarse.size() / dimension);
     internal::RowSquaredNorms(index.coarse.data(), index.coarse_norms.size(), dimension, index.coarse_norms.data());
     index.words = {centroids.data(), norms.data(), k, dimension};
+    index.BuildPanels();
     fingerprint = ComputeFingerprint();
   }
   uint64_t ComputeFingerprint() const {
