@@ -6,12 +6,11 @@
 // dimension. Exact distances for reporting are recomputed with SquaredL2.
 //
 // Determinism. Every (query, word) dot product is computed by one fixed formula whatever the tile it
-// falls in: 8 partial sums (lane l holds dimensions l, l+8, l+16, ...) accumulated with fused
-// multiply-adds in increasing dimension order, then reduced as ((s0+s1)+(s2+s3)) + ((s4+s5)+(s6+s7))
-// (the order of a horizontal-add tree, which reduces four pairs at once in the vector path).
-// The AVX2 path (8-lane registers, 4 queries x 3 words per register tile) and the scalar path
-// (std::fma) therefore give bit-identical scores, and a query's nearest word does not depend on which
-// other queries share its batch or on the thread count.
+// falls in: one fused multiply-add per dimension, in increasing dimension order, starting from 0. The
+// vector paths (AVX2: 6 queries x 2 panels of 8 words per register tile; AVX-512: 8 queries x 2 panels
+// of 16) hold one pair per lane, so they and the scalar path (std::fma) give bit-identical scores, and
+// a query's nearest word does not depend on which other queries share its batch, on the thread count,
+// or on the instruction set the library was compiled for.
 //
 // Thread safety: pure functions.
 #pragma once
@@ -25,11 +24,15 @@
 #define OXBOW_VOCAB_AVX2 1
 // Register tiles must be unrolled completely, or the compiler keeps the accumulators in memory.
 #define OXBOW_UNROLL _Pragma("GCC unroll 16")
+#if defined(__AVX512F__)
+#define OXBOW_VOCAB_AVX512 1
+#endif
 #endif
 
 namespace oxbow::vocab::internal {
 
-// Dot product by the fixed 8-lane formula above, scalar (any dim >= 1).
+// Dot product with 8 partial sums (lane l holds dimensions l, l+8, l+16, ...) reduced as
+// ((s0+s1)+(s2+s3)) + ((s4+s5)+(s6+s7)), scalar (any dim >= 1): the words' squared norms.
 inline float DotScalar(const float* a, const float* b, int dim) {
   float lane[8] = {0, 0, 0, 0, 0, 0, 0, 0};
   for (int i = 0; i < dim; ++i) lane[i & 7] = std::fma(a[i], b[i], lane[i & 7]);
@@ -47,14 +50,6 @@ inline float SquaredL2Scalar(const float* a, const float* b, int dim) {
 }
 
 #ifdef OXBOW_VOCAB_AVX2
-// Four 8-lane sums at once: lane i of the result is ((x0+x1)+(x2+x3)) + ((x4+x5)+(x6+x7)) of input i.
-inline __m128 HorizontalSum4(__m256 a, __m256 b, __m256 c, __m256 d) {
-  const __m256 ab = _mm256_hadd_ps(a, b);     // a01 a23 b01 b23 | a45 a67 b45 b67
-  const __m256 cd = _mm256_hadd_ps(c, d);
-  const __m256 abcd = _mm256_hadd_ps(ab, cd);  // a0123 b0123 c0123 d0123 | a4567 b4567 c4567 d4567
-  return _mm_add_ps(_mm256_castps256_ps128(abcd), _mm256_extractf128_ps(abcd, 1));
-}
-
 inline float HorizontalSum(__m256 v) {
   const __m256 h = _mm256_hadd_ps(v, v);
   const __m256 hh = _mm256_hadd_ps(h, h);  // (v0+v1)+(v2+v3) | (v4+v5)+(v6+v7)
@@ -93,7 +88,11 @@ inline float SquaredL2(const float* a, const float* b, int dim) {
 // product per dimension, as a GEMM micro-kernel does: no horizontal sums, and eight scores come out
 // together, to be compared with the queries' current k-th best at once). A last panel of fewer than
 // eight words is padded with zero values and +inf norms, and the kernels never report padded lanes.
-inline constexpr size_t kPanelWidth = 8;
+#ifdef OXBOW_VOCAB_AVX512
+inline constexpr size_t kPanelWidth = 16;  // one 16-lane register
+#else
+inline constexpr size_t kPanelWidth = 8;   // one 8-lane register
+#endif
 
 inline size_t NumPanels(size_t num_words) { return (num_words + kPanelWidth - 1) / kPanelWidth; }
 
@@ -107,8 +106,13 @@ inline void MakePanels(const float* rows, const float* norms, size_t num_words, 
     for (size_t j = 0; j < kPanelWidth; ++j) {
       const size_t w = p * kPanelWidth + j;
       panel_norms[p * kPanelWidth + j] = w < num_words ? norms[w] : INFINITY;
-      for (int d = 0; d < dim; ++d)
-        panels[p * stride + static_cast<size_t>(d) * kPanelWidth + j] = w < num_words ? rows[w * dim + d] : 0.0f;
+    }
+    for (int d = 0; d < dim; ++d) {
+      float* out = panels + p * stride + static_cast<size_t>(d) * kPanelWidth;
+      for (size_t j = 0; j < kPanelWidth; ++j) {
+        const size_t w = p * kPanelWidth + j;
+        out[j] = w < num_words ? rows[w * dim + d] : 0.0f;
+      }
     }
   }
 }
@@ -128,7 +132,8 @@ inline void ScorePanelsScalar(const float* queries, size_t num_queries, const fl
     for (size_t w = 0; w < num_words; ++w) {
       const float* panel = panels + (w / kPanelWidth) * stride + w % kPanelWidth;
       float dot = 0;
-      for (int d = 0; d < dim; ++d) dot = std::fma(queries[i * dim + d], panel[static_cast<size_t>(d) * kPanelWidth], dot);
+      const float* query = queries + i * dim;
+      for (int d = 0; d < dim; ++d) dot = std::fma(query[d], panel[static_cast<size_t>(d) * kPanelWidth], dot);
       const float score = panel_norms[w] - (dot + dot);
       if (score <= bound(i)) sink(i, w, score);
     }
@@ -148,7 +153,8 @@ inline void ScorePanelTileAvx2(const float* queries, size_t qi, const float* pan
   const float* w = panels + p0 * stride;
   _Pragma("GCC unroll 4") for (int d = 0; d < dim; ++d) {
     __m256 wv[PN];
-    OXBOW_UNROLL for (int b = 0; b < PN; ++b) wv[b] = _mm256_loadu_ps(w + b * stride + static_cast<size_t>(d) * kPanelWidth);
+    OXBOW_UNROLL for (int b = 0; b < PN; ++b)
+      wv[b] = _mm256_loadu_ps(w + b * stride + static_cast<size_t>(d) * kPanelWidth);
     OXBOW_UNROLL for (int a = 0; a < QN; ++a) {
       const __m256 qv = _mm256_broadcast_ss(q + static_cast<size_t>(a) * dim + d);
       OXBOW_UNROLL for (int b = 0; b < PN; ++b) acc[a][b] = _mm256_fmadd_ps(qv, wv[b], acc[a][b]);
@@ -173,14 +179,60 @@ inline void ScorePanelTileAvx2(const float* queries, size_t qi, const float* pan
   }
 }
 
+#ifdef OXBOW_VOCAB_AVX512
+// The same tile with 16-lane registers (kPanelWidth 16).
+template <int QN, int PN, typename Bound, typename Sink>
+inline void ScorePanelTileAvx512(const float* queries, size_t qi, const float* panels, const float* panel_norms,
+                                 size_t p0, size_t num_words, int dim, Bound& bound, Sink& sink) {
+  const size_t stride = static_cast<size_t>(dim) * kPanelWidth;
+  __m512 acc[QN][PN];
+  OXBOW_UNROLL for (int a = 0; a < QN; ++a)
+    OXBOW_UNROLL for (int b = 0; b < PN; ++b) acc[a][b] = _mm512_setzero_ps();
+  const float* q = queries + qi * static_cast<size_t>(dim);
+  const float* w = panels + p0 * stride;
+  _Pragma("GCC unroll 4") for (int d = 0; d < dim; ++d) {
+    __m512 wv[PN];
+    OXBOW_UNROLL for (int b = 0; b < PN; ++b)
+      wv[b] = _mm512_loadu_ps(w + b * stride + static_cast<size_t>(d) * kPanelWidth);
+    OXBOW_UNROLL for (int a = 0; a < QN; ++a) {
+      const __m512 qv = _mm512_set1_ps(q[static_cast<size_t>(a) * dim + d]);
+      OXBOW_UNROLL for (int b = 0; b < PN; ++b) acc[a][b] = _mm512_fmadd_ps(qv, wv[b], acc[a][b]);
+    }
+  }
+  OXBOW_UNROLL for (int b = 0; b < PN; ++b) {
+    const size_t first = (p0 + b) * kPanelWidth;
+    const unsigned valid = num_words - first >= kPanelWidth ? 0xffffu : (1u << (num_words - first)) - 1u;
+    const __m512 norm = _mm512_loadu_ps(panel_norms + first);
+    OXBOW_UNROLL for (int a = 0; a < QN; ++a) {
+      const __m512 score = _mm512_sub_ps(norm, _mm512_add_ps(acc[a][b], acc[a][b]));
+      unsigned mask =
+          static_cast<unsigned>(_mm512_cmp_ps_mask(score, _mm512_set1_ps(bound(qi + a)), _CMP_LE_OQ)) & valid;
+      if (mask == 0) continue;
+      alignas(64) float out[kPanelWidth];
+      _mm512_store_ps(out, score);
+      for (; mask != 0; mask &= mask - 1) {
+        const int j = __builtin_ctz(mask);
+        sink(qi + a, first + static_cast<size_t>(j), out[j]);
+      }
+    }
+  }
+}
+#endif
+
 template <int QN, typename Bound, typename Sink>
-inline void ScorePanelRowAvx2(const float* queries, size_t qi, const float* panels, const float* panel_norms,
-                              size_t num_words, int dim, Bound& bound, Sink& sink) {
+inline void ScorePanelRow(const float* queries, size_t qi, const float* panels, const float* panel_norms,
+                          size_t num_words, int dim, Bound& bound, Sink& sink) {
   const size_t np = NumPanels(num_words);
   size_t p = 0;
+#ifdef OXBOW_VOCAB_AVX512
+  for (; p + 2 <= np; p += 2)
+    ScorePanelTileAvx512<QN, 2>(queries, qi, panels, panel_norms, p, num_words, dim, bound, sink);
+  if (p < np) ScorePanelTileAvx512<QN, 1>(queries, qi, panels, panel_norms, p, num_words, dim, bound, sink);
+#else
   for (; p + 2 <= np; p += 2)
     ScorePanelTileAvx2<QN, 2>(queries, qi, panels, panel_norms, p, num_words, dim, bound, sink);
   if (p < np) ScorePanelTileAvx2<QN, 1>(queries, qi, panels, panel_norms, p, num_words, dim, bound, sink);
+#endif
 }
 #endif
 
@@ -189,16 +241,22 @@ template <typename Bound, typename Sink>
 inline void ScorePanels(const float* queries, size_t num_queries, const float* panels, const float* panel_norms,
                         size_t num_words, int dim, Bound& bound, Sink& sink) {
 #ifdef OXBOW_VOCAB_AVX2
-  constexpr int kRows = 6;  // 6 queries x 2 panels: 12 accumulators, 2 word vectors and a broadcast
+#ifdef OXBOW_VOCAB_AVX512
+  constexpr int kRows = 8;  // 8 queries x 2 panels: 16 accumulators of the 32 registers
+#else
+  constexpr int kRows = 6;  // 6 queries x 2 panels: 12 accumulators, 2 word vectors and a broadcast of 16
+#endif
   size_t i = 0;
   for (; i + kRows <= num_queries; i += kRows)
-    ScorePanelRowAvx2<kRows>(queries, i, panels, panel_norms, num_words, dim, bound, sink);
+    ScorePanelRow<kRows>(queries, i, panels, panel_norms, num_words, dim, bound, sink);
   switch (num_queries - i) {
-    case 5: ScorePanelRowAvx2<5>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
-    case 4: ScorePanelRowAvx2<4>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
-    case 3: ScorePanelRowAvx2<3>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
-    case 2: ScorePanelRowAvx2<2>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
-    case 1: ScorePanelRowAvx2<1>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
+    case 7: ScorePanelRow<7>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
+    case 6: ScorePanelRow<6>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
+    case 5: ScorePanelRow<5>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
+    case 4: ScorePanelRow<4>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
+    case 3: ScorePanelRow<3>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
+    case 2: ScorePanelRow<2>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
+    case 1: ScorePanelRow<1>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
     default: break;
   }
 #else

@@ -33,7 +33,7 @@ void Reset(uint32_t* rows, float* scores, size_t count, uint32_t fill_row) {
   std::fill(scores, scores + count, kInf);
 }
 
-// Panels per cache block when scanning a whole matrix: 64 panels x 8 words x 128 floats = 256 KiB.
+// Panels per cache block when scanning a whole matrix: 2^16 floats = 256 KiB (512 words of 128 dimensions).
 size_t PanelBlock(int dim) {
   return std::max<size_t>(2, (size_t{1} << 16) / (static_cast<size_t>(dim) * kPanelWidth));
 }
@@ -143,14 +143,16 @@ void TwoLevelIndex::BuildPanels() {
   const size_t lists = num_lists();
   coarse_panels = Panels(WordMatrix{coarse.data(), coarse_norms.data(), lists, dim});
   panel_offsets.assign(lists + 1, 0);
-  for (size_t l = 0; l < lists; ++l) panel_offsets[l + 1] = panel_offsets[l] + NumPanels(offsets[l + 1] - offsets[l]);
+  for (size_t l = 0; l < lists; ++l)
+    panel_offsets[l + 1] = panel_offsets[l] + NumPanels(offsets[l + 1] - offsets[l]);
   const size_t stride = static_cast<size_t>(dim) * kPanelWidth;
   word_panels.assign(panel_offsets[lists] * stride, 0.0f);
   word_panel_norms.assign(panel_offsets[lists] * kPanelWidth, 0.0f);
   for (size_t l = 0; l < lists; ++l) {
     const uint64_t w0 = offsets[l];
     MakePanels(words.words + w0 * dim, words.norms + w0, offsets[l + 1] - w0, dim,
-               word_panels.data() + panel_offsets[l] * stride, word_panel_norms.data() + panel_offsets[l] * kPanelWidth);
+               word_panels.data() + panel_offsets[l] * stride,
+               word_panel_norms.data() + panel_offsets[l] * kPanelWidth);
   }
 }
 
