@@ -15,6 +15,7 @@
 // Thread safety: pure functions.
 #pragma once
 
+#include <algorithm>
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
@@ -141,36 +142,63 @@ inline void ScorePanelsScalar(const float* queries, size_t num_queries, const fl
 }
 
 #ifdef OXBOW_VOCAB_AVX2
+// One panel's lanes in one register: the operations the tile below needs.
+struct PanelLanes {
+#ifdef OXBOW_VOCAB_AVX512
+  using V = __m512;
+  static V Zero() { return _mm512_setzero_ps(); }
+  static V Load(const float* p) { return _mm512_loadu_ps(p); }
+  static V Broadcast(const float* p) { return _mm512_set1_ps(*p); }
+  static V Fma(V a, V b, V c) { return _mm512_fmadd_ps(a, b, c); }
+  static V Score(V norm, V dot) { return _mm512_sub_ps(norm, _mm512_add_ps(dot, dot)); }
+  static unsigned AtMost(V v, float bound) {
+    return static_cast<unsigned>(_mm512_cmp_ps_mask(v, _mm512_set1_ps(bound), _CMP_LE_OQ));
+  }
+  static void Store(float* out, V v) { _mm512_storeu_ps(out, v); }
+#else
+  using V = __m256;
+  static V Zero() { return _mm256_setzero_ps(); }
+  static V Load(const float* p) { return _mm256_loadu_ps(p); }
+  static V Broadcast(const float* p) { return _mm256_broadcast_ss(p); }
+  static V Fma(V a, V b, V c) { return _mm256_fmadd_ps(a, b, c); }
+  static V Score(V norm, V dot) { return _mm256_sub_ps(norm, _mm256_add_ps(dot, dot)); }
+  static unsigned AtMost(V v, float bound) {
+    return static_cast<unsigned>(_mm256_movemask_ps(_mm256_cmp_ps(v, _mm256_set1_ps(bound), _CMP_LE_OQ)));
+  }
+  static void Store(float* out, V v) { _mm256_storeu_ps(out, v); }
+#endif
+};
+
 // QN queries against PN consecutive panels from panel p0 (a register tile: QN x PN accumulators).
 template <int QN, int PN, typename Bound, typename Sink>
-inline void ScorePanelTileAvx2(const float* queries, size_t qi, const float* panels, const float* panel_norms,
-                               size_t p0, size_t num_words, int dim, Bound& bound, Sink& sink) {
+inline void ScorePanelTile(const float* queries, size_t qi, const float* panels, const float* panel_norms, size_t p0,
+                           size_t num_words, int dim, Bound& bound, Sink& sink) {
+  using L = PanelLanes;
   const size_t stride = static_cast<size_t>(dim) * kPanelWidth;
-  __m256 acc[QN][PN];
+  L::V acc[QN][PN];
   OXBOW_UNROLL for (int a = 0; a < QN; ++a)
-    OXBOW_UNROLL for (int b = 0; b < PN; ++b) acc[a][b] = _mm256_setzero_ps();
+    OXBOW_UNROLL for (int b = 0; b < PN; ++b) acc[a][b] = L::Zero();
   const float* q = queries + qi * static_cast<size_t>(dim);
   const float* w = panels + p0 * stride;
   _Pragma("GCC unroll 4") for (int d = 0; d < dim; ++d) {
-    __m256 wv[PN];
-    OXBOW_UNROLL for (int b = 0; b < PN; ++b)
-      wv[b] = _mm256_loadu_ps(w + b * stride + static_cast<size_t>(d) * kPanelWidth);
+    L::V wv[PN];
+    OXBOW_UNROLL for (int b = 0; b < PN; ++b) wv[b] = L::Load(w + b * stride + static_cast<size_t>(d) * kPanelWidth);
     OXBOW_UNROLL for (int a = 0; a < QN; ++a) {
-      const __m256 qv = _mm256_broadcast_ss(q + static_cast<size_t>(a) * dim + d);
-      OXBOW_UNROLL for (int b = 0; b < PN; ++b) acc[a][b] = _mm256_fmadd_ps(qv, wv[b], acc[a][b]);
+      const L::V qv = L::Broadcast(q + static_cast<size_t>(a) * dim + d);
+      OXBOW_UNROLL for (int b = 0; b < PN; ++b) acc[a][b] = L::Fma(qv, wv[b], acc[a][b]);
     }
   }
   OXBOW_UNROLL for (int b = 0; b < PN; ++b) {
     const size_t first = (p0 + b) * kPanelWidth;
-    const unsigned valid = num_words - first >= kPanelWidth ? 0xffu : (1u << (num_words - first)) - 1u;
-    const __m256 norm = _mm256_loadu_ps(panel_norms + first);
+    const size_t lanes = std::min(kPanelWidth, num_words - first);  // the rest are padding
+    const unsigned valid = (1u << lanes) - 1u;
+    const L::V norm = L::Load(panel_norms + first);
     OXBOW_UNROLL for (int a = 0; a < QN; ++a) {
-      const __m256 score = _mm256_sub_ps(norm, _mm256_add_ps(acc[a][b], acc[a][b]));
-      unsigned mask = static_cast<unsigned>(_mm256_movemask_ps(
-                          _mm256_cmp_ps(score, _mm256_set1_ps(bound(qi + a)), _CMP_LE_OQ))) & valid;
+      const L::V score = L::Score(norm, acc[a][b]);
+      unsigned mask = L::AtMost(score, bound(qi + a)) & valid;
       if (mask == 0) continue;
-      alignas(32) float out[kPanelWidth];
-      _mm256_store_ps(out, score);
+      float out[kPanelWidth];
+      L::Store(out, score);
       for (; mask != 0; mask &= mask - 1) {
         const int j = __builtin_ctz(mask);
         sink(qi + a, first + static_cast<size_t>(j), out[j]);
@@ -178,61 +206,14 @@ inline void ScorePanelTileAvx2(const float* queries, size_t qi, const float* pan
     }
   }
 }
-
-#ifdef OXBOW_VOCAB_AVX512
-// The same tile with 16-lane registers (kPanelWidth 16).
-template <int QN, int PN, typename Bound, typename Sink>
-inline void ScorePanelTileAvx512(const float* queries, size_t qi, const float* panels, const float* panel_norms,
-                                 size_t p0, size_t num_words, int dim, Bound& bound, Sink& sink) {
-  const size_t stride = static_cast<size_t>(dim) * kPanelWidth;
-  __m512 acc[QN][PN];
-  OXBOW_UNROLL for (int a = 0; a < QN; ++a)
-    OXBOW_UNROLL for (int b = 0; b < PN; ++b) acc[a][b] = _mm512_setzero_ps();
-  const float* q = queries + qi * static_cast<size_t>(dim);
-  const float* w = panels + p0 * stride;
-  _Pragma("GCC unroll 4") for (int d = 0; d < dim; ++d) {
-    __m512 wv[PN];
-    OXBOW_UNROLL for (int b = 0; b < PN; ++b)
-      wv[b] = _mm512_loadu_ps(w + b * stride + static_cast<size_t>(d) * kPanelWidth);
-    OXBOW_UNROLL for (int a = 0; a < QN; ++a) {
-      const __m512 qv = _mm512_set1_ps(q[static_cast<size_t>(a) * dim + d]);
-      OXBOW_UNROLL for (int b = 0; b < PN; ++b) acc[a][b] = _mm512_fmadd_ps(qv, wv[b], acc[a][b]);
-    }
-  }
-  OXBOW_UNROLL for (int b = 0; b < PN; ++b) {
-    const size_t first = (p0 + b) * kPanelWidth;
-    const unsigned valid = num_words - first >= kPanelWidth ? 0xffffu : (1u << (num_words - first)) - 1u;
-    const __m512 norm = _mm512_loadu_ps(panel_norms + first);
-    OXBOW_UNROLL for (int a = 0; a < QN; ++a) {
-      const __m512 score = _mm512_sub_ps(norm, _mm512_add_ps(acc[a][b], acc[a][b]));
-      unsigned mask =
-          static_cast<unsigned>(_mm512_cmp_ps_mask(score, _mm512_set1_ps(bound(qi + a)), _CMP_LE_OQ)) & valid;
-      if (mask == 0) continue;
-      alignas(64) float out[kPanelWidth];
-      _mm512_store_ps(out, score);
-      for (; mask != 0; mask &= mask - 1) {
-        const int j = __builtin_ctz(mask);
-        sink(qi + a, first + static_cast<size_t>(j), out[j]);
-      }
-    }
-  }
-}
-#endif
 
 template <int QN, typename Bound, typename Sink>
 inline void ScorePanelRow(const float* queries, size_t qi, const float* panels, const float* panel_norms,
                           size_t num_words, int dim, Bound& bound, Sink& sink) {
   const size_t np = NumPanels(num_words);
   size_t p = 0;
-#ifdef OXBOW_VOCAB_AVX512
-  for (; p + 2 <= np; p += 2)
-    ScorePanelTileAvx512<QN, 2>(queries, qi, panels, panel_norms, p, num_words, dim, bound, sink);
-  if (p < np) ScorePanelTileAvx512<QN, 1>(queries, qi, panels, panel_norms, p, num_words, dim, bound, sink);
-#else
-  for (; p + 2 <= np; p += 2)
-    ScorePanelTileAvx2<QN, 2>(queries, qi, panels, panel_norms, p, num_words, dim, bound, sink);
-  if (p < np) ScorePanelTileAvx2<QN, 1>(queries, qi, panels, panel_norms, p, num_words, dim, bound, sink);
-#endif
+  for (; p + 2 <= np; p += 2) ScorePanelTile<QN, 2>(queries, qi, panels, panel_norms, p, num_words, dim, bound, sink);
+  if (p < np) ScorePanelTile<QN, 1>(queries, qi, panels, panel_norms, p, num_words, dim, bound, sink);
 }
 #endif
 
