@@ -173,8 +173,8 @@ void TrainingComparison(const Descriptors& d, size_t sample_size, size_t k, int 
       o.assignment = vocab::AssignmentMethod::kExact;
       const auto t = Clock::now();
       auto v = vocab::Train(sample, 128, sift::DescriptorKind::kRootSift, d.settings, o);
-      times["oxbow Train (k-means++, exact AVX2)"].push_back(Seconds(t));
-      objective["oxbow Train (k-means++, exact AVX2)"] =
+      times["oxbow Train (k-means++, exact)"].push_back(Seconds(t));
+      objective["oxbow Train (k-means++, exact)"] =
           Objective(std::vector<float>(v->centroids().begin(), v->centroids().end()), sample);
     }
     {
@@ -294,7 +294,7 @@ void AssignmentComparison(const Descriptors& d, const vocab::Vocabulary& vocab_r
                          vocab->Quantize({q, n * 128}, {out, n}, {.num_threads = 1, .num_probes = probes});
                        }});
   }
-  methods.push_back({"oxbow exact (AVX2 tiles)", [&](const float* q, size_t n, uint32_t* out) {
+  methods.push_back({"oxbow exact (panel kernel)", [&](const float* q, size_t n, uint32_t* out) {
                        vocab->Quantize({q, n * 128}, {out, n}, {.num_threads = 1, .exact = true});
                      }});
   flann::Matrix<float> dataset(const_cast<float*>(centroids.data()), k, 128);
@@ -521,8 +521,10 @@ int main(int argc, char** argv) {
   const Descriptors d = Load(images, cache);
   std::printf("# oxbow vocabulary benchmark\n\n%zu training and %zu held-out RootSIFT descriptors (%s), %s\n",
               d.train.size() / 128, d.queries.size() / 128, d.settings.c_str(),
-#ifdef OXBOW_VOCAB_AVX2
-              "AVX2+FMA kernels"
+#if defined(OXBOW_VOCAB_AVX512)
+              "AVX-512 kernels (16-word panels)"
+#elif defined(OXBOW_VOCAB_AVX2)
+              "AVX2+FMA kernels (8-word panels)"
 #else
               "scalar kernels"
 #endif
