@@ -21,13 +21,24 @@
 #include <cstdint>
 
 #if defined(__AVX2__) && defined(__FMA__)
-#include <immintrin.h>
 #define OXBOW_VOCAB_AVX2 1
-// Register tiles must be unrolled completely, or the compiler keeps the accumulators in memory.
-#define OXBOW_UNROLL _Pragma("GCC unroll 16")
+#define OXBOW_VOCAB_TARGET
 #if defined(__AVX512F__)
 #define OXBOW_VOCAB_AVX512 1
 #endif
+#elif defined(__x86_64__) && defined(__GNUC__)
+// A portable build (OXBOW_NATIVE=OFF, as the Docker image): the AVX2+FMA kernels are compiled for
+// those instructions by function attribute and chosen at run time when the CPU has them
+// (VectorPathAvailable). Without FMA instructions std::fma is a library call per multiply-add, about
+// 80x slower for the quantiser.
+#define OXBOW_VOCAB_AVX2 1
+#define OXBOW_VOCAB_DISPATCH 1
+#define OXBOW_VOCAB_TARGET __attribute__((target("avx2,fma")))
+#endif
+#ifdef OXBOW_VOCAB_AVX2
+#include <immintrin.h>
+// Register tiles must be unrolled completely, or the compiler keeps the accumulators in memory.
+#define OXBOW_UNROLL _Pragma("GCC unroll 16")
 #endif
 
 namespace oxbow::vocab::internal {
@@ -51,13 +62,13 @@ inline float SquaredL2Scalar(const float* a, const float* b, int dim) {
 }
 
 #ifdef OXBOW_VOCAB_AVX2
-inline float HorizontalSum(__m256 v) {
+OXBOW_VOCAB_TARGET inline float HorizontalSum(__m256 v) {
   const __m256 h = _mm256_hadd_ps(v, v);
   const __m256 hh = _mm256_hadd_ps(h, h);  // (v0+v1)+(v2+v3) | (v4+v5)+(v6+v7)
   return _mm_cvtss_f32(_mm_add_ss(_mm256_castps256_ps128(hh), _mm256_extractf128_ps(hh, 1)));
 }
 
-inline float SquaredL2Avx2(const float* a, const float* b, int dim) {
+OXBOW_VOCAB_TARGET inline float SquaredL2Avx2(const float* a, const float* b, int dim) {
   __m256 acc = _mm256_setzero_ps();
   for (int i = 0; i < dim; i += 8) {
     const __m256 d = _mm256_sub_ps(_mm256_loadu_ps(a + i), _mm256_loadu_ps(b + i));
@@ -67,9 +78,13 @@ inline float SquaredL2Avx2(const float* a, const float* b, int dim) {
 }
 #endif
 
-// True when the score kernel has a vector path (AVX2+FMA compiled in; any dimension).
+// True when the kernels take their vector paths: AVX2+FMA compiled in, or compiled by attribute and
+// present on this CPU (any dimension for the score kernel).
 inline bool VectorPathAvailable() {
-#ifdef OXBOW_VOCAB_AVX2
+#if defined(OXBOW_VOCAB_DISPATCH)
+  static const bool available = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
+  return available;
+#elif defined(OXBOW_VOCAB_AVX2)
   return true;
 #else
   return false;
@@ -78,7 +93,7 @@ inline bool VectorPathAvailable() {
 
 inline float SquaredL2(const float* a, const float* b, int dim) {
 #ifdef OXBOW_VOCAB_AVX2
-  if (dim % 8 == 0) return SquaredL2Avx2(a, b, dim);
+  if (dim % 8 == 0 && VectorPathAvailable()) return SquaredL2Avx2(a, b, dim);
 #endif
   return SquaredL2Scalar(a, b, dim);
 }
@@ -146,33 +161,34 @@ inline void ScorePanelsScalar(const float* queries, size_t num_queries, const fl
 struct PanelLanes {
 #ifdef OXBOW_VOCAB_AVX512
   using V = __m512;
-  static V Zero() { return _mm512_setzero_ps(); }
-  static V Load(const float* p) { return _mm512_loadu_ps(p); }
-  static V Broadcast(const float* p) { return _mm512_set1_ps(*p); }
-  static V Fma(V a, V b, V c) { return _mm512_fmadd_ps(a, b, c); }
-  static V Score(V norm, V dot) { return _mm512_sub_ps(norm, _mm512_add_ps(dot, dot)); }
-  static unsigned AtMost(V v, float bound) {
+  OXBOW_VOCAB_TARGET static V Zero() { return _mm512_setzero_ps(); }
+  OXBOW_VOCAB_TARGET static V Load(const float* p) { return _mm512_loadu_ps(p); }
+  OXBOW_VOCAB_TARGET static V Broadcast(const float* p) { return _mm512_set1_ps(*p); }
+  OXBOW_VOCAB_TARGET static V Fma(V a, V b, V c) { return _mm512_fmadd_ps(a, b, c); }
+  OXBOW_VOCAB_TARGET static V Score(V norm, V dot) { return _mm512_sub_ps(norm, _mm512_add_ps(dot, dot)); }
+  OXBOW_VOCAB_TARGET static unsigned AtMost(V v, float bound) {
     return static_cast<unsigned>(_mm512_cmp_ps_mask(v, _mm512_set1_ps(bound), _CMP_LE_OQ));
   }
-  static void Store(float* out, V v) { _mm512_storeu_ps(out, v); }
+  OXBOW_VOCAB_TARGET static void Store(float* out, V v) { _mm512_storeu_ps(out, v); }
 #else
   using V = __m256;
-  static V Zero() { return _mm256_setzero_ps(); }
-  static V Load(const float* p) { return _mm256_loadu_ps(p); }
-  static V Broadcast(const float* p) { return _mm256_broadcast_ss(p); }
-  static V Fma(V a, V b, V c) { return _mm256_fmadd_ps(a, b, c); }
-  static V Score(V norm, V dot) { return _mm256_sub_ps(norm, _mm256_add_ps(dot, dot)); }
-  static unsigned AtMost(V v, float bound) {
+  OXBOW_VOCAB_TARGET static V Zero() { return _mm256_setzero_ps(); }
+  OXBOW_VOCAB_TARGET static V Load(const float* p) { return _mm256_loadu_ps(p); }
+  OXBOW_VOCAB_TARGET static V Broadcast(const float* p) { return _mm256_broadcast_ss(p); }
+  OXBOW_VOCAB_TARGET static V Fma(V a, V b, V c) { return _mm256_fmadd_ps(a, b, c); }
+  OXBOW_VOCAB_TARGET static V Score(V norm, V dot) { return _mm256_sub_ps(norm, _mm256_add_ps(dot, dot)); }
+  OXBOW_VOCAB_TARGET static unsigned AtMost(V v, float bound) {
     return static_cast<unsigned>(_mm256_movemask_ps(_mm256_cmp_ps(v, _mm256_set1_ps(bound), _CMP_LE_OQ)));
   }
-  static void Store(float* out, V v) { _mm256_storeu_ps(out, v); }
+  OXBOW_VOCAB_TARGET static void Store(float* out, V v) { _mm256_storeu_ps(out, v); }
 #endif
 };
 
 // QN queries against PN consecutive panels from panel p0 (a register tile: QN x PN accumulators).
 template <int QN, int PN, typename Bound, typename Sink>
-inline void ScorePanelTile(const float* queries, size_t qi, const float* panels, const float* panel_norms, size_t p0,
-                           size_t num_words, int dim, Bound& bound, Sink& sink) {
+OXBOW_VOCAB_TARGET inline void ScorePanelTile(const float* queries, size_t qi, const float* panels,
+                                              const float* panel_norms, size_t p0, size_t num_words, int dim,
+                                              Bound& bound, Sink& sink) {
   using L = PanelLanes;
   const size_t stride = static_cast<size_t>(dim) * kPanelWidth;
   L::V acc[QN][PN];
@@ -208,8 +224,9 @@ inline void ScorePanelTile(const float* queries, size_t qi, const float* panels,
 }
 
 template <int QN, typename Bound, typename Sink>
-inline void ScorePanelRow(const float* queries, size_t qi, const float* panels, const float* panel_norms,
-                          size_t num_words, int dim, Bound& bound, Sink& sink) {
+OXBOW_VOCAB_TARGET inline void ScorePanelRow(const float* queries, size_t qi, const float* panels,
+                                             const float* panel_norms, size_t num_words, int dim, Bound& bound,
+                                             Sink& sink) {
   const size_t np = NumPanels(num_words);
   size_t p = 0;
   for (; p + 2 <= np; p += 2) ScorePanelTile<QN, 2>(queries, qi, panels, panel_norms, p, num_words, dim, bound, sink);
@@ -217,11 +234,11 @@ inline void ScorePanelRow(const float* queries, size_t qi, const float* panels, 
 }
 #endif
 
-// ScorePanelsScalar's contract, on the vector path where there is one (bit-identical scores).
-template <typename Bound, typename Sink>
-inline void ScorePanels(const float* queries, size_t num_queries, const float* panels, const float* panel_norms,
-                        size_t num_words, int dim, Bound& bound, Sink& sink) {
 #ifdef OXBOW_VOCAB_AVX2
+template <typename Bound, typename Sink>
+OXBOW_VOCAB_TARGET inline void ScorePanelsVector(const float* queries, size_t num_queries, const float* panels,
+                                                 const float* panel_norms, size_t num_words, int dim, Bound& bound,
+                                                 Sink& sink) {
 #ifdef OXBOW_VOCAB_AVX512
   constexpr int kRows = 8;  // 8 queries x 2 panels: 16 accumulators of the 32 registers
 #else
@@ -240,9 +257,20 @@ inline void ScorePanels(const float* queries, size_t num_queries, const float* p
     case 1: ScorePanelRow<1>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
     default: break;
   }
-#else
-  ScorePanelsScalar(queries, num_queries, panels, panel_norms, num_words, dim, bound, sink);
+}
 #endif
+
+// ScorePanelsScalar's contract, on the vector path where there is one (bit-identical scores).
+template <typename Bound, typename Sink>
+inline void ScorePanels(const float* queries, size_t num_queries, const float* panels, const float* panel_norms,
+                        size_t num_words, int dim, Bound& bound, Sink& sink) {
+#ifdef OXBOW_VOCAB_AVX2
+  if (VectorPathAvailable()) {
+    ScorePanelsVector(queries, num_queries, panels, panel_norms, num_words, dim, bound, sink);
+    return;
+  }
+#endif
+  ScorePanelsScalar(queries, num_queries, panels, panel_norms, num_words, dim, bound, sink);
 }
 
 // Squared L2 norms of n rows (same 8-lane formula as DotScalar(row, row)).

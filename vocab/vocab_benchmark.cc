@@ -523,10 +523,8 @@ int main(int argc, char** argv) {
               d.train.size() / 128, d.queries.size() / 128, d.settings.c_str(),
 #if defined(OXBOW_VOCAB_AVX512)
               "AVX-512 kernels (16-word panels)"
-#elif defined(OXBOW_VOCAB_AVX2)
-              "AVX2+FMA kernels (8-word panels)"
 #else
-              "scalar kernels"
+              vocab::internal::VectorPathAvailable() ? "AVX2+FMA kernels (8-word panels)" : "scalar kernels"
 #endif
   );
   if (!skip_train) TrainingComparison(d, train_sample, train_words, train_iterations, reps);
