@@ -99,11 +99,12 @@ inline float SquaredL2(const float* a, const float* b, int dim) {
 }
 
 // Word panels. The score kernels read the words in panels of kPanelWidth consecutive words stored
-// dimension-major: panel p holds, for d = 0..dim-1, the d-th value of words 8p..8p+7 side by side, so one
-// 8-lane load gives one dimension of eight words and a query's value is broadcast against it (an outer
-// product per dimension, as a GEMM micro-kernel does: no horizontal sums, and eight scores come out
-// together, to be compared with the queries' current k-th best at once). A last panel of fewer than
-// eight words is padded with zero values and +inf norms, and the kernels never report padded lanes.
+// dimension-major: panel p holds, for d = 0..dim-1, the d-th value of its kPanelWidth words side by
+// side, so one register load gives one dimension of all of them and a query's value is broadcast
+// against it (an outer product per dimension, as a GEMM micro-kernel does: no horizontal sums, and a
+// panel's scores come out together, to be compared with the queries' current k-th best at once). A
+// last panel of fewer words is padded with zero values and +inf norms, and the kernels never report
+// padded lanes.
 #ifdef OXBOW_VOCAB_AVX512
 inline constexpr size_t kPanelWidth = 16;  // one 16-lane register
 #else
@@ -134,21 +135,20 @@ inline void MakePanels(const float* rows, const float* norms, size_t num_words, 
 }
 
 // Calls sink(query_index, word_index, score) for every pair of the queries (num_queries x dim,
-// row-major) and the words
-// [0..num_words) of `panels` whose score is <= bound(query_index), and for no other pair (a pair above
-// the bound may not be reported); score = |w|^2 - 2 <q, w>. `bound` is read before each group of
-// eight words of a query, so a sink that lowers it (a k-best list) sees fewer calls. The order of the
-// calls is unspecified; each pair is reported at most once. The dot product is one fused
-// multiply-add per dimension in increasing dimension order from 0, in both paths.
+// row-major) and the words [0..num_words) of `panels` whose score is <= bound(query_index), and for no
+// other pair; score = |w|^2 - 2 <q, w>. `bound` is read before each panel of a query, so a sink that
+// lowers it (a k-best list) sees fewer calls. The order of the calls is unspecified; each pair is
+// reported at most once. The dot product is one fused multiply-add per dimension in increasing
+// dimension order from 0, in both paths.
 template <typename Bound, typename Sink>
 inline void ScorePanelsScalar(const float* queries, size_t num_queries, const float* panels,
                               const float* panel_norms, size_t num_words, int dim, Bound& bound, Sink& sink) {
   const size_t stride = static_cast<size_t>(dim) * kPanelWidth;
   for (size_t i = 0; i < num_queries; ++i) {
+    const float* query = queries + i * dim;
     for (size_t w = 0; w < num_words; ++w) {
       const float* panel = panels + (w / kPanelWidth) * stride + w % kPanelWidth;
       float dot = 0;
-      const float* query = queries + i * dim;
       for (int d = 0; d < dim; ++d) dot = std::fma(query[d], panel[static_cast<size_t>(d) * kPanelWidth], dot);
       const float score = panel_norms[w] - (dot + dot);
       if (score <= bound(i)) sink(i, w, score);

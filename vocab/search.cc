@@ -88,7 +88,7 @@ void TwoLevelIndex::Search(const float* queries, size_t n, int k, int num_probes
                            float* scores) const {
   const size_t lists = num_lists();
   const int probes = static_cast<int>(std::clamp<size_t>(static_cast<size_t>(std::max(1, num_probes)), 1, lists));
-  OXBOW_CHECK(coarse_panels.words.num_words == lists && panel_offsets.size() == lists + 1,
+  OXBOW_CHECK(coarse_panels.num_words == lists && panel_offsets.size() == lists + 1,
               "TwoLevelIndex::BuildPanels was not called");
   const size_t stride = static_cast<size_t>(dim) * kPanelWidth;
   ParallelFor(n, num_threads, BalancedBatch(n, num_threads), [&](size_t begin, size_t end, int) {
@@ -132,7 +132,7 @@ void TwoLevelIndex::Search(const float* queries, size_t n, int k, int num_probes
   });
 }
 
-Panels::Panels(const WordMatrix& rows) : words(rows) {
+Panels::Panels(const WordMatrix& rows) : num_words(rows.num_words), dim(rows.dim) {
   const size_t np = NumPanels(rows.num_words);
   data.resize(np * static_cast<size_t>(rows.dim) * kPanelWidth);
   norms.resize(np * kPanelWidth);

@@ -39,9 +39,10 @@ struct PanelMatrix {
 struct Panels {
   Panels() = default;
   explicit Panels(const WordMatrix& rows);
-  PanelMatrix View() const { return {data.data(), norms.data(), words.num_words, words.dim}; }
+  PanelMatrix View() const { return {data.data(), norms.data(), num_words, dim}; }
 
-  WordMatrix words;  // the source's shape (its pointers are not used after construction)
+  size_t num_words = 0;
+  int dim = 0;
   std::vector<float> data;
   std::vector<float> norms;
 };
