@@ -10,20 +10,14 @@
 #include "sift/base/error.h"
 #include "sift/base/parallel.h"
 
-#if defined(__AVX2__) && defined(__FMA__)
+#include "sift/base/cpu.h"
+#ifdef OXBOW_AVX2
 #include <immintrin.h>
-#define OXBOW_SIFT_AVX2 1
 #endif
 
 namespace oxbow::sift::internal {
 
-bool SimdCompiledIn() {
-#ifdef OXBOW_SIFT_AVX2
-  return true;
-#else
-  return false;
-#endif
-}
+bool SimdCompiledIn() { return Avx2FmaAvailable(); }
 
 WorkerTeam::WorkerTeam(int num_threads) : num_threads_(num_threads) { OXBOW_CHECK(num_threads >= 1); }
 
@@ -90,99 +84,116 @@ namespace {
 // instead of 2 loads per FMA): the 2r + 4 rows live in L2, not L1, so loads are the limit otherwise.
 constexpr int kRowBlock = 4;
 
-void VerticalPass(const float* const* rows, const float* kernel, int r, int count, int width, float* const* out, bool simd) {
+#ifdef OXBOW_AVX2
+// VerticalPass's AVX2 path.
+OXBOW_AVX2_TARGET void VerticalPassAvx2(const float* const* rows, const float* kernel, int r, int count, int width,
+                                        float* const* out) {
   const int taps = 2 * r + 1;
   int x = 0;
-#ifdef OXBOW_SIFT_AVX2
-  if (simd) {
-    if (count == kRowBlock && taps > kRowBlock) {
-      for (; x + 16 <= width; x += 16) {
-        // Source row j contributes to output m with kernel[j - m] for 0 <= j - m < taps.
-        __m256 a0[kRowBlock], a1[kRowBlock];
-        const __m256 k0 = _mm256_broadcast_ss(kernel);
+  if (count == kRowBlock && taps > kRowBlock) {
+    for (; x + 16 <= width; x += 16) {
+      // Source row j contributes to output m with kernel[j - m] for 0 <= j - m < taps.
+      __m256 a0[kRowBlock], a1[kRowBlock];
+      const __m256 k0 = _mm256_broadcast_ss(kernel);
+#pragma GCC unroll 4
+      for (int m = 0; m < kRowBlock; ++m) {
+        a0[m] = _mm256_mul_ps(k0, _mm256_loadu_ps(rows[m] + x));
+        a1[m] = _mm256_mul_ps(k0, _mm256_loadu_ps(rows[m] + x + 8));
+      }
+      auto add_row = [&](int j, int m_begin, int m_end) OXBOW_AVX2_TARGET {
+        const __m256 v0 = _mm256_loadu_ps(rows[j] + x), v1 = _mm256_loadu_ps(rows[j] + x + 8);
 #pragma GCC unroll 4
         for (int m = 0; m < kRowBlock; ++m) {
-          a0[m] = _mm256_mul_ps(k0, _mm256_loadu_ps(rows[m] + x));
-          a1[m] = _mm256_mul_ps(k0, _mm256_loadu_ps(rows[m] + x + 8));
+          if (m < m_begin || m >= m_end) continue;
+          const __m256 k = _mm256_broadcast_ss(kernel + (j - m));
+          a0[m] = _mm256_fmadd_ps(k, v0, a0[m]);
+          a1[m] = _mm256_fmadd_ps(k, v1, a1[m]);
         }
-        auto add_row = [&](int j, int m_begin, int m_end) {
-          const __m256 v0 = _mm256_loadu_ps(rows[j] + x), v1 = _mm256_loadu_ps(rows[j] + x + 8);
+      };
+      for (int j = 1; j < kRowBlock; ++j) add_row(j, 0, j);  // outputs m < j
+      for (int j = kRowBlock; j < taps; ++j) add_row(j, 0, kRowBlock);
+      for (int j = taps; j < taps + kRowBlock - 1; ++j) add_row(j, j - taps + 1, kRowBlock);
 #pragma GCC unroll 4
-          for (int m = 0; m < kRowBlock; ++m) {
-            if (m < m_begin || m >= m_end) continue;
-            const __m256 k = _mm256_broadcast_ss(kernel + (j - m));
-            a0[m] = _mm256_fmadd_ps(k, v0, a0[m]);
-            a1[m] = _mm256_fmadd_ps(k, v1, a1[m]);
-          }
-        };
-        for (int j = 1; j < kRowBlock; ++j) add_row(j, 0, j);  // outputs m < j
-        for (int j = kRowBlock; j < taps; ++j) add_row(j, 0, kRowBlock);
-        for (int j = taps; j < taps + kRowBlock - 1; ++j) add_row(j, j - taps + 1, kRowBlock);
-#pragma GCC unroll 4
-        for (int m = 0; m < kRowBlock; ++m) {
-          _mm256_storeu_ps(out[m] + x, a0[m]);
-          _mm256_storeu_ps(out[m] + x + 8, a1[m]);
-        }
+      for (int m = 0; m < kRowBlock; ++m) {
+        _mm256_storeu_ps(out[m] + x, a0[m]);
+        _mm256_storeu_ps(out[m] + x + 8, a1[m]);
       }
     }
-    for (int m = 0; m < count; ++m) {
-      int xm = x;
-      for (; xm + 8 <= width; xm += 8) {
-        __m256 acc = _mm256_mul_ps(_mm256_broadcast_ss(kernel), _mm256_loadu_ps(rows[m] + xm));
-        for (int i = 1; i < taps; ++i) acc = _mm256_fmadd_ps(_mm256_broadcast_ss(kernel + i), _mm256_loadu_ps(rows[m + i] + xm), acc);
-        _mm256_storeu_ps(out[m] + xm, acc);
-      }
-      for (; xm < width; ++xm) {
-        float acc = kernel[0] * rows[m][xm];
-        for (int i = 1; i < taps; ++i) acc = std::fma(kernel[i], rows[m + i][xm], acc);
-        out[m][xm] = acc;
-      }
+  }
+  for (int m = 0; m < count; ++m) {
+    int xm = x;
+    for (; xm + 8 <= width; xm += 8) {
+      __m256 acc = _mm256_mul_ps(_mm256_broadcast_ss(kernel), _mm256_loadu_ps(rows[m] + xm));
+      for (int i = 1; i < taps; ++i) acc = _mm256_fmadd_ps(_mm256_broadcast_ss(kernel + i), _mm256_loadu_ps(rows[m + i] + xm), acc);
+      _mm256_storeu_ps(out[m] + xm, acc);
     }
+    for (; xm < width; ++xm) {
+      float acc = kernel[0] * rows[m][xm];
+      for (int i = 1; i < taps; ++i) acc = std::fma(kernel[i], rows[m + i][xm], acc);
+      out[m][xm] = acc;
+    }
+  }
+}
+#endif
+
+void VerticalPass(const float* const* rows, const float* kernel, int r, int count, int width, float* const* out, bool simd) {
+#ifdef OXBOW_AVX2
+  if (simd && Avx2FmaAvailable()) {
+    VerticalPassAvx2(rows, kernel, r, count, width, out);
     return;
   }
 #endif
+  const int taps = 2 * r + 1;
   for (int m = 0; m < count; ++m)
-    for (int xm = x; xm < width; ++xm) {
+    for (int xm = 0; xm < width; ++xm) {
       float acc = kernel[0] * rows[m][xm];
       for (int i = 1; i < taps; ++i) acc = std::fma(kernel[i], rows[m + i][xm], acc);
       out[m][xm] = acc;
     }
 }
 
+#ifdef OXBOW_AVX2
+// HorizontalPass's AVX2 path for whole vectors of outputs; returns the first output it left.
+OXBOW_AVX2_TARGET int HorizontalPassAvx2(const float* t, std::span<const float> c, int width, float* out) {
+  const int r = static_cast<int>(c.size()) - 1;
+  int x = 0;
+  for (; x + 32 <= width; x += 32) {
+    const __m256 c0 = _mm256_set1_ps(c[0]);
+    __m256 a0 = _mm256_mul_ps(c0, _mm256_loadu_ps(t + x));
+    __m256 a1 = _mm256_mul_ps(c0, _mm256_loadu_ps(t + x + 8));
+    __m256 a2 = _mm256_mul_ps(c0, _mm256_loadu_ps(t + x + 16));
+    __m256 a3 = _mm256_mul_ps(c0, _mm256_loadu_ps(t + x + 24));
+    for (int k = 1; k <= r; ++k) {
+      const __m256 ck = _mm256_set1_ps(c[static_cast<size_t>(k)]);
+      const float* m = t + x - k;
+      const float* p = t + x + k;
+      a0 = _mm256_fmadd_ps(ck, _mm256_add_ps(_mm256_loadu_ps(m), _mm256_loadu_ps(p)), a0);
+      a1 = _mm256_fmadd_ps(ck, _mm256_add_ps(_mm256_loadu_ps(m + 8), _mm256_loadu_ps(p + 8)), a1);
+      a2 = _mm256_fmadd_ps(ck, _mm256_add_ps(_mm256_loadu_ps(m + 16), _mm256_loadu_ps(p + 16)), a2);
+      a3 = _mm256_fmadd_ps(ck, _mm256_add_ps(_mm256_loadu_ps(m + 24), _mm256_loadu_ps(p + 24)), a3);
+    }
+    _mm256_storeu_ps(out + x, a0);
+    _mm256_storeu_ps(out + x + 8, a1);
+    _mm256_storeu_ps(out + x + 16, a2);
+    _mm256_storeu_ps(out + x + 24, a3);
+  }
+  for (; x + 8 <= width; x += 8) {
+    __m256 acc = _mm256_mul_ps(_mm256_set1_ps(c[0]), _mm256_loadu_ps(t + x));
+    for (int k = 1; k <= r; ++k)
+      acc = _mm256_fmadd_ps(_mm256_set1_ps(c[static_cast<size_t>(k)]),
+                            _mm256_add_ps(_mm256_loadu_ps(t + x - k), _mm256_loadu_ps(t + x + k)), acc);
+    _mm256_storeu_ps(out + x, acc);
+  }
+  return x;
+}
+#endif
+
 // out[x] = c0 * t[x] + sum_k c_k * (t[x-k] + t[x+k]) for x in [0, width); t is padded by r on both sides.
 void HorizontalPass(const float* t, std::span<const float> c, int width, float* out, bool simd) {
   const int r = static_cast<int>(c.size()) - 1;
   int x = 0;
-#ifdef OXBOW_SIFT_AVX2
-  if (simd) {
-    for (; x + 32 <= width; x += 32) {
-      const __m256 c0 = _mm256_set1_ps(c[0]);
-      __m256 a0 = _mm256_mul_ps(c0, _mm256_loadu_ps(t + x));
-      __m256 a1 = _mm256_mul_ps(c0, _mm256_loadu_ps(t + x + 8));
-      __m256 a2 = _mm256_mul_ps(c0, _mm256_loadu_ps(t + x + 16));
-      __m256 a3 = _mm256_mul_ps(c0, _mm256_loadu_ps(t + x + 24));
-      for (int k = 1; k <= r; ++k) {
-        const __m256 ck = _mm256_set1_ps(c[static_cast<size_t>(k)]);
-        const float* m = t + x - k;
-        const float* p = t + x + k;
-        a0 = _mm256_fmadd_ps(ck, _mm256_add_ps(_mm256_loadu_ps(m), _mm256_loadu_ps(p)), a0);
-        a1 = _mm256_fmadd_ps(ck, _mm256_add_ps(_mm256_loadu_ps(m + 8), _mm256_loadu_ps(p + 8)), a1);
-        a2 = _mm256_fmadd_ps(ck, _mm256_add_ps(_mm256_loadu_ps(m + 16), _mm256_loadu_ps(p + 16)), a2);
-        a3 = _mm256_fmadd_ps(ck, _mm256_add_ps(_mm256_loadu_ps(m + 24), _mm256_loadu_ps(p + 24)), a3);
-      }
-      _mm256_storeu_ps(out + x, a0);
-      _mm256_storeu_ps(out + x + 8, a1);
-      _mm256_storeu_ps(out + x + 16, a2);
-      _mm256_storeu_ps(out + x + 24, a3);
-    }
-    for (; x + 8 <= width; x += 8) {
-      __m256 acc = _mm256_mul_ps(_mm256_set1_ps(c[0]), _mm256_loadu_ps(t + x));
-      for (int k = 1; k <= r; ++k)
-        acc = _mm256_fmadd_ps(_mm256_set1_ps(c[static_cast<size_t>(k)]),
-                              _mm256_add_ps(_mm256_loadu_ps(t + x - k), _mm256_loadu_ps(t + x + k)), acc);
-      _mm256_storeu_ps(out + x, acc);
-    }
-  }
+#ifdef OXBOW_AVX2
+  if (simd && Avx2FmaAvailable()) x = HorizontalPassAvx2(t, c, width, out);
 #endif
   for (; x < width; ++x) {
     float acc = c[0] * t[x];

@@ -16,7 +16,7 @@
 
 namespace oxbow::sift::internal {
 
-// True when this build has the AVX2+FMA code paths.
+// True when this build has the AVX2+FMA code paths and this CPU can run them (sift/base/cpu.h).
 bool SimdCompiledIn();
 
 // The worker count of an extraction and its parallel loops: oxbow::ParallelFor over num_threads workers

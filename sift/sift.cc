@@ -16,9 +16,9 @@
 #include "sift/scale_space.h"
 #include "sift/sift_internal.h"
 
-#if defined(__AVX2__) && defined(__FMA__)
+#include "sift/base/cpu.h"
+#ifdef OXBOW_AVX2
 #include <immintrin.h>
-#define OXBOW_SIFT_AVX2 1
 #endif
 
 namespace oxbow::sift {
@@ -184,6 +184,53 @@ struct Refined {
 
 // ---- Extrema scan ----------------------------------------------------------------------------------
 
+#ifdef OXBOW_AVX2
+// ScanRow's AVX2 path for whole vectors of columns from x0; returns the first column it left.
+OXBOW_AVX2_TARGET int ScanRowAvx2(const float* const (&rows)[3][3], int x0, int x1, float threshold, std::vector<int>* out) {
+  const float* cur = rows[1][1];
+  int x = x0;
+  const __m256 thr = _mm256_set1_ps(threshold);
+  const __m256 zero = _mm256_setzero_ps();
+  const __m256 abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff));
+  for (; x + 8 <= x1; x += 8) {
+    const __m256 v = _mm256_loadu_ps(cur + x);
+    const __m256 strong = _mm256_cmp_ps(_mm256_and_ps(v, abs_mask), thr, _CMP_GT_OQ);
+    if (_mm256_movemask_ps(strong) == 0) continue;
+    // Own layer first: most samples fail here.
+    __m256 mx = _mm256_max_ps(_mm256_loadu_ps(cur + x - 1), _mm256_loadu_ps(cur + x + 1));
+    __m256 mn = _mm256_min_ps(_mm256_loadu_ps(cur + x - 1), _mm256_loadu_ps(cur + x + 1));
+    for (const int dy : {0, 2}) {
+      for (int dx = -1; dx <= 1; ++dx) {
+        const __m256 n = _mm256_loadu_ps(rows[1][dy] + x + dx);
+        mx = _mm256_max_ps(mx, n);
+        mn = _mm256_min_ps(mn, n);
+      }
+    }
+    __m256 is_max = _mm256_and_ps(_mm256_cmp_ps(v, zero, _CMP_GT_OQ), _mm256_cmp_ps(v, mx, _CMP_GE_OQ));
+    __m256 is_min = _mm256_and_ps(_mm256_cmp_ps(v, zero, _CMP_LT_OQ), _mm256_cmp_ps(v, mn, _CMP_LE_OQ));
+    __m256 any = _mm256_and_ps(strong, _mm256_or_ps(is_max, is_min));
+    if (_mm256_movemask_ps(any) == 0) continue;
+    for (const int l : {0, 2}) {
+      for (int dy = 0; dy < 3; ++dy) {
+        for (int dx = -1; dx <= 1; ++dx) {
+          const __m256 n = _mm256_loadu_ps(rows[l][dy] + x + dx);
+          mx = _mm256_max_ps(mx, n);
+          mn = _mm256_min_ps(mn, n);
+        }
+      }
+    }
+    is_max = _mm256_and_ps(is_max, _mm256_cmp_ps(v, mx, _CMP_GE_OQ));
+    is_min = _mm256_and_ps(is_min, _mm256_cmp_ps(v, mn, _CMP_LE_OQ));
+    int bits = _mm256_movemask_ps(_mm256_and_ps(strong, _mm256_or_ps(is_max, is_min)));
+    while (bits != 0) {
+      out->push_back(x + std::countr_zero(static_cast<unsigned>(bits)));
+      bits &= bits - 1;
+    }
+  }
+  return x;
+}
+#endif
+
 // Scans row y of a DoG layer for samples with |v| > threshold that are >= (or <=) all 26 neighbours;
 // rows[l][dy] is row y - 1 + dy of layer (layer - 1 + l). Appends the columns found, in order.
 void ScanRow(const float* const (&rows)[3][3], int x0, int x1, float threshold, bool simd, std::vector<int>* out) {
@@ -210,51 +257,22 @@ void ScanRow(const float* const (&rows)[3][3], int x0, int x1, float threshold, 
     return false;
   };
   int x = x0;
-#ifdef OXBOW_SIFT_AVX2
-  if (simd) {
-    const __m256 thr = _mm256_set1_ps(threshold);
-    const __m256 zero = _mm256_setzero_ps();
-    const __m256 abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff));
-    for (; x + 8 <= x1; x += 8) {
-      const __m256 v = _mm256_loadu_ps(cur + x);
-      const __m256 strong = _mm256_cmp_ps(_mm256_and_ps(v, abs_mask), thr, _CMP_GT_OQ);
-      if (_mm256_movemask_ps(strong) == 0) continue;
-      // Own layer first: most samples fail here.
-      __m256 mx = _mm256_max_ps(_mm256_loadu_ps(cur + x - 1), _mm256_loadu_ps(cur + x + 1));
-      __m256 mn = _mm256_min_ps(_mm256_loadu_ps(cur + x - 1), _mm256_loadu_ps(cur + x + 1));
-      for (const int dy : {0, 2}) {
-        for (int dx = -1; dx <= 1; ++dx) {
-          const __m256 n = _mm256_loadu_ps(rows[1][dy] + x + dx);
-          mx = _mm256_max_ps(mx, n);
-          mn = _mm256_min_ps(mn, n);
-        }
-      }
-      __m256 is_max = _mm256_and_ps(_mm256_cmp_ps(v, zero, _CMP_GT_OQ), _mm256_cmp_ps(v, mx, _CMP_GE_OQ));
-      __m256 is_min = _mm256_and_ps(_mm256_cmp_ps(v, zero, _CMP_LT_OQ), _mm256_cmp_ps(v, mn, _CMP_LE_OQ));
-      __m256 any = _mm256_and_ps(strong, _mm256_or_ps(is_max, is_min));
-      if (_mm256_movemask_ps(any) == 0) continue;
-      for (const int l : {0, 2}) {
-        for (int dy = 0; dy < 3; ++dy) {
-          for (int dx = -1; dx <= 1; ++dx) {
-            const __m256 n = _mm256_loadu_ps(rows[l][dy] + x + dx);
-            mx = _mm256_max_ps(mx, n);
-            mn = _mm256_min_ps(mn, n);
-          }
-        }
-      }
-      is_max = _mm256_and_ps(is_max, _mm256_cmp_ps(v, mx, _CMP_GE_OQ));
-      is_min = _mm256_and_ps(is_min, _mm256_cmp_ps(v, mn, _CMP_LE_OQ));
-      int bits = _mm256_movemask_ps(_mm256_and_ps(strong, _mm256_or_ps(is_max, is_min)));
-      while (bits != 0) {
-        out->push_back(x + std::countr_zero(static_cast<unsigned>(bits)));
-        bits &= bits - 1;
-      }
-    }
-  }
+#ifdef OXBOW_AVX2
+  if (simd && Avx2FmaAvailable()) x = ScanRowAvx2(rows, x0, x1, threshold, out);
 #endif
   for (; x < x1; ++x)
     if (is_extremum(x)) out->push_back(x);
 }
+
+#ifdef OXBOW_AVX2
+// d[x] = b[x] - a[x] for whole vectors of x from 0; returns the first x it left. Written out: GCC 12
+// turns the plain loop into gathers in ScanOctave, ~4x slower.
+OXBOW_AVX2_TARGET int SubtractAvx2(const float* b, const float* a, int w, float* d) {
+  int x = 0;
+  for (; x + 8 <= w; x += 8) _mm256_storeu_ps(d + x, _mm256_sub_ps(_mm256_loadu_ps(b + x), _mm256_loadu_ps(a + x)));
+  return x;
+}
+#endif
 
 // Finds the candidate extrema of one octave, in (layer, row, column) order. DoG rows are computed on
 // the fly into a small ring buffer per worker, so the DoG pyramid is never stored.
@@ -284,10 +302,8 @@ std::vector<Candidate> ScanOctave(const Octave& octave, int intervals, float thr
         const float* pb = octave.gauss[static_cast<size_t>(l) + 1].row(y);
         float* d = slot(l, y);
         int x = 0;
-#ifdef OXBOW_SIFT_AVX2
-        // Written out: GCC 12 turns the plain loop below into gathers here, ~4x slower.
-        if (simd)
-          for (; x + 8 <= w; x += 8) _mm256_storeu_ps(d + x, _mm256_sub_ps(_mm256_loadu_ps(pb + x), _mm256_loadu_ps(pa + x)));
+#ifdef OXBOW_AVX2
+        if (simd && Avx2FmaAvailable()) x = SubtractAvx2(pb, pa, w, d);
 #endif
         for (; x < w; ++x) d[x] = pb[x] - pa[x];
       }
@@ -416,9 +432,9 @@ std::optional<Refined> Refine(const Octave& octave, Candidate cand, const SiftOp
 
 // ---- Gradients -------------------------------------------------------------------------------------
 
-#ifdef OXBOW_SIFT_AVX2
+#ifdef OXBOW_AVX2
 // The same formula as FastAtan2Deg, 8 lanes at a time (bit-identical).
-inline __m256 Atan2Deg8(__m256 y, __m256 x) {
+OXBOW_AVX2_TARGET inline __m256 Atan2Deg8(__m256 y, __m256 x) {
   const __m256 abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff));
   const __m256 zero = _mm256_setzero_ps();
   const __m256 ax = _mm256_and_ps(x, abs_mask), ay = _mm256_and_ps(y, abs_mask);
@@ -438,7 +454,7 @@ inline __m256 Atan2Deg8(__m256 y, __m256 x) {
 }
 
 // Gradient8 for the 8 samples x..x+7 of a row; see Gradient.
-inline void Gradient8(const float* row, const float* above, const float* below, int x, __m256* mag, __m256* ori) {
+OXBOW_AVX2_TARGET inline void Gradient8(const float* row, const float* above, const float* below, int x, __m256* mag, __m256* ori) {
   const __m256 dx = _mm256_sub_ps(_mm256_loadu_ps(row + x + 1), _mm256_loadu_ps(row + x - 1));
   const __m256 dy = _mm256_sub_ps(_mm256_loadu_ps(above + x), _mm256_loadu_ps(below + x));
   *mag = _mm256_sqrt_ps(_mm256_fmadd_ps(dx, dx, _mm256_mul_ps(dy, dy)));
@@ -464,6 +480,37 @@ inline void Gradient(const float* row, const float* above, const float* below, i
 
 // ---- Orientation [L04 sec. 5] -----------------------------------------------------------------------
 
+constexpr float kBinsPerDeg = kOriBins / 360.0f;
+
+#ifdef OXBOW_AVX2
+// OrientationHistogram's AVX2 path for the samples [x, x1) of a row, whole vectors of 8 (lanes past x1
+// read valid memory: row padding or the next row, and are not added); returns where it stopped.
+OXBOW_AVX2_TARGET int OrientationRowAvx2(const float* row, const float* above, const float* below, int x, int x1,
+                                         float wy, const float* wx, int c, int radius, float* temp) {
+  // Whole vectors of 8 samples; lanes past x1 read valid memory (row padding or the next row) and
+  // are not added.
+  const __m256 vwy = _mm256_set1_ps(wy);
+  alignas(32) int bins[8];
+  alignas(32) float weights[8], mags[8];
+  for (; x < x1; x += 8) {
+    __m256 mag, ori;
+    Gradient8(row, above, below, x, &mag, &ori);
+    __m256i bin = _mm256_cvtps_epi32(_mm256_mul_ps(ori, _mm256_set1_ps(kBinsPerDeg)));  // nearest, as lrint
+    bin = _mm256_sub_epi32(bin, _mm256_and_si256(_mm256_cmpgt_epi32(bin, _mm256_set1_epi32(kOriBins - 1)),
+                                                 _mm256_set1_epi32(kOriBins)));
+    _mm256_store_si256(reinterpret_cast<__m256i*>(bins), bin);
+    _mm256_store_ps(weights, _mm256_mul_ps(vwy, _mm256_loadu_ps(wx + (x - c + radius))));
+    _mm256_store_ps(mags, mag);
+    const int lanes = std::min(8, x1 - x);
+    for (int lane = 0; lane < lanes; ++lane) {
+      float& bin_sum = temp[bins[lane]];
+      bin_sum = std::fma(weights[lane], mags[lane], bin_sum);
+    }
+  }
+  return x;
+}
+#endif
+
 // Smoothed 36-bin gradient orientation histogram around (c, r) of `img`; returns its maximum.
 float OrientationHistogram(const Plane& img, int c, int r, int radius, float sigma, float* hist, bool simd) {
   float raw[kOriBins + 4] = {};
@@ -474,7 +521,6 @@ float OrientationHistogram(const Plane& img, int c, int r, int radius, float sig
   radius = std::min(radius, 120);
   for (int i = -radius; i <= radius; ++i) wx[i + radius] = std::exp(static_cast<float>(i * i) * exp_scale);
   const int x0 = std::max(c - radius, 1), x1 = std::min(c + radius + 1, w - 1);
-  constexpr float kBinsPerDeg = kOriBins / 360.0f;
   for (int i = -radius; i <= radius; ++i) {
     const int y = r + i;
     if (y <= 0 || y >= h - 1 || x0 >= x1) continue;
@@ -483,29 +529,8 @@ float OrientationHistogram(const Plane& img, int c, int r, int radius, float sig
     const float* below = img.row(y + 1);
     const float wy = wx[i + radius];
     int x = x0;
-#ifdef OXBOW_SIFT_AVX2
-    if (simd) {
-      // Whole vectors of 8 samples; lanes past x1 read valid memory (row padding or the next row) and
-      // are not added.
-      const __m256 vwy = _mm256_set1_ps(wy);
-      alignas(32) int bins[8];
-      alignas(32) float weights[8], mags[8];
-      for (; x < x1; x += 8) {
-        __m256 mag, ori;
-        Gradient8(row, above, below, x, &mag, &ori);
-        __m256i bin = _mm256_cvtps_epi32(_mm256_mul_ps(ori, _mm256_set1_ps(kBinsPerDeg)));  // nearest, as lrint
-        bin = _mm256_sub_epi32(bin, _mm256_and_si256(_mm256_cmpgt_epi32(bin, _mm256_set1_epi32(kOriBins - 1)),
-                                                     _mm256_set1_epi32(kOriBins)));
-        _mm256_store_si256(reinterpret_cast<__m256i*>(bins), bin);
-        _mm256_store_ps(weights, _mm256_mul_ps(vwy, _mm256_loadu_ps(wx + (x - c + radius))));
-        _mm256_store_ps(mags, mag);
-        const int lanes = std::min(8, x1 - x);
-        for (int lane = 0; lane < lanes; ++lane) {
-          float& bin_sum = temp[bins[lane]];
-          bin_sum = std::fma(weights[lane], mags[lane], bin_sum);
-        }
-      }
-    }
+#ifdef OXBOW_AVX2
+    if (simd && Avx2FmaAvailable()) x = OrientationRowAvx2(row, above, below, x, x1, wy, wx, c, radius, temp);
 #endif
     for (; x < x1; ++x) {
       float mag, ori;
@@ -546,6 +571,91 @@ inline void AddTrilinear(float* p, float v_rc00, float v_rc01, float v_rc10, flo
   p[row + n + 2] = std::fma(v_rc11, o0_weight, p[row + n + 2]);
   p[row + n + 3] = std::fma(v_rc11, o1_weight, p[row + n + 3]);
 }
+
+#ifdef OXBOW_AVX2
+// Descriptor's AVX2 path for the samples [j, j1) of a window row (wcol: the column weights, indexed
+// by j), whole vectors of 8; returns where it stopped.
+OXBOW_AVX2_TARGET int DescriptorRowAvx2(const float* row, const float* above, const float* below, int j, int j1, float fx,
+                                        float sin_t, float cos_t, float rb0, float cb0, float ori_deg,
+                                        float bins_per_deg, float wrow, const float* wcol, float* hist) {
+  constexpr int d = kDescCells, n = kDescBins;
+  // The scalar formula below, 8 samples at a time, whole vectors (lanes past j1 read valid memory:
+  // row padding or the next row). Samples outside the window get weight 0 in bin (0, 0, 0) (adding
+  // +0 leaves the histogram unchanged); the adds are done in sample order.
+  const __m256i iota = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+  const __m256 minus_one = _mm256_set1_ps(-1.0f), dv = _mm256_set1_ps(static_cast<float>(d));
+  const __m256 vsin = _mm256_set1_ps(sin_t), vcos = _mm256_set1_ps(cos_t);
+  const __m256 vrb0 = _mm256_set1_ps(rb0), vcb0 = _mm256_set1_ps(cb0);
+  const __m256 vori = _mm256_set1_ps(ori_deg), vbins = _mm256_set1_ps(bins_per_deg), vwrow = _mm256_set1_ps(wrow);
+  const __m256i vn = _mm256_set1_epi32(n), zero_i = _mm256_setzero_si256(), vend = _mm256_set1_epi32(j1);
+  alignas(32) int index[8];
+  alignas(32) float weights[4][8], o_pairs[16];
+  for (; j < j1; j += 8) {
+    const __m256i jv = _mm256_add_epi32(_mm256_set1_epi32(j), iota);
+    const __m256 dj = _mm256_sub_ps(_mm256_cvtepi32_ps(jv), _mm256_set1_ps(fx));
+    __m256 rbin = _mm256_fmadd_ps(dj, vsin, vrb0);
+    __m256 cbin = _mm256_fmadd_ps(dj, vcos, vcb0);
+    const __m256 valid = _mm256_and_ps(
+        _mm256_and_ps(_mm256_and_ps(_mm256_cmp_ps(rbin, minus_one, _CMP_GT_OQ), _mm256_cmp_ps(rbin, dv, _CMP_LT_OQ)),
+                      _mm256_and_ps(_mm256_cmp_ps(cbin, minus_one, _CMP_GT_OQ), _mm256_cmp_ps(cbin, dv, _CMP_LT_OQ))),
+        _mm256_castsi256_ps(_mm256_cmpgt_epi32(vend, jv)));
+    if (_mm256_movemask_ps(valid) == 0) continue;
+    __m256 mag, ori;
+    Gradient8(row, above, below, j, &mag, &ori);
+    rbin = _mm256_and_ps(rbin, valid);
+    cbin = _mm256_and_ps(cbin, valid);
+    __m256 obin = _mm256_mul_ps(_mm256_sub_ps(ori, vori), vbins);
+    obin = _mm256_and_ps(obin, valid);
+    const __m256 m = _mm256_and_ps(_mm256_mul_ps(mag, _mm256_mul_ps(vwrow, _mm256_loadu_ps(wcol + j))), valid);
+    const __m256 rf = _mm256_floor_ps(rbin), cf = _mm256_floor_ps(cbin), of = _mm256_floor_ps(obin);
+    const __m256i r0 = _mm256_cvttps_epi32(rf), c0 = _mm256_cvttps_epi32(cf);
+    __m256i o0 = _mm256_cvttps_epi32(of);
+    rbin = _mm256_sub_ps(rbin, rf);
+    cbin = _mm256_sub_ps(cbin, cf);
+    obin = _mm256_sub_ps(obin, of);
+    o0 = _mm256_add_epi32(o0, _mm256_and_si256(_mm256_cmpgt_epi32(zero_i, o0), vn));
+    o0 = _mm256_sub_epi32(o0, _mm256_andnot_si256(_mm256_cmpgt_epi32(vn, o0), vn));
+    const __m256 v_r1 = _mm256_mul_ps(m, rbin), v_r0 = _mm256_sub_ps(m, v_r1);
+    const __m256 v_rc11 = _mm256_mul_ps(v_r1, cbin), v_rc10 = _mm256_sub_ps(v_r1, v_rc11);
+    const __m256 v_rc01 = _mm256_mul_ps(v_r0, cbin), v_rc00 = _mm256_sub_ps(v_r0, v_rc01);
+    const __m256 obin0 = _mm256_sub_ps(_mm256_set1_ps(1.0f), obin);
+    // index = ((r0 + 1) * (d + 2) + c0 + 1) * (n + 2) + o0
+    const __m256i cell = _mm256_add_epi32(_mm256_mullo_epi32(_mm256_add_epi32(r0, _mm256_set1_epi32(1)), _mm256_set1_epi32(d + 2)),
+                                          _mm256_add_epi32(c0, _mm256_set1_epi32(1)));
+    _mm256_store_si256(reinterpret_cast<__m256i*>(index),
+                       _mm256_add_epi32(_mm256_mullo_epi32(cell, _mm256_set1_epi32(n + 2)), o0));
+    _mm256_store_ps(weights[0], v_rc00);
+    _mm256_store_ps(weights[1], v_rc01);
+    _mm256_store_ps(weights[2], v_rc10);
+    _mm256_store_ps(weights[3], v_rc11);
+    // (o0 weight, o1 weight) of lane l at o_pairs[2 l], [2 l + 1].
+    const __m256 pairs_lo = _mm256_unpacklo_ps(obin0, obin), pairs_hi = _mm256_unpackhi_ps(obin0, obin);
+    _mm256_store_ps(o_pairs, _mm256_permute2f128_ps(pairs_lo, pairs_hi, 0x20));
+    _mm256_store_ps(o_pairs + 8, _mm256_permute2f128_ps(pairs_lo, pairs_hi, 0x31));
+    // Valid lanes only, in order (an invalid lane would add zeros). AddTrilinear's eight FMAs as
+    // four two-wide ones on (o0, o0 + 1).
+    for (unsigned bits = static_cast<unsigned>(_mm256_movemask_ps(valid)); bits != 0; bits &= bits - 1) {
+      const int lane = std::countr_zero(bits);
+      float* p = hist + index[lane];
+      // Two floats at a 4-byte aligned address: _mm_loadl_epi64 / _mm_storel_epi64 (movq) are the
+      // unaligned 8-byte load and store (_mm_load_sd on a double* there is a misaligned access, UB).
+      const __m128 o_weights =
+          _mm_castsi128_ps(_mm_loadl_epi64(reinterpret_cast<const __m128i*>(o_pairs + 2 * lane)));
+      auto add_pair = [&](int offset, const float* v_rc) OXBOW_AVX2_TARGET {
+        auto* target = reinterpret_cast<__m128i*>(p + offset);
+        const __m128 sum =
+            _mm_fmadd_ps(_mm_broadcast_ss(v_rc), o_weights, _mm_castsi128_ps(_mm_loadl_epi64(target)));
+        _mm_storel_epi64(target, _mm_castps_si128(sum));
+      };
+      add_pair(0, weights[0] + lane);
+      add_pair(n + 2, weights[1] + lane);
+      add_pair((d + 2) * (n + 2), weights[2] + lane);
+      add_pair((d + 3) * (n + 2), weights[3] + lane);
+    }
+  }
+  return j;
+}
+#endif
 
 // Computes the 128-d descriptor of the keypoint at sub-pixel (x, y) of `img` (octave pixels), scale
 // `scale` (octave pixels) and orientation `ori_deg` (degrees, y axis up), unit L2 norm, clipped.
@@ -596,7 +706,7 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
     j0 = std::max(j0, 1 - cx);
     j1 = std::min(j1, w - 1 - cx);
     if (j0 >= j1) continue;
-#ifdef OXBOW_SIFT_AVX2
+#ifdef OXBOW_AVX2
     // The window's rows are far apart in memory; ask for the row needed three rows from now.
     if (yy + 3 < h) {
       const float* ahead = img.row(yy + 3) + cx;
@@ -608,82 +718,10 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
     const float* above = img.row(yy - 1) + cx;
     const float* below = img.row(yy + 1) + cx;
     int j = j0;
-#ifdef OXBOW_SIFT_AVX2
-    if (simd) {
-      // The scalar formula below, 8 samples at a time, whole vectors (lanes past j1 read valid memory:
-      // row padding or the next row). Samples outside the window get weight 0 in bin (0, 0, 0) (adding
-      // +0 leaves the histogram unchanged); the adds are done in sample order.
-      const __m256i iota = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
-      const __m256 minus_one = _mm256_set1_ps(-1.0f), dv = _mm256_set1_ps(static_cast<float>(d));
-      const __m256 vsin = _mm256_set1_ps(sin_t), vcos = _mm256_set1_ps(cos_t);
-      const __m256 vrb0 = _mm256_set1_ps(rb0), vcb0 = _mm256_set1_ps(cb0);
-      const __m256 vori = _mm256_set1_ps(ori_deg), vbins = _mm256_set1_ps(bins_per_deg), vwrow = _mm256_set1_ps(wrow);
-      const __m256i vn = _mm256_set1_epi32(n), zero_i = _mm256_setzero_si256(), vend = _mm256_set1_epi32(j1);
-      alignas(32) int index[8];
-      alignas(32) float weights[4][8], o_pairs[16];
-      for (; j < j1; j += 8) {
-        const __m256i jv = _mm256_add_epi32(_mm256_set1_epi32(j), iota);
-        const __m256 dj = _mm256_sub_ps(_mm256_cvtepi32_ps(jv), _mm256_set1_ps(fx));
-        __m256 rbin = _mm256_fmadd_ps(dj, vsin, vrb0);
-        __m256 cbin = _mm256_fmadd_ps(dj, vcos, vcb0);
-        const __m256 valid = _mm256_and_ps(
-            _mm256_and_ps(_mm256_and_ps(_mm256_cmp_ps(rbin, minus_one, _CMP_GT_OQ), _mm256_cmp_ps(rbin, dv, _CMP_LT_OQ)),
-                          _mm256_and_ps(_mm256_cmp_ps(cbin, minus_one, _CMP_GT_OQ), _mm256_cmp_ps(cbin, dv, _CMP_LT_OQ))),
-            _mm256_castsi256_ps(_mm256_cmpgt_epi32(vend, jv)));
-        if (_mm256_movemask_ps(valid) == 0) continue;
-        __m256 mag, ori;
-        Gradient8(row, above, below, j, &mag, &ori);
-        rbin = _mm256_and_ps(rbin, valid);
-        cbin = _mm256_and_ps(cbin, valid);
-        __m256 obin = _mm256_mul_ps(_mm256_sub_ps(ori, vori), vbins);
-        obin = _mm256_and_ps(obin, valid);
-        const __m256 m = _mm256_and_ps(_mm256_mul_ps(mag, _mm256_mul_ps(vwrow, _mm256_loadu_ps(wcol + j + radius))), valid);
-        const __m256 rf = _mm256_floor_ps(rbin), cf = _mm256_floor_ps(cbin), of = _mm256_floor_ps(obin);
-        const __m256i r0 = _mm256_cvttps_epi32(rf), c0 = _mm256_cvttps_epi32(cf);
-        __m256i o0 = _mm256_cvttps_epi32(of);
-        rbin = _mm256_sub_ps(rbin, rf);
-        cbin = _mm256_sub_ps(cbin, cf);
-        obin = _mm256_sub_ps(obin, of);
-        o0 = _mm256_add_epi32(o0, _mm256_and_si256(_mm256_cmpgt_epi32(zero_i, o0), vn));
-        o0 = _mm256_sub_epi32(o0, _mm256_andnot_si256(_mm256_cmpgt_epi32(vn, o0), vn));
-        const __m256 v_r1 = _mm256_mul_ps(m, rbin), v_r0 = _mm256_sub_ps(m, v_r1);
-        const __m256 v_rc11 = _mm256_mul_ps(v_r1, cbin), v_rc10 = _mm256_sub_ps(v_r1, v_rc11);
-        const __m256 v_rc01 = _mm256_mul_ps(v_r0, cbin), v_rc00 = _mm256_sub_ps(v_r0, v_rc01);
-        const __m256 obin0 = _mm256_sub_ps(_mm256_set1_ps(1.0f), obin);
-        // index = ((r0 + 1) * (d + 2) + c0 + 1) * (n + 2) + o0
-        const __m256i cell = _mm256_add_epi32(_mm256_mullo_epi32(_mm256_add_epi32(r0, _mm256_set1_epi32(1)), _mm256_set1_epi32(d + 2)),
-                                              _mm256_add_epi32(c0, _mm256_set1_epi32(1)));
-        _mm256_store_si256(reinterpret_cast<__m256i*>(index),
-                           _mm256_add_epi32(_mm256_mullo_epi32(cell, _mm256_set1_epi32(n + 2)), o0));
-        _mm256_store_ps(weights[0], v_rc00);
-        _mm256_store_ps(weights[1], v_rc01);
-        _mm256_store_ps(weights[2], v_rc10);
-        _mm256_store_ps(weights[3], v_rc11);
-        // (o0 weight, o1 weight) of lane l at o_pairs[2 l], [2 l + 1].
-        const __m256 pairs_lo = _mm256_unpacklo_ps(obin0, obin), pairs_hi = _mm256_unpackhi_ps(obin0, obin);
-        _mm256_store_ps(o_pairs, _mm256_permute2f128_ps(pairs_lo, pairs_hi, 0x20));
-        _mm256_store_ps(o_pairs + 8, _mm256_permute2f128_ps(pairs_lo, pairs_hi, 0x31));
-        // Valid lanes only, in order (an invalid lane would add zeros). AddTrilinear's eight FMAs as
-        // four two-wide ones on (o0, o0 + 1).
-        for (unsigned bits = static_cast<unsigned>(_mm256_movemask_ps(valid)); bits != 0; bits &= bits - 1) {
-          const int lane = std::countr_zero(bits);
-          float* p = hist + index[lane];
-          // Two floats at a 4-byte aligned address: _mm_loadl_epi64 / _mm_storel_epi64 (movq) are the
-          // unaligned 8-byte load and store (_mm_load_sd on a double* there is a misaligned access, UB).
-          const __m128 o_weights =
-              _mm_castsi128_ps(_mm_loadl_epi64(reinterpret_cast<const __m128i*>(o_pairs + 2 * lane)));
-          auto add_pair = [&](int offset, const float* v_rc) {
-            auto* target = reinterpret_cast<__m128i*>(p + offset);
-            const __m128 sum =
-                _mm_fmadd_ps(_mm_broadcast_ss(v_rc), o_weights, _mm_castsi128_ps(_mm_loadl_epi64(target)));
-            _mm_storel_epi64(target, _mm_castps_si128(sum));
-          };
-          add_pair(0, weights[0] + lane);
-          add_pair(n + 2, weights[1] + lane);
-          add_pair((d + 2) * (n + 2), weights[2] + lane);
-          add_pair((d + 3) * (n + 2), weights[3] + lane);
-        }
-      }
+#ifdef OXBOW_AVX2
+    if (simd && Avx2FmaAvailable()) {
+      j = DescriptorRowAvx2(row, above, below, j, j1, fx, sin_t, cos_t, rb0, cb0, ori_deg, bins_per_deg, wrow,
+                            wcol + radius, hist);
     }
 #endif
     for (; j < j1; ++j) {

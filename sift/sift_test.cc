@@ -207,6 +207,16 @@ TEST(SiftDeterminism, ThreadCountsAndSimdPathsAgreeExactly) {
       << "scalar and vector paths differ (SIMD compiled in: " << internal::SimdCompiledIn() << ")";
 }
 
+// The vector paths run wherever the CPU has AVX2 and FMA, also in a portable build (sift/base/cpu.h), so
+// that ThreadCountsAndSimdPathsAgreeExactly compares two paths there rather than the scalar one twice.
+TEST(SiftDeterminism, VectorPathsRunWhereTheCpuHasThem) {
+#if defined(__x86_64__) && defined(__GNUC__)
+  EXPECT_EQ(internal::SimdCompiledIn(), __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"));
+#else
+  GTEST_SKIP() << "the vector paths are x86-64 only";
+#endif
+}
+
 TEST(SiftDeterminism, ReusedPyramidBuffersGiveTheSameOutput) {
   const GrayImage small = FromMat(LoadGray(kOpencvData + "box.png"));
   const GrayImage large = FromMat(LoadGray(kOpencvData + "graf1.png"));

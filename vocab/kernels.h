@@ -20,20 +20,18 @@
 #include <cstddef>
 #include <cstdint>
 
-#if defined(__AVX2__) && defined(__FMA__)
+#include "sift/base/cpu.h"
+
+// The AVX2+FMA kernels: compiled for this CPU, or, in a portable build (OXBOW_NATIVE=OFF, as the Docker
+// image), by function attribute and chosen at run time when the CPU has them (VectorPathAvailable,
+// sift/base/cpu.h). Without FMA instructions std::fma is a library call per multiply-add, about 80x
+// slower for the quantiser.
+#ifdef OXBOW_AVX2
 #define OXBOW_VOCAB_AVX2 1
-#define OXBOW_VOCAB_TARGET
+#define OXBOW_VOCAB_TARGET OXBOW_AVX2_TARGET
 #if defined(__AVX512F__)
 #define OXBOW_VOCAB_AVX512 1
 #endif
-#elif defined(__x86_64__) && defined(__GNUC__)
-// A portable build (OXBOW_NATIVE=OFF, as the Docker image): the AVX2+FMA kernels are compiled for
-// those instructions by function attribute and chosen at run time when the CPU has them
-// (VectorPathAvailable). Without FMA instructions std::fma is a library call per multiply-add, about
-// 80x slower for the quantiser.
-#define OXBOW_VOCAB_AVX2 1
-#define OXBOW_VOCAB_DISPATCH 1
-#define OXBOW_VOCAB_TARGET __attribute__((target("avx2,fma")))
 #endif
 #ifdef OXBOW_VOCAB_AVX2
 #include <immintrin.h>
@@ -80,16 +78,7 @@ OXBOW_VOCAB_TARGET inline float SquaredL2Avx2(const float* a, const float* b, in
 
 // True when the kernels take their vector paths: AVX2+FMA compiled in, or compiled by attribute and
 // present on this CPU (any dimension for the score kernel).
-inline bool VectorPathAvailable() {
-#if defined(OXBOW_VOCAB_DISPATCH)
-  static const bool available = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
-  return available;
-#elif defined(OXBOW_VOCAB_AVX2)
-  return true;
-#else
-  return false;
-#endif
-}
+inline bool VectorPathAvailable() { return Avx2FmaAvailable(); }
 
 inline float SquaredL2(const float* a, const float* b, int dim) {
 #ifdef OXBOW_VOCAB_AVX2
