@@ -17,8 +17,6 @@
 
 namespace oxbow::sift::internal {
 
-bool SimdCompiledIn() { return Avx2FmaAvailable(); }
-
 WorkerTeam::WorkerTeam(int num_threads) : num_threads_(num_threads) { OXBOW_CHECK(num_threads >= 1); }
 
 void WorkerTeam::ParallelFor(size_t n, size_t grain, const std::function<void(size_t, size_t, int)>& fn) const {
@@ -138,7 +136,7 @@ OXBOW_AVX2_TARGET void VerticalPassAvx2(const float* const* rows, const float* k
 
 void VerticalPass(const float* const* rows, const float* kernel, int r, int count, int width, float* const* out, bool simd) {
 #ifdef OXBOW_AVX2
-  if (simd && Avx2FmaAvailable()) {
+  if (simd) {
     VerticalPassAvx2(rows, kernel, r, count, width, out);
     return;
   }
@@ -193,7 +191,7 @@ void HorizontalPass(const float* t, std::span<const float> c, int width, float* 
   const int r = static_cast<int>(c.size()) - 1;
   int x = 0;
 #ifdef OXBOW_AVX2
-  if (simd && Avx2FmaAvailable()) x = HorizontalPassAvx2(t, c, width, out);
+  if (simd) x = HorizontalPassAvx2(t, c, width, out);
 #endif
   for (; x < width; ++x) {
     float acc = c[0] * t[x];
@@ -215,6 +213,7 @@ void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kern
 }
 
 void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kernel, WorkerTeam& team, bool allow_simd) {
+  allow_simd = allow_simd && Avx2FmaAvailable();  // the passes below trust it
   const int num_threads = team.size();
   OXBOW_CHECK(!half_kernel.empty());
   OXBOW_CHECK(dst != &src);

@@ -16,9 +16,6 @@
 
 namespace oxbow::sift::internal {
 
-// True when this build has the AVX2+FMA code paths and this CPU can run them (sift/base/cpu.h).
-bool SimdCompiledIn();
-
 // The worker count of an extraction and its parallel loops: oxbow::ParallelFor over num_threads workers
 // (the process-wide persistent pool, so an extraction starts no threads).
 class WorkerTeam {

@@ -258,7 +258,7 @@ void ScanRow(const float* const (&rows)[3][3], int x0, int x1, float threshold, 
   };
   int x = x0;
 #ifdef OXBOW_AVX2
-  if (simd && Avx2FmaAvailable()) x = ScanRowAvx2(rows, x0, x1, threshold, out);
+  if (simd) x = ScanRowAvx2(rows, x0, x1, threshold, out);
 #endif
   for (; x < x1; ++x)
     if (is_extremum(x)) out->push_back(x);
@@ -303,7 +303,7 @@ std::vector<Candidate> ScanOctave(const Octave& octave, int intervals, float thr
         float* d = slot(l, y);
         int x = 0;
 #ifdef OXBOW_AVX2
-        if (simd && Avx2FmaAvailable()) x = SubtractAvx2(pb, pa, w, d);
+        if (simd) x = SubtractAvx2(pb, pa, w, d);
 #endif
         for (; x < w; ++x) d[x] = pb[x] - pa[x];
       }
@@ -530,7 +530,7 @@ float OrientationHistogram(const Plane& img, int c, int r, int radius, float sig
     const float wy = wx[i + radius];
     int x = x0;
 #ifdef OXBOW_AVX2
-    if (simd && Avx2FmaAvailable()) x = OrientationRowAvx2(row, above, below, x, x1, wy, wx, c, radius, temp);
+    if (simd) x = OrientationRowAvx2(row, above, below, x, x1, wy, wx, c, radius, temp);
 #endif
     for (; x < x1; ++x) {
       float mag, ori;
@@ -719,7 +719,7 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
     const float* below = img.row(yy + 1) + cx;
     int j = j0;
 #ifdef OXBOW_AVX2
-    if (simd && Avx2FmaAvailable()) {
+    if (simd) {
       j = DescriptorRowAvx2(row, above, below, j, j1, fx, sin_t, cos_t, rb0, cb0, ori_deg, bins_per_deg, wrow,
                             wcol + radius, hist);
     }
@@ -804,6 +804,7 @@ Scratch& ThreadScratch() {
 }  // namespace
 
 FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool simd, const StopRequested& stop) {
+  simd = simd && Avx2FmaAvailable();  // the functions below trust it
   OXBOW_CHECK(!options.Check().has_value(), "invalid SiftOptions");
   OXBOW_CHECK(image.pixels.size() == static_cast<size_t>(std::max(image.width, 0)) * static_cast<size_t>(std::max(image.height, 0)),
               "GrayImage pixel count does not match width * height");

@@ -17,6 +17,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "sift/testing/feature_eval.h"
+#include "sift/base/cpu.h"
 #include "sift/scale_space.h"
 #include "sift/sift_internal.h"
 #include "tests/shared_data.h"
@@ -204,14 +205,14 @@ TEST(SiftDeterminism, ThreadCountsAndSimdPathsAgreeExactly) {
   }
   options.num_threads = 2;
   EXPECT_TRUE(SameFeatures(one, internal::ExtractImpl(image, options, /*allow_simd=*/false)))
-      << "scalar and vector paths differ (SIMD compiled in: " << internal::SimdCompiledIn() << ")";
+      << "scalar and vector paths differ (vector paths available: " << Avx2FmaAvailable() << ")";
 }
 
 // The vector paths run wherever the CPU has AVX2 and FMA, also in a portable build (sift/base/cpu.h), so
 // that ThreadCountsAndSimdPathsAgreeExactly compares two paths there rather than the scalar one twice.
 TEST(SiftDeterminism, VectorPathsRunWhereTheCpuHasThem) {
 #if defined(__x86_64__) && defined(__GNUC__)
-  EXPECT_EQ(internal::SimdCompiledIn(), __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"));
+  EXPECT_EQ(Avx2FmaAvailable(), __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"));
 #else
   GTEST_SKIP() << "the vector paths are x86-64 only";
 #endif

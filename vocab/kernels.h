@@ -22,18 +22,12 @@
 
 #include "sift/base/cpu.h"
 
-// The AVX2+FMA kernels: compiled for this CPU, or, in a portable build (OXBOW_NATIVE=OFF, as the Docker
-// image), by function attribute and chosen at run time when the CPU has them (VectorPathAvailable,
-// sift/base/cpu.h). Without FMA instructions std::fma is a library call per multiply-add, about 80x
-// slower for the quantiser.
-#ifdef OXBOW_AVX2
-#define OXBOW_VOCAB_AVX2 1
-#define OXBOW_VOCAB_TARGET OXBOW_AVX2_TARGET
-#if defined(__AVX512F__)
+// The AVX2+FMA kernels (OXBOW_AVX2): compiled for this CPU, or, in a portable build, by function attribute
+// and taken where Avx2FmaAvailable() (sift/base/cpu.h).
+#if defined(OXBOW_AVX2) && defined(__AVX512F__)
 #define OXBOW_VOCAB_AVX512 1
 #endif
-#endif
-#ifdef OXBOW_VOCAB_AVX2
+#ifdef OXBOW_AVX2
 #include <immintrin.h>
 // Register tiles must be unrolled completely, or the compiler keeps the accumulators in memory.
 #define OXBOW_UNROLL _Pragma("GCC unroll 16")
@@ -59,14 +53,14 @@ inline float SquaredL2Scalar(const float* a, const float* b, int dim) {
   return ((lane[0] + lane[1]) + (lane[2] + lane[3])) + ((lane[4] + lane[5]) + (lane[6] + lane[7]));
 }
 
-#ifdef OXBOW_VOCAB_AVX2
-OXBOW_VOCAB_TARGET inline float HorizontalSum(__m256 v) {
+#ifdef OXBOW_AVX2
+OXBOW_AVX2_TARGET inline float HorizontalSum(__m256 v) {
   const __m256 h = _mm256_hadd_ps(v, v);
   const __m256 hh = _mm256_hadd_ps(h, h);  // (v0+v1)+(v2+v3) | (v4+v5)+(v6+v7)
   return _mm_cvtss_f32(_mm_add_ss(_mm256_castps256_ps128(hh), _mm256_extractf128_ps(hh, 1)));
 }
 
-OXBOW_VOCAB_TARGET inline float SquaredL2Avx2(const float* a, const float* b, int dim) {
+OXBOW_AVX2_TARGET inline float SquaredL2Avx2(const float* a, const float* b, int dim) {
   __m256 acc = _mm256_setzero_ps();
   for (int i = 0; i < dim; i += 8) {
     const __m256 d = _mm256_sub_ps(_mm256_loadu_ps(a + i), _mm256_loadu_ps(b + i));
@@ -76,13 +70,9 @@ OXBOW_VOCAB_TARGET inline float SquaredL2Avx2(const float* a, const float* b, in
 }
 #endif
 
-// True when the kernels take their vector paths: AVX2+FMA compiled in, or compiled by attribute and
-// present on this CPU (any dimension for the score kernel).
-inline bool VectorPathAvailable() { return Avx2FmaAvailable(); }
-
 inline float SquaredL2(const float* a, const float* b, int dim) {
-#ifdef OXBOW_VOCAB_AVX2
-  if (dim % 8 == 0 && VectorPathAvailable()) return SquaredL2Avx2(a, b, dim);
+#ifdef OXBOW_AVX2
+  if (dim % 8 == 0 && Avx2FmaAvailable()) return SquaredL2Avx2(a, b, dim);
 #endif
   return SquaredL2Scalar(a, b, dim);
 }
@@ -145,37 +135,37 @@ inline void ScorePanelsScalar(const float* queries, size_t num_queries, const fl
   }
 }
 
-#ifdef OXBOW_VOCAB_AVX2
+#ifdef OXBOW_AVX2
 // One panel's lanes in one register: the operations the tile below needs.
 struct PanelLanes {
 #ifdef OXBOW_VOCAB_AVX512
   using V = __m512;
-  OXBOW_VOCAB_TARGET static V Zero() { return _mm512_setzero_ps(); }
-  OXBOW_VOCAB_TARGET static V Load(const float* p) { return _mm512_loadu_ps(p); }
-  OXBOW_VOCAB_TARGET static V Broadcast(const float* p) { return _mm512_set1_ps(*p); }
-  OXBOW_VOCAB_TARGET static V Fma(V a, V b, V c) { return _mm512_fmadd_ps(a, b, c); }
-  OXBOW_VOCAB_TARGET static V Score(V norm, V dot) { return _mm512_sub_ps(norm, _mm512_add_ps(dot, dot)); }
-  OXBOW_VOCAB_TARGET static unsigned AtMost(V v, float bound) {
+  OXBOW_AVX2_TARGET static V Zero() { return _mm512_setzero_ps(); }
+  OXBOW_AVX2_TARGET static V Load(const float* p) { return _mm512_loadu_ps(p); }
+  OXBOW_AVX2_TARGET static V Broadcast(const float* p) { return _mm512_set1_ps(*p); }
+  OXBOW_AVX2_TARGET static V Fma(V a, V b, V c) { return _mm512_fmadd_ps(a, b, c); }
+  OXBOW_AVX2_TARGET static V Score(V norm, V dot) { return _mm512_sub_ps(norm, _mm512_add_ps(dot, dot)); }
+  OXBOW_AVX2_TARGET static unsigned AtMost(V v, float bound) {
     return static_cast<unsigned>(_mm512_cmp_ps_mask(v, _mm512_set1_ps(bound), _CMP_LE_OQ));
   }
-  OXBOW_VOCAB_TARGET static void Store(float* out, V v) { _mm512_storeu_ps(out, v); }
+  OXBOW_AVX2_TARGET static void Store(float* out, V v) { _mm512_storeu_ps(out, v); }
 #else
   using V = __m256;
-  OXBOW_VOCAB_TARGET static V Zero() { return _mm256_setzero_ps(); }
-  OXBOW_VOCAB_TARGET static V Load(const float* p) { return _mm256_loadu_ps(p); }
-  OXBOW_VOCAB_TARGET static V Broadcast(const float* p) { return _mm256_broadcast_ss(p); }
-  OXBOW_VOCAB_TARGET static V Fma(V a, V b, V c) { return _mm256_fmadd_ps(a, b, c); }
-  OXBOW_VOCAB_TARGET static V Score(V norm, V dot) { return _mm256_sub_ps(norm, _mm256_add_ps(dot, dot)); }
-  OXBOW_VOCAB_TARGET static unsigned AtMost(V v, float bound) {
+  OXBOW_AVX2_TARGET static V Zero() { return _mm256_setzero_ps(); }
+  OXBOW_AVX2_TARGET static V Load(const float* p) { return _mm256_loadu_ps(p); }
+  OXBOW_AVX2_TARGET static V Broadcast(const float* p) { return _mm256_broadcast_ss(p); }
+  OXBOW_AVX2_TARGET static V Fma(V a, V b, V c) { return _mm256_fmadd_ps(a, b, c); }
+  OXBOW_AVX2_TARGET static V Score(V norm, V dot) { return _mm256_sub_ps(norm, _mm256_add_ps(dot, dot)); }
+  OXBOW_AVX2_TARGET static unsigned AtMost(V v, float bound) {
     return static_cast<unsigned>(_mm256_movemask_ps(_mm256_cmp_ps(v, _mm256_set1_ps(bound), _CMP_LE_OQ)));
   }
-  OXBOW_VOCAB_TARGET static void Store(float* out, V v) { _mm256_storeu_ps(out, v); }
+  OXBOW_AVX2_TARGET static void Store(float* out, V v) { _mm256_storeu_ps(out, v); }
 #endif
 };
 
 // QN queries against PN consecutive panels from panel p0 (a register tile: QN x PN accumulators).
 template <int QN, int PN, typename Bound, typename Sink>
-OXBOW_VOCAB_TARGET inline void ScorePanelTile(const float* queries, size_t qi, const float* panels,
+OXBOW_AVX2_TARGET inline void ScorePanelTile(const float* queries, size_t qi, const float* panels,
                                               const float* panel_norms, size_t p0, size_t num_words, int dim,
                                               Bound& bound, Sink& sink) {
   using L = PanelLanes;
@@ -213,7 +203,7 @@ OXBOW_VOCAB_TARGET inline void ScorePanelTile(const float* queries, size_t qi, c
 }
 
 template <int QN, typename Bound, typename Sink>
-OXBOW_VOCAB_TARGET inline void ScorePanelRow(const float* queries, size_t qi, const float* panels,
+OXBOW_AVX2_TARGET inline void ScorePanelRow(const float* queries, size_t qi, const float* panels,
                                              const float* panel_norms, size_t num_words, int dim, Bound& bound,
                                              Sink& sink) {
   const size_t np = NumPanels(num_words);
@@ -223,9 +213,9 @@ OXBOW_VOCAB_TARGET inline void ScorePanelRow(const float* queries, size_t qi, co
 }
 #endif
 
-#ifdef OXBOW_VOCAB_AVX2
+#ifdef OXBOW_AVX2
 template <typename Bound, typename Sink>
-OXBOW_VOCAB_TARGET inline void ScorePanelsVector(const float* queries, size_t num_queries, const float* panels,
+OXBOW_AVX2_TARGET inline void ScorePanelsVector(const float* queries, size_t num_queries, const float* panels,
                                                  const float* panel_norms, size_t num_words, int dim, Bound& bound,
                                                  Sink& sink) {
 #ifdef OXBOW_VOCAB_AVX512
@@ -253,8 +243,8 @@ OXBOW_VOCAB_TARGET inline void ScorePanelsVector(const float* queries, size_t nu
 template <typename Bound, typename Sink>
 inline void ScorePanels(const float* queries, size_t num_queries, const float* panels, const float* panel_norms,
                         size_t num_words, int dim, Bound& bound, Sink& sink) {
-#ifdef OXBOW_VOCAB_AVX2
-  if (VectorPathAvailable()) {
+#ifdef OXBOW_AVX2
+  if (Avx2FmaAvailable()) {
     ScorePanelsVector(queries, num_queries, panels, panel_norms, num_words, dim, bound, sink);
     return;
   }

@@ -41,7 +41,7 @@ float SequentialScore(const float* q, const float* w, float norm, int dim) {
 // wholly),
 // and for dimensions that are not multiples of 8.
 TEST(KernelsTest, VectorAndScalarScoresAreIdentical) {
-  if (!VectorPathAvailable()) GTEST_SKIP() << "built without AVX2+FMA: only the scalar path exists";
+  if (!Avx2FmaAvailable()) GTEST_SKIP() << "built without AVX2+FMA: only the scalar path exists";
   for (int dim : {1, 13, 128}) {
     for (size_t nq = 1; nq <= 13; ++nq) {
       for (size_t nw : {1, 2, 3, 5, 7, 8, 9, 15, 16, 17, 24, 31, 32, 33, 40, 47, 48, 49}) {

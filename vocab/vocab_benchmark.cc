@@ -524,7 +524,7 @@ int main(int argc, char** argv) {
 #if defined(OXBOW_VOCAB_AVX512)
               "AVX-512 kernels (16-word panels)"
 #else
-              vocab::internal::VectorPathAvailable() ? "AVX2+FMA kernels (8-word panels)" : "scalar kernels"
+              Avx2FmaAvailable() ? "AVX2+FMA kernels (8-word panels)" : "scalar kernels"
 #endif
   );
   if (!skip_train) TrainingComparison(d, train_sample, train_words, train_iterations, reps);
