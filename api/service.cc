@@ -286,7 +286,7 @@ Result<AddBatchResponse> Service::AddImages(const AddBatchRequest& request) {
     info.source_path = item.source_name;
     info.metadata_json = item.metadata_json;
     info.extractor_settings = index_->extractor_settings();
-    batch_images.push_back(index::BatchImage{item.id, &features[i], std::move(info), {}});
+    batch_images.push_back(index::BatchImage{item.id, &features[i], std::move(info), {}, {}});
     batch_index.push_back(i);
   }
   if (batch_images.empty()) return response;  // every image failed on its own: no transaction to make

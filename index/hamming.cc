@@ -13,11 +13,11 @@ double HammingWeight(uint64_t a, uint64_t b, const HammingWeighting& weighting) 
 }
 
 QuerySignatures::QuerySignatures(std::span<const uint32_t> words, std::span<const uint64_t> signatures,
-                                 std::function<double(uint32_t)> idf, size_t vocabulary_size,
+                                 std::shared_ptr<const std::vector<double>> idf_squared,
                                  const HammingWeighting& weighting)
-    : idf_(std::move(idf)), idf_squared_(vocabulary_size) {
+    : idf_squared_(std::move(idf_squared)) {
   OXBOW_CHECK(words.size() == signatures.size());
-  for (auto& v : idf_squared_) v.store(-1.0, std::memory_order_relaxed);
+  OXBOW_CHECK(idf_squared_ != nullptr);
   // Same values as HammingWeight: popcount(a ^ b) is the distance.
   for (size_t h = 0; h < weight_.size(); ++h) {
     weight_[h] = HammingWeight(0, h == 64 ? ~0ull : (1ull << h) - 1, weighting);
@@ -34,15 +34,8 @@ QuerySignatures::QuerySignatures(std::span<const uint32_t> words, std::span<cons
 }
 
 double QuerySignatures::IdfSquared(uint32_t word) const {
-  OXBOW_CHECK(word < idf_squared_.size(), "word outside the vocabulary");
-  std::atomic<double>& slot = idf_squared_[word];
-  double v = slot.load(std::memory_order_relaxed);
-  if (v < 0) {  // several threads may compute the same value; each stores it
-    const double idf = idf_(word);
-    v = std::isfinite(idf) ? idf * idf : 0.0;
-    slot.store(v, std::memory_order_relaxed);
-  }
-  return v;
+  OXBOW_CHECK(word < idf_squared_->size(), "word outside the vocabulary");
+  return (*idf_squared_)[word];
 }
 
 double QuerySignatures::Score(const PackedFeatures& db) const {

@@ -38,27 +38,25 @@ double HammingWeight(uint64_t a, uint64_t b, const HammingWeighting& weighting);
 
 class QuerySignatures {
  public:
-  // words[i] and signatures[i] of each query feature (same length); idf(w) the inverse document
-  // frequency of word w (+infinity or NaN for a word in no image: such words are ignored), for words
-  // below vocabulary_size (every word of the query and of the candidates).
+  // words[i] and signatures[i] of each query feature (same length); idf_squared[w] the squared inverse
+  // document frequency of word w (0 for a word in no image: such words are ignored), for every word of
+  // the query and of the candidates (InvertedFile::IdfSquaredTable()).
   QuerySignatures(std::span<const uint32_t> words, std::span<const uint64_t> signatures,
-                  std::function<double(uint32_t)> idf, size_t vocabulary_size, const HammingWeighting& weighting);
+                  std::shared_ptr<const std::vector<double>> idf_squared, const HammingWeighting& weighting);
 
   // The score of `candidate` (which must have signatures). 0 when nothing matches.
   double Score(const PackedFeatures& candidate) const;
 
  private:
-  // idf(w)^2, 0 for a word in no image; computed once per word and query, from any thread.
-  double IdfSquared(uint32_t word) const;
+  double IdfSquared(uint32_t word) const;  // idf(w)^2 (OXBOW_CHECKs the word is in the table)
 
   std::vector<uint32_t> words_;       // sorted
   std::vector<uint64_t> signatures_;  // in words_' order
   WordRuns runs_;                     // of words_
-  std::function<double(uint32_t)> idf_;
   std::array<double, 65> weight_{};   // s_ij by Hamming distance (0 above the threshold)
-  // idf^2 by word, grown on demand (a negative entry: not computed yet). Candidates share most words,
-  // and a logarithm per word of every candidate was most of Score's time.
-  mutable std::vector<std::atomic<double>> idf_squared_;
+  // idf^2 by word, made once per statistics (a logarithm per word of every candidate was most of
+  // Score's time when each query computed its own).
+  std::shared_ptr<const std::vector<double>> idf_squared_;
   double self_ = 0;                   // N_q
 };
 

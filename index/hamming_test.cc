@@ -61,12 +61,14 @@ PackedFeatures Packed(const std::vector<uint32_t>& words, const std::vector<uint
 }
 
 TEST(QuerySignaturesTest, ScoresMatchingSignaturesAndDownWeightsBursts) {
-  const auto idf = [](uint32_t w) { return w == 99 ? std::numeric_limits<double>::infinity() : 1.0 + w; };
+  // idf(w) = 1 + w, word 99 in no image (idf^2 0).
+  auto idf_squared = std::make_shared<std::vector<double>>(100);
+  for (uint32_t w = 0; w < 99; ++w) (*idf_squared)[w] = (1.0 + w) * (1.0 + w);
   const HammingWeighting weighting;
   // Query: words 1, 2, 99 (99 is in no image: ignored).
   const std::vector<uint32_t> words = {1, 2, 99};
   const std::vector<uint64_t> signatures = {0x0ull, 0xFFFF0000ull, 0x1ull};
-  const QuerySignatures query(words, signatures, idf, 100, weighting);
+  const QuerySignatures query(words, signatures, idf_squared, weighting);
   // The same image scores 1 (each feature matches itself only): N_q = 2^2 + 3^2 = N_d.
   EXPECT_NEAR(query.Score(Packed({1, 2}, {0x0ull, 0xFFFF0000ull})), 1.0, 1e-12);
   // Word 2's signature far away: only word 1 matches, 4 / sqrt(13 * 13).
@@ -321,6 +323,60 @@ TEST_F(HammingIndexTest, SignaturesDecideBetweenImagesWithTheSameWords) {
     EXPECT_EQ(similar->results[0].id, "same");
     EXPECT_EQ(similar->results[1].id, "other");
   }
+}
+
+// Pre-assigned words and signatures (BatchImage::signatures, the storage benchmark's path) store what
+// quantising the descriptors and computing their signatures would; signatures that do not fit (another count, no assigned words, a vocabulary without parameters) are refused.
+TEST_F(HammingIndexTest, AssignedSignaturesEqualComputingThem) {
+  const auto centroids = vocabulary_->centroids();
+  std::vector<sift::FeatureSet> images;
+  std::vector<std::vector<uint32_t>> words;
+  std::vector<std::vector<uint64_t>> signatures;
+  for (int i = 0; i < 4; ++i) {
+    images.push_back(Image(Around(centroids.subspan(static_cast<size_t>(10 * i) * kDim, 20 * kDim), 1, 40 + i), 50 + i));
+    words.emplace_back(images.back().size());
+    vocabulary_->Quantize(images.back().descriptors, words.back());
+    signatures.emplace_back(images.back().size());
+    vocabulary_->Signatures(images.back().descriptors, words.back(), signatures.back());
+  }
+  auto computed = ImageIndex::Create((dir_ / "computed").string(), *vocabulary_, "test-extractor/1");
+  auto assigned = ImageIndex::Create((dir_ / "assigned").string(), *vocabulary_, "test-extractor/1");
+  ASSERT_TRUE(computed && assigned);
+  std::vector<sift::FeatureSet> bare = images;
+  for (auto& f : bare) f.descriptors.clear();
+  std::vector<BatchImage> a, b;
+  for (size_t i = 0; i < images.size(); ++i) {
+    a.push_back({"i" + std::to_string(i), &images[i], {}, {}, {}});
+    b.push_back({"i" + std::to_string(i), &bare[i], {}, words[i], signatures[i]});
+  }
+  const std::vector<uint64_t> short_signatures(3, 0);
+  b.push_back({"short", &bare[0], {}, words[0], short_signatures});
+  b.push_back({"unassigned", &images[0], {}, {}, signatures[0]});
+  for (const auto& r : (*computed)->AddBatch(a)) ASSERT_TRUE(r) << r.error().ToString();
+  const auto results = (*assigned)->AddBatch(b);
+  for (size_t i = 0; i < images.size(); ++i) ASSERT_TRUE(results[i]) << results[i].error().ToString();
+  EXPECT_EQ(results[4].error().code, ErrorCode::kInvalidArgument);
+  EXPECT_EQ(results[5].error().code, ErrorCode::kInvalidArgument);
+  for (size_t i = 0; i < images.size(); ++i) {
+    const auto x = (*computed)->QuerySimilar("i" + std::to_string(i), QueryOptions{});
+    const auto y = (*assigned)->QuerySimilar("i" + std::to_string(i), QueryOptions{});
+    ASSERT_TRUE(x && y);
+    ASSERT_GE(y->results.size(), x->results.size());
+    for (size_t r = 0; r < x->results.size(); ++r) {
+      EXPECT_EQ(x->results[r].id, y->results[r].id);
+      EXPECT_EQ(x->results[r].score, y->results[r].score);
+    }
+  }
+  // A vocabulary without Hamming-embedding parameters refuses given signatures.
+  auto plain = vocab::Vocabulary::FromCentroids(std::vector<float>(centroids.begin(), centroids.end()), kDim,
+                                                sift::DescriptorKind::kRootSift, "test-extractor/1");
+  ASSERT_TRUE(plain);
+  auto without = ImageIndex::Create((dir_ / "plain").string(), *plain, "test-extractor/1");
+  ASSERT_TRUE(without);
+  const std::vector<BatchImage> c = {{"i0", &bare[0], {}, words[0], signatures[0]}};
+  const auto refused = (*without)->AddBatch(c);
+  ASSERT_FALSE(refused[0]);
+  EXPECT_EQ(refused[0].error().code, ErrorCode::kInvalidArgument);
 }
 
 TEST_F(HammingIndexTest, QueryExpansionRanksByTheSignaturesOfTheVerifiedRegions) {

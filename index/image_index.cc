@@ -307,7 +307,7 @@ struct ImageIndex::Impl {
   CheckpointManifest checkpoint;                // the last committed one; guarded by writer_mutex
   uint64_t changes_since_checkpoint = 0;        // images added + removed since; guarded by writer_mutex
   std::atomic<uint64_t> write_sequence{0};      // Catalogue::WriteSequence of the last commit
-  bool checkpoint_forced = false;               // Open rebuilt: checkpoint now; guarded by writer_mutex
+  bool checkpoint_forced = false;               // Open rebuilt or re-coded: checkpoint now; writer_mutex
   bool closing = false;                         // guarded by writer_mutex
   uint64_t pending_after_failure = 0;           // changes of failed background checkpoints (for Close)
   std::condition_variable checkpoint_due;       // with writer_mutex: wakes the checkpointer
@@ -360,9 +360,11 @@ struct ImageIndex::Impl {
     std::vector<uint8_t> blob;
   };
   // `words`: pre-assigned words (BatchImage::words), or empty to quantise the descriptors with
-  // `quantizer_threads` threads (a single add uses the index's threads, a batch one per image).
+  // `quantizer_threads` threads (a single add uses the index's threads, a batch one per image);
+  // `signatures`: their pre-computed signatures (BatchImage::signatures), or empty.
   Result<Prepared> Prepare(const std::string& id, const sift::FeatureSet& features, const ImageInfo& info,
-                           std::span<const uint32_t> words, int quantizer_threads) const;
+                           std::span<const uint32_t> words, std::span<const uint64_t> signatures,
+                           int quantizer_threads) const;
   // Add (replace false) and Replace (true): prepare, commit, publish one new snapshot.
   Result<ImageRecord> Write(const std::string& id, const sift::FeatureSet& features, const ImageInfo& info,
                             bool replace);
@@ -476,6 +478,7 @@ struct LoadedCheckpoint {
   CheckpointManifest manifest;   // generation 0 when unreadable
   uint64_t changes = 0;          // images added + removed since the checkpoint (replayed)
   std::vector<std::shared_ptr<const GeometryPart>> parts;  // its geometry files, not verified yet
+  bool recoded = false;          // the postings file was of an older format (re-coded in memory)
 };
 
 // Open from the checkpoint the catalogue names, replaying the changes since. A damaged, missing or
@@ -518,7 +521,8 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
         failures[i] = Fail(ErrorCode::kCorruptData, what + " has " + std::to_string((*mapped)->bytes().size()) +
                                                         " bytes, its manifest says " + std::to_string(files[i].size_bytes));
       } else if (postings) {
-        auto file = InvertedFile::Deserialize((*mapped)->bytes(), vocab_size, ToTfIdf(options));
+        bool recoded = false;
+        auto file = InvertedFile::Deserialize((*mapped)->bytes(), vocab_size, ToTfIdf(options), &recoded);
         if (!file) {
           failures[i] = Fail(file.error().code, what + ": " + file.error().message);
           continue;
@@ -528,6 +532,7 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
           failures[i] = Fail(ErrorCode::kCorruptData, "two postings files");
         } else {
           inverted = std::move(*file);
+          out.recoded = recoded;
         }
       } else {
         auto images = ReadGeometry(*mapped, what);
@@ -862,6 +867,12 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, con
       impl->checkpoint = std::move(loaded->manifest);
       impl->geometry_parts = std::move(loaded->parts);
       impl->changes_since_checkpoint = loaded->changes;
+      if (loaded->recoded) {
+        OXBOW_LOG(kInfo) << "index " << dir << ": its postings file was written in an older format by an earlier "
+                         << "build and was converted while loading; a checkpoint in the current format is written "
+                         << "in the background";
+        impl->checkpoint_forced = true;
+      }
     } else {
       // Keep the generation: the new files must not take the names of those the old manifest lists.
       impl->checkpoint.generation = loaded->manifest.generation;
@@ -901,6 +912,7 @@ Result<ImageRecord> ImageIndex::Replace(const std::string& id, const sift::Featu
 Result<ImageIndex::Impl::Prepared> ImageIndex::Impl::Prepare(const std::string& id, const sift::FeatureSet& features,
                                                               const ImageInfo& info,
                                                               std::span<const uint32_t> assigned,
+                                                              std::span<const uint64_t> assigned_signatures,
                                                               int quantizer_threads) const {
   if (auto s = CheckId(id); !s) return std::unexpected(s.error());
   const std::string what = "image '" + id + "'";
@@ -915,6 +927,17 @@ Result<ImageIndex::Impl::Prepared> ImageIndex::Impl::Prepare(const std::string& 
       if (w >= vocabulary_size) return Fail(ErrorCode::kInvalidArgument, what + ": word outside the vocabulary");
     }
   }
+  if (!assigned_signatures.empty()) {
+    if (assigned.empty() || assigned_signatures.size() != assigned.size()) {
+      return Fail(ErrorCode::kInvalidArgument, what + ": " + std::to_string(assigned_signatures.size()) +
+                                                   " signatures for " + std::to_string(assigned.size()) +
+                                                   " assigned words");
+    }
+    if (!vocabulary.has_hamming()) {
+      return Fail(ErrorCode::kInvalidArgument,
+                  what + ": signatures given, but the index's vocabulary has no Hamming-embedding parameters");
+    }
+  }
   if (auto s = CheckSettings(info.extractor_settings, extractor_settings, "features of '" + id + "'"); !s) {
     return std::unexpected(s.error());
   }
@@ -926,8 +949,9 @@ Result<ImageIndex::Impl::Prepared> ImageIndex::Impl::Prepare(const std::string& 
     vocabulary.Quantize(features.descriptors, words, quantizer);
   }
   // Signatures need the descriptors, which pre-assigned words may come without.
-  std::vector<uint64_t> signatures;
-  if (vocabulary.has_hamming() && features.descriptors.size() == words.size() * vocabulary.dimension()) {
+  std::vector<uint64_t> signatures(assigned_signatures.begin(), assigned_signatures.end());
+  if (signatures.empty() && vocabulary.has_hamming() &&
+      features.descriptors.size() == words.size() * vocabulary.dimension()) {
     signatures.resize(words.size());
     vocabulary.Signatures(features.descriptors, words, signatures);
   }
@@ -970,7 +994,7 @@ Result<ImageRecord> ImageIndex::Impl::Write(const std::string& id, const sift::F
   const auto taken = [&] { return Fail(ErrorCode::kAlreadyExists, "an image with id '" + id + "' is already indexed"); };
   if (!replace && Current()->Find(id)) return taken();
   // Quantise outside the writer lock: it is the expensive part and needs no shared state.
-  auto prepared = Prepare(id, features, info, {}, index_options.num_threads);
+  auto prepared = Prepare(id, features, info, {}, {}, index_options.num_threads);
   if (!prepared) return std::unexpected(prepared.error());
 
   std::lock_guard<std::mutex> writer(writer_mutex);
@@ -1006,7 +1030,8 @@ std::vector<Result<ImageRecord>> ImageIndex::AddBatch(std::span<const BatchImage
         results[i] = Fail(ErrorCode::kInvalidArgument, "image '" + images[i].id + "': no features");
         continue;
       }
-      auto p = impl_->Prepare(images[i].id, *images[i].features, images[i].info, images[i].words, 1);
+      auto p = impl_->Prepare(images[i].id, *images[i].features, images[i].info, images[i].words,
+                              images[i].signatures, 1);
       if (p) {
         prepared[i] = std::move(*p);
         ready[i] = 1;
@@ -1309,9 +1334,7 @@ HammingWeighting WeightingOf(const QueryOptions& options) {
 void ImageIndex::Impl::RescoreHamming(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
                                       std::vector<ScoredImage>& scored) const {
   const size_t shortlist = std::min(scored.size(), static_cast<size_t>(options.hamming_shortlist));
-  const QuerySignatures signatures(
-      query.words, query.signatures, [&snap](uint32_t w) { return snap.inverted.Idf(w); }, snap.inverted.vocabulary_size(),
-      WeightingOf(options));
+  const QuerySignatures signatures(query.words, query.signatures, snap.inverted.IdfSquaredTable(), WeightingOf(options));
   std::vector<uint32_t> images(shortlist);
   for (size_t c = 0; c < shortlist; ++c) images[c] = scored[c].image;
   const std::vector<double> scores = HammingScores(snap, signatures, images, index_options.num_threads);
@@ -1340,9 +1363,7 @@ void ImageIndex::Impl::ExpandQueryHamming(const Snapshot& snap, const QueryFeatu
       signatures.push_back(features.signature(i));
     }
   }
-  const QuerySignatures expanded(
-      words, signatures, [&snap](uint32_t w) { return snap.inverted.Idf(w); }, snap.inverted.vocabulary_size(),
-      WeightingOf(options));
+  const QuerySignatures expanded(words, signatures, snap.inverted.IdfSquaredTable(), WeightingOf(options));
   std::vector<uint32_t> images(results.size() - num_verified);
   for (size_t c = num_verified; c < results.size(); ++c) snap.Find(results[c].id, &images[c - num_verified]);
   const std::vector<double> scores = HammingScores(snap, expanded, images, index_options.num_threads);

@@ -185,12 +185,15 @@ struct QueryOptions {
   // Postings each tf-idf pass (the first one and query expansion's) may scan, at most, estimated from
   // the document frequencies: a longer query keeps its words of largest per-posting contribution
   // (InvertedFile::WithinPostingBudget: the rare words) and drops the most frequent ones, whose long
-  // lists are most of a search's time at 1M images. Off by default: measured at 1M images (README,
-  // "Through the storage path"), 4M postings made the search 2.4x faster but cost the Paris subset
-  // planted among the synthetic images a quarter of its mAP (0.473 -> 0.342), most of it through
-  // query expansion's pass. A collection of a few thousand images never reaches a budget of millions,
-  // so there it changes nothing. 0 = no limit. [0, 2000000000].
-  int max_scored_postings = 0;
+  // lists are most of a search's time at 1M images. 4M by default since session 21: with Hamming
+  // embedding (the default) the tf-idf pass only picks the hamming_shortlist candidates that the
+  // signatures re-score, and there the budget cost the Paris subset planted among 1M synthetic images
+  // 0.141 -> 0.134 mAP (2026-11-28), for a search 1.3-1.5x faster (README, "Posting budget"); without
+  // Hamming embedding it had cost a quarter of that mAP (0.473 -> 0.342, session 18), then the reason
+  // it was off. A query scans at most (images) x (its distinct words) postings, so below 666 images
+  // (6000 words: an expanded query of 3000 features) it provably changes nothing, and a collection of
+  // a few thousand images does not reach millions. 0 = no limit. [0, 2000000000].
+  int max_scored_postings = 4'000'000;
   // Average query expansion (Chum et al. 2007): the query is re-issued as the average of itself and its
   // best `qe_images` verified results (its words of largest weight, twice as many as the query's,
   // which makes that pass cheaper and measured no worse on Paris and groups_dev). On by default (every command and the server): it raises mAP at
@@ -303,6 +306,11 @@ struct BatchImage {
   // pre-quantised features, e.g. the storage benchmark): quantisation is skipped and the
   // descriptors may be empty. Each word must be < the vocabulary size.
   std::span<const uint32_t> words;
+  // With `words`: their Hamming-embedding signatures, one per keypoint, as vocab::Vocabulary::Signatures
+  // gives them (e.g. computed once per real descriptor by the storage benchmark). Only for a vocabulary
+  // with Hamming-embedding parameters. Empty: computed from the descriptors when they are given, else
+  // the image is stored without signatures (it then has no Hamming score).
+  std::span<const uint64_t> signatures;
 };
 
 struct QueryResult {

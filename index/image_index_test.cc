@@ -801,11 +801,11 @@ TEST_F(Fixture, AddBatchEqualsSingleAddsAndFailsPerImageOrAsAWhole) {
     auto index = CreateIndex();
     ASSERT_TRUE(index->Add("b0", images[0], {}));
     std::vector<BatchImage> batch;
-    for (int i = 1; i < 12; ++i) batch.push_back({"b" + std::to_string(i), &images[i], Info("/p" + std::to_string(i)), {}});
-    batch.push_back({"b0", &images[1], {}, {}});          // already indexed
-    batch.push_back({"b5", &images[2], {}, {}});          // repeated in the batch
-    batch.push_back({"", &images[3], {}, {}});            // bad id
-    batch.push_back({"kind", &wrong_kind, {}, {}});       // wrong descriptor kind
+    for (int i = 1; i < 12; ++i) batch.push_back({"b" + std::to_string(i), &images[i], Info("/p" + std::to_string(i)), {}, {}});
+    batch.push_back({"b0", &images[1], {}, {}, {}});          // already indexed
+    batch.push_back({"b5", &images[2], {}, {}, {}});          // repeated in the batch
+    batch.push_back({"", &images[3], {}, {}, {}});            // bad id
+    batch.push_back({"kind", &wrong_kind, {}, {}, {}});       // wrong descriptor kind
     const auto results = index->AddBatch(batch);
     ASSERT_EQ(results.size(), batch.size());
     for (size_t i = 0; i < 11; ++i) {
@@ -827,7 +827,7 @@ TEST_F(Fixture, AddBatchEqualsSingleAddsAndFailsPerImageOrAsAWhole) {
     ASSERT_TRUE(index) << index.error().ToString();
     std::vector<BatchImage> batch;
     batch.reserve(4);
-    for (int i = 0; i < 4; ++i) batch.push_back({"c" + std::to_string(i), &images[i], {}, {}});
+    for (int i = 0; i < 4; ++i) batch.push_back({"c" + std::to_string(i), &images[i], {}, {}, {}});
     for (const auto& r : (*index)->AddBatch(batch)) {
       ASSERT_FALSE(r);
       EXPECT_NE(r.error().message.find("injected insert failure"), std::string::npos) << r.error().message;
@@ -875,11 +875,11 @@ TEST_F(Fixture, AddBatchWithAssignedWordsEqualsQuantising) {
   ASSERT_TRUE(assigned);
   std::vector<BatchImage> a, b;
   for (size_t i = 0; i < words.size(); ++i) {
-    a.push_back({"w" + std::to_string(i), &with_descriptors[i], {}, {}});
-    b.push_back({"w" + std::to_string(i), &without[i], {}, words[i]});
+    a.push_back({"w" + std::to_string(i), &with_descriptors[i], {}, {}, {}});
+    b.push_back({"w" + std::to_string(i), &without[i], {}, words[i], {}});
   }
   const std::vector<uint32_t> outside(50, kWords);
-  b.push_back({"outside", &without[0], {}, outside});
+  b.push_back({"outside", &without[0], {}, outside, {}});
   for (const auto& r : quantised->AddBatch(a)) ASSERT_TRUE(r) << r.error().ToString();
   const auto results = (*assigned)->AddBatch(b);
   for (size_t i = 0; i < words.size(); ++i) ASSERT_TRUE(results[i]) << results[i].error().ToString();
@@ -921,7 +921,7 @@ TEST_F(Fixture, WriteSequenceCountsCommittedWritesAndSurvivesARestart) {
     ASSERT_TRUE(index->Remove("b"));
     EXPECT_FALSE(index->Remove("b"));
     EXPECT_EQ(index->write_sequence(), 5u);
-    std::vector<BatchImage> batch = {{"c", &images[3], {}, {}}, {"d", &images[4], {}, {}}, {"a", &images[5], {}, {}}};
+    std::vector<BatchImage> batch = {{"c", &images[3], {}, {}, {}}, {"d", &images[4], {}, {}, {}}, {"a", &images[5], {}, {}, {}}};
     const auto results = index->AddBatch(batch);
     EXPECT_FALSE(results[2]);  // "a" is taken
     EXPECT_EQ(index->write_sequence(), 7u);

@@ -17,7 +17,7 @@
 //   index_benchmark storage --images N --out DIR [--features F] [--vocab V.oxvoc] [--words K]
 //                           [--threads T] [--batch B] [--queries Q] [--data DIR] [--cache DIR] [--reuse 1]
 //                           [--max-df D] [--stop-list-min-images M] [--photos P] [--export-features DIR2]
-//                           [--max-scored-postings B1,B2,...] [--paris-map 1]
+//                           [--max-scored-postings B1,B2,...] [--paris-map 1] [--hamming 0|1]
 //     Creates DIR as a normal index folder through ImageIndex (Create, AddBatch in batches of B = 1000,
 //     the SQLite catalogue: the code the server uses), servable as it is by `oxbow serve --index DIR`.
 //     Its N synthetic images (1024 x 768) have F = 1000 features each, drawn with replacement from the
@@ -27,7 +27,10 @@
 //     synthetic image, scale and orientation kept). So words follow the real photos' word
 //     distribution, with real joint word/geometry statistics; unlike a real photo, a synthetic image's
 //     features are independent draws (no bursts, no objects). Vocabulary: --vocab, else K = 100000
-//     RootSIFT words trained on those photos and cached in --cache (default DIR.cache).
+//     RootSIFT words trained on those photos and cached in --cache (default DIR.cache), with
+//     Hamming-embedding parameters as `oxbow vocab train` gives by default (--hamming 0: without).
+//     With such a vocabulary every synthetic feature also carries its real feature's signature
+//     (computed once per real feature, as the words are), so searches run as on a default index.
 //     Prints: ingest images/s (time inside AddBatch; words already assigned: no extraction, no
 //     quantisation; making the synthetic images is timed apart), disk bytes per
 //     feature, ImageIndex::Open time, resident bytes per feature after Open (RSS growth), tf-idf only and
@@ -36,7 +39,7 @@
 //     not), add p50/p99 of single images while another thread searches, remove p50/p99. --reuse 1
 //     skips the ingest and measures the rest on the folder an earlier run left in DIR (give the same
 //     --images and --features). --max-df and --stop-list-min-images replace IndexOptions' stop list.
-//     --max-scored-postings B1,B2,... (default 0,4000000: none, the default, and 4M) measures the full default
+//     --max-scored-postings B1,B2,... (default 0,4000000: none, and 4M, the default) measures the full default
 //     search with each posting budget (QueryOptions::max_scored_postings), every query with each in turn.
 //     --paris-map 1 (the Paris subset as the real photos) adds its 250 photos to the collection, runs its
 //     12 cropped queries (restricted protocol, top 1000) with each budget and prints mAP among the N
@@ -623,9 +626,9 @@ std::vector<sift::FeatureSet> ExtractCached(const std::vector<std::string>& path
 std::optional<vocab::Vocabulary> ReadOrTrainVocabulary(const std::map<std::string, std::string>& flags,
                                                        const std::vector<sift::FeatureSet>& features, size_t words,
                                                        const sift::SiftOptions& sift_options, int max_side,
-                                                       const std::filesystem::path& cache) {
+                                                       const std::filesystem::path& cache, bool hamming = false) {
   namespace fs = std::filesystem;
-  const std::string cache_tag = "_" + std::to_string(max_side);
+  const std::string cache_tag = "_" + std::to_string(max_side) + (hamming ? "_he" : "");
   const fs::path vocab_file = flags.count("--vocab") ? fs::path(flags.at("--vocab"))
                               : cache.empty()        ? fs::path()
                                                      : cache / ("vocab_" + std::to_string(words) + cache_tag + ".oxvoc");
@@ -651,8 +654,17 @@ std::optional<vocab::Vocabulary> ReadOrTrainVocabulary(const std::map<std::strin
     std::printf("training failed: %s\n", vocabulary.error().ToString().c_str());
     return std::nullopt;
   }
-  std::printf("vocabulary: %zu words from %zu descriptors in %.0f s\n", vocabulary->size(), sampler.size(),
-              Ms(t0, Clock::now()) / 1000);
+  if (hamming) {  // as `oxbow vocab train` does by default: the same sample, seed 1
+    vocab::QuantizerOptions quantizer;
+    quantizer.num_threads = 0;
+    vocabulary = vocabulary->WithHamming(sampler.descriptors(), 1, quantizer);
+    if (!vocabulary) {
+      std::printf("Hamming embedding failed: %s\n", vocabulary.error().ToString().c_str());
+      return std::nullopt;
+    }
+  }
+  std::printf("vocabulary: %zu words%s from %zu descriptors in %.0f s\n", vocabulary->size(),
+              hamming ? " with Hamming-embedding parameters" : "", sampler.size(), Ms(t0, Clock::now()) / 1000);
   if (!vocab_file.empty() && !vocabulary->Write(vocab_file.string())) std::printf("cannot write %s\n", vocab_file.c_str());
   return std::move(*vocabulary);
 }
@@ -903,35 +915,46 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
   sift_options.num_threads = 1;
   const fs::path cache = flags.count("--cache") ? fs::path(flags.at("--cache")) : fs::path(out.string() + ".cache");
   const std::vector<sift::FeatureSet> real = ExtractCached(photos, sift_options, kMaxSide, cache);
-  auto vocabulary = ReadOrTrainVocabulary(flags, real, words, sift_options, kMaxSide, cache);
+  // The product's default vocabulary (`oxbow vocab train`) carries Hamming-embedding parameters, and
+  // searches then use them; --hamming 0 trains one without (searches then run the tf-idf QE pass).
+  const bool hamming = Flag(flags, "--hamming", 1) != 0;
+  auto vocabulary = ReadOrTrainVocabulary(flags, real, words, sift_options, kMaxSide, cache, hamming);
   if (!vocabulary) return 1;
 
   IndexOptions options;
   options.num_threads = threads;
   // The pool: every real feature's word and keypoint (position relative to its image), and with
   // --export-features where its descriptor is (photo, feature).
+  // With a Hamming-embedding vocabulary, also each real feature's signature (what Add computes from its
+  // descriptor), so that synthetic images carry signatures as added photos do.
   struct PoolFeature {
     uint32_t word;
     float rx, ry, scale, orientation;
     uint32_t photo, feature;
+    uint64_t signature;
   };
   std::vector<PoolFeature> pool;
   vocab::QuantizerOptions quantizer = options.quantizer;  // the words Add would assign
   quantizer.num_threads = threads;
+  const bool signatures = vocabulary->has_hamming();
   for (size_t p = 0; p < real.size(); ++p) {
     const sift::FeatureSet& f = real[p];
     std::vector<uint32_t> w(f.size());
     vocabulary->Quantize(f.descriptors, w, quantizer);
+    std::vector<uint64_t> sig(signatures ? f.size() : 0);
+    if (signatures) vocabulary->Signatures(f.descriptors, w, sig);
     for (size_t i = 0; i < f.size(); ++i) {
       const sift::Keypoint& k = f.keypoints[i];
       pool.push_back({w[i], k.x / static_cast<float>(f.image_width), k.y / static_cast<float>(f.image_height), k.scale,
-                      k.orientation, static_cast<uint32_t>(p), static_cast<uint32_t>(i)});
+                      k.orientation, static_cast<uint32_t>(p), static_cast<uint32_t>(i), signatures ? sig[i] : 0});
     }
   }
-  std::printf("pool: %zu real features, vocabulary %zu words\n", pool.size(), vocabulary->size());
+  std::printf("pool: %zu real features, vocabulary %zu words%s\n", pool.size(), vocabulary->size(),
+              signatures ? ", Hamming-embedding signatures" : ", no Hamming embedding");
   struct Synthetic {
     sift::FeatureSet features;
     std::vector<uint32_t> words;
+    std::vector<uint64_t> signatures;
   };
   const auto make = [&](uint64_t number) {
     Synthetic s;
@@ -946,6 +969,7 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
       s.features.keypoints.push_back(sift::Keypoint{.x = p.rx * 1023.0f, .y = p.ry * 767.0f, .scale = p.scale,
                                                     .orientation = p.orientation});
       s.words.push_back(p.word);
+      if (signatures) s.signatures.push_back(p.signature);
       if (!export_dir.empty()) {
         const float* d = real[p.photo].descriptors.data() + static_cast<size_t>(p.feature) * sift::kDescriptorDim;
         s.features.descriptors.insert(s.features.descriptors.end(), d, d + sift::kDescriptorDim);
@@ -978,7 +1002,7 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
       std::vector<BatchImage> items;
       items.reserve(n);
       for (uint64_t i = 0; i < n; ++i) {
-        items.push_back({"s" + std::to_string(begin + i), &images[i].features, {}, images[i].words});
+        items.push_back({"s" + std::to_string(begin + i), &images[i].features, {}, images[i].words, images[i].signatures});
       }
       const auto a0 = Clock::now();
       const std::vector<Result<ImageRecord>> added = (*idx)->AddBatch(items);
@@ -1109,7 +1133,7 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
     std::vector<BatchImage> items;
     for (size_t i = 0; i < photos.size(); ++i) {
       names.push_back(fs::path(photos[i]).filename().string());
-      items.push_back({fs::path(photos[i]).stem().string(), &real[i], {}, {}});
+      items.push_back({fs::path(photos[i]).stem().string(), &real[i], {}, {}, {}});
     }
     std::sort(names.begin(), names.end());
     for (const auto& r : idx->AddBatch(items)) {
@@ -1163,7 +1187,7 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
   constexpr int kWrites = 50;
   for (int i = 0; i < kWrites; ++i) {
     const Synthetic s = make(num_images + static_cast<uint64_t>(i));
-    const std::vector<BatchImage> one = {{"added" + std::to_string(i), &s.features, {}, s.words}};
+    const std::vector<BatchImage> one = {{"added" + std::to_string(i), &s.features, {}, s.words, s.signatures}};
     const auto a0 = Clock::now();
     if (!idx->AddBatch(one)[0]) std::printf("add failed\n");
     add_ms.push_back(Ms(a0, Clock::now()));

@@ -1,11 +1,11 @@
 #include "index/inverted_file.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstring>
 #include <type_traits>
 #include <limits>
-#include <queue>
 
 #include "sift/base/error.h"
 #include "sift/base/parallel.h"
@@ -22,14 +22,6 @@ inline size_t VarintSize(uint64_t v) {
     ++n;
   }
   return n;
-}
-
-inline void PutVarint(std::vector<uint8_t>* out, uint64_t v) {
-  while (v >= 128) {
-    out->push_back(static_cast<uint8_t>(v | 128));
-    v >>= 7;
-  }
-  out->push_back(static_cast<uint8_t>(v));
 }
 
 inline uint8_t* PutVarint(uint8_t* p, uint64_t v) {
@@ -54,19 +46,52 @@ inline uint64_t GetVarint(const uint8_t*& p) {
   }
 }
 
-inline size_t PostingSize(uint32_t gap, uint32_t tf) {
-  return VarintSize((uint64_t{gap} << 1) | (tf > 1 ? 1 : 0)) + (tf > 1 ? VarintSize(tf - 2) : 0);
+// A posting (postings format 2): a 16-bit little-endian unit (g << 1) | (tf > 1), where g is the gap
+// when it is below kGapEscape and kGapEscape otherwise, then followed by the gap in 4 little-endian
+// bytes; then, when tf > 1, varint(tf - 2). Gaps of images in a list are below 2^15 unless the word is
+// in fewer than about 1 of 32768 images, so the scan reads one fixed-size unit per posting, whose
+// length does not depend on its value: no data-dependent branch per posting, unlike the varint gaps of
+// format 1 (1-3 bytes each), which cost 2-3x the scan time (README, "Postings format").
+constexpr uint32_t kGapEscape = 0x7FFF;
+
+inline uint32_t Load16(const uint8_t* p) { return uint32_t{p[0]} | (uint32_t{p[1]} << 8); }
+inline uint32_t Load32(const uint8_t* p) {
+  return uint32_t{p[0]} | (uint32_t{p[1]} << 8) | (uint32_t{p[2]} << 16) | (uint32_t{p[3]} << 24);
 }
 
-inline void PutPosting(std::vector<uint8_t>* out, uint32_t gap, uint32_t tf) {
-  PutVarint(out, (uint64_t{gap} << 1) | (tf > 1 ? 1 : 0));
-  if (tf > 1) PutVarint(out, tf - 2);
+inline size_t PostingSize(uint32_t gap, uint32_t tf) {
+  return 2 + (gap >= kGapEscape ? 4 : 0) + (tf > 1 ? VarintSize(tf - 2) : 0);
 }
 
 inline uint8_t* PutPosting(uint8_t* p, uint32_t gap, uint32_t tf) {
-  p = PutVarint(p, (uint64_t{gap} << 1) | (tf > 1 ? 1 : 0));
+  const uint32_t g = std::min(gap, kGapEscape);
+  const uint32_t unit = (g << 1) | (tf > 1 ? 1 : 0);
+  *p++ = static_cast<uint8_t>(unit);
+  *p++ = static_cast<uint8_t>(unit >> 8);
+  if (g == kGapEscape) {
+    for (int k = 0; k < 4; ++k) *p++ = static_cast<uint8_t>(gap >> (8 * k));
+  }
   if (tf > 1) p = PutVarint(p, tf - 2);
   return p;
+}
+
+inline void PutPosting(std::vector<uint8_t>* out, uint32_t gap, uint32_t tf) {
+  const size_t at = out->size();
+  out->resize(at + PostingSize(gap, tf));
+  PutPosting(out->data() + at, gap, tf);
+}
+
+// Decodes the posting at p (trusted bytes: a checksummed file or this process's own) and moves past it.
+inline void GetPosting(const uint8_t*& p, uint32_t* gap, uint32_t* tf) {
+  const uint32_t unit = Load16(p);
+  p += 2;
+  *gap = unit >> 1;
+  if (*gap == kGapEscape) [[unlikely]] {
+    *gap = Load32(p);
+    p += 4;
+  }
+  *tf = 1;
+  if ((unit & 1) != 0) [[unlikely]] *tf = static_cast<uint32_t>(GetVarint(p)) + 2;
 }
 
 // t(tf)^2 without rounding through sqrt: tf for sqrt-tf, tf^2 otherwise.
@@ -103,10 +128,9 @@ struct InvertedFile::Segment {
     auto [p, end] = List(word);
     uint32_t image = first_image;
     while (p < end) {
-      const uint64_t v = GetVarint(p);
-      image += static_cast<uint32_t>(v >> 1);
-      uint32_t tf = 1;
-      if (v & 1) tf = static_cast<uint32_t>(GetVarint(p)) + 2;
+      uint32_t gap = 0, tf = 1;
+      GetPosting(p, &gap, &tf);
+      image += gap;
       fn(image, tf);
     }
   }
@@ -208,14 +232,42 @@ double InvertedFile::Idf(uint32_t word) const {
   return std::log(static_cast<double>(stats_num_live_) / static_cast<double>(df));
 }
 
+std::shared_ptr<const std::vector<double>> InvertedFile::IdfSquaredTable() const {
+  IdfTable& table = *idf_table_;
+  std::call_once(table.once, [&] {
+    auto squared = std::make_shared<std::vector<double>>(vocabulary_size_, 0.0);
+    for (size_t w = 0; w < vocabulary_size_; ++w) {
+      const double idf = Idf(static_cast<uint32_t>(w));
+      if (std::isfinite(idf)) (*squared)[w] = idf * idf;
+    }
+    table.squared = std::move(squared);
+  });
+  return table.squared;
+}
+
 bool InvertedFile::IsLive(uint32_t image) const { return image < images_.size() && images_[image].live != 0; }
 
-double InvertedFile::Norm(uint32_t image) const {
-  if (!IsLive(image)) return 0;
-  const ImageState& s = images_[image];
+double InvertedFile::Norm(uint32_t image) const { return image < norms_.size() ? norms_[image] : 0.0; }
+
+double InvertedFile::ComputeNorm(const ImageState& s) const {
+  if (s.live == 0) return 0;
   const double l = std::log(static_cast<double>(stats_num_live_));
   const double sq = l * l * s.a - 2 * l * s.b + s.c;
   return sq > 0 ? std::sqrt(sq) : 0.0;
+}
+
+void InvertedFile::SetNorms(std::span<const uint32_t> images) {
+  CowArray<double>::Editor editor(&norms_);
+  if (norms_.size() < images_.size()) editor.Resize(images_.size(), 0.0);
+  for (const uint32_t n : images) editor.Mutable(n) = ComputeNorm(images_[n]);
+}
+
+void InvertedFile::RecomputeNorms() {
+  CowArray<double> fresh;
+  CowArray<double>::Editor editor(&fresh);
+  editor.Resize(images_.size(), 0.0);
+  for (size_t n = 0; n < images_.size(); ++n) editor.Mutable(n) = ComputeNorm(images_[n]);
+  norms_ = std::move(fresh);
 }
 
 InvertedFile InvertedFile::Build(size_t vocabulary_size, const TfIdfOptions& options, uint32_t num_numbers,
@@ -309,6 +361,7 @@ InvertedFile InvertedFile::Build(size_t vocabulary_size, const TfIdfOptions& opt
   out.num_live_ = live;
   out.num_live_features_ = features;
   out.num_postings_ = postings;
+  out.RecomputeNorms();
   return out;
 }
 
@@ -372,6 +425,7 @@ void InvertedFile::RefreshStatistics(int num_threads) {
 }
 
 void InvertedFile::RecomputeSums(int num_threads) {
+  idf_table_ = std::make_shared<IdfTable>();  // called when the statistics changed: a new idf^2 table
   const size_t num_images = images_.size();
   std::vector<uint8_t> live(num_images);
   for (size_t i = 0; i < num_images; ++i) live[i] = images_[i].live != 0 ? 1 : 0;
@@ -398,9 +452,9 @@ void InvertedFile::RecomputeSums(int num_threads) {
       c.image = std::numeric_limits<uint32_t>::max();
       return;
     }
-    const uint64_t v = GetVarint(c.p);
-    c.image += static_cast<uint32_t>(v >> 1);
-    c.tf = (v & 1) != 0 ? static_cast<uint32_t>(GetVarint(c.p)) + 2 : 1;
+    uint32_t gap = 0;
+    GetPosting(c.p, &gap, &c.tf);
+    c.image += gap;
   };
   std::vector<std::vector<Sum>> partial(kGroups);
   ParallelFor(kGroups, num_threads, 1, [&](size_t g0, size_t g1, int) {
@@ -448,6 +502,7 @@ void InvertedFile::RecomputeSums(int num_threads) {
       s.c += sums[i].c;
     }
   }
+  RecomputeNorms();
 }
 
 InvertedFile InvertedFile::WithAdded(std::span<const uint32_t> images, std::span<const BagOfWords* const> bags) const {
@@ -486,6 +541,7 @@ InvertedFile InvertedFile::WithAdded(std::span<const uint32_t> images, std::span
     next.num_live_features_ += s.features;
     total += bags[i]->words.size();
   }
+  next.SetNorms(images);
   next.changes_since_refresh_ += images.size();
   auto segment = std::make_shared<Segment>();
   segment->first_image = images.front();
@@ -587,6 +643,7 @@ InvertedFile InvertedFile::WithRemoved(std::span<const uint32_t> images, std::sp
       }
     }
   }
+  next.SetNorms(images);
   next.changes_since_refresh_ += images.size();
   if (next.num_dead_postings_ * 2 > next.num_postings_) next.MergeTail(true);
   next.RefreshIfDue();
@@ -795,76 +852,104 @@ std::vector<ScoredImage> InvertedFile::Score(std::span<const QueryTerm> query, s
         for (const auto& segment : segments_) {
           auto [p, end] = segment->List(query[q].word);
           uint32_t image = segment->first_image;
-          // Hot loop: one varint (usually one byte) per posting, one multiply-add.
+          // Hot loop: one 16-bit unit per posting, one multiply-add.
           while (p < end) {
-            uint64_t v = *p++;
-            if (v >= 128) {
-              v &= 127;
-              int shift = 7;
-              while (true) {
-                const uint64_t b = *p++;
-                v |= (b & 127) << shift;
-                if (b < 128) break;
-                shift += 7;
-              }
-            }
-            image += static_cast<uint32_t>(v >> 1);
-            float t = 1.0f;
-            if (v & 1) t = TermWeight(static_cast<uint32_t>(GetVarint(p)) + 2);
-            a[image] += weight * t;
+            uint32_t gap = 0, tf = 1;
+            GetPosting(p, &gap, &tf);
+            image += gap;
+            a[image] += tf == 1 ? weight : weight * TermWeight(tf);
           }
         }
       }
     }
   });
 
-  // Normalise, select the best max_results (min-heap on (score, -image)), and re-zero the accumulator.
+  // Normalise, select the best max_results, and re-zero the accumulators: on num_threads threads over
+  // ranges of image numbers, each keeping its own best (a min-heap on (score, -image)); the ranges' lists
+  // are then merged. The order is total (score, then image number), so the result does not depend on
+  // the split. An image's cosine is only computed when its dot product can beat the range's worst kept
+  // one: v^2 < worst^2 |v(d)|^2 (1 - 1e-6)^2 means v / |v(d)| < worst (1 - 1e-6), below worst even after
+  // rounding to float (relative error 2^-24), so most of a million images cost no square root.
   auto better = [](const ScoredImage& x, const ScoredImage& y) {
     return x.score != y.score ? x.score > y.score : x.image < y.image;
   };
-  std::priority_queue<ScoredImage, std::vector<ScoredImage>, decltype(better)> heap(better);  // top = worst kept
-  const double l = std::log(static_cast<double>(stats_num_live_));
-  uint64_t touched = 0;
   const size_t end = images_.size();
-  float* acc = scratch->accumulators[0].data();
-  for (size_t chunk = 0; chunk < end; chunk += CowArray<ImageState>::kChunk) {
-    const size_t chunk_end = std::min(end, chunk + CowArray<ImageState>::kChunk);
-    for (size_t i = chunk; i < chunk_end; ++i) {
-      float v = acc[i];
-      acc[i] = 0;
-      for (size_t g = 1; g < num_groups; ++g) {
-        v += scratch->accumulators[g][i];
-        scratch->accumulators[g][i] = 0;
+  constexpr size_t kChunk = CowArray<ImageState>::kChunk;
+  static_assert(CowArray<double>::kChunk == kChunk);
+  const size_t num_chunks = (end + kChunk - 1) / kChunk;
+  const size_t num_parts = std::min<size_t>(num_chunks, 16);
+  std::vector<std::vector<ScoredImage>> kept(num_parts);
+  std::vector<uint64_t> touched_in(num_parts, 0);
+  constexpr double kMargin = (1 - 1e-6) * (1 - 1e-6);
+  ParallelFor(num_parts, num_threads, 1, [&](size_t p0, size_t p1, int) {
+    for (size_t part = p0; part < p1; ++part) {
+      std::vector<ScoredImage>& heap = kept[part];  // a heap under `better`: front = worst kept
+      heap.clear();
+      uint64_t touched = 0;
+      double bar = 0;  // worst kept score^2 x kMargin, once the heap is full and its worst is positive
+      bool full = false;
+      std::array<float, kChunk> sum;  // this chunk's dot products: the groups added in group order
+      for (size_t chunk = num_chunks * part / num_parts; chunk < num_chunks * (part + 1) / num_parts; ++chunk) {
+        const size_t chunk_begin = chunk * kChunk, chunk_end = std::min(end, chunk_begin + kChunk);
+        const size_t len = chunk_end - chunk_begin;
+        float* first = scratch->accumulators[0].data() + chunk_begin;
+        std::copy(first, first + len, sum.begin());
+        std::fill(first, first + len, 0.0f);
+        for (size_t g = 1; g < num_groups; ++g) {
+          float* a = scratch->accumulators[g].data() + chunk_begin;
+          for (size_t k = 0; k < len; ++k) sum[k] += a[k];
+          std::fill(a, a + len, 0.0f);
+        }
+        const double* norms = &norms_[chunk_begin];  // a chunk of norms_ is contiguous
+        for (size_t i = chunk_begin; i < chunk_end; ++i) {
+          const float v = sum[i - chunk_begin];
+          if (v == 0) continue;
+          const double norm = norms[i - chunk_begin];  // 0: not live, or a zero vector
+          if (!(norm > 0)) continue;
+          if (allowed != nullptr && (i >= allowed->size() || (*allowed)[i] == 0)) continue;
+          ++touched;
+          const double dv = static_cast<double>(v);
+          if (full && (dv <= 0 || dv * dv < bar * (norm * norm))) continue;  // cannot enter (see above)
+          const ScoredImage cand{static_cast<uint32_t>(i), static_cast<float>(dv / norm)};
+          if (heap.size() < max_results) {
+            heap.push_back(cand);
+            std::push_heap(heap.begin(), heap.end(), better);
+          } else if (better(cand, heap.front())) {
+            std::pop_heap(heap.begin(), heap.end(), better);
+            heap.back() = cand;
+            std::push_heap(heap.begin(), heap.end(), better);
+          } else {
+            continue;
+          }
+          if (heap.size() == max_results && heap.front().score > 0) {
+            full = true;
+            bar = static_cast<double>(heap.front().score) * static_cast<double>(heap.front().score) * kMargin;
+          }
+        }
       }
-      if (v == 0) continue;
-      const ImageState& s = images_[i];
-      if (s.live == 0) continue;
-      if (allowed != nullptr && (i >= allowed->size() || (*allowed)[i] == 0)) continue;
-      const double sq = l * l * s.a - 2 * l * s.b + s.c;
-      if (!(sq > 0)) continue;
-      ++touched;
-      const ScoredImage cand{static_cast<uint32_t>(i), static_cast<float>(static_cast<double>(v) / std::sqrt(sq))};
-      if (heap.size() < max_results) {
-        heap.push(cand);
-      } else if (better(cand, heap.top())) {
-        heap.pop();
-        heap.push(cand);
-      }
+      touched_in[part] = touched;
     }
+  });
+  uint64_t touched = 0;
+  std::vector<ScoredImage> out;
+  for (size_t part = 0; part < num_parts; ++part) {
+    touched += touched_in[part];
+    out.insert(out.end(), kept[part].begin(), kept[part].end());
   }
+  const size_t n = std::min(out.size(), max_results);
+  std::partial_sort(out.begin(), out.begin() + static_cast<std::ptrdiff_t>(n), out.end(), better);
+  out.resize(n);
   if (candidates) *candidates = touched;
-  std::vector<ScoredImage> out(heap.size());
-  for (size_t i = out.size(); i-- > 0;) {
-    out[i] = heap.top();
-    heap.pop();
-  }
   return out;
 }
 
 namespace {
 
 constexpr char kFileMagic[4] = {'O', 'X', 'I', 'F'};
-constexpr uint32_t kFileVersion = 1;
+// 1: postings coded as varints (gap << 1 | tf > 1); read and re-coded at load (RecodeFormat1).
+// 2: postings in 16-bit units (PutPosting).
+constexpr uint32_t kFileVersion = 2;
+constexpr uint32_t kOldestReadableVersion = 1;
 constexpr uint32_t kByteOrderMark = 0x01020304;
 
 template <typename T>
@@ -913,6 +998,71 @@ struct FileReader {
 
 }  // namespace
 
+// A segment read from a version-1 file, its postings re-coded from varints into 16-bit units (same
+// words, layout and postings). Bounds-checked, and the posting count must match the segment's; lists in
+// parallel (two passes: sizes, then contents), so that loading a large version-1 file stays fast.
+Result<std::shared_ptr<InvertedFile::Segment>> InvertedFile::RecodeFormat1(const Segment& old) {
+  const size_t lists = old.offsets.size() - 1;
+  // Decodes list k of `old`, calling fn(gap, tf) per posting; false on a malformed list.
+  const auto decode = [&old](size_t k, auto&& fn) {
+    const uint8_t* p = old.bytes.data() + old.offsets[k];
+    const uint8_t* end = old.bytes.data() + old.offsets[k + 1];
+    const auto varint = [&](uint64_t* v) {
+      *v = 0;
+      for (int shift = 0; shift < 64 && p < end; shift += 7) {
+        const uint8_t b = *p++;
+        *v |= uint64_t{b & 127u} << shift;
+        if (b < 128) return true;
+      }
+      return false;
+    };
+    while (p < end) {
+      uint64_t v = 0, extra = 0;
+      if (!varint(&v) || (v >> 1) > std::numeric_limits<uint32_t>::max()) return false;
+      if ((v & 1) != 0 && (!varint(&extra) || extra > std::numeric_limits<uint32_t>::max() - 2)) return false;
+      fn(static_cast<uint32_t>(v >> 1), (v & 1) != 0 ? static_cast<uint32_t>(extra) + 2 : 1u);
+    }
+    return true;
+  };
+  std::vector<uint64_t> offsets(lists + 1, 0);
+  std::vector<uint64_t> counts(lists, 0);
+  std::atomic<bool> ok{true};
+  ParallelFor(lists, 0, 256, [&](size_t begin, size_t end, int) {
+    for (size_t k = begin; k < end; ++k) {
+      uint64_t size = 0, n = 0;
+      if (!decode(k, [&](uint32_t gap, uint32_t tf) {
+            size += PostingSize(gap, tf);
+            ++n;
+          })) {
+        ok = false;
+      }
+      offsets[k + 1] = size;
+      counts[k] = n;
+    }
+  });
+  uint64_t postings = 0;
+  for (size_t k = 0; k < lists; ++k) {
+    offsets[k + 1] += offsets[k];
+    postings += counts[k];
+  }
+  if (!ok || postings != old.num_postings) return Fail(ErrorCode::kCorruptData, "malformed version-1 postings");
+  auto out = std::make_shared<Segment>();
+  out->first_image = old.first_image;
+  out->end_image = old.end_image;
+  out->dense = old.dense;
+  out->words = old.words;
+  out->num_postings = old.num_postings;
+  out->bytes.resize(offsets.back());
+  ParallelFor(lists, 0, 256, [&](size_t begin, size_t end, int) {
+    for (size_t k = begin; k < end; ++k) {
+      uint8_t* q = out->bytes.data() + offsets[k];
+      decode(k, [&](uint32_t gap, uint32_t tf) { q = PutPosting(q, gap, tf); });
+    }
+  });
+  out->offsets = std::move(offsets);
+  return out;
+}
+
 void InvertedFile::Serialize(const std::function<void(std::span<const uint8_t>)>& write) const {
   write(AsBytes(kFileMagic));
   write(AsBytes(kFileVersion));
@@ -950,7 +1100,7 @@ void InvertedFile::Serialize(const std::function<void(std::span<const uint8_t>)>
 }
 
 Result<InvertedFile> InvertedFile::Deserialize(std::span<const uint8_t> bytes, size_t vocabulary_size,
-                                               const TfIdfOptions& options) {
+                                               const TfIdfOptions& options, bool* recoded) {
   const auto corrupt = [](const std::string& why) {
     return Fail(ErrorCode::kCorruptData, "inconsistent inverted file: " + why);
   };
@@ -959,7 +1109,7 @@ Result<InvertedFile> InvertedFile::Deserialize(std::span<const uint8_t> bytes, s
   in.Copy(magic, sizeof(magic));
   if (!in.ok || !std::equal(magic, magic + 4, kFileMagic)) return corrupt("bad magic");
   const auto version = in.Get<uint32_t>();
-  if (version != kFileVersion || in.Get<uint32_t>() != kByteOrderMark) {
+  if (version < kOldestReadableVersion || version > kFileVersion || in.Get<uint32_t>() != kByteOrderMark) {
     return Fail(ErrorCode::kIncompatible, "inverted file format version " + std::to_string(version) +
                                               " or byte order not readable by this build");
   }
@@ -1023,10 +1173,19 @@ Result<InvertedFile> InvertedFile::Deserialize(std::span<const uint8_t> bytes, s
     postings += segment->num_postings;
     out.segments_.push_back(std::move(segment));
   }
+  if (version == 1) {
+    for (size_t i = 0; i < out.segments_.size(); ++i) {
+      auto segment = RecodeFormat1(*out.segments_[i]);
+      if (!segment) return corrupt("segment " + std::to_string(i) + ": " + segment.error().message);
+      out.segments_[i] = std::move(*segment);
+    }
+  }
+  if (recoded != nullptr) *recoded = version != kFileVersion;
   if (in.at != bytes.size()) return corrupt("trailing bytes");
   if (postings != out.num_postings_ || out.num_live_ > num_numbers || out.stats_num_live_ > num_numbers) {
     return corrupt("counts disagree");
   }
+  out.RecomputeNorms();
   return out;
 }
 
@@ -1089,7 +1248,7 @@ InvertedFileStats InvertedFile::Stats() const {
   s.num_postings = num_postings_;
   s.num_features = num_live_features_;
   for (const auto& segment : segments_) s.postings_bytes += segment->MemoryBytes();
-  s.image_table_bytes = images_.MemoryBytes();
+  s.image_table_bytes = images_.MemoryBytes() + norms_.MemoryBytes();
   s.word_table_bytes = df_.MemoryBytes();
   s.num_segments = segments_.size();
   return s;

@@ -3,9 +3,10 @@
 //
 // Images are numbered by the caller with dense uint32 "image numbers" that only grow (a removed number
 // is never reused). For every visual word the postings (image number, tf) are kept sorted by image
-// number and coded as varints: value = (gap << 1) | (tf > 1), followed by varint(tf - 2) when tf > 1,
-// where gap = image - previous image in the list (the first relative to the segment's first image).
-// With ~1 posting per feature this is 1-3 bytes per feature.
+// number, each coded as a 16-bit unit (gap << 1) | (tf > 1), followed by varint(tf - 2) when tf > 1,
+// where gap = image - previous image in the list (the first relative to the segment's first image); a
+// gap of 2^15 - 1 or more is an escape unit followed by the gap in 4 bytes. With ~1 posting per feature
+// this is about 2 bytes per feature, and a scan reads a fixed-size unit per posting (inverted_file.cc).
 //
 // Postings live in immutable Segments (a log-structured merge): WithAdded() appends one segment for the
 // new images, then merges the newest segments while `merge_factor` of them share a size level
@@ -39,6 +40,7 @@
 #include <cstdint>
 #include <functional>
 #include <memory>
+#include <mutex>
 #include <optional>
 #include <span>
 #include <string>
@@ -235,6 +237,10 @@ class InvertedFile {
   uint64_t changes_since_refresh() const { return changes_since_refresh_; }
 
   double Idf(uint32_t word) const;                 // log(N / n_w) of the statistics; +inf when n_w == 0
+  // Idf(w)^2 of every word, 0 where it is not finite (n_w == 0), as one table: computed at the first
+  // call after a change of statistics (a refresh), then shared by every copy with these statistics,
+  // so that scoring thousands of candidates' words (Hamming embedding) takes no logarithm. Thread-safe.
+  std::shared_ptr<const std::vector<double>> IdfSquaredTable() const;
   uint32_t DocumentFrequency(uint32_t word) const; // live images containing the word now
   double Norm(uint32_t image) const;               // |v(d)| of a live image (0 if not live)
   bool IsLive(uint32_t image) const;
@@ -251,11 +257,16 @@ class InvertedFile {
   void Serialize(const std::function<void(std::span<const uint8_t>)>& write) const;
   // Reads what Serialize wrote. Checks the structure, not the content (the caller checksums the file):
   // kCorruptData for inconsistent bytes; kIncompatible when the vocabulary size or sqrt_tf differ
-  // (image sums depend on sqrt_tf).
+  // (image sums depend on sqrt_tf) or the format is newer than this build's. A file of an older format
+  // (version 1: varint postings) is re-coded while loading (on all cores; the postings are decoded
+  // with bounds checks); `recoded` (optional) then receives true, so that the caller can write the
+  // current format once.
   [[nodiscard]] static Result<InvertedFile> Deserialize(std::span<const uint8_t> bytes, size_t vocabulary_size,
-                                                        const TfIdfOptions& options);
+                                                        const TfIdfOptions& options, bool* recoded = nullptr);
 
  private:
+  // A segment of a version-1 file with its postings in this build's coding (Deserialize).
+  static Result<std::shared_ptr<Segment>> RecodeFormat1(const Segment& old);
   // Score()'s per-posting factor of a query term: its weight times idf, in float; 0 to skip the term.
   float ScoringWeight(const QueryTerm& term) const;
   // Postings Score() scans for one term: its document frequency in the statistics, 0 if skipped.
@@ -269,6 +280,11 @@ class InvertedFile {
   void RefreshIfDue();
   // Sums a, b, c of one image's bag with the current statistics (words unknown to them left out).
   void SetSums(const BagOfWords& bag, ImageState* s) const;
+  // |v(d)| of an image state with the current statistics: 0 when not live or not positive.
+  double ComputeNorm(const ImageState& s) const;
+  // norms_ of `images` (their sums or liveness changed), or of every image (the statistics changed).
+  void SetNorms(std::span<const uint32_t> images);
+  void RecomputeNorms();
 
   size_t vocabulary_size_ = 0;
   TfIdfOptions options_;
@@ -276,6 +292,9 @@ class InvertedFile {
   CowArray<uint32_t> df_;                                  // n_w per word, live images now
   CowArray<uint32_t> stats_df_;                            // n_w per word at the last refresh
   CowArray<ImageState> images_;                            // per image number
+  // Per image number, ComputeNorm(images_[n]): Score() reads 8 bytes per image instead of the state's 32
+  // (a million images per query). Derived: kept by every change of images_ or of the statistics.
+  CowArray<double> norms_;
   uint64_t stats_num_live_ = 0;                            // N at the last refresh
   uint64_t changes_since_refresh_ = 0;
   bool pinned_statistics_ = false;  // WithPinnedStatistics: refreshes keep the given statistics
@@ -284,6 +303,12 @@ class InvertedFile {
   uint64_t num_postings_ = 0;       // stored in segments, live or not
   uint64_t num_dead_postings_ = 0;  // of removed images, not yet merged away
   std::array<float, 256> term_weight_{};  // t(tf) for tf < 256
+  // IdfSquaredTable(), made at its first use; replaced by a new, empty one whenever the statistics change.
+  struct IdfTable {
+    std::once_flag once;
+    std::shared_ptr<const std::vector<double>> squared;
+  };
+  std::shared_ptr<IdfTable> idf_table_ = std::make_shared<IdfTable>();
 };
 
 }  // namespace oxbow::index

@@ -4,6 +4,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <fstream>
+#include <iterator>
 #include <map>
 #include <random>
 #include <set>
@@ -657,11 +659,12 @@ TEST(InvertedFileTest, PostingBudgetKeepsTheTermsOfLargestContributionThatFit) {
   }
 }
 
-TEST(InvertedFileTest, ScoresDecodeGapsOfEveryVarintLength) {
-  // Gaps between image numbers whose postings code in 1, 2, 3 and 4 bytes (value = gap << 1 | tf > 1:
-  // 4 bytes from gaps of 2^20), with tf 1 and > 1, lists ending at the very end of the segment's bytes.
-  const std::vector<uint32_t> numbers = {0,     1,     63,     64,     100,    8191,   8192,   8300,
-                                         70000, 1100000, 1100001, 2200000, 2200001, 2300000};
+TEST(InvertedFileTest, ScoresDecodeEveryGapCoding) {
+  // Gaps below, at and above the escape of the 16-bit unit (2^15 - 1: the gap then follows in 4
+  // bytes), small and large ones, with tf 1 and > 1, lists ending at the very end of the segment's bytes.
+  const std::vector<uint32_t> numbers = {0,     1,     63,     64,     100,     8191,    8192,    8300,
+                                         41066, 73833, 106601, 170000, 1100000, 1100001, 2200000, 2200001,
+                                         2300000};
   constexpr size_t kVocab = 4;
   std::map<uint32_t, BagOfWords> corpus;
   for (size_t i = 0; i < numbers.size(); ++i) {
@@ -690,6 +693,138 @@ TEST(InvertedFileTest, ScoresDecodeGapsOfEveryVarintLength) {
       }
     }
   }
+}
+
+// The best max_results over many chunks of images (selected in ranges on several threads and merged),
+// with ties among identical images: the same list as sorting every score, for any thread count and
+// any max_results, ties by image number.
+TEST(InvertedFileTest, TopKOverManyImagesEqualsSortingEveryScore) {
+  constexpr uint32_t kImages = 20000;
+  constexpr size_t kVocab = 300;
+  const auto bag_of = [](uint32_t image, BagOfWords* bag) {
+    if (image % 11 == 3) return false;  // holes in the numbering
+    // Images n and n + 5000 have the same bag (equal scores), so ties cross ranges.
+    const uint32_t seed = image % 5000;
+    std::vector<uint32_t> words;
+    for (uint32_t k = 0; k < 12; ++k) words.push_back((seed * 37 + k * k * 13 + k) % kVocab);
+    *bag = BagOfWords::FromWords(words);
+    return true;
+  };
+  const InvertedFile file = InvertedFile::Build(kVocab, {}, kImages, bag_of, 2);
+  ScoreScratch scratch;
+  for (uint32_t q = 0; q < 4; ++q) {
+    BagOfWords query;
+    bag_of(q * 131 + 1, &query);
+    const auto terms = file.QueryVector(query);
+    const auto all = file.Score(terms, kImages, &scratch, nullptr, nullptr, 1);
+    ASSERT_GT(all.size(), 1000u);
+    for (size_t i = 1; i < all.size(); ++i) {
+      ASSERT_TRUE(all[i - 1].score > all[i].score ||
+                  (all[i - 1].score == all[i].score && all[i - 1].image < all[i].image))
+          << i;
+    }
+    for (const size_t k : {size_t{1}, size_t{7}, size_t{100}, size_t{999}}) {
+      for (const int threads : {1, 2, 3}) {
+        uint64_t candidates = 0;
+        const auto top = file.Score(terms, k, &scratch, &candidates, nullptr, threads);
+        EXPECT_EQ(candidates, all.size());
+        ASSERT_EQ(top.size(), k);
+        for (size_t i = 0; i < k; ++i) {
+          EXPECT_EQ(top[i].image, all[i].image) << "k " << k << ", threads " << threads << ", rank " << i;
+          EXPECT_EQ(top[i].score, all[i].score);
+        }
+      }
+    }
+  }
+}
+
+// The bags of index/testdata/postings_format1.oxif, a postings file of format 1 (varint postings) that
+// the build before format 2 (1d18dfc) wrote: Build over these bags, then WithAdded of images 300 and
+// 420, then WithRemoved of image 14 (so two segments, one with the postings of a removed image).
+bool Format1FixtureBag(uint32_t image, BagOfWords* bag) {
+  const bool near = image % 7 == 0;
+  const bool far = image == 150 || image == 151 || image == 299;
+  if (!near && !far) return false;
+  for (uint32_t w = 0; w < 64; ++w) {
+    const uint32_t h = (image * 2654435761u) ^ (w * 40503u);
+    if ((h >> 7) % 3 != 0 && !(far && w < 4)) continue;
+    bag->words.push_back(w);
+    bag->counts.push_back(1 + ((h >> 13) % 7 == 0 ? (h >> 17) % 300 : 0));  // tf up to 300
+  }
+  return !bag->words.empty();
+}
+
+std::vector<uint8_t> ReadFileBytes(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+}
+
+TEST(InvertedFileTest, ReadsFormat1PostingsAndRecodesThem) {
+  const std::vector<uint8_t> bytes = ReadFileBytes(OXBOW_SOURCE_DIR "/index/testdata/postings_format1.oxif");
+  ASSERT_GT(bytes.size(), 1000u);
+  bool recoded = false;
+  auto old = InvertedFile::Deserialize(bytes, 64, {}, &recoded);
+  ASSERT_TRUE(old) << old.error().ToString();
+  EXPECT_TRUE(recoded);
+
+  // The same operations with this build.
+  InvertedFile fresh = InvertedFile::Build(64, {}, 300, Format1FixtureBag);
+  BagOfWords a, b, removed;
+  a.words = {1, 5, 9};
+  a.counts = {1, 2, 1};
+  b.words = {5, 63};
+  b.counts = {400, 1};
+  const std::vector<uint32_t> added = {300, 420};
+  const std::vector<const BagOfWords*> added_bags = {&a, &b};
+  fresh = fresh.WithAdded(added, added_bags);
+  ASSERT_TRUE(Format1FixtureBag(14, &removed));
+  const std::vector<uint32_t> gone = {14};
+  const std::vector<const BagOfWords*> gone_bags = {&removed};
+  fresh = fresh.WithRemoved(gone, gone_bags);
+
+  // The re-coded postings are this build's coding of the same lists: the saved files below have the
+  // same size. Scores agree to 1e-6, not bit for bit: the file's per-image norm sums are the old
+  // build's doubles, and whether a multiply-add is fused depends on the build's flags.
+  EXPECT_EQ(old->num_images(), fresh.num_images());
+  EXPECT_EQ(old->Stats().num_postings, fresh.Stats().num_postings);
+  EXPECT_EQ(old->Stats().num_segments, fresh.Stats().num_segments);
+  // Saved again, it is format 2, reads back without re-coding and scores as before.
+  std::vector<uint8_t> again, own;
+  old->Serialize([&](std::span<const uint8_t> part) { again.insert(again.end(), part.begin(), part.end()); });
+  fresh.Serialize([&](std::span<const uint8_t> part) { own.insert(own.end(), part.begin(), part.end()); });
+  EXPECT_EQ(again.size(), own.size());
+  auto reread = InvertedFile::Deserialize(again, 64, {}, &recoded);
+  ASSERT_TRUE(reread);
+  EXPECT_FALSE(recoded);
+  const auto near = [](const std::map<uint32_t, double>& got, const std::map<uint32_t, double>& want) {
+    if (got.size() != want.size()) return false;
+    for (const auto& [image, score] : want) {
+      const auto it = got.find(image);
+      if (it == got.end() || std::abs(it->second - score) > 1e-6) return false;
+    }
+    return true;
+  };
+  for (uint32_t q = 0; q < 40; ++q) {
+    BagOfWords query;
+    if (!Format1FixtureBag(q * 7, &query)) continue;
+    const auto expected = AllScores(fresh, query);
+    EXPECT_FALSE(expected.empty());
+    EXPECT_TRUE(near(AllScores(*old, query), expected)) << "query " << q;
+    EXPECT_TRUE(near(AllScores(*reread, query), expected)) << "query " << q;
+  }
+
+  // A damaged format-1 list (its last varint continues past the list's end) is refused, not decoded.
+  std::vector<uint8_t> damaged = bytes;
+  damaged.back() |= 0x80;
+  const auto bad = InvertedFile::Deserialize(damaged, 64, {});
+  ASSERT_FALSE(bad);
+  EXPECT_EQ(bad.error().code, ErrorCode::kCorruptData);
+  // A format newer than this build's is refused as incompatible.
+  std::vector<uint8_t> future = own;
+  future[4] = 3;
+  const auto newer = InvertedFile::Deserialize(future, 64, {});
+  ASSERT_FALSE(newer);
+  EXPECT_EQ(newer.error().code, ErrorCode::kIncompatible);
 }
 
 TEST(InvertedFileTest, OptionsAreChecked) {

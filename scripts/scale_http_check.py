@@ -2,7 +2,7 @@
 """Measures a large index through the real server, over HTTP, as a user would (issue 14's figures).
 
   python3 scripts/scale_http_check.py --index DIR [--photos DIR] [--oxbow build/server/oxbow]
-                                      [--queries 40] [--adds 40] [--port 18765]
+                                      [--queries 40] [--adds 40] [--port 18765] [--serve-arg=ARG ...]
 
 DIR: an index folder, e.g. the one `build/index/index_benchmark storage --images 1000000 --out DIR` leaves.
 It is served as it is by `oxbow serve --index DIR` (server defaults) and measured:
@@ -43,7 +43,7 @@ def summary(values):
 def start_server(args):
     """Starts `oxbow serve`; returns (process, seconds until /readyz answered 200)."""
     t0 = time.monotonic()
-    proc = subprocess.Popen([args.oxbow, "serve", "--index", args.index, "--port", str(args.port)],
+    proc = subprocess.Popen([args.oxbow, "serve", "--index", args.index, "--port", str(args.port)] + args.serve_arg,
                             stdout=subprocess.DEVNULL, stderr=open(args.log, "a"))
     client = oxbow_client.Client("http://127.0.0.1:%d" % args.port, timeout=120)
     while True:
@@ -74,6 +74,8 @@ def main():
     parser.add_argument("--adds", type=int, default=40)
     parser.add_argument("--port", type=int, default=18765)
     parser.add_argument("--log", default="/tmp/scale_http_check.log", help="the server's stderr")
+    parser.add_argument("--serve-arg", action="append", default=[],
+                        help="one more argument for `oxbow serve` (repeat it), e.g. --serve-arg=--max-scored-postings=0")
     args = parser.parse_args()
 
     photo_dirs = [args.photos] if args.photos else [os.path.join(ROOT, "..", "shared", "data", "paris6k", "images"),

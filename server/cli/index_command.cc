@@ -313,7 +313,7 @@ BuildCounts IngestJobs(const BuildArgs& build, index::ImageIndex& idx, std::vect
       index::ImageInfo info;
       info.source_path = fs::absolute(job.path).string();
       info.extractor_settings = f->extractor_description;
-      items.push_back({job.id, &f->features, std::move(info), {}});
+      items.push_back({job.id, &f->features, std::move(info), {}, {}});
       positions.push_back(i);
       if (journal) {
         items.back().words = words[i];
