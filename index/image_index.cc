@@ -1,5 +1,8 @@
 #include "index/image_index.h"
 
+#include <pthread.h>
+#include <sched.h>
+
 #include <algorithm>
 #include <array>
 #include <atomic>
@@ -49,6 +52,15 @@ std::string JoinPath(const std::string& dir, const char* file) {
 }
 
 size_t ShardOf(const std::string& id) { return std::hash<std::string>{}(id) % kIdShards; }
+
+// Puts the calling thread in Linux's SCHED_IDLE class: it runs only on a core no other thread wants.
+// Best effort (a refusal leaves it as it was); allowed without privileges, and not undone: call it on
+// a thread that ends with its work.
+void RunOnlyWhenIdle() {
+  sched_param param{};
+  param.sched_priority = 0;
+  (void)pthread_setschedparam(pthread_self(), SCHED_IDLE, &param);
+}
 
 // A geometry file of the checkpoint an index opened from. Open checks its size and image table but
 // not its checksum (reading every geometry byte took most of an open at 1M images); its data is
@@ -755,7 +767,16 @@ void ImageIndex::Impl::VerifyParts() {
 }
 
 void ImageIndex::Impl::CheckpointLoop() {
-  VerifyParts();
+  // The loaded geometry files are checked on a thread of their own in SCHED_IDLE: right after an open,
+  // reading and hashing every file (several seconds at 1M images) would otherwise take a core from
+  // the first searches, which then ran at half speed. A search never waits for it (an image it uses
+  // first is checked alone, GeometryPart::Sound); under a load that keeps every core busy the check
+  // waits, and so do checkpoints, as they always waited for it.
+  std::thread verifier([this] {
+    RunOnlyWhenIdle();
+    VerifyParts();
+  });
+  verifier.join();
   std::unique_lock<std::mutex> lock(writer_mutex);
   while (true) {
     checkpoint_due.wait(lock, [&] { return closing || CheckpointDue(); });

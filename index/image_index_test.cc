@@ -22,6 +22,7 @@
 #include <functional>
 #include <future>
 #include <string_view>
+#include <sched.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -1233,6 +1234,32 @@ TEST_F(CheckpointFixture, CloseWritesACheckpointThatOpenUsesWithoutRebuilding) {
     ExpectEqualsFresh(**index, Range(0, 30));
   }
   EXPECT_EQ(CheckpointFiles(dir_), written);
+}
+
+TEST_F(CheckpointFixture, GeometryIsCheckedInSchedIdleAndCheckpointsAreNot) {
+  {
+    auto index = CreateIndex();
+    for (int i = 0; i < 30; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+  }
+  // sched_getscheduler(0) is the calling thread's policy on Linux.
+  std::atomic<int> verifying_policy{-2};
+  std::atomic<int> writing_policy{-2};
+  SetCheckpointStageHookForTesting([&](std::string_view stage) {
+    if (stage == "verifying-geometry") verifying_policy = sched_getscheduler(0);
+    if (stage == "files-written") writing_policy = sched_getscheduler(0);
+  });
+  {
+    auto index = ImageIndex::Open(dir_.string());
+    ASSERT_TRUE(index) << index.error().ToString();
+    for (int wait = 0; wait < 1000 && verifying_policy == -2; ++wait) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    }
+    ASSERT_TRUE((*index)->Add("late", Image(30), {}));
+  }  // closing writes a checkpoint with the new image
+  SetCheckpointStageHookForTesting(nullptr);
+  EXPECT_EQ(verifying_policy.load(), SCHED_IDLE);
+  EXPECT_EQ(writing_policy.load(), SCHED_OTHER);
+  EXPECT_EQ(sched_getscheduler(0), SCHED_OTHER);
 }
 
 TEST_F(CheckpointFixture, OpenReplaysChangesAfterTheCheckpointAndEqualsAFreshIndex) {

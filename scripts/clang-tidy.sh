@@ -16,7 +16,10 @@
 # reported as unchanged; any other file is analysed. Every run writes the keys of its clean files to
 # BUILD_DIR/clang-tidy/clean-ledger.txt; OXBOW_TIDY_LEDGER_UPDATE=1 also copies it over the ledger
 # (commit it with the change that was analysed). The ledger only saves time: without it, or with a
-# stale one, every changed file is analysed as before.
+# stale one, every changed file is analysed as before. Its keys are those of build-asan's compile
+# commands, the folder CI's tidy phase analyses (scripts/test-hardening.sh): an update from any other
+# folder is refused, since none of its keys would match there (a ledger written from build-tidy once
+# made CI analyse all 127 files, about 20 minutes on 2 cores).
 #
 # oxbow is C++23 built with GCC 12; clang-tidy 16 parses it as C++2b. libstdc++ 12 only declares
 # std::expected when __cpp_concepts >= 202002L, which clang 16 implements (P0848, conditionally trivial
@@ -26,6 +29,11 @@ set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 build_dir=${1:-$root/build-tidy}
 files_regex=${2:-"^$root/(sift|vocab|index|api|server|eval|tests)/.*\\.cc\$"}
+if [[ "${OXBOW_TIDY_LEDGER_UPDATE:-0}" == 1 && "$(realpath -m "$build_dir")" != "$(realpath -m "$root/build-asan")" ]]; then
+  echo "clang-tidy.sh: OXBOW_TIDY_LEDGER_UPDATE=1 needs BUILD_DIR $root/build-asan (CI's tidy phase keys files by" \
+       "its compile commands), not $build_dir: OXBOW_HARDENING_PHASES=tidy OXBOW_TIDY_LEDGER_UPDATE=1 scripts/test-hardening.sh" >&2
+  exit 2
+fi
 tidy=$(command -v clang-tidy-16 || true)
 if [[ -z "$tidy" ]]; then
   echo "clang-tidy.sh: clang-tidy-16 not found (scripts/install-deps.sh installs it)" >&2
