@@ -970,11 +970,13 @@ Result<ImageIndex::Impl::Prepared> ImageIndex::Impl::Prepare(const std::string& 
     vocabulary.Quantize(features.descriptors, words, quantizer);
   }
   // Signatures need the descriptors, which pre-assigned words may come without.
-  std::vector<uint64_t> signatures(assigned_signatures.begin(), assigned_signatures.end());
+  std::span<const uint64_t> signatures = assigned_signatures;
+  std::vector<uint64_t> computed;
   if (signatures.empty() && vocabulary.has_hamming() &&
       features.descriptors.size() == words.size() * vocabulary.dimension()) {
-    signatures.resize(words.size());
-    vocabulary.Signatures(features.descriptors, words, signatures);
+    computed.resize(words.size());
+    vocabulary.Signatures(features.descriptors, words, computed);
+    signatures = computed;
   }
   Prepared out;
   out.entry = std::make_shared<Entry>();
