@@ -367,22 +367,27 @@ void RunClusterBuild(const BuildArgs& build, vocab::Communicator& comm) {
   std::vector<uint32_t> mine;
   for (uint32_t p = static_cast<uint32_t>(comm.rank()); p < partitions; p += static_cast<uint32_t>(comm.size()))
     mine.push_back(p);
-  // Resuming with another P would route images to other partitions than the ones holding them.
+  // Resuming with another P would route images to other partitions than the ones holding them. Each
+  // rank checks what it can see; the refusal printed is the lowest rank's, whichever rank gets there first.
+  std::optional<CommandError> refusal;
   std::error_code ec;
   if (comm.rank() == 0 && fs::exists(api::PartitionFolder(build.out, partitions), ec))
-    throw CommandError(ExitCodeFor(ErrorCode::kIncompatible),
-                       build.out + " holds a cluster of more than " + std::to_string(partitions) +
-                           " partitions; resume it with its own --partitions or build into a new --out");
+    refusal.emplace(ExitCodeFor(ErrorCode::kIncompatible),
+                    build.out + " holds a cluster of more than " + std::to_string(partitions) +
+                        " partitions; resume it with its own --partitions or build into a new --out");
   for (uint32_t p : mine) {
     const std::string path = api::PartitionFolder(build.out, p) + "/" + std::string(api::kGlobalFrequenciesFile);
-    if (!fs::exists(path, ec)) continue;
-    const api::GlobalFrequencies previous = ValueOrExit(api::ReadGlobalFrequencies(path));
-    if (previous.num_partitions != partitions)
-      throw CommandError(ExitCodeFor(ErrorCode::kIncompatible),
-                         build.out + " is a cluster of " + std::to_string(previous.num_partitions) +
-                             " partitions; resume it with --partitions " + std::to_string(previous.num_partitions) +
-                             " or build into a new --out");
+    if (refusal || !fs::exists(path, ec)) continue;
+    const auto previous = api::ReadGlobalFrequencies(path);
+    if (!previous)
+      refusal.emplace(previous.error());
+    else if (previous->num_partitions != partitions)
+      refusal.emplace(ExitCodeFor(ErrorCode::kIncompatible),
+                      build.out + " is a cluster of " + std::to_string(previous->num_partitions) +
+                          " partitions; resume it with --partitions " + std::to_string(previous->num_partitions) +
+                          " or build into a new --out");
   }
+  ThrowIfAnyRankRefuses(comm, refusal);
 
   // [images, df per word], summed over this rank's partitions, then over all ranks.
   std::vector<int64_t> totals(1 + vocabulary.size(), 0);

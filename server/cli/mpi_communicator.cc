@@ -5,11 +5,13 @@
 
 #include <climits>
 #include <cstdio>
+#include <cstdlib>
 #include <exception>
 #include <string>
 #include <vector>
 
 #include "server/cli/cli.h"
+#include "sift/base/binary_io.h"
 #include "sift/base/log.h"
 
 namespace oxbow::cli {
@@ -66,6 +68,12 @@ class MpiWorld final : public vocab::Communicator {
   int size_ = 1;
 };
 
+// The refusal every rank agreed on (ThrowIfAnyRankRefuses).
+class AgreedError final : public CommandError {
+ public:
+  using CommandError::CommandError;
+};
+
 [[noreturn]] void AbortJob(int rank, const std::string& message, int exit_code) {
   std::fprintf(stderr, "oxbow: error (rank %d): %s\n", rank, message.c_str());
   std::fflush(stderr);
@@ -83,6 +91,11 @@ void RunWithMpi(const std::function<void(vocab::Communicator&)>& body) {
   if (world.rank() != 0 && log::GetLevel() < log::Level::kWarning) log::SetLevel(log::Level::kWarning);
   try {
     body(world);
+  } catch (const AgreedError& e) {
+    // Every rank holds the same refusal: no abort; rank 0 reports it once, the others leave quietly.
+    MPI_Finalize();
+    if (world.rank() == 0) throw CommandError(e.exit_code(), e.what());
+    std::exit(e.exit_code());
   } catch (const CommandError& e) {
     if (world.size() == 1) {
       MPI_Finalize();
@@ -97,6 +110,19 @@ void RunWithMpi(const std::function<void(vocab::Communicator&)>& body) {
     AbortJob(world.rank(), std::string("internal error: ") + e.what(), 1);
   }
   MPI_Finalize();
+}
+
+void ThrowIfAnyRankRefuses(vocab::Communicator& comm, const std::optional<CommandError>& mine) {
+  io::ByteWriter w;
+  w.Put<uint32_t>(mine ? static_cast<uint32_t>(mine->exit_code()) : 0u);
+  w.PutString(mine ? mine->what() : "");
+  const std::vector<uint8_t> gathered = comm.size() == 1 ? w.bytes() : comm.Allgather(w.bytes());
+  io::ByteReader r(gathered, "rank refusals");
+  for (int rank = 0; rank < comm.size(); ++rank) {
+    const uint32_t code = ValueOrExit(r.Get<uint32_t>());
+    std::string message = ValueOrExit(r.GetString(1u << 20));
+    if (code != 0) throw AgreedError(static_cast<int>(code), message);
+  }
 }
 
 }  // namespace oxbow::cli

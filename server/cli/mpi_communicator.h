@@ -5,7 +5,9 @@
 
 #include <functional>
 #include <memory>
+#include <optional>
 
+#include "server/cli/cli.h"
 #include "vocab/communicator.h"
 
 namespace oxbow::cli {
@@ -14,6 +16,14 @@ namespace oxbow::cli {
 // CommandError or any other exception on one rank is printed with the rank number and ends the whole
 // job (MPI_Abort with the command's exit code): the other ranks would otherwise wait forever in a
 // collective. Ranks other than 0 log warnings and errors only.
+// An agreed refusal (ThrowIfAnyRankRefuses) is
+// different: every rank knows it, rank 0 alone prints it, and every rank finalises MPI and exits with its
+// code, so the message does not depend on which rank aborted first.
 void RunWithMpi(const std::function<void(vocab::Communicator&)>& body);
+
+// Collective: every rank passes its own refusal, or none. When any rank has one, every rank throws the
+// refusal of the lowest such rank (as an agreed refusal, see RunWithMpi); otherwise returns. For checks
+// made before any work, where different ranks can see different faults of one wrong command line.
+void ThrowIfAnyRankRefuses(vocab::Communicator& comm, const std::optional<CommandError>& mine);
 
 }  // namespace oxbow::cli
