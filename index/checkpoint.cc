@@ -130,7 +130,7 @@ Result<CheckpointManifest> CheckpointManifest::Parse(const std::string& text) {
   return m;
 }
 
-Result<std::shared_ptr<const MappedFile>> MappedFile::Open(const std::string& path) {
+Result<std::shared_ptr<const MappedFile>> MappedFile::Open(const std::string& path, Use use) {
   const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
   if (fd < 0) return Fail(errno == ENOENT ? ErrorCode::kNotFound : ErrorCode::kIoError, path + ": " + Errno());
   struct stat st {};
@@ -142,7 +142,7 @@ Result<std::shared_ptr<const MappedFile>> MappedFile::Open(const std::string& pa
   const auto size = static_cast<size_t>(st.st_size);
   void* data = nullptr;
   if (size > 0) {
-    data = ::mmap(nullptr, size, PROT_READ, MAP_SHARED, fd, 0);
+    data = ::mmap(nullptr, size, PROT_READ, MAP_SHARED | (use == Use::kWhole ? MAP_POPULATE : 0), fd, 0);
     if (data == MAP_FAILED) {
       const std::string message = Errno();
       ::close(fd);
@@ -150,7 +150,7 @@ Result<std::shared_ptr<const MappedFile>> MappedFile::Open(const std::string& pa
     }
     // Re-ranking reads a few images' features at random places: no read-ahead around them, so that
     // only the pages in use are resident.
-    ::madvise(data, size, MADV_RANDOM);
+    if (use == Use::kRandom) ::madvise(data, size, MADV_RANDOM);
   }
   ::close(fd);  // the mapping stays valid
   return std::shared_ptr<const MappedFile>(new MappedFile(static_cast<const uint8_t*>(data), size));
@@ -256,6 +256,17 @@ Status VerifyCheckpointFile(const std::string& dir, const CheckpointFile& file) 
                                              " bytes, its manifest says " + std::to_string(file.size_bytes));
   }
   if (checksum.Digest() != file.checksum) return Fail(ErrorCode::kCorruptData, "checkpoint file " + path + " fails its checksum");
+  return Ok();
+}
+
+Status VerifyCheckpointBytes(std::span<const uint8_t> bytes, const CheckpointFile& file, const std::string& what) {
+  if (bytes.size() != file.size_bytes) {
+    return Fail(ErrorCode::kCorruptData, what + " has " + std::to_string(bytes.size()) + " bytes, its manifest says " +
+                                             std::to_string(file.size_bytes));
+  }
+  Checksum checksum;
+  checksum.Update(bytes);
+  if (checksum.Digest() != file.checksum) return Fail(ErrorCode::kCorruptData, what + " fails its checksum");
   return Ok();
 }
 

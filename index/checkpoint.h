@@ -65,7 +65,11 @@ struct CheckpointManifest {
 // A read-only memory mapping of a whole file.
 class MappedFile {
  public:
-  [[nodiscard]] static Result<std::shared_ptr<const MappedFile>> Open(const std::string& path);
+  enum class Use {
+    kRandom,  // a few places at a time (geometry: re-ranking reads some images): no read-ahead
+    kWhole,   // all of it, now (postings): read in and mapped by the call, with read-ahead
+  };
+  [[nodiscard]] static Result<std::shared_ptr<const MappedFile>> Open(const std::string& path, Use use = Use::kRandom);
   ~MappedFile();
   MappedFile(const MappedFile&) = delete;
   MappedFile& operator=(const MappedFile&) = delete;
@@ -86,6 +90,9 @@ using ByteSink = std::function<void(std::span<const uint8_t>)>;
 // Size and checksum of dir/file.name against the manifest, read with pread (the pages stay in the page
 // cache, not in this process's resident memory). kNotFound if missing, kCorruptData if different.
 [[nodiscard]] Status VerifyCheckpointFile(const std::string& dir, const CheckpointFile& file);
+// The same check of a file already mapped (`what` names it in errors): kCorruptData if different.
+[[nodiscard]] Status VerifyCheckpointBytes(std::span<const uint8_t> bytes, const CheckpointFile& file,
+                                           const std::string& what);
 
 // One image of a geometry file.
 struct GeometryImage {

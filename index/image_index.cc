@@ -10,6 +10,7 @@
 #include <cmath>
 #include <filesystem>
 #include <functional>
+#include <future>
 #include <map>
 #include <condition_variable>
 #include <mutex>
@@ -440,16 +441,33 @@ Status CheckEntry(const ImageRecord& record, const PackedFeatures& features, siz
 }
 
 // The snapshot of `inverted` with the entries by_number[n] (moved from; null where no image).
-SnapshotPtr MakeSnapshot(InvertedFile inverted, std::vector<std::shared_ptr<const Entry>>& by_number) {
+SnapshotPtr MakeSnapshot(InvertedFile inverted, std::vector<std::shared_ptr<const Entry>>& by_number, int num_threads) {
   auto snap = std::make_shared<ImageIndex::Snapshot>(std::move(inverted));
   const auto num_numbers = static_cast<uint32_t>(std::max<size_t>(by_number.size(), snap->inverted.num_numbers()));
+  // The id maps, a shard per task (sized first: a million ids would otherwise rehash each map ~20 times).
+  static_assert(kIdShards <= 256);
+  std::vector<uint8_t> shard_of(by_number.size(), 0);
+  ParallelFor(by_number.size(), num_threads, size_t{1} << 14, [&](size_t begin, size_t end, int) {
+    for (size_t n = begin; n < end; ++n) {
+      if (by_number[n]) shard_of[n] = static_cast<uint8_t>(ShardOf(by_number[n]->record.id));
+    }
+  });
+  std::array<std::vector<uint32_t>, kIdShards> members;
+  for (uint32_t n = 0; n < by_number.size(); ++n) {
+    if (by_number[n]) members[shard_of[n]].push_back(n);
+  }
   std::array<std::shared_ptr<IdShard>, kIdShards> shards;
-  for (auto& shard : shards) shard = std::make_shared<IdShard>();
+  ParallelFor(kIdShards, num_threads, 1, [&](size_t begin, size_t end, int) {
+    for (size_t i = begin; i < end; ++i) {
+      shards[i] = std::make_shared<IdShard>();
+      shards[i]->reserve(members[i].size());
+      for (const uint32_t n : members[i]) shards[i]->emplace(by_number[n]->record.id, n);
+    }
+  });
   CowArray<std::shared_ptr<const Entry>>::Editor editor(&snap->entries);
   editor.Resize(num_numbers);
   for (uint32_t n = 0; n < by_number.size(); ++n) {
     if (!by_number[n]) continue;
-    shards[ShardOf(by_number[n]->record.id)]->emplace(by_number[n]->record.id, n);
     snap->geometry_bytes += by_number[n]->stored.MemoryBytes();
     editor.Mutable(n) = std::move(by_number[n]);
   }
@@ -482,7 +500,7 @@ Result<SnapshotPtr> BuildFromCatalogue(const Catalogue& catalogue, size_t vocab_
         return true;
       },
       options.num_threads);
-  return MakeSnapshot(std::move(inverted), by_number);
+  return MakeSnapshot(std::move(inverted), by_number, options.num_threads);
 }
 
 struct LoadedCheckpoint {
@@ -522,19 +540,20 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
     for (size_t i = begin; i < end; ++i) {
       const std::string what = "checkpoint file " + (std::filesystem::path(dir) / files[i].name).string();
       const bool postings = files[i].name.starts_with("postings-");
-      if (postings) {
-        failures[i] = VerifyCheckpointFile(dir, files[i]);
-        if (!failures[i]) continue;
-      }
-      auto mapped = MappedFile::Open((std::filesystem::path(dir) / files[i].name).string());
+      auto mapped = MappedFile::Open((std::filesystem::path(dir) / files[i].name).string(),
+                                     postings ? MappedFile::Use::kWhole : MappedFile::Use::kRandom);
       if (!mapped) {
         failures[i] = std::unexpected(mapped.error());
       } else if (!postings && (*mapped)->bytes().size() != files[i].size_bytes) {
         failures[i] = Fail(ErrorCode::kCorruptData, what + " has " + std::to_string((*mapped)->bytes().size()) +
                                                         " bytes, its manifest says " + std::to_string(files[i].size_bytes));
       } else if (postings) {
+        // Checked whole before use, then used in place: the postings stay in the mapping (file pages,
+        // no copy), which holds them for as long as a version of the inverted file does.
+        failures[i] = VerifyCheckpointBytes((*mapped)->bytes(), files[i], what);
+        if (!failures[i]) continue;
         bool recoded = false;
-        auto file = InvertedFile::Deserialize((*mapped)->bytes(), vocab_size, ToTfIdf(options), &recoded);
+        auto file = InvertedFile::Deserialize((*mapped)->bytes(), vocab_size, ToTfIdf(options), &recoded, *mapped);
         if (!file) {
           failures[i] = Fail(file.error().code, what + ": " + file.error().message);
           continue;
@@ -652,11 +671,12 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
   for (const BagOfWords& bag : added_bags) bag_pointers.push_back(&bag);
   *inverted = inverted->WithAdded(added_numbers, bag_pointers);
   out.changes = removed.size() + added_numbers.size();
+  const double replay_ms = MsSince(t0) - files_ms - records_ms;
+  out.snapshot = MakeSnapshot(std::move(*inverted), by_number, options.num_threads);
   OXBOW_LOG(kInfo) << "index " << dir << ": opened from checkpoint generation " << manifest->generation << " in "
                    << MsSince(t0) << " ms (files loaded, postings verified " << files_ms << " ms, records " << records_ms
-                   << " ms, replay of " << out.changes << " changes " << MsSince(t0) - files_ms - records_ms
-                   << " ms)";
-  out.snapshot = MakeSnapshot(std::move(*inverted), by_number);
+                   << " ms, replay of " << out.changes << " changes " << replay_ms << " ms, id maps "
+                   << MsSince(t0) - files_ms - records_ms - replay_ms << " ms)";
   return out;
 }
 
@@ -863,7 +883,14 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, con
   auto catalogue = Catalogue::Open(catalogue_path);
   if (!catalogue) return std::unexpected(catalogue.error());
   const CatalogueMeta& meta = (*catalogue)->meta();
-  auto vocabulary = vocab::Vocabulary::Read(JoinPath(dir, kVocabularyFile));
+  // The vocabulary (about a second for 100k words with Hamming parameters) is read while the checkpoint
+  // loads, which needs only its size; any fault of the vocabulary is still reported first.
+  auto reading = std::async(std::launch::async, [path = JoinPath(dir, kVocabularyFile)] { return vocab::Vocabulary::Read(path); });
+  std::optional<Result<LoadedCheckpoint>> loaded;
+  if (meta.schema_version == kSchemaVersion && !meta.checkpoint.empty()) {
+    loaded = LoadCheckpoint(dir, **catalogue, meta.vocabulary_size, options);
+  }
+  auto vocabulary = reading.get();
   if (!vocabulary) {
     return Fail(vocabulary.error().code, "index " + dir + ": its vocabulary copy is unusable: " +
                                              vocabulary.error().message);
@@ -880,15 +907,14 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, con
   const size_t vocab_size = vocabulary->size();
   auto impl = std::make_unique<Impl>(dir, options, std::move(*vocabulary), meta.extractor_settings);
   std::shared_ptr<Snapshot> snap;
-  if (meta.schema_version == kSchemaVersion && !meta.checkpoint.empty()) {
-    auto loaded = LoadCheckpoint(dir, **catalogue, vocab_size, options);
-    if (!loaded) return std::unexpected(loaded.error());
-    if (loaded->snapshot) {
-      snap = std::move(loaded->snapshot);
-      impl->checkpoint = std::move(loaded->manifest);
-      impl->geometry_parts = std::move(loaded->parts);
-      impl->changes_since_checkpoint = loaded->changes;
-      if (loaded->recoded) {
+  if (loaded) {
+    if (!*loaded) return std::unexpected(loaded->error());
+    if ((*loaded)->snapshot) {
+      snap = std::move((*loaded)->snapshot);
+      impl->checkpoint = std::move((*loaded)->manifest);
+      impl->geometry_parts = std::move((*loaded)->parts);
+      impl->changes_since_checkpoint = (*loaded)->changes;
+      if ((*loaded)->recoded) {
         OXBOW_LOG(kInfo) << "index " << dir << ": its postings file was written in an older format by an earlier "
                          << "build and was converted while loading; a checkpoint in the current format is written "
                          << "in the background";
@@ -896,7 +922,7 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, con
       }
     } else {
       // Keep the generation: the new files must not take the names of those the old manifest lists.
-      impl->checkpoint.generation = loaded->manifest.generation;
+      impl->checkpoint.generation = (*loaded)->manifest.generation;
     }
   }
   const bool rebuild = snap == nullptr;

@@ -107,19 +107,26 @@ struct InvertedFile::Segment {
   uint32_t end_image = 0;
   bool dense = false;             // offsets indexed by word (vocabulary_size + 1) instead of via `words`
   std::vector<uint32_t> words;    // sparse layout: distinct words, ascending
-  std::vector<uint64_t> offsets;  // into bytes; dense: per word; sparse: per entry of `words` (+1)
+  std::vector<uint64_t> offsets;  // into the postings; dense: per word; sparse: per entry of `words` (+1)
+  // The postings: built in this process (`bytes`), or read in place from a checkpoint file's mapping
+  // (`mapped`, kept alive by `owner`; `bytes` empty), so that opening a large index copies nothing.
   std::vector<uint8_t> bytes;
+  std::span<const uint8_t> mapped;
+  std::shared_ptr<const void> owner;
   uint64_t num_postings = 0;
+
+  const uint8_t* data() const { return owner ? mapped.data() : bytes.data(); }
+  size_t size() const { return owner ? mapped.size() : bytes.size(); }
 
   std::pair<const uint8_t*, const uint8_t*> List(uint32_t word) const {
     if (dense) {
       if (word + 1 >= offsets.size()) return {nullptr, nullptr};
-      return {bytes.data() + offsets[word], bytes.data() + offsets[word + 1]};
+      return {data() + offsets[word], data() + offsets[word + 1]};
     }
     const auto it = std::lower_bound(words.begin(), words.end(), word);
     if (it == words.end() || *it != word) return {nullptr, nullptr};
     const size_t i = static_cast<size_t>(it - words.begin());
-    return {bytes.data() + offsets[i], bytes.data() + offsets[i + 1]};
+    return {data() + offsets[i], data() + offsets[i + 1]};
   }
 
   // Calls fn(image, tf) for every posting of `word`, in image order.
@@ -146,7 +153,7 @@ struct InvertedFile::Segment {
   }
 
   uint64_t MemoryBytes() const {
-    return bytes.capacity() + offsets.capacity() * sizeof(uint64_t) + words.capacity() * sizeof(uint32_t) +
+    return (owner ? mapped.size() : bytes.capacity()) + offsets.capacity() * sizeof(uint64_t) + words.capacity() * sizeof(uint32_t) +
            sizeof(*this);
   }
 
@@ -158,7 +165,7 @@ struct InvertedFile::Segment {
     size_t k = 0;
     for (size_t w = 0; w <= vocabulary_size; ++w) {
       while (k < words.size() && words[k] < w) ++k;
-      table[w] = k < words.size() ? offsets[k] : bytes.size();
+      table[w] = k < words.size() ? offsets[k] : size();
     }
     offsets = std::move(table);
     words.clear();
@@ -985,6 +992,17 @@ struct FileReader {
     Copy(out.data(), count * sizeof(T));
     return out;
   }
+  // The next `count` bytes in place (a view of `bytes`), after their u64 count.
+  std::span<const uint8_t> View(uint64_t max_count) {
+    const auto count = Get<uint64_t>();
+    if (!ok || count > max_count || count > bytes.size() - at) {
+      ok = false;
+      return {};
+    }
+    const std::span<const uint8_t> out = bytes.subspan(at, count);
+    at += count;
+    return out;
+  }
   void Copy(void* out, size_t n) {
     if (!ok || bytes.size() - at < n) {
       ok = false;
@@ -1005,8 +1023,8 @@ Result<std::shared_ptr<InvertedFile::Segment>> InvertedFile::RecodeFormat1(const
   const size_t lists = old.offsets.size() - 1;
   // Decodes list k of `old`, calling fn(gap, tf) per posting; false on a malformed list.
   const auto decode = [&old](size_t k, auto&& fn) {
-    const uint8_t* p = old.bytes.data() + old.offsets[k];
-    const uint8_t* end = old.bytes.data() + old.offsets[k + 1];
+    const uint8_t* p = old.data() + old.offsets[k];
+    const uint8_t* end = old.data() + old.offsets[k + 1];
     const auto varint = [&](uint64_t* v) {
       *v = 0;
       for (int shift = 0; shift < 64 && p < end; shift += 7) {
@@ -1094,13 +1112,14 @@ void InvertedFile::Serialize(const std::function<void(std::span<const uint8_t>)>
     write(AsBytes(std::span<const uint32_t>(segment->words)));
     write(AsBytes(uint64_t{segment->offsets.size()}));
     write(AsBytes(std::span<const uint64_t>(segment->offsets)));
-    write(AsBytes(uint64_t{segment->bytes.size()}));
-    write(AsBytes(std::span<const uint8_t>(segment->bytes)));
+    write(AsBytes(uint64_t{segment->size()}));
+    write(std::span<const uint8_t>(segment->data(), segment->size()));
   }
 }
 
 Result<InvertedFile> InvertedFile::Deserialize(std::span<const uint8_t> bytes, size_t vocabulary_size,
-                                               const TfIdfOptions& options, bool* recoded) {
+                                               const TfIdfOptions& options, bool* recoded,
+                                               std::shared_ptr<const void> owner) {
   const auto corrupt = [](const std::string& why) {
     return Fail(ErrorCode::kCorruptData, "inconsistent inverted file: " + why);
   };
@@ -1157,12 +1176,17 @@ Result<InvertedFile> InvertedFile::Deserialize(std::span<const uint8_t> bytes, s
     segment->num_postings = in.Get<uint64_t>();
     segment->words = in.GetVector<uint32_t>(vocabulary_size);
     segment->offsets = in.GetVector<uint64_t>(vocabulary_size + 1);
-    segment->bytes = in.GetVector<uint8_t>(std::numeric_limits<uint64_t>::max());
+    if (owner) {
+      segment->mapped = in.View(std::numeric_limits<uint64_t>::max());
+      segment->owner = owner;
+    } else {
+      segment->bytes = in.GetVector<uint8_t>(std::numeric_limits<uint64_t>::max());
+    }
     if (!in.ok) return corrupt("truncated segment");
     const size_t expected_offsets = segment->dense ? vocabulary_size + 1 : segment->words.size() + 1;
     if (segment->first_image < previous_end || segment->first_image > segment->end_image ||
         segment->end_image > num_numbers || segment->offsets.size() != expected_offsets ||
-        segment->offsets.back() != segment->bytes.size() || (segment->dense && !segment->words.empty()) ||
+        segment->offsets.back() != segment->size() || (segment->dense && !segment->words.empty()) ||
         !std::is_sorted(segment->offsets.begin(), segment->offsets.end()) ||
         std::adjacent_find(segment->words.begin(), segment->words.end(), std::greater_equal<>()) !=
             segment->words.end() ||

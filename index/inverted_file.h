@@ -260,9 +260,12 @@ class InvertedFile {
   // (image sums depend on sqrt_tf) or the format is newer than this build's. A file of an older format
   // (version 1: varint postings) is re-coded while loading (on all cores; the postings are decoded
   // with bounds checks); `recoded` (optional) then receives true, so that the caller can write the
-  // current format once.
+  // current format once. With an `owner` (which must keep `bytes` valid and unchanged, e.g. a read-only
+  // file mapping) the current format's postings are used in place, not copied: the file keeps
+  // `owner` for as long as any version of it uses them.
   [[nodiscard]] static Result<InvertedFile> Deserialize(std::span<const uint8_t> bytes, size_t vocabulary_size,
-                                                        const TfIdfOptions& options, bool* recoded = nullptr);
+                                                        const TfIdfOptions& options, bool* recoded = nullptr,
+                                                        std::shared_ptr<const void> owner = nullptr);
 
  private:
   // A segment of a version-1 file with its postings in this build's coding (Deserialize).

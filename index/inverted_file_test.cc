@@ -7,6 +7,8 @@
 #include <fstream>
 #include <iterator>
 #include <map>
+#include <memory>
+#include <optional>
 #include <random>
 #include <set>
 
@@ -757,6 +759,55 @@ bool Format1FixtureBag(uint32_t image, BagOfWords* bag) {
 std::vector<uint8_t> ReadFileBytes(const std::string& path) {
   std::ifstream in(path, std::ios::binary);
   return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+}
+
+// With an owner (a checkpoint file's mapping in ImageIndex) the postings are read in place: the same
+// scores and bytes as a copy, and the owner is held by every version that still uses them.
+TEST(InvertedFileTest, PostingsReadInPlaceKeepTheirOwner) {
+  InvertedFile built = InvertedFile::Build(64, {}, 300, Format1FixtureBag);
+  BagOfWords a;
+  a.words = {1, 5, 9};
+  a.counts = {1, 2, 1};
+  const std::vector<uint32_t> added = {300};
+  const std::vector<const BagOfWords*> added_bags = {&a};
+  built = built.WithAdded(added, added_bags);  // a second segment
+  auto owner = std::make_shared<std::vector<uint8_t>>();
+  built.Serialize([&](std::span<const uint8_t> part) { owner->insert(owner->end(), part.begin(), part.end()); });
+
+  auto copy = InvertedFile::Deserialize(*owner, 64, {});
+  ASSERT_TRUE(copy) << copy.error().ToString();
+  EXPECT_EQ(owner.use_count(), 1);
+  auto in_place = InvertedFile::Deserialize(*owner, 64, {}, nullptr, owner);
+  ASSERT_TRUE(in_place) << in_place.error().ToString();
+  EXPECT_GT(owner.use_count(), 1);
+  for (uint32_t q = 0; q < 40; ++q) {
+    BagOfWords query;
+    if (!Format1FixtureBag(q * 7, &query)) continue;
+    const auto expected = AllScores(*copy, query);
+    EXPECT_FALSE(expected.empty());
+    EXPECT_EQ(AllScores(*in_place, query), expected) << "query " << q;
+  }
+  std::vector<uint8_t> again;
+  in_place->Serialize([&](std::span<const uint8_t> part) { again.insert(again.end(), part.begin(), part.end()); });
+  EXPECT_TRUE(again == *owner);
+
+  // A later version that removes an image rewrites only the lists it touches; once no version uses
+  // the read segments, the owner is released.
+  BagOfWords removed;
+  ASSERT_TRUE(Format1FixtureBag(14, &removed));
+  const std::vector<uint32_t> gone = {14};
+  const std::vector<const BagOfWords*> gone_bags = {&removed};
+  std::optional<InvertedFile> next = in_place->WithRemoved(gone, gone_bags);
+  BagOfWords probe;
+  ASSERT_TRUE(Format1FixtureBag(21, &probe));
+  const auto expected = AllScores(copy->WithRemoved(gone, gone_bags), probe);
+  const std::weak_ptr<std::vector<uint8_t>> weak = owner;
+  owner.reset();
+  in_place = Fail(ErrorCode::kNotFound, "dropped");
+  EXPECT_FALSE(weak.expired()) << "the segments `next` shares with the dropped version hold the bytes";
+  EXPECT_EQ(AllScores(*next, probe), expected);
+  next.reset();
+  EXPECT_TRUE(weak.expired());
 }
 
 TEST(InvertedFileTest, ReadsFormat1PostingsAndRecodesThem) {
