@@ -7,6 +7,7 @@
 #include <functional>
 #include <map>
 #include <optional>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -356,6 +357,32 @@ nlohmann::json BuildSummary(const index::ImageIndex& idx, const BuildCounts& cou
   return summary;
 }
 
+// Why this rank cannot resume build.out with build.partitions, if it cannot: resuming with another
+// number of partitions would route images to other partitions than the ones holding them. Rank 0 checks
+// for a partition beyond the last; each rank checks the recorded count of its own partitions.
+std::optional<CommandError> ResumeRefusal(const BuildArgs& build, int rank, std::span<const uint32_t> mine) {
+  const uint32_t partitions = build.partitions;
+  std::error_code ec;
+  if (rank == 0 && fs::exists(api::PartitionFolder(build.out, partitions), ec)) {
+    return CommandError(ExitCodeFor(ErrorCode::kIncompatible),
+                        build.out + " holds a cluster of more than " + std::to_string(partitions) +
+                            " partitions; resume it with its own --partitions or build into a new --out");
+  }
+  for (uint32_t p : mine) {
+    const std::string path = api::PartitionFolder(build.out, p) + "/" + std::string(api::kGlobalFrequenciesFile);
+    if (!fs::exists(path, ec)) continue;
+    const auto previous = api::ReadGlobalFrequencies(path);
+    if (!previous) return CommandError(previous.error());
+    if (previous->num_partitions != partitions) {
+      return CommandError(ExitCodeFor(ErrorCode::kIncompatible),
+                          build.out + " is a cluster of " + std::to_string(previous->num_partitions) +
+                              " partitions; resume it with --partitions " + std::to_string(previous->num_partitions) +
+                              " or build into a new --out");
+    }
+  }
+  return std::nullopt;
+}
+
 // `index build --mpi`: every rank builds the partitions p with p mod ranks == rank, then the ranks sum
 // their partitions' document frequencies and each writes the totals beside its partitions.
 void RunClusterBuild(const BuildArgs& build, vocab::Communicator& comm) {
@@ -367,27 +394,7 @@ void RunClusterBuild(const BuildArgs& build, vocab::Communicator& comm) {
   std::vector<uint32_t> mine;
   for (uint32_t p = static_cast<uint32_t>(comm.rank()); p < partitions; p += static_cast<uint32_t>(comm.size()))
     mine.push_back(p);
-  // Resuming with another P would route images to other partitions than the ones holding them. Each
-  // rank checks what it can see; the refusal printed is the lowest rank's, whichever rank gets there first.
-  std::optional<CommandError> refusal;
-  std::error_code ec;
-  if (comm.rank() == 0 && fs::exists(api::PartitionFolder(build.out, partitions), ec))
-    refusal.emplace(ExitCodeFor(ErrorCode::kIncompatible),
-                    build.out + " holds a cluster of more than " + std::to_string(partitions) +
-                        " partitions; resume it with its own --partitions or build into a new --out");
-  for (uint32_t p : mine) {
-    const std::string path = api::PartitionFolder(build.out, p) + "/" + std::string(api::kGlobalFrequenciesFile);
-    if (refusal || !fs::exists(path, ec)) continue;
-    const auto previous = api::ReadGlobalFrequencies(path);
-    if (!previous)
-      refusal.emplace(previous.error());
-    else if (previous->num_partitions != partitions)
-      refusal.emplace(ExitCodeFor(ErrorCode::kIncompatible),
-                      build.out + " is a cluster of " + std::to_string(previous->num_partitions) +
-                          " partitions; resume it with --partitions " + std::to_string(previous->num_partitions) +
-                          " or build into a new --out");
-  }
-  ThrowIfAnyRankRefuses(comm, refusal);
+  ThrowIfAnyRankRefuses(comm, ResumeRefusal(build, comm.rank(), mine));
 
   // [images, df per word], summed over this rank's partitions, then over all ranks.
   std::vector<int64_t> totals(1 + vocabulary.size(), 0);
