@@ -141,18 +141,43 @@ Result<std::shared_ptr<const MappedFile>> MappedFile::Open(const std::string& pa
   }
   const auto size = static_cast<size_t>(st.st_size);
   void* data = nullptr;
-  if (size > 0) {
-    data = ::mmap(nullptr, size, PROT_READ, MAP_SHARED | (use == Use::kWhole ? MAP_POPULATE : 0), fd, 0);
+  if (size > 0 && use == Use::kRandom) {
+    data = ::mmap(nullptr, size, PROT_READ, MAP_SHARED, fd, 0);
     if (data == MAP_FAILED) {
       const std::string message = Errno();
       ::close(fd);
       return Fail(ErrorCode::kIoError, "cannot map " + path + ": " + message);
     }
-    // Re-ranking reads a few images' features at random places: no read-ahead around them, so that
-    // only the pages in use are resident.
-    if (use == Use::kRandom) ::madvise(data, size, MADV_RANDOM);
+    ::madvise(data, size, MADV_RANDOM);
+  } else if (size > 0) {
+    data = ::mmap(nullptr, size, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
+    if (data == MAP_FAILED) {
+      const std::string message = Errno();
+      ::close(fd);
+      return Fail(ErrorCode::kResourceExhausted, "cannot allocate " + std::to_string(size) + " bytes for " + path + ": " + message);
+    }
+    // Huge pages: 2 GB of postings would otherwise take half a million page faults to fill.
+    ::madvise(data, size, MADV_HUGEPAGE);
+    auto* out = static_cast<uint8_t*>(data);
+    size_t done = 0;
+    std::string error;
+    while (done < size) {
+      const ssize_t n = ::read(fd, out + done, std::min<size_t>(size - done, size_t{64} << 20));
+      if (n < 0 && errno == EINTR) continue;
+      if (n <= 0) {
+        error = n < 0 ? Errno() : "the file shrank while it was read";
+        break;
+      }
+      done += static_cast<size_t>(n);
+    }
+    if (done < size || ::mprotect(data, size, PROT_READ) != 0) {
+      if (error.empty()) error = Errno();
+      ::munmap(data, size);
+      ::close(fd);
+      return Fail(ErrorCode::kIoError, "cannot read " + path + ": " + error);
+    }
   }
-  ::close(fd);  // the mapping stays valid
+  ::close(fd);  // a mapping stays valid
   return std::shared_ptr<const MappedFile>(new MappedFile(static_cast<const uint8_t*>(data), size));
 }
 

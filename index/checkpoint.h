@@ -62,12 +62,18 @@ struct CheckpointManifest {
   [[nodiscard]] static Result<CheckpointManifest> Parse(const std::string& text);
 };
 
-// A read-only memory mapping of a whole file.
+// A whole file in memory, read-only: mapped, or read into the process's own memory.
 class MappedFile {
  public:
   enum class Use {
-    kRandom,  // a few places at a time (geometry: re-ranking reads some images): no read-ahead
-    kWhole,   // all of it, now (postings): read in and mapped by the call, with read-ahead
+    // A few places at a time (geometry: re-ranking reads some images): the file mapped, no read-ahead,
+    // only the pages in use resident.
+    kRandom,
+    // All of it, often (postings): read into anonymous memory (transparent huge pages where the kernel
+    // allows), so that it stays resident however much else goes through the page cache; a mapping of
+    // the file would lose its pages to the check of the geometry files after an open, and the first
+    // searches would read them back from disk.
+    kResident,
   };
   [[nodiscard]] static Result<std::shared_ptr<const MappedFile>> Open(const std::string& path, Use use = Use::kRandom);
   ~MappedFile();

@@ -541,15 +541,15 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
       const std::string what = "checkpoint file " + (std::filesystem::path(dir) / files[i].name).string();
       const bool postings = files[i].name.starts_with("postings-");
       auto mapped = MappedFile::Open((std::filesystem::path(dir) / files[i].name).string(),
-                                     postings ? MappedFile::Use::kWhole : MappedFile::Use::kRandom);
+                                     postings ? MappedFile::Use::kResident : MappedFile::Use::kRandom);
       if (!mapped) {
         failures[i] = std::unexpected(mapped.error());
       } else if (!postings && (*mapped)->bytes().size() != files[i].size_bytes) {
         failures[i] = Fail(ErrorCode::kCorruptData, what + " has " + std::to_string((*mapped)->bytes().size()) +
                                                         " bytes, its manifest says " + std::to_string(files[i].size_bytes));
       } else if (postings) {
-        // Checked whole before use, then used in place: the postings stay in the mapping (file pages,
-        // no copy), which holds them for as long as a version of the inverted file does.
+        // Checked whole before use, then used in place (no copy): the loaded file stays in memory for
+        // as long as a version of the inverted file uses its postings.
         failures[i] = VerifyCheckpointBytes((*mapped)->bytes(), files[i], what);
         if (!failures[i]) continue;
         bool recoded = false;

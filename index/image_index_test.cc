@@ -153,6 +153,29 @@ std::map<std::string, double> ScoresById(const QueryResponse& r) {
   return out;
 }
 
+// Both ways of holding a checkpoint file give its exact bytes; a missing file is kNotFound.
+TEST(MappedFileTest, ResidentAndMappedFilesHoldTheFileBytes) {
+  const fs::path dir = fs::temp_directory_path() / ("oxbow-mapped-" + std::to_string(::getpid()));
+  fs::create_directories(dir);
+  std::string content(3u << 20, '\0');  // over a 2 MB huge page, not a multiple of it
+  for (size_t i = 0; i < content.size(); ++i) content[i] = static_cast<char>((i * 2654435761u) >> 13);
+  std::ofstream((dir / "f").string(), std::ios::binary) << content;
+  std::ofstream((dir / "empty").string(), std::ios::binary).flush();
+  for (const MappedFile::Use use : {MappedFile::Use::kRandom, MappedFile::Use::kResident}) {
+    auto file = MappedFile::Open((dir / "f").string(), use);
+    ASSERT_TRUE(file) << file.error().ToString();
+    const auto bytes = (*file)->bytes();
+    EXPECT_TRUE(std::string_view(reinterpret_cast<const char*>(bytes.data()), bytes.size()) == content);
+    auto empty = MappedFile::Open((dir / "empty").string(), use);
+    ASSERT_TRUE(empty) << empty.error().ToString();
+    EXPECT_TRUE((*empty)->bytes().empty());
+    auto missing = MappedFile::Open((dir / "missing").string(), use);
+    ASSERT_FALSE(missing);
+    EXPECT_EQ(missing.error().code, ErrorCode::kNotFound);
+  }
+  fs::remove_all(dir);
+}
+
 TEST_F(Fixture, AddGetListRemove) {
   auto index = CreateIndex();
   std::mt19937_64 rng(1);
