@@ -1119,7 +1119,7 @@ void InvertedFile::Serialize(const std::function<void(std::span<const uint8_t>)>
 
 Result<InvertedFile> InvertedFile::Deserialize(std::span<const uint8_t> bytes, size_t vocabulary_size,
                                                const TfIdfOptions& options, bool* recoded,
-                                               std::shared_ptr<const void> owner) {
+                                               const std::shared_ptr<const void>& owner) {
   const auto corrupt = [](const std::string& why) {
     return Fail(ErrorCode::kCorruptData, "inconsistent inverted file: " + why);
   };

@@ -265,7 +265,7 @@ class InvertedFile {
   // `owner` for as long as any version of it uses them.
   [[nodiscard]] static Result<InvertedFile> Deserialize(std::span<const uint8_t> bytes, size_t vocabulary_size,
                                                         const TfIdfOptions& options, bool* recoded = nullptr,
-                                                        std::shared_ptr<const void> owner = nullptr);
+                                                        const std::shared_ptr<const void>& owner = nullptr);
 
  private:
   // A segment of a version-1 file with its postings in this build's coding (Deserialize).
