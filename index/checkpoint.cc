@@ -252,6 +252,20 @@ Result<CheckpointFile> WriteCheckpointFile(const std::string& dir, const std::st
   return file;
 }
 
+namespace {
+
+// A file's size and checksum against its manifest entry (`what` names the file).
+Status MatchesManifest(uint64_t size, uint64_t digest, const CheckpointFile& file, const std::string& what) {
+  if (size != file.size_bytes) {
+    return Fail(ErrorCode::kCorruptData, what + " has " + std::to_string(size) + " bytes, its manifest says " +
+                                             std::to_string(file.size_bytes));
+  }
+  if (digest != file.checksum) return Fail(ErrorCode::kCorruptData, what + " fails its checksum");
+  return Ok();
+}
+
+}  // namespace
+
 Status VerifyCheckpointFile(const std::string& dir, const CheckpointFile& file) {
   const std::string path = (std::filesystem::path(dir) / file.name).string();
   const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
@@ -276,23 +290,13 @@ Status VerifyCheckpointFile(const std::string& dir, const CheckpointFile& file) 
     size += static_cast<uint64_t>(n);
   }
   ::close(fd);
-  if (size != file.size_bytes) {
-    return Fail(ErrorCode::kCorruptData, "checkpoint file " + path + " has " + std::to_string(size) +
-                                             " bytes, its manifest says " + std::to_string(file.size_bytes));
-  }
-  if (checksum.Digest() != file.checksum) return Fail(ErrorCode::kCorruptData, "checkpoint file " + path + " fails its checksum");
-  return Ok();
+  return MatchesManifest(size, checksum.Digest(), file, "checkpoint file " + path);
 }
 
 Status VerifyCheckpointBytes(std::span<const uint8_t> bytes, const CheckpointFile& file, const std::string& what) {
-  if (bytes.size() != file.size_bytes) {
-    return Fail(ErrorCode::kCorruptData, what + " has " + std::to_string(bytes.size()) + " bytes, its manifest says " +
-                                             std::to_string(file.size_bytes));
-  }
   Checksum checksum;
   checksum.Update(bytes);
-  if (checksum.Digest() != file.checksum) return Fail(ErrorCode::kCorruptData, what + " fails its checksum");
-  return Ok();
+  return MatchesManifest(bytes.size(), checksum.Digest(), file, what);
 }
 
 void WriteGeometry(std::span<const GeometryImage> images, const ByteSink& sink) {
