@@ -267,6 +267,11 @@ Status MatchesManifest(uint64_t size, uint64_t digest, const CheckpointFile& fil
 }  // namespace
 
 Status VerifyCheckpointFile(const std::string& dir, const CheckpointFile& file) {
+  return *VerifyCheckpointFileUnless(dir, file, [] { return false; });
+}
+
+std::optional<Status> VerifyCheckpointFileUnless(const std::string& dir, const CheckpointFile& file,
+                                                 const std::function<bool()>& stop) {
   const std::string path = (std::filesystem::path(dir) / file.name).string();
   const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
   if (fd < 0) {
@@ -276,6 +281,10 @@ Status VerifyCheckpointFile(const std::string& dir, const CheckpointFile& file) 
   uint64_t size = 0;
   Checksum checksum;
   while (true) {
+    if (stop()) {
+      ::close(fd);
+      return std::nullopt;
+    }
     const ssize_t n = ::read(fd, buffer.data(), buffer.size());
     if (n < 0 && errno == EINTR) continue;
     if (n < 0) {

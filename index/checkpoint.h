@@ -96,6 +96,9 @@ using ByteSink = std::function<void(std::span<const uint8_t>)>;
 // Size and checksum of dir/file.name against the manifest, read with pread (the pages stay in the page
 // cache, not in this process's resident memory). kNotFound if missing, kCorruptData if different.
 [[nodiscard]] Status VerifyCheckpointFile(const std::string& dir, const CheckpointFile& file);
+// The same check, given up when `stop` returns true (asked before each 4 MiB read): nullopt then.
+[[nodiscard]] std::optional<Status> VerifyCheckpointFileUnless(const std::string& dir, const CheckpointFile& file,
+                                                               const std::function<bool()>& stop);
 // The same check of a file already mapped (`what` names it in errors): kCorruptData if different.
 [[nodiscard]] Status VerifyCheckpointBytes(std::span<const uint8_t> bytes, const CheckpointFile& file,
                                            const std::string& what);

@@ -66,7 +66,7 @@ void RunOnlyWhenIdle() {
 // A geometry file of the checkpoint an index opened from. Open checks its size and image table but
 // not its checksum (reading every geometry byte took most of an open at 1M images); its data is
 // checked on use instead: every use of an image checks that image's checksum (format version 3; ~9 KB
-// hashed per image), and the checkpointer checks the whole file once right after open. A file without
+// hashed per image), and a thread of the checkpointer checks the whole file once after open. A file without
 // per-image checksums (versions 1 and 2) is checked whole at the first use of one of its images (the
 // caller waits, concurrent callers wait for the same check). A part that fails a check is never
 // served: its images are read from the catalogue's BLOBs (through a read-only connection of its own,
@@ -77,17 +77,24 @@ class GeometryPart {
 
   const CheckpointFile& file() const { return file_; }
   // True when the file matches its manifest entry; verifies it on the first call (logged when not).
-  bool Verified() const {
-    if (state_.load(std::memory_order_acquire) == kGood) return true;
-    std::call_once(once_, [&] {
-      const Status status = VerifyCheckpointFile(dir_, file_);
-      if (!status) {
-        MarkDamaged(status.error().message);
+  bool Verified() const { return VerifiedUnless([] { return false; }).value(); }
+  // The same, except that a check still to do gives up when `stop` returns true (asked between reads):
+  // nullopt then, and a later call checks again. Concurrent callers wait for the same check.
+  std::optional<bool> VerifiedUnless(const std::function<bool()>& stop) const {
+    const int state = state_.load(std::memory_order_acquire);
+    if (state != kUnverified) return state == kGood;
+    std::lock_guard<std::mutex> lock(verify_mutex_);
+    if (!checked_) {
+      const std::optional<Status> status = VerifyCheckpointFileUnless(dir_, file_, stop);
+      if (!status.has_value()) return std::nullopt;
+      checked_ = true;
+      if (!*status) {
+        MarkDamaged(status->error().message);
       } else {
         int expected = kUnverified;  // a damaged image found meanwhile wins
         state_.compare_exchange_strong(expected, kGood, std::memory_order_acq_rel);
       }
-    });
+    }
     return state_.load(std::memory_order_acquire) == kGood;
   }
   // Verified and found damaged (false while not verified yet).
@@ -143,7 +150,8 @@ class GeometryPart {
 
   const std::string dir_;
   const CheckpointFile file_;
-  mutable std::once_flag once_;
+  mutable std::mutex verify_mutex_;
+  mutable bool checked_ = false;  // the whole file was checked; guarded by verify_mutex_
   mutable std::atomic<int> state_{kUnverified};
   mutable std::mutex repair_mutex_;
   mutable std::unique_ptr<Catalogue> catalogue_;                                  // guarded by repair_mutex_
@@ -322,6 +330,7 @@ struct ImageIndex::Impl {
   std::atomic<uint64_t> write_sequence{0};      // Catalogue::WriteSequence of the last commit
   bool checkpoint_forced = false;               // Open rebuilt or re-coded: checkpoint now; writer_mutex
   bool closing = false;                         // guarded by writer_mutex
+  std::atomic<bool> stop_verifying{false};      // set by Close: VerifyParts gives up
   uint64_t pending_after_failure = 0;           // changes of failed background checkpoints (for Close)
   std::condition_variable checkpoint_due;       // with writer_mutex: wakes the checkpointer
   std::thread checkpointer;                     // runs CheckpointLoop
@@ -355,10 +364,11 @@ struct ImageIndex::Impl {
   bool CheckpointDue() const;  // writer_mutex held
   // The geometry files `manifest` names that were found damaged (GeometryPart).
   std::set<std::string> DamagedGeometry(const CheckpointManifest& manifest) const;
-  // Writes checkpoints in the background while the index is open (started by Open and Create), after
-  // VerifyParts.
+  // Writes checkpoints in the background while the index is open (started by Open and Create), while
+  // VerifyParts runs beside it.
   void CheckpointLoop();
-  // Verifies every part not verified yet (stops early when closing).
+  // Verifies every part not verified yet (gives up when closing), then wakes the checkpointer if one
+  // was damaged.
   void VerifyParts();
   // After a write (writer_mutex held): counts it and wakes the checkpointer when one is due.
   void Changed(uint64_t images);
@@ -775,32 +785,36 @@ void ImageIndex::Impl::VerifyParts() {
   const auto t0 = Clock::now();
   size_t damaged = 0;
   for (const auto& part : geometry_parts) {
-    {
-      std::lock_guard<std::mutex> lock(writer_mutex);
-      if (closing) return;
-    }
-    if (!part->Verified()) ++damaged;
+    const std::optional<bool> good = part->VerifiedUnless([this] { return stop_verifying.load(); });
+    if (!good.has_value()) return;  // closing
+    if (!*good) ++damaged;
   }
   OXBOW_LOG(kInfo) << "index " << dir << ": " << geometry_parts.size() << " geometry files of the checkpoint verified in "
                    << MsSince(t0) << " ms, " << damaged << " damaged";
-  // A damaged file makes CheckpointDue() true: the loop that follows rewrites it.
+  // A damaged file makes CheckpointDue() true: the checkpointer rewrites it once woken (under the lock,
+  // so that the wake cannot fall between its test and its wait).
+  if (damaged > 0) {
+    std::lock_guard<std::mutex> lock(writer_mutex);
+    checkpoint_due.notify_one();
+  }
 }
 
 void ImageIndex::Impl::CheckpointLoop() {
   // The loaded geometry files are checked on a thread of their own in SCHED_IDLE: right after an open,
   // reading and hashing every file (several seconds at 1M images) would otherwise take a core from
   // the first searches, which then ran at half speed. A search never waits for it (an image it uses
-  // first is checked alone, GeometryPart::Sound); under a load that keeps every core busy the check
-  // waits, and so do checkpoints, as they always waited for it.
+  // first is checked alone, GeometryPart::Sound), and neither do checkpoints: under a load that keeps
+  // every core busy the check may not run for minutes. A checkpoint before it ends keeps the files
+  // not checked yet (their images are still checked on use); one found damaged later is rewritten by
+  // the next checkpoint, as DamagedGeometry names it in any manifest that still holds it.
   std::thread verifier([this] {
     RunOnlyWhenIdle();
     VerifyParts();
   });
-  verifier.join();
   std::unique_lock<std::mutex> lock(writer_mutex);
   while (true) {
     checkpoint_due.wait(lock, [&] { return closing || CheckpointDue(); });
-    if (closing) return;
+    if (closing) break;
     const auto snap = Current();
     const uint64_t changes = changes_since_checkpoint;
     const CheckpointManifest previous = checkpoint;
@@ -816,6 +830,8 @@ void ImageIndex::Impl::CheckpointLoop() {
       pending_after_failure += changes;
     }
   }
+  lock.unlock();
+  verifier.join();  // Close set stop_verifying: it gives up before its next read
 }
 
 void ImageIndex::Impl::Close() {
@@ -823,6 +839,7 @@ void ImageIndex::Impl::Close() {
     std::lock_guard<std::mutex> writer(writer_mutex);
     closing = true;
   }
+  stop_verifying = true;
   checkpoint_due.notify_one();
   if (checkpointer.joinable()) checkpointer.join();
   std::lock_guard<std::mutex> writer(writer_mutex);

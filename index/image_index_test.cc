@@ -1466,6 +1466,39 @@ TEST_F(CheckpointFixture, GeometryFilesAreVerifiedInTheBackgroundAfterOpen) {
   ExpectEqualsFresh(**index, Range(0, 20));
 }
 
+// Checkpoints do not wait for that check: on cores kept busy its SCHED_IDLE thread may not run for
+// minutes (held back here). A checkpoint meanwhile keeps the geometry file not checked yet.
+TEST_F(CheckpointFixture, CheckpointsDoNotWaitForTheBackgroundCheckOfTheGeometryFiles) {
+  {
+    auto index = CreateIndex();
+    for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+  }
+  ASSERT_EQ(CheckpointFiles(dir_), (std::vector<std::string>{"geometry-1-0.oxck", "postings-1.oxck"}));
+  // A later checkpoint was committed (postings-1 deleted), and it kept the file not checked yet.
+  const auto checkpointed = [&] {
+    const std::vector<std::string> files = CheckpointFiles(dir_);
+    return std::find(files.begin(), files.end(), "postings-1.oxck") == files.end() &&
+           std::find(files.begin(), files.end(), "geometry-1-0.oxck") != files.end();
+  };
+  {
+    std::promise<void> release = HoldBackGeometryVerification();
+    IndexOptions options;
+    options.checkpoint_changes = 1;
+    auto index = ImageIndex::Open(dir_.string(), options);
+    ASSERT_TRUE(index) << index.error().ToString();
+    for (int i = 20; i < 25; ++i) ASSERT_TRUE((*index)->Add("i" + std::to_string(i), Image(i), {}));
+    for (int i = 0; i < 300 && !checkpointed(); ++i) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    EXPECT_TRUE(checkpointed()) << "no checkpoint within 30 s while the geometry check waited";
+    release.set_value();
+    index->reset();
+    SetCheckpointStageHookForTesting(nullptr);
+  }
+  auto index = ImageIndex::Open(dir_.string());
+  ASSERT_TRUE(index) << index.error().ToString();
+  ExpectEqualsFresh(**index, Range(0, 25));
+  EXPECT_TRUE(checkpointed());
+}
+
 TEST_F(CheckpointFixture, KillAtEveryStageOfACheckpointLosesNothing) {
   SKIP_KILL_TEST_UNDER_TSAN();
   for (const std::string stage : {"file-unsynced", "files-written", "manifest-committed", "cleaned"}) {
