@@ -25,6 +25,7 @@
 #include "index/checkpoint.h"
 #include "index/cow_array.h"
 #include "index/feature_store.h"
+#include "index/folder_lock.h"
 #include "index/hamming.h"
 #include "index/inverted_file.h"
 #include "index/rerank.h"
@@ -317,6 +318,7 @@ struct ImageIndex::Snapshot {
 };
 
 struct ImageIndex::Impl {
+  FolderLock folder_lock;                       // first: released after everything else (folder_lock.h)
   std::string dir;
   IndexOptions index_options;
   vocab::Vocabulary vocabulary;
@@ -873,6 +875,9 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Create(const std::string& dir, c
   std::error_code ec;
   std::filesystem::create_directories(dir, ec);
   if (ec) return Fail(ErrorCode::kIoError, "cannot create " + dir + ": " + ec.message());
+  auto lock = FolderLock::Acquire(dir);
+  if (!lock) return std::unexpected(lock.error());
+  if (Exists(dir)) return Fail(ErrorCode::kAlreadyExists, dir + " already holds an index");  // made meanwhile
   // The vocabulary copy first (atomic write); the catalogue, created in one transaction, marks the index
   // as complete. A crash in between leaves a folder that Exists() does not report as an index.
   if (auto s = vocabulary.Write(JoinPath(dir, kVocabularyFile)); !s) return std::unexpected(s.error());
@@ -885,6 +890,7 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Create(const std::string& dir, c
   if (!catalogue) return std::unexpected(catalogue.error());
 
   auto impl = std::make_unique<Impl>(dir, options, vocabulary, std::move(extractor_settings));
+  impl->folder_lock = std::move(*lock);
   impl->catalogue = std::move(*catalogue);
   auto snap = std::make_shared<Snapshot>(InvertedFile(vocabulary.size(), ToTfIdf(options)));
   for (auto& shard : snap->ids) shard = std::make_shared<IdShard>();
@@ -897,6 +903,8 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, con
   if (auto e = options.Check()) return Fail(ErrorCode::kInvalidArgument, "index options: " + *e);
   const std::string catalogue_path = JoinPath(dir, kCatalogueFile);
   if (!Exists(dir)) return Fail(ErrorCode::kNotFound, "no index at " + dir + " (missing " + kCatalogueFile + ")");
+  auto lock = FolderLock::Acquire(dir);
+  if (!lock) return std::unexpected(lock.error());
   auto catalogue = Catalogue::Open(catalogue_path);
   if (!catalogue) return std::unexpected(catalogue.error());
   const CatalogueMeta& meta = (*catalogue)->meta();
@@ -923,6 +931,7 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, con
 
   const size_t vocab_size = vocabulary->size();
   auto impl = std::make_unique<Impl>(dir, options, std::move(*vocabulary), meta.extractor_settings);
+  impl->folder_lock = std::move(*lock);
   std::shared_ptr<Snapshot> snap;
   if (loaded) {
     if (!*loaded) return std::unexpected(loaded->error());

@@ -1499,6 +1499,49 @@ TEST_F(CheckpointFixture, CheckpointsDoNotWaitForTheBackgroundCheckOfTheGeometry
   EXPECT_TRUE(checkpointed());
 }
 
+// One process at a time in a folder (folder_lock.h): a second open, in this process or another, is
+// refused while the first holds it, and works once it closed or died by kill -9 (no stale lock).
+TEST_F(CheckpointFixture, AnIndexFolderIsOpenInOneProcessAtATime) {
+  SKIP_KILL_TEST_UNDER_TSAN();
+  const auto refused_by = [&](const std::string& holder) {
+    auto second = ImageIndex::Open(dir_.string());
+    if (second) return ::testing::AssertionFailure() << "a second open of the folder was allowed";
+    const std::string& message = second.error().message;
+    if (second.error().code != ErrorCode::kIoError || message.find("open in another process") == std::string::npos ||
+        message.find("(pid " + holder + ")") == std::string::npos) {
+      return ::testing::AssertionFailure() << second.error().ToString();
+    }
+    return ::testing::AssertionSuccess();
+  };
+  {
+    auto index = CreateIndex();
+    for (int i = 0; i < 5; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+    EXPECT_TRUE(refused_by(std::to_string(::getpid())));
+    EXPECT_EQ(ImageIndex::Create(dir_.string(), vocabulary_, "test-extractor/1").error().code, ErrorCode::kAlreadyExists);
+  }
+  int ready[2];
+  ASSERT_EQ(::pipe(ready), 0);
+  const pid_t pid = fork();
+  ASSERT_GE(pid, 0);
+  if (pid == 0) {
+    auto index = ImageIndex::Open(dir_.string());
+    if (!index) ::_exit(2);
+    (void)!::write(ready[1], "o", 1);
+    while (true) ::pause();  // holds the folder until killed
+  }
+  ::close(ready[1]);
+  char byte = 0;
+  ASSERT_EQ(::read(ready[0], &byte, 1), 1) << "the child could not open the index";
+  ::close(ready[0]);
+  EXPECT_TRUE(refused_by(std::to_string(pid)));
+  ::kill(pid, SIGKILL);
+  int status = 0;
+  ASSERT_EQ(::waitpid(pid, &status, 0), pid);
+  auto index = ImageIndex::Open(dir_.string());
+  ASSERT_TRUE(index) << index.error().ToString();
+  ExpectEqualsFresh(**index, Range(0, 5));
+}
+
 TEST_F(CheckpointFixture, KillAtEveryStageOfACheckpointLosesNothing) {
   SKIP_KILL_TEST_UNDER_TSAN();
   for (const std::string stage : {"file-unsynced", "files-written", "manifest-committed", "cleaned"}) {

@@ -101,13 +101,21 @@ TEST(EvalEndToEnd, GroupsProtocolThroughTheHttpServer) {
   EXPECT_GE(reranked["map"].get<double>() + 1e-9, tfidf["map"].get<double>() - 0.1);
   EXPECT_TRUE(fs::exists(dir / "report" / "report.md"));
   EXPECT_TRUE(fs::exists(dir / "report" / "plots" / "ap_per_query.png"));
-  // A second run reuses the cached vocabulary and index (no rebuild): build times are zero.
+  // A second run reuses the cached vocabulary and index (no rebuild): build times are zero. With
+  // --mode both the HTTP runs come first, then the in-process ones, which open the index only after
+  // the server stopped (one process at a time in a folder).
   std::string again;
-  ASSERT_EQ(RunShell(command, &again), 0) << again;
+  ASSERT_EQ(RunShell(command + " --mode both", &again), 0) << again;
   std::ifstream in2(dir / "report" / "results.json");
   const auto second = nlohmann::json::parse(in2);
+  ASSERT_EQ(second["runs"].size(), 4u) << again;
   EXPECT_EQ(second["runs"][1]["build_index_s"].get<double>(), 0.0);
+  EXPECT_EQ(second["runs"][1]["settings"]["path"], "http");
   EXPECT_DOUBLE_EQ(second["runs"][1]["map"].get<double>(), reranked["map"].get<double>());
+  EXPECT_EQ(second["runs"][3]["settings"]["path"], "in-process");
+  EXPECT_EQ(second["runs"][3]["settings"]["rerank"], "100");
+  EXPECT_EQ(second["runs"][3]["queries"].size(), 8u);
+  EXPECT_GT(second["runs"][3]["map"].get<double>(), 0.6) << again;
   // The cached index holds the distractors: a run without them must not score it as if it did not.
   std::string without;
   EXPECT_EQ(RunShell(base, &without), 2) << without;

@@ -408,6 +408,35 @@ TEST_F(HttpServerTest, RestartKeepsDataAndGracefulStopFinishesInFlightRequests) 
   EXPECT_NE(broken.Log().find("--vocab"), std::string::npos) << broken.Log();
 }
 
+// A second server on the folder or the port of a running one is refused with a clear error, and the
+// first goes on serving: no two processes write one index (index/folder_lock.h), no two servers split
+// the connections of one port (SO_REUSEPORT is off).
+TEST_F(HttpServerTest, ASecondServerOnTheSameFolderOrPortIsRefused) {
+  const std::string index_dir = dir_->path() + "/index-" + std::to_string(counter_++);
+  auto first = Start({}, index_dir);
+  ASSERT_EQ(StatusOf(first->Client().Post("/v1/images?id=box", box_, "image/png")), 201);
+
+  const std::string folder_log = dir_->path() + "/server-" + std::to_string(counter_++) + ".log";
+  ServerProcess same_folder({"serve", "--index", index_dir, "--port", "0", "--vocab", vocab_}, folder_log);
+  EXPECT_EQ(same_folder.Wait(), 7) << same_folder.Log();
+  EXPECT_NE(same_folder.Log().find("open in another process (pid " + std::to_string(first->pid()) + ")"),
+            std::string::npos)
+      << same_folder.Log();
+
+  const std::string port_log = dir_->path() + "/server-" + std::to_string(counter_++) + ".log";
+  ServerProcess same_port({"serve", "--index", dir_->path() + "/index-" + std::to_string(counter_++), "--port",
+                           std::to_string(first->port()), "--vocab", vocab_},
+                          port_log);
+  EXPECT_EQ(same_port.port(), 0) << "a second server listens on the port of the first";
+  EXPECT_NE(same_port.Wait(), 0) << same_port.Log();
+  EXPECT_NE(same_port.Log().find("cannot bind 127.0.0.1:" + std::to_string(first->port())), std::string::npos)
+      << same_port.Log();
+
+  auto client = first->Client();
+  EXPECT_EQ(StatusOf(client.Get("/readyz")), 200);
+  EXPECT_EQ(StatusOf(client.Get("/v1/images/box")), 200);
+}
+
 TEST_F(HttpServerTest, KillNineDuringAddsLosesNoAcknowledgedImage) {
   const std::string index_dir = dir_->path() + "/kill9";
   std::set<std::string> acknowledged;

@@ -556,19 +556,24 @@ void Run(const EvalArgs& a, const std::string& command_line) {
       base.index_features = stats.num_features;
       base.index_bytes_per_feature = stats.bytes_per_feature;
       base.vocabulary_words = stats.vocabulary_size;
-      if (!external && a.mode != "in-process") {
-        idx.reset();  // the server opens the index itself
-        server = std::make_unique<ServerProcess>(exe, index_dir, (fs::path(config.Dir(a.work)) / "serve.log").string(),
-                                                 a.threads);
-      }
-      for (int rerank : a.rerank) {
-        for (const auto& [qe_text, transitive_text] : Combinations(a.qe, a.transitive)) {
-          const bool qe = qe_text == "on", transitive = transitive_text == "on";
-          // QE and transitive verification build on verified results: both need re-ranking.
-          if ((qe || !transitive) && rerank == 0) continue;
-          for (const HammingSetting& hamming : hamming_settings) {
-            for (const std::string& mode : kModes) {
-              if (external ? mode != "http" : a.mode != "both" && a.mode != mode) continue;
+      // Every HTTP run, then every in-process run: one process at a time may open the index folder
+      // (index/folder_lock.h), so the server is stopped before this process opens it.
+      for (const std::string& mode : kModes) {
+        if (external ? mode != "http" : a.mode != "both" && a.mode != mode) continue;
+        if (!external && mode == "http") {
+          idx.reset();  // the server opens the index itself
+          server = std::make_unique<ServerProcess>(exe, index_dir, (fs::path(config.Dir(a.work)) / "serve.log").string(),
+                                                   a.threads);
+        } else if (!external) {
+          server.reset();  // waits for its exit, which releases the folder
+          if (!idx) idx = ValueOrExit(index::ImageIndex::Open(index_dir));
+        }
+        for (int rerank : a.rerank) {
+          for (const auto& [qe_text, transitive_text] : Combinations(a.qe, a.transitive)) {
+            const bool qe = qe_text == "on", transitive = transitive_text == "on";
+            // QE and transitive verification build on verified results: both need re-ranking.
+            if ((qe || !transitive) && rerank == 0) continue;
+            for (const HammingSetting& hamming : hamming_settings) {
               eval::RunResult run = base;
               run.label = (external ? server_url : features) + " " + std::to_string(words / 1000) + "k" +
                           (rerank > 0 ? " +rerank" + std::to_string(rerank) : "") +
@@ -600,7 +605,6 @@ void Run(const EvalArgs& a, const std::string& command_line) {
                 RunHttp(a, protocol, database, external ? server_url : "http://127.0.0.1:" + std::to_string(server->port()),
                         rerank, qe, transitive, hamming, top_k, &run);
               } else {
-                if (!idx) idx = ValueOrExit(index::ImageIndex::Open(index_dir));
                 RunInProcess(a, protocol, database, *idx, rerank, qe, transitive, hamming, top_k, &run);
               }
               eval::Summarise(&run);

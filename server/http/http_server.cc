@@ -3,6 +3,7 @@
 #include <httplib.h>
 #include <malloc.h>
 #include <poll.h>
+#include <sys/socket.h>
 
 #include <chrono>
 #include <cstdio>
@@ -616,6 +617,13 @@ HttpServer::HttpServer(const HttpServerOptions& options, CustomRoutes routes)
   // httplib writes the headers and the body separately; with Nagle's algorithm the body then waits for
   // the client's delayed ACK (40 ms on Linux) on every response of a keep-alive connection.
   http_->set_tcp_nodelay(true);
+  // httplib's default sets SO_REUSEPORT, with which a second server binds the same port and the kernel
+  // splits the connections between both. SO_REUSEADDR alone still allows a restart while the old
+  // connections linger in TIME_WAIT, and a port in use is refused (Bind's error).
+  http_->set_socket_options([](socket_t sock) {
+    int yes = 1;
+    (void)setsockopt(sock, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof(yes));
+  });
   // glibc raises its mmap threshold to the largest block freed (up to 32 MiB), after which request
   // bodies and decoded images come from the per-thread arenas, where a freed block stays resident: a
   // burst of 20 MB uploads left ~800 MiB resident for good (issue 19; README "memory"). A fixed

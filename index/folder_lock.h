@@ -1,0 +1,39 @@
+// FolderLock: one process at a time in an index folder.
+//
+// An open ImageIndex writes checkpoint files in the background and, when it opens, deletes the files
+// its manifest does not name (checkpoint.h). Two opens of one folder would each delete the other's
+// files not committed yet, so ImageIndex::Create and ::Open take this lock first and hold it until
+// closed: a second open, by another process or the same one, is refused with a clear error.
+//
+// The lock is flock(2) on DIR/LOCK (exclusive, not waiting). The kernel drops it when its holder's
+// file is closed, including when the process dies (kill -9, a crash): a restart never meets a stale
+// lock. The file keeps the holder's pid, for the refusal's message only; the file itself stays.
+#pragma once
+
+#include <string>
+
+#include "sift/base/error.h"
+
+namespace oxbow::index {
+
+inline constexpr const char* kLockFile = "LOCK";
+
+class FolderLock {
+ public:
+  // Takes the lock of the existing folder `dir`. kIoError when another holder has it (the message
+  // names its pid when known) or the file cannot be opened.
+  [[nodiscard]] static Result<FolderLock> Acquire(const std::string& dir);
+
+  FolderLock() = default;
+  FolderLock(FolderLock&& other) noexcept;
+  FolderLock& operator=(FolderLock&& other) noexcept;
+  FolderLock(const FolderLock&) = delete;
+  FolderLock& operator=(const FolderLock&) = delete;
+  ~FolderLock();
+
+ private:
+  explicit FolderLock(int fd) : fd_(fd) {}
+  int fd_ = -1;
+};
+
+}  // namespace oxbow::index
