@@ -9,6 +9,8 @@
 #include <filesystem>
 #include <utility>
 
+#include "sift/base/log.h"
+
 namespace oxbow::index {
 
 namespace {
@@ -42,6 +44,14 @@ Result<FolderLock> FolderLock::Acquire(const std::string& dir) {
   } while (rc != 0 && errno == EINTR);
   if (rc != 0) {
     const int error = errno;
+    if (error == ENOLCK || error == EOPNOTSUPP || error == ENOSYS) {
+      // A file system without locks (some network and FUSE ones) must not make every index on it
+      // unusable: the folder opens unlocked, and the log says what that leaves to the user.
+      OXBOW_LOG(kWarning) << "cannot lock " << path << " (" << std::strerror(error)
+                          << "): its file system offers no locks; make sure that one process at a time opens "
+                          << dir;
+      return FolderLock(fd);
+    }
     const std::string holder = error == EWOULDBLOCK ? HolderOf(fd) : "";
     ::close(fd);
     if (error != EWOULDBLOCK) {

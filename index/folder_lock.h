@@ -7,7 +7,9 @@
 //
 // The lock is flock(2) on DIR/LOCK (exclusive, not waiting). The kernel drops it when its holder's
 // file is closed, including when the process dies (kill -9, a crash): a restart never meets a stale
-// lock. The file keeps the holder's pid, for the refusal's message only; the file itself stays.
+// lock. The file keeps the holder's pid, for the refusal's message only; the file itself stays. On a
+// file system without locks (flock fails with ENOLCK or EOPNOTSUPP) the folder opens unlocked, with a
+// warning in the log.
 #pragma once
 
 #include <string>
