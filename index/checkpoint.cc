@@ -267,7 +267,8 @@ Status MatchesManifest(uint64_t size, uint64_t digest, const CheckpointFile& fil
 }  // namespace
 
 Status VerifyCheckpointFile(const std::string& dir, const CheckpointFile& file) {
-  return *VerifyCheckpointFileUnless(dir, file, [] { return false; });
+  std::optional<Status> status = VerifyCheckpointFileUnless(dir, file, [] { return false; });
+  return status.has_value() ? std::move(*status) : Fail(ErrorCode::kInternal, "the check of " + file.name + " stopped");
 }
 
 std::optional<Status> VerifyCheckpointFileUnless(const std::string& dir, const CheckpointFile& file,

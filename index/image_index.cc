@@ -78,7 +78,10 @@ class GeometryPart {
 
   const CheckpointFile& file() const { return file_; }
   // True when the file matches its manifest entry; verifies it on the first call (logged when not).
-  bool Verified() const { return VerifiedUnless([] { return false; }).value(); }
+  bool Verified() const {
+    const std::optional<bool> good = VerifiedUnless([] { return false; });  // never stops
+    return good.has_value() && *good;
+  }
   // The same, except that a check still to do gives up when `stop` returns true (asked between reads):
   // nullopt then, and a later call checks again. Concurrent callers wait for the same check.
   std::optional<bool> VerifiedUnless(const std::function<bool()>& stop) const {
