@@ -331,6 +331,22 @@ TEST_F(Cluster, FrontRefusesOptionsItDoesNotServe) {
   for (size_t i = 0; i < a->results.size(); ++i) EXPECT_EQ(a->results[i].id, b->results[i].id) << i;
 }
 
+// A second shard on the gRPC port of a running one is refused (no SO_REUSEPORT): the kernel would
+// otherwise split the front's connections between the two.
+TEST_F(Cluster, ASecondShardOnTheSameGrpcPortIsRefused) {
+  const std::string first = StartShard(0);
+  ASSERT_FALSE(first.empty()) << shards_.back()->Log();
+  const testing::ServerProcess& running = *shards_.back();
+  const std::string port = first.substr(first.rfind(':') + 1);
+  testing::ServerProcess second({"serve", "--index", api::PartitionFolder(dir_->path() + "/cluster", 1), "--port", "0",
+                                 "--grpc-port", port, "--index-threads", "1"},
+                                dir_->path() + "/shard-" + std::to_string(started_++) + ".log");
+  EXPECT_EQ(second.port(), 0) << "a second shard started on gRPC port " << port;
+  EXPECT_EQ(second.Wait(), 7) << second.Log();
+  EXPECT_NE(second.Log().find("cannot listen for gRPC on 127.0.0.1:" + port), std::string::npos) << second.Log();
+  EXPECT_TRUE(running.WaitReady()) << "the first shard stopped serving";
+}
+
 TEST_F(Cluster, AReplicaDownChangesNothingAPartitionDownIsPartialOrRefused) {
   cluster::ClusterConfig config;
   ASSERT_NO_FATAL_FAILURE(StartCluster(&config));

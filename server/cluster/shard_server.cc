@@ -306,6 +306,10 @@ Result<int> ShardServer::Start(const std::string& host, int port) {
   grpc::ServerBuilder builder;
   int bound = 0;
   builder.AddListeningPort(host + ":" + std::to_string(port), grpc::InsecureServerCredentials(), &bound);
+  // gRPC sets SO_REUSEPORT by default, with which a second shard binds the same port and the kernel
+  // splits the front's connections between both; a port in use is refused instead, as for HTTP
+  // (server/http/http_server.cc). gRPC keeps SO_REUSEADDR, so a restart on the port still binds.
+  builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
   // An add carries the image (the shard's own --max-upload-mb bounds it), over gRPC's default 4 MiB.
   builder.SetMaxReceiveMessageSize(-1);
   builder.RegisterService(impl_.get());
