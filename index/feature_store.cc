@@ -6,6 +6,9 @@
 #include <numbers>
 #include <numeric>
 
+#include <sys/mman.h>
+#include <unistd.h>
+
 #include "sift/base/binary_io.h"
 
 namespace oxbow::index {
@@ -182,6 +185,21 @@ Result<PackedFeatures> PackedFeatures::Deserialize(std::span<const uint8_t> blob
     if (viewed->word(i - 1) > viewed->word(i)) return corrupt("features not sorted by word");
   }
   return viewed;
+}
+
+namespace {
+void AdviseWillNeed(std::span<const uint8_t> bytes) {
+  if (bytes.empty()) return;
+  static const auto page = static_cast<uintptr_t>(::sysconf(_SC_PAGESIZE));
+  const auto begin = reinterpret_cast<uintptr_t>(bytes.data()) & ~(page - 1);
+  const auto end = reinterpret_cast<uintptr_t>(bytes.data() + bytes.size());
+  ::madvise(reinterpret_cast<void*>(begin), end - begin, MADV_WILLNEED);  // a hint: errors ignored
+}
+}  // namespace
+
+void PackedFeatures::WillNeed() const {
+  AdviseWillNeed(bytes_);
+  AdviseWillNeed(signature_bytes_);
 }
 
 Result<PackedFeatures> PackedFeatures::View(std::span<const uint8_t> bytes, std::span<const uint8_t> signature_bytes,

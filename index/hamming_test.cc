@@ -5,11 +5,17 @@
 
 #include <gtest/gtest.h>
 
+#include <fcntl.h>
+#include <sys/mman.h>
+#include <unistd.h>
+
 #include <bit>
+#include <chrono>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <random>
+#include <thread>
 #include <utility>
 #include <vector>
 
@@ -148,6 +154,77 @@ TEST(PackedSignaturesTest, BlobAndCheckpointRoundTripAndOldFormatsStillLoad) {
       EXPECT_NE(ImageChecksum(with), ImageChecksum(without)) << "the checksum covers the signatures";
     }
   }
+  fs::remove_all(dir);
+}
+
+// The features a search is about to read (its shortlist) are asked for at once: WillNeed on a view of
+// a mapped geometry file whose pages are not in memory starts reading them, and the pages arrive
+// without a fault (mincore sees them). Without the hint the pages stay on disk until first touched.
+TEST(PackedSignaturesTest, WillNeedReadsAMappedImageIntoMemoryBeforeItsFirstUse) {
+  std::mt19937_64 rng(9);
+  const size_t n = 40000;  // 360 KB of records and 320 KB of signatures: many pages of each
+  std::vector<uint32_t> words(n);
+  std::vector<uint64_t> signatures(n);
+  for (size_t i = 0; i < n; ++i) {
+    words[i] = static_cast<uint32_t>(rng() % 5000);
+    signatures[i] = rng();
+  }
+  const PackedFeatures packed = PackedFeatures::Pack(RandomKeypoints(rng, n), words, 640, 480, signatures);
+  // Beside the test binary, not in /tmp: pages of a tmpfs file are always in memory.
+  const fs::path dir = fs::current_path() / ("oxbow_willneed_" + std::to_string(::getpid()));
+  fs::create_directories(dir);
+  const std::string path = (dir / "geometry.oxck").string();
+  {
+    std::vector<uint8_t> file;
+    WriteGeometry(std::vector<GeometryImage>{{1, packed, std::nullopt}},
+                  [&](std::span<const uint8_t> b) { file.insert(file.end(), b.begin(), b.end()); });
+    std::ofstream(path, std::ios::binary).write(reinterpret_cast<const char*>(file.data()),
+                                                static_cast<std::streamsize>(file.size()));
+  }
+  // Out of the page cache: written back, then dropped (clean pages no process maps).
+  const int fd = ::open(path.c_str(), O_RDONLY);
+  ASSERT_GE(fd, 0);
+  ASSERT_EQ(::fdatasync(fd), 0);
+  ASSERT_EQ(::posix_fadvise(fd, 0, 0, POSIX_FADV_DONTNEED), 0);
+  ::close(fd);
+  auto mapped = MappedFile::Open(path);
+  ASSERT_TRUE(mapped);
+  auto read = ReadGeometry(*mapped, "test");
+  ASSERT_TRUE(read) << read.error().ToString();
+  const PackedFeatures& view = (*read)[0].features;
+  const auto page = static_cast<uintptr_t>(::sysconf(_SC_PAGESIZE));
+  // Resident pages among those of `bytes` past its first page (ReadGeometry read the file's header,
+  // which may share the first one).
+  const auto resident = [&](std::span<const uint8_t> bytes) {
+    const uintptr_t begin = (reinterpret_cast<uintptr_t>(bytes.data()) + page) & ~(page - 1);
+    const uintptr_t end = (reinterpret_cast<uintptr_t>(bytes.data() + bytes.size())) & ~(page - 1);
+    std::vector<unsigned char> in((end - begin) / page);
+    EXPECT_EQ(::mincore(reinterpret_cast<void*>(begin), end - begin, in.data()), 0);
+    size_t count = 0;
+    for (const unsigned char c : in) count += c & 1;
+    return std::pair(count, in.size());
+  };
+  const auto [records_before, record_pages] = resident(view.bytes());
+  const auto [signatures_before, signature_pages] = resident(view.signature_bytes());
+  ASSERT_GT(record_pages, 50u);
+  ASSERT_GT(signature_pages, 50u);
+  if (records_before + signatures_before > (record_pages + signature_pages) / 2) {
+    fs::remove_all(dir);
+    GTEST_SKIP() << "the file system of " << dir << " keeps files in memory (posix_fadvise dropped "
+                 << "nothing): WillNeed cannot be observed there";
+  }
+  view.WillNeed();
+  // The reads run in the background: wait for them (seconds at most; no timing is asserted).
+  size_t records = 0, signed_pages = 0;
+  for (int i = 0; i < 500; ++i) {
+    records = resident(view.bytes()).first;
+    signed_pages = resident(view.signature_bytes()).first;
+    if (records == record_pages && signed_pages == signature_pages) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  EXPECT_EQ(records, record_pages);
+  EXPECT_EQ(signed_pages, signature_pages);
+  EXPECT_EQ(view.Words(), packed.Words());  // and they are the image's features
   fs::remove_all(dir);
 }
 

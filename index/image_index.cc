@@ -2,6 +2,8 @@
 
 #include <pthread.h>
 #include <sched.h>
+#include <sys/syscall.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <array>
@@ -55,13 +57,19 @@ std::string JoinPath(const std::string& dir, const char* file) {
 
 size_t ShardOf(const std::string& id) { return std::hash<std::string>{}(id) % kIdShards; }
 
-// Puts the calling thread in Linux's SCHED_IDLE class: it runs only on a core no other thread wants.
-// Best effort (a refusal leaves it as it was); allowed without privileges, and not undone: call it on
-// a thread that ends with its work.
+// Puts the calling thread in Linux's SCHED_IDLE class: it runs only on a core no other thread wants;
+// and its disk reads in the idle I/O class, served when no other reads wait (where the I/O scheduler
+// knows classes: mq-deadline and BFQ do), so that the first searches' page faults on a cold disk are
+// not queued behind its large sequential reads. Best effort (a refusal leaves it as it was); allowed
+// without privileges, and not undone: call it on a thread that ends with its work.
 void RunOnlyWhenIdle() {
   sched_param param{};
   param.sched_priority = 0;
   (void)pthread_setschedparam(pthread_self(), SCHED_IDLE, &param);
+  // ioprio_set(IOPRIO_WHO_PROCESS, 0 = this thread, IOPRIO_PRIO_VALUE(IOPRIO_CLASS_IDLE, 0)); glibc
+  // has no wrapper, and the constants are those of <linux/ioprio.h>.
+  constexpr int kWhoProcess = 1, kClassIdle = 3, kClassShift = 13;
+  (void)::syscall(SYS_ioprio_set, kWhoProcess, 0, kClassIdle << kClassShift);
 }
 
 // A geometry file of the checkpoint an index opened from. Open checks its size and image table but
@@ -1323,6 +1331,9 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
   std::vector<ScoredImage> scored =
       snap.inverted.Score(terms, depth, &scratch, &response.candidates, allowed, index_options.num_threads,
                           static_cast<uint64_t>(options.max_scored_postings));
+  // The features of the candidates read next (Hamming scores, verification): their reads start at once.
+  const size_t to_read = std::min(scored.size(), hamming ? depth : static_cast<size_t>(options.rerank_depth));
+  for (size_t c = 0; c < to_read; ++c) snap.entries[scored[c].image]->stored.WillNeed();
   // 1b. Hamming-embedding re-scoring of the shortlist.
   if (hamming) RescoreHamming(snap, query, options, scored);
   timings.score_ms = MsSince(t);
