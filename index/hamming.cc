@@ -38,18 +38,24 @@ double QuerySignatures::IdfSquared(uint32_t word) const {
   return (*idf_squared_)[word];
 }
 
-double QuerySignatures::Score(const PackedFeatures& db) const {
+template <bool kSelf>
+double QuerySignatures::Votes(const PackedFeatures& db, double* self_db) const {
   OXBOW_CHECK(db.has_signatures(), "Hamming scoring needs the candidate's signatures");
   thread_local std::vector<double> strength, query_total, db_total;
   const size_t nd = db.size();
-  double self_db = 0, votes = 0;
+  double votes = 0;
   size_t r = 0;  // first query run whose word may still occur in the db (db words ascend)
   for (size_t j = 0; j < nd;) {
     const uint32_t w = db.word(j);
+    // Without N_d to sum, a db word the query lacks (most of them: one bit test) needs nothing more.
+    if (!kSelf && !runs_.Has(w)) {
+      ++j;
+      continue;
+    }
     size_t j2 = j + 1;
     while (j2 < nd && db.word(j2) == w) ++j2;
     const double idf2 = IdfSquared(w);
-    self_db += idf2 * static_cast<double>(j2 - j);
+    if constexpr (kSelf) *self_db += idf2 * static_cast<double>(j2 - j);
     // The query's run of w, [i, i2): empty for most db words, which one bit test tells (an expanded
     // query holds tens of thousands of features: a merge step per feature was most of Score's time).
     const auto [i, i2] = runs_.Find(w, r);
@@ -81,8 +87,20 @@ double QuerySignatures::Score(const PackedFeatures& db) const {
     }
     j = j2;
   }
+  return votes;
+}
+
+double QuerySignatures::Score(const PackedFeatures& db) const {
+  double self_db = 0;
+  const double votes = Votes<true>(db, &self_db);
   if (votes <= 0 || self_ <= 0 || self_db <= 0) return 0;
   return votes / std::sqrt(self_ * self_db);
+}
+
+double QuerySignatures::Score(const PackedFeatures& db, double candidate_self) const {
+  const double votes = Votes<false>(db, nullptr);
+  if (votes <= 0 || self_ <= 0 || candidate_self <= 0) return 0;
+  return votes / std::sqrt(self_ * candidate_self);
 }
 
 }  // namespace oxbow::index

@@ -87,6 +87,52 @@ TEST(QuerySignaturesTest, ScoresMatchingSignaturesAndDownWeightsBursts) {
   EXPECT_NEAR(burst, 4.0 * 2.0 / std::sqrt(13.0 * 16.0), 1e-12);
 }
 
+// The index scores a shortlist with each candidate's N_d given as its tf-idf norm squared (sqrt(tf)
+// weighting, the default), which lets Score skip the candidate's words the query lacks: the norm must
+// be N_d, and the score with it given must equal the one Score computes alone.
+TEST(QuerySignaturesTest, TheNormSquaredIsTheCandidatesSelfScoreAndGivesTheSameScores) {
+  std::mt19937_64 rng(11);
+  constexpr uint32_t kVocabulary = 400, kImages = 40;
+  std::vector<std::vector<uint32_t>> words(kImages);
+  std::vector<std::vector<uint64_t>> signatures(kImages);
+  for (uint32_t n = 0; n < kImages; ++n) {
+    for (int f = 0; f < 300; ++f) {
+      const uint64_t r = rng() % kVocabulary;
+      words[n].push_back(static_cast<uint32_t>(r * r / kVocabulary));  // skewed: repeats and bursts
+      signatures[n].push_back(rng());
+    }
+  }
+  const InvertedFile file = InvertedFile::Build(kVocabulary, TfIdfOptions{}, kImages, [&](uint32_t n, BagOfWords* bag) {
+    *bag = BagOfWords::FromWords(words[n]);
+    return true;
+  }, 1);
+  ASSERT_TRUE(file.options().sqrt_tf);
+  const auto idf_squared = file.IdfSquaredTable();
+  // The query: image 0's features, half of their signatures a few bits off, plus words of image 1.
+  std::vector<uint32_t> query_words = words[0];
+  std::vector<uint64_t> query_signatures = signatures[0];
+  for (size_t i = 0; i < query_signatures.size(); i += 2) query_signatures[i] ^= 0x10101ull;
+  for (size_t i = 0; i < 50; ++i) {
+    query_words.push_back(words[1][i]);
+    query_signatures.push_back(signatures[1][i] ^ 0xF0ull);
+  }
+  const QuerySignatures query(query_words, query_signatures, idf_squared, HammingWeighting{});
+  size_t positive = 0;
+  for (uint32_t n = 0; n < kImages; ++n) {
+    SCOPED_TRACE("image " + std::to_string(n));
+    const PackedFeatures db = Packed(words[n], signatures[n]);
+    double self = 0;
+    for (const uint32_t w : words[n]) self += (*idf_squared)[w];
+    const double norm = file.Norm(n);
+    EXPECT_NEAR(norm * norm, self, 1e-9 * self);
+    const double alone = query.Score(db), given = query.Score(db, norm * norm);
+    EXPECT_NEAR(given, alone, 1e-12 * std::max(1.0, alone));
+    positive += alone > 0 ? 1 : 0;
+  }
+  EXPECT_GE(positive, 2u);  // images 0 and 1 at least
+  EXPECT_EQ(query.Score(Packed(words[2], signatures[2]), 0.0), 0.0);  // N_d 0: nothing to normalise by
+}
+
 TEST(PackedSignaturesTest, BlobAndCheckpointRoundTripAndOldFormatsStillLoad) {
   std::mt19937_64 rng(5);
   const std::vector<uint32_t> words = {7, 3, 7, 1, 3};

@@ -1390,14 +1390,23 @@ namespace {
 
 // The Hamming-embedding score of each image (by number) against `signatures`, or NaN for an image
 // stored without signatures (pre-assigned words), on `threads` threads.
+// With sqrt(tf) weighting (the default) a candidate's N_d is its tf-idf norm squared, which the inverted
+// file keeps: Score then skips the candidate's words the query lacks (hamming.h).
 std::vector<double> HammingScores(const ImageIndex::Snapshot& snap, const QuerySignatures& signatures,
                                   std::span<const uint32_t> images, int threads) {
   std::vector<double> out(images.size());
+  const bool norm_is_self = snap.inverted.options().sqrt_tf;
   ParallelFor(images.size(), threads, 8, [&](size_t begin, size_t end, int) {
     for (size_t c = begin; c < end; ++c) {
       const PackedFeatures& features = snap.entries[images[c]]->features();
-      out[c] = features.signature_bytes().empty() && features.size() > 0 ? std::nan("")
-                                                                        : signatures.Score(features);
+      if (features.signature_bytes().empty() && features.size() > 0) {
+        out[c] = std::nan("");
+      } else if (norm_is_self) {
+        const double norm = snap.inverted.Norm(images[c]);
+        out[c] = signatures.Score(features, norm * norm);
+      } else {
+        out[c] = signatures.Score(features);
+      }
     }
   });
   return out;

@@ -33,10 +33,13 @@ class WordRuns {
     }
   }
 
+  // Whether word w has a run (one bit test).
+  bool Has(uint32_t w) const { return w / 64 < has_word_.size() && (has_word_[w / 64] >> (w % 64) & 1) != 0; }
+
   // The positions [first, second) of word w's run; empty (0, 0) when w is absent. Successive calls
   // must ask for ascending words with the same `cursor` (0 before the first call).
   std::pair<size_t, size_t> Find(uint32_t w, size_t& cursor) const {
-    if (w / 64 >= has_word_.size() || (has_word_[w / 64] >> (w % 64) & 1) == 0) return {0, 0};
+    if (!Has(w)) return {0, 0};
     cursor = static_cast<size_t>(std::lower_bound(words_.begin() + static_cast<std::ptrdiff_t>(cursor), words_.end(), w) -
                                  words_.begin());
     return {begin_[cursor], begin_[cursor + 1]};
