@@ -2,11 +2,13 @@
 
 #include <fcntl.h>
 #include <sys/mman.h>
+#include <sys/resource.h>
 #include <sys/stat.h>
 #include <unistd.h>
 #include <xxhash.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cerrno>
 #include <cstring>
 #include <filesystem>
@@ -130,6 +132,26 @@ Result<CheckpointManifest> CheckpointManifest::Parse(const std::string& text) {
   return m;
 }
 
+namespace {
+// Descriptors kept open by mapped files (MappedFile::ReadAt).
+std::atomic<int> kept_descriptors{0};
+
+// Whether one more mapped file may keep its descriptor: at most a quarter of the soft limit on open
+// files (256 of the usual 1024), so that a folder of many geometry files never starves sockets.
+bool KeepDescriptor() {
+  static const int cap = [] {
+    rlimit limit{};
+    if (::getrlimit(RLIMIT_NOFILE, &limit) != 0 || limit.rlim_cur == RLIM_INFINITY) return 256;
+    return static_cast<int>(std::min<rlim_t>(limit.rlim_cur / 4, 1 << 16));
+  }();
+  int kept = kept_descriptors.load(std::memory_order_relaxed);
+  while (kept < cap) {
+    if (kept_descriptors.compare_exchange_weak(kept, kept + 1, std::memory_order_relaxed)) return true;
+  }
+  return false;
+}
+}  // namespace
+
 Result<std::shared_ptr<const MappedFile>> MappedFile::Open(const std::string& path, Use use) {
   const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
   if (fd < 0) return Fail(errno == ENOENT ? ErrorCode::kNotFound : ErrorCode::kIoError, path + ": " + Errno());
@@ -177,12 +199,35 @@ Result<std::shared_ptr<const MappedFile>> MappedFile::Open(const std::string& pa
       return Fail(ErrorCode::kIoError, "cannot read " + path + ": " + error);
     }
   }
-  ::close(fd);  // a mapping stays valid
-  return std::shared_ptr<const MappedFile>(new MappedFile(static_cast<const uint8_t*>(data), size));
+  // A mapping stays valid without its descriptor; a mapped file keeps it for ReadAt, up to a share of
+  // the process's descriptor limit (past it ReadAt says no and callers read through the mapping).
+  const bool keep = size > 0 && use == Use::kRandom && KeepDescriptor();
+  if (!keep) ::close(fd);
+  return std::shared_ptr<const MappedFile>(new MappedFile(static_cast<const uint8_t*>(data), size, keep ? fd : -1));
 }
 
 MappedFile::~MappedFile() {
   if (size_ > 0) ::munmap(const_cast<uint8_t*>(data_), size_);
+  if (fd_ >= 0) {
+    ::close(fd_);
+    kept_descriptors.fetch_sub(1, std::memory_order_relaxed);
+  }
+}
+
+bool MappedFile::ReadAt(std::span<const uint8_t> within, std::span<uint8_t> out) const {
+  if (fd_ < 0 || out.size() != within.size() || within.data() < data_ || within.size() > size_ ||
+      static_cast<size_t>(within.data() - data_) > size_ - within.size()) {
+    return false;
+  }
+  size_t done = 0;
+  const auto offset = static_cast<off_t>(within.data() - data_);
+  while (done < out.size()) {
+    const ssize_t n = ::pread(fd_, out.data() + done, out.size() - done, offset + static_cast<off_t>(done));
+    if (n < 0 && errno == EINTR) continue;
+    if (n <= 0) return false;
+    done += static_cast<size_t>(n);
+  }
+  return true;
 }
 
 Result<CheckpointFile> WriteCheckpointFile(const std::string& dir, const std::string& name,

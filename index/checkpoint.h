@@ -80,11 +80,17 @@ class MappedFile {
   MappedFile(const MappedFile&) = delete;
   MappedFile& operator=(const MappedFile&) = delete;
   std::span<const uint8_t> bytes() const { return {data_, size_}; }
+  // Copies `within` (a part of bytes()) into `out` (as large) with pread instead of through the
+  // mapping: no page of it is mapped into the process (a page fault each is dear where page tables
+  // are paravirtualised; a thousand images' pages per search). kRandom files only; false when not
+  // one, when `within` is not inside bytes(), or on a read error (then read through bytes()).
+  bool ReadAt(std::span<const uint8_t> within, std::span<uint8_t> out) const;
 
  private:
-  MappedFile(const uint8_t* data, size_t size) : data_(data), size_(size) {}
+  MappedFile(const uint8_t* data, size_t size, int fd) : data_(data), size_(size), fd_(fd) {}
   const uint8_t* data_;
   size_t size_;
+  int fd_;  // kRandom: the file, open for ReadAt; else -1
 };
 
 using ByteSink = std::function<void(std::span<const uint8_t>)>;

@@ -9,6 +9,7 @@
 #include <sys/mman.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <bit>
 #include <chrono>
 #include <cmath>
@@ -274,6 +275,34 @@ TEST(PackedSignaturesTest, WillNeedReadsAMappedImageIntoMemoryBeforeItsFirstUse)
   fs::remove_all(dir);
 }
 
+// ReadAt copies a part of a mapped file with pread (a search reads its shortlist so, without mapping
+// the pages); anything outside the file, a size mismatch or a file read into memory is refused.
+TEST(PackedSignaturesTest, ReadAtCopiesAPartOfAMappedFile) {
+  const fs::path dir = fs::temp_directory_path() / ("oxbow_read_at_" + std::to_string(::getpid()));
+  fs::create_directories(dir);
+  const std::string path = (dir / "f").string();
+  std::vector<uint8_t> content(3 * 4096 + 17);
+  for (size_t i = 0; i < content.size(); ++i) content[i] = static_cast<uint8_t>(i * 131 + 7);
+  std::ofstream(path, std::ios::binary).write(reinterpret_cast<const char*>(content.data()),
+                                              static_cast<std::streamsize>(content.size()));
+  auto mapped = MappedFile::Open(path);
+  ASSERT_TRUE(mapped);
+  const std::span<const uint8_t> bytes = (*mapped)->bytes();
+  std::vector<uint8_t> out(5000);
+  ASSERT_TRUE((*mapped)->ReadAt(bytes.subspan(4000, 5000), out));
+  EXPECT_TRUE(std::equal(out.begin(), out.end(), content.begin() + 4000));
+  std::vector<uint8_t> tail(17);
+  ASSERT_TRUE((*mapped)->ReadAt(bytes.last(17), tail));
+  EXPECT_TRUE(std::equal(tail.begin(), tail.end(), content.end() - 17));
+  EXPECT_FALSE((*mapped)->ReadAt(bytes.subspan(4000, 4999), out));                    // sizes differ
+  EXPECT_FALSE((*mapped)->ReadAt(std::span(bytes.data() + bytes.size() - 16, 17), tail));  // past the end
+  EXPECT_FALSE((*mapped)->ReadAt(std::span(content.data(), 17), tail));               // not in the file
+  auto resident = MappedFile::Open(path, MappedFile::Use::kResident);
+  ASSERT_TRUE(resident);
+  EXPECT_FALSE((*resident)->ReadAt((*resident)->bytes().first(17), tail));  // read whole already
+  fs::remove_all(dir);
+}
+
 TEST(HammingRerankTest, TentativeMatchesNeedCloseSignatures) {
   // 30 features of distinct words, the db image a translated copy: they verify with every feature.
   std::mt19937_64 rng(8);
@@ -445,6 +474,82 @@ TEST_F(HammingIndexTest, SignaturesDecideBetweenImagesWithTheSameWords) {
     ASSERT_TRUE(similar);
     EXPECT_EQ(similar->results[0].id, "same");
     EXPECT_EQ(similar->results[1].id, "other");
+  }
+}
+
+// Reopened from its checkpoint, the index reads its shortlist's features from the geometry file with
+// pread (Entry::SignedFeatures) and scores exactly as the index that had them in memory; a damaged
+// signature in the file is caught by the image's checksum on that path too, and never scored.
+TEST_F(HammingIndexTest, CheckpointedCandidatesScoreAsInMemoryAndDamageIsNeverScored) {
+  const auto centroids = vocabulary_->centroids();
+  const std::vector<float> query = Around(centroids.first(20 * kDim), 1, 100);
+  std::vector<float> same = query;
+  std::mt19937_64 rng(4);
+  std::normal_distribution<float> tiny(0, 0.001f);
+  for (float& v : same) v += tiny(rng);
+  QueryOptions options;
+  options.top_k = 8;
+  options.rerank_depth = 0;
+  options.query_expansion = false;
+  const auto scores = [&](const ImageIndex& index) {
+    auto response = index.Query(Image(query, 9), options);
+    EXPECT_TRUE(response);
+    std::vector<std::pair<std::string, double>> out;
+    if (response) {
+      for (const QueryResult& r : response->results) out.emplace_back(r.id, r.score);
+    }
+    return out;
+  };
+  std::vector<std::pair<std::string, double>> in_memory;
+  {
+    auto index = ImageIndex::Create(dir_.string(), *vocabulary_, "test-extractor/1");
+    ASSERT_TRUE(index) << index.error().ToString();
+    ASSERT_TRUE((*index)->Add("same", Image(same, 2), {}));
+    for (int i = 0; i < 6; ++i) {  // the query's words with other descriptors, and other words
+      ASSERT_TRUE((*index)->Add("other" + std::to_string(i), Image(Around(centroids.first(20 * kDim), 1, 200 + i), 10 + i), {}));
+      ASSERT_TRUE((*index)->Add("filler" + std::to_string(i),
+                                Image(Around(centroids.subspan((30 + 5 * i) * kDim, 5 * kDim), 2, i), 3 + i), {}));
+    }
+    in_memory = scores(**index);
+  }
+  ASSERT_GE(in_memory.size(), 7u);
+  EXPECT_EQ(in_memory[0].first, "same");
+  EXPECT_GT(in_memory[0].second, 0.9);
+  {
+    auto index = ImageIndex::Open(dir_.string());
+    ASSERT_TRUE(index) << index.error().ToString();
+    EXPECT_EQ(scores(**index), in_memory);
+  }
+  // One signature byte of "same" (the first image: number 1) changed in its geometry file.
+  std::vector<fs::path> geometry;
+  for (const auto& e : fs::directory_iterator(dir_)) {
+    if (e.path().filename().string().starts_with("geometry-")) geometry.push_back(e.path());
+  }
+  ASSERT_EQ(geometry.size(), 1u);
+  size_t offset = 0;
+  {
+    auto mapped = MappedFile::Open(geometry[0].string());
+    ASSERT_TRUE(mapped);
+    auto images = ReadGeometry(*mapped, "test");
+    ASSERT_TRUE(images) << images.error().ToString();
+    const auto it = std::find_if(images->begin(), images->end(), [](const GeometryImage& g) { return g.number == 1; });
+    ASSERT_NE(it, images->end());
+    ASSERT_FALSE(it->features.signature_bytes().empty());
+    offset = static_cast<size_t>(it->features.signature_bytes().data() - (*mapped)->bytes().data());
+  }
+  {
+    std::fstream file(geometry[0], std::ios::in | std::ios::out | std::ios::binary);
+    file.seekg(static_cast<std::streamoff>(offset));
+    char c = 0;
+    file.read(&c, 1);
+    c = static_cast<char>(c ^ 0x5a);
+    file.seekp(static_cast<std::streamoff>(offset));
+    file.write(&c, 1);
+  }
+  {
+    auto index = ImageIndex::Open(dir_.string());
+    ASSERT_TRUE(index) << index.error().ToString();
+    EXPECT_EQ(scores(**index), in_memory);  // "same" read from the catalogue, not the damaged file
   }
 }
 

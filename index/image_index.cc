@@ -82,7 +82,8 @@ void RunOnlyWhenIdle() {
 // on demand) and the next checkpoint rewrites them into new files.
 class GeometryPart {
  public:
-  GeometryPart(std::string dir, CheckpointFile file) : dir_(std::move(dir)), file_(std::move(file)) {}
+  GeometryPart(std::string dir, CheckpointFile file, std::shared_ptr<const MappedFile> mapped = nullptr)
+      : dir_(std::move(dir)), file_(std::move(file)), mapped_(std::move(mapped)) {}
 
   const CheckpointFile& file() const { return file_; }
   // True when the file matches its manifest entry; verifies it on the first call (logged when not).
@@ -123,6 +124,23 @@ class GeometryPart {
                 " fails its checksum");
     return false;
   }
+  // Image `number`'s features with signatures (`stored`, its view of this file) copied into `buffer`
+  // with pread, so that reading them maps no page (MappedFile::ReadAt), and viewed there in `out`;
+  // checked as Checked checks them. False when they cannot be read so (no signatures, another
+  // layout, a read error) or fail the check: then use Checked.
+  bool CopySigned(uint32_t number, const PackedFeatures& stored, std::optional<uint64_t> checksum,
+                  std::vector<uint8_t>* buffer, PackedFeatures* out) const {
+    const std::span<const uint8_t> records = stored.bytes(), signatures = stored.signature_bytes();
+    if (!mapped_ || signatures.empty() || records.data() + records.size() != signatures.data()) return false;
+    buffer->resize(records.size() + signatures.size());
+    if (!mapped_->ReadAt(std::span(records.data(), buffer->size()), *buffer)) return false;
+    auto view = PackedFeatures::View(std::span(buffer->data(), records.size()),
+                                     std::span(buffer->data() + records.size(), signatures.size()), stored.width(),
+                                     stored.height(), nullptr, "image number " + std::to_string(number));
+    if (!view || !Sound(number, *view, checksum)) return false;
+    *out = std::move(*view);
+    return true;
+  }
   // `stored` (image `number`'s view of this file, with its checksum when the file has them) when it
   // passes its check, else the image's features from the catalogue (no features when they cannot be
   // read there, logged: a search then finds no matches in it, never wrong ones).
@@ -162,6 +180,7 @@ class GeometryPart {
 
   const std::string dir_;
   const CheckpointFile file_;
+  const std::shared_ptr<const MappedFile> mapped_;  // the file (for CopySigned); may be null
   mutable std::mutex verify_mutex_;
   mutable bool checked_ = false;  // the whole file was checked; guarded by verify_mutex_
   mutable std::atomic<int> state_{kUnverified};
@@ -179,6 +198,12 @@ struct Entry {
   std::optional<uint64_t> checksum;           // with `part`: its checksum in the file, when it has them
 
   const PackedFeatures& features() const { return part ? part->Checked(number, stored, checksum) : stored; }
+  // features(), copied into `buffer` (viewed by *copy) when the image is in a geometry file: a search
+  // reads a thousand candidates' features once each, which through the mapping cost page faults.
+  const PackedFeatures& SignedFeatures(std::vector<uint8_t>* buffer, PackedFeatures* copy) const {
+    if (part && part->CopySigned(number, stored, checksum, buffer, copy)) return *copy;
+    return features();
+  }
 };
 
 using IdShard = std::unordered_map<std::string, uint32_t>;
@@ -557,6 +582,7 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
   const std::vector<CheckpointFile>& files = manifest->files;
   std::vector<Status> failures(files.size(), Ok());
   std::vector<std::vector<GeometryImage>> geometry(files.size());
+  std::vector<std::shared_ptr<const MappedFile>> geometry_files(files.size());
   std::optional<InvertedFile> inverted;
   std::mutex inverted_mutex;
   ParallelFor(files.size(), options.num_threads, 1, [&](size_t begin, size_t end, int) {
@@ -592,6 +618,7 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
         auto images = ReadGeometry(*mapped, what);
         if (images) {
           geometry[i] = std::move(*images);
+          geometry_files[i] = *mapped;
         } else {
           failures[i] = std::unexpected(images.error());
         }
@@ -610,7 +637,7 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
   for (size_t i = 0; i < files.size(); ++i) {
     if (geometry[i].empty()) continue;
     const auto part = static_cast<uint32_t>(out.parts.size());
-    out.parts.push_back(std::make_shared<const GeometryPart>(dir, files[i]));
+    out.parts.push_back(std::make_shared<const GeometryPart>(dir, files[i], geometry_files[i]));
     for (const GeometryImage& image : geometry[i]) {
       if (image.number > high_water || stored[image.number]) return unusable("geometry files overlap");
       stored[image.number] = &image;
@@ -1397,8 +1424,10 @@ std::vector<double> HammingScores(const ImageIndex::Snapshot& snap, const QueryS
   std::vector<double> out(images.size());
   const bool norm_is_self = snap.inverted.options().sqrt_tf;
   ParallelFor(images.size(), threads, 8, [&](size_t begin, size_t end, int) {
+    thread_local std::vector<uint8_t> buffer;
     for (size_t c = begin; c < end; ++c) {
-      const PackedFeatures& features = snap.entries[images[c]]->features();
+      PackedFeatures copy;
+      const PackedFeatures& features = snap.entries[images[c]]->SignedFeatures(&buffer, &copy);
       if (features.signature_bytes().empty() && features.size() > 0) {
         out[c] = std::nan("");
       } else if (norm_is_self) {
