@@ -192,8 +192,8 @@ namespace {
 void AdviseWillNeed(const uint8_t* begin, const uint8_t* end) {
   if (begin == end) return;
   static const auto page = static_cast<uintptr_t>(::sysconf(_SC_PAGESIZE));
-  const auto first = reinterpret_cast<uintptr_t>(begin) & ~(page - 1);
-  ::madvise(reinterpret_cast<void*>(first), reinterpret_cast<uintptr_t>(end) - first, MADV_WILLNEED);
+  const uint8_t* first = begin - (reinterpret_cast<uintptr_t>(begin) & (page - 1));  // its page's start
+  ::madvise(const_cast<uint8_t*>(first), static_cast<size_t>(end - first), MADV_WILLNEED);
 }
 }  // namespace
 

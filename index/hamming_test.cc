@@ -243,10 +243,11 @@ TEST(PackedSignaturesTest, WillNeedReadsAMappedImageIntoMemoryBeforeItsFirstUse)
   // Resident pages among those of `bytes` past its first page (ReadGeometry read the file's header,
   // which may share the first one).
   const auto resident = [&](std::span<const uint8_t> bytes) {
-    const uintptr_t begin = (reinterpret_cast<uintptr_t>(bytes.data()) + page) & ~(page - 1);
-    const uintptr_t end = (reinterpret_cast<uintptr_t>(bytes.data() + bytes.size())) & ~(page - 1);
-    std::vector<unsigned char> in((end - begin) / page);
-    EXPECT_EQ(::mincore(reinterpret_cast<void*>(begin), end - begin, in.data()), 0);
+    const uint8_t* begin = bytes.data() + (page - (reinterpret_cast<uintptr_t>(bytes.data()) & (page - 1)));
+    const uint8_t* end = bytes.data() + bytes.size();
+    end -= reinterpret_cast<uintptr_t>(end) & (page - 1);
+    std::vector<unsigned char> in(static_cast<size_t>(end - begin) / page);
+    EXPECT_EQ(::mincore(const_cast<uint8_t*>(begin), static_cast<size_t>(end - begin), in.data()), 0);
     size_t count = 0;
     for (const unsigned char c : in) count += c & 1;
     return std::pair(count, in.size());
