@@ -134,9 +134,10 @@ class GeometryPart {
     if (!mapped_ || signatures.empty() || records.data() + records.size() != signatures.data()) return false;
     buffer->resize(records.size() + signatures.size());
     if (!mapped_->ReadAt(std::span(records.data(), buffer->size()), *buffer)) return false;
+    // View's message names the file (no string built per candidate: a failure only means "use Checked").
     auto view = PackedFeatures::View(std::span(buffer->data(), records.size()),
                                      std::span(buffer->data() + records.size(), signatures.size()), stored.width(),
-                                     stored.height(), nullptr, "image number " + std::to_string(number));
+                                     stored.height(), nullptr, file_.name);
     if (!view || !Sound(number, *view, checksum)) return false;
     *out = std::move(*view);
     return true;
