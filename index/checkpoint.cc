@@ -50,7 +50,7 @@ static_assert(sizeof(CheckedGeometryEntry) == 40);
 std::string Errno() { return std::strerror(errno); }
 
 bool IsCheckpointFileName(const std::string& name) {
-  const bool ours = name.starts_with("postings-") || name.starts_with("geometry-");
+  const bool ours = name.starts_with("postings-") || name.starts_with("segment-") || name.starts_with("geometry-");
   return ours && (name.ends_with(".oxck") || name.ends_with(".oxck.tmp"));
 }
 

@@ -3,7 +3,14 @@
 // immutable, checksummed files so that Open reads them and replays only what changed since.
 //
 // Files (in the index folder, never rewritten once named in a manifest):
-//   postings-<generation>.oxck           InvertedFile::Serialize() of the checkpointed snapshot
+//   postings-<generation>.oxck           InvertedFile::SerializeHead() of the checkpointed snapshot: all
+//                                        but the postings, and the names of its segment files in order
+//                                        (a version-2 file, what older builds wrote, holds the postings
+//                                        too: InvertedFile::Serialize(); still read)
+//   segment-<generation>-<k>.oxck        InvertedFile::SerializeSegment(): one immutable segment of
+//                                        postings, written by the first checkpoint that has it and
+//                                        named again by every later one that still has it, so that a
+//                                        checkpoint writes only the segments made since the previous
 //   geometry-<generation>-<part>.oxck    the packed features of the images live at that checkpoint
 //                                        whose numbers lie above the previous checkpoint's high water
 //                                        (parts of at most kGeometryPartBytes, verified in parallel)
@@ -132,7 +139,8 @@ void RemoveUnreferencedCheckpointFiles(const std::string& dir, const CheckpointM
 void SetGeometryFormatVersionForTesting(uint32_t version);
 
 // Test seam: called at each step of writing a checkpoint ("file-unsynced": a file's bytes written to
-// its temporary, before fsync and rename; "files-written", "manifest-committed", "cleaned"), e.g. to
+// its temporary, before fsync and rename; "segment-written": a postings segment's file complete, before
+// the head; "files-written", "manifest-committed", "cleaned"), e.g. to
 // kill the process there, and when the checkpointer starts verifying the geometry files an open
 // loaded ("verifying-geometry"), e.g. to hold it back. Not thread-safe; set it before the index is used.
 void SetCheckpointStageHookForTesting(std::function<void(std::string_view stage)> hook);

@@ -375,6 +375,15 @@ struct ImageIndex::Impl {
   std::thread checkpointer;                     // runs CheckpointLoop
   // The geometry files of the checkpoint Open loaded (set before the checkpointer starts, then read-only).
   std::vector<std::shared_ptr<const GeometryPart>> geometry_parts;
+  // The segment files of checkpoints, each with the segment it holds (weak: one merged away is
+  // forgotten), so that a checkpoint writes only the segments new since the previous one. A file is
+  // named again only if the previous manifest names it (one written by a checkpoint that failed is not).
+  struct SegmentFile {
+    std::weak_ptr<const void> segment;
+    CheckpointFile file;
+  };
+  mutable std::mutex segment_files_mutex;
+  mutable std::vector<SegmentFile> segment_files;  // guarded by segment_files_mutex
 
   mutable std::mutex snapshot_mutex;            // guards only the `snapshot` pointer
   std::shared_ptr<const Snapshot> snapshot;
@@ -558,6 +567,8 @@ struct LoadedCheckpoint {
   uint64_t changes = 0;          // images added + removed since the checkpoint (replayed)
   std::vector<std::shared_ptr<const GeometryPart>> parts;  // its geometry files, not verified yet
   bool recoded = false;          // the postings file was of an older format (re-coded in memory)
+  // Its segment files, each with the segment loaded from it (ImageIndex::Impl::segment_files).
+  std::vector<std::pair<std::weak_ptr<const void>, CheckpointFile>> segment_files;
 };
 
 // Open from the checkpoint the catalogue names, replaying the changes since. A damaged, missing or
@@ -577,19 +588,21 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
   out.manifest = *manifest;
   if (manifest->sqrt_tf != options.sqrt_tf) return unusable("written with another sqrt_tf setting");
 
-  // Load every file in parallel; the first failure in file order is reported. The postings file is
-  // verified against its checksum here; a geometry file's size and image table are checked here, its
-  // checksum on first use (GeometryPart).
+  // Load every file in parallel; the first failure in file order is reported. The postings files (the
+  // head and its segment files) are verified against their checksums here; a geometry file's size and
+  // image table are checked here, its checksum on first use (GeometryPart).
   const std::vector<CheckpointFile>& files = manifest->files;
   std::vector<Status> failures(files.size(), Ok());
   std::vector<std::vector<GeometryImage>> geometry(files.size());
   std::vector<std::shared_ptr<const MappedFile>> geometry_files(files.size());
-  std::optional<InvertedFile> inverted;
-  std::mutex inverted_mutex;
+  std::vector<std::shared_ptr<const MappedFile>> postings_files(files.size());  // the head and segments
+  const auto is_postings = [](const std::string& name) {
+    return name.starts_with("postings-") || name.starts_with("segment-");
+  };
   ParallelFor(files.size(), options.num_threads, 1, [&](size_t begin, size_t end, int) {
     for (size_t i = begin; i < end; ++i) {
       const std::string what = "checkpoint file " + (std::filesystem::path(dir) / files[i].name).string();
-      const bool postings = files[i].name.starts_with("postings-");
+      const bool postings = is_postings(files[i].name);
       auto mapped = MappedFile::Open((std::filesystem::path(dir) / files[i].name).string(),
                                      postings ? MappedFile::Use::kResident : MappedFile::Use::kRandom);
       if (!mapped) {
@@ -601,20 +614,7 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
         // Checked whole before use, then used in place (no copy): the loaded file stays in memory for
         // as long as a version of the inverted file uses its postings.
         failures[i] = VerifyCheckpointBytes((*mapped)->bytes(), files[i], what);
-        if (!failures[i]) continue;
-        bool recoded = false;
-        auto file = InvertedFile::Deserialize((*mapped)->bytes(), vocab_size, ToTfIdf(options), &recoded, *mapped);
-        if (!file) {
-          failures[i] = Fail(file.error().code, what + ": " + file.error().message);
-          continue;
-        }
-        std::lock_guard<std::mutex> lock(inverted_mutex);
-        if (inverted) {
-          failures[i] = Fail(ErrorCode::kCorruptData, "two postings files");
-        } else {
-          inverted = std::move(*file);
-          out.recoded = recoded;
-        }
+        if (failures[i]) postings_files[i] = *mapped;
       } else {
         auto images = ReadGeometry(*mapped, what);
         if (images) {
@@ -629,7 +629,31 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
   for (const Status& failure : failures) {
     if (!failure) return unusable(failure.error().message);
   }
-  if (!inverted) return unusable("no postings file");
+  std::optional<size_t> head;
+  for (size_t i = 0; i < files.size(); ++i) {
+    if (!files[i].name.starts_with("postings-")) continue;
+    if (head) return unusable("two postings files");
+    head = i;
+  }
+  if (!head) return unusable("no postings file");
+  // The head's segment files, which the manifest must name (verified above).
+  std::vector<size_t> used;  // files index of each segment, in order
+  const InvertedFile::SegmentSource segment_source =
+      [&](const std::string& name) -> Result<std::pair<std::span<const uint8_t>, std::shared_ptr<const void>>> {
+    for (size_t i = 0; i < files.size(); ++i) {
+      if (files[i].name == name && name.starts_with("segment-")) {
+        used.push_back(i);
+        return std::pair{postings_files[i]->bytes(), std::shared_ptr<const void>(postings_files[i])};
+      }
+    }
+    return Fail(ErrorCode::kCorruptData, "not named by the manifest");
+  };
+  const std::string head_what = "checkpoint file " + (std::filesystem::path(dir) / files[*head].name).string();
+  auto inverted = InvertedFile::Deserialize(postings_files[*head]->bytes(), vocab_size, ToTfIdf(options), &out.recoded,
+                                            postings_files[*head], segment_source);
+  if (!inverted) return unusable(head_what + ": " + inverted.error().message);
+  for (size_t k = 0; k < used.size(); ++k) out.segment_files.emplace_back(inverted->SegmentHandle(k), files[used[k]]);
+
   const int64_t high_water = manifest->high_water;
   if (static_cast<int64_t>(inverted->num_numbers()) > high_water + 1) return unusable("postings above the high water");
 
@@ -778,8 +802,40 @@ Result<CheckpointManifest> ImageIndex::Impl::CheckpointFiles(const Snapshot& sna
   if (!part.empty()) {
     if (auto s = write_part(); !s) return std::unexpected(s.error());
   }
+  // Postings: a segment already in a file of the previous manifest is named again; each other one is
+  // written to a new file (segments are immutable); the head names them in order.
+  std::vector<std::string> segment_names;
+  {
+    std::lock_guard<std::mutex> lock(segment_files_mutex);
+    std::erase_if(segment_files, [](const SegmentFile& f) { return f.segment.expired(); });
+  }
+  int segments_written = 0;
+  for (size_t i = 0; i < snap.inverted.num_segments(); ++i) {
+    const std::shared_ptr<const void> handle = snap.inverted.SegmentHandle(i);
+    std::optional<CheckpointFile> known;
+    {
+      std::lock_guard<std::mutex> lock(segment_files_mutex);
+      for (const SegmentFile& f : segment_files) {
+        if (f.segment.lock() == handle && std::find(previous.files.begin(), previous.files.end(), f.file) != previous.files.end()) {
+          known = f.file;
+        }
+      }
+    }
+    if (!known) {
+      auto file = WriteCheckpointFile(dir, "segment-" + generation + "-" + std::to_string(segments_written++) + ".oxck",
+                                      [&](const ByteSink& sink) { snap.inverted.SerializeSegment(i, sink); });
+      if (!file) return std::unexpected(file.error());
+      std::lock_guard<std::mutex> lock(segment_files_mutex);
+      std::erase_if(segment_files, [&](const SegmentFile& f) { return f.file.name == file->name; });
+      segment_files.push_back({handle, *file});
+      known = std::move(*file);
+      CheckpointStage("segment-written");
+    }
+    segment_names.push_back(known->name);
+    next.files.push_back(std::move(*known));
+  }
   auto postings = WriteCheckpointFile(dir, "postings-" + generation + ".oxck",
-                                      [&](const ByteSink& sink) { snap.inverted.Serialize(sink); });
+                                      [&](const ByteSink& sink) { snap.inverted.SerializeHead(segment_names, sink); });
   if (!postings) return std::unexpected(postings.error());
   next.files.push_back(std::move(*postings));
   CheckpointStage("files-written");
@@ -978,6 +1034,7 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, con
       snap = std::move((*loaded)->snapshot);
       impl->checkpoint = std::move((*loaded)->manifest);
       impl->geometry_parts = std::move((*loaded)->parts);
+      for (auto& [segment, file] : (*loaded)->segment_files) impl->segment_files.push_back({segment, file});
       impl->changes_since_checkpoint = (*loaded)->changes;
       if ((*loaded)->recoded) {
         OXBOW_LOG(kInfo) << "index " << dir << ": its postings file was written in an older format by an earlier "

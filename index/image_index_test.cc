@@ -23,6 +23,7 @@
 #include <future>
 #include <string_view>
 #include <sched.h>
+#include <sys/stat.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -1159,6 +1160,21 @@ std::vector<std::string> CheckpointFiles(const fs::path& dir) {
   return out;
 }
 
+// CheckpointFiles without the postings' segment files (their number depends on merges), for tests of
+// the geometry files and the manifest.
+std::vector<std::string> HeadAndGeometryFiles(const fs::path& dir) {
+  std::vector<std::string> out = CheckpointFiles(dir);
+  std::erase_if(out, [](const std::string& name) { return name.starts_with("segment-"); });
+  return out;
+}
+
+// The segment files among CheckpointFiles.
+std::vector<std::string> SegmentFiles(const fs::path& dir) {
+  std::vector<std::string> out = CheckpointFiles(dir);
+  std::erase_if(out, [](const std::string& name) { return !name.starts_with("segment-"); });
+  return out;
+}
+
 // The kill tests fork a child that opens the index, which starts threads: ThreadSanitizer cannot run a
 // child starting threads after fork() in a multi-threaded process (it dies at once), so under it they
 // are skipped, saying so; the normal and ASan builds run them.
@@ -1249,7 +1265,8 @@ TEST_F(CheckpointFixture, CloseWritesACheckpointThatOpenUsesWithoutRebuilding) {
     for (int i = 0; i < 30; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
   }
   const std::vector<std::string> written = CheckpointFiles(dir_);
-  EXPECT_EQ(written, (std::vector<std::string>{"geometry-1-0.oxck", "postings-1.oxck"}));
+  EXPECT_EQ(written, (std::vector<std::string>{"geometry-1-0.oxck", "postings-1.oxck", "segment-1-0.oxck",
+                                               "segment-1-1.oxck"}));
   // Reopened with nothing changed: no new checkpoint at open or close.
   {
     auto index = ImageIndex::Open(dir_.string());
@@ -1257,6 +1274,43 @@ TEST_F(CheckpointFixture, CloseWritesACheckpointThatOpenUsesWithoutRebuilding) {
     ExpectEqualsFresh(**index, Range(0, 30));
   }
   EXPECT_EQ(CheckpointFiles(dir_), written);
+}
+
+// A checkpoint writes only the postings segments new since the previous one: a segment already in a
+// file of the previous manifest is named again, the file left as it was (same inode, same bytes).
+TEST_F(CheckpointFixture, CheckpointsWriteOnlyTheSegmentsNewSinceThePreviousOne) {
+  IndexOptions options;
+  options.checkpoint_changes = 5;
+  std::vector<sift::FeatureSet> images;
+  for (int i = 0; i < 10; ++i) images.push_back(Image(i));
+  const auto batch_of = [&](int begin) {
+    std::vector<BatchImage> batch;
+    for (int i = begin; i < begin + 5; ++i) batch.push_back({"i" + std::to_string(i), &images[i], {}, {}, {}});
+    return batch;
+  };
+  // Waits (at most 60 s) for a checkpoint of generation `g`, then gives its segment files.
+  const auto wait_for = [&](int g) {
+    const std::string head = "postings-" + std::to_string(g) + ".oxck";
+    for (int t = 0; t < 600 && !fs::exists(dir_ / head); ++t) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    EXPECT_TRUE(fs::exists(dir_ / head)) << "no checkpoint " << g << " within 60 s";
+    return SegmentFiles(dir_);
+  };
+  auto index = CreateIndex(options);
+  for (const auto& r : index->AddBatch(batch_of(0))) ASSERT_TRUE(r) << r.error().ToString();
+  const std::vector<std::string> first = wait_for(1);
+  ASSERT_EQ(first, (std::vector<std::string>{"segment-1-0.oxck"}));
+  struct stat before{};
+  ASSERT_EQ(::stat((dir_ / first[0]).c_str(), &before), 0);
+  for (const auto& r : index->AddBatch(batch_of(5))) ASSERT_TRUE(r) << r.error().ToString();
+  EXPECT_EQ(wait_for(2), (std::vector<std::string>{"segment-1-0.oxck", "segment-2-0.oxck"}));
+  struct stat after{};
+  ASSERT_EQ(::stat((dir_ / first[0]).c_str(), &after), 0);
+  EXPECT_EQ(after.st_ino, before.st_ino);
+  EXPECT_EQ(after.st_mtim.tv_nsec, before.st_mtim.tv_nsec);
+  index.reset();
+  auto reopened = ImageIndex::Open(dir_.string());
+  ASSERT_TRUE(reopened) << reopened.error().ToString();
+  ExpectEqualsFresh(**reopened, Range(0, 10));
 }
 
 TEST_F(CheckpointFixture, GeometryIsCheckedInSchedIdleAndCheckpointsAreNot) {
@@ -1305,14 +1359,17 @@ TEST_F(CheckpointFixture, OpenReplaysChangesAfterTheCheckpointAndEqualsAFreshInd
   {
     auto index = ImageIndex::Open(dir_.string());
     ASSERT_TRUE(index) << index.error().ToString();
-    EXPECT_EQ(CheckpointFiles(dir_), (std::vector<std::string>{"geometry-1-0.oxck", "postings-1.oxck"}))
+    EXPECT_EQ(CheckpointFiles(dir_), (std::vector<std::string>{"geometry-1-0.oxck", "postings-1.oxck",
+                                                                "segment-1-0.oxck", "segment-1-1.oxck"}))
         << "open replays the delta instead of rebuilding";
     ExpectEqualsFresh(**index, live);
     EXPECT_FALSE((*index)->Contains("i3"));
   }
-  // The close checkpointed the replayed changes: generation 2 adds geometry for the new numbers only.
+  // The close checkpointed the replayed changes: generation 2 adds geometry for the new numbers only,
+  // and a segment file for the new segment; the segments of generation 1 are named again, not rewritten.
   EXPECT_EQ(CheckpointFiles(dir_),
-            (std::vector<std::string>{"geometry-1-0.oxck", "geometry-2-0.oxck", "postings-2.oxck"}));
+            (std::vector<std::string>{"geometry-1-0.oxck", "geometry-2-0.oxck", "postings-2.oxck",
+                                      "segment-1-0.oxck", "segment-1-1.oxck", "segment-2-0.oxck"}));
   auto index = ImageIndex::Open(dir_.string());
   ASSERT_TRUE(index) << index.error().ToString();
   ExpectEqualsFresh(**index, live);
@@ -1330,7 +1387,7 @@ TEST_F(CheckpointFixture, DamagedTruncatedOrMissingFilesAreRepairedFromTheCatalo
       {"truncated", [](const fs::path& p) { fs::resize_file(p, fs::file_size(p) / 2); }},
       {"missing", [](const fs::path& p) { fs::remove(p); }},
   };
-  for (const std::string target : {"postings-1.oxck", "geometry-1-0.oxck"}) {
+  for (const std::string target : {"postings-1.oxck", "segment-1-0.oxck", "geometry-1-0.oxck"}) {
     for (const auto& [what, damage] : damages) {
       std::string trace = target;
       trace += " ";
@@ -1348,7 +1405,8 @@ TEST_F(CheckpointFixture, DamagedTruncatedOrMissingFilesAreRepairedFromTheCatalo
       // Rebuilt from the catalogue and checkpointed again (generation 2, in the background or at the
       // latest at close); the old files are gone.
       index->reset();
-      EXPECT_EQ(CheckpointFiles(dir_), (std::vector<std::string>{"geometry-2-0.oxck", "postings-2.oxck"}));
+      EXPECT_EQ(CheckpointFiles(dir_),
+                (std::vector<std::string>{"geometry-2-0.oxck", "postings-2.oxck", "segment-2-0.oxck"}));
     }
   }
 }
@@ -1398,7 +1456,8 @@ void CheckpointFixture::ExpectDamagedGeometryDataNeverServed(uint32_t version) {
     before = AllFeatures(*index, 20);
   }
   SetGeometryFormatVersionForTesting(3);
-  ASSERT_EQ(CheckpointFiles(dir_), (std::vector<std::string>{"geometry-1-0.oxck", "postings-1.oxck"}));
+  ASSERT_EQ(HeadAndGeometryFiles(dir_), (std::vector<std::string>{"geometry-1-0.oxck", "postings-1.oxck"}));
+  const std::vector<std::string> segments = SegmentFiles(dir_);
   DamageGeometryData(dir_ / "geometry-1-0.oxck");
   {
     // The background verification waits until the images were used: their use finds the damage.
@@ -1411,15 +1470,18 @@ void CheckpointFixture::ExpectDamagedGeometryDataNeverServed(uint32_t version) {
     index->reset();
     SetCheckpointStageHookForTesting(nullptr);
   }
-  // The damaged file was replaced by a new one holding its images (the postings file was sound).
-  EXPECT_EQ(CheckpointFiles(dir_), (std::vector<std::string>{"geometry-2-0.oxck", "postings-2.oxck"}));
+  // The damaged file was replaced by a new one holding its images (the postings were sound: their
+  // segment files are kept).
+  EXPECT_EQ(HeadAndGeometryFiles(dir_), (std::vector<std::string>{"geometry-2-0.oxck", "postings-2.oxck"}));
+  EXPECT_EQ(SegmentFiles(dir_), segments);
   {
     auto index = ImageIndex::Open(dir_.string());
     ASSERT_TRUE(index) << index.error().ToString();
     EXPECT_EQ(AllFeatures(**index, 20), before);
     ExpectEqualsFresh(**index, Range(0, 20));
   }
-  EXPECT_EQ(CheckpointFiles(dir_), (std::vector<std::string>{"geometry-2-0.oxck", "postings-2.oxck"}));
+  EXPECT_EQ(HeadAndGeometryFiles(dir_), (std::vector<std::string>{"geometry-2-0.oxck", "postings-2.oxck"}));
+  EXPECT_EQ(SegmentFiles(dir_), segments);
 }
 
 // A remove or replace of an image whose checkpoint data is damaged, before anything used it, takes
@@ -1459,10 +1521,10 @@ TEST_F(CheckpointFixture, GeometryFilesAreVerifiedInTheBackgroundAfterOpen) {
   auto index = ImageIndex::Open(dir_.string());
   ASSERT_TRUE(index) << index.error().ToString();
   const std::vector<std::string> rewritten = {"geometry-2-0.oxck", "postings-2.oxck"};
-  for (int i = 0; i < 600 && CheckpointFiles(dir_) != rewritten; ++i) {
+  for (int i = 0; i < 600 && HeadAndGeometryFiles(dir_) != rewritten; ++i) {
     std::this_thread::sleep_for(std::chrono::milliseconds(100));
   }
-  EXPECT_EQ(CheckpointFiles(dir_), rewritten) << "no rewrite within 60 s of open";
+  EXPECT_EQ(HeadAndGeometryFiles(dir_), rewritten) << "no rewrite within 60 s of open";
   ExpectEqualsFresh(**index, Range(0, 20));
 }
 
@@ -1473,7 +1535,7 @@ TEST_F(CheckpointFixture, CheckpointsDoNotWaitForTheBackgroundCheckOfTheGeometry
     auto index = CreateIndex();
     for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
   }
-  ASSERT_EQ(CheckpointFiles(dir_), (std::vector<std::string>{"geometry-1-0.oxck", "postings-1.oxck"}));
+  ASSERT_EQ(HeadAndGeometryFiles(dir_), (std::vector<std::string>{"geometry-1-0.oxck", "postings-1.oxck"}));
   // A later checkpoint was committed (postings-1 deleted), and it kept the file not checked yet.
   const auto checkpointed = [&] {
     const std::vector<std::string> files = CheckpointFiles(dir_);
@@ -1544,7 +1606,7 @@ TEST_F(CheckpointFixture, AnIndexFolderIsOpenInOneProcessAtATime) {
 
 TEST_F(CheckpointFixture, KillAtEveryStageOfACheckpointLosesNothing) {
   SKIP_KILL_TEST_UNDER_TSAN();
-  for (const std::string stage : {"file-unsynced", "files-written", "manifest-committed", "cleaned"}) {
+  for (const std::string stage : {"file-unsynced", "segment-written", "files-written", "manifest-committed", "cleaned"}) {
     SCOPED_TRACE(stage);
     fs::remove_all(dir_);
     {
@@ -1563,12 +1625,15 @@ TEST_F(CheckpointFixture, KillAtEveryStageOfACheckpointLosesNothing) {
     ASSERT_TRUE(index) << index.error().ToString();
     ExpectEqualsFresh(**index, live);
     // Whichever manifest is committed, the open deleted every file it does not name.
-    const std::vector<std::string> files = CheckpointFiles(dir_);
+    // Segment files: those of generation 1 the new manifest still names, and new ones of generation 2.
     const bool committed = stage == "manifest-committed" || stage == "cleaned";
     const std::vector<std::string> expected =
         committed ? std::vector<std::string>{"geometry-1-0.oxck", "geometry-2-0.oxck", "postings-2.oxck"}
                   : std::vector<std::string>{"geometry-1-0.oxck", "postings-1.oxck"};
-    EXPECT_EQ(files, expected);
+    EXPECT_EQ(HeadAndGeometryFiles(dir_), expected);
+    for (const std::string& segment : SegmentFiles(dir_)) {
+      EXPECT_TRUE(segment.starts_with("segment-1-") || (committed && segment.starts_with("segment-2-"))) << segment;
+    }
   }
 }
 

@@ -954,9 +954,13 @@ namespace {
 
 constexpr char kFileMagic[4] = {'O', 'X', 'I', 'F'};
 // 1: postings coded as varints (gap << 1 | tf > 1); read and re-coded at load (RecodeFormat1).
-// 2: postings in 16-bit units (PutPosting).
+// 2: postings in 16-bit units (PutPosting), every segment in the file (Serialize).
+// 3: a head (SerializeHead) naming a file per segment, each the segment alone after its own header
+//    (SerializeSegment: magic "OXIS", the same version, byte-order mark and vocabulary size).
 constexpr uint32_t kFileVersion = 2;
+constexpr uint32_t kHeadVersion = 3;
 constexpr uint32_t kOldestReadableVersion = 1;
+constexpr char kSegmentMagic[4] = {'O', 'X', 'I', 'S'};
 constexpr uint32_t kByteOrderMark = 0x01020304;
 
 template <typename T>
@@ -1081,9 +1085,9 @@ Result<std::shared_ptr<InvertedFile::Segment>> InvertedFile::RecodeFormat1(const
   return out;
 }
 
-void InvertedFile::Serialize(const std::function<void(std::span<const uint8_t>)>& write) const {
+void InvertedFile::SerializeHead(uint32_t version, const Writer& write) const {
   write(AsBytes(kFileMagic));
-  write(AsBytes(kFileVersion));
+  write(AsBytes(version));
   write(AsBytes(kByteOrderMark));
   write(AsBytes(uint64_t{vocabulary_size_}));
   write(AsBytes(uint8_t{options_.sqrt_tf ? uint8_t{1} : uint8_t{0}}));
@@ -1103,23 +1107,81 @@ void InvertedFile::Serialize(const std::function<void(std::span<const uint8_t>)>
   put_cow(stats_df_);
   put_cow(images_);
   write(AsBytes(uint64_t{segments_.size()}));
-  for (const auto& segment : segments_) {
-    write(AsBytes(segment->first_image));
-    write(AsBytes(segment->end_image));
-    write(AsBytes(uint8_t{segment->dense ? uint8_t{1} : uint8_t{0}}));
-    write(AsBytes(segment->num_postings));
-    write(AsBytes(uint64_t{segment->words.size()}));
-    write(AsBytes(std::span<const uint32_t>(segment->words)));
-    write(AsBytes(uint64_t{segment->offsets.size()}));
-    write(AsBytes(std::span<const uint64_t>(segment->offsets)));
-    write(AsBytes(uint64_t{segment->size()}));
-    write(std::span<const uint8_t>(segment->data(), segment->size()));
+}
+
+void InvertedFile::SerializeSegmentRecord(const Segment& segment, const Writer& write) {
+  write(AsBytes(segment.first_image));
+  write(AsBytes(segment.end_image));
+  write(AsBytes(uint8_t{segment.dense ? uint8_t{1} : uint8_t{0}}));
+  write(AsBytes(segment.num_postings));
+  write(AsBytes(uint64_t{segment.words.size()}));
+  write(AsBytes(std::span<const uint32_t>(segment.words)));
+  write(AsBytes(uint64_t{segment.offsets.size()}));
+  write(AsBytes(std::span<const uint64_t>(segment.offsets)));
+  write(AsBytes(uint64_t{segment.size()}));
+  write(std::span<const uint8_t>(segment.data(), segment.size()));
+}
+
+void InvertedFile::Serialize(const Writer& write) const {
+  SerializeHead(kFileVersion, write);
+  for (const auto& segment : segments_) SerializeSegmentRecord(*segment, write);
+}
+
+void InvertedFile::SerializeHead(std::span<const std::string> segment_names, const Writer& write) const {
+  OXBOW_CHECK(segment_names.size() == segments_.size(), "one name per segment");
+  SerializeHead(kHeadVersion, write);
+  for (const std::string& name : segment_names) {
+    write(AsBytes(uint64_t{name.size()}));
+    write(std::span(reinterpret_cast<const uint8_t*>(name.data()), name.size()));
   }
 }
 
+void InvertedFile::SerializeSegment(size_t i, const Writer& write) const {
+  write(AsBytes(kSegmentMagic));
+  write(AsBytes(kHeadVersion));
+  write(AsBytes(kByteOrderMark));
+  write(AsBytes(uint64_t{vocabulary_size_}));
+  SerializeSegmentRecord(*segments_[i], write);
+}
+
+// One segment record of the serialised form (SerializeSegmentRecord), its structure checked; `owner`
+// non-null: its postings viewed in place.
+namespace {
+
+Result<std::shared_ptr<InvertedFile::Segment>> ParseSegment(FileReader& in, size_t vocabulary_size, uint64_t num_numbers,
+                                                            const std::shared_ptr<const void>& owner) {
+  using Segment = InvertedFile::Segment;
+  auto segment = std::make_shared<Segment>();
+  segment->first_image = in.Get<uint32_t>();
+  segment->end_image = in.Get<uint32_t>();
+  segment->dense = in.Get<uint8_t>() != 0;
+  segment->num_postings = in.Get<uint64_t>();
+  segment->words = in.GetVector<uint32_t>(vocabulary_size);
+  segment->offsets = in.GetVector<uint64_t>(vocabulary_size + 1);
+  if (owner) {
+    segment->mapped = in.View(std::numeric_limits<uint64_t>::max());
+    segment->owner = owner;
+  } else {
+    segment->bytes = in.GetVector<uint8_t>(std::numeric_limits<uint64_t>::max());
+  }
+  if (!in.ok) return Fail(ErrorCode::kCorruptData, "truncated");
+  const size_t expected_offsets = segment->dense ? vocabulary_size + 1 : segment->words.size() + 1;
+  if (segment->first_image > segment->end_image || segment->end_image > num_numbers ||
+      segment->offsets.size() != expected_offsets || segment->offsets.back() != segment->size() ||
+      (segment->dense && !segment->words.empty()) || !std::is_sorted(segment->offsets.begin(), segment->offsets.end()) ||
+      std::adjacent_find(segment->words.begin(), segment->words.end(), std::greater_equal<>()) != segment->words.end() ||
+      (!segment->words.empty() && segment->words.back() >= vocabulary_size)) {
+    return Fail(ErrorCode::kCorruptData, "inconsistent");
+  }
+  return segment;
+}
+
+}  // namespace
+
 Result<InvertedFile> InvertedFile::Deserialize(std::span<const uint8_t> bytes, size_t vocabulary_size,
                                                const TfIdfOptions& options, bool* recoded,
-                                               const std::shared_ptr<const void>& owner) {
+                                               const std::shared_ptr<const void>& owner,
+                                               const SegmentSource& segment_source) {
   const auto corrupt = [](const std::string& why) {
     return Fail(ErrorCode::kCorruptData, "inconsistent inverted file: " + why);
   };
@@ -1128,9 +1190,12 @@ Result<InvertedFile> InvertedFile::Deserialize(std::span<const uint8_t> bytes, s
   in.Copy(magic, sizeof(magic));
   if (!in.ok || !std::equal(magic, magic + 4, kFileMagic)) return corrupt("bad magic");
   const auto version = in.Get<uint32_t>();
-  if (version < kOldestReadableVersion || version > kFileVersion || in.Get<uint32_t>() != kByteOrderMark) {
+  if (version < kOldestReadableVersion || version > kHeadVersion || in.Get<uint32_t>() != kByteOrderMark) {
     return Fail(ErrorCode::kIncompatible, "inverted file format version " + std::to_string(version) +
                                               " or byte order not readable by this build");
+  }
+  if (version == kHeadVersion && !segment_source) {
+    return Fail(ErrorCode::kInvalidArgument, "an inverted file's head read without its segment files");
   }
   const auto stored_vocabulary_size = in.Get<uint64_t>();
   const bool sqrt_tf = in.Get<uint8_t>() != 0;
@@ -1169,33 +1234,36 @@ Result<InvertedFile> InvertedFile::Deserialize(std::span<const uint8_t> bytes, s
   uint64_t postings = 0;
   uint32_t previous_end = 0;
   for (uint64_t i = 0; i < num_segments; ++i) {
-    auto segment = std::make_shared<Segment>();
-    segment->first_image = in.Get<uint32_t>();
-    segment->end_image = in.Get<uint32_t>();
-    segment->dense = in.Get<uint8_t>() != 0;
-    segment->num_postings = in.Get<uint64_t>();
-    segment->words = in.GetVector<uint32_t>(vocabulary_size);
-    segment->offsets = in.GetVector<uint64_t>(vocabulary_size + 1);
-    if (owner) {
-      segment->mapped = in.View(std::numeric_limits<uint64_t>::max());
-      segment->owner = owner;
+    Result<std::shared_ptr<Segment>> segment = nullptr;
+    if (version == kHeadVersion) {
+      // The segment's own file, named here; its header must match this head's.
+      const auto length = in.Get<uint64_t>();
+      if (!in.ok || length > 4096 || length > bytes.size() - in.at) return corrupt("truncated segment name");
+      const std::string name(reinterpret_cast<const char*>(bytes.data() + in.at), length);
+      in.at += length;
+      auto source = segment_source(name);
+      if (!source) return Fail(source.error().code, "segment file " + name + ": " + source.error().message);
+      FileReader file{source->first};
+      char segment_magic[4] = {};
+      file.Copy(segment_magic, sizeof(segment_magic));
+      const auto segment_version = file.Get<uint32_t>();
+      const auto bom = file.Get<uint32_t>();
+      const auto segment_vocabulary = file.Get<uint64_t>();
+      if (!file.ok || !std::equal(segment_magic, segment_magic + 4, kSegmentMagic) || segment_version != kHeadVersion ||
+          bom != kByteOrderMark || segment_vocabulary != vocabulary_size) {
+        return corrupt("segment file " + name + " has a bad header");
+      }
+      segment = ParseSegment(file, vocabulary_size, num_numbers, source->second);
+      if (segment && file.at != file.bytes.size()) segment = Fail(ErrorCode::kCorruptData, "trailing bytes");
+      if (!segment) return corrupt("segment file " + name + ": " + segment.error().message);
     } else {
-      segment->bytes = in.GetVector<uint8_t>(std::numeric_limits<uint64_t>::max());
+      segment = ParseSegment(in, vocabulary_size, num_numbers, owner);
+      if (!segment) return corrupt("segment " + std::to_string(i) + " is " + segment.error().message);
     }
-    if (!in.ok) return corrupt("truncated segment");
-    const size_t expected_offsets = segment->dense ? vocabulary_size + 1 : segment->words.size() + 1;
-    if (segment->first_image < previous_end || segment->first_image > segment->end_image ||
-        segment->end_image > num_numbers || segment->offsets.size() != expected_offsets ||
-        segment->offsets.back() != segment->size() || (segment->dense && !segment->words.empty()) ||
-        !std::is_sorted(segment->offsets.begin(), segment->offsets.end()) ||
-        std::adjacent_find(segment->words.begin(), segment->words.end(), std::greater_equal<>()) !=
-            segment->words.end() ||
-        (!segment->words.empty() && segment->words.back() >= vocabulary_size)) {
-      return corrupt("segment " + std::to_string(i) + " is inconsistent");
-    }
-    previous_end = segment->end_image;
-    postings += segment->num_postings;
-    out.segments_.push_back(std::move(segment));
+    if ((*segment)->first_image < previous_end) return corrupt("segment " + std::to_string(i) + " overlaps");
+    previous_end = (*segment)->end_image;
+    postings += (*segment)->num_postings;
+    out.segments_.push_back(std::move(*segment));
   }
   if (version == 1) {
     for (size_t i = 0; i < out.segments_.size(); ++i) {
@@ -1204,7 +1272,7 @@ Result<InvertedFile> InvertedFile::Deserialize(std::span<const uint8_t> bytes, s
       out.segments_[i] = std::move(*segment);
     }
   }
-  if (recoded != nullptr) *recoded = version != kFileVersion;
+  if (recoded != nullptr) *recoded = version == 1;
   if (in.at != bytes.size()) return corrupt("trailing bytes");
   if (postings != out.num_postings_ || out.num_live_ > num_numbers || out.stats_num_live_ > num_numbers) {
     return corrupt("counts disagree");

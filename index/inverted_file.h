@@ -251,21 +251,38 @@ class InvertedFile {
   const TfIdfOptions& options() const { return options_; }
   InvertedFileStats Stats() const;
 
+  using Writer = std::function<void(std::span<const uint8_t>)>;
   // The checkpoint form (checkpoint.h) of the whole state: segments, document frequencies, the
   // statistics of the last refresh and every image's sums, so that a deserialised copy scores exactly
   // as this one. Little-endian; `write` receives the bytes in order.
-  void Serialize(const std::function<void(std::span<const uint8_t>)>& write) const;
-  // Reads what Serialize wrote. Checks the structure, not the content (the caller checksums the file):
-  // kCorruptData for inconsistent bytes; kIncompatible when the vocabulary size or sqrt_tf differ
-  // (image sums depend on sqrt_tf) or the format is newer than this build's. A file of an older format
-  // (version 1: varint postings) is re-coded while loading (on all cores; the postings are decoded
-  // with bounds checks); `recoded` (optional) then receives true, so that the caller can write the
-  // current format once. With an `owner` (which must keep `bytes` valid and unchanged, e.g. a read-only
-  // file mapping) the current format's postings are used in place, not copied: the file keeps
-  // `owner` for as long as any version of it uses them.
+  void Serialize(const Writer& write) const;
+  // The same state in parts, so that a checkpoint writes only the segments new since the last one
+  // (segments are immutable): each segment alone (SerializeSegment), and a head with everything else
+  // that names the segments' files in order (SerializeHead, one name per segment, each < 4 KB).
+  void SerializeHead(std::span<const std::string> segment_names, const Writer& write) const;
+  void SerializeSegment(size_t i, const Writer& write) const;
+  size_t num_segments() const { return segments_.size(); }
+  // Identity of segment i: the same object in every version of this file that still has the segment
+  // (hold a weak_ptr to recognise it later without keeping it alive).
+  std::shared_ptr<const void> SegmentHandle(size_t i) const { return segments_[i]; }
+
+  // What a head names: the bytes of a segment file and an owner that keeps them valid and unchanged
+  // (the postings are used in place).
+  using SegmentSource =
+      std::function<Result<std::pair<std::span<const uint8_t>, std::shared_ptr<const void>>>(const std::string& name)>;
+  // Reads what Serialize or SerializeHead wrote (a head's segment files through `segment_source`,
+  // asked once per segment, in order). Checks the structure, not the content (the caller checksums
+  // the files): kCorruptData for inconsistent bytes; kIncompatible when the vocabulary size or sqrt_tf
+  // differ (image sums depend on sqrt_tf) or the format is newer than this build's. A file of an older
+  // format (version 1: varint postings) is re-coded while loading (on all cores; the postings are
+  // decoded with bounds checks); `recoded` (optional) then receives true, so that the caller can write
+  // the current format once. With an `owner` (which must keep `bytes` valid and unchanged, e.g. a
+  // read-only file mapping) the current format's postings are used in place, not copied: the file
+  // keeps `owner` for as long as any version of it uses them.
   [[nodiscard]] static Result<InvertedFile> Deserialize(std::span<const uint8_t> bytes, size_t vocabulary_size,
                                                         const TfIdfOptions& options, bool* recoded = nullptr,
-                                                        const std::shared_ptr<const void>& owner = nullptr);
+                                                        const std::shared_ptr<const void>& owner = nullptr,
+                                                        const SegmentSource& segment_source = nullptr);
 
  private:
   // A segment of a version-1 file with its postings in this build's coding (Deserialize).
@@ -278,6 +295,8 @@ class InvertedFile {
   std::vector<QueryTerm> WeightedQueryVector(std::span<const uint32_t> words, std::span<const float> tf,
                                              bool use_stop_list) const;
   void MergeTail(bool everything);
+  void SerializeHead(uint32_t version, const Writer& write) const;  // up to the segment count
+  static void SerializeSegmentRecord(const Segment& segment, const Writer& write);
   void RefreshStatistics(int num_threads);
   void RecomputeSums(int num_threads);  // every live image's sums with the current statistics
   void RefreshIfDue();
