@@ -1,5 +1,7 @@
 #include "index/inverted_file.h"
 
+#include <sys/mman.h>
+
 #include <algorithm>
 #include <atomic>
 #include <cmath>
@@ -73,6 +75,16 @@ inline uint8_t* PutPosting(uint8_t* p, uint32_t gap, uint32_t tf) {
   }
   if (tf > 1) p = PutVarint(p, tf - 2);
   return p;
+}
+
+// Asks for transparent huge pages over the whole 2 MiB pages within [data, data + size): a large
+// buffer about to be written then takes one page fault per 2 MiB instead of one per 4 KiB. Advisory.
+void AdviseHugePages(uint8_t* data, size_t size) {
+  constexpr size_t kHuge = size_t{2} << 20;
+  if (data == nullptr || size < 2 * kHuge) return;
+  const size_t skip = (kHuge - reinterpret_cast<uintptr_t>(data) % kHuge) % kHuge;
+  const size_t length = (size - skip) / kHuge * kHuge;
+  if (length > 0) (void)::madvise(data + skip, length, MADV_HUGEPAGE);
 }
 
 inline void PutPosting(std::vector<uint8_t>* out, uint32_t gap, uint32_t tf) {
@@ -674,9 +686,13 @@ void InvertedFile::MergeTail(bool everything) {
     }
     // Merge segments [first, end): word by word, in image order, dropping removed images.
     std::vector<uint32_t> words;
+    // An upper bound of the merged size: each list's first posting from a segment may take the 4-byte
+    // escape of a longer gap; every other posting keeps its size or drops out.
+    uint64_t bound = 0;
     for (size_t i = first; i < segments_.size(); ++i) {
       const auto w = segments_[i]->Words();
       words.insert(words.end(), w.begin(), w.end());
+      bound += segments_[i]->size() + 4 * w.size();
     }
     std::sort(words.begin(), words.end());
     words.erase(std::unique(words.begin(), words.end()), words.end());
@@ -685,6 +701,10 @@ void InvertedFile::MergeTail(bool everything) {
     merged->end_image = segments_.back()->end_image;
     uint64_t old_postings = 0;
     for (size_t i = first; i < segments_.size(); ++i) old_postings += segments_[i]->num_postings;
+    // Reserved at once, in huge pages where large: growing it posting by posting reallocated and copied
+    // it about twice over, into fresh 4 KiB pages each taking a fault (dear in a VM).
+    merged->bytes.reserve(bound);
+    AdviseHugePages(merged->bytes.data(), bound);
     for (const uint32_t w : words) {
       const size_t begin = merged->bytes.size();
       uint32_t last = merged->first_image;
@@ -702,7 +722,8 @@ void InvertedFile::MergeTail(bool everything) {
       }
     }
     merged->offsets.push_back(merged->bytes.size());
-    merged->bytes.shrink_to_fit();
+    // Pages of the reserve never written take no memory; shrink only when removed images left much.
+    if (merged->bytes.capacity() - merged->bytes.size() > merged->bytes.size() / 8 + 4096) merged->bytes.shrink_to_fit();
     merged->ChooseLayout(vocabulary_size_);
     const uint64_t dropped = old_postings - merged->num_postings;
     num_postings_ -= dropped;
