@@ -571,6 +571,95 @@ struct LoadedCheckpoint {
   std::vector<std::pair<std::weak_ptr<const void>, CheckpointFile>> segment_files;
 };
 
+// The files of a checkpoint (LoadCheckpoint), each read and checked, in manifest order.
+struct CheckpointFilesRead {
+  std::vector<std::vector<GeometryImage>> geometry;                  // per geometry file
+  std::vector<std::shared_ptr<const MappedFile>> geometry_files;     // geometry files, mapped
+  std::vector<std::shared_ptr<const MappedFile>> postings_files;     // the head and segments, in memory
+};
+
+bool IsPostingsFile(const std::string& name) { return name.starts_with("postings-") || name.starts_with("segment-"); }
+
+// Loads every file in parallel; the first failure in file order is returned. The postings files (the
+// head and its segment files) are verified against their checksums here; a geometry file's size and
+// image table are checked here, its checksum on first use (GeometryPart).
+Result<CheckpointFilesRead> ReadCheckpointFiles(const std::string& dir, const std::vector<CheckpointFile>& files,
+                                                int num_threads) {
+  CheckpointFilesRead out;
+  std::vector<Status> failures(files.size(), Ok());
+  out.geometry.resize(files.size());
+  out.geometry_files.resize(files.size());
+  out.postings_files.resize(files.size());
+  ParallelFor(files.size(), num_threads, 1, [&](size_t begin, size_t end, int) {
+    for (size_t i = begin; i < end; ++i) {
+      const std::string what = "checkpoint file " + (std::filesystem::path(dir) / files[i].name).string();
+      const bool postings = IsPostingsFile(files[i].name);
+      auto mapped = MappedFile::Open((std::filesystem::path(dir) / files[i].name).string(),
+                                     postings ? MappedFile::Use::kResident : MappedFile::Use::kRandom);
+      if (!mapped) {
+        failures[i] = std::unexpected(mapped.error());
+      } else if (!postings && (*mapped)->bytes().size() != files[i].size_bytes) {
+        failures[i] = Fail(ErrorCode::kCorruptData, what + " has " + std::to_string((*mapped)->bytes().size()) +
+                                                        " bytes, its manifest says " + std::to_string(files[i].size_bytes));
+      } else if (postings) {
+        // Checked whole before use, then used in place (no copy): the loaded file stays in memory for
+        // as long as a version of the inverted file uses its postings.
+        failures[i] = VerifyCheckpointBytes((*mapped)->bytes(), files[i], what);
+        if (failures[i]) out.postings_files[i] = *mapped;
+      } else {
+        auto images = ReadGeometry(*mapped, what);
+        if (images) {
+          out.geometry[i] = std::move(*images);
+          out.geometry_files[i] = *mapped;
+        } else {
+          failures[i] = std::unexpected(images.error());
+        }
+      }
+    }
+  });
+  for (Status& failure : failures) {
+    if (!failure) return std::unexpected(std::move(failure.error()));
+  }
+  return out;
+}
+
+// The inverted file of a checkpoint: its one postings head (`postings_files` from ReadCheckpointFiles)
+// with the segment files it names, which the manifest must list. `segment_files` receives each
+// segment's file, in order.
+Result<InvertedFile> ReadPostings(const std::string& dir, const std::vector<CheckpointFile>& files,
+                                  const std::vector<std::shared_ptr<const MappedFile>>& postings_files, size_t vocab_size,
+                                  const IndexOptions& options, bool* recoded,
+                                  std::vector<std::pair<std::weak_ptr<const void>, CheckpointFile>>* segment_files) {
+  size_t head = files.size();
+  for (size_t i = 0; i < files.size(); ++i) {
+    if (!files[i].name.starts_with("postings-")) continue;
+    if (head != files.size()) return Fail(ErrorCode::kCorruptData, "two postings files");
+    head = i;
+  }
+  if (head == files.size()) return Fail(ErrorCode::kCorruptData, "no postings file");
+  std::vector<size_t> used;  // files index of each segment, in order
+  const InvertedFile::SegmentSource segment_source =
+      [&](const std::string& name) -> Result<std::pair<std::span<const uint8_t>, std::shared_ptr<const void>>> {
+    for (size_t i = 0; i < files.size(); ++i) {
+      if (files[i].name == name && name.starts_with("segment-")) {
+        used.push_back(i);
+        return std::pair{postings_files[i]->bytes(), std::shared_ptr<const void>(postings_files[i])};
+      }
+    }
+    return Fail(ErrorCode::kCorruptData, "not named by the manifest");
+  };
+  auto inverted = InvertedFile::Deserialize(postings_files[head]->bytes(), vocab_size, ToTfIdf(options), recoded,
+                                            postings_files[head], segment_source);
+  if (!inverted) {
+    return Fail(inverted.error().code, "checkpoint file " + (std::filesystem::path(dir) / files[head].name).string() +
+                                           ": " + inverted.error().message);
+  }
+  segment_files->clear();
+  segment_files->reserve(used.size());
+  for (size_t k = 0; k < used.size(); ++k) segment_files->emplace_back(inverted->SegmentHandle(k), files[used[k]]);
+  return inverted;
+}
+
 // Open from the checkpoint the catalogue names, replaying the changes since. A damaged, missing or
 // inconsistent checkpoint file gives a null snapshot (and a log line); an error is a catalogue failure.
 Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue& catalogue, size_t vocab_size,
@@ -588,72 +677,14 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
   out.manifest = *manifest;
   if (manifest->sqrt_tf != options.sqrt_tf) return unusable("written with another sqrt_tf setting");
 
-  // Load every file in parallel; the first failure in file order is reported. The postings files (the
-  // head and its segment files) are verified against their checksums here; a geometry file's size and
-  // image table are checked here, its checksum on first use (GeometryPart).
   const std::vector<CheckpointFile>& files = manifest->files;
-  std::vector<Status> failures(files.size(), Ok());
-  std::vector<std::vector<GeometryImage>> geometry(files.size());
-  std::vector<std::shared_ptr<const MappedFile>> geometry_files(files.size());
-  std::vector<std::shared_ptr<const MappedFile>> postings_files(files.size());  // the head and segments
-  const auto is_postings = [](const std::string& name) {
-    return name.starts_with("postings-") || name.starts_with("segment-");
-  };
-  ParallelFor(files.size(), options.num_threads, 1, [&](size_t begin, size_t end, int) {
-    for (size_t i = begin; i < end; ++i) {
-      const std::string what = "checkpoint file " + (std::filesystem::path(dir) / files[i].name).string();
-      const bool postings = is_postings(files[i].name);
-      auto mapped = MappedFile::Open((std::filesystem::path(dir) / files[i].name).string(),
-                                     postings ? MappedFile::Use::kResident : MappedFile::Use::kRandom);
-      if (!mapped) {
-        failures[i] = std::unexpected(mapped.error());
-      } else if (!postings && (*mapped)->bytes().size() != files[i].size_bytes) {
-        failures[i] = Fail(ErrorCode::kCorruptData, what + " has " + std::to_string((*mapped)->bytes().size()) +
-                                                        " bytes, its manifest says " + std::to_string(files[i].size_bytes));
-      } else if (postings) {
-        // Checked whole before use, then used in place (no copy): the loaded file stays in memory for
-        // as long as a version of the inverted file uses its postings.
-        failures[i] = VerifyCheckpointBytes((*mapped)->bytes(), files[i], what);
-        if (failures[i]) postings_files[i] = *mapped;
-      } else {
-        auto images = ReadGeometry(*mapped, what);
-        if (images) {
-          geometry[i] = std::move(*images);
-          geometry_files[i] = *mapped;
-        } else {
-          failures[i] = std::unexpected(images.error());
-        }
-      }
-    }
-  });
-  for (const Status& failure : failures) {
-    if (!failure) return unusable(failure.error().message);
-  }
-  std::optional<size_t> head;
-  for (size_t i = 0; i < files.size(); ++i) {
-    if (!files[i].name.starts_with("postings-")) continue;
-    if (head) return unusable("two postings files");
-    head = i;
-  }
-  if (!head) return unusable("no postings file");
-  // The head's segment files, which the manifest must name (verified above).
-  std::vector<size_t> used;  // files index of each segment, in order
-  const InvertedFile::SegmentSource segment_source =
-      [&](const std::string& name) -> Result<std::pair<std::span<const uint8_t>, std::shared_ptr<const void>>> {
-    for (size_t i = 0; i < files.size(); ++i) {
-      if (files[i].name == name && name.starts_with("segment-")) {
-        used.push_back(i);
-        return std::pair{postings_files[i]->bytes(), std::shared_ptr<const void>(postings_files[i])};
-      }
-    }
-    return Fail(ErrorCode::kCorruptData, "not named by the manifest");
-  };
-  const std::string head_what = "checkpoint file " + (std::filesystem::path(dir) / files[*head].name).string();
-  auto inverted = InvertedFile::Deserialize(postings_files[*head]->bytes(), vocab_size, ToTfIdf(options), &out.recoded,
-                                            postings_files[*head], segment_source);
-  if (!inverted) return unusable(head_what + ": " + inverted.error().message);
-  for (size_t k = 0; k < used.size(); ++k) out.segment_files.emplace_back(inverted->SegmentHandle(k), files[used[k]]);
-
+  auto read = ReadCheckpointFiles(dir, files, options.num_threads);
+  if (!read) return unusable(read.error().message);
+  std::vector<std::vector<GeometryImage>>& geometry = read->geometry;
+  const std::vector<std::shared_ptr<const MappedFile>>& geometry_files = read->geometry_files;
+  auto postings = ReadPostings(dir, files, read->postings_files, vocab_size, options, &out.recoded, &out.segment_files);
+  if (!postings) return unusable(postings.error().message);
+  std::optional<InvertedFile> inverted(std::move(*postings));
   const int64_t high_water = manifest->high_water;
   if (static_cast<int64_t>(inverted->num_numbers()) > high_water + 1) return unusable("postings above the high water");
 

@@ -1282,9 +1282,11 @@ TEST_F(CheckpointFixture, CheckpointsWriteOnlyTheSegmentsNewSinceThePreviousOne)
   IndexOptions options;
   options.checkpoint_changes = 5;
   std::vector<sift::FeatureSet> images;
+  images.reserve(10);
   for (int i = 0; i < 10; ++i) images.push_back(Image(i));
   const auto batch_of = [&](int begin) {
     std::vector<BatchImage> batch;
+    batch.reserve(5);
     for (int i = begin; i < begin + 5; ++i) batch.push_back({"i" + std::to_string(i), &images[i], {}, {}, {}});
     return batch;
   };
