@@ -409,6 +409,10 @@ struct ImageIndex::Impl {
   // manifest and deletes unreferenced files. The checkpoint covers `changes` of changes_since_checkpoint.
   Result<CheckpointManifest> CheckpointFiles(const Snapshot& snap, const CheckpointManifest& previous) const;
   Status CommitCheckpoint(CheckpointManifest next, uint64_t changes);
+  // The file of segment i of `snap` for checkpoint `generation`: the one `previous` names for it, else
+  // a new one written now (`written` counts them). Uses segment_files.
+  Result<CheckpointFile> FileOfSegment(const Snapshot& snap, size_t i, const CheckpointManifest& previous,
+                                       const std::string& generation, int* written) const;
   bool CheckpointDue() const;  // writer_mutex held
   // The geometry files `manifest` names that were found damaged (GeometryPart).
   std::set<std::string> DamagedGeometry(const CheckpointManifest& manifest) const;
@@ -842,28 +846,10 @@ Result<CheckpointManifest> ImageIndex::Impl::CheckpointFiles(const Snapshot& sna
   }
   int segments_written = 0;
   for (size_t i = 0; i < snap.inverted.num_segments(); ++i) {
-    const std::shared_ptr<const void> handle = snap.inverted.SegmentHandle(i);
-    std::optional<CheckpointFile> known;
-    {
-      std::lock_guard<std::mutex> lock(segment_files_mutex);
-      for (const SegmentFile& f : segment_files) {
-        if (f.segment.lock() == handle && std::find(previous.files.begin(), previous.files.end(), f.file) != previous.files.end()) {
-          known = f.file;
-        }
-      }
-    }
-    if (!known) {
-      auto file = WriteCheckpointFile(dir, "segment-" + generation + "-" + std::to_string(segments_written++) + ".oxck",
-                                      [&](const ByteSink& sink) { snap.inverted.SerializeSegment(i, sink); });
-      if (!file) return std::unexpected(file.error());
-      std::lock_guard<std::mutex> lock(segment_files_mutex);
-      std::erase_if(segment_files, [&](const SegmentFile& f) { return f.file.name == file->name; });
-      segment_files.push_back({handle, *file});
-      known = std::move(*file);
-      CheckpointStage("segment-written");
-    }
-    segment_names.push_back(known->name);
-    next.files.push_back(std::move(*known));
+    auto file = FileOfSegment(snap, i, previous, generation, &segments_written);
+    if (!file) return std::unexpected(file.error());
+    segment_names.push_back(file->name);
+    next.files.push_back(std::move(*file));
   }
   auto postings = WriteCheckpointFile(dir, "postings-" + generation + ".oxck",
                                       [&](const ByteSink& sink) { snap.inverted.SerializeHead(segment_names, sink); });
@@ -871,6 +857,29 @@ Result<CheckpointManifest> ImageIndex::Impl::CheckpointFiles(const Snapshot& sna
   next.files.push_back(std::move(*postings));
   CheckpointStage("files-written");
   return next;
+}
+
+Result<CheckpointFile> ImageIndex::Impl::FileOfSegment(const Snapshot& snap, size_t i, const CheckpointManifest& previous,
+                                                      const std::string& generation, int* written) const {
+  const std::shared_ptr<const void> handle = snap.inverted.SegmentHandle(i);
+  {
+    std::lock_guard<std::mutex> lock(segment_files_mutex);
+    for (const SegmentFile& f : segment_files) {
+      if (f.segment.lock() == handle && std::find(previous.files.begin(), previous.files.end(), f.file) != previous.files.end()) {
+        return f.file;
+      }
+    }
+  }
+  auto file = WriteCheckpointFile(dir, "segment-" + generation + "-" + std::to_string((*written)++) + ".oxck",
+                                  [&](const ByteSink& sink) { snap.inverted.SerializeSegment(i, sink); });
+  if (!file) return file;
+  {
+    std::lock_guard<std::mutex> lock(segment_files_mutex);
+    std::erase_if(segment_files, [&](const SegmentFile& f) { return f.file.name == file->name; });
+    segment_files.push_back({handle, *file});
+  }
+  CheckpointStage("segment-written");
+  return file;
 }
 
 Status ImageIndex::Impl::CommitCheckpoint(CheckpointManifest next, uint64_t changes) {
