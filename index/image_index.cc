@@ -368,6 +368,7 @@ struct ImageIndex::Impl {
   uint64_t changes_since_checkpoint = 0;        // images added + removed since; guarded by writer_mutex
   std::atomic<uint64_t> write_sequence{0};      // Catalogue::WriteSequence of the last commit
   bool checkpoint_forced = false;               // Open rebuilt or re-coded: checkpoint now; writer_mutex
+  uint64_t next_number = 0;                     // writer_mutex: the number the catalogue gave last + 1 (a guess; AddBatch checks it)
   bool closing = false;                         // guarded by writer_mutex
   std::atomic<bool> stop_verifying{false};      // set by Close: VerifyParts gives up
   uint64_t pending_after_failure = 0;           // changes of failed background checkpoints (for Close)
@@ -1219,6 +1220,7 @@ Result<ImageRecord> ImageIndex::Impl::Write(const std::string& id, const sift::F
   const ImageRecord& record = prepared->entry->record;
   auto number = old ? catalogue->Replace(old_number, record, prepared->blob) : catalogue->Insert(record, prepared->blob);
   if (!number) return std::unexpected(number.error());
+  next_number = static_cast<uint64_t>(*number) + 1;
 
   // One snapshot with both changes: a query sees the old image or the new one, never neither.
   auto next = std::make_shared<Snapshot>(*current);
@@ -1273,17 +1275,36 @@ std::vector<Result<ImageRecord>> ImageIndex::AddBatch(std::span<const BatchImage
     records.push_back(prepared[i].entry->record);
     blobs.push_back(std::move(prepared[i].blob));
   }
-  auto numbers = impl_->catalogue->InsertMany(records, blobs);
+  std::vector<Impl::Prepared*> linked;
+  linked.reserve(chosen.size());
+  for (const size_t i : chosen) linked.push_back(&prepared[i]);
+  // The next snapshot is built while the catalogue commits (on another thread; they share nothing but
+  // `current`, read-only), on the numbers the catalogue will most likely give: AUTOINCREMENT numbers a
+  // transaction's rows consecutively after the highest number it ever gave. It is published only after
+  // the commit, and built again on the numbers given when the guess was wrong. Where no thread can be
+  // started, std::async runs the commit in this thread at get().
+  auto commit = std::async(std::launch::async | std::launch::deferred,
+                           [&] { return impl_->catalogue->InsertMany(records, blobs); });
+  const uint64_t first = std::max<uint64_t>({impl_->next_number, current->entries.size(), 1});
+  std::vector<uint32_t> guessed;
+  std::shared_ptr<Snapshot> next;
+  if (first + chosen.size() <= uint64_t{1} << 31) {
+    guessed.resize(chosen.size());
+    std::iota(guessed.begin(), guessed.end(), static_cast<uint32_t>(first));
+    next = std::make_shared<Snapshot>(*current);
+    Impl::Link(guessed, linked, *next);
+  }
+  auto numbers = commit.get();
   if (!numbers) {
     for (const size_t i : chosen) results[i] = std::unexpected(numbers.error());
     return results;
   }
   std::vector<uint32_t> committed(numbers->begin(), numbers->end());
-  std::vector<Impl::Prepared*> linked;
-  linked.reserve(chosen.size());
-  for (const size_t i : chosen) linked.push_back(&prepared[i]);
-  auto next = std::make_shared<Snapshot>(*current);
-  Impl::Link(committed, linked, *next);
+  impl_->next_number = uint64_t{committed.back()} + 1;
+  if (committed != guessed) {
+    next = std::make_shared<Snapshot>(*current);
+    Impl::Link(committed, linked, *next);
+  }
   impl_->Publish(std::move(next));
   impl_->Changed(committed.size());
   for (const size_t i : chosen) results[i] = prepared[i].entry->record;
