@@ -33,7 +33,10 @@ if [[ ${#targets[@]} -eq 0 ]]; then
 fi
 
 if [[ $build -eq 1 ]]; then
-  cmake -S "$root" -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DOXBOW_FUZZ=ON \
+  # -O1 with line tables, as OSS-Fuzz builds its targets: half the compile time of RelWithDebInfo's
+  # -O2 -g under ASan + UBSan + coverage (index/image_index.cc: 39 s against 73 s), NDEBUG kept.
+  cmake -S "$root" -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
+    -DCMAKE_CXX_FLAGS_RELWITHDEBINFO="-O1 -g1 -DNDEBUG" -DOXBOW_FUZZ=ON \
     -DOXBOW_BUILD_TESTS=OFF -DOXBOW_BUILD_BENCHMARKS=OFF >/dev/null
   cmake --build "$build_dir" --parallel "${OXBOW_JOBS:-$(nproc)}" --target fuzz_seeds "${targets[@]}"
 fi
