@@ -17,7 +17,8 @@
 //   index_benchmark storage --images N --out DIR [--features F] [--vocab V.oxvoc] [--words K]
 //                           [--threads T] [--batch B] [--queries Q] [--data DIR] [--cache DIR] [--reuse 1]
 //                           [--max-df D] [--stop-list-min-images M] [--photos P] [--export-features DIR2]
-//                           [--max-scored-postings B1,B2,...] [--paris-map 1] [--hamming 0|1]
+//                           [--max-scored-postings B1,B2,...] [--hamming-shortlist S1,S2,...] [--paris-map 1]
+//                           [--hamming 0|1]
 //     Creates DIR as a normal index folder through ImageIndex (Create, AddBatch in batches of B = 1000,
 //     the SQLite catalogue: the code the server uses), servable as it is by `oxbow serve --index DIR`.
 //     Its N synthetic images (1024 x 768) have F = 1000 features each, drawn with replacement from the
@@ -40,9 +41,11 @@
 //     skips the ingest and measures the rest on the folder an earlier run left in DIR (give the same
 //     --images and --features). --max-df and --stop-list-min-images replace IndexOptions' stop list.
 //     --max-scored-postings B1,B2,... (default 0,4000000: none, and 4M, the default) measures the full default
-//     search with each posting budget (QueryOptions::max_scored_postings), every query with each in turn.
+//     search with each posting budget (QueryOptions::max_scored_postings), every query with each in turn;
+//     --hamming-shortlist S1,S2,... (default 1000, the default) likewise QueryOptions::hamming_shortlist,
+//     every pair of the two lists.
 //     --paris-map 1 (the Paris subset as the real photos) adds its 250 photos to the collection, runs its
-//     12 cropped queries (restricted protocol, top 1000) with each budget and prints mAP among the N
+//     12 cropped queries (restricted protocol, top 1000) with each pair and prints mAP among the N
 //     synthetic images, then removes them again.
 //     --photos P uses only the first P real photos. --export-features DIR2 also writes every synthetic
 //     image as DIR2/<id>.oxfeat (each feature with its real photo's descriptor), so that
@@ -1093,31 +1096,41 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
   }
   // The posting budget (QueryOptions::max_scored_postings), full default search otherwise: each value
   // on every query in turn, so that the machine's drift falls on all of them alike.
-  std::vector<int> budgets;
-  {
-    std::stringstream list(flags.count("--max-scored-postings")
-                               ? flags.at("--max-scored-postings")
-                               : std::string("0,4000000"));
-    for (std::string b; std::getline(list, b, ',');) budgets.push_back(std::stoi(b));
+  // With --hamming-shortlist S1,S2,... every (budget, shortlist) pair likewise.
+  const auto int_list = [&](const char* flag, const char* fallback) {
+    std::vector<int> values;
+    std::stringstream list(flags.count(flag) ? flags.at(flag) : std::string(fallback));
+    for (std::string v; std::getline(list, v, ',');) values.push_back(std::stoi(v));
+    return values;
+  };
+  std::vector<std::pair<int, int>> settings;  // (max_scored_postings, hamming_shortlist)
+  for (const int budget : int_list("--max-scored-postings", "0,4000000")) {
+    for (const int shortlist : int_list("--hamming-shortlist", std::to_string(QueryOptions{}.hamming_shortlist).c_str())) {
+      settings.emplace_back(budget, shortlist);
+    }
   }
+  const auto options_of = [](const std::pair<int, int>& setting) {
+    QueryOptions o;
+    o.max_scored_postings = setting.first;
+    o.hamming_shortlist = setting.second;
+    return o;
+  };
   {
-    std::vector<std::vector<double>> ms(budgets.size()), score(budgets.size()), qe(budgets.size());
+    std::vector<std::vector<double>> ms(settings.size()), score(settings.size()), qe(settings.size());
     for (const auto* q : queries) {
-      for (size_t b = 0; b < budgets.size(); ++b) {
-        QueryOptions o;
-        o.max_scored_postings = budgets[b];
-        const auto r = idx->Query(*q, o);
+      for (size_t b = 0; b < settings.size(); ++b) {
+        const auto r = idx->Query(*q, options_of(settings[b]));
         if (!r) continue;
         ms[b].push_back(r->timings.total_ms);
         score[b].push_back(r->timings.score_ms);
         qe[b].push_back(r->timings.qe_ms);
       }
     }
-    for (size_t b = 0; b < budgets.size(); ++b) {
-      std::printf("full default search, max_scored_postings %d: p50 %.1f ms, p95 %.1f ms, p99 %.1f ms (score p50 %.1f, "
-                  "qe p50 %.1f; each budget on every query in turn)\n",
-                  budgets[b], Percentile(ms[b], .5), Percentile(ms[b], .95), Percentile(ms[b], .99),
-                  Percentile(score[b], .5), Percentile(qe[b], .5));
+    for (size_t b = 0; b < settings.size(); ++b) {
+      std::printf("full default search, max_scored_postings %d, hamming_shortlist %d: p50 %.1f ms, p95 %.1f ms, "
+                  "p99 %.1f ms (score p50 %.1f, qe p50 %.1f; each setting on every query in turn)\n",
+                  settings[b].first, settings[b].second, Percentile(ms[b], .5), Percentile(ms[b], .95),
+                  Percentile(ms[b], .99), Percentile(score[b], .5), Percentile(qe[b], .5));
     }
   }
   // --paris-map 1: the Paris subset's photos added to the collection (their real features), its 12
@@ -1143,15 +1156,14 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
       }
     }
     const std::vector<ParisQuery> paris_queries = ReadParisQueries(paris, names);
-    for (const int budget : budgets) {
+    for (const auto& setting : settings) {
       double sum = 0;
       size_t n = 0;
       std::vector<double> ms;
       for (const ParisQuery& q : paris_queries) {
         const auto it = std::find_if(items.begin(), items.end(), [&](const BatchImage& b) { return b.id == q.image; });
         if (it == items.end()) continue;
-        QueryOptions o;
-        o.max_scored_postings = budget;
+        QueryOptions o = options_of(setting);
         o.top_k = 1000;
         o.region = q.box;
         const auto r = idx->Query(*it->features, o);
@@ -1162,10 +1174,10 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
         ++n;
         ms.push_back(r->timings.total_ms);
       }
-      std::printf("Paris subset among the %llu synthetic images, max_scored_postings %d: mAP %.4f (%zu queries, "
-                  "restricted protocol, top 1000; search p50 %.1f ms)\n",
-                  static_cast<unsigned long long>(num_images), budget, sum / static_cast<double>(std::max<size_t>(1, n)),
-                  n, Percentile(ms, .5));
+      std::printf("Paris subset among the %llu synthetic images, max_scored_postings %d, hamming_shortlist %d: mAP "
+                  "%.4f (%zu queries, restricted protocol, top 1000; search p50 %.1f ms)\n",
+                  static_cast<unsigned long long>(num_images), setting.first, setting.second,
+                  sum / static_cast<double>(std::max<size_t>(1, n)), n, Percentile(ms, .5));
     }
     for (const BatchImage& item : items) {
       if (!idx->Remove(item.id)) std::printf("remove failed: %s\n", item.id.c_str());
