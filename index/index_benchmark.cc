@@ -42,7 +42,7 @@
 //     --images and --features). --max-df and --stop-list-min-images replace IndexOptions' stop list.
 //     --max-scored-postings B1,B2,... (default 0,4000000: none, and 4M, the default) measures the full default
 //     search with each posting budget (QueryOptions::max_scored_postings), every query with each in turn;
-//     --hamming-shortlist S1,S2,... (default 1000, the default) likewise QueryOptions::hamming_shortlist,
+//     --hamming-shortlist S1,S2,... (default: QueryOptions' default, 300) likewise QueryOptions::hamming_shortlist,
 //     every pair of the two lists.
 //     --paris-map 1 (the Paris subset as the real photos) adds its 250 photos to the collection, runs its
 //     12 cropped queries (restricted protocol, top 1000) with each pair and prints mAP among the N
@@ -1104,10 +1104,10 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
     return values;
   };
   std::vector<std::pair<int, int>> settings;  // (max_scored_postings, hamming_shortlist)
+  const std::vector<int> shortlists =
+      int_list("--hamming-shortlist", std::to_string(QueryOptions{}.hamming_shortlist).c_str());
   for (const int budget : int_list("--max-scored-postings", "0,4000000")) {
-    for (const int shortlist : int_list("--hamming-shortlist", std::to_string(QueryOptions{}.hamming_shortlist).c_str())) {
-      settings.emplace_back(budget, shortlist);
-    }
+    for (const int shortlist : shortlists) settings.emplace_back(budget, shortlist);
   }
   const auto options_of = [](const std::pair<int, int>& setting) {
     QueryOptions o;
