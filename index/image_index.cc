@@ -1380,7 +1380,10 @@ Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const Que
   QueryFeatures q;
   q.width = query.image_width;
   q.height = query.image_height;
-  std::vector<float> descriptors;
+  // The selected descriptors, in a buffer this thread keeps between queries (up to a bound): 1.5 MB at
+  // 3000 features, which a fresh vector faulted in page by page on every search (as Subset's tables).
+  thread_local std::vector<float> descriptors;
+  descriptors.clear();
   SelectInRegion(query, options.region, static_cast<size_t>(options.max_query_features), &q.keypoints, &descriptors);
   QueryTimings timings;
   q.words.resize(q.keypoints.size());
@@ -1415,6 +1418,8 @@ Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const Que
     q.signatures.resize(q.words.size());
     impl_->vocabulary.Signatures(descriptors, q.words, q.signatures);
   }
+  constexpr size_t kMaxKeptFloats = size_t{8} << 20;  // 32 MiB
+  if (descriptors.capacity() > kMaxKeptFloats) descriptors = std::vector<float>();
   timings.quantize_ms = MsSince(t0);
   auto response = impl_->Run(*snap, q, options, timings);
   if (response) response->timings.total_ms = MsSince(t0);
@@ -1647,6 +1652,10 @@ void SelectInRegion(const sift::FeatureSet& features, const std::optional<std::a
     selected.resize(max_features);
     std::sort(selected.begin(), selected.end());
   }
+  keypoints->reserve(keypoints->size() + selected.size());
+  if (!selected.empty()) {
+    descriptors->reserve(descriptors->size() + selected.size() * features.Descriptor(selected[0]).size());
+  }
   for (const uint32_t i : selected) {
     keypoints->push_back(features.keypoints[i]);
     const auto d = features.Descriptor(i);
@@ -1761,7 +1770,11 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
       bag_pointers[c] = &bags[c];
     }
   });
-  const InvertedFile::Subset ranked(snap.inverted, numbers, bag_pointers);
+  // The ranking's tables are built in memory this thread kept from its previous search (up to a bound):
+  // fresh, they were several MB that every search faulted in page by page (blocks of 1 MiB and more are
+  // mapped and unmapped each time, server/http/http_server.cc), about 10 ms of a search at 1M images.
+  thread_local InvertedFile::Subset::Buffers kept;
+  InvertedFile::Subset ranked(snap.inverted, numbers, bag_pointers, std::move(kept));
   const auto max_anchors = static_cast<size_t>(options.transitive_anchors);
   size_t used = 0;
   while (used < std::min(pool.size(), max_anchors)) {
@@ -1839,6 +1852,9 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
     AdmitTransitiveAnchors(results, first, found, pool);
   }
   SortTransitiveWindow(std::span(results).subspan(first, last - first));
+  kept = std::move(ranked).Release();
+  constexpr size_t kMaxKeptBytes = size_t{32} << 20;
+  if (kept.occurrences.capacity() * sizeof(InvertedFile::Subset::Occurrence) > kMaxKeptBytes) kept = {};
 }
 
 // The anchors' regions scored against the ranking so far, one anchor per task, then the shared plan.

@@ -1303,26 +1303,39 @@ Result<InvertedFile> InvertedFile::Deserialize(std::span<const uint8_t> bytes, s
 }
 
 InvertedFile::Subset::Subset(const InvertedFile& file, std::span<const uint32_t> images,
-                             std::span<const BagOfWords* const> bags)
-    : file_(file), first_(file.vocabulary_size_ + 1, 0), norms_(images.size()) {
+                             std::span<const BagOfWords* const> bags, Buffers reuse)
+    : file_(file), first_(std::move(reuse.first)), occurrences_(std::move(reuse.occurrences)), norms_(images.size()) {
   OXBOW_CHECK(images.size() == bags.size());
-  // Counting sort by word: images in order within each word, as in a posting list.
+  const size_t num_words = file.vocabulary_size_;
+  first_.assign(num_words + 1, 0);
+  // Counting sort by word: images in order within each word, as in a posting list. first_[w] counts
+  // word w, then (inclusive prefix sums) the end of its occurrences; the images are then placed from the
+  // last one back, each word's at its end minus one, which leaves first_[w] at the word's start without
+  // a second table of cursors.
   for (const BagOfWords* bag : bags) {
     for (const uint32_t w : bag->words) {
-      OXBOW_CHECK(w < file.vocabulary_size_);
-      ++first_[w + 1];
+      OXBOW_CHECK(w < num_words);
+      ++first_[w];
     }
   }
-  for (size_t w = 0; w < file.vocabulary_size_; ++w) first_[w + 1] += first_[w];
-  occurrences_.resize(first_.back());
-  std::vector<uint32_t> next(first_.begin(), first_.end() - 1);
-  for (size_t i = 0; i < bags.size(); ++i) {
+  for (size_t w = 1; w < num_words; ++w) first_[w] += first_[w - 1];
+  if (num_words > 0) first_[num_words] = first_[num_words - 1];
+  occurrences_.resize(first_[num_words]);
+  for (size_t i = bags.size(); i-- > 0;) {
     for (size_t k = 0; k < bags[i]->words.size(); ++k) {
       const uint32_t tf = bags[i]->counts[k];
-      occurrences_[next[bags[i]->words[k]]++] = {static_cast<uint32_t>(i), tf == 1 ? 1.0f : file.TermWeight(tf)};
+      occurrences_[--first_[bags[i]->words[k]]] = {static_cast<uint32_t>(i), tf == 1 ? 1.0f : file.TermWeight(tf)};
     }
     norms_[i] = file.Norm(images[i]);
   }
+}
+
+InvertedFile::Subset::Buffers InvertedFile::Subset::Release() && {
+  Buffers out{std::move(first_), std::move(occurrences_)};
+  first_.clear();
+  occurrences_.clear();
+  norms_.clear();
+  return out;
 }
 
 std::vector<float> InvertedFile::Subset::Score(std::span<const QueryTerm> query) const {

@@ -209,15 +209,26 @@ class InvertedFile {
   // Keeps a reference to the InvertedFile.
   class Subset {
    public:
-    // bags[i]: the bag images[i] was added with.
-    Subset(const InvertedFile& file, std::span<const uint32_t> images, std::span<const BagOfWords* const> bags);
-    std::vector<float> Score(std::span<const QueryTerm> query) const;  // one score per image, in order
-
-   private:
     struct Occurrence {
       uint32_t image;  // index into `images`
       float t;         // t(tf)
     };
+    // The memory of a subset's tables, handed from one subset to the next (Release): a search builds one
+    // per query, and its tables (the word index is vocabulary_size + 1 entries, the occurrences several
+    // MB) would otherwise be fresh memory that each search faults in page by page.
+    struct Buffers {
+      std::vector<uint32_t> first;
+      std::vector<Occurrence> occurrences;
+    };
+    // bags[i]: the bag images[i] was added with. `reuse`: memory to build the tables in (its contents do
+    // not matter).
+    Subset(const InvertedFile& file, std::span<const uint32_t> images, std::span<const BagOfWords* const> bags,
+           Buffers reuse = {});
+    std::vector<float> Score(std::span<const QueryTerm> query) const;  // one score per image, in order
+    // The tables' memory, for the next subset; this subset is left empty (Score must not be called).
+    Buffers Release() &&;
+
+   private:
     const InvertedFile& file_;
     std::vector<uint32_t> first_;           // per word: its occurrences are [first_[w], first_[w + 1])
     std::vector<Occurrence> occurrences_;   // by word, then image

@@ -137,6 +137,41 @@ TEST(InvertedFileTest, MatchesDenseReferenceOnRandomCorpus) {
   }
 }
 
+TEST(InvertedFileTest, SubsetOnReusedBuffersScoresAsAFreshOne) {
+  // Transitive verification builds each search's subset in the memory of the previous one
+  // (Subset::Buffers): what that memory held must not leak into the next subset's scores.
+  std::mt19937_64 rng(23);
+  const size_t vocab = 300;
+  InvertedFile file(vocab, TfIdfOptions{.stop_list_min_images = 0});
+  std::vector<BagOfWords> corpus;
+  for (uint32_t i = 0; i < 60; ++i) {
+    corpus.push_back(RandomBag(rng, vocab));
+    const std::vector<uint32_t> ids = {i};
+    const std::vector<const BagOfWords*> bags = {&corpus.back()};
+    file = file.WithAdded(ids, bags);
+  }
+  InvertedFile::Subset::Buffers buffers;
+  // Subsets of different sizes in turn (larger, then smaller, then larger), each on the last one's memory.
+  for (const size_t count : {50, 7, 33, 60, 1}) {
+    std::vector<uint32_t> images;
+    std::vector<const BagOfWords*> bags;
+    for (size_t k = 0; k < count; ++k) {
+      const auto i = static_cast<uint32_t>((k * 13 + count) % corpus.size());
+      if (std::find(images.begin(), images.end(), i) != images.end()) continue;
+      images.push_back(i);
+      bags.push_back(&corpus[i]);
+    }
+    const InvertedFile::Subset fresh(file, images, bags);
+    InvertedFile::Subset reused(file, images, bags, std::move(buffers));
+    for (int q = 0; q < 5; ++q) {
+      const auto terms = file.QueryVector(RandomBag(rng, vocab));
+      EXPECT_EQ(reused.Score(terms), fresh.Score(terms)) << count << " images, query " << q;
+    }
+    buffers = std::move(reused).Release();
+    EXPECT_GE(buffers.first.capacity(), vocab + 1);
+  }
+}
+
 TEST(InvertedFileTest, SubsetScoresEqualScore) {
   // Several segments, a removed image and statistics older than the live images (no refresh after
   // the last adds), as a large index has them; also a stop list.

@@ -1,12 +1,9 @@
 // `oxbow serve`: the HTTP JSON server over an index (server/http_server.h, api/service.h).
-#include <malloc.h>
 #include <pthread.h>
 #include <signal.h>
 
 #include <cmath>
 #include <cstdio>
-#include <cstdlib>
-#include <cstring>
 #include <memory>
 #include <optional>
 #include <string>
@@ -71,29 +68,7 @@ void ServeFront(const ServeFlags& flags, const server::HttpServerOptions& http,
   OXBOW_LOG(kInfo) << "stopped";
 }
 
-// glibc returns freed memory at the top of each malloc arena to the kernel once more than 128 KiB is
-// free there (M_TRIM_THRESHOLD, with M_TOP_PAD 0 kept). A search frees its extraction's pyramid (tens of
-// MB) before it quantises, scores and verifies, and each of those stages then faulted its scratch
-// memory back in page by page, which on a virtual machine was a large part of their time: over HTTP at
-// 1M images, verification took 17-23 ms p50 instead of 10-14 ms, and quantisation 22-27 instead of 14-18
-// (README, "Session 29"). Keeping 64 MiB at the top of each arena costs at most that much resident memory
-// per arena in use (a few arenas: the request and pool threads). A value the user set through
-// MALLOC_TOP_PAD_ or GLIBC_TUNABLES (glibc.malloc.top_pad) is left as it is.
-void KeepFreedHeapMemory() {
-#if defined(__GLIBC__) && defined(M_TOP_PAD)
-  constexpr int kTopPadBytes = 64 << 20;
-  const char* tunables = std::getenv("GLIBC_TUNABLES");
-  if (std::getenv("MALLOC_TOP_PAD_") != nullptr || (tunables != nullptr && std::strstr(tunables, "top_pad") != nullptr)) {
-    return;
-  }
-  if (mallopt(M_TOP_PAD, kTopPadBytes) != 1) {
-    OXBOW_LOG(kWarning) << "mallopt(M_TOP_PAD) failed; searches may be slower";
-  }
-#endif
-}
-
 void Serve(const ServeFlags& flags) {
-  KeepFreedHeapMemory();
   log::Format log_format = log::Format::kText;
   if (!log::ParseFormat(flags.log_format, &log_format)) throw CommandError(2, "--log-format must be text or json");
   log::SetFormat(log_format);
