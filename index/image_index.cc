@@ -1418,7 +1418,7 @@ Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const Que
     q.signatures.resize(q.words.size());
     impl_->vocabulary.Signatures(descriptors, q.words, q.signatures);
   }
-  constexpr size_t kMaxKeptFloats = size_t{8} << 20;  // 32 MiB
+  constexpr size_t kMaxKeptFloats = size_t{2} << 20;  // 8 MiB
   if (descriptors.capacity() > kMaxKeptFloats) descriptors = std::vector<float>();
   timings.quantize_ms = MsSince(t0);
   auto response = impl_->Run(*snap, q, options, timings);
@@ -1853,7 +1853,7 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
   }
   SortTransitiveWindow(std::span(results).subspan(first, last - first));
   kept = std::move(ranked).Release();
-  constexpr size_t kMaxKeptBytes = size_t{32} << 20;
+  constexpr size_t kMaxKeptBytes = size_t{8} << 20;
   if (kept.occurrences.capacity() * sizeof(InvertedFile::Subset::Occurrence) > kMaxKeptBytes) kept = {};
 }
 
