@@ -142,14 +142,15 @@ TEST(InvertedFileTest, SubsetOnReusedBuffersScoresAsAFreshOne) {
   // (Subset::Buffers): what that memory held must not leak into the next subset's scores.
   std::mt19937_64 rng(23);
   const size_t vocab = 300;
-  InvertedFile file(vocab, TfIdfOptions{.stop_list_min_images = 0});
   std::vector<BagOfWords> corpus;
+  std::vector<uint32_t> ids;
+  std::vector<const BagOfWords*> corpus_bags;
+  for (uint32_t i = 0; i < 60; ++i) corpus.push_back(RandomBag(rng, vocab));
   for (uint32_t i = 0; i < 60; ++i) {
-    corpus.push_back(RandomBag(rng, vocab));
-    const std::vector<uint32_t> ids = {i};
-    const std::vector<const BagOfWords*> bags = {&corpus.back()};
-    file = file.WithAdded(ids, bags);
+    ids.push_back(i);
+    corpus_bags.push_back(&corpus[i]);
   }
+  const InvertedFile file = InvertedFile(vocab, TfIdfOptions{.stop_list_min_images = 0}).WithAdded(ids, corpus_bags);
   InvertedFile::Subset::Buffers buffers;
   // Subsets of different sizes in turn (larger, then smaller, then larger), each on the last one's memory.
   for (const size_t count : {50, 7, 33, 60, 1}) {
