@@ -467,9 +467,12 @@ Result<int64_t> Catalogue::Insert(const ImageRecord& r, std::span<const uint8_t>
     sqlite3_stmt* f = db_->insert_features;
     sqlite3_reset(f);
     sqlite3_bind_int64(f, 1, number);
-    sqlite3_bind_blob64(f, 2, features.data(), features.size(), SQLITE_TRANSIENT);
+    // Bound without a copy (SQLITE_STATIC): step writes it into the database's pages, and the binding
+    // is cleared before `features` can go away.
+    sqlite3_bind_blob64(f, 2, features.data(), features.size(), SQLITE_STATIC);
     rc = sqlite3_step(f);
     sqlite3_reset(f);
+    sqlite3_clear_bindings(f);
   }
   if (rc != SQLITE_DONE) {
     return Fail(CodeFor(rc), path_ + ": cannot add '" + r.id + "': " + SqliteMessage(db_->handle) + Hint(rc));

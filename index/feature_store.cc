@@ -135,18 +135,22 @@ BagOfWords PackedFeatures::BagInside(const std::array<float, 4>& box) const {
 }
 
 std::vector<uint8_t> PackedFeatures::Serialize() const {
-  io::ByteWriter writer;
-  for (char c : kMagic) writer.Put<char>(c);
-  const bool signed_features = !signature_bytes_.empty();
-  std::vector<uint8_t> body(bytes_.begin(), bytes_.end());
-  body.insert(body.end(), signature_bytes_.begin(), signature_bytes_.end());
-  writer.Put<uint32_t>(signed_features ? kSignedBlobVersion : kBlobVersion);
-  writer.Put<int32_t>(width_);
-  writer.Put<int32_t>(height_);
-  writer.Put<uint32_t>(static_cast<uint32_t>(size()));
-  writer.Put<uint32_t>(io::Crc32(body));
-  writer.PutArray<uint8_t>(body);
-  return writer.Release();
+  // Made in place at its final size: a bulk add serialises thousands of these per batch, and each
+  // extra copy was another buffer of fresh pages to fault in.
+  std::vector<uint8_t> out(kBlobHeaderBytes + bytes_.size() + signature_bytes_.size());
+  const std::span<uint8_t> body = std::span(out).subspan(kBlobHeaderBytes);
+  std::copy(bytes_.begin(), bytes_.end(), body.begin());
+  std::copy(signature_bytes_.begin(), signature_bytes_.end(), body.begin() + static_cast<ptrdiff_t>(bytes_.size()));
+  io::ByteWriter header;
+  for (char c : kMagic) header.Put<char>(c);
+  header.Put<uint32_t>(signature_bytes_.empty() ? kBlobVersion : kSignedBlobVersion);
+  header.Put<int32_t>(width_);
+  header.Put<int32_t>(height_);
+  header.Put<uint32_t>(static_cast<uint32_t>(size()));
+  header.Put<uint32_t>(io::Crc32(body));
+  OXBOW_CHECK(header.bytes().size() == kBlobHeaderBytes);
+  std::copy(header.bytes().begin(), header.bytes().end(), out.begin());
+  return out;
 }
 
 Result<PackedFeatures> PackedFeatures::Deserialize(std::span<const uint8_t> blob, const std::string& what) {

@@ -311,8 +311,12 @@ class InvertedFile {
   void RefreshStatistics(int num_threads);
   void RecomputeSums(int num_threads);  // every live image's sums with the current statistics
   void RefreshIfDue();
-  // Sums a, b, c of one image's bag with the current statistics (words unknown to them left out).
-  void SetSums(const BagOfWords& bag, ImageState* s) const;
+  // Sums a, b, c of one image's bag with the current statistics (words unknown to them left out);
+  // log_df is LogDfTable().
+  void SetSums(const BagOfWords& bag, std::span<const double> log_df, ImageState* s) const;
+  // log n_w per word for the statistics (0 where n_w = 0), made at its first use, as IdfSquaredTable():
+  // a batch of new images takes its sums' logarithms from it instead of one std::log per posting.
+  std::shared_ptr<const std::vector<double>> LogDfTable() const;
   // |v(d)| of an image state with the current statistics: 0 when not live or not positive.
   double ComputeNorm(const ImageState& s) const;
   // norms_ of `images` (their sums or liveness changed), or of every image (the statistics changed).
@@ -336,10 +340,13 @@ class InvertedFile {
   uint64_t num_postings_ = 0;       // stored in segments, live or not
   uint64_t num_dead_postings_ = 0;  // of removed images, not yet merged away
   std::array<float, 256> term_weight_{};  // t(tf) for tf < 256
-  // IdfSquaredTable(), made at its first use; replaced by a new, empty one whenever the statistics change.
+  // IdfSquaredTable() and LogDfTable(), each made at its first use; replaced by a new, empty one whenever
+  // the statistics change.
   struct IdfTable {
     std::once_flag once;
     std::shared_ptr<const std::vector<double>> squared;
+    std::once_flag log_df_once;
+    std::shared_ptr<const std::vector<double>> log_df;
   };
   std::shared_ptr<IdfTable> idf_table_ = std::make_shared<IdfTable>();
 };

@@ -281,6 +281,57 @@ TEST(InvertedFileTest, RandomAddRemoveSequenceEqualsRebuild) {
   }
 }
 
+// Merges of segments with no removed image copy each list and code again only its first posting (its
+// gap from the previous segment's last image): batches of every size, numbers with gaps below, at and
+// above the 16-bit escape between and within batches, many merges (factor 2): every image's score is
+// that of the same collection built at once, and of the definition.
+TEST(InvertedFileTest, MergesWithoutRemovalsKeepEveryPosting) {
+  std::mt19937_64 rng(777);
+  const size_t vocab = 300;
+  // Statistics refreshed once at the end (not at every add, as below exact_statistics_postings).
+  const TfIdfOptions options{.sqrt_tf = true, .merge_factor = 2, .exact_statistics_postings = 0};
+  InvertedFile file(vocab, options);
+  std::map<uint32_t, BagOfWords> live;
+  uint32_t next_number = 5;
+  const std::vector<uint32_t> jumps = {1, 1, 2, 3, 32766, 32767, 32768, 32769};
+  for (int batch = 0; batch < 32; ++batch) {
+    std::vector<uint32_t> ids;
+    std::vector<BagOfWords> new_bags;
+    const int n = std::uniform_int_distribution<int>(1, 40)(rng);
+    for (int i = 0; i < n; ++i) {
+      ids.push_back(next_number);
+      next_number += i == 0 ? jumps[rng() % jumps.size()] : 1 + static_cast<uint32_t>(rng() % 2);
+      new_bags.push_back(RandomBag(rng, vocab));
+    }
+    std::vector<const BagOfWords*> bags;
+    for (const BagOfWords& b : new_bags) bags.push_back(&b);
+    file = file.WithAdded(ids, bags);
+    for (size_t i = 0; i < ids.size(); ++i) live[ids[i]] = new_bags[i];
+  }
+  EXPECT_LT(file.num_segments(), 20u);  // merged
+  file = file.WithRefreshedStatistics(1);
+  const InvertedFile built = InvertedFile::Build(vocab, options, next_number, [&](uint32_t image, BagOfWords* bag) {
+    const auto it = live.find(image);
+    if (it == live.end()) return false;
+    *bag = it->second;
+    return true;
+  });
+  EXPECT_EQ(file.Stats().num_postings, built.Stats().num_postings);
+  for (int q = 0; q < 20; ++q) {
+    const BagOfWords query = RandomBag(rng, vocab);
+    const auto got = AllScores(file, query);
+    const auto expected = AllScores(built, query);
+    ASSERT_EQ(got.size(), expected.size());
+    for (const auto& [id, score] : expected) {
+      ASSERT_TRUE(got.count(id)) << "image " << id;
+      EXPECT_NEAR(got.at(id), score, 1e-9) << "image " << id;
+    }
+    for (const auto& [id, score] : ReferenceScores(live, query, vocab, true)) {
+      EXPECT_NEAR(got.count(id) ? got.at(id) : 0.0, score, 1e-6) << "image " << id;
+    }
+  }
+}
+
 InvertedFile AddAll(const InvertedFile& file, std::map<uint32_t, BagOfWords>* live, uint32_t first, size_t n,
                     std::mt19937_64& rng, size_t vocab) {
   std::vector<uint32_t> ids;
