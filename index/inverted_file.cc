@@ -584,11 +584,18 @@ InvertedFile InvertedFile::WithAdded(std::span<const uint32_t> images, std::span
     // word's list, one that writes the postings in place; O(postings + words), no intermediate copy.
     std::vector<uint64_t> offsets(vocabulary_size_ + 1, 0);
     std::vector<uint32_t> last(vocabulary_size_, segment->first_image);
+    // Numbers closer together than the escape (a batch's are consecutive): no gap takes it, and the
+    // sizes need no previous image per word (half the random accesses of this pass).
+    const bool short_gaps = images.back() - images.front() < kGapEscape;
     for (size_t i = 0; i < images.size(); ++i) {
       for (size_t k = 0; k < bags[i]->words.size(); ++k) {
         const uint32_t w = bags[i]->words[k];
-        offsets[w + 1] += PostingSize(images[i] - last[w], bags[i]->counts[k]);
-        last[w] = images[i];
+        if (short_gaps) {
+          offsets[w + 1] += PostingSize(0, bags[i]->counts[k]);
+        } else {
+          offsets[w + 1] += PostingSize(images[i] - last[w], bags[i]->counts[k]);
+          last[w] = images[i];
+        }
       }
     }
     size_t distinct = 0;

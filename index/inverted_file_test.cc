@@ -282,7 +282,8 @@ TEST(InvertedFileTest, RandomAddRemoveSequenceEqualsRebuild) {
 }
 
 // Merges of segments with no removed image copy each list and code again only its first posting (its
-// gap from the previous segment's last image): batches of every size, numbers with gaps below, at and
+// gap from the previous segment's last image), and a batch's segment is sized without previous images
+// when its numbers lie closer than the escape: batches of every size, numbers with gaps below, at and
 // above the 16-bit escape between and within batches, many merges (factor 2): every image's score is
 // that of the same collection built at once, and of the definition.
 TEST(InvertedFileTest, MergesWithoutRemovalsKeepEveryPosting) {
@@ -300,7 +301,7 @@ TEST(InvertedFileTest, MergesWithoutRemovalsKeepEveryPosting) {
     const int n = std::uniform_int_distribution<int>(1, 40)(rng);
     for (int i = 0; i < n; ++i) {
       ids.push_back(next_number);
-      next_number += i == 0 ? jumps[rng() % jumps.size()] : 1 + static_cast<uint32_t>(rng() % 2);
+      next_number += (i == 0 || rng() % 24 == 0) ? jumps[rng() % jumps.size()] : 1 + static_cast<uint32_t>(rng() % 2);
       new_bags.push_back(RandomBag(rng, vocab));
     }
     std::vector<const BagOfWords*> bags;
