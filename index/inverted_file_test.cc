@@ -215,6 +215,35 @@ TEST(InvertedFileTest, SubsetScoresEqualScore) {
   }
 }
 
+// The images of `live` (numbers below num_numbers) built at once, as one segment.
+InvertedFile BuildOf(const std::map<uint32_t, BagOfWords>& live, size_t vocab, const TfIdfOptions& options,
+                     uint32_t num_numbers) {
+  return InvertedFile::Build(vocab, options, num_numbers, [&](uint32_t image, BagOfWords* bag) {
+    const auto it = live.find(image);
+    if (it == live.end()) return false;
+    *bag = it->second;
+    return true;
+  });
+}
+
+// For 20 random queries, `file` scores every image as `built` does and as the definition over `live`.
+void ExpectScoresOfBuildAndDefinition(const InvertedFile& file, const InvertedFile& built,
+                                      const std::map<uint32_t, BagOfWords>& live, std::mt19937_64& rng, size_t vocab) {
+  for (int q = 0; q < 20; ++q) {
+    const BagOfWords query = RandomBag(rng, vocab);
+    const auto got = AllScores(file, query);
+    const auto expected = AllScores(built, query);
+    ASSERT_EQ(got.size(), expected.size());
+    for (const auto& [id, score] : expected) {
+      ASSERT_TRUE(got.count(id)) << "image " << id;
+      EXPECT_NEAR(got.at(id), score, 1e-6) << "image " << id;
+    }
+    for (const auto& [id, score] : ReferenceScores(live, query, vocab, true)) {
+      EXPECT_NEAR(got.count(id) ? got.at(id) : 0.0, score, 1e-6) << "image " << id;
+    }
+  }
+}
+
 TEST(InvertedFileTest, RandomAddRemoveSequenceEqualsRebuild) {
   std::mt19937_64 rng(12345);
   const size_t vocab = 500;
@@ -252,31 +281,12 @@ TEST(InvertedFileTest, RandomAddRemoveSequenceEqualsRebuild) {
       }
     }
     ASSERT_GT(live.size(), 100u);
-    const InvertedFile rebuilt = InvertedFile::Build(vocab, options, next_number, [&](uint32_t image, BagOfWords* bag) {
-      auto it = live.find(image);
-      if (it == live.end()) return false;
-      *bag = it->second;
-      return true;
-    });
+    const InvertedFile rebuilt = BuildOf(live, vocab, options, next_number);
     EXPECT_EQ(file.num_images(), rebuilt.num_images());
     EXPECT_EQ(file.Stats().num_features, rebuilt.Stats().num_features);
     for (uint32_t w = 0; w < vocab; ++w) ASSERT_EQ(file.DocumentFrequency(w), rebuilt.DocumentFrequency(w));
     for (const auto& [id, bag] : live) EXPECT_NEAR(file.Norm(id), rebuilt.Norm(id), 1e-9 * (1 + rebuilt.Norm(id)));
-    for (int q = 0; q < 20; ++q) {
-      const BagOfWords query = RandomBag(rng, vocab);
-      const auto a = AllScores(file, query);
-      const auto b = AllScores(rebuilt, query);
-      ASSERT_EQ(a.size(), b.size());
-      for (const auto& [id, score] : b) {
-        ASSERT_TRUE(a.count(id)) << id;
-        EXPECT_NEAR(a.at(id), score, 1e-6) << "image " << id;
-      }
-      // And against the definition.
-      const auto expected = ReferenceScores(live, query, vocab, true);
-      for (const auto& [id, score] : expected) {
-        EXPECT_NEAR(a.count(id) ? a.at(id) : 0.0, score, 1e-6);
-      }
-    }
+    ExpectScoresOfBuildAndDefinition(file, rebuilt, live, rng, vocab);
     EXPECT_GE(file.Stats().num_segments, 1u);
   }
 }
@@ -311,26 +321,9 @@ TEST(InvertedFileTest, MergesWithoutRemovalsKeepEveryPosting) {
   }
   EXPECT_LT(file.num_segments(), 20u);  // merged
   file = file.WithRefreshedStatistics(1);
-  const InvertedFile built = InvertedFile::Build(vocab, options, next_number, [&](uint32_t image, BagOfWords* bag) {
-    const auto it = live.find(image);
-    if (it == live.end()) return false;
-    *bag = it->second;
-    return true;
-  });
+  const InvertedFile built = BuildOf(live, vocab, options, next_number);
   EXPECT_EQ(file.Stats().num_postings, built.Stats().num_postings);
-  for (int q = 0; q < 20; ++q) {
-    const BagOfWords query = RandomBag(rng, vocab);
-    const auto got = AllScores(file, query);
-    const auto expected = AllScores(built, query);
-    ASSERT_EQ(got.size(), expected.size());
-    for (const auto& [id, score] : expected) {
-      ASSERT_TRUE(got.count(id)) << "image " << id;
-      EXPECT_NEAR(got.at(id), score, 1e-9) << "image " << id;
-    }
-    for (const auto& [id, score] : ReferenceScores(live, query, vocab, true)) {
-      EXPECT_NEAR(got.count(id) ? got.at(id) : 0.0, score, 1e-6) << "image " << id;
-    }
-  }
+  ExpectScoresOfBuildAndDefinition(file, built, live, rng, vocab);
 }
 
 InvertedFile AddAll(const InvertedFile& file, std::map<uint32_t, BagOfWords>* live, uint32_t first, size_t n,
