@@ -315,6 +315,7 @@ TEST(InvertedFileTest, MergesWithoutRemovalsKeepEveryPosting) {
       new_bags.push_back(RandomBag(rng, vocab));
     }
     std::vector<const BagOfWords*> bags;
+    bags.reserve(new_bags.size());
     for (const BagOfWords& b : new_bags) bags.push_back(&b);
     file = file.WithAdded(ids, bags);
     for (size_t i = 0; i < ids.size(); ++i) live[ids[i]] = new_bags[i];
