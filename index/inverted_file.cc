@@ -460,10 +460,9 @@ void InvertedFile::RecomputeSums(int num_threads) {
   const size_t num_images = images_.size();
   std::vector<uint8_t> live(num_images);
   for (size_t i = 0; i < num_images; ++i) live[i] = images_[i].live != 0 ? 1 : 0;
-  std::vector<double> log_df(vocabulary_size_, 0.0);
-  for (size_t w = 0; w < vocabulary_size_; ++w) {
-    if (stats_df_[w] != 0) log_df[w] = std::log(static_cast<double>(stats_df_[w]));
-  }
+  // The new statistics' log n_w, kept in the new table for the batches added after this refresh.
+  const std::shared_ptr<const std::vector<double>> log_df_table = LogDfTable();
+  const std::vector<double>& log_df = *log_df_table;
   constexpr size_t kWordsPerChunk = 4096;
   const size_t num_chunks = (vocabulary_size_ + kWordsPerChunk - 1) / kWordsPerChunk;
   constexpr size_t kGroups = 4;
