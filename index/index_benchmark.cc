@@ -1190,8 +1190,9 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
   // Adds of single images while another thread searches, then their removal.
   std::atomic<bool> stop{false};
   std::atomic<uint64_t> searched{0};
+  // With --queries 0 the writes run alone (no search alongside).
   std::thread searcher([&] {
-    for (size_t i = 0; !stop.load(); i = (i + 1) % queries.size()) {
+    for (size_t i = 0; !stop.load() && !queries.empty(); i = (i + 1) % queries.size()) {
       if (idx->Query(*queries[i], QueryOptions{})) ++searched;
     }
   });
