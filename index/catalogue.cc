@@ -417,18 +417,17 @@ Result<int64_t> Catalogue::Replace(int64_t old_number, const ImageRecord& r, std
   return number;
 }
 
-Result<std::vector<int64_t>> Catalogue::InsertMany(std::span<const ImageRecord> records,
-                                                   std::span<const std::vector<uint8_t>> features) {
-  OXBOW_CHECK(records.size() == features.size());
+Result<std::vector<int64_t>> Catalogue::InsertMany(const std::function<Result<std::optional<Row>>()>& next) {
   std::vector<int64_t> numbers;
-  numbers.reserve(records.size());
   auto status = InTransaction([&]() -> Status {
-    for (size_t i = 0; i < records.size(); ++i) {
-      auto inserted = Insert(records[i], features[i]);
+    while (true) {
+      auto row = next();
+      if (!row) return std::unexpected(row.error());
+      if (!*row) return Ok();
+      auto inserted = Insert(*(*row)->record, (*row)->features);
       if (!inserted) return std::unexpected(inserted.error());
       numbers.push_back(*inserted);
     }
-    return Ok();
   });
   if (!status) return std::unexpected(status.error());
   return numbers;

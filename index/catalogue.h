@@ -31,6 +31,7 @@
 #include <cstdint>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <span>
 #include <string>
 #include <vector>
@@ -86,10 +87,17 @@ class Catalogue {
   // Inserts one image row in its own committed transaction and returns its new number.
   // kAlreadyExists when the id is taken, kIoError otherwise.
   [[nodiscard]] Result<int64_t> Insert(const ImageRecord& record, std::span<const uint8_t> features);
+  // A row for InsertMany; both must stay valid until InsertMany returns.
+  struct Row {
+    const ImageRecord* record = nullptr;
+    std::span<const uint8_t> features;
+  };
   // Inserts rows in one committed transaction and returns their numbers (ascending, in order): all
-  // or none. kAlreadyExists when an id is taken (nothing inserted), kIoError otherwise.
-  [[nodiscard]] Result<std::vector<int64_t>> InsertMany(std::span<const ImageRecord> records,
-                                                        std::span<const std::vector<uint8_t>> features);
+  // or none. `next` gives the rows in order: a row, std::nullopt after the last, or an error, which
+  // rolls every row back and is returned. It may wait (for a row still being made, say): the rows
+  // given so far are written meanwhile. kAlreadyExists when an id is taken (nothing inserted),
+  // kIoError otherwise.
+  [[nodiscard]] Result<std::vector<int64_t>> InsertMany(const std::function<Result<std::optional<Row>>()>& next);
   // Deletes row `old_number` and inserts the new row in one committed transaction: a crash leaves
   // either the old row or the new one. Returns the new number. kNotFound when `old_number` is absent
   // (nothing changed), kIoError otherwise (rolled back).

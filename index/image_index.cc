@@ -21,7 +21,9 @@
 #include <optional>
 #include <set>
 #include <span>
+#include <string_view>
 #include <unordered_map>
+#include <unordered_set>
 
 #include "index/catalogue.h"
 #include "index/checkpoint.h"
@@ -1239,56 +1241,95 @@ Result<ImageRecord> ImageIndex::Impl::Write(const std::string& id, const sift::F
 
 std::vector<Result<ImageRecord>> ImageIndex::AddBatch(std::span<const BatchImage> images) {
   std::vector<Result<ImageRecord>> results(images.size(), Fail(ErrorCode::kInvalidArgument, "not processed"));
-  std::vector<Impl::Prepared> prepared(images.size());  // valid where results[i] is not yet decided
-  std::vector<uint8_t> ready(images.size(), 0);
-  ParallelFor(images.size(), impl_->index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
-    for (size_t i = begin; i < end; ++i) {
-      if (images[i].features == nullptr) {
-        results[i] = Fail(ErrorCode::kInvalidArgument, "image '" + images[i].id + "': no features");
-        continue;
-      }
-      auto p = impl_->Prepare(images[i].id, *images[i].features, images[i].info, images[i].words,
-                              images[i].signatures, 1);
-      if (p) {
-        prepared[i] = std::move(*p);
-        ready[i] = 1;
-      } else {
-        results[i] = std::unexpected(p.error());
-      }
-    }
-  });
+  std::vector<Impl::Prepared> prepared(images.size());  // valid where state[i] is kReady
+  // Per image, under state_mutex while the images are prepared: the commit below reads them as they
+  // are decided.
+  enum : uint8_t { kPending, kReady, kFailed };
+  std::vector<uint8_t> state(images.size(), kPending);
+  std::mutex state_mutex;
+  std::condition_variable decided;
+  bool abandoned = false;  // state_mutex: preparing stopped by an exception; the commit rolls back
 
+  // The writer lock is held from the start: the catalogue takes each image's rows while the later
+  // images are still prepared (below), so that only the last rows and the COMMIT are left after them.
   std::lock_guard<std::mutex> writer(impl_->writer_mutex);
   const auto current = impl_->Current();
+  // An image is added unless its id is indexed or came earlier in the batch. Asked in order, once by
+  // the commit (as the images become ready) and once after preparing: the same answers.
+  const auto admitted = [&](size_t i, std::unordered_set<std::string_view>* seen) {
+    return !current->Find(images[i].id) && seen->insert(images[i].id).second;
+  };
+  // One transaction for the batch. Where no thread can be started, std::async runs it in this thread
+  // at get(), when every image is decided.
+  auto commit = std::async(std::launch::async | std::launch::deferred, [&] {
+    std::unordered_set<std::string_view> seen;
+    size_t i = 0;
+    return impl_->catalogue->InsertMany([&]() -> Result<std::optional<Catalogue::Row>> {
+      for (; i < images.size(); ++i) {
+        {
+          std::unique_lock<std::mutex> lock(state_mutex);
+          decided.wait(lock, [&] { return state[i] != kPending || abandoned; });
+          if (abandoned) return Fail(ErrorCode::kInternal, "the batch was abandoned");
+          if (state[i] != kReady) continue;
+        }
+        if (!admitted(i, &seen)) continue;
+        const Impl::Prepared& p = prepared[i++];
+        return Catalogue::Row{&p.entry->record, p.blob};
+      }
+      return std::nullopt;
+    });
+  });
+  try {
+    ParallelFor(images.size(), impl_->index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
+      for (size_t i = begin; i < end; ++i) {
+        uint8_t outcome = kFailed;
+        if (images[i].features == nullptr) {
+          results[i] = Fail(ErrorCode::kInvalidArgument, "image '" + images[i].id + "': no features");
+        } else if (auto p = impl_->Prepare(images[i].id, *images[i].features, images[i].info, images[i].words,
+                                           images[i].signatures, 1)) {
+          prepared[i] = std::move(*p);
+          outcome = kReady;
+        } else {
+          results[i] = std::unexpected(p.error());
+        }
+        {
+          std::lock_guard<std::mutex> lock(state_mutex);
+          state[i] = outcome;
+        }
+        decided.notify_one();
+      }
+    });
+  } catch (...) {
+    {
+      std::lock_guard<std::mutex> lock(state_mutex);
+      abandoned = true;
+    }
+    decided.notify_one();
+    commit.wait();
+    throw;
+  }
+
   std::vector<size_t> chosen;  // positions committed, in order
-  std::unordered_map<std::string, size_t> seen;
+  std::unordered_set<std::string_view> seen;
   for (size_t i = 0; i < images.size(); ++i) {
-    if (!ready[i]) continue;
-    if (current->Find(images[i].id) || !seen.emplace(images[i].id, i).second) {
+    if (state[i] != kReady) continue;
+    if (!admitted(i, &seen)) {
       results[i] = Fail(ErrorCode::kAlreadyExists, "an image with id '" + images[i].id + "' is already indexed");
       continue;
     }
     chosen.push_back(i);
   }
-  if (chosen.empty()) return results;
-  std::vector<ImageRecord> records;
-  std::vector<std::vector<uint8_t>> blobs;
-  records.reserve(chosen.size());
-  blobs.reserve(chosen.size());
-  for (const size_t i : chosen) {
-    records.push_back(prepared[i].entry->record);
-    blobs.push_back(std::move(prepared[i].blob));
+  if (chosen.empty()) {
+    (void)commit.get();  // an empty transaction: nothing written
+    return results;
   }
   std::vector<Impl::Prepared*> linked;
   linked.reserve(chosen.size());
   for (const size_t i : chosen) linked.push_back(&prepared[i]);
-  // The next snapshot is built while the catalogue commits (on another thread; they share nothing but
-  // `current`, read-only), on the numbers the catalogue will most likely give: AUTOINCREMENT numbers a
-  // transaction's rows consecutively after the highest number it ever gave. It is published only after
-  // the commit, and built again on the numbers given when the guess was wrong. Where no thread can be
-  // started, std::async runs the commit in this thread at get().
-  auto commit = std::async(std::launch::async | std::launch::deferred,
-                           [&] { return impl_->catalogue->InsertMany(records, blobs); });
+  // The next snapshot is built while the catalogue commits (they share nothing but `current` and the
+  // prepared images, read-only), on the numbers the catalogue will most likely give: AUTOINCREMENT
+  // numbers a transaction's rows consecutively after the highest number it ever gave. It is published
+  // only after the commit, and built again on the numbers given when the guess was wrong.
   const uint64_t first = std::max<uint64_t>({impl_->next_number, current->entries.size(), 1});
   std::vector<uint32_t> guessed;
   std::shared_ptr<Snapshot> next;
@@ -1303,6 +1344,7 @@ std::vector<Result<ImageRecord>> ImageIndex::AddBatch(std::span<const BatchImage
     for (const size_t i : chosen) results[i] = std::unexpected(numbers.error());
     return results;
   }
+  OXBOW_CHECK(numbers->size() == chosen.size(), "the commit and the snapshot chose different images");
   std::vector<uint32_t> committed(numbers->begin(), numbers->end());
   impl_->next_number = uint64_t{committed.back()} + 1;
   if (committed != guessed) {

@@ -302,6 +302,14 @@ TEST(InvertedFileTest, MergesWithoutRemovalsKeepEveryPosting) {
   // Statistics refreshed once at the end (not at every add, as below exact_statistics_postings).
   const TfIdfOptions options{.sqrt_tf = true, .merge_factor = 2, .exact_statistics_postings = 0};
   InvertedFile file(vocab, options);
+  // Its twin is read back from its checkpoint form every few batches, so that its merges chain lists
+  // read back from those bytes onto lists made in this process. Both must stay the same bytes.
+  InvertedFile reread(vocab, options);
+  const auto bytes_of = [](const InvertedFile& f) {
+    std::vector<uint8_t> out;
+    f.Serialize([&](std::span<const uint8_t> part) { out.insert(out.end(), part.begin(), part.end()); });
+    return out;
+  };
   std::map<uint32_t, BagOfWords> live;
   uint32_t next_number = 5;
   const std::vector<uint32_t> jumps = {1, 1, 2, 3, 32766, 32767, 32768, 32769};
@@ -318,6 +326,14 @@ TEST(InvertedFileTest, MergesWithoutRemovalsKeepEveryPosting) {
     bags.reserve(new_bags.size());
     for (const BagOfWords& b : new_bags) bags.push_back(&b);
     file = file.WithAdded(ids, bags);
+    reread = reread.WithAdded(ids, bags);
+    if (batch % 8 == 7) {  // (the whole form holds every number's sums: millions after the jumps)
+      const std::vector<uint8_t> bytes = bytes_of(reread);
+      ASSERT_TRUE(bytes == bytes_of(file)) << "batch " << batch;
+      auto read = InvertedFile::Deserialize(bytes, vocab, options);
+      ASSERT_TRUE(read) << read.error().ToString();
+      reread = std::move(*read);
+    }
     for (size_t i = 0; i < ids.size(); ++i) live[ids[i]] = new_bags[i];
   }
   EXPECT_LT(file.num_segments(), 20u);  // merged
