@@ -1250,8 +1250,33 @@ std::vector<Result<ImageRecord>> ImageIndex::AddBatch(std::span<const BatchImage
   std::condition_variable decided;
   bool abandoned = false;  // state_mutex: preparing stopped by an exception; the commit rolls back
 
-  // The writer lock is held from the start: the catalogue takes each image's rows while the later
-  // images are still prepared (below), so that only the last rows and the COMMIT are left after them.
+  const auto prepare_all = [&] {
+    ParallelFor(images.size(), impl_->index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
+      for (size_t i = begin; i < end; ++i) {
+        uint8_t outcome = kFailed;
+        if (images[i].features == nullptr) {
+          results[i] = Fail(ErrorCode::kInvalidArgument, "image '" + images[i].id + "': no features");
+        } else if (auto p = impl_->Prepare(images[i].id, *images[i].features, images[i].info, images[i].words,
+                                           images[i].signatures, 1)) {
+          prepared[i] = std::move(*p);
+          outcome = kReady;
+        } else {
+          results[i] = std::unexpected(p.error());
+        }
+        {
+          std::lock_guard<std::mutex> lock(state_mutex);
+          state[i] = outcome;
+        }
+        decided.notify_one();
+      }
+    });
+  };
+  // Images to quantise are prepared before the writer lock is taken: quantising is the long part, and
+  // other writers go on meanwhile. With every image's words given (bulk ingest), preparing is short,
+  // and the lock is taken first: the catalogue then takes each image's rows while the later images are
+  // still prepared, so that only the last rows and the COMMIT are left after them.
+  const bool quantise = std::any_of(images.begin(), images.end(), [](const BatchImage& b) { return b.words.empty(); });
+  if (quantise) prepare_all();
   std::lock_guard<std::mutex> writer(impl_->writer_mutex);
   const auto current = impl_->Current();
   // An image is added unless its id is indexed or came earlier in the batch. Asked in order, once by
@@ -1279,34 +1304,18 @@ std::vector<Result<ImageRecord>> ImageIndex::AddBatch(std::span<const BatchImage
       return std::nullopt;
     });
   });
-  try {
-    ParallelFor(images.size(), impl_->index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
-      for (size_t i = begin; i < end; ++i) {
-        uint8_t outcome = kFailed;
-        if (images[i].features == nullptr) {
-          results[i] = Fail(ErrorCode::kInvalidArgument, "image '" + images[i].id + "': no features");
-        } else if (auto p = impl_->Prepare(images[i].id, *images[i].features, images[i].info, images[i].words,
-                                           images[i].signatures, 1)) {
-          prepared[i] = std::move(*p);
-          outcome = kReady;
-        } else {
-          results[i] = std::unexpected(p.error());
-        }
-        {
-          std::lock_guard<std::mutex> lock(state_mutex);
-          state[i] = outcome;
-        }
-        decided.notify_one();
+  if (!quantise) {
+    try {
+      prepare_all();
+    } catch (...) {
+      {
+        std::lock_guard<std::mutex> lock(state_mutex);
+        abandoned = true;
       }
-    });
-  } catch (...) {
-    {
-      std::lock_guard<std::mutex> lock(state_mutex);
-      abandoned = true;
+      decided.notify_one();
+      commit.wait();
+      throw;
     }
-    decided.notify_one();
-    commit.wait();
-    throw;
   }
 
   std::vector<size_t> chosen;  // positions committed, in order

@@ -941,18 +941,43 @@ TEST_F(Fixture, AddBatchWithAssignedWordsEqualsQuantising) {
   auto quantised = CreateIndex();
   auto assigned = ImageIndex::Create((dir_ / "assigned").string(), vocabulary_, "test-extractor/1");
   ASSERT_TRUE(assigned);
+  // With every image's words given, the catalogue takes the rows while later images are still
+  // prepared: images refused between them (bad words, an id taken or repeated) must not shift them.
+  ASSERT_TRUE((*assigned)->AddBatch(std::vector<BatchImage>{{"taken", &without[0], {}, words[0], {}}})[0]);
+  const std::vector<uint32_t> outside(50, kWords);
   std::vector<BatchImage> a, b;
+  std::vector<ErrorCode> refused;  // per entry of b: kInternal for an image that must be added
   for (size_t i = 0; i < words.size(); ++i) {
     a.push_back({"w" + std::to_string(i), &with_descriptors[i], {}, {}, {}});
     b.push_back({"w" + std::to_string(i), &without[i], {}, words[i], {}});
+    refused.push_back(ErrorCode::kInternal);
+    if (i == 1) {
+      b.push_back({"outside", &without[0], {}, outside, {}});
+      refused.push_back(ErrorCode::kInvalidArgument);
+    } else if (i == 2) {
+      b.push_back({"w1", &without[3], {}, words[3], {}});
+      refused.push_back(ErrorCode::kAlreadyExists);
+    } else if (i == 3) {
+      b.push_back({"taken", &without[1], {}, words[1], {}});
+      refused.push_back(ErrorCode::kAlreadyExists);
+    }
   }
-  const std::vector<uint32_t> outside(50, kWords);
   b.push_back({"outside", &without[0], {}, outside, {}});
+  refused.push_back(ErrorCode::kInvalidArgument);
+  ASSERT_TRUE(quantised->AddBatch(std::vector<BatchImage>{{"taken", &with_descriptors[0], {}, {}, {}}})[0]);
   for (const auto& r : quantised->AddBatch(a)) ASSERT_TRUE(r) << r.error().ToString();
   const auto results = (*assigned)->AddBatch(b);
-  for (size_t i = 0; i < words.size(); ++i) ASSERT_TRUE(results[i]) << results[i].error().ToString();
-  ASSERT_FALSE(results.back());
-  EXPECT_EQ(results.back().error().code, ErrorCode::kInvalidArgument);
+  ASSERT_EQ(results.size(), b.size());
+  for (size_t i = 0; i < b.size(); ++i) {
+    if (refused[i] == ErrorCode::kInternal) {
+      ASSERT_TRUE(results[i]) << results[i].error().ToString();
+      EXPECT_EQ(results[i]->id, b[i].id);
+    } else {
+      ASSERT_FALSE(results[i]) << i;
+      EXPECT_EQ(results[i].error().code, refused[i]) << i;
+    }
+  }
+  EXPECT_EQ((*assigned)->Get("w1")->num_features, without[1].size());
   for (const auto& query : with_descriptors) {
     const auto x1 = quantised->Query(query, Opts(10, 10));
     const auto x2 = (*assigned)->Query(query, Opts(10, 10));
