@@ -838,6 +838,62 @@ TEST(InvertedFileTest, TopKOverManyImagesEqualsSortingEveryScore) {
   }
 }
 
+// Score accumulates each segment in blocks of 65536 images: lists that run across several blocks and
+// segments (a word of every third image, and one whose few images lie more than the 16-bit gap escape
+// apart, in different blocks), a segment of 150,000 images from Build plus one added after it, with
+// holes in the numbering, score every image as the definition does, on one thread and on two.
+TEST(InvertedFileTest, ScoresAcrossImageBlocksAndSegmentsEqualTheDefinition) {
+  constexpr size_t kVocab = 200;
+  constexpr uint32_t kBuilt = 150'000, kAdded = 20'000;
+  constexpr uint32_t kEvery3 = kVocab - 1, kSparse = kVocab - 2;
+  const std::set<uint32_t> sparse_images = {5, 65'535, 65'536, 99'000, 140'001, 160'123};
+  std::mt19937_64 rng(4242);
+  std::map<uint32_t, BagOfWords> live;
+  for (uint32_t i = 0; i < kBuilt + kAdded; ++i) {
+    if (i % 13 == 7) continue;  // holes
+    std::uniform_int_distribution<uint32_t> word(0, kVocab - 3);
+    std::vector<uint32_t> words = {word(rng), word(rng), word(rng)};
+    if (i % 3 == 0) words.push_back(kEvery3);
+    if (sparse_images.count(i)) words.insert(words.end(), {kSparse, kSparse});
+    live[i] = BagOfWords::FromWords(words);
+  }
+  const TfIdfOptions options{.sqrt_tf = true, .max_document_frequency = 1};
+  InvertedFile file = InvertedFile::Build(kVocab, options, kBuilt, [&](uint32_t image, BagOfWords* bag) {
+    const auto it = live.find(image);
+    if (it == live.end()) return false;
+    *bag = it->second;
+    return true;
+  });
+  std::vector<uint32_t> ids;
+  std::vector<const BagOfWords*> bags;
+  for (auto it = live.lower_bound(kBuilt); it != live.end(); ++it) {
+    ids.push_back(it->first);
+    bags.push_back(&it->second);
+  }
+  file = file.WithAdded(ids, bags).WithRefreshedStatistics(2);
+  ASSERT_EQ(file.Stats().num_segments, 2u);
+  std::vector<uint32_t> query_words = {kEvery3, kSparse, kSparse, 3, 17, 17, 101};
+  const BagOfWords query = BagOfWords::FromWords(query_words);
+  const auto expected = ReferenceScores(live, query, kVocab, true);
+  ScoreScratch scratch;
+  const auto terms = file.QueryVector(query);
+  for (const int threads : {1, 2}) {
+    uint64_t candidates = 0;
+    std::map<uint32_t, double> got;
+    for (const auto& s : file.Score(terms, 1u << 30, &scratch, &candidates, nullptr, threads)) got[s.image] = s.score;
+    size_t nonzero = 0;
+    for (const auto& [id, score] : expected) {
+      if (score == 0) continue;
+      ++nonzero;
+      ASSERT_TRUE(got.count(id)) << "image " << id << ", threads " << threads;
+      EXPECT_NEAR(got.at(id), score, 1e-6) << "image " << id << ", threads " << threads;
+    }
+    EXPECT_EQ(got.size(), nonzero) << "threads " << threads;
+    EXPECT_EQ(candidates, nonzero) << "threads " << threads;
+    for (const uint32_t i : sparse_images) EXPECT_GT(got[i], got[i + 3]) << "image " << i;
+  }
+}
+
 // The bags of index/testdata/postings_format1.oxif, a postings file of format 1 (varint postings) that
 // the build before format 2 (1d18dfc) wrote: Build over these bags, then WithAdded of images 300 and
 // 420, then WithRemoved of image 14 (so two segments, one with the postings of a removed image).
