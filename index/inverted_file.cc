@@ -848,7 +848,10 @@ std::vector<size_t> InvertedFile::ScoreGroups(std::span<const QueryTerm> query) 
     cost[i] = TermCost(query[i]);
     total += cost[i];
   }
-  const size_t groups = static_cast<size_t>(std::clamp<uint64_t>(total / kPostingsPerScoreGroup, 1, kMaxScoreGroups));
+  // Rounded up: a query within the default posting budget (4M) scans up to 4M postings, and rounded
+  // down it stayed in one group, so on one core, however many the search had.
+  const uint64_t wanted = (total + kPostingsPerScoreGroup - 1) / kPostingsPerScoreGroup;
+  const size_t groups = static_cast<size_t>(std::clamp<uint64_t>(wanted, 1, kMaxScoreGroups));
   std::vector<size_t> starts = {0};
   uint64_t sum = 0;
   for (size_t i = 0; i < query.size() && starts.size() < groups; ++i) {
