@@ -106,8 +106,8 @@ struct ScoredImage {
   float score = 0;     // cosine similarity in [0, 1]
 };
 
-// Score() splits a long query into at most this many groups of consecutive terms, one per
-// kPostingsPerScoreGroup postings it scans or part of it (rounded up); each group accumulates on its own (on its own thread when
+// Score() splits a long query into at most this many groups of consecutive terms, about one per
+// kPostingsPerScoreGroup postings it scans; each group accumulates on its own (on its own thread when
 // Score() is given several) and the groups' dot products are added in group order. The split depends
 // on the query and the statistics only, never on the thread count, so neither do the scores. Queries
 // over small collections stay in one group: splitting pays once a scan costs more than the extra pass
