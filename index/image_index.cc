@@ -360,6 +360,61 @@ struct ImageIndex::Snapshot {
   }
 };
 
+namespace {
+
+// The features of a search's Hamming shortlist as its re-scoring read them: copies made with pread
+// (Entry::SignedFeatures), kept for the rest of the search, so that re-ranking, query expansion and
+// transitive verification read the same images from here instead of through the geometry files'
+// mapping, where the first touch of each page is a page fault (several microseconds each where page
+// tables are paravirtualised; a search re-ranks and verifies a few hundred images, new ones for every
+// new query). The same bytes, checked as through the mapping, so results do not change.
+class CandidateCopies {
+ public:
+  // Room for n candidates (none copied yet).
+  void Reserve(size_t n) {
+    buffers_.resize(n);
+    views_.resize(n);
+    copied_.assign(n, 0);
+    number_of_.assign(n, 0);
+  }
+  // Candidate c's features (image `number`): a copy kept here when it can be read so, else through the
+  // mapping as features() reads them. Distinct candidates may be read on different threads at once.
+  const PackedFeatures& Read(size_t c, uint32_t number, const Entry& entry) {
+    const PackedFeatures& features = entry.SignedFeatures(&buffers_[c], &views_[c]);
+    copied_[c] = &features == &views_[c] ? 1 : 0;
+    number_of_[c] = number;
+    return features;
+  }
+  // After the Reads, on one thread: makes Of() find them.
+  void Index() {
+    numbers_.clear();
+    for (size_t c = 0; c < copied_.size(); ++c) {
+      if (copied_[c]) numbers_.emplace_back(number_of_[c], c);
+    }
+    std::sort(numbers_.begin(), numbers_.end());
+  }
+  // Image `number`'s features: its copy when one was kept, else entry.features().
+  const PackedFeatures& Of(uint32_t number, const Entry& entry) const {
+    const auto it = std::lower_bound(numbers_.begin(), numbers_.end(), std::pair<uint32_t, size_t>{number, 0});
+    if (it != numbers_.end() && it->first == number) return views_[it->second];
+    return entry.features();
+  }
+  const PackedFeatures& Of(const ImageIndex::Snapshot& snap, const std::string& id) const {
+    uint32_t number = 0;
+    const Entry* entry = snap.Find(id, &number);
+    return Of(number, *entry);
+  }
+
+ private:
+  std::vector<std::vector<uint8_t>> buffers_;
+  std::vector<PackedFeatures> views_;  // views_[c] views buffers_[c] when copied_[c]
+  std::vector<uint8_t> copied_;
+  std::vector<uint32_t> number_of_;                   // by candidate
+  std::vector<std::pair<uint32_t, size_t>> numbers_;  // (image number, candidate) of the copies, sorted
+};
+
+}  // namespace
+
 struct ImageIndex::Impl {
   FolderLock folder_lock;                       // first: released after everything else (folder_lock.h)
   std::string dir;
@@ -459,16 +514,19 @@ struct ImageIndex::Impl {
 
   // Re-scores the first options.hamming_shortlist of `scored` (tf-idf order) with query.signatures
   // and sorts them by that score; candidates without signatures follow in their tf-idf order.
+  // The shortlist's features are kept in `copies` for the later stages.
   void RescoreHamming(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
-                      std::vector<ScoredImage>& scored) const;
+                      std::vector<ScoredImage>& scored, CandidateCopies* copies) const;
   // Query expansion with Hamming embedding: the unverified results (after the first num_verified)
   // re-ordered by their Hamming-embedding score against the query's features plus those inside the
   // matched regions of its first qe_images verified results (with their signatures).
   void ExpandQueryHamming(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
-                          size_t num_verified, std::vector<QueryResult>& results) const;
+                          size_t num_verified, const CandidateCopies& copies, std::vector<QueryResult>& results) const;
   // The stages of Run after scoring. Each rewrites `results`; Rerank returns how many it verified.
+  // `copies`: features RescoreHamming kept (read from there when they hold an image).
   size_t Rerank(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
-                const std::vector<ScoredImage>& scored, std::vector<QueryResult>& results) const;
+                const std::vector<ScoredImage>& scored, const CandidateCopies& copies,
+                std::vector<QueryResult>& results) const;
   void ExpandQuery(const Snapshot& snap, const std::vector<QueryTerm>& terms, const QueryOptions& options,
                    size_t num_verified, const std::vector<uint8_t>* allowed, ScoreScratch* scratch,
                    std::vector<QueryResult>& results) const;
@@ -477,7 +535,7 @@ struct ImageIndex::Impl {
   // With `hamming` (a Hamming-embedding search), tentative matches are filtered by signature as in
   // re-ranking.
   void VerifyTransitively(const Snapshot& snap, const QueryOptions& options, bool hamming, size_t num_verified,
-                          std::vector<QueryResult>& results) const;
+                          const CandidateCopies& copies, std::vector<QueryResult>& results) const;
 
   // For each of results[first, last) not verified yet, the anchors to try (PlanTransitiveAttempts).
   // `ranked`: results[0, last) (`numbers`: their image numbers, the tie-break).
@@ -1540,8 +1598,9 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
   // The features of the candidates read next (Hamming scores, verification): their reads start at once.
   const size_t to_read = std::min(scored.size(), hamming ? depth : static_cast<size_t>(options.rerank_depth));
   for (size_t c = 0; c < to_read; ++c) snap.entries[scored[c].image]->stored.WillNeed();
-  // 1b. Hamming-embedding re-scoring of the shortlist.
-  if (hamming) RescoreHamming(snap, query, options, scored);
+  // 1b. Hamming-embedding re-scoring of the shortlist (whose features it keeps for the stages below).
+  CandidateCopies copies;
+  if (hamming) RescoreHamming(snap, query, options, scored, &copies);
   timings.score_ms = MsSince(t);
 
   std::vector<QueryResult> results(scored.size());
@@ -1552,14 +1611,14 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
 
   // 2. Spatial re-ranking of the top R.
   t = Clock::now();
-  const size_t num_verified = Rerank(snap, query, options, scored, results);
+  const size_t num_verified = Rerank(snap, query, options, scored, copies, results);
   timings.verify_ms = MsSince(t);
 
   // 3. Average query expansion over the verified results.
   if (options.query_expansion && num_verified > 0) {
     t = Clock::now();
     if (hamming) {
-      ExpandQueryHamming(snap, query, options, num_verified, results);
+      ExpandQueryHamming(snap, query, options, num_verified, copies, results);
     } else {
       ExpandQuery(snap, terms, options, num_verified, allowed, &scratch, results);
     }
@@ -1569,7 +1628,7 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
   // 4. Transitive verification.
   if (options.transitive_depth > 0 && num_verified > 0) {
     t = Clock::now();
-    VerifyTransitively(snap, options, hamming, num_verified, results);
+    VerifyTransitively(snap, options, hamming, num_verified, copies, results);
     timings.verify_ms += MsSince(t);
   }
 
@@ -1598,15 +1657,17 @@ namespace {
 // stored without signatures (pre-assigned words), on `threads` threads.
 // With sqrt(tf) weighting (the default) a candidate's N_d is its tf-idf norm squared, which the inverted
 // file keeps: Score then skips the candidate's words the query lacks (hamming.h).
+// With `keep`, each image's copy is kept there (CandidateCopies::Read, image c as candidate c).
 std::vector<double> HammingScores(const ImageIndex::Snapshot& snap, const QuerySignatures& signatures,
-                                  std::span<const uint32_t> images, int threads) {
+                                  std::span<const uint32_t> images, int threads, CandidateCopies* keep = nullptr) {
   std::vector<double> out(images.size());
   const bool norm_is_self = snap.inverted.options().sqrt_tf;
   ParallelFor(images.size(), threads, 8, [&](size_t begin, size_t end, int) {
     thread_local std::vector<uint8_t> buffer;
     for (size_t c = begin; c < end; ++c) {
       PackedFeatures copy;
-      const PackedFeatures& features = snap.entries[images[c]]->SignedFeatures(&buffer, &copy);
+      const Entry& entry = *snap.entries[images[c]];
+      const PackedFeatures& features = keep ? keep->Read(c, images[c], entry) : entry.SignedFeatures(&buffer, &copy);
       if (features.signature_bytes().empty() && features.size() > 0) {
         out[c] = std::nan("");
       } else if (norm_is_self) {
@@ -1638,12 +1699,14 @@ HammingWeighting WeightingOf(const QueryOptions& options) {
 }  // namespace
 
 void ImageIndex::Impl::RescoreHamming(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
-                                      std::vector<ScoredImage>& scored) const {
+                                      std::vector<ScoredImage>& scored, CandidateCopies* copies) const {
   const size_t shortlist = std::min(scored.size(), static_cast<size_t>(options.hamming_shortlist));
   const QuerySignatures signatures(query.words, query.signatures, snap.inverted.IdfSquaredTable(), WeightingOf(options));
   std::vector<uint32_t> images(shortlist);
   for (size_t c = 0; c < shortlist; ++c) images[c] = scored[c].image;
-  const std::vector<double> scores = HammingScores(snap, signatures, images, index_options.num_threads);
+  copies->Reserve(shortlist);
+  const std::vector<double> scores = HammingScores(snap, signatures, images, index_options.num_threads, copies);
+  copies->Index();
   const std::vector<ScoredImage> before(scored.begin(), scored.begin() + static_cast<std::ptrdiff_t>(shortlist));
   const std::vector<size_t> order = ByScore(scores);
   for (size_t c = 0; c < shortlist; ++c) {
@@ -1654,12 +1717,12 @@ void ImageIndex::Impl::RescoreHamming(const Snapshot& snap, const QueryFeatures&
 
 void ImageIndex::Impl::ExpandQueryHamming(const Snapshot& snap, const QueryFeatures& query,
                                           const QueryOptions& options, size_t num_verified,
-                                          std::vector<QueryResult>& results) const {
+                                          const CandidateCopies& copies, std::vector<QueryResult>& results) const {
   std::vector<uint32_t> words = query.words;
   std::vector<uint64_t> signatures = query.signatures;
   const size_t used = std::min(num_verified, static_cast<size_t>(options.qe_images));
   for (size_t c = 0; c < used; ++c) {
-    const PackedFeatures& features = snap.Find(results[c].id)->features();
+    const PackedFeatures& features = copies.Of(snap, results[c].id);
     if (features.signature_bytes().empty()) continue;
     const auto& box = results[c].db_region;
     for (size_t i = 0; i < features.size(); ++i) {
@@ -1742,7 +1805,8 @@ std::vector<QueryTerm> ExpandedQuery(std::span<const QueryTerm> terms, std::span
 }
 
 size_t ImageIndex::Impl::Rerank(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
-                                const std::vector<ScoredImage>& scored, std::vector<QueryResult>& results) const {
+                                const std::vector<ScoredImage>& scored, const CandidateCopies& copies,
+                                std::vector<QueryResult>& results) const {
   const size_t rerank = std::min(scored.size(), static_cast<size_t>(options.rerank_depth));
   if (rerank == 0) return 0;
   const std::array<float, 4> query_region =
@@ -1753,7 +1817,8 @@ size_t ImageIndex::Impl::Rerank(const Snapshot& snap, const QueryFeatures& query
   ParallelFor(rerank, index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
     for (size_t c = begin; c < end; ++c) {
       const sift::VerificationResult v =
-          geometry.Verify(snap.entries[scored[c].image]->features(), options.max_pairs_per_word, options.verify);
+          geometry.Verify(copies.Of(scored[c].image, *snap.entries[scored[c].image]), options.max_pairs_per_word,
+                          options.verify);
       QueryResult& r = results[c];
       r.inliers = v.num_inliers;
       if (v.verified) {
@@ -1806,7 +1871,7 @@ void ImageIndex::Impl::ExpandQuery(const Snapshot& snap, const std::vector<Query
 // candidate verified in one round is an anchor of the next, up to transitive_anchors anchors in all. A
 // candidate stops at its first anchor that verifies it.
 void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptions& options, bool hamming,
-                                          size_t num_verified,
+                                          size_t num_verified, const CandidateCopies& copies,
                                           std::vector<QueryResult>& results) const {
   const size_t first = num_verified;
   const size_t last = std::min(results.size(), first + static_cast<size_t>(options.transitive_depth));
@@ -1817,7 +1882,8 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
   std::vector<const BagOfWords*> bag_pointers(last);
   ParallelFor(last, index_options.num_threads, 16, [&](size_t begin, size_t end, int) {
     for (size_t c = begin; c < end; ++c) {
-      bags[c] = snap.Find(results[c].id, &numbers[c])->features().Bag();
+      const Entry& entry = *snap.Find(results[c].id, &numbers[c]);
+      bags[c] = copies.Of(numbers[c], entry).Bag();
       bag_pointers[c] = &bags[c];
     }
   });
@@ -1843,7 +1909,7 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
     anchor_words.reserve(anchors.size());
     for (size_t a = 0; a < anchors.size(); ++a) {
       const QueryResult& anchor = results[pool[used + a]];
-      const PackedFeatures& f = snap.Find(anchor.id)->features();
+      const PackedFeatures& f = copies.Of(snap, anchor.id);
       const auto& box = anchor.db_region;
       std::vector<uint32_t> inside;
       for (size_t i = 0; i < f.size(); ++i) {
@@ -1885,7 +1951,7 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
       for (size_t c = first + begin; c < first + end; ++c) {
         QueryResult& r = results[c];
         if (r.verified || attempts[c - first].empty()) continue;
-        const PackedFeatures& f = snap.Find(r.id)->features();
+        const PackedFeatures& f = copies.Of(numbers[c], *snap.entries[numbers[c]]);
         for (const TransitiveAttempt& attempt : attempts[c - first]) {
           const size_t a = attempt.anchor;
           const sift::VerificationResult v = geometries[a].Verify(f, options.max_pairs_per_word, options.verify);
