@@ -106,6 +106,27 @@ inline void GetPosting(const uint8_t*& p, uint32_t* gap, uint32_t* tf) {
   if ((unit & 1) != 0) [[unlikely]] *tf = static_cast<uint32_t>(GetVarint(p)) + 2;
 }
 
+// One word's list in one segment, read a posting at a time, for the scans that go through a segment a
+// block of image numbers at a time with a cursor per list (RecomputeSums, Score). Start it at the
+// segment's first image, then Advance() decodes the first posting: `image` and `tf` are those of the
+// posting decoded last, and `image` is UINT32_MAX once the list is done.
+struct PostingCursor {
+  const uint8_t* p = nullptr;
+  const uint8_t* end = nullptr;
+  uint32_t image = 0;
+  uint32_t tf = 1;
+
+  void Advance() {
+    if (p >= end) {
+      image = std::numeric_limits<uint32_t>::max();
+      return;
+    }
+    uint32_t gap = 0;
+    GetPosting(p, &gap, &tf);
+    image += gap;
+  }
+};
+
 // t(tf)^2 without rounding through sqrt: tf for sqrt-tf, tf^2 otherwise.
 inline double TermWeightSquared(bool sqrt_tf, uint32_t tf) {
   return sqrt_tf ? static_cast<double>(tf) : static_cast<double>(tf) * static_cast<double>(tf);
@@ -470,21 +491,8 @@ void InvertedFile::RecomputeSums(int num_threads) {
   struct Sum {
     double a = 0, b = 0, c = 0;
   };
-  struct Cursor {
-    const uint8_t* p;
-    const uint8_t* end;
-    uint32_t image;  // of the posting decoded next (p points past it)
-    uint32_t tf;
-    double log_df;
-  };
-  const auto advance = [](Cursor& c) {
-    if (c.p >= c.end) {
-      c.image = std::numeric_limits<uint32_t>::max();
-      return;
-    }
-    uint32_t gap = 0;
-    GetPosting(c.p, &gap, &c.tf);
-    c.image += gap;
+  struct Cursor : PostingCursor {
+    double log_df = 0;
   };
   std::vector<std::vector<Sum>> partial(kGroups);
   ParallelFor(kGroups, num_threads, 1, [&](size_t g0, size_t g1, int) {
@@ -500,15 +508,15 @@ void InvertedFile::RecomputeSums(int num_threads) {
             if (stats_df_[w] == 0) continue;
             const auto [p, list_end] = segment->List(static_cast<uint32_t>(w));
             if (p == list_end) continue;
-            Cursor c{p, list_end, segment->first_image, 0, log_df[w]};
-            advance(c);
+            Cursor c{{p, list_end, segment->first_image}, log_df[w]};
+            c.Advance();
             cursors.push_back(c);
           }
         }
         for (size_t block = segment->first_image; block < segment->end_image; block += kImagesPerBlock) {
           const auto limit = static_cast<uint32_t>(std::min<size_t>(block + kImagesPerBlock, segment->end_image));
           for (Cursor& c : cursors) {
-            for (; c.image < limit; advance(c)) {
+            for (; c.image < limit; c.Advance()) {
               if (live[c.image] == 0) continue;
               const double t2 = TermWeightSquared(options_.sqrt_tf, c.tf);
               Sum& sum = sums[c.image];
@@ -927,12 +935,8 @@ std::vector<ScoredImage> InvertedFile::Score(std::span<const QueryTerm> query, s
   // over the whole array (4 MB at a million images). An image's postings all lie in one segment and are
   // still added in the group's term order, so every sum is the same float as with the lists read whole.
   ParallelFor(num_groups, num_threads, 1, [&](size_t g0, size_t g1, int) {
-    struct Cursor {
-      const uint8_t* p;
-      const uint8_t* end;
-      uint32_t image;  // of the posting decoded next, already decoded (p points past it)
-      uint32_t tf;
-      float weight;
+    struct Cursor : PostingCursor {
+      float weight = 0;
     };
     std::vector<Cursor> cursors;
     for (size_t g = g0; g < g1; ++g) {
@@ -945,10 +949,8 @@ std::vector<ScoredImage> InvertedFile::Score(std::span<const QueryTerm> query, s
           if (weight == 0) continue;
           auto [p, end] = segment->List(query[q].word);
           if (p == end) continue;
-          Cursor c{p, end, segment->first_image, 1, weight};
-          uint32_t gap = 0;
-          GetPosting(c.p, &gap, &c.tf);
-          c.image += gap;
+          Cursor c{{p, end, segment->first_image}, weight};
+          c.Advance();
           cursors.push_back(c);
         }
         for (uint64_t block = segment->first_image; block < segment->end_image && !cursors.empty();
@@ -956,16 +958,7 @@ std::vector<ScoredImage> InvertedFile::Score(std::span<const QueryTerm> query, s
           const auto limit = static_cast<uint32_t>(std::min<uint64_t>(block + kScoreBlock, segment->end_image));
           for (Cursor& c : cursors) {
             // Hot loop: one 16-bit unit per posting, one multiply-add.
-            while (c.image < limit) {
-              a[c.image] += c.tf == 1 ? c.weight : c.weight * TermWeight(c.tf);
-              if (c.p >= c.end) {
-                c.image = std::numeric_limits<uint32_t>::max();
-                break;
-              }
-              uint32_t gap = 0;
-              GetPosting(c.p, &gap, &c.tf);
-              c.image += gap;
-            }
+            for (; c.image < limit; c.Advance()) a[c.image] += c.tf == 1 ? c.weight : c.weight * TermWeight(c.tf);
           }
         }
       }
