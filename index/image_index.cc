@@ -14,6 +14,7 @@
 #include <functional>
 #include <future>
 #include <map>
+#include <memory>
 #include <condition_variable>
 #include <mutex>
 #include <thread>
@@ -361,6 +362,60 @@ struct ImageIndex::Snapshot {
 };
 
 namespace {
+
+// Memory a search keeps for the next one (accumulators, the query's descriptors, transitive
+// verification's tables), shared by every thread that searches: one value per search running at once,
+// taken at the start and given back at the end. Kept per thread instead, it was faulted in once by each
+// of the server's many connection threads, so each of the first dozen or so searches after a start paid
+// for it again: at a million images the accumulators alone are 4 MB, about 1000 page faults, and a first
+// touch costs about 18 us a page on the 2-core test VM (about 18 ms a search). At most kMaxKept values
+// stay between searches. The pool is never destroyed (a search may still run while the process exits).
+template <typename T>
+class KeptForNextSearch {
+ public:
+  class Lease {
+   public:
+    Lease(KeptForNextSearch* pool, std::unique_ptr<T> value) : pool_(pool), value_(std::move(value)) {}
+    Lease(const Lease&) = delete;
+    Lease& operator=(const Lease&) = delete;
+    ~Lease() { pool_->GiveBack(std::move(value_)); }
+    T& operator*() const { return *value_; }
+    T* operator->() const { return value_.get(); }
+
+   private:
+    KeptForNextSearch* pool_;
+    std::unique_ptr<T> value_;
+  };
+
+  static KeptForNextSearch& Shared() {
+    static auto* pool = new KeptForNextSearch();  // NOLINT(cppcoreguidelines-owning-memory): never freed, see above
+    return *pool;
+  }
+
+  Lease Take() {
+    std::unique_ptr<T> value;
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      if (!free_.empty()) {
+        value = std::move(free_.back());
+        free_.pop_back();
+      }
+    }
+    if (!value) value = std::make_unique<T>();
+    return Lease(this, std::move(value));
+  }
+
+ private:
+  static constexpr size_t kMaxKept = 8;
+
+  void GiveBack(std::unique_ptr<T> value) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (free_.size() < kMaxKept) free_.push_back(std::move(value));
+  }
+
+  std::mutex mutex_;
+  std::vector<std::unique_ptr<T>> free_;
+};
 
 // The features of a search's Hamming shortlist as its re-scoring read them: copies made with pread
 // (Entry::SignedFeatures), kept for the rest of the search, so that re-ranking, query expansion and
@@ -1489,9 +1544,10 @@ Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const Que
   QueryFeatures q;
   q.width = query.image_width;
   q.height = query.image_height;
-  // The selected descriptors, in a buffer this thread keeps between queries (up to a bound): 1.5 MB at
-  // 3000 features, which a fresh vector faulted in page by page on every search (as Subset's tables).
-  thread_local std::vector<float> descriptors;
+  // The selected descriptors, in a buffer kept between searches (up to a bound): 1.5 MB at 3000
+  // features, which a fresh vector faulted in page by page on every search (as Subset's tables).
+  const auto kept_descriptors = KeptForNextSearch<std::vector<float>>::Shared().Take();
+  std::vector<float>& descriptors = *kept_descriptors;
   descriptors.clear();
   SelectInRegion(query, options.region, static_cast<size_t>(options.max_query_features), &q.keypoints, &descriptors);
   QueryTimings timings;
@@ -1577,7 +1633,8 @@ Result<ImageIndex::StoredFeatures> ImageIndex::FeaturesOf(const std::string& id)
 
 Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFeatures& query,
                                             const QueryOptions& options, QueryTimings timings) const {
-  thread_local ScoreScratch scratch;
+  const auto kept_scratch = KeptForNextSearch<ScoreScratch>::Shared().Take();
+  ScoreScratch& scratch = *kept_scratch;
   QueryResponse response;
   response.query_features = static_cast<uint32_t>(query.words.size());
 
@@ -1887,10 +1944,11 @@ void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptio
       bag_pointers[c] = &bags[c];
     }
   });
-  // The ranking's tables are built in memory this thread kept from its previous search (up to a bound):
-  // fresh, they were several MB that every search faulted in page by page (blocks of 1 MiB and more are
-  // mapped and unmapped each time, server/http/http_server.cc), about 10 ms of a search at 1M images.
-  thread_local InvertedFile::Subset::Buffers kept;
+  // The ranking's tables are built in memory kept from a previous search (up to a bound): fresh, they
+  // were several MB that every search faulted in page by page (blocks of 1 MiB and more are mapped and
+  // unmapped each time, server/http/http_server.cc), about 10 ms of a search at 1M images.
+  const auto kept_buffers = KeptForNextSearch<InvertedFile::Subset::Buffers>::Shared().Take();
+  InvertedFile::Subset::Buffers& kept = *kept_buffers;
   InvertedFile::Subset ranked(snap.inverted, numbers, bag_pointers, std::move(kept));
   const auto max_anchors = static_cast<size_t>(options.transitive_anchors);
   size_t used = 0;
@@ -2099,7 +2157,8 @@ Result<std::vector<QueryTerm>> ImageIndex::RegionTerms(const std::string& id, co
 
 std::vector<ImageIndex::ScoredId> ImageIndex::ScoreTerms(std::span<const QueryTerm> terms, size_t max_results,
                                                          uint64_t* candidates, uint64_t max_postings) const {
-  thread_local ScoreScratch scratch;
+  const auto kept_scratch = KeptForNextSearch<ScoreScratch>::Shared().Take();
+  ScoreScratch& scratch = *kept_scratch;
   const auto snap = impl_->Current();
   std::vector<ScoredId> out;
   for (const ScoredImage& s : snap->inverted.Score(terms, max_results, &scratch, candidates, nullptr, 1, max_postings))

@@ -1276,6 +1276,48 @@ TEST_F(Fixture, ReadersRunWhileWritersAdd) {
 }
 
 
+// A search's kept memory (accumulators, descriptors, transitive tables) is shared by the threads that
+// search, one value per search at a time: searches of different images on many threads at once score
+// exactly as the same searches one at a time.
+TEST_F(Fixture, SearchesOnManyThreadsScoreAsOneAtATime) {
+  auto index = CreateIndex();
+  std::mt19937_64 rng(12);
+  for (int i = 0; i < 40; ++i) ASSERT_TRUE(index->Add("img" + std::to_string(i), RandomImage(rng, 80), {}));
+  std::vector<sift::FeatureSet> queries;
+  for (int i = 0; i < 5; ++i) queries.push_back(RandomImage(rng, 80));
+  QueryOptions options = Opts(40, 10, true);
+  options.transitive_depth = 1;
+  std::vector<std::vector<std::pair<std::string, float>>> expected;
+  for (const auto& q : queries) {
+    const auto r = index->Query(q, options);
+    ASSERT_TRUE(r);
+    ASSERT_FALSE(r->results.empty());
+    expected.emplace_back();
+    for (const auto& x : r->results) expected.back().emplace_back(x.id, x.score);
+  }
+  constexpr int kThreads = 6;
+  std::atomic<int> mismatches{0}, runs{0};
+  std::vector<std::thread> threads;
+  threads.reserve(kThreads);
+  for (int t = 0; t < kThreads; ++t) {
+    threads.emplace_back([&, t] {
+      for (int i = 0; i < 20; ++i) {
+        const size_t q = static_cast<size_t>(t + i) % queries.size();
+        const auto r = index->Query(queries[q], options);
+        std::vector<std::pair<std::string, float>> got;
+        if (r) {
+          for (const auto& x : r->results) got.emplace_back(x.id, x.score);
+        }
+        if (got != expected[q]) ++mismatches;
+        ++runs;
+      }
+    });
+  }
+  for (auto& t : threads) t.join();
+  EXPECT_EQ(runs.load(), kThreads * 20);
+  EXPECT_EQ(mismatches.load(), 0);
+}
+
 // ==== Checkpoints (checkpoint.h) =====================================================================
 
 // Checkpoint files in the index folder, sorted.
