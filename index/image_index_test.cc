@@ -1284,6 +1284,7 @@ TEST_F(Fixture, SearchesOnManyThreadsScoreAsOneAtATime) {
   std::mt19937_64 rng(12);
   for (int i = 0; i < 40; ++i) ASSERT_TRUE(index->Add("img" + std::to_string(i), RandomImage(rng, 80), {}));
   std::vector<sift::FeatureSet> queries;
+  queries.reserve(5);
   for (int i = 0; i < 5; ++i) queries.push_back(RandomImage(rng, 80));
   QueryOptions options = Opts(40, 10, true);
   options.transitive_depth = 1;
