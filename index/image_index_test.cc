@@ -96,6 +96,14 @@ class Fixture : public ::testing::Test {
     return Features(words, kps, width, height);
   }
 
+  // `count` images of n random features each (RandomImage).
+  std::vector<sift::FeatureSet> RandomImages(std::mt19937_64& rng, int count, int n) const {
+    std::vector<sift::FeatureSet> out;
+    out.reserve(static_cast<size_t>(count));
+    for (int i = 0; i < count; ++i) out.push_back(RandomImage(rng, n));
+    return out;
+  }
+
   std::unique_ptr<ImageIndex> CreateIndex(const IndexOptions& options = {}) {
     auto index = ImageIndex::Create(dir_.string(), vocabulary_, "test-extractor/1", options);
     EXPECT_TRUE(index.has_value()) << (index ? "" : index.error().ToString());
@@ -1234,9 +1242,7 @@ TEST_F(Fixture, ReadersRunWhileWritersAdd) {
   auto index = CreateIndex();
   std::mt19937_64 rng(11);
   for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("seed" + std::to_string(i), RandomImage(rng, 60), {}));
-  std::vector<sift::FeatureSet> to_add;
-  to_add.reserve(40);
-  for (int i = 0; i < 40; ++i) to_add.push_back(RandomImage(rng, 60));
+  const std::vector<sift::FeatureSet> to_add = RandomImages(rng, 40, 60);
   const auto query = RandomImage(rng, 60);
   std::atomic<bool> done{false};
   std::atomic<int> started{0}, queries{0}, failures{0};
@@ -1283,9 +1289,7 @@ TEST_F(Fixture, SearchesOnManyThreadsScoreAsOneAtATime) {
   auto index = CreateIndex();
   std::mt19937_64 rng(12);
   for (int i = 0; i < 40; ++i) ASSERT_TRUE(index->Add("img" + std::to_string(i), RandomImage(rng, 80), {}));
-  std::vector<sift::FeatureSet> queries;
-  queries.reserve(5);
-  for (int i = 0; i < 5; ++i) queries.push_back(RandomImage(rng, 80));
+  const std::vector<sift::FeatureSet> queries = RandomImages(rng, 5, 80);
   QueryOptions options = Opts(40, 10, true);
   options.transitive_depth = 1;
   std::vector<std::vector<std::pair<std::string, float>>> expected;
