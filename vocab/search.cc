@@ -99,14 +99,22 @@ void TwoLevelIndex::Search(const float* queries, size_t n, int k, int num_probes
     std::vector<float> probe_scores(count * probes);
     Reset(probe_lists.data(), probe_scores.data(), probe_lists.size(), static_cast<uint32_t>(lists));
     ScanAll(coarse_panels.View(), batch, count, probes, probe_lists.data(), probe_scores.data());
-    // 2. Group the queries by probed list (counting sort), so each list is read once per batch.
+    // 2. Group the queries by probed list (counting sort), so each list is read once per batch. A slot
+    //    left unfilled (row `lists`: a query whose scores are NaN, e.g. non-finite descriptors) probes
+    //    nothing.
     std::vector<uint32_t> group_start(lists + 1, 0);
-    for (uint32_t l : probe_lists) ++group_start[l + 1];
+    for (uint32_t l : probe_lists) {
+      if (l < lists) ++group_start[l + 1];
+    }
     std::partial_sum(group_start.begin(), group_start.end(), group_start.begin());
     std::vector<uint32_t> fill(group_start.begin(), group_start.end() - 1);
     std::vector<uint32_t> members(probe_lists.size());
-    for (size_t q = 0; q < count; ++q)
-      for (int p = 0; p < probes; ++p) members[fill[probe_lists[q * probes + p]]++] = static_cast<uint32_t>(q);
+    for (size_t q = 0; q < count; ++q) {
+      for (int p = 0; p < probes; ++p) {
+        const uint32_t l = probe_lists[q * probes + p];
+        if (l < lists) members[fill[l]++] = static_cast<uint32_t>(q);
+      }
+    }
     // 3. Score each list's words against the queries that probe it.
     uint32_t* out_rows = rows + begin * k;
     float* out_scores = scores + begin * k;

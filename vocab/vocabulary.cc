@@ -54,6 +54,14 @@ bool AllFinite(std::span<const float> values) {
   return std::all_of(values.begin(), values.end(), [](float v) { return std::isfinite(v); });
 }
 
+// Centroids average unit-norm descriptors, so their values lie in [-1, 1]. Far larger ones (a damaged or
+// crafted file) overflow the quantiser's float scores (|w|^2 - 2<q, w>) to inf - inf = NaN, and then no
+// coarse list or word is nearest; this bound keeps every score finite.
+constexpr float kMaxCentroidValue = 1e6f;
+bool AllWithinBound(std::span<const float> values) {
+  return std::all_of(values.begin(), values.end(), [](float v) { return std::fabs(v) <= kMaxCentroidValue; });
+}
+
 // kHammingBits x dimension orthonormal rows: Gram-Schmidt over Gaussian rows (SplitMix64 + Box-Muller,
 // so the matrix depends on the seed only, not on the standard library).
 std::vector<float> RandomOrthogonalRows(int dimension, uint64_t seed) {
@@ -262,6 +270,9 @@ Result<Vocabulary> Vocabulary::Read(const std::string& path) {
   if (off.front() != 0 || off.back() != *k || !std::is_sorted(off.begin(), off.end()))
     return corrupt("list offsets are not a partition of the words");
   if (!AllFinite(state->centroids) || !AllFinite(state->index.coarse)) return corrupt("NaN or infinite centroid values");
+  if (!AllWithinBound(state->centroids) || !AllWithinBound(state->index.coarse)) {
+    return corrupt("centroid values beyond +-1e6 (centroids of unit-norm descriptors lie within +-1)");
+  }
   state->Finish();
   if (state->fingerprint != *fingerprint) return corrupt("fingerprint does not match the centroids");
   return Vocabulary(std::move(state));

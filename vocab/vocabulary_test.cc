@@ -8,6 +8,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <random>
 
 #include "sift/base/binary_io.h"
@@ -144,6 +145,36 @@ TEST_F(VocabularyTest, RefusesDamagedTruncatedForeignAndNewerFiles) {
   auto r6 = Vocabulary::Read(path);
   ASSERT_FALSE(r6);
   EXPECT_EQ(r6.error().code, ErrorCode::kNotFound);
+}
+
+// Centroid values far beyond a unit descriptor's overflow the quantiser's scores (inf - inf = NaN):
+// such a file is refused when read. A descriptor whose scores are all NaN (NaN values) leaves the
+// memory and the other descriptors of its batch alone (it probed list number `num_lists`, out of
+// bounds, before).
+TEST_F(VocabularyTest, RefusesHugeCentroidsAndQuantisesOverflowingDescriptorsSafely) {
+  std::vector<float> centroids = WordsFrom(descriptors(), 64, 3);
+  auto vocab = Vocabulary::FromCentroids(centroids, 128, sift::DescriptorKind::kSift, "x");
+  ASSERT_TRUE(vocab);
+  centroids[5] = 3e37f;
+  auto huge = Vocabulary::FromCentroids(centroids, 128, sift::DescriptorKind::kSift, "x");
+  if (huge) {  // FromCentroids may take it; the file is what must not load
+    const std::string path = TempPath("huge.vocab");
+    ASSERT_TRUE(huge->Write(path));
+    auto back = Vocabulary::Read(path);
+    ASSERT_FALSE(back);
+    EXPECT_EQ(back.error().code, ErrorCode::kCorruptData);
+    EXPECT_NE(back.error().message.find("beyond"), std::string::npos) << back.error().message;
+    fs::remove(path);
+  }
+  std::vector<float> queries(descriptors().begin(), descriptors().begin() + 40 * 128);
+  std::vector<uint32_t> alone(40);
+  vocab->Quantize(queries, alone);
+  for (size_t i = 128 * 10; i < 128 * 11; ++i) queries[i] = std::numeric_limits<float>::quiet_NaN();  // descriptor 10
+  std::vector<uint32_t> mixed(40);
+  vocab->Quantize(queries, mixed);
+  for (size_t i = 0; i < 40; ++i) {
+    if (i != 10) EXPECT_EQ(mixed[i], alone[i]) << i;
+  }
 }
 
 TEST_F(VocabularyTest, FromCentroidsRefusesBadMatrices) {
