@@ -30,10 +30,10 @@ inline uint16_t QuantizeCoordinate(float v, int size) {
   return static_cast<uint16_t>(RoundNonNegative(std::clamp(static_cast<double>(v) / size, 0.0, 1.0) * 65535.0));
 }
 
-}  // namespace
-
-PackedFeatures PackedFeatures::Pack(std::span<const sift::Keypoint> keypoints, std::span<const uint32_t> words,
-                                    int width, int height, std::span<const uint64_t> signatures) {
+// Writes the packed records of Pack (sorted by word, ties in input order) to `records` and, with
+// signatures, theirs to `signature_out`.
+void PackRecords(std::span<const sift::Keypoint> keypoints, std::span<const uint32_t> words, int width, int height,
+                 std::span<const uint64_t> signatures, uint8_t* records, uint8_t* signature_out) {
   OXBOW_CHECK(keypoints.size() == words.size());
   OXBOW_CHECK(signatures.empty() || signatures.size() == words.size());
   OXBOW_CHECK(width > 0 && height > 0);
@@ -52,16 +52,8 @@ PackedFeatures PackedFeatures::Pack(std::span<const sift::Keypoint> keypoints, s
     for (const uint32_t i : order) scratch[start[(words[i] >> shift) & (kDigits - 1)]++] = i;
     order.swap(scratch);
   }
-  PackedFeatures out;
-  out.width_ = width;
-  out.height_ = height;
-  const size_t feature_bytes = words.size() * kPackedFeatureBytes;
-  auto storage = std::make_shared<std::vector<uint8_t>>(feature_bytes + signatures.size() * kSignatureBytes);
-  out.bytes_ = std::span<const uint8_t>(*storage).first(feature_bytes);
-  out.signature_bytes_ = std::span<const uint8_t>(*storage).subspan(feature_bytes);
-  out.storage_ = storage;
-  uint8_t* p = storage->data();
-  uint8_t* signature = storage->data() + feature_bytes;
+  uint8_t* p = records;
+  uint8_t* signature = signature_out;
   for (const uint32_t i : order) {
     const uint32_t w = words[i];
     OXBOW_CHECK(w <= kMaxPackedWord, "word id does not fit 24 bits");
@@ -86,6 +78,55 @@ PackedFeatures PackedFeatures::Pack(std::span<const sift::Keypoint> keypoints, s
     if (signatures.empty()) continue;
     for (size_t b = 0; b < kSignatureBytes; ++b) *signature++ = static_cast<uint8_t>(signatures[i] >> (8 * b));
   }
+}
+
+// The BLOB header (kBlobHeaderBytes) of `count` features whose body has CRC-32 `crc`.
+void WriteBlobHeader(uint8_t* out, bool with_signatures, int width, int height, size_t count, uint32_t crc) {
+  io::ByteWriter header;
+  for (char c : kMagic) header.Put<char>(c);
+  header.Put<uint32_t>(with_signatures ? kSignedBlobVersion : kBlobVersion);
+  header.Put<int32_t>(width);
+  header.Put<int32_t>(height);
+  header.Put<uint32_t>(static_cast<uint32_t>(count));
+  header.Put<uint32_t>(crc);
+  OXBOW_CHECK(header.bytes().size() == kBlobHeaderBytes);
+  std::copy(header.bytes().begin(), header.bytes().end(), out);
+}
+
+}  // namespace
+
+PackedFeatures PackedFeatures::Pack(std::span<const sift::Keypoint> keypoints, std::span<const uint32_t> words,
+                                    int width, int height, std::span<const uint64_t> signatures) {
+  PackedFeatures out;
+  out.width_ = width;
+  out.height_ = height;
+  const size_t feature_bytes = words.size() * kPackedFeatureBytes;
+  auto storage = std::make_shared<std::vector<uint8_t>>(feature_bytes + signatures.size() * kSignatureBytes);
+  PackRecords(keypoints, words, width, height, signatures, storage->data(), storage->data() + feature_bytes);
+  out.bytes_ = std::span<const uint8_t>(*storage).first(feature_bytes);
+  out.signature_bytes_ = std::span<const uint8_t>(*storage).subspan(feature_bytes);
+  out.storage_ = storage;
+  return out;
+}
+
+size_t PackedFeatures::BlobBytes(size_t count, bool with_signatures) {
+  return kBlobHeaderBytes + count * (kPackedFeatureBytes + (with_signatures ? kSignatureBytes : 0));
+}
+
+PackedFeatures PackedFeatures::PackBlob(std::span<const sift::Keypoint> keypoints, std::span<const uint32_t> words,
+                                        int width, int height, std::span<const uint64_t> signatures,
+                                        std::span<uint8_t> blob, std::shared_ptr<const void> owner) {
+  OXBOW_CHECK(blob.size() == BlobBytes(keypoints.size(), !signatures.empty()), "BLOB buffer of the wrong size");
+  const size_t feature_bytes = words.size() * kPackedFeatureBytes;
+  const std::span<uint8_t> body = blob.subspan(kBlobHeaderBytes);
+  PackRecords(keypoints, words, width, height, signatures, body.data(), body.data() + feature_bytes);
+  WriteBlobHeader(blob.data(), !signatures.empty(), width, height, words.size(), io::Crc32(body));
+  PackedFeatures out;
+  out.width_ = width;
+  out.height_ = height;
+  out.bytes_ = body.first(feature_bytes);
+  out.signature_bytes_ = body.subspan(feature_bytes);
+  out.storage_ = std::move(owner);
   return out;
 }
 
@@ -141,15 +182,7 @@ std::vector<uint8_t> PackedFeatures::Serialize() const {
   const std::span<uint8_t> body = std::span(out).subspan(kBlobHeaderBytes);
   std::copy(bytes_.begin(), bytes_.end(), body.begin());
   std::copy(signature_bytes_.begin(), signature_bytes_.end(), body.begin() + static_cast<ptrdiff_t>(bytes_.size()));
-  io::ByteWriter header;
-  for (char c : kMagic) header.Put<char>(c);
-  header.Put<uint32_t>(signature_bytes_.empty() ? kBlobVersion : kSignedBlobVersion);
-  header.Put<int32_t>(width_);
-  header.Put<int32_t>(height_);
-  header.Put<uint32_t>(static_cast<uint32_t>(size()));
-  header.Put<uint32_t>(io::Crc32(body));
-  OXBOW_CHECK(header.bytes().size() == kBlobHeaderBytes);
-  std::copy(header.bytes().begin(), header.bytes().end(), out.begin());
+  WriteBlobHeader(out.data(), !signature_bytes_.empty(), width_, height_, size(), io::Crc32(body));
   return out;
 }
 

@@ -52,6 +52,17 @@ class PackedFeatures {
   static PackedFeatures Pack(std::span<const sift::Keypoint> keypoints, std::span<const uint32_t> words,
                              int width, int height, std::span<const uint64_t> signatures = {});
 
+  // The size of Serialize()'s BLOB for `count` features, with or without signatures.
+  static size_t BlobBytes(size_t count, bool with_signatures);
+  // Pack(...) made directly in its serialised form: `blob` (BlobBytes(keypoints.size(),
+  // !signatures.empty()) bytes; OXBOW_CHECK) receives exactly what Serialize() of Pack(...) gives, every
+  // byte written, and the features returned view its body, kept alive by `owner` (what holds `blob`).
+  // One buffer per image instead of two: a bulk add packs thousands per batch, and each buffer is
+  // fresh pages to fault in.
+  static PackedFeatures PackBlob(std::span<const sift::Keypoint> keypoints, std::span<const uint32_t> words,
+                                 int width, int height, std::span<const uint64_t> signatures,
+                                 std::span<uint8_t> blob, std::shared_ptr<const void> owner);
+
   size_t size() const { return bytes_.size() / kPackedFeatureBytes; }
   int width() const { return width_; }
   int height() const { return height_; }

@@ -1238,6 +1238,44 @@ TEST(PackedFeaturesLayout, BytesEqualTheReferenceLayout) {
   }
 }
 
+// The BLOB a batch add makes in place (PackBlob) is what Serialize() of Pack gives, byte for byte, and
+// the features it returns read as Pack's; the buffer has no byte left unwritten.
+TEST(PackedFeaturesLayout, PackBlobWritesSerializeBytesInPlace) {
+  std::mt19937_64 rng(5);
+  std::uniform_real_distribution<float> unit(0.0f, 1.0f);
+  for (const bool with_signatures : {false, true}) {
+    for (const size_t n : {size_t{0}, size_t{1}, size_t{2500}}) {
+      std::vector<sift::Keypoint> keypoints(n);
+      std::vector<uint32_t> words(n);
+      std::vector<uint64_t> signatures;
+      for (size_t i = 0; i < n; ++i) {
+        keypoints[i].x = unit(rng) * 640;
+        keypoints[i].y = unit(rng) * 480;
+        keypoints[i].scale = std::exp2(unit(rng) * 6.0f);
+        keypoints[i].orientation = unit(rng) * 6.0f;
+        words[i] = static_cast<uint32_t>(rng() % 5000);
+        if (with_signatures) signatures.push_back(rng());
+      }
+      const std::vector<uint8_t> expected = PackedFeatures::Pack(keypoints, words, 640, 480, signatures).Serialize();
+      ASSERT_EQ(PackedFeatures::BlobBytes(n, with_signatures), expected.size());
+      for (const uint8_t fill : {uint8_t{0x00}, uint8_t{0xA5}}) {
+        auto buffer = std::make_shared<std::vector<uint8_t>>(expected.size(), fill);
+        const PackedFeatures packed = PackedFeatures::PackBlob(keypoints, words, 640, 480, signatures, *buffer, buffer);
+        EXPECT_EQ(*buffer, expected) << n << " features, signatures " << with_signatures << ", fill " << int{fill};
+        const auto read = PackedFeatures::Deserialize(*buffer, "the test's BLOB");
+        ASSERT_TRUE(read.has_value()) << read.error().message;
+        ASSERT_EQ(packed.size(), n);
+        EXPECT_EQ(packed.has_signatures(), with_signatures || n == 0);
+        for (size_t i = 0; i < n; ++i) {
+          ASSERT_EQ(packed.word(i), read->word(i));
+          ASSERT_EQ(packed.keypoint(i).x, read->keypoint(i).x);
+          if (with_signatures) ASSERT_EQ(packed.signature(i), read->signature(i));
+        }
+      }
+    }
+  }
+}
+
 TEST_F(Fixture, ReadersRunWhileWritersAdd) {
   auto index = CreateIndex();
   std::mt19937_64 rng(11);

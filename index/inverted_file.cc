@@ -9,6 +9,7 @@
 #include <type_traits>
 #include <limits>
 
+#include "index/huge_pages.h"
 #include "sift/base/error.h"
 #include "sift/base/parallel.h"
 
@@ -75,16 +76,6 @@ inline uint8_t* PutPosting(uint8_t* p, uint32_t gap, uint32_t tf) {
   }
   if (tf > 1) p = PutVarint(p, tf - 2);
   return p;
-}
-
-// Asks for transparent huge pages over the whole 2 MiB pages within [data, data + size): a large
-// buffer about to be written then takes one page fault per 2 MiB instead of one per 4 KiB. Advisory.
-void AdviseHugePages(uint8_t* data, size_t size) {
-  constexpr size_t kHuge = size_t{2} << 20;
-  if (data == nullptr || size < 2 * kHuge) return;
-  const size_t skip = (kHuge - reinterpret_cast<uintptr_t>(data) % kHuge) % kHuge;
-  const size_t length = (size - skip) / kHuge * kHuge;
-  if (length > 0) (void)::madvise(data + skip, length, MADV_HUGEPAGE);
 }
 
 inline void PutPosting(std::vector<uint8_t>* out, uint32_t gap, uint32_t tf) {
