@@ -1089,6 +1089,10 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
       verify.push_back(r->timings.verify_ms);
       qe.push_back(r->timings.qe_ms);
     }
+    if (ms.empty()) {
+      std::printf("%s: no searches ran (--queries 0, or every query failed)\n", name);
+      continue;
+    }
     std::printf("%s: p50 %.1f ms, p95 %.1f ms, p99 %.1f ms (%zu real photos, quantisation included; stage p50s: "
                 "quantize %.1f, score %.1f, verify %.1f (transitive included), qe %.1f)\n",
                 name, Percentile(ms, .5), Percentile(ms, .95), Percentile(ms, .99), ms.size(), Percentile(quantize, .5),
@@ -1127,6 +1131,7 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
       }
     }
     for (size_t b = 0; b < settings.size(); ++b) {
+      if (ms[b].empty()) continue;  // no searches ran: said above
       std::printf("full default search, max_scored_postings %d, hamming_shortlist %d: p50 %.1f ms, p95 %.1f ms, "
                   "p99 %.1f ms (score p50 %.1f, qe p50 %.1f; each setting on every query in turn)\n",
                   settings[b].first, settings[b].second, Percentile(ms[b], .5), Percentile(ms[b], .95),
