@@ -1,7 +1,5 @@
 #include "index/inverted_file.h"
 
-#include <sys/mman.h>
-
 #include <algorithm>
 #include <atomic>
 #include <cmath>
