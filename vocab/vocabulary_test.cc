@@ -272,6 +272,35 @@ TEST_F(VocabularyTest, QuantizeMultiReturnsSortedNearestWords) {
   EXPECT_LT(w2[k - 1], k);
 }
 
+// The quantiser shares a search's coarse lists out between its threads, each keeping its own k best
+// words per descriptor, merged at the end: the k best words and their distances must not depend on the
+// thread count (more descriptors than one round of 2048 per thread, so rounds are tested too), and
+// probing every list must give what the exhaustive search gives.
+TEST_F(VocabularyTest, QuantizeMultiDoesNotDependOnThreads) {
+  const size_t k = 1500;
+  auto vocab = Vocabulary::FromCentroids(WordsFrom(descriptors(), k, 6), 128, sift::DescriptorKind::kRootSift, "");
+  ASSERT_TRUE(vocab);
+  const size_t n = std::min<size_t>(descriptors().size() / 128, 5000);
+  ASSERT_GT(n, 2048u) << "too few test descriptors for more than one round";
+  const std::span<const float> queries(descriptors().data(), n * 128);
+  const int m = 3;
+  std::vector<uint32_t> words_one(n * m), words(n * m);
+  std::vector<float> dist_one(n * m), dist(n * m);
+  vocab->QuantizeMulti(queries, m, words_one, dist_one, {.num_threads = 1, .num_probes = 4});
+  for (int threads : {2, 3, 5}) {
+    vocab->QuantizeMulti(queries, m, words, dist, {.num_threads = threads, .num_probes = 4});
+    EXPECT_EQ(words, words_one) << threads << " threads";
+    EXPECT_EQ(dist, dist_one) << threads << " threads";
+  }
+  const int lists = static_cast<int>(vocab->num_lists());
+  std::vector<uint32_t> exact_words(n * m);
+  std::vector<float> exact_dist(n * m);
+  vocab->QuantizeMulti(queries, m, exact_words, exact_dist, {.num_threads = 2, .exact = true});
+  vocab->QuantizeMulti(queries, m, words, dist, {.num_threads = 2, .num_probes = lists});
+  EXPECT_EQ(words, exact_words) << "every list probed must be the exhaustive search";
+  EXPECT_EQ(dist, exact_dist);
+}
+
 TEST_F(VocabularyTest, QuantizeChecksSizes) {
   auto vocab = Vocabulary::FromCentroids(WordsFrom(descriptors(), 10, 5), 128, sift::DescriptorKind::kSift, "");
   ASSERT_TRUE(vocab);
