@@ -1633,8 +1633,14 @@ Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const Que
     }
   }
   if (options.hamming && impl_->vocabulary.has_hamming()) {
+    // On the index's threads too: a 64 x 128 projection per descriptor, ~1.4 ms for 2500 on one.
     q.signatures.resize(q.words.size());
-    impl_->vocabulary.Signatures(descriptors, q.words, q.signatures);
+    const auto dim = static_cast<size_t>(impl_->vocabulary.dimension());
+    ParallelFor(q.words.size(), quantizer.num_threads, 512, [&](size_t begin, size_t end, int) {
+      impl_->vocabulary.Signatures(std::span<const float>(descriptors).subspan(begin * dim, (end - begin) * dim),
+                                   std::span<const uint32_t>(q.words).subspan(begin, end - begin),
+                                   std::span<uint64_t>(q.signatures).subspan(begin, end - begin));
+    });
   }
   constexpr size_t kMaxKeptFloats = size_t{2} << 20;  // 8 MiB
   if (descriptors.capacity() > kMaxKeptFloats) descriptors = std::vector<float>();
@@ -1705,9 +1711,13 @@ Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFea
   std::vector<ScoredImage> scored =
       snap.inverted.Score(terms, depth, &scratch, &response.candidates, allowed, index_options.num_threads,
                           static_cast<uint64_t>(options.max_scored_postings));
-  // The features of the candidates read next (Hamming scores, verification): their reads start at once.
+  // The features of the candidates read next (Hamming scores, verification): their reads start at once,
+  // on the index's threads (a madvise call each, several microseconds even when the pages are in memory:
+  // ~2 ms for 300 candidates on one thread at 1M images).
   const size_t to_read = std::min(scored.size(), hamming ? depth : static_cast<size_t>(options.rerank_depth));
-  for (size_t c = 0; c < to_read; ++c) snap.entries[scored[c].image]->stored.WillNeed();
+  ParallelFor(to_read, index_options.num_threads, 16, [&](size_t begin, size_t end, int) {
+    for (size_t c = begin; c < end; ++c) snap.entries[scored[c].image]->stored.WillNeed();
+  });
   // 1b. Hamming-embedding re-scoring of the shortlist (whose features it keeps for the stages below).
   CandidateCopies copies;
   if (hamming) RescoreHamming(snap, query, options, scored, &copies);
