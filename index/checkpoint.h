@@ -142,7 +142,8 @@ void SetGeometryFormatVersionForTesting(uint32_t version);
 // its temporary, before fsync and rename; "segment-written": a postings segment's file complete, before
 // the head; "files-written", "manifest-committed", "cleaned"), e.g. to
 // kill the process there, and when the checkpointer starts verifying the geometry files an open
-// loaded ("verifying-geometry"), e.g. to hold it back. Not thread-safe; set it before the index is used.
+// loaded ("verifying-geometry"), e.g. to hold it back, and when it has checked them all
+// ("geometry-verified"). Not thread-safe; set it before the index is used.
 void SetCheckpointStageHookForTesting(std::function<void(std::string_view stage)> hook);
 void CheckpointStage(std::string_view stage);
 

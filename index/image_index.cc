@@ -524,6 +524,7 @@ struct ImageIndex::Impl {
   uint64_t next_number = 0;                     // writer_mutex: the number the catalogue gave last + 1 (a guess; AddBatch checks it)
   bool closing = false;                         // guarded by writer_mutex
   std::atomic<bool> stop_verifying{false};      // set by Close: VerifyParts gives up
+  mutable std::atomic<int> searches_in_flight{0};  // Query and QuerySimilar calls running: VerifyParts waits
   uint64_t pending_after_failure = 0;           // changes of failed background checkpoints (for Close)
   std::condition_variable checkpoint_due;       // with writer_mutex: wakes the checkpointer
   std::thread checkpointer;                     // runs CheckpointLoop
@@ -1079,11 +1080,22 @@ void ImageIndex::Impl::VerifyParts() {
   CheckpointStage("verifying-geometry");
   const auto t0 = Clock::now();
   size_t damaged = 0;
+  // Between its 4 MiB reads the check waits while a search runs: SCHED_IDLE keeps it off a core a
+  // search wants, but not off the disk, the memory bus or the page cache, and at 1M images (16 GB of
+  // geometry, read for 5-45 s after an open) it made the searches of that time 10-25% slower
+  // (README, Session 35).
+  const auto stop = [this] {
+    while (searches_in_flight.load(std::memory_order_relaxed) > 0 && !stop_verifying.load()) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(1));
+    }
+    return stop_verifying.load();
+  };
   for (const auto& part : geometry_parts) {
-    const std::optional<bool> good = part->VerifiedUnless([this] { return stop_verifying.load(); });
+    const std::optional<bool> good = part->VerifiedUnless(stop);
     if (!good.has_value()) return;  // closing
     if (!*good) ++damaged;
   }
+  CheckpointStage("geometry-verified");
   OXBOW_LOG(kInfo) << "index " << dir << ": " << geometry_parts.size() << " geometry files of the checkpoint verified in "
                    << MsSince(t0) << " ms, " << damaged << " damaged";
   // A damaged file makes CheckpointDue() true: the checkpointer rewrites it once woken (under the lock,
@@ -1095,11 +1107,12 @@ void ImageIndex::Impl::VerifyParts() {
 }
 
 void ImageIndex::Impl::CheckpointLoop() {
-  // The loaded geometry files are checked on a thread of their own in SCHED_IDLE: right after an open,
-  // reading and hashing every file (several seconds at 1M images) would otherwise take a core from
-  // the first searches, which then ran at half speed. A search never waits for it (an image it uses
-  // first is checked alone, GeometryPart::Sound), and neither do checkpoints: under a load that keeps
-  // every core busy the check may not run for minutes. A checkpoint before it ends keeps the files
+  // The loaded geometry files are checked on a thread of their own in SCHED_IDLE, pausing while a
+  // search runs (VerifyParts): right after an open, reading and hashing every file (5-45 s at 1M
+  // images) would otherwise take a core from the first searches, which then ran at half speed. A
+  // search never waits for it (an image it uses first is checked alone, GeometryPart::Sound), and
+  // neither do checkpoints: under a load that keeps every core busy, or a search always running, the
+  // check may not run for minutes. A checkpoint before it ends keeps the files
   // not checked yet (their images are still checked on use); one found damaged later is rewritten by
   // the next checkpoint, as DamagedGeometry names it in any manifest that still holds it.
   std::thread verifier([this] {
@@ -1586,8 +1599,23 @@ Result<std::vector<ImageRecord>> ImageIndex::List(uint64_t offset, uint64_t limi
   return out;
 }
 
+namespace {
+// Counts a search as running for its lifetime (Impl::searches_in_flight).
+class SearchInFlight {
+ public:
+  explicit SearchInFlight(std::atomic<int>& count) : count_(count) { count_.fetch_add(1, std::memory_order_relaxed); }
+  ~SearchInFlight() { count_.fetch_sub(1, std::memory_order_relaxed); }
+  SearchInFlight(const SearchInFlight&) = delete;
+  SearchInFlight& operator=(const SearchInFlight&) = delete;
+
+ private:
+  std::atomic<int>& count_;
+};
+}  // namespace
+
 Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const QueryOptions& options) const {
   const auto t0 = Clock::now();
+  const SearchInFlight in_flight(impl_->searches_in_flight);
   if (auto e = options.Check()) return Fail(ErrorCode::kInvalidArgument, "query options: " + *e);
   if (auto s = CheckFeatures(query, impl_->vocabulary, "the query"); !s) return std::unexpected(s.error());
   if (auto s = CheckSettings(options.extractor_settings, impl_->extractor_settings, "the query features"); !s) {
@@ -1652,6 +1680,7 @@ Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const Que
 
 Result<QueryResponse> ImageIndex::QuerySimilar(const std::string& id, const QueryOptions& options) const {
   const auto t0 = Clock::now();
+  const SearchInFlight in_flight(impl_->searches_in_flight);
   if (auto e = options.Check()) return Fail(ErrorCode::kInvalidArgument, "query options: " + *e);
   const auto snap = impl_->Current();
   const Entry* entry = snap->Find(id);

@@ -1555,6 +1555,55 @@ TEST_F(CheckpointFixture, GeometryIsCheckedInSchedIdleAndCheckpointsAreNot) {
   EXPECT_EQ(sched_getscheduler(0), SCHED_OTHER);
 }
 
+// While a search runs, the check of the geometry files waits (it competes for the disk and the memory
+// bus, which SCHED_IDLE does not share out). A search is held inside its filter; the check, let go
+// while it is held, must not finish until the search does; then it finishes.
+TEST_F(CheckpointFixture, GeometryCheckWaitsWhileASearchRuns) {
+  {
+    auto index = CreateIndex();
+    for (int i = 0; i < 30; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+  }
+  std::promise<void> start_check;
+  std::shared_future<void> check_may_start = start_check.get_future().share();
+  std::atomic<bool> checked{false};
+  SetCheckpointStageHookForTesting([&, check_may_start](std::string_view stage) {
+    if (stage == "verifying-geometry") check_may_start.wait_for(std::chrono::seconds(60));
+    if (stage == "geometry-verified") checked = true;
+  });
+  class HoldingFilter final : public ImageFilter {
+   public:
+    std::promise<void> entered;
+    std::shared_future<void> release;
+    mutable std::once_flag once;
+    bool Matches(const ImageRecord&) const override {
+      std::call_once(once, [this] { const_cast<std::promise<void>&>(entered).set_value(); });
+      release.wait_for(std::chrono::seconds(60));
+      return true;
+    }
+  };
+  std::promise<void> release_search;
+  auto filter = std::make_shared<HoldingFilter>();
+  filter->release = release_search.get_future().share();
+  std::future<void> entered = filter->entered.get_future();
+  {
+    auto index = ImageIndex::Open(dir_.string());
+    ASSERT_TRUE(index) << index.error().ToString();
+    QueryOptions options;
+    options.filter = filter;
+    std::thread search([&] { EXPECT_TRUE((*index)->Query(Image(3), options)); });
+    ASSERT_EQ(entered.wait_for(std::chrono::seconds(60)), std::future_status::ready);
+    start_check.set_value();  // the search is running: the check starts now, and must wait for it
+    // Unpaused, 30 images' files are checked in about a millisecond.
+    std::this_thread::sleep_for(std::chrono::milliseconds(500));
+    EXPECT_FALSE(checked.load()) << "the geometry check went on while a search ran";
+    release_search.set_value();
+    search.join();
+    for (int wait = 0; wait < 6000 && !checked; ++wait) std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    EXPECT_TRUE(checked.load()) << "the geometry check did not finish once the search had";
+  }
+  SetCheckpointStageHookForTesting(nullptr);
+}
+
 TEST_F(CheckpointFixture, OpenReplaysChangesAfterTheCheckpointAndEqualsAFreshIndex) {
   SKIP_KILL_TEST_UNDER_TSAN();
   {
