@@ -35,9 +35,7 @@ class Pool {
     int to_wake = 0;
     {
       std::lock_guard<std::mutex> lock(mutex_);
-      if (stop_) {
-        workers = 1;  // exiting: the caller does everything
-      } else {
+      if (!stop_) {  // (exiting: no helper is asked, the caller does everything)
         job.max_helpers = workers - 1;
         while (threads_.size() < static_cast<size_t>(job.max_helpers)) threads_.emplace_back([this] { WorkerLoop(); });
         queue_.push_back(&job);
