@@ -1616,6 +1616,7 @@ class SearchInFlight {
 Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const QueryOptions& options) const {
   const auto t0 = Clock::now();
   const SearchInFlight in_flight(impl_->searches_in_flight);
+  const LatencySensitiveScope latency;  // the pool's helpers stay awake between this search's stages
   if (auto e = options.Check()) return Fail(ErrorCode::kInvalidArgument, "query options: " + *e);
   if (auto s = CheckFeatures(query, impl_->vocabulary, "the query"); !s) return std::unexpected(s.error());
   if (auto s = CheckSettings(options.extractor_settings, impl_->extractor_settings, "the query features"); !s) {
@@ -1681,6 +1682,7 @@ Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const Que
 Result<QueryResponse> ImageIndex::QuerySimilar(const std::string& id, const QueryOptions& options) const {
   const auto t0 = Clock::now();
   const SearchInFlight in_flight(impl_->searches_in_flight);
+  const LatencySensitiveScope latency;  // the pool's helpers stay awake between this search's stages
   if (auto e = options.Check()) return Fail(ErrorCode::kInvalidArgument, "query options: " + *e);
   const auto snap = impl_->Current();
   const Entry* entry = snap->Find(id);

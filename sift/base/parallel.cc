@@ -20,6 +20,7 @@ struct Job {
   const std::function<void(size_t, size_t, int)>* fn = nullptr;
   std::atomic<size_t> next{0};
   int max_helpers = 0;
+  bool spin_after = false;  // the caller is latency-sensitive: helpers spin for its next call
   // Guarded by the pool's mutex:
   int joined = 0;  // helpers that took a worker number (numbers 1..joined)
   int active = 0;  // helpers still inside Work(); the caller waits for 0 before the Job goes away
@@ -107,14 +108,19 @@ class Pool {
 
   void WorkerLoop() {
     std::unique_lock<std::mutex> lock(mutex_);
+    bool spin = false;  // the last job taken was from a latency-sensitive caller
     for (;;) {
       while (!WorkOrStop()) {
-        // Before sleeping, a worker spins for up to kSpin (yielding its core to any other thread that
-        // wants it), watching for a new job: one search makes dozens of ParallelFor calls a few
-        // hundred microseconds apart, and waking a sleeping thread cost the caller ~30 us per call on
-        // the 2-core VMs we measure on (futex wake and an inter-processor interrupt), besides the
-        // helper's own late start. A job seen while spinning (maybe already done by its caller)
-        // starts a new spin; only a spin that saw none ends in sleep.
+        if (!spin) {
+          ++sleeping_;
+          wake_.wait(lock, [&] { return WorkOrStop(); });
+          --sleeping_;
+          continue;
+        }
+        // After a latency-sensitive job, a worker spins for up to kSpin before sleeping (yielding its
+        // core to any other thread that wants it), watching for a new job (LatencySensitiveScope). A
+        // job seen while spinning (maybe already done by its caller) starts a new spin; only a spin
+        // that saw none ends in sleep.
         const uint64_t seen = queued_.load(std::memory_order_acquire);
         lock.unlock();
         const auto deadline = std::chrono::steady_clock::now() + kSpin;
@@ -128,13 +134,11 @@ class Pool {
           sched_yield();
         }
         lock.lock();
-        if (saw_job) continue;
-        ++sleeping_;
-        wake_.wait(lock, [&] { return WorkOrStop(); });
-        --sleeping_;
+        if (!saw_job) spin = false;  // sleeps at the next look, unless work came meanwhile
       }
       if (stop_) return;
       Job& job = *queue_.front();
+      spin = job.spin_after;
       const int worker = ++job.joined;
       if (job.joined == job.max_helpers) queue_.erase(queue_.begin());
       ++job.active;
@@ -158,6 +162,8 @@ class Pool {
   std::atomic<bool> stopping_{false};
   [[maybe_unused]] Pool* abandoned_;  // the parent's pool in a forked child: kept reachable, never used
 };
+
+thread_local bool t_latency_sensitive = false;
 
 Pool*& CurrentPool() {
   static Pool* pool = [] {
@@ -188,7 +194,11 @@ void ParallelFor(size_t n, int num_threads, size_t grain, const std::function<vo
   job.grain = grain;
   job.chunks = chunks;
   job.fn = &fn;
+  job.spin_after = t_latency_sensitive;
   CurrentPool()->Run(job, workers);
 }
+
+LatencySensitiveScope::LatencySensitiveScope() : previous_(t_latency_sensitive) { t_latency_sensitive = true; }
+LatencySensitiveScope::~LatencySensitiveScope() { t_latency_sensitive = previous_; }
 
 }  // namespace oxbow

@@ -143,6 +143,29 @@ TEST(ParallelFor, ConcurrentCallersNeverShareAWorkerNumber) {
   EXPECT_EQ(failures.load(), 0);
 }
 
+// Latency-sensitive callers leave the helpers spinning for their next call; a call must still get
+// every helper whether it comes while they spin (no gap), after their spin ended in sleep (2 ms), or
+// from a caller that is not latency-sensitive, and scopes nest.
+TEST(ParallelFor, LatencySensitiveCallsGetEveryHelperWhetherItSpinsOrSleeps) {
+  constexpr int kThreads = 3;
+  for (const auto gap : {std::chrono::microseconds(0), std::chrono::microseconds(100), std::chrono::microseconds(2000)}) {
+    for (int call = 0; call < 20; ++call) {
+      std::this_thread::sleep_for(gap);
+      std::vector<uint64_t> serials;
+      if (call % 3 == 2) {
+        serials = SerialsOfAllWorkers(kThreads);  // not latency-sensitive
+      } else {
+        const LatencySensitiveScope outer;
+        const LatencySensitiveScope inner;
+        serials = SerialsOfAllWorkers(kThreads);
+      }
+      const std::set<uint64_t> distinct(serials.begin(), serials.end());
+      EXPECT_EQ(distinct.size(), static_cast<size_t>(kThreads)) << "gap " << gap.count() << " us, call " << call;
+      EXPECT_EQ(distinct.count(0), 0u) << "a helper never joined (gap " << gap.count() << " us, call " << call << ")";
+    }
+  }
+}
+
 TEST(ParallelFor, AForkedChildGetsWorkingHelpers) {
 #if defined(__SANITIZE_THREAD__)
   GTEST_SKIP() << "ThreadSanitizer cannot start threads in the child of a multi-threaded fork";
