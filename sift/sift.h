@@ -76,7 +76,7 @@
 // weights for 8 samples at a time, then the scatter) are vectorised (AVX2+FMA when compiled with it,
 // with a scalar path computing the same formula, including the same fused multiply-adds); work is split
 // over rows and keypoints with per-item outputs, so the result is bit-identical for any num_threads.
-// The parallel loops run on the process-wide persistent worker pool (sift/base/parallel.h), and each calling thread keeps
+// The parallel loops run on the process-wide persistent worker pool (sift/parallel.h), and each calling thread keeps
 // its pyramid buffers between calls (SiftOptions::thread_cache_mib), so a thread extracting image after
 // image does not pay the page faults of ~100 MB of fresh memory per image.
 #pragma once
