@@ -109,8 +109,8 @@ void TwoLevelIndex::Search(const float* queries, size_t n, int k, int num_probes
     const size_t count = std::min(round, n - r0);
     const float* batch = queries + r0 * dim;
     // 1. The `probes` nearest coarse centroids of every query.
-    probe_lists.assign(count * probes, 0);
-    probe_scores.assign(count * probes, 0.0f);
+    probe_lists.resize(count * probes);  // every slot is Reset below
+    probe_scores.resize(count * probes);
     ParallelFor(count, num_threads, BalancedBatch(count, num_threads), [&](size_t begin, size_t end, int) {
       Reset(probe_lists.data() + begin * probes, probe_scores.data() + begin * probes, (end - begin) * probes,
             static_cast<uint32_t>(lists));
