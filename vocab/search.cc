@@ -57,12 +57,16 @@ void ScanAll(const PanelMatrix& words, const float* queries, size_t count, int k
 
 constexpr size_t kQueryBatch = 2048;
 
-// Queries per batch: at most kQueryBatch, in a number of equal batches that is a multiple of the thread
-// count, so every thread gets the same share (2850 descriptors on 2 threads: 1425 + 1425, where batches
-// of 2048 left one thread 72% of the work and the other waiting). Results do not depend on the batch.
+// Queries per batch of the coarse pass: at most kCoarseBatch, in a number of equal batches that is a
+// multiple of the thread count, so every thread gets the same share (2850 descriptors on 2 threads: 12
+// batches of 238). Small batches keep the threads even when the machine is busy: with one batch per
+// thread (1425 + 1425) a caller whose helper was descheduled holding half the work waited for it, and
+// with another busy thread on the 2-core machine a 16-probe quantisation took 10.6-10.7 us per
+// descriptor against 9.8-9.9 with batches of 256 (5.8 alone either way). Results do not depend on the batch.
+constexpr size_t kCoarseBatch = 256;
 size_t BalancedBatch(size_t n, int num_threads) {
   const size_t threads = static_cast<size_t>(ResolveThreadCount(num_threads));
-  const size_t rounds = (n + threads * kQueryBatch - 1) / (threads * kQueryBatch);
+  const size_t rounds = (n + threads * kCoarseBatch - 1) / (threads * kCoarseBatch);
   const size_t batches = std::max<size_t>(1, rounds * threads);
   return std::max<size_t>(1, (n + batches - 1) / batches);
 }
