@@ -525,6 +525,7 @@ struct ImageIndex::Impl {
   bool closing = false;                         // guarded by writer_mutex
   std::atomic<bool> stop_verifying{false};      // set by Close: VerifyParts gives up
   mutable std::atomic<int> searches_in_flight{0};  // Query and QuerySimilar calls running: VerifyParts waits
+  mutable std::atomic<int64_t> last_search_end{0};  // when the last of them ended (Clock ticks): VerifyParts slows
   uint64_t pending_after_failure = 0;           // changes of failed background checkpoints (for Close)
   std::condition_variable checkpoint_due;       // with writer_mutex: wakes the checkpointer
   std::thread checkpointer;                     // runs CheckpointLoop
@@ -1083,12 +1084,26 @@ void ImageIndex::Impl::VerifyParts() {
   // Between its 4 MiB reads the check waits while a search runs: SCHED_IDLE keeps it off a core a
   // search wants, but not off the disk, the memory bus or the page cache, and at 1M images (16 GB of
   // geometry, read for 5-45 s after an open) it made the searches of that time 10-25% slower
-  // (README, Session 35).
-  const auto stop = [this] {
-    while (searches_in_flight.load(std::memory_order_relaxed) > 0 && !stop_verifying.load()) {
+  // (README, Session 35). While a search ended less than kBusyWindow ago it also reads at most one
+  // block per kBusyGap (80 MiB/s): read from disk at full speed (about 1 GB/s right after a bulk
+  // ingest, whose files the page cache no longer held), its kernel time and the VM's I/O work (30% of
+  // the CPU in the kernel, up to 16% stolen, in vmstat) stalled the searches between those pauses by
+  // 100-250 ms every few seconds (README, Session 36). Idle for kBusyWindow, it reads at full speed.
+  static constexpr auto kBusyWindow = std::chrono::seconds(1);
+  static constexpr auto kBusyGap = std::chrono::milliseconds(50);
+  Clock::time_point last_read = Clock::now();
+  const auto stop = [this, &last_read] {
+    for (;;) {
+      if (stop_verifying.load()) return true;
+      const auto now = Clock::now();
+      const Clock::time_point search_ended{Clock::duration(last_search_end.load(std::memory_order_relaxed))};
+      const bool busy = now - search_ended < kBusyWindow;
+      if (searches_in_flight.load(std::memory_order_relaxed) == 0 && (!busy || now - last_read >= kBusyGap)) break;
       std::this_thread::sleep_for(std::chrono::milliseconds(1));
     }
-    return stop_verifying.load();
+    last_read = Clock::now();
+    CheckpointStage("geometry-read");
+    return false;
   };
   for (const auto& part : geometry_parts) {
     const std::optional<bool> good = part->VerifiedUnless(stop);
@@ -1600,22 +1615,29 @@ Result<std::vector<ImageRecord>> ImageIndex::List(uint64_t offset, uint64_t limi
 }
 
 namespace {
-// Counts a search as running for its lifetime (Impl::searches_in_flight).
+// Counts a search as running for its lifetime (Impl::searches_in_flight) and notes when it ended
+// (Impl::last_search_end).
 class SearchInFlight {
  public:
-  explicit SearchInFlight(std::atomic<int>& count) : count_(count) { count_.fetch_add(1, std::memory_order_relaxed); }
-  ~SearchInFlight() { count_.fetch_sub(1, std::memory_order_relaxed); }
+  SearchInFlight(std::atomic<int>& count, std::atomic<int64_t>& ended) : count_(count), ended_(ended) {
+    count_.fetch_add(1, std::memory_order_relaxed);
+  }
+  ~SearchInFlight() {
+    ended_.store(Clock::now().time_since_epoch().count(), std::memory_order_relaxed);
+    count_.fetch_sub(1, std::memory_order_relaxed);
+  }
   SearchInFlight(const SearchInFlight&) = delete;
   SearchInFlight& operator=(const SearchInFlight&) = delete;
 
  private:
   std::atomic<int>& count_;
+  std::atomic<int64_t>& ended_;
 };
 }  // namespace
 
 Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const QueryOptions& options) const {
   const auto t0 = Clock::now();
-  const SearchInFlight in_flight(impl_->searches_in_flight);
+  const SearchInFlight in_flight(impl_->searches_in_flight, impl_->last_search_end);
   const LatencySensitiveScope latency;  // the pool's helpers stay awake between this search's stages
   if (auto e = options.Check()) return Fail(ErrorCode::kInvalidArgument, "query options: " + *e);
   if (auto s = CheckFeatures(query, impl_->vocabulary, "the query"); !s) return std::unexpected(s.error());
@@ -1681,7 +1703,7 @@ Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const Que
 
 Result<QueryResponse> ImageIndex::QuerySimilar(const std::string& id, const QueryOptions& options) const {
   const auto t0 = Clock::now();
-  const SearchInFlight in_flight(impl_->searches_in_flight);
+  const SearchInFlight in_flight(impl_->searches_in_flight, impl_->last_search_end);
   const LatencySensitiveScope latency;  // the pool's helpers stay awake between this search's stages
   if (auto e = options.Check()) return Fail(ErrorCode::kInvalidArgument, "query options: " + *e);
   const auto snap = impl_->Current();

@@ -1604,6 +1604,49 @@ TEST_F(CheckpointFixture, GeometryCheckWaitsWhileASearchRuns) {
   SetCheckpointStageHookForTesting(nullptr);
 }
 
+// Within a second of a search's end the check reads at most one block per 50 ms (VerifyParts): its first
+// read comes no sooner than 50 ms after it starts (or a second after the search, whichever is first).
+TEST_F(CheckpointFixture, GeometryCheckSlowsRightAfterASearch) {
+  using Clock = std::chrono::steady_clock;
+  {
+    auto index = CreateIndex();
+    for (int i = 0; i < 30; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+  }
+  std::promise<void> start_check;
+  std::shared_future<void> check_may_start = start_check.get_future().share();
+  std::mutex mutex;
+  std::optional<Clock::time_point> released, first_read;
+  std::atomic<bool> checked{false};
+  SetCheckpointStageHookForTesting([&, check_may_start](std::string_view stage) {
+    if (stage == "verifying-geometry") {
+      check_may_start.wait_for(std::chrono::seconds(60));
+      std::lock_guard<std::mutex> lock(mutex);
+      released = Clock::now();
+    }
+    if (stage == "geometry-read") {
+      std::lock_guard<std::mutex> lock(mutex);
+      if (!first_read) first_read = Clock::now();
+    }
+    if (stage == "geometry-verified") checked = true;
+  });
+  {
+    auto index = ImageIndex::Open(dir_.string());
+    ASSERT_TRUE(index) << index.error().ToString();
+    const Clock::time_point search_began = Clock::now();
+    ASSERT_TRUE((*index)->Query(Image(3), {}));
+    start_check.set_value();
+    for (int wait = 0; wait < 6000 && !checked; ++wait) std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    ASSERT_TRUE(checked.load()) << "the geometry check did not finish";
+    std::lock_guard<std::mutex> lock(mutex);
+    ASSERT_TRUE(released && first_read);
+    const Clock::time_point earliest = std::min(*released + std::chrono::milliseconds(50), search_began + std::chrono::seconds(1));
+    EXPECT_GE(*first_read, earliest - std::chrono::milliseconds(1))
+        << "read " << std::chrono::duration<double, std::milli>(*first_read - *released).count()
+        << " ms after the check started, right after a search";
+  }
+  SetCheckpointStageHookForTesting(nullptr);
+}
+
 TEST_F(CheckpointFixture, OpenReplaysChangesAfterTheCheckpointAndEqualsAFreshIndex) {
   SKIP_KILL_TEST_UNDER_TSAN();
   {
