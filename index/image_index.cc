@@ -1085,10 +1085,10 @@ void ImageIndex::Impl::VerifyParts() {
   // search wants, but not off the disk, the memory bus or the page cache, and at 1M images (16 GB of
   // geometry, read for 5-45 s after an open) it made the searches of that time 10-25% slower
   // (README, Session 35). While a search ended less than kBusyWindow ago it also reads at most one
-  // block per kBusyGap (80 MiB/s): read from disk at full speed (about 1 GB/s right after a bulk
-  // ingest, whose files the page cache no longer held), its kernel time and the VM's I/O work (30% of
-  // the CPU in the kernel, up to 16% stolen, in vmstat) stalled the searches between those pauses by
-  // 100-250 ms every few seconds (README, Session 36). Idle for kBusyWindow, it reads at full speed.
+  // block per kBusyGap (80 MiB/s): read from disk at full speed (up to 1.2 GB/s right after a bulk
+  // ingest, whose files the page cache no longer held) it took 22-36% of the CPU in the kernel between
+  // the searches (vmstat), 6-8% so limited; the searches of that time still had stalls of 100-250 ms,
+  // a cause not found yet (README, Session 36). Idle for kBusyWindow, it reads at full speed.
   static constexpr auto kBusyWindow = std::chrono::seconds(1);
   static constexpr auto kBusyGap = std::chrono::milliseconds(50);
   Clock::time_point last_read = Clock::now();
