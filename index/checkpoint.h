@@ -106,8 +106,9 @@ using ByteSink = std::function<void(std::span<const uint8_t>)>;
 // returns its manifest entry. kIoError on any failure (the temporary file is removed).
 [[nodiscard]] Result<CheckpointFile> WriteCheckpointFile(const std::string& dir, const std::string& name,
                                                          const std::function<void(const ByteSink&)>& produce);
-// Size and checksum of dir/file.name against the manifest, read with pread (the pages stay in the page
-// cache, not in this process's resident memory). kNotFound if missing, kCorruptData if different.
+// Size and checksum of dir/file.name against the manifest, read with pread in 4 MiB blocks that leave
+// the page cache as they found it (pages it held stay; pages read from the disk are dropped again) and
+// nothing in this process's resident memory. kNotFound if missing, kCorruptData if different.
 [[nodiscard]] Status VerifyCheckpointFile(const std::string& dir, const CheckpointFile& file);
 // The same check, given up when `stop` returns true (asked before each 4 MiB read): nullopt then.
 [[nodiscard]] std::optional<Status> VerifyCheckpointFileUnless(const std::string& dir, const CheckpointFile& file,

@@ -208,6 +208,9 @@ struct Entry {
   std::optional<uint64_t> checksum;           // with `part`: its checksum in the file, when it has them
 
   const PackedFeatures& features() const { return part ? part->Checked(number, stored, checksum) : stored; }
+  // Bytes of memory its features take (IndexStats::geometry_bytes): a view of a geometry file takes
+  // none beyond itself (the file's pages are the page cache's).
+  uint64_t MemoryBytes() const { return part ? sizeof(PackedFeatures) : stored.MemoryBytes(); }
   // features(), copied into `buffer` (viewed by *copy) when the image is in a geometry file: a search
   // reads a thousand candidates' features once each, which through the mapping cost page faults.
   const PackedFeatures& SignedFeatures(std::vector<uint8_t>* buffer, PackedFeatures* copy) const {
@@ -531,6 +534,9 @@ struct ImageIndex::Impl {
   std::thread checkpointer;                     // runs CheckpointLoop
   // The geometry files of the checkpoint Open loaded (set before the checkpointer starts, then read-only).
   std::vector<std::shared_ptr<const GeometryPart>> geometry_parts;
+  // The geometry files later checkpoints wrote and their images now view (ViewWrittenGeometry); written
+  // by the checkpointer under writer_mutex, read under it or on the checkpointer.
+  std::vector<std::shared_ptr<const GeometryPart>> written_parts;
   // The segment files of checkpoints, each with the segment it holds (weak: one merged away is
   // forgotten), so that a checkpoint writes only the segments new since the previous one. A file is
   // named again only if the previous manifest names it (one written by a checkpoint that failed is not).
@@ -572,6 +578,7 @@ struct ImageIndex::Impl {
   bool CheckpointDue() const;  // writer_mutex held
   // The geometry files `manifest` names that were found damaged (GeometryPart).
   std::set<std::string> DamagedGeometry(const CheckpointManifest& manifest) const;
+  void ViewWrittenGeometry(const CheckpointManifest& previous);
   // Writes checkpoints in the background while the index is open (started by Open and Create), while
   // VerifyParts runs beside it.
   void CheckpointLoop();
@@ -690,7 +697,7 @@ SnapshotPtr MakeSnapshot(InvertedFile inverted, std::vector<std::shared_ptr<cons
   editor.Resize(num_numbers);
   for (uint32_t n = 0; n < by_number.size(); ++n) {
     if (!by_number[n]) continue;
-    snap->geometry_bytes += by_number[n]->stored.MemoryBytes();
+    snap->geometry_bytes += by_number[n]->MemoryBytes();
     editor.Mutable(n) = std::move(by_number[n]);
   }
   for (size_t i = 0; i < kIdShards; ++i) snap->ids[i] = std::move(shards[i]);
@@ -1061,13 +1068,65 @@ bool ImageIndex::Impl::CheckpointDue() const {
 
 std::set<std::string> ImageIndex::Impl::DamagedGeometry(const CheckpointManifest& manifest) const {
   std::set<std::string> out;
-  for (const auto& part : geometry_parts) {
-    if (!part->Damaged()) continue;
-    for (const CheckpointFile& f : manifest.files) {
-      if (f.name == part->file().name) out.insert(f.name);
+  for (const auto* parts : {&geometry_parts, &written_parts}) {
+    for (const auto& part : *parts) {
+      if (!part->Damaged()) continue;
+      for (const CheckpointFile& f : manifest.files) {
+        if (f.name == part->file().name) out.insert(f.name);
+      }
     }
   }
   return out;
+}
+
+// After a checkpoint committed (writer_mutex held): the images its new geometry files hold that are
+// still indexed view the files instead of the copies in memory that Add made, as
+// after an open. Without it an index kept every image added since its open in memory (17 bytes per
+// feature: 17 GB after ingesting 1M images of 1000 features). Each image's data is checked on use,
+// as a file an open loaded. A file that cannot be mapped or read keeps its images in memory (logged).
+void ImageIndex::Impl::ViewWrittenGeometry(const CheckpointManifest& previous) {
+  std::erase_if(written_parts, [&](const auto& part) {
+    return std::find(checkpoint.files.begin(), checkpoint.files.end(), part->file()) == checkpoint.files.end();
+  });
+  const auto current = Current();
+  std::shared_ptr<Snapshot> next;
+  for (const CheckpointFile& file : checkpoint.files) {
+    if (!file.name.starts_with("geometry-") ||
+        std::find(previous.files.begin(), previous.files.end(), file) != previous.files.end()) {
+      continue;
+    }
+    const std::string path = JoinPath(dir, file.name.c_str());
+    auto mapped = MappedFile::Open(path);
+    auto images = mapped ? ReadGeometry(*mapped, "checkpoint file " + path)
+                         : Result<std::vector<GeometryImage>>(std::unexpected(mapped.error()));
+    if (!images) {
+      OXBOW_LOG(kWarning) << "index " << dir << ": cannot read back " << path << " (" << images.error().message
+                          << "); its images stay in memory until the next open";
+      continue;
+    }
+    // Files without per-image checksums (formats 1 and 2, written only by tests) would be checked whole
+    // at the first use of an image, with a search waiting: their images stay in memory.
+    if (std::any_of(images->begin(), images->end(), [](const GeometryImage& image) { return !image.checksum; })) continue;
+    auto part = std::make_shared<const GeometryPart>(dir, file, *mapped);
+    if (!next) next = std::make_shared<Snapshot>(*current);
+    CowArray<std::shared_ptr<const Entry>>::Editor editor(&next->entries);
+    size_t viewed = 0;
+    for (GeometryImage& image : *images) {
+      if (image.number >= current->entries.size()) continue;
+      const std::shared_ptr<const Entry>& entry = current->entries[image.number];
+      // Removed or replaced since, or already viewing a file: left as it is.
+      if (!entry || entry->part || !RecordMatches(entry->record, image.features)) continue;
+      auto viewing =
+          std::make_shared<const Entry>(Entry{entry->record, std::move(image.features), part, image.number, image.checksum});
+      next->geometry_bytes += viewing->MemoryBytes();
+      next->geometry_bytes -= entry->MemoryBytes();
+      editor.Mutable(image.number) = std::move(viewing);
+      ++viewed;
+    }
+    if (viewed > 0) written_parts.push_back(std::move(part));
+  }
+  if (next) Publish(std::move(next));
+  CheckpointStage("geometry-viewed");
 }
 
 void ImageIndex::Impl::Changed(uint64_t images) {
@@ -1145,6 +1204,7 @@ void ImageIndex::Impl::CheckpointLoop() {
     auto next = CheckpointFiles(*snap, previous);
     lock.lock();
     const Status status = next ? CommitCheckpoint(std::move(*next), changes) : Status(std::unexpected(next.error()));
+    if (status) ViewWrittenGeometry(previous);
     if (!status) {
       OXBOW_LOG(kWarning) << "index " << dir << ": cannot write a checkpoint (" << status.error().message
                           << "); trying again after as many changes, and at close";
@@ -1391,7 +1451,7 @@ void ImageIndex::Impl::Link(std::span<const uint32_t> numbers, std::span<Prepare
     auto& shard = shards[ShardOf(id)];
     if (!shard) shard = std::make_shared<IdShard>(*next.ids[ShardOf(id)]);
     (*shard)[id] = numbers[i];
-    next.geometry_bytes += images[i]->entry->stored.MemoryBytes();
+    next.geometry_bytes += images[i]->entry->MemoryBytes();
   }
   for (auto& [i, shard] : shards) next.ids[i] = std::move(shard);
 }
@@ -1565,7 +1625,7 @@ void ImageIndex::Impl::Unlink(const Snapshot& current, uint32_t n, const Entry& 
   const std::array<uint32_t, 1> numbers = {n};
   const std::array<const BagOfWords*, 1> bags = {&bag};
   next.inverted = current.inverted.WithRemoved(numbers, bags);
-  next.geometry_bytes -= entry.stored.MemoryBytes();
+  next.geometry_bytes -= entry.MemoryBytes();
   {
     CowArray<std::shared_ptr<const Entry>>::Editor editor(&next.entries);
     editor.Mutable(n) = nullptr;

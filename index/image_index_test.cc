@@ -24,6 +24,8 @@
 #include <future>
 #include <string_view>
 #include <sched.h>
+#include <fcntl.h>
+#include <sys/mman.h>
 #include <sys/stat.h>
 #include <sys/wait.h>
 #include <unistd.h>
@@ -1647,6 +1649,73 @@ TEST_F(CheckpointFixture, GeometryCheckSlowsRightAfterASearch) {
   SetCheckpointStageHookForTesting(nullptr);
 }
 
+// The check of a checkpoint file leaves the page cache as it found it: pages it held stay, pages it
+// did not are not left there (a 16 GB check at 1M images would otherwise push the searches' pages out
+// and fill memory; README, Session 37). Seen with mincore on a mapping never touched.
+TEST(CheckpointFileTest, TheCheckLeavesThePageCacheAsItWas) {
+  // Beside the test binary, not in /tmp: pages of a tmpfs file are always in memory.
+  const fs::path dir = fs::current_path() / ("oxbow_check_cache_" + std::to_string(::getpid()));
+  fs::create_directories(dir);
+  std::mt19937_64 rng(5);
+  std::vector<uint8_t> bytes((size_t{10} << 20) + 12345);  // more than two 4 MiB reads, a partial page at the end
+  for (auto& b : bytes) b = static_cast<uint8_t>(rng());
+  auto file = WriteCheckpointFile(dir.string(), "geometry-test.oxck",
+                                  [&](const ByteSink& sink) { sink(std::span<const uint8_t>(bytes)); });
+  ASSERT_TRUE(file) << file.error().ToString();
+  const std::string path = (dir / file->name).string();
+  const int fd = ::open(path.c_str(), O_RDONLY);
+  ASSERT_GE(fd, 0);
+  void* mapping = ::mmap(nullptr, bytes.size(), PROT_READ, MAP_SHARED, fd, 0);
+  ASSERT_NE(mapping, MAP_FAILED);
+  const auto page = static_cast<size_t>(::sysconf(_SC_PAGESIZE));
+  const size_t pages = (bytes.size() + page - 1) / page;
+  const auto resident = [&](size_t first, size_t last) {  // of pages [first, last)
+    std::vector<unsigned char> in(pages);
+    EXPECT_EQ(::mincore(mapping, bytes.size(), in.data()), 0);
+    size_t count = 0;
+    for (size_t p = first; p < last; ++p) count += in[p] & 1;
+    return count;
+  };
+  ASSERT_EQ(::posix_fadvise(fd, 0, 0, POSIX_FADV_RANDOM), 0);  // this test's reads bring in only what they read
+  const auto drop = [&] { ASSERT_EQ(::posix_fadvise(fd, 0, 0, POSIX_FADV_DONTNEED), 0); };
+  drop();  // WriteCheckpointFile synced it: clean pages, dropped
+  if (resident(0, pages) > pages / 2) {
+    ::munmap(mapping, bytes.size());
+    ::close(fd);
+    fs::remove_all(dir);
+    GTEST_SKIP() << "the file system of " << dir << " keeps files in memory (posix_fadvise dropped nothing)";
+  }
+  // Not held: read, checked, and not left in the cache.
+  ASSERT_TRUE(VerifyCheckpointFile(dir.string(), *file));
+  EXPECT_EQ(resident(0, pages), 0u) << "of " << pages << " pages";
+  // Held in part (the first 3 MiB and the last 1 MiB, as a search's reads would leave them): those stay,
+  // and only those.
+  std::vector<uint8_t> scratch(bytes.size());
+  const size_t head = size_t{3} << 20, tail_from = bytes.size() - (size_t{1} << 20);
+  ASSERT_EQ(::pread(fd, scratch.data(), head, 0), static_cast<ssize_t>(head));
+  ASSERT_EQ(::pread(fd, scratch.data(), bytes.size() - tail_from, static_cast<off_t>(tail_from)),
+            static_cast<ssize_t>(bytes.size() - tail_from));
+  const size_t held_before = resident(0, pages);
+  ASSERT_GE(held_before, (head + bytes.size() - tail_from) / page);
+  ASSERT_TRUE(VerifyCheckpointFile(dir.string(), *file));
+  EXPECT_EQ(resident(0, head / page), head / page) << "pages held before the check were dropped";
+  EXPECT_EQ(resident(tail_from / page + 1, pages), pages - tail_from / page - 1);
+  EXPECT_EQ(resident(head / page, tail_from / page), 0u) << "the check left pages it read in the cache";
+  EXPECT_LE(resident(0, pages), held_before) << "the check left pages it read in the cache";
+  // Held whole: still held, and the check still finds a damaged file.
+  ASSERT_EQ(::pread(fd, scratch.data(), bytes.size(), 0), static_cast<ssize_t>(bytes.size()));
+  ASSERT_TRUE(VerifyCheckpointFile(dir.string(), *file));
+  EXPECT_EQ(resident(0, pages), pages);
+  CheckpointFile wrong = *file;
+  wrong.checksum ^= 1;
+  const Status damaged = VerifyCheckpointFile(dir.string(), wrong);
+  ASSERT_FALSE(damaged);
+  EXPECT_EQ(damaged.error().code, ErrorCode::kCorruptData);
+  ::munmap(mapping, bytes.size());
+  ::close(fd);
+  fs::remove_all(dir);
+}
+
 TEST_F(CheckpointFixture, OpenReplaysChangesAfterTheCheckpointAndEqualsAFreshIndex) {
   SKIP_KILL_TEST_UNDER_TSAN();
   {
@@ -1794,6 +1863,52 @@ void CheckpointFixture::ExpectDamagedGeometryDataNeverServed(uint32_t version) {
 
 // A remove or replace of an image whose checkpoint data is damaged, before anything used it, takes
 // its words from its catalogue row before deleting that row: the statistics stay exact.
+// After a background checkpoint, the images it wrote view its geometry files instead of the copies
+// Add kept in memory (an index that ingested 1M images held 17 GB of them; README, Session 37): their
+// memory leaves IndexStats::geometry_bytes, and features and searches stay the same. Damage to such a
+// file is found on use and never served, and the next checkpoint rewrites it, as for a file an open loaded.
+TEST_F(CheckpointFixture, ImagesViewTheGeometryFilesTheirCheckpointWrote) {
+  IndexOptions options;
+  options.checkpoint_changes = 20;
+  std::promise<void> go;
+  std::shared_future<void> may_commit = go.get_future().share();
+  std::atomic<int> viewed{0};
+  SetCheckpointStageHookForTesting([&, may_commit](std::string_view stage) {
+    if (stage == "files-written") may_commit.wait_for(std::chrono::seconds(60));
+    if (stage == "geometry-viewed") ++viewed;
+  });
+  {
+    auto index = CreateIndex(options);
+    std::vector<sift::FeatureSet> images;
+    for (int i = 0; i < 20; ++i) images.push_back(Image(i));
+    std::vector<BatchImage> batch;
+    for (int i = 0; i < 20; ++i) batch.push_back({"i" + std::to_string(i), &images[i], {}, {}, {}});
+    for (const auto& r : index->AddBatch(batch)) ASSERT_TRUE(r) << r.error().ToString();
+    // The checkpoint's files are written, not committed: the images are still in memory.
+    const auto before = AllFeatures(*index, 20);
+    size_t features = 0;
+    for (const auto& image : images) features += image.keypoints.size();
+    EXPECT_GE(index->Stats().geometry_bytes, features * kPackedFeatureBytes);
+    go.set_value();
+    for (int t = 0; t < 600 && viewed == 0; ++t) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    ASSERT_EQ(viewed.load(), 1) << "no checkpoint within 60 s";
+    EXPECT_EQ(index->Stats().geometry_bytes, 20 * sizeof(PackedFeatures));
+    EXPECT_EQ(AllFeatures(*index, 20), before);
+    ExpectEqualsFresh(*index, Range(0, 20));
+    // Damaged under the running index: each image's check finds it, the catalogue serves them.
+    ASSERT_EQ(HeadAndGeometryFiles(dir_), (std::vector<std::string>{"geometry-1-0.oxck", "postings-1.oxck"}));
+    DamageGeometryData(dir_ / "geometry-1-0.oxck");
+    EXPECT_EQ(AllFeatures(*index, 20), before);
+    ExpectEqualsFresh(*index, Range(0, 20));
+  }
+  SetCheckpointStageHookForTesting(nullptr);
+  // Close wrote a checkpoint without the damaged file.
+  EXPECT_EQ(HeadAndGeometryFiles(dir_), (std::vector<std::string>{"geometry-2-0.oxck", "postings-2.oxck"}));
+  auto reopened = ImageIndex::Open(dir_.string());
+  ASSERT_TRUE(reopened) << reopened.error().ToString();
+  ExpectEqualsFresh(**reopened, Range(0, 20));
+}
+
 TEST_F(CheckpointFixture, RemovingADamagedImageBeforeItsFirstUseKeepsTheIndexExact) {
   {
     auto index = CreateIndex();
