@@ -578,7 +578,7 @@ struct ImageIndex::Impl {
   bool CheckpointDue() const;  // writer_mutex held
   // The geometry files `manifest` names that were found damaged (GeometryPart).
   std::set<std::string> DamagedGeometry(const CheckpointManifest& manifest) const;
-  void ViewWrittenGeometry(const CheckpointManifest& previous);
+  void ViewWrittenGeometry(const Snapshot& written, const CheckpointManifest& previous, std::unique_lock<std::mutex>& lock);
   // Writes checkpoints in the background while the index is open (started by Open and Create), while
   // VerifyParts runs beside it.
   void CheckpointLoop();
@@ -1079,22 +1079,31 @@ std::set<std::string> ImageIndex::Impl::DamagedGeometry(const CheckpointManifest
   return out;
 }
 
-// After a checkpoint committed (writer_mutex held): the images its new geometry files hold that are
-// still indexed view the files instead of the copies in memory that Add made, as
-// after an open. Without it an index kept every image added since its open in memory (17 bytes per
-// feature: 17 GB after ingesting 1M images of 1000 features). Each image's data is checked on use,
-// as a file an open loaded. A file that cannot be mapped or read keeps its images in memory (logged).
-void ImageIndex::Impl::ViewWrittenGeometry(const CheckpointManifest& previous) {
+// After a checkpoint committed: the images its new geometry files hold that are still indexed view the
+// files instead of the copies in memory that Add made, as after an open. Without it an index kept every
+// image added since its open in memory (17 bytes per feature: 17 GB after ingesting 1M images of 1000
+// features). Each image's data is checked on use, as in a file an open loaded. A file that cannot be
+// mapped or read keeps its images in memory (logged). Called with writer_mutex held through `lock`; it
+// releases it while it reads the files' image tables and makes the new entries.
+void ImageIndex::Impl::ViewWrittenGeometry(const Snapshot& written, const CheckpointManifest& previous,
+                                           std::unique_lock<std::mutex>& lock) {
   std::erase_if(written_parts, [&](const auto& part) {
     return std::find(checkpoint.files.begin(), checkpoint.files.end(), part->file()) == checkpoint.files.end();
   });
-  const auto current = Current();
-  std::shared_ptr<Snapshot> next;
+  std::vector<CheckpointFile> files;
   for (const CheckpointFile& file : checkpoint.files) {
-    if (!file.name.starts_with("geometry-") ||
-        std::find(previous.files.begin(), previous.files.end(), file) != previous.files.end()) {
-      continue;
+    if (file.name.starts_with("geometry-") &&
+        std::find(previous.files.begin(), previous.files.end(), file) == previous.files.end()) {
+      files.push_back(file);
     }
+  }
+  struct Viewing {
+    std::shared_ptr<const GeometryPart> part;
+    std::vector<std::pair<uint32_t, std::shared_ptr<const Entry>>> entries;  // by number
+  };
+  std::vector<Viewing> viewing;
+  lock.unlock();
+  for (const CheckpointFile& file : files) {
     const std::string path = JoinPath(dir, file.name.c_str());
     auto mapped = MappedFile::Open(path);
     auto images = mapped ? ReadGeometry(*mapped, "checkpoint file " + path)
@@ -1107,25 +1116,37 @@ void ImageIndex::Impl::ViewWrittenGeometry(const CheckpointManifest& previous) {
     // Files without per-image checksums (formats 1 and 2, written only by tests) would be checked whole
     // at the first use of an image, with a search waiting: their images stay in memory.
     if (std::any_of(images->begin(), images->end(), [](const GeometryImage& image) { return !image.checksum; })) continue;
-    auto part = std::make_shared<const GeometryPart>(dir, file, *mapped);
-    if (!next) next = std::make_shared<Snapshot>(*current);
-    CowArray<std::shared_ptr<const Entry>>::Editor editor(&next->entries);
-    size_t viewed = 0;
+    Viewing& v = viewing.emplace_back();
+    v.part = std::make_shared<const GeometryPart>(dir, file, *mapped);
     for (GeometryImage& image : *images) {
-      if (image.number >= current->entries.size()) continue;
-      const std::shared_ptr<const Entry>& entry = current->entries[image.number];
-      // Removed or replaced since, or already viewing a file: left as it is.
+      if (image.number >= written.entries.size()) continue;
+      const Entry* entry = written.entries[image.number].get();
       if (!entry || entry->part || !RecordMatches(entry->record, image.features)) continue;
-      auto viewing =
-          std::make_shared<const Entry>(Entry{entry->record, std::move(image.features), part, image.number, image.checksum});
-      next->geometry_bytes += viewing->MemoryBytes();
-      next->geometry_bytes -= entry->MemoryBytes();
-      editor.Mutable(image.number) = std::move(viewing);
-      ++viewed;
+      v.entries.emplace_back(image.number, std::make_shared<const Entry>(Entry{
+                                               entry->record, std::move(image.features), v.part, image.number, image.checksum}));
     }
-    if (viewed > 0) written_parts.push_back(std::move(part));
   }
-  if (next) Publish(std::move(next));
+  lock.lock();
+  const auto current = Current();
+  auto next = std::make_shared<Snapshot>(*current);
+  size_t viewed = 0;
+  {
+    CowArray<std::shared_ptr<const Entry>>::Editor editor(&next->entries);
+    for (Viewing& v : viewing) {
+      size_t used = 0;
+      for (auto& [number, entry] : v.entries) {
+        // Removed since (or replaced: a new number): left as it is.
+        if (number >= current->entries.size() || current->entries[number] != written.entries[number]) continue;
+        next->geometry_bytes += entry->MemoryBytes();
+        next->geometry_bytes -= current->entries[number]->MemoryBytes();
+        editor.Mutable(number) = std::move(entry);
+        ++used;
+      }
+      if (used > 0) written_parts.push_back(std::move(v.part));
+      viewed += used;
+    }
+  }
+  if (viewed > 0) Publish(std::move(next));
   CheckpointStage("geometry-viewed");
 }
 
@@ -1204,7 +1225,7 @@ void ImageIndex::Impl::CheckpointLoop() {
     auto next = CheckpointFiles(*snap, previous);
     lock.lock();
     const Status status = next ? CommitCheckpoint(std::move(*next), changes) : Status(std::unexpected(next.error()));
-    if (status) ViewWrittenGeometry(previous);
+    if (status) ViewWrittenGeometry(*snap, previous, lock);
     if (!status) {
       OXBOW_LOG(kWarning) << "index " << dir << ": cannot write a checkpoint (" << status.error().message
                           << "); trying again after as many changes, and at close";
