@@ -402,8 +402,10 @@ std::optional<Status> VerifyCheckpointFileUnless(const std::string& dir, const C
     if (stop()) return std::nullopt;
     const ssize_t n = reader.Read(size, buffer);
     if (n < 0) {
-      const std::string message = Errno();
-      return Fail(ErrorCode::kIoError, "cannot read checkpoint file " + path + ": " + message);
+      std::string message = "cannot read checkpoint file " + path;
+      message += ": ";
+      message += Errno();
+      return Fail(ErrorCode::kIoError, message);
     }
     if (n == 0) break;
     checksum.Update(std::span(buffer.data(), static_cast<size_t>(n)));

@@ -347,7 +347,7 @@ struct IndexStats {
   uint64_t num_images = 0;           // live images
   uint64_t num_features = 0;         // indexed features of the live images
   uint64_t postings_bytes = 0;       // inverted file (postings + per-word offsets), bytes in memory
-  uint64_t geometry_bytes = 0;       // per-feature words + geometry, bytes in memory (not those read from geometry files)
+  uint64_t geometry_bytes = 0;       // per-feature words + geometry, bytes in memory
   uint64_t other_bytes = 0;          // per-image tables (norms, records, id map), bytes in memory, approx.
   double bytes_per_feature = 0;      // (postings + geometry + other) / num_features
   uint64_t num_segments = 0;         // inverted-file segments

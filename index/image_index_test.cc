@@ -1880,8 +1880,10 @@ TEST_F(CheckpointFixture, ImagesViewTheGeometryFilesTheirCheckpointWrote) {
   {
     auto index = CreateIndex(options);
     std::vector<sift::FeatureSet> images;
+    images.reserve(20);
     for (int i = 0; i < 20; ++i) images.push_back(Image(i));
     std::vector<BatchImage> batch;
+    batch.reserve(20);
     for (int i = 0; i < 20; ++i) batch.push_back({"i" + std::to_string(i), &images[i], {}, {}, {}});
     for (const auto& r : index->AddBatch(batch)) ASSERT_TRUE(r) << r.error().ToString();
     // The checkpoint's files are written, not committed: the images are still in memory.
