@@ -133,6 +133,20 @@ Result<CheckpointManifest> CheckpointManifest::Parse(const std::string& text) {
 }
 
 namespace {
+// Reads out.size() bytes of `fd` from `offset` with pread (again after EINTR and short reads): fewer
+// only at the end of the file; -1 with errno on a read error.
+ssize_t ReadFully(int fd, uint64_t offset, std::span<uint8_t> out) {
+  size_t done = 0;
+  while (done < out.size()) {
+    const ssize_t n = ::pread(fd, out.data() + done, out.size() - done, static_cast<off_t>(offset + done));
+    if (n < 0 && errno == EINTR) continue;
+    if (n < 0) return -1;
+    if (n == 0) break;
+    done += static_cast<size_t>(n);
+  }
+  return static_cast<ssize_t>(done);
+}
+
 // Descriptors kept open by mapped files (MappedFile::ReadAt).
 std::atomic<int> kept_descriptors{0};
 
@@ -219,15 +233,7 @@ bool MappedFile::ReadAt(std::span<const uint8_t> within, std::span<uint8_t> out)
       static_cast<size_t>(within.data() - data_) > size_ - within.size()) {
     return false;
   }
-  size_t done = 0;
-  const auto offset = static_cast<off_t>(within.data() - data_);
-  while (done < out.size()) {
-    const ssize_t n = ::pread(fd_, out.data() + done, out.size() - done, offset + static_cast<off_t>(done));
-    if (n < 0 && errno == EINTR) continue;
-    if (n <= 0) return false;
-    done += static_cast<size_t>(n);
-  }
-  return true;
+  return ReadFully(fd_, static_cast<uint64_t>(within.data() - data_), out) == static_cast<ssize_t>(out.size());
 }
 
 Result<CheckpointFile> WriteCheckpointFile(const std::string& dir, const std::string& name,
@@ -349,14 +355,9 @@ class CacheNeutralReader {
     if (!held_.empty() && ::mincore(map_ + first * page, held_.size() * page, held_.data()) != 0) {
       std::fill(held_.begin(), held_.end(), 0);
     }
-    size_t done = 0;
-    while (done < out.size()) {
-      const ssize_t n = ::pread(fd_, out.data() + done, out.size() - done, static_cast<off_t>(offset + done));
-      if (n < 0 && errno == EINTR) continue;
-      if (n < 0) return -1;
-      if (n == 0) break;
-      done += static_cast<size_t>(n);
-    }
+    const ssize_t got = ReadFully(fd_, offset, out);
+    if (got < 0) return -1;
+    const auto done = static_cast<uint64_t>(got);
     // Drop each run of the pages read that the cache did not hold (clean pages no process maps).
     const uint64_t end = (offset + done + page - 1) / page;
     for (uint64_t p = first; p < end;) {
@@ -370,7 +371,7 @@ class CacheNeutralReader {
       (void)::posix_fadvise(fd_, static_cast<off_t>(p * page), static_cast<off_t>((q - p) * page), POSIX_FADV_DONTNEED);
       p = q;
     }
-    return static_cast<ssize_t>(done);
+    return got;
   }
 
  private:

@@ -1127,6 +1127,10 @@ void ImageIndex::Impl::ViewWrittenGeometry(const Snapshot& written, const Checkp
     }
   }
   lock.lock();
+  if (viewing.empty()) {
+    CheckpointStage("geometry-viewed");
+    return;
+  }
   const auto current = Current();
   auto next = std::make_shared<Snapshot>(*current);
   size_t viewed = 0;
@@ -1225,8 +1229,9 @@ void ImageIndex::Impl::CheckpointLoop() {
     auto next = CheckpointFiles(*snap, previous);
     lock.lock();
     const Status status = next ? CommitCheckpoint(std::move(*next), changes) : Status(std::unexpected(next.error()));
-    if (status) ViewWrittenGeometry(*snap, previous, lock);
-    if (!status) {
+    if (status) {
+      ViewWrittenGeometry(*snap, previous, lock);
+    } else {
       OXBOW_LOG(kWarning) << "index " << dir << ": cannot write a checkpoint (" << status.error().message
                           << "); trying again after as many changes, and at close";
       changes_since_checkpoint -= std::min(changes_since_checkpoint, changes);

@@ -1861,8 +1861,6 @@ void CheckpointFixture::ExpectDamagedGeometryDataNeverServed(uint32_t version) {
   EXPECT_EQ(SegmentFiles(dir_), segments);
 }
 
-// A remove or replace of an image whose checkpoint data is damaged, before anything used it, takes
-// its words from its catalogue row before deleting that row: the statistics stay exact.
 // After a background checkpoint, the images it wrote view its geometry files instead of the copies
 // Add kept in memory (an index that ingested 1M images held 17 GB of them; README, Session 37): their
 // memory leaves IndexStats::geometry_bytes, and features and searches stay the same. Damage to such a
@@ -1911,6 +1909,8 @@ TEST_F(CheckpointFixture, ImagesViewTheGeometryFilesTheirCheckpointWrote) {
   ExpectEqualsFresh(**reopened, Range(0, 20));
 }
 
+// A remove or replace of an image whose checkpoint data is damaged, before anything used it, takes
+// its words from its catalogue row before deleting that row: the statistics stay exact.
 TEST_F(CheckpointFixture, RemovingADamagedImageBeforeItsFirstUseKeepsTheIndexExact) {
   {
     auto index = CreateIndex();
