@@ -226,7 +226,7 @@ TEST(DecodeImage, RefusesDeclaredOversizeBeforeAllocating) {
   EXPECT_EQ(too_many_bytes.error().code, ErrorCode::kImageTooLarge);
 }
 
-// Issue 19, item 4: libjpeg walks every block of the frame for each scan of a progressive JPEG, however
+// libjpeg walks every block of the frame for each scan of a progressive JPEG, however
 // few bytes the scan has. Scans past DecodeOptions::max_jpeg_scans are refused, even when each is valid.
 TEST(DecodeImage, RefusesProgressiveJpegsWithTooManyScans) {
   cv::Mat card;
@@ -252,8 +252,8 @@ TEST(DecodeImage, RefusesProgressiveJpegsWithTooManyScans) {
   EXPECT_TRUE(lenient.Check().has_value());
 }
 
-// The shape of the attack in issue 19: a 4000 x 4000 progressive frame and 3000 scans of 10 bytes (30 KB).
-// libjpeg warns that each scan's data is missing and fills in grey; OpenCV passed that on as an image.
+// A scan flood: a 4000 x 4000 progressive frame and 3000 scans of 10 bytes (30 KB). libjpeg warns that
+// each scan's data is missing and fills in grey, which OpenCV alone would pass on as an image.
 TEST(DecodeImage, RefusesAProgressiveJpegOfEmptyScans) {
   const auto empty_scans = testing::JpegOfEmptyScans(4000, 4000, 3000);
   ASSERT_LT(empty_scans.size(), 40'000u);
@@ -263,7 +263,7 @@ TEST(DecodeImage, RefusesAProgressiveJpegOfEmptyScans) {
   EXPECT_NE(decoded.error().message.find("premature end of data segment"), std::string::npos) << decoded.error().message;
 }
 
-// Issue 19, item 9: JPEG data that libjpeg can only decode by filling in grey is refused (400), not
+// JPEG data that libjpeg can only decode by filling in grey is refused (400), not
 // decoded into a grey image.
 TEST(DecodeImage, RefusesJpegsWhoseDataIsShorterThanTheFrame) {
   cv::Mat photo = cv::imread(kOpencvData + "box.png", cv::IMREAD_GRAYSCALE);
@@ -293,8 +293,8 @@ TEST(DecodeImage, RefusesAJpegFrameLargerThanItsData) {
   EXPECT_EQ(oversized.error().code, ErrorCode::kInvalidImage);
 }
 
-// Issue 19, item 5: libtiff decodes the first of repeated ImageWidth/ImageLength entries; the pixel limit
-// is checked on those (before, the last ones were checked: 1 x 1 passed, then libtiff allocated 1 GB).
+// libtiff decodes the first of repeated ImageWidth/ImageLength entries, so the pixel limit is checked on
+// those (the last ones could say 1 x 1 while libtiff allocates 1 GB for the first).
 TEST(DecodeImage, ChecksTheTiffDimensionsLibtiffDecodes) {
   const auto bomb = testing::TiffWithRepeatedDimensions({32000, 32000}, {1, 1});
   ASSERT_LT(bomb.size(), 1000u);
@@ -318,8 +318,8 @@ TEST(DecodeImage, ChecksTheTiffDimensionsLibtiffDecodes) {
   EXPECT_NEAR(plain->gray.at(3, 3), 200 / 255.0, 1e-6);
 }
 
-// Issue 19, item 9: a TIFF strip that does not decompress is corrupt data (400), whatever OpenCV makes
-// of it (its RGBA path ignored libtiff's error); and a corrupt WebP or TIFF is not "this OpenCV build
+// A TIFF strip that does not decompress is corrupt data (400), whatever OpenCV makes of it (its RGBA
+// path ignores libtiff's error); and a corrupt WebP or TIFF is not "this OpenCV build
 // cannot decode webp/tiff" (415).
 TEST(DecodeImage, RefusesATiffStripThatDoesNotDecompress) {
   auto garbage_strip = DecodeImage(testing::TiffWithGarbageDeflateStrip(64, 64));

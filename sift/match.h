@@ -22,7 +22,7 @@
 // ratio test on the reverse side).
 //
 // One-to-one (after the above): when several query features matched the same db feature only the
-// closest is kept (COLMAP issue 288: spatial verification lowered Oxford mAP until this was enforced).
+// closest is kept (without it, spatial verification lowers Oxford mAP, as COLMAP found: colmap/colmap#288).
 //
 // Usage:
 //   auto matches = MatchDescriptors(query_features, db_features, {.ratio = 0.8f});

@@ -26,7 +26,7 @@
 //    RANSAC on request. OpenCV starts both samplers from a fixed state, so results are reproducible.
 //
 // Both expect one-to-one matches (see EnforceOneToOne in match.h): many-to-one matches inflate inlier
-// counts on repeated structure (COLMAP issue 288).
+// counts on repeated structure (colmap/colmap#288).
 //
 // Coordinates: pixels, origin at the centre of the top-left pixel, x right, y down (as Keypoint).
 #pragma once

@@ -33,7 +33,7 @@ void ParallelFor(size_t n, int num_threads, size_t grain,
 // that ran one spin for up to 500 us afterwards (calling sched_yield between looks, so any other
 // runnable thread gets the core) waiting for the next call, instead of going to sleep at once. A
 // search makes dozens of calls a few hundred microseconds apart, and waking a sleeping helper cost
-// each about 30 us on the 2-core VMs measured (README, Session 35); throughput work (a batch ingest)
+// each about 30 us on the 2-core VMs measured; throughput work (a batch ingest)
 // ran 7-11% slower with every call spinning, so spinning is opt-in. Nests; not movable.
 class LatencySensitiveScope {
  public:

@@ -1,4 +1,4 @@
-// Hostile image files for tests and fuzz seeds (issue 19): progressive JPEGs with many scans, TIFFs with
+// Hostile image files for tests and fuzz seeds: progressive JPEGs with many scans, TIFFs with
 // repeated dimension tags or a strip that does not decompress. Built byte by byte or with libjpeg, so
 // that they have exactly the shape under test. Header-only; libjpeg is linked through oxbow_sift.
 #pragma once
@@ -73,7 +73,7 @@ inline Bytes WithJpegFrameSize(Bytes jpeg, uint16_t width, uint16_t height) {
   return jpeg;
 }
 
-// The shape of issue 19, item 4: the headers of a small progressive grey JPEG with its frame declaring
+// A scan flood: the headers of a small progressive grey JPEG with its frame declaring
 // width x height, then `scans` empty DC scans (10 bytes each: an SOS segment and no data), then EOI.
 // libjpeg walks every block of the frame for each scan.
 inline Bytes JpegOfEmptyScans(uint16_t width, uint16_t height, int scans) {
@@ -133,7 +133,7 @@ inline std::vector<TiffEntry> GreyTiffEntries(uint32_t width, uint32_t height, u
   return {{256, 4, width}, {257, 4, height}, {258, 3, 8}, {259, 3, compression}, {262, 3, 1}, {277, 3, 1}, {278, 4, height}};
 }
 
-// Issue 19, item 5: ImageWidth and ImageLength twice, `first` then `last` (width, height). libtiff uses
+// ImageWidth and ImageLength twice, `first` then `last` (width, height). libtiff uses
 // the first entries and ignores the repeats. The strip holds the samples of the smaller of the two.
 inline Bytes TiffWithRepeatedDimensions(std::pair<uint32_t, uint32_t> first, std::pair<uint32_t, uint32_t> last) {
   std::vector<TiffEntry> entries = GreyTiffEntries(first.first, first.second, 1);
@@ -143,7 +143,7 @@ inline Bytes TiffWithRepeatedDimensions(std::pair<uint32_t, uint32_t> first, std
   return HandMadeTiff(entries, Bytes(static_cast<size_t>(samples), 128));
 }
 
-// Issue 19, item 9: a deflate-compressed grey TIFF whose strip is not deflate data.
+// A deflate-compressed grey TIFF whose strip is not deflate data.
 inline Bytes TiffWithGarbageDeflateStrip(uint32_t width, uint32_t height) {
   Bytes garbage(256);
   for (size_t i = 0; i < garbage.size(); ++i) garbage[i] = static_cast<uint8_t>(i * 151 + 17);
