@@ -88,7 +88,7 @@ export limit=${OXBOW_TIDY_FILE_TIMEOUT:-600}
 # GoogleTest files (*_test.cc) get every check but two:
 #  - bugprone-unchecked-optional-access: its dataflow analysis does not see that ASSERT_TRUE(opt)
 #    returns when opt is empty, so every access after such an assertion is reported
-#    (llvm/llvm-project issue 181737, fixed only in releases much later than Debian 12's 16);
+#    (llvm/llvm-project#181737, fixed only in releases much later than Debian 12's 16);
 #  - clang-analyzer-* (the static analyser): two thirds of clang-tidy's time per file; what it looks
 #    for (null dereferences, use after free, leaks) the asan phase checks while running every test.
 # Both still check all non-test code (the modules, the server, the benchmarks, the fuzz targets).

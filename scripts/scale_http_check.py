@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Measures a large index through the real server, over HTTP, as a user would (issue 14's figures).
+"""Measures a large index through the real server, over HTTP, as a user would (eval/results/index-scale.md).
 
   python3 scripts/scale_http_check.py --index DIR [--photos DIR] [--oxbow build/server/oxbow]
                                       [--queries 40] [--adds 40] [--port 18765] [--serve-arg=ARG ...]

@@ -1,4 +1,4 @@
-// POST /v1/images/batch against the real `oxbow serve` (issue 14 item 3): several images in one request
+// POST /v1/images/batch against the real `oxbow serve`: several images in one request
 // are added with one index transaction, each answered on its own (an undecodable image, a taken or
 // repeated id, a bad id or metadata fail alone), the image cap refuses the request with nothing stored,
 // the API key guards it, and every image acknowledged before a kill -9 is there after a restart.

@@ -1,7 +1,7 @@
 // The `oxbow` commands behave as one product: a vocabulary trained from SIFT feature files is accepted by
 // index build and serve; every command extracts a large photo the way the server does (same default image
 // size limit, same descriptor); every command lists a nested folder the same way; 0 means "no limit" for
-// --max-image-side everywhere. Each case failed before the defaults were unified (issue 18).
+// --max-image-side everywhere.
 #include <gtest/gtest.h>
 
 // Before <httplib.h>: it includes <resolv.h>, whose `_res` macro breaks Eigen's headers.

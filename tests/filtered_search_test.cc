@@ -1,4 +1,4 @@
-// Filtered search (issue 20 item 4) through the real `oxbow serve` and `oxbow query`: the `filter`
+// Filtered search through the real `oxbow serve` and `oxbow query`: the `filter`
 // parameter of POST /v1/search and GET /v1/images/{id}/similar keeps only images whose metadata
 // matches, malformed filters are 400 invalid_argument naming the problem, and `oxbow query --filter`
 // on the same index gives the same answer.

@@ -1,4 +1,4 @@
-// Hostile images and abandoned requests (issue 19, items 4, 5 and 9), through api::Service and the real
+// Hostile images and abandoned requests, through api::Service and the real
 // `oxbow serve`:
 //  - images that cost far more than their bytes (a progressive JPEG of empty or of too many scans, a TIFF
 //    whose repeated dimension tags hide its size) and corrupt images that OpenCV used to decode into

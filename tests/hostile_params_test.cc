@@ -1,4 +1,4 @@
-// Hostile parameters against the real `oxbow serve` (issue 19, items 1, 12 and 13): metadata nested deep
+// Hostile parameters against the real `oxbow serve`: metadata nested deep
 // enough to overflow a worker's stack in a recursive JSON dump, ids that read as the /similar and
 // /thumbnail sub-routes, and repeated parameters. Each refused request gets a 400 naming the rule, the
 // server stays up and nothing stored changes. On the old server the nested metadata killed the process
@@ -233,10 +233,10 @@ int64_t ResidentMiB(pid_t pid) {
   return -1;
 }
 
-// Issue 19: RSS stayed ~570 MiB after a burst of large requests (57 MiB at start). Three bursts of 8
-// concurrent 20 MB bodies that are not images (each read in full, then refused): the old server kept
-// ~450 MiB of them resident (glibc's raised mmap threshold put the later bodies in arenas); now the
-// RSS comes back to within 64 MiB of where it started.
+// Large requests give their memory back. Three bursts of 8 concurrent 20 MB bodies that are not images
+// (each read in full, then refused): with glibc's own raised mmap threshold the later bodies would stay in
+// its arenas (~450 MiB resident); with the server's fixed threshold the RSS comes back to within 64 MiB of
+// where it started.
 TEST_F(HostileParamsTest, LargeBodiesGiveTheirMemoryBack) {
 #if defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
   GTEST_SKIP() << "sanitizer builds replace glibc's malloc (ASan also quarantines freed blocks): the mmap "

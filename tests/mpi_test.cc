@@ -1,4 +1,4 @@
-// `--mpi` batch work under a real `mpirun --oversubscribe` (issue 15 items 1 and 2): the vocabulary does
+// `--mpi` batch work under a real `mpirun --oversubscribe`: the vocabulary does
 // not depend on the number of ranks, a stopped training resumes to the same file, and a partitioned
 // build puts every image in the partition PartitionOf names with the cluster's document frequencies
 // stored beside each partition. CI runs as root, which Open MPI refuses unless told otherwise: the

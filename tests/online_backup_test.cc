@@ -1,4 +1,4 @@
-// Online backup against the real `oxbow serve` (issue 20 item 5): POST /v1/admin/backup and
+// Online backup against the real `oxbow serve`: POST /v1/admin/backup and
 // `oxbow index backup` (another process) copy the index while a client keeps adding images; each copy
 // holds exactly a prefix of the acknowledged adds, serves as an index of its own (restore = serve it),
 // answers searches as the source does, and the route needs the API key.

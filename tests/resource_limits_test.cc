@@ -6,7 +6,7 @@
 //
 // PeakMemory measures the resident-memory high-water mark of one search per input in a fresh child
 // process (this binary re-executed; /proc/self/clear_refs resets VmHWM after set-up) and checks it
-// against the bound stated in the README section of issue 9:
+// against the bound stated in server/README.md ("Limits and hostile input"):
 //   peak <= 32 MiB + 4 B x declared pixels + 112 B x pixels after downscaling to max_image_side
 //           (the SIFT pyramid of the 2x-upsampled first octave: 28 floats per pixel).
 // `OXBOW_MEASURE_ALL=1` adds the slow rows (a real 100-megapixel photo, allowed by a raised limit);
@@ -394,7 +394,7 @@ struct MemoryCase {
   bool slow = false;           // only with OXBOW_MEASURE_ALL=1
 };
 
-// The stated bound (README, issue 9): a fixed 32 MiB (decoder state, allocator slack, the SIFT work of
+// The stated bound (server/README.md, "Limits and hostile input"): a fixed 32 MiB (decoder state, allocator slack, the SIFT work of
 // small images) + 4 B per declared pixel (the 8-bit grey decode, 16-bit samples, the resize source) +
 // 112 B per pixel of the image after downscaling to --max-image-side (the SIFT pyramid of the
 // 2x-upsampled first octave, sift.h: 28 floats per pixel). Images refused from the header: 32 MiB.

@@ -1,4 +1,4 @@
-// The storage benchmark's path at a small N (issue 14, "How it will be checked"): `index_benchmark
+// The storage benchmark's path at a small N (eval/README.md, "Benchmarks"): `index_benchmark
 // storage` builds its folder through ImageIndex::AddBatch with words already assigned, in small batches,
 // with checkpoints, then adds and removes images while searching. The same synthetic collection,
 // exported as feature files, is indexed by `oxbow index build --features`. Both folders must give the

@@ -2,7 +2,7 @@
 // SIFT extraction. Expected outcome for any input: keypoints, or a clean error value (never kInternal).
 // Limits keep one execution fast: at most 4 MP declared, 2 MiB of bytes, downscaled to a 96 px side,
 // one thread, no 2x first octave; the default 100 scans per progressive JPEG (the seeds include
-// scan-heavy JPEGs and TIFFs with repeated dimension tags, issue 19).
+// scan-heavy JPEGs and TIFFs with repeated dimension tags).
 #include <cstddef>
 #include <cstdint>
 #include <cstdio>

@@ -112,7 +112,7 @@ int main(int argc, char** argv) {
     WriteWithDamage(dir, stem + ".tiff", Encode(image, ".tiff"));
     WriteWithDamage(dir, stem + ".webp", Encode(image, ".webp", {cv::IMWRITE_WEBP_QUALITY, 50}));
     if (n == 1) {
-      // Hostile shapes of issue 19: scan-heavy progressive JPEGs (valid scans over the limit, empty scans
+      // Hostile shapes: scan-heavy progressive JPEGs (valid scans over the limit, empty scans
       // over a large frame), TIFFs with repeated dimension tags and with a strip that does not decompress.
       const Bytes samples(grey.datastart, grey.dataend);
       WriteWithDamage(dir, stem + "_128_scans.jpg", sift::testing::ProgressiveJpegWithScans(samples, grey.cols, grey.rows, 128));
