@@ -1,4 +1,4 @@
-// A cluster served by shards and a front (issue 15 items 3 and 4, README "Serving a cluster"): the same
+// A cluster served by shards and a front (server/README.md, "Operating a cluster"): the same
 // images built as one index and as 3 partitions (`index build --mpi --partitions 3`, an MPI singleton),
 // each partition served by `oxbow serve --grpc-port`, the front (cluster::ClusterFront) asking them over
 // gRPC. With no write in flight the front's rankings equal the single node's: ids, order, scores,
@@ -822,7 +822,7 @@ double ReplicaMetric(const std::string& metrics, const std::string& name, int pa
 // A replica that missed writes (here: it came back from a copy taken before two adds) is detected by its
 // write sequence: reads never use it, writes to its partition are refused with 503 and nothing written;
 // once caught up from an up-to-date replica (`oxbow index backup` of it, served on the same address) it
-// is used again (README "Serving a cluster").
+// is used again (server/README.md, "Operating a cluster").
 TEST_F(Cluster, AReplicaThatMissedWritesIsKeptOutOfReadsUntilItCatchesUp) {
   const std::string copy = dir_->path() + "/stale-" + std::to_string(started_++);
   fs::create_directories(copy);

@@ -1,4 +1,4 @@
-// `oxbow serve --log-format json` (README "Log format"): every stderr line of the process, from start to
+// `oxbow serve --log-format json` (server/README.md): every stderr line of the process, from start to
 // stop, is one JSON object with time, level and message, and each request's line carries its id,
 // method, path, route, status, latency and stage timings, also for errors, for requests refused before
 // they were read, and for paths holding bytes that are not UTF-8 or are JSON's own quote and backslash.
