@@ -144,7 +144,7 @@ struct IndexOptions {
   // num_threads), Query with QueryOptions::quantizer_probes instead of num_probes. Deliberately more probes when adding (16,
   // vocab::QuantizerOptions) than when querying (8): adding is paid once per image, and 8 probes at
   // index time measured 0.006-0.008 lower mAP (Paris subset, 20k words, three vocabulary seeds) and
-  // 0.003 lower on groups_dev for 5-15% less indexing CPU (README, Vocabulary).
+  // 0.003 lower on groups_dev for 5-15% less indexing CPU (eval/results/vocabulary.md).
   vocab::QuantizerOptions quantizer;
 
   std::optional<std::string> Check() const;  // message for an invalid field, nullopt when valid
@@ -179,18 +179,19 @@ struct QueryOptions {
   // at most this many of its features too, those of its rarest words (highest idf; ties by feature
   // order). Every stage after
   // extraction grows with these counts: a 1600-pixel photo of a textured object gives 7000-37000
-  // features. Measured with 3000 (README, "Query cost"): mAP equal or better on the three dev sets than
-  // without a limit before, p95 after extraction about a third lower. 0 = all. [0, 1000000].
+  // features. Measured with 3000 (eval/results/accuracy.md, "Query cost settings"): mAP equal or better
+  // on the three dev sets than without a limit, p95 after extraction about a third lower.
+  // 0 = all. [0, 1000000].
   int max_query_features = 3000;
   // Postings each tf-idf pass (the first one and query expansion's) may scan, at most, estimated from
   // the document frequencies: a longer query keeps its words of largest per-posting contribution
   // (InvertedFile::WithinPostingBudget: the rare words) and drops the most frequent ones, whose long
-  // lists are most of a search's time at 1M images. 4M by default since session 21: with Hamming
-  // embedding (the default) the tf-idf pass only picks the hamming_shortlist candidates that the
-  // signatures re-score, and there the budget cost the Paris subset planted among 1M synthetic images
-  // 0.141 -> 0.134 mAP (2026-11-28), for a search 1.3-1.5x faster (README, "Posting budget"); without
-  // Hamming embedding it had cost a quarter of that mAP (0.473 -> 0.342, session 18), then the reason
-  // it was off. A query scans at most (images) x (its distinct words) postings, so below 666 images
+  // lists are most of a search's time at 1M images. With Hamming embedding (the default) the tf-idf
+  // pass only picks the hamming_shortlist candidates that the signatures re-score, and there a 4M budget
+  // costs the Paris subset planted among 1M synthetic images 0.141 -> 0.134 mAP, for a search 1.3-1.5x
+  // faster (eval/results/index-scale.md, "Posting budget"); without Hamming embedding it costs a quarter
+  // of that mAP (0.473 -> 0.342). A query scans at most (images) x (its distinct words) postings, so
+  // below 666 images
   // (6000 words: an expanded query of 3000 features) it provably changes nothing, and a collection of
   // a few thousand images does not reach millions. 0 = no limit. [0, 2000000000].
   int max_scored_postings = 4'000'000;
@@ -220,12 +221,12 @@ struct QueryOptions {
   // signatures, and re-ordered by that score before spatial re-ranking. Needs a vocabulary with
   // Hamming-embedding parameters (`oxbow vocab train --hamming`) and images added with it; ignored
   // otherwise, and for images without signatures (they keep their tf-idf order after the re-scored ones).
-  // On by default since it measured better on groups_hard and groups_dev and equal on Paris (README,
-  // Hamming embedding).
+  // On by default: it measures better on groups_hard and groups_dev and equal on Paris
+  // (eval/results/accuracy.md).
   bool hamming = true;
-  // Candidates re-scored. [1, 10000]. 300 since session 28 (1000 before): the same mAP on the dev sets
-  // (groups_hard + distractors, the only one above 300 images: 0.6148 both), and at 1M images a search
-  // reads a third of the candidates' features (cold p50 over HTTP 287 -> 129 ms; README, Session 28).
+  // Candidates re-scored. [1, 10000]. 300 gives the dev sets the mAP of 1000 (groups_hard + distractors,
+  // the only one above 300 images: 0.6148 both), and at 1M images a search reads a third of the features
+  // 1000 would (cold p50 over HTTP 129 against 287 ms; eval/results/index-scale.md).
   int hamming_shortlist = 300;
   // Largest Hamming distance between two signatures that still matches. [0, 64]. 32 measured best
   // over the three dev sets together (README: 24 is better on groups_hard alone, worse on Paris).
@@ -233,7 +234,7 @@ struct QueryOptions {
   // With Hamming embedding, a candidate's tentative matches given to the verifier, at most: the
   // closest signatures first. An unrelated image shares thousands of words with a large query or
   // anchor, about half of their pairs pass the threshold, and the verifier's votes for those were most
-  // of transitive verification's time. Measured with 500 (README, "Query cost"): mAP up on the three
+  // of transitive verification's time. Measured with 500 (eval/results/accuracy.md): mAP up on the three
   // dev sets and transitive verification about a third cheaper per candidate. 0 = no limit.
   // [0, 1000000].
   int max_tentative_matches = 500;
@@ -271,7 +272,7 @@ struct QueryOptions {
   // When non-empty, must equal the index's extractor settings (refuses features from another extractor).
   std::string extractor_settings;
   // Only images this allows are scored and returned (null: every image). Cost: one Matches call per
-  // live image per query (README, Filtered search); QuerySimilar's own image too must match to be
+  // live image per query (server/README.md); QuerySimilar's own image too must match to be
   // returned.
   std::shared_ptr<const ImageFilter> filter;
 
