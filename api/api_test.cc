@@ -202,7 +202,7 @@ TEST(Params, BatchAddParams) {
   EXPECT_TRUE(ParseAddParams({{"id", "batch2"}}));
 }
 
-// Issue 19: `top_k=5&top_k=500000` ran with 5, `id=dupA&id=dupB` stored dupA. Every route refuses a
+// A repeated parameter (`top_k=5&top_k=500000`, `id=dupA&id=dupB`) is ambiguous: every route refuses a
 // repeated name, naming it (the transport collects the query string and multipart fields together).
 TEST(Params, RepeatedNamesAreRefused) {
   const index::QueryOptions defaults;
@@ -221,7 +221,7 @@ TEST(Params, RepeatedNamesAreRefused) {
   EXPECT_TRUE(CheckKnownParams({{"size", "1"}}, {"size"}));
 }
 
-// Issue 19: metadata nested ~74,000 deep crashed the server (SIGSEGV in the recursive dump). The depth
+// Metadata nested ~74,000 deep would overflow a worker's stack in the recursive dump. The depth
 // and the size are checked on the text before it is parsed.
 TEST(Params, MetadataDepthAndSizeAreLimitedBeforeParsing) {
   auto nested = [](int depth, const std::string& open = "[", const std::string& close = "]") {
@@ -276,7 +276,7 @@ TEST(Json, DeepStoredMetadataIsReturnedAsText) {
   EXPECT_EQ(MetadataToJson(R"([[1]])")[0][0], 1);
 }
 
-// Issue 19: an id ending in /similar or /thumbnail could not be fetched by GET /v1/images/{id}. New ones
+// An id ending in /similar or /thumbnail cannot be fetched by GET /v1/images/{id}, so new ones
 // are refused; CheckImageId (used by GET and DELETE too) keeps accepting stored ones.
 TEST(Params, IdsThatReadAsSubresourcesAreRefusedOnAdd) {
   for (const char* id : {"a/similar", "a/thumbnail", "x/y/thumbnail"}) {

@@ -77,7 +77,7 @@ struct Condition {
 
 // Reads a metadata document as events (nlohmann's SAX interface: no document tree is built, and the
 // parser keeps its own stack, so any nesting is safe) and checks each top-level member a condition
-// names as it goes by, stopping at the first that fails (README, Filtered search).
+// names as it goes by, stopping at the first that fails (server/README.md, Filtered search).
 class Matcher final : public nlohmann::json_sax<nlohmann::json> {
  public:
   explicit Matcher(const std::vector<Condition>& conditions)

@@ -3,7 +3,7 @@
 // metadata_json) that restricts which images a search may return (index::ImageFilter: applied while
 // scoring, so the top-k are the best matches among the allowed images).
 //
-// Grammar (README, Filtered search):
+// Grammar (server/README.md, Filtered search):
 //   filter    = { key: condition, ... }        every key must hold (AND); {} allows every image
 //   condition = scalar                          equal: a string, number or boolean
 //             | { op: operand, ... }            every operator must hold (AND), at least one

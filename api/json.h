@@ -37,7 +37,7 @@ nlohmann::json BackupToJson(const std::string& out, const index::BackupResult& r
 
 // The deepest nesting of arrays and objects accepted in a JSON document from a client (fixed). nlohmann-json
 // parses without recursion but dumps, copies and compares recursively: a document nested ~74,000 levels
-// deep overflows a worker thread's stack (issue 19). Real metadata nests a few levels.
+// deep overflows a worker thread's stack. Real metadata nests a few levels.
 inline constexpr int kMaxJsonDepth = 64;
 
 // The nesting depth of arrays and objects in a JSON text, counted in one pass over its bytes (brackets

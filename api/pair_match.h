@@ -32,7 +32,7 @@ struct PairMatchOptions {
   // Model fitted to the matches. hough-homography: the Hough/affine verifier decides, a homography
   // that agrees with it gives the transform (sift/verify.h); on the homography pairs its corner error
   // is within 0.1 px of OpenCV RootSIFT + MAGSAC's or better, where hough-affine's is 0.6-48 px worse
-  // (README, `oxbow match`).
+  // (server/README.md, `oxbow match`).
   sift::GeometricModel model = sift::GeometricModel::kHoughHomography;
   // Estimator settings, and the Hough verifier's in fit.hough (whose min_inliers is replaced by the one
   // below, so that one number rules every model).

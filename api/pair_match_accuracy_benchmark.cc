@@ -10,7 +10,7 @@
 //     with SiftOptions{}), and the same with the homography and hough-affine models;
 //   - OpenCV 4.6: cv::SIFT (its defaults), RootSIFT (L1 normalisation, square root), brute-force
 //     knnMatch k = 2 with Lowe's ratio 0.8, cv::findHomography(USAC_MAGSAC, 3 px).
-// Issue 16's target: oxbow's defaults no worse than OpenCV + 0.5 px in mean corner error on each pair.
+// The bound it checks: oxbow's defaults no worse than OpenCV + 0.5 px in mean corner error on each pair.
 // Accuracy only: timings are the match benchmarks' job (sift/match_benchmark.cc).
 #include <cmath>
 #include <cstdio>

@@ -1,4 +1,4 @@
-// A cluster: an index split into P partitions by image id (issue 15), built by `oxbow index build --mpi`
+// A cluster: an index split into P partitions by image id, built by `oxbow index build --mpi`
 // and served by one `oxbow serve --index CLUSTER/partition-k` per partition behind a front.
 //
 // Layout of a cluster folder:
