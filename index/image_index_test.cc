@@ -1651,7 +1651,7 @@ TEST_F(CheckpointFixture, GeometryCheckSlowsRightAfterASearch) {
 
 // The check of a checkpoint file leaves the page cache as it found it: pages it held stay, pages it
 // did not are not left there (a 16 GB check at 1M images would otherwise push the searches' pages out
-// and fill memory; README, Session 37). Seen with mincore on a mapping never touched.
+// and fill memory; index/README.md). Seen with mincore on a mapping never touched.
 TEST(CheckpointFileTest, TheCheckLeavesThePageCacheAsItWas) {
   // Beside the test binary, not in /tmp: pages of a tmpfs file are always in memory.
   const fs::path dir = fs::current_path() / ("oxbow_check_cache_" + std::to_string(::getpid()));
@@ -1862,7 +1862,7 @@ void CheckpointFixture::ExpectDamagedGeometryDataNeverServed(uint32_t version) {
 }
 
 // After a background checkpoint, the images it wrote view its geometry files instead of the copies
-// Add kept in memory (an index that ingested 1M images held 17 GB of them; README, Session 37): their
+// Add kept in memory (an index that ingested 1M images would hold 17 GB of them): their
 // memory leaves IndexStats::geometry_bytes, and features and searches stay the same. Damage to such a
 // file is found on use and never served, and the next checkpoint rewrites it, as for a file an open loaded.
 TEST_F(CheckpointFixture, ImagesViewTheGeometryFilesTheirCheckpointWrote) {

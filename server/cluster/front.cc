@@ -240,7 +240,7 @@ class ClusterFront::Impl {
                           << " is behind: write sequence " << replica.sequence.load() << ", the partition's is "
                           << states[replica.partition]->floor.load()
                           << "; it missed writes and is kept out of reads, and writes to the partition are refused, "
-                             "until it catches up from an up-to-date replica (README \"Serving a cluster\")";
+                             "until it catches up from an up-to-date replica (server/README.md)";
     } else {
       OXBOW_LOG(kInfo) << "replica " << replica.address << " of partition " << replica.partition
                        << " has caught up (write sequence " << replica.sequence.load() << "): used again";
@@ -390,7 +390,7 @@ class ClusterFront::Impl {
       return Fail(ErrorCode::kResourceExhausted,
                   where + "replica " + behind +
                       " missed writes; nothing was written: writes to this partition are refused until it catches up "
-                      "from an up-to-date replica (README \"Serving a cluster\")");
+                      "from an up-to-date replica (server/README.md)");
 
     std::vector<int64_t> after(replicas.size(), -1);
     Reply first;

@@ -1,4 +1,4 @@
-// The front of a cluster (issue 15; README "Serving a cluster"): it holds the vocabulary, quantises a
+// The front of a cluster (server/README.md, "Operating a cluster"): it holds the vocabulary, quantises a
 // query once and runs the stages of index::ImageIndex::Query over the partitions' shards
 // (shard.proto):
 //   1. Score: every partition scores the query's bag with the cluster's statistics (its shard pins them,
@@ -28,7 +28,7 @@
 // first replica applies the write (its refusal, e.g. id taken or undecodable image, is every replica's:
 // returned as is, nothing written), then the others at once. A replica that fails after the first
 // applied the write leaves the replicas different: kResourceExhausted naming the replicas that applied
-// it and those that did not (README "Serving a cluster"). Writes of one id through this front run one
+// it and those that did not (server/README.md). Writes of one id through this front run one
 // at a time (replicas apply them in the same order); two fronts writing one id do not coordinate.
 //
 // Replicas that missed writes. Every shard answer carries the shard's write sequence (images inserted
@@ -41,7 +41,7 @@
 // directly, or a write failed half-way). It is kept out of reads (an answer that shows it behind is
 // dropped and the next replica asked), writes to its partition are refused (kResourceExhausted, nothing
 // written), a warning is logged; once it reports the floor again (it was caught up from an up-to-date
-// replica, README "Serving a cluster") it is used again. Limits: the front compares counts, so replicas
+// replica, server/README.md) it is used again. Limits: the front compares counts, so replicas
 // that applied different writes of the same number look equal; a front that has seen no up-to-date
 // replica of a partition since it started cannot know that the ones it sees are behind.
 //

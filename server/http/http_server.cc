@@ -626,7 +626,7 @@ HttpServer::HttpServer(const HttpServerOptions& options, CustomRoutes routes)
   });
   // glibc raises its mmap threshold to the largest block freed (up to 32 MiB), after which request
   // bodies and decoded images come from the per-thread arenas, where a freed block stays resident: a
-  // burst of 20 MB uploads left ~800 MiB resident for good (issue 19; README "memory"). A fixed
+  // burst of 20 MB uploads would leave ~800 MiB resident for good. A fixed
   // threshold keeps every block of 1 MiB and more in mmap, handed back to the system when freed.
   mallopt(M_MMAP_THRESHOLD, 1 << 20);
   // Below that threshold, freed memory at the top of a malloc arena is kept up to 64 MiB (glibc's default
@@ -732,7 +732,7 @@ void HttpServer::LogRequest(const std::string& id, const std::string& method, co
   metrics_.Observe(route, method, status, seconds);
   if (log::Level::kInfo < log::GetLevel()) return;
   log::Line line(log::Level::kInfo);
-  // The same facts as the text, as fields for --log-format json (README "Log format").
+  // The same facts as the text, as fields for --log-format json (server/README.md, "Logging").
   line.Field("request_id", id).Field("method", method).Field("path", path).Field("route", route);
   line.Field("status", status).Field("latency_ms", seconds * 1000).Field("stages_ms", stages);
   line << "http " << id << " " << method << " " << path << " route=" << route << " status=" << status << " ";
