@@ -341,7 +341,7 @@ void RunHttp(const EvalArgs& a, const eval::Protocol& protocol, const std::map<s
       if (!std::binary_search(protocol.database.begin(), protocol.database.end(), ranking.back()))
         throw CommandError(2, url + " answered image '" + ranking.back() +
                                   "', which is not in the protocol's database: the server must hold exactly the "
-                                  "database images under eval's ids (README \"Evaluating a running server\")");
+                                  "database images under eval's ids (server/README.md, `oxbow eval`)");
     }
     eval::QueryOutcome outcome = eval::ScoreRanking(q, ranking, protocol.ap);
     outcome.latency_ms = ms;

@@ -573,7 +573,7 @@ void SetUpIndex(CLI::App& app) {
       "none started after it ended. It is verified (checksums, SQLite quick_check), fsync'ed and renamed into "
       "place only when complete; a damaged source file fails the backup and leaves nothing. Restore: oxbow serve "
       "--index OUT. Prints {out, images, generation, bytes, attempts} as JSON. Through a running server: POST "
-      "/v1/admin/backup (README, Backup and restore).");
+      "/v1/admin/backup (server/README.md, Backup and restore).");
   k->add_option("--index", backup->index, "index folder to back up")->required();
   k->add_option("--out", backup->out,
                 "new folder for the copy (absent or empty; written as OUT.tmp, then renamed; its parent must exist)")

@@ -69,7 +69,7 @@ void SetUpQuery(CLI::App& app) {
   cmd->add_option("--filter", args->filter,
                   "only rank images whose metadata matches this JSON object, keys ANDed: "
                   "'{\"city\": \"Paris\"}', '{\"city\": {\"in\": [\"Paris\", \"Lyon\"]}}', "
-                  "'{\"year\": {\"gte\": 2000, \"lt\": 2010}}' (README, Filtered search)");
+                  "'{\"year\": {\"gte\": 2000, \"lt\": 2010}}' (server/README.md, Filtered search)");
   cmd->add_option("--top-k", args->options.top_k, "results returned")->capture_default_str();
   cmd->add_option("--rerank", args->options.rerank_depth, "spatially verify the top R (0: tf-idf only)")
       ->capture_default_str();

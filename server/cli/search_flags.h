@@ -45,7 +45,7 @@ inline void AddSearchFlags(CLI::App* cmd, index::QueryOptions* o) {
       "an image query uses at most this many of its features, the strongest (0 = all)", 0, 1000000);
   add("--max-scored-postings", &o->max_scored_postings,
       "postings a tf-idf pass scans at most: a longer query drops its most frequent words first; faster at "
-      "millions of images, less accurate (0 = no limit; README 'Through the storage path')",
+      "millions of images, less accurate (0 = no limit; eval/results/index-scale.md)",
       0, 2000000000);
   add("--max-tentative-matches", &o->max_tentative_matches,
       "Hamming embedding: tentative matches verified per candidate, the closest signatures (0 = no limit)", 0,

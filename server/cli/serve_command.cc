@@ -180,7 +180,7 @@ void SetUpServe(CLI::App& app) {
                   "serve as the front of a cluster instead of an index: cluster.json names the vocabulary and each "
                   "partition's shard replicas (`serve --grpc-port`); serves the public API with the same limits and "
                   "options as an index (writes on every replica of the image's partition, a backup per partition "
-                  "on its shard's machine; README, \"Serving a cluster\")")
+                  "on its shard's machine; server/README.md, \"Operating a cluster\")")
       ->check(CLI::ExistingFile);
   cmd->add_option("--shard-deadline-ms", flags->front.shard_deadline_ms,
                   "--cluster: a call to one shard replica fails after this long; the partition's next replica is asked")
@@ -189,7 +189,7 @@ void SetUpServe(CLI::App& app) {
   cmd->add_option("--replica-check-ms", flags->front.replica_check_ms,
                   "--cluster: how often every replica is asked for its write sequence; a replica behind its "
                   "partition's (it missed writes) is kept out of reads and its partition refuses writes until it "
-                  "catches up (README, \"Serving a cluster\")")
+                  "catches up (server/README.md, \"Operating a cluster\")")
       ->capture_default_str()
       ->check(CLI::Range(10, 3600000));
   cmd->add_option("--refresh-fraction", flags->front.refresh_fraction,
@@ -266,13 +266,13 @@ void SetUpServe(CLI::App& app) {
       ->capture_default_str()
       ->check(CLI::Range(0, 256));
   cmd->add_option("--checkpoint-changes", flags->index_options.checkpoint_changes,
-                  "write a checkpoint of the index (README, \"Storage layout and crash safety\") in the background once "
+                  "write a checkpoint of the index (index/README.md, \"An index folder\") in the background once "
                   "more than max(N, 10% of the images) images were added or removed since the last; a restart "
                   "replays at most that many images")
       ->capture_default_str()
       ->check(CLI::Range(uint64_t{1}, (uint64_t{1} << 32) - 1));
   cmd->add_option("--log-format", flags->log_format,
-                  "stderr log lines: text, or json (one object per line; fields in the README, \"Log format\")")
+                  "stderr log lines: text, or json (one object per line; fields in server/README.md, \"Logging\")")
       ->capture_default_str();
   cmd->add_option("--read-timeout-s", flags->http.read_timeout_s, "socket read timeout, seconds")
       ->capture_default_str()

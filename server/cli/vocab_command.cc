@@ -345,7 +345,7 @@ void SetUpVocab(CLI::App& app) {
   train->add_option("--out", args->out, "vocabulary file to write (atomically)")->required();
   AddDescriptorFlag(train, &args->descriptor);  // with --features, SIFT files are converted to RootSIFT
   train->add_flag_callback("--root-sift", [args] { args->descriptor = sift::DescriptorKind::kRootSift; },
-                           "same as --descriptor rootsift (the default; the spelling of issue 15's interface)");
+                           "same as --descriptor rootsift (the default)");
   train->add_option("--sample", args->sample, "maximum training descriptors in total")->capture_default_str()->check(CLI::PositiveNumber);
   train->add_option("--per-image", args->per_image, "maximum descriptors kept per image")->capture_default_str()->check(CLI::PositiveNumber);
   train->add_option("--iterations", args->iterations, "maximum Lloyd iterations")->capture_default_str()->check(CLI::Range(1, 1000));
