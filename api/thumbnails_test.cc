@@ -280,8 +280,8 @@ class ServiceWritesTest : public ::testing::Test {
 
 // An image indexed from a file (as `oxbow index build` does: no stored thumbnail) gets its thumbnail
 // made on the first GET. If the image is deleted and uploaded again, or replaced, while that thumbnail is
-// being made, the new image's thumbnail must survive: the late one is not stored over it (it used to be,
-// and was then dropped as stale: 404 for the new image, also after a restart).
+// being made, the new image's thumbnail must survive: the late one is not stored over it (stored, it
+// would then be dropped as stale: 404 for the new image, also after a restart).
 TEST_F(ServiceWritesTest, AThumbnailMadeFromAFileNeverOverwritesANewerImage) {
   for (const bool replace : {false, true}) {
     SCOPED_TRACE(replace ? "replace=true" : "delete + add");
@@ -327,8 +327,8 @@ void ExecSql(const std::string& db_path, const std::string& sql) {
 }
 
 // replace=true whose add part fails after the old image's removal (an injected insert failure, as a
-// full disk would give): the old image and its thumbnail stay, also after a restart. It used to be
-// two commits, remove then add, and the id was gone.
+// full disk would give): the old image and its thumbnail stay, also after a restart (a replace is one
+// commit, so the id is never gone).
 TEST_F(ServiceWritesTest, AFailedReplacementKeepsTheOldImageAndThumbnail) {
   const auto added = service_->AddImage(Upload("x", "box_in_scene.png", false));
   ASSERT_TRUE(added) << added.error().ToString();

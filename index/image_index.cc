@@ -2249,8 +2249,8 @@ std::vector<std::vector<TransitiveAttempt>> ImageIndex::Impl::PlanAttempts(
 // Each anchor only verifies its own nearest tf-idf neighbours (its region's bag scored as a tf-idf
 // query): most candidates share little with most anchors, and the verifier is the expensive part.
 // Neighbours are ranked among the ranking so far, results[0, last) (the anchors themselves, the other
-// verified results and the window), scored from their bags: the cost no longer grows with the
-// collection (a pass over the whole index per anchor cost about 50 ms at 1M images), and on a small
+// verified results and the window), scored from their bags: the cost does not grow with the
+// collection (a pass over the whole index per anchor would cost about 50 ms at 1M images), and on a small
 // collection, where the ranking holds an anchor's nearest images, the neighbours are those of a whole
 // index pass.
 // A candidate is tried against at most transitive_attempts anchors, those whose regions score it

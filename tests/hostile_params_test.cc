@@ -1,8 +1,8 @@
 // Hostile parameters against the real `oxbow serve`: metadata nested deep
 // enough to overflow a worker's stack in a recursive JSON dump, ids that read as the /similar and
 // /thumbnail sub-routes, and repeated parameters. Each refused request gets a 400 naming the rule, the
-// server stays up and nothing stored changes. On the old server the nested metadata killed the process
-// (the client saw no response), which these tests report as a status of -1. Last, large request bodies
+// server stays up and nothing stored changes. A server that dies on a request (the client sees no
+// response) is reported by these tests as a status of -1. Last, large request bodies
 // must give their memory back to the system once answered.
 #include <gtest/gtest.h>
 

@@ -1,6 +1,6 @@
 // The real `oxbow serve` against index folders it must refuse without changing them: a stray or foreign
-// catalogue.sqlite-wal beside the catalogue (refused, and the catalogue byte-identical afterwards: it
-// used to be overwritten by the checkpoint of that WAL when the refused open closed its connection), and
+// catalogue.sqlite-wal beside the catalogue (refused, and the catalogue byte-identical afterwards: a
+// read-write connection would checkpoint that WAL into it when the refused open closed it), and
 // a folder the server may not write (exit 7, io_error, saying it is a permission problem, not damage).
 #include <gtest/gtest.h>
 #include <unistd.h>
