@@ -370,9 +370,9 @@ namespace {
 
 // Memory a search keeps for the next one (accumulators, the query's descriptors, transitive
 // verification's tables), shared by every thread that searches: one value per search running at once,
-// taken at the start and given back at the end. Kept per thread instead, it was faulted in once by each
-// of the server's many connection threads, so each of the first dozen or so searches after a start paid
-// for it again: at a million images the accumulators alone are 4 MB, about 1000 page faults, and a first
+// taken at the start and given back at the end. Kept per thread instead, it would be faulted in once by
+// each of the server's many connection threads, so each of the first dozen or so searches after a start
+// would pay for it again: at a million images the accumulators alone are 4 MB, about 1000 page faults, and a first
 // touch costs about 18 us a page on the 2-core test VM (about 18 ms a search). At most kMaxKept values
 // stay between searches. The pool is never destroyed (a search may still run while the process exits).
 template <typename T>

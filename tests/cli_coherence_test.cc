@@ -101,7 +101,7 @@ TEST_F(CliCoherence, EveryCommandExtractsALargePhotoAsTheServerDoes) {
   EXPECT_EQ(ExtractedKeypoints(out), static_cast<int>(library->size())) << out;
   out = RunCommand(Oxbow("features info " + Path("feats/big.png.oxfeat")), &rc);
   EXPECT_NE(out.find("rootsift descriptors"), std::string::npos) << out;
-  // 0 = no limit, accepted by every command (it was an error everywhere but serve).
+  // 0 = no limit, accepted by every command.
   out = RunCommand(Oxbow("extract --max-image-side 0 --out " + Path("full") + " " + big_), &rc);
   ASSERT_EQ(rc, 0) << out;
   EXPECT_GT(ExtractedKeypoints(out), static_cast<int>(library->size())) << "the full-size photo has more keypoints";

@@ -139,8 +139,8 @@ TEST_F(HostileParamsTest, DeepStoredMetadataIsReturnedAsText) {
 }
 
 // The command line keeps the same rules: `oxbow index add --metadata` refuses what POST /v1/images
-// refuses (before: any valid JSON, stored, then crashing whoever dumped it), and `oxbow query` prints
-// stored deep metadata as its text (before: parsed and dumped recursively, a crash).
+// refuses (stored, deeper metadata would crash whoever dumps it), and `oxbow query` prints stored deep
+// metadata as its text (a recursive dump of it would crash).
 TEST_F(HostileParamsTest, CommandLineAppliesTheMetadataLimits) {
   const std::string copy = dir_->path() + "/cli-index";
   std::filesystem::remove_all(copy);

@@ -532,8 +532,8 @@ TEST_F(ResourceLimitsTest, PeakMemoryPerSearchStaysUnderTheBound) {
 }
 
 // The server's memory grows with --extractions, not with --threads: SIFT keeps pyramid buffers per thread
-// that extracts, so extractions run on service-owned threads. Before that, 32 concurrent searches with
-// --threads 32 --extractions 2 peaked at 7 GiB. Compared with one search alone, eight at once (eight HTTP
+// that extracts, so extractions run on service-owned threads (on the HTTP workers' own threads, 32
+// concurrent searches with 32 workers and 2 extraction slots would peak at 7 GiB). Compared with one search alone, eight at once (eight HTTP
 // workers, one extraction slot) may only add their request bodies.
 TEST_F(ResourceLimitsTest, ConcurrentSearchesCostWhatTheExtractionSlotsAllow) {
 #if defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
