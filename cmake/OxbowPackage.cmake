@@ -1,5 +1,5 @@
 # Install rules and the Debian package (CPack): `cpack -G DEB` in the build folder (scripts/package.sh)
-# writes oxbow_<version>_<arch>.deb. Files: cmake/packaging/ (README "Debian package").
+# writes oxbow_<version>_<arch>.deb. Files: cmake/packaging/ (server/README.md, "Debian package").
 #
 # Two components:
 #   oxbow  /usr/bin/oxbow, its man pages (one per command, from the binary's --help) and the README.

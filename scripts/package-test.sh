@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
-# Tests the Debian package (README "Debian package"); scripts/test.sh runs it after ctest, on the build
+# Tests the Debian package (server/README.md, "Debian package"); scripts/test.sh runs it after ctest, on the build
 # folder it has just built ($OXBOW_BUILD_DIR, default build/):
 #   1. cpack -G DEB, and the package holds the files it must;
 #   2. lintian: fails on any error or warning (intended tags are overridden, each with its reason, in
 #      cmake/packaging/lintian-overrides);
 #   3. systemd-analyze verify (no message at all) and security (exposure at most 2.0) on oxbow.service;
 #   4. as root (CI) or with passwordless sudo: apt-get install of the .deb; the user, the unit and the
-#      settings are there; the installed /usr/bin/oxbow, run as the user oxbow the way the README says,
+#      settings are there; the installed /usr/bin/oxbow, run as the user oxbow the way server/README.md says,
 #      trains a tiny vocabulary, serves /var/lib/oxbow/index (created by the first start), takes images
 #      over HTTP and finds box_in_scene for box.png; under a running systemd, oxbow.service itself serves
 #      it; then apt-get purge, and everything but the user and /var/lib/oxbow (kept on purge, as
@@ -146,7 +146,7 @@ sys.exit(0 if first["id"] == "box_in_scene" and first["verified"] else 1)
 EOF
 }
 
-# The first start as README says: a vocabulary in /var/lib/oxbow and --vocab creates the index.
+# The first start as server/README.md says: a vocabulary in /var/lib/oxbow and --vocab creates the index.
 "${as_oxbow[@]}" oxbow serve --index /var/lib/oxbow/index --vocab /var/lib/oxbow/vocab.oxvoc --port 0 \
   >"$work/serve.out" 2>"$work/serve.err" &
 server_pid=$!
@@ -192,7 +192,7 @@ for path in /usr/bin/oxbow /lib/systemd/system/oxbow.service /etc/default/oxbow 
             /var/lib/systemd/deb-systemd-helper-masked/oxbow.service; do
   [[ ! -e $path && ! -L $path ]] || fail "$path is still there after apt-get purge"
 done
-# Kept on purge by design (README): the user and the index. Then removed by hand, as README says.
+# Kept on purge by design (server/README.md): the user and the index. Then removed by hand, as it says.
 { getent passwd oxbow >/dev/null && [[ -d /var/lib/oxbow/index ]]; } || fail "purge was to keep the user oxbow and /var/lib/oxbow"
 as_root rm -rf /var/lib/oxbow
 as_root deluser --system --quiet oxbow >/dev/null 2>&1  # (it mentions crontab without cron)

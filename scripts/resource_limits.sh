@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Prints the peak-memory-per-request table (README, "Resource limits"): each hostile or large input is
+# Prints the peak-memory-per-request table (eval/results/load.md): each hostile or large input is
 # searched once in a fresh process with the server's defaults (--max-megapixels 40, --max-image-side
 # 1600, RootSIFT with the 2x first octave) and its resident-memory high-water mark is checked against
 # the stated bound. Includes the slow rows (real 40- and 100-megapixel JPEGs) that CI leaves out.

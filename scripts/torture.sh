@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Crash torture (README, "Crash torture"): start `oxbow serve`, stream adds and deletes from 3 HTTP
+# Crash torture (tests/README.md, "Crash torture"): start `oxbow serve`, stream adds and deletes from 3 HTTP
 # clients, kill -9 it at a random moment, restart, check every acknowledged write, the fate of every
 # unanswered one, the catalogue listing and search results against an index rebuilt from scratch.
 #   scripts/torture.sh [ROUNDS] [SEED]      (default 100 rounds, a random seed; OXBOW_BUILD_DIR=build)
