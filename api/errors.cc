@@ -28,7 +28,7 @@ HttpError PermissionDenied(std::string message) { return HttpError{403, "permiss
 
 HttpError RouteNotFound(std::string_view method, std::string_view path) {
   return HttpError{404, "not_found",
-                   "no route " + std::string(method) + " " + std::string(path) + " (see GET /v1 routes in the README)"};
+                   "no route " + std::string(method) + " " + std::string(path) + " (GET /v1 lists the routes)"};
 }
 
 HttpError MethodNotAllowed(std::string_view method, std::string_view path, std::string_view allowed) {
