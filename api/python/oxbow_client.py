@@ -1,4 +1,4 @@
-"""A Python client for the oxbow HTTP API (README "HTTP API"), standard library only (Python 3.11+).
+"""A Python client for the oxbow HTTP API (server/README.md), standard library only (Python 3.11+).
 
     from oxbow_client import Client, NotFoundError
     oxbow = Client("http://127.0.0.1:8080", api_key="secret", timeout=30)
@@ -9,7 +9,7 @@
     except NotFoundError as e:
         print(e.status, e.code, e.message, e.request_id)
 
-Every method returns the server's JSON answer as a dict (the fields are in the README), or raises an
+Every method returns the server's JSON answer as a dict (fields: server/README.md), or raises an
 OxbowError subclass that carries the server's error code, message, HTTP status and request id.
 Images are given as bytes, a path (str or os.PathLike) or a binary file object. A Client holds no
 connection between calls, so one may be shared by threads.
@@ -45,7 +45,7 @@ class OxbowError(Exception):
     """An oxbow request that failed.
 
     status: the HTTP status (None when no answer came: TransportError).
-    code: the server's error code ("not_found", "invalid_argument", ...; README "Errors"), or None.
+    code: the server's error code ("not_found", "invalid_argument", ...; server/README.md "Errors"), or None.
     message: the server's message (or what went wrong on the way).
     request_id: the X-Request-Id of the request, to find its line in the server's log, or None.
     """
@@ -356,11 +356,11 @@ class Client:
                filter: Mapping[str, Any] | str | None = None, **options: Any) -> dict:
         """POST /v1/search with an image; bbox = (x1, y1, x2, y2) in the image's pixels.
 
-        filter: only images whose metadata matches, a dict (or its JSON text) as README "Filtered
-        search" describes, e.g. {"city": {"in": ["Paris", "Lyon"]}, "year": {"gte": 2000}}; a malformed
+        filter: only images whose metadata matches, a dict (or its JSON text) as server/README.md
+        "Filtered search" describes, e.g. {"city": {"in": ["Paris", "Lyon"]}, "year": {"gte": 2000}}; a malformed
         one raises InvalidArgumentError.
 
-        options: the server's search parameters (README "Search options"): top_k, rerank, qe, qe_images,
+        options: the server's search parameters (server/README.md "Search options"): top_k, rerank, qe, qe_images,
         min_inliers, max_pairs_per_word, transitive_depth, transitive_anchors, transitive_neighbours,
         transitive_attempts, query_assignments, quantizer_probes, hamming. Unknown names and out-of-range values
         raise InvalidArgumentError (the server refuses them).
@@ -417,7 +417,7 @@ class Client:
 
 def _quote_id(id: str) -> str:
     # Every byte but unreserved ones encoded, "/" included: the server takes an encoded slash as part of
-    # the id, never as a route separator (README "Routes").
+    # the id, never as a route separator (server/README.md "Routes").
     if not id:
         raise ValueError("an image id is not empty")
     return urllib.parse.quote(id, safe="")
