@@ -1,4 +1,4 @@
-// JSON mapping of the service's responses (the bodies of the HTTP API; the README documents each).
+// JSON mapping of the service's responses (the bodies of the HTTP API; server/README.md documents each).
 // Field names are snake_case, sizes in pixels, times in milliseconds, boxes as [x1, y1, x2, y2].
 // User metadata is stored as a JSON document and returned as that document (not as a string).
 // Thread-safe (pure functions).

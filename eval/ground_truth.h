@@ -1,7 +1,7 @@
 // Ground truth for the retrieval protocols: which images form the database, which are the queries (with
 // their box), and per query which database images are positives and which are junk.
 //
-// Protocols (see README, "Evaluation"):
+// Protocols (eval/README.md):
 //  - Oxford/Paris (Philbin et al. 2007): a folder of `<name>_query.txt` ("<image> x1 y1 x2 y2"; Oxford
 //    prefixes images with "oxc1_"), `<name>_good.txt`, `<name>_ok.txt`, `<name>_junk.txt`. Positives are
 //    good + ok; junk is skipped. The query image stays in the database (it is on its own good list).

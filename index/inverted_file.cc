@@ -52,7 +52,7 @@ inline uint64_t GetVarint(const uint8_t*& p) {
 // bytes; then, when tf > 1, varint(tf - 2). Gaps of images in a list are below 2^15 unless the word is
 // in fewer than about 1 of 32768 images, so the scan reads one fixed-size unit per posting, whose
 // length does not depend on its value: no data-dependent branch per posting, unlike the varint gaps of
-// format 1 (1-3 bytes each), which cost 2-3x the scan time (README, "Postings format").
+// format 1 (1-3 bytes each), which cost 2-3x the scan time.
 constexpr uint32_t kGapEscape = 0x7FFF;
 
 inline uint32_t Load16(const uint8_t* p) { return uint32_t{p[0]} | (uint32_t{p[1]} << 8); }

@@ -82,7 +82,7 @@ struct TfIdfOptions {
   // images added + removed since the last refresh exceed this fraction of the live images at that
   // refresh. [0, 2^64) and (0, 1]. Results never depend on the thread count. Growing from empty, every
   // posting is visited by about (1 + f) / f refreshes: 5 at 0.25, 11 at 0.1, where the refresh was a
-  // sixth of bulk ingest at 1M images (README, "A million images"); idf drifts by at most about
+  // sixth of bulk ingest at 1M images; idf drifts by at most about
   // log 1.25 = 0.22 in between, and not at all while the collection grows without changing its mix
   // (n_w and N grow alike).
   uint64_t exact_statistics_postings = 4'000'000;

@@ -13,7 +13,7 @@
 // filtered by the signatures' Hamming distance (at most the threshold: Jegou et al. 2008 use the same
 // test to reject tentative matches before verification), then made one-to-one closest signatures first;
 // bursty words are not skipped then, since the filter keeps only their plausible pairs (measured on
-// groups_hard + distractors, Hamming search without QE: mAP 0.615 -> 0.620, README). At most
+// groups_hard + distractors, Hamming search without QE: mAP 0.615 -> 0.620, eval/results/accuracy.md). At most
 // max_matches of those go to the verifier, the closest signatures first (ties by query feature): an
 // unrelated image still shares thousands of words with a large query and passes the loose threshold
 // with about half of them, and the verifier's Hough votes for those were most of a transitive pass.

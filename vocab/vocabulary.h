@@ -143,7 +143,7 @@ struct TrainOptions {
   // Number of visual words k. Range [1, number of training descriptors].
   size_t num_words = 10000;
   // Maximum Lloyd iterations (assignment + update). Range [1, 1000]. 10 with 4000 descriptors per image
-  // (SampleOptions) measured best (README, Vocabulary): Paris subset 20k words mAP 0.896 +- 0.006 over
+  // (SampleOptions) measured best (eval/results/vocabulary.md): Paris subset 20k words mAP 0.896 +- 0.006 over
   // seeds 1-3 vs 0.882 +- 0.009 for 1000 per image / 20 iterations; groups_dev tied (0.985 vs 0.985).
   int max_iterations = 10;
   // Stop when the objective (mean squared distance to the assigned word) improves by less than this

@@ -1,5 +1,5 @@
-// The HTTP JSON server: cpp-httplib routes over api::Service (see the README's HTTP API section for
-// every route, parameter and response).
+// The HTTP JSON server: cpp-httplib routes over api::Service (see server/README.md, "HTTP API",
+// for every route, parameter and response).
 //
 // Behaviour:
 //  - Requests are handled by `threads` workers fed from a bounded queue of accepted connections. When
