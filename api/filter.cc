@@ -2,11 +2,16 @@
 
 #include <algorithm>
 #include <array>
+#include <cmath>
 #include <cstdint>
+#include <limits>
 #include <optional>
 #include <string>
 #include <string_view>
+#include <type_traits>
+#include <unordered_set>
 #include <utility>
+#include <variant>
 #include <vector>
 
 #include <nlohmann/json.hpp>
@@ -25,53 +30,123 @@ constexpr std::array<std::string_view, 5> kOperators = {"in", "gt", "gte", "lt",
 
 bool IsScalar(const nlohmann::json& v) { return v.is_string() || v.is_number() || v.is_boolean(); }
 
-// Equality of two scalars of the grammar: the same kind (number, string, boolean) and value.
-bool ScalarEquals(const nlohmann::json& a, const nlohmann::json& b) {
-  if (a.is_number() && b.is_number()) return a.get<double>() == b.get<double>();
-  if (a.is_string() && b.is_string()) return a.get_ref<const std::string&>() == b.get_ref<const std::string&>();
-  if (a.is_boolean() && b.is_boolean()) return a.get<bool>() == b.get<bool>();
-  return false;
+// A JSON number as the value it denotes, in one representation per value so that equal values are equal
+// alternatives (a hash set finds them): an integral value in [-2^63, 2^64) as int64_t, or as uint64_t
+// above INT64_MAX; any other value (a fraction, or beyond that range) as double. A number written with
+// a fraction or an exponent is the double nearest to it (9007199254740993.0 is 2^53).
+using Number = std::variant<int64_t, uint64_t, double>;
+
+Number FromUnsigned(uint64_t v) {
+  return v <= static_cast<uint64_t>(std::numeric_limits<int64_t>::max()) ? Number(static_cast<int64_t>(v)) : Number(v);
 }
 
-// -1, 0 or 1 for value vs bound, nullopt when they are not both numbers or both strings.
-std::optional<int> Compare(const nlohmann::json& value, const nlohmann::json& bound) {
-  if (value.is_number() && bound.is_number()) {
-    const double v = value.get<double>();
-    const double b = bound.get<double>();
-    return v < b ? -1 : (v > b ? 1 : 0);
+Number FromDouble(double v) {
+  if (std::trunc(v) == v) {
+    if (v >= -0x1p63 && v < 0x1p63) return static_cast<int64_t>(v);
+    if (v >= 0x1p63 && v < 0x1p64) return static_cast<uint64_t>(v);
   }
-  if (value.is_string() && bound.is_string()) {
-    const int c = value.get_ref<const std::string&>().compare(bound.get_ref<const std::string&>());
-    return c < 0 ? -1 : (c > 0 ? 1 : 0);
-  }
-  return std::nullopt;
+  return v;
 }
 
+// The number of a JSON value that is a number.
+Number NumberOf(const nlohmann::json& v) {
+  if (v.is_number_unsigned()) return FromUnsigned(v.get<uint64_t>());
+  if (v.is_number_integer()) return v.get<int64_t>();
+  return FromDouble(v.get<double>());
+}
+
+template <typename T>
+int Sign(T a, T b) {
+  return a < b ? -1 : (a > b ? 1 : 0);
+}
+
+// -1, 0 or 1 for the integer i vs the double d, exactly (no rounding of i to a double).
+template <typename Int>
+int CompareIntegerToDouble(Int i, double d) {
+  constexpr double kLow = std::is_signed_v<Int> ? -0x1p63 : 0.0;  // the integer type's range, as doubles
+  constexpr double kHigh = std::is_signed_v<Int> ? 0x1p63 : 0x1p64;
+  if (d >= kHigh) return -1;
+  if (d < kLow) return 1;
+  const double whole = std::trunc(d);  // in [kLow, kHigh): converts exactly
+  const auto whole_int = static_cast<Int>(whole);
+  if (i != whole_int) return Sign(i, whole_int);
+  return Sign(whole, d);  // i == whole: d's fraction decides
+}
+
+// -1, 0 or 1 for a vs b, exactly, whatever their representations.
+int Compare(const Number& a, const Number& b) {
+  return std::visit(
+      [](auto x, auto y) -> int {
+        using X = decltype(x);
+        using Y = decltype(y);
+        if constexpr (std::is_same_v<X, Y>) {
+          return Sign(x, y);
+        } else if constexpr (std::is_same_v<X, double>) {
+          return -CompareIntegerToDouble(y, x);
+        } else if constexpr (std::is_same_v<Y, double>) {
+          return CompareIntegerToDouble(x, y);
+        } else if constexpr (std::is_same_v<X, int64_t>) {  // y is uint64_t
+          return x < 0 ? -1 : Sign(static_cast<uint64_t>(x), y);
+        } else {  // x is uint64_t, y int64_t
+          return y < 0 ? 1 : Sign(x, static_cast<uint64_t>(y));
+        }
+      },
+      a, b);
+}
+
+int Compare(std::string_view a, std::string_view b) {
+  const int c = a.compare(b);
+  return c < 0 ? -1 : (c > 0 ? 1 : 0);
+}
+
+// A bound of a range: a number or a string (ParseOperator keeps one key's bounds of one kind).
 struct Bound {
-  nlohmann::json value;
+  std::variant<Number, std::string> value;
   bool inclusive = false;
 };
 
-// One key of the filter: equal to one of `any_of` (when not empty) and within the bounds.
+// True when `c`, the comparison of a value with a lower (`lower`) or upper bound, keeps the value in range.
+bool Within(int c, bool lower, bool inclusive) { return (lower ? c > 0 : c < 0) || (c == 0 && inclusive); }
+
+// One key of the filter: equal to one of the "in" values (when there are some) and within the bounds.
+// The values are hash sets built once per filter, so a document costs the same whatever their number.
 struct Condition {
   std::string key;
-  std::vector<nlohmann::json> any_of;
+  bool has_values = false;  // an equality or "in": the member must equal one of the values below
+  std::unordered_set<std::string> strings;
+  std::unordered_set<Number> numbers;
+  bool any_true = false, any_false = false;
   std::optional<Bound> lower, upper;
 
-  bool Matches(const nlohmann::json& value) const {
-    if (!any_of.empty() &&
-        std::none_of(any_of.begin(), any_of.end(), [&](const nlohmann::json& v) { return ScalarEquals(value, v); })) {
-      return false;
+  bool MatchesString(const std::string& v) const {
+    if (has_values && !strings.contains(v)) return false;
+    const auto within = [&](const std::optional<Bound>& b, bool is_lower) {
+      const auto* text = b ? std::get_if<std::string>(&b->value) : nullptr;
+      return !b || (text != nullptr && Within(Compare(v, *text), is_lower, b->inclusive));
+    };
+    return within(lower, true) && within(upper, false);
+  }
+  bool MatchesNumber(const Number& v) const {
+    if (has_values && !numbers.contains(v)) return false;
+    const auto within = [&](const std::optional<Bound>& b, bool is_lower) {
+      const auto* number = b ? std::get_if<Number>(&b->value) : nullptr;
+      return !b || (number != nullptr && Within(Compare(v, *number), is_lower, b->inclusive));
+    };
+    return within(lower, true) && within(upper, false);
+  }
+  // Bounds are numbers or strings: a boolean never lies within one.
+  bool MatchesBoolean(bool v) const { return has_values && (v ? any_true : any_false) && !lower && !upper; }
+
+  // Adds a scalar of the grammar to the values.
+  void AddValue(const nlohmann::json& v) {
+    has_values = true;
+    if (v.is_string()) {
+      strings.insert(v.get<std::string>());
+    } else if (v.is_boolean()) {
+      (v.get<bool>() ? any_true : any_false) = true;
+    } else {
+      numbers.insert(NumberOf(v));
     }
-    if (lower) {
-      const auto c = Compare(value, lower->value);
-      if (!c || *c < 0 || (*c == 0 && !lower->inclusive)) return false;
-    }
-    if (upper) {
-      const auto c = Compare(value, upper->value);
-      if (!c || *c > 0 || (*c == 0 && !upper->inclusive)) return false;
-    }
-    return true;
   }
 };
 
@@ -90,12 +165,24 @@ class Matcher final : public nlohmann::json_sax<nlohmann::json> {
   }
 
   // A value no condition looks at is not converted (a string would be copied).
-  bool null() override { return Ignored() || Value(nlohmann::json()); }
-  bool boolean(bool v) override { return Ignored() || Value(v); }
-  bool number_integer(number_integer_t v) override { return Ignored() || Value(v); }
-  bool number_unsigned(number_unsigned_t v) override { return Ignored() || Value(v); }
-  bool number_float(number_float_t v, const string_t& /*text*/) override { return Ignored() || Value(v); }
-  bool string(string_t& v) override { return Ignored() || Value(v); }
+  bool null() override {
+    return Ignored() || Value([](const Condition& /*c*/) { return false; });  // every condition needs a value
+  }
+  bool boolean(bool v) override {
+    return Ignored() || Value([&](const Condition& c) { return c.MatchesBoolean(v); });
+  }
+  bool number_integer(number_integer_t v) override {
+    return Ignored() || Value([&](const Condition& c) { return c.MatchesNumber(Number(int64_t{v})); });
+  }
+  bool number_unsigned(number_unsigned_t v) override {
+    return Ignored() || Value([&](const Condition& c) { return c.MatchesNumber(FromUnsigned(v)); });
+  }
+  bool number_float(number_float_t v, const string_t& /*text*/) override {
+    return Ignored() || Value([&](const Condition& c) { return c.MatchesNumber(FromDouble(v)); });
+  }
+  bool string(string_t& v) override {
+    return Ignored() || Value([&](const Condition& c) { return c.MatchesString(v); });
+  }
   bool binary(binary_t& /*v*/) override { return false; }  // not produced by the JSON text format
   bool start_object(std::size_t /*elements*/) override {
     if (depth_ == 0) root_is_object_ = true;
@@ -129,9 +216,11 @@ class Matcher final : public nlohmann::json_sax<nlohmann::json> {
 
   // Inside a member's object or array, or in a member no condition names.
   bool Ignored() const { return depth_ > 1 || (depth_ == 1 && current_ == kNone); }
-  // A top-level member's value a condition names, or the root itself (depth 0: not an object, no match).
-  bool Value(const nlohmann::json& v) {
-    if (depth_ == 0 || !conditions_[current_].Matches(v)) return false;
+  // A top-level member's value a condition names (`holds` tells whether the condition holds for it),
+  // or the root itself (depth 0: not an object, no match).
+  template <typename Holds>
+  bool Value(const Holds& holds) {
+    if (depth_ == 0 || !holds(conditions_[current_])) return false;
     seen_ |= uint64_t{1} << current_;
     current_ = kNone;
     return true;
@@ -151,20 +240,21 @@ class Matcher final : public nlohmann::json_sax<nlohmann::json> {
   bool root_is_object_ = false;
 };
 
+// Needles a quick test looks for at most per condition: each is one search of the document's text,
+// and past a few of them the parse (which looks each value up in a hash set) costs less.
+constexpr size_t kMaxNeedles = 8;
+
 // The texts one of which a document whose every string is written without escapes must contain when
 // the condition can hold: "\"v\"" for a string v, "true"/"false" for a boolean. Empty (no quick test)
 // when a number is among the values (2004 can be written 2004.0 or 2.004e3), for a string that would
-// need escaping, or for a condition of bounds only.
+// need escaping, for more than kMaxNeedles values, or for a condition of bounds only.
 std::vector<std::string> Needles(const Condition& c) {
+  if (!c.numbers.empty() || c.strings.size() + (c.any_true ? 1 : 0) + (c.any_false ? 1 : 0) > kMaxNeedles) return {};
   std::vector<std::string> needles;
-  for (const nlohmann::json& v : c.any_of) {
-    if (v.is_boolean()) {
-      needles.emplace_back(v.get<bool>() ? "true" : "false");
-      continue;
-    }
-    if (!v.is_string()) return {};
-    const auto& text = v.get_ref<const std::string&>();
-    const auto needs_escape = [](char ch) { return ch == '"' || ch == '\\' || static_cast<unsigned char>(ch) < 0x20; };
+  if (c.any_true) needles.emplace_back("true");
+  if (c.any_false) needles.emplace_back("false");
+  const auto needs_escape = [](char ch) { return ch == '"' || ch == '\\' || static_cast<unsigned char>(ch) < 0x20; };
+  for (const std::string& text : c.strings) {
     if (std::any_of(text.begin(), text.end(), needs_escape)) return {};
     needles.push_back('"' + text + '"');
   }
@@ -219,7 +309,7 @@ Status ParseOperator(std::string_view label, const std::string& where, const std
     }
     for (const nlohmann::json& v : operand) {
       if (!IsScalar(v)) return Invalid(label, named + " takes strings, numbers and booleans, got " + v.type_name());
-      c->any_of.push_back(v);
+      c->AddValue(v);
     }
     return Ok();
   }
@@ -230,7 +320,13 @@ Status ParseOperator(std::string_view label, const std::string& where, const std
     return Invalid(label, "the bounds of " + where + " mix numbers and strings");
   }
   *bound_type = &operand;
-  const Bound bound{operand, op.size() == 3};  // gte, lte
+  Bound bound;
+  bound.inclusive = op.size() == 3;  // gte, lte
+  if (operand.is_number()) {
+    bound.value = NumberOf(operand);
+  } else {
+    bound.value = operand.get<std::string>();
+  }
   if (op[0] == 'g') {
     c->lower = bound;
   } else {
@@ -244,7 +340,7 @@ Result<Condition> ParseCondition(std::string_view label, const std::string& key,
   c.key = key;
   const std::string where = "key '" + key + "'";
   if (IsScalar(spec)) {
-    c.any_of.push_back(spec);
+    c.AddValue(spec);
     return c;
   }
   if (!spec.is_object()) {

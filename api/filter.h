@@ -11,9 +11,15 @@
 //             | "gt" | "gte" | "lt" | "lte"     (a number or a string; all bounds of one key the same type)
 // Keys name top-level members of the metadata object, literally ("a.b" is the member called "a.b",
 // not a path). An image matches a condition only when its metadata is an object holding the key with
-// a value of the condition's type: numbers compare as numbers (2000 equals 2000.0), strings by their
-// bytes (UTF-8, so by code point: ISO dates order correctly), booleans by equality; any other pairing
-// (the number 2000 against the string "2000", an object or array value, null) does not match.
+// a value of the condition's type: numbers compare as numbers (2000 equals 2000.0), exactly: integers
+// as integers (9007199254740993 is not 9007199254740992, which one double holds both as), an integer
+// and a double by the double's exact value; a number written with a fraction or an exponent is the
+// double nearest to it. Strings compare by their bytes (UTF-8, so by code point: ISO dates order
+// correctly), booleans by equality; any other pairing (the number 2000 against the string "2000", an
+// object or array value, null) does not match.
+// Cost: an "in" list is a hash set built once when the filter is parsed, so matching one metadata
+// document costs O(its size) whatever the number of values (at most kMaxFilterValues per "in", and
+// kMaxFilterBytes of filter text in all).
 // Thread-safe (pure functions; the filter is immutable).
 #pragma once
 
