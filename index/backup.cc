@@ -5,7 +5,10 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
+#include <climits>
+#include <cstdio>
 #include <cstring>
 #include <filesystem>
 #include <memory>
@@ -287,33 +290,145 @@ Result<BackupResult> WriteBackup(const std::string& dir, const std::string& tmp,
   return result;
 }
 
+// A path for a message (CheckBackupFolder refused control characters before any is shown), cut when long.
+std::string Shown(const fs::path& path) {
+  const std::string& text = path.native();
+  return text.size() <= 200 ? text : text.substr(0, 200) + "...";
+}
+
+Status Invalid(const std::string& message) { return Fail(ErrorCode::kInvalidArgument, message); }
+
+// The errno of a failed mkdir or rename of the backup folder: the client's choice of place (a name too
+// long, a component not a folder, a folder the server may not write, a read-only file system) is 400,
+// the disk's failure 500.
+Status FolderError(const std::string& what, int error) {
+  const std::string message = what + ": " + std::strerror(error);
+  switch (error) {
+    case ENOENT: return Fail(ErrorCode::kNotFound, message);
+    case EEXIST:
+    case ENOTEMPTY: return Fail(ErrorCode::kAlreadyExists, message);
+    case ENAMETOOLONG:
+    case ELOOP:
+    case ENOTDIR:
+    case EACCES:
+    case EPERM:
+    case EROFS:
+    case EXDEV: return Invalid(message);
+    default: return Fail(ErrorCode::kIoError, message);
+  }
+}
+
+// True when `path` is `folder` or lies inside it (both absolute and normal).
+bool IsWithin(const fs::path& path, const fs::path& folder) {
+  return std::mismatch(folder.begin(), folder.end(), path.begin(), path.end()).first == folder.end();
+}
+
+// `out` as CheckBackupFolder checks it: absolute and lexically normal, without a trailing slash.
+Result<fs::path> BackupTarget(const std::string& out) {
+  std::error_code ec;
+  fs::path target = fs::absolute(out, ec).lexically_normal();
+  if (ec) return Fail(ErrorCode::kIoError, "cannot resolve " + Shown(out) + " against the working directory: " + ec.message());
+  if (!target.has_filename()) target = target.parent_path();  // a trailing slash
+  return target;
+}
+
 }  // namespace
+
+Status CheckBackupFolder(const std::string& dir, const std::string& out) {
+  if (out.empty()) return Invalid("the backup folder is empty: name a new folder");
+  for (size_t i = 0; i < out.size(); ++i) {
+    const auto c = static_cast<unsigned char>(out[i]);
+    if (c < 0x20 || c == 0x7f) {
+      char byte[8];
+      std::snprintf(byte, sizeof byte, "0x%02x", c);
+      return Invalid("the backup folder's path holds the control character " + std::string(byte) + " at byte " +
+                     std::to_string(i) + ": name a folder without control characters");
+    }
+  }
+  if (out.size() > kMaxBackupPathBytes) {
+    return Invalid("the backup folder's path is " + std::to_string(out.size()) + " bytes long, at most " +
+                   std::to_string(kMaxBackupPathBytes) + " accepted");
+  }
+  constexpr size_t kMaxName = NAME_MAX - 4;  // the backup is written as "<name>.tmp" first
+  for (const fs::path& part : fs::path(out)) {
+    if (part == "..") {
+      return Invalid("the backup folder " + Shown(out) + " has a '..' component: name the folder by its path without one");
+    }
+    if (part.native().size() > kMaxName) {
+      return Invalid("the name '" + Shown(part) + "' in the backup folder's path is " + std::to_string(part.native().size()) +
+                     " bytes long, at most " + std::to_string(kMaxName) + " accepted (the file system's " +
+                     std::to_string(NAME_MAX) + " less the '.tmp' of the name the backup is written under first)");
+    }
+  }
+  auto target = BackupTarget(out);
+  if (!target) return std::unexpected(target.error());
+  if (!target->has_filename()) return Invalid("the root folder cannot be a backup folder: name a new folder");
+  // From the root down: no component is a symbolic link and every one above the last is a folder. The
+  // path then is its own real path (no link, no "..").
+  const fs::path relative = target->relative_path();
+  const auto components = static_cast<size_t>(std::distance(relative.begin(), relative.end()));
+  fs::path prefix = target->root_path();
+  size_t i = 0;
+  bool taken = false;  // the last component exists and is not an empty folder
+  for (const fs::path& part : relative) {
+    prefix /= part;
+    const bool last = ++i == components;
+    struct stat st {};
+    if (::lstat(prefix.c_str(), &st) != 0) {
+      const int error = errno;
+      if (error == ENOENT && last) break;
+      if (error == ENOENT) {
+        return Fail(ErrorCode::kNotFound, "the backup's parent folder " + Shown(target->parent_path()) + " does not exist");
+      }
+      return FolderError("cannot inspect " + Shown(prefix) + " (a component of the backup folder's path)", error);
+    }
+    if (S_ISLNK(st.st_mode)) {
+      std::error_code ec;
+      const fs::path real = fs::weakly_canonical(*target, ec);
+      return Invalid(Shown(prefix) + " is a symbolic link: a backup is never written through one; name the folder by its "
+                     "real path" + (ec ? std::string() : " (" + Shown(real) + ")"));
+    }
+    if (!S_ISDIR(st.st_mode) && !last) {
+      return Invalid(Shown(prefix) + " is not a folder (it is a component of the backup folder's path)");
+    }
+    std::error_code ec;
+    taken = last && !(S_ISDIR(st.st_mode) && fs::is_empty(prefix, ec));
+  }
+  if (!dir.empty()) {
+    std::error_code ec;
+    const fs::path served = fs::weakly_canonical(fs::absolute(dir, ec), ec);
+    if (!ec && IsWithin(*target, served)) {
+      return Invalid(Shown(*target) + (*target == served ? " is" : " is inside") + " the index folder " + Shown(served) +
+                     " being backed up: back up to a folder outside it");
+    }
+  }
+  if (taken) return Fail(ErrorCode::kAlreadyExists, Shown(*target) + " exists and is not an empty folder; back up to a new one");
+  return Ok();
+}
 
 Result<BackupResult> BackupIndex(const std::string& dir, const std::string& out_in, const BackupOptions& options) {
   std::error_code ec;
   if (!fs::is_regular_file(fs::path(dir) / kCatalogueFile, ec)) {
     return Fail(ErrorCode::kNotFound, "no index at " + dir + " (missing " + kCatalogueFile + ")");
   }
-  fs::path out = fs::path(out_in).lexically_normal();
-  if (!out.has_filename()) out = out.parent_path();  // a trailing slash
-  const fs::path parent = fs::absolute(out, ec).parent_path();
-  if (!fs::is_directory(parent, ec)) {
-    return Fail(ErrorCode::kNotFound, "the backup's parent folder " + parent.string() + " does not exist");
-  }
-  if (fs::exists(out, ec) && !(fs::is_directory(out, ec) && fs::is_empty(out, ec))) {
-    return Fail(ErrorCode::kAlreadyExists, out.string() + " exists and is not an empty folder; back up to a new one");
-  }
+  if (auto checked = CheckBackupFolder(dir, out_in); !checked) return std::unexpected(checked.error());
+  auto target = BackupTarget(out_in);
+  if (!target) return std::unexpected(target.error());
+  const fs::path out = *target;
+  const fs::path parent = out.parent_path();
   const fs::path tmp = out.string() + ".tmp";
   if (::mkdir(tmp.c_str(), 0755) != 0) {
-    if (errno == EEXIST) {
+    const int error = errno;
+    if (error == EEXIST) {
       return Fail(ErrorCode::kAlreadyExists, tmp.string() + " exists: the leftover of an interrupted backup (or "
                                                              "one running now); remove it and retry");
     }
-    return Fail(ErrorCode::kIoError, "cannot create " + tmp.string() + ": " + Errno());
+    return std::unexpected(FolderError("cannot create " + Shown(tmp), error).error());
   }
   auto result = WriteBackup(dir, tmp.string(), options);
   if (result && ::rename(tmp.c_str(), out.c_str()) != 0) {
-    result = Fail(ErrorCode::kIoError, "cannot rename " + tmp.string() + " to " + out.string() + ": " + Errno());
+    const int error = errno;
+    result = std::unexpected(FolderError("cannot rename " + Shown(tmp) + " to " + Shown(out), error).error());
   }
   if (result) {
     if (auto s = SyncPath(parent.string(), O_RDONLY | O_DIRECTORY); !s) result = std::unexpected(s.error());

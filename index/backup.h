@@ -47,11 +47,31 @@ struct BackupResult {
   int attempts = 0;             // snapshots taken (more than 1 when a checkpoint replaced the files)
 };
 
-// Backs up the index folder `dir` into the new folder `out` (absent or empty; its parent must exist).
-// Errors: kAlreadyExists (`out` is not empty, or `<out>.tmp` exists: the leftover of an interrupted
-// backup, to remove), kNotFound (no index in `dir`, no parent folder), kCorruptData (a source file
-// fails its checks), kResourceExhausted (checkpoints replaced the files at every attempt), kIoError.
+// Backs up the index folder `dir` into the new folder `out` (absent or empty; its parent must exist),
+// once `out` passed CheckBackupFolder. Errors: those of CheckBackupFolder, kAlreadyExists also when
+// `<out>.tmp` exists (the leftover of an interrupted backup, to remove), kNotFound (no index in `dir`),
+// kCorruptData (a source file fails its checks), kResourceExhausted (checkpoints replaced the files at
+// every attempt), kIoError (the disk failed or filled).
 [[nodiscard]] Result<BackupResult> BackupIndex(const std::string& dir, const std::string& out,
                                                const BackupOptions& options = {});
+
+// Longest backup path accepted, bytes: room below PATH_MAX for "<out>.tmp/" and the files written in it.
+inline constexpr size_t kMaxBackupPathBytes = 3968;
+
+// Whether `out` may become a backup of the index folder `dir`; what every transport's backup checks
+// (BackupIndex calls it) before anything is written. `out` names the folder as a client sent it, on this
+// machine; relative to the working directory when not absolute. Refused:
+//  - kInvalidArgument, the client's mistakes: an empty path, a control character (NUL, newline, any
+//    byte below 0x20, 0x7f), a ".." component (name the folder without it), a name over NAME_MAX - 4
+//    bytes (the backup is first written beside it as "<name>.tmp") or a path over kMaxBackupPathBytes,
+//    a symbolic link as any component, dangling or not (a backup is never written through one: name
+//    the real folder), a component that is not a folder, a folder the server may not inspect, and the
+//    index folder `dir` itself or any folder inside it (an empty `dir`, for a caller that serves no
+//    folder of its own such as a cluster front, skips that check);
+//  - kNotFound: the parent folder does not exist (it is not created);
+//  - kAlreadyExists: `out` exists and is not an empty folder.
+// The path is checked once: a folder changed meanwhile by someone who may write the folders above it is
+// not checked again while the backup runs.
+[[nodiscard]] Status CheckBackupFolder(const std::string& dir, const std::string& out);
 
 }  // namespace oxbow::index

@@ -346,5 +346,61 @@ TEST_F(BackupTest, DestinationMustBeNewOrEmpty) {
   EXPECT_FALSE(fs::exists(Out(4) + ".tmp"));
 }
 
+// The folder a client names is checked before anything is written: its mistakes are kInvalidArgument
+// (HTTP 400), never an I/O error (500), and nothing is written for them, beside the folder or elsewhere.
+TEST_F(BackupTest, ClientPathMistakesAreRefusedBeforeAnythingIsWritten) {
+  { auto index = Create({}); }
+  const auto refused = [&](const std::string& out, ErrorCode code, const std::string& what) {
+    auto result = BackupIndex(Source(), out);
+    EXPECT_FALSE(result.has_value()) << what << ": backed up to " << out;
+    if (result) return;
+    EXPECT_EQ(result.error().code, code) << what << ": " << result.error().ToString();
+    const auto checked = CheckBackupFolder(Source(), out);
+    EXPECT_TRUE(!checked.has_value() && checked.error().code == code) << what;
+    std::error_code ec;
+    EXPECT_FALSE(fs::exists(fs::symlink_status(out + ".tmp", ec))) << what;
+  };
+  fs::create_directories(root_ / "real");
+  fs::create_directory_symlink(root_ / "real", root_ / "link");
+  refused((root_ / "link").string(), ErrorCode::kInvalidArgument, "a link to an empty folder");
+  refused((root_ / "link" / "sub").string(), ErrorCode::kInvalidArgument, "a new folder under a link");
+  EXPECT_TRUE(fs::is_empty(root_ / "real"));
+  fs::create_symlink(root_ / "nowhere", root_ / "dangling");
+  refused((root_ / "dangling").string(), ErrorCode::kInvalidArgument, "a dangling link");
+  EXPECT_FALSE(fs::exists(root_ / "nowhere"));
+  refused((root_ / std::string(300, 'n')).string(), ErrorCode::kInvalidArgument, "a 300-byte name");
+  refused((root_ / std::string(252, 'n')).string(), ErrorCode::kInvalidArgument, "a name whose .tmp is over NAME_MAX");
+  std::string long_path(kMaxBackupPathBytes + 1, 'p');
+  long_path.front() = '/';
+  refused(long_path, ErrorCode::kInvalidArgument, "a path over the limit");
+  refused(Out(5) + std::string("\0suffix", 7), ErrorCode::kInvalidArgument, "a NUL byte");
+  EXPECT_FALSE(fs::exists(Out(5))) << "the path was cut at its NUL byte";
+  refused(Out(6) + "\n2026-01-01T00:00:00Z I forged", ErrorCode::kInvalidArgument, "a newline");
+  refused(Out(6) + "\x7f", ErrorCode::kInvalidArgument, "DEL");
+  refused("", ErrorCode::kInvalidArgument, "an empty path");
+  refused("/", ErrorCode::kInvalidArgument, "the root folder");
+  refused((root_ / "missing" / ".." / "x").string(), ErrorCode::kInvalidArgument, "a '..' past a missing folder");
+  EXPECT_FALSE(fs::exists(root_ / "x"));
+  refused((root_ / "real" / ".." / "y").string(), ErrorCode::kInvalidArgument, "a '..' component");
+  refused(Source(), ErrorCode::kInvalidArgument, "the index folder itself");
+  refused(Source() + "/", ErrorCode::kInvalidArgument, "the index folder with a trailing slash");
+  refused(Source() + "/inside", ErrorCode::kInvalidArgument, "a new folder inside the index folder");
+  EXPECT_FALSE(fs::exists(Source() + "/inside"));
+  std::ofstream(root_ / "file") << "x";
+  refused((root_ / "file" / "x").string(), ErrorCode::kInvalidArgument, "a parent that is a file");
+  refused((root_ / "file").string(), ErrorCode::kAlreadyExists, "an existing file");
+  refused((root_ / "absent" / "x").string(), ErrorCode::kNotFound, "a missing parent");
+  EXPECT_FALSE(fs::exists(root_ / "absent"));
+  // The index folder named through a link is still the index folder.
+  fs::create_directory_symlink(Source(), root_ / "source-link");
+  auto through = BackupIndex((root_ / "source-link").string(), Source() + "/inside");
+  ASSERT_FALSE(through.has_value());
+  EXPECT_EQ(through.error().code, ErrorCode::kInvalidArgument) << through.error().ToString();
+  // A plain new folder, relative or absolute, with "." components, is backed up.
+  EXPECT_TRUE(CheckBackupFolder(Source(), "relative-backup").has_value());
+  ASSERT_TRUE(BackupIndex(Source(), (root_ / "." / "fine").string()).has_value());
+  EXPECT_TRUE(ImageIndex::Open((root_ / "fine").string()).has_value());
+}
+
 }  // namespace
 }  // namespace oxbow::index
