@@ -248,6 +248,7 @@ Result<BackupResult> WriteBackup(const std::string& dir, const std::string& tmp,
 
   auto copied = attempt.catalogue->CopyTo((fs::path(tmp) / kCatalogueFile).string());
   if (!copied) return std::unexpected(copied.error());
+  if (auto s = CheckFeatureBlobs((fs::path(tmp) / kCatalogueFile).string()); !s) return std::unexpected(s.error());
   result.bytes += *copied;
   for (const auto& [name, snapshot] : attempt.extras) {
     auto extra = snapshot->CopyTo((fs::path(tmp) / name).string());

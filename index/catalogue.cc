@@ -1,5 +1,7 @@
 #include "index/catalogue.h"
 
+#include "index/feature_store.h"
+#include "index/folder_lock.h"
 #include "sift/base/log.h"
 
 #include <sqlite3.h>
@@ -599,6 +601,111 @@ Result<std::vector<uint8_t>> Catalogue::ReadFeatures(int64_t number) const {
   if (!status) return std::unexpected(status.error());
   if (!out) return Fail(ErrorCode::kNotFound, path_ + ": no features of image number " + std::to_string(number));
   return std::move(*out);
+}
+
+Status Catalogue::CheckRecords() const {
+  sqlite3_stmt* stmt = nullptr;
+  if (sqlite3_prepare_v2(db_->handle, "PRAGMA integrity_check(images)", -1, &stmt, nullptr) != SQLITE_OK) {
+    return Fail(ErrorCode::kCorruptData, path_ + " is damaged: " + SqliteMessage(db_->handle));
+  }
+  std::vector<std::string> findings;
+  auto status = StepAll(db_->handle, stmt, path_, [&] {
+    const auto* text = reinterpret_cast<const char*>(sqlite3_column_text(stmt, 0));
+    findings.emplace_back(text != nullptr ? text : "");
+    return Ok();
+  });
+  if (!status) return status;
+  if (findings.size() == 1 && findings[0] == "ok") return Ok();
+  std::string message = path_ + " is damaged (SQLite's integrity check of its image records: " +
+                        (findings.empty() ? std::string("no answer") : findings[0]);
+  if (findings.size() > 1) message += ", and " + std::to_string(findings.size() - 1) + " more";
+  return Fail(ErrorCode::kCorruptData, message + "); restore it from a backup, or rebuild the index from the source images");
+}
+
+namespace {
+
+// Catalogue::FindDamagedFeatures of the catalogue open as `db` (`path` names it in errors).
+Result<std::vector<Catalogue::DamagedImage>> FindDamagedFeaturesIn(sqlite3* db, const std::string& path,
+                                                                   uint64_t* images) {
+  sqlite3_stmt* stmt = nullptr;
+  if (sqlite3_prepare_v2(db,
+                         "SELECT i.number, i.id, f.blob FROM images i LEFT JOIN features f ON f.number = i.number "
+                         "ORDER BY i.number",
+                         -1, &stmt, nullptr) != SQLITE_OK) {
+    return Fail(ErrorCode::kCorruptData, path + ": " + SqliteMessage(db));
+  }
+  std::vector<Catalogue::DamagedImage> out;
+  uint64_t rows = 0;
+  auto status = StepAll(db, stmt, path, [&] {
+    ++rows;
+    Catalogue::DamagedImage image;
+    image.number = sqlite3_column_int64(stmt, 0);
+    const auto* id = reinterpret_cast<const char*>(sqlite3_column_text(stmt, 1));
+    image.id.assign(id != nullptr ? id : "", static_cast<size_t>(sqlite3_column_bytes(stmt, 1)));
+    if (sqlite3_column_type(stmt, 2) == SQLITE_NULL) {
+      image.why = "no feature BLOB";
+      out.push_back(std::move(image));
+      return Ok();
+    }
+    const auto* blob = static_cast<const uint8_t*>(sqlite3_column_blob(stmt, 2));
+    auto features = PackedFeatures::Deserialize(
+        std::span<const uint8_t>(blob, static_cast<size_t>(sqlite3_column_bytes(stmt, 2))), "its feature BLOB");
+    if (!features) {
+      image.why = features.error().message;
+      out.push_back(std::move(image));
+    }
+    return Ok();
+  });
+  if (!status) return std::unexpected(status.error());
+  if (images != nullptr) *images = rows;
+  return out;
+}
+
+}  // namespace
+
+Result<std::vector<Catalogue::DamagedImage>> Catalogue::FindDamagedFeatures(uint64_t* images) const {
+  OXBOW_CHECK(meta_.schema_version == kSchemaVersion);
+  return FindDamagedFeaturesIn(db_->handle, path_, images);
+}
+
+Status CheckFeatureBlobs(const std::string& path) {
+  // Read-write: the last connection to close removes the WAL and shared-memory files it made.
+  auto db = Connect(path, SQLITE_OPEN_READWRITE);
+  if (!db) return std::unexpected(db.error());
+  auto damaged = FindDamagedFeaturesIn((*db)->handle, path, nullptr);
+  if (!damaged) return std::unexpected(damaged.error());
+  if (damaged->empty()) return Ok();
+  const Catalogue::DamagedImage& first = damaged->front();
+  return Fail(ErrorCode::kCorruptData,
+              path + ": the feature BLOB of image '" + first.id + "' fails its check (" + first.why + ")" +
+                  (damaged->size() > 1 ? ", and " + std::to_string(damaged->size() - 1) + " more" : std::string()) +
+                  "; `oxbow index check --index DIR` lists them, --drop-damaged deletes them");
+}
+
+Result<IndexCheck> CheckIndexFolder(const std::string& dir, bool drop_damaged) {
+  auto lock = FolderLock::Acquire(dir);
+  if (!lock) return std::unexpected(lock.error());
+  auto catalogue = Catalogue::Open((std::filesystem::path(dir) / kCatalogueFile).string());
+  if (!catalogue) return std::unexpected(catalogue.error());
+  if ((*catalogue)->meta().schema_version != kSchemaVersion) {
+    return Fail(ErrorCode::kIncompatible, "the catalogue of " + dir + " has schema version " +
+                                              std::to_string((*catalogue)->meta().schema_version) +
+                                              ": open the index once (oxbow index info) to migrate it, then check it");
+  }
+  if (auto s = (*catalogue)->CheckRecords(); !s) return std::unexpected(s.error());
+  IndexCheck out;
+  auto damaged = (*catalogue)->FindDamagedFeatures(&out.images);
+  if (!damaged) return std::unexpected(damaged.error());
+  out.damaged = std::move(*damaged);
+  if (drop_damaged && !out.damaged.empty()) {
+    if (auto s = (*catalogue)->OpenForWriting(); !s) return std::unexpected(s.error());
+    for (const Catalogue::DamagedImage& image : out.damaged) {
+      if (auto s = (*catalogue)->Delete(image.number); !s) return std::unexpected(s.error());
+      OXBOW_LOG(kWarning) << "index " << dir << ": dropped image '" << image.id << "' (" << image.why << ")";
+    }
+    out.dropped = true;
+  }
+  return out;
 }
 
 Status Catalogue::ForEach(const std::function<Status(CatalogueRow&&)>& fn, bool with_features) const {

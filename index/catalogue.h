@@ -115,6 +115,24 @@ class Catalogue {
   [[nodiscard]] Result<std::vector<uint8_t>> ReadFeatures(int64_t number) const;
   // Records the checkpoint manifest in one committed transaction: the commit point of a checkpoint.
   [[nodiscard]] Status SetCheckpoint(const std::string& manifest);
+  // SQLite's integrity check of the `images` table and its id index (PRAGMA integrity_check(images):
+  // not the `features` table, whose BLOBs FindDamagedFeatures checks): what an open reads of every
+  // image. Measured 0.66 s for 1M rows (116 MB, page cache warm, 2-core VM). kCorruptData with
+  // SQLite's first finding (an id changed in place gives "row N missing from index ..."), kIoError
+  // when the file cannot be read.
+  [[nodiscard]] Status CheckRecords() const;
+  // An image whose feature BLOB fails its check (FindDamagedFeatures).
+  struct DamagedImage {
+    int64_t number = 0;
+    std::string id;
+    std::string why;  // the check's message
+  };
+  // Reads every image's BLOB and checks it as an open does (PackedFeatures::Deserialize: header,
+  // size, CRC-32 of the body; missing BLOB): those that fail, in number order (schema 2 only).
+  // O(total features). *images (when given) receives the number of image rows. An error is a
+  // catalogue that cannot be read at all.
+  [[nodiscard]] Result<std::vector<DamagedImage>> FindDamagedFeatures(uint64_t* images = nullptr) const;
+
   // The number of image rows ever inserted or deleted (a replacement is both): 2 x the highest number
   // ever given (AUTOINCREMENT numbers are never reused) - the live rows. Each Insert, Delete and each
   // row of InsertMany adds 1, Replace 2, in the same commit. Two copies of one index that applied the
@@ -132,5 +150,24 @@ class Catalogue {
   std::string path_;
   CatalogueMeta meta_;
 };
+
+// The feature BLOBs of the catalogue file at `path` (a copy: a backup's) checked as
+// Catalogue::FindDamagedFeatures does; kCorruptData naming the first damaged image. Opens it read-write
+// (it must not be an index's own catalogue while that index is open).
+[[nodiscard]] Status CheckFeatureBlobs(const std::string& path);
+
+// `oxbow index check`: the catalogue of the index at `dir` checked whole while no process has the
+// index open (its FolderLock is held throughout: the folder of a running server is refused), its
+// records (Catalogue::CheckRecords) and every image's feature BLOB (FindDamagedFeatures). With
+// `drop_damaged`, the images whose BLOB is damaged are deleted from the catalogue, each in its own
+// committed transaction (the next open removes them from its checkpoint as it does any image removed
+// since); their ids can then be added again. kCorruptData when the records themselves are damaged
+// (nothing is dropped then: restore a backup or rebuild).
+struct IndexCheck {
+  uint64_t images = 0;                           // image rows checked
+  std::vector<Catalogue::DamagedImage> damaged;  // those whose BLOB fails its check, by number
+  bool dropped = false;                          // drop_damaged: `damaged` were deleted
+};
+[[nodiscard]] Result<IndexCheck> CheckIndexFolder(const std::string& dir, bool drop_damaged);
 
 }  // namespace oxbow::index

@@ -217,7 +217,9 @@ Result<std::shared_ptr<const MappedFile>> MappedFile::Open(const std::string& pa
   // the process's descriptor limit (past it ReadAt says no and callers read through the mapping).
   const bool keep = size > 0 && use == Use::kRandom && KeepDescriptor();
   if (!keep) ::close(fd);
-  return std::shared_ptr<const MappedFile>(new MappedFile(static_cast<const uint8_t*>(data), size, keep ? fd : -1));
+  return std::shared_ptr<const MappedFile>(new MappedFile(static_cast<const uint8_t*>(data), size, keep ? fd : -1,
+                                                          use == Use::kRandom ? path : std::string(),
+                                                          static_cast<uint64_t>(st.st_dev), static_cast<uint64_t>(st.st_ino)));
 }
 
 MappedFile::~MappedFile() {
@@ -234,6 +236,20 @@ bool MappedFile::ReadAt(std::span<const uint8_t> within, std::span<uint8_t> out)
     return false;
   }
   return ReadFully(fd_, static_cast<uint64_t>(within.data() - data_), out) == static_cast<ssize_t>(out.size());
+}
+
+bool MappedFile::Holds(std::span<const uint8_t> within) const {
+  if (path_.empty() || within.empty() || within.data() < data_ || within.data() >= data_ + size_) return true;
+  struct stat st {};
+  if (fd_ >= 0) {
+    if (::fstat(fd_, &st) != 0) return false;
+  } else {
+    // Gone from its path, or another file there now: nothing can truncate the mapped one by name.
+    if (::stat(path_.c_str(), &st) != 0) return errno == ENOENT;
+    if (static_cast<uint64_t>(st.st_dev) != device_ || static_cast<uint64_t>(st.st_ino) != inode_) return true;
+  }
+  const auto end = static_cast<uint64_t>(within.data() - data_) + within.size();
+  return st.st_size >= 0 && static_cast<uint64_t>(st.st_size) >= end;
 }
 
 Result<CheckpointFile> WriteCheckpointFile(const std::string& dir, const std::string& name,

@@ -92,12 +92,24 @@ class MappedFile {
   // are paravirtualised; a thousand images' pages per search). kRandom files only; false when not
   // one, when `within` is not inside bytes(), or on a read error (then read through bytes()).
   bool ReadAt(std::span<const uint8_t> within, std::span<uint8_t> out) const;
+  // Whether the file still holds the bytes of `within`, so that reading them
+  // through the mapping cannot fault: a page of a mapping past the end of a file truncated since it
+  // was mapped raises SIGBUS. One fstat of the kept descriptor, else one stat of the path (a file no
+  // longer at its path, deleted or replaced, cannot be truncated through it: true). A truncation
+  // after this returns and before the read still faults: call it right before reading. True for
+  // kResident files (the bytes are in this process's memory) and for bytes that are not a part of
+  // bytes() (not read through this mapping). Thread-safe.
+  bool Holds(std::span<const uint8_t> within) const;
 
  private:
-  MappedFile(const uint8_t* data, size_t size, int fd) : data_(data), size_(size), fd_(fd) {}
+  MappedFile(const uint8_t* data, size_t size, int fd, std::string path, uint64_t device, uint64_t inode)
+      : data_(data), size_(size), fd_(fd), path_(std::move(path)), device_(device), inode_(inode) {}
   const uint8_t* data_;
   size_t size_;
   int fd_;  // kRandom: the file, open for ReadAt; else -1
+  std::string path_;  // kRandom: where it was opened (Holds); else empty
+  uint64_t device_;   // st_dev and st_ino of the file mapped (Holds)
+  uint64_t inode_;
 };
 
 using ByteSink = std::function<void(std::span<const uint8_t>)>;

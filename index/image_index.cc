@@ -83,12 +83,17 @@ void RunOnlyWhenIdle() {
 
 // A geometry file of the checkpoint an index opened from. Open checks its size and image table but
 // not its checksum (reading every geometry byte took most of an open at 1M images); its data is
-// checked on use instead: every use of an image checks that image's checksum (format version 3; ~9 KB
-// hashed per image), and a thread of the checkpointer checks the whole file once after open. A file without
-// per-image checksums (versions 1 and 2) is checked whole at the first use of one of its images (the
-// caller waits, concurrent callers wait for the same check). A part that fails a check is never
+// checked on use instead: every use of an image checks what it reads, that the file still holds the
+// image's bytes (MappedFile::Holds: one fstat; a file truncated under the running index would
+// otherwise kill it with SIGBUS at the first read of a page past its new end) and the image's checksum
+// (format version 3; ~9 KB hashed per image), whether or not the whole file passed its check, so that
+// bytes changed on disk after that check are not served either; and a thread of the checkpointer
+// checks the whole file once after open. A file without per-image checksums (versions 1 and 2, which
+// only older builds wrote) is checked whole at the first use of one of its images (the caller waits,
+// concurrent callers wait for the same check), and not again. A part that fails a check is never
 // served: its images are read from the catalogue's BLOBs (through a read-only connection of its own,
-// on demand) and the next checkpoint rewrites them into new files.
+// on demand) and the next checkpoint rewrites them into new files. What remains: a truncation in
+// the microseconds between an image's check and its reads still faults.
 class GeometryPart {
  public:
   GeometryPart(std::string dir, CheckpointFile file, std::shared_ptr<const MappedFile> mapped = nullptr)
@@ -121,12 +126,16 @@ class GeometryPart {
   }
   // Verified and found damaged (false while not verified yet).
   bool Damaged() const { return state_.load(std::memory_order_acquire) == kDamaged; }
-  // Whether `stored` (image `number`'s view of this file) may be served: the whole file passed its
-  // check, or, not checked yet, the image's own checksum matches (a mismatch marks the file damaged);
-  // a file without per-image checksums is checked whole now.
+  // Whether `stored` (image `number`'s view of this file, or a copy of it) may be served: the file is
+  // not known damaged, still holds the image's bytes, and the image's own checksum matches (a failure
+  // of either marks the file damaged); a file without per-image checksums is checked whole now (once).
   bool Sound(uint32_t number, const PackedFeatures& stored, std::optional<uint64_t> checksum) const {
-    const int state = state_.load(std::memory_order_acquire);
-    if (state != kUnverified) return state == kGood;
+    if (state_.load(std::memory_order_acquire) == kDamaged) return false;
+    if (mapped_ && (!mapped_->Holds(stored.bytes()) || !mapped_->Holds(stored.signature_bytes()))) {
+      MarkDamaged("checkpoint file " + JoinPath(dir_, file_.name.c_str()) + " no longer holds the bytes of image number " +
+                  std::to_string(number) + " (truncated)");
+      return false;
+    }
     if (!checksum.has_value()) return Verified();
     if (ImageChecksum(stored) == checksum.value()) return true;
     MarkDamaged("checkpoint file " + JoinPath(dir_, file_.name.c_str()) + ": image number " + std::to_string(number) +
@@ -508,6 +517,45 @@ class BlobBlock {
   std::atomic<size_t> used_{0};
 };
 
+// Per geometry file of a checkpoint, the numbers of the images it holds, ascending (what its image
+// table says): which file holds an image, so that a checkpoint can tell how much of a file is live.
+using GeometryContents = std::map<std::string, std::shared_ptr<const std::vector<uint32_t>>>;
+
+// Compaction of the geometry files. A checkpoint keeps a geometry file of the previous one as it is,
+// or drops it from its manifest and writes the file's live images into its own new files (then the
+// file is deleted, CommitCheckpoint). It drops a file found damaged, a file less than half of whose
+// images are live (so the files on disk hold at most about twice the live images' bytes, plus what
+// the last checkpoint wrote), and, when more than kMaxSmallGeometryFiles of the files it would keep
+// are small (under kSmallGeometryFileBytes: a checkpoint after a few changes writes one), all small
+// ones, merged into its new file. Under endless churn the geometry files (and the descriptors their
+// mappings keep, MappedFile) therefore stay at most kMaxSmallGeometryFiles + 1 small ones plus
+// 2 x (live bytes) / kSmallGeometryFileBytes large ones; the merge of the small files rewrites at most
+// kMaxSmallGeometryFiles x kSmallGeometryFileBytes every kMaxSmallGeometryFiles checkpoints.
+constexpr uint64_t kSmallGeometryFileBytes = kGeometryPartBytes / 4;
+constexpr size_t kMaxSmallGeometryFiles = 8;
+
+// The geometry files of `previous` a checkpoint keeps (see above): `contents` gives their images,
+// `is_live` whether an image number is live now. A file missing from `contents` is dropped (its
+// live images are rewritten, which is always safe).
+std::set<std::string> KeptGeometry(const CheckpointManifest& previous, const GeometryContents& contents,
+                                   const std::set<std::string>& damaged, const std::function<bool(uint32_t)>& is_live) {
+  std::set<std::string> kept;
+  std::vector<std::string> small;
+  for (const CheckpointFile& f : previous.files) {
+    if (!f.name.starts_with("geometry-") || damaged.count(f.name)) continue;
+    const auto it = contents.find(f.name);
+    if (it == contents.end()) continue;
+    const size_t live = static_cast<size_t>(std::count_if(it->second->begin(), it->second->end(), is_live));
+    if (live == 0 || 2 * live < it->second->size()) continue;
+    kept.insert(f.name);
+    if (f.size_bytes < kSmallGeometryFileBytes) small.push_back(f.name);
+  }
+  if (small.size() > kMaxSmallGeometryFiles) {
+    for (const std::string& name : small) kept.erase(name);
+  }
+  return kept;
+}
+
 }  // namespace
 
 struct ImageIndex::Impl {
@@ -521,6 +569,7 @@ struct ImageIndex::Impl {
   std::unique_ptr<Catalogue> catalogue;         // guarded by writer_mutex
 
   CheckpointManifest checkpoint;                // the last committed one; guarded by writer_mutex
+  GeometryContents geometry_contents;           // the images of its geometry files; guarded by writer_mutex
   uint64_t changes_since_checkpoint = 0;        // images added + removed since; guarded by writer_mutex
   std::atomic<uint64_t> write_sequence{0};      // Catalogue::WriteSequence of the last commit
   bool checkpoint_forced = false;               // Open rebuilt or re-coded: checkpoint now; writer_mutex
@@ -532,7 +581,9 @@ struct ImageIndex::Impl {
   uint64_t pending_after_failure = 0;           // changes of failed background checkpoints (for Close)
   std::condition_variable checkpoint_due;       // with writer_mutex: wakes the checkpointer
   std::thread checkpointer;                     // runs CheckpointLoop
-  // The geometry files of the checkpoint Open loaded (set before the checkpointer starts, then read-only).
+  // The geometry files of the checkpoint Open loaded that the committed manifest still names (set
+  // before the checkpointer starts; then those a checkpoint drops are removed by the checkpointer
+  // under writer_mutex, ViewWrittenGeometry); read under writer_mutex or on the checkpointer.
   std::vector<std::shared_ptr<const GeometryPart>> geometry_parts;
   // The geometry files later checkpoints wrote and their images now view (ViewWrittenGeometry); written
   // by the checkpointer under writer_mutex, read under it or on the checkpointer.
@@ -567,10 +618,13 @@ struct ImageIndex::Impl {
 
   // A checkpoint of `snap` (which must reflect every committed catalogue change) in two steps
   // (checkpoint.h): CheckpointFiles writes the files without holding writer_mutex, after `previous`
-  // (the current checkpoint, copied under the lock); CommitCheckpoint (writer_mutex held) records the
-  // manifest and deletes unreferenced files. The checkpoint covers `changes` of changes_since_checkpoint.
-  Result<CheckpointManifest> CheckpointFiles(const Snapshot& snap, const CheckpointManifest& previous) const;
-  Status CommitCheckpoint(CheckpointManifest next, uint64_t changes);
+  // (the current checkpoint) with `contents` (its geometry_contents), both copied under the lock,
+  // and gives the images of the geometry files it names in *next_contents; CommitCheckpoint
+  // (writer_mutex held) records the manifest and deletes unreferenced files. The checkpoint covers
+  // `changes` of changes_since_checkpoint.
+  Result<CheckpointManifest> CheckpointFiles(const Snapshot& snap, const CheckpointManifest& previous,
+                                             const GeometryContents& contents, GeometryContents* next_contents) const;
+  Status CommitCheckpoint(CheckpointManifest next, GeometryContents next_contents, uint64_t changes);
   // The file of segment i of `snap` for checkpoint `generation`: the one `previous` names for it, else
   // a new one written now (`written` counts them). Uses segment_files.
   Result<CheckpointFile> FileOfSegment(const Snapshot& snap, size_t i, const CheckpointManifest& previous,
@@ -704,8 +758,17 @@ SnapshotPtr MakeSnapshot(InvertedFile inverted, std::vector<std::shared_ptr<cons
   return snap;
 }
 
-// Open without a checkpoint: every row and BLOB read and validated, the inverted file built in one pass.
-Result<SnapshotPtr> BuildFromCatalogue(const Catalogue& catalogue, size_t vocab_size, const IndexOptions& options) {
+// An image whose catalogue BLOB an open found damaged: it is left out of the index and its row deleted
+// (Open), so that the damage costs that image only.
+struct DamagedBlob {
+  int64_t number = 0;
+  std::string why;
+};
+
+// Open without a checkpoint: every row and BLOB read and validated, the inverted file built in one
+// pass; an image whose BLOB fails its check is left out and added to *damaged.
+Result<SnapshotPtr> BuildFromCatalogue(const Catalogue& catalogue, size_t vocab_size, const IndexOptions& options,
+                                       std::vector<DamagedBlob>* damaged) {
   std::vector<std::shared_ptr<const Entry>> by_number;
   const std::string& path = catalogue.path();
   auto status = catalogue.ForEach([&](CatalogueRow&& row) -> Status {
@@ -713,8 +776,11 @@ Result<SnapshotPtr> BuildFromCatalogue(const Catalogue& catalogue, size_t vocab_
       return Fail(ErrorCode::kCorruptData, path + ": image number out of range");
     }
     auto features = PackedFeatures::Deserialize(row.features, "image '" + row.record.id + "' in " + path);
-    if (!features) return std::unexpected(features.error());
-    if (auto s = CheckEntry(row.record, *features, vocab_size, path); !s) return s;
+    Status valid = features ? CheckEntry(row.record, *features, vocab_size, path) : Status(std::unexpected(features.error()));
+    if (!valid) {
+      damaged->push_back({row.number, valid.error().message});
+      return Ok();
+    }
     const auto number = static_cast<size_t>(row.number);
     if (by_number.size() <= number) by_number.resize(number + 1);
     by_number[number] = std::make_shared<Entry>(Entry{std::move(row.record), std::move(*features), nullptr, 0, std::nullopt});
@@ -737,7 +803,10 @@ struct LoadedCheckpoint {
   CheckpointManifest manifest;   // generation 0 when unreadable
   uint64_t changes = 0;          // images added + removed since the checkpoint (replayed)
   std::vector<std::shared_ptr<const GeometryPart>> parts;  // its geometry files, not verified yet
+  GeometryContents contents;     // the images of its geometry files
+  bool compact = false;          // a checkpoint would drop some of its geometry files (KeptGeometry)
   bool recoded = false;          // the postings file was of an older format (re-coded in memory)
+  std::vector<DamagedBlob> damaged;  // images added since whose BLOB is damaged (left out)
   // Its segment files, each with the segment loaded from it (ImageIndex::Impl::segment_files).
   std::vector<std::pair<std::weak_ptr<const void>, CheckpointFile>> segment_files;
 };
@@ -862,6 +931,11 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
   std::vector<const GeometryImage*> stored(static_cast<size_t>(high_water) + 1, nullptr);
   std::vector<uint32_t> part_of(stored.size(), 0);  // index into out.parts
   for (size_t i = 0; i < files.size(); ++i) {
+    if (IsPostingsFile(files[i].name)) continue;
+    auto numbers = std::make_shared<std::vector<uint32_t>>();
+    numbers->reserve(geometry[i].size());
+    for (const GeometryImage& image : geometry[i]) numbers->push_back(image.number);
+    out.contents[files[i].name] = std::move(numbers);
     if (geometry[i].empty()) continue;
     const auto part = static_cast<uint32_t>(out.parts.size());
     out.parts.push_back(std::make_shared<const GeometryPart>(dir, files[i], geometry_files[i]));
@@ -901,6 +975,10 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
       /*with_features=*/false);
   if (!status) return std::unexpected(status.error());
   if (!inconsistency.empty()) return unusable(inconsistency);
+  // Files mostly of removed images (what a checkpoint drops) are compacted by one right after open.
+  const size_t num_geometry_files = out.contents.size();
+  out.compact = KeptGeometry(*manifest, out.contents, {}, [&](uint32_t n) { return n < by_number.size() && by_number[n]; })
+                    .size() < num_geometry_files;
 
   const double records_ms = MsSince(t0) - files_ms;
   // Removed since: live in the checkpoint, gone from the catalogue.
@@ -929,8 +1007,12 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
     const auto it = added.find(number);
     if (it == added.end()) return Fail(ErrorCode::kCorruptData, path + " is damaged: features without a record");
     auto features = PackedFeatures::Deserialize(blob, "image '" + it->second.id + "' in " + path);
-    if (!features) return std::unexpected(features.error());
-    if (auto s = CheckEntry(it->second, *features, vocab_size, path); !s) return s;
+    Status valid = features ? CheckEntry(it->second, *features, vocab_size, path) : Status(std::unexpected(features.error()));
+    if (!valid) {
+      out.damaged.push_back({number, valid.error().message});
+      added.erase(it);
+      return Ok();
+    }
     const auto n = static_cast<size_t>(number);
     if (by_number.size() <= n) by_number.resize(n + 1);
     added_numbers.push_back(static_cast<uint32_t>(n));
@@ -962,21 +1044,32 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
 ImageIndex::ImageIndex(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
 ImageIndex::~ImageIndex() { impl_->Close(); }
 
-Result<CheckpointManifest> ImageIndex::Impl::CheckpointFiles(const Snapshot& snap,
-                                                             const CheckpointManifest& previous) const {
+Result<CheckpointManifest> ImageIndex::Impl::CheckpointFiles(const Snapshot& snap, const CheckpointManifest& previous,
+                                                             const GeometryContents& contents,
+                                                             GeometryContents* next_contents) const {
   CheckpointManifest next;
   next.generation = previous.generation + 1;
   next.sqrt_tf = index_options.sqrt_tf;
   const size_t num_numbers = snap.entries.size();
   next.high_water = num_numbers > 0 ? static_cast<int64_t>(num_numbers) - 1 : 0;
-  // Geometry files are immutable: the previous ones stay (images removed since are skipped at open),
-  // new ones hold the images above the previous high water, and those of the previous files found
-  // damaged (GeometryPart).
-  const std::set<std::string> damaged = DamagedGeometry(previous);
+  // Geometry files are immutable: a previous one that KeptGeometry keeps is named again (its images
+  // removed since are skipped at open), the others are dropped; new ones hold the images above the
+  // previous high water and the live images of the dropped files. Each live image is in exactly one
+  // file of the manifest (Open refuses overlaps).
+  const auto is_live = [&](uint32_t n) { return n < num_numbers && snap.entries[n] != nullptr; };
+  const std::set<std::string> kept = KeptGeometry(previous, contents, DamagedGeometry(previous), is_live);
+  next_contents->clear();
+  const size_t first = previous.files.empty() ? 0 : static_cast<size_t>(previous.high_water) + 1;
+  std::vector<uint8_t> covered(first, 0);  // 1: in a file kept
   for (const CheckpointFile& f : previous.files) {
-    if (f.name.starts_with("geometry-") && !damaged.count(f.name)) next.files.push_back(f);
+    if (!kept.count(f.name)) continue;
+    next.files.push_back(f);
+    const auto& numbers = contents.at(f.name);
+    (*next_contents)[f.name] = numbers;
+    for (const uint32_t n : *numbers) {
+      if (n < first) covered[n] = 1;
+    }
   }
-  const bool rewrite = !damaged.empty();
   const std::string generation = std::to_string(next.generation);
   std::vector<GeometryImage> part;
   uint64_t part_bytes = 0;
@@ -985,15 +1078,18 @@ Result<CheckpointManifest> ImageIndex::Impl::CheckpointFiles(const Snapshot& sna
     auto file = WriteCheckpointFile(dir, "geometry-" + generation + "-" + std::to_string(parts++) + ".oxck",
                                     [&](const ByteSink& sink) { WriteGeometry(part, sink); });
     if (!file) return std::unexpected(file.error());
+    auto numbers = std::make_shared<std::vector<uint32_t>>();
+    numbers->reserve(part.size());
+    for (const GeometryImage& image : part) numbers->push_back(image.number);
+    (*next_contents)[file->name] = std::move(numbers);
     next.files.push_back(std::move(*file));
     part.clear();
     part_bytes = 0;
     return Ok();
   };
-  const size_t first = previous.files.empty() ? 0 : static_cast<size_t>(previous.high_water) + 1;
-  for (size_t n = rewrite ? 0 : first; n < num_numbers; ++n) {
+  for (size_t n = 0; n < num_numbers; ++n) {
     const Entry* entry = snap.entries[n].get();
-    if (!entry || (n < first && !(entry->part && damaged.count(entry->part->file().name)))) continue;
+    if (!entry || (n < first && covered[n])) continue;
     const PackedFeatures& features = entry->features();
     part.push_back({static_cast<uint32_t>(n), features, std::nullopt});
     part_bytes += features.bytes().size() + features.signature_bytes().size();
@@ -1049,12 +1145,20 @@ Result<CheckpointFile> ImageIndex::Impl::FileOfSegment(const Snapshot& snap, siz
   return file;
 }
 
-Status ImageIndex::Impl::CommitCheckpoint(CheckpointManifest next, uint64_t changes) {
+Status ImageIndex::Impl::CommitCheckpoint(CheckpointManifest next, GeometryContents next_contents, uint64_t changes) {
   if (auto s = catalogue->SetCheckpoint(next.Format()); !s) return s;
   CheckpointStage("manifest-committed");
   checkpoint = std::move(next);
+  geometry_contents = std::move(next_contents);
   changes_since_checkpoint -= changes;
   checkpoint_forced = false;
+  // Only now, with the new manifest durable (SetCheckpoint commits with synchronous=FULL), are the
+  // files it no longer names deleted (a dropped geometry file, a merged-away segment, the previous
+  // postings head): a crash before the commit leaves the previous manifest with every file it names
+  // (the new files have new names), one after it leaves the new manifest, whose files are durable
+  // (WriteCheckpointFile), and leftovers that Open deletes. A file still mapped by a snapshot in use
+  // (a search, a backup) stays readable after the unlink: its disk space is freed once the last
+  // mapping of it is gone (ViewWrittenGeometry moves the live images to the new files).
   RemoveUnreferencedCheckpointFiles(dir, checkpoint);
   CheckpointStage("cleaned");
   return Ok();
@@ -1087,9 +1191,13 @@ std::set<std::string> ImageIndex::Impl::DamagedGeometry(const CheckpointManifest
 // releases it while it reads the files' image tables and makes the new entries.
 void ImageIndex::Impl::ViewWrittenGeometry(const Snapshot& written, const CheckpointManifest& previous,
                                            std::unique_lock<std::mutex>& lock) {
-  std::erase_if(written_parts, [&](const auto& part) {
-    return std::find(checkpoint.files.begin(), checkpoint.files.end(), part->file()) == checkpoint.files.end();
-  });
+  // Parts the committed manifest no longer names are forgotten here; their images move to the new
+  // files below, and each file's mapping (and descriptor) goes with the last snapshot that views it.
+  const auto named = [names = checkpoint.files](const GeometryPart& part) {
+    return std::find(names.begin(), names.end(), part.file()) != names.end();
+  };
+  std::erase_if(written_parts, [&](const auto& part) { return !named(*part); });
+  std::erase_if(geometry_parts, [&](const auto& part) { return !named(*part); });
   std::vector<CheckpointFile> files;
   for (const CheckpointFile& file : checkpoint.files) {
     if (file.name.starts_with("geometry-") &&
@@ -1121,7 +1229,9 @@ void ImageIndex::Impl::ViewWrittenGeometry(const Snapshot& written, const Checkp
     for (GeometryImage& image : *images) {
       if (image.number >= written.entries.size()) continue;
       const Entry* entry = written.entries[image.number].get();
-      if (!entry || entry->part || !RecordMatches(entry->record, image.features)) continue;
+      // An image viewing a file still named stays there; one in memory, or viewing a file the manifest
+      // dropped (compacted or damaged), views the new file.
+      if (!entry || (entry->part && named(*entry->part)) || !RecordMatches(entry->record, image.features)) continue;
       v.entries.emplace_back(image.number, std::make_shared<const Entry>(Entry{
                                                entry->record, std::move(image.features), v.part, image.number, image.checksum}));
     }
@@ -1161,7 +1271,13 @@ void ImageIndex::Impl::Changed(uint64_t images) {
 }
 
 void ImageIndex::Impl::VerifyParts() {
-  if (geometry_parts.empty()) return;
+  // Weak: a part a checkpoint dropped meanwhile (ViewWrittenGeometry) is not kept open for its check.
+  std::vector<std::weak_ptr<const GeometryPart>> parts;
+  {
+    std::lock_guard<std::mutex> lock(writer_mutex);
+    parts.assign(geometry_parts.begin(), geometry_parts.end());
+  }
+  if (parts.empty()) return;
   CheckpointStage("verifying-geometry");
   const auto t0 = Clock::now();
   size_t damaged = 0;
@@ -1188,13 +1304,15 @@ void ImageIndex::Impl::VerifyParts() {
     CheckpointStage("geometry-read");
     return false;
   };
-  for (const auto& part : geometry_parts) {
+  for (const auto& weak : parts) {
+    const std::shared_ptr<const GeometryPart> part = weak.lock();
+    if (!part) continue;
     const std::optional<bool> good = part->VerifiedUnless(stop);
     if (!good.has_value()) return;  // closing
     if (!*good) ++damaged;
   }
   CheckpointStage("geometry-verified");
-  OXBOW_LOG(kInfo) << "index " << dir << ": " << geometry_parts.size() << " geometry files of the checkpoint verified in "
+  OXBOW_LOG(kInfo) << "index " << dir << ": " << parts.size() << " geometry files of the checkpoint verified in "
                    << MsSince(t0) << " ms, " << damaged << " damaged";
   // A damaged file makes CheckpointDue() true: the checkpointer rewrites it once woken (under the lock,
   // so that the wake cannot fall between its test and its wait).
@@ -1224,10 +1342,13 @@ void ImageIndex::Impl::CheckpointLoop() {
     const auto snap = Current();
     const uint64_t changes = changes_since_checkpoint;
     const CheckpointManifest previous = checkpoint;
+    const GeometryContents contents = geometry_contents;
+    GeometryContents next_contents;
     lock.unlock();  // writers go on while the files are written
-    auto next = CheckpointFiles(*snap, previous);
+    auto next = CheckpointFiles(*snap, previous, contents, &next_contents);
     lock.lock();
-    const Status status = next ? CommitCheckpoint(std::move(*next), changes) : Status(std::unexpected(next.error()));
+    const Status status =
+        next ? CommitCheckpoint(std::move(*next), std::move(next_contents), changes) : Status(std::unexpected(next.error()));
     if (status) {
       ViewWrittenGeometry(*snap, previous, lock);
     } else {
@@ -1253,8 +1374,9 @@ void ImageIndex::Impl::Close() {
   std::lock_guard<std::mutex> writer(writer_mutex);
   changes_since_checkpoint += pending_after_failure;
   if ((changes_since_checkpoint == 0 && !checkpoint_forced && DamagedGeometry(checkpoint).empty()) || !catalogue) return;
-  auto next = CheckpointFiles(*Current(), checkpoint);
-  const Status status = next ? CommitCheckpoint(std::move(*next), changes_since_checkpoint)
+  GeometryContents next_contents;
+  auto next = CheckpointFiles(*Current(), checkpoint, geometry_contents, &next_contents);
+  const Status status = next ? CommitCheckpoint(std::move(*next), std::move(next_contents), changes_since_checkpoint)
                              : Status(std::unexpected(next.error()));
   if (!status) {
     OXBOW_LOG(kWarning) << "index " << dir << ": cannot write a checkpoint at close (" << status.error().message
@@ -1313,6 +1435,9 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, con
   if (!lock) return std::unexpected(lock.error());
   auto catalogue = Catalogue::Open(catalogue_path);
   if (!catalogue) return std::unexpected(catalogue.error());
+  // Every record is read below, but a damaged row can read as another valid one (an id changed in
+  // place): SQLite's check of the records and their id index finds it.
+  if (auto s = (*catalogue)->CheckRecords(); !s) return std::unexpected(s.error());
   const CatalogueMeta& meta = (*catalogue)->meta();
   // The vocabulary (about a second for 100k words with Hamming parameters) is read while the checkpoint
   // loads, which needs only its size; any fault of the vocabulary is still reported first.
@@ -1339,12 +1464,16 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, con
   auto impl = std::make_unique<Impl>(dir, options, std::move(*vocabulary), meta.extractor_settings);
   impl->folder_lock = std::move(*lock);
   std::shared_ptr<Snapshot> snap;
+  std::vector<DamagedBlob> damaged;
   if (loaded) {
     if (!*loaded) return std::unexpected(loaded->error());
     if ((*loaded)->snapshot) {
+      damaged = std::move((*loaded)->damaged);
       snap = std::move((*loaded)->snapshot);
       impl->checkpoint = std::move((*loaded)->manifest);
       impl->geometry_parts = std::move((*loaded)->parts);
+      impl->geometry_contents = std::move((*loaded)->contents);
+      impl->checkpoint_forced = (*loaded)->compact;
       for (auto& [segment, file] : (*loaded)->segment_files) impl->segment_files.push_back({segment, file});
       impl->changes_since_checkpoint = (*loaded)->changes;
       if ((*loaded)->recoded) {
@@ -1360,12 +1489,19 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, con
   }
   const bool rebuild = snap == nullptr;
   if (rebuild) {
-    auto built = BuildFromCatalogue(**catalogue, vocab_size, options);
+    auto built = BuildFromCatalogue(**catalogue, vocab_size, options, &damaged);
     if (!built) return std::unexpected(built.error());
     snap = std::move(*built);
   }
   // Everything read is validated: only now may the catalogue be opened for writing (catalogue.h).
   if (auto writable = (*catalogue)->OpenForWriting(); !writable) return std::unexpected(writable.error());
+  // The images whose BLOB is damaged are not in the snapshot: their rows go too, so that the catalogue
+  // and the index agree (a checkpoint covers their numbers) and their ids may be added again.
+  for (const DamagedBlob& blob : damaged) {
+    OXBOW_LOG(kError) << "index " << dir << ": " << blob.why << "; the image is dropped from the index (its catalogue "
+                      << "row deleted): add it again from its source image";
+    if (auto s = (*catalogue)->Delete(blob.number); !s) return std::unexpected(s.error());
+  }
   auto sequence = (*catalogue)->WriteSequence();
   if (!sequence) return std::unexpected(sequence.error());
   impl->write_sequence = *sequence;

@@ -67,13 +67,20 @@
 //   vocabulary.oxvoc   a copy of the vocabulary (vocab::Vocabulary file format, CRC-checked); its
 //                      fingerprint must equal the one in `meta`.
 // Open loads the checkpoint (the postings file verified by checksum; geometry memory-mapped, its size
-// and image table checked at open and its data on use: each image's checksum at every use, each file
-// whole by the checkpointer right after open; damaged geometry is read from the catalogue's BLOBs and
-// rewritten by the next checkpoint) and replays the catalogue's changes since; without a usable
-// checkpoint (none yet, or a file missing, damaged or inconsistent: logged) it rebuilds from the
-// BLOBs (one pass, O(total features)) and checkpoints again in the background.
+// and image table checked at open and its data on use: at every use, that the file still holds the
+// image's bytes and the image's checksum; each file whole by the checkpointer right after open; damaged
+// or truncated geometry is read from the catalogue's BLOBs and rewritten by the next checkpoint) and
+// replays the catalogue's changes since; without a usable checkpoint (none yet, or a file missing,
+// damaged or inconsistent: logged) it rebuilds from the BLOBs (one pass, O(total features)) and
+// checkpoints again in the background. A BLOB that Open reads (a rebuild reads all, a replay those
+// added since the checkpoint) and finds damaged (checksum) costs that image only: it is dropped from
+// the index and its catalogue row deleted, with an error logged naming it. The BLOBs a checkpoint
+// covers are not read by an open: `oxbow index check` checks them all (CheckIndexFolder, catalogue.h).
+// A checkpoint names the geometry files its images are in; it drops those mostly of removed images
+// and merges small ones (KeptGeometry in image_index.cc), so files, disk and descriptors stay bounded.
 // Open refuses: a folder without a catalogue, an unknown schema version, a vocabulary copy whose
-// fingerprint differs from the catalogue's, a damaged BLOB (checksum) or a damaged SQLite file; and,
+// fingerprint differs from the catalogue's, a damaged SQLite file (its image records are checked
+// with SQLite's integrity check at every open: Catalogue::CheckRecords); and,
 // with kIoError, a folder it cannot write (read-only permissions or file system): the index is always
 // open for writing. Open validates through a read-only connection and writes nothing to a catalogue it
 // refuses (a stray or foreign catalogue.sqlite-wal is not checkpointed into it).

@@ -1,4 +1,4 @@
-// `oxbow index build|add|remove|info|backup`: create and maintain an image index (index/image_index.h).
+// `oxbow index build|add|remove|info|check|backup`: create and maintain an image index (index/image_index.h).
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -17,6 +17,7 @@
 #include "api/params.h"
 #include "api/partition.h"
 #include "api/service.h"
+#include "index/catalogue.h"
 #include "index/image_index.h"
 #include "server/cli/cli.h"
 #include "server/cli/common_flags.h"
@@ -444,7 +445,7 @@ void RunClusterBuild(const BuildArgs& build, vocab::Communicator& comm) {
 }
 
 void SetUpIndex(CLI::App& app) {
-  CLI::App* cmd = app.add_subcommand("index", "Build and maintain an image index (build, add, remove, info, backup)");
+  CLI::App* cmd = app.add_subcommand("index", "Build and maintain an image index (build, add, remove, info, check, backup)");
   cmd->require_subcommand(1);
 
   // ---- build
@@ -559,6 +560,35 @@ void SetUpIndex(CLI::App& app) {
   i->callback([info_index] {
     auto idx = ValueOrExit(index::ImageIndex::Open(*info_index));
     PrintJson(StatsJson(*idx));
+  });
+
+  // ---- check
+  struct CheckArgs {
+    std::string index;
+    bool drop_damaged = false;
+  };
+  auto check = std::make_shared<CheckArgs>();
+  CLI::App* c = cmd->add_subcommand("check", "Check an index's catalogue: its records and every image's feature BLOB");
+  c->footer(
+      "Runs SQLite's integrity check of the image records and checks every image's feature BLOB (CRC-32), also "
+      "those an open does not read (the images a checkpoint covers), while no process has the index open (a "
+      "running server's folder is refused). Prints {index, images, damaged: [{id, number, why}], dropped} as JSON; "
+      "exits 1 when a damaged image was found and not dropped. --drop-damaged deletes the damaged images from the "
+      "catalogue (add them again from their source images).");
+  c->add_option("--index", check->index, "index folder")->required();
+  c->add_flag("--drop-damaged", check->drop_damaged, "delete the images whose feature BLOB is damaged");
+  c->callback([check] {
+    const index::IndexCheck result = ValueOrExit(index::CheckIndexFolder(check->index, check->drop_damaged));
+    nlohmann::json damaged = nlohmann::json::array();
+    for (const auto& image : result.damaged) {
+      damaged.push_back({{"id", image.id}, {"number", image.number}, {"why", image.why}});
+    }
+    PrintJson({{"index", check->index}, {"images", result.images}, {"damaged", damaged}, {"dropped", result.dropped}});
+    if (!result.damaged.empty() && !result.dropped) {
+      throw CommandError(ExitCodeFor(ErrorCode::kCorruptData),
+                         std::to_string(result.damaged.size()) + " damaged image(s) in " + check->index +
+                             "; --drop-damaged deletes them");
+    }
   });
 
   // ---- backup
