@@ -13,6 +13,7 @@
 #include <set>
 #include <thread>
 
+#include "api/params.h"
 #include "api/partition.h"
 #include "sift/base/log.h"
 #include "sift/base/parallel.h"
@@ -138,9 +139,14 @@ Result<std::unique_ptr<Service>> Service::Open(const std::string& index_dir,
 void Service::StopExtractions() { extractions_->Stop(); }
 
 Result<AddImageResponse> Service::AddImage(const AddImageRequest& request) {
-  // Cheap checks first, so a bad id or a taken id costs no extraction.
-  if (request.id.empty() || request.id.size() > 256) {
-    return Fail(ErrorCode::kInvalidArgument, "image id must be 1 to 256 bytes long");
+  // Cheap checks first, so a bad id or a taken id costs no extraction. The same rules as the HTTP
+  // parameters' (api/params.h), for every transport: a cluster shard's gRPC Add comes here directly.
+  if (auto ok = CheckNewImageId(request.id); !ok) return std::unexpected(ok.error());
+  std::string metadata_json;
+  if (!request.metadata_json.empty()) {
+    auto metadata = ParseMetadata(request.metadata_json, "metadata");
+    if (!metadata) return std::unexpected(metadata.error());
+    metadata_json = std::move(*metadata);
   }
   if (!request.replace && index_->Contains(request.id)) {
     return Fail(ErrorCode::kAlreadyExists, "an image with id '" + request.id +
@@ -161,7 +167,7 @@ Result<AddImageResponse> Service::AddImage(const AddImageRequest& request) {
 
   index::ImageInfo info;
   info.source_path = request.source_name;
-  info.metadata_json = request.metadata_json;
+  info.metadata_json = std::move(metadata_json);
   info.extractor_settings = index_->extractor_settings();
 
   const auto start = Clock::now();
@@ -203,13 +209,24 @@ Result<AddBatchResponse> Service::AddImages(const AddBatchRequest& request) {
   std::vector<sift::FeatureSet> features(n);
   std::vector<api::Thumbnail> thumbnails(n);
   std::vector<char> extracted_ok(n, 0);  // features[i] and thumbnails[i] hold image i's
-  // Cheap checks first, so a taken or repeated id costs no extraction.
+  // Cheap checks first, so a taken or repeated id costs no extraction; ids and metadata by the rules
+  // of AddImage.
+  std::vector<std::string> metadata_json(n);  // re-serialised, as AddImage stores it
   std::set<std::string> seen;
   std::vector<size_t> todo;
   for (size_t i = 0; i < n; ++i) {
     const std::string& id = request.images[i].id;
-    if (id.empty() || id.size() > 256) {
-      response.results[i] = Fail(ErrorCode::kInvalidArgument, "image id must be 1 to 256 bytes long");
+    Status valid = CheckNewImageId(id);
+    if (valid && !request.images[i].metadata_json.empty()) {
+      auto metadata = ParseMetadata(request.images[i].metadata_json, "metadata");
+      if (metadata) {
+        metadata_json[i] = std::move(*metadata);
+      } else {
+        valid = std::unexpected(metadata.error());
+      }
+    }
+    if (!valid) {
+      response.results[i] = std::unexpected(valid.error());
     } else if (!seen.insert(id).second) {
       response.results[i] = Fail(ErrorCode::kAlreadyExists, "image id '" + id + "' is repeated earlier in this batch");
     } else if (index_->Contains(id)) {
@@ -284,7 +301,7 @@ Result<AddBatchResponse> Service::AddImages(const AddBatchRequest& request) {
     }
     index::ImageInfo info;
     info.source_path = item.source_name;
-    info.metadata_json = item.metadata_json;
+    info.metadata_json = std::move(metadata_json[i]);
     info.extractor_settings = index_->extractor_settings();
     batch_images.push_back(index::BatchImage{item.id, &features[i], std::move(info), {}, {}});
     batch_index.push_back(i);

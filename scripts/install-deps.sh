@@ -27,6 +27,7 @@ build_packages=(
   libvlfeat-dev          # VLFeat SIFT: benchmark peer only
   libfaiss-dev           # faiss: benchmark peer only
   curl python3           # demo and evaluation scripts
+  openssl                # tests/cluster_security_test.cc makes the TLS certificates of its shards
   python3-jsonschema     # tests/openapi_check.py validates every response against server/http/openapi.json
   chromium nodejs        # the web page's end-to-end test (tests/browser: playwright-core drives /usr/bin/chromium)
   libclang-rt-14-dev     # libFuzzer runtime for the fuzz targets (scripts/fuzz.sh; GCC-instrumented, cmake/OxbowFuzz.cmake)

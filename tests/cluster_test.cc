@@ -8,6 +8,7 @@
 #include <signal.h>
 #include <sys/wait.h>
 
+#include <atomic>
 #include <filesystem>
 #include <fstream>
 #include <regex>
@@ -794,6 +795,13 @@ TEST_F(Cluster, RankingsEqualTheSingleNodeAfterWritesAndARefresh) {
   EXPECT_EQ(summary["images"], 13);
   EXPECT_EQ(summary["partitions"], kPartitions);
   EXPECT_EQ(summary["replicas"], kPartitions);
+  // The front's own admin route is labelled as such in its log line and metrics.
+  EXPECT_TRUE(front->WaitForLog("POST /v1/admin/refresh-statistics route=/v1/admin/refresh-statistics status=200"))
+      << front->Log();
+  const auto metrics = front->Client().Get("/metrics");
+  ASSERT_TRUE(metrics);
+  EXPECT_NE(metrics->body.find(R"(oxbow_http_requests_total{route="/v1/admin/refresh-statistics",method="POST")"),
+            std::string::npos) << metrics->body;
   for (size_t q = 0; q < queries.size(); ++q)
     ExpectSameSearch(search(*single, queries[q]), search(*front, queries[q]), "after the refresh, query " + std::to_string(q));
 
@@ -928,6 +936,58 @@ TEST_F(Cluster, AReplicaThatMissedWritesIsKeptOutOfReadsUntilItCatchesUp) {
   for (int k = 0; k < 4; ++k) EXPECT_EQ(GetJson(*front, "/v1/images/" + added).first, 200);
   EXPECT_GT(ReplicaMetric(metrics(), "oxbow_shard_calls_total", 0, stale), calls_caught_up);
   EXPECT_NE(front->Log().find("replica " + stale + " of partition 0 has caught up"), std::string::npos) << front->Log();
+}
+
+// Reads that overlap a write on a partition with one replica are answered, never refused as "behind":
+// a replica is behind only when it answers below the floor its partition had when the read started.
+TEST_F(Cluster, ReadsDuringWritesAreAnsweredWithoutAFault) {
+  const std::string copy = dir_->path() + "/overlap-" + std::to_string(started_++);
+  fs::create_directories(copy);
+  fs::copy(dir_->path() + "/cluster", copy + "/cluster", fs::copy_options::recursive);
+  std::vector<std::vector<std::string>> partitions;
+  for (int p = 0; p < kPartitions; ++p) partitions.push_back({StartShard(p, api::PartitionFolder(copy + "/cluster", p))});
+  for (const auto& replicas : partitions) ASSERT_FALSE(replicas[0].empty());
+  const auto front = StartFront(partitions, {"--refresh-fraction", "0"});
+  std::string stable;  // an image of partition 0 that no write touches
+  for (int i = 0; i < 12 && stable.empty(); ++i)
+    if (api::PartitionOf("img" + std::to_string(i), kPartitions) == 0) stable = "img" + std::to_string(i);
+  ASSERT_FALSE(stable.empty());
+  std::vector<uchar> png;
+  ASSERT_TRUE(cv::imencode(".png", testing::Texture(300, 220, "box.png", 30, 20), png));
+  const std::string image(png.begin(), png.end());
+  const std::string churned = IdIn(0, "churn-");
+
+  std::atomic<bool> done{false};
+  std::atomic<int> writes{0};
+  std::thread writer([&] {
+    auto client = front->Client();
+    for (int k = 0; k < 400 && !done; ++k) {
+      auto res = (k % 3 == 2) ? client.Delete("/v1/images/" + churned)
+                              : client.Post("/v1/images?replace=true&id=" + churned, image, "image/png");
+      if (res && (res->status == 200 || res->status == 201)) ++writes;
+    }
+  });
+  int reads = 0;
+  std::vector<std::string> faults;
+  auto client = front->Client();
+  const auto end = std::chrono::steady_clock::now() + std::chrono::seconds(4);
+  while (std::chrono::steady_clock::now() < end && faults.size() < 5) {
+    auto got = client.Get("/v1/images/" + stable);
+    if (!got || got->status != 200) faults.push_back(got ? got->body : "no answer");
+    auto similar = client.Get("/v1/images/" + stable + "/similar?rerank=0");
+    if (!similar || similar->status != 200) {
+      faults.push_back(similar ? similar->body : "no answer");
+    } else if (nlohmann::json::parse(similar->body).value("partial", false)) {
+      faults.push_back("partial: " + similar->body.substr(0, 200));
+    }
+    reads += 2;
+  }
+  done = true;
+  writer.join();
+  EXPECT_GT(writes.load(), 0);
+  EXPECT_GT(reads, 0);
+  EXPECT_TRUE(faults.empty()) << faults.size() << " of " << reads << " reads failed during " << writes.load()
+                              << " writes; first: " << (faults.empty() ? "" : faults[0]);
 }
 
 TEST(ClusterConfigFile, ReadsReplicasAndResolvesTheVocabularyBesideIt) {

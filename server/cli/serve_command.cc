@@ -38,6 +38,8 @@ struct ServeFlags {
   index::IndexOptions index_options;  // scoring options (--max-df, ...); num_threads from --index-threads
   std::string log_format = "text";
   int grpc_port = -1;  // -1: no gRPC (not a cluster shard)
+  std::string cluster_key;  // the key of front <-> shard calls; "" = --api-key's
+  cluster::ShardSecurity shard_security;  // --grpc-tls-* (the key from cluster_key)
   std::string cluster_file;  // the front of a cluster instead of an index
   cluster::FrontOptions front;
 };
@@ -45,7 +47,13 @@ struct ServeFlags {
 // `serve --cluster`: the front (server/cluster/front_http.h) over the shards cluster.json names.
 void ServeFront(const ServeFlags& flags, const server::HttpServerOptions& http,
                 const api::ServiceOptions& service_options, const sigset_t& signals) {
-  const cluster::ClusterConfig config = ValueOrExit(cluster::ClusterConfig::Read(flags.cluster_file));
+  cluster::ClusterConfig config = ValueOrExit(cluster::ClusterConfig::Read(flags.cluster_file));
+  // The key sent to the shards: --cluster-key, else cluster.json's "key_file", else --api-key.
+  if (!flags.cluster_key.empty()) {
+    config.security.key = flags.cluster_key;
+  } else if (config.security.key.empty()) {
+    config.security.key = http.api_key;
+  }
   std::shared_ptr<const cluster::ClusterFront> front = ValueOrExit(cluster::ClusterFront::Open(config, flags.front));
   cluster::FrontHttpOptions options;
   options.http = http;
@@ -92,6 +100,14 @@ void Serve(const ServeFlags& flags) {
   if (auto message = http.Check()) throw CommandError(2, *message);
   if (auto message = service_options.Check()) throw CommandError(2, *message);
   if (auto message = flags.index_options.Check()) throw CommandError(2, *message);
+  if (auto ok = flags.shard_security.Check(); !ok) throw CommandError(2, ok.error().message);
+  if ((flags.shard_security.tls() || !flags.shard_security.tls_client_ca_file.empty()) && flags.grpc_port < 0)
+    throw CommandError(2, "--grpc-tls-cert, --grpc-tls-key and --grpc-tls-client-ca secure --grpc-port: give it too");
+  // Before anything listens (cluster::ShardServer::Start checks it too).
+  if (flags.grpc_port >= 0 && !cluster::IsLoopbackHost(http.host) && flags.cluster_key.empty() && http.api_key.empty()) {
+    throw CommandError(2, "--grpc-port on " + http.host + " would take writes from anyone who reaches it: give "
+                          "--cluster-key (or --api-key), or bind --host to loopback");
+  }
   if (http.host != "127.0.0.1" && http.host != "localhost" && http.host != "::1" && http.api_key.empty()) {
     OXBOW_LOG(kWarning) << "serving on " << http.host << " without --api-key: anyone who can reach it may add and delete images";
   }
@@ -109,10 +125,18 @@ void Serve(const ServeFlags& flags) {
   const int port = ValueOrExit(server.Bind());
   cluster::ShardServer shard;
   if (flags.grpc_port >= 0) {
-    const int grpc_port = ValueOrExit(shard.Start(http.host, flags.grpc_port));
+    cluster::ShardServerOptions shard_options;
+    shard_options.security = flags.shard_security;
+    shard_options.security.key = flags.cluster_key.empty() ? http.api_key : flags.cluster_key;
+    // The largest upload, and room for an add's id, metadata and source name.
+    shard_options.max_message_bytes = http.max_body_bytes + (1 << 20);
+    const int grpc_port = ValueOrExit(shard.Start(http.host, flags.grpc_port, shard_options));
     // Printed before the HTTP line, which tests and scripts wait for.
     std::printf("shard listening on grpc://%s:%d\n", http.host.c_str(), grpc_port);
-    OXBOW_LOG(kInfo) << "cluster shard API (gRPC) on " << http.host << ":" << grpc_port;
+    OXBOW_LOG(kInfo) << "cluster shard API (gRPC) on " << http.host << ":" << grpc_port
+                     << (shard_options.security.key.empty() ? "" : ", cluster key required")
+                     << (shard_options.security.tls() ? ", TLS" : "")
+                     << (shard_options.security.tls_client_ca_file.empty() ? "" : " with client certificates");
   }
   // Tests and scripts parse this line for the port (it is printed once the socket accepts connections).
   std::printf("listening on http://%s:%d\n", http.host.c_str(), port);
@@ -205,6 +229,22 @@ void SetUpServe(CLI::App& app) {
                   "0 picks a free one (printed as 'shard listening on grpc://HOST:PORT'); off when not given. "
                   "A partition of `index build --partitions` scores with the cluster's global-frequencies.oxdf")
       ->check(CLI::Range(0, 65535));
+  cmd->add_option("--cluster-key", flags->cluster_key,
+                  "the key of a cluster's internal calls: a shard (--grpc-port) refuses every gRPC call without it, "
+                  "a front (--cluster) sends it on every call (over cluster.json's \"key_file\"); default: "
+                  "--api-key. A shard beyond loopback refuses to start without one. Also read from "
+                  "$OXBOW_CLUSTER_KEY")
+      ->envname("OXBOW_CLUSTER_KEY");
+  cmd->add_option("--grpc-tls-cert", flags->shard_security.tls_cert_file,
+                  "--grpc-port over TLS: this PEM certificate chain (with --grpc-tls-key); the front names the CA "
+                  "in cluster.json's \"tls\"")
+      ->check(CLI::ExistingFile);
+  cmd->add_option("--grpc-tls-key", flags->shard_security.tls_key_file, "the PEM private key of --grpc-tls-cert")
+      ->check(CLI::ExistingFile);
+  cmd->add_option("--grpc-tls-client-ca", flags->shard_security.tls_client_ca_file,
+                  "mutual TLS on --grpc-port: only clients presenting a certificate signed by a CA of this PEM "
+                  "file are served (cluster.json's \"tls\" \"cert\" and \"key\" on the front)")
+      ->check(CLI::ExistingFile);
   cmd->add_option("--host", flags->http.host, "address to bind (loopback by default; 0.0.0.0 exposes it)")
       ->capture_default_str();
   cmd->add_option("--port", flags->http.port, "TCP port; 0 picks a free one (printed)")

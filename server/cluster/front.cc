@@ -128,6 +128,42 @@ Result<ClusterConfig> ClusterConfig::Read(const std::string& path) {
     }
     config.partitions.push_back(std::move(replicas));
   }
+  const auto relative = [&](const std::string& file) {
+    return std::filesystem::path(file).is_relative() ? (std::filesystem::path(path).parent_path() / file).string() : file;
+  };
+  if (json.contains("key_file")) {
+    if (!json["key_file"].is_string() || json["key_file"].get<std::string>().empty())
+      return invalid("\"key_file\" is the path of a file holding the cluster key");
+    auto key = ReadSmallFile(relative(json["key_file"].get<std::string>()), "the cluster key file");
+    if (!key) return std::unexpected(key.error());
+    if (key->ends_with('\n')) key->pop_back();
+    if (key->ends_with('\r')) key->pop_back();
+    if (key->empty()) return invalid("the cluster key file is empty");
+    config.security.key = std::move(*key);
+  }
+  if (json.contains("tls")) {
+    const nlohmann::json& tls = json["tls"];
+    if (!tls.is_object()) return invalid("\"tls\" is an object: {\"ca\", \"cert\", \"key\", \"server_name\"}");
+    config.security.tls = true;
+    for (const auto& [name, value] : tls.items()) {
+      if (!value.is_string() || value.get<std::string>().empty())
+        return invalid("\"tls\".\"" + name + "\" must be a non-empty string");
+      const std::string text = value.get<std::string>();
+      if (name == "ca") {
+        config.security.tls_ca_file = relative(text);
+      } else if (name == "cert") {
+        config.security.tls_cert_file = relative(text);
+      } else if (name == "key") {
+        config.security.tls_key_file = relative(text);
+      } else if (name == "server_name") {
+        config.security.tls_server_name = text;
+      } else {
+        return invalid("unknown \"tls\" field \"" + name + "\" (ca, cert, key, server_name)");
+      }
+    }
+    if (config.security.tls_cert_file.empty() != config.security.tls_key_file.empty())
+      return invalid("\"tls\" needs \"cert\" and \"key\" together");
+  }
   return config;
 }
 
@@ -163,7 +199,8 @@ class ClusterFront::Impl {
   template <typename Reply>
   using ShardCall = std::function<grpc::Status(Shard::Stub&, grpc::ClientContext&, Reply*)>;
 
-  Impl(vocab::Vocabulary v, const FrontOptions& o) : vocabulary(std::move(v)), settings(o) {}
+  Impl(vocab::Vocabulary v, const FrontOptions& o, std::string key)
+      : vocabulary(std::move(v)), settings(o), bearer(key.empty() ? "" : std::string(kBearerPrefix) + key) {}
   ~Impl() {
     {
       const std::lock_guard<std::mutex> lock(checker_mutex);
@@ -177,12 +214,17 @@ class ClusterFront::Impl {
 
   // One call to one replica within `deadline_ms`, counted in its metrics (unless `counted` is false: the
   // background check). The write sequence the replica stamped on its answer (-1 when none) goes to
-  // `sequence` and to the replica.
+  // `sequence` and to the replica. `stale` (optional) says whether the answer shows the replica behind:
+  // stamped below the partition's floor as it was when the call started. A floor raised during the call
+  // (a write of this front committed meanwhile) does not make the answer stale: the shard stamped it
+  // before that write committed there, and the read began before the write was acknowledged.
   template <typename Reply>
   grpc::Status Invoke(Replica& replica, int deadline_ms, const ShardCall<Reply>& call, Reply* reply,
-                      int64_t* sequence = nullptr, bool counted = true) const {
+                      int64_t* sequence = nullptr, bool counted = true, bool* stale = nullptr) const {
+    const uint64_t floor_at_start = states[replica.partition]->floor.load();
     grpc::ClientContext context;
     context.set_deadline(std::chrono::system_clock::now() + std::chrono::milliseconds(deadline_ms));
+    if (!bearer.empty()) context.AddMetadata(std::string(kAuthorizationKey), bearer);
     const auto t0 = Clock::now();
     grpc::Status status = call(*replica.stub, context, reply);
     if (counted) {
@@ -202,11 +244,20 @@ class ClusterFront::Impl {
         if (!value.empty() && end != nullptr && *end == '\0') stamped = static_cast<int64_t>(parsed);
       }
       if (stamped >= 0) {
-        replica.sequence.store(stamped);
+        if (static_cast<uint64_t>(stamped) < floor_at_start) {
+          replica.sequence.store(stamped);  // behind (restored from an old copy, or it missed writes)
+        } else {
+          // Answers of calls that overlapped a write arrive in any order: the replica is at least at the
+          // highest it reported since it was last seen behind.
+          int64_t current = replica.sequence.load();
+          while (current < stamped && !replica.sequence.compare_exchange_weak(current, stamped)) {
+          }
+        }
         Reassess(replica);
       }
     }
     if (sequence) *sequence = stamped;
+    if (stale) *stale = stamped >= 0 && static_cast<uint64_t>(stamped) < floor_at_start;
     return status;
   }
 
@@ -336,9 +387,11 @@ class ClusterFront::Impl {
         continue;
       }
       Reply reply;
-      const grpc::Status status = Invoke(replica, deadline_ms > 0 ? deadline_ms : settings.shard_deadline_ms, call, &reply);
+      bool stale = false;
+      const grpc::Status status = Invoke(replica, deadline_ms > 0 ? deadline_ms : settings.shard_deadline_ms, call, &reply,
+                                         /*sequence=*/nullptr, /*counted=*/true, &stale);
       // An answer (or refusal: an image it lacks) from a replica that shows itself behind is not used.
-      if ((status.ok() || ShardRefusal(status)) && Behind(replica)) {
+      if ((status.ok() || ShardRefusal(status)) && stale) {
         failures += (failures.empty() ? "" : "; ") + BehindText(replica);
         continue;
       }
@@ -499,6 +552,7 @@ class ClusterFront::Impl {
 
   vocab::Vocabulary vocabulary;
   FrontOptions settings;
+  const std::string bearer;  // "Bearer KEY" of the cluster key, sent on every call; "" = none
   std::vector<std::vector<std::unique_ptr<Replica>>> partitions;
   std::vector<std::unique_ptr<std::atomic<uint64_t>>> next;  // per partition: round-robin position
   std::vector<std::unique_ptr<PartitionState>> states;        // per partition
@@ -528,16 +582,19 @@ Result<std::unique_ptr<ClusterFront>> ClusterFront::Open(const ClusterConfig& co
   // minimum connect timeout (default 20 s), and a short one fails connections on a loaded machine.
   channel.SetInt(GRPC_ARG_INITIAL_RECONNECT_BACKOFF_MS, 200);
   channel.SetInt(GRPC_ARG_MAX_RECONNECT_BACKOFF_MS, 1000);
+  if (!config.security.tls_server_name.empty()) channel.SetSslTargetNameOverride(config.security.tls_server_name);
+  auto credentials = MakeChannelCredentials(config.security);
+  if (!credentials) return std::unexpected(credentials.error());
   auto vocabulary = vocab::Vocabulary::Read(config.vocabulary);
   if (!vocabulary) return std::unexpected(vocabulary.error());
-  auto impl = std::make_unique<Impl>(std::move(*vocabulary), options);
+  auto impl = std::make_unique<Impl>(std::move(*vocabulary), options, config.security.key);
   for (uint32_t p = 0; p < config.partitions.size(); ++p) {
     std::vector<std::unique_ptr<Impl::Replica>> replicas;
     for (const std::string& address : config.partitions[p]) {
       auto replica = std::make_unique<Impl::Replica>();
       replica->partition = p;
       replica->address = address;
-      replica->stub = Shard::NewStub(grpc::CreateCustomChannel(address, grpc::InsecureChannelCredentials(), channel));
+      replica->stub = Shard::NewStub(grpc::CreateCustomChannel(address, *credentials, channel));
       replicas.push_back(std::move(replica));
     }
     impl->partitions.push_back(std::move(replicas));
@@ -815,10 +872,22 @@ Result<std::vector<ClusterFront::PartitionBackup>> ClusterFront::Backup(const st
     return Ok();
   });
   std::string failed;
-  for (uint32_t p = 0; p < statuses.size(); ++p)
-    if (!statuses[p]) failed += (failed.empty() ? "" : "; ") + std::string("partition ") + std::to_string(p) + ": " +
-                                statuses[p].error().message;
-  if (!failed.empty()) return Fail(ErrorCode::kResourceExhausted, "the backup is incomplete (" + failed + ")");
+  // The client's own error (a bad or taken folder), which every partition refuses alike, keeps its code
+  // (400, 409); an unreachable partition or a failed copy is kResourceExhausted.
+  std::optional<ErrorCode> refused;
+  for (uint32_t p = 0; p < statuses.size(); ++p) {
+    if (statuses[p]) continue;
+    failed += (failed.empty() ? "" : "; ") + std::string("partition ") + std::to_string(p) + ": " +
+              statuses[p].error().message;
+    const ErrorCode code = statuses[p].error().code;
+    const bool clients = code == ErrorCode::kInvalidArgument || code == ErrorCode::kAlreadyExists;
+    if (!refused) {
+      refused = clients ? code : ErrorCode::kResourceExhausted;
+    } else if (*refused != code) {
+      refused = ErrorCode::kResourceExhausted;
+    }
+  }
+  if (!failed.empty()) return Fail(*refused, "the backup is incomplete (" + failed + ")");
   return done;
 }
 

@@ -74,16 +74,24 @@
 
 #include "api/service.h"
 #include "index/image_index.h"
+#include "server/cluster/transport_security.h"
 #include "sift/base/error.h"
 #include "sift/types.h"
 
 namespace oxbow::cluster {
 
-// cluster.json: {"vocabulary": "V.oxvoc", "partitions": [{"replicas": ["host:port", ...]}, ...]}; the
-// vocabulary path is relative to the file's folder unless absolute. Partition k is the k-th entry.
+// cluster.json: {"vocabulary": "V.oxvoc", "partitions": [{"replicas": ["host:port", ...]}, ...]}, and
+// optionally "key_file": a file holding the cluster key the shards require (its whole text, one
+// trailing newline dropped), and "tls": {"ca": PEM, "cert": PEM, "key": PEM, "server_name": NAME} to
+// reach the shards over TLS ("ca": the roots to trust, else the system's; "cert" and "key": the
+// front's own certificate, for shards that require one; "server_name": the name the shards'
+// certificates carry, when not the replicas' host; each part optional, `"tls": {}` = TLS with the
+// system's roots). Paths are relative to the file's folder unless absolute. Partition k is the k-th
+// entry of "partitions".
 struct ClusterConfig {
   std::string vocabulary;
   std::vector<std::vector<std::string>> partitions;  // per partition, its replicas' gRPC addresses
+  FrontSecurity security;  // key (from "key_file") and TLS
 
   // kNotFound, kInvalidArgument (not JSON, missing fields, a partition without replicas).
   [[nodiscard]] static Result<ClusterConfig> Read(const std::string& path);

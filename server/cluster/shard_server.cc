@@ -5,11 +5,13 @@
 #include <grpcpp/health_check_service_interface.h>
 
 #include <filesystem>
+#include <limits>
 #include <mutex>
 #include <system_error>
 
 #include "server/cluster/proto_convert.h"
 #include "server/cluster/shard.grpc.pb.h"
+#include "sift/base/log.h"
 
 namespace oxbow::cluster {
 namespace {
@@ -31,14 +33,16 @@ grpc::Status ToGrpc(const Error& e) {
 
 class ShardServer::Impl final : public Shard::Service {
  public:
+  explicit Impl(std::string key) : key_(std::move(key)) {}
+
   void SetService(std::shared_ptr<api::Service> service) {
     std::lock_guard<std::mutex> lock(mutex_);
     service_ = std::move(service);
   }
 
   grpc::Status Score(grpc::ServerContext* context, const ScoreRequest* request, ScoreReply* reply) override {
-    const auto service = Current();
-    if (!service) return NotReady();
+    std::shared_ptr<api::Service> service;
+    if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     Stamp(context, *service);
     const index::ImageIndex& idx = service->index();
     if (request->words_size() != request->tf_size())
@@ -70,16 +74,16 @@ class ShardServer::Impl final : public Shard::Service {
   }
 
   grpc::Status Verify(grpc::ServerContext* context, const VerifyRequest* request, VerifyReply* reply) override {
-    const auto service = Current();
-    if (!service) return NotReady();
+    std::shared_ptr<api::Service> service;
+    if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     Stamp(context, *service);
     return VerifyOne(*service, *request, reply);
   }
 
   grpc::Status VerifyBatch(grpc::ServerContext* context, const VerifyBatchRequest* request,
                            VerifyBatchReply* reply) override {
-    const auto service = Current();
-    if (!service) return NotReady();
+    std::shared_ptr<api::Service> service;
+    if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     Stamp(context, *service);
     for (const VerifyRequest& one : request->requests()) {
       if (grpc::Status status = VerifyOne(*service, one, reply->add_replies()); !status.ok()) return status;
@@ -89,8 +93,8 @@ class ShardServer::Impl final : public Shard::Service {
 
   grpc::Status ScoreAmong(grpc::ServerContext* context, const ScoreAmongRequest* request,
                           ScoreAmongReply* reply) override {
-    const auto service = Current();
-    if (!service) return NotReady();
+    std::shared_ptr<api::Service> service;
+    if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     Stamp(context, *service);
     std::vector<std::vector<uint32_t>> queries;
     queries.reserve(static_cast<size_t>(request->queries_size()));
@@ -104,8 +108,8 @@ class ShardServer::Impl final : public Shard::Service {
 
   grpc::Status RegionTerms(grpc::ServerContext* context, const RegionTermsRequest* request,
                            RegionTermsReply* reply) override {
-    const auto service = Current();
-    if (!service) return NotReady();
+    std::shared_ptr<api::Service> service;
+    if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     Stamp(context, *service);
     if (request->region_size() != 4) return {grpc::StatusCode::INVALID_ARGUMENT, "a region of 4 values"};
     auto terms = service->index().RegionTerms(request->id(), Box(request->region()));
@@ -115,8 +119,8 @@ class ShardServer::Impl final : public Shard::Service {
   }
 
   grpc::Status Get(grpc::ServerContext* context, const ImageRequest* request, Record* reply) override {
-    const auto service = Current();
-    if (!service) return NotReady();
+    std::shared_ptr<api::Service> service;
+    if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     Stamp(context, *service);
     auto record = service->GetImage(request->id());
     if (!record) return ToGrpc(record.error());
@@ -125,8 +129,8 @@ class ShardServer::Impl final : public Shard::Service {
   }
 
   grpc::Status List(grpc::ServerContext* context, const ListRequest* request, ListReply* reply) override {
-    const auto service = Current();
-    if (!service) return NotReady();
+    std::shared_ptr<api::Service> service;
+    if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     Stamp(context, *service);
     auto list = service->ListImages(request->offset(), request->limit());
     if (!list) return ToGrpc(list.error());
@@ -136,8 +140,8 @@ class ShardServer::Impl final : public Shard::Service {
   }
 
   grpc::Status Stats(grpc::ServerContext* context, const StatsRequest* /*request*/, StatsReply* reply) override {
-    const auto service = Current();
-    if (!service) return NotReady();
+    std::shared_ptr<api::Service> service;
+    if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     Stamp(context, *service);
     const api::ServiceStats stats = service->Stats();
     reply->set_images(stats.index.num_images);
@@ -153,8 +157,8 @@ class ShardServer::Impl final : public Shard::Service {
   }
 
   grpc::Status Features(grpc::ServerContext* context, const ImageRequest* request, FeaturesReply* reply) override {
-    const auto service = Current();
-    if (!service) return NotReady();
+    std::shared_ptr<api::Service> service;
+    if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     Stamp(context, *service);
     auto record = service->GetImage(request->id());
     if (!record) return ToGrpc(record.error());
@@ -167,15 +171,15 @@ class ShardServer::Impl final : public Shard::Service {
   }
 
   grpc::Status Ping(grpc::ServerContext* context, const PingRequest* /*request*/, PingReply* /*reply*/) override {
-    const auto service = Current();
-    if (!service) return NotReady();
+    std::shared_ptr<api::Service> service;
+    if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     Stamp(context, *service);
     return grpc::Status::OK;
   }
 
   grpc::Status Add(grpc::ServerContext* context, const AddRequest* request, AddReply* reply) override {
-    const auto service = Current();
-    if (!service) return NotReady();
+    std::shared_ptr<api::Service> service;
+    if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     api::AddImageRequest add;
     add.id = request->id();
     add.image = {reinterpret_cast<const uint8_t*>(request->image().data()), request->image().size()};
@@ -193,8 +197,8 @@ class ShardServer::Impl final : public Shard::Service {
   }
 
   grpc::Status Delete(grpc::ServerContext* context, const ImageRequest* request, DeleteReply* /*reply*/) override {
-    const auto service = Current();
-    if (!service) return NotReady();
+    std::shared_ptr<api::Service> service;
+    if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     const Status removed = service->DeleteImage(request->id());
     Stamp(context, *service);
     if (!removed) return ToGrpc(removed.error());
@@ -202,8 +206,8 @@ class ShardServer::Impl final : public Shard::Service {
   }
 
   grpc::Status Counts(grpc::ServerContext* context, const CountsRequest* /*request*/, CountsReply* reply) override {
-    const auto service = Current();
-    if (!service) return NotReady();
+    std::shared_ptr<api::Service> service;
+    if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     Stamp(context, *service);
     const index::ImageIndex::LiveCounts counts = service->index().CountLive();
     reply->set_images(counts.num_images);
@@ -213,8 +217,8 @@ class ShardServer::Impl final : public Shard::Service {
   }
 
   grpc::Status PinStatistics(grpc::ServerContext* context, const PinRequest* request, PinReply* /*reply*/) override {
-    const auto service = Current();
-    if (!service) return NotReady();
+    std::shared_ptr<api::Service> service;
+    if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     api::GlobalFrequencies frequencies;
     frequencies.num_partitions = request->num_partitions();
     frequencies.partition = request->partition();
@@ -228,8 +232,8 @@ class ShardServer::Impl final : public Shard::Service {
   }
 
   grpc::Status Thumbnail(grpc::ServerContext* context, const ThumbnailRequest* request, ThumbnailReply* reply) override {
-    const auto service = Current();
-    if (!service) return NotReady();
+    std::shared_ptr<api::Service> service;
+    if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     Stamp(context, *service);
     auto found = service->GetThumbnail(request->id(), request->max_side_px());
     if (!found) return ToGrpc(found.error());
@@ -240,13 +244,28 @@ class ShardServer::Impl final : public Shard::Service {
   // A cluster backup (the front's POST /v1/admin/backup) puts every partition in its own folder of
   // `out`'s parent, which the first partition to get there creates.
   grpc::Status Backup(grpc::ServerContext* context, const BackupRequest* request, BackupReply* reply) override {
-    const auto service = Current();
-    if (!service) return NotReady();
+    std::shared_ptr<api::Service> service;
+    if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     Stamp(context, *service);
     const std::filesystem::path out(request->out());
-    if (!out.is_absolute() || !out.has_parent_path()) return {grpc::StatusCode::INVALID_ARGUMENT, "an absolute folder"};
-    std::error_code ignored;  // BackupIndex says what is wrong with the parent
-    std::filesystem::create_directory(out.parent_path(), ignored);
+    if (!out.is_absolute() || !out.has_parent_path() || !out.filename().string().starts_with("partition-"))
+      return ToGrpc({ErrorCode::kInvalidArgument, "a cluster backup goes to an absolute FOLDER/partition-K"});
+    // FOLDER is new, or holds only the partition folders of this backup (the partitions on this machine
+    // make theirs at once); never a folder with other contents, never through a symbolic link.
+    const std::filesystem::path folder = out.parent_path();
+    std::error_code error;
+    if (std::filesystem::is_symlink(folder, error))
+      return ToGrpc({ErrorCode::kInvalidArgument, "the backup folder " + folder.string() + " is a symbolic link"});
+    if (std::filesystem::is_directory(folder, error)) {
+      for (const auto& entry : std::filesystem::directory_iterator(folder, error)) {
+        if (!entry.path().filename().string().starts_with("partition-"))
+          return ToGrpc({ErrorCode::kAlreadyExists, "the backup folder " + folder.string() +
+                                                        " exists and holds other files: give a new folder"});
+      }
+    } else if (std::filesystem::exists(folder, error)) {
+      return ToGrpc({ErrorCode::kAlreadyExists, "the backup folder " + folder.string() + " exists and is not a folder"});
+    }
+    std::filesystem::create_directory(folder, error);  // BackupIndex says what is wrong with it
     auto done = service->Backup(out.string());
     if (!done) return ToGrpc(done.error());
     reply->set_images(done->images);
@@ -282,9 +301,13 @@ class ShardServer::Impl final : public Shard::Service {
     return grpc::Status::OK;
   }
 
-  std::shared_ptr<api::Service> Current() const {
+  // Every call's first step: the cluster key (transport_security.h), then the loaded index.
+  grpc::Status Admit(const grpc::ServerContext& context, std::shared_ptr<api::Service>* service) const {
+    if (grpc::Status refused = Authorize(context, key_); !refused.ok()) return refused;
     std::lock_guard<std::mutex> lock(mutex_);
-    return service_;
+    *service = service_;
+    if (!*service) return NotReady();
+    return grpc::Status::OK;
   }
   // Reads stamp the sequence before they read: a value at or above the front's floor then guarantees
   // the answer holds every write the floor counts (front.h).
@@ -293,25 +316,42 @@ class ShardServer::Impl final : public Shard::Service {
   }
   static grpc::Status NotReady() { return {grpc::StatusCode::UNAVAILABLE, "the index is still loading"}; }
 
-  mutable std::mutex mutex_;
+  const std::string key_;  // the cluster key; "" = none
+  mutable std::mutex mutex_;  // guards service_
   std::shared_ptr<api::Service> service_;
 };
 
-ShardServer::ShardServer() : impl_(std::make_unique<Impl>()) {}
+ShardServer::ShardServer() = default;
 
 ShardServer::~ShardServer() { Shutdown(); }
 
-Result<int> ShardServer::Start(const std::string& host, int port) {
+Result<int> ShardServer::Start(const std::string& host, int port, const ShardServerOptions& options) {
+  const ShardSecurity& security = options.security;
+  if (!IsLoopbackHost(host) && security.key.empty()) {
+    return Fail(ErrorCode::kInvalidArgument,
+                "the cluster shard API on " + host + " would take writes from anyone who reaches the port: give "
+                "--cluster-key (or --api-key), or bind --host to loopback");
+  }
+  auto credentials = MakeServerCredentials(security);
+  if (!credentials) return std::unexpected(credentials.error());
+  if (!IsLoopbackHost(host) && !security.tls()) {
+    OXBOW_LOG(kWarning) << "the cluster shard API on " << host
+                        << " has no TLS: the cluster key and the images cross the network in clear "
+                           "(--grpc-tls-cert, --grpc-tls-key, --grpc-tls-client-ca)";
+  }
+  if (options.max_message_bytes == 0 || options.max_message_bytes > static_cast<uint64_t>(std::numeric_limits<int>::max()))
+    return Fail(ErrorCode::kInvalidArgument, "the largest shard message must be in [1, 2^31) bytes");
+  impl_ = std::make_unique<Impl>(security.key);
   grpc::EnableDefaultHealthCheckService(true);
   grpc::ServerBuilder builder;
   int bound = 0;
-  builder.AddListeningPort(host + ":" + std::to_string(port), grpc::InsecureServerCredentials(), &bound);
+  builder.AddListeningPort(host + ":" + std::to_string(port), *credentials, &bound);
   // gRPC sets SO_REUSEPORT by default, with which a second shard binds the same port and the kernel
   // splits the front's connections between both; a port in use is refused instead, as for HTTP
   // (server/http/http_server.cc). gRPC keeps SO_REUSEADDR, so a restart on the port still binds.
   builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
-  // An add carries the image (the shard's own --max-upload-mb bounds it), over gRPC's default 4 MiB.
-  builder.SetMaxReceiveMessageSize(-1);
+  // An add carries the image, over gRPC's default 4 MiB; bounded as the HTTP body is.
+  builder.SetMaxReceiveMessageSize(static_cast<int>(options.max_message_bytes));
   builder.RegisterService(impl_.get());
   server_ = builder.BuildAndStart();
   if (!server_ || bound == 0)
@@ -321,6 +361,7 @@ Result<int> ShardServer::Start(const std::string& host, int port) {
 }
 
 void ShardServer::SetService(std::shared_ptr<api::Service> service) {
+  if (!impl_) return;
   impl_->SetService(std::move(service));
   if (server_) server_->GetHealthCheckService()->SetServingStatus(true);
 }

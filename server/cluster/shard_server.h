@@ -1,15 +1,17 @@
 // The gRPC side of a cluster shard (shard.proto): an `oxbow serve --index CLUSTER/partition-k` started
 // with --grpc-port also answers the front's calls (Score, Verify, RegionTerms for a search; Get, List,
-// Stats, Features for reads; Ping, Add, Delete for writes, which go to its api::Service as its own HTTP
-// API's do, without its API key: the gRPC port is for the cluster's network only), plus the
-// standard gRPC health check (grpc.health.v1.Health, "" and "oxbow.cluster.Shard": SERVING once the
-// index is loaded, NOT_SERVING before and while stopping).
+// Stats, Features for reads; Ping, Add, Delete for writes, which go to its api::Service and its checks
+// as its own HTTP API's do), plus the standard gRPC health check (grpc.health.v1.Health, "" and
+// "oxbow.cluster.Shard": SERVING once the index is loaded, NOT_SERVING before and while stopping).
+// Every call but the health check needs the cluster key when one is set, and the port may speak TLS
+// (transport_security.h).
 #pragma once
 
 #include <memory>
 #include <string>
 
 #include "api/service.h"
+#include "server/cluster/transport_security.h"
 #include "sift/base/error.h"
 
 namespace grpc {
@@ -17,6 +19,14 @@ class Server;
 }
 
 namespace oxbow::cluster {
+
+struct ShardServerOptions {
+  ShardSecurity security;
+  // The largest message a call may carry, bytes: an Add holds the image, so the shard's largest upload
+  // (serve --max-upload-mb) plus room for the id and metadata. Larger calls fail with
+  // RESOURCE_EXHAUSTED before they reach the index.
+  uint64_t max_message_bytes = 64ull << 20;
+};
 
 class ShardServer {
  public:
@@ -26,8 +36,9 @@ class ShardServer {
   ShardServer& operator=(const ShardServer&) = delete;
 
   // Listens on host:port (0 picks a free port) and returns the bound port; calls fail with UNAVAILABLE
-  // until SetService. kIoError when the address cannot be bound.
-  [[nodiscard]] Result<int> Start(const std::string& host, int port);
+  // until SetService. kIoError when the address cannot be bound; kInvalidArgument for a host beyond
+  // loopback without a cluster key, or for unusable security options (a TLS file: kNotFound).
+  [[nodiscard]] Result<int> Start(const std::string& host, int port, const ShardServerOptions& options = {});
   // The index finished loading: serve it.
   void SetService(std::shared_ptr<api::Service> service);
   // Stops accepting calls and waits for those running. Idempotent.
