@@ -3,6 +3,7 @@
 
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/health_check_service_interface.h>
+#include <grpcpp/resource_quota.h>
 
 #include <filesystem>
 #include <limits>
@@ -352,6 +353,12 @@ Result<int> ShardServer::Start(const std::string& host, int port, const ShardSer
   builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
   // An add carries the image, over gRPC's default 4 MiB; bounded as the HTTP body is.
   builder.SetMaxReceiveMessageSize(static_cast<int>(options.max_message_bytes));
+  // gRPC buffers a whole message before it compares its size with that bound: the memory of every
+  // call's buffers together is bounded too (room for two of the largest messages and many small ones),
+  // so concurrent oversized messages wait or fail instead of growing the shard.
+  grpc::ResourceQuota quota("oxbow-shard");
+  quota.Resize(static_cast<size_t>(2 * options.max_message_bytes + (64u << 20)));
+  builder.SetResourceQuota(quota);
   builder.RegisterService(impl_.get());
   server_ = builder.BuildAndStart();
   if (!server_ || bound == 0)
