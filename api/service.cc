@@ -133,7 +133,64 @@ Result<std::unique_ptr<Service>> Service::Open(const std::string& index_dir,
   if (!thumbnails) return std::unexpected(thumbnails.error());
   std::unique_ptr<Service> service(new Service(std::move(index), *extractor, options));
   service->thumbnails_ = std::move(*thumbnails);
+  service->SettleThumbnails();
   return service;
+}
+
+void Service::SettleThumbnails() {
+  const std::string& path = thumbnails_->path();
+  // A pending thumbnail belongs to a write that a crash cut short: the image is indexed (commit it) when
+  // the index's write sequence moved past the stamp and the indexed image is the one it was made for;
+  // else the index never committed it (drop it; the id keeps the thumbnail of its indexed image).
+  const uint64_t sequence = index_->write_sequence();
+  size_t committed = 0, dropped = 0, orphans = 0;
+  auto pending_ids = thumbnails_->Ids(true);
+  if (!pending_ids) {
+    OXBOW_LOG(kWarning) << "pending thumbnails in '" << path << "' not settled: " << pending_ids.error().ToString();
+    pending_ids = std::vector<std::string>();
+  }
+  for (const std::string& id : *pending_ids) {
+    auto pending = thumbnails_->GetPending(id);
+    auto record = index_->Get(id);
+    const bool indexed = pending && *pending && record && (*pending)->after_sequence < sequence &&
+                         (*pending)->entry.image_width == record->width &&
+                         (*pending)->entry.image_height == record->height &&
+                         (*pending)->entry.source == record->source_path;
+    auto settled = indexed ? thumbnails_->Commit(id) : thumbnails_->DropPending(id);
+    if (!settled) {
+      OXBOW_LOG(kWarning) << "pending thumbnail of '" << id << "' not settled: " << settled.error().ToString();
+    } else {
+      ++(indexed ? committed : dropped);
+    }
+  }
+  // Thumbnails of ids the index does not hold: a crash between an image's delete and its thumbnail's.
+  auto ids = thumbnails_->Ids(false);
+  if (!ids) {
+    OXBOW_LOG(kWarning) << "thumbnails in '" << path << "' not checked against the index: " << ids.error().ToString();
+    ids = std::vector<std::string>();
+  }
+  for (const std::string& id : *ids) {
+    if (index_->Contains(id)) continue;
+    if (auto removed = thumbnails_->Remove(id); !removed) {
+      OXBOW_LOG(kWarning) << "thumbnail of '" << id << "', not indexed, stays: " << removed.error().ToString();
+    } else {
+      ++orphans;
+    }
+  }
+  if (committed + dropped + orphans > 0) {
+    OXBOW_LOG(kInfo) << "thumbnails in '" << path << "' settled after an interrupted write: " << committed
+                     << " pending committed with their indexed image, " << dropped
+                     << " pending dropped (image not indexed), " << orphans << " of images not indexed removed";
+  }
+}
+
+void Service::CommitThumbnail(const std::string& id) {
+  // The image is indexed already: a failure here leaves its thumbnail pending, which GetThumbnail serves
+  // and the next open commits.
+  if (auto committed = thumbnails_->Commit(id); !committed) {
+    OXBOW_LOG(kWarning) << "thumbnail of '" << id << "' stays pending until the next open: "
+                        << committed.error().ToString();
+  }
 }
 
 void Service::StopExtractions() { extractions_->Stop(); }
@@ -177,25 +234,24 @@ Result<AddImageResponse> Service::AddImage(const AddImageRequest& request) {
     return Fail(ErrorCode::kAlreadyExists, "an image with id '" + request.id +
                                                "' is already indexed; add replace=true to replace it");
   }
-  // The old image's thumbnail, put back if the replacement fails (the old image then stays indexed).
-  std::optional<ThumbnailStore::Entry> previous;
-  if (replacing) {
-    if (auto kept = thumbnails_->Get(request.id); kept) previous = std::move(*kept);
-  }
-  // The thumbnail is durable before the image is indexed: an acknowledged add always has one.
+  // The thumbnail is durable (pending) before the image is indexed, and becomes the id's thumbnail only
+  // once the index committed the image: a crash in between leaves the old image with its own thumbnail
+  // (api/thumbnails.h, "Committing with the index"; Open settles what is left pending).
   ThumbnailStore::Entry entry{std::move(*thumbnail), features->image_width, features->image_height, info.source_path};
-  if (auto stored = thumbnails_->Put(request.id, entry); !stored) return std::unexpected(stored.error());
+  if (auto stored = thumbnails_->PutPending(request.id, entry, index_->write_sequence()); !stored) {
+    return std::unexpected(stored.error());
+  }
+  if (before_index_commit_for_testing_) before_index_commit_for_testing_(request.id);
   // A replacement is one transaction in the index: the old image or the new one, never neither.
   auto record = replacing ? index_->Replace(request.id, *features, info) : index_->Add(request.id, *features, info);
   if (!record) {
-    if (previous) {
-      if (auto restored = thumbnails_->Put(request.id, *previous); !restored) {
-        OXBOW_LOG(kWarning) << "replacement of '" << request.id << "' failed and its old thumbnail was not restored: "
-                            << restored.error().ToString();
-      }
+    if (auto dropped = thumbnails_->DropPending(request.id); !dropped) {
+      OXBOW_LOG(kWarning) << "image '" << request.id << "' not indexed; its pending thumbnail stays until the next open: "
+                          << dropped.error().ToString();
     }
     return std::unexpected(record.error());
   }
+  CommitThumbnail(request.id);
   response.replaced = replacing;
   response.record = std::move(*record);
   response.add_ms = MsSince(start);
@@ -307,25 +363,29 @@ Result<AddBatchResponse> Service::AddImages(const AddBatchRequest& request) {
     batch_index.push_back(i);
   }
   if (batch_images.empty()) return response;  // every image failed on its own: no transaction to make
-  // The thumbnails are durable before the images are indexed: an acknowledged add always has one. Those
-  // of images that then fail are removed again (their ids were not indexed, so nothing else used them).
+  // The thumbnails are durable (pending) before the images are indexed and become theirs once the index
+  // committed them, as in AddImage; those of images the index refused are dropped.
   auto drop_thumbnails = [&](auto failed) {
     for (size_t b = 0; b < batch_index.size(); ++b) {
       if (!failed(b)) continue;
-      if (auto dropped = thumbnails_->Remove(batch_images[b].id); !dropped) {
-        OXBOW_LOG(kWarning) << "thumbnail of '" << batch_images[b].id << "', not added, stays: " << dropped.error().ToString();
+      if (auto dropped = thumbnails_->DropPending(batch_images[b].id); !dropped) {
+        OXBOW_LOG(kWarning) << "image '" << batch_images[b].id
+                            << "' not indexed; its pending thumbnail stays until the next open: "
+                            << dropped.error().ToString();
       }
     }
   };
+  const uint64_t sequence = index_->write_sequence();
   for (size_t b = 0; b < batch_index.size(); ++b) {
     const size_t i = batch_index[b];
     ThumbnailStore::Entry entry{std::move(thumbnails[i]), features[i].image_width, features[i].image_height,
                                 batch_images[b].info.source_path};
-    if (auto stored = thumbnails_->Put(batch_images[b].id, entry); !stored) {
+    if (auto stored = thumbnails_->PutPending(batch_images[b].id, entry, sequence); !stored) {
       drop_thumbnails([&](size_t k) { return k < b; });
       return std::unexpected(stored.error());
     }
   }
+  if (before_index_commit_for_testing_) before_index_commit_for_testing_(batch_images.front().id);
   auto records = index_->AddBatch(batch_images);
   for (size_t b = 0; b < records.size(); ++b) {
     if (!records[b] && records[b].error().code == ErrorCode::kIoError) {  // the catalogue failed: nothing added
@@ -334,6 +394,9 @@ Result<AddBatchResponse> Service::AddImages(const AddBatchRequest& request) {
     }
   }
   drop_thumbnails([&](size_t b) { return !records[b]; });
+  for (size_t b = 0; b < records.size(); ++b) {
+    if (records[b]) CommitThumbnail(batch_images[b].id);
+  }
   for (size_t b = 0; b < records.size(); ++b) response.results[batch_index[b]] = std::move(records[b]);
   response.add_ms = MsSince(add_start);
   return response;
@@ -360,7 +423,8 @@ Status Service::StoreClusterStatistics(const GlobalFrequencies& frequencies) {
 Status Service::DeleteImage(const std::string& id) {
   std::lock_guard<std::mutex> lock(write_mutex_);
   if (auto removed = index_->Remove(id); !removed) return removed;
-  // A leftover thumbnail is harmless (GetThumbnail needs the catalogue entry); the delete stands.
+  // A leftover thumbnail is not served (GetThumbnail needs the catalogue entry) and is removed at the
+  // next open; the delete stands.
   if (auto dropped = thumbnails_->Remove(id); !dropped) {
     OXBOW_LOG(kWarning) << "image '" << id << "' deleted but its thumbnail stays: " << dropped.error().ToString();
   }
@@ -487,9 +551,16 @@ Result<ThumbnailResponse> Service::GetThumbnail(const std::string& id, int max_s
   if (!stored) return std::unexpected(stored.error());
   std::optional<ThumbnailStore::Entry>& kept = *stored;
   // An entry made for another image under the same id (replaced while the server was down) is stale.
-  if (kept && (kept->image_width != record->width || kept->image_height != record->height ||
-               kept->source != record->source_path)) {
-    kept.reset();
+  auto made_for_record = [&](const ThumbnailStore::Entry& entry) {
+    return entry.image_width == record->width && entry.image_height == record->height &&
+           entry.source == record->source_path;
+  };
+  if (kept && !made_for_record(*kept)) kept.reset();
+  if (!kept) {
+    // Between a writer's index commit and its thumbnail's, the image's thumbnail is still pending.
+    auto pending = thumbnails_->GetPending(id);
+    if (!pending) return std::unexpected(pending.error());
+    if (*pending && made_for_record((*pending)->entry)) kept = std::move((*pending)->entry);
   }
   ThumbnailResponse response;
   api::Thumbnail full;

@@ -204,8 +204,8 @@ class Service {
                                             const PairMatchOptions& options,
                                             const sift::StopRequested& client_gone = {}) const;
   // A JPEG of image `id` whose longest side is at most min(max_side_px, thumbnails.stored_side_px)
-  // (max_side_px in [kMinThumbnailPx, kMaxThumbnailPx]): the stored thumbnail (AddImage stores one before the image is indexed, so an acknowledged add has
-  // one), scaled down when smaller is asked for; else one made from the catalogue's source file when
+  // (max_side_px in [kMinThumbnailPx, kMaxThumbnailPx]): the stored thumbnail (AddImage stores one durably before the image is indexed and commits it with the
+  // image, so an acknowledged add has one), scaled down when smaller is asked for; else one made from the catalogue's source file when
   // it is readable (images indexed by `oxbow index build`), which is then stored for next time.
   // kNotFound for an unknown id or when neither exists; kInvalidArgument for a size out of range.
   [[nodiscard]] Result<ThumbnailResponse> GetThumbnail(const std::string& id, int max_side_px) const;
@@ -222,6 +222,11 @@ class Service {
   // stores it (lets a test change the image in exactly that window). Set it before concurrent use.
   void SetThumbnailMadeHookForTesting(std::function<void(const std::string& id)> hook) {
     thumbnail_made_for_testing_ = std::move(hook);
+  }
+  // Test seam: `hook` runs in AddImage and AddImages (with the batch's first id) once the thumbnails are
+  // stored and before the index commits the images (lets a test crash in exactly that window).
+  void SetBeforeIndexCommitHookForTesting(std::function<void(const std::string& id)> hook) {
+    before_index_commit_for_testing_ = std::move(hook);
   }
   // For shutdown: decodes and extractions still running options().shutdown_grace_ms from now stop at
   // their next check (their requests fail with 503, nothing stored), as do later ones, so that stopping
@@ -240,6 +245,11 @@ class Service {
 
  private:
   Service(std::unique_ptr<index::ImageIndex> index, const sift::SiftExtractor& extractor, const ServiceOptions& options);
+  // At open: commits or drops the thumbnails left pending by a write a crash cut short and removes those
+  // of ids that are not indexed (api/thumbnails.h, "Committing with the index"). Failures are logged.
+  void SettleThumbnails();
+  // Makes the pending thumbnail of `id`, just committed in the index, its thumbnail (a failure is logged).
+  void CommitThumbnail(const std::string& id);
 
   std::unique_ptr<index::ImageIndex> index_;
   ServiceOptions options_;
@@ -247,6 +257,7 @@ class Service {
   // "still the same image" and the store are one step for writers.
   mutable std::mutex write_mutex_;
   std::function<void(const std::string& id)> thumbnail_made_for_testing_;
+  std::function<void(const std::string& id)> before_index_commit_for_testing_;
   std::unique_ptr<Extractions> extractions_;  // slots, deadlines and threads of every decode + extraction
   std::unique_ptr<ThumbnailStore> thumbnails_;      // <index>/thumbnails.sqlite (thread-safe itself)
   std::chrono::steady_clock::time_point opened_;

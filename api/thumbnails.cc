@@ -119,6 +119,8 @@ Result<std::unique_ptr<ThumbnailStore>> ThumbnailStore::Open(const std::string& 
       "PRAGMA journal_mode=WAL; PRAGMA synchronous=FULL;"
       "CREATE TABLE IF NOT EXISTS thumbnails(id TEXT PRIMARY KEY, jpeg BLOB NOT NULL, width INTEGER NOT NULL,"
       " height INTEGER NOT NULL, source TEXT NOT NULL);"
+      "CREATE TABLE IF NOT EXISTS pending(id TEXT PRIMARY KEY, jpeg BLOB NOT NULL, width INTEGER NOT NULL,"
+      " height INTEGER NOT NULL, source TEXT NOT NULL, after_sequence INTEGER NOT NULL);"
       "PRAGMA user_version=" + std::to_string(kSchemaVersion) + ";";
   char* message = nullptr;
   if (sqlite3_exec(db, setup.c_str(), nullptr, nullptr, &message) != SQLITE_OK) {
@@ -150,22 +152,37 @@ Status ThumbnailStore::Put(const std::string& id, const Entry& entry) {
 
 Result<std::optional<ThumbnailStore::Entry>> ThumbnailStore::Get(const std::string& id) const {
   std::lock_guard<std::mutex> lock(mutex_);
+  auto read = Read(id, false);
+  if (!read) return std::unexpected(read.error());
+  if (!*read) return std::optional<Entry>();
+  return std::optional<Entry>(std::move((*read)->entry));
+}
+
+Result<std::optional<ThumbnailStore::Pending>> ThumbnailStore::GetPending(const std::string& id) const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return Read(id, true);
+}
+
+Result<std::optional<ThumbnailStore::Pending>> ThumbnailStore::Read(const std::string& id, bool pending) const {
   Statement s;
-  if (sqlite3_prepare_v2(db_, "SELECT jpeg, width, height, source FROM thumbnails WHERE id = ?", -1, &s.stmt,
-                         nullptr) != SQLITE_OK) {
+  const char* sql = pending ? "SELECT jpeg, width, height, source, after_sequence FROM pending WHERE id = ?"
+                            : "SELECT jpeg, width, height, source, 0 FROM thumbnails WHERE id = ?";
+  if (sqlite3_prepare_v2(db_, sql, -1, &s.stmt, nullptr) != SQLITE_OK) {
     return std::unexpected(SqliteError(db_, "prepare", path_));
   }
   sqlite3_bind_text(s.stmt, 1, id.data(), static_cast<int>(id.size()), SQLITE_TRANSIENT);
   const int rc = sqlite3_step(s.stmt);
-  if (rc == SQLITE_DONE) return std::optional<Entry>();
+  if (rc == SQLITE_DONE) return std::optional<Pending>();
   if (rc != SQLITE_ROW) return std::unexpected(SqliteError(db_, "read", path_));
-  Entry entry;
+  Pending read;
+  Entry& entry = read.entry;
   const auto* blob = static_cast<const char*>(sqlite3_column_blob(s.stmt, 0));
   entry.thumbnail.jpeg.assign(blob ? blob : "", static_cast<size_t>(sqlite3_column_bytes(s.stmt, 0)));
   entry.image_width = sqlite3_column_int(s.stmt, 1);
   entry.image_height = sqlite3_column_int(s.stmt, 2);
   const auto* source = reinterpret_cast<const char*>(sqlite3_column_text(s.stmt, 3));
   entry.source = source ? source : "";
+  read.after_sequence = static_cast<uint64_t>(sqlite3_column_int64(s.stmt, 4));
   // The thumbnail's own size, from its JPEG header (not stored twice).
   auto header = sift::ReadImageHeader(
       {reinterpret_cast<const uint8_t*>(entry.thumbnail.jpeg.data()), entry.thumbnail.jpeg.size()});
@@ -175,17 +192,78 @@ Result<std::optional<ThumbnailStore::Entry>> ThumbnailStore::Get(const std::stri
   }
   entry.thumbnail.width = static_cast<int>(header->width);
   entry.thumbnail.height = static_cast<int>(header->height);
-  return std::optional<Entry>(std::move(entry));
+  return std::optional<Pending>(std::move(read));
 }
 
 Status ThumbnailStore::Remove(const std::string& id) {
   std::lock_guard<std::mutex> lock(mutex_);
+  return Run("DELETE FROM thumbnails WHERE id = ?", id, "delete");
+}
+
+Status ThumbnailStore::PutPending(const std::string& id, const Entry& entry, uint64_t after_sequence) {
+  std::lock_guard<std::mutex> lock(mutex_);
   Statement s;
-  if (sqlite3_prepare_v2(db_, "DELETE FROM thumbnails WHERE id = ?", -1, &s.stmt, nullptr) != SQLITE_OK) {
+  if (sqlite3_prepare_v2(db_,
+                         "INSERT OR REPLACE INTO pending(id, jpeg, width, height, source, after_sequence)"
+                         " VALUES(?,?,?,?,?,?)",
+                         -1, &s.stmt, nullptr) != SQLITE_OK) {
     return std::unexpected(SqliteError(db_, "prepare", path_));
   }
   sqlite3_bind_text(s.stmt, 1, id.data(), static_cast<int>(id.size()), SQLITE_TRANSIENT);
-  if (sqlite3_step(s.stmt) != SQLITE_DONE) return std::unexpected(SqliteError(db_, "delete", path_));
+  sqlite3_bind_blob(s.stmt, 2, entry.thumbnail.jpeg.data(), static_cast<int>(entry.thumbnail.jpeg.size()), SQLITE_TRANSIENT);
+  sqlite3_bind_int(s.stmt, 3, entry.image_width);
+  sqlite3_bind_int(s.stmt, 4, entry.image_height);
+  sqlite3_bind_text(s.stmt, 5, entry.source.data(), static_cast<int>(entry.source.size()), SQLITE_TRANSIENT);
+  sqlite3_bind_int64(s.stmt, 6, static_cast<sqlite3_int64>(after_sequence));
+  if (sqlite3_step(s.stmt) != SQLITE_DONE) return std::unexpected(SqliteError(db_, "write", path_));
+  return Ok();
+}
+
+Status ThumbnailStore::Commit(const std::string& id) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (sqlite3_exec(db_, "BEGIN IMMEDIATE", nullptr, nullptr, nullptr) != SQLITE_OK) {
+    return std::unexpected(SqliteError(db_, "begin", path_));
+  }
+  Status moved = Run("INSERT OR REPLACE INTO thumbnails(id, jpeg, width, height, source)"
+                     " SELECT id, jpeg, width, height, source FROM pending WHERE id = ?",
+                     id, "commit");
+  if (moved) moved = Run("DELETE FROM pending WHERE id = ?", id, "commit");
+  if (moved && sqlite3_exec(db_, "COMMIT", nullptr, nullptr, nullptr) != SQLITE_OK) {
+    moved = std::unexpected(SqliteError(db_, "commit", path_));
+  }
+  if (!moved) sqlite3_exec(db_, "ROLLBACK", nullptr, nullptr, nullptr);
+  return moved;
+}
+
+Status ThumbnailStore::DropPending(const std::string& id) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return Run("DELETE FROM pending WHERE id = ?", id, "delete");
+}
+
+Result<std::vector<std::string>> ThumbnailStore::Ids(bool pending) const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  Statement s;
+  const char* sql = pending ? "SELECT id FROM pending ORDER BY id" : "SELECT id FROM thumbnails ORDER BY id";
+  if (sqlite3_prepare_v2(db_, sql, -1, &s.stmt, nullptr) != SQLITE_OK) {
+    return std::unexpected(SqliteError(db_, "prepare", path_));
+  }
+  std::vector<std::string> ids;
+  int rc = SQLITE_ROW;
+  while ((rc = sqlite3_step(s.stmt)) == SQLITE_ROW) {
+    const auto* text = reinterpret_cast<const char*>(sqlite3_column_text(s.stmt, 0));
+    ids.emplace_back(text ? text : "", static_cast<size_t>(sqlite3_column_bytes(s.stmt, 0)));
+  }
+  if (rc != SQLITE_DONE) return std::unexpected(SqliteError(db_, "read", path_));
+  return ids;
+}
+
+Status ThumbnailStore::Run(const char* sql, const std::string& id, const char* what) {
+  Statement s;
+  if (sqlite3_prepare_v2(db_, sql, -1, &s.stmt, nullptr) != SQLITE_OK) {
+    return std::unexpected(SqliteError(db_, "prepare", path_));
+  }
+  sqlite3_bind_text(s.stmt, 1, id.data(), static_cast<int>(id.size()), SQLITE_TRANSIENT);
+  if (sqlite3_step(s.stmt) != SQLITE_DONE) return std::unexpected(SqliteError(db_, what, path_));
   return Ok();
 }
 

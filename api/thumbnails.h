@@ -12,7 +12,19 @@
 //
 // File format: SQLite, `PRAGMA user_version` = 1, table thumbnails(id TEXT PRIMARY KEY, jpeg BLOB,
 // width INTEGER, height INTEGER, source TEXT); WAL with synchronous=FULL, so a Put that returned is
-// durable. Other versions are refused (kIncompatible).
+// durable. Other versions are refused (kIncompatible). A second table pending(id TEXT PRIMARY KEY, the
+// same columns, after_sequence INTEGER) holds the thumbnail of an image whose index commit is under way
+// (created when missing; a reader that does not know it ignores it).
+//
+// Committing with the index (two files, no shared transaction): a writer first puts the new thumbnail
+// durably as pending, stamped with the index's write sequence (index::ImageIndex::write_sequence) before
+// the commit, then commits the image in the index, then moves the pending entry over the committed one
+// (Commit, one transaction), or drops it when the index refused the image. The committed entry of an id
+// is never overwritten before its image is, so a crash between the two files' commits can leave the old
+// image with its own thumbnail and a pending entry, or the new image with its thumbnail pending; opening
+// the service settles both (api::Service::Open): a pending entry is committed when its image is indexed
+// and the index's write sequence moved past its stamp, else dropped, and committed entries of ids that
+// are not indexed (a crash between an index delete and the thumbnail's) are removed.
 //
 // Thread safety: MakeThumbnail is reentrant; a ThumbnailStore may be used from any number of threads
 // (one connection behind a mutex; each call is one short statement).
@@ -24,6 +36,7 @@
 #include <optional>
 #include <span>
 #include <string>
+#include <vector>
 
 #include "sift/base/error.h"
 #include "sift/image.h"
@@ -79,10 +92,28 @@ class ThumbnailStore {
   // Removes the entry of `id` (no error when there is none).
   [[nodiscard]] Status Remove(const std::string& id);
 
+  // The pending entry of an image being committed in the index (see the file comment), durably.
+  // `after_sequence`: the index's write sequence before that commit. kIoError on a write failure.
+  [[nodiscard]] Status PutPending(const std::string& id, const Entry& entry, uint64_t after_sequence);
+  // The pending entry of `id` and its stamp, nullopt when there is none. Errors as Get.
+  struct Pending {
+    Entry entry;
+    uint64_t after_sequence = 0;
+  };
+  [[nodiscard]] Result<std::optional<Pending>> GetPending(const std::string& id) const;
+  // Makes the pending entry of `id` its entry, in one transaction (no-op when none is pending).
+  [[nodiscard]] Status Commit(const std::string& id);
+  // Drops the pending entry of `id` (no error when there is none).
+  [[nodiscard]] Status DropPending(const std::string& id);
+  // The ids with an entry (pending = false) or a pending entry (pending = true), in id order.
+  [[nodiscard]] Result<std::vector<std::string>> Ids(bool pending) const;
+
   const std::string& path() const { return path_; }
 
  private:
   ThumbnailStore(sqlite3* db, std::string path) : db_(db), path_(std::move(path)) {}
+  Result<std::optional<Pending>> Read(const std::string& id, bool pending) const;  // mutex_ held
+  Status Run(const char* sql, const std::string& id, const char* what);           // mutex_ held
   mutable std::mutex mutex_;  // guards db_ (one statement at a time)
   sqlite3* db_;
   std::string path_;

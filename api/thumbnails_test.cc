@@ -1,13 +1,18 @@
 // Thumbnails: making them (sizes, colour, reduced decoding, errors), the SQLite store (round trip,
 // persistence, other versions and damaged files refused) and the service's use of them (stored at add,
-// replaced, deleted, stale entries not served).
+// replaced, deleted, stale entries not served, committed with their image across a kill -9).
 #include "api/thumbnails.h"
 
 #include <gtest/gtest.h>
+#include <signal.h>
 #include <sqlite3.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
+#include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <map>
 
 #include <opencv2/core.hpp>
@@ -145,6 +150,30 @@ TEST_F(ThumbnailStoreTest, RoundTripPersistsAndRemoves) {
   ASSERT_TRUE((*store)->Remove("a b/c"));
   EXPECT_FALSE((*store)->Get("a b/c")->has_value());
   EXPECT_TRUE((*store)->Remove("never there"));
+}
+
+TEST_F(ThumbnailStoreTest, PendingEntriesAreCommittedOrDropped) {
+  auto store = ThumbnailStore::Open(path_);
+  ASSERT_TRUE(store);
+  ASSERT_TRUE((*store)->Put("a", entry_));
+  ThumbnailStore::Entry next = entry_;
+  next.source = "next";
+  ASSERT_TRUE((*store)->PutPending("a", next, 7));
+  ASSERT_TRUE((*store)->PutPending("b", next, 7));
+  EXPECT_EQ((*store)->Get("a")->value().source, "http:photo.jpg");  // committed entry untouched
+  EXPECT_FALSE((*store)->Get("b")->has_value());
+  EXPECT_EQ((*store)->GetPending("a")->value().after_sequence, 7u);
+  EXPECT_EQ(*(*store)->Ids(true), (std::vector<std::string>{"a", "b"}));
+  ASSERT_TRUE((*store)->Commit("a"));
+  ASSERT_TRUE((*store)->DropPending("b"));
+  ASSERT_TRUE((*store)->Commit("never pending"));
+  store->reset();
+  store = ThumbnailStore::Open(path_);  // reopened: both were durable
+  ASSERT_TRUE(store);
+  EXPECT_EQ((*store)->Get("a")->value().source, "next");
+  EXPECT_FALSE((*store)->Get("b")->has_value());
+  EXPECT_TRUE((*store)->Ids(true)->empty());
+  EXPECT_EQ(*(*store)->Ids(false), std::vector<std::string>{"a"});
 }
 
 TEST_F(ThumbnailStoreTest, RefusesAnotherSchemaVersion) {
@@ -350,6 +379,138 @@ TEST_F(ServiceWritesTest, AFailedReplacementKeepsTheOldImageAndThumbnail) {
     EXPECT_EQ(thumb->thumbnail.height, 384);
     Reopen();
   }
+}
+
+// Runs `child` on its own Service over index_dir_ in a forked process that then SIGKILLs itself (a
+// crash: nothing closed); `child` returns 0 when all it did succeeded. The fixture's service is closed
+// meanwhile and reopened after.
+class ServiceCrashTest : public ServiceWritesTest {
+ protected:
+  void RunKilled(const std::function<int(Service&)>& child) {
+    service_.reset();
+    std::fflush(nullptr);
+    const pid_t pid = fork();
+    ASSERT_GE(pid, 0);
+    if (pid == 0) {
+      auto opened = Service::Open(index_dir_, vocab_, {});
+      if (!opened) _exit(100);
+      const int failed = child(**opened);
+      if (failed != 0) _exit(failed);
+      raise(SIGKILL);
+      _exit(101);
+    }
+    int status = 0;
+    ASSERT_EQ(waitpid(pid, &status, 0), pid);
+    ASSERT_TRUE(WIFSIGNALED(status) && WTERMSIG(status) == SIGKILL) << "child exited with " << WEXITSTATUS(status);
+    Reopen();
+  }
+  std::unique_ptr<ThumbnailStore> OpenStore() const {
+    auto store = ThumbnailStore::Open(index_dir_ + "/thumbnails.sqlite");
+    EXPECT_TRUE(store) << store.error().ToString();
+    return store ? std::move(*store) : nullptr;
+  }
+  AddBatchItem Item(const std::string& id, const std::string& sample) const {
+    return AddBatchItem{id, bytes_.at(sample), "", "http:" + sample};
+  }
+};
+
+// Acknowledged adds (one alone, two in a batch, one replacement) keep their thumbnails through a kill -9
+// that closes nothing.
+TEST_F(ServiceCrashTest, AcknowledgedAddsKeepTheirThumbnailsThroughAKill) {
+  ASSERT_TRUE(service_->AddImage(Upload("r", "graf1.png", false)));
+  RunKilled([&](Service& service) {
+    if (!service.AddImage(Upload("a", "box_in_scene.png", false))) return 1;
+    AddBatchRequest batch;
+    batch.images = {Item("b", "graf1.png"), Item("c", "box_in_scene.png")};
+    auto added = service.AddImages(batch);
+    if (!added || !added->results[0] || !added->results[1]) return 2;
+    if (!service.AddImage(Upload("r", "box_in_scene.png", true))) return 3;
+    return 0;
+  });
+  for (const auto& [id, height] : std::map<std::string, int>{{"a", 384}, {"b", 410}, {"c", 384}, {"r", 384}}) {
+    const auto thumb = service_->GetThumbnail(id, 512);
+    ASSERT_TRUE(thumb) << id << ": " << thumb.error().ToString();
+    EXPECT_FALSE(thumb->from_source) << id;
+    EXPECT_EQ(thumb->thumbnail.width, 512) << id;
+    EXPECT_EQ(thumb->thumbnail.height, height) << id;
+  }
+}
+
+// A replacement killed after its thumbnail was stored and before the index committed it: the old image
+// stays indexed, and so must its thumbnail (overwritten first, the new image's thumbnail no longer fits
+// the old image's size: 404 for an acknowledged image).
+TEST_F(ServiceCrashTest, AReplacementKilledBeforeItsIndexCommitKeepsTheOldThumbnail) {
+  const auto added = service_->AddImage(Upload("x", "box_in_scene.png", false));
+  ASSERT_TRUE(added) << added.error().ToString();
+  RunKilled([&](Service& service) {
+    service.SetBeforeIndexCommitHookForTesting([](const std::string&) { raise(SIGKILL); });
+    return service.AddImage(Upload("x", "graf1.png", true)) ? 1 : 2;  // never returns
+  });
+  for (int restart = 0; restart < 2; ++restart) {
+    const auto kept = service_->GetImage("x");
+    ASSERT_TRUE(kept);
+    EXPECT_EQ(*kept, added->record);
+    const auto thumb = service_->GetThumbnail("x", 512);
+    ASSERT_TRUE(thumb) << "restart " << restart << ": " << thumb.error().ToString();
+    EXPECT_EQ(thumb->thumbnail.width, 512);  // box_in_scene's 512 x 384, not graf1's 512 x 410
+    EXPECT_EQ(thumb->thumbnail.height, 384);
+    Reopen();
+  }
+  auto store = OpenStore();
+  ASSERT_TRUE(store);
+  EXPECT_TRUE(store->Ids(true)->empty());  // the killed replacement's thumbnail was dropped at open
+}
+
+// Thumbnail rows of ids the index does not hold (a batch add killed before its index commit, a delete
+// killed between the index and the thumbnail store) are removed at open; the others stay.
+TEST_F(ServiceCrashTest, ThumbnailsOfImagesNotIndexedAreRemovedAtOpen) {
+  ASSERT_TRUE(service_->AddImage(Upload("kept", "graf1.png", false)));
+  RunKilled([&](Service& service) {
+    service.SetBeforeIndexCommitHookForTesting([](const std::string&) { raise(SIGKILL); });
+    AddBatchRequest batch;
+    batch.images = {Item("killed-1", "graf1.png"), Item("killed-2", "box_in_scene.png")};
+    return service.AddImages(batch) ? 1 : 2;  // never returns
+  });
+  service_.reset();
+  {
+    auto store = OpenStore();
+    ASSERT_TRUE(store);
+    ThumbnailStore::Entry entry = store->Get("kept")->value();
+    ASSERT_TRUE(store->Put("deleted", entry));  // as an interrupted delete leaves it
+  }
+  Reopen();
+  EXPECT_EQ(service_->GetImage("killed-1").error().code, ErrorCode::kNotFound);
+  auto store = OpenStore();
+  ASSERT_TRUE(store);
+  EXPECT_EQ(*store->Ids(false), std::vector<std::string>{"kept"});
+  EXPECT_TRUE(store->Ids(true)->empty());
+  const auto thumb = service_->GetThumbnail("kept", 512);
+  ASSERT_TRUE(thumb) << thumb.error().ToString();
+  EXPECT_EQ(thumb->thumbnail.height, 410);
+}
+
+// A crash after the index committed an image and before its thumbnail left the pending entry: it is
+// served meanwhile and committed at open.
+TEST_F(ServiceCrashTest, AThumbnailLeftPendingByAnIndexedImageIsCommittedAtOpen) {
+  ASSERT_TRUE(service_->AddImage(Upload("y", "graf1.png", false)));
+  const uint64_t sequence = service_->index().write_sequence();
+  service_.reset();
+  {
+    auto store = OpenStore();
+    ASSERT_TRUE(store);
+    const ThumbnailStore::Entry entry = store->Get("y")->value();
+    ASSERT_TRUE(store->Remove("y"));
+    ASSERT_TRUE(store->PutPending("y", entry, sequence - 1));  // stamped before the add's commit
+  }
+  Reopen();
+  auto store = OpenStore();
+  ASSERT_TRUE(store);
+  EXPECT_TRUE(store->Ids(true)->empty());
+  EXPECT_EQ(*store->Ids(false), std::vector<std::string>{"y"});
+  const auto thumb = service_->GetThumbnail("y", 512);
+  ASSERT_TRUE(thumb) << thumb.error().ToString();
+  EXPECT_FALSE(thumb->from_source);
+  EXPECT_EQ(thumb->thumbnail.height, 410);
 }
 
 }  // namespace
