@@ -51,7 +51,7 @@ class ShardPort : public ::testing::Test {
     png_ = std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
   }
   static void TearDownTestSuite() {
-    if (std::getenv("OXBOW_KEEP") == nullptr) delete dir_;
+    delete dir_;
     dir_ = nullptr;
   }
   static void Run(const std::string& command) {
