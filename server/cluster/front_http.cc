@@ -279,7 +279,8 @@ Result<std::unique_ptr<FrontHttpServer>> FrontHttpServer::Create(std::shared_ptr
   Impl* i = impl.get();
   i->http = std::make_unique<server::HttpServer>(
       options.http, server::CustomRoutes{[i](httplib::Server& http) { i->Register(http); },
-                                         [i] { return i->ShardMetrics(); }});
+                                         [i] { return i->ShardMetrics(); },
+                                         {{"/v1/admin/refresh-statistics", "/v1/admin/refresh-statistics", "POST"}}});
   return std::unique_ptr<FrontHttpServer>(new FrontHttpServer(std::move(impl)));
 }
 

@@ -277,6 +277,7 @@ struct HttpServer::RouteTable {
 };
 
 namespace {
+// The single node's routes; a server of CustomRoutes adds its own before them (HttpServer::routes_).
 const HttpServer::RouteTable& Routes() {
   static const HttpServer::RouteTable table = {{
       {"/", std::regex("/"), "GET"},
@@ -304,9 +305,9 @@ const HttpServer::RouteTable& Routes() {
 
 // The routes, and the limits a client sizes its requests by (the Python client's add_many chunks its
 // batches by max_batch_images).
-void DescribeApi(const HttpServerOptions& options, httplib::Response& res) {
+void DescribeApi(const HttpServerOptions& options, const HttpServer::RouteTable& table, httplib::Response& res) {
   json routes = json::array();
-  for (const auto& r : Routes().routes) routes.push_back({{"route", r.label}, {"methods", r.methods}});
+  for (const auto& r : table.routes) routes.push_back({{"route", r.label}, {"methods", r.methods}});
   const json limits = {{"max_batch_images", options.max_batch_images}, {"max_upload_bytes", options.max_body_bytes}};
   SendJson(res, 200, {{"service", "oxbow"}, {"api_version", "v1"}, {"routes", routes}, {"limits", limits}});
 }
@@ -598,6 +599,10 @@ HttpServer::HttpServer(const HttpServerOptions& options, CustomRoutes routes)
     : options_(options),
       custom_routes_(std::move(routes)),
       upload_budget_(std::make_unique<UploadBudget>(options.max_inflight_body_bytes)) {
+  auto table = std::make_unique<RouteTable>();
+  for (const RouteInfo& r : custom_routes_.more_routes) table->routes.push_back({r.label, std::regex(r.pattern), r.methods});
+  table->routes.insert(table->routes.end(), Routes().routes.begin(), Routes().routes.end());
+  routes_ = std::move(table);
   GuardOptions guard;
   guard.request_timeout = std::chrono::seconds(options_.request_timeout_s);
   guard.threads = options_.threads;
@@ -713,7 +718,7 @@ void HttpServer::RegisterRequestHooks() {
     t_request.start = Clock::now();
     t_request.id = RequestIdFor(req);
     res.set_header("X-Request-Id", t_request.id);
-    if (const auto* route = Routes().Find(req.path)) t_request.route = route->label;
+    if (const auto* route = routes_->Find(req.path)) t_request.route = route->label;
     TakeFormEncodedBodyAsImage(req);
     return RefuseOverUploadBudget(req, res, upload_budget_.get(), options_.max_body_bytes);
   });
@@ -752,7 +757,7 @@ void HttpServer::LogRequest(const std::string& id, const std::string& method, co
 void HttpServer::AnswerRefusal(const RefusedRequest& refused, httplib::Response& res) {
   const std::string id = IsSaneRequestId(refused.request_id) ? refused.request_id : NewRequestId();
   const std::string path = refused.target.substr(0, refused.target.find('?'));
-  const auto* route = path.empty() ? nullptr : Routes().Find(path);
+  const auto* route = path.empty() ? nullptr : routes_->Find(path);
   const std::string route_label = route != nullptr ? route->label : "unmatched";
   // Only the standard methods become a metrics label (a client's invented ones would add series).
   static const std::set<std::string> kMethods = {"GET", "HEAD", "POST", "PUT", "DELETE", "CONNECT", "OPTIONS", "TRACE", "PATCH"};
@@ -778,7 +783,7 @@ void HttpServer::RegisterErrorHandlers() {
     }
     if (ChunkedBodyOverLimit()) res.status = 413;
     if (res.status == 404) {
-      if (const auto* route = Routes().Find(req.path)) {
+      if (const auto* route = routes_->Find(req.path)) {
         res.set_header("Allow", route->methods);
         SendError(res, api::MethodNotAllowed(req.method, req.path, route->methods));
       } else {
@@ -852,7 +857,7 @@ void HttpServer::RegisterStatusRoutes() {
   http.Get(R"(/static/(.+))", [](const httplib::Request& req, httplib::Response& res) {
     SendWebAsset(req, res, req.matches[1].str());
   });
-  http.Get(R"(/v1/?)", [this](const httplib::Request&, httplib::Response& res) { DescribeApi(options_, res); });
+  http.Get(R"(/v1/?)", [this](const httplib::Request&, httplib::Response& res) { DescribeApi(options_, *routes_, res); });
   http.Get("/v1/openapi.json", ServeOpenApi);
   http.Get("/metrics", [this](const httplib::Request&, httplib::Response& res) { ServeMetrics(res); });
 }

@@ -106,6 +106,15 @@ struct HttpServerOptions {
   std::optional<std::string> Check() const;
 };
 
+// A route known to the server's route table: the label of its requests in log lines and metrics
+// (route=...), and the methods of a 405 answer and of GET /v1's list. A request matching no route of
+// the table is labelled "unmatched".
+struct RouteInfo {
+  std::string label;    // "/v1/images/{id}"
+  std::string pattern;  // ECMAScript regex matching the whole decoded path: "/v1/images/.+"
+  std::string methods;  // "GET, DELETE"
+};
+
 // The /v1 routes of a server that is not one index (the cluster front, server/cluster/front_http.h),
 // served by HttpServer in place of the single node's, behind the same guards (request timeout, upload
 // budget, connection limits, strict request heads), request ids, log lines, HTTP metrics, JSON error
@@ -116,6 +125,8 @@ struct CustomRoutes {
   std::function<void(httplib::Server&)> add;
   // More Prometheus text for /metrics (HELP/TYPE lines included); may be empty.
   std::function<std::string()> metrics;
+  // The routes `add` registers beyond the single node's (which the table always holds), matched first.
+  std::vector<RouteInfo> more_routes;
 };
 
 class HttpServer {
@@ -168,6 +179,7 @@ class HttpServer {
 
   HttpServerOptions options_;
   CustomRoutes custom_routes_;  // set: serves these instead of a service's routes
+  std::unique_ptr<const RouteTable> routes_;  // custom_routes_.more_routes, then the single node's
   std::unique_ptr<UploadBudget> upload_budget_;  // declared before http_, which uses it
   std::unique_ptr<httplib::Server> http_;
   api::Metrics metrics_;
