@@ -2,6 +2,7 @@
 // stop, is one JSON object with time, level and message, and each request's line carries its id,
 // method, path, route, status, latency and stage timings, also for errors, for requests refused before
 // they were read, and for paths holding bytes that are not UTF-8 or are JSON's own quote and backslash.
+// In the text format, bytes a client chose never end a line or start one.
 #include <gtest/gtest.h>
 
 #include <map>
@@ -159,6 +160,29 @@ TEST_F(JsonLogTest, TextStaysTheDefault) {
   ASSERT_EQ(server->Client().Get("/v1/stats", httplib::Headers{{"X-Request-Id", "plain"}})->status, 200);
   ASSERT_TRUE(server->WaitForLog("http plain GET /v1/stats route=/v1/stats status=200 ms=")) << server->Log();
   EXPECT_EQ(server->Log().find('{'), std::string::npos) << server->Log();
+}
+
+TEST_F(JsonLogTest, ClientBytesCannotForgeATextLine) {
+  auto server = StartServer({"--api-key", "k"});
+  auto client = server->Client();
+  const httplib::Headers key = {{"X-API-Key", "k"}};
+  const std::string forged = "2026-01-01T00:00:00Z I forged";
+  // A backup folder with a newline is refused (a path the client chose, index/backup.h) and, whatever
+  // is logged about it, no line of the log starts with what followed the newline.
+  const std::string out = dir_->path() + "/forged-backup\n" + forged;
+  const auto backup = client.Post("/v1/admin/backup", key, json{{"out", out}}.dump(), "application/json");
+  ASSERT_TRUE(backup);
+  EXPECT_EQ(backup->status, 400) << backup->body;
+  // A path decoding to CR LF and the forged line.
+  ASSERT_EQ(client.Get("/v1/images/x%0D%0A2026-01-01T00:00:00Z%20I%20forged")->status, 404);
+  ASSERT_EQ(client.Get("/v1/stats", httplib::Headers{{"X-Request-Id", "last"}})->status, 200);
+  ASSERT_TRUE(server->WaitForLog("http last GET /v1/stats")) << server->Log();
+  std::istringstream lines(server->Log());
+  std::string line;
+  while (std::getline(lines, line)) {
+    EXPECT_NE(line.rfind(forged, 0), 0u) << "a forged line:\n" << server->Log();
+    EXPECT_EQ(line.find('\r'), std::string::npos) << line;
+  }
 }
 
 }  // namespace

@@ -150,6 +150,28 @@ std::string JsonString(std::string_view text) {
   return out;
 }
 
+std::string TextSafe(std::string_view text) {
+  std::string out;
+  out.reserve(text.size());
+  for (const char ch : text) {
+    const auto c = static_cast<unsigned char>(ch);
+    if (c >= 0x20 && c != 0x7f) {
+      out += ch;
+    } else if (c == '\n') {
+      out += "\\n";
+    } else if (c == '\r') {
+      out += "\\r";
+    } else if (c == '\t') {
+      out += "\\t";
+    } else {
+      char buf[8];
+      std::snprintf(buf, sizeof buf, "\\x%02x", c);
+      out += buf;
+    }
+  }
+  return out;
+}
+
 Line::Line(Level level) : level_(level), json_(GetFormat() == Format::kJson) {}
 
 bool ParseLevel(const std::string& text, Level* level) {
@@ -172,7 +194,7 @@ Line::~Line() {
   gmtime_r(&now, &tm);
   char stamp[32];
   std::strftime(stamp, sizeof stamp, "%Y-%m-%dT%H:%M:%SZ", &tm);
-  WriteStderr(std::string(stamp) + " " + LevelLetter(level_) + " " + stream_.str() + "\n");
+  WriteStderr(std::string(stamp) + " " + LevelLetter(level_) + " " + TextSafe(stream_.str()) + "\n");
 }
 
 Line& Line::RawField(std::string_view key, std::string_view json_value) {

@@ -24,9 +24,10 @@ Level GetLevel();
 // Parses "debug" | "info" | "warning" | "error" | "off"; false if unknown.
 bool ParseLevel(const std::string& text, Level* level);
 
-// kText: "2026-11-21T06:01:02Z I message". kJson: {"time":"2026-11-21T06:01:02.345Z","level":"info",
-// "message":"message", ...the line's fields}, one object per line. Set it before logging starts
-// (lines already being built keep the format they started with).
+// kText: "2026-11-21T06:01:02Z I message" (the message through TextSafe). kJson:
+// {"time":"2026-11-21T06:01:02.345Z","level":"info","message":"message", ...the line's fields}, one
+// object per line. Set it before logging starts (lines already being built keep the format they started
+// with).
 enum class Format { kText, kJson };
 void SetFormat(Format format);
 Format GetFormat();
@@ -37,6 +38,11 @@ bool ParseFormat(const std::string& text, Format* format);
 // U+007F) escaped, and every byte that is not part of well-formed UTF-8 replaced by U+FFFD, so that any
 // bytes (a client's path, an id) give valid JSON.
 std::string JsonString(std::string_view text);
+
+// `text` for one line of the text format: every control character (U+0000..U+001F, U+007F) written as
+// an escape ("\n", "\r", "\t", "\x01"), so that bytes a client chose (a path, an id) can neither end
+// the line nor start one that looks like the server's. Other bytes are kept.
+std::string TextSafe(std::string_view text);
 
 // One log line, written atomically to stderr when destroyed. Fields are structured data for the JSON
 // format, where each becomes a member after time, level and message, in the order given (keys other than

@@ -116,6 +116,17 @@ TEST(LineTest, TextFormatShowsOnlyTheMessage) {
       << text;
 }
 
+TEST(LineTest, TextFormatEscapesControlCharacters) {
+  // A client's bytes in a message (a path, a folder name) cannot end the line or forge the next one.
+  const std::string text = CaptureStderr(Format::kText, [] {
+    Line(Level::kInfo) << "backed up to /b\n2026-01-01T00:00:00Z I forged\r\t\x01" << "nul\0\x7f"s << " caf\xc3\xa9";
+  });
+  EXPECT_TRUE(std::regex_match(text, std::regex(R"(\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ I backed up to /b\\n2026-01-01T00:00:00Z I )"
+                                                R"(forged\\r\\t\\x01nul\\x00\\x7f caf\xc3\xa9\n)")))
+      << text;
+  EXPECT_EQ(TextSafe("plain /v1/search \"q\" \\"), "plain /v1/search \"q\" \\");
+}
+
 TEST(ProgressTest, JsonFormatWritesOneObjectPerDraw) {
   const std::string text = CaptureStderr(Format::kJson, [] {
     Progress progress("indexing \"x\"", 4, "images");
