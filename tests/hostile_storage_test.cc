@@ -1,8 +1,10 @@
 // The real `oxbow serve` against index folders it must refuse without changing them: a stray or foreign
 // catalogue.sqlite-wal beside the catalogue (refused, and the catalogue byte-identical afterwards: a
 // read-write connection would checkpoint that WAL into it when the refused open closed it), and
-// a folder the server may not write (exit 7, io_error, saying it is a permission problem, not damage).
+// a folder the server may not write (exit 7, io_error, saying it is a permission problem, not damage),
+// and a file size limit (ulimit -f) that a write reaches: an io_error answer or exit 7, never SIGXFSZ.
 #include <gtest/gtest.h>
+#include <sys/resource.h>
 #include <unistd.h>
 
 #include <filesystem>
@@ -136,6 +138,64 @@ TEST_F(HostileStorageTest, ReadOnlyIndexFolderIsAnIoErrorExit7) {
   EXPECT_EQ(output.find("corrupt"), std::string::npos) << output;
   EXPECT_TRUE(FileBytes(copy + "/catalogue.sqlite") == catalogue) << "the catalogue changed";
   EXPECT_EQ(ServedImages(copy), kImages);
+}
+
+// Sets the file size limit (RLIMIT_FSIZE, soft) of this process while alive: a server started meanwhile
+// inherits it.
+class FileSizeLimit {
+ public:
+  explicit FileSizeLimit(rlim_t bytes) {
+    getrlimit(RLIMIT_FSIZE, &saved_);
+    rlimit limit = saved_;
+    limit.rlim_cur = bytes;
+    EXPECT_EQ(setrlimit(RLIMIT_FSIZE, &limit), 0);
+  }
+  ~FileSizeLimit() { setrlimit(RLIMIT_FSIZE, &saved_); }
+  FileSizeLimit(const FileSizeLimit&) = delete;
+  FileSizeLimit& operator=(const FileSizeLimit&) = delete;
+
+ private:
+  rlimit saved_{};
+};
+
+TEST_F(HostileStorageTest, AFileSizeLimitIsAnIoErrorNotASignal) {
+  constexpr rlim_t kLimit = 64 << 10;
+  constexpr rlim_t kSmallLimit = 48 << 10;  // above the 32 KiB of a SQLite -shm file
+  // A new index copies the vocabulary (128 KiB): the start fails with exit 7, saying why.
+  {
+    std::unique_ptr<oxbow::testing::ServerProcess> server;
+    {
+      const FileSizeLimit limit(kLimit);
+      server = std::make_unique<oxbow::testing::ServerProcess>(
+          std::vector<std::string>{"serve", "--index", dir_.path() + "/new", "--vocab", vocab_, "--port", "0"},
+          dir_.path() + "/limited-new.log");
+    }
+    EXPECT_EQ(server->Wait(), 7) << server->Log();
+    EXPECT_NE(server->Log().find("File too large"), std::string::npos) << server->Log();
+  }
+  // A running server whose write reaches the limit answers an error and goes on serving.
+  const std::string empty = dir_.path() + "/empty";
+  ASSERT_TRUE(api::Service::Open(empty, vocab_, {}).has_value());
+  std::unique_ptr<oxbow::testing::ServerProcess> server;
+  {
+    const FileSizeLimit limit(kSmallLimit);
+    server = std::make_unique<oxbow::testing::ServerProcess>(
+        std::vector<std::string>{"serve", "--index", empty, "--port", "0"}, dir_.path() + "/limited.log");
+  }
+  ASSERT_TRUE(server->port() > 0 && server->WaitReady()) << server->Log();
+  auto client = server->Client();
+  std::vector<uchar> png;
+  ASSERT_TRUE(cv::imencode(".png", oxbow::testing::Texture(1024, 768), png));
+  const std::string image(png.begin(), png.end());
+  ASSERT_GT(image.size(), kSmallLimit);
+  const auto added = client.Post("/v1/images?id=big", image, "image/png");
+  ASSERT_TRUE(added) << "no answer: " << server->Log();
+  EXPECT_EQ(added->status, 500) << added->body;
+  EXPECT_EQ(json::parse(added->body, nullptr, false)["error"]["code"], "io_error") << added->body;
+  const auto health = client.Get("/healthz");
+  ASSERT_TRUE(health) << server->Log();
+  EXPECT_EQ(health->status, 200);
+  EXPECT_EQ(server->Stop(), 0) << server->Log();
 }
 
 }  // namespace

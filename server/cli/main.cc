@@ -1,5 +1,6 @@
 // Entry point of the `oxbow` binary: global flags, then the registered subcommands (see cli.h).
 #include <algorithm>
+#include <csignal>
 #include <cstdio>
 #include <exception>
 #include <string>
@@ -39,6 +40,10 @@ void PrintError(const std::string& text) {
 
 int main(int argc, char** argv) {
   using oxbow::cli::CommandError;
+  // A write past the file size limit (ulimit -f, RLIMIT_FSIZE) then fails with EFBIG, which the writer
+  // reports as an error (an io_error answer, a failed command), instead of killing the process with
+  // SIGXFSZ in the middle of it.
+  std::signal(SIGXFSZ, SIG_IGN);
   CLI::App app{
       "oxbow: instance-level image retrieval (SIFT, visual words, TF-IDF, spatial verification).\n"
       "Run 'oxbow <command> --help' for the options of a command."};
