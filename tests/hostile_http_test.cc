@@ -279,6 +279,27 @@ TEST_F(HostileHttpTest, MalformedFramingIsAnsweredOnceAndClosed) {
   EXPECT_NE(log.find("status=400 refused: malformed HTTP request"), std::string::npos) << log;
 }
 
+// A request line of another HTTP version, or of none, gets one answer: one status line, and no other
+// bytes a client scanning the reply for "HTTP/1.1 " could take for a second one (the message included).
+TEST_F(HostileHttpTest, AnotherHttpVersionGetsOneAnswer) {
+  auto server = Start({});
+  const std::vector<std::pair<std::string, int>> requests = {
+      {"GET /healthz HTTP/2.0\r\n\r\n", 505},
+      {"GET /healthz HTTP/2.0\r\nHost: x\r\n\r\n", 505},
+      {"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n", 505},  // HTTP/2's connection preface
+      {"GET /healthz HTTP/1.2\r\n\r\n", 505},
+      {"GET /healthz HTTP/2\r\n\r\n", 400},
+      {"GET /healthz\r\n\r\n", 400},
+  };
+  for (const auto& [request, status] : requests) {
+    const Reply reply = Exchange(server->port(), request);
+    ExpectRefusedAtOnce(reply, {status}, request);
+    size_t versions = 0;
+    for (size_t at = reply.text.find("HTTP/"); at != std::string::npos; at = reply.text.find("HTTP/", at + 1)) ++versions;
+    EXPECT_EQ(versions, 1u) << request << ":\n" << reply.text;
+  }
+}
+
 TEST_F(HostileHttpTest, AnApiKeyFollowedByANulByteIsRefused) {
   auto server = Start({"--api-key", "secret"});
   const int port = server->port();

@@ -301,7 +301,7 @@ std::optional<HeadParse> CheckRequestLine(std::string_view line, HeadParse* pars
   const size_t first = line.find(' ');
   const size_t second = first == std::string_view::npos ? first : line.find(' ', first + 1);
   if (second == std::string_view::npos || line.find(' ', second + 1) != std::string_view::npos) {
-    return RefuseFraming(std::move(*parse), "the request line is not 'METHOD TARGET HTTP/1.1'");
+    return RefuseFraming(std::move(*parse), "the request line is not a method, a target and a version separated by single spaces");
   }
   const std::string_view method = line.substr(0, first);
   const std::string_view target = line.substr(first + 1, second - first - 1);
@@ -320,7 +320,9 @@ std::optional<HeadParse> CheckRequestLine(std::string_view line, HeadParse* pars
   parse->refused.target.assign(target);
   if (version != "HTTP/1.1" && version != "HTTP/1.0") {
     if (version.size() == 8 && version.substr(0, 5) == "HTTP/") {
-      return Refuse(std::move(*parse), 505, "http_version_not_supported", "only HTTP/1.0 and HTTP/1.1 are served");
+      // Worded without a version ("HTTP/1.1 ..."): the body must not hold what a client scanning the
+      // bytes would read as a second status line.
+      return Refuse(std::move(*parse), 505, "http_version_not_supported", "only versions 1.0 and 1.1 of HTTP are served");
     }
     return RefuseFraming(std::move(*parse), "the request line does not end in an HTTP version");
   }
