@@ -346,6 +346,49 @@ TEST_F(ShardPort, TlsAndMutualTls) {
   EXPECT_FALSE(Stub(mutual, grpc::SslCredentials(foreign_certificate))->Ping(Context().get(), {}, &pong).ok());
 }
 
+// A cluster backup writes FOLDER/partition-K on each shard's machine: FOLDER is new or holds only
+// partition folders, never a link; the client's mistakes keep their code through the front.
+TEST_F(ShardPort, ClusterBackupFoldersAreCheckedOnTheShard) {
+  const std::string address = StartShard({"--cluster-key", kKey});
+  ASSERT_FALSE(address.empty());
+  auto stub = Stub(address);
+  const auto backup = [&](const std::string& out) {
+    cluster::BackupRequest request;
+    request.set_out(out);
+    cluster::BackupReply reply;
+    return stub->Backup(Context().get(), request, &reply);
+  };
+  fs::create_directories(Path("full"));
+  std::ofstream(Path("full/notes.txt")) << "mine";
+  EXPECT_EQ(backup(Path("full/partition-0")).error_code(), grpc::StatusCode::ALREADY_EXISTS);
+  EXPECT_FALSE(fs::exists(Path("full/partition-0")));
+  fs::create_directory_symlink(Path("full"), Path("link"));
+  EXPECT_EQ(backup(Path("link/partition-0")).error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_EQ(backup(Path("missing/new/partition-0")).error_code(), grpc::StatusCode::NOT_FOUND);
+  EXPECT_FALSE(fs::exists(Path("missing")));
+  EXPECT_EQ(backup(Path("full/../new/partition-0")).error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_FALSE(fs::exists(Path("new")));
+  EXPECT_EQ(backup(Path("served-x")).error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  // A new folder, then a second partition beside the first.
+  ASSERT_TRUE(backup(Path("copy/partition-0")).ok());
+  EXPECT_TRUE(fs::exists(Path("copy/partition-0/catalogue.sqlite")));
+  EXPECT_TRUE(backup(Path("copy/partition-1")).ok());
+
+  // Through the front: the folder refused by every partition keeps its code (409, not 503).
+  cluster::ClusterConfig config;
+  config.vocabulary = Path("v.oxvoc");
+  config.partitions = {{address}};
+  config.security.key = kKey;
+  auto front = cluster::ClusterFront::Open(config);
+  ASSERT_TRUE(front) << front.error().ToString();
+  auto refused = (*front)->Backup(Path("full"));
+  ASSERT_FALSE(refused);
+  EXPECT_EQ(refused.error().code, ErrorCode::kAlreadyExists) << refused.error().ToString();
+  auto done = (*front)->Backup(Path("front-copy"));
+  ASSERT_TRUE(done) << done.error().ToString();
+  EXPECT_EQ((*done)[0].result.images, 3);
+}
+
 TEST(ClusterConfigSecurity, ReadsTheKeyFileAndTls) {
   api::testing::TempDir dir("oxbow-cluster-config-security");
   const std::string path = dir.path() + "/cluster.json";

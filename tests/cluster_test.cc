@@ -945,6 +945,7 @@ TEST_F(Cluster, ReadsDuringWritesAreAnsweredWithoutAFault) {
   fs::create_directories(copy);
   fs::copy(dir_->path() + "/cluster", copy + "/cluster", fs::copy_options::recursive);
   std::vector<std::vector<std::string>> partitions;
+  partitions.reserve(kPartitions);
   for (int p = 0; p < kPartitions; ++p) partitions.push_back({StartShard(p, api::PartitionFolder(copy + "/cluster", p))});
   for (const auto& replicas : partitions) ASSERT_FALSE(replicas[0].empty());
   const auto front = StartFront(partitions, {"--refresh-fraction", "0"});

@@ -872,15 +872,16 @@ Result<std::vector<ClusterFront::PartitionBackup>> ClusterFront::Backup(const st
     return Ok();
   });
   std::string failed;
-  // The client's own error (a bad or taken folder), which every partition refuses alike, keeps its code
-  // (400, 409); an unreachable partition or a failed copy is kResourceExhausted.
+  // The client's own error (a bad or taken folder, a missing parent), which every partition refuses
+  // alike, keeps its code (400, 409, 404); an unreachable partition or a failed copy is kResourceExhausted.
   std::optional<ErrorCode> refused;
   for (uint32_t p = 0; p < statuses.size(); ++p) {
     if (statuses[p]) continue;
     failed += (failed.empty() ? "" : "; ") + std::string("partition ") + std::to_string(p) + ": " +
               statuses[p].error().message;
     const ErrorCode code = statuses[p].error().code;
-    const bool clients = code == ErrorCode::kInvalidArgument || code == ErrorCode::kAlreadyExists;
+    const bool clients =
+        code == ErrorCode::kInvalidArgument || code == ErrorCode::kAlreadyExists || code == ErrorCode::kNotFound;
     if (!refused) {
       refused = clients ? code : ErrorCode::kResourceExhausted;
     } else if (*refused != code) {

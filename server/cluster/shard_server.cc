@@ -10,6 +10,7 @@
 #include <mutex>
 #include <system_error>
 
+#include "index/backup.h"
 #include "server/cluster/proto_convert.h"
 #include "server/cluster/shard.grpc.pb.h"
 #include "sift/base/log.h"
@@ -265,8 +266,13 @@ class ShardServer::Impl final : public Shard::Service {
       }
     } else if (std::filesystem::exists(folder, error)) {
       return ToGrpc({ErrorCode::kAlreadyExists, "the backup folder " + folder.string() + " exists and is not a folder"});
+    } else {
+      // A new FOLDER passes the single node's checks (its parent exists; no '..', link or control
+      // character; not the served folder) before it is made; BackupIndex checks FOLDER/partition-K.
+      if (auto ok = index::CheckBackupFolder(service->index().directory(), folder.string()); !ok)
+        return ToGrpc(ok.error());
+      std::filesystem::create_directory(folder, error);
     }
-    std::filesystem::create_directory(folder, error);  // BackupIndex says what is wrong with it
     auto done = service->Backup(out.string());
     if (!done) return ToGrpc(done.error());
     reply->set_images(done->images);
