@@ -152,10 +152,12 @@ void Service::SettleThumbnails() {
   for (const std::string& id : *pending_ids) {
     auto pending = thumbnails_->GetPending(id);
     auto record = index_->Get(id);
-    const bool indexed = pending && *pending && record && (*pending)->after_sequence < sequence &&
-                         (*pending)->entry.image_width == record->width &&
-                         (*pending)->entry.image_height == record->height &&
-                         (*pending)->entry.source == record->source_path;
+    bool indexed = false;
+    if (pending && record) {
+      const auto& found = *pending;
+      indexed = found.has_value() && found->after_sequence < sequence && found->entry.image_width == record->width &&
+                found->entry.image_height == record->height && found->entry.source == record->source_path;
+    }
     auto settled = indexed ? thumbnails_->Commit(id) : thumbnails_->DropPending(id);
     if (!settled) {
       OXBOW_LOG(kWarning) << "pending thumbnail of '" << id << "' not settled: " << settled.error().ToString();
@@ -560,7 +562,8 @@ Result<ThumbnailResponse> Service::GetThumbnail(const std::string& id, int max_s
     // Between a writer's index commit and its thumbnail's, the image's thumbnail is still pending.
     auto pending = thumbnails_->GetPending(id);
     if (!pending) return std::unexpected(pending.error());
-    if (*pending && made_for_record((*pending)->entry)) kept = std::move((*pending)->entry);
+    auto& found = *pending;
+    if (found.has_value() && made_for_record(found->entry)) kept = std::move(found->entry);
   }
   ThumbnailResponse response;
   api::Thumbnail full;

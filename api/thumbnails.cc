@@ -154,8 +154,9 @@ Result<std::optional<ThumbnailStore::Entry>> ThumbnailStore::Get(const std::stri
   std::lock_guard<std::mutex> lock(mutex_);
   auto read = Read(id, false);
   if (!read) return std::unexpected(read.error());
-  if (!*read) return std::optional<Entry>();
-  return std::optional<Entry>(std::move((*read)->entry));
+  auto& found = *read;
+  if (!found.has_value()) return std::optional<Entry>();
+  return std::optional<Entry>(std::move(found->entry));
 }
 
 Result<std::optional<ThumbnailStore::Pending>> ThumbnailStore::GetPending(const std::string& id) const {

@@ -78,7 +78,7 @@ class ShardPort : public ::testing::Test {
   }
 
   static std::unique_ptr<cluster::Shard::Stub> Stub(const std::string& address,
-                                                    std::shared_ptr<grpc::ChannelCredentials> credentials =
+                                                    const std::shared_ptr<grpc::ChannelCredentials>& credentials =
                                                         grpc::InsecureChannelCredentials()) {
     grpc::ChannelArguments args;
     args.SetMaxSendMessageSize(-1);
@@ -263,6 +263,7 @@ TEST_F(ShardPort, ConcurrentOversizedMessagesLeaveTheShardsMemoryBounded) {
   const long before = rss_mib();
   constexpr int kSenders = 5;  // 750 MiB of messages at once
   std::vector<std::thread> senders;
+  senders.reserve(kSenders);
   std::atomic<int> refused{0};
   for (int k = 0; k < kSenders; ++k) {
     senders.emplace_back([&] {

@@ -199,7 +199,7 @@ class ClusterFront::Impl {
   template <typename Reply>
   using ShardCall = std::function<grpc::Status(Shard::Stub&, grpc::ClientContext&, Reply*)>;
 
-  Impl(vocab::Vocabulary v, const FrontOptions& o, std::string key)
+  Impl(vocab::Vocabulary v, const FrontOptions& o, const std::string& key)
       : vocabulary(std::move(v)), settings(o), bearer(key.empty() ? "" : std::string(kBearerPrefix) + key) {}
   ~Impl() {
     {
@@ -888,7 +888,8 @@ Result<std::vector<ClusterFront::PartitionBackup>> ClusterFront::Backup(const st
       refused = ErrorCode::kResourceExhausted;
     }
   }
-  if (!failed.empty()) return Fail(*refused, "the backup is incomplete (" + failed + ")");
+  if (!failed.empty())
+    return Fail(refused.value_or(ErrorCode::kResourceExhausted), "the backup is incomplete (" + failed + ")");
   return done;
 }
 
