@@ -136,9 +136,16 @@ ThumbnailStore::~ThumbnailStore() { sqlite3_close(db_); }
 
 Status ThumbnailStore::Put(const std::string& id, const Entry& entry) {
   std::lock_guard<std::mutex> lock(mutex_);
+  return Write(id, entry, std::nullopt);
+}
+
+Status ThumbnailStore::Write(const std::string& id, const Entry& entry, std::optional<uint64_t> after_sequence) {
   Statement s;
-  if (sqlite3_prepare_v2(db_, "INSERT OR REPLACE INTO thumbnails(id, jpeg, width, height, source) VALUES(?,?,?,?,?)",
-                         -1, &s.stmt, nullptr) != SQLITE_OK) {
+  const char* sql = after_sequence.has_value()
+                        ? "INSERT OR REPLACE INTO pending(id, jpeg, width, height, source, after_sequence)"
+                          " VALUES(?,?,?,?,?,?)"
+                        : "INSERT OR REPLACE INTO thumbnails(id, jpeg, width, height, source) VALUES(?,?,?,?,?)";
+  if (sqlite3_prepare_v2(db_, sql, -1, &s.stmt, nullptr) != SQLITE_OK) {
     return std::unexpected(SqliteError(db_, "prepare", path_));
   }
   sqlite3_bind_text(s.stmt, 1, id.data(), static_cast<int>(id.size()), SQLITE_TRANSIENT);
@@ -146,6 +153,7 @@ Status ThumbnailStore::Put(const std::string& id, const Entry& entry) {
   sqlite3_bind_int(s.stmt, 3, entry.image_width);
   sqlite3_bind_int(s.stmt, 4, entry.image_height);
   sqlite3_bind_text(s.stmt, 5, entry.source.data(), static_cast<int>(entry.source.size()), SQLITE_TRANSIENT);
+  if (after_sequence.has_value()) sqlite3_bind_int64(s.stmt, 6, static_cast<sqlite3_int64>(*after_sequence));
   if (sqlite3_step(s.stmt) != SQLITE_DONE) return std::unexpected(SqliteError(db_, "write", path_));
   return Ok();
 }
@@ -203,21 +211,7 @@ Status ThumbnailStore::Remove(const std::string& id) {
 
 Status ThumbnailStore::PutPending(const std::string& id, const Entry& entry, uint64_t after_sequence) {
   std::lock_guard<std::mutex> lock(mutex_);
-  Statement s;
-  if (sqlite3_prepare_v2(db_,
-                         "INSERT OR REPLACE INTO pending(id, jpeg, width, height, source, after_sequence)"
-                         " VALUES(?,?,?,?,?,?)",
-                         -1, &s.stmt, nullptr) != SQLITE_OK) {
-    return std::unexpected(SqliteError(db_, "prepare", path_));
-  }
-  sqlite3_bind_text(s.stmt, 1, id.data(), static_cast<int>(id.size()), SQLITE_TRANSIENT);
-  sqlite3_bind_blob(s.stmt, 2, entry.thumbnail.jpeg.data(), static_cast<int>(entry.thumbnail.jpeg.size()), SQLITE_TRANSIENT);
-  sqlite3_bind_int(s.stmt, 3, entry.image_width);
-  sqlite3_bind_int(s.stmt, 4, entry.image_height);
-  sqlite3_bind_text(s.stmt, 5, entry.source.data(), static_cast<int>(entry.source.size()), SQLITE_TRANSIENT);
-  sqlite3_bind_int64(s.stmt, 6, static_cast<sqlite3_int64>(after_sequence));
-  if (sqlite3_step(s.stmt) != SQLITE_DONE) return std::unexpected(SqliteError(db_, "write", path_));
-  return Ok();
+  return Write(id, entry, after_sequence);
 }
 
 Status ThumbnailStore::Commit(const std::string& id) {

@@ -113,6 +113,9 @@ class ThumbnailStore {
  private:
   ThumbnailStore(sqlite3* db, std::string path) : db_(db), path_(std::move(path)) {}
   Result<std::optional<Pending>> Read(const std::string& id, bool pending) const;  // mutex_ held
+  // Writes `entry` under `id` into the committed table, or into the pending one stamped with
+  // `after_sequence` when it has a value.
+  Status Write(const std::string& id, const Entry& entry, std::optional<uint64_t> after_sequence);  // mutex_ held
   Status Run(const char* sql, const std::string& id, const char* what);           // mutex_ held
   mutable std::mutex mutex_;  // guards db_ (one statement at a time)
   sqlite3* db_;
