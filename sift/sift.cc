@@ -31,6 +31,7 @@ std::optional<std::string> SiftOptions::Check() const {
   if (!(edge_threshold > 1 && edge_threshold <= 1e6)) return "edge_threshold must be > 1, got " + std::to_string(edge_threshold);
   if (max_features && *max_features < 1) return "max_features must be >= 1 when set, got " + std::to_string(*max_features);
   if (descriptor != DescriptorKind::kSift && descriptor != DescriptorKind::kRootSift) return "unknown descriptor kind";
+  if (keypoint_style != KeypointStyle::kOpenCv && keypoint_style != KeypointStyle::kVlfeat) return "unknown keypoint style";
   if (!(orientation_peak_ratio > 0 && orientation_peak_ratio <= 1)) return "orientation_peak_ratio must be in (0, 1], got " + std::to_string(orientation_peak_ratio);
   if (!(kernel_radius_sigmas >= 2.5 && kernel_radius_sigmas <= 6)) return "kernel_radius_sigmas must be in [2.5, 6], got " + std::to_string(kernel_radius_sigmas);
   if (max_octaves && (*max_octaves < 1 || *max_octaves > 32)) return "max_octaves must be in [1, 32] when set, got " + std::to_string(*max_octaves);
@@ -87,6 +88,7 @@ Result<SiftOptions> SiftOptions::FromDescription(const std::string& settings) {
     start = end;
   }
   SiftOptions o;
+  o.keypoint_style = KeypointStyle::kOpenCv;  // descriptions without the field were made that way
   auto need = [&](const char* key) -> const std::string* {
     auto it = fields.find(key);
     return it == fields.end() ? nullptr : &it->second;
@@ -120,6 +122,10 @@ Result<SiftOptions> SiftOptions::FromDescription(const std::string& settings) {
       return incompatible("descriptor");
     }
   }
+  if (const std::string* v = need("keypoints")) {
+    if (*v != "vlfeat") return incompatible("keypoints");
+    o.keypoint_style = KeypointStyle::kVlfeat;
+  }
   if (!read_double("peak_ratio", &o.orientation_peak_ratio)) return incompatible("peak_ratio");
   if (!read_double("kernel_radius", &o.kernel_radius_sigmas)) return incompatible("kernel_radius");
   if (const std::string* v = need("max_octaves"); v && *v != "all") {
@@ -145,6 +151,8 @@ std::string SiftOptions::Describe() const {
     << ";peak_ratio=" << CanonicalDouble(orientation_peak_ratio)
     << ";kernel_radius=" << CanonicalDouble(kernel_radius_sigmas)
     << ";max_octaves=" << (max_octaves ? std::to_string(*max_octaves) : std::string("all"));
+  // kOpenCv is written as no field, so that descriptions made before the field existed keep their meaning.
+  if (keypoint_style == KeypointStyle::kVlfeat) s << ";keypoints=vlfeat";
   return s.str();
 }
 
@@ -162,7 +170,6 @@ constexpr int kDescCells = 4;          // d: 4x4 spatial cells
 constexpr int kDescBins = 8;           // n: orientation bins per cell
 constexpr float kDescCellFactor = 3.0f;  // cell width = 3 sigma [L04 sec. 6.1]
 constexpr float kDescClip = 0.2f;      // [L04 sec. 6.1]
-constexpr int kHistStride = (kDescCells + 2) * (kDescBins + 2);
 
 // One octave of the Gaussian scale space: S + 3 images, each blurred more than the previous.
 struct Octave {
@@ -180,6 +187,7 @@ struct Refined {
   int layer = 0, r = 0, c = 0;
   float xi = 0, xr = 0, xc = 0;  // offsets in scale, row, column
   float contrast = 0;
+  int level = 0;  // the Gaussian level whose gradients give the orientation and the descriptor
 };
 
 // ---- Extrema scan ----------------------------------------------------------------------------------
@@ -427,6 +435,75 @@ std::optional<Refined> Refine(const Octave& octave, Candidate cand, const SiftOp
   out.xr = static_cast<float>(offset[1]);
   out.xi = static_cast<float>(offset[2]);
   out.contrast = static_cast<float>(contrast);
+  out.level = layer;
+  return out;
+}
+
+// The 3D quadratic fit of D at (layer, r, c): grad = first derivatives (column, row, scale) and the
+// offset = -H^-1 grad to the fitted extremum (zero when H is singular).
+void FitQuadratic(const Octave& octave, int layer, int r, int c, double grad[3], double offset[3]) {
+  const float v = octave.Dog(layer, r, c);
+  const float right = octave.Dog(layer, r, c + 1), left = octave.Dog(layer, r, c - 1);
+  const float down = octave.Dog(layer, r + 1, c), up = octave.Dog(layer, r - 1, c);
+  const float next = octave.Dog(layer + 1, r, c), prev = octave.Dog(layer - 1, r, c);
+  grad[0] = 0.5 * (right - left);
+  grad[1] = 0.5 * (down - up);
+  grad[2] = 0.5 * (next - prev);
+  double H[3][3];
+  H[0][0] = right + left - 2.0 * v;
+  H[1][1] = down + up - 2.0 * v;
+  H[2][2] = next + prev - 2.0 * v;
+  H[0][1] = H[1][0] = 0.25 * (octave.Dog(layer, r + 1, c + 1) - octave.Dog(layer, r + 1, c - 1) -
+                              octave.Dog(layer, r - 1, c + 1) + octave.Dog(layer, r - 1, c - 1));
+  H[0][2] = H[2][0] = 0.25 * (octave.Dog(layer + 1, r, c + 1) - octave.Dog(layer + 1, r, c - 1) -
+                              octave.Dog(layer - 1, r, c + 1) + octave.Dog(layer - 1, r, c - 1));
+  H[1][2] = H[2][1] = 0.25 * (octave.Dog(layer + 1, r + 1, c) - octave.Dog(layer + 1, r - 1, c) -
+                              octave.Dog(layer - 1, r + 1, c) + octave.Dog(layer - 1, r - 1, c));
+  double x[3] = {0, 0, 0};
+  if (!Solve3(H, grad, x)) x[0] = x[1] = x[2] = 0;
+  for (int i = 0; i < 3; ++i) offset[i] = -x[i];
+}
+
+// KeypointStyle::kVlfeat's refinement: the sample moves one pixel in space (never in scale) while a
+// spatial offset exceeds kMoveOffset, at most kMaxRefineSteps times; the fit at the final sample is
+// kept when every offset is below kMaxOffset, then the contrast and edge tests as in Refine.
+std::optional<Refined> RefineInSpace(const Octave& octave, Candidate cand, const SiftOptions& options) {
+  constexpr double kMoveOffset = 0.6, kMaxOffset = 1.5;
+  const int S = options.intervals;
+  const int w = octave.gauss[0].width(), h = octave.gauss[0].height();
+  const int layer = cand.layer;
+  int r = cand.r, c = cand.c;
+  double grad[3], offset[3];
+  FitQuadratic(octave, layer, r, c, grad, offset);
+  for (int step = 0; step < kMaxRefineSteps; ++step) {
+    const int dc = (offset[0] > kMoveOffset && c < w - kBorder - 1) ? 1 : (offset[0] < -kMoveOffset && c > kBorder) ? -1 : 0;
+    const int dr = (offset[1] > kMoveOffset && r < h - kBorder - 1) ? 1 : (offset[1] < -kMoveOffset && r > kBorder) ? -1 : 0;
+    if (dc == 0 && dr == 0) break;
+    c += dc;
+    r += dr;
+    FitQuadratic(octave, layer, r, c, grad, offset);
+  }
+  if (!(std::fabs(offset[0]) < kMaxOffset && std::fabs(offset[1]) < kMaxOffset && std::fabs(offset[2]) < kMaxOffset))
+    return std::nullopt;
+  const float v = octave.Dog(layer, r, c);
+  const double contrast = v + 0.5 * (grad[0] * offset[0] + grad[1] * offset[1] + grad[2] * offset[2]);
+  if (std::fabs(contrast) * S < options.contrast_threshold) return std::nullopt;
+  const double dxx = octave.Dog(layer, r, c + 1) + octave.Dog(layer, r, c - 1) - 2.0 * v;
+  const double dyy = octave.Dog(layer, r + 1, c) + octave.Dog(layer, r - 1, c) - 2.0 * v;
+  const double dxy = 0.25 * (octave.Dog(layer, r + 1, c + 1) - octave.Dog(layer, r + 1, c - 1) -
+                             octave.Dog(layer, r - 1, c + 1) + octave.Dog(layer, r - 1, c - 1));
+  const double tr = dxx + dyy, det = dxx * dyy - dxy * dxy;
+  const double e = options.edge_threshold;
+  if (det <= 0 || tr * tr * e >= (e + 1) * (e + 1) * det) return std::nullopt;
+  Refined out;
+  out.layer = layer;
+  out.r = r;
+  out.c = c;
+  out.xc = static_cast<float>(offset[0]);
+  out.xr = static_cast<float>(offset[1]);
+  out.xi = static_cast<float>(offset[2]);
+  out.contrast = static_cast<float>(contrast);
+  out.level = std::clamp(static_cast<int>(std::lrint(layer + offset[2])), 0, S + 2);
   return out;
 }
 
@@ -459,6 +536,34 @@ OXBOW_AVX2_TARGET inline void Gradient8(const float* row, const float* above, co
   const __m256 dy = _mm256_sub_ps(_mm256_loadu_ps(above + x), _mm256_loadu_ps(below + x));
   *mag = _mm256_sqrt_ps(_mm256_fmadd_ps(dx, dx, _mm256_mul_ps(dy, dy)));
   *ori = Atan2Deg8(dy, dx);
+}
+#endif
+
+#ifdef OXBOW_AVX512
+// FastAtan2Deg 16 lanes at a time (bit-identical).
+inline __m512 Atan2Deg16(__m512 y, __m512 x) {
+  const __m512 zero = _mm512_setzero_ps();
+  const __m512 ax = _mm512_abs_ps(x), ay = _mm512_abs_ps(y);
+  const __m512 t = _mm512_div_ps(_mm512_min_ps(ax, ay), _mm512_max_ps(_mm512_max_ps(ax, ay), _mm512_set1_ps(1.17549435e-38f)));
+  const __m512 t2 = _mm512_mul_ps(t, t);
+  __m512 p = _mm512_fmadd_ps(_mm512_set1_ps(kAtanC9), t2, _mm512_set1_ps(kAtanC7));
+  p = _mm512_fmadd_ps(p, t2, _mm512_set1_ps(kAtanC5));
+  p = _mm512_fmadd_ps(p, t2, _mm512_set1_ps(kAtanC3));
+  p = _mm512_fmadd_ps(p, t2, _mm512_set1_ps(kAtanC1));
+  __m512 a = _mm512_mul_ps(p, t);
+  a = _mm512_mask_sub_ps(a, _mm512_cmp_ps_mask(ay, ax, _CMP_GT_OQ), _mm512_set1_ps(90.0f), a);
+  a = _mm512_mask_sub_ps(a, _mm512_cmp_ps_mask(x, zero, _CMP_LT_OQ), _mm512_set1_ps(180.0f), a);
+  a = _mm512_mask_sub_ps(a, _mm512_cmp_ps_mask(y, zero, _CMP_LT_OQ), _mm512_set1_ps(360.0f), a);
+  const __m512 full = _mm512_set1_ps(360.0f);
+  return _mm512_mask_sub_ps(a, _mm512_cmp_ps_mask(a, full, _CMP_GE_OQ), a, full);
+}
+
+// Gradient for the 16 samples x..x+15 of a row; see Gradient.
+inline void Gradient16(const float* row, const float* above, const float* below, int x, __m512* mag, __m512* ori) {
+  const __m512 dx = _mm512_sub_ps(_mm512_loadu_ps(row + x + 1), _mm512_loadu_ps(row + x - 1));
+  const __m512 dy = _mm512_sub_ps(_mm512_loadu_ps(above + x), _mm512_loadu_ps(below + x));
+  *mag = _mm512_sqrt_ps(_mm512_fmadd_ps(dx, dx, _mm512_mul_ps(dy, dy)));
+  *ori = Atan2Deg16(dy, dx);
 }
 #endif
 
@@ -528,6 +633,12 @@ float OrientationHistogram(const Plane& img, int c, int r, int radius, float sig
     const float* above = img.row(y - 1);
     const float* below = img.row(y + 1);
     const float wy = wx[i + radius];
+#ifdef OXBOW_AVX2
+    if (y + 3 < h) {  // see OrientationHistogramCircular
+      const float* ahead = img.row(y + 3);
+      for (int k = x0 - 1; k < x1 + 16; k += 16) _mm_prefetch(reinterpret_cast<const char*>(ahead + k), _MM_HINT_T0);
+    }
+#endif
     int x = x0;
 #ifdef OXBOW_AVX2
     if (simd) x = OrientationRowAvx2(row, above, below, x, x1, wy, wx, c, radius, temp);
@@ -554,106 +665,315 @@ float OrientationHistogram(const Plane& img, int c, int r, int radius, float sig
   return max_value;
 }
 
+// KeypointStyle::kVlfeat's vote of one gradient (direction `ori` in degrees, weighted magnitude wm):
+// shared linearly between the two nearest bins (bin b is centred on b * 10 degrees).
+inline void AddOrientationVote(float* temp, float ori, float wm) {
+  const float fbin = ori * kBinsPerDeg;
+  int b0 = static_cast<int>(fbin);
+  const float fraction = fbin - static_cast<float>(b0);
+  if (b0 >= kOriBins) b0 -= kOriBins;
+  const int b1 = b0 + 1 < kOriBins ? b0 + 1 : 0;
+  temp[b0] += std::fma(-fraction, wm, wm);
+  temp[b1] = std::fma(wm, fraction, temp[b1]);
+}
+
+#ifdef OXBOW_AVX512
+// OrientationHistogramCircular's AVX-512 path for the samples [j, j1) of a row: votes 16 at a time,
+// added in sample order.
+inline void OrientationCircularRowAvx512(const float* row, const float* above, const float* below, int j, int j1, float wy,
+                                         const float* wx, float* temp) {
+  alignas(64) int bins[16];
+  alignas(64) float v0[16], wms[16], fractions[16];
+  const __m512 vwy = _mm512_set1_ps(wy), bins_per_deg = _mm512_set1_ps(kBinsPerDeg);
+  const __m512i nbins = _mm512_set1_epi32(kOriBins);
+  for (; j < j1; j += 16) {
+    __m512 mag, ori;
+    Gradient16(row, above, below, j, &mag, &ori);
+    const __m512 fbin = _mm512_mul_ps(ori, bins_per_deg);
+    __m512i b0 = _mm512_cvttps_epi32(fbin);
+    const __m512 fraction = _mm512_sub_ps(fbin, _mm512_cvtepi32_ps(b0));
+    b0 = _mm512_mask_sub_epi32(b0, _mm512_cmpge_epi32_mask(b0, nbins), b0, nbins);
+    const __m512 wm = _mm512_mul_ps(mag, _mm512_mul_ps(vwy, _mm512_loadu_ps(wx + j)));
+    _mm512_store_si512(bins, b0);
+    _mm512_store_ps(v0, _mm512_fnmadd_ps(fraction, wm, wm));
+    _mm512_store_ps(wms, wm);
+    _mm512_store_ps(fractions, fraction);
+    const int lanes = std::min(16, j1 - j);
+    for (int lane = 0; lane < lanes; ++lane) {
+      const int b = bins[lane];
+      temp[b] += v0[lane];
+      float& next = temp[b + 1 < kOriBins ? b + 1 : 0];
+      next = std::fma(wms[lane], fractions[lane], next);
+    }
+  }
+}
+#endif
+
+#ifdef OXBOW_AVX2
+// OrientationHistogramCircular's AVX2 path for the samples [j, j1) of a row: votes 8 at a time, added
+// in sample order.
+OXBOW_AVX2_TARGET void OrientationCircularRowAvx2(const float* row, const float* above, const float* below, int j, int j1,
+                                                  float wy, const float* wx, float* temp) {
+  alignas(32) int bins[8];
+  alignas(32) float v0[8], wms[8], fractions[8];
+  const __m256 vwy = _mm256_set1_ps(wy), bins_per_deg = _mm256_set1_ps(kBinsPerDeg);
+  const __m256i nbins = _mm256_set1_epi32(kOriBins), last = _mm256_set1_epi32(kOriBins - 1);
+  for (; j < j1; j += 8) {
+    __m256 mag, ori;
+    Gradient8(row, above, below, j, &mag, &ori);
+    const __m256 fbin = _mm256_mul_ps(ori, bins_per_deg);
+    __m256i b0 = _mm256_cvttps_epi32(fbin);
+    const __m256 fraction = _mm256_sub_ps(fbin, _mm256_cvtepi32_ps(b0));
+    b0 = _mm256_sub_epi32(b0, _mm256_and_si256(_mm256_cmpgt_epi32(b0, last), nbins));
+    const __m256 wm = _mm256_mul_ps(mag, _mm256_mul_ps(vwy, _mm256_loadu_ps(wx + j)));
+    _mm256_store_si256(reinterpret_cast<__m256i*>(bins), b0);
+    _mm256_store_ps(v0, _mm256_fnmadd_ps(fraction, wm, wm));
+    _mm256_store_ps(wms, wm);
+    _mm256_store_ps(fractions, fraction);
+    const int lanes = std::min(8, j1 - j);
+    for (int lane = 0; lane < lanes; ++lane) {
+      const int b = bins[lane];
+      temp[b] += v0[lane];
+      float& next = temp[b + 1 < kOriBins ? b + 1 : 0];
+      next = std::fma(wms[lane], fractions[lane], next);
+    }
+  }
+}
+#endif
+
+// KeypointStyle::kVlfeat's smoothed 36-bin orientation histogram around the sub-pixel position
+// (xf, yf) of `img`: gradients within radius floor(3 sigma) (squared distance < radius^2 + 0.6),
+// Gaussian weight of `sigma`, votes shared between the two nearest bins, six passes of [1 1 1] / 3.
+// Returns its maximum.
+float OrientationHistogramCircular(const Plane& img, float xf, float yf, float sigma, float* hist, bool simd) {
+  float temp[kOriBins] = {};
+  const int w = img.width(), h = img.height();
+  const int cx = static_cast<int>(std::lrint(xf)), cy = static_cast<int>(std::lrint(yf));
+  const float fx = xf - static_cast<float>(cx), fy = yf - static_cast<float>(cy);
+  const int radius = std::clamp(static_cast<int>(std::floor(3.0f * sigma)), 1, 120);
+  const float limit = static_cast<float>(radius * radius) + 0.6f;
+  const float exp_scale = -1.0f / (2.0f * sigma * sigma);
+  alignas(64) float wx[256 + 16] = {};
+  for (int j = -radius; j <= radius; ++j) {
+    const float dj = static_cast<float>(j) - fx;
+    wx[j + radius] = std::exp(dj * dj * exp_scale);
+  }
+  for (int i = -radius; i <= radius; ++i) {
+    const int y = cy + i;
+    if (y <= 0 || y >= h - 1) continue;
+    const float di = static_cast<float>(i) - fy;
+    const float di2 = di * di;
+    // The columns inside the circle, an interval.
+    auto inside = [&](int j) {
+      const float dj = static_cast<float>(j) - fx;
+      return std::fma(dj, dj, di2) < limit;
+    };
+    int j0 = -radius, j1 = radius + 1;
+    while (j0 < j1 && !inside(j0)) ++j0;
+    while (j1 > j0 && !inside(j1 - 1)) --j1;
+    j0 = std::max(j0, 1 - cx);
+    j1 = std::min(j1, w - 1 - cx);
+    if (j0 >= j1) continue;
+    const float wy = std::exp(di2 * exp_scale);
+#ifdef OXBOW_AVX2
+    // The window's rows are far apart in memory; ask for the row needed three rows from now.
+    if (y + 3 < h) {
+      const float* ahead = img.row(y + 3) + cx;
+      for (int k = j0 - 1; k < j1 + 16; k += 16) _mm_prefetch(reinterpret_cast<const char*>(ahead + k), _MM_HINT_T0);
+    }
+#endif
+    const float* row = img.row(y) + cx;
+    const float* above = img.row(y - 1) + cx;
+    const float* below = img.row(y + 1) + cx;
+    if (simd) {
+#ifdef OXBOW_AVX512
+      OrientationCircularRowAvx512(row, above, below, j0, j1, wy, wx + radius, temp);
+      continue;
+#elif defined(OXBOW_AVX2)
+      OrientationCircularRowAvx2(row, above, below, j0, j1, wy, wx + radius, temp);
+      continue;
+#endif
+    }
+    for (int j = j0; j < j1; ++j) {
+      float mag, ori;
+      Gradient(row, above, below, j, &mag, &ori);
+      AddOrientationVote(temp, ori, mag * (wy * wx[j + radius]));
+    }
+  }
+  for (int pass = 0; pass < 6; ++pass) {
+    const float first = temp[0];
+    float previous = temp[kOriBins - 1];
+    for (int b = 0; b < kOriBins; ++b) {
+      const float current = temp[b];
+      temp[b] = (previous + current + (b + 1 < kOriBins ? temp[b + 1] : first)) / 3.0f;
+      previous = current;
+    }
+  }
+  float max_value = 0;
+  for (int b = 0; b < kOriBins; ++b) {
+    hist[b] = temp[b];
+    max_value = std::max(max_value, hist[b]);
+  }
+  return max_value;
+}
+
 // ---- Descriptor [L04 sec. 6] ------------------------------------------------------------------------
 
-constexpr int kHistSize = (kDescCells + 2) * kHistStride;  // (d+2) x (d+2) cells x (n+2) bins
+// The descriptor histogram is accumulated as hist[k * 16 + cell]: orientation bin k (0..7), spatial
+// cell = row * 4 + column. A sample at bin coordinates (rbin, cbin, obin) adds m * w to every bin, with
+// the trilinear weight w = tent(rbin - row) * tent(cbin - column) * o(k), tent(t) = max(1 - |t|, 0),
+// o(k0) = 1 - o1 and o(k0 + 1 mod n) = o1 where k0 = floor(obin), o1 = obin - k0, else 0: at most
+// 2 x 2 x 2 weights are non-zero. Every path computes each weight by this same formula,
+// (tent(rbin - row) * tent(cbin - column)) times (m * o(k)), and
+// adds it with one fused multiply-add per bin, samples in order; the AVX-512 path adds every bin
+// (the zero weights add +0, which leaves a bin unchanged: bins and weights are never negative) so that
+// its 128 sums stay in registers, the others only the non-zero ones, with the same results.
+constexpr int kDescCellCount = kDescCells * kDescCells;
+static_assert(kDescCells == 4 && kDescBins == 8, "the vector paths hold 16 cells x 8 orientation bins");
 
-// Adds a sample to the 2 x 2 x 2 histogram bins from p (row r0, column c0, orientation o0): v_rc is its
-// weight for row r0 + r, column c0 + c; o0_weight and o1_weight split it between o0 and o0 + 1.
-inline void AddTrilinear(float* p, float v_rc00, float v_rc01, float v_rc10, float v_rc11, float o0_weight, float o1_weight) {
-  constexpr int n = kDescBins, row = (kDescCells + 2) * (kDescBins + 2);
-  p[0] = std::fma(v_rc00, o0_weight, p[0]);
-  p[1] = std::fma(v_rc00, o1_weight, p[1]);
-  p[n + 2] = std::fma(v_rc01, o0_weight, p[n + 2]);
-  p[n + 3] = std::fma(v_rc01, o1_weight, p[n + 3]);
-  p[row] = std::fma(v_rc10, o0_weight, p[row]);
-  p[row + 1] = std::fma(v_rc10, o1_weight, p[row + 1]);
-  p[row + n + 2] = std::fma(v_rc11, o0_weight, p[row + n + 2]);
-  p[row + n + 3] = std::fma(v_rc11, o1_weight, p[row + n + 3]);
+inline float Tent(float t) {
+  const float w = 1.0f - std::fabs(t);
+  return w > 0.0f ? w : 0.0f;
+}
+
+// Adds one sample (bin coordinates rbin, cbin in (-1, d), obin in [0, n), weighted magnitude m) to the
+// non-zero bins of hist.
+inline void AccumulateSample(float* hist, float rbin, float cbin, float obin, float m) {
+  constexpr int d = kDescCells, n = kDescBins;
+  const int r0 = static_cast<int>(std::floor(rbin)), c0 = static_cast<int>(std::floor(cbin));
+  const int k0 = static_cast<int>(obin), k1 = (k0 + 1) & (n - 1);
+  const float o1 = obin - static_cast<float>(k0);
+  const float mo1 = m * o1, mo0 = m * (1.0f - o1);
+  for (int i = r0; i <= r0 + 1; ++i) {
+    if (i < 0 || i >= d) continue;
+    const float wr = Tent(rbin - static_cast<float>(i));
+    for (int j = c0; j <= c0 + 1; ++j) {
+      if (j < 0 || j >= d) continue;
+      const float wcell = wr * Tent(cbin - static_cast<float>(j));
+      float& b0 = hist[k0 * kDescCellCount + i * d + j];
+      float& b1 = hist[k1 * kDescCellCount + i * d + j];
+      b0 = std::fma(wcell, mo0, b0);
+      b1 = std::fma(wcell, mo1, b1);
+    }
+  }
+}
+
+// Orientation bin of a gradient direction relative to the keypoint's, wrapped into [0, n).
+inline float OrientationBin(float ori, float ori_deg, float bins_per_deg) {
+  float obin = (ori - ori_deg) * bins_per_deg;
+  if (obin < 0.0f) obin += static_cast<float>(kDescBins);
+  if (obin >= static_cast<float>(kDescBins)) obin -= static_cast<float>(kDescBins);
+  return obin;
 }
 
 #ifdef OXBOW_AVX2
 // Descriptor's AVX2 path for the samples [j, j1) of a window row (wcol: the column weights, indexed
-// by j), whole vectors of 8; returns where it stopped.
+// by j), whole vectors of 8 (lanes past j1 read valid memory: row padding or the next row, and are not
+// added): bin coordinates and weights 8 at a time, then AccumulateSample per sample in order.
 OXBOW_AVX2_TARGET int DescriptorRowAvx2(const float* row, const float* above, const float* below, int j, int j1, float fx,
                                         float sin_t, float cos_t, float rb0, float cb0, float ori_deg,
                                         float bins_per_deg, float wrow, const float* wcol, float* hist) {
   constexpr int d = kDescCells, n = kDescBins;
-  // The scalar formula below, 8 samples at a time, whole vectors (lanes past j1 read valid memory:
-  // row padding or the next row). Samples outside the window get weight 0 in bin (0, 0, 0) (adding
-  // +0 leaves the histogram unchanged); the adds are done in sample order.
   const __m256i iota = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
   const __m256 minus_one = _mm256_set1_ps(-1.0f), dv = _mm256_set1_ps(static_cast<float>(d));
   const __m256 vsin = _mm256_set1_ps(sin_t), vcos = _mm256_set1_ps(cos_t);
   const __m256 vrb0 = _mm256_set1_ps(rb0), vcb0 = _mm256_set1_ps(cb0);
   const __m256 vori = _mm256_set1_ps(ori_deg), vbins = _mm256_set1_ps(bins_per_deg), vwrow = _mm256_set1_ps(wrow);
-  const __m256i vn = _mm256_set1_epi32(n), zero_i = _mm256_setzero_si256(), vend = _mm256_set1_epi32(j1);
-  alignas(32) int index[8];
-  alignas(32) float weights[4][8], o_pairs[16];
+  const __m256 zero = _mm256_setzero_ps(), nv = _mm256_set1_ps(static_cast<float>(n));
+  const __m256i vend = _mm256_set1_epi32(j1);
+  alignas(32) float rbins[8], cbins[8], obins[8], mags[8];
   for (; j < j1; j += 8) {
     const __m256i jv = _mm256_add_epi32(_mm256_set1_epi32(j), iota);
     const __m256 dj = _mm256_sub_ps(_mm256_cvtepi32_ps(jv), _mm256_set1_ps(fx));
-    __m256 rbin = _mm256_fmadd_ps(dj, vsin, vrb0);
-    __m256 cbin = _mm256_fmadd_ps(dj, vcos, vcb0);
+    const __m256 rbin = _mm256_fmadd_ps(dj, vsin, vrb0);
+    const __m256 cbin = _mm256_fmadd_ps(dj, vcos, vcb0);
     const __m256 valid = _mm256_and_ps(
         _mm256_and_ps(_mm256_and_ps(_mm256_cmp_ps(rbin, minus_one, _CMP_GT_OQ), _mm256_cmp_ps(rbin, dv, _CMP_LT_OQ)),
                       _mm256_and_ps(_mm256_cmp_ps(cbin, minus_one, _CMP_GT_OQ), _mm256_cmp_ps(cbin, dv, _CMP_LT_OQ))),
         _mm256_castsi256_ps(_mm256_cmpgt_epi32(vend, jv)));
-    if (_mm256_movemask_ps(valid) == 0) continue;
+    unsigned bits = static_cast<unsigned>(_mm256_movemask_ps(valid));
+    if (bits == 0) continue;
     __m256 mag, ori;
     Gradient8(row, above, below, j, &mag, &ori);
-    rbin = _mm256_and_ps(rbin, valid);
-    cbin = _mm256_and_ps(cbin, valid);
     __m256 obin = _mm256_mul_ps(_mm256_sub_ps(ori, vori), vbins);
-    obin = _mm256_and_ps(obin, valid);
-    const __m256 m = _mm256_and_ps(_mm256_mul_ps(mag, _mm256_mul_ps(vwrow, _mm256_loadu_ps(wcol + j))), valid);
-    const __m256 rf = _mm256_floor_ps(rbin), cf = _mm256_floor_ps(cbin), of = _mm256_floor_ps(obin);
-    const __m256i r0 = _mm256_cvttps_epi32(rf), c0 = _mm256_cvttps_epi32(cf);
-    __m256i o0 = _mm256_cvttps_epi32(of);
-    rbin = _mm256_sub_ps(rbin, rf);
-    cbin = _mm256_sub_ps(cbin, cf);
-    obin = _mm256_sub_ps(obin, of);
-    o0 = _mm256_add_epi32(o0, _mm256_and_si256(_mm256_cmpgt_epi32(zero_i, o0), vn));
-    o0 = _mm256_sub_epi32(o0, _mm256_andnot_si256(_mm256_cmpgt_epi32(vn, o0), vn));
-    const __m256 v_r1 = _mm256_mul_ps(m, rbin), v_r0 = _mm256_sub_ps(m, v_r1);
-    const __m256 v_rc11 = _mm256_mul_ps(v_r1, cbin), v_rc10 = _mm256_sub_ps(v_r1, v_rc11);
-    const __m256 v_rc01 = _mm256_mul_ps(v_r0, cbin), v_rc00 = _mm256_sub_ps(v_r0, v_rc01);
-    const __m256 obin0 = _mm256_sub_ps(_mm256_set1_ps(1.0f), obin);
-    // index = ((r0 + 1) * (d + 2) + c0 + 1) * (n + 2) + o0
-    const __m256i cell = _mm256_add_epi32(_mm256_mullo_epi32(_mm256_add_epi32(r0, _mm256_set1_epi32(1)), _mm256_set1_epi32(d + 2)),
-                                          _mm256_add_epi32(c0, _mm256_set1_epi32(1)));
-    _mm256_store_si256(reinterpret_cast<__m256i*>(index),
-                       _mm256_add_epi32(_mm256_mullo_epi32(cell, _mm256_set1_epi32(n + 2)), o0));
-    _mm256_store_ps(weights[0], v_rc00);
-    _mm256_store_ps(weights[1], v_rc01);
-    _mm256_store_ps(weights[2], v_rc10);
-    _mm256_store_ps(weights[3], v_rc11);
-    // (o0 weight, o1 weight) of lane l at o_pairs[2 l], [2 l + 1].
-    const __m256 pairs_lo = _mm256_unpacklo_ps(obin0, obin), pairs_hi = _mm256_unpackhi_ps(obin0, obin);
-    _mm256_store_ps(o_pairs, _mm256_permute2f128_ps(pairs_lo, pairs_hi, 0x20));
-    _mm256_store_ps(o_pairs + 8, _mm256_permute2f128_ps(pairs_lo, pairs_hi, 0x31));
-    // Valid lanes only, in order (an invalid lane would add zeros). AddTrilinear's eight FMAs as
-    // four two-wide ones on (o0, o0 + 1).
-    for (unsigned bits = static_cast<unsigned>(_mm256_movemask_ps(valid)); bits != 0; bits &= bits - 1) {
+    obin = _mm256_add_ps(obin, _mm256_and_ps(_mm256_cmp_ps(obin, zero, _CMP_LT_OQ), nv));
+    obin = _mm256_sub_ps(obin, _mm256_and_ps(_mm256_cmp_ps(obin, nv, _CMP_GE_OQ), nv));
+    _mm256_store_ps(rbins, rbin);
+    _mm256_store_ps(cbins, cbin);
+    _mm256_store_ps(obins, obin);
+    _mm256_store_ps(mags, _mm256_mul_ps(mag, _mm256_mul_ps(vwrow, _mm256_loadu_ps(wcol + j))));
+    for (; bits != 0; bits &= bits - 1) {
       const int lane = std::countr_zero(bits);
-      float* p = hist + index[lane];
-      // Two floats at a 4-byte aligned address: _mm_loadl_epi64 / _mm_storel_epi64 (movq) are the
-      // unaligned 8-byte load and store (_mm_load_sd on a double* there is a misaligned access, UB).
-      const __m128 o_weights =
-          _mm_castsi128_ps(_mm_loadl_epi64(reinterpret_cast<const __m128i*>(o_pairs + 2 * lane)));
-      auto add_pair = [&](int offset, const float* v_rc) OXBOW_AVX2_TARGET {
-        auto* target = reinterpret_cast<__m128i*>(p + offset);
-        const __m128 sum =
-            _mm_fmadd_ps(_mm_broadcast_ss(v_rc), o_weights, _mm_castsi128_ps(_mm_loadl_epi64(target)));
-        _mm_storel_epi64(target, _mm_castps_si128(sum));
-      };
-      add_pair(0, weights[0] + lane);
-      add_pair(n + 2, weights[1] + lane);
-      add_pair((d + 2) * (n + 2), weights[2] + lane);
-      add_pair((d + 3) * (n + 2), weights[3] + lane);
+      AccumulateSample(hist, rbins[lane], cbins[lane], obins[lane], mags[lane]);
     }
   }
   return j;
+}
+#endif
+
+#ifdef OXBOW_AVX512
+// The descriptor histogram in 8 registers of 16 cells, one per orientation bin (see above).
+struct DescriptorAccumulator {
+  __m512 bins[kDescBins];
+};
+
+// Descriptor's AVX-512 path for the samples [j, j1) of a window row: bin coordinates and weights 16
+// samples at a time, then every sample's 128 weights added in registers (lanes past j1 read valid
+// memory and are not added).
+inline void DescriptorRowAvx512(const float* row, const float* above, const float* below, int j, int j1, float fx,
+                                float sin_t, float cos_t, float rb0, float cb0, float ori_deg, float bins_per_deg,
+                                float wrow, const float* wcol, DescriptorAccumulator* acc) {
+  constexpr int d = kDescCells, n = kDescBins;
+  const __m512i iota = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+  const __m512 minus_one = _mm512_set1_ps(-1.0f), dv = _mm512_set1_ps(static_cast<float>(d));
+  const __m512 vsin = _mm512_set1_ps(sin_t), vcos = _mm512_set1_ps(cos_t);
+  const __m512 vrb0 = _mm512_set1_ps(rb0), vcb0 = _mm512_set1_ps(cb0);
+  const __m512 vori = _mm512_set1_ps(ori_deg), vbins = _mm512_set1_ps(bins_per_deg), vwrow = _mm512_set1_ps(wrow);
+  const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.0f), nv = _mm512_set1_ps(static_cast<float>(n));
+  // Cell row and column of each of the 16 lanes of a bin register.
+  const __m512 cell_row = _mm512_setr_ps(0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3);
+  const __m512 cell_col = _mm512_setr_ps(0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3);
+  const __m512i vend = _mm512_set1_epi32(j1);
+  alignas(64) float rbins[16], cbins[16], mo[kDescBins][16];
+  __m512 h[kDescBins];
+  for (int k = 0; k < n; ++k) h[k] = acc->bins[k];
+  for (; j < j1; j += 16) {
+    const __m512i jv = _mm512_add_epi32(_mm512_set1_epi32(j), iota);
+    const __m512 dj = _mm512_sub_ps(_mm512_cvtepi32_ps(jv), _mm512_set1_ps(fx));
+    const __m512 rbin = _mm512_fmadd_ps(dj, vsin, vrb0);
+    const __m512 cbin = _mm512_fmadd_ps(dj, vcos, vcb0);
+    __mmask16 valid = _mm512_cmp_ps_mask(rbin, minus_one, _CMP_GT_OQ) & _mm512_cmp_ps_mask(rbin, dv, _CMP_LT_OQ) &
+                      _mm512_cmp_ps_mask(cbin, minus_one, _CMP_GT_OQ) & _mm512_cmp_ps_mask(cbin, dv, _CMP_LT_OQ) &
+                      _mm512_cmpgt_epi32_mask(vend, jv);
+    if (valid == 0) continue;
+    __m512 mag, ori;
+    Gradient16(row, above, below, j, &mag, &ori);
+    __m512 obin = _mm512_mul_ps(_mm512_sub_ps(ori, vori), vbins);
+    obin = _mm512_mask_add_ps(obin, _mm512_cmp_ps_mask(obin, zero, _CMP_LT_OQ), obin, nv);
+    obin = _mm512_mask_sub_ps(obin, _mm512_cmp_ps_mask(obin, nv, _CMP_GE_OQ), obin, nv);
+    const __m512 m = _mm512_mul_ps(mag, _mm512_mul_ps(vwrow, _mm512_loadu_ps(wcol + j)));
+    _mm512_store_ps(rbins, rbin);
+    _mm512_store_ps(cbins, cbin);
+    // Orientation weights: m (1 - o1) for bin k0 = floor(obin), m o1 for bin (k0 + 1) mod n, else 0.
+    const __m512i k0 = _mm512_cvttps_epi32(obin);
+    const __m512i k1 = _mm512_and_si512(_mm512_add_epi32(k0, _mm512_set1_epi32(1)), _mm512_set1_epi32(n - 1));
+    const __m512 o1 = _mm512_sub_ps(obin, _mm512_cvtepi32_ps(k0));
+    const __m512 mo1 = _mm512_mul_ps(m, o1), mo0 = _mm512_mul_ps(m, _mm512_sub_ps(one, o1));
+    for (int k = 0; k < n; ++k) {
+      const __m512i kv = _mm512_set1_epi32(k);
+      _mm512_store_ps(mo[k], _mm512_mask_mov_ps(_mm512_maskz_mov_ps(_mm512_cmpeq_epi32_mask(k0, kv), mo0),
+                                                _mm512_cmpeq_epi32_mask(k1, kv), mo1));
+    }
+    for (unsigned bits = valid; bits != 0; bits &= bits - 1) {
+      const int lane = std::countr_zero(bits);
+      const __m512 wr = _mm512_max_ps(_mm512_sub_ps(one, _mm512_abs_ps(_mm512_sub_ps(_mm512_set1_ps(rbins[lane]), cell_row))), zero);
+      const __m512 wc = _mm512_max_ps(_mm512_sub_ps(one, _mm512_abs_ps(_mm512_sub_ps(_mm512_set1_ps(cbins[lane]), cell_col))), zero);
+      const __m512 wcell = _mm512_mul_ps(wr, wc);
+#pragma GCC unroll 8
+      for (int k = 0; k < n; ++k) h[k] = _mm512_fmadd_ps(wcell, _mm512_set1_ps(mo[k][lane]), h[k]);
+    }
+  }
+  for (int k = 0; k < n; ++k) acc->bins[k] = h[k];
 }
 #endif
 
@@ -674,12 +994,16 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
   // Gaussian weight of half the window width: exp(-(u^2 + v^2) / (2 (d/2)^2)) in cell units, which is
   // rotation invariant, so separable in the image offsets (j - fx, i - fy).
   const float exp_scale = -1.0f / (d * d * 0.5f * hist_width * hist_width);
-  alignas(32) float wcol[512 + 8] = {};
+  alignas(64) float wcol[512 + 16] = {};
   for (int j = -radius; j <= radius; ++j) {
     const float dj = static_cast<float>(j) - fx;
     wcol[j + radius] = std::exp(dj * dj * exp_scale);
   }
-  alignas(32) float hist[kHistSize] = {};
+  alignas(64) float hist[kDescBins * kDescCellCount] = {};
+#ifdef OXBOW_AVX512
+  DescriptorAccumulator acc;
+  for (int k = 0; k < n; ++k) acc.bins[k] = _mm512_setzero_ps();
+#endif
   const float half = d / 2.0f - 0.5f;
   for (int i = -radius; i <= radius; ++i) {
     const int yy = cy + i;
@@ -718,7 +1042,13 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
     const float* above = img.row(yy - 1) + cx;
     const float* below = img.row(yy + 1) + cx;
     int j = j0;
-#ifdef OXBOW_AVX2
+#ifdef OXBOW_AVX512
+    if (simd) {
+      DescriptorRowAvx512(row, above, below, j, j1, fx, sin_t, cos_t, rb0, cb0, ori_deg, bins_per_deg, wrow,
+                          wcol + radius, &acc);
+      continue;
+    }
+#elif defined(OXBOW_AVX2)
     if (simd) {
       j = DescriptorRowAvx2(row, above, below, j, j1, fx, sin_t, cos_t, rb0, cb0, ori_deg, bins_per_deg, wrow,
                             wcol + radius, hist);
@@ -726,38 +1056,21 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
 #endif
     for (; j < j1; ++j) {
       const float dj = static_cast<float>(j) - fx;
-      float rbin = std::fma(dj, sin_t, rb0);
-      float cbin = std::fma(dj, cos_t, cb0);
+      const float rbin = std::fma(dj, sin_t, rb0);
+      const float cbin = std::fma(dj, cos_t, cb0);
       if (!(rbin > -1.0f && rbin < static_cast<float>(d) && cbin > -1.0f && cbin < static_cast<float>(d))) continue;
       float mag, ori;
       Gradient(row, above, below, j, &mag, &ori);
-      float obin = (ori - ori_deg) * bins_per_deg;
-      const float m = mag * (wrow * wcol[j + radius]);
-      const float rf = std::floor(rbin), cf = std::floor(cbin), of = std::floor(obin);
-      const int r0 = static_cast<int>(rf);
-      const int c0 = static_cast<int>(cf);
-      int o0 = static_cast<int>(of);
-      rbin -= rf;
-      cbin -= cf;
-      obin -= of;
-      if (o0 < 0) o0 += n;
-      if (o0 >= n) o0 -= n;
-      // Trilinear interpolation into the (d+2) x (d+2) x (n+2) histogram.
-      const float v_r1 = m * rbin, v_r0 = m - v_r1;
-      const float v_rc11 = v_r1 * cbin, v_rc10 = v_r1 - v_rc11;
-      const float v_rc01 = v_r0 * cbin, v_rc00 = v_r0 - v_rc01;
-      AddTrilinear(hist + ((r0 + 1) * (d + 2) + c0 + 1) * (n + 2) + o0, v_rc00, v_rc01, v_rc10,
-                   v_rc11, 1.0f - obin, obin);
+      AccumulateSample(hist, rbin, cbin, OrientationBin(ori, ori_deg, bins_per_deg), mag * (wrow * wcol[j + radius]));
     }
   }
-  // Fold the circular orientation bins and copy the inner d x d cells out.
-  for (int i = 0; i < d; ++i)
-    for (int j = 0; j < d; ++j) {
-      float* p = hist + ((i + 1) * (d + 2) + (j + 1)) * (n + 2);
-      p[0] += p[n];
-      p[1] += p[n + 1];
-      for (int k = 0; k < n; ++k) out[(i * d + j) * n + k] = p[k];
-    }
+#ifdef OXBOW_AVX512
+  if (simd)
+    for (int k = 0; k < n; ++k) _mm512_store_ps(hist + k * kDescCellCount, acc.bins[k]);
+#endif
+  // Cell-major output: out[cell * n + k].
+  for (int c = 0; c < kDescCellCount; ++c)
+    for (int k = 0; k < n; ++k) out[c * n + k] = hist[k * kDescCellCount + c];
   // Normalise, clip at 0.2 (of the norm), renormalise [L04 sec. 6.1].
   float norm2 = 0;
   for (int k = 0; k < kDescriptorDim; ++k) norm2 += out[k] * out[k];
@@ -884,7 +1197,9 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
     if (stopped()) break;
     std::vector<std::optional<Refined>> refined(candidates.size());
     team.ParallelFor(candidates.size(), 64, [&](size_t b, size_t e, int) {
-      for (size_t i = b; i < e; ++i) refined[i] = Refine(octave, candidates[i], options);
+      for (size_t i = b; i < e; ++i)
+        refined[i] = options.keypoint_style == KeypointStyle::kVlfeat ? RefineInSpace(octave, candidates[i], options)
+                                                                      : Refine(octave, candidates[i], options);
     });
     // Two candidates can converge onto the same sample; keep the first (as cv::SIFT removes duplicates).
     std::vector<Refined> unique;
@@ -919,9 +1234,13 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
         const Refined& p = unique[i];
         const float scale_octave = static_cast<float>(sigma * std::pow(2.0, (p.layer + p.xi) / S));
         scales[i] = scale_octave;
-        const Plane& img = octave.gauss[static_cast<size_t>(p.layer)];
-        const float max_value = OrientationHistogram(img, p.c, p.r, static_cast<int>(std::lrint(kOriRadiusFactor * scale_octave)),
-                                                     kOriSigmaFactor * scale_octave, hist, simd);
+        const Plane& img = octave.gauss[static_cast<size_t>(p.level)];
+        const float max_value =
+            options.keypoint_style == KeypointStyle::kVlfeat
+                ? OrientationHistogramCircular(img, static_cast<float>(p.c + p.xc), static_cast<float>(p.r + p.xr),
+                                               kOriSigmaFactor * scale_octave, hist, simd)
+                : OrientationHistogram(img, p.c, p.r, static_cast<int>(std::lrint(kOriRadiusFactor * scale_octave)),
+                                       kOriSigmaFactor * scale_octave, hist, simd);
         const float threshold = static_cast<float>(max_value * options.orientation_peak_ratio);
         PointOrientations& out = orientations[i];
         for (int j = 0; j < kOriBins; ++j) {
@@ -944,7 +1263,7 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
       for (size_t i = b; i < e; ++i) {
         const Refined& p = unique[i];
         const float scale_octave = scales[i];
-        const Plane& img = octave.gauss[static_cast<size_t>(p.layer)];
+        const Plane& img = octave.gauss[static_cast<size_t>(p.level)];
         const double x_octave = p.c + p.xc, y_octave = p.r + p.xr;
         for (int a = 0; a < orientations[i].count; ++a) {
           const float ori_up = orientations[i].degrees[a];
