@@ -80,7 +80,6 @@ namespace {
 // multiply-adds); rows[j] is source row y - r + j, kernel is the full kernel c_r..c_0..c_r.
 // Four rows at a time the AVX2 path loads each source row once for all four (1 load per 4 FMAs
 // instead of 2 loads per FMA): the 2r + 4 rows live in L2, not L1, so loads are the limit otherwise.
-constexpr int kRowBlock = 4;
 
 #ifdef OXBOW_AVX2
 // VerticalPass's AVX2 path.
@@ -304,6 +303,48 @@ void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kern
   GaussianBlur(src, dst, half_kernel, team, allow_simd);
 }
 
+namespace {
+
+// Dst rows [y, y + count) (count <= kRowBlock) of the blur: the vertical pass into the padded rows t,
+// their borders reflected, then the horizontal pass into dst. rows: room for 2 r + kRowBlock pointers.
+void BlurBlock(const Plane& src, Plane* dst, std::span<const float> half_kernel, const float* kernel, int y, int count,
+               float* const* t, const float** rows, bool simd) {
+  const int w = src.width(), h = src.height();
+  const int r = static_cast<int>(half_kernel.size()) - 1;
+  for (int j = 0; j < 2 * r + count; ++j) rows[j] = src.row(Reflect101(y - r + j, h));
+  VerticalPass(rows, kernel, r, count, w, t, simd);
+  for (int m = 0; m < count; ++m) {
+    for (int i = 1; i <= r; ++i) {
+      t[m][-i] = t[m][Reflect101(-i, w)];
+      t[m][w - 1 + i] = t[m][Reflect101(w - 1 + i, w)];
+    }
+    HorizontalPass(t[m], half_kernel, w, dst->row(y + m), simd);
+  }
+}
+
+size_t PaddedPitch(int w, int r) { return static_cast<size_t>(w + 2 * r) + 16; }
+
+}  // namespace
+
+void BlurScratch::Prepare(int width, std::span<const float> half_kernel) {
+  const int r = static_cast<int>(half_kernel.size()) - 1;
+  const size_t pitch = PaddedPitch(width, r);
+  if (padded.size() < kRowBlock * pitch) padded.resize(kRowBlock * pitch);
+  for (int m = 0; m < kRowBlock; ++m) t[m] = padded.data() + static_cast<size_t>(m) * pitch + r;
+  rows.resize(static_cast<size_t>(2 * r + kRowBlock));
+  kernel.resize(static_cast<size_t>(2 * r + 1));
+  for (int i = 0; i <= 2 * r; ++i) kernel[static_cast<size_t>(i)] = half_kernel[static_cast<size_t>(std::abs(i - r))];
+}
+
+void GaussianBlurRows(const Plane& src, Plane* dst, std::span<const float> half_kernel, int y, int count,
+                      BlurScratch* scratch, bool allow_simd) {
+  allow_simd = allow_simd && Avx2FmaAvailable();
+  OXBOW_CHECK(dst != &src && dst->width() == src.width() && dst->height() == src.height());
+  OXBOW_CHECK(count >= 1 && count <= kRowBlock && y >= 0 && y + count <= src.height());
+  scratch->Prepare(src.width(), half_kernel);
+  BlurBlock(src, dst, half_kernel, scratch->kernel.data(), y, count, scratch->t, scratch->rows.data(), allow_simd);
+}
+
 void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kernel, WorkerTeam& team, bool allow_simd) {
   allow_simd = allow_simd && Avx2FmaAvailable();  // the passes below trust it
   const int num_threads = team.size();
@@ -312,28 +353,15 @@ void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kern
   const int w = src.width(), h = src.height();
   if (dst->width() != w || dst->height() != h) dst->Reshape(w, h);
   if (w == 0 || h == 0) return;
-  const int r = static_cast<int>(half_kernel.size()) - 1;
-  std::vector<float> kernel(static_cast<size_t>(2 * r + 1));
-  for (int i = 0; i <= 2 * r; ++i) kernel[static_cast<size_t>(i)] = half_kernel[static_cast<size_t>(std::abs(i - r))];
   // Row chunks are multiples of kRowBlock so that a row's formula does not depend on the thread count
   // (it does not anyway: every output row is computed by the same sequence of operations).
   const size_t grain = (RowGrain(h, num_threads) + kRowBlock - 1) / kRowBlock * kRowBlock;
   team.ParallelFor(static_cast<size_t>(h), grain, [&](size_t y0, size_t y1, int) {
-    std::vector<float> padded(static_cast<size_t>(kRowBlock) * (static_cast<size_t>(w + 2 * r) + 8));
-    std::vector<const float*> rows(static_cast<size_t>(2 * r + kRowBlock));
-    float* t[kRowBlock];
-    for (int m = 0; m < kRowBlock; ++m) t[m] = padded.data() + static_cast<size_t>(m) * (static_cast<size_t>(w + 2 * r) + 8) + r;
+    BlurScratch scratch;
+    scratch.Prepare(w, half_kernel);
     for (int y = static_cast<int>(y0); y < static_cast<int>(y1); y += kRowBlock) {
       const int count = std::min(kRowBlock, static_cast<int>(y1) - y);
-      for (int j = 0; j < 2 * r + count; ++j) rows[static_cast<size_t>(j)] = src.row(Reflect101(y - r + j, h));
-      VerticalPass(rows.data(), kernel.data(), r, count, w, t, allow_simd);
-      for (int m = 0; m < count; ++m) {
-        for (int i = 1; i <= r; ++i) {
-          t[m][-i] = t[m][Reflect101(-i, w)];
-          t[m][w - 1 + i] = t[m][Reflect101(w - 1 + i, w)];
-        }
-        HorizontalPass(t[m], half_kernel, w, dst->row(y + m), allow_simd);
-      }
+      BlurBlock(src, dst, half_kernel, scratch.kernel.data(), y, count, scratch.t, scratch.rows.data(), allow_simd);
     }
   });
 }

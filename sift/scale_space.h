@@ -87,6 +87,26 @@ void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kern
                   bool allow_simd = true);
 void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kernel, WorkerTeam& team, bool allow_simd);
 
+// Rows blurred together by GaussianBlur's vertical pass (each source row loaded once for all of them).
+inline constexpr int kRowBlock = 4;
+
+// Scratch memory of GaussianBlurRows for one kernel and image width: the padded rows of one block, the
+// source row pointers and the full kernel. Reusable across calls.
+struct BlurScratch {
+  void Prepare(int width, std::span<const float> half_kernel);
+  std::vector<float> padded;
+  float* t[kRowBlock] = {};
+  std::vector<const float*> rows;
+  std::vector<float> kernel;
+};
+
+// Rows [y, y + count) of GaussianBlur(src, dst, half_kernel, ...), the same values, computed alone:
+// 1 <= count <= kRowBlock, dst already shaped like src, and the source rows y - r .. y + count - 1 + r
+// (reflected at the edges) already final. Lets a caller interleave the levels of a pyramid row by row,
+// so that each level's rows are read again while they are still in cache.
+void GaussianBlurRows(const Plane& src, Plane* dst, std::span<const float> half_kernel, int y, int count,
+                      BlurScratch* scratch, bool allow_simd);
+
 // dst (2w x 2h) = bilinear 2x enlargement of the w x h image at `src` (rows `src_stride` floats apart)
 // with pixel-centre alignment (as cv::resize INTER_LINEAR): dst(2i) = 0.75 src(i) + 0.25 src(i-1),
 // dst(2i+1) = 0.75 src(i) + 0.25 src(i+1), edges replicated. dst is reshaped (its buffer reused).

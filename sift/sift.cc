@@ -6,6 +6,7 @@
 #include <cstdio>
 #include <bit>
 #include <charconv>
+#include <functional>
 #include <map>
 #include <memory>
 #include <optional>
@@ -239,6 +240,55 @@ OXBOW_AVX2_TARGET int ScanRowAvx2(const float* const (&rows)[3][3], int x0, int 
 }
 #endif
 
+#ifdef OXBOW_AVX512
+// ScanRowAvx2's formula 16 columns at a time.
+int ScanRowAvx512(const float* const (&rows)[3][3], int x0, int x1, float threshold, std::vector<int>* out) {
+  const float* cur = rows[1][1];
+  int x = x0;
+  const __m512 thr = _mm512_set1_ps(threshold);
+  const __m512 zero = _mm512_setzero_ps();
+  for (; x + 16 <= x1; x += 16) {
+    const __m512 v = _mm512_loadu_ps(cur + x);
+    const __mmask16 strong = _mm512_cmp_ps_mask(_mm512_abs_ps(v), thr, _CMP_GT_OQ);
+    if (strong == 0) continue;
+    __m512 mx = _mm512_max_ps(_mm512_loadu_ps(cur + x - 1), _mm512_loadu_ps(cur + x + 1));
+    __m512 mn = _mm512_min_ps(_mm512_loadu_ps(cur + x - 1), _mm512_loadu_ps(cur + x + 1));
+    for (const int dy : {0, 2}) {
+      for (int dx = -1; dx <= 1; ++dx) {
+        const __m512 n = _mm512_loadu_ps(rows[1][dy] + x + dx);
+        mx = _mm512_max_ps(mx, n);
+        mn = _mm512_min_ps(mn, n);
+      }
+    }
+    __mmask16 is_max = _mm512_cmp_ps_mask(v, zero, _CMP_GT_OQ) & _mm512_cmp_ps_mask(v, mx, _CMP_GE_OQ);
+    __mmask16 is_min = _mm512_cmp_ps_mask(v, zero, _CMP_LT_OQ) & _mm512_cmp_ps_mask(v, mn, _CMP_LE_OQ);
+    if ((strong & (is_max | is_min)) == 0) continue;
+    for (const int l : {0, 2}) {
+      for (int dy = 0; dy < 3; ++dy) {
+        for (int dx = -1; dx <= 1; ++dx) {
+          const __m512 n = _mm512_loadu_ps(rows[l][dy] + x + dx);
+          mx = _mm512_max_ps(mx, n);
+          mn = _mm512_min_ps(mn, n);
+        }
+      }
+    }
+    is_max &= _mm512_cmp_ps_mask(v, mx, _CMP_GE_OQ);
+    is_min &= _mm512_cmp_ps_mask(v, mn, _CMP_LE_OQ);
+    for (unsigned bits = strong & (is_max | is_min); bits != 0; bits &= bits - 1)
+      out->push_back(x + std::countr_zero(bits));
+  }
+  return x;
+}
+
+// d[x] = b[x] - a[x] for all x < w (the last vector masked).
+void SubtractAvx512(const float* b, const float* a, int w, float* d) {
+  for (int x = 0; x < w; x += 16) {
+    const __mmask16 lanes = w - x >= 16 ? __mmask16(0xffff) : static_cast<__mmask16>((1u << (w - x)) - 1);
+    _mm512_mask_storeu_ps(d + x, lanes, _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, b + x), _mm512_maskz_loadu_ps(lanes, a + x)));
+  }
+}
+#endif
+
 // Scans row y of a DoG layer for samples with |v| > threshold that are >= (or <=) all 26 neighbours;
 // rows[l][dy] is row y - 1 + dy of layer (layer - 1 + l). Appends the columns found, in order.
 void ScanRow(const float* const (&rows)[3][3], int x0, int x1, float threshold, bool simd, std::vector<int>* out) {
@@ -265,8 +315,11 @@ void ScanRow(const float* const (&rows)[3][3], int x0, int x1, float threshold, 
     return false;
   };
   int x = x0;
+#ifdef OXBOW_AVX512
+  if (simd) x = ScanRowAvx512(rows, x0, x1, threshold, out);
+#endif
 #ifdef OXBOW_AVX2
-  if (simd) x = ScanRowAvx2(rows, x0, x1, threshold, out);
+  if (simd) x = ScanRowAvx2(rows, x, x1, threshold, out);
 #endif
   for (; x < x1; ++x)
     if (is_extremum(x)) out->push_back(x);
@@ -284,13 +337,20 @@ OXBOW_AVX2_TARGET int SubtractAvx2(const float* b, const float* a, int w, float*
 
 // Finds the candidate extrema of one octave, in (layer, row, column) order. DoG rows are computed on
 // the fly into a small ring buffer per worker, so the DoG pyramid is never stored.
-std::vector<Candidate> ScanOctave(const Octave& octave, int intervals, float threshold, WorkerTeam& team, bool simd) {
+//
+// rows_ready (may be empty): when set, the rows are scanned in one pass from the top, and rows_ready(n)
+// is called before any row >= n - 2 of a level is read; it makes rows < n of every level final and
+// returns false to abandon the scan (the candidates found so far are returned).
+std::vector<Candidate> ScanOctave(const Octave& octave, int intervals, float threshold, WorkerTeam& team, bool simd,
+                                  const std::function<bool(int)>& rows_ready = {}) {
+  constexpr int kPrefetchRows = 4;
   const int num_threads = team.size();
   const Plane& g0 = octave.gauss[0];
   const int w = g0.width(), h = g0.height();
   if (w <= 2 * kBorder || h <= 2 * kBorder) return {};
   const int rows = h - 2 * kBorder;
-  const size_t grain = static_cast<size_t>(std::max(8, rows / std::max(1, 4 * num_threads)));
+  const size_t grain = rows_ready ? static_cast<size_t>(rows)
+                                  : static_cast<size_t>(std::max(8, rows / std::max(1, 4 * num_threads)));
   const size_t chunks = (static_cast<size_t>(rows) + grain - 1) / grain;
   std::vector<std::vector<Candidate>> found(chunks);
   const int dog_layers = intervals + 2;
@@ -305,22 +365,40 @@ std::vector<Candidate> ScanOctave(const Octave& octave, int intervals, float thr
       return ring.get() + (static_cast<size_t>(layer) * kRing + static_cast<size_t>((y % kRing + kRing) % kRing)) * stride;
     };
     auto compute_row = [&](int y) {
+#ifdef OXBOW_AVX2
+      // The S + 3 planes stream from memory side by side; ask for their rows a few rows ahead.
+      if (y + kPrefetchRows < h)
+        for (int l = 0; l <= dog_layers; ++l) {
+          const char* ahead = reinterpret_cast<const char*>(octave.gauss[static_cast<size_t>(l)].row(y + kPrefetchRows));
+          for (int x = 0; x < w; x += 16) _mm_prefetch(ahead + 4 * x, _MM_HINT_T0);
+        }
+#endif
       for (int l = 0; l < dog_layers; ++l) {
         const float* pa = octave.gauss[static_cast<size_t>(l)].row(y);
         const float* pb = octave.gauss[static_cast<size_t>(l) + 1].row(y);
         float* d = slot(l, y);
         int x = 0;
+#ifdef OXBOW_AVX512
+        if (simd) {
+          SubtractAvx512(pb, pa, w, d);
+          continue;
+        }
+#endif
 #ifdef OXBOW_AVX2
         if (simd) x = SubtractAvx2(pb, pa, w, d);
 #endif
         for (; x < w; ++x) d[x] = pb[x] - pa[x];
       }
     };
-    compute_row(y0 - 1);
-    compute_row(y0);
     std::vector<Candidate> rows_found[8];
     std::vector<int> columns;
-    for (int y = y0; y < y1; ++y) {
+    bool abandoned = rows_ready && !rows_ready(y0 + 1);
+    if (!abandoned) {
+      compute_row(y0 - 1);
+      compute_row(y0);
+    }
+    for (int y = y0; y < y1 && !abandoned; ++y) {
+      if (rows_ready && !rows_ready(y + 2)) break;
       compute_row(y + 1);
       for (int layer = 1; layer <= intervals; ++layer) {
         columns.clear();
@@ -1183,17 +1261,47 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
   // decimated base of the next octave.
   for (int o = 0; o < octaves && !stopped(); ++o) {
     octave.index = o;
-    if (o == 0) {
-      GaussianBlur(base, &octave.gauss[0], kernels[0], team, simd);
+    if (o > 0) std::swap(octave.gauss[0], spare);
+    const int ow = o == 0 ? base.width() : octave.gauss[0].width();
+    const int oh = o == 0 ? base.height() : octave.gauss[0].height();
+    if (ow < 1 || oh < 1) break;
+    std::vector<Candidate> candidates;
+    if (team.size() == 1) {
+      // One thread: every level is blurred a block of rows at a time just before the scan (or the next
+      // level) needs it, so the rows a level reads are recent and come from cache, not memory. Each row
+      // has the same value as in the level-by-level order below.
+      for (int i = o == 0 ? 0 : 1; i < S + 3; ++i) octave.gauss[static_cast<size_t>(i)].Reshape(ow, oh);
+      std::vector<int> produced(static_cast<size_t>(S) + 3, 0);
+      if (o > 0) produced[0] = oh;
+      BlurScratch blur_scratch;
+      // Makes rows [0, n) of level i final, first the rows of the levels below that it reads.
+      std::function<void(int, int)> produce = [&](int i, int n) {
+        n = std::min(n, oh);
+        const auto level = static_cast<size_t>(i);
+        const int r = static_cast<int>(kernels[level].size()) - 1;
+        while (produced[level] < n) {
+          const int y = produced[level], count = std::min(kRowBlock, oh - y);
+          if (i > 0) produce(i - 1, y + count + r);
+          GaussianBlurRows(i == 0 ? base : octave.gauss[level - 1], &octave.gauss[level], kernels[level], y, count,
+                           &blur_scratch, simd);
+          produced[level] += count;
+        }
+      };
+      int polls = 0;
+      candidates = ScanOctave(octave, S, scan_threshold, team, simd, [&](int n) {
+        if ((++polls & 63) == 0 && stopped()) return false;
+        produce(S + 2, n);
+        return true;
+      });
+      if (stopped()) break;
+      produce(S + 2, oh);  // the rows below the last scanned one
     } else {
-      std::swap(octave.gauss[0], spare);
+      if (o == 0) GaussianBlur(base, &octave.gauss[0], kernels[0], team, simd);
+      for (int i = 1; i < S + 3 && !stopped(); ++i)
+        GaussianBlur(octave.gauss[static_cast<size_t>(i) - 1], &octave.gauss[static_cast<size_t>(i)], kernels[static_cast<size_t>(i)], team, simd);
+      if (stopped()) break;
+      candidates = ScanOctave(octave, S, scan_threshold, team, simd);
     }
-    if (octave.gauss[0].width() < 1 || octave.gauss[0].height() < 1) break;
-    for (int i = 1; i < S + 3 && !stopped(); ++i)
-      GaussianBlur(octave.gauss[static_cast<size_t>(i) - 1], &octave.gauss[static_cast<size_t>(i)], kernels[static_cast<size_t>(i)], team, simd);
-    if (stopped()) break;
-
-    const std::vector<Candidate> candidates = ScanOctave(octave, S, scan_threshold, team, simd);
     if (stopped()) break;
     std::vector<std::optional<Refined>> refined(candidates.size());
     team.ParallelFor(candidates.size(), 64, [&](size_t b, size_t e, int) {
