@@ -10,8 +10,10 @@
 //          retrieval", CVPR 2012 (RootSIFT).
 //   [M05]  K. Mikolajczyk et al., "A Comparison of Affine Region Detectors", IJCV 65, 2005 (the
 //          repeatability / matching-score protocol the tests use).
-// The parameters and conventions follow OpenCV's cv::SIFT (which follows [L04]) so that keypoints of
-// the two agree; see sift_test.cc for the measured agreement.
+// The parameters and conventions follow OpenCV's cv::SIFT (which follows [L04]); with
+// KeypointStyle::kOpenCv the keypoints of the two agree (sift_test.cc measures it), and the default
+// KeypointStyle::kVlfeat refines keypoints and assigns orientations as VLFeat's vl_sift does (steps 5
+// and 6), which repeats and matches more of them across views (eval/results/sift.md).
 //
 // 1. Input. A grey image I(x, y) in [0, 1] (DecodeImage). The camera is assumed to have blurred it
 //    with a Gaussian of sigma_n = assumed_blur (0.5 px).
@@ -38,12 +40,18 @@
 //    when |D(offset)| * S < contrast_threshold (low contrast), and when the 2x2 spatial Hessian has
 //    tr^2 / det >= (r + 1)^2 / r with r = edge_threshold (10): an edge, poorly localised along it.
 //    The keypoint scale is sigma0 * 2^((s + ds) / S) * 2^o, its position (x + dx) * 2^o.
+//    This is KeypointStyle::kOpenCv. The default, KeypointStyle::kVlfeat (as VLFeat's vl_sift), moves
+//    the sample in space only (when |dx| or |dy| > 0.6), keeps the fit at the last sample after 5 moves,
+//    rejects offsets of 1.5 or more, and takes steps 6 and 7 at the Gaussian level nearest s + ds:
+//    fewer extrema are lost, so more keypoints repeat across views.
 //
 // 6. Orientation [L04 sec. 5]. In a window of radius 3 * 1.5 * sigma around the keypoint (at the level
 //    nearest its scale), accumulate gradient magnitudes weighted by a Gaussian of 1.5 * sigma into 36
 //    bins of 10 degrees, smooth the histogram ([1 4 6 4 1] / 16), and take every local peak >= 80% of
 //    the highest; interpolate each by a parabola through it and its neighbours. Each such peak gives a
-//    keypoint (so a location can have several orientations).
+//    keypoint (so a location can have several orientations). KeypointStyle::kVlfeat takes the
+//    gradients in a circular window of radius floor(3 * 1.5 * sigma) centred on the sub-pixel position,
+//    shares each vote linearly between the two nearest bins and smooths by six passes of [1 1 1] / 3.
 //
 // 7. Descriptor [L04 sec. 6]. Rotate a window of 4 x 4 cells, each 3 sigma wide, to the keypoint
 //    orientation; add each sample's gradient magnitude, weighted by a Gaussian of half the window
@@ -55,7 +63,7 @@
 // 8. Output. Coordinates and scales are in input-image pixels (the octave -1 / downscaling factors are
 //    undone); the strongest max_features by |response| are kept when a limit is set.
 //
-// Differences from cv::SIFT (4.6), all small: (a) positions are pixel-centre exact: the 2x upsampling
+// With KeypointStyle::kOpenCv the keypoints follow cv::SIFT's; differences from cv::SIFT (4.6), all small: (a) positions are pixel-centre exact: the 2x upsampling
 // maps input x to 2x + 0.5, so we report x_up / 2 - 0.25 where OpenCV reports x_up / 2; (b) the
 // descriptor window is centred on the sub-pixel keypoint position (OpenCV rounds it to the nearest
 // pixel); (c) gradient directions use a degree-9 polynomial atan2 (error < 0.001 degrees). Keypoint
@@ -65,7 +73,7 @@
 //
 // ==== Usage =========================================================================================
 //
-//   sift::SiftOptions options;                         // detector defaults = OpenCV's / Lowe's; RootSIFT
+//   sift::SiftOptions options;                         // Lowe's detector settings, VLFeat-style keypoints; RootSIFT
 //   auto extractor = sift::SiftExtractor::Create(options);       // Result<SiftExtractor>
 //   if (!extractor) return extractor.error();
 //   auto features = extractor->ExtractFromFile("photo.jpg");      // Result<FeatureSet>
@@ -73,9 +81,13 @@
 //
 // Performance: the separable Gaussian blurs (four output rows per vertical sweep), the DoG and the
 // extrema pre-check, the orientation histograms and the descriptors (gradients, bins and trilinear
-// weights for 8 samples at a time, then the scatter) are vectorised (AVX2+FMA when compiled with it,
-// with a scalar path computing the same formula, including the same fused multiply-adds); work is split
-// over rows and keypoints with per-item outputs, so the result is bit-identical for any num_threads.
+// weights 8 or 16 samples at a time; with AVX-512 all 128 descriptor bins stay in registers, otherwise
+// only the non-zero terms are added through memory) are vectorised (AVX-512 when the build targets it,
+// AVX2+FMA when compiled with it or chosen at run time, with a scalar path computing the same formula,
+// including the same fused multiply-adds). On one thread the Gaussian levels of an octave are blurred a
+// few rows at a time just ahead of the extrema scan, so rows are re-read from cache rather than memory;
+// with several threads level after level, split over rows. Keypoints are split over threads with
+// per-item outputs, so the result is bit-identical for any num_threads.
 // The parallel loops run on the process-wide persistent worker pool (sift/parallel.h), and each calling thread keeps
 // its pyramid buffers between calls (SiftOptions::thread_cache_mib), so a thread extracting image after
 // image does not pay the page faults of ~100 MB of fresh memory per image.
@@ -106,7 +118,7 @@ enum class KeypointStyle : uint8_t {
   // and descriptor are taken at the Gaussian level nearest the refined scale. Orientation: a circular
   // window (radius floor(4.5 sigma)) centred on the sub-pixel position, each vote shared linearly
   // between the two nearest bins, the histogram smoothed by six passes of [1 1 1] / 3. On the Oxford
-  // affine pairs this finds ~15% more keypoints, repeats them more often and gives more correct
+  // affine pairs this finds ~16% more keypoints, repeats them more often and gives more correct
   // matches than kOpenCv (eval/results/sift.md).
   kVlfeat = 1,
 };
