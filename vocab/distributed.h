@@ -14,6 +14,13 @@
 //    scale chosen from the global maximum so that no sum can overflow, and integer addition does not
 //    depend on the order. Empty words are re-seeded at the farthest rows (ties: lower global position).
 //
+// Hamming embedding (DistributedTrainOptions::hamming, WithHammingDistributed): every rank quantises
+// its rows with the finished vocabulary and projects them; each word's 64 medians are then found by an
+// exact distributed selection (a binary search over the bits of the values' order-preserving integer
+// keys, counting with integer all-reduces). A median is a value of the multiset of a word's projected
+// rows, which does not depend on how the rows are split or ordered, so the parameters are those
+// Vocabulary::WithHamming learns from all ranks' rows in one process, bit for bit.
+//
 // Checkpoints: after every iteration rank 0 writes the centroids, every row's word and the objective
 // (container "OXBWKMCP", binary_io.h) atomically. TrainDistributed resumes from a checkpoint of the same
 // sample and options (any number of ranks) and gives the vocabulary the uninterrupted run gives.
@@ -78,6 +85,10 @@ struct DistributedTrainOptions {
   // End the run after this many iterations with the checkpoint kept (a batch scheduler's time slot);
   // 0 = no limit. A later run with the same inputs continues. Range >= 0.
   int stop_after_iterations = 0;
+  // Also learn Hamming-embedding parameters from the sample once the iterations are done
+  // (WithHammingDistributed, seeded by train.seed, quantising on train.num_threads threads with
+  // QuantizerOptions' default probes, as `vocab train` does without --mpi).
+  bool hamming = false;
 
   std::optional<std::string> Check() const;
 };
@@ -85,7 +96,8 @@ struct DistributedTrainOptions {
 struct DistributedTrainResult {
   bool finished = false;                 // false: stopped by stop_after_iterations
   int resumed_after_iteration = 0;       // iterations the checkpoint already held (0: fresh start)
-  std::optional<Vocabulary> vocabulary;  // rank 0 only, when finished
+  // When finished: on rank 0, and with DistributedTrainOptions::hamming on every rank (the same).
+  std::optional<Vocabulary> vocabulary;
 };
 
 // Collective: trains on the rows of all ranks' `sample`s. Every rank must pass the same options, kind
@@ -96,5 +108,15 @@ struct DistributedTrainResult {
                                                               sift::DescriptorKind kind, std::string extractor_settings,
                                                               const DistributedTrainOptions& options,
                                                               TrainReport* report = nullptr);
+
+// Collective: `vocabulary` (the same on every rank) with Hamming-embedding parameters learnt from the
+// rows of all ranks' `sample`s, on every rank: bit for bit vocabulary.WithHamming(all ranks' rows, seed,
+// quantizer) in one process, for any number of ranks. Memory per rank: 264 bytes per local row (word,
+// 64 projected keys, an index) and, for the selection, 20 bytes per word and bit of a block of at most
+// 16384 words (21 MB); 32 integer all-reduces of 512 bytes per word. Errors: kInvalidArgument (a
+// vocabulary below 64 dimensions, a sample of another dimension, no rows on any rank, non-finite values).
+[[nodiscard]] Result<Vocabulary> WithHammingDistributed(const Vocabulary& vocabulary, const DistributedSample& sample,
+                                                        Communicator& comm, uint64_t seed,
+                                                        const QuantizerOptions& quantizer = {});
 
 }  // namespace oxbow::vocab

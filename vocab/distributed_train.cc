@@ -1,5 +1,6 @@
 // Distributed k-means (see distributed.h for the contract and why the result is rank-count free).
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <cstring>
@@ -134,6 +135,25 @@ Status ParseCheckpoint(const std::string& path, std::span<const uint8_t> payload
   }
   return Ok();
 }
+
+// An integer key of a finite float that orders as the float does: a < b iff OrderedKey(a) <
+// OrderedKey(b). -0 and +0, equal as floats, get one key (+0's).
+uint32_t OrderedKey(float value) {
+  if (value == 0) value = 0.0f;
+  uint32_t bits;
+  std::memcpy(&bits, &value, sizeof(bits));
+  return (bits & 0x80000000u) != 0 ? ~bits : bits | 0x80000000u;
+}
+
+float FromOrderedKey(uint32_t key) {
+  const uint32_t bits = (key & 0x80000000u) != 0 ? key & 0x7FFFFFFFu : ~key;
+  float value;
+  std::memcpy(&value, &bits, sizeof(value));
+  return value;
+}
+
+// Words whose medians are selected together: bounds the selection's buffers (20 bytes per word and bit).
+constexpr size_t kSelectionBlockWords = 16384;
 
 }  // namespace
 
@@ -450,14 +470,138 @@ Result<DistributedTrainResult> TrainDistributed(const DistributedSample& sample,
     }
   }
   result.finished = true;
-  if (comm.rank() == 0) {
+  if (comm.rank() == 0 || options.hamming) {
     auto vocabulary =
         Vocabulary::FromCentroids(std::move(state.centroids), dim, kind, std::move(extractor_settings), train.quantizer);
     if (!vocabulary) return std::unexpected(vocabulary.error());
     result.vocabulary = std::move(*vocabulary);
   }
+  if (options.hamming) {
+    // Every rank built its quantiser from the same centroids with the same seeded coarse k-means.
+    const uint64_t fingerprint = result.vocabulary->fingerprint();
+    const std::vector<uint64_t> all = FromBytes<uint64_t>(
+        comm.Allgather({reinterpret_cast<const uint8_t*>(&fingerprint), sizeof(fingerprint)}));
+    OXBOW_CHECK(std::all_of(all.begin(), all.end(), [&](uint64_t f) { return f == fingerprint; }),
+                "the ranks built different vocabularies from the same centroids");
+    const auto t0 = Clock::now();
+    QuantizerOptions quantizer;
+    quantizer.num_threads = train.num_threads;
+    auto with = WithHammingDistributed(*result.vocabulary, sample, comm, train.seed, quantizer);
+    if (!with) return std::unexpected(with.error());
+    result.vocabulary = std::move(*with);
+    OXBOW_LOG(kInfo) << "Hamming-embedding medians from " << n << " descriptors on " << comm.size() << " ranks: "
+                     << SecondsSince(t0) << " s";
+  }
   rep.total_seconds = SecondsSince(start);
   return result;
+}
+
+// ---- Hamming embedding ----------------------------------------------------------------------------
+
+Result<Vocabulary> WithHammingDistributed(const Vocabulary& vocabulary, const DistributedSample& sample,
+                                          Communicator& comm, uint64_t seed, const QuantizerOptions& quantizer) {
+  const int dim = vocabulary.dimension();
+  if (dim < kHammingBits)
+    return Fail(ErrorCode::kInvalidArgument, "Hamming embedding needs descriptors of at least 64 dimensions");
+  if (sample.dimension != dim)
+    return Fail(ErrorCode::kInvalidArgument, "the sample's dimension " + std::to_string(sample.dimension) +
+                                                 " is not the vocabulary's " + std::to_string(dim));
+  if (auto problem = quantizer.Check()) return Fail(ErrorCode::kInvalidArgument, *problem);
+  OXBOW_CHECK(sample.descriptors.size() == sample.rows() * static_cast<size_t>(dim), "sample size mismatch");
+  const bool finite =
+      std::all_of(sample.descriptors.begin(), sample.descriptors.end(), [](float v) { return std::isfinite(v); });
+  // Decided together, so that every rank returns the same error.
+  std::vector<int64_t> checks = {static_cast<int64_t>(sample.rows()), finite ? 0 : 1};
+  comm.SumInPlace(checks);
+  if (checks[1] != 0) return Fail(ErrorCode::kInvalidArgument, "the Hamming-embedding sample is not finite");
+  if (checks[0] == 0) return Fail(ErrorCode::kInvalidArgument, "the Hamming-embedding sample has no rows");
+
+  const size_t k = vocabulary.size();
+  const size_t nl = sample.rows();
+  const size_t d = static_cast<size_t>(dim);
+  constexpr size_t kBits = kHammingBits;
+  const int threads = ResolveThreadCount(quantizer.num_threads);
+  std::vector<uint32_t> words(nl);
+  vocabulary.Quantize(sample.descriptors, words, quantizer);
+  const std::vector<float> projection = vocabulary.HammingProjection(seed);
+
+  // This rank's rows grouped by word (a counting sort), each as its kBits projected values' keys.
+  std::vector<size_t> begin(k + 1, 0);
+  for (const uint32_t w : words) ++begin[w + 1];
+  std::partial_sum(begin.begin(), begin.end(), begin.begin());
+  std::vector<uint32_t> slot(nl);
+  {
+    std::vector<size_t> next(begin.begin(), begin.end() - 1);
+    for (size_t i = 0; i < nl; ++i) slot[i] = static_cast<uint32_t>(next[words[i]]++);
+  }
+  std::vector<uint32_t> keys(nl * kBits);
+  constexpr size_t kChunkRows = 1024;
+  ParallelFor((nl + kChunkRows - 1) / kChunkRows, threads, 1, [&](size_t lo, size_t hi, int) {
+    std::vector<float> projected;
+    for (size_t c = lo; c < hi; ++c) {
+      const size_t first = c * kChunkRows;
+      const size_t rows = std::min(kChunkRows, nl - first);
+      projected.resize(rows * kBits);
+      vocabulary.ProjectForHamming(projection, std::span<const float>(sample.descriptors).subspan(first * d, rows * d),
+                                   projected);
+      for (size_t r = 0; r < rows; ++r) {
+        uint32_t* key = keys.data() + size_t{slot[first + r]} * kBits;
+        for (size_t b = 0; b < kBits; ++b) key[b] = OrderedKey(projected[r * kBits + b]);
+      }
+    }
+  });
+  slot = {};
+  words = {};
+
+  std::vector<int64_t> count(k);
+  for (size_t w = 0; w < k; ++w) count[w] = static_cast<int64_t>(begin[w + 1] - begin[w]);
+  comm.SumInPlace(count);
+
+  std::vector<float> medians(k * kBits);
+  // A word no row reaches: its projected centroid (as WithHamming).
+  for (size_t w = 0; w < k; ++w) {
+    if (count[w] == 0)
+      vocabulary.ProjectForHamming(projection, vocabulary.centroids().subspan(w * d, d),
+                                   std::span<float>(medians).subspan(w * kBits, kBits));
+  }
+  // Per word and bit, the key of sorted position count / 2 (std::nth_element's median in WithHamming),
+  // decided one key bit at a time from the top: `below` counts the values that agree with the prefix
+  // found so far and have a 0 at the current bit; the wanted position lies among them or after them.
+  std::vector<uint32_t> prefix;
+  std::vector<int64_t> position, below;
+  for (size_t w0 = 0; w0 < k; w0 += kSelectionBlockWords) {
+    const size_t block = std::min(kSelectionBlockWords, k - w0);
+    prefix.assign(block * kBits, 0);
+    position.resize(block * kBits);
+    below.resize(block * kBits);
+    for (size_t w = 0; w < block; ++w) std::fill_n(position.begin() + w * kBits, kBits, count[w0 + w] / 2);
+    for (int bit = 31; bit >= 0; --bit) {
+      ParallelFor(block, threads, 64, [&](size_t lo, size_t hi, int) {
+        std::array<uint32_t, kBits> local;
+        for (size_t w = lo; w < hi; ++w) {
+          local.fill(0);
+          const uint32_t* p = prefix.data() + w * kBits;
+          for (size_t r = begin[w0 + w]; r < begin[w0 + w + 1]; ++r) {
+            const uint32_t* key = keys.data() + r * kBits;
+            for (size_t b = 0; b < kBits; ++b) local[b] += (key[b] >> bit) == (p[b] >> bit) ? 1u : 0u;
+          }
+          std::copy(local.begin(), local.end(), below.begin() + static_cast<ptrdiff_t>(w * kBits));
+        }
+      });
+      comm.SumInPlace(below);
+      for (size_t i = 0; i < block * kBits; ++i) {
+        if (position[i] >= below[i]) {
+          prefix[i] |= 1u << bit;
+          position[i] -= below[i];
+        }
+      }
+    }
+    for (size_t w = 0; w < block; ++w) {
+      if (count[w0 + w] == 0) continue;
+      for (size_t b = 0; b < kBits; ++b) medians[(w0 + w) * kBits + b] = FromOrderedKey(prefix[w * kBits + b]);
+    }
+  }
+  return vocabulary.WithHammingParameters(projection, std::move(medians));
 }
 
 }  // namespace oxbow::vocab

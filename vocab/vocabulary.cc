@@ -355,6 +355,43 @@ Result<Vocabulary> Vocabulary::WithHamming(std::span<const float> training, uint
   return Vocabulary(std::move(state));
 }
 
+std::vector<float> Vocabulary::HammingProjection(uint64_t seed) const {
+  OXBOW_CHECK(state_->dimension >= kHammingBits, "Hamming embedding needs descriptors of at least 64 dimensions");
+  return RandomOrthogonalRows(state_->dimension, seed);
+}
+
+void Vocabulary::ProjectForHamming(std::span<const float> projection, std::span<const float> descriptors,
+                                   std::span<float> projected) const {
+  const State& s = *state_;
+  const auto d = static_cast<size_t>(s.dimension);
+  OXBOW_CHECK(projection.size() == kHammingBits * d, "the projection must be 64 x dimension");
+  OXBOW_CHECK(descriptors.size() % d == 0 && projected.size() == descriptors.size() / d * kHammingBits,
+              "kHammingBits projected values per descriptor");
+  const std::vector<float> transposed = Transposed({projection.begin(), projection.end()}, s.dimension);
+  for (size_t i = 0; i < descriptors.size() / d; ++i)
+    Project(transposed, descriptors.data() + i * d, s.dimension, projected.data() + i * kHammingBits);
+}
+
+Result<Vocabulary> Vocabulary::WithHammingParameters(std::vector<float> projection, std::vector<float> medians) const {
+  const State& s = *state_;
+  if (s.dimension < kHammingBits) {
+    return Fail(ErrorCode::kInvalidArgument, "Hamming embedding needs descriptors of at least 64 dimensions");
+  }
+  if (projection.size() != kHammingBits * static_cast<size_t>(s.dimension) || medians.size() != size() * kHammingBits) {
+    return Fail(ErrorCode::kInvalidArgument, "Hamming-embedding parameters must be a 64 x " +
+                                                 std::to_string(s.dimension) + " projection and " +
+                                                 std::to_string(size()) + " x 64 medians");
+  }
+  if (!AllFinite(projection) || !AllFinite(medians)) {
+    return Fail(ErrorCode::kInvalidArgument, "the Hamming-embedding parameters are not finite");
+  }
+  auto state = std::make_shared<State>(s);
+  state->projection = std::move(projection);
+  state->medians = std::move(medians);
+  state->Finish();
+  return Vocabulary(std::move(state));
+}
+
 void Vocabulary::Quantize(std::span<const float> descriptors, std::span<uint32_t> words,
                           const QuantizerOptions& options) const {
   const State& s = *state_;

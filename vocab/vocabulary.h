@@ -108,6 +108,22 @@ class Vocabulary {
   [[nodiscard]] Result<Vocabulary> WithHamming(std::span<const float> training, uint64_t seed,
                                                const QuantizerOptions& quantizer = {}) const;
 
+  // The pieces of WithHamming, for learning the parameters where the sample is not in one place
+  // (vocab/distributed.h); used together they give what WithHamming gives.
+  // The projection WithHamming draws from `seed`: kHammingBits x dimension() orthonormal rows, row-major.
+  // OXBOW_CHECKs dimension() >= kHammingBits. Cost O(kHammingBits^2 * dimension).
+  std::vector<float> HammingProjection(uint64_t seed) const;
+  // Each of n descriptors (n x dimension() row-major) projected by `projection` (kHammingBits x
+  // dimension()) into `projected` (n x kHammingBits), with the arithmetic of WithHamming and Signatures
+  // (bit for bit). OXBOW_CHECKs the sizes. Cost O(n * kHammingBits * dimension).
+  void ProjectForHamming(std::span<const float> projection, std::span<const float> descriptors,
+                         std::span<float> projected) const;
+  // A copy with the given parameters: `projection` (kHammingBits x dimension()) and `medians`
+  // (size() x kHammingBits, by word id). Replaces existing parameters; the fingerprint changes as with
+  // WithHamming. kInvalidArgument for other sizes, non-finite values or dimension() < kHammingBits.
+  [[nodiscard]] Result<Vocabulary> WithHammingParameters(std::vector<float> projection,
+                                                         std::vector<float> medians) const;
+
   // Nearest word of each of n descriptors (`descriptors` is n x dimension row-major, `words` has n
   // entries). Batched: pass many descriptors per call. Cost about (num_lists + num_probes * k /
   // num_lists) distance evaluations per descriptor. Thread-safe. OXBOW_CHECKs the sizes.
