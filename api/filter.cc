@@ -263,7 +263,8 @@ std::vector<std::string> Needles(const Condition& c) {
 
 class MetadataFilter final : public index::ImageFilter {
  public:
-  explicit MetadataFilter(std::vector<Condition> conditions) : conditions_(std::move(conditions)) {
+  MetadataFilter(std::vector<Condition> conditions, std::string text)
+      : conditions_(std::move(conditions)), text_(std::move(text)) {
     for (const Condition& c : conditions_) needles_.push_back(Needles(c));
   }
 
@@ -285,8 +286,11 @@ class MetadataFilter final : public index::ImageFilter {
     return Matcher(conditions_).Run(record.metadata_json);
   }
 
+  std::string Text() const override { return text_; }
+
  private:
   std::vector<Condition> conditions_;
+  std::string text_;  // what it was parsed from
   std::vector<std::vector<std::string>> needles_;  // per condition (Needles)
 };
 
@@ -385,7 +389,7 @@ Result<std::shared_ptr<const index::ImageFilter>> ParseFilter(std::string_view t
     if (!condition) return std::unexpected(condition.error());
     conditions.push_back(std::move(*condition));
   }
-  return std::make_shared<const MetadataFilter>(std::move(conditions));
+  return std::make_shared<const MetadataFilter>(std::move(conditions), std::string(text));
 }
 
 }  // namespace oxbow::api

@@ -1,7 +1,7 @@
 # Helpers shared by the module CMakeLists.
 #
-# oxbow_add_module(NAME <target> [PUBLIC_DEPS ...] [PRIVATE_DEPS ...])
-#   One static library per module folder, from every *.cc in the folder except *_test.cc,
+# oxbow_add_module(NAME <target> [PUBLIC_DEPS ...] [PRIVATE_DEPS ...] [SUBDIRS ...])
+#   One static library per module folder, from every *.cc in the folder and in its SUBDIRS except *_test.cc,
 #   *_benchmark.cc and *_main.cc. Include paths are rooted at the repository, so code writes
 #   #include "sift/types.h".
 #   Every *_test.cc in the folder becomes its own GoogleTest executable and ctest entry, linked
@@ -70,8 +70,13 @@ function(oxbow_add_gtest)
 endfunction()
 
 function(oxbow_add_module)
-  cmake_parse_arguments(M "" "NAME" "PUBLIC_DEPS;PRIVATE_DEPS;TEST_DEPS" ${ARGN})
-  file(GLOB _all CONFIGURE_DEPENDS "${CMAKE_CURRENT_SOURCE_DIR}/*.cc")
+  cmake_parse_arguments(M "" "NAME" "PUBLIC_DEPS;PRIVATE_DEPS;TEST_DEPS;SUBDIRS" ${ARGN})
+  # The module's sources: the folder's *.cc and those of its SUBDIRS (rooms of the module, e.g. index/search).
+  set(_globs "${CMAKE_CURRENT_SOURCE_DIR}/*.cc")
+  foreach(d IN LISTS M_SUBDIRS)
+    list(APPEND _globs "${CMAKE_CURRENT_SOURCE_DIR}/${d}/*.cc")
+  endforeach()
+  file(GLOB _all CONFIGURE_DEPENDS ${_globs})
   set(_srcs "")
   set(_tests "")
   set(_benches "")

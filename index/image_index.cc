@@ -36,6 +36,9 @@
 #include "index/huge_pages.h"
 #include "index/inverted_file.h"
 #include "index/rerank.h"
+#include "index/search/kept_memory.h"
+#include "index/search/pipeline.h"
+#include "index/search/source.h"
 #include "sift/base/log.h"
 #include "sift/match.h"
 #include "sift/base/parallel.h"
@@ -283,16 +286,6 @@ Status CheckSettings(const std::string& given, const std::string& index_settings
   return Ok();
 }
 
-// A query's features after region filtering and quantisation.
-struct QueryFeatures {
-  std::vector<sift::Keypoint> keypoints;
-  std::vector<uint32_t> words;        // nearest word of each keypoint
-  std::vector<uint32_t> soft_words;   // with multiple assignment: distinct words ascending, else empty
-  std::vector<float> soft_tf;         // their weighted counts
-  std::vector<uint64_t> signatures;   // Hamming-embedding signature of each keypoint, or empty
-  int width = 0;
-  int height = 0;
-};
 
 }  // namespace
 
@@ -376,60 +369,6 @@ struct ImageIndex::Snapshot {
 };
 
 namespace {
-
-// Memory a search keeps for the next one (accumulators, the query's descriptors, transitive
-// verification's tables), shared by every thread that searches: one value per search running at once,
-// taken at the start and given back at the end. Kept per thread instead, it would be faulted in once by
-// each of the server's many connection threads, so each of the first dozen or so searches after a start
-// would pay for it again: at a million images the accumulators alone are 4 MB, about 1000 page faults, and a first
-// touch costs about 18 us a page on the 2-core test VM (about 18 ms a search). At most kMaxKept values
-// stay between searches. The pool is never destroyed (a search may still run while the process exits).
-template <typename T>
-class KeptForNextSearch {
- public:
-  class Lease {
-   public:
-    Lease(KeptForNextSearch* pool, std::unique_ptr<T> value) : pool_(pool), value_(std::move(value)) {}
-    Lease(const Lease&) = delete;
-    Lease& operator=(const Lease&) = delete;
-    ~Lease() { pool_->GiveBack(std::move(value_)); }
-    T& operator*() const { return *value_; }
-    T* operator->() const { return value_.get(); }
-
-   private:
-    KeptForNextSearch* pool_;
-    std::unique_ptr<T> value_;
-  };
-
-  static KeptForNextSearch& Shared() {
-    static auto* pool = new KeptForNextSearch();  // NOLINT(cppcoreguidelines-owning-memory): never freed, see above
-    return *pool;
-  }
-
-  Lease Take() {
-    std::unique_ptr<T> value;
-    {
-      std::lock_guard<std::mutex> lock(mutex_);
-      if (!free_.empty()) {
-        value = std::move(free_.back());
-        free_.pop_back();
-      }
-    }
-    if (!value) value = std::make_unique<T>();
-    return Lease(this, std::move(value));
-  }
-
- private:
-  static constexpr size_t kMaxKept = 8;
-
-  void GiveBack(std::unique_ptr<T> value) {
-    std::lock_guard<std::mutex> lock(mutex_);
-    if (free_.size() < kMaxKept) free_.push_back(std::move(value));
-  }
-
-  std::mutex mutex_;
-  std::vector<std::unique_ptr<T>> free_;
-};
 
 // The features of a search's Hamming shortlist as its re-scoring read them: copies made with pread
 // (Entry::SignedFeatures), kept for the rest of the search, so that re-ranking, query expansion and
@@ -613,9 +552,6 @@ struct ImageIndex::Impl {
     snapshot = std::move(next);
   }
 
-  Result<QueryResponse> Run(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
-                            QueryTimings timings) const;
-
   // A checkpoint of `snap` (which must reflect every committed catalogue change) in two steps
   // (checkpoint.h): CheckpointFiles writes the files without holding writer_mutex, after `previous`
   // (the current checkpoint) with `contents` (its geometry_contents), both copied under the lock,
@@ -667,39 +603,6 @@ struct ImageIndex::Impl {
   // `bag`: entry.features().Bag(), read before the catalogue row is deleted (a damaged checkpoint
   // image is read from that row).
   static void Unlink(const Snapshot& current, uint32_t n, const Entry& entry, const BagOfWords& bag, Snapshot& next);
-
-  // Re-scores the first options.hamming_shortlist of `scored` (tf-idf order) with query.signatures
-  // and sorts them by that score; candidates without signatures follow in their tf-idf order.
-  // The shortlist's features are kept in `copies` for the later stages.
-  void RescoreHamming(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
-                      std::vector<ScoredImage>& scored, CandidateCopies* copies) const;
-  // Query expansion with Hamming embedding: the unverified results (after the first num_verified)
-  // re-ordered by their Hamming-embedding score against the query's features plus those inside the
-  // matched regions of its first qe_images verified results (with their signatures).
-  void ExpandQueryHamming(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
-                          size_t num_verified, const CandidateCopies& copies, std::vector<QueryResult>& results) const;
-  // The stages of Run after scoring. Each rewrites `results`; Rerank returns how many it verified.
-  // `copies`: features RescoreHamming kept (read from there when they hold an image).
-  size_t Rerank(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
-                const std::vector<ScoredImage>& scored, const CandidateCopies& copies,
-                std::vector<QueryResult>& results) const;
-  void ExpandQuery(const Snapshot& snap, const std::vector<QueryTerm>& terms, const QueryOptions& options,
-                   size_t num_verified, const std::vector<uint8_t>* allowed, ScoreScratch* scratch,
-                   std::vector<QueryResult>& results) const;
-  // The allow-bitmap of a filtered query: 1 for each live image number options.filter matches.
-  std::vector<uint8_t> AllowedImages(const Snapshot& snap, const ImageFilter& filter) const;
-  // With `hamming` (a Hamming-embedding search), tentative matches are filtered by signature as in
-  // re-ranking.
-  void VerifyTransitively(const Snapshot& snap, const QueryOptions& options, bool hamming, size_t num_verified,
-                          const CandidateCopies& copies, std::vector<QueryResult>& results) const;
-
-  // For each of results[first, last) not verified yet, the anchors to try (PlanTransitiveAttempts).
-  // `ranked`: results[0, last) (`numbers`: their image numbers, the tie-break).
-  std::vector<std::vector<TransitiveAttempt>> PlanAttempts(const Snapshot& snap, const QueryOptions& options,
-                                                           const std::vector<std::span<const uint32_t>>& anchor_words,
-                                                           const std::vector<QueryResult>& results, size_t first,
-                                                           const InvertedFile::Subset& ranked,
-                                                           const std::vector<uint32_t>& numbers) const;
 };
 
 namespace {
@@ -1854,7 +1757,247 @@ class SearchInFlight {
   std::atomic<int>& count_;
   std::atomic<int64_t>& ended_;
 };
+
+using search::ImageRef;
+
+// One search over one snapshot (index/search/source.h): refs are image numbers (part 0). Keeps the
+// Hamming shortlist's features (CandidateCopies) for the later stages, the allow-bitmap of the
+// filter, and transitive verification's ranking.
+class SnapshotSource final : public search::Source {
+ public:
+  SnapshotSource(std::shared_ptr<const ImageIndex::Snapshot> snap, int num_threads)
+      : snap_(std::move(snap)), num_threads_(num_threads) {}
+
+  ~SnapshotSource() override {
+    if (ranked_) {
+      // The ranking's tables go back to the memory kept for the next search (up to a bound).
+      InvertedFile::Subset::Buffers buffers = std::move(*ranked_).Release();
+      constexpr size_t kMaxKeptBytes = size_t{8} << 20;
+      if (buffers.occurrences.capacity() * sizeof(InvertedFile::Subset::Occurrence) > kMaxKeptBytes) buffers = {};
+      **ranked_memory_ = std::move(buffers);
+    }
+  }
+  SnapshotSource(const SnapshotSource&) = delete;
+  SnapshotSource& operator=(const SnapshotSource&) = delete;
+
+  Result<std::optional<ImageRef>> Find(const std::string& id) override {
+    uint32_t number = 0;
+    if (snap_->Find(id, &number) == nullptr) return std::optional<ImageRef>();
+    return std::optional<ImageRef>(ImageRef{.part = 0, .number = number});
+  }
+
+  Result<search::ScoreOutput> Score(const search::ScoreInput& input, size_t max_results,
+                                    const QueryOptions& options) override {
+    const InvertedFile& inverted = snap_->inverted;
+    search::ScoreOutput out;
+    if (input.words.empty()) {
+      out.terms.assign(input.terms.begin(), input.terms.end());
+    } else if (input.tf.empty()) {
+      out.terms = inverted.QueryVector(BagOfWords::FromWords(input.words));
+    } else {
+      out.terms = inverted.QueryVector(input.words, input.tf);
+    }
+    if (options.filter && allowed_filter_ != options.filter.get()) {
+      allowed_ = AllowedImages(*options.filter);
+      allowed_filter_ = options.filter.get();
+    }
+    const auto kept_scratch = search::KeptForNextSearch<ScoreScratch>::Shared().Take();
+    const std::vector<ScoredImage> scored =
+        inverted.Score(out.terms, max_results, &*kept_scratch, &out.candidates, options.filter ? &allowed_ : nullptr,
+                       num_threads_, static_cast<uint64_t>(options.max_scored_postings));
+    out.best.resize(scored.size());
+    for (size_t i = 0; i < scored.size(); ++i) {
+      out.best[i] = {.ref = {.part = 0, .number = scored[i].image},
+                     .id = snap_->entries[scored[i].image]->record.id,
+                     .score = scored[i].score};
+    }
+    return out;
+  }
+
+  // Their reads start at once, on the index's threads (a madvise call each, several microseconds even
+  // when the pages are in memory: ~2 ms for 300 candidates on one thread at 1M images).
+  void Prefetch(std::span<const search::ScoredRef> refs) override {
+    ParallelFor(refs.size(), num_threads_, 16, [&](size_t begin, size_t end, int) {
+      for (size_t c = begin; c < end; ++c) snap_->entries[refs[c].ref.number]->stored.WillNeed();
+    });
+  }
+
+  // With sqrt(tf) weighting (the default) a candidate's N_d is its tf-idf norm squared, which the
+  // inverted file keeps: Score then skips the candidate's words the query lacks (hamming.h).
+  Result<std::vector<double>> HammingScores(std::span<const uint32_t> words, std::span<const uint64_t> signatures,
+                                            std::span<const ImageRef> refs, const QueryOptions& options) override {
+    const QuerySignatures query(words, signatures, snap_->inverted.IdfSquaredTable(),
+                                {.threshold = options.hamming_threshold, .sigma = options.hamming_sigma});
+    const bool keep = !copied_;  // the first re-scoring's images are kept for the later stages
+    if (keep) copies_.Reserve(refs.size());
+    std::vector<double> out(refs.size());
+    const bool norm_is_self = snap_->inverted.options().sqrt_tf;
+    ParallelFor(refs.size(), num_threads_, 8, [&](size_t begin, size_t end, int) {
+      thread_local std::vector<uint8_t> buffer;
+      for (size_t c = begin; c < end; ++c) {
+        const uint32_t n = refs[c].number;
+        const Entry& entry = *snap_->entries[n];
+        PackedFeatures copy;
+        const PackedFeatures& features = keep ? copies_.Read(c, n, entry) : copies_.Of(n, entry);
+        if (features.signature_bytes().empty() && features.size() > 0) {
+          out[c] = std::nan("");
+        } else if (norm_is_self) {
+          const double norm = snap_->inverted.Norm(n);
+          out[c] = query.Score(features, norm * norm);
+        } else {
+          out[c] = query.Score(features);
+        }
+      }
+    });
+    if (keep) {
+      copies_.Index();
+      copied_ = true;
+    }
+    return out;
+  }
+
+  Result<std::vector<sift::VerificationResult>> Verify(std::span<const search::GeometryQuery> geometries,
+                                                       std::span<const search::VerifyPair> pairs,
+                                                       const QueryOptions& options) override {
+    std::vector<QueryGeometry> prepared;
+    prepared.reserve(geometries.size());
+    for (const search::GeometryQuery& g : geometries) {
+      prepared.emplace_back(g.keypoints, g.words, g.region, g.signatures, options.hamming_threshold,
+                            options.max_tentative_matches);
+    }
+    std::vector<sift::VerificationResult> out(pairs.size());
+    for (const search::VerifyPair& p : pairs) {
+      if (p.geometry >= prepared.size()) return Fail(ErrorCode::kInvalidArgument, "a verification of no geometry");
+    }
+    ParallelFor(pairs.size(), num_threads_, 1, [&](size_t begin, size_t end, int) {
+      for (size_t c = begin; c < end; ++c) {
+        const uint32_t n = pairs[c].ref.number;
+        out[c] = prepared[pairs[c].geometry].Verify(copies_.Of(n, *snap_->entries[n]), options.max_pairs_per_word,
+                                                    options.verify);
+      }
+    });
+    return out;
+  }
+
+  Result<std::vector<search::RegionFeatures>> Features(std::span<const ImageRef> refs,
+                                                       std::span<const std::array<float, 4>> regions,
+                                                       const search::FeaturesRequest& request) override {
+    std::vector<search::RegionFeatures> out(refs.size());
+    for (size_t r = 0; r < refs.size(); ++r) {
+      const uint32_t n = refs[r].number;
+      const PackedFeatures& f = copies_.Of(n, *snap_->entries[n]);
+      const auto& box = regions[r];
+      std::vector<uint32_t> inside;
+      for (size_t i = 0; i < f.size(); ++i) {
+        const sift::Keypoint k = f.keypoint(i);
+        if (k.x < box[0] || k.x > box[2] || k.y < box[1] || k.y > box[3]) continue;
+        inside.push_back(static_cast<uint32_t>(i));
+        if (request.all_words) out[r].all_words.push_back(f.word(i));
+      }
+      const size_t cap = request.max_features;
+      if (cap > 0 && inside.size() > cap) {  // the rarest words' features (highest idf; ties by feature order)
+        std::vector<double> idf(inside.size());
+        for (size_t k = 0; k < inside.size(); ++k) idf[k] = snap_->inverted.Idf(f.word(inside[k]));
+        std::vector<uint32_t> order(inside.size());
+        std::iota(order.begin(), order.end(), 0u);
+        std::nth_element(order.begin(), order.begin() + static_cast<std::ptrdiff_t>(cap), order.end(),
+                         [&](uint32_t x, uint32_t y) { return idf[x] != idf[y] ? idf[x] > idf[y] : x < y; });
+        order.resize(cap);
+        std::sort(order.begin(), order.end());
+        for (size_t k = 0; k < cap; ++k) order[k] = inside[order[k]];
+        inside = std::move(order);
+      }
+      const bool signed_features = request.signatures && f.has_signatures();
+      for (const uint32_t i : inside) {
+        out[r].keypoints.push_back(f.keypoint(i));
+        out[r].words.push_back(f.word(i));
+        if (signed_features) out[r].signatures.push_back(f.signature(i));
+      }
+    }
+    return out;
+  }
+
+  Result<std::vector<std::vector<QueryTerm>>> RegionTerms(std::span<const ImageRef> refs,
+                                                          std::span<const std::array<float, 4>> regions) override {
+    std::vector<std::vector<QueryTerm>> out(refs.size());
+    for (size_t r = 0; r < refs.size(); ++r) {
+      const uint32_t n = refs[r].number;
+      out[r] = snap_->inverted.QueryVector(copies_.Of(n, *snap_->entries[n]).BagInside(regions[r]));
+    }
+    return out;
+  }
+
+  // The ranking's tables are built in memory kept from a previous search (up to a bound): fresh, they
+  // were several MB that every search faulted in page by page (blocks of 1 MiB and more are mapped and
+  // unmapped each time, server/http/http_server.cc), about 10 ms of a search at 1M images.
+  Status RankAmong(std::span<const ImageRef> refs) override {
+    ranked_numbers_.resize(refs.size());
+    ranked_bags_.assign(refs.size(), BagOfWords());
+    std::vector<const BagOfWords*> bag_pointers(refs.size());
+    ParallelFor(refs.size(), num_threads_, 16, [&](size_t begin, size_t end, int) {
+      for (size_t c = begin; c < end; ++c) {
+        ranked_numbers_[c] = refs[c].number;
+        ranked_bags_[c] = copies_.Of(refs[c].number, *snap_->entries[refs[c].number]).Bag();
+        bag_pointers[c] = &ranked_bags_[c];
+      }
+    });
+    InvertedFile::Subset::Buffers buffers;
+    if (ranked_) {
+      buffers = std::move(*ranked_).Release();
+    } else {
+      ranked_memory_.emplace(search::KeptForNextSearch<InvertedFile::Subset::Buffers>::Shared().Take());
+      buffers = std::move(**ranked_memory_);
+    }
+    ranked_.emplace(snap_->inverted, ranked_numbers_, bag_pointers, std::move(buffers));
+    return Ok();
+  }
+
+  Result<std::vector<std::vector<float>>> ScoreAmong(std::span<const std::vector<uint32_t>> queries) override {
+    if (!ranked_) return Fail(ErrorCode::kInvalidArgument, "ScoreAmong before RankAmong");
+    std::vector<std::vector<float>> scores(queries.size());
+    ParallelFor(queries.size(), num_threads_, 1, [&](size_t begin, size_t end, int) {
+      for (size_t a = begin; a < end; ++a)
+        scores[a] = ranked_->Score(snap_->inverted.QueryVector(BagOfWords::FromWords(queries[a])));
+    });
+    return scores;
+  }
+
+  Result<std::vector<ImageRecord>> Records(std::span<const ImageRef> refs) override {
+    std::vector<ImageRecord> out(refs.size());
+    for (size_t r = 0; r < refs.size(); ++r) out[r] = snap_->entries[refs[r].number]->record;
+    return out;
+  }
+
+ private:
+  // One Matches call per image number, in parallel: the filter parses each image's metadata (api/filter.h).
+  std::vector<uint8_t> AllowedImages(const ImageFilter& filter) const {
+    std::vector<uint8_t> allowed(snap_->entries.size(), 0);
+    ParallelFor(allowed.size(), num_threads_, 4096, [&](size_t begin, size_t end, int) {
+      for (size_t n = begin; n < end; ++n) {
+        const Entry* entry = snap_->entries[n].get();
+        allowed[n] = entry != nullptr && filter.Matches(entry->record) ? 1 : 0;
+      }
+    });
+    return allowed;
+  }
+
+  const std::shared_ptr<const ImageIndex::Snapshot> snap_;
+  const int num_threads_;
+  CandidateCopies copies_;
+  bool copied_ = false;
+  const ImageFilter* allowed_filter_ = nullptr;  // the filter allowed_ was made for
+  std::vector<uint8_t> allowed_;
+  std::vector<uint32_t> ranked_numbers_;
+  std::vector<BagOfWords> ranked_bags_;
+  std::optional<search::KeptForNextSearch<InvertedFile::Subset::Buffers>::Lease> ranked_memory_;
+  std::optional<InvertedFile::Subset> ranked_;
+};
+
 }  // namespace
+
+std::unique_ptr<search::Source> ImageIndex::OpenSearch() const {
+  return std::make_unique<SnapshotSource>(impl_->Current(), impl_->index_options.num_threads);
+}
 
 Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const QueryOptions& options) const {
   const auto t0 = Clock::now();
@@ -1865,59 +2008,14 @@ Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const Que
   if (auto s = CheckSettings(options.extractor_settings, impl_->extractor_settings, "the query features"); !s) {
     return std::unexpected(s.error());
   }
-  const auto snap = impl_->Current();
-  QueryFeatures q;
-  q.width = query.image_width;
-  q.height = query.image_height;
-  // The selected descriptors, in a buffer kept between searches (up to a bound): 1.5 MB at 3000
-  // features, which a fresh vector faulted in page by page on every search (as Subset's tables).
-  const auto kept_descriptors = KeptForNextSearch<std::vector<float>>::Shared().Take();
-  std::vector<float>& descriptors = *kept_descriptors;
-  descriptors.clear();
-  SelectInRegion(query, options.region, static_cast<size_t>(options.max_query_features), &q.keypoints, &descriptors);
-  QueryTimings timings;
-  q.words.resize(q.keypoints.size());
+  SnapshotSource source(impl_->Current(), impl_->index_options.num_threads);
   // A query's descriptors on the index's threads, as its re-ranking: latency, not throughput.
   vocab::QuantizerOptions quantizer = impl_->index_options.quantizer;
-  quantizer.num_probes = options.quantizer_probes;
   quantizer.num_threads = impl_->index_options.num_threads;
-  if (options.query_assignments == 1) {
-    impl_->vocabulary.Quantize(descriptors, q.words, quantizer);
-  } else {
-    const auto k = static_cast<size_t>(options.query_assignments);
-    std::vector<uint32_t> words(q.keypoints.size() * k);
-    std::vector<float> sq_distances(words.size());
-    impl_->vocabulary.QuantizeMulti(descriptors, options.query_assignments, words, sq_distances, quantizer);
-    std::map<uint32_t, float> tf;
-    const size_t vocabulary_size = impl_->vocabulary.size();
-    for (size_t i = 0; i < q.keypoints.size(); ++i) {
-      q.words[i] = words[i * k];
-      for (size_t j = 0; j < k; ++j) {
-        const uint32_t w = words[i * k + j];
-        if (w >= vocabulary_size || !std::isfinite(sq_distances[i * k + j])) break;
-        const double excess = static_cast<double>(sq_distances[i * k + j]) - sq_distances[i * k];
-        tf[w] += static_cast<float>(std::exp(-excess / (2 * options.assignment_sigma_sq)));
-      }
-    }
-    for (const auto& [w, c] : tf) {
-      q.soft_words.push_back(w);
-      q.soft_tf.push_back(c);
-    }
-  }
-  if (options.hamming && impl_->vocabulary.has_hamming()) {
-    // On the index's threads too: a 64 x 128 projection per descriptor, ~1.4 ms for 2500 on one.
-    q.signatures.resize(q.words.size());
-    const auto dim = static_cast<size_t>(impl_->vocabulary.dimension());
-    ParallelFor(q.words.size(), quantizer.num_threads, 512, [&](size_t begin, size_t end, int) {
-      impl_->vocabulary.Signatures(std::span<const float>(descriptors).subspan(begin * dim, (end - begin) * dim),
-                                   std::span<const uint32_t>(q.words).subspan(begin, end - begin),
-                                   std::span<uint64_t>(q.signatures).subspan(begin, end - begin));
-    });
-  }
-  constexpr size_t kMaxKeptFloats = size_t{2} << 20;  // 8 MiB
-  if (descriptors.capacity() > kMaxKeptFloats) descriptors = std::vector<float>();
+  const search::QueryFeatures q = search::PrepareQuery(query, impl_->vocabulary, options, quantizer);
+  QueryTimings timings;
   timings.quantize_ms = MsSince(t0);
-  auto response = impl_->Run(*snap, q, options, timings);
+  auto response = search::Run(source, q, options, timings);
   if (response) response->timings.total_ms = MsSince(t0);
   return response;
 }
@@ -1927,537 +2025,13 @@ Result<QueryResponse> ImageIndex::QuerySimilar(const std::string& id, const Quer
   const SearchInFlight in_flight(impl_->searches_in_flight, impl_->last_search_end);
   const LatencySensitiveScope latency;  // the pool's helpers stay awake between this search's stages
   if (auto e = options.Check()) return Fail(ErrorCode::kInvalidArgument, "query options: " + *e);
-  const auto snap = impl_->Current();
-  const Entry* entry = snap->Find(id);
-  if (!entry) return Fail(ErrorCode::kNotFound, "no image with id '" + id + "'");
-  const PackedFeatures& features = entry->features();
-  QueryFeatures q;
-  q.width = features.width();
-  q.height = features.height();
-  for (size_t i = 0; i < features.size(); ++i) {
-    const sift::Keypoint k = features.keypoint(i);
-    if (options.region) {
-      const auto& r = *options.region;
-      if (k.x < r[0] || k.x > r[2] || k.y < r[1] || k.y > r[3]) continue;
-    }
-    q.keypoints.push_back(k);
-    q.words.push_back(features.word(i));
-    if (options.hamming && !features.signature_bytes().empty()) {
-      q.signatures.push_back(features.signature(i));
-    }
-  }
-  auto response = impl_->Run(*snap, q, options, QueryTimings{});
+  SnapshotSource source(impl_->Current(), impl_->index_options.num_threads);
+  ImageRecord record;
+  auto q = search::StoredQuery(source, id, options, &record);
+  if (!q) return std::unexpected(q.error());
+  auto response = search::Run(source, *q, options, QueryTimings{});
   if (response) response->timings.total_ms = MsSince(t0);
   return response;
-}
-
-Result<ImageIndex::StoredFeatures> ImageIndex::FeaturesOf(const std::string& id) const {
-  const auto snap = impl_->Current();
-  const Entry* entry = snap->Find(id);
-  if (!entry) return Fail(ErrorCode::kNotFound, "no image with id '" + id + "'");
-  const PackedFeatures& features = entry->features();
-  StoredFeatures out;
-  for (size_t i = 0; i < features.size(); ++i) {
-    out.keypoints.push_back(features.keypoint(i));
-    out.words.push_back(features.word(i));
-  }
-  return out;
-}
-
-Result<QueryResponse> ImageIndex::Impl::Run(const Snapshot& snap, const QueryFeatures& query,
-                                            const QueryOptions& options, QueryTimings timings) const {
-  const auto kept_scratch = KeptForNextSearch<ScoreScratch>::Shared().Take();
-  ScoreScratch& scratch = *kept_scratch;
-  QueryResponse response;
-  response.query_features = static_cast<uint32_t>(query.words.size());
-
-  // 1. TF-IDF scoring.
-  auto t = Clock::now();
-  const std::vector<QueryTerm> terms = query.soft_words.empty()
-                                            ? snap.inverted.QueryVector(BagOfWords::FromWords(query.words))
-                                            : snap.inverted.QueryVector(query.soft_words, query.soft_tf);
-  const bool hamming = !query.signatures.empty();
-  const size_t depth = std::max({static_cast<size_t>(options.top_k), static_cast<size_t>(options.rerank_depth),
-                                 hamming ? static_cast<size_t>(options.hamming_shortlist) : size_t{0}});
-  std::vector<uint8_t> allowed_bitmap;
-  if (options.filter) allowed_bitmap = AllowedImages(snap, *options.filter);
-  const std::vector<uint8_t>* allowed = options.filter ? &allowed_bitmap : nullptr;
-  std::vector<ScoredImage> scored =
-      snap.inverted.Score(terms, depth, &scratch, &response.candidates, allowed, index_options.num_threads,
-                          static_cast<uint64_t>(options.max_scored_postings));
-  // The features of the candidates read next (Hamming scores, verification): their reads start at once,
-  // on the index's threads (a madvise call each, several microseconds even when the pages are in memory:
-  // ~2 ms for 300 candidates on one thread at 1M images).
-  const size_t to_read = std::min(scored.size(), hamming ? depth : static_cast<size_t>(options.rerank_depth));
-  ParallelFor(to_read, index_options.num_threads, 16, [&](size_t begin, size_t end, int) {
-    for (size_t c = begin; c < end; ++c) snap.entries[scored[c].image]->stored.WillNeed();
-  });
-  // 1b. Hamming-embedding re-scoring of the shortlist (whose features it keeps for the stages below).
-  CandidateCopies copies;
-  if (hamming) RescoreHamming(snap, query, options, scored, &copies);
-  timings.score_ms = MsSince(t);
-
-  std::vector<QueryResult> results(scored.size());
-  for (size_t i = 0; i < scored.size(); ++i) {
-    results[i].id = snap.entries[scored[i].image]->record.id;
-    results[i].score = scored[i].score;
-  }
-
-  // 2. Spatial re-ranking of the top R.
-  t = Clock::now();
-  const size_t num_verified = Rerank(snap, query, options, scored, copies, results);
-  timings.verify_ms = MsSince(t);
-
-  // 3. Average query expansion over the verified results.
-  if (options.query_expansion && num_verified > 0) {
-    t = Clock::now();
-    if (hamming) {
-      ExpandQueryHamming(snap, query, options, num_verified, copies, results);
-    } else {
-      ExpandQuery(snap, terms, options, num_verified, allowed, &scratch, results);
-    }
-    timings.qe_ms = MsSince(t);
-  }
-
-  // 4. Transitive verification.
-  if (options.transitive_depth > 0 && num_verified > 0) {
-    t = Clock::now();
-    VerifyTransitively(snap, options, hamming, num_verified, copies, results);
-    timings.verify_ms += MsSince(t);
-  }
-
-  if (results.size() > static_cast<size_t>(options.top_k)) results.resize(static_cast<size_t>(options.top_k));
-  for (QueryResult& r : results) r.record = snap.Find(r.id)->record;
-  response.results = std::move(results);
-  response.timings = timings;
-  return response;
-}
-
-// One Matches call per image number, in parallel: the filter parses each image's metadata (api/filter.h).
-std::vector<uint8_t> ImageIndex::Impl::AllowedImages(const Snapshot& snap, const ImageFilter& filter) const {
-  std::vector<uint8_t> allowed(snap.entries.size(), 0);
-  ParallelFor(allowed.size(), index_options.num_threads, 4096, [&](size_t begin, size_t end, int) {
-    for (size_t n = begin; n < end; ++n) {
-      const Entry* entry = snap.entries[n].get();
-      allowed[n] = entry != nullptr && filter.Matches(entry->record) ? 1 : 0;
-    }
-  });
-  return allowed;
-}
-
-namespace {
-
-// The Hamming-embedding score of each image (by number) against `signatures`, or NaN for an image
-// stored without signatures (pre-assigned words), on `threads` threads.
-// With sqrt(tf) weighting (the default) a candidate's N_d is its tf-idf norm squared, which the inverted
-// file keeps: Score then skips the candidate's words the query lacks (hamming.h).
-// With `keep`, each image's copy is kept there (CandidateCopies::Read, image c as candidate c).
-std::vector<double> HammingScores(const ImageIndex::Snapshot& snap, const QuerySignatures& signatures,
-                                  std::span<const uint32_t> images, int threads, CandidateCopies* keep = nullptr) {
-  std::vector<double> out(images.size());
-  const bool norm_is_self = snap.inverted.options().sqrt_tf;
-  ParallelFor(images.size(), threads, 8, [&](size_t begin, size_t end, int) {
-    thread_local std::vector<uint8_t> buffer;
-    for (size_t c = begin; c < end; ++c) {
-      PackedFeatures copy;
-      const Entry& entry = *snap.entries[images[c]];
-      const PackedFeatures& features = keep ? keep->Read(c, images[c], entry) : entry.SignedFeatures(&buffer, &copy);
-      if (features.signature_bytes().empty() && features.size() > 0) {
-        out[c] = std::nan("");
-      } else if (norm_is_self) {
-        const double norm = snap.inverted.Norm(images[c]);
-        out[c] = signatures.Score(features, norm * norm);
-      } else {
-        out[c] = signatures.Score(features);
-      }
-    }
-  });
-  return out;
-}
-
-// Indices 0..n-1 ordered by descending score, NaN (no signatures) last, ties and NaNs in index order.
-std::vector<size_t> ByScore(const std::vector<double>& scores) {
-  std::vector<size_t> order(scores.size());
-  std::iota(order.begin(), order.end(), size_t{0});
-  std::stable_sort(order.begin(), order.end(), [&](size_t a, size_t b) {
-    if (std::isnan(scores[a]) || std::isnan(scores[b])) return !std::isnan(scores[a]) && std::isnan(scores[b]);
-    return scores[a] > scores[b];
-  });
-  return order;
-}
-
-HammingWeighting WeightingOf(const QueryOptions& options) {
-  return {.threshold = options.hamming_threshold, .sigma = options.hamming_sigma};
-}
-
-}  // namespace
-
-void ImageIndex::Impl::RescoreHamming(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
-                                      std::vector<ScoredImage>& scored, CandidateCopies* copies) const {
-  const size_t shortlist = std::min(scored.size(), static_cast<size_t>(options.hamming_shortlist));
-  const QuerySignatures signatures(query.words, query.signatures, snap.inverted.IdfSquaredTable(), WeightingOf(options));
-  std::vector<uint32_t> images(shortlist);
-  for (size_t c = 0; c < shortlist; ++c) images[c] = scored[c].image;
-  copies->Reserve(shortlist);
-  const std::vector<double> scores = HammingScores(snap, signatures, images, index_options.num_threads, copies);
-  copies->Index();
-  const std::vector<ScoredImage> before(scored.begin(), scored.begin() + static_cast<std::ptrdiff_t>(shortlist));
-  const std::vector<size_t> order = ByScore(scores);
-  for (size_t c = 0; c < shortlist; ++c) {
-    scored[c] = before[order[c]];
-    if (!std::isnan(scores[order[c]])) scored[c].score = static_cast<float>(scores[order[c]]);
-  }
-}
-
-void ImageIndex::Impl::ExpandQueryHamming(const Snapshot& snap, const QueryFeatures& query,
-                                          const QueryOptions& options, size_t num_verified,
-                                          const CandidateCopies& copies, std::vector<QueryResult>& results) const {
-  std::vector<uint32_t> words = query.words;
-  std::vector<uint64_t> signatures = query.signatures;
-  const size_t used = std::min(num_verified, static_cast<size_t>(options.qe_images));
-  for (size_t c = 0; c < used; ++c) {
-    const PackedFeatures& features = copies.Of(snap, results[c].id);
-    if (features.signature_bytes().empty()) continue;
-    const auto& box = results[c].db_region;
-    for (size_t i = 0; i < features.size(); ++i) {
-      const sift::Keypoint k = features.keypoint(i);
-      if (k.x < box[0] || k.x > box[2] || k.y < box[1] || k.y > box[3]) continue;
-      words.push_back(features.word(i));
-      signatures.push_back(features.signature(i));
-    }
-  }
-  const QuerySignatures expanded(words, signatures, snap.inverted.IdfSquaredTable(), WeightingOf(options));
-  std::vector<uint32_t> images(results.size() - num_verified);
-  for (size_t c = num_verified; c < results.size(); ++c) snap.Find(results[c].id, &images[c - num_verified]);
-  const std::vector<double> scores = HammingScores(snap, expanded, images, index_options.num_threads);
-  const std::vector<QueryResult> unverified(results.begin() + static_cast<std::ptrdiff_t>(num_verified), results.end());
-  const std::vector<size_t> order = ByScore(scores);
-  for (size_t c = 0; c < order.size(); ++c) {
-    QueryResult& r = results[num_verified + c];
-    r = unverified[order[c]];
-    if (!std::isnan(scores[order[c]])) r.score = scores[order[c]];
-  }
-}
-
-void SelectInRegion(const sift::FeatureSet& features, const std::optional<std::array<float, 4>>& region,
-                    size_t max_features, std::vector<sift::Keypoint>* keypoints, std::vector<float>* descriptors) {
-  std::vector<uint32_t> selected;
-  for (size_t i = 0; i < features.size(); ++i) {
-    const sift::Keypoint& k = features.keypoints[i];
-    if (region) {
-      const auto& r = *region;
-      if (k.x < r[0] || k.x > r[2] || k.y < r[1] || k.y > r[3]) continue;
-    }
-    selected.push_back(static_cast<uint32_t>(i));
-  }
-  if (max_features > 0 && selected.size() > max_features) {
-    const auto stronger = [&](uint32_t a, uint32_t b) {
-      const float ra = std::abs(features.keypoints[a].response), rb = std::abs(features.keypoints[b].response);
-      return ra != rb ? ra > rb : a < b;
-    };
-    std::nth_element(selected.begin(), selected.begin() + static_cast<std::ptrdiff_t>(max_features), selected.end(),
-                     stronger);
-    selected.resize(max_features);
-    std::sort(selected.begin(), selected.end());
-  }
-  keypoints->reserve(keypoints->size() + selected.size());
-  if (!selected.empty()) {
-    descriptors->reserve(descriptors->size() + selected.size() * features.Descriptor(selected[0]).size());
-  }
-  for (const uint32_t i : selected) {
-    keypoints->push_back(features.keypoints[i]);
-    const auto d = features.Descriptor(i);
-    descriptors->insert(descriptors->end(), d.begin(), d.end());
-  }
-}
-
-void SortVerifiedFirst(std::span<QueryResult> results) {
-  // Verified first (by inliers, then score), then the rest in tf-idf order; stable keeps ties by rank.
-  std::stable_sort(results.begin(), results.end(), [](const QueryResult& a, const QueryResult& b) {
-    if (a.verified != b.verified) return a.verified;
-    if (a.verified && a.inliers != b.inliers) return a.inliers > b.inliers;
-    return a.score > b.score;
-  });
-}
-
-std::vector<QueryTerm> ExpandedQuery(std::span<const QueryTerm> terms, std::span<const std::vector<QueryTerm>> regions) {
-  std::map<uint32_t, double> average;
-  for (const QueryTerm& term : terms) average[term.word] += term.weight;
-  for (const std::vector<QueryTerm>& region : regions)
-    for (const QueryTerm& term : region) average[term.word] += term.weight;
-  std::vector<QueryTerm> expanded;
-  expanded.reserve(average.size());
-  double norm_sq = 0;
-  for (const auto& [word, weight] : average) norm_sq += weight * weight;
-  const double inv = norm_sq > 0 ? 1.0 / std::sqrt(norm_sq) : 0.0;
-  for (const auto& [word, weight] : average) expanded.push_back({word, static_cast<float>(weight * inv)});
-  // Only the strongest words, twice as many as the query's: the average of the query and 5 regions has
-  // about 3x the query's words, most from one region only with small weights, and its pass over every
-  // posting of those words was the costliest stage at 1M images (339 ms p50). Measured: that pass about
-  // 35% cheaper (100k images), mAP Paris subset 0.896 -> 0.900, groups_dev 0.985 -> 0.986 (README).
-  return StrongestTerms(std::move(expanded), 2 * terms.size());
-}
-
-size_t ImageIndex::Impl::Rerank(const Snapshot& snap, const QueryFeatures& query, const QueryOptions& options,
-                                const std::vector<ScoredImage>& scored, const CandidateCopies& copies,
-                                std::vector<QueryResult>& results) const {
-  const size_t rerank = std::min(scored.size(), static_cast<size_t>(options.rerank_depth));
-  if (rerank == 0) return 0;
-  const std::array<float, 4> query_region =
-      options.region ? *options.region
-                     : std::array<float, 4>{0, 0, static_cast<float>(query.width), static_cast<float>(query.height)};
-  const QueryGeometry geometry(query.keypoints, query.words, query_region, query.signatures,
-                               options.hamming_threshold, options.max_tentative_matches);
-  ParallelFor(rerank, index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
-    for (size_t c = begin; c < end; ++c) {
-      const sift::VerificationResult v =
-          geometry.Verify(copies.Of(scored[c].image, *snap.entries[scored[c].image]), options.max_pairs_per_word,
-                          options.verify);
-      QueryResult& r = results[c];
-      r.inliers = v.num_inliers;
-      if (v.verified) {
-        r.verified = true;
-        r.db_from_query = v.db_from_query;
-        r.db_region = v.db_region;
-      }
-    }
-  });
-  SortVerifiedFirst(std::span(results).first(rerank));
-  size_t num_verified = 0;
-  for (size_t c = 0; c < rerank; ++c) num_verified += results[c].verified ? 1 : 0;
-  return num_verified;
-}
-
-void ImageIndex::Impl::ExpandQuery(const Snapshot& snap, const std::vector<QueryTerm>& terms,
-                                   const QueryOptions& options, size_t num_verified,
-                                   const std::vector<uint8_t>* allowed, ScoreScratch* scratch,
-                                   std::vector<QueryResult>& results) const {
-  const size_t used = std::min(num_verified, static_cast<size_t>(options.qe_images));
-  std::vector<std::vector<QueryTerm>> regions(used);
-  for (size_t c = 0; c < used; ++c) {
-    const Entry* entry = snap.Find(results[c].id);
-    regions[c] = snap.inverted.QueryVector(entry->features().BagInside(results[c].db_region));
-  }
-  const std::vector<QueryTerm> expanded = ExpandedQuery(terms, regions);
-  // Deep enough for transitive verification's window as well as for top_k.
-  const size_t expanded_depth =
-      static_cast<size_t>(std::max(options.top_k, options.transitive_depth > 0 ? options.transitive_depth : 0));
-  const std::vector<ScoredImage> rescored =
-      snap.inverted.Score(expanded, expanded_depth + num_verified, scratch, nullptr, allowed,
-                          index_options.num_threads, static_cast<uint64_t>(options.max_scored_postings));
-  std::vector<QueryResult> merged(results.begin(), results.begin() + static_cast<std::ptrdiff_t>(num_verified));
-  std::unordered_map<std::string, const QueryResult*> first_stage;
-  for (const QueryResult& r : results) first_stage[r.id] = &r;
-  for (const ScoredImage& s : rescored) {
-    const std::string& id = snap.entries[s.image]->record.id;
-    const auto it = first_stage.find(id);
-    if (it != first_stage.end() && it->second->verified) continue;
-    QueryResult r;
-    if (it != first_stage.end()) r = *it->second;
-    r.id = id;
-    r.score = s.score;
-    merged.push_back(std::move(r));
-  }
-  results = std::move(merged);
-}
-
-// Unverified candidates against the matched regions of verified results (anchors), in rounds; a
-// candidate verified in one round is an anchor of the next, up to transitive_anchors anchors in all. A
-// candidate stops at its first anchor that verifies it.
-void ImageIndex::Impl::VerifyTransitively(const Snapshot& snap, const QueryOptions& options, bool hamming,
-                                          size_t num_verified, const CandidateCopies& copies,
-                                          std::vector<QueryResult>& results) const {
-  const size_t first = num_verified;
-  const size_t last = std::min(results.size(), first + static_cast<size_t>(options.transitive_depth));
-  std::vector<size_t> pool(num_verified);  // anchor candidates: positions in `results`, in anchor order
-  std::iota(pool.begin(), pool.end(), size_t{0});
-  std::vector<uint32_t> numbers(last);
-  std::vector<BagOfWords> bags(last);
-  std::vector<const BagOfWords*> bag_pointers(last);
-  ParallelFor(last, index_options.num_threads, 16, [&](size_t begin, size_t end, int) {
-    for (size_t c = begin; c < end; ++c) {
-      const Entry& entry = *snap.Find(results[c].id, &numbers[c]);
-      bags[c] = copies.Of(numbers[c], entry).Bag();
-      bag_pointers[c] = &bags[c];
-    }
-  });
-  // The ranking's tables are built in memory kept from a previous search (up to a bound): fresh, they
-  // were several MB that every search faulted in page by page (blocks of 1 MiB and more are mapped and
-  // unmapped each time, server/http/http_server.cc), about 10 ms of a search at 1M images.
-  const auto kept_buffers = KeptForNextSearch<InvertedFile::Subset::Buffers>::Shared().Take();
-  InvertedFile::Subset::Buffers& kept = *kept_buffers;
-  InvertedFile::Subset ranked(snap.inverted, numbers, bag_pointers, std::move(kept));
-  const auto max_anchors = static_cast<size_t>(options.transitive_anchors);
-  size_t used = 0;
-  while (used < std::min(pool.size(), max_anchors)) {
-    const size_t round_end = std::min(pool.size(), max_anchors);
-    struct Anchor {
-      std::vector<sift::Keypoint> keypoints;
-      std::vector<uint32_t> words;           // of every feature in the region (its neighbours' query)
-      std::vector<uint32_t> geometry_words;  // of `keypoints`
-      std::vector<uint64_t> signatures;      // of `keypoints`, with `hamming`, when the anchor has them
-    };
-    std::vector<Anchor> anchors(round_end - used);
-    std::vector<QueryGeometry> geometries;
-    geometries.reserve(anchors.size());
-    std::vector<std::span<const uint32_t>> anchor_words;
-    anchor_words.reserve(anchors.size());
-    for (size_t a = 0; a < anchors.size(); ++a) {
-      const QueryResult& anchor = results[pool[used + a]];
-      const PackedFeatures& f = copies.Of(snap, anchor.id);
-      const auto& box = anchor.db_region;
-      std::vector<uint32_t> inside;
-      for (size_t i = 0; i < f.size(); ++i) {
-        const sift::Keypoint k = f.keypoint(i);
-        if (k.x < box[0] || k.x > box[2] || k.y < box[1] || k.y > box[3]) continue;
-        inside.push_back(static_cast<uint32_t>(i));
-        anchors[a].words.push_back(f.word(i));
-      }
-      // With Hamming embedding the anchor's region is verified against as a query is: with at most
-      // max_query_features features, those of its rarest words (stored features keep no DoG
-      // response). An anchor may be a whole 37000-feature image. (Without it, all: what a cluster's
-      // front does, which serves no Hamming embedding.)
-      const size_t cap = hamming ? static_cast<size_t>(options.max_query_features) : 0;
-      if (cap > 0 && inside.size() > cap) {
-        std::vector<double> idf(inside.size());
-        for (size_t k = 0; k < inside.size(); ++k) idf[k] = snap.inverted.Idf(f.word(inside[k]));
-        std::vector<uint32_t> order(inside.size());
-        std::iota(order.begin(), order.end(), 0u);
-        std::nth_element(order.begin(), order.begin() + static_cast<std::ptrdiff_t>(cap), order.end(),
-                         [&](uint32_t x, uint32_t y) { return idf[x] != idf[y] ? idf[x] > idf[y] : x < y; });
-        order.resize(cap);
-        std::sort(order.begin(), order.end());
-        for (size_t k = 0; k < cap; ++k) order[k] = inside[order[k]];
-        inside = std::move(order);
-      }
-      for (const uint32_t i : inside) {
-        anchors[a].keypoints.push_back(f.keypoint(i));
-        anchors[a].geometry_words.push_back(f.word(i));
-        if (hamming && f.has_signatures()) anchors[a].signatures.push_back(f.signature(i));
-      }
-      geometries.emplace_back(anchors[a].keypoints, anchors[a].geometry_words, box, anchors[a].signatures,
-                              options.hamming_threshold, options.max_tentative_matches);
-      anchor_words.emplace_back(anchors[a].words);
-    }
-    const std::vector<std::vector<TransitiveAttempt>> attempts =
-        PlanAttempts(snap, options, anchor_words, results, first, ranked, numbers);
-    std::vector<uint8_t> found(last - first, 0);
-    ParallelFor(last - first, index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
-      for (size_t c = first + begin; c < first + end; ++c) {
-        QueryResult& r = results[c];
-        if (r.verified || attempts[c - first].empty()) continue;
-        const PackedFeatures& f = copies.Of(numbers[c], *snap.entries[numbers[c]]);
-        for (const TransitiveAttempt& attempt : attempts[c - first]) {
-          const size_t a = attempt.anchor;
-          const sift::VerificationResult v = geometries[a].Verify(f, options.max_pairs_per_word, options.verify);
-          if (!v.verified) continue;
-          r.verified = true;
-          r.inliers = v.num_inliers;
-          r.db_from_query = Compose(v.db_from_query, results[pool[used + a]].db_from_query);
-          r.db_region = v.db_region;
-          found[c - first] = 1;
-          break;
-        }
-      }
-    });
-    used = round_end;
-    AdmitTransitiveAnchors(results, first, found, pool);
-  }
-  SortTransitiveWindow(std::span(results).subspan(first, last - first));
-  kept = std::move(ranked).Release();
-  constexpr size_t kMaxKeptBytes = size_t{8} << 20;
-  if (kept.occurrences.capacity() * sizeof(InvertedFile::Subset::Occurrence) > kMaxKeptBytes) kept = {};
-}
-
-// The anchors' regions scored against the ranking so far, one anchor per task, then the shared plan.
-std::vector<std::vector<TransitiveAttempt>> ImageIndex::Impl::PlanAttempts(
-    const Snapshot& snap, const QueryOptions& options, const std::vector<std::span<const uint32_t>>& anchor_words,
-    const std::vector<QueryResult>& results, size_t first, const InvertedFile::Subset& ranked,
-    const std::vector<uint32_t>& numbers) const {
-  std::vector<std::vector<float>> scores(anchor_words.size());
-  ParallelFor(anchor_words.size(), index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
-    for (size_t a = begin; a < end; ++a)
-      scores[a] = ranked.Score(snap.inverted.QueryVector(BagOfWords::FromWords(anchor_words[a])));
-  });
-  return PlanTransitiveAttempts(scores, numbers, results, first, options);
-}
-
-// Each anchor only verifies its own nearest tf-idf neighbours (its region's bag scored as a tf-idf
-// query): most candidates share little with most anchors, and the verifier is the expensive part.
-// Neighbours are ranked among the ranking so far, results[0, last) (the anchors themselves, the other
-// verified results and the window), scored from their bags: the cost does not grow with the
-// collection (a pass over the whole index per anchor would cost about 50 ms at 1M images), and on a small
-// collection, where the ranking holds an anchor's nearest images, the neighbours are those of a whole
-// index pass.
-// A candidate is tried against at most transitive_attempts anchors, those whose regions score it
-// highest, in anchor order: a view of the object verifies against one of its closest anchors or
-// rarely at all, while a negative would otherwise pay one verification per anchor listing it.
-std::vector<std::vector<TransitiveAttempt>> PlanTransitiveAttempts(std::span<const std::vector<float>> scores,
-                                                                   std::span<const uint32_t> tie,
-                                                                   std::span<const QueryResult> results, size_t first,
-                                                                   const QueryOptions& options) {
-  struct Neighbour {
-    float score;
-    uint32_t tie;
-    size_t position;  // in `results`
-  };
-  const size_t last = tie.size();
-  std::vector<std::vector<TransitiveAttempt>> attempts(last - first);
-  for (size_t a = 0; a < scores.size(); ++a) {
-    std::vector<Neighbour> list;
-    for (size_t c = 0; c < scores[a].size(); ++c) {
-      if (scores[a][c] > 0) list.push_back({scores[a][c], tie[c], c});
-    }
-    // Best first, ties by `tie` (a single node's image numbers: InvertedFile::Score's order); one more
-    // for the anchor itself.
-    const size_t keep = std::min(list.size(), static_cast<size_t>(options.transitive_neighbours) + 1);
-    std::partial_sort(list.begin(), list.begin() + static_cast<std::ptrdiff_t>(keep), list.end(),
-                      [](const Neighbour& x, const Neighbour& y) {
-                        return x.score != y.score ? x.score > y.score : x.tie < y.tie;
-                      });
-    list.resize(keep);
-    for (const Neighbour& n : list) {
-      if (n.position >= first && !results[n.position].verified) {
-        attempts[n.position - first].push_back({n.score, static_cast<uint32_t>(a)});
-      }
-    }
-  }
-  const auto max_attempts = static_cast<size_t>(options.transitive_attempts);
-  for (auto& list : attempts) {
-    std::sort(list.begin(), list.end(), [](const TransitiveAttempt& x, const TransitiveAttempt& y) {
-      return x.score != y.score ? x.score > y.score : x.anchor < y.anchor;
-    });
-    if (list.size() > max_attempts) list.resize(max_attempts);
-    // Among those, the better anchor first (anchors are ordered best first).
-    std::sort(list.begin(), list.end(),
-              [](const TransitiveAttempt& x, const TransitiveAttempt& y) { return x.anchor < y.anchor; });
-  }
-  return attempts;
-}
-
-void AdmitTransitiveAnchors(std::span<const QueryResult> results, size_t first, std::span<const uint8_t> found,
-                            std::vector<size_t>& pool) {
-  std::vector<size_t> fresh;
-  for (size_t c = first; c < first + found.size(); ++c) {
-    if (found[c - first]) fresh.push_back(c);
-  }
-  std::stable_sort(fresh.begin(), fresh.end(), [&](size_t x, size_t y) { return results[x].inliers > results[y].inliers; });
-  pool.insert(pool.end(), fresh.begin(), fresh.end());
-}
-
-void SortTransitiveWindow(std::span<QueryResult> window) {
-  std::stable_sort(window.begin(), window.end(), [](const QueryResult& a, const QueryResult& b) {
-    if (a.verified != b.verified) return a.verified;
-    return a.verified && a.inliers > b.inliers;
-  });
-}
-
-// outer(inner(p)): the affine map that applies `inner` first.
-sift::Affine2D Compose(const sift::Affine2D& outer, const sift::Affine2D& inner) {
-  const auto& b = outer.m;
-  const auto& a = inner.m;
-  return sift::Affine2D{{b[0] * a[0] + b[1] * a[3], b[0] * a[1] + b[1] * a[4], b[0] * a[2] + b[1] * a[5] + b[2],
-                         b[3] * a[0] + b[4] * a[3], b[3] * a[1] + b[4] * a[4], b[3] * a[2] + b[4] * a[5] + b[5]}};
 }
 
 Status ImageIndex::PinCollectionStatistics(uint64_t num_images, std::span<const uint32_t> document_frequency) {
@@ -2479,73 +2053,6 @@ ImageIndex::LiveCounts ImageIndex::CountLive() const {
   for (uint32_t w = 0; w < counts.document_frequency.size(); ++w)
     counts.document_frequency[w] = snap->inverted.DocumentFrequency(w);
   return counts;
-}
-
-std::vector<QueryTerm> ImageIndex::TermsOf(std::span<const uint32_t> words, std::span<const float> tf) const {
-  return impl_->Current()->inverted.QueryVector(words, tf);
-}
-
-Result<std::vector<QueryTerm>> ImageIndex::RegionTerms(const std::string& id, const std::array<float, 4>& region) const {
-  const auto snap = impl_->Current();
-  const Entry* entry = snap->Find(id);
-  if (!entry) return Fail(ErrorCode::kNotFound, "no image with id '" + id + "'");
-  return snap->inverted.QueryVector(entry->features().BagInside(region));
-}
-
-std::vector<ImageIndex::ScoredId> ImageIndex::ScoreTerms(std::span<const QueryTerm> terms, size_t max_results,
-                                                         uint64_t* candidates, uint64_t max_postings) const {
-  const auto kept_scratch = KeptForNextSearch<ScoreScratch>::Shared().Take();
-  ScoreScratch& scratch = *kept_scratch;
-  const auto snap = impl_->Current();
-  std::vector<ScoredId> out;
-  for (const ScoredImage& s : snap->inverted.Score(terms, max_results, &scratch, candidates, nullptr, 1, max_postings))
-    out.push_back({snap->entries[s.image]->record.id, s.score});
-  return out;
-}
-
-Result<std::vector<std::vector<float>>> ImageIndex::ScoreAmong(std::span<const std::vector<uint32_t>> queries,
-                                                               std::span<const std::string> ids) const {
-  const auto snap = impl_->Current();
-  std::vector<size_t> present;  // positions in `ids` of the images indexed here
-  std::vector<uint32_t> numbers;
-  std::vector<BagOfWords> bags;
-  for (size_t c = 0; c < ids.size(); ++c) {
-    uint32_t number = 0;
-    const Entry* entry = snap->Find(ids[c], &number);
-    if (!entry) continue;
-    present.push_back(c);
-    numbers.push_back(number);
-    bags.push_back(entry->features().Bag());
-  }
-  std::vector<const BagOfWords*> bag_pointers(bags.size());
-  for (size_t k = 0; k < bags.size(); ++k) bag_pointers[k] = &bags[k];
-  const InvertedFile::Subset among(snap->inverted, numbers, bag_pointers);
-  std::vector<std::vector<float>> scores(queries.size(), std::vector<float>(ids.size(), 0.0f));
-  for (size_t q = 0; q < queries.size(); ++q) {
-    const std::vector<float> found = among.Score(snap->inverted.QueryVector(BagOfWords::FromWords(queries[q])));
-    for (size_t k = 0; k < present.size(); ++k) scores[q][present[k]] = found[k];
-  }
-  return scores;
-}
-
-Result<std::vector<sift::VerificationResult>> ImageIndex::VerifyImages(std::span<const sift::Keypoint> keypoints,
-                                                                     std::span<const uint32_t> words,
-                                                                     const std::array<float, 4>& query_region,
-                                                                     std::span<const std::string> ids,
-                                                                     const QueryOptions& options) const {
-  if (keypoints.size() != words.size()) return Fail(ErrorCode::kInvalidArgument, "one word per query keypoint");
-  const auto snap = impl_->Current();
-  std::vector<const Entry*> entries;
-  for (const std::string& id : ids) entries.push_back(snap->Find(id));  // nullptr: not indexed (any more)
-  const QueryGeometry geometry(keypoints, words, query_region);
-  std::vector<sift::VerificationResult> out(ids.size());
-  ParallelFor(ids.size(), impl_->index_options.num_threads, 1, [&](size_t begin, size_t end, int) {
-    for (size_t c = begin; c < end; ++c) {
-      if (entries[c] != nullptr)
-        out[c] = geometry.Verify(entries[c]->features(), options.max_pairs_per_word, options.verify);
-    }
-  });
-  return out;
 }
 
 IndexStats ImageIndex::Stats() const {

@@ -158,6 +158,9 @@ struct IndexOptions {
 };
 
 struct ImageRecord;
+namespace search {
+class Source;  // index/search/source.h
+}  // namespace search
 
 // Filtered search: which indexed images a query may return (api/filter.h builds one from the `filter`
 // search parameter). A query asks it about every live image once, from several threads at once, and
@@ -168,6 +171,10 @@ class ImageFilter {
  public:
   virtual ~ImageFilter() = default;
   [[nodiscard]] virtual bool Matches(const ImageRecord& record) const = 0;  // thread-safe
+  // The filter as text that api::ParseFilter parses back into an equal filter: what a cluster's front
+  // sends its partitions, which filter while they score. Empty for a filter that has no such text (a
+  // front refuses it).
+  [[nodiscard]] virtual std::string Text() const { return {}; }
 };
 
 // Per-query options. CLI flags and HTTP parameters map 1:1 onto these fields.
@@ -363,41 +370,6 @@ struct IndexStats {
   uint64_t vocabulary_fingerprint = 0;
 };
 
-// Stages of Query shared with a cluster's front (server/cluster/front.h), which runs them over shards.
-// The query's features inside `region` (QueryOptions::region; all without one), appended.
-// At most max_features of them (0 = all): the strongest by |response|, ties by index, in their order.
-void SelectInRegion(const sift::FeatureSet& features, const std::optional<std::array<float, 4>>& region,
-                    size_t max_features, std::vector<sift::Keypoint>* keypoints, std::vector<float>* descriptors);
-// Re-ranking's order: verified first by inliers (then score), the unverified after them in the order
-// given (stable).
-void SortVerifiedFirst(std::span<QueryResult> results);
-// Query expansion's vector: the L2-normalised average of the query's tf-idf vector and the regions'
-// (added in order), restricted to the 2 x terms.size() strongest words.
-std::vector<QueryTerm> ExpandedQuery(std::span<const QueryTerm> terms, std::span<const std::vector<QueryTerm>> regions);
-// Transitive verification's plan. scores[a][c]: anchor a's matched region (its features inside
-// db_region, as a tf-idf query) scored against results[c], c < last = tie.size(); tie[c] orders equal
-// scores (smaller first). Each anchor keeps its transitive_neighbours + 1 best-scoring results (one for
-// itself); each candidate of results[first, last) not verified yet is tried against at most
-// transitive_attempts of the anchors keeping it, those that score it highest, listed in anchor order.
-struct TransitiveAttempt {
-  float score = 0;      // the candidate's tf-idf score against the anchor's region
-  uint32_t anchor = 0;  // index into the round's anchors
-};
-std::vector<std::vector<TransitiveAttempt>> PlanTransitiveAttempts(std::span<const std::vector<float>> scores,
-                                                                   std::span<const uint32_t> tie,
-                                                                   std::span<const QueryResult> results, size_t first,
-                                                                   const QueryOptions& options);
-// The end of a transitive round: the candidates results[first + i] it verified (found[i] != 0) join
-// `pool`, the anchors of later rounds (positions in `results`), most inliers first.
-void AdmitTransitiveAnchors(std::span<const QueryResult> results, size_t first, std::span<const uint8_t> found,
-                            std::vector<size_t>& pool);
-// The window of transitive verification once done: verified first by inliers, the rest in the order
-// given (stable).
-void SortTransitiveWindow(std::span<QueryResult> window);
-// outer(inner(p)): the affine map that applies `inner` first (a transitively verified result's
-// db_from_query: its own map from the anchor composed with the anchor's).
-sift::Affine2D Compose(const sift::Affine2D& outer, const sift::Affine2D& inner);
-
 class ImageIndex {
  public:
   struct Snapshot;  // implementation detail (image_index.cc)
@@ -454,8 +426,8 @@ class ImageIndex {
   // kNotFound for an unknown id. `options.region` applies to that image's coordinates.
   [[nodiscard]] Result<QueryResponse> QuerySimilar(const std::string& id, const QueryOptions& options) const;
 
-  // --- A partition of a cluster (api/partition.h, server/cluster/): the front runs the query's stages
-  // and each partition does its part on its own images.
+  // --- A partition of a cluster (api/partition.h, server/cluster/): the front runs the search pipeline
+  // over the partitions (OpenSearch below), which score with the cluster's statistics.
   // Scores with the whole cluster's statistics from now on (InvertedFile::WithPinnedStatistics; not
   // stored: the caller pins again after Open). kInvalidArgument unless one frequency per word.
   [[nodiscard]] Status PinCollectionStatistics(uint64_t num_images, std::span<const uint32_t> document_frequency);
@@ -466,39 +438,10 @@ class ImageIndex {
     std::vector<uint32_t> document_frequency;
   };
   LiveCounts CountLive() const;
-  // The L2-normalised tf-idf vector of a bag (InvertedFile::QueryVector with this index's statistics).
-  std::vector<QueryTerm> TermsOf(std::span<const uint32_t> words, std::span<const float> tf) const;
-  // The terms of image `id`'s own features inside `region` (query expansion's regions). kNotFound.
-  [[nodiscard]] Result<std::vector<QueryTerm>> RegionTerms(const std::string& id,
-                                                           const std::array<float, 4>& region) const;
-  struct ScoredId {
-    std::string id;
-    float score = 0;
-  };
-  // The best `max_results` images for `terms` (InvertedFile::Score, with its posting budget
-  // `max_postings`, 0 = none), best first.
-  std::vector<ScoredId> ScoreTerms(std::span<const QueryTerm> terms, size_t max_results, uint64_t* candidates,
-                                   uint64_t max_postings = 0) const;
-  // Per query (words, one per feature, as a bag), its tf-idf scores against images `ids` only, in order,
-  // from their bags (InvertedFile::Subset: transitive verification's neighbours). An id not indexed
-  // here (removed since a front scored it) scores 0.
-  [[nodiscard]] Result<std::vector<std::vector<float>>> ScoreAmong(std::span<const std::vector<uint32_t>> queries,
-                                                                   std::span<const std::string> ids) const;
-  // Spatial verification of images `ids` against query features (keypoints with their words) inside
-  // `query_region`, as Query's re-ranking does. An id not indexed here (removed since a front scored
-  // it) is not verified.
-  [[nodiscard]] Result<std::vector<sift::VerificationResult>> VerifyImages(std::span<const sift::Keypoint> keypoints,
-                                                                         std::span<const uint32_t> words,
-                                                                         const std::array<float, 4>& query_region,
-                                                                         std::span<const std::string> ids,
-                                                                         const QueryOptions& options) const;
-  struct StoredFeatures {
-    std::vector<sift::Keypoint> keypoints;
-    std::vector<uint32_t> words;  // one per keypoint
-  };
-  // Image `id`'s stored keypoints and words, what QuerySimilar queries with (a front runs that query
-  // over the partitions). kNotFound.
-  [[nodiscard]] Result<StoredFeatures> FeaturesOf(const std::string& id) const;
+  // A search over the current snapshot (index/search/source.h): what Query and QuerySimilar run the
+  // search pipeline over, and what a cluster partition answers its front's calls with. It keeps that
+  // snapshot (and so the images it holds) alive until it is destroyed.
+  std::unique_ptr<search::Source> OpenSearch() const;
 
   IndexStats Stats() const;
   // Catalogue::WriteSequence as of the last committed write: images inserted + removed over the index's

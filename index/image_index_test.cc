@@ -12,6 +12,7 @@
 #include <filesystem>
 #include <fstream>
 #include <iterator>
+#include <limits>
 #include <map>
 #include <numeric>
 #include <optional>
@@ -34,12 +35,27 @@
 #include "index/catalogue.h"
 #include "index/checkpoint.h"
 #include "index/feature_store.h"
+#include "index/search/pipeline.h"
+#include "index/search/source.h"
 
 namespace oxbow::index {
 namespace {
 
 namespace fs = std::filesystem;
 constexpr int kWords = 256;
+
+// Image `id`'s stored keypoints and words, as a search reads them (kNotFound).
+Result<search::RegionFeatures> FeaturesOf(const ImageIndex& index, const std::string& id) {
+  const std::unique_ptr<search::Source> source = index.OpenSearch();
+  auto ref = source->Find(id);
+  if (!ref) return std::unexpected(ref.error());
+  if (!*ref) return Fail(ErrorCode::kNotFound, "no image with id '" + id + "'");
+  constexpr float kAll = std::numeric_limits<float>::infinity();
+  const std::array<float, 4> everywhere = {-kAll, -kAll, kAll, kAll};
+  auto features = source->Features(std::span(&**ref, 1), std::span(&everywhere, 1), {});
+  if (!features) return std::unexpected(features.error());
+  return std::move(features->front());
+}
 
 // A vocabulary of kWords random unit centroids; features are made by perturbing a centroid slightly so
 // the quantiser is known to return that word.
@@ -510,7 +526,7 @@ TEST_F(Fixture, MaxQueryFeaturesKeepsTheStrongestInsideTheRegion) {
   }
   std::vector<sift::Keypoint> kept;
   std::vector<float> descriptors;
-  SelectInRegion(f, std::nullopt, 3, &kept, &descriptors);
+  search::SelectInRegion(f, std::nullopt, 3, &kept, &descriptors);
   ASSERT_EQ(kept.size(), 3u);
   EXPECT_EQ(kept[0].x, 0);  // 0.5, the first of the three ties kept
   EXPECT_EQ(kept[1].x, 1);  // |-0.9|
@@ -519,7 +535,7 @@ TEST_F(Fixture, MaxQueryFeaturesKeepsTheStrongestInsideTheRegion) {
   EXPECT_EQ(descriptors[2 * sift::kDescriptorDim], 3.0f);
   kept.clear();
   descriptors.clear();
-  SelectInRegion(f, std::nullopt, 0, &kept, &descriptors);
+  search::SelectInRegion(f, std::nullopt, 0, &kept, &descriptors);
   EXPECT_EQ(kept.size(), 5u);
   QueryOptions bad = Opts(3, 0);
   bad.max_query_features = -1;
@@ -690,7 +706,7 @@ TEST_F(Fixture, DamagedFeatureBlobCostsThatImageOnly) {
     ASSERT_TRUE(index) << index.error().ToString();
     EXPECT_EQ((*index)->Stats().num_images, 1u);
     EXPECT_EQ((*index)->Get("a").error().code, ErrorCode::kNotFound);
-    const auto features = (*index)->FeaturesOf("b");
+    const auto features = FeaturesOf(**index, "b");
     ASSERT_TRUE(features) << features.error().ToString();
     EXPECT_EQ(features->keypoints.size(), b.keypoints.size());
     EXPECT_TRUE((*index)->Add("a", RandomImage(rng, 30), {}));
@@ -1867,7 +1883,7 @@ TEST_F(CheckpointFixture, DamagedTruncatedOrMissingFilesAreRepairedFromTheCatalo
 std::vector<std::pair<std::vector<float>, std::vector<uint32_t>>> AllFeatures(const ImageIndex& index, int n) {
   std::vector<std::pair<std::vector<float>, std::vector<uint32_t>>> out;
   for (int i = 0; i < n; ++i) {
-    auto features = index.FeaturesOf("i" + std::to_string(i));
+    auto features = FeaturesOf(index, "i" + std::to_string(i));
     EXPECT_TRUE(features) << features.error().ToString();
     if (!features) return out;
     std::vector<float> keypoints;

@@ -20,6 +20,7 @@
 #include "api/partition.h"
 #include "api/testing.h"
 #include "index/image_index.h"
+#include "index/search/source.h"
 #include "server/cluster/front.h"
 #include "sift/sift.h"
 // After the project headers: <httplib.h> (through e2e_testing.h) defines a `_res` macro that breaks Eigen.
@@ -46,20 +47,26 @@ class Cluster : public ::testing::Test {
       ASSERT_TRUE(cv::imwrite(images + "/img" + std::to_string(i) + ".png",
                               testing::Texture(320, 240, samples[i % 4], 25 * (i / 4), 20 * (i / 4))));
     }
+    auto extractor = sift::SiftExtractor::Create(sift::SiftOptions{});
+    ASSERT_TRUE(extractor);
+    std::vector<float> sample;
+    for (int i = 0; i < 12; ++i) {
+      auto features = extractor->ExtractFromFile(images + "/img" + std::to_string(i) + ".png");
+      ASSERT_TRUE(features);
+      sample.insert(sample.end(), features->descriptors.begin(), features->descriptors.end());
+      queries_->push_back(std::move(*features));
+    }
+    // A vocabulary with Hamming-embedding parameters (learnt from the pictures), so that the defaults
+    // search with them.
     const std::string vocab = dir_->path() + "/v.oxvoc";
-    ASSERT_TRUE(testing::RandomVocabulary(sift::SiftOptions{}.Describe(), 512)->Write(vocab));
+    auto hamming = testing::RandomVocabulary(sift::SiftOptions{}.Describe(), 512)->WithHamming(sample, 1);
+    ASSERT_TRUE(hamming);
+    ASSERT_TRUE(hamming->Write(vocab));
     Run(std::string(OXBOW_BINARY) + " -q index build --vocab " + vocab + " --images " + images +
         " --threads 1 --out " + dir_->path() + "/single 2>&1");
     Run(std::string(testing::kMpiChildEnvironment) + OXBOW_BINARY + " -q index build --mpi --vocab " + vocab +
         " --images " + images + " --partitions " + std::to_string(kPartitions) + " --threads 1 --out " +
         dir_->path() + "/cluster 2>&1");
-    auto extractor = sift::SiftExtractor::Create(sift::SiftOptions{});
-    ASSERT_TRUE(extractor);
-    for (int i = 0; i < 12; ++i) {
-      auto features = extractor->ExtractFromFile(images + "/img" + std::to_string(i) + ".png");
-      ASSERT_TRUE(features);
-      queries_->push_back(std::move(*features));
-    }
   }
   static void TearDownTestSuite() {
     delete dir_;
@@ -183,6 +190,16 @@ class Cluster : public ::testing::Test {
   std::vector<std::unique_ptr<testing::ServerProcess>> shards_;
 };
 
+// The best 100 tf-idf scores of a bag (distinct words with their counts) on one index, no posting budget.
+std::vector<index::search::ScoredRef> TfIdfScores(const index::ImageIndex& idx, std::span<const uint32_t> words,
+                                                  std::span<const float> tf) {
+  index::QueryOptions options;
+  options.max_scored_postings = 0;
+  auto scored = idx.OpenSearch()->Score({.words = words, .tf = tf}, 100, options);
+  EXPECT_TRUE(scored) << scored.error().ToString();
+  return scored ? scored->best : std::vector<index::search::ScoredRef>{};
+}
+
 // The hook under the front: a partition that pins the cluster's statistics scores each of its images
 // exactly as the single node does; with its own statistics it does not.
 TEST_F(Cluster, PartitionsScoreWithTheClusterStatistics) {
@@ -197,7 +214,7 @@ TEST_F(Cluster, PartitionsScoreWithTheClusterStatistics) {
     const std::vector<float> tf(bag.counts.begin(), bag.counts.end());
     const auto scores_of = [&](const index::ImageIndex& idx) {
       std::map<std::string, float> out;
-      for (const auto& s : idx.ScoreTerms(idx.TermsOf(bag.words, tf), 100, nullptr)) out[s.id] = s.score;
+      for (const auto& s : TfIdfScores(idx, bag.words, tf)) out[s.id] = s.score;
       return out;
     };
     const std::map<std::string, float> everything = scores_of(*single);
@@ -228,7 +245,7 @@ TEST_F(Cluster, PinnedStatisticsStayAfterAWrite) {
   const std::vector<float> tf(bag.counts.begin(), bag.counts.end());
   const auto scores = [&] {
     std::map<std::string, float> out;
-    for (const auto& s : partition->ScoreTerms(partition->TermsOf(bag.words, tf), 100, nullptr)) out[s.id] = s.score;
+    for (const auto& s : TfIdfScores(*partition, bag.words, tf)) out[s.id] = s.score;
     return out;
   };
   const std::map<std::string, float> before = scores();
@@ -266,13 +283,22 @@ TEST_F(Cluster, FrontRankingsEqualTheSingleNode) {
   // the single node drops (both passes, the first and query expansion's).
   index::QueryOptions budget = options;
   budget.max_scored_postings = 40;
+  index::QueryOptions soft = options;
+  soft.query_assignments = 2;
+  index::QueryOptions tf_idf = options;  // without Hamming embedding: tf-idf query expansion
+  tf_idf.hamming = false;
+  index::QueryOptions tf_idf_transitive = transitive_qe;
+  tf_idf_transitive.hamming = false;
+  ASSERT_TRUE(front->vocabulary().has_hamming());
   size_t verified = 0;
   size_t verified_transitively = 0;
   size_t budget_binds = 0;
   for (size_t q = 0; q < queries_->size(); ++q) {
     for (const auto& [name, o] : {std::pair{"default", options}, std::pair{"plain", plain}, std::pair{"region", region},
                                   std::pair{"transitive", transitive}, std::pair{"transitive+qe", transitive_qe},
-                                  std::pair{"budget", budget}}) {
+                                  std::pair{"budget", budget}, std::pair{"query_assignments=2", soft},
+                                  std::pair{"hamming=false", tf_idf},
+                                  std::pair{"hamming=false transitive+qe", tf_idf_transitive}}) {
       const auto expected = single->Query((*queries_)[q], o);
       const auto got = front->Query((*queries_)[q], o);
       ASSERT_TRUE(expected && got) << (got ? "" : got.error().ToString());
@@ -293,6 +319,22 @@ TEST_F(Cluster, FrontRankingsEqualTheSingleNode) {
       }
     }
   }
+  // Every image as a query by its stored features (/similar), with the defaults and a region.
+  for (int i = 0; i < 12; ++i) {
+    const std::string id = "img" + std::to_string(i);
+    for (const auto& [name, o] : {std::pair{"similar", options}, std::pair{"similar region", region},
+                                  std::pair{"similar transitive", transitive}}) {
+      const auto expected = single->QuerySimilar(id, o);
+      const auto got = front->QuerySimilar(id, o);
+      ASSERT_TRUE(expected && got) << (got ? "" : got.error().ToString());
+      ExpectSameRanking(*expected, got->index, std::string(name) + " " + id);
+      ASSERT_FALSE(got->index.results.empty());
+      EXPECT_EQ(got->index.results[0].id, id);
+    }
+  }
+  const auto unknown = front->QuerySimilar("no-such-image", options);
+  ASSERT_FALSE(unknown);
+  EXPECT_EQ(unknown.error().code, ErrorCode::kNotFound);
   EXPECT_GT(verified, queries_->size()) << "nothing but the queries themselves verified: the test proves little";
   EXPECT_GE(verified_transitively, queries_->size()) << "transitive verification found little: the test proves little";
   EXPECT_GT(budget_binds, 0u) << "the posting budget dropped no word: the budget case proves little";
@@ -302,9 +344,9 @@ TEST_F(Cluster, FrontRankingsEqualTheSingleNode) {
   }
 }
 
-// Options a front does not serve yet are refused, never silently dropped (an unfiltered answer to a
-// filtered search would look valid).
-TEST_F(Cluster, FrontRefusesOptionsItDoesNotServe) {
+// A filter the front cannot send to its partitions (one not made by api::ParseFilter, which has no
+// text) is refused, never dropped: an unfiltered answer to a filtered search would look valid.
+TEST_F(Cluster, FrontRefusesAFilterItCannotSend) {
   cluster::ClusterConfig config;
   ASSERT_NO_FATAL_FAILURE(StartCluster(&config));
   const auto front = cluster::ClusterFront::Open(config).value();
@@ -313,23 +355,10 @@ TEST_F(Cluster, FrontRefusesOptionsItDoesNotServe) {
   };
   index::QueryOptions filtered;
   filtered.filter = std::make_shared<AnyImage>();
-  {
-    const auto got = front->Query((*queries_)[0], filtered);
-    ASSERT_FALSE(got);
-    EXPECT_EQ(got.error().code, ErrorCode::kInvalidArgument);
-    EXPECT_NE(got.error().message.find("filter"), std::string::npos) << got.error().message;
-  }
-  // Hamming embedding (on by default) with a vocabulary without its parameters: ignored, as a single
-  // node ignores it, so the ranking is the one without it.
-  ASSERT_FALSE(front->vocabulary().has_hamming());
-  index::QueryOptions with, without;
-  with.hamming = true;
-  without.hamming = false;
-  const auto a = front->Query((*queries_)[0], with);
-  const auto b = front->Query((*queries_)[0], without);
-  ASSERT_TRUE(a && b) << (a ? b.error().ToString() : a.error().ToString());
-  ASSERT_EQ(a->results.size(), b->results.size());
-  for (size_t i = 0; i < a->results.size(); ++i) EXPECT_EQ(a->results[i].id, b->results[i].id) << i;
+  const auto got = front->Query((*queries_)[0], filtered);
+  ASSERT_FALSE(got);
+  EXPECT_EQ(got.error().code, ErrorCode::kInvalidArgument);
+  EXPECT_NE(got.error().message.find("filter"), std::string::npos) << got.error().message;
 }
 
 // A second shard on the gRPC port of a running one is refused (no SO_REUSEPORT): the kernel would
@@ -770,7 +799,8 @@ TEST_F(Cluster, RankingsEqualTheSingleNodeAfterWritesAndARefresh) {
     ASSERT_TRUE(cv::imencode(".png", testing::Texture(300, 220, sample, 70, 30), png));
     const std::string image(png.begin(), png.end());
     for (testing::ServerProcess* server : {single.get(), front.get()}) {
-      auto res = server->Client().Post(std::string("/v1/images?id=") + id, image, "image/png");
+      auto res = server->Client().Post(std::string("/v1/images?id=") + id + "&metadata=%7B%22kind%22%3A%22new%22%7D",
+                                       image, "image/png");
       ASSERT_TRUE(res);
       ASSERT_EQ(res->status, 201) << res->body;
     }
@@ -804,6 +834,24 @@ TEST_F(Cluster, RankingsEqualTheSingleNodeAfterWritesAndARefresh) {
             std::string::npos) << metrics->body;
   for (size_t q = 0; q < queries.size(); ++q)
     ExpectSameSearch(search(*single, queries[q]), search(*front, queries[q]), "after the refresh, query " + std::to_string(q));
+  // A filtered search (the defaults otherwise): the single node's answer, and only the images it allows.
+  const auto filtered = [](testing::ServerProcess& server, const std::string& image) {
+    auto res = server.Client().Post("/v1/search?top_k=20&filter=%7B%22kind%22%3A%22new%22%7D", image, "image/png");
+    EXPECT_TRUE(res && res->status == 200) << (res ? res->body : "no answer");
+    return res && res->status == 200 ? nlohmann::json::parse(res->body) : nlohmann::json();
+  };
+  size_t allowed = 0;
+  for (size_t q = 0; q < queries.size(); ++q) {
+    const nlohmann::json a = filtered(*single, queries[q]);
+    const nlohmann::json b = filtered(*front, queries[q]);
+    ASSERT_FALSE(a.is_null() || b.is_null());
+    ExpectSameSearch(a, b, "filtered, query " + std::to_string(q));
+    for (const auto& r : b["results"]) {
+      EXPECT_EQ(r["metadata"], (nlohmann::json{{"kind", "new"}})) << r.dump();
+      ++allowed;
+    }
+  }
+  EXPECT_GT(allowed, 0u) << "the filter allowed nothing: the filtered case proves little";
 
   // A shard restarted on its folder scores with the refreshed statistics.
   const std::string restarted = partitions[1][0];

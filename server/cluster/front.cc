@@ -9,12 +9,14 @@
 #include <condition_variable>
 #include <cstdlib>
 #include <cmath>
+#include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <functional>
 #include <map>
 #include <mutex>
 #include <numeric>
+#include <random>
 #include <optional>
 #include <set>
 #include <shared_mutex>
@@ -23,6 +25,8 @@
 #include <nlohmann/json.hpp>
 
 #include "api/partition.h"
+#include "index/search/pipeline.h"
+#include "index/search/source.h"
 #include "sift/base/log.h"
 #include "server/cluster/proto_convert.h"
 #include "server/cluster/shard.grpc.pb.h"
@@ -50,26 +54,6 @@ class Failures {
   std::optional<Error> error_;
 };
 
-// One shard image of a merged ranking.
-struct Candidate {
-  std::string id;
-  float score = 0;
-  uint32_t partition = 0;
-  index::ImageRecord record;
-};
-
-Candidate FromScored(const Scored& s, uint32_t partition) {
-  Candidate c{s.id(), s.score(), partition, {}};
-  c.record.id = s.id();
-  c.record.width = s.width();
-  c.record.height = s.height();
-  c.record.num_features = s.num_features();
-  c.record.metadata_json = s.metadata_json();
-  c.record.source_path = s.source_path();
-  c.record.added_unix_ms = s.added_unix_ms();
-  return c;
-}
-
 // A shard's own refusal (shard.proto: the ErrorCode's name in the details), or nullopt for a failure
 // of the call itself (unreachable, deadline, still loading).
 std::optional<Error> ShardRefusal(const grpc::Status& status) {
@@ -80,18 +64,12 @@ std::optional<Error> ShardRefusal(const grpc::Status& status) {
   return std::nullopt;
 }
 
-// Options the front refuses rather than ignores: an unfiltered or differently scored answer would look
-// like a valid one. Hamming embedding only changes anything with a vocabulary that has its parameters
-// (a single node ignores it otherwise, and so does the front).
-Status CheckServed(const index::QueryOptions& options, const vocab::Vocabulary& vocabulary) {
+// The options of a search through a front: those a single node takes, with a filter that can be sent to
+// the partitions (api::ParseFilter's always can).
+Status CheckServed(const index::QueryOptions& options) {
   if (auto e = options.Check()) return Fail(ErrorCode::kInvalidArgument, "query options: " + *e);
-  if (options.query_assignments != 1)
-    return Fail(ErrorCode::kInvalidArgument, "query_assignments > 1 is not served by a cluster front yet");
-  if (options.filter) return Fail(ErrorCode::kInvalidArgument, "filter is not served by a cluster front yet");
-  if (options.hamming && vocabulary.has_hamming()) {
-    return Fail(ErrorCode::kInvalidArgument,
-                "hamming is not served by a cluster front yet: search with hamming=false (the front's default)");
-  }
+  if (options.filter && options.filter->Text().empty())
+    return Fail(ErrorCode::kInvalidArgument, "this filter cannot be sent to a cluster's partitions");
   return Ok();
 }
 
@@ -231,7 +209,7 @@ class ClusterFront::Impl {
       replica.calls.fetch_add(1);
       replica.total_us.fetch_add(
           static_cast<uint64_t>(std::chrono::duration_cast<std::chrono::microseconds>(Clock::now() - t0).count()));
-      if (!status.ok()) replica.errors.fetch_add(1);
+      if (!status.ok() && !ShardRefusal(status)) replica.errors.fetch_add(1);  // a refusal is the request's
     }
     NoteOutcome(replica, status);
     int64_t stamped = -1;
@@ -491,18 +469,6 @@ class ClusterFront::Impl {
   }
   std::mutex& WriteLockOf(const std::string& id) const { return write_locks[api::PartitionOf(id, kWriteStripes)]; }
 
-  // Query's stages for features already quantised (front.h).
-  Result<index::QueryResponse> Run(const std::vector<sift::Keypoint>& keypoints, const std::vector<uint32_t>& words,
-                                   int width, int height, const index::QueryOptions& options, bool allow_partial,
-                                   Coverage* coverage) const;
-
-  // Stage 4 of Run, transitive verification as index::ImageIndex::Query runs it (see the file
-  // comment): results[0, num_verified) are verified; `owner`: each result's partition. A partition
-  // that fails joins `failed` (its results are not verified further; the caller drops them).
-  void VerifyTransitively(const index::QueryOptions& options, size_t num_verified,
-                          const std::map<std::string, uint32_t>& owner, std::vector<index::QueryResult>& results,
-                          Failures& failed) const;
-
   // fn(i) for i in [0, n), all at once; every call's status.
   static std::vector<Status> ForEach(size_t n, const std::function<Status(uint32_t)>& fn) {
     std::vector<Status> statuses(n, Ok());
@@ -511,43 +477,6 @@ class ClusterFront::Impl {
     for (uint32_t i = 0; i < n; ++i) threads.emplace_back([&, i] { statuses[i] = fn(i); });
     for (std::thread& t : threads) t.join();
     return statuses;
-  }
-
-  // Scores `request` on every partition that has not failed yet; the best `depth` over them, best first
-  // (ties: smaller id). A partition that fails joins `failed`.
-  std::vector<Candidate> Scatter(ScoreRequest request, size_t depth, std::vector<index::QueryTerm>* terms,
-                                 uint64_t* candidates, Failures& failed) const {
-    request.set_max_results(static_cast<uint32_t>(depth));
-    std::vector<ScoreReply> replies(partitions.size());
-    const std::vector<Status> statuses = ForEach(partitions.size(), [&](uint32_t p) -> Status {
-      if (failed.Contains(p)) return Ok();
-      auto reply = Call<ScoreReply>(p, [&](Shard::Stub& stub, grpc::ClientContext& context, ScoreReply* out) {
-        return stub.Score(&context, request, out);
-      });
-      if (!reply) return std::unexpected(reply.error());
-      replies[p] = std::move(*reply);
-      return Ok();
-    });
-    for (uint32_t p = 0; p < statuses.size(); ++p) failed.Record(p, statuses[p]);
-    std::vector<Candidate> merged;
-    if (candidates) *candidates = 0;
-    for (uint32_t p = 0; p < replies.size(); ++p) {
-      if (failed.Contains(p)) continue;
-      if (candidates) *candidates += replies[p].candidates();
-      for (const Scored& scored : replies[p].images()) merged.push_back(FromScored(scored, p));
-    }
-    // Every partition made the same vector from the cluster's statistics; one that holds no image makes
-    // none, so take the longest.
-    if (terms) {
-      terms->clear();
-      for (const ScoreReply& reply : replies)
-        if (static_cast<size_t>(reply.terms_size()) > terms->size()) *terms = TermsFrom(reply.terms());
-    }
-    std::sort(merged.begin(), merged.end(), [](const Candidate& a, const Candidate& b) {
-      return a.score != b.score ? a.score > b.score : a.id < b.id;
-    });
-    if (merged.size() > depth) merged.resize(depth);
-    return merged;
   }
 
   vocab::Vocabulary vocabulary;
@@ -893,26 +822,371 @@ Result<std::vector<ClusterFront::PartitionBackup>> ClusterFront::Backup(const st
   return done;
 }
 
+namespace {
+
+using index::search::ImageRef;
+
+// One search over the partitions (index/search/source.h): a ref is (partition, an entry of the
+// search's own id table). One call per partition per stage, all partitions at once. A partition that
+// fails joins the search's failures: with allow_partial its images answer as removed ones and leave
+// the answer (Answered), else the search fails, as it does when every partition failed.
+class PartitionsSource final : public index::search::Source {
+ public:
+  PartitionsSource(const ClusterFront::Impl& front, bool allow_partial)
+      : front_(front), allow_partial_(allow_partial), num_partitions_(front.partitions.size()), key_(NewKey()) {}
+
+  Result<std::optional<ImageRef>> Find(const std::string& id) override {
+    return std::optional<ImageRef>(Intern(front_.OwnerOf(id), id));
+  }
+
+  Result<index::search::ScoreOutput> Score(const index::search::ScoreInput& input, size_t max_results,
+                                           const index::QueryOptions& options) override {
+    ScoreRequest request;
+    request.mutable_words()->Add(input.words.begin(), input.words.end());
+    request.mutable_tf()->Add(input.tf.begin(), input.tf.end());
+    if (input.words.empty()) PutTerms({input.terms.begin(), input.terms.end()}, request.mutable_terms());
+    request.set_max_results(static_cast<uint32_t>(max_results));
+    request.set_max_postings(static_cast<uint64_t>(options.max_scored_postings));
+    if (options.filter) request.set_filter(options.filter->Text());
+    std::vector<ScoreReply> replies(num_partitions_);
+    Scatter([&](uint32_t p) -> Status {
+      auto reply = Ask<ScoreReply>(p, [&](Shard::Stub& stub, grpc::ClientContext& context, ScoreReply* out) {
+        return stub.Score(&context, request, out);
+      });
+      if (!reply) return std::unexpected(reply.error());
+      replies[p] = std::move(*reply);
+      return Ok();
+    });
+    if (auto s = Check(); !s) return std::unexpected(s.error());
+    index::search::ScoreOutput out;
+    for (uint32_t p = 0; p < num_partitions_; ++p) {
+      if (failed_.Contains(p)) continue;
+      out.candidates += replies[p].candidates();
+      for (const Scored& s : replies[p].images()) {
+        const ImageRef ref = Intern(p, s.id());
+        records_[ref] = RecordOf(s);
+        out.best.push_back({.ref = ref, .id = s.id(), .score = s.score()});
+      }
+      // Every partition made the same vector from the cluster's statistics; one that holds no image
+      // makes none, so take the longest.
+      if (static_cast<size_t>(replies[p].terms_size()) > out.terms.size()) out.terms = TermsFrom(replies[p].terms());
+    }
+    std::sort(out.best.begin(), out.best.end(), [](const index::search::ScoredRef& a, const index::search::ScoredRef& b) {
+      return a.score != b.score ? a.score > b.score : a.id < b.id;
+    });
+    if (out.best.size() > max_results) out.best.resize(max_results);
+    return out;
+  }
+
+  void Prefetch(std::span<const index::search::ScoredRef> /*refs*/) override {}  // each shard reads its own
+
+  Result<std::vector<double>> HammingScores(std::span<const uint32_t> words, std::span<const uint64_t> signatures,
+                                            std::span<const ImageRef> refs,
+                                            const index::QueryOptions& options) override {
+    HammingRequest head;
+    head.mutable_words()->Add(words.begin(), words.end());
+    head.mutable_signatures()->Add(signatures.begin(), signatures.end());
+    head.set_threshold(options.hamming_threshold);
+    head.set_sigma(options.hamming_sigma);
+    std::vector<double> out(refs.size(), std::nan(""));
+    const std::vector<std::vector<size_t>> held = ByPartition(refs);
+    Scatter([&](uint32_t p) -> Status {
+      if (held[p].empty()) return Ok();
+      HammingRequest request = head;
+      for (size_t k : held[p]) request.add_ids(ids_[refs[k].number]);
+      auto reply = Ask<HammingReply>(p, [&](Shard::Stub& stub, grpc::ClientContext& context, HammingReply* r) {
+        return stub.Hamming(&context, request, r);
+      });
+      if (!reply) return std::unexpected(reply.error());
+      if (static_cast<size_t>(reply->scores_size()) != held[p].size())
+        return Fail(ErrorCode::kInternal, "a shard scored another number of images than asked");
+      for (size_t i = 0; i < held[p].size(); ++i) out[held[p][i]] = reply->scores(static_cast<int>(i));
+      return Ok();
+    });
+    if (auto s = Check(); !s) return std::unexpected(s.error());
+    return out;
+  }
+
+  Result<std::vector<sift::VerificationResult>> Verify(std::span<const index::search::GeometryQuery> geometries,
+                                                       std::span<const index::search::VerifyPair> pairs,
+                                                       const index::QueryOptions& options) override {
+    std::vector<sift::VerificationResult> out(pairs.size());
+    // Per partition: per geometry it verifies against, the pairs (positions in `pairs`).
+    std::vector<std::map<uint32_t, std::vector<size_t>>> held(num_partitions_);
+    for (size_t k = 0; k < pairs.size(); ++k) held[pairs[k].ref.part][pairs[k].geometry].push_back(k);
+    std::map<uint32_t, VerifyRequest> requests;  // by geometry, without ids
+    for (const auto& one : held) {
+      for (const auto& [g, positions] : one) {
+        if (requests.contains(g)) continue;
+        if (g >= geometries.size()) return Fail(ErrorCode::kInternal, "a verification of no geometry");
+        requests[g] = GeometryRequest(geometries[g], options);
+      }
+    }
+    Scatter([&](uint32_t p) -> Status {
+      if (held[p].empty()) return Ok();
+      VerifyBatchRequest batch;
+      for (const auto& [g, positions] : held[p]) {
+        VerifyRequest* one = batch.add_requests();
+        *one = requests[g];
+        for (size_t k : positions) one->add_ids(ids_[pairs[k].ref.number]);
+      }
+      auto reply = Ask<VerifyBatchReply>(
+          p, [&](Shard::Stub& stub, grpc::ClientContext& context, VerifyBatchReply* r) {
+            return stub.VerifyBatch(&context, batch, r);
+          });
+      if (!reply) return std::unexpected(reply.error());
+      if (static_cast<size_t>(reply->replies_size()) != held[p].size())
+        return Fail(ErrorCode::kInternal, "a shard answered another number of verifications than asked");
+      size_t r = 0;
+      for (const auto& [g, positions] : held[p]) {
+        const VerifyReply& one = reply->replies(static_cast<int>(r++));
+        if (static_cast<size_t>(one.results_size()) != positions.size())
+          return Fail(ErrorCode::kInternal, "a shard verified another number of images than asked");
+        for (size_t i = 0; i < positions.size(); ++i) {
+          const Verification& v = one.results(static_cast<int>(i));
+          sift::VerificationResult& result = out[positions[i]];
+          result.num_inliers = v.inliers();
+          if (v.verified() && v.db_from_query_size() == 6 && v.db_region_size() == 4) {
+            result.verified = true;
+            std::copy(v.db_from_query().begin(), v.db_from_query().end(), result.db_from_query.m.begin());
+            std::copy(v.db_region().begin(), v.db_region().end(), result.db_region.begin());
+          }
+        }
+      }
+      return Ok();
+    });
+    if (auto s = Check(); !s) return std::unexpected(s.error());
+    return out;
+  }
+
+  Result<std::vector<index::search::RegionFeatures>> Features(std::span<const ImageRef> refs,
+                                                              std::span<const std::array<float, 4>> regions,
+                                                              const index::search::FeaturesRequest& request) override {
+    std::vector<index::search::RegionFeatures> out(refs.size());
+    const std::vector<std::vector<size_t>> held = ByPartition(refs);
+    Scatter([&](uint32_t p) -> Status {
+      if (held[p].empty()) return Ok();
+      RegionFeaturesRequest call;
+      call.set_max_features(static_cast<uint32_t>(request.max_features));
+      call.set_signatures(request.signatures);
+      call.set_all_words(request.all_words);
+      for (size_t k : held[p]) {
+        call.add_ids(ids_[refs[k].number]);
+        for (float v : regions[k]) call.add_regions(v);
+      }
+      auto reply = Ask<RegionFeaturesReply>(
+          p, [&](Shard::Stub& stub, grpc::ClientContext& context, RegionFeaturesReply* r) {
+            return stub.RegionFeatures(&context, call, r);
+          });
+      if (!reply) return std::unexpected(reply.error());
+      if (static_cast<size_t>(reply->images_size()) != held[p].size())
+        return Fail(ErrorCode::kInternal, "a shard gave the features of another number of images than asked");
+      for (size_t i = 0; i < held[p].size(); ++i) {
+        const ImageFeatures& f = reply->images(static_cast<int>(i));
+        if (f.keypoints_size() != f.words_size() || (f.signatures_size() != 0 && f.signatures_size() != f.words_size()))
+          return Fail(ErrorCode::kInternal, "a shard gave another number of words or signatures than keypoints");
+        index::search::RegionFeatures& one = out[held[p][i]];
+        for (const Keypoint& k : f.keypoints()) one.keypoints.push_back(FromProto(k));
+        one.words.assign(f.words().begin(), f.words().end());
+        one.signatures.assign(f.signatures().begin(), f.signatures().end());
+        one.all_words.assign(f.all_words().begin(), f.all_words().end());
+      }
+      return Ok();
+    });
+    if (auto s = Check(); !s) return std::unexpected(s.error());
+    return out;
+  }
+
+  Result<std::vector<std::vector<index::QueryTerm>>> RegionTerms(std::span<const ImageRef> refs,
+                                                                 std::span<const std::array<float, 4>> regions) override {
+    std::vector<std::vector<index::QueryTerm>> out(refs.size());
+    const std::vector<Status> statuses = ClusterFront::Impl::ForEach(refs.size(), [&](uint32_t k) -> Status {
+      if (failed_.Contains(refs[k].part)) return Ok();
+      RegionTermsRequest request;
+      request.set_id(ids_[refs[k].number]);
+      for (float v : regions[k]) request.add_region(v);
+      auto reply = Ask<RegionTermsReply>(
+          refs[k].part, [&](Shard::Stub& stub, grpc::ClientContext& context, RegionTermsReply* r) {
+            return stub.RegionTerms(&context, request, r);
+          });
+      if (!reply) return std::unexpected(reply.error());
+      out[k] = TermsFrom(reply->terms());
+      return Ok();
+    });
+    for (size_t k = 0; k < refs.size(); ++k) failed_.Record(refs[k].part, statuses[k]);
+    if (auto s = Check(); !s) return std::unexpected(s.error());
+    return out;
+  }
+
+  Status RankAmong(std::span<const ImageRef> refs) override {
+    ranked_.assign(refs.begin(), refs.end());
+    return Ok();
+  }
+
+  Result<std::vector<std::vector<float>>> ScoreAmong(std::span<const std::vector<uint32_t>> queries) override {
+    std::vector<std::vector<float>> out(queries.size(), std::vector<float>(ranked_.size(), 0.0f));
+    const std::vector<std::vector<size_t>> held = ByPartition(ranked_);
+    ScoreAmongRequest head;
+    for (const std::vector<uint32_t>& q : queries) head.add_queries()->mutable_words()->Add(q.begin(), q.end());
+    Scatter([&](uint32_t p) -> Status {
+      if (held[p].empty()) return Ok();
+      ScoreAmongRequest request = head;
+      for (size_t k : held[p]) request.add_ids(ids_[ranked_[k].number]);
+      auto reply = Ask<ScoreAmongReply>(
+          p, [&](Shard::Stub& stub, grpc::ClientContext& context, ScoreAmongReply* r) {
+            return stub.ScoreAmong(&context, request, r);
+          });
+      if (!reply) return std::unexpected(reply.error());
+      if (static_cast<size_t>(reply->rows_size()) != queries.size())
+        return Fail(ErrorCode::kInternal, "a shard scored another number of queries than asked");
+      for (size_t a = 0; a < queries.size(); ++a) {
+        const ScoreRow& row = reply->rows(static_cast<int>(a));
+        if (static_cast<size_t>(row.scores_size()) != held[p].size())
+          return Fail(ErrorCode::kInternal, "a shard scored another number of images than asked");
+        for (size_t i = 0; i < held[p].size(); ++i) out[a][held[p][i]] = row.scores(static_cast<int>(i));
+      }
+      return Ok();
+    });
+    if (auto s = Check(); !s) return std::unexpected(s.error());
+    return out;
+  }
+
+  Result<std::vector<index::ImageRecord>> Records(std::span<const ImageRef> refs) override {
+    std::vector<index::ImageRecord> out(refs.size());
+    for (size_t k = 0; k < refs.size(); ++k) {
+      if (const auto it = records_.find(refs[k]); it != records_.end()) {
+        out[k] = it->second;
+        continue;
+      }
+      if (failed_.Contains(refs[k].part)) continue;
+      ImageRequest request;
+      request.set_id(ids_[refs[k].number]);
+      auto record = Ask<Record>(refs[k].part, [&](Shard::Stub& stub, grpc::ClientContext& context, Record* r) {
+        return stub.Get(&context, request, r);
+      });
+      if (!record) return std::unexpected(record.error());
+      out[k] = FromProto(*record);
+      records_[refs[k]] = out[k];
+    }
+    return out;
+  }
+
+  bool Answered(const ImageRef& ref) const override { return !failed_.Contains(ref.part); }
+
+  // Which partitions answered every call.
+  void Cover(ClusterFront::Coverage* coverage) const {
+    if (!coverage) return;
+    coverage->total = static_cast<uint32_t>(num_partitions_);
+    coverage->failed.assign(failed_.partitions().begin(), failed_.partitions().end());
+    coverage->ok = coverage->total - static_cast<uint32_t>(coverage->failed.size());
+  }
+
+ private:
+  // A call of this search to partition p: it names the search (kSearchKey), so that the shard keeps
+  // what the search's earlier calls read.
+  template <typename Reply>
+  Result<Reply> Ask(uint32_t p, const ClusterFront::Impl::ShardCall<Reply>& call) const {
+    return front_.Call<Reply>(p, [&](Shard::Stub& stub, grpc::ClientContext& context, Reply* out) {
+      context.AddMetadata(kSearchKey, key_);
+      return call(stub, context, out);
+    });
+  }
+
+  // 128 random bits in hex: a search's key.
+  static std::string NewKey() {
+    thread_local std::mt19937_64 random(std::random_device{}());
+    char text[33];
+    std::snprintf(text, sizeof text, "%016llx%016llx", static_cast<unsigned long long>(random()),
+                  static_cast<unsigned long long>(random()));
+    return text;
+  }
+
+  ImageRef Intern(uint32_t partition, const std::string& id) {
+    const auto [it, added] = numbers_.try_emplace(id, static_cast<uint32_t>(ids_.size()));
+    if (added) ids_.push_back(id);
+    return {.part = partition, .number = it->second};
+  }
+
+  // Per partition: the positions of its refs.
+  std::vector<std::vector<size_t>> ByPartition(std::span<const ImageRef> refs) const {
+    std::vector<std::vector<size_t>> held(num_partitions_);
+    for (size_t k = 0; k < refs.size(); ++k) held[refs[k].part].push_back(k);
+    return held;
+  }
+
+  // fn(p) on every partition that has not failed, all at once; failures recorded.
+  void Scatter(const std::function<Status(uint32_t)>& fn) {
+    const std::vector<Status> statuses = ClusterFront::Impl::ForEach(num_partitions_, [&](uint32_t p) -> Status {
+      if (failed_.Contains(p)) return Ok();
+      return fn(p);
+    });
+    for (uint32_t p = 0; p < statuses.size(); ++p) failed_.Record(p, statuses[p]);
+  }
+
+  // After each stage: with failures, the answer is partial (allowed) or none.
+  Status Check() const {
+    if (failed_.partitions().empty()) return Ok();
+    if (!allow_partial_ || failed_.partitions().size() == num_partitions_) return std::unexpected(*failed_.error());
+    return Ok();
+  }
+
+  static VerifyRequest GeometryRequest(const index::search::GeometryQuery& g, const index::QueryOptions& options) {
+    VerifyRequest request;
+    for (const sift::Keypoint& k : g.keypoints) PutKeypoint(k, request.add_keypoints());
+    request.mutable_words()->Add(g.words.begin(), g.words.end());
+    request.mutable_signatures()->Add(g.signatures.begin(), g.signatures.end());
+    for (float v : g.region) request.add_region(v);
+    request.set_max_pairs_per_word(options.max_pairs_per_word);
+    request.set_min_inliers(options.verify.min_inliers);
+    request.set_hamming_threshold(options.hamming_threshold);
+    request.set_max_tentative_matches(options.max_tentative_matches);
+    return request;
+  }
+
+  static index::ImageRecord RecordOf(const Scored& s) {
+    index::ImageRecord record;
+    record.id = s.id();
+    record.width = s.width();
+    record.height = s.height();
+    record.num_features = s.num_features();
+    record.metadata_json = s.metadata_json();
+    record.source_path = s.source_path();
+    record.added_unix_ms = s.added_unix_ms();
+    return record;
+  }
+
+  const ClusterFront::Impl& front_;
+  const bool allow_partial_;
+  const size_t num_partitions_;
+  const std::string key_;  // the search's (kSearchKey)
+  Failures failed_;
+  std::vector<std::string> ids_;                  // by ref number
+  std::map<std::string, uint32_t> numbers_;       // ids_ inverted
+  std::map<ImageRef, index::ImageRecord> records_;  // those the partitions sent with their scores
+  std::vector<ImageRef> ranked_;                  // RankAmong's
+};
+
+}  // namespace
+
 Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, const index::QueryOptions& options,
                                                  bool allow_partial, Coverage* coverage) const {
   const auto t0 = Clock::now();
-  if (auto s = CheckServed(options, impl_->vocabulary); !s) return std::unexpected(s.error());
+  if (auto s = CheckServed(options); !s) return std::unexpected(s.error());
   if (query.kind != impl_->vocabulary.descriptor_kind())
     return Fail(ErrorCode::kIncompatible, "the query's descriptors are not of the vocabulary's kind");
-  // Quantise the features inside the region once, as ImageIndex::Query does.
-  std::vector<sift::Keypoint> keypoints;
-  std::vector<float> descriptors;
-  index::SelectInRegion(query, options.region, static_cast<size_t>(options.max_query_features), &keypoints,
-                        &descriptors);
-  std::vector<uint32_t> words(keypoints.size());
+  if (query.descriptors.size() != query.keypoints.size() * sift::kDescriptorDim || query.image_width <= 0 ||
+      query.image_height <= 0)
+    return Fail(ErrorCode::kInvalidArgument, "the query: 128 descriptor values per keypoint and a positive size");
+  // Quantised once, as index::ImageIndex::Query does.
   vocab::QuantizerOptions quantizer = index::IndexOptions{}.quantizer;
-  quantizer.num_probes = options.quantizer_probes;
   quantizer.num_threads = impl_->settings.num_threads;
-  impl_->vocabulary.Quantize(descriptors, words, quantizer);
-  const double quantize_ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
-  auto response = impl_->Run(keypoints, words, query.image_width, query.image_height, options, allow_partial, coverage);
+  const index::search::QueryFeatures q = index::search::PrepareQuery(query, impl_->vocabulary, options, quantizer);
+  index::QueryTimings timings;
+  timings.quantize_ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+  PartitionsSource source(*impl_, allow_partial);
+  auto response = index::search::Run(source, q, options, timings);
+  source.Cover(coverage);
   if (!response) return response;
-  response->timings.quantize_ms = quantize_ms;
   response->timings.total_ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
   return response;
 }
@@ -920,350 +1194,27 @@ Result<index::QueryResponse> ClusterFront::Query(const sift::FeatureSet& query, 
 Result<api::SearchResponse> ClusterFront::QuerySimilar(const std::string& id, const index::QueryOptions& options,
                                                        bool allow_partial, Coverage* coverage) const {
   const auto t0 = Clock::now();
-  if (auto s = CheckServed(options, impl_->vocabulary); !s) return std::unexpected(s.error());
-  ImageRequest request;
-  request.set_id(id);
-  auto stored = impl_->Call<FeaturesReply>(
-      impl_->OwnerOf(id), [&](Shard::Stub& stub, grpc::ClientContext& context, FeaturesReply* out) {
-        return stub.Features(&context, request, out);
-      });
-  if (!stored) return std::unexpected(stored.error());
-  if (stored->keypoints_size() != stored->words_size())
-    return Fail(ErrorCode::kInternal, "a shard gave another number of words than keypoints");
+  if (auto s = CheckServed(options); !s) return std::unexpected(s.error());
+  PartitionsSource source(*impl_, allow_partial);
+  index::ImageRecord record;
+  auto q = index::search::StoredQuery(source, id, options, &record);
+  if (!q) {
+    source.Cover(coverage);
+    return std::unexpected(q.error());
+  }
   api::SearchResponse response;
   response.options = options;
   response.query_id = id;
-  const index::ImageRecord record = FromProto(stored->record());
   response.query_width = record.width;
   response.query_height = record.height;
   response.extracted_features = record.num_features;
-  // The stored features inside the region, as ImageIndex::QuerySimilar selects them.
-  std::vector<sift::Keypoint> keypoints;
-  std::vector<uint32_t> words;
-  for (int i = 0; i < stored->keypoints_size(); ++i) {
-    const Keypoint& k = stored->keypoints(i);
-    if (options.region) {
-      const auto& r = *options.region;
-      if (k.x() < r[0] || k.x() > r[2] || k.y() < r[1] || k.y() > r[3]) continue;
-    }
-    keypoints.push_back(FromProto(k));
-    words.push_back(stored->words(i));
-  }
-  auto found = impl_->Run(keypoints, words, record.width, record.height, options, allow_partial, coverage);
+  auto found = index::search::Run(source, *q, options, index::QueryTimings{});
+  source.Cover(coverage);
   if (!found) return std::unexpected(found.error());
   response.index = std::move(*found);
   response.index.timings.total_ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
   response.total_ms = response.index.timings.total_ms;
   return response;
-}
-
-Result<index::QueryResponse> ClusterFront::Impl::Run(const std::vector<sift::Keypoint>& keypoints,
-                                                     const std::vector<uint32_t>& words, int width, int height,
-                                                     const index::QueryOptions& options, bool allow_partial,
-                                                     Coverage* coverage) const {
-  const auto ms_since = [](Clock::time_point t) { return std::chrono::duration<double, std::milli>(Clock::now() - t).count(); };
-  index::QueryResponse response;
-  response.query_features = static_cast<uint32_t>(words.size());
-  Failures failed;
-  const size_t num_partitions = partitions.size();
-  // After each stage: with failures, the answer is partial (allowed) or none.
-  const auto check = [&]() -> Status {
-    if (failed.partitions().empty()) return Ok();
-    if (!allow_partial || failed.partitions().size() == num_partitions) return std::unexpected(*failed.error());
-    return Ok();
-  };
-
-  // 1. TF-IDF scoring on every partition.
-  auto t = Clock::now();
-  const index::BagOfWords bag = index::BagOfWords::FromWords(words);
-  ScoreRequest score;
-  for (size_t k = 0; k < bag.words.size(); ++k) {
-    score.add_words(bag.words[k]);
-    score.add_tf(static_cast<float>(bag.counts[k]));
-  }
-  score.set_max_postings(static_cast<uint64_t>(options.max_scored_postings));
-  const size_t depth = std::max<size_t>(static_cast<size_t>(options.top_k), static_cast<size_t>(options.rerank_depth));
-  std::vector<index::QueryTerm> terms;
-  std::vector<Candidate> scored = Scatter(score, depth, &terms, &response.candidates, failed);
-  if (auto s = check(); !s) return std::unexpected(s.error());
-  response.timings.score_ms = ms_since(t);
-  std::vector<index::QueryResult> results(scored.size());
-  std::map<std::string, uint32_t> owner;
-  for (size_t i = 0; i < scored.size(); ++i) {
-    results[i].id = scored[i].id;
-    results[i].score = scored[i].score;
-    results[i].record = std::move(scored[i].record);
-    owner[results[i].id] = scored[i].partition;
-  }
-
-  // 2. Spatial re-ranking of the top R, each candidate on its own shard.
-  t = Clock::now();
-  size_t rerank = std::min(results.size(), static_cast<size_t>(options.rerank_depth));
-  size_t num_verified = 0;
-  if (rerank > 0) {
-    const std::array<float, 4> region =
-        options.region ? *options.region
-                       : std::array<float, 4>{0, 0, static_cast<float>(width), static_cast<float>(height)};
-    VerifyRequest verify;
-    for (size_t i = 0; i < keypoints.size(); ++i) {
-      PutKeypoint(keypoints[i], verify.add_keypoints());
-      verify.add_words(words[i]);
-    }
-    for (float v : region) verify.add_region(v);
-    verify.set_max_pairs_per_word(options.max_pairs_per_word);
-    verify.set_min_inliers(options.verify.min_inliers);
-    std::vector<std::vector<size_t>> positions(num_partitions);  // per partition: its candidates
-    for (size_t c = 0; c < rerank; ++c) positions[owner[results[c].id]].push_back(c);
-    const std::vector<Status> statuses = ForEach(num_partitions, [&](uint32_t p) -> Status {
-      if (positions[p].empty()) return Ok();
-      VerifyRequest request = verify;
-      for (size_t c : positions[p]) request.add_ids(results[c].id);
-      auto reply = Call<VerifyReply>(p, [&](Shard::Stub& stub, grpc::ClientContext& context, VerifyReply* out) {
-        return stub.Verify(&context, request, out);
-      });
-      if (!reply) return std::unexpected(reply.error());
-      if (static_cast<size_t>(reply->results_size()) != positions[p].size())
-        return Fail(ErrorCode::kInternal, "a shard verified another number of images than asked");
-      for (size_t i = 0; i < positions[p].size(); ++i) {
-        const Verification& v = reply->results(static_cast<int>(i));
-        index::QueryResult& r = results[positions[p][i]];
-        r.inliers = v.inliers();
-        if (v.verified() && v.db_from_query_size() == 6 && v.db_region_size() == 4) {
-          r.verified = true;
-          std::copy(v.db_from_query().begin(), v.db_from_query().end(), r.db_from_query.m.begin());
-          std::copy(v.db_region().begin(), v.db_region().end(), r.db_region.begin());
-        }
-      }
-      return Ok();
-    });
-    for (uint32_t p = 0; p < num_partitions; ++p) failed.Record(p, statuses[p]);
-    if (auto s = check(); !s) return std::unexpected(s.error());
-    // A partition that failed here has no place in a partial answer: its images go.
-    std::erase_if(results, [&](const index::QueryResult& r) { return failed.Contains(owner[r.id]); });
-    rerank = 0;
-    for (uint32_t p = 0; p < num_partitions; ++p) rerank += failed.Contains(p) ? 0 : positions[p].size();
-    index::SortVerifiedFirst(std::span(results).first(rerank));
-    for (size_t c = 0; c < rerank; ++c) num_verified += results[c].verified ? 1 : 0;
-  }
-  response.timings.verify_ms = ms_since(t);
-
-  // 3. Average query expansion: the region vectors come from their owners, the sum is the single node's.
-  if (options.query_expansion && num_verified > 0) {
-    t = Clock::now();
-    const size_t used = std::min(num_verified, static_cast<size_t>(options.qe_images));
-    std::vector<std::vector<index::QueryTerm>> region_terms(used);
-    const std::vector<Status> statuses = ForEach(used, [&](uint32_t c) -> Status {
-      RegionTermsRequest request;
-      request.set_id(results[c].id);
-      for (float v : results[c].db_region) request.add_region(v);
-      auto reply = Call<RegionTermsReply>(
-          owner[results[c].id], [&](Shard::Stub& stub, grpc::ClientContext& context, RegionTermsReply* out) {
-            return stub.RegionTerms(&context, request, out);
-          });
-      if (!reply) return std::unexpected(reply.error());
-      region_terms[c] = TermsFrom(reply->terms());
-      return Ok();
-    });
-    for (size_t c = 0; c < used; ++c) failed.Record(owner[results[c].id], statuses[c]);
-    if (auto s = check(); !s) return std::unexpected(s.error());
-    const std::vector<index::QueryTerm> expanded = index::ExpandedQuery(terms, region_terms);
-    const size_t expanded_depth =
-        static_cast<size_t>(std::max(options.top_k, options.transitive_depth > 0 ? options.transitive_depth : 0));
-    ScoreRequest rescore;
-    PutTerms(expanded, rescore.mutable_terms());
-    rescore.set_max_postings(static_cast<uint64_t>(options.max_scored_postings));
-    const std::vector<Candidate> rescored = Scatter(rescore, expanded_depth + num_verified, nullptr, nullptr, failed);
-    if (auto s = check(); !s) return std::unexpected(s.error());
-    std::vector<index::QueryResult> merged;
-    for (size_t c = 0; c < num_verified; ++c)
-      if (!failed.Contains(owner[results[c].id])) merged.push_back(results[c]);
-    std::map<std::string, const index::QueryResult*> first_stage;
-    for (const index::QueryResult& r : results) first_stage[r.id] = &r;
-    for (const Candidate& c : rescored) {
-      const auto it = first_stage.find(c.id);
-      if (it != first_stage.end() && it->second->verified) continue;
-      index::QueryResult r;
-      if (it != first_stage.end()) r = *it->second;
-      r.id = c.id;
-      r.score = c.score;
-      r.record = c.record;
-      owner[c.id] = c.partition;
-      merged.push_back(std::move(r));
-    }
-    results = std::move(merged);
-    num_verified = 0;
-    while (num_verified < results.size() && results[num_verified].verified) ++num_verified;
-    response.timings.qe_ms = ms_since(t);
-  }
-
-  // 4. Transitive verification: anchors' features from their owners, neighbours scored and candidates
-  // verified on theirs.
-  if (options.transitive_depth > 0 && num_verified > 0) {
-    t = Clock::now();
-    VerifyTransitively(options, num_verified, owner, results, failed);
-    if (auto s = check(); !s) return std::unexpected(s.error());
-    std::erase_if(results, [&](const index::QueryResult& r) { return failed.Contains(owner[r.id]); });
-    response.timings.verify_ms += ms_since(t);
-  }
-
-  if (results.size() > static_cast<size_t>(options.top_k)) results.resize(static_cast<size_t>(options.top_k));
-  response.results = std::move(results);
-  if (coverage) {
-    coverage->total = static_cast<uint32_t>(num_partitions);
-    coverage->failed.assign(failed.partitions().begin(), failed.partitions().end());
-    coverage->ok = coverage->total - static_cast<uint32_t>(coverage->failed.size());
-  }
-  return response;
-}
-
-// Rounds as on a single node (ImageIndex::Impl::VerifyTransitively): this round's anchors are the next
-// verified results, up to transitive_anchors in all; each anchor's region is scored against the ranking
-// so far, results[0, last), by the partitions holding them (ScoreAmong), index::PlanTransitiveAttempts
-// picks each candidate's anchors (ties by id where a single node takes image numbers), and the owners
-// verify: a candidate's first attempts at once, then the second ones of those still unverified, and so
-// on, which stops each candidate at its first verifying anchor in anchor order, as a single node does.
-void ClusterFront::Impl::VerifyTransitively(const index::QueryOptions& options, size_t num_verified,
-                                            const std::map<std::string, uint32_t>& owner,
-                                            std::vector<index::QueryResult>& results, Failures& failed) const {
-  const size_t first = num_verified;
-  const size_t last = std::min(results.size(), first + static_cast<size_t>(options.transitive_depth));
-  const size_t num_partitions = partitions.size();
-  const auto owner_of = [&](size_t c) { return owner.at(results[c].id); };
-  // Ties among equal scores by id: each result's rank among the ids of results[0, last).
-  std::vector<uint32_t> tie(last);
-  {
-    std::vector<size_t> by_id(last);
-    std::iota(by_id.begin(), by_id.end(), size_t{0});
-    std::sort(by_id.begin(), by_id.end(), [&](size_t x, size_t y) { return results[x].id < results[y].id; });
-    for (size_t k = 0; k < last; ++k) tie[by_id[k]] = static_cast<uint32_t>(k);
-  }
-  std::vector<std::vector<size_t>> held(num_partitions);  // per partition: its positions in [0, last)
-  for (size_t c = 0; c < last; ++c) held[owner_of(c)].push_back(c);
-
-  std::vector<size_t> pool(num_verified);  // anchor candidates: positions in `results`, in anchor order
-  std::iota(pool.begin(), pool.end(), size_t{0});
-  const auto max_anchors = static_cast<size_t>(options.transitive_anchors);
-  size_t used = 0;
-  while (used < std::min(pool.size(), max_anchors)) {
-    const size_t round_end = std::min(pool.size(), max_anchors);
-    const size_t num_anchors = round_end - used;
-    // The anchors' stored features inside their matched regions, from their owners.
-    VerifyRequest anchor_template;
-    anchor_template.set_max_pairs_per_word(options.max_pairs_per_word);
-    anchor_template.set_min_inliers(options.verify.min_inliers);
-    std::vector<VerifyRequest> anchors(num_anchors, anchor_template);
-    const std::vector<Status> fetched = ForEach(num_anchors, [&](uint32_t a) -> Status {
-      const index::QueryResult& anchor = results[pool[used + a]];
-      const uint32_t p = owner.at(anchor.id);
-      if (failed.Contains(p)) return Ok();
-      ImageRequest request;
-      request.set_id(anchor.id);
-      auto stored = Call<FeaturesReply>(p, [&](Shard::Stub& stub, grpc::ClientContext& context, FeaturesReply* out) {
-        return stub.Features(&context, request, out);
-      });
-      if (!stored) return std::unexpected(stored.error());
-      if (stored->keypoints_size() != stored->words_size())
-        return Fail(ErrorCode::kInternal, "a shard gave another number of words than keypoints");
-      const auto& box = anchor.db_region;
-      for (int i = 0; i < stored->keypoints_size(); ++i) {
-        const Keypoint& k = stored->keypoints(i);
-        if (k.x() < box[0] || k.x() > box[2] || k.y() < box[1] || k.y() > box[3]) continue;
-        *anchors[a].add_keypoints() = k;
-        anchors[a].add_words(stored->words(i));
-      }
-      for (float v : box) anchors[a].add_region(v);
-      return Ok();
-    });
-    for (size_t a = 0; a < num_anchors; ++a) failed.Record(owner.at(results[pool[used + a]].id), fetched[a]);
-
-    // Each anchor's region scored against results[0, last), by the partitions holding them.
-    std::vector<std::vector<float>> scores(num_anchors, std::vector<float>(last, 0.0f));
-    ScoreAmongRequest among;
-    for (const VerifyRequest& anchor : anchors) *among.add_queries()->mutable_words() = anchor.words();
-    const std::vector<Status> scored = ForEach(num_partitions, [&](uint32_t p) -> Status {
-      if (held[p].empty() || failed.Contains(p)) return Ok();
-      ScoreAmongRequest request = among;
-      for (size_t c : held[p]) request.add_ids(results[c].id);
-      auto reply = Call<ScoreAmongReply>(p, [&](Shard::Stub& stub, grpc::ClientContext& context, ScoreAmongReply* out) {
-        return stub.ScoreAmong(&context, request, out);
-      });
-      if (!reply) return std::unexpected(reply.error());
-      if (static_cast<size_t>(reply->rows_size()) != num_anchors)
-        return Fail(ErrorCode::kInternal, "a shard scored another number of anchors than asked");
-      for (size_t a = 0; a < num_anchors; ++a) {
-        const ScoreRow& row = reply->rows(static_cast<int>(a));
-        if (static_cast<size_t>(row.scores_size()) != held[p].size())
-          return Fail(ErrorCode::kInternal, "a shard scored another number of images than asked");
-        for (size_t i = 0; i < held[p].size(); ++i) scores[a][held[p][i]] = row.scores(static_cast<int>(i));
-      }
-      return Ok();
-    });
-    for (uint32_t p = 0; p < num_partitions; ++p) failed.Record(p, scored[p]);
-    const std::vector<std::vector<index::TransitiveAttempt>> attempts =
-        index::PlanTransitiveAttempts(scores, tie, results, first, options);
-
-    // Verification, attempt by attempt: per partition one call (VerifyBatch) with, per anchor, the
-    // candidates it holds whose attempt uses that anchor.
-    std::vector<uint8_t> found(last - first, 0);
-    for (size_t j = 0; j < static_cast<size_t>(options.transitive_attempts); ++j) {
-      std::vector<std::map<uint32_t, std::vector<size_t>>> by_partition(num_partitions);  // anchor -> candidates
-      bool any = false;
-      for (size_t c = first; c < last; ++c) {
-        const auto& list = attempts[c - first];
-        if (results[c].verified || j >= list.size() || failed.Contains(owner_of(c))) continue;
-        by_partition[owner_of(c)][list[j].anchor].push_back(c);
-        any = true;
-      }
-      if (!any) break;
-      std::vector<VerifyBatchReply> replies(num_partitions);
-      const std::vector<Status> verified = ForEach(num_partitions, [&](uint32_t p) -> Status {
-        if (by_partition[p].empty()) return Ok();
-        VerifyBatchRequest request;
-        for (const auto& [anchor, positions] : by_partition[p]) {
-          VerifyRequest* one = request.add_requests();
-          *one = anchors[anchor];
-          for (size_t c : positions) one->add_ids(results[c].id);
-        }
-        auto reply = Call<VerifyBatchReply>(p, [&](Shard::Stub& stub, grpc::ClientContext& context, VerifyBatchReply* out) {
-          return stub.VerifyBatch(&context, request, out);
-        });
-        if (!reply) return std::unexpected(reply.error());
-        if (static_cast<size_t>(reply->replies_size()) != by_partition[p].size())
-          return Fail(ErrorCode::kInternal, "a shard answered another number of verifications than asked");
-        size_t g = 0;
-        for (const auto& [anchor, positions] : by_partition[p])
-          if (static_cast<size_t>(reply->replies(static_cast<int>(g++)).results_size()) != positions.size())
-            return Fail(ErrorCode::kInternal, "a shard verified another number of images than asked");
-        replies[p] = std::move(*reply);
-        return Ok();
-      });
-      for (uint32_t p = 0; p < num_partitions; ++p) {
-        if (by_partition[p].empty()) continue;
-        failed.Record(p, verified[p]);
-        if (!verified[p]) continue;
-        size_t g = 0;
-        for (const auto& [anchor_index, positions] : by_partition[p]) {
-          const VerifyReply& reply = replies[p].replies(static_cast<int>(g++));
-          const index::QueryResult& anchor = results[pool[used + anchor_index]];
-          for (size_t i = 0; i < positions.size(); ++i) {
-            const Verification& v = reply.results(static_cast<int>(i));
-            if (!v.verified() || v.db_from_query_size() != 6 || v.db_region_size() != 4) continue;
-            index::QueryResult& r = results[positions[i]];
-            sift::Affine2D from_anchor;
-            std::copy(v.db_from_query().begin(), v.db_from_query().end(), from_anchor.m.begin());
-            r.verified = true;
-            r.inliers = v.inliers();
-            r.db_from_query = index::Compose(from_anchor, anchor.db_from_query);
-            std::copy(v.db_region().begin(), v.db_region().end(), r.db_region.begin());
-            found[positions[i] - first] = 1;
-          }
-        }
-      }
-    }
-    used = round_end;
-    index::AdmitTransitiveAnchors(results, first, found, pool);
-  }
-  index::SortTransitiveWindow(std::span(results).subspan(first, last - first));
 }
 
 }  // namespace oxbow::cluster

@@ -1,27 +1,28 @@
-// The front of a cluster (server/README.md, "Operating a cluster"): it holds the vocabulary, quantises a
-// query once and runs the stages of index::ImageIndex::Query over the partitions' shards
-// (shard.proto):
-//   1. Score: every partition scores the query's bag with the cluster's statistics (its shard pins them,
-//      api::PinClusterStatistics) and returns its best max(top_k, rerank_depth); the front merges them
-//      into the global ranking (ties: smaller id first, where a single node takes the smaller image
-//      number).
-//   2. Verify: each of the top rerank_depth candidates is verified by the shard that holds it (the
-//      geometry stays there); verified first by inliers, as on one node.
-//   3. Query expansion: the owners give the tf-idf vectors of the matched regions, the front averages
-//      them with the query's and scatters Score again with the expanded vector.
-//   4. Transitive verification, in rounds as on one node: the owners give the anchors' (verified
-//      results') stored features, the front keeps those inside each anchor's matched region; the
-//      partitions score these regions against the ranking so far (ScoreAmong, from the images' bags),
-//      index::PlanTransitiveAttempts picks each unverified candidate's anchors, and the candidates'
-//      owners verify them against the anchors' features, attempt after attempt (VerifyBatch: one call
-//      per partition and attempt).
-// With no write in flight the ranking (ids, order, scores, verified, inliers) is the single node's
-// (ties in tf-idf score, and in an anchor's neighbour scores, are broken by id instead of image number).
-// QuerySimilar runs the same stages with an indexed image's stored keypoints and words, which its owner
-// gives (the image itself is among the results, as on a single node).
+// The front of a cluster (server/README.md, "Operating a cluster"): it holds the vocabulary, prepares a
+// query once (region, max_query_features, quantisation, multiple assignment, Hamming-embedding
+// signatures: index::search::PrepareQuery) and runs the one search pipeline (index/search/pipeline.h)
+// over a Source whose images are the partitions' (index/search/source.h): every stage is one call per
+// partition holding images it concerns, all at once (shard.proto), each shard answering with its own
+// index (index::ImageIndex::OpenSearch) and the cluster's statistics (pinned, api::PinClusterStatistics):
+//   1. Score: every partition scores the query with the filter, if any (each shard applies it while
+//      scoring), and returns its best; the front merges them into the global ranking (ties: smaller
+//      id first, where a single node takes the smaller image number). Hamming: the owners re-score
+//      the shortlist with the query's signatures.
+//   2. VerifyBatch: each of the top rerank_depth candidates is verified by the shard that holds it
+//      (the geometry stays there).
+//   3. Query expansion: the owners give the matched regions' features with their signatures
+//      (RegionFeatures; without Hamming embedding their tf-idf vectors, RegionTerms).
+//   4. Transitive verification, in rounds: the owners give the anchors' regions (RegionFeatures), the
+//      partitions score them against the ranking so far (ScoreAmong), and the candidates' owners
+//      verify them against the anchors, attempt after attempt (VerifyBatch).
+// Every option of a single node's search is served, with the same defaults; with no write in flight
+// the answer (ids, order, scores, verified, inliers, regions, transforms) is the single node's over the
+// same images (ties in tf-idf score are broken by id instead of image number).
+// QuerySimilar runs the same stages with an indexed image's stored features, which its owner gives
+// (the image itself is among the results, as on a single node).
 //
 // Reads and writes of one image go to its owner, partition api::PartitionOf(id, P) (the function
-// `index build --partitions` places images with). Get and Features ask one replica (failover as
+// `index build --partitions` places images with). Get asks one replica (failover as
 // above); List and Stats ask every partition and need them all (kResourceExhausted otherwise: a sum or
 // a page without a partition would look complete). Add and Delete are applied on EVERY replica of the
 // owner: first every replica must answer Ping (else kResourceExhausted, nothing written); then the
@@ -55,8 +56,6 @@
 // FrontOptions::refresh_fraction of the cluster's images then (the single node's
 // statistics_refresh_fraction rule). Between a refresh's first and last pin, partitions score with
 // different statistics.
-//
-// Not yet: soft assignment (query_assignments > 1), filters and Hamming embedding: refused.
 //
 // Each partition is asked through one of its replicas, in turn; a replica that fails (unreachable,
 // past the deadline) is skipped for the next one of the same partition. A partition none of whose
@@ -128,7 +127,7 @@ struct ReplicaMetrics {
   uint32_t partition = 0;
   std::string address;
   uint64_t calls = 0;
-  uint64_t errors = 0;
+  uint64_t errors = 0;  // calls that failed (not the shard's refusals of a request, e.g. an unknown id)
   double total_ms = 0;
   int64_t write_sequence = -1;  // the last one it reported; -1 before its first answer
   bool behind = false;          // below its partition's floor (see the file comment)

@@ -221,7 +221,7 @@ class FrontHttpServer::Impl {
     family("oxbow_shard_calls_total", "counter", "Calls from this front to a shard replica.",
            [](const ReplicaMetrics& m) { return static_cast<double>(m.calls); });
     family("oxbow_shard_errors_total", "counter",
-           "Calls to a shard replica that failed (unreachable, deadline, error).",
+           "Calls to a shard replica that failed (unreachable, deadline, internal error; not a refusal such as an unknown id).",
            [](const ReplicaMetrics& m) { return static_cast<double>(m.errors); });
     family("oxbow_shard_call_seconds_total", "counter", "Time spent in calls to a shard replica.",
            [](const ReplicaMetrics& m) { return m.total_ms / 1000; });
@@ -269,13 +269,7 @@ Result<std::unique_ptr<FrontHttpServer>> FrontHttpServer::Create(std::shared_ptr
   sift_options->num_threads = options.service.threads_per_request;
   auto extractor = sift::SiftExtractor::Create(*sift_options);
   if (!extractor) return std::unexpected(extractor.error());
-  FrontHttpOptions served = options;
-  if (served.service.default_query.hamming && front->vocabulary().has_hamming()) {
-    served.service.default_query.hamming = false;
-    OXBOW_LOG(kWarning) << "the cluster front searches without Hamming embedding (not served across partitions yet): "
-                           "its rankings are a single node's with --no-hamming, and hamming=true is refused";
-  }
-  auto impl = std::make_unique<Impl>(std::move(front), *extractor, served);
+  auto impl = std::make_unique<Impl>(std::move(front), *extractor, options);
   Impl* i = impl.get();
   i->http = std::make_unique<server::HttpServer>(
       options.http, server::CustomRoutes{[i](httplib::Server& http) { i->Register(http); },

@@ -17,6 +17,10 @@ namespace oxbow::cluster {
 // answer of a loaded shard: what the front compares replicas by (front.h). Reads carry it as of the
 // start of the call, writes as of their commit.
 inline constexpr const char* kWriteSequenceKey = "oxbow-write-sequence";
+// The gRPC metadata key naming the search a call belongs to (a front's random key per search): a shard
+// keeps that search's index::search::Source between its calls (ShardServer), so each stage reads the
+// candidates' features and bags the previous stages read, from one snapshot.
+inline constexpr const char* kSearchKey = "oxbow-search";
 
 sift::Keypoint FromProto(const Keypoint& k);
 void PutKeypoint(const sift::Keypoint& k, Keypoint* out);

@@ -5,12 +5,18 @@
 #include <grpcpp/health_check_service_interface.h>
 #include <grpcpp/resource_quota.h>
 
+#include <algorithm>
+#include <chrono>
+#include <list>
+#include <cmath>
 #include <filesystem>
 #include <limits>
 #include <mutex>
 #include <system_error>
 
+#include "api/filter.h"
 #include "index/backup.h"
+#include "index/search/source.h"
 #include "server/cluster/proto_convert.h"
 #include "server/cluster/shard.grpc.pb.h"
 #include "sift/base/log.h"
@@ -46,40 +52,82 @@ class ShardServer::Impl final : public Shard::Service {
     std::shared_ptr<api::Service> service;
     if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     Stamp(context, *service);
-    const index::ImageIndex& idx = service->index();
-    if (request->words_size() != request->tf_size())
-      return {grpc::StatusCode::INVALID_ARGUMENT, "one tf per word"};
+    const size_t vocabulary_size = service->index().vocabulary().size();
+    if (request->tf_size() != 0 && request->words_size() != request->tf_size())
+      return Invalid("one tf per word, or none");
+    if (!WordsIn(request->words(), vocabulary_size)) return Invalid("a word outside the vocabulary");
+    if (request->max_results() > kMaxResults) return Invalid("at most " + std::to_string(kMaxResults) + " results");
+    if (request->max_postings() > static_cast<uint64_t>(std::numeric_limits<int>::max()))
+      return Invalid("max_postings out of range");
+    index::QueryOptions options;
+    options.max_scored_postings = static_cast<int>(request->max_postings());
+    if (auto message = options.Check()) return Invalid(*message);
+    if (!request->filter().empty()) {
+      auto filter = api::ParseFilter(request->filter(), "filter");
+      if (!filter) return ToGrpc(filter.error());
+      options.filter = *filter;
+    }
     std::vector<index::QueryTerm> terms;
-    if (request->words_size() > 0) {
-      terms = idx.TermsOf({request->words().data(), static_cast<size_t>(request->words_size())},
-                          {request->tf().data(), static_cast<size_t>(request->tf_size())});
-    } else {
-      for (const Term& t : request->terms()) terms.push_back({t.word(), t.weight()});
-    }
-    uint64_t candidates = 0;
-    for (const auto& s : idx.ScoreTerms(terms, request->max_results(), &candidates, request->max_postings())) {
-      Scored* out = reply->add_images();
-      out->set_id(s.id);
-      out->set_score(s.score);
-      if (auto record = idx.Get(s.id)) {
-        out->set_width(record->width);
-        out->set_height(record->height);
-        out->set_num_features(record->num_features);
-        out->set_metadata_json(record->metadata_json);
-        out->set_source_path(record->source_path);
-        out->set_added_unix_ms(record->added_unix_ms);
+    index::search::ScoreInput input{.words = {request->words().data(), static_cast<size_t>(request->words_size())},
+                                    .tf = {request->tf().data(), static_cast<size_t>(request->tf_size())}};
+    if (request->words_size() == 0) {
+      for (const Term& t : request->terms()) {
+        if (t.word() >= vocabulary_size) return Invalid("a word outside the vocabulary");
+        terms.push_back({t.word(), t.weight()});
       }
+      input.terms = terms;
     }
-    reply->set_candidates(candidates);
-    PutTerms(terms, reply->mutable_terms());
+    const std::shared_ptr<Search> search = SearchOf(*context, service);
+    const std::lock_guard<std::mutex> in_use(search->mutex);
+    index::search::Source* source = search->source.get();
+    auto scored = source->Score(input, request->max_results(), options);
+    if (!scored) return ToGrpc(scored.error());
+    std::vector<index::search::ImageRef> refs;
+    for (const index::search::ScoredRef& s : scored->best) refs.push_back(s.ref);
+    auto records = source->Records(refs);
+    if (!records) return ToGrpc(records.error());
+    for (size_t i = 0; i < scored->best.size(); ++i) {
+      Scored* out = reply->add_images();
+      out->set_id(scored->best[i].id);
+      out->set_score(scored->best[i].score);
+      const index::ImageRecord& record = (*records)[i];
+      out->set_width(record.width);
+      out->set_height(record.height);
+      out->set_num_features(record.num_features);
+      out->set_metadata_json(record.metadata_json);
+      out->set_source_path(record.source_path);
+      out->set_added_unix_ms(record.added_unix_ms);
+    }
+    reply->set_candidates(scored->candidates);
+    PutTerms(scored->terms, reply->mutable_terms());
     return grpc::Status::OK;
   }
 
-  grpc::Status Verify(grpc::ServerContext* context, const VerifyRequest* request, VerifyReply* reply) override {
+  grpc::Status Hamming(grpc::ServerContext* context, const HammingRequest* request, HammingReply* reply) override {
     std::shared_ptr<api::Service> service;
     if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     Stamp(context, *service);
-    return VerifyOne(*service, *request, reply);
+    if (request->words_size() != request->signatures_size()) return Invalid("one signature per word");
+    if (!WordsIn(request->words(), service->index().vocabulary().size()))
+      return Invalid("a word outside the vocabulary");
+    index::QueryOptions options;
+    options.hamming_threshold = request->threshold();
+    options.hamming_sigma = request->sigma();
+    if (auto message = options.Check()) return Invalid(*message);
+    const std::shared_ptr<Search> search = SearchOf(*context, service);
+    const std::lock_guard<std::mutex> in_use(search->mutex);
+    index::search::Source* source = search->source.get();
+    std::vector<size_t> positions;
+    auto refs = Found(*source, request->ids(), &positions);
+    if (!refs) return ToGrpc(refs.error());
+    auto scores = source->HammingScores({request->words().data(), static_cast<size_t>(request->words_size())},
+                                        {request->signatures().data(), static_cast<size_t>(request->signatures_size())},
+                                        *refs, options);
+    if (!scores) return ToGrpc(scores.error());
+    std::vector<double> out(static_cast<size_t>(request->ids_size()), std::nan(""));
+    for (size_t k = 0; k < positions.size(); ++k) out[positions[k]] = (*scores)[k];
+    reply->mutable_scores()->Add(out.begin(), out.end());
+    return grpc::Status::OK;
   }
 
   grpc::Status VerifyBatch(grpc::ServerContext* context, const VerifyBatchRequest* request,
@@ -87,8 +135,100 @@ class ShardServer::Impl final : public Shard::Service {
     std::shared_ptr<api::Service> service;
     if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     Stamp(context, *service);
-    for (const VerifyRequest& one : request->requests()) {
-      if (grpc::Status status = VerifyOne(*service, one, reply->add_replies()); !status.ok()) return status;
+    if (request->requests_size() == 0) return grpc::Status::OK;
+    const size_t vocabulary_size = service->index().vocabulary().size();
+    // One set of options for the batch (the front sends the same in every request).
+    const VerifyRequest& head = request->requests(0);
+    index::QueryOptions options;
+    options.max_pairs_per_word = head.max_pairs_per_word();
+    options.verify.min_inliers = head.min_inliers();
+    options.hamming_threshold = head.hamming_threshold();
+    options.max_tentative_matches = head.max_tentative_matches();
+    if (auto message = options.Check()) return Invalid(*message);
+    const std::shared_ptr<Search> search = SearchOf(*context, service);
+    const std::lock_guard<std::mutex> in_use(search->mutex);
+    index::search::Source* source = search->source.get();
+    std::vector<std::vector<sift::Keypoint>> keypoints(static_cast<size_t>(request->requests_size()));
+    std::vector<index::search::GeometryQuery> geometries;
+    std::vector<index::search::VerifyPair> pairs;
+    std::vector<std::pair<size_t, size_t>> where;  // per pair: (request, id)
+    for (int g = 0; g < request->requests_size(); ++g) {
+      const VerifyRequest& one = request->requests(g);
+      if (one.keypoints_size() != one.words_size() || one.region_size() != 4 ||
+          (one.signatures_size() != 0 && one.signatures_size() != one.words_size()))
+        return Invalid("one word (and signature, if any) per keypoint and a region of 4 values");
+      if (!WordsIn(one.words(), vocabulary_size)) return Invalid("a word outside the vocabulary");
+      if (one.max_pairs_per_word() != options.max_pairs_per_word || one.min_inliers() != options.verify.min_inliers ||
+          one.hamming_threshold() != options.hamming_threshold ||
+          one.max_tentative_matches() != options.max_tentative_matches)
+        return Invalid("the requests of a batch must have the same options");
+      auto& points = keypoints[static_cast<size_t>(g)];
+      points.reserve(static_cast<size_t>(one.keypoints_size()));
+      for (const Keypoint& k : one.keypoints()) points.push_back(FromProto(k));
+      geometries.push_back({.keypoints = points,
+                            .words = {one.words().data(), static_cast<size_t>(one.words_size())},
+                            .signatures = {one.signatures().data(), static_cast<size_t>(one.signatures_size())},
+                            .region = Box(one.region())});
+      std::vector<size_t> positions;
+      auto refs = Found(*source, one.ids(), &positions);
+      if (!refs) return ToGrpc(refs.error());
+      for (size_t k = 0; k < refs->size(); ++k) {
+        pairs.push_back({.geometry = static_cast<uint32_t>(g), .ref = (*refs)[k]});
+        where.emplace_back(static_cast<size_t>(g), positions[k]);
+      }
+    }
+    auto verified = source->Verify(geometries, pairs, options);
+    if (!verified) return ToGrpc(verified.error());
+    std::vector<std::vector<sift::VerificationResult>> results(geometries.size());
+    for (int g = 0; g < request->requests_size(); ++g)
+      results[static_cast<size_t>(g)].resize(static_cast<size_t>(request->requests(g).ids_size()));
+    for (size_t k = 0; k < pairs.size(); ++k) results[where[k].first][where[k].second] = (*verified)[k];
+    for (const auto& one : results) {
+      VerifyReply* out = reply->add_replies();
+      for (const sift::VerificationResult& v : one) {
+        Verification* r = out->add_results();
+        r->set_verified(v.verified);
+        r->set_inliers(v.num_inliers);
+        for (double m : v.db_from_query.m) r->add_db_from_query(m);
+        for (float b : v.db_region) r->add_db_region(b);
+      }
+    }
+    return grpc::Status::OK;
+  }
+
+  grpc::Status RegionFeatures(grpc::ServerContext* context, const RegionFeaturesRequest* request,
+                              RegionFeaturesReply* reply) override {
+    std::shared_ptr<api::Service> service;
+    if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
+    Stamp(context, *service);
+    if (request->regions_size() != 4 * request->ids_size()) return Invalid("a region of 4 values per id");
+    const std::shared_ptr<Search> search = SearchOf(*context, service);
+    const std::lock_guard<std::mutex> in_use(search->mutex);
+    index::search::Source* source = search->source.get();
+    std::vector<size_t> positions;
+    auto refs = Found(*source, request->ids(), &positions);
+    if (!refs) return ToGrpc(refs.error());
+    std::vector<std::array<float, 4>> regions;
+    for (size_t k : positions) {
+      const auto at = static_cast<int>(4 * k);
+      regions.push_back({request->regions(at), request->regions(at + 1), request->regions(at + 2),
+                         request->regions(at + 3)});
+    }
+    auto features = source->Features(*refs, regions,
+                                     {.max_features = request->max_features(),
+                                      .signatures = request->signatures(),
+                                      .all_words = request->all_words()});
+    if (!features) return ToGrpc(features.error());
+    std::vector<ImageFeatures*> out(static_cast<size_t>(request->ids_size()));
+    for (ImageFeatures*& one : out) one = reply->add_images();
+    for (size_t k = 0; k < positions.size(); ++k) {
+      const index::search::RegionFeatures& f = (*features)[k];
+      ImageFeatures* one = out[positions[k]];
+      one->set_found(true);
+      for (const sift::Keypoint& p : f.keypoints) PutKeypoint(p, one->add_keypoints());
+      one->mutable_words()->Add(f.words.begin(), f.words.end());
+      one->mutable_signatures()->Add(f.signatures.begin(), f.signatures.end());
+      one->mutable_all_words()->Add(f.all_words.begin(), f.all_words.end());
     }
     return grpc::Status::OK;
   }
@@ -98,13 +238,34 @@ class ShardServer::Impl final : public Shard::Service {
     std::shared_ptr<api::Service> service;
     if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     Stamp(context, *service);
+    const size_t vocabulary_size = service->index().vocabulary().size();
     std::vector<std::vector<uint32_t>> queries;
     queries.reserve(static_cast<size_t>(request->queries_size()));
-    for (const WordList& q : request->queries()) queries.emplace_back(q.words().begin(), q.words().end());
-    const std::vector<std::string> ids(request->ids().begin(), request->ids().end());
-    auto scores = service->index().ScoreAmong(queries, ids);
+    for (const WordList& q : request->queries()) {
+      if (!WordsIn(q.words(), vocabulary_size)) return Invalid("a word outside the vocabulary");
+      queries.emplace_back(q.words().begin(), q.words().end());
+    }
+    const std::shared_ptr<Search> search = SearchOf(*context, service);
+    const std::lock_guard<std::mutex> in_use(search->mutex);
+    index::search::Source* source = search->source.get();
+    // The ranking of the search's previous round, when it asked about the same images.
+    std::vector<std::string> ids(request->ids().begin(), request->ids().end());
+    if (ids != search->ranked_ids || search->ranked_ids.empty()) {
+      search->ranked_ids.clear();
+      search->ranked_positions.clear();
+      auto refs = Found(*source, request->ids(), &search->ranked_positions);
+      if (!refs) return ToGrpc(refs.error());
+      if (auto s = source->RankAmong(*refs); !s) return ToGrpc(s.error());
+      search->ranked_ids = std::move(ids);
+    }
+    const std::vector<size_t>& positions = search->ranked_positions;
+    auto scores = source->ScoreAmong(queries);
     if (!scores) return ToGrpc(scores.error());
-    for (const std::vector<float>& row : *scores) reply->add_rows()->mutable_scores()->Add(row.begin(), row.end());
+    for (const std::vector<float>& found : *scores) {
+      std::vector<float> row(static_cast<size_t>(request->ids_size()), 0.0f);
+      for (size_t k = 0; k < positions.size(); ++k) row[positions[k]] = found[k];
+      reply->add_rows()->mutable_scores()->Add(row.begin(), row.end());
+    }
     return grpc::Status::OK;
   }
 
@@ -113,10 +274,17 @@ class ShardServer::Impl final : public Shard::Service {
     std::shared_ptr<api::Service> service;
     if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     Stamp(context, *service);
-    if (request->region_size() != 4) return {grpc::StatusCode::INVALID_ARGUMENT, "a region of 4 values"};
-    auto terms = service->index().RegionTerms(request->id(), Box(request->region()));
+    if (request->region_size() != 4) return Invalid("a region of 4 values");
+    const std::shared_ptr<Search> search = SearchOf(*context, service);
+    const std::lock_guard<std::mutex> in_use(search->mutex);
+    index::search::Source* source = search->source.get();
+    auto ref = source->Find(request->id());
+    if (!ref) return ToGrpc(ref.error());
+    if (!*ref) return ToGrpc(Error{ErrorCode::kNotFound, "no image with id '" + request->id() + "'"});
+    const std::array<float, 4> region = Box(request->region());
+    auto terms = source->RegionTerms(std::span(&**ref, 1), std::span(&region, 1));
     if (!terms) return ToGrpc(terms.error());
-    PutTerms(*terms, reply->mutable_terms());
+    PutTerms(terms->front(), reply->mutable_terms());
     return grpc::Status::OK;
   }
 
@@ -155,20 +323,6 @@ class ShardServer::Impl final : public Shard::Service {
     reply->set_rss_bytes(stats.rss_bytes);
     reply->set_extractions_in_flight(stats.extractions_in_flight);
     reply->set_max_concurrent_extractions(stats.max_concurrent_extractions);
-    return grpc::Status::OK;
-  }
-
-  grpc::Status Features(grpc::ServerContext* context, const ImageRequest* request, FeaturesReply* reply) override {
-    std::shared_ptr<api::Service> service;
-    if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
-    Stamp(context, *service);
-    auto record = service->GetImage(request->id());
-    if (!record) return ToGrpc(record.error());
-    auto features = service->index().FeaturesOf(request->id());
-    if (!features) return ToGrpc(features.error());
-    PutRecord(*record, reply->mutable_record());
-    for (const sift::Keypoint& k : features->keypoints) PutKeypoint(k, reply->add_keypoints());
-    reply->mutable_words()->Add(features->words.begin(), features->words.end());
     return grpc::Status::OK;
   }
 
@@ -283,29 +437,68 @@ class ShardServer::Impl final : public Shard::Service {
   }
 
  private:
-  static grpc::Status VerifyOne(const api::Service& service, const VerifyRequest& request, VerifyReply* reply) {
-    if (request.keypoints_size() != request.words_size() || request.region_size() != 4)
-      return {grpc::StatusCode::INVALID_ARGUMENT, "one word per keypoint and a region of 4 values"};
-    std::vector<sift::Keypoint> keypoints;
-    keypoints.reserve(static_cast<size_t>(request.keypoints_size()));
-    for (const Keypoint& k : request.keypoints()) keypoints.push_back(FromProto(k));
-    index::QueryOptions options;
-    options.max_pairs_per_word = request.max_pairs_per_word();
-    options.verify.min_inliers = request.min_inliers();
-    if (auto message = options.Check()) return {grpc::StatusCode::INVALID_ARGUMENT, *message};
-    const std::vector<std::string> ids(request.ids().begin(), request.ids().end());
-    auto verified = service.index().VerifyImages(
-        keypoints, {request.words().data(), static_cast<size_t>(request.words_size())}, Box(request.region()), ids,
-        options);
-    if (!verified) return ToGrpc(verified.error());
-    for (const sift::VerificationResult& v : *verified) {
-      Verification* out = reply->add_results();
-      out->set_verified(v.verified);
-      out->set_inliers(v.num_inliers);
-      for (double m : v.db_from_query.m) out->add_db_from_query(m);
-      for (float b : v.db_region) out->add_db_region(b);
+  // A search's source, kept between the search's calls to this shard (kSearchKey): each stage reads the
+  // features and bags the previous ones read, from one snapshot. At most kMaxSearches are kept, each
+  // for kSearchIdle after its last call (a search's calls come within its own latency); a call without
+  // the key, or one whose search was dropped, gets a fresh source, with the same answers.
+  struct Search {
+    std::mutex mutex;  // one call of the search at a time
+    std::unique_ptr<index::search::Source> source;
+    std::vector<std::string> ranked_ids;   // the images source->RankAmong ranked (ScoreAmong)...
+    std::vector<size_t> ranked_positions;  // ... the positions among them of those indexed here
+  };
+  static constexpr size_t kMaxSearches = 16;
+  static constexpr std::chrono::seconds kSearchIdle{10};
+
+  std::shared_ptr<Search> SearchOf(const grpc::ServerContext& context, const std::shared_ptr<api::Service>& service) {
+    const auto fresh = [&] {
+      auto search = std::make_shared<Search>();
+      search->source = service->index().OpenSearch();
+      return search;
+    };
+    const auto& metadata = context.client_metadata();
+    const auto it = metadata.find(kSearchKey);
+    if (it == metadata.end() || it->second.empty() || it->second.size() > 64) return fresh();
+    const std::string key(it->second.data(), it->second.size());
+    const auto now = std::chrono::steady_clock::now();
+    const std::lock_guard<std::mutex> lock(searches_mutex_);
+    std::erase_if(searches_, [&](const KeptSearch& kept) { return now - kept.used > kSearchIdle; });
+    for (auto kept = searches_.begin(); kept != searches_.end(); ++kept) {
+      if (kept->key != key || kept->service.owner_before(service) || service.owner_before(kept->service)) continue;
+      KeptSearch found = std::move(*kept);
+      searches_.erase(kept);
+      found.used = now;
+      searches_.push_front(std::move(found));
+      return searches_.front().search;
     }
-    return grpc::Status::OK;
+    searches_.push_front({key, service, now, fresh()});
+    if (searches_.size() > kMaxSearches) searches_.pop_back();
+    return searches_.front().search;
+  }
+
+  // Requests' sizes: a search asks for at most top_k + the re-ranking's and expansion's depths.
+  static constexpr uint32_t kMaxResults = 100000;
+
+  static grpc::Status Invalid(const std::string& message) { return {grpc::StatusCode::INVALID_ARGUMENT, message}; }
+
+  static bool WordsIn(const google::protobuf::RepeatedField<uint32_t>& words, size_t vocabulary_size) {
+    return std::all_of(words.begin(), words.end(), [&](uint32_t w) { return w < vocabulary_size; });
+  }
+
+  // The images of `ids` indexed here, as `source` names them; *positions receives their positions in
+  // `ids` (an image not indexed any more is left out: it answers as not found).
+  static Result<std::vector<index::search::ImageRef>> Found(index::search::Source& source,
+                                                            const google::protobuf::RepeatedPtrField<std::string>& ids,
+                                                            std::vector<size_t>* positions) {
+    std::vector<index::search::ImageRef> refs;
+    for (int k = 0; k < ids.size(); ++k) {
+      auto ref = source.Find(ids[k]);
+      if (!ref) return std::unexpected(ref.error());
+      if (!*ref) continue;
+      refs.push_back(**ref);
+      positions->push_back(static_cast<size_t>(k));
+    }
+    return refs;
   }
 
   // Every call's first step: the cluster key (transport_security.h), then the loaded index.
@@ -326,6 +519,14 @@ class ShardServer::Impl final : public Shard::Service {
   const std::string key_;  // the cluster key; "" = none
   mutable std::mutex mutex_;  // guards service_
   std::shared_ptr<api::Service> service_;
+  struct KeptSearch {
+    std::string key;
+    std::weak_ptr<const api::Service> service;  // the index it searches (a reloaded one starts afresh)
+    std::chrono::steady_clock::time_point used;
+    std::shared_ptr<Search> search;
+  };
+  std::mutex searches_mutex_;       // guards searches_; never taken while a Search's mutex is held
+  std::list<KeptSearch> searches_;  // most recently used first
 };
 
 ShardServer::ShardServer() = default;
