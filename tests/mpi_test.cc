@@ -1,11 +1,13 @@
-// `--mpi` batch work under a real `mpirun --oversubscribe`: the vocabulary does
-// not depend on the number of ranks, a stopped training resumes to the same file, and a partitioned
-// build puts every image in the partition PartitionOf names with the cluster's document frequencies
-// stored beside each partition. CI runs as root, which Open MPI refuses unless told otherwise: the
+// `--mpi` batch work under a real `mpirun --oversubscribe`: the vocabulary, Hamming-embedding parameters
+// included, does not depend on the number of ranks, and its parameters are those the single-node code
+// learns from the same sample; a stopped training resumes to the same file; a partitioned build puts
+// every image in the partition PartitionOf names with the cluster's document frequencies stored beside
+// each partition, and stores the Hamming-embedding signatures a single-node build stores. CI runs as root, which Open MPI refuses unless told otherwise: the
 // two OMPI_ALLOW_RUN_AS_ROOT variables are set for the mpirun child only.
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <iterator>
@@ -78,6 +80,24 @@ TEST_F(Mpi, VocabularyIsTheSameForOneAndThreeRanks) {
   EXPECT_TRUE(np1 == ReadBytes(Path("np3.oxvoc"))) << "np=1 and np=3 vocabularies differ";
   EXPECT_TRUE(np1 == ReadBytes(Path("singleton.oxvoc"))) << "mpirun -np 1 and a singleton differ";
   EXPECT_FALSE(fs::exists(Path("np3.oxvoc.checkpoint"))) << "the checkpoint outlives a finished training";
+  const std::string info = Run(std::string(OXBOW_BINARY) + " vocab info " + Path("np3.oxvoc") + " 2>&1");
+  EXPECT_NE(info.find("hamming      64-bit embedding"), std::string::npos) << "learnt by default:\n" << info;
+}
+
+TEST_F(Mpi, HammingParametersAreTheSingleNodeOnesOnTheSameSample) {
+  // With every descriptor in the sample, `vocab hamming` (one process) sees the rows `vocab train --mpi`
+  // spread over the ranks: on the same centroids it must write the same file.
+  const std::string all_rows = " --images " + images_ + " --per-image 100000 --sample 10000000 --threads 1";
+  const std::string train = "vocab train --mpi --words 200" + all_rows;
+  Run(Mpirun(3, train + " --out " + Path("he.oxvoc")));
+  Run(Mpirun(2, train + " --no-hamming --out " + Path("plain.oxvoc")));
+  const std::string info = Run(std::string(OXBOW_BINARY) + " vocab info " + Path("plain.oxvoc") + " 2>&1");
+  EXPECT_NE(info.find("hamming      none"), std::string::npos) << info;
+  Run(std::string(OXBOW_BINARY) + " vocab hamming --vocab " + Path("plain.oxvoc") + all_rows + " --out " +
+      Path("added.oxvoc") + " 2>&1");
+  const std::string he = ReadBytes(Path("he.oxvoc"));
+  ASSERT_FALSE(he.empty());
+  EXPECT_TRUE(he == ReadBytes(Path("added.oxvoc"))) << "--mpi Hamming parameters differ from the single-node ones";
 }
 
 TEST_F(Mpi, StoppedTrainingResumesToTheUninterruptedVocabulary) {
@@ -185,6 +205,57 @@ TEST_F(Mpi, PartitionedBuildMatchesASingleNodeBuild) {
   const std::string refused = RunCommand(Mpirun(2, build), &code);
   EXPECT_NE(code, 0) << refused;
   EXPECT_NE(refused.find("changed outside"), std::string::npos) << refused;
+}
+
+TEST_F(Mpi, PartitionedBuildStoresTheSingleNodeHammingSignatures) {
+  Run(Mpirun(2, "vocab train --mpi --images " + images_ + " --words 200 --per-image 600 --threads 1 --out " +
+                    Path("he.oxvoc")));
+  const vocab::Vocabulary vocabulary = vocab::Vocabulary::Read(Path("he.oxvoc")).value();
+  ASSERT_TRUE(vocabulary.has_hamming());
+  Run(std::string(OXBOW_BINARY) + " -q index build --vocab " + Path("he.oxvoc") + " --images " + images_ +
+      " --threads 1 --out " + Path("single") + " 2>&1");
+  Run(Mpirun(2, "-q index build --mpi --vocab " + Path("he.oxvoc") + " --images " + images_ +
+                    " --partitions 2 --threads 1 --out " + Path("cluster")));
+
+  // Each partition, scoring with the cluster's statistics, gives its images the Hamming-embedding
+  // scores the single index gives them; without signatures they would keep their tf-idf scores.
+  const auto single = index::ImageIndex::Open(Path("single")).value();
+  const sift::SiftExtractor extractor =
+      sift::SiftExtractor::Create(sift::SiftOptions::FromDescription(vocabulary.extractor_settings()).value()).value();
+  index::QueryOptions hamming;
+  hamming.rerank_depth = 0;
+  hamming.query_expansion = false;
+  hamming.transitive_depth = 0;
+  index::QueryOptions tf_idf = hamming;
+  tf_idf.hamming = false;
+  size_t compared = 0, rescored = 0;
+  for (uint32_t p = 0; p < 2; ++p) {
+    const std::string dir = api::PartitionFolder(Path("cluster"), p);
+    const auto partition = index::ImageIndex::Open(dir).value();
+    ASSERT_TRUE(api::PinClusterStatistics(dir, *partition));
+    const std::vector<index::ImageRecord> records = partition->List(0, 100).value();
+    for (const index::ImageRecord& record : records) {
+      const auto extracted = extractor.ExtractFromFile(record.source_path);
+      ASSERT_TRUE(extracted) << record.source_path << ": " << extracted.error().ToString();
+      const sift::FeatureSet& query = *extracted;
+      const auto on_single = single->Query(query, hamming);
+      const auto without = partition->Query(query, tf_idf);
+      const auto response = partition->Query(query, hamming);
+      for (const auto* r : {&on_single, &without, &response}) ASSERT_TRUE(*r) << record.id << ": " << r->error().ToString();
+      std::map<std::string, double> single_scores, tf_idf_scores;
+      for (const auto& r : on_single->results) single_scores[r.id] = r.score;
+      for (const auto& r : without->results) tf_idf_scores[r.id] = r.score;
+      EXPECT_FALSE(response->results.empty()) << record.id;
+      for (const auto& r : response->results) {
+        ASSERT_EQ(single_scores.count(r.id), 1u) << r.id << " for " << record.id;
+        EXPECT_NEAR(r.score, single_scores[r.id], 1e-9) << r.id << " for " << record.id;
+        ++compared;
+        if (tf_idf_scores.count(r.id) == 1 && std::abs(r.score - tf_idf_scores[r.id]) > 1e-6) ++rescored;
+      }
+    }
+  }
+  EXPECT_GE(compared, 10u);
+  EXPECT_GT(rescored, 0u) << "no image of a partition has a Hamming-embedding score";
 }
 
 }  // namespace

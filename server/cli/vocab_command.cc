@@ -279,6 +279,7 @@ void RunVocabTrainMpi(const VocabTrainArgs& args, vocab::Communicator& comm) {
   options.train = TrainOptionsFrom(args);
   options.checkpoint_path = args.checkpoint.empty() ? args.out + ".checkpoint" : args.checkpoint;
   options.stop_after_iterations = args.stop_after;
+  options.hamming = args.hamming;
   const TrainingInputs inputs = CollectInputs(args);
 
   // Images are dealt out round-robin in path order; the sample does not depend on who reads what.
@@ -361,7 +362,8 @@ void SetUpVocab(CLI::App& app) {
   AddImageFlags(train, &args->image);
   train->add_flag("--mpi", args->mpi,
                   "distributed training under mpirun (one rank without it): each rank extracts and samples its "
-                  "share of the images, sums are combined exactly, so any number of ranks gives the same vocabulary "
+                  "share of the images, the k-means sums and the Hamming-embedding medians are combined exactly, so any "
+                  "number of ranks gives the same vocabulary file "
                   "(not the one training without --mpi gives: the sample is drawn by image name)")
       ->group("Distributed (MPI)");
   train->add_option("--checkpoint", args->checkpoint,
@@ -374,20 +376,12 @@ void SetUpVocab(CLI::App& app) {
       ->capture_default_str()
       ->check(CLI::Range(0, 1000))
       ->group("Distributed (MPI)");
-  auto* hamming_flag = train->add_flag(
+  train->add_flag(
       "--hamming,!--no-hamming", args->hamming,
       "also learn Hamming-embedding parameters (a random orthogonal projection to 64 bits, seeded by --seed, and "
       "per word the medians of the projected sample: Jegou et al. 2008), which searches use by default; adds 256 "
-      "bytes per word to the file. On by default, except with --mpi");
-  train->callback([args, hamming_flag] {
-    if (args->mpi && hamming_flag->count() > 0 && args->hamming)
-      throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), "--hamming is not available with --mpi: add the "
-                                                                   "parameters afterwards with 'oxbow vocab hamming'");
-    if (args->mpi && args->hamming) {
-      args->hamming = false;
-      OXBOW_LOG(kInfo) << "--mpi: the vocabulary gets no Hamming-embedding parameters (searches then score without "
-                          "them); add them afterwards with 'oxbow vocab hamming'";
-    }
+      "bytes per word to the file. On by default, also with --mpi (medians found exactly over all ranks' sample)");
+  train->callback([args] {
     if (!args->mpi) {
       if (!args->checkpoint.empty() || args->stop_after != 0)
         throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), "--checkpoint and --stop-after-iterations need --mpi");
