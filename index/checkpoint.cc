@@ -217,12 +217,17 @@ Result<std::shared_ptr<const MappedFile>> MappedFile::Open(const std::string& pa
   // the process's descriptor limit (past it ReadAt says no and callers read through the mapping).
   const bool keep = size > 0 && use == Use::kRandom && KeepDescriptor();
   if (!keep) ::close(fd);
-  return std::shared_ptr<const MappedFile>(new MappedFile(static_cast<const uint8_t*>(data), size, keep ? fd : -1,
-                                                          use == Use::kRandom ? path : std::string(),
-                                                          static_cast<uint64_t>(st.st_dev), static_cast<uint64_t>(st.st_ino)));
+  std::shared_ptr<MappedFile> file(new MappedFile(static_cast<const uint8_t*>(data), size, keep ? fd : -1,
+                                                  use == Use::kRandom ? path : std::string(),
+                                                  static_cast<uint64_t>(st.st_dev), static_cast<uint64_t>(st.st_ino)));
+  // A page of the mapping that the file no longer holds (truncated) or the disk cannot read reads as
+  // zeros instead of ending the process with SIGBUS (mapping_faults.h); readers check what they read.
+  if (size > 0 && use == Use::kRandom) file->fault_guard_ = std::make_unique<MappingFaultGuard>(data, size);
+  return std::shared_ptr<const MappedFile>(std::move(file));
 }
 
 MappedFile::~MappedFile() {
+  fault_guard_.reset();  // before the range is unmapped (MappingFaultGuard's contract)
   if (size_ > 0) ::munmap(const_cast<uint8_t*>(data_), size_);
   if (fd_ >= 0) {
     ::close(fd_);
@@ -236,6 +241,19 @@ bool MappedFile::ReadAt(std::span<const uint8_t> within, std::span<uint8_t> out)
     return false;
   }
   return ReadFully(fd_, static_cast<uint64_t>(within.data() - data_), out) == static_cast<ssize_t>(out.size());
+}
+
+bool MappedFile::Copy(std::span<const uint8_t> within, std::span<uint8_t> out) const {
+  if (within.empty()) return out.empty();
+  if (out.size() != within.size() || within.data() < data_ || within.size() > size_ ||
+      static_cast<size_t>(within.data() - data_) > size_ - within.size()) {
+    return false;
+  }
+  if (fd_ >= 0) return ReadAt(within, out);
+  // Through the mapping: a page the file no longer holds reads as zeros (the fault handler), so the
+  // copy is good only if the file still holds all of it once it is made.
+  std::memcpy(out.data(), within.data(), within.size());
+  return Holds(within);
 }
 
 bool MappedFile::Holds(std::span<const uint8_t> within) const {
@@ -489,10 +507,11 @@ Result<std::vector<GeometryImage>> ReadGeometry(const std::shared_ptr<const Mapp
   if (count > (bytes.size() - kHeader) / entry_bytes) return corrupt("truncated image table");
   const size_t data_start = kHeader + count * entry_bytes;
   // The image table in one pread: read through the mapping (MADV_RANDOM, no read-ahead), a cold file
-  // took a page fault and a synchronous 4 KiB disk read per page of it, about a hundred per file.
-  std::span<const uint8_t> table = bytes.subspan(kHeader, count * entry_bytes);
-  std::vector<uint8_t> table_copy(table.size());
-  if (file->ReadAt(table, table_copy)) table = table_copy;
+  // took a page fault and a synchronous 4 KiB disk read per page of it, about a hundred per file. What
+  // is checked below is the copy, so a file truncated meanwhile cannot change it after its check.
+  std::vector<uint8_t> table_copy(count * entry_bytes);
+  if (!file->Copy(bytes.subspan(kHeader, table_copy.size()), table_copy)) return corrupt("image table unreadable (truncated?)");
+  const std::span<const uint8_t> table = table_copy;
   std::vector<GeometryImage> out;
   out.reserve(count);
   uint64_t expected_offset = 0;

@@ -45,6 +45,7 @@
 #include <vector>
 
 #include "index/feature_store.h"
+#include "index/mapping_faults.h"
 #include "sift/base/error.h"
 
 namespace oxbow::index {
@@ -92,18 +93,25 @@ class MappedFile {
   // are paravirtualised; a thousand images' pages per search). kRandom files only; false when not
   // one, when `within` is not inside bytes(), or on a read error (then read through bytes()).
   bool ReadAt(std::span<const uint8_t> within, std::span<uint8_t> out) const;
-  // Whether the file still holds the bytes of `within`, so that reading them
-  // through the mapping cannot fault: a page of a mapping past the end of a file truncated since it
-  // was mapped raises SIGBUS. One fstat of the kept descriptor, else one stat of the path (a file no
-  // longer at its path, deleted or replaced, cannot be truncated through it: true). A truncation
-  // after this returns and before the read still faults: call it right before reading. True for
-  // kResident files (the bytes are in this process's memory) and for bytes that are not a part of
-  // bytes() (not read through this mapping). Thread-safe.
+  // Copies `within` (a part of bytes()) into `out` (as large): ReadAt where the file keeps its
+  // descriptor, else through the mapping followed by Holds(within). False when `within` is not inside
+  // bytes(), when the file no longer holds all of it (truncated since it was mapped) or on a read
+  // error; the bytes in `out` are then not the file's. Never raises SIGBUS. A kRandom file's mapping
+  // is registered with MappingFaultGuard (mapping_faults.h): a page past the end of a file truncated
+  // since it was mapped, or one the disk cannot read, reads as zeros instead of raising SIGBUS, so any
+  // read of bytes() survives such damage but may see zeros: check what was read (a checksum) before
+  // using it, and use the bytes checked (a copy), not a second read of the mapping. Thread-safe.
+  bool Copy(std::span<const uint8_t> within, std::span<uint8_t> out) const;
+  // Whether the file still holds the bytes of `within`: one fstat of the kept descriptor, else one
+  // stat of the path (a file no longer at its path, deleted or replaced, cannot be truncated through
+  // it: true). True for kResident files (the bytes are in this process's memory) and for bytes that
+  // are not a part of bytes() (not read through this mapping). Thread-safe.
   bool Holds(std::span<const uint8_t> within) const;
 
  private:
   MappedFile(const uint8_t* data, size_t size, int fd, std::string path, uint64_t device, uint64_t inode)
       : data_(data), size_(size), fd_(fd), path_(std::move(path)), device_(device), inode_(inode) {}
+  std::unique_ptr<MappingFaultGuard> fault_guard_;  // kRandom: the mapping's registration; reset before munmap
   const uint8_t* data_;
   size_t size_;
   int fd_;  // kRandom: the file, open for ReadAt; else -1

@@ -84,19 +84,21 @@ void RunOnlyWhenIdle() {
   (void)::syscall(SYS_ioprio_set, kWhoProcess, 0, kClassIdle << kClassShift);
 }
 
-// A geometry file of the checkpoint an index opened from. Open checks its size and image table but
-// not its checksum (reading every geometry byte took most of an open at 1M images); its data is
-// checked on use instead: every use of an image checks what it reads, that the file still holds the
-// image's bytes (MappedFile::Holds: one fstat; a file truncated under the running index would
-// otherwise kill it with SIGBUS at the first read of a page past its new end) and the image's checksum
-// (format version 3; ~9 KB hashed per image), whether or not the whole file passed its check, so that
-// bytes changed on disk after that check are not served either; and a thread of the checkpointer
-// checks the whole file once after open. A file without per-image checksums (versions 1 and 2, which
-// only older builds wrote) is checked whole at the first use of one of its images (the caller waits,
-// concurrent callers wait for the same check), and not again. A part that fails a check is never
-// served: its images are read from the catalogue's BLOBs (through a read-only connection of its own,
-// on demand) and the next checkpoint rewrites them into new files. What remains: a truncation in
-// the microseconds between an image's check and its reads still faults.
+// A geometry file of a checkpoint whose images' entries view its mapping (an open loaded it, or a
+// checkpoint wrote it: ViewWrittenGeometry). Open checks its size and image table but not its checksum
+// (reading every geometry byte took most of an open at 1M images); its data is checked on use instead.
+// Every use of an image copies the image's data out of the file (MappedFile::Copy: pread, so no page is
+// mapped, and a file truncated under the running index gives a short read, not SIGBUS), checks the copy
+// against the image's checksum (format version 3; ~9 KB hashed per image) and hands out the copy: the
+// bytes used are the bytes checked, whatever happens to the file meanwhile (truncated, written in place,
+// a read error). A thread of the checkpointer also checks the whole file once after open. A file without
+// per-image checksums (versions 1 and 2, which only older builds wrote) is checked whole at the first
+// use of one of its images (the caller waits, concurrent callers wait for the same check), and not
+// again; a copy from it is checked for truncation only. A part that fails a check is never served: its
+// images are read from the catalogue's BLOBs (through a read-only connection of its own, on demand) and
+// the next checkpoint rewrites them into new files. What is still read through the mapping (the header
+// and image table at open, a copy where the file keeps no descriptor) cannot kill the process either: a
+// page the file no longer holds reads as zeros (mapping_faults.h), which those checks then find.
 class GeometryPart {
  public:
   GeometryPart(std::string dir, CheckpointFile file, std::shared_ptr<const MappedFile> mapped = nullptr)
@@ -129,45 +131,54 @@ class GeometryPart {
   }
   // Verified and found damaged (false while not verified yet).
   bool Damaged() const { return state_.load(std::memory_order_acquire) == kDamaged; }
-  // Whether `stored` (image `number`'s view of this file, or a copy of it) may be served: the file is
-  // not known damaged, still holds the image's bytes, and the image's own checksum matches (a failure
-  // of either marks the file damaged); a file without per-image checksums is checked whole now (once).
-  bool Sound(uint32_t number, const PackedFeatures& stored, std::optional<uint64_t> checksum) const {
-    if (state_.load(std::memory_order_acquire) == kDamaged) return false;
-    if (mapped_ && (!mapped_->Holds(stored.bytes()) || !mapped_->Holds(stored.signature_bytes()))) {
+  // The bytes of an image's data that `stored` (its view of this file) spans: features, then signatures.
+  static size_t DataBytes(const PackedFeatures& stored) { return stored.bytes().size() + stored.signature_bytes().size(); }
+  // Image `number`'s data (`stored`: its view of this file; `checksum`: its checksum in the file, when
+  // the file has them) copied into `buffer` (DataBytes(stored) bytes) and viewed there by *out (which
+  // `owner`, possibly null, keeps alive), when the copy passes its check. False when the file is known
+  // damaged, no longer holds the image's bytes or the copy fails its check (the file is then marked
+  // damaged: its images are read from the catalogue from now on).
+  bool CopyChecked(uint32_t number, const PackedFeatures& stored, std::optional<uint64_t> checksum,
+                   std::span<uint8_t> buffer, std::shared_ptr<const void> owner, PackedFeatures* out) const {
+    if (Damaged()) return false;
+    const std::span<const uint8_t> records = stored.bytes(), signatures = stored.signature_bytes();
+    OXBOW_CHECK(buffer.size() == records.size() + signatures.size());
+    const std::span<uint8_t> records_copy = buffer.first(records.size());
+    const std::span<uint8_t> signatures_copy = buffer.subspan(records.size());
+    if (!Copy(records, records_copy) || !Copy(signatures, signatures_copy)) {
       MarkDamaged("checkpoint file " + JoinPath(dir_, file_.name.c_str()) + " no longer holds the bytes of image number " +
-                  std::to_string(number) + " (truncated)");
+                  std::to_string(number) + " (truncated, or a read error)");
       return false;
     }
-    if (!checksum.has_value()) return Verified();
-    if (ImageChecksum(stored) == checksum.value()) return true;
-    MarkDamaged("checkpoint file " + JoinPath(dir_, file_.name.c_str()) + ": image number " + std::to_string(number) +
-                " fails its checksum");
-    return false;
-  }
-  // Image `number`'s features with signatures (`stored`, its view of this file) copied into `buffer`
-  // with pread, so that reading them maps no page (MappedFile::ReadAt), and viewed there in `out`;
-  // checked as Checked checks them. False when they cannot be read so (no signatures, another
-  // layout, a read error) or fail the check: then use Checked.
-  bool CopySigned(uint32_t number, const PackedFeatures& stored, std::optional<uint64_t> checksum,
-                  std::vector<uint8_t>* buffer, PackedFeatures* out) const {
-    const std::span<const uint8_t> records = stored.bytes(), signatures = stored.signature_bytes();
-    if (!mapped_ || signatures.empty() || records.data() + records.size() != signatures.data()) return false;
-    buffer->resize(records.size() + signatures.size());
-    if (!mapped_->ReadAt(std::span(records.data(), buffer->size()), *buffer)) return false;
-    // View's message names the file (no string built per candidate: a failure only means "use Checked").
-    auto view = PackedFeatures::View(std::span(buffer->data(), records.size()),
-                                     std::span(buffer->data() + records.size(), signatures.size()), stored.width(),
-                                     stored.height(), nullptr, file_.name);
-    if (!view || !Sound(number, *view, checksum)) return false;
+    // View's message names the file (no string built per image).
+    auto view = PackedFeatures::View(records_copy, signatures_copy, stored.width(), stored.height(), std::move(owner),
+                                     file_.name);
+    if (!view) {
+      MarkDamaged(view.error().message);
+      return false;
+    }
+    if (!checksum.has_value()) {
+      if (!Verified()) return false;
+    } else if (ImageChecksum(*view) != checksum.value()) {
+      MarkDamaged("checkpoint file " + JoinPath(dir_, file_.name.c_str()) + ": image number " + std::to_string(number) +
+                  " fails its checksum");
+      return false;
+    }
     *out = std::move(*view);
     return true;
   }
-  // `stored` (image `number`'s view of this file, with its checksum when the file has them) when it
-  // passes its check, else the image's features from the catalogue (no features when they cannot be
-  // read there, logged: a search then finds no matches in it, never wrong ones).
-  const PackedFeatures& Checked(uint32_t number, const PackedFeatures& stored, std::optional<uint64_t> checksum) const {
-    if (Sound(number, stored, checksum)) return stored;
+  // CopyChecked into memory of the result's own; nullopt when it fails.
+  std::optional<PackedFeatures> Copied(uint32_t number, const PackedFeatures& stored, std::optional<uint64_t> checksum) const {
+    auto buffer = std::make_shared<std::vector<uint8_t>>(DataBytes(stored));
+    PackedFeatures out;
+    if (!CopyChecked(number, stored, checksum, *buffer, buffer, &out)) return std::nullopt;
+    return out;
+  }
+  // Image `number`'s features to use: Copied(), else the image's features from the catalogue (no
+  // features when they cannot be read there, logged: a search then finds no matches in it, never wrong
+  // ones).
+  PackedFeatures Checked(uint32_t number, const PackedFeatures& stored, std::optional<uint64_t> checksum) const {
+    if (std::optional<PackedFeatures> copy = Copied(number, stored, checksum)) return std::move(*copy);
     std::lock_guard<std::mutex> lock(repair_mutex_);
     auto& slot = repaired_[number];
     if (!slot) slot = std::make_unique<const PackedFeatures>(FromCatalogue(number));
@@ -176,6 +187,13 @@ class GeometryPart {
 
  private:
   static constexpr int kUnverified = 0, kGood = 1, kDamaged = 2;
+  // `from` (a part of this file's mapping) copied into `to` (as large); false when the file no longer
+  // holds it or it cannot be read.
+  bool Copy(std::span<const uint8_t> from, std::span<uint8_t> to) const {
+    if (mapped_) return mapped_->Copy(from, to);
+    std::copy(from.begin(), from.end(), to.begin());
+    return true;
+  }
   void MarkDamaged(const std::string& why) const {
     if (state_.exchange(kDamaged, std::memory_order_acq_rel) == kDamaged) return;
     OXBOW_LOG(kError) << "index " << dir_ << ": " << why
@@ -202,7 +220,7 @@ class GeometryPart {
 
   const std::string dir_;
   const CheckpointFile file_;
-  const std::shared_ptr<const MappedFile> mapped_;  // the file (for CopySigned); may be null
+  const std::shared_ptr<const MappedFile> mapped_;  // the file, which `stored` views; may be null
   mutable std::mutex verify_mutex_;
   mutable bool checked_ = false;  // the whole file was checked; guarded by verify_mutex_
   mutable std::atomic<int> state_{kUnverified};
@@ -219,15 +237,22 @@ struct Entry {
   uint32_t number = 0;                        // with `part`: the image's number
   std::optional<uint64_t> checksum;           // with `part`: its checksum in the file, when it has them
 
-  const PackedFeatures& features() const { return part ? part->Checked(number, stored, checksum) : stored; }
+  // Its features to use: `stored` when they are in memory (a copy that shares them), else a checked
+  // copy of its data in the geometry file (GeometryPart::Checked), which the result owns.
+  PackedFeatures features() const { return part ? part->Checked(number, stored, checksum) : stored; }
   // Bytes of memory its features take (IndexStats::geometry_bytes): a view of a geometry file takes
   // none beyond itself (the file's pages are the page cache's).
   uint64_t MemoryBytes() const { return part ? sizeof(PackedFeatures) : stored.MemoryBytes(); }
-  // features(), copied into `buffer` (viewed by *copy) when the image is in a geometry file: a search
-  // reads a thousand candidates' features once each, which through the mapping cost page faults.
+  // features(), held by *copy (returned): when the image is in a geometry file, its data copied into
+  // `buffer` (reused by the caller: a search reads a thousand candidates' features once each) and
+  // checked there.
   const PackedFeatures& SignedFeatures(std::vector<uint8_t>* buffer, PackedFeatures* copy) const {
-    if (part && part->CopySigned(number, stored, checksum, buffer, copy)) return *copy;
-    return features();
+    if (part) {
+      buffer->resize(GeometryPart::DataBytes(stored));
+      if (part->CopyChecked(number, stored, checksum, *buffer, nullptr, copy)) return *copy;
+    }
+    *copy = features();
+    return *copy;
   }
 };
 
@@ -385,8 +410,8 @@ class CandidateCopies {
     copied_.assign(n, 0);
     number_of_.assign(n, 0);
   }
-  // Candidate c's features (image `number`): a copy kept here when it can be read so, else through the
-  // mapping as features() reads them. Distinct candidates may be read on different threads at once.
+  // Candidate c's features (image `number`), kept here (Entry::SignedFeatures: read from a geometry
+  // file, a checked copy). Distinct candidates may be read on different threads at once.
   const PackedFeatures& Read(size_t c, uint32_t number, const Entry& entry) {
     const PackedFeatures& features = entry.SignedFeatures(&buffers_[c], &views_[c]);
     copied_[c] = &features == &views_[c] ? 1 : 0;
@@ -402,12 +427,12 @@ class CandidateCopies {
     std::sort(numbers_.begin(), numbers_.end());
   }
   // Image `number`'s features: its copy when one was kept, else entry.features().
-  const PackedFeatures& Of(uint32_t number, const Entry& entry) const {
+  PackedFeatures Of(uint32_t number, const Entry& entry) const {
     const auto it = std::lower_bound(numbers_.begin(), numbers_.end(), std::pair<uint32_t, size_t>{number, 0});
     if (it != numbers_.end() && it->first == number) return views_[it->second];
     return entry.features();
   }
-  const PackedFeatures& Of(const ImageIndex::Snapshot& snap, const std::string& id) const {
+  PackedFeatures Of(const ImageIndex::Snapshot& snap, const std::string& id) const {
     uint32_t number = 0;
     const Entry* entry = snap.Find(id, &number);
     return Of(number, *entry);
@@ -890,13 +915,13 @@ Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue&
   for (uint32_t n = 0; n < inverted->num_numbers(); ++n) {
     if (!inverted->IsLive(n) || by_number[n]) continue;
     if (!stored[n]) return unusable("a live image without geometry");
-    // Their words leave the postings: checked now (the image, or the whole file without per-image sums).
+    // Their words leave the postings: a copy checked now (the image, or the whole file without
+    // per-image sums) is what is read.
     const GeometryPart& part = *out.parts[part_of[n]];
-    if (!part.Sound(n, stored[n]->features, stored[n]->checksum)) {
-      return unusable(part.file().name + ": the data of image number " + std::to_string(n) + " fails its check");
-    }
+    const std::optional<PackedFeatures> copy = part.Copied(n, stored[n]->features, stored[n]->checksum);
+    if (!copy) return unusable(part.file().name + ": the data of image number " + std::to_string(n) + " fails its check");
     removed.push_back(n);
-    removed_bags.push_back(stored[n]->features.Bag());
+    removed_bags.push_back(copy->Bag());
   }
   std::vector<const BagOfWords*> bag_pointers;
   bag_pointers.reserve(removed_bags.size());
@@ -1229,7 +1254,7 @@ void ImageIndex::Impl::CheckpointLoop() {
   // The loaded geometry files are checked on a thread of their own in SCHED_IDLE, pausing while a
   // search runs (VerifyParts): right after an open, reading and hashing every file (5-45 s at 1M
   // images) would otherwise take a core from the first searches, which then ran at half speed. A
-  // search never waits for it (an image it uses first is checked alone, GeometryPart::Sound), and
+  // search never waits for it (an image it uses first is checked alone, GeometryPart::CopyChecked), and
   // neither do checkpoints: under a load that keeps every core busy, or a search always running, the
   // check may not run for minutes. A checkpoint before it ends keeps the files
   // not checked yet (their images are still checked on use); one found damaged later is rewritten by

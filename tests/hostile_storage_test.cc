@@ -3,15 +3,22 @@
 // read-write connection would checkpoint that WAL into it when the refused open closed it), and
 // a folder the server may not write (exit 7, io_error, saying it is a permission problem, not damage),
 // and a file size limit (ulimit -f) that a write reaches: an io_error answer or exit 7, never SIGXFSZ.
+// And a running server whose checkpoint files are truncated under it while it searches them.
+#include <fcntl.h>
 #include <gtest/gtest.h>
 #include <sys/resource.h>
 #include <unistd.h>
 
+#include <algorithm>
+#include <atomic>
+#include <chrono>
 #include <filesystem>
 #include <fstream>
 #include <iterator>
 #include <memory>
+#include <optional>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include <nlohmann/json.hpp>
@@ -196,6 +203,95 @@ TEST_F(HostileStorageTest, AFileSizeLimitIsAnIoErrorNotASignal) {
   ASSERT_TRUE(health) << server->Log();
   EXPECT_EQ(health->status, 200);
   EXPECT_EQ(server->Stop(), 0) << server->Log();
+}
+
+// The geometry files (memory-mapped by the server) truncated to nothing and written back, again and
+// again, while `/similar` reads the images in them: the server never dies of SIGBUS, and every answer
+// equals the answer before (a damaged file's images are served from the catalogue, never its bytes).
+// Each image lies in a file of its own and the server is started several times, so that a read
+// between a check of a file and the use of its bytes has many chances to meet a truncation.
+TEST_F(HostileStorageTest, GeometryFilesTruncatedUnderSearchesNeverKillTheServerNorChangeAnswers) {
+  constexpr int kEach = 8;  // images, and geometry files (at most 8 small files are kept apart)
+  constexpr int kRounds = 4;
+  constexpr int kQueries = 10;  // per image and round
+  const std::string index = dir_.path() + "/one-file-each";
+  for (int i = 0; i < kEach; ++i) {  // each close checkpoints the image added since the last
+    auto service = api::Service::Open(index, vocab_, {});
+    ASSERT_TRUE(service) << service.error().ToString();
+    api::AddImageRequest add;
+    add.id = "e" + std::to_string(i);
+    std::vector<uchar> png;  // larger than Picture's: more features, longer reads of each image
+    ASSERT_TRUE(cv::imencode(".png", oxbow::testing::Texture(800, 600, "graf1.png", 10 * i, 5 * i), png));
+    const std::vector<uint8_t> picture(png.begin(), png.end());
+    add.image = picture;
+    ASSERT_TRUE((*service)->AddImage(add));
+  }
+  std::vector<json> expected;
+  for (int round = 0; round < kRounds; ++round) {
+    SCOPED_TRACE("round " + std::to_string(round));
+    std::vector<std::string> geometry;
+    for (const auto& item : fs::directory_iterator(index)) {
+      const std::string name = item.path().filename().string();
+      if (name.starts_with("geometry-") && name.ends_with(".oxck")) geometry.push_back(item.path().string());
+    }
+    ASSERT_FALSE(geometry.empty()) << "the index has no checkpoint geometry file";
+    if (round == 0) {
+      EXPECT_EQ(geometry.size(), size_t{kEach});
+    }
+    oxbow::testing::ServerProcess server({"serve", "--index", index, "--port", "0"},
+                                         dir_.path() + "/truncated-" + std::to_string(round) + ".log");
+    ASSERT_TRUE(server.port() > 0 && server.WaitReady()) << server.Log();
+    // The background check of the files read them whole before the damage starts.
+    ASSERT_TRUE(server.WaitForLog("geometry files of the checkpoint verified")) << server.Log();
+    auto client = server.Client();
+    const auto similar = [&](int i) -> std::optional<json> {
+      const auto res = client.Get("/v1/images/e" + std::to_string(i) + "/similar?top_k=10");
+      if (!res || res->status != 200) return std::nullopt;
+      return json::parse(res->body)["results"];
+    };
+    for (int i = 0; round == 0 && i < kEach; ++i) {
+      const auto results = similar(i);
+      ASSERT_TRUE(results.has_value()) << server.Log();
+      ASSERT_FALSE(results->empty());
+      expected.push_back(*results);
+    }
+    std::atomic<bool> stop{false};
+    std::atomic<int> truncations{0};
+    std::vector<std::thread> truncators;
+    for (const std::string& path : geometry) {
+      // The file's last page cut off and written back at once, then left whole for a moment: whole
+      // most of the time (so a check usually passes) and cut often (so reads after it meet a cut).
+      truncators.emplace_back([&stop, &truncations, path, bytes = FileBytes(path)] {
+        const int fd = ::open(path.c_str(), O_WRONLY | O_CLOEXEC);
+        if (fd < 0) return;
+        const size_t cut = std::min<size_t>(bytes.size() / 2, 4096);
+        const auto kept = static_cast<off_t>(bytes.size() - cut);
+        while (!stop.load()) {
+          if (::ftruncate(fd, kept) != 0) break;
+          truncations.fetch_add(1);
+          if (::pwrite(fd, bytes.data() + kept, cut, kept) != static_cast<ssize_t>(cut)) break;
+          std::this_thread::sleep_for(std::chrono::microseconds(50));
+        }
+        ::close(fd);  // written back whole
+      });
+    }
+    int answered = 0;
+    for (int q = 0; q < kQueries && answered == q * kEach; ++q) {
+      for (int i = 0; i < kEach; ++i) {
+        const auto results = similar(i);
+        if (!results.has_value()) break;
+        EXPECT_EQ(*results, expected[i]) << "e" << i;
+        ++answered;
+      }
+    }
+    stop = true;
+    for (std::thread& t : truncators) t.join();
+    EXPECT_GT(truncations.load(), 0);
+    EXPECT_EQ(answered, kQueries * kEach) << "the server stopped answering: " << server.Log();
+    const auto health = client.Get("/healthz");
+    EXPECT_TRUE(health && health->status == 200) << server.Log();
+    ASSERT_EQ(server.Stop(), 0) << "128 + 7 (SIGBUS) when the server died of it: " << server.Log();
+  }
 }
 
 }  // namespace
