@@ -307,11 +307,11 @@ namespace {
 
 // Dst rows [y, y + count) (count <= kRowBlock) of the blur: the vertical pass into the padded rows t,
 // their borders reflected, then the horizontal pass into dst. rows: room for 2 r + kRowBlock pointers.
-void BlurBlock(const Plane& src, Plane* dst, std::span<const float> half_kernel, const float* kernel, int y, int count,
-               float* const* t, const float** rows, bool simd) {
-  const int w = src.width(), h = src.height();
+template <typename SourceRow>
+void BlurBlock(const SourceRow& source_row, int w, int h, Plane* dst, std::span<const float> half_kernel, const float* kernel,
+               int y, int count, float* const* t, const float** rows, bool simd) {
   const int r = static_cast<int>(half_kernel.size()) - 1;
-  for (int j = 0; j < 2 * r + count; ++j) rows[j] = src.row(Reflect101(y - r + j, h));
+  for (int j = 0; j < 2 * r + count; ++j) rows[j] = source_row(Reflect101(y - r + j, h));
   VerticalPass(rows, kernel, r, count, w, t, simd);
   for (int m = 0; m < count; ++m) {
     for (int i = 1; i <= r; ++i) {
@@ -338,11 +338,19 @@ void BlurScratch::Prepare(int width, std::span<const float> half_kernel) {
 
 void GaussianBlurRows(const Plane& src, Plane* dst, std::span<const float> half_kernel, int y, int count,
                       BlurScratch* scratch, bool allow_simd) {
+  OXBOW_CHECK(dst != &src);
+  GaussianBlurRows([&src](int i) { return src.row(i); }, src.width(), src.height(), dst, half_kernel, y, count, scratch,
+                   allow_simd);
+}
+
+void GaussianBlurRows(const std::function<const float*(int)>& source_row, int width, int height, Plane* dst,
+                      std::span<const float> half_kernel, int y, int count, BlurScratch* scratch, bool allow_simd) {
   allow_simd = allow_simd && Avx2FmaAvailable();
-  OXBOW_CHECK(dst != &src && dst->width() == src.width() && dst->height() == src.height());
-  OXBOW_CHECK(count >= 1 && count <= kRowBlock && y >= 0 && y + count <= src.height());
-  scratch->Prepare(src.width(), half_kernel);
-  BlurBlock(src, dst, half_kernel, scratch->kernel.data(), y, count, scratch->t, scratch->rows.data(), allow_simd);
+  OXBOW_CHECK(dst->width() == width && dst->height() == height);
+  OXBOW_CHECK(count >= 1 && count <= kRowBlock && y >= 0 && y + count <= height);
+  scratch->Prepare(width, half_kernel);
+  BlurBlock(source_row, width, height, dst, half_kernel, scratch->kernel.data(), y, count, scratch->t,
+            scratch->rows.data(), allow_simd);
 }
 
 void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kernel, WorkerTeam& team, bool allow_simd) {
@@ -361,9 +369,23 @@ void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kern
     scratch.Prepare(w, half_kernel);
     for (int y = static_cast<int>(y0); y < static_cast<int>(y1); y += kRowBlock) {
       const int count = std::min(kRowBlock, static_cast<int>(y1) - y);
-      BlurBlock(src, dst, half_kernel, scratch.kernel.data(), y, count, scratch.t, scratch.rows.data(), allow_simd);
+      BlurBlock([&src](int i) { return src.row(i); }, w, h, dst, half_kernel, scratch.kernel.data(), y, count, scratch.t,
+                scratch.rows.data(), allow_simd);
     }
   });
+}
+
+void Upsample2xRow(const float* src, int w, int h, size_t src_stride, int y, float* v, float* out) {
+  const int sy = y / 2;
+  const int other = std::clamp(y % 2 == 0 ? sy - 1 : sy + 1, 0, h - 1);
+  const float* a = src + static_cast<size_t>(sy) * src_stride;
+  const float* b = src + static_cast<size_t>(other) * src_stride;
+  for (int x = 0; x < w; ++x) v[x] = 0.75f * a[x] + 0.25f * b[x];
+  for (int x = 0; x < w; ++x) {
+    const float centre = 0.75f * v[x];
+    out[2 * x] = centre + 0.25f * v[std::max(x - 1, 0)];
+    out[2 * x + 1] = centre + 0.25f * v[std::min(x + 1, w - 1)];
+  }
 }
 
 void Upsample2x(const float* src, int w, int h, size_t src_stride, Plane* dst, WorkerTeam& team) {
@@ -372,19 +394,7 @@ void Upsample2x(const float* src, int w, int h, size_t src_stride, Plane* dst, W
   if (w == 0 || h == 0) return;
   team.ParallelFor(2 * static_cast<size_t>(h), RowGrain(2 * h, num_threads), [&](size_t y0, size_t y1, int) {
     std::vector<float> v(static_cast<size_t>(w));
-    for (int y = static_cast<int>(y0); y < static_cast<int>(y1); ++y) {
-      const int sy = y / 2;
-      const int other = std::clamp(y % 2 == 0 ? sy - 1 : sy + 1, 0, h - 1);
-      const float* a = src + static_cast<size_t>(sy) * src_stride;
-      const float* b = src + static_cast<size_t>(other) * src_stride;
-      for (int x = 0; x < w; ++x) v[static_cast<size_t>(x)] = 0.75f * a[x] + 0.25f * b[x];
-      float* out = dst->row(y);
-      for (int x = 0; x < w; ++x) {
-        const float centre = 0.75f * v[static_cast<size_t>(x)];
-        out[2 * x] = centre + 0.25f * v[static_cast<size_t>(std::max(x - 1, 0))];
-        out[2 * x + 1] = centre + 0.25f * v[static_cast<size_t>(std::min(x + 1, w - 1))];
-      }
-    }
+    for (int y = static_cast<int>(y0); y < static_cast<int>(y1); ++y) Upsample2xRow(src, w, h, src_stride, y, v.data(), dst->row(y));
   });
 }
 

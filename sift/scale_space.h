@@ -107,6 +107,14 @@ struct BlurScratch {
 void GaussianBlurRows(const Plane& src, Plane* dst, std::span<const float> half_kernel, int y, int count,
                       BlurScratch* scratch, bool allow_simd);
 
+// The same with the source given row by row: source_row(i) is row i (0 <= i < height) of a width x
+// height image, called only for the rows the block reads.
+void GaussianBlurRows(const std::function<const float*(int)>& source_row, int width, int height, Plane* dst,
+                      std::span<const float> half_kernel, int y, int count, BlurScratch* scratch, bool allow_simd);
+
+// Row y (0 <= y < 2h) of Upsample2x's output into out (2w floats); v: scratch of w floats.
+void Upsample2xRow(const float* src, int w, int h, size_t src_stride, int y, float* v, float* out);
+
 // dst (2w x 2h) = bilinear 2x enlargement of the w x h image at `src` (rows `src_stride` floats apart)
 // with pixel-centre alignment (as cv::resize INTER_LINEAR): dst(2i) = 0.75 src(i) + 0.25 src(i-1),
 // dst(2i+1) = 0.75 src(i) + 0.25 src(i+1), edges replicated. dst is reshaped (its buffer reused).

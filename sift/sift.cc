@@ -1216,12 +1216,18 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
   Octave octave;
   octave.gauss.swap(scratch.gauss);
   octave.gauss.resize(static_cast<size_t>(S) + 3);
+
+
   // `spare` holds the base image of octave 0 (the input, optionally upsampled 2x, still to be blurred
-  // from the assumed camera blur to sigma), then the decimated base of each next octave.
+  // from the assumed camera blur to sigma; not filled when upsampling on one thread), then the
+  // decimated base of each next octave.
   Plane& spare = scratch.spare;
   double present_blur = options.assumed_blur;
+  // On one thread the upsampled image is never stored whole: its rows are made as the first blur reads
+  // them (see the octave loop).
+  const bool upsample_by_rows = options.upsample_first_octave && threads == 1;
   if (options.upsample_first_octave) {
-    Upsample2x(image.pixels.data(), image.width, image.height, static_cast<size_t>(image.width), &spare, team);
+    if (!upsample_by_rows) Upsample2x(image.pixels.data(), image.width, image.height, static_cast<size_t>(image.width), &spare, team);
     present_blur *= 2;
   } else {
     spare.Reshape(image.width, image.height);
@@ -1231,7 +1237,9 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
   const Plane& base = spare;
   const double first_blur = std::sqrt(std::max(sigma * sigma - present_blur * present_blur, 0.01));
 
-  const int min_side = std::min(base.width(), base.height());
+  const int base_width = options.upsample_first_octave ? 2 * image.width : image.width;
+  const int base_height = options.upsample_first_octave ? 2 * image.height : image.height;
+  const int min_side = std::min(base_width, base_height);
   // As cv::SIFT: round(log2(min side of the base) - 2) octaves, plus one for the upsampled octave.
   int octaves = static_cast<int>(std::lrint(std::log2(static_cast<double>(min_side)) - 2.0)) +
                 (options.upsample_first_octave ? 1 : 0);
@@ -1262,8 +1270,8 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
   for (int o = 0; o < octaves && !stopped(); ++o) {
     octave.index = o;
     if (o > 0) std::swap(octave.gauss[0], spare);
-    const int ow = o == 0 ? base.width() : octave.gauss[0].width();
-    const int oh = o == 0 ? base.height() : octave.gauss[0].height();
+    const int ow = o == 0 ? base_width : octave.gauss[0].width();
+    const int oh = o == 0 ? base_height : octave.gauss[0].height();
     if (ow < 1 || oh < 1) break;
     std::vector<Candidate> candidates;
     if (team.size() == 1) {
@@ -1274,6 +1282,17 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
       std::vector<int> produced(static_cast<size_t>(S) + 3, 0);
       if (o > 0) produced[0] = oh;
       BlurScratch blur_scratch;
+      // The upsampled base's rows, made on demand into a ring that holds what one block of the first blur
+      // reads: 2 r + kRowBlock rows.
+      const bool base_by_rows = o == 0 && upsample_by_rows;
+      const int base_ring_rows = base_by_rows ? 2 * (static_cast<int>(kernels[0].size()) - 1) + kRowBlock : 0;
+      const size_t base_pitch = (static_cast<size_t>(ow) + 15) / 16 * 16;
+      std::vector<float> base_ring(static_cast<size_t>(base_ring_rows) * base_pitch), upsample_scratch;
+      if (base_by_rows) upsample_scratch.resize(static_cast<size_t>(image.width));
+      int base_made = 0;
+      const auto base_row = [&](int i) -> const float* {
+        return base_ring.data() + static_cast<size_t>(i % base_ring_rows) * base_pitch;
+      };
       // Makes rows [0, n) of level i final, first the rows of the levels below that it reads.
       std::function<void(int, int)> produce = [&](int i, int n) {
         n = std::min(n, oh);
@@ -1281,9 +1300,17 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
         const int r = static_cast<int>(kernels[level].size()) - 1;
         while (produced[level] < n) {
           const int y = produced[level], count = std::min(kRowBlock, oh - y);
-          if (i > 0) produce(i - 1, y + count + r);
-          GaussianBlurRows(i == 0 ? base : octave.gauss[level - 1], &octave.gauss[level], kernels[level], y, count,
-                           &blur_scratch, simd);
+          if (i > 0) {
+            produce(i - 1, y + count + r);
+            GaussianBlurRows(octave.gauss[level - 1], &octave.gauss[level], kernels[level], y, count, &blur_scratch, simd);
+          } else if (base_by_rows) {
+            for (; base_made < std::min(oh, y + count + r); ++base_made)
+              Upsample2xRow(image.pixels.data(), image.width, image.height, static_cast<size_t>(image.width), base_made,
+                            upsample_scratch.data(), base_ring.data() + static_cast<size_t>(base_made % base_ring_rows) * base_pitch);
+            GaussianBlurRows(base_row, ow, oh, &octave.gauss[0], kernels[0], y, count, &blur_scratch, simd);
+          } else {
+            GaussianBlurRows(base, &octave.gauss[0], kernels[0], y, count, &blur_scratch, simd);
+          }
           produced[level] += count;
         }
       };
