@@ -85,8 +85,9 @@
 // only the non-zero terms are added through memory) are vectorised (AVX-512 when the build targets it,
 // AVX2+FMA when compiled with it or chosen at run time, with a scalar path computing the same formula,
 // including the same fused multiply-adds). On one thread the Gaussian levels of an octave are blurred a
-// few rows at a time just ahead of the extrema scan, so rows are re-read from cache rather than memory;
-// with several threads level after level, split over rows. Keypoints are split over threads with
+// few rows at a time just ahead of the extrema scan, so rows are re-read from cache rather than memory,
+// and the upsampled image is made row by row as the first blur reads it; with several threads level
+// after level, split over rows. Keypoints are split over threads with
 // per-item outputs, so the result is bit-identical for any num_threads.
 // The parallel loops run on the process-wide persistent worker pool (sift/parallel.h), and each calling thread keeps
 // its pyramid buffers between calls (SiftOptions::thread_cache_mib), so a thread extracting image after
