@@ -1884,21 +1884,23 @@ class SnapshotSource final : public search::Source {
   Result<std::vector<sift::VerificationResult>> Verify(std::span<const search::GeometryQuery> geometries,
                                                        std::span<const search::VerifyPair> pairs,
                                                        const QueryOptions& options) override {
-    std::vector<QueryGeometry> prepared;
-    prepared.reserve(geometries.size());
-    for (const search::GeometryQuery& g : geometries) {
-      prepared.emplace_back(g.keypoints, g.words, g.region, g.signatures, options.hamming_threshold,
-                            options.max_tentative_matches);
-    }
-    std::vector<sift::VerificationResult> out(pairs.size());
+    // Only the geometries some pair uses are prepared (a round of transitive verification asks about a
+    // few of its anchors per attempt).
+    std::vector<std::optional<QueryGeometry>> prepared(geometries.size());
     for (const search::VerifyPair& p : pairs) {
       if (p.geometry >= prepared.size()) return Fail(ErrorCode::kInvalidArgument, "a verification of no geometry");
+      const search::GeometryQuery& g = geometries[p.geometry];
+      if (!prepared[p.geometry]) {
+        prepared[p.geometry].emplace(g.keypoints, g.words, g.region, g.signatures, options.hamming_threshold,
+                                     options.max_tentative_matches);
+      }
     }
+    std::vector<sift::VerificationResult> out(pairs.size());
     ParallelFor(pairs.size(), num_threads_, 1, [&](size_t begin, size_t end, int) {
       for (size_t c = begin; c < end; ++c) {
         const uint32_t n = pairs[c].ref.number;
-        out[c] = prepared[pairs[c].geometry].Verify(copies_.Of(n, *snap_->entries[n]), options.max_pairs_per_word,
-                                                    options.verify);
+        out[c] = prepared[pairs[c].geometry]->Verify(copies_.Of(n, *snap_->entries[n]), options.max_pairs_per_word,
+                                                     options.verify);
       }
     });
     return out;

@@ -418,6 +418,23 @@ TEST_F(Cluster, AReplicaDownChangesNothingAPartitionDownIsPartialOrRefused) {
   EXPECT_EQ(coverage.failed, std::vector<uint32_t>{0});
   ASSERT_FALSE(partial->results.empty());
   for (const auto& r : partial->results) EXPECT_NE(api::PartitionOf(r.id, kPartitions), 0u) << r.id;
+  // /similar of an image of the partition that is down has no query: 503 even when a partial answer is
+  // allowed; of an image of another partition, a partial answer.
+  std::string on_down, on_up;
+  for (int i = 0; i < 12; ++i) {
+    const std::string id = "img" + std::to_string(i);
+    (api::PartitionOf(id, kPartitions) == 0 ? on_down : on_up) = id;
+  }
+  ASSERT_FALSE(on_down.empty() || on_up.empty());
+  const auto no_query = front->QuerySimilar(on_down, options, /*allow_partial=*/true, &coverage);
+  ASSERT_FALSE(no_query);
+  EXPECT_EQ(no_query.error().code, ErrorCode::kResourceExhausted) << no_query.error().ToString();
+  const auto similar = front->QuerySimilar(on_up, options, /*allow_partial=*/true, &coverage);
+  ASSERT_TRUE(similar) << similar.error().ToString();
+  EXPECT_EQ(coverage.failed, std::vector<uint32_t>{0});
+  ASSERT_FALSE(similar->index.results.empty());
+  EXPECT_EQ(similar->index.results[0].id, on_up);
+  for (const auto& r : similar->index.results) EXPECT_NE(api::PartitionOf(r.id, kPartitions), 0u) << r.id;
 
   // A shard that hangs (SIGSTOP) is given up at the deadline, not waited for.
   kill(shards_[1]->pid(), SIGSTOP);

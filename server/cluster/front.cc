@@ -1073,6 +1073,12 @@ class PartitionsSource final : public index::search::Source {
 
   bool Answered(const ImageRef& ref) const override { return !failed_.Contains(ref.part); }
 
+  // Ok unless the partition of image `id` failed during the search (its error then).
+  Status Holds(const std::string& id) const {
+    if (!failed_.Contains(front_.OwnerOf(id))) return Ok();
+    return std::unexpected(failed_.error().value_or(Error{ErrorCode::kResourceExhausted, "a partition failed"}));
+  }
+
   // Which partitions answered every call.
   void Cover(ClusterFront::Coverage* coverage) const {
     if (!coverage) return;
@@ -1198,6 +1204,11 @@ Result<api::SearchResponse> ClusterFront::QuerySimilar(const std::string& id, co
   PartitionsSource source(*impl_, allow_partial);
   index::ImageRecord record;
   auto q = index::search::StoredQuery(source, id, options, &record);
+  if (q) {
+    // The query image's own partition must answer, even when a partial answer is allowed: without it
+    // there is no query.
+    if (auto s = source.Holds(id); !s) q = std::unexpected(s.error());
+  }
   if (!q) {
     source.Cover(coverage);
     return std::unexpected(q.error());
