@@ -1,9 +1,11 @@
 // Hamming-embedding parameters of a vocabulary (Vocabulary::WithHamming, Signatures, file format 2).
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <bit>
 #include <cmath>
 #include <filesystem>
+#include <limits>
 #include <random>
 
 #include "sift/base/binary_io.h"
@@ -162,6 +164,41 @@ TEST_F(HammingVocabularyTest, RefusesUnusableSamples) {
   std::vector<float> bad = sample_;
   bad[5] = std::nanf("");
   EXPECT_FALSE(plain_->WithHamming(bad, 1));
+}
+
+TEST_F(HammingVocabularyTest, ThePiecesGiveWhatWithHammingGives) {
+  // The projection and the projected values WithHamming uses, and parameters set from them.
+  const std::vector<float> projection = plain_->HammingProjection(7);
+  ASSERT_EQ(projection.size(), size_t{kHammingBits} * kDim);
+  const size_t n = sample_.size() / kDim;
+  std::vector<float> projected(n * kHammingBits);
+  plain_->ProjectForHamming(projection, sample_, projected);
+  std::vector<uint32_t> words(n);
+  plain_->Quantize(sample_, words, QuantizerOptions{.exact = true});
+  // Each word's medians from the pieces (the value at sorted position count / 2, as WithHamming takes).
+  std::vector<float> medians(kWords * kHammingBits);
+  for (size_t w = 0; w < kWords; ++w) {
+    for (int b = 0; b < kHammingBits; ++b) {
+      std::vector<float> column;
+      for (size_t i = 0; i < n; ++i)
+        if (words[i] == w) column.push_back(projected[i * kHammingBits + b]);
+      ASSERT_FALSE(column.empty());
+      std::sort(column.begin(), column.end());
+      medians[w * kHammingBits + b] = column[column.size() / 2];
+    }
+  }
+  const auto rebuilt = plain_->WithHammingParameters(projection, medians);
+  ASSERT_TRUE(rebuilt) << rebuilt.error().ToString();
+  EXPECT_EQ(rebuilt->fingerprint(), hamming_->fingerprint());
+  std::vector<uint64_t> a(n), b(n);
+  rebuilt->Signatures(sample_, words, a);
+  hamming_->Signatures(sample_, words, b);
+  EXPECT_EQ(a, b);
+
+  EXPECT_FALSE(plain_->WithHammingParameters(projection, std::vector<float>(medians.begin(), medians.end() - 1)));
+  EXPECT_FALSE(plain_->WithHammingParameters(std::vector<float>(projection.begin() + 1, projection.end()), medians));
+  medians[3] = std::numeric_limits<float>::infinity();
+  EXPECT_FALSE(plain_->WithHammingParameters(projection, medians));
 }
 
 }  // namespace
