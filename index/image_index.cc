@@ -1794,7 +1794,7 @@ class SnapshotSource final : public search::Source {
       : snap_(std::move(snap)), num_threads_(num_threads) {}
 
   ~SnapshotSource() override {
-    if (ranked_) {
+    if (ranked_ && ranked_memory_) {
       // The ranking's tables go back to the memory kept for the next search (up to a bound).
       InvertedFile::Subset::Buffers buffers = std::move(*ranked_).Release();
       constexpr size_t kMaxKeptBytes = size_t{8} << 20;

@@ -403,15 +403,17 @@ QueryFeatures PrepareQuery(const sift::FeatureSet& query, const vocab::Vocabular
 
 Result<QueryFeatures> StoredQuery(Source& source, const std::string& id, const QueryOptions& options,
                                   ImageRecord* record) {
-  auto ref = source.Find(id);
-  if (!ref) return std::unexpected(ref.error());
-  if (!*ref) return Fail(ErrorCode::kNotFound, "no image with id '" + id + "'");
+  auto found = source.Find(id);
+  if (!found) return std::unexpected(found.error());
+  const std::optional<ImageRef>& maybe = *found;
+  if (!maybe) return Fail(ErrorCode::kNotFound, "no image with id '" + id + "'");
+  const ImageRef ref = *maybe;
   constexpr float kAll = std::numeric_limits<float>::infinity();
   const std::array<float, 4> region = options.region.value_or(std::array<float, 4>{-kAll, -kAll, kAll, kAll});
-  auto features = source.Features(std::span(&**ref, 1), std::span(&region, 1),
+  auto features = source.Features(std::span(&ref, 1), std::span(&region, 1),
                                   FeaturesRequest{.signatures = options.hamming});
   if (!features) return std::unexpected(features.error());
-  auto records = source.Records(std::span(&**ref, 1));
+  auto records = source.Records(std::span(&ref, 1));
   if (!records) return std::unexpected(records.error());
   *record = std::move(records->front());
   RegionFeatures& f = features->front();

@@ -1076,7 +1076,7 @@ class PartitionsSource final : public index::search::Source {
   // Ok unless the partition of image `id` failed during the search (its error then).
   Status Holds(const std::string& id) const {
     if (!failed_.Contains(front_.OwnerOf(id))) return Ok();
-    return std::unexpected(failed_.error().value_or(Error{ErrorCode::kResourceExhausted, "a partition failed"}));
+    return std::unexpected(FirstError());
   }
 
   // Which partitions answered every call.
@@ -1132,8 +1132,12 @@ class PartitionsSource final : public index::search::Source {
   // After each stage: with failures, the answer is partial (allowed) or none.
   Status Check() const {
     if (failed_.partitions().empty()) return Ok();
-    if (!allow_partial_ || failed_.partitions().size() == num_partitions_) return std::unexpected(*failed_.error());
+    if (!allow_partial_ || failed_.partitions().size() == num_partitions_) return std::unexpected(FirstError());
     return Ok();
+  }
+
+  Error FirstError() const {
+    return failed_.error().value_or(Error{ErrorCode::kResourceExhausted, "a partition did not answer"});
   }
 
   static VerifyRequest GeometryRequest(const index::search::GeometryQuery& g, const index::QueryOptions& options) {

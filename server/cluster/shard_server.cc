@@ -278,11 +278,13 @@ class ShardServer::Impl final : public Shard::Service {
     const std::shared_ptr<Search> search = SearchOf(*context, service);
     const std::lock_guard<std::mutex> in_use(search->mutex);
     index::search::Source* source = search->source.get();
-    auto ref = source->Find(request->id());
-    if (!ref) return ToGrpc(ref.error());
-    if (!*ref) return ToGrpc(Error{ErrorCode::kNotFound, "no image with id '" + request->id() + "'"});
+    auto found = source->Find(request->id());
+    if (!found) return ToGrpc(found.error());
+    const std::optional<index::search::ImageRef>& maybe = *found;
+    if (!maybe) return ToGrpc(Error{ErrorCode::kNotFound, "no image with id '" + request->id() + "'"});
+    const index::search::ImageRef ref = *maybe;
     const std::array<float, 4> region = Box(request->region());
-    auto terms = source->RegionTerms(std::span(&**ref, 1), std::span(&region, 1));
+    auto terms = source->RegionTerms(std::span(&ref, 1), std::span(&region, 1));
     if (!terms) return ToGrpc(terms.error());
     PutTerms(terms->front(), reply->mutable_terms());
     return grpc::Status::OK;
@@ -492,10 +494,11 @@ class ShardServer::Impl final : public Shard::Service {
                                                             std::vector<size_t>* positions) {
     std::vector<index::search::ImageRef> refs;
     for (int k = 0; k < ids.size(); ++k) {
-      auto ref = source.Find(ids[k]);
-      if (!ref) return std::unexpected(ref.error());
-      if (!*ref) continue;
-      refs.push_back(**ref);
+      auto found = source.Find(ids[k]);
+      if (!found) return std::unexpected(found.error());
+      const std::optional<index::search::ImageRef>& ref = *found;
+      if (!ref) continue;
+      refs.push_back(*ref);
       positions->push_back(static_cast<size_t>(k));
     }
     return refs;
