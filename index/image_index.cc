@@ -1881,26 +1881,32 @@ class SnapshotSource final : public search::Source {
     return out;
   }
 
-  Result<std::vector<sift::VerificationResult>> Verify(std::span<const search::GeometryQuery> geometries,
-                                                       std::span<const search::VerifyPair> pairs,
-                                                       const QueryOptions& options) override {
-    // Only the geometries some pair uses are prepared (a round of transitive verification asks about a
-    // few of its anchors per attempt).
-    std::vector<std::optional<QueryGeometry>> prepared(geometries.size());
-    for (const search::VerifyPair& p : pairs) {
-      if (p.geometry >= prepared.size()) return Fail(ErrorCode::kInvalidArgument, "a verification of no geometry");
-      const search::GeometryQuery& g = geometries[p.geometry];
-      if (!prepared[p.geometry]) {
-        prepared[p.geometry].emplace(g.keypoints, g.words, g.region, g.signatures, options.hamming_threshold,
-                                     options.max_tentative_matches);
+  Result<std::vector<search::Verified>> Verify(std::span<const search::GeometryQuery> geometries,
+                                               std::span<const search::VerifyTask> tasks,
+                                               const QueryOptions& options) override {
+    // Only the geometries some task uses are prepared.
+    std::vector<std::unique_ptr<const QueryGeometry>> prepared(geometries.size());
+    for (const search::VerifyTask& task : tasks) {
+      if (task.geometries.empty()) return Fail(ErrorCode::kInvalidArgument, "a verification of no geometry");
+      for (const uint32_t g : task.geometries) {
+        if (g >= prepared.size()) return Fail(ErrorCode::kInvalidArgument, "a verification of no geometry");
+        if (!prepared[g]) {
+          prepared[g] = std::make_unique<const QueryGeometry>(geometries[g].keypoints, geometries[g].words,
+                                                              geometries[g].region, geometries[g].signatures,
+                                                              options.hamming_threshold, options.max_tentative_matches);
+        }
       }
     }
-    std::vector<sift::VerificationResult> out(pairs.size());
-    ParallelFor(pairs.size(), num_threads_, 1, [&](size_t begin, size_t end, int) {
+    std::vector<search::Verified> out(tasks.size());
+    ParallelFor(tasks.size(), num_threads_, 1, [&](size_t begin, size_t end, int) {
       for (size_t c = begin; c < end; ++c) {
-        const uint32_t n = pairs[c].ref.number;
-        out[c] = prepared[pairs[c].geometry]->Verify(copies_.Of(n, *snap_->entries[n]), options.max_pairs_per_word,
-                                                     options.verify);
+        const uint32_t n = tasks[c].ref.number;
+        const PackedFeatures& features = copies_.Of(n, *snap_->entries[n]);
+        for (const uint32_t g : tasks[c].geometries) {
+          out[c].geometry = g;
+          out[c].result = prepared[g]->Verify(features, options.max_pairs_per_word, options.verify);
+          if (out[c].result.verified) break;
+        }
       }
     });
     return out;

@@ -91,12 +91,12 @@ Result<size_t> Rerank(Source& source, const QueryFeatures& query, const QueryOpt
   geometry.region = options.region ? *options.region
                                    : std::array<float, 4>{0, 0, static_cast<float>(query.width),
                                                           static_cast<float>(query.height)};
-  std::vector<VerifyPair> pairs(rerank);
-  for (size_t c = 0; c < rerank; ++c) pairs[c] = {.geometry = 0, .ref = hits[c].ref};
-  auto verified = source.Verify(std::span(&geometry, 1), pairs, options);
+  std::vector<VerifyTask> tasks(rerank);
+  for (size_t c = 0; c < rerank; ++c) tasks[c] = {.ref = hits[c].ref, .geometries = {0}};
+  auto verified = source.Verify(std::span(&geometry, 1), tasks, options);
   if (!verified) return std::unexpected(verified.error());
   for (size_t c = 0; c < rerank; ++c) {
-    const sift::VerificationResult& v = (*verified)[c];
+    const sift::VerificationResult& v = (*verified)[c].result;
     QueryResult& r = hits[c].result;
     r.inliers = v.num_inliers;
     if (v.verified) {
@@ -271,29 +271,29 @@ Status VerifyTransitively(Source& source, const QueryOptions& options, bool hamm
     auto scores = source.ScoreAmong(anchor_words);
     if (!scores) return std::unexpected(scores.error());
     const std::vector<std::vector<Attempt>> attempts = PlanAttempts(*scores, tie, hits, first, options);
-    // Attempt by attempt: the first attempt of every candidate, then the second of those still
-    // unverified, and so on.
+    // Each candidate against its anchors in anchor order, up to the first that verifies it.
     std::vector<uint8_t> found(last - first, 0);
-    for (size_t j = 0; j < static_cast<size_t>(options.transitive_attempts); ++j) {
-      std::vector<VerifyPair> pairs;
-      std::vector<size_t> positions;
-      for (size_t c = first; c < last; ++c) {
-        const auto& list = attempts[c - first];
-        if (hits[c].result.verified || j >= list.size()) continue;
-        pairs.push_back({.geometry = list[j].anchor, .ref = hits[c].ref});
-        positions.push_back(c);
-      }
-      if (pairs.empty()) break;
-      auto verified = source.Verify(geometries, pairs, options);
+    std::vector<VerifyTask> tasks;
+    std::vector<size_t> positions;
+    for (size_t c = first; c < last; ++c) {
+      const auto& list = attempts[c - first];
+      if (hits[c].result.verified || list.empty()) continue;
+      VerifyTask& task = tasks.emplace_back();
+      task.ref = hits[c].ref;
+      for (const Attempt& attempt : list) task.geometries.push_back(attempt.anchor);
+      positions.push_back(c);
+    }
+    if (!tasks.empty()) {
+      auto verified = source.Verify(geometries, tasks, options);
       if (!verified) return std::unexpected(verified.error());
-      for (size_t i = 0; i < pairs.size(); ++i) {
-        const sift::VerificationResult& v = (*verified)[i];
-        if (!v.verified) continue;
+      for (size_t i = 0; i < tasks.size(); ++i) {
+        const Verified& v = (*verified)[i];
+        if (!v.result.verified) continue;
         QueryResult& r = hits[positions[i]].result;
         r.verified = true;
-        r.inliers = v.num_inliers;
-        r.db_from_query = Compose(v.db_from_query, hits[pool[used + pairs[i].geometry]].result.db_from_query);
-        r.db_region = v.db_region;
+        r.inliers = v.result.num_inliers;
+        r.db_from_query = Compose(v.result.db_from_query, hits[pool[used + v.geometry]].result.db_from_query);
+        r.db_region = v.result.db_region;
         found[positions[i] - first] = 1;
       }
     }

@@ -86,11 +86,17 @@ struct GeometryQuery {
   std::array<float, 4> region = {0, 0, 0, 0};  // x1, y1, x2, y2 of the object in its image
 };
 
-// One verification of a batch: candidate `ref` against geometry `geometry` (an index into the
-// batch's geometries).
-struct VerifyPair {
-  uint32_t geometry = 0;
+// One verification task of a batch: candidate `ref` against the geometries `geometries` (indices into
+// the batch's geometries), tried in order until one verifies it.
+struct VerifyTask {
   ImageRef ref{};
+  std::vector<uint32_t> geometries;
+};
+
+// A task's outcome: the geometry that verified it (or the last one tried) and that verification.
+struct Verified {
+  uint32_t geometry = 0;
+  sift::VerificationResult result;
 };
 
 // An image's stored features inside a region, as a search reads them.
@@ -132,12 +138,12 @@ class Source {
                                                                   std::span<const ImageRef> refs,
                                                                   const QueryOptions& options) = 0;
 
-  // Spatial verification (index/rerank.h) of each pair, with options.max_pairs_per_word,
+  // Spatial verification (index/rerank.h) of each task, with options.max_pairs_per_word,
   // options.verify and, where the geometry has signatures, options.hamming_threshold and
-  // options.max_tentative_matches.
-  [[nodiscard]] virtual Result<std::vector<sift::VerificationResult>> Verify(std::span<const GeometryQuery> geometries,
-                                                                            std::span<const VerifyPair> pairs,
-                                                                            const QueryOptions& options) = 0;
+  // options.max_tentative_matches. A task stops at its first geometry that verifies it.
+  [[nodiscard]] virtual Result<std::vector<Verified>> Verify(std::span<const GeometryQuery> geometries,
+                                                            std::span<const VerifyTask> tasks,
+                                                            const QueryOptions& options) = 0;
 
   // The stored features of each image inside its region (regions[i] for refs[i]).
   [[nodiscard]] virtual Result<std::vector<RegionFeatures>> Features(std::span<const ImageRef> refs,

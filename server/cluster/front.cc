@@ -907,50 +907,55 @@ class PartitionsSource final : public index::search::Source {
     return out;
   }
 
-  Result<std::vector<sift::VerificationResult>> Verify(std::span<const index::search::GeometryQuery> geometries,
-                                                       std::span<const index::search::VerifyPair> pairs,
-                                                       const index::QueryOptions& options) override {
-    std::vector<sift::VerificationResult> out(pairs.size());
-    // Per partition: per geometry it verifies against, the pairs (positions in `pairs`).
-    std::vector<std::map<uint32_t, std::vector<size_t>>> held(num_partitions_);
-    for (size_t k = 0; k < pairs.size(); ++k) held[pairs[k].ref.part][pairs[k].geometry].push_back(k);
-    std::map<uint32_t, VerifyRequest> requests;  // by geometry, without ids
-    for (const auto& one : held) {
-      for (const auto& [g, positions] : one) {
-        if (requests.contains(g)) continue;
-        if (g >= geometries.size()) return Fail(ErrorCode::kInternal, "a verification of no geometry");
-        requests[g] = GeometryRequest(geometries[g], options);
-      }
-    }
+  Result<std::vector<index::search::Verified>> Verify(std::span<const index::search::GeometryQuery> geometries,
+                                                      std::span<const index::search::VerifyTask> tasks,
+                                                      const index::QueryOptions& options) override {
+    std::vector<index::search::Verified> out(tasks.size());
+    std::vector<std::vector<size_t>> held(num_partitions_);  // per partition: its tasks
+    for (size_t k = 0; k < tasks.size(); ++k) held[tasks[k].ref.part].push_back(k);
     Scatter([&](uint32_t p) -> Status {
       if (held[p].empty()) return Ok();
+      // The geometries this partition's tasks use, each sent once, renumbered in the order first used.
       VerifyBatchRequest batch;
-      for (const auto& [g, positions] : held[p]) {
-        VerifyRequest* one = batch.add_requests();
-        *one = requests[g];
-        for (size_t k : positions) one->add_ids(ids_[pairs[k].ref.number]);
+      batch.set_max_pairs_per_word(options.max_pairs_per_word);
+      batch.set_min_inliers(options.verify.min_inliers);
+      batch.set_hamming_threshold(options.hamming_threshold);
+      batch.set_max_tentative_matches(options.max_tentative_matches);
+      std::map<uint32_t, uint32_t> sent;    // batch index of each geometry sent
+      std::vector<uint32_t> original;       // and back
+      for (size_t k : held[p]) {
+        VerifyTask* task = batch.add_tasks();
+        task->set_id(ids_[tasks[k].ref.number]);
+        for (const uint32_t g : tasks[k].geometries) {
+          if (g >= geometries.size()) return Fail(ErrorCode::kInternal, "a verification of no geometry");
+          const auto [it, added] = sent.try_emplace(g, static_cast<uint32_t>(original.size()));
+          if (added) {
+            original.push_back(g);
+            PutGeometry(geometries[g], batch.add_geometries());
+          }
+          task->add_geometries(it->second);
+        }
       }
       auto reply = Ask<VerifyBatchReply>(
           p, [&](Shard::Stub& stub, grpc::ClientContext& context, VerifyBatchReply* r) {
             return stub.VerifyBatch(&context, batch, r);
           });
       if (!reply) return std::unexpected(reply.error());
-      if (static_cast<size_t>(reply->replies_size()) != held[p].size())
-        return Fail(ErrorCode::kInternal, "a shard answered another number of verifications than asked");
-      size_t r = 0;
-      for (const auto& [g, positions] : held[p]) {
-        const VerifyReply& one = reply->replies(static_cast<int>(r++));
-        if (static_cast<size_t>(one.results_size()) != positions.size())
-          return Fail(ErrorCode::kInternal, "a shard verified another number of images than asked");
-        for (size_t i = 0; i < positions.size(); ++i) {
-          const Verification& v = one.results(static_cast<int>(i));
-          sift::VerificationResult& result = out[positions[i]];
-          result.num_inliers = v.inliers();
-          if (v.verified() && v.db_from_query_size() == 6 && v.db_region_size() == 4) {
-            result.verified = true;
-            std::copy(v.db_from_query().begin(), v.db_from_query().end(), result.db_from_query.m.begin());
-            std::copy(v.db_region().begin(), v.db_region().end(), result.db_region.begin());
-          }
+      if (static_cast<size_t>(reply->outcomes_size()) != held[p].size())
+        return Fail(ErrorCode::kInternal, "a shard verified another number of images than asked");
+      for (size_t i = 0; i < held[p].size(); ++i) {
+        const VerifyOutcome& outcome = reply->outcomes(static_cast<int>(i));
+        if (!outcome.found()) continue;
+        if (outcome.geometry() >= original.size())
+          return Fail(ErrorCode::kInternal, "a shard verified against a geometry it was not sent");
+        index::search::Verified& v = out[held[p][i]];
+        v.geometry = original[outcome.geometry()];
+        const Verification& result = outcome.result();
+        v.result.num_inliers = result.inliers();
+        if (result.verified() && result.db_from_query_size() == 6 && result.db_region_size() == 4) {
+          v.result.verified = true;
+          std::copy(result.db_from_query().begin(), result.db_from_query().end(), v.result.db_from_query.m.begin());
+          std::copy(result.db_region().begin(), result.db_region().end(), v.result.db_region.begin());
         }
       }
       return Ok();
@@ -1140,17 +1145,11 @@ class PartitionsSource final : public index::search::Source {
     return failed_.error().value_or(Error{ErrorCode::kResourceExhausted, "a partition did not answer"});
   }
 
-  static VerifyRequest GeometryRequest(const index::search::GeometryQuery& g, const index::QueryOptions& options) {
-    VerifyRequest request;
-    for (const sift::Keypoint& k : g.keypoints) PutKeypoint(k, request.add_keypoints());
-    request.mutable_words()->Add(g.words.begin(), g.words.end());
-    request.mutable_signatures()->Add(g.signatures.begin(), g.signatures.end());
-    for (float v : g.region) request.add_region(v);
-    request.set_max_pairs_per_word(options.max_pairs_per_word);
-    request.set_min_inliers(options.verify.min_inliers);
-    request.set_hamming_threshold(options.hamming_threshold);
-    request.set_max_tentative_matches(options.max_tentative_matches);
-    return request;
+  static void PutGeometry(const index::search::GeometryQuery& g, Geometry* out) {
+    for (const sift::Keypoint& k : g.keypoints) PutKeypoint(k, out->add_keypoints());
+    out->mutable_words()->Add(g.words.begin(), g.words.end());
+    out->mutable_signatures()->Add(g.signatures.begin(), g.signatures.end());
+    for (float v : g.region) out->add_region(v);
   }
 
   static index::ImageRecord RecordOf(const Scored& s) {

@@ -135,63 +135,61 @@ class ShardServer::Impl final : public Shard::Service {
     std::shared_ptr<api::Service> service;
     if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
     Stamp(context, *service);
-    if (request->requests_size() == 0) return grpc::Status::OK;
     const size_t vocabulary_size = service->index().vocabulary().size();
-    // One set of options for the batch (the front sends the same in every request).
-    const VerifyRequest& head = request->requests(0);
     index::QueryOptions options;
-    options.max_pairs_per_word = head.max_pairs_per_word();
-    options.verify.min_inliers = head.min_inliers();
-    options.hamming_threshold = head.hamming_threshold();
-    options.max_tentative_matches = head.max_tentative_matches();
+    options.max_pairs_per_word = request->max_pairs_per_word();
+    options.verify.min_inliers = request->min_inliers();
+    options.hamming_threshold = request->hamming_threshold();
+    options.max_tentative_matches = request->max_tentative_matches();
     if (auto message = options.Check()) return Invalid(*message);
-    const std::shared_ptr<Search> search = SearchOf(*context, service);
-    const std::lock_guard<std::mutex> in_use(search->mutex);
-    index::search::Source* source = search->source.get();
-    std::vector<std::vector<sift::Keypoint>> keypoints(static_cast<size_t>(request->requests_size()));
+    const auto num_geometries = static_cast<size_t>(request->geometries_size());
+    std::vector<std::vector<sift::Keypoint>> keypoints(num_geometries);
     std::vector<index::search::GeometryQuery> geometries;
-    std::vector<index::search::VerifyPair> pairs;
-    std::vector<std::pair<size_t, size_t>> where;  // per pair: (request, id)
-    for (int g = 0; g < request->requests_size(); ++g) {
-      const VerifyRequest& one = request->requests(g);
+    geometries.reserve(num_geometries);
+    for (size_t g = 0; g < num_geometries; ++g) {
+      const Geometry& one = request->geometries(static_cast<int>(g));
       if (one.keypoints_size() != one.words_size() || one.region_size() != 4 ||
           (one.signatures_size() != 0 && one.signatures_size() != one.words_size()))
         return Invalid("one word (and signature, if any) per keypoint and a region of 4 values");
       if (!WordsIn(one.words(), vocabulary_size)) return Invalid("a word outside the vocabulary");
-      if (one.max_pairs_per_word() != options.max_pairs_per_word || one.min_inliers() != options.verify.min_inliers ||
-          one.hamming_threshold() != options.hamming_threshold ||
-          one.max_tentative_matches() != options.max_tentative_matches)
-        return Invalid("the requests of a batch must have the same options");
-      auto& points = keypoints[static_cast<size_t>(g)];
-      points.reserve(static_cast<size_t>(one.keypoints_size()));
-      for (const Keypoint& k : one.keypoints()) points.push_back(FromProto(k));
-      geometries.push_back({.keypoints = points,
+      keypoints[g].reserve(static_cast<size_t>(one.keypoints_size()));
+      for (const Keypoint& k : one.keypoints()) keypoints[g].push_back(FromProto(k));
+      geometries.push_back({.keypoints = keypoints[g],
                             .words = {one.words().data(), static_cast<size_t>(one.words_size())},
                             .signatures = {one.signatures().data(), static_cast<size_t>(one.signatures_size())},
                             .region = Box(one.region())});
-      std::vector<size_t> positions;
-      auto refs = Found(*source, one.ids(), &positions);
-      if (!refs) return ToGrpc(refs.error());
-      for (size_t k = 0; k < refs->size(); ++k) {
-        pairs.push_back({.geometry = static_cast<uint32_t>(g), .ref = (*refs)[k]});
-        where.emplace_back(static_cast<size_t>(g), positions[k]);
-      }
     }
-    auto verified = source->Verify(geometries, pairs, options);
+    const std::shared_ptr<Search> search = SearchOf(*context, service);
+    const std::lock_guard<std::mutex> in_use(search->mutex);
+    index::search::Source* source = search->source.get();
+    std::vector<index::search::VerifyTask> tasks;
+    std::vector<size_t> positions;  // of the tasks whose image is indexed here
+    for (int k = 0; k < request->tasks_size(); ++k) {
+      const VerifyTask& task = request->tasks(k);
+      if (task.geometries_size() == 0) return Invalid("a task without geometries");
+      for (const uint32_t g : task.geometries())
+        if (g >= num_geometries) return Invalid("a task names a geometry the batch does not have");
+      auto found = source->Find(task.id());
+      if (!found) return ToGrpc(found.error());
+      const std::optional<index::search::ImageRef>& ref = *found;
+      if (!ref) continue;
+      tasks.push_back({.ref = *ref, .geometries = {task.geometries().begin(), task.geometries().end()}});
+      positions.push_back(static_cast<size_t>(k));
+    }
+    auto verified = source->Verify(geometries, tasks, options);
     if (!verified) return ToGrpc(verified.error());
-    std::vector<std::vector<sift::VerificationResult>> results(geometries.size());
-    for (int g = 0; g < request->requests_size(); ++g)
-      results[static_cast<size_t>(g)].resize(static_cast<size_t>(request->requests(g).ids_size()));
-    for (size_t k = 0; k < pairs.size(); ++k) results[where[k].first][where[k].second] = (*verified)[k];
-    for (const auto& one : results) {
-      VerifyReply* out = reply->add_replies();
-      for (const sift::VerificationResult& v : one) {
-        Verification* r = out->add_results();
-        r->set_verified(v.verified);
-        r->set_inliers(v.num_inliers);
-        for (double m : v.db_from_query.m) r->add_db_from_query(m);
-        for (float b : v.db_region) r->add_db_region(b);
-      }
+    std::vector<VerifyOutcome*> outcomes(static_cast<size_t>(request->tasks_size()));
+    for (VerifyOutcome*& outcome : outcomes) outcome = reply->add_outcomes();
+    for (size_t k = 0; k < positions.size(); ++k) {
+      const index::search::Verified& v = (*verified)[k];
+      VerifyOutcome* outcome = outcomes[positions[k]];
+      outcome->set_found(true);
+      outcome->set_geometry(v.geometry);
+      Verification* r = outcome->mutable_result();
+      r->set_verified(v.result.verified);
+      r->set_inliers(v.result.num_inliers);
+      for (double m : v.result.db_from_query.m) r->add_db_from_query(m);
+      for (float b : v.result.db_region) r->add_db_region(b);
     }
     return grpc::Status::OK;
   }
