@@ -96,7 +96,8 @@ void OnBusError(int signal, siginfo_t* info, void* context) {
     if (Registered(address)) {
       // mmap is a plain system call here (Linux), safe in a signal handler. The page lies in a mapping
       // its owner still holds (the contract in the header), so nothing else can be mapped there.
-      void* page = reinterpret_cast<void*>(address & ~(page_bytes - 1));
+      // The page's start as a pointer into the faulting one (no integer-to-pointer cast).
+      void* page = static_cast<char*>(info->si_addr) - (address & (page_bytes - 1));
       if (::mmap(page, page_bytes, PROT_READ, MAP_FIXED | MAP_PRIVATE | MAP_ANONYMOUS, -1, 0) != MAP_FAILED) {
         answered.fetch_add(1, std::memory_order_relaxed);
         errno = saved_errno;

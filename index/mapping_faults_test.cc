@@ -38,7 +38,7 @@ class MappingFaultsTest : public ::testing::Test {
   void TearDown() override { fs::remove_all(dir_); }
   // A file of kFileBytes bytes of 0xab.
   std::string MakeFile(const std::string& name) const {
-    const std::string path = (dir_ / name).string();
+    std::string path = (dir_ / name).string();
     std::ofstream(path, std::ios::binary) << std::string(kFileBytes, '\xab');
     return path;
   }

@@ -331,8 +331,8 @@ void BlurScratch::Prepare(int width, std::span<const float> half_kernel) {
   const size_t pitch = PaddedPitch(width, r);
   if (padded.size() < kRowBlock * pitch) padded.resize(kRowBlock * pitch);
   for (int m = 0; m < kRowBlock; ++m) t[m] = padded.data() + static_cast<size_t>(m) * pitch + r;
-  rows.resize(static_cast<size_t>(2 * r + kRowBlock));
-  kernel.resize(static_cast<size_t>(2 * r + 1));
+  rows.resize(2 * static_cast<size_t>(r) + kRowBlock);
+  kernel.resize(2 * static_cast<size_t>(r) + 1);
   for (int i = 0; i <= 2 * r; ++i) kernel[static_cast<size_t>(i)] = half_kernel[static_cast<size_t>(std::abs(i - r))];
 }
 

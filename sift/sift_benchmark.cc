@@ -389,7 +389,7 @@ int main(int argc, char** argv) {
         const HomographyScore s = form == 0 ? ScoreUnderHomography(fa, fb, *h) : ScoreUnderHomography(root_sift(fa), root_sift(fb), *h);
         char text[96];
         std::snprintf(text, sizeof text, "%.3f / %.3f / %d", s.repeatability, s.matching_score, s.correct_matches);
-        cells[form].back().push_back(text);
+        cells[form].back().emplace_back(text);
       }
     }
   }
