@@ -787,7 +787,7 @@ inline void OrientationCircularRowAvx512(const float* row, const float* above, c
 }
 #endif
 
-#ifdef OXBOW_AVX2
+#if defined(OXBOW_AVX2) && !defined(OXBOW_AVX512)  // the AVX-512 path replaces it where both exist
 // OrientationHistogramCircular's AVX2 path for the samples [j, j1) of a row: votes 8 at a time, added
 // in sample order.
 OXBOW_AVX2_TARGET void OrientationCircularRowAvx2(const float* row, const float* above, const float* below, int j, int j1,
@@ -944,7 +944,7 @@ inline float OrientationBin(float ori, float ori_deg, float bins_per_deg) {
   return obin;
 }
 
-#ifdef OXBOW_AVX2
+#if defined(OXBOW_AVX2) && !defined(OXBOW_AVX512)  // the AVX-512 path replaces it where both exist
 // Descriptor's AVX2 path for the samples [j, j1) of a window row (wcol: the column weights, indexed
 // by j), whole vectors of 8 (lanes past j1 read valid memory: row padding or the next row, and are not
 // added): bin coordinates and weights 8 at a time, then AccumulateSample per sample in order.

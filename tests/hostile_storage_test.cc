@@ -258,6 +258,7 @@ TEST_F(HostileStorageTest, GeometryFilesTruncatedUnderSearchesNeverKillTheServer
     std::atomic<bool> stop{false};
     std::atomic<int> truncations{0};
     std::vector<std::thread> truncators;
+    truncators.reserve(geometry.size());
     for (const std::string& path : geometry) {
       // The file's last page cut off and written back at once, then left whole for a moment: whole
       // most of the time (so a check usually passes) and cut often (so reads after it meet a cut).

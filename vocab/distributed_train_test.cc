@@ -44,6 +44,7 @@ class ThreadRanks {
   // Runs body(comm) on every rank, each on its own thread; returns when all have returned.
   void Run(const std::function<void(Communicator&)>& body) {
     std::vector<std::thread> threads;
+    threads.reserve(static_cast<size_t>(size_));
     for (int r = 0; r < size_; ++r) {
       threads.emplace_back([this, r, &body] {
         Rank comm(*this, r);
