@@ -390,7 +390,9 @@ std::vector<Candidate> ScanOctave(const Octave& octave, int intervals, float thr
         for (; x < w; ++x) d[x] = pb[x] - pa[x];
       }
     };
-    std::vector<Candidate> rows_found[8];
+    // On the heap: GCC zeroes a stack array of vectors with aligned 64-byte stores, which ASan's
+    // detect_stack_use_after_return frames (32-byte aligned) fault on.
+    std::vector<std::vector<Candidate>> rows_found(8);
     std::vector<int> columns;
     bool abandoned = rows_ready && !rows_ready(y0 + 1);
     if (!abandoned) {
