@@ -1,11 +1,11 @@
 # Helpers shared by the module CMakeLists.
 #
 # oxbow_add_module(NAME <target> [PUBLIC_DEPS ...] [PRIVATE_DEPS ...] [SUBDIRS ...])
-#   One static library per module folder, from every *.cc in the folder and in its SUBDIRS except *_test.cc,
-#   *_benchmark.cc and *_main.cc. Include paths are rooted at the repository, so code writes
+#   One static library per module folder, from every *.cc in the folder and in its SUBDIRS except *_test.cc
+#   and *_main.cc. Include paths are rooted at the repository, so code writes
 #   #include "sift/types.h".
 #   Every *_test.cc in the folder becomes its own GoogleTest executable and ctest entry, linked
-#   against the module (oxbow_add_gtest); every *_benchmark.cc becomes a benchmark executable (not a test).
+#   against the module (oxbow_add_gtest). The benchmark programs are in eval/bench/.
 #
 # oxbow_add_gtest(NAME <target> SOURCE <file> [LABELS ...])
 #   Registers the GoogleTest executable <target> (built from <file>) with ctest and links it with
@@ -79,12 +79,9 @@ function(oxbow_add_module)
   file(GLOB _all CONFIGURE_DEPENDS ${_globs})
   set(_srcs "")
   set(_tests "")
-  set(_benches "")
   foreach(f IN LISTS _all)
     if(f MATCHES "_test\\.cc$")
       list(APPEND _tests ${f})
-    elseif(f MATCHES "_benchmark\\.cc$")
-      list(APPEND _benches ${f})
     elseif(NOT f MATCHES "_main\\.cc$")
       list(APPEND _srcs ${f})
     endif()
@@ -108,14 +105,6 @@ function(oxbow_add_module)
       target_link_libraries(${_n} PRIVATE ${M_NAME} ${M_PRIVATE_DEPS} ${M_TEST_DEPS})
       oxbow_target_defaults(${_n})
       oxbow_add_gtest(NAME ${_n} SOURCE ${t} LABELS ${M_NAME})
-    endforeach()
-  endif()
-  if(OXBOW_BUILD_BENCHMARKS)
-    foreach(b IN LISTS _benches)
-      get_filename_component(_n ${b} NAME_WE)
-      add_executable(${_n} ${b})
-      target_link_libraries(${_n} PRIVATE ${M_NAME} ${M_PRIVATE_DEPS} ${M_TEST_DEPS})
-      oxbow_target_defaults(${_n})
     endforeach()
   endif()
 endfunction()

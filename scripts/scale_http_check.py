@@ -4,7 +4,7 @@
   python3 scripts/scale_http_check.py --index DIR [--photos DIR] [--oxbow build/server/oxbow]
                                       [--queries 40] [--adds 40] [--port 18765] [--serve-arg=ARG ...]
 
-DIR: an index folder, e.g. the one `build/index/index_benchmark storage --images 1000000 --out DIR` leaves.
+DIR: an index folder, e.g. the one `build/eval/bench/index_benchmark storage --images 1000000 --out DIR` leaves.
 It is served as it is by `oxbow serve --index DIR` (server defaults) and measured:
   1. start to /readyz 200 (the server process started cold, then) and resident memory when ready;
   2. searches with real photos (default: the Paris subset, else OpenCV's samples), one at a time:

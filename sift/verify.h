@@ -121,7 +121,7 @@ enum class GeometricModel {
   // fitted to the tentative matches (as kHomography) replaces the affine transform and the inliers if
   // it keeps at least half of the Hough inliers (HomographyAgreeingWith). Affine maps cannot follow a
   // perspective change: graf 1 -> 3 corner error 48.6 px with kHoughAffine, 0.93 px with this
-  // (api/pair_match_accuracy_benchmark.cc).
+  // (eval/bench/pair_match_accuracy_benchmark.cc).
   kHoughHomography,
   kSimilarity,   // 4 dof: rotation, uniform scale, translation (cv::estimateAffinePartial2D)
   kAffine,       // 6 dof (cv::estimateAffine2D)

@@ -11,7 +11,7 @@
 //   - OpenCV 4.6: cv::SIFT (its defaults), RootSIFT (L1 normalisation, square root), brute-force
 //     knnMatch k = 2 with Lowe's ratio 0.8, cv::findHomography(USAC_MAGSAC, 3 px).
 // The bound it checks: oxbow's defaults no worse than OpenCV + 0.5 px in mean corner error on each pair.
-// Accuracy only: timings are the match benchmarks' job (sift/match_benchmark.cc).
+// Accuracy only: timings are the match benchmarks' job (eval/bench/match_benchmark.cc).
 #include <cmath>
 #include <cstdio>
 #include <filesystem>

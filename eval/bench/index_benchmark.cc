@@ -100,10 +100,10 @@
 #include <malloc.h>
 #include <time.h>
 
-#include "index/feature_store.h"
+#include "index/storage/feature_store.h"
 #include "index/image_index.h"
 #include "index/inverted_file.h"
-#include "index/rerank.h"
+#include "index/search/rerank.h"
 #include "sift/features_io.h"
 #include "sift/base/parallel.h"
 #include "sift/sift.h"

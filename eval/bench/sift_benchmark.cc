@@ -3,7 +3,7 @@
 // matching score under ground-truth homographies (raw SIFT, and RootSIFT applied to every side alike), and
 // peak memory for a 4000x3000 photo.
 //
-//   build/sift/sift_benchmark [--reps N] [--skip-large] [--quick] [--processes]
+//   build/eval/bench/sift_benchmark [--reps N] [--skip-large] [--quick] [--processes]
 //     --quick: graf1 only, oxbow vs cv::SIFT only, no quality table.
 //     --processes: every method runs its repetitions of an image in a process of its own (forked from
 //     this one before any extraction), so no method inherits another's allocator and page state.
