@@ -32,7 +32,7 @@
 #include <string>
 #include <vector>
 
-#include "index/inverted_file.h"
+#include "index/postings/inverted_file.h"
 #include "sift/base/error.h"
 #include "sift/types.h"
 

@@ -34,7 +34,7 @@
 #include "index/folder_lock.h"
 #include "index/hamming.h"
 #include "index/huge_pages.h"
-#include "index/inverted_file.h"
+#include "index/postings/inverted_file.h"
 #include "index/rerank.h"
 #include "index/search/kept_memory.h"
 #include "index/search/pipeline.h"

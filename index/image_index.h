@@ -108,7 +108,7 @@
 #include <string>
 #include <vector>
 
-#include "index/inverted_file.h"  // TfIdfOptions: the defaults IndexOptions shares
+#include "index/postings/inverted_file.h"  // TfIdfOptions: the defaults IndexOptions shares
 #include "sift/base/error.h"
 #include "sift/types.h"
 #include "sift/verify.h"

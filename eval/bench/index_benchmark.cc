@@ -102,7 +102,7 @@
 
 #include "index/storage/feature_store.h"
 #include "index/image_index.h"
-#include "index/inverted_file.h"
+#include "index/postings/inverted_file.h"
 #include "index/search/rerank.h"
 #include "sift/features_io.h"
 #include "sift/base/parallel.h"

@@ -30,7 +30,7 @@
 #include <vector>
 
 #include "index/image_index.h"
-#include "index/inverted_file.h"
+#include "index/postings/inverted_file.h"
 #include "sift/base/error.h"
 #include "sift/types.h"
 #include "sift/verify.h"

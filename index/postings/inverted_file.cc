@@ -1,4 +1,4 @@
-#include "index/inverted_file.h"
+#include "index/postings/inverted_file.h"
 
 #include <algorithm>
 #include <atomic>

@@ -1,4 +1,4 @@
-#include "index/inverted_file.h"
+#include "index/postings/inverted_file.h"
 
 #include <gtest/gtest.h>
 
@@ -894,7 +894,7 @@ TEST(InvertedFileTest, ScoresAcrossImageBlocksAndSegmentsEqualTheDefinition) {
   }
 }
 
-// The bags of index/testdata/postings_format1.oxif, a postings file of format 1 (varint postings) that
+// The bags of testdata/postings_format1.oxif, a postings file of format 1 (varint postings) that
 // the build before format 2 (1d18dfc) wrote: Build over these bags, then WithAdded of images 300 and
 // 420, then WithRemoved of image 14 (so two segments, one with the postings of a removed image).
 bool Format1FixtureBag(uint32_t image, BagOfWords* bag) {
@@ -1038,7 +1038,7 @@ TEST(InvertedFileTest, HeadAndSegmentFilesReadBackAsTheWholeFile) {
 }
 
 TEST(InvertedFileTest, ReadsFormat1PostingsAndRecodesThem) {
-  const std::vector<uint8_t> bytes = ReadFileBytes(OXBOW_SOURCE_DIR "/index/testdata/postings_format1.oxif");
+  const std::vector<uint8_t> bytes = ReadFileBytes(OXBOW_SOURCE_DIR "/index/postings/testdata/postings_format1.oxif");
   ASSERT_GT(bytes.size(), 1000u);
   bool recoded = false;
   auto old = InvertedFile::Deserialize(bytes, 64, {}, &recoded);
