@@ -38,7 +38,7 @@
 #include "api/pair_match.h"
 #include "api/partition.h"
 #include "api/thumbnails.h"
-#include "index/backup.h"
+#include "index/storage/backup.h"
 #include "index/image_index.h"
 #include "sift/base/error.h"
 #include "sift/image.h"
@@ -211,7 +211,7 @@ class Service {
   [[nodiscard]] Result<ThumbnailResponse> GetThumbnail(const std::string& id, int max_side_px) const;
   ServiceStats Stats() const;
   // Backs up the index folder and its thumbnail cache into the new folder `out` while serving
-  // (index/backup.h; serve the copy to restore). The snapshots begin under the writers' lock, so the
+  // (index/storage/backup.h; serve the copy to restore). The snapshots begin under the writers' lock, so the
   // copy's thumbnails are those of its images.
   [[nodiscard]] Result<index::BackupResult> Backup(const std::string& out) const;
   // The same from outside a server process (`oxbow index backup`), with `serve` running or not: the

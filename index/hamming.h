@@ -24,7 +24,7 @@
 #include <span>
 #include <vector>
 
-#include "index/feature_store.h"
+#include "index/storage/feature_store.h"
 #include "index/word_runs.h"
 
 namespace oxbow::index {

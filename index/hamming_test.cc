@@ -20,10 +20,10 @@
 #include <utility>
 #include <vector>
 
-#include "index/checkpoint.h"
-#include "index/feature_store.h"
+#include "index/storage/checkpoint.h"
+#include "index/storage/feature_store.h"
 #include "index/image_index.h"
-#include "index/rerank.h"
+#include "index/search/rerank.h"
 #include "sift/base/log.h"
 
 namespace oxbow::index {

@@ -27,15 +27,15 @@
 #include <unordered_map>
 #include <unordered_set>
 
-#include "index/catalogue.h"
-#include "index/checkpoint.h"
+#include "index/storage/catalogue.h"
+#include "index/storage/checkpoint.h"
 #include "index/cow_array.h"
-#include "index/feature_store.h"
-#include "index/folder_lock.h"
+#include "index/storage/feature_store.h"
+#include "index/storage/folder_lock.h"
 #include "index/hamming.h"
-#include "index/huge_pages.h"
+#include "index/storage/huge_pages.h"
 #include "index/postings/inverted_file.h"
-#include "index/rerank.h"
+#include "index/search/rerank.h"
 #include "index/search/kept_memory.h"
 #include "index/search/pipeline.h"
 #include "index/search/source.h"

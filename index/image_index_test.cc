@@ -32,9 +32,9 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
-#include "index/catalogue.h"
-#include "index/checkpoint.h"
-#include "index/feature_store.h"
+#include "index/storage/catalogue.h"
+#include "index/storage/checkpoint.h"
+#include "index/storage/feature_store.h"
 #include "index/search/pipeline.h"
 #include "index/search/source.h"
 

@@ -409,7 +409,7 @@ TEST_F(HttpServerTest, RestartKeepsDataAndGracefulStopFinishesInFlightRequests) 
 }
 
 // A second server on the folder or the port of a running one is refused with a clear error, and the
-// first goes on serving: no two processes write one index (index/folder_lock.h), no two servers split
+// first goes on serving: no two processes write one index (index/storage/folder_lock.h), no two servers split
 // the connections of one port (SO_REUSEPORT is off).
 TEST_F(HttpServerTest, ASecondServerOnTheSameFolderOrPortIsRefused) {
   const std::string index_dir = dir_->path() + "/index-" + std::to_string(counter_++);

@@ -167,7 +167,7 @@ TEST_F(JsonLogTest, ClientBytesCannotForgeATextLine) {
   auto client = server->Client();
   const httplib::Headers key = {{"X-API-Key", "k"}};
   const std::string forged = "2026-01-01T00:00:00Z I forged";
-  // A backup folder with a newline is refused (a path the client chose, index/backup.h) and, whatever
+  // A backup folder with a newline is refused (a path the client chose, index/storage/backup.h) and, whatever
   // is logged about it, no line of the log starts with what followed the newline.
   const std::string out = dir_->path() + "/forged-backup\n" + forged;
   const auto backup = client.Post("/v1/admin/backup", key, json{{"out", out}}.dump(), "application/json");

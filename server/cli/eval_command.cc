@@ -557,7 +557,7 @@ void Run(const EvalArgs& a, const std::string& command_line) {
       base.index_bytes_per_feature = stats.bytes_per_feature;
       base.vocabulary_words = stats.vocabulary_size;
       // Every HTTP run, then every in-process run: one process at a time may open the index folder
-      // (index/folder_lock.h), so the server is stopped before this process opens it.
+      // (index/storage/folder_lock.h), so the server is stopped before this process opens it.
       for (const std::string& mode : kModes) {
         if (external ? mode != "http" : a.mode != "both" && a.mode != mode) continue;
         if (!external && mode == "http") {

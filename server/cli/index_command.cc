@@ -17,7 +17,7 @@
 #include "api/params.h"
 #include "api/partition.h"
 #include "api/service.h"
-#include "index/catalogue.h"
+#include "index/storage/catalogue.h"
 #include "index/image_index.h"
 #include "server/cli/cli.h"
 #include "server/cli/common_flags.h"

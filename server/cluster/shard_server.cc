@@ -15,7 +15,7 @@
 #include <system_error>
 
 #include "api/filter.h"
-#include "index/backup.h"
+#include "index/storage/backup.h"
 #include "index/search/source.h"
 #include "server/cluster/proto_convert.h"
 #include "server/cluster/shard.grpc.pb.h"

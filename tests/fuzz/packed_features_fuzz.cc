@@ -1,5 +1,5 @@
 // Fuzz target: the per-image BLOB of the index catalogue (index::PackedFeatures::Deserialize, see
-// index/feature_store.h) and everything the index does with a BLOB that passed: dequantised keypoints,
+// index/storage/feature_store.h) and everything the index does with a BLOB that passed: dequantised keypoints,
 // bag of words, bag inside a box. The first input byte picks the form: 0 the bytes as a BLOB; 1 a BLOB
 // built around the input (i32 width, i32 height from the input, then the rest as packed features) with
 // a correct header and CRC, so mutations reach the fields behind the checksum.
@@ -10,7 +10,7 @@
 #include <cstring>
 #include <vector>
 
-#include "index/feature_store.h"
+#include "index/storage/feature_store.h"
 #include "sift/base/binary_io.h"
 #include "tests/fuzz/fuzz_support.h"
 

@@ -18,7 +18,7 @@
 #include <string>
 #include <vector>
 
-#include "index/feature_store.h"
+#include "index/storage/feature_store.h"
 #include "index/image_index.h"
 #include "sift/base/binary_io.h"
 #include "sift/features_io.h"

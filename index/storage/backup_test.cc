@@ -1,4 +1,4 @@
-#include "index/backup.h"
+#include "index/storage/backup.h"
 
 #include <gtest/gtest.h>
 #include <sqlite3.h>
@@ -15,8 +15,8 @@
 #include <set>
 #include <thread>
 
-#include "index/catalogue.h"
-#include "index/checkpoint.h"
+#include "index/storage/catalogue.h"
+#include "index/storage/checkpoint.h"
 #include "index/image_index.h"
 
 namespace oxbow::index {

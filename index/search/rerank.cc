@@ -1,4 +1,4 @@
-#include "index/rerank.h"
+#include "index/search/rerank.h"
 
 #include <algorithm>
 #include <bit>

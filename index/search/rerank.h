@@ -29,7 +29,7 @@
 #include <span>
 #include <vector>
 
-#include "index/feature_store.h"
+#include "index/storage/feature_store.h"
 #include "index/word_runs.h"
 #include "sift/types.h"
 #include "sift/verify.h"

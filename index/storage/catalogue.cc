@@ -1,7 +1,7 @@
-#include "index/catalogue.h"
+#include "index/storage/catalogue.h"
 
-#include "index/feature_store.h"
-#include "index/folder_lock.h"
+#include "index/storage/feature_store.h"
+#include "index/storage/folder_lock.h"
 #include "sift/base/log.h"
 
 #include <sqlite3.h>

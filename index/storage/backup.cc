@@ -1,4 +1,4 @@
-#include "index/backup.h"
+#include "index/storage/backup.h"
 
 #include <fcntl.h>
 #include <sqlite3.h>
@@ -17,8 +17,8 @@
 #include <utility>
 #include <vector>
 
-#include "index/catalogue.h"
-#include "index/checkpoint.h"
+#include "index/storage/catalogue.h"
+#include "index/storage/checkpoint.h"
 #include "sift/base/log.h"
 
 namespace oxbow::index {

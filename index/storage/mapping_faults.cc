@@ -1,4 +1,4 @@
-#include "index/mapping_faults.h"
+#include "index/storage/mapping_faults.h"
 
 #include <signal.h>
 #include <sys/mman.h>

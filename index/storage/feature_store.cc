@@ -1,4 +1,4 @@
-#include "index/feature_store.h"
+#include "index/storage/feature_store.h"
 
 #include <algorithm>
 #include <array>

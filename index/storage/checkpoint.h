@@ -44,8 +44,8 @@
 #include <string_view>
 #include <vector>
 
-#include "index/feature_store.h"
-#include "index/mapping_faults.h"
+#include "index/storage/feature_store.h"
+#include "index/storage/mapping_faults.h"
 #include "sift/base/error.h"
 
 namespace oxbow::index {

@@ -1,4 +1,4 @@
-#include "index/checkpoint.h"
+#include "index/storage/checkpoint.h"
 
 #include <fcntl.h>
 #include <sys/mman.h>

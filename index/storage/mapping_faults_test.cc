@@ -1,7 +1,7 @@
 // A file truncated under its mapping: reads of the pages it no longer holds see zeros instead of
 // ending the process with SIGBUS (MappingFaultGuard, which MappedFile registers), copies of them are
 // refused (MappedFile::Copy), and a SIGBUS anywhere else still ends the process.
-#include "index/mapping_faults.h"
+#include "index/storage/mapping_faults.h"
 
 #include <fcntl.h>
 #include <gtest/gtest.h>
@@ -17,7 +17,7 @@
 #include <string>
 #include <vector>
 
-#include "index/checkpoint.h"
+#include "index/storage/checkpoint.h"
 
 namespace oxbow::index {
 namespace {

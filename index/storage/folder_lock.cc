@@ -1,4 +1,4 @@
-#include "index/folder_lock.h"
+#include "index/storage/folder_lock.h"
 
 #include <fcntl.h>
 #include <sys/file.h>

@@ -1,4 +1,4 @@
-#include "index/rerank.h"
+#include "index/search/rerank.h"
 
 #include <gtest/gtest.h>
 
@@ -6,7 +6,7 @@
 #include <random>
 #include <vector>
 
-#include "index/feature_store.h"
+#include "index/storage/feature_store.h"
 #include "sift/match.h"
 
 namespace oxbow::index {
