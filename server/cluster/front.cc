@@ -28,6 +28,7 @@
 #include "index/search/pipeline.h"
 #include "index/search/source.h"
 #include "sift/base/log.h"
+#include "server/cluster/call_threads.h"
 #include "server/cluster/proto_convert.h"
 #include "server/cluster/shard.grpc.pb.h"
 #include "vocab/vocabulary.h"
@@ -472,10 +473,7 @@ class ClusterFront::Impl {
   // fn(i) for i in [0, n), all at once; every call's status.
   static std::vector<Status> ForEach(size_t n, const std::function<Status(uint32_t)>& fn) {
     std::vector<Status> statuses(n, Ok());
-    std::vector<std::thread> threads;
-    threads.reserve(n);
-    for (uint32_t i = 0; i < n; ++i) threads.emplace_back([&, i] { statuses[i] = fn(i); });
-    for (std::thread& t : threads) t.join();
+    RunOnCallThreads(n, [&](size_t i) { statuses[i] = fn(static_cast<uint32_t>(i)); });
     return statuses;
   }
 
@@ -988,10 +986,11 @@ class PartitionsSource final : public index::search::Source {
         return Fail(ErrorCode::kInternal, "a shard gave the features of another number of images than asked");
       for (size_t i = 0; i < held[p].size(); ++i) {
         const ImageFeatures& f = reply->images(static_cast<int>(i));
-        if (f.keypoints_size() != f.words_size() || (f.signatures_size() != 0 && f.signatures_size() != f.words_size()))
+        if (f.keypoints_size() != f.words_size() * kKeypointValues ||
+            (f.signatures_size() != 0 && f.signatures_size() != f.words_size()))
           return Fail(ErrorCode::kInternal, "a shard gave another number of words or signatures than keypoints");
         index::search::RegionFeatures& one = out[held[p][i]];
-        for (const Keypoint& k : f.keypoints()) one.keypoints.push_back(FromProto(k));
+        one.keypoints = KeypointsFrom(f.keypoints());
         one.words.assign(f.words().begin(), f.words().end());
         one.signatures.assign(f.signatures().begin(), f.signatures().end());
         one.all_words.assign(f.all_words().begin(), f.all_words().end());
@@ -1146,7 +1145,7 @@ class PartitionsSource final : public index::search::Source {
   }
 
   static void PutGeometry(const index::search::GeometryQuery& g, Geometry* out) {
-    for (const sift::Keypoint& k : g.keypoints) PutKeypoint(k, out->add_keypoints());
+    PutKeypoints(g.keypoints, out->mutable_keypoints());
     out->mutable_words()->Add(g.words.begin(), g.words.end());
     out->mutable_signatures()->Add(g.signatures.begin(), g.signatures.end());
     for (float v : g.region) out->add_region(v);

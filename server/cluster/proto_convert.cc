@@ -2,20 +2,27 @@
 
 namespace oxbow::cluster {
 
-sift::Keypoint FromProto(const Keypoint& k) {
-  sift::Keypoint p;
-  p.x = k.x();
-  p.y = k.y();
-  p.scale = k.scale();
-  p.orientation = k.orientation();
-  return p;
+std::vector<sift::Keypoint> KeypointsFrom(const google::protobuf::RepeatedField<float>& values) {
+  std::vector<sift::Keypoint> out(static_cast<size_t>(values.size() / kKeypointValues));
+  for (size_t i = 0; i < out.size(); ++i) {
+    const float* v = values.data() + i * kKeypointValues;
+    out[i].x = v[0];
+    out[i].y = v[1];
+    out[i].scale = v[2];
+    out[i].orientation = v[3];
+  }
+  return out;
 }
 
-void PutKeypoint(const sift::Keypoint& k, Keypoint* out) {
-  out->set_x(k.x);
-  out->set_y(k.y);
-  out->set_scale(k.scale);
-  out->set_orientation(k.orientation);
+void PutKeypoints(std::span<const sift::Keypoint> keypoints, google::protobuf::RepeatedField<float>* out) {
+  out->Resize(static_cast<int>(keypoints.size()) * kKeypointValues, 0.0f);
+  float* v = out->mutable_data();
+  for (const sift::Keypoint& k : keypoints) {
+    *v++ = k.x;
+    *v++ = k.y;
+    *v++ = k.scale;
+    *v++ = k.orientation;
+  }
 }
 
 std::vector<index::QueryTerm> TermsFrom(const google::protobuf::RepeatedPtrField<Term>& terms) {

@@ -5,6 +5,7 @@
 #include <span>
 #include <vector>
 
+#include <google/protobuf/repeated_field.h>
 #include <google/protobuf/repeated_ptr_field.h>
 
 #include "index/image_index.h"
@@ -22,8 +23,10 @@ inline constexpr const char* kWriteSequenceKey = "oxbow-write-sequence";
 // candidates' features and bags the previous stages read, from one snapshot.
 inline constexpr const char* kSearchKey = "oxbow-search";
 
-sift::Keypoint FromProto(const Keypoint& k);
-void PutKeypoint(const sift::Keypoint& k, Keypoint* out);
+// Keypoints as shard.proto packs them: x, y, scale, orientation of each, in order.
+inline constexpr int kKeypointValues = 4;
+std::vector<sift::Keypoint> KeypointsFrom(const google::protobuf::RepeatedField<float>& values);
+void PutKeypoints(std::span<const sift::Keypoint> keypoints, google::protobuf::RepeatedField<float>* out);
 
 std::vector<index::QueryTerm> TermsFrom(const google::protobuf::RepeatedPtrField<Term>& terms);
 void PutTerms(std::span<const index::QueryTerm> terms, google::protobuf::RepeatedPtrField<Term>* out);

@@ -148,12 +148,11 @@ class ShardServer::Impl final : public Shard::Service {
     geometries.reserve(num_geometries);
     for (size_t g = 0; g < num_geometries; ++g) {
       const Geometry& one = request->geometries(static_cast<int>(g));
-      if (one.keypoints_size() != one.words_size() || one.region_size() != 4 ||
+      if (one.keypoints_size() != one.words_size() * kKeypointValues || one.region_size() != 4 ||
           (one.signatures_size() != 0 && one.signatures_size() != one.words_size()))
         return Invalid("one word (and signature, if any) per keypoint and a region of 4 values");
       if (!WordsIn(one.words(), vocabulary_size)) return Invalid("a word outside the vocabulary");
-      keypoints[g].reserve(static_cast<size_t>(one.keypoints_size()));
-      for (const Keypoint& k : one.keypoints()) keypoints[g].push_back(FromProto(k));
+      keypoints[g] = KeypointsFrom(one.keypoints());
       geometries.push_back({.keypoints = keypoints[g],
                             .words = {one.words().data(), static_cast<size_t>(one.words_size())},
                             .signatures = {one.signatures().data(), static_cast<size_t>(one.signatures_size())},
@@ -223,7 +222,7 @@ class ShardServer::Impl final : public Shard::Service {
       const index::search::RegionFeatures& f = (*features)[k];
       ImageFeatures* one = out[positions[k]];
       one->set_found(true);
-      for (const sift::Keypoint& p : f.keypoints) PutKeypoint(p, one->add_keypoints());
+      PutKeypoints(f.keypoints, one->mutable_keypoints());
       one->mutable_words()->Add(f.words.begin(), f.words.end());
       one->mutable_signatures()->Add(f.signatures.begin(), f.signatures.end());
       one->mutable_all_words()->Add(f.all_words.begin(), f.all_words.end());
