@@ -32,8 +32,10 @@
 #include "index/cow_array.h"
 #include "index/storage/feature_store.h"
 #include "index/storage/folder_lock.h"
+#include "index/storage/geometry_parts.h"
 #include "index/hamming.h"
 #include "index/storage/huge_pages.h"
+#include "index/storage/snapshot.h"
 #include "index/postings/inverted_file.h"
 #include "index/search/rerank.h"
 #include "index/search/kept_memory.h"
@@ -46,11 +48,6 @@
 namespace oxbow::index {
 namespace {
 
-// A write copies the id-map shards it touches (readers keep the old ones), so their number sets a batch
-// add's cost: with 64 shards a batch of 1000 images copied the whole map, which at 300k images took
-// about 100 ms a batch and grew with the collection; with 16384 it copies about 6% of it, and a single
-// add 1/16384 (each write also copies the 16384 pointers, 0.1-0.2 ms).
-constexpr size_t kIdShards = 16384;
 constexpr size_t kMaxIdBytes = 256;
 
 using Clock = std::chrono::steady_clock;
@@ -67,8 +64,6 @@ std::string JoinPath(const std::string& dir, const char* file) {
   return (std::filesystem::path(dir) / file).string();
 }
 
-size_t ShardOf(const std::string& id) { return std::hash<std::string>{}(id) % kIdShards; }
-
 // Puts the calling thread in Linux's SCHED_IDLE class: it runs only on a core no other thread wants;
 // and its disk reads in the idle I/O class, served when no other reads wait (where the I/O scheduler
 // knows classes: mq-deadline and BFQ do), so that the first searches' page faults on a cold disk are
@@ -83,180 +78,6 @@ void RunOnlyWhenIdle() {
   constexpr int kWhoProcess = 1, kClassIdle = 3, kClassShift = 13;
   (void)::syscall(SYS_ioprio_set, kWhoProcess, 0, kClassIdle << kClassShift);
 }
-
-// A geometry file of a checkpoint whose images' entries view its mapping (an open loaded it, or a
-// checkpoint wrote it: ViewWrittenGeometry). Open checks its size and image table but not its checksum
-// (reading every geometry byte took most of an open at 1M images); its data is checked on use instead.
-// Every use of an image copies the image's data out of the file (MappedFile::Copy: pread, so no page is
-// mapped, and a file truncated under the running index gives a short read, not SIGBUS), checks the copy
-// against the image's checksum (format version 3; ~9 KB hashed per image) and hands out the copy: the
-// bytes used are the bytes checked, whatever happens to the file meanwhile (truncated, written in place,
-// a read error). A thread of the checkpointer also checks the whole file once after open. A file without
-// per-image checksums (versions 1 and 2, which only older builds wrote) is checked whole at the first
-// use of one of its images (the caller waits, concurrent callers wait for the same check), and not
-// again; a copy from it is checked for truncation only. A part that fails a check is never served: its
-// images are read from the catalogue's BLOBs (through a read-only connection of its own, on demand) and
-// the next checkpoint rewrites them into new files. What is still read through the mapping (the header
-// and image table at open, a copy where the file keeps no descriptor) cannot kill the process either: a
-// page the file no longer holds reads as zeros (mapping_faults.h), which those checks then find.
-class GeometryPart {
- public:
-  GeometryPart(std::string dir, CheckpointFile file, std::shared_ptr<const MappedFile> mapped = nullptr)
-      : dir_(std::move(dir)), file_(std::move(file)), mapped_(std::move(mapped)) {}
-
-  const CheckpointFile& file() const { return file_; }
-  // True when the file matches its manifest entry; verifies it on the first call (logged when not).
-  bool Verified() const {
-    const std::optional<bool> good = VerifiedUnless([] { return false; });  // never stops
-    return good.has_value() && *good;
-  }
-  // The same, except that a check still to do gives up when `stop` returns true (asked between reads):
-  // nullopt then, and a later call checks again. Concurrent callers wait for the same check.
-  std::optional<bool> VerifiedUnless(const std::function<bool()>& stop) const {
-    const int state = state_.load(std::memory_order_acquire);
-    if (state != kUnverified) return state == kGood;
-    std::lock_guard<std::mutex> lock(verify_mutex_);
-    if (!checked_) {
-      const std::optional<Status> status = VerifyCheckpointFileUnless(dir_, file_, stop);
-      if (!status.has_value()) return std::nullopt;
-      checked_ = true;
-      if (!*status) {
-        MarkDamaged(status->error().message);
-      } else {
-        int expected = kUnverified;  // a damaged image found meanwhile wins
-        state_.compare_exchange_strong(expected, kGood, std::memory_order_acq_rel);
-      }
-    }
-    return state_.load(std::memory_order_acquire) == kGood;
-  }
-  // Verified and found damaged (false while not verified yet).
-  bool Damaged() const { return state_.load(std::memory_order_acquire) == kDamaged; }
-  // The bytes of an image's data that `stored` (its view of this file) spans: features, then signatures.
-  static size_t DataBytes(const PackedFeatures& stored) { return stored.bytes().size() + stored.signature_bytes().size(); }
-  // Image `number`'s data (`stored`: its view of this file; `checksum`: its checksum in the file, when
-  // the file has them) copied into `buffer` (DataBytes(stored) bytes) and viewed there by *out (which
-  // `owner`, possibly null, keeps alive), when the copy passes its check. False when the file is known
-  // damaged, no longer holds the image's bytes or the copy fails its check (the file is then marked
-  // damaged: its images are read from the catalogue from now on).
-  bool CopyChecked(uint32_t number, const PackedFeatures& stored, std::optional<uint64_t> checksum,
-                   std::span<uint8_t> buffer, std::shared_ptr<const void> owner, PackedFeatures* out) const {
-    if (Damaged()) return false;
-    const std::span<const uint8_t> records = stored.bytes(), signatures = stored.signature_bytes();
-    OXBOW_CHECK(buffer.size() == records.size() + signatures.size());
-    const std::span<uint8_t> records_copy = buffer.first(records.size());
-    const std::span<uint8_t> signatures_copy = buffer.subspan(records.size());
-    if (!Copy(records, records_copy) || !Copy(signatures, signatures_copy)) {
-      MarkDamaged("checkpoint file " + JoinPath(dir_, file_.name.c_str()) + " no longer holds the bytes of image number " +
-                  std::to_string(number) + " (truncated, or a read error)");
-      return false;
-    }
-    // View's message names the file (no string built per image).
-    auto view = PackedFeatures::View(records_copy, signatures_copy, stored.width(), stored.height(), std::move(owner),
-                                     file_.name);
-    if (!view) {
-      MarkDamaged(view.error().message);
-      return false;
-    }
-    if (!checksum.has_value()) {
-      if (!Verified()) return false;
-    } else if (ImageChecksum(*view) != checksum.value()) {
-      MarkDamaged("checkpoint file " + JoinPath(dir_, file_.name.c_str()) + ": image number " + std::to_string(number) +
-                  " fails its checksum");
-      return false;
-    }
-    *out = std::move(*view);
-    return true;
-  }
-  // CopyChecked into memory of the result's own; nullopt when it fails.
-  std::optional<PackedFeatures> Copied(uint32_t number, const PackedFeatures& stored, std::optional<uint64_t> checksum) const {
-    auto buffer = std::make_shared<std::vector<uint8_t>>(DataBytes(stored));
-    PackedFeatures out;
-    if (!CopyChecked(number, stored, checksum, *buffer, buffer, &out)) return std::nullopt;
-    return out;
-  }
-  // Image `number`'s features to use: Copied(), else the image's features from the catalogue (no
-  // features when they cannot be read there, logged: a search then finds no matches in it, never wrong
-  // ones).
-  PackedFeatures Checked(uint32_t number, const PackedFeatures& stored, std::optional<uint64_t> checksum) const {
-    if (std::optional<PackedFeatures> copy = Copied(number, stored, checksum)) return std::move(*copy);
-    std::lock_guard<std::mutex> lock(repair_mutex_);
-    auto& slot = repaired_[number];
-    if (!slot) slot = std::make_unique<const PackedFeatures>(FromCatalogue(number));
-    return *slot;
-  }
-
- private:
-  static constexpr int kUnverified = 0, kGood = 1, kDamaged = 2;
-  // `from` (a part of this file's mapping) copied into `to` (as large); false when the file no longer
-  // holds it or it cannot be read.
-  bool Copy(std::span<const uint8_t> from, std::span<uint8_t> to) const {
-    if (mapped_) return mapped_->Copy(from, to);
-    std::copy(from.begin(), from.end(), to.begin());
-    return true;
-  }
-  void MarkDamaged(const std::string& why) const {
-    if (state_.exchange(kDamaged, std::memory_order_acq_rel) == kDamaged) return;
-    OXBOW_LOG(kError) << "index " << dir_ << ": " << why
-                      << "; its images are read from the catalogue instead, and the next checkpoint rewrites them";
-  }
-  PackedFeatures FromCatalogue(uint32_t number) const {  // repair_mutex_ held
-    const std::string what = "image number " + std::to_string(number) + " of " + JoinPath(dir_, kCatalogueFile);
-    if (!catalogue_) {
-      auto opened = Catalogue::Open(JoinPath(dir_, kCatalogueFile));
-      if (!opened) {
-        OXBOW_LOG(kError) << "index " << dir_ << ": cannot read " << what << ": " << opened.error().message;
-        return {};
-      }
-      catalogue_ = std::move(*opened);
-    }
-    auto blob = catalogue_->ReadFeatures(number);
-    auto features = blob ? PackedFeatures::Deserialize(*blob, what) : Result<PackedFeatures>(std::unexpected(blob.error()));
-    if (!features) {
-      OXBOW_LOG(kError) << "index " << dir_ << ": cannot read " << what << ": " << features.error().message;
-      return {};
-    }
-    return std::move(*features);
-  }
-
-  const std::string dir_;
-  const CheckpointFile file_;
-  const std::shared_ptr<const MappedFile> mapped_;  // the file, which `stored` views; may be null
-  mutable std::mutex verify_mutex_;
-  mutable bool checked_ = false;  // the whole file was checked; guarded by verify_mutex_
-  mutable std::atomic<int> state_{kUnverified};
-  mutable std::mutex repair_mutex_;
-  mutable std::unique_ptr<Catalogue> catalogue_;                                  // guarded by repair_mutex_
-  mutable std::map<uint32_t, std::unique_ptr<const PackedFeatures>> repaired_;   // guarded by repair_mutex_
-};
-
-// One indexed image: its catalogue record and packed words + geometry. Immutable once published.
-struct Entry {
-  ImageRecord record;
-  PackedFeatures stored;                      // read it through features()
-  std::shared_ptr<const GeometryPart> part;   // set when `stored` views a checkpoint's geometry file
-  uint32_t number = 0;                        // with `part`: the image's number
-  std::optional<uint64_t> checksum;           // with `part`: its checksum in the file, when it has them
-
-  // Its features to use: `stored` when they are in memory (a copy that shares them), else a checked
-  // copy of its data in the geometry file (GeometryPart::Checked), which the result owns.
-  PackedFeatures features() const { return part ? part->Checked(number, stored, checksum) : stored; }
-  // Bytes of memory its features take (IndexStats::geometry_bytes): a view of a geometry file takes
-  // none beyond itself (the file's pages are the page cache's).
-  uint64_t MemoryBytes() const { return part ? sizeof(PackedFeatures) : stored.MemoryBytes(); }
-  // features(), held by *copy (returned): when the image is in a geometry file, its data copied into
-  // `buffer` (reused by the caller: a search reads a thousand candidates' features once each) and
-  // checked there.
-  const PackedFeatures& SignedFeatures(std::vector<uint8_t>* buffer, PackedFeatures* copy) const {
-    if (part) {
-      buffer->resize(GeometryPart::DataBytes(stored));
-      if (part->CopyChecked(number, stored, checksum, *buffer, nullptr, copy)) return *copy;
-    }
-    *copy = features();
-    return *copy;
-  }
-};
-
-using IdShard = std::unordered_map<std::string, uint32_t>;
 
 TfIdfOptions ToTfIdf(const IndexOptions& o) {
   return TfIdfOptions{.sqrt_tf = o.sqrt_tf, .max_document_frequency = o.max_document_frequency,
@@ -375,24 +196,6 @@ std::optional<std::string> QueryOptions::Check() const {
   return std::nullopt;
 }
 
-// Everything a reader needs, immutable once published.
-struct ImageIndex::Snapshot {
-  InvertedFile inverted;
-  CowArray<std::shared_ptr<const Entry>> entries;  // by image number; null for unused/removed numbers
-  std::array<std::shared_ptr<const IdShard>, kIdShards> ids;
-  uint64_t geometry_bytes = 0;
-
-  explicit Snapshot(InvertedFile file) : inverted(std::move(file)) {}
-
-  const Entry* Find(const std::string& id, uint32_t* number = nullptr) const {
-    const IdShard& shard = *ids[ShardOf(id)];
-    const auto it = shard.find(id);
-    if (it == shard.end()) return nullptr;
-    if (number) *number = it->second;
-    return entries[it->second].get();
-  }
-};
-
 namespace {
 
 // The features of a search's Hamming shortlist as its re-scoring read them: copies made with pread
@@ -432,7 +235,7 @@ class CandidateCopies {
     if (it != numbers_.end() && it->first == number) return views_[it->second];
     return entry.features();
   }
-  PackedFeatures Of(const ImageIndex::Snapshot& snap, const std::string& id) const {
+  PackedFeatures Of(const Snapshot& snap, const std::string& id) const {
     uint32_t number = 0;
     const Entry* entry = snap.Find(id, &number);
     return Of(number, *entry);
@@ -481,45 +284,6 @@ class BlobBlock {
   std::atomic<size_t> used_{0};
 };
 
-// Per geometry file of a checkpoint, the numbers of the images it holds, ascending (what its image
-// table says): which file holds an image, so that a checkpoint can tell how much of a file is live.
-using GeometryContents = std::map<std::string, std::shared_ptr<const std::vector<uint32_t>>>;
-
-// Compaction of the geometry files. A checkpoint keeps a geometry file of the previous one as it is,
-// or drops it from its manifest and writes the file's live images into its own new files (then the
-// file is deleted, CommitCheckpoint). It drops a file found damaged, a file less than half of whose
-// images are live (so the files on disk hold at most about twice the live images' bytes, plus what
-// the last checkpoint wrote), and, when more than kMaxSmallGeometryFiles of the files it would keep
-// are small (under kSmallGeometryFileBytes: a checkpoint after a few changes writes one), all small
-// ones, merged into its new file. Under endless churn the geometry files (and the descriptors their
-// mappings keep, MappedFile) therefore stay at most kMaxSmallGeometryFiles + 1 small ones plus
-// 2 x (live bytes) / kSmallGeometryFileBytes large ones; the merge of the small files rewrites at most
-// kMaxSmallGeometryFiles x kSmallGeometryFileBytes every kMaxSmallGeometryFiles checkpoints.
-constexpr uint64_t kSmallGeometryFileBytes = kGeometryPartBytes / 4;
-constexpr size_t kMaxSmallGeometryFiles = 8;
-
-// The geometry files of `previous` a checkpoint keeps (see above): `contents` gives their images,
-// `is_live` whether an image number is live now. A file missing from `contents` is dropped (its
-// live images are rewritten, which is always safe).
-std::set<std::string> KeptGeometry(const CheckpointManifest& previous, const GeometryContents& contents,
-                                   const std::set<std::string>& damaged, const std::function<bool(uint32_t)>& is_live) {
-  std::set<std::string> kept;
-  std::vector<std::string> small;
-  for (const CheckpointFile& f : previous.files) {
-    if (!f.name.starts_with("geometry-") || damaged.count(f.name)) continue;
-    const auto it = contents.find(f.name);
-    if (it == contents.end()) continue;
-    const size_t live = static_cast<size_t>(std::count_if(it->second->begin(), it->second->end(), is_live));
-    if (live == 0 || 2 * live < it->second->size()) continue;
-    kept.insert(f.name);
-    if (f.size_bytes < kSmallGeometryFileBytes) small.push_back(f.name);
-  }
-  if (small.size() > kMaxSmallGeometryFiles) {
-    for (const std::string& name : small) kept.erase(name);
-  }
-  return kept;
-}
-
 }  // namespace
 
 struct ImageIndex::Impl {
@@ -562,20 +326,13 @@ struct ImageIndex::Impl {
   mutable std::mutex segment_files_mutex;
   mutable std::vector<SegmentFile> segment_files;  // guarded by segment_files_mutex
 
-  mutable std::mutex snapshot_mutex;            // guards only the `snapshot` pointer
-  std::shared_ptr<const Snapshot> snapshot;
+  CurrentSnapshot snapshot;                     // what readers see (snapshot.h)
 
   Impl(std::string d, const IndexOptions& o, vocab::Vocabulary v, std::string settings)
       : dir(std::move(d)), index_options(o), vocabulary(std::move(v)), extractor_settings(std::move(settings)) {}
 
-  std::shared_ptr<const Snapshot> Current() const {
-    std::lock_guard<std::mutex> lock(snapshot_mutex);
-    return snapshot;
-  }
-  void Publish(std::shared_ptr<const Snapshot> next) {
-    std::lock_guard<std::mutex> lock(snapshot_mutex);
-    snapshot = std::move(next);
-  }
+  std::shared_ptr<const Snapshot> Current() const { return snapshot.Current(); }
+  void Publish(std::shared_ptr<const Snapshot> next) { snapshot.Publish(std::move(next)); }
 
   // A checkpoint of `snap` (which must reflect every committed catalogue change) in two steps
   // (checkpoint.h): CheckpointFiles writes the files without holding writer_mutex, after `previous`
@@ -632,12 +389,7 @@ struct ImageIndex::Impl {
 
 namespace {
 
-using SnapshotPtr = std::shared_ptr<ImageIndex::Snapshot>;
-
-bool RecordMatches(const ImageRecord& record, const PackedFeatures& features) {
-  return features.size() == record.num_features && features.width() == record.width &&
-         features.height() == record.height;
-}
+using SnapshotPtr = std::shared_ptr<Snapshot>;
 
 // What Open's validation of a BLOB also checks: the record agrees with its features.
 Status CheckEntry(const ImageRecord& record, const PackedFeatures& features, size_t vocabulary_size,
@@ -649,41 +401,6 @@ Status CheckEntry(const ImageRecord& record, const PackedFeatures& features, siz
     return Fail(ErrorCode::kCorruptData, where + ": image '" + record.id + "' has a word outside the vocabulary");
   }
   return Ok();
-}
-
-// The snapshot of `inverted` with the entries by_number[n] (moved from; null where no image).
-SnapshotPtr MakeSnapshot(InvertedFile inverted, std::vector<std::shared_ptr<const Entry>>& by_number, int num_threads) {
-  auto snap = std::make_shared<ImageIndex::Snapshot>(std::move(inverted));
-  const auto num_numbers = static_cast<uint32_t>(std::max<size_t>(by_number.size(), snap->inverted.num_numbers()));
-  // The id maps, a shard per task (sized first: a million ids would otherwise rehash each map ~20 times).
-  static_assert(kIdShards <= 65536);
-  std::vector<uint16_t> shard_of(by_number.size(), 0);
-  ParallelFor(by_number.size(), num_threads, size_t{1} << 14, [&](size_t begin, size_t end, int) {
-    for (size_t n = begin; n < end; ++n) {
-      if (by_number[n]) shard_of[n] = static_cast<uint16_t>(ShardOf(by_number[n]->record.id));
-    }
-  });
-  std::vector<std::vector<uint32_t>> members(kIdShards);
-  for (uint32_t n = 0; n < by_number.size(); ++n) {
-    if (by_number[n]) members[shard_of[n]].push_back(n);
-  }
-  std::vector<std::shared_ptr<IdShard>> shards(kIdShards);
-  ParallelFor(kIdShards, num_threads, 64, [&](size_t begin, size_t end, int) {
-    for (size_t i = begin; i < end; ++i) {
-      shards[i] = std::make_shared<IdShard>();
-      shards[i]->reserve(members[i].size());
-      for (const uint32_t n : members[i]) shards[i]->emplace(by_number[n]->record.id, n);
-    }
-  });
-  CowArray<std::shared_ptr<const Entry>>::Editor editor(&snap->entries);
-  editor.Resize(num_numbers);
-  for (uint32_t n = 0; n < by_number.size(); ++n) {
-    if (!by_number[n]) continue;
-    snap->geometry_bytes += by_number[n]->MemoryBytes();
-    editor.Mutable(n) = std::move(by_number[n]);
-  }
-  for (size_t i = 0; i < kIdShards; ++i) snap->ids[i] = std::move(shards[i]);
-  return snap;
 }
 
 // An image whose catalogue BLOB an open found damaged: it is left out of the index and its row deleted
@@ -1350,7 +1067,7 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Create(const std::string& dir, c
   impl->catalogue = std::move(*catalogue);
   auto snap = std::make_shared<Snapshot>(InvertedFile(vocabulary.size(), ToTfIdf(options)));
   for (auto& shard : snap->ids) shard = std::make_shared<IdShard>();
-  impl->snapshot = std::move(snap);
+  impl->Publish(std::move(snap));
   impl->checkpointer = std::thread([raw = impl.get()] { raw->CheckpointLoop(); });
   return std::unique_ptr<ImageIndex>(new ImageIndex(std::move(impl)));
 }
@@ -1439,7 +1156,7 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, con
   } else {
     RemoveUnreferencedCheckpointFiles(dir, impl->checkpoint);  // leftovers of a crash
   }
-  impl->snapshot = std::move(snap);
+  impl->Publish(std::move(snap));
   impl->checkpointer = std::thread([raw = impl.get()] { raw->CheckpointLoop(); });
   return std::unique_ptr<ImageIndex>(new ImageIndex(std::move(impl)));
 }
@@ -1790,7 +1507,7 @@ using search::ImageRef;
 // filter, and transitive verification's ranking.
 class SnapshotSource final : public search::Source {
  public:
-  SnapshotSource(std::shared_ptr<const ImageIndex::Snapshot> snap, int num_threads)
+  SnapshotSource(std::shared_ptr<const Snapshot> snap, int num_threads)
       : snap_(std::move(snap)), num_threads_(num_threads) {}
 
   ~SnapshotSource() override {
@@ -2014,7 +1731,7 @@ class SnapshotSource final : public search::Source {
     return allowed;
   }
 
-  const std::shared_ptr<const ImageIndex::Snapshot> snap_;
+  const std::shared_ptr<const Snapshot> snap_;
   const int num_threads_;
   CandidateCopies copies_;
   bool copied_ = false;

@@ -372,7 +372,6 @@ struct IndexStats {
 
 class ImageIndex {
  public:
-  struct Snapshot;  // implementation detail (image_index.cc)
 
   // Creates a new, empty index in `dir` (created if missing; must not already hold an index).
   // `extractor_settings` (sift::SiftOptions::Describe()) must equal vocabulary.extractor_settings()
