@@ -88,33 +88,25 @@ OXBOW_AVX2_TARGET void VerticalPassAvx2(const float* const* rows, const float* k
   const int taps = 2 * r + 1;
   int x = 0;
   if (count == kRowBlock && taps > kRowBlock) {
-    for (; x + 16 <= width; x += 16) {
+    for (; x + 8 <= width; x += 8) {
       // Source row j contributes to output m with kernel[j - m] for 0 <= j - m < taps.
-      __m256 a0[kRowBlock], a1[kRowBlock];
+      __m256 a[kRowBlock];
       const __m256 k0 = _mm256_broadcast_ss(kernel);
-#pragma GCC unroll 4
-      for (int m = 0; m < kRowBlock; ++m) {
-        a0[m] = _mm256_mul_ps(k0, _mm256_loadu_ps(rows[m] + x));
-        a1[m] = _mm256_mul_ps(k0, _mm256_loadu_ps(rows[m] + x + 8));
-      }
+#pragma GCC unroll 8
+      for (int m = 0; m < kRowBlock; ++m) a[m] = _mm256_mul_ps(k0, _mm256_loadu_ps(rows[m] + x));
       auto add_row = [&](int j, int m_begin, int m_end) OXBOW_AVX2_TARGET {
-        const __m256 v0 = _mm256_loadu_ps(rows[j] + x), v1 = _mm256_loadu_ps(rows[j] + x + 8);
-#pragma GCC unroll 4
+        const __m256 v = _mm256_loadu_ps(rows[j] + x);
+#pragma GCC unroll 8
         for (int m = 0; m < kRowBlock; ++m) {
           if (m < m_begin || m >= m_end) continue;
-          const __m256 k = _mm256_broadcast_ss(kernel + (j - m));
-          a0[m] = _mm256_fmadd_ps(k, v0, a0[m]);
-          a1[m] = _mm256_fmadd_ps(k, v1, a1[m]);
+          a[m] = _mm256_fmadd_ps(_mm256_broadcast_ss(kernel + (j - m)), v, a[m]);
         }
       };
       for (int j = 1; j < kRowBlock; ++j) add_row(j, 0, j);  // outputs m < j
       for (int j = kRowBlock; j < taps; ++j) add_row(j, 0, kRowBlock);
       for (int j = taps; j < taps + kRowBlock - 1; ++j) add_row(j, j - taps + 1, kRowBlock);
-#pragma GCC unroll 4
-      for (int m = 0; m < kRowBlock; ++m) {
-        _mm256_storeu_ps(out[m] + x, a0[m]);
-        _mm256_storeu_ps(out[m] + x + 8, a1[m]);
-      }
+#pragma GCC unroll 8
+      for (int m = 0; m < kRowBlock; ++m) _mm256_storeu_ps(out[m] + x, a[m]);
     }
   }
   for (int m = 0; m < count; ++m) {
@@ -143,14 +135,14 @@ void VerticalPassAvx512(const float* const* rows, const float* kernel, int r, in
     for (; x + 32 <= width; x += 32) {
       __m512 a0[kRowBlock], a1[kRowBlock];
       const __m512 k0 = _mm512_set1_ps(kernel[0]);
-#pragma GCC unroll 4
+#pragma GCC unroll 8
       for (int m = 0; m < kRowBlock; ++m) {
         a0[m] = _mm512_mul_ps(k0, _mm512_loadu_ps(rows[m] + x));
         a1[m] = _mm512_mul_ps(k0, _mm512_loadu_ps(rows[m] + x + 16));
       }
       auto add_row = [&](int j, int m_begin, int m_end) {
         const __m512 v0 = _mm512_loadu_ps(rows[j] + x), v1 = _mm512_loadu_ps(rows[j] + x + 16);
-#pragma GCC unroll 4
+#pragma GCC unroll 8
         for (int m = 0; m < kRowBlock; ++m) {
           if (m < m_begin || m >= m_end) continue;
           const __m512 k = _mm512_set1_ps(kernel[j - m]);
@@ -161,7 +153,7 @@ void VerticalPassAvx512(const float* const* rows, const float* kernel, int r, in
       for (int j = 1; j < kRowBlock; ++j) add_row(j, 0, j);
       for (int j = kRowBlock; j < taps; ++j) add_row(j, 0, kRowBlock);
       for (int j = taps; j < taps + kRowBlock - 1; ++j) add_row(j, j - taps + 1, kRowBlock);
-#pragma GCC unroll 4
+#pragma GCC unroll 8
       for (int m = 0; m < kRowBlock; ++m) {
         _mm512_storeu_ps(out[m] + x, a0[m]);
         _mm512_storeu_ps(out[m] + x + 16, a1[m]);
@@ -380,12 +372,37 @@ void Upsample2xRow(const float* src, int w, int h, size_t src_stride, int y, flo
   const int other = std::clamp(y % 2 == 0 ? sy - 1 : sy + 1, 0, h - 1);
   const float* a = src + static_cast<size_t>(sy) * src_stride;
   const float* b = src + static_cast<size_t>(other) * src_stride;
-  for (int x = 0; x < w; ++x) v[x] = 0.75f * a[x] + 0.25f * b[x];
-  for (int x = 0; x < w; ++x) {
+  // p * q + r as one fused multiply-add where the build targets FMA (as GCC contracts it there), else
+  // a product and a sum, as in a portable build.
+  const auto madd = [](float p, float q, float r) {
+#ifdef __FMA__
+    return std::fma(p, q, r);
+#else
+    return p * q + r;
+#endif
+  };
+  for (int x = 0; x < w; ++x) v[x] = madd(0.75f, a[x], 0.25f * b[x]);
+  const auto column = [&](int x) {
     const float centre = 0.75f * v[x];
-    out[2 * x] = centre + 0.25f * v[std::max(x - 1, 0)];
-    out[2 * x + 1] = centre + 0.25f * v[std::min(x + 1, w - 1)];
+    out[2 * x] = madd(0.25f, v[std::max(x - 1, 0)], centre);
+    out[2 * x + 1] = madd(0.25f, v[std::min(x + 1, w - 1)], centre);
+  };
+  column(0);
+  int x = 1;
+#ifdef OXBOW_AVX512
+  // Columns x..x+15 from v[x-1..x+16], the even and odd outputs interleaved by two permutes.
+  const __m512i lo = _mm512_setr_epi32(0, 16, 1, 17, 2, 18, 3, 19, 4, 20, 5, 21, 6, 22, 7, 23);
+  const __m512i hi = _mm512_setr_epi32(8, 24, 9, 25, 10, 26, 11, 27, 12, 28, 13, 29, 14, 30, 15, 31);
+  const __m512 three_quarters = _mm512_set1_ps(0.75f), quarter = _mm512_set1_ps(0.25f);
+  for (; x + 17 <= w; x += 16) {
+    const __m512 centre = _mm512_mul_ps(three_quarters, _mm512_loadu_ps(v + x));
+    const __m512 even = _mm512_fmadd_ps(quarter, _mm512_loadu_ps(v + x - 1), centre);
+    const __m512 odd = _mm512_fmadd_ps(quarter, _mm512_loadu_ps(v + x + 1), centre);
+    _mm512_storeu_ps(out + 2 * x, _mm512_permutex2var_ps(even, lo, odd));
+    _mm512_storeu_ps(out + 2 * x + 16, _mm512_permutex2var_ps(even, hi, odd));
   }
+#endif
+  for (; x < w; ++x) column(x);
 }
 
 void Upsample2x(const float* src, int w, int h, size_t src_stride, Plane* dst, WorkerTeam& team) {
@@ -404,7 +421,14 @@ void Decimate2x(const Plane& src, Plane* dst) {
   for (int y = 0; y < h; ++y) {
     const float* in = src.row(2 * y);
     float* out = dst->row(y);
-    for (int x = 0; x < w; ++x) out[x] = in[2 * x];
+    int x = 0;
+#ifdef OXBOW_AVX512
+    // The even samples of 32 inputs (2 * x + 31 < 2 * w <= src width) into 16 outputs.
+    const __m512i even = _mm512_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30);
+    for (; x + 16 <= w; x += 16)
+      _mm512_storeu_ps(out + x, _mm512_permutex2var_ps(_mm512_loadu_ps(in + 2 * x), even, _mm512_loadu_ps(in + 2 * x + 16)));
+#endif
+    for (; x < w; ++x) out[x] = in[2 * x];
   }
 }
 

@@ -88,7 +88,7 @@ void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kern
 void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kernel, WorkerTeam& team, bool allow_simd);
 
 // Rows blurred together by GaussianBlur's vertical pass (each source row loaded once for all of them).
-inline constexpr int kRowBlock = 4;
+inline constexpr int kRowBlock = 8;
 
 // Scratch memory of GaussianBlurRows for one kernel and image width: the padded rows of one block, the
 // source row pointers and the full kernel. Reusable across calls.

@@ -366,8 +366,9 @@ std::vector<Candidate> ScanOctave(const Octave& octave, int intervals, float thr
     };
     auto compute_row = [&](int y) {
 #ifdef OXBOW_AVX2
-      // The S + 3 planes stream from memory side by side; ask for their rows a few rows ahead.
-      if (y + kPrefetchRows < h)
+      // The S + 3 planes stream from memory side by side; ask for their rows a few rows ahead. Not when
+      // the rows are made just before the scan (rows_ready): they are in cache already.
+      if (!rows_ready && y + kPrefetchRows < h)
         for (int l = 0; l <= dog_layers; ++l) {
           const char* ahead = reinterpret_cast<const char*>(octave.gauss[static_cast<size_t>(l)].row(y + kPrefetchRows));
           for (int x = 0; x < w; x += 16) _mm_prefetch(ahead + 4 * x, _MM_HINT_T0);
