@@ -1,10 +1,6 @@
 #include "index/image_index.h"
 
-#include <pthread.h>
 #include <sys/mman.h>
-#include <sched.h>
-#include <sys/syscall.h>
-#include <unistd.h>
 
 #include <algorithm>
 #include <array>
@@ -18,7 +14,6 @@
 #include <memory>
 #include <condition_variable>
 #include <mutex>
-#include <thread>
 #include <numeric>
 #include <optional>
 #include <set>
@@ -29,12 +24,14 @@
 
 #include "index/storage/catalogue.h"
 #include "index/storage/checkpoint.h"
+#include "index/storage/checkpointer.h"
 #include "index/cow_array.h"
 #include "index/storage/feature_store.h"
 #include "index/storage/folder_lock.h"
 #include "index/storage/geometry_parts.h"
 #include "index/hamming.h"
 #include "index/storage/huge_pages.h"
+#include "index/storage/loader.h"
 #include "index/storage/snapshot.h"
 #include "index/postings/inverted_file.h"
 #include "index/search/rerank.h"
@@ -62,26 +59,6 @@ int64_t NowUnixMs() {
 
 std::string JoinPath(const std::string& dir, const char* file) {
   return (std::filesystem::path(dir) / file).string();
-}
-
-// Puts the calling thread in Linux's SCHED_IDLE class: it runs only on a core no other thread wants;
-// and its disk reads in the idle I/O class, served when no other reads wait (where the I/O scheduler
-// knows classes: mq-deadline and BFQ do), so that the first searches' page faults on a cold disk are
-// not queued behind its large sequential reads. Best effort (a refusal leaves it as it was); allowed
-// without privileges, and not undone: call it on a thread that ends with its work.
-void RunOnlyWhenIdle() {
-  sched_param param{};
-  param.sched_priority = 0;
-  (void)pthread_setschedparam(pthread_self(), SCHED_IDLE, &param);
-  // ioprio_set(IOPRIO_WHO_PROCESS, 0 = this thread, IOPRIO_PRIO_VALUE(IOPRIO_CLASS_IDLE, 0)); glibc
-  // has no wrapper, and the constants are those of <linux/ioprio.h>.
-  constexpr int kWhoProcess = 1, kClassIdle = 3, kClassShift = 13;
-  (void)::syscall(SYS_ioprio_set, kWhoProcess, 0, kClassIdle << kClassShift);
-}
-
-TfIdfOptions ToTfIdf(const IndexOptions& o) {
-  return TfIdfOptions{.sqrt_tf = o.sqrt_tf, .max_document_frequency = o.max_document_frequency,
-                      .stop_list_min_images = o.stop_list_min_images, .merge_factor = o.merge_factor};
 }
 
 Status CheckId(const std::string& id) {
@@ -293,40 +270,18 @@ struct ImageIndex::Impl {
   vocab::Vocabulary vocabulary;
   std::string extractor_settings;
 
-  mutable std::mutex writer_mutex;              // guards catalogue and the building of the next snapshot
-  std::unique_ptr<Catalogue> catalogue;         // guarded by writer_mutex
-
-  CheckpointManifest checkpoint;                // the last committed one; guarded by writer_mutex
-  GeometryContents geometry_contents;           // the images of its geometry files; guarded by writer_mutex
-  uint64_t changes_since_checkpoint = 0;        // images added + removed since; guarded by writer_mutex
-  std::atomic<uint64_t> write_sequence{0};      // Catalogue::WriteSequence of the last commit
-  bool checkpoint_forced = false;               // Open rebuilt or re-coded: checkpoint now; writer_mutex
+  // writer_mutex: one writer at a time. Taken first (before any other lock of the index). It guards
+  // the members below marked "writer_mutex", the building of the next snapshot from the current one
+  // until it is published (so that no write is lost), and the checkpointer's state (checkpointer.h),
+  // which the checkpointer takes it for. Held for the whole commit + publish of Add, AddBatch,
+  // Replace, Remove and PinCollectionStatistics; never while a query runs.
+  mutable std::mutex writer_mutex;
+  std::unique_ptr<Catalogue> catalogue;         // the write connection; writer_mutex
   uint64_t next_number = 0;                     // writer_mutex: the number the catalogue gave last + 1 (a guess; AddBatch checks it)
-  bool closing = false;                         // guarded by writer_mutex
-  std::atomic<bool> stop_verifying{false};      // set by Close: VerifyParts gives up
-  mutable std::atomic<int> searches_in_flight{0};  // Query and QuerySimilar calls running: VerifyParts waits
-  mutable std::atomic<int64_t> last_search_end{0};  // when the last of them ended (Clock ticks): VerifyParts slows
-  uint64_t pending_after_failure = 0;           // changes of failed background checkpoints (for Close)
-  std::condition_variable checkpoint_due;       // with writer_mutex: wakes the checkpointer
-  std::thread checkpointer;                     // runs CheckpointLoop
-  // The geometry files of the checkpoint Open loaded that the committed manifest still names (set
-  // before the checkpointer starts; then those a checkpoint drops are removed by the checkpointer
-  // under writer_mutex, ViewWrittenGeometry); read under writer_mutex or on the checkpointer.
-  std::vector<std::shared_ptr<const GeometryPart>> geometry_parts;
-  // The geometry files later checkpoints wrote and their images now view (ViewWrittenGeometry); written
-  // by the checkpointer under writer_mutex, read under it or on the checkpointer.
-  std::vector<std::shared_ptr<const GeometryPart>> written_parts;
-  // The segment files of checkpoints, each with the segment it holds (weak: one merged away is
-  // forgotten), so that a checkpoint writes only the segments new since the previous one. A file is
-  // named again only if the previous manifest names it (one written by a checkpoint that failed is not).
-  struct SegmentFile {
-    std::weak_ptr<const void> segment;
-    CheckpointFile file;
-  };
-  mutable std::mutex segment_files_mutex;
-  mutable std::vector<SegmentFile> segment_files;  // guarded by segment_files_mutex
-
-  CurrentSnapshot snapshot;                     // what readers see (snapshot.h)
+  std::atomic<uint64_t> write_sequence{0};      // Catalogue::WriteSequence of the last commit (stored under writer_mutex)
+  CurrentSnapshot snapshot;                     // what readers see; its own leaf mutex (snapshot.h)
+  SearchActivity searches;                      // Query and QuerySimilar calls running (the geometry check waits)
+  std::unique_ptr<Checkpointer> checkpointer;   // set before the index is returned; its thread runs until Close
 
   Impl(std::string d, const IndexOptions& o, vocab::Vocabulary v, std::string settings)
       : dir(std::move(d)), index_options(o), vocabulary(std::move(v)), extractor_settings(std::move(settings)) {}
@@ -334,34 +289,14 @@ struct ImageIndex::Impl {
   std::shared_ptr<const Snapshot> Current() const { return snapshot.Current(); }
   void Publish(std::shared_ptr<const Snapshot> next) { snapshot.Publish(std::move(next)); }
 
-  // A checkpoint of `snap` (which must reflect every committed catalogue change) in two steps
-  // (checkpoint.h): CheckpointFiles writes the files without holding writer_mutex, after `previous`
-  // (the current checkpoint) with `contents` (its geometry_contents), both copied under the lock,
-  // and gives the images of the geometry files it names in *next_contents; CommitCheckpoint
-  // (writer_mutex held) records the manifest and deletes unreferenced files. The checkpoint covers
-  // `changes` of changes_since_checkpoint.
-  Result<CheckpointManifest> CheckpointFiles(const Snapshot& snap, const CheckpointManifest& previous,
-                                             const GeometryContents& contents, GeometryContents* next_contents) const;
-  Status CommitCheckpoint(CheckpointManifest next, GeometryContents next_contents, uint64_t changes);
-  // The file of segment i of `snap` for checkpoint `generation`: the one `previous` names for it, else
-  // a new one written now (`written` counts them). Uses segment_files.
-  Result<CheckpointFile> FileOfSegment(const Snapshot& snap, size_t i, const CheckpointManifest& previous,
-                                       const std::string& generation, int* written) const;
-  bool CheckpointDue() const;  // writer_mutex held
-  // The geometry files `manifest` names that were found damaged (GeometryPart).
-  std::set<std::string> DamagedGeometry(const CheckpointManifest& manifest) const;
-  void ViewWrittenGeometry(const Snapshot& written, const CheckpointManifest& previous, std::unique_lock<std::mutex>& lock);
-  // Writes checkpoints in the background while the index is open (started by Open and Create), while
-  // VerifyParts runs beside it.
-  void CheckpointLoop();
-  // Verifies every part not verified yet (gives up when closing), then wakes the checkpointer if one
-  // was damaged.
-  void VerifyParts();
-  // After a write (writer_mutex held): counts it and wakes the checkpointer when one is due.
+  // After a committed write (writer_mutex held): counts it and tells the checkpointer.
   void Changed(uint64_t images);
-  // Stops the checkpointer and checkpoints pending changes; a failure is logged (the next open
-  // replays them from the catalogue).
-  void Close();
+  // Makes the checkpointer (catalogue and snapshot set) and starts its thread.
+  void StartCheckpointer(Checkpointer::Start start) {
+    checkpointer = std::make_unique<Checkpointer>(dir, index_options, writer_mutex, *catalogue, snapshot, searches,
+                                                  std::move(start));
+    checkpointer->Run();
+  }
 
   // An image ready to commit: validated, quantised, packed and serialised (no shared state used).
   struct Prepared {
@@ -387,646 +322,12 @@ struct ImageIndex::Impl {
   static void Unlink(const Snapshot& current, uint32_t n, const Entry& entry, const BagOfWords& bag, Snapshot& next);
 };
 
-namespace {
-
-using SnapshotPtr = std::shared_ptr<Snapshot>;
-
-// What Open's validation of a BLOB also checks: the record agrees with its features.
-Status CheckEntry(const ImageRecord& record, const PackedFeatures& features, size_t vocabulary_size,
-                  const std::string& where) {
-  if (!RecordMatches(record, features)) {
-    return Fail(ErrorCode::kCorruptData, where + ": image '" + record.id + "' record disagrees with its features");
-  }
-  if (features.size() > 0 && features.word(features.size() - 1) >= vocabulary_size) {
-    return Fail(ErrorCode::kCorruptData, where + ": image '" + record.id + "' has a word outside the vocabulary");
-  }
-  return Ok();
-}
-
-// An image whose catalogue BLOB an open found damaged: it is left out of the index and its row deleted
-// (Open), so that the damage costs that image only.
-struct DamagedBlob {
-  int64_t number = 0;
-  std::string why;
-};
-
-// Open without a checkpoint: every row and BLOB read and validated, the inverted file built in one
-// pass; an image whose BLOB fails its check is left out and added to *damaged.
-Result<SnapshotPtr> BuildFromCatalogue(const Catalogue& catalogue, size_t vocab_size, const IndexOptions& options,
-                                       std::vector<DamagedBlob>* damaged) {
-  std::vector<std::shared_ptr<const Entry>> by_number;
-  const std::string& path = catalogue.path();
-  auto status = catalogue.ForEach([&](CatalogueRow&& row) -> Status {
-    if (row.number <= 0 || row.number >= (int64_t{1} << 31)) {
-      return Fail(ErrorCode::kCorruptData, path + ": image number out of range");
-    }
-    auto features = PackedFeatures::Deserialize(row.features, "image '" + row.record.id + "' in " + path);
-    Status valid = features ? CheckEntry(row.record, *features, vocab_size, path) : Status(std::unexpected(features.error()));
-    if (!valid) {
-      damaged->push_back({row.number, valid.error().message});
-      return Ok();
-    }
-    const auto number = static_cast<size_t>(row.number);
-    if (by_number.size() <= number) by_number.resize(number + 1);
-    by_number[number] = std::make_shared<Entry>(Entry{std::move(row.record), std::move(*features), nullptr, 0, std::nullopt});
-    return Ok();
-  });
-  if (!status) return std::unexpected(status.error());
-  InvertedFile inverted = InvertedFile::Build(
-      vocab_size, ToTfIdf(options), static_cast<uint32_t>(by_number.size()),
-      [&](uint32_t number, BagOfWords* bag) {
-        if (!by_number[number]) return false;
-        *bag = by_number[number]->features().Bag();
-        return true;
-      },
-      options.num_threads);
-  return MakeSnapshot(std::move(inverted), by_number, options.num_threads);
-}
-
-struct LoadedCheckpoint {
-  SnapshotPtr snapshot;          // null: the checkpoint is unusable (logged), rebuild from the catalogue
-  CheckpointManifest manifest;   // generation 0 when unreadable
-  uint64_t changes = 0;          // images added + removed since the checkpoint (replayed)
-  std::vector<std::shared_ptr<const GeometryPart>> parts;  // its geometry files, not verified yet
-  GeometryContents contents;     // the images of its geometry files
-  bool compact = false;          // a checkpoint would drop some of its geometry files (KeptGeometry)
-  bool recoded = false;          // the postings file was of an older format (re-coded in memory)
-  std::vector<DamagedBlob> damaged;  // images added since whose BLOB is damaged (left out)
-  // Its segment files, each with the segment loaded from it (ImageIndex::Impl::segment_files).
-  std::vector<std::pair<std::weak_ptr<const void>, CheckpointFile>> segment_files;
-};
-
-// The files of a checkpoint (LoadCheckpoint), each read and checked, in manifest order.
-struct CheckpointFilesRead {
-  std::vector<std::vector<GeometryImage>> geometry;                  // per geometry file
-  std::vector<std::shared_ptr<const MappedFile>> geometry_files;     // geometry files, mapped
-  std::vector<std::shared_ptr<const MappedFile>> postings_files;     // the head and segments, in memory
-};
-
-bool IsPostingsFile(const std::string& name) { return name.starts_with("postings-") || name.starts_with("segment-"); }
-
-// Loads every file in parallel; the first failure in file order is returned. The postings files (the
-// head and its segment files) are verified against their checksums here; a geometry file's size and
-// image table are checked here, its checksum on first use (GeometryPart).
-Result<CheckpointFilesRead> ReadCheckpointFiles(const std::string& dir, const std::vector<CheckpointFile>& files,
-                                                int num_threads) {
-  CheckpointFilesRead out;
-  std::vector<Status> failures(files.size(), Ok());
-  out.geometry.resize(files.size());
-  out.geometry_files.resize(files.size());
-  out.postings_files.resize(files.size());
-  ParallelFor(files.size(), num_threads, 1, [&](size_t begin, size_t end, int) {
-    for (size_t i = begin; i < end; ++i) {
-      const std::string what = "checkpoint file " + (std::filesystem::path(dir) / files[i].name).string();
-      const bool postings = IsPostingsFile(files[i].name);
-      auto mapped = MappedFile::Open((std::filesystem::path(dir) / files[i].name).string(),
-                                     postings ? MappedFile::Use::kResident : MappedFile::Use::kRandom);
-      if (!mapped) {
-        failures[i] = std::unexpected(mapped.error());
-      } else if (!postings && (*mapped)->bytes().size() != files[i].size_bytes) {
-        failures[i] = Fail(ErrorCode::kCorruptData, what + " has " + std::to_string((*mapped)->bytes().size()) +
-                                                        " bytes, its manifest says " + std::to_string(files[i].size_bytes));
-      } else if (postings) {
-        // Checked whole before use, then used in place (no copy): the loaded file stays in memory for
-        // as long as a version of the inverted file uses its postings.
-        failures[i] = VerifyCheckpointBytes((*mapped)->bytes(), files[i], what);
-        if (failures[i]) out.postings_files[i] = *mapped;
-      } else {
-        auto images = ReadGeometry(*mapped, what);
-        if (images) {
-          out.geometry[i] = std::move(*images);
-          out.geometry_files[i] = *mapped;
-        } else {
-          failures[i] = std::unexpected(images.error());
-        }
-      }
-    }
-  });
-  for (Status& failure : failures) {
-    if (!failure) return std::unexpected(std::move(failure.error()));
-  }
-  return out;
-}
-
-// The inverted file of a checkpoint: its one postings head (`postings_files` from ReadCheckpointFiles)
-// with the segment files it names, which the manifest must list. `segment_files` receives each
-// segment's file, in order.
-Result<InvertedFile> ReadPostings(const std::string& dir, const std::vector<CheckpointFile>& files,
-                                  const std::vector<std::shared_ptr<const MappedFile>>& postings_files, size_t vocab_size,
-                                  const IndexOptions& options, bool* recoded,
-                                  std::vector<std::pair<std::weak_ptr<const void>, CheckpointFile>>* segment_files) {
-  size_t head = files.size();
-  for (size_t i = 0; i < files.size(); ++i) {
-    if (!files[i].name.starts_with("postings-")) continue;
-    if (head != files.size()) return Fail(ErrorCode::kCorruptData, "two postings files");
-    head = i;
-  }
-  if (head == files.size()) return Fail(ErrorCode::kCorruptData, "no postings file");
-  std::vector<size_t> used;  // files index of each segment, in order
-  const InvertedFile::SegmentSource segment_source =
-      [&](const std::string& name) -> Result<std::pair<std::span<const uint8_t>, std::shared_ptr<const void>>> {
-    for (size_t i = 0; i < files.size(); ++i) {
-      if (files[i].name == name && name.starts_with("segment-")) {
-        used.push_back(i);
-        return std::pair{postings_files[i]->bytes(), std::shared_ptr<const void>(postings_files[i])};
-      }
-    }
-    return Fail(ErrorCode::kCorruptData, "not named by the manifest");
-  };
-  auto inverted = InvertedFile::Deserialize(postings_files[head]->bytes(), vocab_size, ToTfIdf(options), recoded,
-                                            postings_files[head], segment_source);
-  if (!inverted) {
-    return Fail(inverted.error().code, "checkpoint file " + (std::filesystem::path(dir) / files[head].name).string() +
-                                           ": " + inverted.error().message);
-  }
-  segment_files->clear();
-  segment_files->reserve(used.size());
-  for (size_t k = 0; k < used.size(); ++k) segment_files->emplace_back(inverted->SegmentHandle(k), files[used[k]]);
-  return inverted;
-}
-
-// Open from the checkpoint the catalogue names, replaying the changes since. A damaged, missing or
-// inconsistent checkpoint file gives a null snapshot (and a log line); an error is a catalogue failure.
-Result<LoadedCheckpoint> LoadCheckpoint(const std::string& dir, const Catalogue& catalogue, size_t vocab_size,
-                                        const IndexOptions& options) {
-  const auto t0 = Clock::now();
-  LoadedCheckpoint out;
-  const auto unusable = [&](const std::string& why) {
-    OXBOW_LOG(kWarning) << "index " << dir << ": checkpoint unusable (" << why
-                        << "); rebuilding the index from the catalogue and writing a new checkpoint";
-    out.snapshot = nullptr;
-    return out;
-  };
-  auto manifest = CheckpointManifest::Parse(catalogue.meta().checkpoint);
-  if (!manifest) return unusable(manifest.error().message);
-  out.manifest = *manifest;
-  if (manifest->sqrt_tf != options.sqrt_tf) return unusable("written with another sqrt_tf setting");
-
-  const std::vector<CheckpointFile>& files = manifest->files;
-  auto read = ReadCheckpointFiles(dir, files, options.num_threads);
-  if (!read) return unusable(read.error().message);
-  std::vector<std::vector<GeometryImage>>& geometry = read->geometry;
-  const std::vector<std::shared_ptr<const MappedFile>>& geometry_files = read->geometry_files;
-  auto postings = ReadPostings(dir, files, read->postings_files, vocab_size, options, &out.recoded, &out.segment_files);
-  if (!postings) return unusable(postings.error().message);
-  std::optional<InvertedFile> inverted(std::move(*postings));
-  const int64_t high_water = manifest->high_water;
-  if (static_cast<int64_t>(inverted->num_numbers()) > high_water + 1) return unusable("postings above the high water");
-
-  std::vector<const GeometryImage*> stored(static_cast<size_t>(high_water) + 1, nullptr);
-  std::vector<uint32_t> part_of(stored.size(), 0);  // index into out.parts
-  for (size_t i = 0; i < files.size(); ++i) {
-    if (IsPostingsFile(files[i].name)) continue;
-    auto numbers = std::make_shared<std::vector<uint32_t>>();
-    numbers->reserve(geometry[i].size());
-    for (const GeometryImage& image : geometry[i]) numbers->push_back(image.number);
-    out.contents[files[i].name] = std::move(numbers);
-    if (geometry[i].empty()) continue;
-    const auto part = static_cast<uint32_t>(out.parts.size());
-    out.parts.push_back(std::make_shared<const GeometryPart>(dir, files[i], geometry_files[i]));
-    for (const GeometryImage& image : geometry[i]) {
-      if (image.number > high_water || stored[image.number]) return unusable("geometry files overlap");
-      stored[image.number] = &image;
-      part_of[image.number] = part;
-    }
-  }
-
-  const double files_ms = MsSince(t0);
-  // The catalogue's records (not its BLOBs): those up to the high water take their features from
-  // the checkpoint; those above were added since.
-  std::vector<std::shared_ptr<const Entry>> by_number(stored.size());
-  std::map<int64_t, ImageRecord> added;
-  std::string inconsistency;
-  const std::string& path = catalogue.path();
-  auto status = catalogue.ForEach(
-      [&](CatalogueRow&& row) -> Status {
-        if (row.number <= 0 || row.number >= (int64_t{1} << 31)) {
-          return Fail(ErrorCode::kCorruptData, path + ": image number out of range");
-        }
-        if (row.number > high_water) {
-          added.emplace(row.number, std::move(row.record));
-          return Ok();
-        }
-        const auto n = static_cast<uint32_t>(row.number);
-        // The words were checked when the image was added; reading them here would page in every
-        // mapped geometry page.
-        if (!stored[n] || !inverted->IsLive(n) || !RecordMatches(row.record, stored[n]->features)) {
-          if (inconsistency.empty()) inconsistency = "image '" + row.record.id + "' differs from the catalogue";
-          return Ok();
-        }
-        by_number[n] = std::make_shared<Entry>(Entry{std::move(row.record), stored[n]->features, out.parts[part_of[n]], n, stored[n]->checksum});
-        return Ok();
-      },
-      /*with_features=*/false);
-  if (!status) return std::unexpected(status.error());
-  if (!inconsistency.empty()) return unusable(inconsistency);
-  // Files mostly of removed images (what a checkpoint drops) are compacted by one right after open.
-  const size_t num_geometry_files = out.contents.size();
-  out.compact = KeptGeometry(*manifest, out.contents, {}, [&](uint32_t n) { return n < by_number.size() && by_number[n]; })
-                    .size() < num_geometry_files;
-
-  const double records_ms = MsSince(t0) - files_ms;
-  // Removed since: live in the checkpoint, gone from the catalogue.
-  std::vector<uint32_t> removed;
-  std::vector<BagOfWords> removed_bags;
-  for (uint32_t n = 0; n < inverted->num_numbers(); ++n) {
-    if (!inverted->IsLive(n) || by_number[n]) continue;
-    if (!stored[n]) return unusable("a live image without geometry");
-    // Their words leave the postings: a copy checked now (the image, or the whole file without
-    // per-image sums) is what is read.
-    const GeometryPart& part = *out.parts[part_of[n]];
-    const std::optional<PackedFeatures> copy = part.Copied(n, stored[n]->features, stored[n]->checksum);
-    if (!copy) return unusable(part.file().name + ": the data of image number " + std::to_string(n) + " fails its check");
-    removed.push_back(n);
-    removed_bags.push_back(copy->Bag());
-  }
-  std::vector<const BagOfWords*> bag_pointers;
-  bag_pointers.reserve(removed_bags.size());
-  for (const BagOfWords& bag : removed_bags) bag_pointers.push_back(&bag);
-  *inverted = inverted->WithRemoved(removed, bag_pointers);
-
-  // Added since: their BLOBs, validated as a full open would.
-  std::vector<uint32_t> added_numbers;
-  std::vector<BagOfWords> added_bags;
-  status = catalogue.ForEachFeaturesAfter(high_water, [&](int64_t number, std::span<const uint8_t> blob) -> Status {
-    const auto it = added.find(number);
-    if (it == added.end()) return Fail(ErrorCode::kCorruptData, path + " is damaged: features without a record");
-    auto features = PackedFeatures::Deserialize(blob, "image '" + it->second.id + "' in " + path);
-    Status valid = features ? CheckEntry(it->second, *features, vocab_size, path) : Status(std::unexpected(features.error()));
-    if (!valid) {
-      out.damaged.push_back({number, valid.error().message});
-      added.erase(it);
-      return Ok();
-    }
-    const auto n = static_cast<size_t>(number);
-    if (by_number.size() <= n) by_number.resize(n + 1);
-    added_numbers.push_back(static_cast<uint32_t>(n));
-    added_bags.push_back(features->Bag());
-    by_number[n] = std::make_shared<Entry>(Entry{std::move(it->second), std::move(*features), nullptr, 0, std::nullopt});
-    added.erase(it);
-    return Ok();
-  });
-  if (!status) return std::unexpected(status.error());
-  if (!added.empty()) {
-    return Fail(ErrorCode::kCorruptData, path + " is damaged: image '" + added.begin()->second.id + "' has no features");
-  }
-  bag_pointers.clear();
-  bag_pointers.reserve(added_bags.size());
-  for (const BagOfWords& bag : added_bags) bag_pointers.push_back(&bag);
-  *inverted = inverted->WithAdded(added_numbers, bag_pointers);
-  out.changes = removed.size() + added_numbers.size();
-  const double replay_ms = MsSince(t0) - files_ms - records_ms;
-  out.snapshot = MakeSnapshot(std::move(*inverted), by_number, options.num_threads);
-  OXBOW_LOG(kInfo) << "index " << dir << ": opened from checkpoint generation " << manifest->generation << " in "
-                   << MsSince(t0) << " ms (files loaded, postings verified " << files_ms << " ms, records " << records_ms
-                   << " ms, replay of " << out.changes << " changes " << replay_ms << " ms, id maps "
-                   << MsSince(t0) - files_ms - records_ms - replay_ms << " ms)";
-  return out;
-}
-
-}  // namespace
-
 ImageIndex::ImageIndex(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
-ImageIndex::~ImageIndex() { impl_->Close(); }
-
-Result<CheckpointManifest> ImageIndex::Impl::CheckpointFiles(const Snapshot& snap, const CheckpointManifest& previous,
-                                                             const GeometryContents& contents,
-                                                             GeometryContents* next_contents) const {
-  CheckpointManifest next;
-  next.generation = previous.generation + 1;
-  next.sqrt_tf = index_options.sqrt_tf;
-  const size_t num_numbers = snap.entries.size();
-  next.high_water = num_numbers > 0 ? static_cast<int64_t>(num_numbers) - 1 : 0;
-  // Geometry files are immutable: a previous one that KeptGeometry keeps is named again (its images
-  // removed since are skipped at open), the others are dropped; new ones hold the images above the
-  // previous high water and the live images of the dropped files. Each live image is in exactly one
-  // file of the manifest (Open refuses overlaps).
-  const auto is_live = [&](uint32_t n) { return n < num_numbers && snap.entries[n] != nullptr; };
-  const std::set<std::string> kept = KeptGeometry(previous, contents, DamagedGeometry(previous), is_live);
-  next_contents->clear();
-  const size_t first = previous.files.empty() ? 0 : static_cast<size_t>(previous.high_water) + 1;
-  std::vector<uint8_t> covered(first, 0);  // 1: in a file kept
-  for (const CheckpointFile& f : previous.files) {
-    if (!kept.count(f.name)) continue;
-    next.files.push_back(f);
-    const auto& numbers = contents.at(f.name);
-    (*next_contents)[f.name] = numbers;
-    for (const uint32_t n : *numbers) {
-      if (n < first) covered[n] = 1;
-    }
-  }
-  const std::string generation = std::to_string(next.generation);
-  std::vector<GeometryImage> part;
-  uint64_t part_bytes = 0;
-  int parts = 0;
-  const auto write_part = [&]() -> Status {
-    auto file = WriteCheckpointFile(dir, "geometry-" + generation + "-" + std::to_string(parts++) + ".oxck",
-                                    [&](const ByteSink& sink) { WriteGeometry(part, sink); });
-    if (!file) return std::unexpected(file.error());
-    auto numbers = std::make_shared<std::vector<uint32_t>>();
-    numbers->reserve(part.size());
-    for (const GeometryImage& image : part) numbers->push_back(image.number);
-    (*next_contents)[file->name] = std::move(numbers);
-    next.files.push_back(std::move(*file));
-    part.clear();
-    part_bytes = 0;
-    return Ok();
-  };
-  for (size_t n = 0; n < num_numbers; ++n) {
-    const Entry* entry = snap.entries[n].get();
-    if (!entry || (n < first && covered[n])) continue;
-    const PackedFeatures& features = entry->features();
-    part.push_back({static_cast<uint32_t>(n), features, std::nullopt});
-    part_bytes += features.bytes().size() + features.signature_bytes().size();
-    if (part_bytes >= kGeometryPartBytes) {
-      if (auto s = write_part(); !s) return std::unexpected(s.error());
-    }
-  }
-  if (!part.empty()) {
-    if (auto s = write_part(); !s) return std::unexpected(s.error());
-  }
-  // Postings: a segment already in a file of the previous manifest is named again; each other one is
-  // written to a new file (segments are immutable); the head names them in order.
-  std::vector<std::string> segment_names;
-  {
-    std::lock_guard<std::mutex> lock(segment_files_mutex);
-    std::erase_if(segment_files, [](const SegmentFile& f) { return f.segment.expired(); });
-  }
-  int segments_written = 0;
-  for (size_t i = 0; i < snap.inverted.num_segments(); ++i) {
-    auto file = FileOfSegment(snap, i, previous, generation, &segments_written);
-    if (!file) return std::unexpected(file.error());
-    segment_names.push_back(file->name);
-    next.files.push_back(std::move(*file));
-  }
-  auto postings = WriteCheckpointFile(dir, "postings-" + generation + ".oxck",
-                                      [&](const ByteSink& sink) { snap.inverted.SerializeHead(segment_names, sink); });
-  if (!postings) return std::unexpected(postings.error());
-  next.files.push_back(std::move(*postings));
-  CheckpointStage("files-written");
-  return next;
-}
-
-Result<CheckpointFile> ImageIndex::Impl::FileOfSegment(const Snapshot& snap, size_t i, const CheckpointManifest& previous,
-                                                      const std::string& generation, int* written) const {
-  const std::shared_ptr<const void> handle = snap.inverted.SegmentHandle(i);
-  {
-    std::lock_guard<std::mutex> lock(segment_files_mutex);
-    for (const SegmentFile& f : segment_files) {
-      if (f.segment.lock() == handle && std::find(previous.files.begin(), previous.files.end(), f.file) != previous.files.end()) {
-        return f.file;
-      }
-    }
-  }
-  auto file = WriteCheckpointFile(dir, "segment-" + generation + "-" + std::to_string((*written)++) + ".oxck",
-                                  [&](const ByteSink& sink) { snap.inverted.SerializeSegment(i, sink); });
-  if (!file) return file;
-  {
-    std::lock_guard<std::mutex> lock(segment_files_mutex);
-    std::erase_if(segment_files, [&](const SegmentFile& f) { return f.file.name == file->name; });
-    segment_files.push_back({handle, *file});
-  }
-  CheckpointStage("segment-written");
-  return file;
-}
-
-Status ImageIndex::Impl::CommitCheckpoint(CheckpointManifest next, GeometryContents next_contents, uint64_t changes) {
-  if (auto s = catalogue->SetCheckpoint(next.Format()); !s) return s;
-  CheckpointStage("manifest-committed");
-  checkpoint = std::move(next);
-  geometry_contents = std::move(next_contents);
-  changes_since_checkpoint -= changes;
-  checkpoint_forced = false;
-  // Only now, with the new manifest durable (SetCheckpoint commits with synchronous=FULL), are the
-  // files it no longer names deleted (a dropped geometry file, a merged-away segment, the previous
-  // postings head): a crash before the commit leaves the previous manifest with every file it names
-  // (the new files have new names), one after it leaves the new manifest, whose files are durable
-  // (WriteCheckpointFile), and leftovers that Open deletes. A file still mapped by a snapshot in use
-  // (a search, a backup) stays readable after the unlink: its disk space is freed once the last
-  // mapping of it is gone (ViewWrittenGeometry moves the live images to the new files).
-  RemoveUnreferencedCheckpointFiles(dir, checkpoint);
-  CheckpointStage("cleaned");
-  return Ok();
-}
-
-bool ImageIndex::Impl::CheckpointDue() const {
-  const uint64_t live = Current()->inverted.num_images();
-  return checkpoint_forced || changes_since_checkpoint >= std::max(index_options.checkpoint_changes, live / 10) ||
-         !DamagedGeometry(checkpoint).empty();
-}
-
-std::set<std::string> ImageIndex::Impl::DamagedGeometry(const CheckpointManifest& manifest) const {
-  std::set<std::string> out;
-  for (const auto* parts : {&geometry_parts, &written_parts}) {
-    for (const auto& part : *parts) {
-      if (!part->Damaged()) continue;
-      for (const CheckpointFile& f : manifest.files) {
-        if (f.name == part->file().name) out.insert(f.name);
-      }
-    }
-  }
-  return out;
-}
-
-// After a checkpoint committed: the images its new geometry files hold that are still indexed view the
-// files instead of the copies in memory that Add made, as after an open. Without it an index kept every
-// image added since its open in memory (17 bytes per feature: 17 GB after ingesting 1M images of 1000
-// features). Each image's data is checked on use, as in a file an open loaded. A file that cannot be
-// mapped or read keeps its images in memory (logged). Called with writer_mutex held through `lock`; it
-// releases it while it reads the files' image tables and makes the new entries.
-void ImageIndex::Impl::ViewWrittenGeometry(const Snapshot& written, const CheckpointManifest& previous,
-                                           std::unique_lock<std::mutex>& lock) {
-  // Parts the committed manifest no longer names are forgotten here; their images move to the new
-  // files below, and each file's mapping (and descriptor) goes with the last snapshot that views it.
-  const auto named = [names = checkpoint.files](const GeometryPart& part) {
-    return std::find(names.begin(), names.end(), part.file()) != names.end();
-  };
-  std::erase_if(written_parts, [&](const auto& part) { return !named(*part); });
-  std::erase_if(geometry_parts, [&](const auto& part) { return !named(*part); });
-  std::vector<CheckpointFile> files;
-  for (const CheckpointFile& file : checkpoint.files) {
-    if (file.name.starts_with("geometry-") &&
-        std::find(previous.files.begin(), previous.files.end(), file) == previous.files.end()) {
-      files.push_back(file);
-    }
-  }
-  struct Viewing {
-    std::shared_ptr<const GeometryPart> part;
-    std::vector<std::pair<uint32_t, std::shared_ptr<const Entry>>> entries;  // by number
-  };
-  std::vector<Viewing> viewing;
-  lock.unlock();
-  for (const CheckpointFile& file : files) {
-    const std::string path = JoinPath(dir, file.name.c_str());
-    auto mapped = MappedFile::Open(path);
-    auto images = mapped ? ReadGeometry(*mapped, "checkpoint file " + path)
-                         : Result<std::vector<GeometryImage>>(std::unexpected(mapped.error()));
-    if (!images) {
-      OXBOW_LOG(kWarning) << "index " << dir << ": cannot read back " << path << " (" << images.error().message
-                          << "); its images stay in memory until the next open";
-      continue;
-    }
-    // Files without per-image checksums (formats 1 and 2, written only by tests) would be checked whole
-    // at the first use of an image, with a search waiting: their images stay in memory.
-    if (std::any_of(images->begin(), images->end(), [](const GeometryImage& image) { return !image.checksum; })) continue;
-    Viewing& v = viewing.emplace_back();
-    v.part = std::make_shared<const GeometryPart>(dir, file, *mapped);
-    for (GeometryImage& image : *images) {
-      if (image.number >= written.entries.size()) continue;
-      const Entry* entry = written.entries[image.number].get();
-      // An image viewing a file still named stays there; one in memory, or viewing a file the manifest
-      // dropped (compacted or damaged), views the new file.
-      if (!entry || (entry->part && named(*entry->part)) || !RecordMatches(entry->record, image.features)) continue;
-      v.entries.emplace_back(image.number, std::make_shared<const Entry>(Entry{
-                                               entry->record, std::move(image.features), v.part, image.number, image.checksum}));
-    }
-  }
-  lock.lock();
-  if (viewing.empty()) {
-    CheckpointStage("geometry-viewed");
-    return;
-  }
-  const auto current = Current();
-  auto next = std::make_shared<Snapshot>(*current);
-  size_t viewed = 0;
-  {
-    CowArray<std::shared_ptr<const Entry>>::Editor editor(&next->entries);
-    for (Viewing& v : viewing) {
-      size_t used = 0;
-      for (auto& [number, entry] : v.entries) {
-        // Removed since (or replaced: a new number): left as it is.
-        if (number >= current->entries.size() || current->entries[number] != written.entries[number]) continue;
-        next->geometry_bytes += entry->MemoryBytes();
-        next->geometry_bytes -= current->entries[number]->MemoryBytes();
-        editor.Mutable(number) = std::move(entry);
-        ++used;
-      }
-      if (used > 0) written_parts.push_back(std::move(v.part));
-      viewed += used;
-    }
-  }
-  if (viewed > 0) Publish(std::move(next));
-  CheckpointStage("geometry-viewed");
-}
+ImageIndex::~ImageIndex() { impl_->checkpointer->Close(); }
 
 void ImageIndex::Impl::Changed(uint64_t images) {
-  changes_since_checkpoint += images;
   write_sequence.fetch_add(images);  // as the commit moved Catalogue::WriteSequence
-  if (CheckpointDue()) checkpoint_due.notify_one();
-}
-
-void ImageIndex::Impl::VerifyParts() {
-  // Weak: a part a checkpoint dropped meanwhile (ViewWrittenGeometry) is not kept open for its check.
-  std::vector<std::weak_ptr<const GeometryPart>> parts;
-  {
-    std::lock_guard<std::mutex> lock(writer_mutex);
-    parts.assign(geometry_parts.begin(), geometry_parts.end());
-  }
-  if (parts.empty()) return;
-  CheckpointStage("verifying-geometry");
-  const auto t0 = Clock::now();
-  size_t damaged = 0;
-  // Between its 4 MiB reads the check waits while a search runs: SCHED_IDLE keeps it off a core a
-  // search wants, but not off the disk, the memory bus or the page cache, and at 1M images (16 GB of
-  // geometry, read for 5-45 s after an open) it would make the searches of that time 10-25% slower.
-  // While a search ended less than kBusyWindow ago it also reads at most one
-  // block per kBusyGap (80 MiB/s): read from disk at full speed (up to 1.2 GB/s right after a bulk
-  // ingest, whose files the page cache no longer held) it took 22-36% of the CPU in the kernel between
-  // the searches (vmstat), 6-8% so limited. Idle for kBusyWindow, it reads at full speed.
-  static constexpr auto kBusyWindow = std::chrono::seconds(1);
-  static constexpr auto kBusyGap = std::chrono::milliseconds(50);
-  Clock::time_point last_read = Clock::now();
-  const auto stop = [this, &last_read] {
-    for (;;) {
-      if (stop_verifying.load()) return true;
-      const auto now = Clock::now();
-      const Clock::time_point search_ended{Clock::duration(last_search_end.load(std::memory_order_relaxed))};
-      const bool busy = now - search_ended < kBusyWindow;
-      if (searches_in_flight.load(std::memory_order_relaxed) == 0 && (!busy || now - last_read >= kBusyGap)) break;
-      std::this_thread::sleep_for(std::chrono::milliseconds(1));
-    }
-    last_read = Clock::now();
-    CheckpointStage("geometry-read");
-    return false;
-  };
-  for (const auto& weak : parts) {
-    const std::shared_ptr<const GeometryPart> part = weak.lock();
-    if (!part) continue;
-    const std::optional<bool> good = part->VerifiedUnless(stop);
-    if (!good.has_value()) return;  // closing
-    if (!*good) ++damaged;
-  }
-  CheckpointStage("geometry-verified");
-  OXBOW_LOG(kInfo) << "index " << dir << ": " << parts.size() << " geometry files of the checkpoint verified in "
-                   << MsSince(t0) << " ms, " << damaged << " damaged";
-  // A damaged file makes CheckpointDue() true: the checkpointer rewrites it once woken (under the lock,
-  // so that the wake cannot fall between its test and its wait).
-  if (damaged > 0) {
-    std::lock_guard<std::mutex> lock(writer_mutex);
-    checkpoint_due.notify_one();
-  }
-}
-
-void ImageIndex::Impl::CheckpointLoop() {
-  // The loaded geometry files are checked on a thread of their own in SCHED_IDLE, pausing while a
-  // search runs (VerifyParts): right after an open, reading and hashing every file (5-45 s at 1M
-  // images) would otherwise take a core from the first searches, which then ran at half speed. A
-  // search never waits for it (an image it uses first is checked alone, GeometryPart::CopyChecked), and
-  // neither do checkpoints: under a load that keeps every core busy, or a search always running, the
-  // check may not run for minutes. A checkpoint before it ends keeps the files
-  // not checked yet (their images are still checked on use); one found damaged later is rewritten by
-  // the next checkpoint, as DamagedGeometry names it in any manifest that still holds it.
-  std::thread verifier([this] {
-    RunOnlyWhenIdle();
-    VerifyParts();
-  });
-  std::unique_lock<std::mutex> lock(writer_mutex);
-  while (true) {
-    checkpoint_due.wait(lock, [&] { return closing || CheckpointDue(); });
-    if (closing) break;
-    const auto snap = Current();
-    const uint64_t changes = changes_since_checkpoint;
-    const CheckpointManifest previous = checkpoint;
-    const GeometryContents contents = geometry_contents;
-    GeometryContents next_contents;
-    lock.unlock();  // writers go on while the files are written
-    auto next = CheckpointFiles(*snap, previous, contents, &next_contents);
-    lock.lock();
-    const Status status =
-        next ? CommitCheckpoint(std::move(*next), std::move(next_contents), changes) : Status(std::unexpected(next.error()));
-    if (status) {
-      ViewWrittenGeometry(*snap, previous, lock);
-    } else {
-      OXBOW_LOG(kWarning) << "index " << dir << ": cannot write a checkpoint (" << status.error().message
-                          << "); trying again after as many changes, and at close";
-      changes_since_checkpoint -= std::min(changes_since_checkpoint, changes);
-      checkpoint_forced = false;
-      pending_after_failure += changes;
-    }
-  }
-  lock.unlock();
-  verifier.join();  // Close set stop_verifying: it gives up before its next read
-}
-
-void ImageIndex::Impl::Close() {
-  {
-    std::lock_guard<std::mutex> writer(writer_mutex);
-    closing = true;
-  }
-  stop_verifying = true;
-  checkpoint_due.notify_one();
-  if (checkpointer.joinable()) checkpointer.join();
-  std::lock_guard<std::mutex> writer(writer_mutex);
-  changes_since_checkpoint += pending_after_failure;
-  if ((changes_since_checkpoint == 0 && !checkpoint_forced && DamagedGeometry(checkpoint).empty()) || !catalogue) return;
-  GeometryContents next_contents;
-  auto next = CheckpointFiles(*Current(), checkpoint, geometry_contents, &next_contents);
-  const Status status = next ? CommitCheckpoint(std::move(*next), std::move(next_contents), changes_since_checkpoint)
-                             : Status(std::unexpected(next.error()));
-  if (!status) {
-    OXBOW_LOG(kWarning) << "index " << dir << ": cannot write a checkpoint at close (" << status.error().message
-                        << "); the next open replays the changes from the catalogue";
-  }
+  checkpointer->Changed(images);
 }
 
 bool ImageIndex::Exists(const std::string& dir) {
@@ -1068,9 +369,40 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Create(const std::string& dir, c
   auto snap = std::make_shared<Snapshot>(InvertedFile(vocabulary.size(), ToTfIdf(options)));
   for (auto& shard : snap->ids) shard = std::make_shared<IdShard>();
   impl->Publish(std::move(snap));
-  impl->checkpointer = std::thread([raw = impl.get()] { raw->CheckpointLoop(); });
+  impl->StartCheckpointer({});
   return std::unique_ptr<ImageIndex>(new ImageIndex(std::move(impl)));
 }
+
+namespace {
+
+// Where the checkpointer of an index opened from `loaded` starts; its snapshot and damaged images go to
+// *snap and *damaged (a null snapshot: the checkpoint is unusable, rebuild).
+Checkpointer::Start StartFrom(LoadedCheckpoint loaded, const std::string& dir, std::shared_ptr<Snapshot>* snap,
+                              std::vector<DamagedBlob>* damaged) {
+  Checkpointer::Start start;
+  if (!loaded.snapshot) {
+    // Keep the generation: the new files must not take the names of those the old manifest lists.
+    start.manifest.generation = loaded.manifest.generation;
+    return start;
+  }
+  *damaged = std::move(loaded.damaged);
+  *snap = std::move(loaded.snapshot);
+  start.manifest = std::move(loaded.manifest);
+  start.parts = std::move(loaded.parts);
+  start.contents = std::move(loaded.contents);
+  start.forced = loaded.compact;
+  start.segment_files = std::move(loaded.segment_files);
+  start.changes = loaded.changes;
+  if (loaded.recoded) {
+    OXBOW_LOG(kInfo) << "index " << dir << ": its postings file was written in an older format by an earlier "
+                     << "build and was converted while loading; a checkpoint in the current format is written "
+                     << "in the background";
+    start.forced = true;
+  }
+  return start;
+}
+
+}  // namespace
 
 Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, const IndexOptions& options) {
   if (auto e = options.Check()) return Fail(ErrorCode::kInvalidArgument, "index options: " + *e);
@@ -1110,27 +442,10 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, con
   impl->folder_lock = std::move(*lock);
   std::shared_ptr<Snapshot> snap;
   std::vector<DamagedBlob> damaged;
+  Checkpointer::Start start;
   if (loaded) {
     if (!*loaded) return std::unexpected(loaded->error());
-    if ((*loaded)->snapshot) {
-      damaged = std::move((*loaded)->damaged);
-      snap = std::move((*loaded)->snapshot);
-      impl->checkpoint = std::move((*loaded)->manifest);
-      impl->geometry_parts = std::move((*loaded)->parts);
-      impl->geometry_contents = std::move((*loaded)->contents);
-      impl->checkpoint_forced = (*loaded)->compact;
-      for (auto& [segment, file] : (*loaded)->segment_files) impl->segment_files.push_back({segment, file});
-      impl->changes_since_checkpoint = (*loaded)->changes;
-      if ((*loaded)->recoded) {
-        OXBOW_LOG(kInfo) << "index " << dir << ": its postings file was written in an older format by an earlier "
-                         << "build and was converted while loading; a checkpoint in the current format is written "
-                         << "in the background";
-        impl->checkpoint_forced = true;
-      }
-    } else {
-      // Keep the generation: the new files must not take the names of those the old manifest lists.
-      impl->checkpoint.generation = (*loaded)->manifest.generation;
-    }
+    start = StartFrom(std::move(**loaded), dir, &snap, &damaged);
   }
   const bool rebuild = snap == nullptr;
   if (rebuild) {
@@ -1152,12 +467,12 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, con
   impl->write_sequence = *sequence;
   impl->catalogue = std::move(*catalogue);
   if (rebuild) {
-    impl->checkpoint_forced = true;  // written in the background: the index is ready now
+    start.forced = true;  // written in the background: the index is ready now
   } else {
-    RemoveUnreferencedCheckpointFiles(dir, impl->checkpoint);  // leftovers of a crash
+    RemoveUnreferencedCheckpointFiles(dir, start.manifest);  // leftovers of a crash
   }
   impl->Publish(std::move(snap));
-  impl->checkpointer = std::thread([raw = impl.get()] { raw->CheckpointLoop(); });
+  impl->StartCheckpointer(std::move(start));
   return std::unique_ptr<ImageIndex>(new ImageIndex(std::move(impl)));
 }
 
@@ -1481,24 +796,6 @@ Result<std::vector<ImageRecord>> ImageIndex::List(uint64_t offset, uint64_t limi
 }
 
 namespace {
-// Counts a search as running for its lifetime (Impl::searches_in_flight) and notes when it ended
-// (Impl::last_search_end).
-class SearchInFlight {
- public:
-  SearchInFlight(std::atomic<int>& count, std::atomic<int64_t>& ended) : count_(count), ended_(ended) {
-    count_.fetch_add(1, std::memory_order_relaxed);
-  }
-  ~SearchInFlight() {
-    ended_.store(Clock::now().time_since_epoch().count(), std::memory_order_relaxed);
-    count_.fetch_sub(1, std::memory_order_relaxed);
-  }
-  SearchInFlight(const SearchInFlight&) = delete;
-  SearchInFlight& operator=(const SearchInFlight&) = delete;
-
- private:
-  std::atomic<int>& count_;
-  std::atomic<int64_t>& ended_;
-};
 
 using search::ImageRef;
 
@@ -1751,7 +1048,7 @@ std::unique_ptr<search::Source> ImageIndex::OpenSearch() const {
 
 Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const QueryOptions& options) const {
   const auto t0 = Clock::now();
-  const SearchInFlight in_flight(impl_->searches_in_flight, impl_->last_search_end);
+  const SearchActivity::Scope in_flight(impl_->searches);
   const LatencySensitiveScope latency;  // the pool's helpers stay awake between this search's stages
   if (auto e = options.Check()) return Fail(ErrorCode::kInvalidArgument, "query options: " + *e);
   if (auto s = CheckFeatures(query, impl_->vocabulary, "the query"); !s) return std::unexpected(s.error());
@@ -1772,7 +1069,7 @@ Result<QueryResponse> ImageIndex::Query(const sift::FeatureSet& query, const Que
 
 Result<QueryResponse> ImageIndex::QuerySimilar(const std::string& id, const QueryOptions& options) const {
   const auto t0 = Clock::now();
-  const SearchInFlight in_flight(impl_->searches_in_flight, impl_->last_search_end);
+  const SearchActivity::Scope in_flight(impl_->searches);
   const LatencySensitiveScope latency;  // the pool's helpers stay awake between this search's stages
   if (auto e = options.Check()) return Fail(ErrorCode::kInvalidArgument, "query options: " + *e);
   SnapshotSource source(impl_->Current(), impl_->index_options.num_threads);
