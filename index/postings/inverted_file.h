@@ -1,46 +1,43 @@
-// The inverted file and its TF-IDF scoring (Sivic & Zisserman 2003; Philbin et al. 2007), independent
-// of how words were made (vocab/) or stored (catalogue.h).
+// The inverted file: postings of visual words in log-structured segments, collection statistics and
+// TF-IDF scoring (Sivic & Zisserman 2003; Philbin et al. 2007), independent of how words were made
+// (vocab/) or stored (storage/catalogue.h). Its parts, in this folder: the posting codec (codec.h),
+// segments and their building and merging (segment.h), the collection statistics (statistics.h),
+// scoring (scoring.h) and the checkpoint form (serialisation.h).
 //
 // Images are numbered by the caller with dense uint32 "image numbers" that only grow (a removed number
 // is never reused). For every visual word the postings (image number, tf) are kept sorted by image
-// number, each coded as a 16-bit unit (gap << 1) | (tf > 1), followed by varint(tf - 2) when tf > 1,
-// where gap = image - previous image in the list (the first relative to the segment's first image); a
-// gap of 2^15 - 1 or more is an escape unit followed by the gap in 4 bytes. With ~1 posting per feature
-// this is about 2 bytes per feature, and a scan reads a fixed-size unit per posting (inverted_file.cc).
+// number, each coded in about 2 bytes (codec.h).
 //
-// Postings live in immutable Segments (a log-structured merge): WithAdded() appends one segment for the
+// Postings live in immutable segments (a log-structured merge): WithAdded() appends one segment for the
 // new images, then merges the newest segments while `merge_factor` of them share a size level
 // (level = floor(log_merge_factor(postings / 1024))), so there are O(merge_factor * log N) segments and
 // each posting is rewritten O(log N) times over the index's life. Removed images are tombstoned (their
 // postings are skipped when scoring and dropped at the next merge of their segment).
 //
-// Scoring: idf_w = log(N / n_w) over the N live images, n_w of which contain w; image vectors
-// v_w(d) = t(tf) idf_w with t(x) = x or sqrt(x) (TfIdfOptions::sqrt_tf). Score() accumulates
-// q_w idf_w t(tf_d) over the postings of the query's words into a dense float array over image numbers,
-// then divides by |v(d)| and keeps the best `max_results` (ties: smaller image number first).
+// Scoring (scoring.h): idf_w = log(N / n_w) over the N live images, n_w of which contain w; image
+// vectors v_w(d) = t(tf) idf_w with t(x) = x or sqrt(x) (TfIdfOptions::sqrt_tf); the cosine of the
+// query's and each image's vector, the best `max_results` kept (ties: smaller image number first).
 //
-// Collection statistics (N and every n_w, hence idf and the image norms) are those of the last
-// *refresh*. An add or remove updates the live counts and computes only its own image's norm (with the
-// refreshed statistics), so a write costs O(its words) at any collection size; a refresh recomputes
-// every live image's norm from its postings (three per-image sums, see image_index.h "Method" 2) in
-// one parallel pass, O(total postings). Refreshes happen by themselves: after every write while the
-// index holds at most `exact_statistics_postings` postings (small collections: scores always equal
-// those of an index built from scratch on the live images), and otherwise once the images added and
-// removed since the last refresh exceed `statistics_refresh_fraction` of the live images then (idf
-// drifts by at most about log(1 + fraction) in between; amortised cost per added image
-// features / fraction posting visits). Until a word's first refresh it is left out of query and image
-// vectors (its n_w is 0 in the statistics). Build() and WithRefreshedStatistics() give exact statistics.
+// Collection statistics (statistics.h: N and every n_w, hence idf and the image norms) are those of the
+// last *refresh*. An add or remove updates the live counts and computes only its own image's norm (with
+// the refreshed statistics), so a write costs O(its words) at any collection size; a refresh recomputes
+// every live image's norm from its postings in one parallel pass, O(total postings). Refreshes happen by
+// themselves: after every write while the index holds at most `exact_statistics_postings` postings
+// (small collections: scores always equal those of an index built from scratch on the live images),
+// and otherwise once the images added and removed since the last refresh exceed
+// `statistics_refresh_fraction` of the live images then (idf drifts by at most about log(1 + fraction)
+// in between; amortised cost per added image features / fraction posting visits). Until a word's first
+// refresh it is left out of query and image vectors (its n_w is 0 in the statistics). Build() and
+// WithRefreshedStatistics() give exact statistics.
 //
-// Thread safety: an InvertedFile is an immutable value (its parts are shared_ptr<const>); any number of
-// threads may call its const members. WithAdded/WithRemoved return a new value and leave this one alone.
-// Copying an InvertedFile is O(vocabulary_size / 4096 + number of images / 4096).
+// Thread safety: an InvertedFile is an immutable value (its parts are shared_ptr<const> or copy-on-write
+// arrays); any number of threads may call its const members. WithAdded/WithRemoved return a new value
+// and leave this one alone. Copying an InvertedFile is O(vocabulary_size / 4096 + number of images / 4096).
 #pragma once
 
-#include <array>
 #include <cstdint>
 #include <functional>
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <span>
 #include <string>
@@ -48,19 +45,12 @@
 #include <vector>
 
 #include "index/cow_array.h"
+#include "index/postings/scoring.h"
+#include "index/postings/segment.h"
+#include "index/postings/statistics.h"
 #include "sift/base/error.h"
 
 namespace oxbow::index {
-
-// The words of one image: distinct word ids ascending, each with its count tf >= 1.
-struct BagOfWords {
-  std::vector<uint32_t> words;
-  std::vector<uint32_t> counts;
-
-  // From a list of word ids in any order (duplicates counted).
-  static BagOfWords FromWords(std::span<const uint32_t> words);
-  uint64_t total() const;  // sum of counts
-};
 
 struct TfIdfOptions {
   // Use sqrt(tf) instead of tf in query and image vectors (burstiness; Jegou et al. 2009).
@@ -91,36 +81,6 @@ struct TfIdfOptions {
   std::optional<std::string> Check() const;
 };
 
-// One component of a query vector: the word and its weight in the L2-normalised query tf-idf vector.
-struct QueryTerm {
-  uint32_t word = 0;
-  float weight = 0;
-};
-
-// The `n` terms of largest weight (ties: smaller word first), sorted by word; all of them when there
-// are at most n.
-std::vector<QueryTerm> StrongestTerms(std::vector<QueryTerm> terms, size_t n);
-
-struct ScoredImage {
-  uint32_t image = 0;  // image number
-  float score = 0;     // cosine similarity in [0, 1]
-};
-
-// Score() splits a long query into at most this many groups of consecutive terms, about one per
-// kPostingsPerScoreGroup postings it scans; each group accumulates on its own (on its own thread when
-// Score() is given several) and the groups' dot products are added in group order. The split depends
-// on the query and the statistics only, never on the thread count, so neither do the scores. Queries
-// over small collections stay in one group: splitting pays once a scan costs more than the extra pass
-// over the accumulators (about 2M postings, ~8 ms on one core).
-inline constexpr size_t kMaxScoreGroups = 4;
-inline constexpr uint64_t kPostingsPerScoreGroup = 2'000'000;
-
-// Per-thread scratch memory of Score() (dense accumulators over image numbers, one per term group).
-// Reuse it across queries on one thread; never share one between threads at the same time.
-struct ScoreScratch {
-  std::array<std::vector<float>, kMaxScoreGroups> accumulators;
-};
-
 struct InvertedFileStats {
   uint64_t num_images = 0;         // live
   uint64_t num_postings = 0;       // stored (live + not yet merged away)
@@ -133,17 +93,6 @@ struct InvertedFileStats {
 
 class InvertedFile {
  public:
-  struct Segment;  // defined in inverted_file.cc
-  // Per image number: the three sums that give |v(d)| for the statistics' N (image_index.h, "Method"),
-  // over the words known to the statistics.
-  struct ImageState {
-    double a = 0;         // sum over the image's words of t(tf)^2
-    double b = 0;         // sum of t(tf)^2 log n_w
-    double c = 0;         // sum of t(tf)^2 (log n_w)^2
-    uint32_t live = 0;    // 1 while the image is in the index
-    uint32_t features = 0;  // sum of tf
-  };
-
   // An empty inverted file over words [0, vocabulary_size). OXBOW_CHECKs options.Check().
   InvertedFile(size_t vocabulary_size, const TfIdfOptions& options);
 
@@ -164,6 +113,7 @@ class InvertedFile {
   // Cost O(postings of the live images sharing a word with them).
   InvertedFile WithRemoved(std::span<const uint32_t> images, std::span<const BagOfWords* const> bags) const;
 
+  // --- Scoring (scoring.cc) ---
   // The L2-normalised tf-idf vector of a query bag, sorted by word. Words not in any live image (idf
   // undefined) and stop-listed words (n_w > max(max_document_frequency * N, stop_list_min_images)) are
   // left out, unless that would leave out every word (then the stop list is not applied); words in
@@ -200,41 +150,10 @@ class InvertedFile {
   // Where Score() splits `query` into term groups (kMaxScoreGroups): the first term of each group, then
   // query.size().
   std::vector<size_t> ScoreGroups(std::span<const QueryTerm> query) const;
-  // Score() restricted to a fixed set of images and computed from their bags instead of the postings,
-  // for scoring several queries against a few known images (transitive verification ranks anchors'
-  // neighbours with it): the bags are inverted once, O(their words + vocabulary_size), then each
-  // query costs O(its terms + their occurrences in the bags), whatever the collection size. The
-  // scores are those of Score() (0 for an image it would not list) up to float rounding (the same
-  // operations in the same order; the compiler may fuse a multiply-add in one loop and not the other).
-  // Keeps a reference to the InvertedFile.
-  class Subset {
-   public:
-    struct Occurrence {
-      uint32_t image;  // index into `images`
-      float t;         // t(tf)
-    };
-    // The memory of a subset's tables, handed from one subset to the next (Release): a search builds one
-    // per query, and its tables (the word index is vocabulary_size + 1 entries, the occurrences several
-    // MB) would otherwise be fresh memory that each search faults in page by page.
-    struct Buffers {
-      std::vector<uint32_t> first;
-      std::vector<Occurrence> occurrences;
-    };
-    // bags[i]: the bag images[i] was added with. `reuse`: memory to build the tables in (its contents do
-    // not matter).
-    Subset(const InvertedFile& file, std::span<const uint32_t> images, std::span<const BagOfWords* const> bags,
-           Buffers reuse = {});
-    std::vector<float> Score(std::span<const QueryTerm> query) const;  // one score per image, in order
-    // The tables' memory, for the next subset; this subset is left empty (Score must not be called).
-    Buffers Release() &&;
+  // Score() restricted to a fixed set of images (scoring.h).
+  using Subset = ScoringSubset;
 
-   private:
-    const InvertedFile& file_;
-    std::vector<uint32_t> first_;           // per word: its occurrences are [first_[w], first_[w + 1])
-    std::vector<Occurrence> occurrences_;   // by word, then image
-    std::vector<double> norms_;             // per image
-  };
-
+  // --- Statistics (statistics.cc) ---
   // A new version whose statistics are those of the live images now (one pass over every posting,
   // on `num_threads` threads; 0 = all). Scores then equal those of Build() on the live images.
   InvertedFile WithRefreshedStatistics(int num_threads = 0) const;
@@ -246,6 +165,8 @@ class InvertedFile {
                                     int num_threads = 0) const;
   // Images added + removed since the last refresh (0: the statistics are those of the live images).
   uint64_t changes_since_refresh() const { return changes_since_refresh_; }
+  // The statistics scores are computed with (those of the last refresh, or pinned).
+  const postings::CollectionStatistics& statistics() const { return statistics_; }
 
   double Idf(uint32_t word) const;                 // log(N / n_w) of the statistics; +inf when n_w == 0
   // Idf(w)^2 of every word, 0 where it is not finite (n_w == 0), as one table: computed at the first
@@ -253,17 +174,18 @@ class InvertedFile {
   // so that scoring thousands of candidates' words (Hamming embedding) takes no logarithm. Thread-safe.
   std::shared_ptr<const std::vector<double>> IdfSquaredTable() const;
   uint32_t DocumentFrequency(uint32_t word) const; // live images containing the word now
-  double Norm(uint32_t image) const;               // |v(d)| of a live image (0 if not live)
-  bool IsLive(uint32_t image) const;
-  float TermWeight(uint32_t tf) const;             // t(tf): tf or sqrt(tf)
+  double Norm(uint32_t image) const { return image < norms_.size() ? norms_[image] : 0.0; }  // |v(d)|; 0 if not live
+  bool IsLive(uint32_t image) const { return image < images_.size() && images_[image].live != 0; }
+  float TermWeight(uint32_t tf) const { return statistics_.TermWeight(tf); }  // t(tf): tf or sqrt(tf)
   uint64_t num_images() const { return num_live_; }
-  uint32_t num_numbers() const;                    // one past the largest image number used
+  uint32_t num_numbers() const { return static_cast<uint32_t>(images_.size()); }  // one past the largest number used
   size_t vocabulary_size() const { return vocabulary_size_; }
   const TfIdfOptions& options() const { return options_; }
   InvertedFileStats Stats() const;
 
+  // --- The checkpoint form (serialisation.h, serialisation.cc) ---
   using Writer = std::function<void(std::span<const uint8_t>)>;
-  // The checkpoint form (checkpoint.h) of the whole state: segments, document frequencies, the
+  // The checkpoint form (storage/checkpoint.h) of the whole state: segments, document frequencies, the
   // statistics of the last refresh and every image's sums, so that a deserialised copy scores exactly
   // as this one. Little-endian; `write` receives the bytes in order.
   void Serialize(const Writer& write) const;
@@ -296,59 +218,30 @@ class InvertedFile {
                                                         const SegmentSource& segment_source = nullptr);
 
  private:
-  // A segment of a version-1 file with its postings in this build's coding (Deserialize).
-  static Result<std::shared_ptr<Segment>> RecodeFormat1(const Segment& old);
-  // Score()'s per-posting factor of a query term: its weight times idf, in float; 0 to skip the term.
-  float ScoringWeight(const QueryTerm& term) const;
-  // Postings Score() scans for one term: its document frequency in the statistics, 0 if skipped.
-  uint64_t TermCost(const QueryTerm& term) const;
-
-  std::vector<QueryTerm> WeightedQueryVector(std::span<const uint32_t> words, std::span<const float> tf,
-                                             bool use_stop_list) const;
   void MergeTail(bool everything);
   void SerializeHead(uint32_t version, const Writer& write) const;  // up to the segment count
-  static void SerializeSegmentRecord(const Segment& segment, const Writer& write);
   void RefreshStatistics(int num_threads);
   void RecomputeSums(int num_threads);  // every live image's sums with the current statistics
   void RefreshIfDue();
-  // Sums a, b, c of one image's bag with the current statistics (words unknown to them left out);
-  // log_df is LogDfTable().
-  void SetSums(const BagOfWords& bag, std::span<const double> log_df, ImageState* s) const;
-  // log n_w per word for the statistics (0 where n_w = 0), made at its first use, as IdfSquaredTable():
-  // a batch of new images takes its sums' logarithms from it instead of one std::log per posting.
-  std::shared_ptr<const std::vector<double>> LogDfTable() const;
-  // |v(d)| of an image state with the current statistics: 0 when not live or not positive.
-  double ComputeNorm(const ImageState& s) const;
   // norms_ of `images` (their sums or liveness changed), or of every image (the statistics changed).
   void SetNorms(std::span<const uint32_t> images);
   void RecomputeNorms();
 
   size_t vocabulary_size_ = 0;
   TfIdfOptions options_;
-  std::vector<std::shared_ptr<const Segment>> segments_;  // in image-number order
-  CowArray<uint32_t> df_;                                  // n_w per word, live images now
-  CowArray<uint32_t> stats_df_;                            // n_w per word at the last refresh
-  CowArray<ImageState> images_;                            // per image number
-  // Per image number, ComputeNorm(images_[n]): Score() reads 8 bytes per image instead of the state's 32
-  // (a million images per query). Derived: kept by every change of images_ or of the statistics.
+  std::vector<std::shared_ptr<const postings::Segment>> segments_;  // in image-number order
+  CowArray<uint32_t> df_;                                            // n_w per word, live images now
+  CowArray<postings::ImageState> images_;                            // per image number
+  // Per image number, statistics_.Norm(images_[n]): Score() reads 8 bytes per image instead of the
+  // state's 32 (a million images per query). Derived: kept by every change of images_ or of the statistics.
   CowArray<double> norms_;
-  uint64_t stats_num_live_ = 0;                            // N at the last refresh
+  postings::CollectionStatistics statistics_;  // of the last refresh (or pinned)
   uint64_t changes_since_refresh_ = 0;
   bool pinned_statistics_ = false;  // WithPinnedStatistics: refreshes keep the given statistics
   uint64_t num_live_ = 0;
   uint64_t num_live_features_ = 0;
   uint64_t num_postings_ = 0;       // stored in segments, live or not
   uint64_t num_dead_postings_ = 0;  // of removed images, not yet merged away
-  std::array<float, 256> term_weight_{};  // t(tf) for tf < 256
-  // IdfSquaredTable() and LogDfTable(), each made at its first use; replaced by a new, empty one whenever
-  // the statistics change.
-  struct IdfTable {
-    std::once_flag once;
-    std::shared_ptr<const std::vector<double>> squared;
-    std::once_flag log_df_once;
-    std::shared_ptr<const std::vector<double>> log_df;
-  };
-  std::shared_ptr<IdfTable> idf_table_ = std::make_shared<IdfTable>();
 };
 
 }  // namespace oxbow::index
