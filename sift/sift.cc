@@ -993,68 +993,107 @@ OXBOW_AVX2_TARGET int DescriptorRowAvx2(const float* row, const float* above, co
 #endif
 
 #ifdef OXBOW_AVX512
-// The descriptor histogram in 8 registers of 16 cells, one per orientation bin (see above).
-struct DescriptorAccumulator {
-  __m512 bins[kDescBins];
+// One row of the descriptor window for the AVX-512 path: samples j0 <= j < j1, at image columns cx + j
+// of `row` (rows above and below for the gradient), with the row's bin offsets and Gaussian weight.
+struct DescriptorWindowRow {
+  const float* row;
+  const float* above;
+  const float* below;
+  int j0, j1;
+  float rb0, cb0, wrow;
 };
 
-// Descriptor's AVX-512 path for the samples [j, j1) of a window row: bin coordinates and weights 16
-// samples at a time, then every sample's 128 weights added in registers (lanes past j1 read valid
-// memory and are not added).
-inline void DescriptorRowAvx512(const float* row, const float* above, const float* below, int j, int j1, float fx,
-                                float sin_t, float cos_t, float rb0, float cb0, float ori_deg, float bins_per_deg,
-                                float wrow, const float* wcol, DescriptorAccumulator* acc) {
+// The constants of one keypoint's window.
+struct DescriptorFrame {
+  float fx, sin_t, cos_t, ori_deg, bins_per_deg;
+  const float* wcol;  // column weights, indexed by j
+};
+
+// 16 consecutive samples of a window row made ready to add: which are inside the window, their bin
+// coordinates and their weighted magnitude per orientation bin (m (1 - o1) for bin k0 = floor(obin),
+// m o1 for bin (k0 + 1) mod n, else 0).
+struct DescriptorVector {
+  __mmask16 valid;
+  alignas(64) float rbins[16];
+  alignas(64) float cbins[16];
+  alignas(64) float mo[kDescBins][16];
+};
+
+inline void PrepareDescriptorVector(const DescriptorWindowRow& r, int j, const DescriptorFrame& f, DescriptorVector* out) {
   constexpr int d = kDescCells, n = kDescBins;
   const __m512i iota = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
   const __m512 minus_one = _mm512_set1_ps(-1.0f), dv = _mm512_set1_ps(static_cast<float>(d));
-  const __m512 vsin = _mm512_set1_ps(sin_t), vcos = _mm512_set1_ps(cos_t);
-  const __m512 vrb0 = _mm512_set1_ps(rb0), vcb0 = _mm512_set1_ps(cb0);
-  const __m512 vori = _mm512_set1_ps(ori_deg), vbins = _mm512_set1_ps(bins_per_deg), vwrow = _mm512_set1_ps(wrow);
   const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.0f), nv = _mm512_set1_ps(static_cast<float>(n));
-  // Cell row and column of each of the 16 lanes of a bin register.
+  const __m512i jv = _mm512_add_epi32(_mm512_set1_epi32(j), iota);
+  const __m512 dj = _mm512_sub_ps(_mm512_cvtepi32_ps(jv), _mm512_set1_ps(f.fx));
+  const __m512 rbin = _mm512_fmadd_ps(dj, _mm512_set1_ps(f.sin_t), _mm512_set1_ps(r.rb0));
+  const __m512 cbin = _mm512_fmadd_ps(dj, _mm512_set1_ps(f.cos_t), _mm512_set1_ps(r.cb0));
+  out->valid = _mm512_cmp_ps_mask(rbin, minus_one, _CMP_GT_OQ) & _mm512_cmp_ps_mask(rbin, dv, _CMP_LT_OQ) &
+               _mm512_cmp_ps_mask(cbin, minus_one, _CMP_GT_OQ) & _mm512_cmp_ps_mask(cbin, dv, _CMP_LT_OQ) &
+               _mm512_cmpgt_epi32_mask(_mm512_set1_epi32(r.j1), jv);
+  if (out->valid == 0) return;
+  __m512 mag, ori;
+  Gradient16(r.row, r.above, r.below, j, &mag, &ori);
+  __m512 obin = _mm512_mul_ps(_mm512_sub_ps(ori, _mm512_set1_ps(f.ori_deg)), _mm512_set1_ps(f.bins_per_deg));
+  obin = _mm512_mask_add_ps(obin, _mm512_cmp_ps_mask(obin, zero, _CMP_LT_OQ), obin, nv);
+  obin = _mm512_mask_sub_ps(obin, _mm512_cmp_ps_mask(obin, nv, _CMP_GE_OQ), obin, nv);
+  const __m512 m = _mm512_mul_ps(mag, _mm512_mul_ps(_mm512_set1_ps(r.wrow), _mm512_loadu_ps(f.wcol + j)));
+  _mm512_storeu_ps(out->rbins, rbin);
+  _mm512_storeu_ps(out->cbins, cbin);
+  const __m512i k0 = _mm512_cvttps_epi32(obin);
+  const __m512i k1 = _mm512_and_si512(_mm512_add_epi32(k0, _mm512_set1_epi32(1)), _mm512_set1_epi32(n - 1));
+  const __m512 o1 = _mm512_sub_ps(obin, _mm512_cvtepi32_ps(k0));
+  const __m512 mo1 = _mm512_mul_ps(m, o1), mo0 = _mm512_mul_ps(m, _mm512_sub_ps(one, o1));
+  for (int k = 0; k < n; ++k) {
+    const __m512i kv = _mm512_set1_epi32(k);
+    _mm512_storeu_ps(out->mo[k], _mm512_mask_mov_ps(_mm512_maskz_mov_ps(_mm512_cmpeq_epi32_mask(k0, kv), mo0),
+                                                    _mm512_cmpeq_epi32_mask(k1, kv), mo1));
+  }
+}
+
+// Adds the valid samples of `v` in order, each to all 128 bins held in h (8 registers of 16 cells, one
+// per orientation bin; cell = row * 4 + column).
+inline void AddDescriptorVector(const DescriptorVector& v, __m512 (&h)[kDescBins]) {
+  const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.0f);
   const __m512 cell_row = _mm512_setr_ps(0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3);
   const __m512 cell_col = _mm512_setr_ps(0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3);
-  const __m512i vend = _mm512_set1_epi32(j1);
-  alignas(64) float rbins[16], cbins[16], mo[kDescBins][16];
-  __m512 h[kDescBins];
-  for (int k = 0; k < n; ++k) h[k] = acc->bins[k];
-  for (; j < j1; j += 16) {
-    const __m512i jv = _mm512_add_epi32(_mm512_set1_epi32(j), iota);
-    const __m512 dj = _mm512_sub_ps(_mm512_cvtepi32_ps(jv), _mm512_set1_ps(fx));
-    const __m512 rbin = _mm512_fmadd_ps(dj, vsin, vrb0);
-    const __m512 cbin = _mm512_fmadd_ps(dj, vcos, vcb0);
-    __mmask16 valid = _mm512_cmp_ps_mask(rbin, minus_one, _CMP_GT_OQ) & _mm512_cmp_ps_mask(rbin, dv, _CMP_LT_OQ) &
-                      _mm512_cmp_ps_mask(cbin, minus_one, _CMP_GT_OQ) & _mm512_cmp_ps_mask(cbin, dv, _CMP_LT_OQ) &
-                      _mm512_cmpgt_epi32_mask(vend, jv);
-    if (valid == 0) continue;
-    __m512 mag, ori;
-    Gradient16(row, above, below, j, &mag, &ori);
-    __m512 obin = _mm512_mul_ps(_mm512_sub_ps(ori, vori), vbins);
-    obin = _mm512_mask_add_ps(obin, _mm512_cmp_ps_mask(obin, zero, _CMP_LT_OQ), obin, nv);
-    obin = _mm512_mask_sub_ps(obin, _mm512_cmp_ps_mask(obin, nv, _CMP_GE_OQ), obin, nv);
-    const __m512 m = _mm512_mul_ps(mag, _mm512_mul_ps(vwrow, _mm512_loadu_ps(wcol + j)));
-    _mm512_store_ps(rbins, rbin);
-    _mm512_store_ps(cbins, cbin);
-    // Orientation weights: m (1 - o1) for bin k0 = floor(obin), m o1 for bin (k0 + 1) mod n, else 0.
-    const __m512i k0 = _mm512_cvttps_epi32(obin);
-    const __m512i k1 = _mm512_and_si512(_mm512_add_epi32(k0, _mm512_set1_epi32(1)), _mm512_set1_epi32(n - 1));
-    const __m512 o1 = _mm512_sub_ps(obin, _mm512_cvtepi32_ps(k0));
-    const __m512 mo1 = _mm512_mul_ps(m, o1), mo0 = _mm512_mul_ps(m, _mm512_sub_ps(one, o1));
-    for (int k = 0; k < n; ++k) {
-      const __m512i kv = _mm512_set1_epi32(k);
-      _mm512_store_ps(mo[k], _mm512_mask_mov_ps(_mm512_maskz_mov_ps(_mm512_cmpeq_epi32_mask(k0, kv), mo0),
-                                                _mm512_cmpeq_epi32_mask(k1, kv), mo1));
-    }
-    for (unsigned bits = valid; bits != 0; bits &= bits - 1) {
-      const int lane = std::countr_zero(bits);
-      const __m512 wr = _mm512_max_ps(_mm512_sub_ps(one, _mm512_abs_ps(_mm512_sub_ps(_mm512_set1_ps(rbins[lane]), cell_row))), zero);
-      const __m512 wc = _mm512_max_ps(_mm512_sub_ps(one, _mm512_abs_ps(_mm512_sub_ps(_mm512_set1_ps(cbins[lane]), cell_col))), zero);
-      const __m512 wcell = _mm512_mul_ps(wr, wc);
+  for (unsigned bits = v.valid; bits != 0; bits &= bits - 1) {
+    const int lane = std::countr_zero(bits);
+    const __m512 wr = _mm512_max_ps(_mm512_sub_ps(one, _mm512_abs_ps(_mm512_sub_ps(_mm512_set1_ps(v.rbins[lane]), cell_row))), zero);
+    const __m512 wc = _mm512_max_ps(_mm512_sub_ps(one, _mm512_abs_ps(_mm512_sub_ps(_mm512_set1_ps(v.cbins[lane]), cell_col))), zero);
+    const __m512 wcell = _mm512_mul_ps(wr, wc);
 #pragma GCC unroll 8
-      for (int k = 0; k < n; ++k) h[k] = _mm512_fmadd_ps(wcell, _mm512_set1_ps(mo[k][lane]), h[k]);
-    }
+    for (int k = 0; k < kDescBins; ++k) h[k] = _mm512_fmadd_ps(wcell, _mm512_set1_ps(v.mo[k][lane]), h[k]);
   }
-  for (int k = 0; k < n; ++k) acc->bins[k] = h[k];
+}
+
+// Descriptor's AVX-512 path over the whole window, rows in order, 16 samples at a time: each vector is
+// prepared (gradients, bins, weights) while the one before it is added, so the long latency of the
+// preparation overlaps the additions instead of stalling them. Every bin receives the same fused
+// multiply-adds in the same sample order as on the other paths (zero weights add +0).
+void DescriptorWindowAvx512(std::span<const DescriptorWindowRow> rows, const DescriptorFrame& frame, float* hist) {
+  __m512 h[kDescBins];
+  for (__m512& bin : h) bin = _mm512_setzero_ps();
+  DescriptorVector buffers[2];
+  size_t row = 0;
+  int j = rows.empty() ? 0 : rows[0].j0;
+  int current = 0;
+  bool pending = false;
+  while (row < rows.size()) {
+    if (j == rows[row].j0 && row + 3 < rows.size()) {
+      // The window's rows are far apart in memory; ask for the row needed three rows from now.
+      const DescriptorWindowRow& ahead = rows[row + 3];
+      for (int k = ahead.j0 - 1; k < ahead.j1 + 16; k += 16) _mm_prefetch(reinterpret_cast<const char*>(ahead.below + k), _MM_HINT_T0);
+    }
+    PrepareDescriptorVector(rows[row], j, frame, &buffers[current ^ 1]);
+    if (pending) AddDescriptorVector(buffers[current], h);
+    current ^= 1;
+    pending = true;
+    j += 16;
+    if (j >= rows[row].j1 && ++row < rows.size()) j = rows[row].j0;
+  }
+  if (pending) AddDescriptorVector(buffers[current], h);
+  for (int k = 0; k < kDescBins; ++k) _mm512_storeu_ps(hist + k * kDescCellCount, h[k]);
 }
 #endif
 
@@ -1082,8 +1121,8 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
   }
   alignas(64) float hist[kDescBins * kDescCellCount] = {};
 #ifdef OXBOW_AVX512
-  DescriptorAccumulator acc;
-  for (int k = 0; k < n; ++k) acc.bins[k] = _mm512_setzero_ps();
+  DescriptorWindowRow window[2 * 250 + 1];
+  size_t window_rows = 0;
 #endif
   const float half = d / 2.0f - 0.5f;
   for (int i = -radius; i <= radius; ++i) {
@@ -1111,6 +1150,16 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
     j0 = std::max(j0, 1 - cx);
     j1 = std::min(j1, w - 1 - cx);
     if (j0 >= j1) continue;
+    // Samples j of this row are at image column cx + j.
+    const float* row = img.row(yy) + cx;
+    const float* above = img.row(yy - 1) + cx;
+    const float* below = img.row(yy + 1) + cx;
+#ifdef OXBOW_AVX512
+    if (simd) {
+      window[window_rows++] = {row, above, below, j0, j1, rb0, cb0, wrow};
+      continue;
+    }
+#endif
 #ifdef OXBOW_AVX2
     // The window's rows are far apart in memory; ask for the row needed three rows from now.
     if (yy + 3 < h) {
@@ -1118,18 +1167,8 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
       for (int k = j0 - 1; k < j1 + 8; k += 16) _mm_prefetch(reinterpret_cast<const char*>(ahead + k), _MM_HINT_T0);
     }
 #endif
-    // Samples j of this row are at image column cx + j.
-    const float* row = img.row(yy) + cx;
-    const float* above = img.row(yy - 1) + cx;
-    const float* below = img.row(yy + 1) + cx;
     int j = j0;
-#ifdef OXBOW_AVX512
-    if (simd) {
-      DescriptorRowAvx512(row, above, below, j, j1, fx, sin_t, cos_t, rb0, cb0, ori_deg, bins_per_deg, wrow,
-                          wcol + radius, &acc);
-      continue;
-    }
-#elif defined(OXBOW_AVX2)
+#if defined(OXBOW_AVX2) && !defined(OXBOW_AVX512)
     if (simd) {
       j = DescriptorRowAvx2(row, above, below, j, j1, fx, sin_t, cos_t, rb0, cb0, ori_deg, bins_per_deg, wrow,
                             wcol + radius, hist);
@@ -1147,7 +1186,8 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
   }
 #ifdef OXBOW_AVX512
   if (simd)
-    for (int k = 0; k < n; ++k) _mm512_store_ps(hist + k * kDescCellCount, acc.bins[k]);
+    DescriptorWindowAvx512(std::span<const DescriptorWindowRow>(window, window_rows),
+                           DescriptorFrame{fx, sin_t, cos_t, ori_deg, bins_per_deg, wcol + radius}, hist);
 #endif
   // Cell-major output: out[cell * n + k].
   for (int c = 0; c < kDescCellCount; ++c)
