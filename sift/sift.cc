@@ -759,34 +759,73 @@ inline void AddOrientationVote(float* temp, float ori, float wm) {
 }
 
 #ifdef OXBOW_AVX512
-// OrientationHistogramCircular's AVX-512 path for the samples [j, j1) of a row: votes 16 at a time,
-// added in sample order.
-inline void OrientationCircularRowAvx512(const float* row, const float* above, const float* below, int j, int j1, float wy,
-                                         const float* wx, float* temp) {
+// One row of the circular orientation window for the AVX-512 path: samples j0 <= j < j1 (columns
+// relative to the centre) of `row`, with the rows above and below and the row's Gaussian weight.
+struct OrientationWindowRow {
+  const float* row;
+  const float* above;
+  const float* below;
+  int j0, j1;
+  float wy;
+};
+
+// The votes of 16 consecutive samples of a window row: lower bin, its share and the weighted magnitude.
+struct OrientationVotes {
+  int lanes;
   alignas(64) int bins[16];
-  alignas(64) float v0[16], wms[16], fractions[16];
-  const __m512 vwy = _mm512_set1_ps(wy), bins_per_deg = _mm512_set1_ps(kBinsPerDeg);
+  alignas(64) float v0[16];
+  alignas(64) float wms[16];
+  alignas(64) float fractions[16];
+};
+
+inline void PrepareOrientationVotes(const OrientationWindowRow& r, int j, const float* wx, OrientationVotes* out) {
+  const __m512 bins_per_deg = _mm512_set1_ps(kBinsPerDeg);
   const __m512i nbins = _mm512_set1_epi32(kOriBins);
-  for (; j < j1; j += 16) {
-    __m512 mag, ori;
-    Gradient16(row, above, below, j, &mag, &ori);
-    const __m512 fbin = _mm512_mul_ps(ori, bins_per_deg);
-    __m512i b0 = _mm512_cvttps_epi32(fbin);
-    const __m512 fraction = _mm512_sub_ps(fbin, _mm512_cvtepi32_ps(b0));
-    b0 = _mm512_mask_sub_epi32(b0, _mm512_cmpge_epi32_mask(b0, nbins), b0, nbins);
-    const __m512 wm = _mm512_mul_ps(mag, _mm512_mul_ps(vwy, _mm512_loadu_ps(wx + j)));
-    _mm512_store_si512(bins, b0);
-    _mm512_store_ps(v0, _mm512_fnmadd_ps(fraction, wm, wm));
-    _mm512_store_ps(wms, wm);
-    _mm512_store_ps(fractions, fraction);
-    const int lanes = std::min(16, j1 - j);
-    for (int lane = 0; lane < lanes; ++lane) {
-      const int b = bins[lane];
-      temp[b] += v0[lane];
-      float& next = temp[b + 1 < kOriBins ? b + 1 : 0];
-      next = std::fma(wms[lane], fractions[lane], next);
-    }
+  __m512 mag, ori;
+  Gradient16(r.row, r.above, r.below, j, &mag, &ori);
+  const __m512 fbin = _mm512_mul_ps(ori, bins_per_deg);
+  __m512i b0 = _mm512_cvttps_epi32(fbin);
+  const __m512 fraction = _mm512_sub_ps(fbin, _mm512_cvtepi32_ps(b0));
+  b0 = _mm512_mask_sub_epi32(b0, _mm512_cmpge_epi32_mask(b0, nbins), b0, nbins);
+  const __m512 wm = _mm512_mul_ps(mag, _mm512_mul_ps(_mm512_set1_ps(r.wy), _mm512_loadu_ps(wx + j)));
+  _mm512_storeu_si512(out->bins, b0);
+  _mm512_storeu_ps(out->v0, _mm512_fnmadd_ps(fraction, wm, wm));
+  _mm512_storeu_ps(out->wms, wm);
+  _mm512_storeu_ps(out->fractions, fraction);
+  out->lanes = std::min(16, r.j1 - j);
+}
+
+inline void AddOrientationVotes(const OrientationVotes& v, float* temp) {
+  for (int lane = 0; lane < v.lanes; ++lane) {
+    const int b = v.bins[lane];
+    temp[b] += v.v0[lane];
+    float& next = temp[b + 1 < kOriBins ? b + 1 : 0];
+    next = std::fma(v.wms[lane], v.fractions[lane], next);
   }
+}
+
+// OrientationHistogramCircular's AVX-512 path over the whole window, rows in order, 16 samples at a
+// time, each vector's votes prepared while the one before is added (as DescriptorWindowAvx512).
+void OrientationWindowAvx512(std::span<const OrientationWindowRow> rows, const float* wx, float* temp) {
+  OrientationVotes buffers[2];
+  size_t row = 0;
+  int j = rows.empty() ? 0 : rows[0].j0;
+  int current = 0;
+  bool pending = false;
+  while (row < rows.size()) {
+    if (j == rows[row].j0 && row + 3 < rows.size()) {
+      // The window's rows are far apart in memory; ask for the row needed three rows from now.
+      const OrientationWindowRow& ahead = rows[row + 3];
+      for (int k = ahead.j0 - 1; k < ahead.j1 + 16; k += 16) _mm_prefetch(reinterpret_cast<const char*>(ahead.below + k), _MM_HINT_T0);
+    }
+    PrepareOrientationVotes(rows[row], j, wx, &buffers[current ^ 1]);
+    if (pending) AddOrientationVotes(buffers[current], temp);
+    current ^= 1;
+    pending = true;
+    j += 16;
+    if (j >= rows[row].j1 && ++row < rows.size()) j = rows[row].j0;
+  }
+  if (pending) AddOrientationVotes(buffers[current], temp);
 }
 #endif
 
@@ -839,6 +878,10 @@ float OrientationHistogramCircular(const Plane& img, float xf, float yf, float s
     const float dj = static_cast<float>(j) - fx;
     wx[j + radius] = std::exp(dj * dj * exp_scale);
   }
+#ifdef OXBOW_AVX512
+  OrientationWindowRow window[2 * 120 + 1];
+  size_t window_rows = 0;
+#endif
   for (int i = -radius; i <= radius; ++i) {
     const int y = cy + i;
     if (y <= 0 || y >= h - 1) continue;
@@ -856,6 +899,15 @@ float OrientationHistogramCircular(const Plane& img, float xf, float yf, float s
     j1 = std::min(j1, w - 1 - cx);
     if (j0 >= j1) continue;
     const float wy = std::exp(di2 * exp_scale);
+    const float* row = img.row(y) + cx;
+    const float* above = img.row(y - 1) + cx;
+    const float* below = img.row(y + 1) + cx;
+#ifdef OXBOW_AVX512
+    if (simd) {
+      window[window_rows++] = {row, above, below, j0, j1, wy};
+      continue;
+    }
+#endif
 #ifdef OXBOW_AVX2
     // The window's rows are far apart in memory; ask for the row needed three rows from now.
     if (y + 3 < h) {
@@ -863,14 +915,8 @@ float OrientationHistogramCircular(const Plane& img, float xf, float yf, float s
       for (int k = j0 - 1; k < j1 + 16; k += 16) _mm_prefetch(reinterpret_cast<const char*>(ahead + k), _MM_HINT_T0);
     }
 #endif
-    const float* row = img.row(y) + cx;
-    const float* above = img.row(y - 1) + cx;
-    const float* below = img.row(y + 1) + cx;
     if (simd) {
-#ifdef OXBOW_AVX512
-      OrientationCircularRowAvx512(row, above, below, j0, j1, wy, wx + radius, temp);
-      continue;
-#elif defined(OXBOW_AVX2)
+#if defined(OXBOW_AVX2) && !defined(OXBOW_AVX512)
       OrientationCircularRowAvx2(row, above, below, j0, j1, wy, wx + radius, temp);
       continue;
 #endif
@@ -881,6 +927,9 @@ float OrientationHistogramCircular(const Plane& img, float xf, float yf, float s
       AddOrientationVote(temp, ori, mag * (wy * wx[j + radius]));
     }
   }
+#ifdef OXBOW_AVX512
+  if (simd) OrientationWindowAvx512(std::span<const OrientationWindowRow>(window, window_rows), wx + radius, temp);
+#endif
   for (int pass = 0; pass < 6; ++pass) {
     const float first = temp[0];
     float previous = temp[kOriBins - 1];
