@@ -62,11 +62,18 @@ class CallThreads {
   std::vector<std::thread> threads_;
 };
 
+CallThreads& Threads() {
+  static CallThreads threads;
+  return threads;
+}
+
 }  // namespace
+
+void PostOnCallThread(std::function<void()> task) { Threads().Post(std::move(task)); }
 
 void RunOnCallThreads(size_t n, const std::function<void(size_t)>& fn) {
   if (n == 0) return;
-  static CallThreads threads;
+  CallThreads& threads = Threads();
   std::latch done(static_cast<std::ptrdiff_t>(n - 1));
   for (size_t i = 1; i < n; ++i) {
     threads.Post([&fn, &done, i] {

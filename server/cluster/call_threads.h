@@ -19,4 +19,8 @@ namespace oxbow::cluster {
 // when every call has returned. fn must not throw. Safe to call from many threads concurrently.
 void RunOnCallThreads(size_t n, const std::function<void(size_t)>& fn);
 
+// task() on a kept thread, without waiting for it (the caller waits for its effects itself, if at all).
+// task must not throw.
+void PostOnCallThread(std::function<void()> task);
+
 }  // namespace oxbow::cluster

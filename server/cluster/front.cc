@@ -182,6 +182,10 @@ class ClusterFront::Impl {
       : vocabulary(std::move(v)), settings(o), bearer(key.empty() ? "" : std::string(kBearerPrefix) + key) {}
   ~Impl() {
     {
+      std::unique_lock<std::mutex> lock(ends_mutex);
+      ends_done.wait(lock, [&] { return ends_in_flight == 0; });
+    }
+    {
       const std::lock_guard<std::mutex> lock(checker_mutex);
       stopping = true;
     }
@@ -457,6 +461,30 @@ class ClusterFront::Impl {
     return first;
   }
 
+  // Tells every replica of each partition in `asked` that search `key` is over (ShardServer drops what
+  // it kept for it), without waiting: the answers matter to nobody, and ~Impl waits for them.
+  void EndSearch(const std::string& key, const std::vector<uint8_t>& asked) const {
+    for (uint32_t p = 0; p < asked.size(); ++p) {
+      if (!asked[p]) continue;
+      for (const std::unique_ptr<Replica>& replica : partitions[p]) {
+        {
+          const std::lock_guard<std::mutex> lock(ends_mutex);
+          ++ends_in_flight;
+        }
+        PostOnCallThread([this, stub = replica->stub.get(), key] {
+          grpc::ClientContext context;
+          context.set_deadline(std::chrono::system_clock::now() + std::chrono::milliseconds(settings.shard_deadline_ms));
+          if (!bearer.empty()) context.AddMetadata(std::string(kAuthorizationKey), bearer);
+          context.AddMetadata(kSearchKey, key);
+          EndSearchReply reply;
+          (void)stub->EndSearch(&context, EndSearchRequest(), &reply);
+          const std::lock_guard<std::mutex> lock(ends_mutex);
+          if (--ends_in_flight == 0) ends_done.notify_all();
+        });
+      }
+    }
+  }
+
   // The non-empty strings, comma-separated.
   static std::string Join(const std::vector<std::string>& parts) {
     std::string out;
@@ -490,6 +518,9 @@ class ClusterFront::Impl {
   bool stopping = false;
   std::thread checker;  // runs CheckerLoop
   std::string last_refresh_error;  // CheckerLoop's own
+  mutable std::mutex ends_mutex;  // guards ends_in_flight; taken alone
+  mutable std::condition_variable ends_done;
+  mutable size_t ends_in_flight = 0;  // EndSearch calls posted and not yet answered
 };
 
 Result<std::unique_ptr<ClusterFront>> ClusterFront::Open(const ClusterConfig& config, const FrontOptions& options) {
@@ -831,7 +862,14 @@ using index::search::ImageRef;
 class PartitionsSource final : public index::search::Source {
  public:
   PartitionsSource(const ClusterFront::Impl& front, bool allow_partial)
-      : front_(front), allow_partial_(allow_partial), num_partitions_(front.partitions.size()), key_(NewKey()) {}
+      : front_(front),
+        allow_partial_(allow_partial),
+        num_partitions_(front.partitions.size()),
+        key_(NewKey()),
+        asked_(num_partitions_, 0) {}
+  ~PartitionsSource() override { front_.EndSearch(key_, asked_); }
+  PartitionsSource(const PartitionsSource&) = delete;
+  PartitionsSource& operator=(const PartitionsSource&) = delete;
 
   Result<std::optional<ImageRef>> Find(const std::string& id) override {
     return std::optional<ImageRef>(Intern(front_.OwnerOf(id), id));
@@ -1096,6 +1134,7 @@ class PartitionsSource final : public index::search::Source {
   // what the search's earlier calls read.
   template <typename Reply>
   Result<Reply> Ask(uint32_t p, const ClusterFront::Impl::ShardCall<Reply>& call) const {
+    asked_[p] = 1;  // each partition's calls come from one thread at a time
     return front_.Call<Reply>(p, [&](Shard::Stub& stub, grpc::ClientContext& context, Reply* out) {
       context.AddMetadata(kSearchKey, key_);
       return call(stub, context, out);
@@ -1172,6 +1211,7 @@ class PartitionsSource final : public index::search::Source {
   std::map<std::string, uint32_t> numbers_;       // ids_ inverted
   std::map<ImageRef, index::ImageRecord> records_;  // those the partitions sent with their scores
   std::vector<ImageRef> ranked_;                  // RankAmong's
+  mutable std::vector<uint8_t> asked_;            // per partition: called (EndSearch at the end)
 };
 
 }  // namespace
