@@ -35,7 +35,7 @@
 //    With QueryOptions::hamming (and an index whose vocabulary has Hamming-embedding parameters, so
 //    every feature carries a 64-bit signature: vocab/vocabulary.h), the best hamming_shortlist tf-idf
 //    candidates are first re-ordered by their Hamming-embedding score (index/hamming.h), tentative
-//    matches must have close signatures (index/rerank.h; at most max_tentative_matches of them, the
+//    matches must have close signatures (index/search/rerank.h; at most max_tentative_matches of them, the
 //    closest, per candidate), and query expansion re-orders the unverified results by the Hamming
 //    score of the query plus the verified regions' features instead of the averaged tf-idf vector
 //    below; transitive verification (6.) filters its tentative matches by signature the same way.
@@ -59,10 +59,10 @@
 //                      fingerprint, extractor settings, checkpoint manifest), table `images` (internal
 //                      number, id, source path, width, height, feature count, metadata JSON, added
 //                      time) and table `features` (the image's words + geometry as a checksummed BLOB;
-//                      catalogue.h). Add/Remove commit one transaction before they return, so an
+//                      storage/catalogue.h). Add/Remove commit one transaction before they return, so an
 //                      acknowledged change survives a crash or kill -9 at any moment and a half-done
 //                      one is rolled back by SQLite.
-//   *.oxck             checkpoint files (checkpoint.h): the inverted file and the packed geometry as
+//   *.oxck             checkpoint files (storage/checkpoint.h): the inverted file and the packed geometry as
 //                      of the manifest in `meta`, written by a background thread and at close.
 //   vocabulary.oxvoc   a copy of the vocabulary (vocab::Vocabulary file format, CRC-checked); its
 //                      fingerprint must equal the one in `meta`.
@@ -75,9 +75,9 @@
 // checkpoints again in the background. A BLOB that Open reads (a rebuild reads all, a replay those
 // added since the checkpoint) and finds damaged (checksum) costs that image only: it is dropped from
 // the index and its catalogue row deleted, with an error logged naming it. The BLOBs a checkpoint
-// covers are not read by an open: `oxbow index check` checks them all (CheckIndexFolder, catalogue.h).
+// covers are not read by an open: `oxbow index check` checks them all (CheckIndexFolder, storage/catalogue.h).
 // A checkpoint names the geometry files its images are in; it drops those mostly of removed images
-// and merges small ones (KeptGeometry in image_index.cc), so files, disk and descriptors stay bounded.
+// and merges small ones (KeptGeometry, storage/geometry_parts.h), so files, disk and descriptors stay bounded.
 // Open refuses: a folder without a catalogue, an unknown schema version, a vocabulary copy whose
 // fingerprint differs from the catalogue's, a damaged SQLite file (its image records are checked
 // with SQLite's integrity check at every open: Catalogue::CheckRecords); and,
@@ -87,17 +87,29 @@
 //
 // ==== Thread safety =================================================================================
 //
-// All const members (Query, QuerySimilar, Get, List, Stats, vocabulary, extractor_settings) may run
-// concurrently with each other and with Add/Remove, from any number of threads, and never wait for a
-// writer: each call takes the current immutable Snapshot (std::shared_ptr<const Snapshot>, swapped
-// under a mutex held only for the pointer copy) and works on it. Add/Replace/Remove serialise on a writer mutex;
-// each writes SQLite, builds the next snapshot (sharing every unchanged part with the previous one)
-// and publishes it. A query sees an image either fully added or not at all.
+// All const members (Query, QuerySimilar, OpenSearch, Get, List, Stats, CountLive, vocabulary,
+// extractor_settings) may run concurrently with each other and with the writers, from any number of
+// threads, and never wait for a writer: each call takes the current immutable snapshot
+// (storage/snapshot.h; a shared_ptr copied under a mutex held only for the copy) and works on it.
+// Add, AddBatch, Replace, Remove and PinCollectionStatistics serialise on the writer mutex; each writes
+// SQLite, builds the next snapshot (sharing every unchanged part with the previous one) and publishes
+// it. A query sees an image either fully added or not at all.
 //
-// Mutexes (image_index.cc):
-//   writer_mutex_    guards the SQLite connection used for writes and the building of the next snapshot
-//                    (one writer at a time); held for the whole commit + publish of Add/Replace/Remove.
-//   snapshot_mutex_  guards only the snapshot_ pointer (load / store of the shared_ptr).
+// Threads besides the callers': the checkpointer's (storage/checkpointer.h: background checkpoints)
+// and, after an open, its verifier (the background check of the geometry files); the catalogue's log
+// copier (storage/catalogue.h); the shared pool of ParallelFor.
+//
+// Locks (in the order they are taken; each is documented where it is declared):
+//   ImageIndex::Impl::writer_mutex      (image_index.cc) one writer at a time: the catalogue's write
+//                                       connection, the next snapshot from Current() to Publish(), and
+//                                       the checkpointer's state; the checkpointer takes it to start,
+//                                       commit and publish a checkpoint, never while writing files.
+//   Checkpointer::segment_files_mutex_  (storage/checkpointer.h) the segment files already written.
+//   CurrentSnapshot's mutex             (storage/snapshot.h) only the snapshot pointer.
+//   GeometryPart's two mutexes          (storage/geometry_parts.h) a file's whole check, and its images
+//                                       read back from the catalogue.
+// The last three are leaves. No function is handed a held lock; the checkpointer's steps each take
+// the writer mutex with a scoped guard.
 #pragma once
 
 #include <array>
@@ -143,7 +155,7 @@ struct IndexOptions {
   // Add or Query to quantise its descriptors and re-rank; 0 = all hardware threads. [0, 256]. Results
   // do not depend on it.
   int num_threads = 0;
-  // Checkpoints (index/checkpoint.h): a background thread writes one once the images added + removed
+  // Checkpoints (index/storage/checkpoint.h): a background thread writes one once the images added + removed
   // since the last exceed max(checkpoint_changes, 10% of the live images); Open replays at most that
   // many images from their BLOBs. Close writes one when anything changed. [1, 2^32).
   uint64_t checkpoint_changes = 10000;

@@ -25,7 +25,9 @@
 // Locks, in the order they are taken:
 //   writer_mutex_          the index's writer mutex (ImageIndex::Impl::writer_mutex), given to the
 //                          constructor. Besides the catalogue and the building of the next snapshot, it
-//                          guards the state below marked "writer mutex"; due_ waits on it.
+//                          guards the state below marked "writer mutex"; due_ waits on it. Taken by
+//                          NextJob, Commit, PublishViews, the verifier (to copy the parts, to wake the
+//                          loop) and Close; held by the caller of Changed.
 //   segment_files_mutex_   guards segment_files_ only; a leaf (taken while writing a checkpoint, with or
 //                          without the writer mutex).
 //   CurrentSnapshot's      a leaf (snapshot.h).
@@ -165,7 +167,8 @@ class Checkpointer {
   CurrentSnapshot& snapshot_;
   const SearchActivity& searches_;
 
-  // --- Guarded by the writer mutex.
+  // --- Guarded by the writer mutex. loaded_parts_ and written_parts_ are changed only on the
+  // checkpointer thread (under the mutex), which may therefore read them without it (WriteFiles).
   CheckpointManifest manifest_;          // the last committed checkpoint
   GeometryContents contents_;            // the images of its geometry files
   uint64_t changes_ = 0;                 // images added + removed since it
