@@ -71,6 +71,7 @@ void SegmentWriter::Allocate() {
     offsets_[w + 1] += offsets_[w];
   }
   segment_->bytes.resize(offsets_[vocabulary_size_]);
+  data_ = segment_->bytes.data();
   cursor_.assign(offsets_.begin(), offsets_.end() - 1);
   std::fill(last_.begin(), last_.end(), segment_->first_image);
 }

@@ -103,8 +103,8 @@ class SegmentWriter {
   void CountShortGap(uint32_t word, uint32_t tf) { offsets_[word + 1] += PostingSize(0, tf); }
   void Allocate();
   void Put(uint32_t word, uint32_t image, uint32_t tf) {
-    uint8_t* p = segment_->bytes.data() + cursor_[word];
-    cursor_[word] = static_cast<uint64_t>(PutPosting(p, image - last_[word], tf) - segment_->bytes.data());
+    uint8_t* p = data_ + cursor_[word];
+    cursor_[word] = static_cast<uint64_t>(PutPosting(p, image - last_[word], tf) - data_);
     last_[word] = image;
   }
   // Whether Put wrote exactly what Count counted.
@@ -119,6 +119,7 @@ class SegmentWriter {
   std::vector<uint64_t> offsets_;  // Count: list sizes (at w + 1); Allocate on: list starts, per word + end
   std::vector<uint32_t> last_;     // per word, the image of its last posting (the first image at the start)
   std::vector<uint64_t> cursor_;   // per word, where Put writes next
+  uint8_t* data_ = nullptr;        // segment_->bytes.data() (Allocate)
   size_t distinct_ = 0;            // words with postings (Allocate)
 };
 
