@@ -22,6 +22,7 @@
 #include "server/cli/cli.h"
 #include "server/cli/common_flags.h"
 #include "server/cli/mpi_communicator.h"
+#include "server/cluster/frequency_journal.h"
 #include "sift/base/binary_io.h"
 #include "sift/base/log.h"
 #include "sift/base/parallel.h"
@@ -161,94 +162,6 @@ std::vector<ImageJob> CollectJobs(const BuildArgs& build) {
   return build.features.empty() ? CollectImages(build.images, build.list) : CollectFeatureFiles(build.features);
 }
 
-// The document frequencies of one partition's images, kept durable beside the partition while it is
-// built (partition-frequencies.oxdf, container "OXBWPDFJ" v1), so that a resumed --mpi build knows the
-// words of the images an earlier run indexed. Before each batch is committed to the index the journal
-// is written with that batch as "pending" (ids and distinct words); on open, the pending images the
-// index holds are counted, the others (never committed) dropped. Payload: u64 vocabulary fingerprint,
-// u64 images counted, u64 num_words, u32 df[num_words], u64 pending count, per pending image: u32 id
-// length, id bytes, u64 word count, u32 words.
-class FrequencyJournal {
- public:
-  static constexpr std::string_view kFile = "partition-frequencies.oxdf";
-
-  FrequencyJournal(std::string path, const vocab::Vocabulary& vocabulary)
-      : path_(std::move(path)), fingerprint_(vocabulary.fingerprint()), df_(vocabulary.size(), 0) {}
-
-  // Loads the journal (if any) and settles its pending batch against `idx`; the counted images must
-  // then be exactly the index's images.
-  void Recover(const index::ImageIndex& idx) {
-    std::error_code ec;
-    if (fs::exists(path_, ec)) {
-      const io::Container c = ValueOrExit(io::ReadContainerFile(path_, kMagic, kVersion, kVersion));
-      io::ByteReader r(c.payload, "partition frequencies " + path_);
-      const uint64_t fingerprint = ValueOrExit(r.Get<uint64_t>());
-      if (fingerprint != fingerprint_)
-        throw CommandError(ExitCodeFor(ErrorCode::kIncompatible), path_ + " counts another vocabulary's words");
-      images_ = ValueOrExit(r.Get<uint64_t>());
-      if (ValueOrExit(r.Get<uint64_t>()) != df_.size())
-        throw CommandError(ExitCodeFor(ErrorCode::kCorruptData), path_ + ": wrong number of words");
-      OkOrExit(r.GetArray(std::span<uint32_t>(df_)));
-      const uint64_t pending = ValueOrExit(r.Get<uint64_t>());
-      for (uint64_t i = 0; i < pending; ++i) {
-        const std::string id = ValueOrExit(r.GetString());
-        std::vector<uint32_t> words(ValueOrExit(r.Get<uint64_t>()));
-        OkOrExit(r.GetArray(std::span<uint32_t>(words)));
-        if (idx.Contains(id)) Count(words);
-      }
-    }
-    const uint64_t indexed = idx.Stats().num_images;
-    if (indexed != images_)
-      throw CommandError(ExitCodeFor(ErrorCode::kIncompatible),
-                         idx.directory() + " holds " + std::to_string(indexed) + " images but the words of " +
-                             std::to_string(images_) + " were recorded (" + path_ +
-                             "): it was changed outside `index build --mpi`; build the cluster into a new --out");
-  }
-
-  // Durably records `batch` (ids and distinct words) as about to be committed.
-  void Prepare(std::vector<std::pair<std::string, std::vector<uint32_t>>> batch) {
-    pending_ = std::move(batch);
-    Write();
-  }
-  // The pending images that the index accepted (`added[i]` for pending_[i]) are counted.
-  void Commit(const std::vector<bool>& added) {
-    for (size_t i = 0; i < pending_.size(); ++i)
-      if (added[i]) Count(pending_[i].second);
-    pending_.clear();
-  }
-  void Write() const {
-    io::ByteWriter w;
-    w.Put(fingerprint_);
-    w.Put(images_);
-    w.Put(uint64_t{df_.size()});
-    w.PutArray(std::span<const uint32_t>(df_));
-    w.Put(uint64_t{pending_.size()});
-    for (const auto& [id, words] : pending_) {
-      w.PutString(id);
-      w.Put(uint64_t{words.size()});
-      w.PutArray(std::span<const uint32_t>(words));
-    }
-    OkOrExit(io::WriteContainerFile(path_, kMagic, kVersion, 0, w.bytes()));
-  }
-
-  uint64_t images() const { return images_; }
-  const std::vector<uint32_t>& document_frequency() const { return df_; }
-
- private:
-  static constexpr std::string_view kMagic = "OXBWPDFJ";
-  static constexpr uint32_t kVersion = 1;
-  void Count(const std::vector<uint32_t>& distinct_words) {
-    ++images_;
-    for (uint32_t w : distinct_words) ++df_.at(w);
-  }
-
-  std::string path_;
-  uint64_t fingerprint_;
-  uint64_t images_ = 0;
-  std::vector<uint32_t> df_;
-  std::vector<std::pair<std::string, std::vector<uint32_t>>> pending_;
-};
-
 struct BuildCounts {
   size_t added = 0, failed = 0, skipped = 0;
   uint64_t features = 0;
@@ -257,7 +170,7 @@ struct BuildCounts {
 // Adds the jobs `idx` does not hold yet, in batches. With a journal, the words are assigned here (the
 // index's own quantiser settings) and each batch's distinct words recorded in it before the commit.
 BuildCounts IngestJobs(const BuildArgs& build, index::ImageIndex& idx, std::vector<ImageJob> all,
-                       FrequencyJournal* journal) {
+                       cluster::FrequencyJournal* journal) {
   const bool from_features = !build.features.empty();
   const sift::DecodeOptions decode = build.image.ToDecodeOptions();
   BuildCounts counts;
@@ -325,7 +238,7 @@ BuildCounts IngestJobs(const BuildArgs& build, index::ImageIndex& idx, std::vect
         distinct.emplace_back(job.id, std::move(d));
       }
     }
-    if (journal) journal->Prepare(std::move(distinct));
+    if (journal) OkOrExit(journal->Prepare(std::move(distinct)));
     const auto results = idx.AddBatch(items);
     std::vector<bool> added(results.size(), false);
     for (size_t k = 0; k < results.size(); ++k) {
@@ -343,7 +256,7 @@ BuildCounts IngestJobs(const BuildArgs& build, index::ImageIndex& idx, std::vect
     }
     if (journal) journal->Commit(added);
   }
-  if (journal) journal->Write();
+  if (journal) OkOrExit(journal->Write());
   return counts;
 }
 
@@ -404,8 +317,9 @@ void RunClusterBuild(const BuildArgs& build, vocab::Communicator& comm) {
   for (uint32_t p : mine) {
     const std::string dir = api::PartitionFolder(build.out, p);
     auto idx = OpenOrCreate(dir, vocabulary, IndexOptionsFor(build));
-    FrequencyJournal journal((fs::path(dir) / FrequencyJournal::kFile).string(), vocabulary);
-    journal.Recover(*idx);
+    cluster::FrequencyJournal journal((fs::path(dir) / cluster::FrequencyJournal::kFile).string(),
+                                      vocabulary.fingerprint(), vocabulary.size());
+    OkOrExit(journal.Recover(*idx));
     const auto tp = std::chrono::steady_clock::now();
     const BuildCounts counts = IngestJobs(build, *idx, std::move(jobs[p]), &journal);
     const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - tp).count();

@@ -1,0 +1,52 @@
+// The one temporary folder of the tests: a fresh empty folder under the system's temporary directory
+// ($TMPDIR when set, else /tmp), unique to the process and the test (mkdtemp), named after the test that
+// makes it, and removed with everything in it when the TempDir is destroyed. Header-only; tests only.
+//
+//   oxbow::testing::TempDir dir;                       // oxbow-<Suite>.<Test>-XXXXXX
+//   oxbow::testing::TempDir suite_dir("oxbow-http");    // a prefix of one's own (e.g. in SetUpTestSuite)
+//   const std::string index = dir.path() + "/index";   // or dir / "index"
+#pragma once
+
+#include <gtest/gtest.h>
+#include <stdlib.h>
+
+#include <filesystem>
+#include <stdexcept>
+#include <string>
+#include <system_error>
+
+namespace oxbow::testing {
+
+class TempDir {
+ public:
+  // `prefix` empty: "oxbow-<suite>.<test>" of the running test ("oxbow-test" outside one).
+  explicit TempDir(std::string prefix = {}) {
+    if (prefix.empty()) {
+      const ::testing::TestInfo* test = ::testing::UnitTest::GetInstance()->current_test_info();
+      prefix = test == nullptr ? "oxbow-test" : std::string("oxbow-") + test->test_suite_name() + "." + test->name();
+      for (char& c : prefix) {
+        if (c == '/') c = '_';  // parameterised tests: "Suite/0", "Name/1"
+      }
+    }
+    std::string pattern = (std::filesystem::temp_directory_path() / (prefix + "-XXXXXX")).string();
+    if (mkdtemp(pattern.data()) == nullptr) {
+      throw std::runtime_error("cannot make a temporary folder " + pattern + ": " +
+                               std::generic_category().message(errno));
+    }
+    path_ = pattern;
+  }
+  ~TempDir() {
+    std::error_code ignored;
+    std::filesystem::remove_all(path_, ignored);
+  }
+  TempDir(const TempDir&) = delete;
+  TempDir& operator=(const TempDir&) = delete;
+
+  const std::string& path() const { return path_; }
+  std::filesystem::path operator/(const std::filesystem::path& name) const { return std::filesystem::path(path_) / name; }
+
+ private:
+  std::string path_;
+};
+
+}  // namespace oxbow::testing
