@@ -1,45 +1,17 @@
-// Unit tests of the transport-free pieces of the API: error mapping, parameter parsing, metrics text,
-// extractor-settings round trip, JSON mapping.
+// Unit tests of the transport-free pieces of the API: parameter parsing, extractor-settings round trip,
+// JSON mapping. (The HTTP status mapping and the metrics text: server/http/errors_test.cc, metrics_test.cc.)
 #include <gtest/gtest.h>
 
 #include <set>
 #include <utility>
 #include <vector>
 
-#include "api/errors.h"
 #include "api/json.h"
-#include "api/metrics.h"
 #include "api/params.h"
 #include "api/service.h"
 
 namespace oxbow::api {
 namespace {
-
-TEST(Errors, EveryCodeMapsToAnErrorStatus) {
-  const std::vector<std::pair<ErrorCode, int>> expected = {
-      {ErrorCode::kInvalidArgument, 400}, {ErrorCode::kInvalidImage, 400},   {ErrorCode::kImageTooLarge, 413},
-      {ErrorCode::kUnsupportedFormat, 415}, {ErrorCode::kNotFound, 404},     {ErrorCode::kAlreadyExists, 409},
-      {ErrorCode::kCorruptData, 500},     {ErrorCode::kIncompatible, 409},   {ErrorCode::kIoError, 500},
-      {ErrorCode::kResourceExhausted, 503}, {ErrorCode::kUnauthenticated, 401}, {ErrorCode::kInternal, 500}};
-  for (const auto& [code, status] : expected) {
-    EXPECT_EQ(HttpStatusFor(code), status) << ErrorCodeName(code);
-    const HttpError e = ToHttpError(Error{code, "m"});
-    EXPECT_GE(e.status, 400);
-    EXPECT_EQ(e.code, ErrorCodeName(code));
-  }
-}
-
-TEST(Errors, BodyHasTheOneShape) {
-  const auto body = ErrorBody(ToHttpError(Error{ErrorCode::kNotFound, "no image 'x'"}), "req-1");
-  ASSERT_TRUE(body.contains("error"));
-  EXPECT_EQ(body["error"]["code"], "not_found");
-  EXPECT_EQ(body["error"]["message"], "no image 'x'");
-  EXPECT_EQ(body["error"]["request_id"], "req-1");
-  EXPECT_EQ(body.size(), 1u);
-  EXPECT_EQ(MethodNotAllowed("PUT", "/v1/search", "POST").status, 405);
-  EXPECT_EQ(PermissionDenied("x").status, 403);
-  EXPECT_EQ(RouteNotFound("GET", "/nope").status, 404);
-}
 
 TEST(Params, IntegersAreCheckedCompletely) {
   EXPECT_EQ(ParseInt("k", "42", 1, 100).value(), 42);
@@ -312,27 +284,6 @@ TEST(Params, ListAndMatchParams) {
   EXPECT_EQ(ParseMatchParams({})->min_inliers, 6);
   EXPECT_EQ(ParseMatchParams({{"min_inliers", "12"}})->min_inliers, 12);
   EXPECT_FALSE(ParseMatchParams({{"min_inliers", "2"}}));
-}
-
-TEST(Metrics, RendersCountersAndCumulativeHistograms) {
-  Metrics metrics;
-  metrics.Observe("/v1/search", "POST", 200, 0.004);
-  metrics.Observe("/v1/search", "POST", 200, 0.2);
-  metrics.Observe("/v1/search", "POST", 400, 0.0005);
-  metrics.Observe("/v1/images/{id}", "GET", 404, 100.0);  // beyond the last bucket: only +Inf
-  EXPECT_EQ(metrics.Count("/v1/search", "POST", 200), 2u);
-  EXPECT_EQ(metrics.Count("/v1/search", "POST", 500), 0u);
-  const std::string text = metrics.Render({{"oxbow_index_images", "Live images.", 3}});
-  EXPECT_NE(text.find("# TYPE oxbow_http_requests_total counter"), std::string::npos);
-  EXPECT_NE(text.find("oxbow_http_requests_total{route=\"/v1/search\",method=\"POST\",status=\"200\"} 2"), std::string::npos);
-  // 0.004 s falls in le=0.005; 0.2 s in le=0.25 (cumulative: 1 then 2).
-  EXPECT_NE(text.find("route=\"/v1/search\",method=\"POST\",status=\"200\",le=\"0.0025\"} 0"), std::string::npos);
-  EXPECT_NE(text.find("route=\"/v1/search\",method=\"POST\",status=\"200\",le=\"0.005\"} 1"), std::string::npos);
-  EXPECT_NE(text.find("route=\"/v1/search\",method=\"POST\",status=\"200\",le=\"0.25\"} 2"), std::string::npos);
-  EXPECT_NE(text.find("route=\"/v1/images/{id}\",method=\"GET\",status=\"404\",le=\"30\"} 0"), std::string::npos);
-  EXPECT_NE(text.find("route=\"/v1/images/{id}\",method=\"GET\",status=\"404\",le=\"+Inf\"} 1"), std::string::npos);
-  EXPECT_NE(text.find("# TYPE oxbow_index_images gauge\noxbow_index_images 3\n"), std::string::npos);
-  EXPECT_EQ(EscapeLabelValue("a\"b\\c\n"), "a\\\"b\\\\c\\n");
 }
 
 TEST(Settings, RoundTripsEveryDescribedOption) {

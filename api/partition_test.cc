@@ -7,6 +7,7 @@
 #include <fstream>
 
 #include "sift/base/hash.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow::api {
 namespace {
@@ -34,12 +35,10 @@ TEST(Partition, SpreadsIdsOverAllPartitions) {
 class GlobalFrequenciesFile : public ::testing::Test {
  protected:
   void SetUp() override {
-    dir_ = fs::temp_directory_path() / ("oxbow_gdf_" + std::to_string(::getpid()));
-    fs::create_directories(dir_);
     path_ = (dir_ / "global-frequencies.oxdf").string();
   }
-  void TearDown() override { fs::remove_all(dir_); }
-  fs::path dir_;
+  oxbow::testing::TempDir temp_;  // removed with its contents after the test
+  fs::path dir_{temp_.path()};
   std::string path_;
 };
 

@@ -4,10 +4,10 @@
 
 #include <filesystem>
 
-#include "api/errors.h"
 #include "api/json.h"
 #include "api/service.h"
-#include "api/testing.h"
+#include "tests/support/samples.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow::api {
 namespace {
@@ -19,7 +19,7 @@ class ServiceTest : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
     if (!std::filesystem::exists(SamplePath("box_in_scene.png"))) return;
-    dir_ = new testing::TempDir("oxbow-service-test");
+    dir_ = new oxbow::testing::TempDir("oxbow-service-test");
     vocab_path_ = dir_->path() + "/vocab.oxvoc";
     auto vocabulary = testing::BuildTestVocabulary({"box_in_scene.png", "graf1.png", "leuvenA.jpg", "graf3.png"}, 512, vocab_path_);
     ASSERT_TRUE(vocabulary) << vocabulary.error().ToString();
@@ -47,7 +47,7 @@ class ServiceTest : public ::testing::Test {
     return service.AddImage(request);
   }
 
-  static inline testing::TempDir* dir_ = nullptr;
+  static inline oxbow::testing::TempDir* dir_ = nullptr;
   static inline std::string vocab_path_;
   static inline int counter_ = 0;
 };
@@ -136,7 +136,6 @@ TEST_F(ServiceTest, BadImagesAreErrorValues) {
   auto half = service->AddImage(request);
   ASSERT_FALSE(half);
   EXPECT_EQ(half.error().code, ErrorCode::kInvalidImage);
-  EXPECT_EQ(HttpStatusFor(half.error().code), 400);
 }
 
 TEST_F(ServiceTest, MatchFindsTheBoxInTheScene) {

@@ -19,7 +19,8 @@
 #include <opencv2/imgcodecs.hpp>
 
 #include "api/service.h"
-#include "api/testing.h"
+#include "tests/support/samples.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow::api {
 namespace {
@@ -118,7 +119,7 @@ class ThumbnailStoreTest : public ::testing::Test {
     entry_.image_height = 300;
     entry_.source = "http:photo.jpg";
   }
-  testing::TempDir dir_{"oxbow-thumbnail-store"};
+  oxbow::testing::TempDir dir_{"oxbow-thumbnail-store"};
   std::string path_;
   ThumbnailStore::Entry entry_;
 };
@@ -212,7 +213,7 @@ TEST_F(ThumbnailStoreTest, AnEntryThatIsNotAJpegIsCorruptData) {
 // another image under the same id is not served.
 TEST(ServiceThumbnails, FollowAddsReplacesAndDeletes) {
   if (!std::filesystem::exists(SamplePath("box_in_scene.png"))) GTEST_SKIP() << "opencv-doc sample photos not installed";
-  testing::TempDir dir("oxbow-service-thumbnails");
+  oxbow::testing::TempDir dir("oxbow-service-thumbnails");
   const std::string vocab = dir.path() + "/vocab.oxvoc";
   ASSERT_TRUE(testing::BuildTestVocabulary({"box_in_scene.png", "graf1.png"}, 128, vocab));
   const std::string index_dir = dir.path() + "/index";
@@ -300,7 +301,7 @@ class ServiceWritesTest : public ::testing::Test {
     add.replace = replace;
     return add;
   }
-  testing::TempDir dir_{"oxbow-service-writes"};
+  oxbow::testing::TempDir dir_{"oxbow-service-writes"};
   const std::string vocab_ = dir_.path() + "/vocab.oxvoc";
   const std::string index_dir_ = dir_.path() + "/index";
   std::map<std::string, std::vector<uint8_t>> bytes_;  // of the samples (requests do not own theirs)

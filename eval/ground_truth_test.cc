@@ -6,7 +6,8 @@
 #include <fstream>
 #include <set>
 
-#include "tests/shared_data.h"
+#include "tests/support/shared_data.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow::eval {
 namespace {
@@ -15,15 +16,9 @@ namespace fs = std::filesystem;
 
 class GroundTruthTest : public ::testing::Test {
  protected:
-  void SetUp() override {
-    dir_ = fs::temp_directory_path() /
-           ("oxbow_gt_test_" + std::string(::testing::UnitTest::GetInstance()->current_test_info()->name()));
-    fs::remove_all(dir_);
-    fs::create_directories(dir_);
-  }
-  void TearDown() override { fs::remove_all(dir_); }
   void Write(const std::string& name, const std::string& text) { std::ofstream(dir_ / name) << text; }
-  fs::path dir_;
+  oxbow::testing::TempDir temp_;  // removed with its contents after the test
+  fs::path dir_{temp_.path()};
 };
 
 TEST_F(GroundTruthTest, ReadsOxfordFolderAndRestricts) {

@@ -9,6 +9,8 @@
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 
+#include "tests/support/temp_dir.h"
+
 namespace oxbow::eval {
 namespace {
 
@@ -42,8 +44,8 @@ TEST(Report, SummariseAndWriteMarkdownJsonPlots) {
   EXPECT_LT(worse.map, 1.0);
   EXPECT_GT(worse.map, 0.0);
 
-  const fs::path dir = fs::temp_directory_path() / "oxbow_report_test";
-  fs::remove_all(dir);
+  const oxbow::testing::TempDir temp;
+  const fs::path dir = temp.path();
   ASSERT_TRUE(WriteReport(dir.string(), {perfect, worse}, "oxbow eval --test"));
   std::ifstream json_in(dir / "results.json");
   const auto json = nlohmann::json::parse(json_in);
@@ -58,7 +60,6 @@ TEST(Report, SummariseAndWriteMarkdownJsonPlots) {
     const cv::Mat img = cv::imread((dir / plot).string());
     EXPECT_FALSE(img.empty()) << plot;
   }
-  fs::remove_all(dir);
 }
 
 TEST(Report, GroupsMetricsRecallTopFourAndApPerGroup) {
@@ -94,8 +95,8 @@ TEST(Report, GroupsMetricsRecallTopFourAndApPerGroup) {
   // The same ranking under the Oxford trapezoid scores lower: the definition is the protocol's choice.
   EXPECT_LT(ScoreRanking(queries[1], rankings[1], ApDefinition::kOxfordTrapezoid).ap, run.queries[1].ap);
 
-  const fs::path dir = fs::temp_directory_path() / ("oxbow_report_groups_" + std::to_string(::getpid()));
-  fs::remove_all(dir);
+  const oxbow::testing::TempDir temp;
+  const fs::path dir = temp.path();
   ASSERT_TRUE(WriteReport(dir.string(), {run}, "oxbow eval --protocol groups"));
   std::ifstream md_in(dir / "report.md");
   const std::string md((std::istreambuf_iterator<char>(md_in)), std::istreambuf_iterator<char>());
@@ -107,7 +108,6 @@ TEST(Report, GroupsMetricsRecallTopFourAndApPerGroup) {
   EXPECT_EQ(json["runs"][0]["ap_definition"], "non-interpolated");
   EXPECT_EQ(json["runs"][0]["distractors"], 1);
   EXPECT_NEAR(json["runs"][0]["group_ap"]["b"].get<double>(), 0.2, 1e-12);
-  fs::remove_all(dir);
 }
 
 TEST(Report, PercentileInterpolates) {

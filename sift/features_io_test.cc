@@ -11,6 +11,7 @@
 
 #include "sift/base/binary_io.h"
 #include "sift/sift.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow::sift {
 namespace {
@@ -19,11 +20,6 @@ namespace fs = std::filesystem;
 
 class FeaturesIoTest : public ::testing::Test {
  protected:
-  void SetUp() override {
-    dir_ = fs::temp_directory_path() / ("oxbow_features_io_test_" + std::to_string(::getpid()));
-    fs::create_directories(dir_);
-  }
-  void TearDown() override { fs::remove_all(dir_); }
   std::string Path(const std::string& name) const { return (dir_ / name).string(); }
 
   // Seeded random features: 37 keypoints with unit-norm non-negative descriptors.
@@ -49,7 +45,8 @@ class FeaturesIoTest : public ::testing::Test {
     return file;
   }
 
-  fs::path dir_;
+  oxbow::testing::TempDir temp_;  // removed with its contents after the test
+  fs::path dir_{temp_.path()};
 };
 
 TEST_F(FeaturesIoTest, RoundTripIsExact) {

@@ -12,7 +12,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "sift/base/binary_io.h"
-#include "sift/testing/hostile_images.h"
+#include "tests/support/hostile_images.h"
 
 namespace oxbow::sift {
 namespace {

@@ -16,11 +16,11 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "sift/testing/feature_eval.h"
 #include "sift/base/cpu.h"
 #include "sift/scale_space.h"
 #include "sift/sift_internal.h"
-#include "tests/shared_data.h"
+#include "tests/support/feature_eval.h"
+#include "tests/support/shared_data.h"
 
 namespace oxbow::sift {
 namespace {

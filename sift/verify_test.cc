@@ -20,7 +20,7 @@
 
 #include "sift/match.h"
 #include "sift/sift.h"
-#include "tests/shared_data.h"
+#include "tests/support/shared_data.h"
 
 namespace oxbow::sift {
 namespace {

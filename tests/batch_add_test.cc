@@ -13,8 +13,8 @@
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 
-#include "tests/e2e_testing.h"
-#include "tests/server_suite.h"
+#include "tests/support/e2e.h"
+#include "tests/support/server_suite.h"
 
 #include <httplib.h>
 

@@ -20,8 +20,9 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "api/testing.h"
-#include "tests/e2e_testing.h"
+#include "tests/support/e2e.h"
+#include "tests/support/samples.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow {
 namespace {
@@ -39,7 +40,7 @@ class CliCoherence : public ::testing::Test {
   void SetUp() override {
     if (!fs::exists(kSamples / "graf1.png") || !fs::exists(kSamples / "box.png"))
       GTEST_SKIP() << "opencv-doc sample photos not installed (scripts/install-deps.sh)";
-    dir_ = std::make_unique<api::testing::TempDir>("oxbow-cli-coherence");
+    dir_ = std::make_unique<oxbow::testing::TempDir>("oxbow-cli-coherence");
     // A photo larger than the default --max-image-side (1600 px): graf1 (800x640) enlarged 2.5x.
     big_ = dir_->path() + "/photos/nested/big.png";
     fs::create_directories(fs::path(big_).parent_path());
@@ -51,7 +52,7 @@ class CliCoherence : public ::testing::Test {
   }
   std::string Path(const std::string& name) const { return dir_->path() + "/" + name; }
 
-  std::unique_ptr<api::testing::TempDir> dir_;
+  std::unique_ptr<oxbow::testing::TempDir> dir_;
   std::string big_;
 };
 

@@ -18,12 +18,13 @@
 
 #include <nlohmann/json.hpp>
 
-#include "api/testing.h"
 #include "server/cluster/front.h"
 #include "server/cluster/shard.grpc.pb.h"
 #include "sift/sift.h"
-// After the project headers: <httplib.h> (through e2e_testing.h) defines a `_res` macro that breaks Eigen.
-#include "e2e_testing.h"
+#include "tests/support/samples.h"
+// After the project headers: <httplib.h> (through tests/support/e2e.h) defines a `_res` macro that breaks Eigen.
+#include "tests/support/e2e.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow {
 namespace {
@@ -36,7 +37,7 @@ constexpr const char* kKey = "shard-secret-1";
 class ShardPort : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
-    dir_ = new api::testing::TempDir("oxbow-cluster-security");
+    dir_ = new oxbow::testing::TempDir("oxbow-cluster-security");
     const std::string images = dir_->path() + "/images";
     fs::create_directories(images);
     const char* samples[] = {"graf1.png", "box.png", "baboon.jpg"};
@@ -120,13 +121,13 @@ class ShardPort : public ::testing::Test {
       "openssl x509 -req -in front.csr -CA ca.pem -CAkey ca.key -CAcreateserial -out front.pem -days 2 && "
       "openssl req -x509 -newkey rsa:2048 -nodes -keyout other.key -out other.pem -days 2 -subj /CN=other";
 
-  static api::testing::TempDir* dir_;
+  static oxbow::testing::TempDir* dir_;
   static std::string png_;
   static int started_;  // shards started by the suite (each serves a copy of its own)
   std::vector<std::unique_ptr<testing::ServerProcess>> shards_;
 };
 
-api::testing::TempDir* ShardPort::dir_ = nullptr;
+oxbow::testing::TempDir* ShardPort::dir_ = nullptr;
 std::string ShardPort::png_;
 int ShardPort::started_ = 0;
 
@@ -143,6 +144,9 @@ TEST_F(ShardPort, EveryCallButTheHealthCheckNeedsTheKey) {
   EXPECT_EQ(stub->Ping(Context(nullptr).get(), {}, &pong).error_code(), grpc::StatusCode::UNAUTHENTICATED);
   EXPECT_EQ(stub->Ping(Context("wrong").get(), {}, &pong).error_code(), grpc::StatusCode::PERMISSION_DENIED);
   EXPECT_TRUE(stub->Ping(Context().get(), {}, &pong).ok());
+  cluster::EndSearchReply ended;  // dropping a kept search needs the key too
+  EXPECT_EQ(stub->EndSearch(Context(nullptr).get(), {}, &ended).error_code(), grpc::StatusCode::UNAUTHENTICATED);
+  EXPECT_EQ(stub->EndSearch(Context("wrong").get(), {}, &ended).error_code(), grpc::StatusCode::PERMISSION_DENIED);
 
   // Writes without the key change nothing.
   cluster::AddReply added;
@@ -391,7 +395,7 @@ TEST_F(ShardPort, ClusterBackupFoldersAreCheckedOnTheShard) {
 }
 
 TEST(ClusterConfigSecurity, ReadsTheKeyFileAndTls) {
-  api::testing::TempDir dir("oxbow-cluster-config-security");
+  oxbow::testing::TempDir dir("oxbow-cluster-config-security");
   const std::string path = dir.path() + "/cluster.json";
   std::ofstream(dir.path() + "/key") << "k1\n";
   std::ofstream(path) << R"({"vocabulary": "v.oxvoc", "partitions": [{"replicas": ["a:1"]}], "key_file": "key",

@@ -18,13 +18,14 @@
 #include <nlohmann/json.hpp>
 
 #include "api/partition.h"
-#include "api/testing.h"
 #include "index/image_index.h"
 #include "index/search/source.h"
 #include "server/cluster/front.h"
 #include "sift/sift.h"
-// After the project headers: <httplib.h> (through e2e_testing.h) defines a `_res` macro that breaks Eigen.
-#include "e2e_testing.h"
+#include "tests/support/samples.h"
+// After the project headers: <httplib.h> (through tests/support/e2e.h) defines a `_res` macro that breaks Eigen.
+#include "tests/support/e2e.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow {
 namespace {
@@ -37,7 +38,7 @@ constexpr int kPartitions = 3;
 class Cluster : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
-    dir_ = new api::testing::TempDir("oxbow-cluster");
+    dir_ = new oxbow::testing::TempDir("oxbow-cluster");
     const std::string images = dir_->path() + "/images";
     fs::create_directories(images);
     // Twelve pictures: crops of four opencv-doc photos at three offsets each (views of one scene verify
@@ -184,7 +185,7 @@ class Cluster : public ::testing::Test {
     EXPECT_EQ(single.candidates, front.candidates) << what;
   }
 
-  static inline api::testing::TempDir* dir_ = nullptr;
+  static inline oxbow::testing::TempDir* dir_ = nullptr;
   static inline std::vector<sift::FeatureSet>* queries_ = new std::vector<sift::FeatureSet>;
   static inline int started_ = 0;
   std::vector<std::unique_ptr<testing::ServerProcess>> shards_;
@@ -1057,7 +1058,7 @@ TEST_F(Cluster, ReadsDuringWritesAreAnsweredWithoutAFault) {
 }
 
 TEST(ClusterConfigFile, ReadsReplicasAndResolvesTheVocabularyBesideIt) {
-  api::testing::TempDir dir("oxbow-cluster-config");
+  oxbow::testing::TempDir dir("oxbow-cluster-config");
   const std::string path = dir.path() + "/cluster.json";
   std::ofstream(path) << R"({"vocabulary": "v.oxvoc", "partitions": [{"replicas": ["a:1", "b:2"]}, {"replicas": ["c:3"]}]})";
   const auto config = cluster::ClusterConfig::Read(path);

@@ -18,6 +18,7 @@
 #include <string>
 
 #include "index/image_index.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow {
 namespace {
@@ -95,8 +96,8 @@ sift::FeatureSet ImageFeatures(const vocab::Vocabulary& v, int i, int version = 
 }
 
 TEST(CrashSafetyTest, AcknowledgedChangesSurviveSigkill) {
-  const fs::path dir = fs::temp_directory_path() / ("oxbow_crash_test_" + std::to_string(getpid()));
-  fs::remove_all(dir);
+  const oxbow::testing::TempDir temp;
+  const fs::path dir = temp / "index";
   const vocab::Vocabulary vocabulary = MakeVocabulary();
   {
     auto created = index::ImageIndex::Create(dir.string(), vocabulary, "crash-test/1");
@@ -227,7 +228,6 @@ TEST(CrashSafetyTest, AcknowledgedChangesSurviveSigkill) {
   }
   EXPECT_GE(mid_add_kills, kMidWriteKills) << "too few kills landed while an add was in flight";
   EXPECT_GE(mid_replace_kills, kMidWriteKills) << "too few kills landed while a replacement was in flight";
-  fs::remove_all(dir);
 }
 
 }  // namespace

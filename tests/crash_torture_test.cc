@@ -37,10 +37,11 @@
 #include <nlohmann/json.hpp>
 
 #include "api/service.h"
-#include "api/testing.h"
 #include "index/image_index.h"
 #include "sift/sift.h"
-#include "tests/e2e_testing.h"
+#include "tests/support/e2e.h"
+#include "tests/support/samples.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow {
 namespace {
@@ -136,10 +137,10 @@ void RunClient(int port, ClientModel* model, Counts* counts, uint64_t seed, cons
 class CrashTortureTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    if (!fs::exists(api::testing::SamplePath("graf1.png"))) GTEST_SKIP() << "opencv-doc sample photos not installed";
-    dir_ = std::make_unique<api::testing::TempDir>("oxbow-torture");
+    if (!fs::exists(testing::SamplePath("graf1.png"))) GTEST_SKIP() << "opencv-doc sample photos not installed";
+    dir_ = std::make_unique<oxbow::testing::TempDir>("oxbow-torture");
     vocab_path_ = dir_->path() + "/vocab.oxvoc";
-    settings_ = api::testing::TestSiftOptions().Describe();
+    settings_ = testing::TestSiftOptions().Describe();
     auto vocabulary = oxbow::testing::RandomVocabulary(settings_, 512);
     ASSERT_TRUE(vocabulary && vocabulary->Write(vocab_path_));
     vocabulary_ = std::make_unique<vocab::Vocabulary>(std::move(*vocabulary));
@@ -273,7 +274,7 @@ class CrashTortureTest : public ::testing::Test {
     fs::remove_all(fresh);
   }
 
-  std::unique_ptr<api::testing::TempDir> dir_;
+  std::unique_ptr<oxbow::testing::TempDir> dir_;
   std::string vocab_path_;
   std::string settings_;
   std::unique_ptr<vocab::Vocabulary> vocabulary_;

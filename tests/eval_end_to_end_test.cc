@@ -16,7 +16,8 @@
 
 #include <nlohmann/json.hpp>
 
-#include "e2e_testing.h"
+#include "tests/support/e2e.h"
+#include "tests/support/temp_dir.h"
 
 namespace {
 
@@ -59,8 +60,8 @@ void WriteGroups(const fs::path& dir) {
 }
 
 TEST(EvalEndToEnd, GroupsProtocolThroughTheHttpServer) {
-  const fs::path dir = fs::temp_directory_path() / ("oxbow_eval_e2e_" + std::to_string(::getpid()));
-  fs::remove_all(dir);
+  const oxbow::testing::TempDir temp;
+  const fs::path dir = temp.path();
   ASSERT_NO_FATAL_FAILURE(WriteGroups(dir));
   const std::string base = std::string(OXBOW_BINARY) + " eval --protocol groups --images " +
                            (dir / "images").string() + " --work " + (dir / "work").string() + " --out " +
@@ -153,15 +154,14 @@ TEST(EvalEndToEnd, GroupsProtocolThroughTheHttpServer) {
     const std::string listed((std::istreambuf_iterator<char>(list)), std::istreambuf_iterator<char>());
     EXPECT_EQ(std::count(listed.begin(), listed.end(), '\n'), 8) << listed;
   }
-  fs::remove_all(dir);
 }
 
 // Hamming-embedding settings to compare: `--hamming off,on` trains the vocabulary with the embedding,
 // and every listed threshold (and width) is a run of its own, in process, with its values in the
 // report. Threshold 0 matches only identical signatures, 64 every pair in a word: the rankings differ.
 TEST(EvalEndToEnd, ComparesHammingThresholdsInProcess) {
-  const fs::path dir = fs::temp_directory_path() / ("oxbow_eval_he_" + std::to_string(::getpid()));
-  fs::remove_all(dir);
+  const oxbow::testing::TempDir temp;
+  const fs::path dir = temp.path();
   ASSERT_NO_FATAL_FAILURE(WriteGroups(dir));
   const std::string base = std::string(OXBOW_BINARY) + " eval --protocol groups --images " +
                            (dir / "images").string() + " --work " + (dir / "work").string() + " --out " +
@@ -192,7 +192,6 @@ TEST(EvalEndToEnd, ComparesHammingThresholdsInProcess) {
     differ = differ || runs[1]["queries"][q]["top"] != runs[2]["queries"][q]["top"];
   }
   EXPECT_TRUE(differ) << "thresholds 0 and 64 ranked every query alike: the setting did not reach the query";
-  fs::remove_all(dir);
 }
 
 }  // namespace

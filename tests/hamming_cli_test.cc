@@ -10,8 +10,9 @@
 #include <fstream>
 #include <string>
 
-#include "api/testing.h"
-#include "tests/e2e_testing.h"
+#include "tests/support/e2e.h"
+#include "tests/support/samples.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow {
 namespace {
@@ -28,7 +29,7 @@ TEST(HammingCli, TrainIndexAndSearchWithSignatures) {
   for (const char* name : {"box.png", "graf1.png", "graf3.png", "box_in_scene.png"}) {
     if (!fs::exists(kSamples / name)) GTEST_SKIP() << "opencv-doc sample photos not installed (scripts/install-deps.sh)";
   }
-  api::testing::TempDir dir("oxbow-hamming-cli");
+  oxbow::testing::TempDir dir("oxbow-hamming-cli");
   const auto path = [&](const std::string& name) { return dir.path() + "/" + name; };
   fs::create_directories(path("photos"));
   for (const char* name : {"box.png", "graf1.png", "graf3.png"}) fs::copy_file(kSamples / name, path("photos/") + name);

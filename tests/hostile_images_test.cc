@@ -25,13 +25,14 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "api/errors.h"
 #include "api/service.h"
-#include "api/testing.h"
+#include "server/http/errors.h"
 #include "sift/image.h"
 #include "sift/sift.h"
-#include "sift/testing/hostile_images.h"
-#include "tests/e2e_testing.h"
+#include "tests/support/e2e.h"
+#include "tests/support/hostile_images.h"
+#include "tests/support/samples.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow {
 namespace {
@@ -50,9 +51,9 @@ Bytes Encode(const std::string& ext, const cv::Mat& image) {
 class HostileImagesTest : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
-    dir_ = new api::testing::TempDir("oxbow-hostile-images-test");
+    dir_ = new oxbow::testing::TempDir("oxbow-hostile-images-test");
     test_vocab_ = dir_->path() + "/test.oxvoc";
-    ASSERT_TRUE(oxbow::testing::RandomVocabulary(api::testing::TestSiftOptions().Describe())->Write(test_vocab_));
+    ASSERT_TRUE(oxbow::testing::RandomVocabulary(testing::TestSiftOptions().Describe())->Write(test_vocab_));
     // The server's own extractor (2x first octave): a 1600-pixel search then takes seconds on one core,
     // long enough to be abandoned while it runs.
     sift::SiftOptions production;
@@ -78,7 +79,7 @@ class HostileImagesTest : public ::testing::Test {
     auto found = service.Search(bytes, service.options().default_query);
     ASSERT_FALSE(found) << "search accepted it";
     EXPECT_EQ(found.error().code, code) << found.error().ToString();
-    EXPECT_EQ(api::ToHttpError(found.error()).status, http_status);
+    EXPECT_EQ(server::ToHttpError(found.error()).status, http_status);
     api::AddImageRequest add;
     add.id = std::string("hostile-") + what;
     add.image = bytes;
@@ -134,7 +135,7 @@ class HostileImagesTest : public ::testing::Test {
     return jpeg;
   }
 
-  static inline api::testing::TempDir* dir_ = nullptr;
+  static inline oxbow::testing::TempDir* dir_ = nullptr;
   static inline std::string test_vocab_;
   static inline std::string production_vocab_;
   static inline int counter_ = 0;

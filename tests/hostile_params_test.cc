@@ -18,10 +18,11 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "api/testing.h"
 #include "index/image_index.h"
 #include "sift/sift.h"
-#include "tests/e2e_testing.h"
+#include "tests/support/e2e.h"
+#include "tests/support/samples.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow {
 namespace {
@@ -48,19 +49,19 @@ class HostileParamsTest : public ::testing::Test {
   // An index holding what an older server or `oxbow index add` could store: "a", the id "a/similar"
   // (which ParseAddParams now refuses) and metadata nested 100000 deep (which it refuses too).
   static void SetUpTestSuite() {
-    dir_ = new api::testing::TempDir("oxbow-hostile-params-test");
+    dir_ = new oxbow::testing::TempDir("oxbow-hostile-params-test");
     std::vector<uchar> png;
     ASSERT_TRUE(cv::imencode(".png", oxbow::testing::Texture(400, 300), png));
     image_.assign(png.begin(), png.end());
     const std::string image_path = dir_->path() + "/texture.png";
     std::ofstream(image_path, std::ios::binary) << image_;
     index_ = dir_->path() + "/index";
-    const std::string settings = api::testing::TestSiftOptions().Describe();
+    const std::string settings = testing::TestSiftOptions().Describe();
     auto vocabulary = oxbow::testing::RandomVocabulary(settings);
     ASSERT_TRUE(vocabulary) << vocabulary.error().ToString();
     auto index = index::ImageIndex::Create(index_, *vocabulary, settings);
     ASSERT_TRUE(index) << index.error().ToString();
-    auto extractor = sift::SiftExtractor::Create(api::testing::TestSiftOptions());
+    auto extractor = sift::SiftExtractor::Create(testing::TestSiftOptions());
     ASSERT_TRUE(extractor) << extractor.error().ToString();
     auto features = extractor->ExtractFromFile(image_path);
     ASSERT_TRUE(features) << features.error().ToString();
@@ -91,7 +92,7 @@ class HostileParamsTest : public ::testing::Test {
   }
   int StatusOfImage(const std::string& encoded_id) { return StatusOf(server_->Client().Get("/v1/images/" + encoded_id)); }
 
-  static inline api::testing::TempDir* dir_ = nullptr;
+  static inline oxbow::testing::TempDir* dir_ = nullptr;
   static inline std::string index_;
   static inline std::string image_;
   std::unique_ptr<oxbow::testing::ServerProcess> server_;

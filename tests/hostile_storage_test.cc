@@ -24,8 +24,9 @@
 #include <nlohmann/json.hpp>
 
 #include "api/service.h"
-#include "api/testing.h"
-#include "tests/e2e_testing.h"
+#include "tests/support/e2e.h"
+#include "tests/support/samples.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow {
 namespace {
@@ -49,7 +50,7 @@ class HostileStorageTest : public ::testing::Test {
  protected:
   void SetUp() override {
     ASSERT_FALSE(dir_.path().empty());
-    const std::string settings = api::testing::TestSiftOptions().Describe();
+    const std::string settings = testing::TestSiftOptions().Describe();
     ASSERT_TRUE(oxbow::testing::RandomVocabulary(settings, 256)->Write(vocab_));
     auto service = api::Service::Open(index_, vocab_, {});
     ASSERT_TRUE(service) << service.error().ToString();
@@ -81,7 +82,7 @@ class HostileStorageTest : public ::testing::Test {
   }
 
   static constexpr int kImages = 4;
-  api::testing::TempDir dir_{"oxbow-hostile-storage"};
+  oxbow::testing::TempDir dir_{"oxbow-hostile-storage"};
   const std::string vocab_ = dir_.path() + "/vocab.oxvoc";
   const std::string index_ = dir_.path() + "/index";
   int counter_ = 0;
@@ -91,7 +92,7 @@ TEST_F(HostileStorageTest, ForeignWalIsRefusedAndTheCatalogueStaysByteIdentical)
   // The WAL of another index (another vocabulary), taken while it holds a committed, not yet
   // checkpointed add.
   const std::string other_vocab = dir_.path() + "/other.oxvoc";
-  ASSERT_TRUE(oxbow::testing::RandomVocabulary(api::testing::TestSiftOptions().Describe(), 128)->Write(other_vocab));
+  ASSERT_TRUE(oxbow::testing::RandomVocabulary(testing::TestSiftOptions().Describe(), 128)->Write(other_vocab));
   std::string foreign_wal;
   {
     auto other = api::Service::Open(dir_.path() + "/other", other_vocab, {});

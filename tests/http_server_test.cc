@@ -27,14 +27,15 @@
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 
-#include "api/testing.h"
-#include "tests/e2e_testing.h"
+#include "tests/support/e2e.h"
+#include "tests/support/samples.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow {
 namespace {
 
-using api::testing::ReadBytes;
-using api::testing::SamplePath;
+using testing::ReadBytes;
+using testing::SamplePath;
 using nlohmann::json;
 
 std::string ReadText(const std::string& path) {
@@ -68,9 +69,9 @@ class HttpServerTest : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
     if (!std::filesystem::exists(SamplePath("box_in_scene.png"))) return;
-    dir_ = new api::testing::TempDir("oxbow-http-test");
+    dir_ = new oxbow::testing::TempDir("oxbow-http-test");
     vocab_ = dir_->path() + "/vocab.oxvoc";
-    auto vocabulary = api::testing::BuildTestVocabulary({"box_in_scene.png", "graf1.png", "leuvenA.jpg", "graf3.png"},
+    auto vocabulary = testing::BuildTestVocabulary({"box_in_scene.png", "graf1.png", "leuvenA.jpg", "graf3.png"},
                                                         512, vocab_);
     ASSERT_TRUE(vocabulary) << vocabulary.error().ToString();
     box_ = ReadText(SamplePath("box.png"));
@@ -102,7 +103,7 @@ class HttpServerTest : public ::testing::Test {
     return server;
   }
 
-  static inline api::testing::TempDir* dir_ = nullptr;
+  static inline oxbow::testing::TempDir* dir_ = nullptr;
   static inline std::string vocab_;
   static inline std::string box_, scene_, graf1_, graf3_, leuven_;
   static inline int counter_ = 0;

@@ -14,7 +14,8 @@
 
 #include "index/image_index.h"
 #include "sift/sift.h"
-#include "tests/e2e_testing.h"
+#include "tests/support/e2e.h"
+#include "tests/support/temp_dir.h"
 #include "vocab/vocabulary.h"
 
 namespace oxbow {
@@ -39,9 +40,8 @@ class EndToEnd : public ::testing::Test {
     for (const auto& name : kDatabase) {
       if (!fs::exists(kSamples / name)) return;
     }
-    work_ = new fs::path(fs::temp_directory_path() / ("oxbow_e2e_" + std::to_string(getpid())));
-    fs::remove_all(*work_);
-    fs::create_directories(*work_);
+    temp_ = new oxbow::testing::TempDir("oxbow-index-end-to-end");
+    work_ = new fs::path(temp_->path());
     sift::SiftOptions options;
     options.descriptor = sift::DescriptorKind::kRootSift;
     options.max_features = 1500;
@@ -69,8 +69,8 @@ class EndToEnd : public ::testing::Test {
     vocabulary_ = new vocab::Vocabulary(std::move(*v));
   }
   static void TearDownTestSuite() {
-    if (work_) fs::remove_all(*work_);
     delete work_;
+    delete temp_;  // removes the folder
     delete extractor_;
     delete features_;
     delete vocabulary_;
@@ -81,6 +81,7 @@ class EndToEnd : public ::testing::Test {
 
   static std::string Stem(const std::string& name) { return fs::path(name).stem().string(); }
 
+  static inline oxbow::testing::TempDir* temp_ = nullptr;
   static inline fs::path* work_ = nullptr;
   static inline sift::SiftExtractor* extractor_ = nullptr;
   static inline std::map<std::string, sift::FeatureSet>* features_ = nullptr;

@@ -14,7 +14,7 @@
 
 #include <nlohmann/json.hpp>
 
-#include "tests/server_suite.h"
+#include "tests/support/server_suite.h"
 
 namespace oxbow {
 namespace {

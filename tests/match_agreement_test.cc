@@ -16,15 +16,16 @@
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 
-#include "api/testing.h"
 #include "sift/sift.h"
-#include "tests/e2e_testing.h"
+#include "tests/support/e2e.h"
+#include "tests/support/samples.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow {
 namespace {
 
-using api::testing::ReadBytes;
-using api::testing::SamplePath;
+using testing::ReadBytes;
+using testing::SamplePath;
 using nlohmann::json;
 using Options = std::map<std::string, std::string>;  // e.g. {"model", "homography"}
 
@@ -42,7 +43,7 @@ class MatchAgreementTest : public ::testing::Test {
     for (const char* name : {"box.png", "box_in_scene.png", "graf1.png"}) {
       if (!std::filesystem::exists(SamplePath(name))) return;
     }
-    dir_ = new api::testing::TempDir("oxbow-match-agreement");
+    dir_ = new oxbow::testing::TempDir("oxbow-match-agreement");
     const std::string vocabulary_path = dir_->path() + "/vocab.oxvoc";
     // Matching never quantises: random words suffice, only the extractor label matters.
     auto vocabulary = oxbow::testing::RandomVocabulary(SharedExtraction().Describe());
@@ -98,7 +99,7 @@ class MatchAgreementTest : public ::testing::Test {
     return parsed;
   }
 
-  static inline api::testing::TempDir* dir_ = nullptr;
+  static inline oxbow::testing::TempDir* dir_ = nullptr;
   static inline oxbow::testing::ServerProcess* server_ = nullptr;
 };
 

@@ -16,11 +16,12 @@
 #include <set>
 
 #include "api/partition.h"
-#include "api/testing.h"
 #include "index/image_index.h"
 #include "sift/sift.h"
-// After the project headers: <httplib.h> (through e2e_testing.h) defines a `_res` macro that breaks Eigen.
-#include "e2e_testing.h"
+#include "tests/support/samples.h"
+// After the project headers: <httplib.h> (through tests/support/e2e.h) defines a `_res` macro that breaks Eigen.
+#include "tests/support/e2e.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow {
 namespace {
@@ -45,7 +46,7 @@ std::string ReadBytes(const std::string& path) {
 class Mpi : public ::testing::Test {
  protected:
   void SetUp() override {
-    dir_ = std::make_unique<api::testing::TempDir>("oxbow-mpi");
+    dir_ = std::make_unique<oxbow::testing::TempDir>("oxbow-mpi");
     images_ = dir_->path() + "/images";
     fs::create_directories(images_ + "/sub");
     // Ten small textured pictures (crops of opencv-doc photos, noise without them), one in a sub-folder.
@@ -63,7 +64,7 @@ class Mpi : public ::testing::Test {
     return out;
   }
 
-  std::unique_ptr<api::testing::TempDir> dir_;
+  std::unique_ptr<oxbow::testing::TempDir> dir_;
   std::string images_;
 };
 

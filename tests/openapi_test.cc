@@ -4,7 +4,7 @@
 // 2020-12). This test starts the servers it talks to.
 #include <fstream>
 
-#include "tests/server_suite.h"
+#include "tests/support/server_suite.h"
 
 namespace oxbow::testing {
 namespace {

@@ -10,7 +10,7 @@
 
 #include <opencv2/imgcodecs.hpp>
 
-#include "tests/server_suite.h"
+#include "tests/support/server_suite.h"
 
 namespace oxbow {
 namespace {

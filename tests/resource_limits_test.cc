@@ -1,7 +1,7 @@
 // Hostile images through the real service path (api::Service Search and AddImage): decompression
 // bombs, huge and empty declared sizes, a 1-pixel-high panorama, animated GIF, multi-page TIFF, CMYK
 // JPEG, 16-bit PNG/TIFF, grey+alpha and palette PNG. Every input is generated in code. Each gets a
-// clear error (the HTTP status follows from the error code, api/errors.h) or a documented bounded
+// clear error (the HTTP status follows from the error code, server/http/errors.h) or a documented bounded
 // result, and a refused add leaves the index unchanged.
 //
 // PeakMemory measures the resident-memory high-water mark of one search per input in a fresh child
@@ -37,13 +37,14 @@
 #include <jpeglib.h>
 #endif
 
-#include "api/errors.h"
 #include "api/service.h"
-#include "api/testing.h"
+#include "server/http/errors.h"
 #include "sift/base/binary_io.h"
 #include "sift/image.h"
-#include "sift/testing/hostile_images.h"
-#include "tests/e2e_testing.h"
+#include "tests/support/e2e.h"
+#include "tests/support/hostile_images.h"
+#include "tests/support/samples.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow {
 namespace {
@@ -149,7 +150,7 @@ Bytes AnimatedGif() {
 Bytes TwoPageTiff(const std::string& dir) {
   const std::string path = dir + "/two-pages.tiff";
   EXPECT_TRUE(cv::imwritemulti(path, std::vector<cv::Mat>{Texture(320, 240), Texture(640, 480)}));
-  return api::testing::ReadBytes(path);
+  return testing::ReadBytes(path);
 }
 
 #ifdef OXBOW_HAVE_LIBJPEG
@@ -193,9 +194,9 @@ Bytes CmykJpeg(const cv::Mat& grey) {
 class ResourceLimitsTest : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
-    dir_ = new api::testing::TempDir("oxbow-limits-test");
+    dir_ = new oxbow::testing::TempDir("oxbow-limits-test");
     vocab_ = dir_->path() + "/vocab.oxvoc";
-    auto vocabulary = RandomVocabulary(api::testing::TestSiftOptions().Describe());
+    auto vocabulary = RandomVocabulary(testing::TestSiftOptions().Describe());
     ASSERT_TRUE(vocabulary->Write(vocab_));
   }
   static void TearDownTestSuite() {
@@ -215,7 +216,7 @@ class ResourceLimitsTest : public ::testing::Test {
     auto found = service.Search(bytes, service.options().default_query);
     ASSERT_FALSE(found) << "search accepted it";
     EXPECT_EQ(found.error().code, code) << found.error().ToString();
-    EXPECT_EQ(api::ToHttpError(found.error()).status, http_status);
+    EXPECT_EQ(server::ToHttpError(found.error()).status, http_status);
     EXPECT_FALSE(found.error().message.empty());
     api::AddImageRequest add;
     add.id = "hostile-" + std::to_string(before);
@@ -239,7 +240,7 @@ class ResourceLimitsTest : public ::testing::Test {
     return added ? added->record : index::ImageRecord{};
   }
 
-  static inline api::testing::TempDir* dir_ = nullptr;
+  static inline oxbow::testing::TempDir* dir_ = nullptr;
   static inline std::string vocab_;
   static inline int counter_ = 0;
 };
@@ -455,7 +456,7 @@ TEST(ResourceLimitsMeasure, DISABLED_OneSearch) {
   options.add_nice = 0;
   auto service = api::Service::Open(env("OXBOW_MEASURE_INDEX"), env("OXBOW_MEASURE_VOCAB"), options);
   ASSERT_TRUE(service) << service.error().ToString();
-  const Bytes bytes = api::testing::ReadBytes(input);
+  const Bytes bytes = testing::ReadBytes(input);
   {
     std::ofstream clear("/proc/self/clear_refs");
     clear << "5";  // resets VmHWM to the current RSS (Linux >= 4.0)
@@ -463,7 +464,7 @@ TEST(ResourceLimitsMeasure, DISABLED_OneSearch) {
   const uint64_t before = StatusBytes("self", "VmRSS:");
   auto found = (*service)->Search(bytes, (*service)->options().default_query);
   const uint64_t peak = StatusBytes("self", "VmHWM:");
-  const int status = found ? 200 : api::ToHttpError(found.error()).status;
+  const int status = found ? 200 : server::ToHttpError(found.error()).status;
   std::printf("OXBOW_MEASURE status=%d peak=%llu code=%s\n", status, static_cast<unsigned long long>(peak - std::min(peak, before)),
               found ? "ok" : std::string(ErrorCodeName(found.error().code)).c_str());
   std::fflush(stdout);

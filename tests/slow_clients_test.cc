@@ -22,10 +22,10 @@
 
 #include <nlohmann/json.hpp>
 
-#include "api/testing.h"
 #include "sift/sift.h"
-#include "tests/e2e_testing.h"
-#include "tests/server_suite.h"
+#include "tests/support/e2e.h"
+#include "tests/support/samples.h"
+#include "tests/support/server_suite.h"
 
 namespace oxbow {
 namespace {

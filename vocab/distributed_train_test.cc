@@ -18,6 +18,7 @@
 #include <vector>
 
 #include "sift/base/log.h"
+#include "tests/support/temp_dir.h"
 #include "vocab/distributed.h"
 
 namespace oxbow::vocab {
@@ -136,8 +137,6 @@ class DistributedTrain : public ::testing::Test {
  protected:
   void SetUp() override {
     log::SetLevel(log::Level::kWarning);
-    dir_ = fs::temp_directory_path() / ("oxbow_kmeans_" + std::to_string(::getpid()));
-    fs::create_directories(dir_);
     SampleOptions sample;
     sample.max_total = 400;
     sample_ = Sample({0, 1, 2, 3, 4, 5}, sample);
@@ -149,7 +148,6 @@ class DistributedTrain : public ::testing::Test {
     options_.train.num_threads = 2;
     options_.train.quantizer.num_threads = 1;
   }
-  void TearDown() override { fs::remove_all(dir_); }
   std::vector<float> Centroids(const DistributedTrainOptions& options) {
     SingleProcess comm;
     auto result = TrainDistributed(sample_, comm, sift::DescriptorKind::kSift, "test", options);
@@ -159,7 +157,8 @@ class DistributedTrain : public ::testing::Test {
     return {c.begin(), c.end()};
   }
 
-  fs::path dir_;
+  oxbow::testing::TempDir temp_;  // removed with its contents after the test
+  fs::path dir_{temp_.path()};
   DistributedSample sample_;
   DistributedTrainOptions options_;
 };
@@ -231,8 +230,6 @@ class DistributedHamming : public ::testing::Test {
  protected:
   void SetUp() override {
     log::SetLevel(log::Level::kWarning);
-    dir_ = fs::temp_directory_path() / ("oxbow_hamming_" + std::to_string(::getpid()));
-    fs::create_directories(dir_);
     std::mt19937 rng(5);
     std::normal_distribution<float> normal(0, 1);
     std::vector<float> centres(16 * kDim);
@@ -253,7 +250,6 @@ class DistributedHamming : public ::testing::Test {
     build.num_lists = 4;
     vocabulary_ = Vocabulary::FromCentroids(centres, kDim, sift::DescriptorKind::kSift, "test", build).value();
   }
-  void TearDown() override { fs::remove_all(dir_); }
 
   // Row i goes to rank (i * 7 + i / 5) mod ranks, each rank's rows in reverse order.
   DistributedSample Share(int rank, int ranks) const {
@@ -270,7 +266,8 @@ class DistributedHamming : public ::testing::Test {
     return out;
   }
 
-  fs::path dir_;
+  oxbow::testing::TempDir temp_;  // removed with its contents after the test
+  fs::path dir_{temp_.path()};
   std::vector<float> rows_;
   std::optional<Vocabulary> vocabulary_;
 };
@@ -354,8 +351,8 @@ TEST_F(DistributedHamming, EveryRankRefusesWhatOneRankSees) {
 
 TEST(DistributedTrainHamming, TheVocabularyFileIsTheSameOnOneAndThreeRanksAndAsWithHammingAfterTraining) {
   log::SetLevel(log::Level::kWarning);
-  const fs::path dir = fs::temp_directory_path() / ("oxbow_kmeans_he_" + std::to_string(::getpid()));
-  fs::create_directories(dir);
+  const oxbow::testing::TempDir temp;
+  const fs::path dir = temp.path();
   SampleOptions sample_options;
   sample_options.max_per_image = 80;
   sample_options.max_total = 500;
@@ -401,7 +398,6 @@ TEST(DistributedTrainHamming, TheVocabularyFileIsTheSameOnOneAndThreeRanksAndAsW
   QuantizerOptions quantizer;
   quantizer.num_threads = 1;
   EXPECT_TRUE(FileBytes(plain[0]->WithHamming(sample.descriptors, 3, quantizer).value(), dir / "after.oxvoc") == bytes);
-  fs::remove_all(dir);
 }
 
 }  // namespace

@@ -10,6 +10,7 @@
 
 #include "sift/base/binary_io.h"
 #include "sift/base/log.h"
+#include "tests/support/temp_dir.h"
 #include "vocab/vocabulary.h"
 
 namespace oxbow::vocab {
@@ -19,8 +20,10 @@ namespace fs = std::filesystem;
 constexpr int kDim = 128;
 constexpr size_t kWords = 32;
 
+// A file in this test binary's temporary folder (removed at exit).
 std::string TempPath(const std::string& name) {
-  return (fs::temp_directory_path() / ("oxbow_hamming_test_" + std::to_string(::getpid()) + "_" + name)).string();
+  static const oxbow::testing::TempDir dir("oxbow-vocabulary-hamming-test");
+  return (dir / name).string();
 }
 
 std::vector<float> RandomUnitRows(size_t rows, uint64_t seed) {

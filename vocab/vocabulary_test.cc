@@ -13,6 +13,7 @@
 
 #include "sift/base/binary_io.h"
 #include "sift/base/log.h"
+#include "tests/support/temp_dir.h"
 #include "vocab/kernels.h"
 
 namespace oxbow::vocab {
@@ -20,8 +21,10 @@ namespace {
 
 namespace fs = std::filesystem;
 
+// A file in this test binary's temporary folder (removed at exit).
 std::string TempPath(const std::string& name) {
-  return (fs::temp_directory_path() / ("oxbow_vocab_test_" + std::to_string(::getpid()) + "_" + name)).string();
+  static const oxbow::testing::TempDir dir("oxbow-vocabulary-test");
+  return (dir / name).string();
 }
 
 // RootSIFT descriptors of real photos (cv::SIFT as the stand-in extractor; opencv-doc is always installed).
@@ -173,7 +176,9 @@ TEST_F(VocabularyTest, RefusesHugeCentroidsAndQuantisesOverflowingDescriptorsSaf
   std::vector<uint32_t> mixed(40);
   vocab->Quantize(queries, mixed);
   for (size_t i = 0; i < 40; ++i) {
-    if (i != 10) EXPECT_EQ(mixed[i], alone[i]) << i;
+    if (i != 10) {
+      EXPECT_EQ(mixed[i], alone[i]) << i;
+    }
   }
 }
 

@@ -100,6 +100,7 @@
 #include <malloc.h>
 #include <time.h>
 
+#include "eval/synthetic_collection.h"
 #include "index/storage/feature_store.h"
 #include "index/image_index.h"
 #include "index/postings/inverted_file.h"
@@ -186,17 +187,8 @@ double Flag(const std::map<std::string, std::string>& f, const std::string& name
   return it == f.end() ? fallback : std::stod(it->second);
 }
 
-// SplitMix64: a tiny deterministic generator, seeded per image so both Build passes see the same bag.
-struct SplitMix {
-  uint64_t s;
-  uint64_t Next() {
-    uint64_t z = (s += 0x9e3779b97f4a7c15ull);
-    z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
-    z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
-    return z ^ (z >> 31);
-  }
-  double Uniform() { return static_cast<double>(Next() >> 11) * 0x1.0p-53; }
-};
+// A tiny deterministic generator, seeded per image so both Build passes see the same bag.
+using eval::SplitMix;
 
 // Vose's alias method: O(1) sampling from a discrete distribution.
 class AliasTable {
@@ -926,60 +918,15 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
 
   IndexOptions options;
   options.num_threads = threads;
-  // The pool: every real feature's word and keypoint (position relative to its image), and with
-  // --export-features where its descriptor is (photo, feature).
-  // With a Hamming-embedding vocabulary, also each real feature's signature (what Add computes from its
-  // descriptor), so that synthetic images carry signatures as added photos do.
-  struct PoolFeature {
-    uint32_t word;
-    float rx, ry, scale, orientation;
-    uint32_t photo, feature;
-    uint64_t signature;
-  };
-  std::vector<PoolFeature> pool;
+  // The pool: every real feature's word, keypoint and (with a Hamming-embedding vocabulary) signature,
+  // quantised as Add would; with --export-features each synthetic feature keeps its real descriptor.
   vocab::QuantizerOptions quantizer = options.quantizer;  // the words Add would assign
   quantizer.num_threads = threads;
-  const bool signatures = vocabulary->has_hamming();
-  for (size_t p = 0; p < real.size(); ++p) {
-    const sift::FeatureSet& f = real[p];
-    std::vector<uint32_t> w(f.size());
-    vocabulary->Quantize(f.descriptors, w, quantizer);
-    std::vector<uint64_t> sig(signatures ? f.size() : 0);
-    if (signatures) vocabulary->Signatures(f.descriptors, w, sig);
-    for (size_t i = 0; i < f.size(); ++i) {
-      const sift::Keypoint& k = f.keypoints[i];
-      pool.push_back({w[i], k.x / static_cast<float>(f.image_width), k.y / static_cast<float>(f.image_height), k.scale,
-                      k.orientation, static_cast<uint32_t>(p), static_cast<uint32_t>(i), signatures ? sig[i] : 0});
-    }
-  }
-  std::printf("pool: %zu real features, vocabulary %zu words%s\n", pool.size(), vocabulary->size(),
-              signatures ? ", Hamming-embedding signatures" : ", no Hamming embedding");
-  struct Synthetic {
-    sift::FeatureSet features;
-    std::vector<uint32_t> words;
-    std::vector<uint64_t> signatures;
-  };
-  const auto make = [&](uint64_t number) {
-    Synthetic s;
-    s.features.image_width = 1024;
-    s.features.image_height = 768;
-    s.features.kind = sift::DescriptorKind::kRootSift;
-    // Seeded by a hash of the number: SplitMix sequences from consecutive raw seeds are shifts of one
-    // another (image k would be image 0's draws shifted by k).
-    SplitMix rng{SplitMix{number}.Next()};
-    for (int i = 0; i < features_per_image; ++i) {
-      const PoolFeature& p = pool[rng.Next() % pool.size()];
-      s.features.keypoints.push_back(sift::Keypoint{.x = p.rx * 1023.0f, .y = p.ry * 767.0f, .scale = p.scale,
-                                                    .orientation = p.orientation});
-      s.words.push_back(p.word);
-      if (signatures) s.signatures.push_back(p.signature);
-      if (!export_dir.empty()) {
-        const float* d = real[p.photo].descriptors.data() + static_cast<size_t>(p.feature) * sift::kDescriptorDim;
-        s.features.descriptors.insert(s.features.descriptors.end(), d, d + sift::kDescriptorDim);
-      }
-    }
-    return s;
-  };
+  const eval::SyntheticCollection collection(
+      real, *vocabulary, quantizer,
+      {.features_per_image = features_per_image, .image_width = 1024, .image_height = 768, .descriptors = !export_dir.empty()});
+  std::printf("pool: %zu real features, vocabulary %zu words%s\n", collection.pool_size(), vocabulary->size(),
+              collection.has_signatures() ? ", Hamming-embedding signatures" : ", no Hamming embedding");
 
   // Ingest.
   // Query-time stop list (the defaults unless given): compare settings on one folder with --reuse 1.
@@ -993,55 +940,26 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
       return 1;
     }
     const auto t0 = Clock::now();
-    double add_seconds = 0;  // inside AddBatch: the storage path, without making the synthetic images
-    std::vector<Synthetic> images;
     uint64_t next_report = 0;
-    for (uint64_t begin = 0; begin < num_images; begin += batch) {
-      const uint64_t n = std::min(batch, num_images - begin);
-      images.resize(n);
-      ParallelFor(n, threads, 16, [&](size_t b, size_t e, int) {
-        for (size_t i = b; i < e; ++i) images[i] = make(begin + i);
-      });
-      std::vector<BatchImage> items;
-      items.reserve(n);
-      for (uint64_t i = 0; i < n; ++i) {
-        items.push_back({"s" + std::to_string(begin + i), &images[i].features, {}, images[i].words, images[i].signatures});
-      }
-      const auto a0 = Clock::now();
-      const std::vector<Result<ImageRecord>> added = (*idx)->AddBatch(items);
-      add_seconds += Ms(a0, Clock::now()) / 1000;
-      for (const auto& r : added) {
-        if (!r) {
-          std::printf("add failed: %s\n", r.error().ToString().c_str());
-          return 1;
-        }
-      }
-      if (!export_dir.empty()) {
-        fs::create_directories(export_dir);
-        for (const BatchImage& item : items) {
-          const sift::FeatureFile file{.features = *item.features,
-                                       .extractor_fingerprint = sift_options.Fingerprint(),
-                                       .extractor_description = sift_options.Describe()};
-          if (const Status st = sift::WriteFeatureFile((export_dir / (item.id + ".oxfeat")).string(), file); !st) {
-            std::printf("export failed: %s\n", st.error().ToString().c_str());
-            return 1;
-          }
-        }
-      }
-      if (begin + n >= next_report) {
-        const double s = Ms(t0, Clock::now()) / 1000;
-        const uint64_t done = begin + n;
-        std::fprintf(stderr, "ingest: %llu / %llu images, %.0f s, %.0f images/s\n", static_cast<unsigned long long>(done),
-                     static_cast<unsigned long long>(num_images), s, static_cast<double>(done) / s);
-        next_report += std::max<uint64_t>(batch, num_images / 20);
-      }
+    eval::IngestOptions ingest{.count = num_images, .batch = batch, .num_threads = threads, .export_dir = export_dir,
+                               .extractor = sift_options};
+    ingest.progress = [&](uint64_t done) {
+      if (done < next_report) return;
+      const double s = Ms(t0, Clock::now()) / 1000;
+      std::fprintf(stderr, "ingest: %llu / %llu images, %.0f s, %.0f images/s\n", static_cast<unsigned long long>(done),
+                   static_cast<unsigned long long>(num_images), s, static_cast<double>(done) / s);
+      next_report += std::max<uint64_t>(batch, num_images / 20);
+    };
+    const Result<eval::IngestReport> ingested = eval::IngestSynthetic(**idx, collection, ingest);
+    if (!ingested) {
+      std::printf("ingest failed: %s\n", ingested.error().ToString().c_str());
+      return 1;
     }
-    const double seconds = Ms(t0, Clock::now()) / 1000;
     std::printf("ingest: %llu images x %d features, %.1f s inside AddBatch = %.0f images/s (AddBatch of %llu, words "
                 "assigned, %d threads; %.1f s with making the synthetic images)\n",
-                static_cast<unsigned long long>(num_images), features_per_image, add_seconds,
-                static_cast<double>(num_images) / add_seconds, static_cast<unsigned long long>(batch),
-                ResolveThreadCount(threads), seconds);
+                static_cast<unsigned long long>(num_images), features_per_image, ingested->add_seconds,
+                static_cast<double>(num_images) / ingested->add_seconds, static_cast<unsigned long long>(batch),
+                ResolveThreadCount(threads), ingested->total_seconds);
   }
   const double total_features = static_cast<double>(num_images) * features_per_image;
   std::printf("disk: %.2f bytes per feature (%.2f GB in %s)\n", static_cast<double>(FolderBytes(out)) / total_features,
@@ -1192,34 +1110,17 @@ int RunStorage(const std::map<std::string, std::string>& flags) {
   std::printf("resident after the searches: %.2f bytes per feature\n",
               static_cast<double>(RssBytes() - rss_before) / total_features);
 
-  // Adds of single images while another thread searches, then their removal.
-  std::atomic<bool> stop{false};
-  std::atomic<uint64_t> searched{0};
-  // With --queries 0 the writes run alone (no search alongside).
-  std::thread searcher([&] {
-    for (size_t i = 0; !stop.load() && !queries.empty(); i = (i + 1) % queries.size()) {
-      if (idx->Query(*queries[i], QueryOptions{})) ++searched;
-    }
-  });
-  std::vector<double> add_ms, remove_ms;
+  // Adds of single images while another thread searches (with --queries 0 the writes run alone), then
+  // their removal.
   constexpr int kWrites = 50;
-  for (int i = 0; i < kWrites; ++i) {
-    const Synthetic s = make(num_images + static_cast<uint64_t>(i));
-    const std::vector<BatchImage> one = {{"added" + std::to_string(i), &s.features, {}, s.words, s.signatures}};
-    const auto a0 = Clock::now();
-    if (!idx->AddBatch(one)[0]) std::printf("add failed\n");
-    add_ms.push_back(Ms(a0, Clock::now()));
+  const auto writes = eval::AddAndRemoveWhileSearching(*idx, collection, num_images, kWrites, queries);
+  if (!writes) {
+    std::printf("add or remove failed: %s\n", writes.error().ToString().c_str());
+    return 1;
   }
-  for (int i = 0; i < kWrites; ++i) {
-    const auto r0 = Clock::now();
-    if (!idx->Remove("added" + std::to_string(i))) std::printf("remove failed\n");
-    remove_ms.push_back(Ms(r0, Clock::now()));
-  }
-  stop = true;
-  searcher.join();
   std::printf("add while searching: p50 %.1f ms, p99 %.1f ms; remove: p50 %.1f ms, p99 %.1f ms (%d each, %llu searches alongside)\n",
-              Percentile(add_ms, .5), Percentile(add_ms, .99), Percentile(remove_ms, .5), Percentile(remove_ms, .99),
-              kWrites, static_cast<unsigned long long>(searched.load()));
+              Percentile(writes->add_ms, .5), Percentile(writes->add_ms, .99), Percentile(writes->remove_ms, .5),
+              Percentile(writes->remove_ms, .99), kWrites, static_cast<unsigned long long>(writes->searches));
   std::printf("serve it: oxbow serve --index %s\n", out.c_str());
   return 0;
 }

@@ -27,8 +27,8 @@
 
 #include "api/pair_match.h"
 #include "sift/sift.h"
-#include "sift/testing/feature_eval.h"
 #include "sift/verify.h"
+#include "tests/support/feature_eval.h"
 
 namespace {
 

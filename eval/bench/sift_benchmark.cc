@@ -41,9 +41,9 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "sift/testing/feature_eval.h"
 #include "sift/image.h"
 #include "sift/sift.h"
+#include "tests/support/feature_eval.h"
 
 #ifdef OXBOW_HAVE_VLFEAT
 extern "C" {

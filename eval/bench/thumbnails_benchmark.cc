@@ -12,9 +12,9 @@
 #include <string>
 #include <vector>
 
-#include "api/testing.h"
 #include "api/thumbnails.h"
 #include "sift/sift.h"
+#include "tests/support/samples.h"
 
 namespace {
 
@@ -54,7 +54,7 @@ int main(int argc, char** argv) {
   } else {
     if (dir.empty()) {
       const std::string paris = std::string(OXBOW_SOURCE_DIR) + "/../shared/data/paris6k/images";
-      dir = std::filesystem::exists(paris) ? paris : api::testing::kSampleDir;
+      dir = std::filesystem::exists(paris) ? paris : testing::kSampleDir;
     }
     for (const auto& e : std::filesystem::directory_iterator(dir)) {
       const auto ext = e.path().extension().string();
@@ -74,7 +74,7 @@ int main(int argc, char** argv) {
 
   std::vector<double> extract_ms, thumb_ms, resize_ms, bytes, pixels;
   for (const auto& path : paths) {
-    const auto image = api::testing::ReadBytes(path);
+    const auto image = testing::ReadBytes(path);
     auto start = Clock::now();
     auto features = extractor->ExtractFromBytes(image, decode);
     extract_ms.push_back(Ms(start));

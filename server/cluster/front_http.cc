@@ -8,9 +8,9 @@
 
 #include <nlohmann/json.hpp>
 
-#include "api/errors.h"
 #include "api/json.h"
 #include "api/params.h"
+#include "server/http/errors.h"
 #include "sift/base/log.h"
 #include "sift/sift.h"
 // After the project headers: <httplib.h> defines a `_res` macro that breaks Eigen.
@@ -21,7 +21,7 @@ namespace {
 
 using server::SendJsonAnswer;
 
-void SendError(httplib::Response& res, const Error& error) { server::SendJsonError(res, api::ToHttpError(error)); }
+void SendError(httplib::Response& res, const Error& error) { server::SendJsonError(res, server::ToHttpError(error)); }
 
 std::span<const uint8_t> Bytes(std::string_view text) {
   return {reinterpret_cast<const uint8_t*>(text.data()), text.size()};
@@ -63,7 +63,7 @@ class FrontHttpServer::Impl {
   enum class Access { kWrite, kAdmin };
   bool Refused(Access access, const httplib::Request& req, httplib::Response& res) const {
     if (access == Access::kAdmin && options.http.api_key.empty()) {
-      server::SendJsonError(res, api::PermissionDenied("this route writes on the shards' file systems and is enabled "
+      server::SendJsonError(res, server::PermissionDenied("this route writes on the shards' file systems and is enabled "
                                                        "only with an API key (oxbow serve --api-key)"));
       return true;
     }

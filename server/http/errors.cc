@@ -1,6 +1,6 @@
-#include "api/errors.h"
+#include "server/http/errors.h"
 
-namespace oxbow::api {
+namespace oxbow::server {
 
 int HttpStatusFor(ErrorCode code) {
   switch (code) {
@@ -43,4 +43,4 @@ nlohmann::json ErrorBody(const HttpError& error, std::string_view request_id) {
   return {{"error", {{"code", error.code}, {"message", error.message}, {"request_id", std::string(request_id)}}}};
 }
 
-}  // namespace oxbow::api
+}  // namespace oxbow::server

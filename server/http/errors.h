@@ -1,9 +1,10 @@
-// The HTTP edge of oxbow's error model (../shared/STYLE.md, tier 3): one function maps an
-// oxbow::ErrorCode to an HTTP status, one builds the JSON error body every route returns:
+// The HTTP edge of oxbow's error model (../shared/STYLE.md, tier 3): api/ and the index report
+// transport-free oxbow::ErrorCodes; here one function maps an ErrorCode to an HTTP status, one builds
+// the JSON error body every route returns (server/http and the cluster front, server/cluster/front_http):
 //
 //   {"error": {"code": "invalid_image", "message": "...", "request_id": "..."}}
 //
-// Transport-free: no HTTP library here, only status numbers and JSON. Thread-safe (pure functions).
+// No HTTP library here, only status numbers and JSON. Thread-safe (pure functions).
 #pragma once
 
 #include <string>
@@ -13,7 +14,7 @@
 
 #include "sift/base/error.h"
 
-namespace oxbow::api {
+namespace oxbow::server {
 
 // An error as the HTTP layer reports it.
 struct HttpError {
@@ -41,4 +42,4 @@ HttpError Unavailable(std::string message);        // 503 "unavailable"
 // {"error": {"code", "message", "request_id"}}.
 nlohmann::json ErrorBody(const HttpError& error, std::string_view request_id);
 
-}  // namespace oxbow::api
+}  // namespace oxbow::server

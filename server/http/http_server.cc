@@ -16,7 +16,7 @@
 
 #include <nlohmann/json.hpp>
 
-#include "api/errors.h"
+#include "server/http/errors.h"
 #include "api/json.h"
 #include "api/params.h"
 #include "server/http/web_assets.h"
@@ -80,12 +80,12 @@ void SendJson(httplib::Response& res, int status, const json& body) {
   res.set_content(body.dump(-1, ' ', false, json::error_handler_t::replace) + "\n", "application/json");
 }
 
-void SendError(httplib::Response& res, const api::HttpError& error) {
+void SendError(httplib::Response& res, const HttpError& error) {
   if (error.status == 401) res.set_header("WWW-Authenticate", "Bearer");
-  SendJson(res, error.status, api::ErrorBody(error, t_request.id));
+  SendJson(res, error.status, ErrorBody(error, t_request.id));
 }
 
-void SendError(httplib::Response& res, const Error& error) { SendError(res, api::ToHttpError(error)); }
+void SendError(httplib::Response& res, const Error& error) { SendError(res, ToHttpError(error)); }
 
 // Slow-client protection (server/request_guard.h). A request whose body does not fit the upload budget
 // is answered 503 before its body is read.
@@ -105,7 +105,7 @@ httplib::Server::HandlerResponse RefuseOverUploadBudget(const httplib::Request& 
 httplib::Server::HandlerResponse AnswerRequestTimeout(httplib::Response& res) {
   res.set_header("Connection", "close");
   CloseConnectionAfterResponse();
-  SendError(res, api::HttpError{408, "request_timeout",
+  SendError(res, HttpError{408, "request_timeout",
                                 "the request did not arrive within the server's request timeout (oxbow serve --request-timeout-s)"});
   return httplib::Server::HandlerResponse::Handled;
 }
@@ -182,7 +182,7 @@ void SendCacheable(const httplib::Request& req, httplib::Response& res, std::str
 // page is never mixed with an old cached script. The policy keeps the page on this server only.
 void SendWebAsset(const httplib::Request& req, httplib::Response& res, std::string_view path) {
   const WebAsset* asset = FindWebAsset(path);
-  if (asset == nullptr) return SendError(res, api::RouteNotFound(req.method, LoggablePath(req.path)));
+  if (asset == nullptr) return SendError(res, RouteNotFound(req.method, LoggablePath(req.path)));
   res.set_header("Content-Security-Policy",
                  "default-src 'self'; img-src 'self' blob: data:; connect-src 'self'; frame-ancestors 'none'; "
                  "base-uri 'none'; form-action 'none'");
@@ -222,17 +222,17 @@ std::string RequestIdFor(const httplib::Request& req) {
   return IsSaneRequestId(given) ? given : NewRequestId();
 }
 
-std::optional<api::HttpError> CheckApiKey(const httplib::Request& req, const std::string& api_key) {
+std::optional<HttpError> CheckApiKey(const httplib::Request& req, const std::string& api_key) {
   if (api_key.empty()) return std::nullopt;
   // The whole values: httplib's get_header_value stops at a NUL byte ("KEY\0junk" would pass).
   std::string key = FullHeaderValue(req, "X-API-Key");
   const std::string auth = FullHeaderValue(req, "Authorization");
   if (key.empty() && auth.rfind("Bearer ", 0) == 0) key = auth.substr(7);
   if (key.empty()) {
-    return api::ToHttpError(
+    return ToHttpError(
         {ErrorCode::kUnauthenticated, "this route needs the API key: header 'Authorization: Bearer KEY' or 'X-API-Key: KEY'"});
   }
-  if (!ConstantTimeEquals(key, api_key)) return api::PermissionDenied("wrong API key");
+  if (!ConstantTimeEquals(key, api_key)) return PermissionDenied("wrong API key");
   return std::nullopt;
 }
 
@@ -419,7 +419,7 @@ void PostBackup(api::Service& s, const httplib::Request& req, httplib::Response&
 }  // namespace
 
 void SendJsonAnswer(httplib::Response& res, int status, const nlohmann::json& body) { SendJson(res, status, body); }
-void SendJsonError(httplib::Response& res, const api::HttpError& error) { SendError(res, error); }
+void SendJsonError(httplib::Response& res, const HttpError& error) { SendError(res, error); }
 
 // A client that only half-closes its sending side counts as gone too. Called by the service on its
 // extraction thread while the handler waits, hence the socket captured here.
@@ -460,8 +460,8 @@ void ServeMatch(const httplib::Request& req, httplib::Response& res, const PairM
 namespace {
 json BatchResultToJson(const std::string& id, const Result<index::ImageRecord>& result) {
   if (result) return {{"id", id}, {"status", 201}, {"image", api::ImageRecordToJson(*result)}};
-  const api::HttpError error = api::ToHttpError(result.error());
-  return {{"id", id}, {"status", error.status}, {"error", api::ErrorBody(error, t_request.id)["error"]}};
+  const HttpError error = ToHttpError(result.error());
+  return {{"id", id}, {"status", error.status}, {"error", ErrorBody(error, t_request.id)["error"]}};
 }
 }  // namespace
 
@@ -489,7 +489,7 @@ void ServeImageBatch(const httplib::Request& req, httplib::Response& res, int ma
     }
   }
   if (images.size() > static_cast<size_t>(max_images)) {
-    return SendError(res, api::HttpError{413, "payload_too_large",
+    return SendError(res, HttpError{413, "payload_too_large",
                                          std::to_string(images.size()) + " images in one request, over the server's "
                                          "limit of " + std::to_string(max_images) +
                                          " (oxbow serve --max-batch-images); nothing was added"});
@@ -530,9 +530,9 @@ void ServeImageBatch(const httplib::Request& req, httplib::Response& res, int ma
   }
   int status = 200;
   if (!added) {
-    const api::HttpError error = api::ToHttpError(added.error());
+    const HttpError error = ToHttpError(added.error());
     status = error.status;
-    body = api::ErrorBody(error, t_request.id);
+    body = ErrorBody(error, t_request.id);
   } else {
     RecordStages(res, {{"decode_extract", added->decode_extract_ms}, {"add", added->add_ms}});
     body["timings_ms"] = {{"decode_extract", added->decode_extract_ms}, {"add", added->add_ms},
@@ -764,8 +764,8 @@ void HttpServer::AnswerRefusal(const RefusedRequest& refused, httplib::Response&
   const std::string method = kMethods.contains(refused.method) ? refused.method : "-";
   res.set_header("X-Request-Id", id);
   if (refused.refusal.status == 503) res.set_header("Retry-After", "1");
-  const api::HttpError error{refused.refusal.status, refused.refusal.code, refused.refusal.message};
-  SendJson(res, error.status, api::ErrorBody(error, id));
+  const HttpError error{refused.refusal.status, refused.refusal.code, refused.refusal.message};
+  SendJson(res, error.status, ErrorBody(error, id));
   LogRequest(id, method, path.empty() ? "-" : LoggablePath(path), route_label, res.status, 0, {},
              refused.refusal.message);
 }
@@ -785,16 +785,16 @@ void HttpServer::RegisterErrorHandlers() {
     if (res.status == 404) {
       if (const auto* route = routes_->Find(req.path)) {
         res.set_header("Allow", route->methods);
-        SendError(res, api::MethodNotAllowed(req.method, req.path, route->methods));
+        SendError(res, MethodNotAllowed(req.method, req.path, route->methods));
       } else {
-        SendError(res, api::RouteNotFound(req.method, LoggablePath(req.path)));
+        SendError(res, RouteNotFound(req.method, LoggablePath(req.path)));
       }
     } else if (res.status == 413) {
-      SendError(res, api::HttpError{413, "payload_too_large", "request body over the server's limit of " +
+      SendError(res, HttpError{413, "payload_too_large", "request body over the server's limit of " +
                                                                   std::to_string(options_.max_body_bytes) +
                                                                   " bytes (oxbow serve --max-upload-mb)"});
     } else {
-      SendError(res, api::HttpError{res.status, res.status >= 500 ? "internal" : "bad_request",
+      SendError(res, HttpError{res.status, res.status >= 500 ? "internal" : "bad_request",
                                     "the HTTP request could not be processed (status " + std::to_string(res.status) + ")"});
     }
     return httplib::Server::HandlerResponse::Handled;
@@ -809,7 +809,7 @@ void HttpServer::RegisterErrorHandlers() {
     } catch (...) {
     }
     OXBOW_LOG(kError) << "http " << t_request.id << " internal error: " << what;
-    SendError(res, api::HttpError{500, "internal", "internal error: " + what});
+    SendError(res, HttpError{500, "internal", "internal error: " + what});
   });
 }
 
@@ -817,7 +817,7 @@ HttpServer::Handler HttpServer::ServiceRoute(Access access, ServiceHandler body)
   return [this, access, body = std::move(body)](const httplib::Request& req, httplib::Response& res) {
     try {
       if (access == Access::kAdmin && options_.api_key.empty()) {
-        SendError(res, api::PermissionDenied("this route writes on the server's file system and is enabled only with "
+        SendError(res, PermissionDenied("this route writes on the server's file system and is enabled only with "
                                              "an API key (oxbow serve --api-key)"));
         return;
       }
@@ -827,15 +827,15 @@ HttpServer::Handler HttpServer::ServiceRoute(Access access, ServiceHandler body)
       auto service = this->service();
       if (!service) {
         res.set_header("Retry-After", "5");
-        SendError(res, api::Unavailable(shutting_down_ ? "shutting down" : "the index is still loading; retry shortly"));
+        SendError(res, Unavailable(shutting_down_ ? "shutting down" : "the index is still loading; retry shortly"));
         return;
       }
       body(*service, req, res);
     } catch (const std::exception& e) {
       OXBOW_LOG(kError) << "http " << t_request.id << " internal error: " << e.what();
-      SendError(res, api::HttpError{500, "internal", std::string("internal error: ") + e.what()});
+      SendError(res, HttpError{500, "internal", std::string("internal error: ") + e.what()});
     } catch (...) {
-      SendError(res, api::HttpError{500, "internal", "internal error"});
+      SendError(res, HttpError{500, "internal", "internal error"});
     }
   };
 }
@@ -845,9 +845,9 @@ void HttpServer::RegisterStatusRoutes() {
   http.Get("/healthz", [](const httplib::Request&, httplib::Response& res) { SendJson(res, 200, {{"status", "ok"}}); });
   http.Get("/readyz", [this](const httplib::Request&, httplib::Response& res) {
     if (shutting_down_) {
-      SendError(res, api::Unavailable("shutting down"));
+      SendError(res, Unavailable("shutting down"));
     } else if (!ready()) {
-      SendError(res, api::Unavailable("the index is still loading"));
+      SendError(res, Unavailable("the index is still loading"));
     } else {
       SendJson(res, 200, {{"status", "ready"}});
     }
@@ -863,7 +863,7 @@ void HttpServer::RegisterStatusRoutes() {
 }
 
 void HttpServer::ServeMetrics(httplib::Response& res) const {
-  std::vector<api::Gauge> gauges = {
+  std::vector<Gauge> gauges = {
       {"oxbow_ready", "1 when the index is loaded and the server is not shutting down.", ready() ? 1.0 : 0.0},
       {"oxbow_process_resident_memory_bytes", "Resident memory of the process.",
        static_cast<double>(api::ResidentMemoryBytes())}};

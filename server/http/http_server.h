@@ -43,8 +43,8 @@
 
 #include <nlohmann/json_fwd.hpp>
 
-#include "api/errors.h"
-#include "api/metrics.h"
+#include "server/http/errors.h"
+#include "server/http/metrics.h"
 #include "api/params.h"
 #include "api/service.h"
 #include "sift/base/error.h"
@@ -182,7 +182,7 @@ class HttpServer {
   std::unique_ptr<const RouteTable> routes_;  // custom_routes_.more_routes, then the single node's
   std::unique_ptr<UploadBudget> upload_budget_;  // declared before http_, which uses it
   std::unique_ptr<httplib::Server> http_;
-  api::Metrics metrics_;
+  Metrics metrics_;
   mutable std::mutex service_mutex_;           // guards service_ (pointer copy only)
   std::shared_ptr<api::Service> service_;
   std::atomic<bool> shutting_down_{false};
@@ -192,7 +192,7 @@ class HttpServer {
 // ---- For route handlers, the single node's and CustomRoutes' (the request is the one this thread serves).
 // A JSON answer, and an error body ({"error": {"code", "message", "request_id"}}, WWW-Authenticate on a 401).
 void SendJsonAnswer(httplib::Response& res, int status, const nlohmann::json& body);
-void SendJsonError(httplib::Response& res, const api::HttpError& error);
+void SendJsonError(httplib::Response& res, const HttpError& error);
 // Stage timings, ms: a Server-Timing header and the request's log line.
 void RecordStages(httplib::Response& res, const std::vector<std::pair<const char*, double>>& stages);
 // Query-string parameters plus multipart text parts (every part but `file_fields`), every occurrence, so
@@ -245,6 +245,6 @@ void TakeFormEncodedBodyAsImage(const httplib::Request& req);
 std::string RequestIdFor(const httplib::Request& req);
 // A write route's key check (also the cluster front's): nullopt when `api_key` is empty or the request
 // carries it ('Authorization: Bearer KEY' or 'X-API-Key: KEY'), else 401 without a key, 403 with another.
-std::optional<api::HttpError> CheckApiKey(const httplib::Request& req, const std::string& api_key);
+std::optional<HttpError> CheckApiKey(const httplib::Request& req, const std::string& api_key);
 
 }  // namespace oxbow::server

@@ -1,9 +1,9 @@
-#include "api/metrics.h"
+#include "server/http/metrics.h"
 
 #include <charconv>
 #include <sstream>
 
-namespace oxbow::api {
+namespace oxbow::server {
 
 namespace {
 
@@ -86,4 +86,4 @@ std::string Metrics::Render(const std::vector<Gauge>& gauges) const {
   return out.str();
 }
 
-}  // namespace oxbow::api
+}  // namespace oxbow::server

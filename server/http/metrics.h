@@ -17,7 +17,7 @@
 #include <tuple>
 #include <vector>
 
-namespace oxbow::api {
+namespace oxbow::server {
 
 struct Gauge {
   std::string name;   // metric name, e.g. "oxbow_index_images"
@@ -52,4 +52,4 @@ class Metrics {
 // Escapes a label value for the exposition format (backslash, double quote, newline).
 std::string EscapeLabelValue(const std::string& value);
 
-}  // namespace oxbow::api
+}  // namespace oxbow::server

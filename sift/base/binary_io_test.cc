@@ -5,20 +5,16 @@
 #include <filesystem>
 #include <fstream>
 
+#include "tests/support/temp_dir.h"
+
 namespace oxbow::io {
 namespace {
 
 class BinaryIoTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    dir_ = std::filesystem::temp_directory_path() /
-           ("oxbow_binary_io_test_" + std::to_string(::testing::UnitTest::GetInstance()->random_seed()) + "_" +
-            ::testing::UnitTest::GetInstance()->current_test_info()->name());
-    std::filesystem::remove_all(dir_);
-    std::filesystem::create_directories(dir_);
     path_ = (dir_ / "file.bin").string();
   }
-  void TearDown() override { std::filesystem::remove_all(dir_); }
 
   std::vector<uint8_t> Payload() const {
     std::vector<uint8_t> payload(1000);
@@ -34,7 +30,8 @@ class BinaryIoTest : public ::testing::Test {
     f.put(static_cast<char>(c ^ 0x40));
   }
 
-  std::filesystem::path dir_;
+  oxbow::testing::TempDir temp_;  // removed with its contents after the test
+  std::filesystem::path dir_{temp_.path()};
   std::string path_;
 };
 

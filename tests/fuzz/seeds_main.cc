@@ -18,14 +18,14 @@
 #include <string>
 #include <vector>
 
-#include "index/storage/feature_store.h"
 #include "index/image_index.h"
+#include "index/storage/feature_store.h"
 #include "sift/base/binary_io.h"
 #include "sift/features_io.h"
 #include "sift/image.h"
 #include "sift/sift.h"
-#include "sift/testing/hostile_images.h"
 #include "tests/fuzz/fuzz_support.h"
+#include "tests/support/hostile_images.h"
 
 namespace fs = std::filesystem;
 using namespace oxbow;

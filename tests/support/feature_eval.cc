@@ -1,4 +1,4 @@
-#include "sift/testing/feature_eval.h"
+#include "tests/support/feature_eval.h"
 
 #include <algorithm>
 #include <cmath>

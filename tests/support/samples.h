@@ -1,9 +1,9 @@
-// Test fixtures shared by the api/ unit tests and the HTTP integration tests (tests/http_*_test.cc):
-// a small vocabulary trained in-process on a few of the opencv-doc sample photos (installed with
-// Debian's opencv-doc package, which scripts/install-deps.sh installs). Header-only; tests only.
+// Sample photos and a small vocabulary for the api/ unit tests and the tests in tests/: the opencv-doc
+// sample photos (installed with Debian's opencv-doc package, which scripts/install-deps.sh installs),
+// fast extractor settings, and a vocabulary trained in-process on a few of them. Needs oxbow_sift and
+// oxbow_vocab. Header-only; tests only.
 #pragma once
 
-#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <iterator>
@@ -14,7 +14,7 @@
 #include "sift/sift.h"
 #include "vocab/vocabulary.h"
 
-namespace oxbow::api::testing {
+namespace oxbow::testing {
 
 inline const char* kSampleDir = "/usr/share/doc/opencv-doc/examples/data";
 
@@ -56,23 +56,4 @@ inline Result<vocab::Vocabulary> BuildTestVocabulary(const std::vector<std::stri
   return vocabulary;
 }
 
-// A fresh empty folder under the system temp dir, removed by the destructor.
-class TempDir {
- public:
-  explicit TempDir(const std::string& prefix) {
-    std::string pattern = (std::filesystem::temp_directory_path() / (prefix + "-XXXXXX")).string();
-    path_ = mkdtemp(pattern.data()) ? pattern : std::string();
-  }
-  ~TempDir() {
-    std::error_code ignored;
-    if (!path_.empty()) std::filesystem::remove_all(path_, ignored);
-  }
-  TempDir(const TempDir&) = delete;
-  TempDir& operator=(const TempDir&) = delete;
-  const std::string& path() const { return path_; }
-
- private:
-  std::string path_;
-};
-
-}  // namespace oxbow::api::testing
+}  // namespace oxbow::testing

@@ -11,8 +11,9 @@
 
 #include <opencv2/imgcodecs.hpp>
 
-#include "api/testing.h"
-#include "tests/e2e_testing.h"
+#include "tests/support/e2e.h"
+#include "tests/support/samples.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow::testing {
 
@@ -20,9 +21,9 @@ class ServerSuite : public ::testing::Test {
  protected:
   // Call from the suite's SetUpTestSuite; `name` prefixes the temporary folder.
   static void SetUpServerSuite(const std::string& name) {
-    dir_ = new api::testing::TempDir(name);
+    dir_ = new oxbow::testing::TempDir(name);
     vocab_ = dir_->path() + "/vocab.oxvoc";
-    ASSERT_TRUE(RandomVocabulary(api::testing::TestSiftOptions().Describe())->Write(vocab_));
+    ASSERT_TRUE(RandomVocabulary(testing::TestSiftOptions().Describe())->Write(vocab_));
     std::vector<uchar> png;
     ASSERT_TRUE(cv::imencode(".png", Texture(400, 300), png));
     image_.assign(png.begin(), png.end());
@@ -41,7 +42,7 @@ class ServerSuite : public ::testing::Test {
     return server;
   }
 
-  static inline api::testing::TempDir* dir_ = nullptr;
+  static inline oxbow::testing::TempDir* dir_ = nullptr;
   static inline std::string vocab_;
   static inline std::string image_;  // the texture, PNG-encoded
   static inline int counter_ = 0;
