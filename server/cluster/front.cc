@@ -473,7 +473,10 @@ class ClusterFront::Impl {
         }
         PostOnCallThread([this, stub = replica->stub.get(), key] {
           grpc::ClientContext context;
-          context.set_deadline(std::chrono::system_clock::now() + std::chrono::milliseconds(settings.shard_deadline_ms));
+          // Short: a shard that does not answer drops the search after its idle limit anyway, and a front
+          // that closes waits for these calls.
+          context.set_deadline(std::chrono::system_clock::now() +
+                               std::chrono::milliseconds(std::min(settings.shard_deadline_ms, 1000)));
           if (!bearer.empty()) context.AddMetadata(std::string(kAuthorizationKey), bearer);
           context.AddMetadata(kSearchKey, key);
           EndSearchReply reply;
@@ -867,7 +870,12 @@ class PartitionsSource final : public index::search::Source {
         num_partitions_(front.partitions.size()),
         key_(NewKey()),
         asked_(num_partitions_, 0) {}
-  ~PartitionsSource() override { front_.EndSearch(key_, asked_); }
+  ~PartitionsSource() override {
+    for (uint32_t p = 0; p < num_partitions_; ++p) {
+      if (failed_.Contains(p)) asked_[p] = 0;  // it may be down: nothing to end there
+    }
+    front_.EndSearch(key_, asked_);
+  }
   PartitionsSource(const PartitionsSource&) = delete;
   PartitionsSource& operator=(const PartitionsSource&) = delete;
 
