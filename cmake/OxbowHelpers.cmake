@@ -11,7 +11,7 @@
 #   Registers the GoogleTest executable <target> (built from <file>) with ctest and links it with
 #   tests/gtest_main.cc instead of GTest::gtest_main: a binary whose tests all skipped exits with
 #   OXBOW_GTEST_SKIP_CODE, which ctest reports as skipped, not passed. Test suites whose name contains
-#   "SharedData" (their tests need ../shared/data or $OXBOW_SHARED_DATA, tests/shared_data.h) run as a second
+#   "SharedData" (their tests need ../shared/data or $OXBOW_SHARED_DATA, tests/support/shared_data.h) run as a second
 #   ctest entry <target>_shared_data, so that ctest shows them skipped when the data is absent.
 
 set(OXBOW_COMPILE_WARNINGS -Wall -Wextra -Wpedantic -Wshadow -Wnon-virtual-dtor -Wno-unused-parameter)

@@ -165,7 +165,7 @@ TEST_F(GroundTruthTest, GroupsDistractorsJoinTheDatabaseOnly) {
   EXPECT_EQ(missing.error().code, ErrorCode::kNotFound);
 }
 
-// The official Paris ground truth restricted to the 250-image subset (tests/shared_data.h), when present:
+// The official Paris ground truth restricted to the 250-image subset (tests/support/shared_data.h), when present:
 // the counts stated in the data README.
 TEST(ParisSubsetSharedData, RestrictedProtocolMatchesDataReadme) {
   const fs::path data = oxbow::testing::SharedDataDir() / "paris6k";
@@ -191,7 +191,7 @@ TEST(ParisSubsetSharedData, RestrictedProtocolMatchesDataReadme) {
   }
 }
 
-// groups_dev and groups_hard as shipped (tests/shared_data.h), when present: the counts their READMEs state.
+// groups_dev and groups_hard as shipped (tests/support/shared_data.h), when present: the counts their READMEs state.
 TEST(GroupsSharedData, ShippedSetsLoadWithTheirReadmeCounts) {
   const fs::path data = oxbow::testing::SharedDataDir();
   for (const char* set : {"groups_dev", "groups_hard", "distractors"}) {

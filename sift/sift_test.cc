@@ -498,7 +498,7 @@ TEST(SiftHomographySharedData, BoatSequenceNotWorseThanOpencv) {
   const std::string dir = data + "/oxford_affine/images/boat/";
   const std::string gt = data + "/oxford_affine/gt/boat/";
   if (!std::filesystem::exists(dir + "img1.pgm"))
-    GTEST_SKIP() << "shared data not found at " << dir << " (set OXBOW_SHARED_DATA; see tests/shared_data.h)";
+    GTEST_SKIP() << "shared data not found at " << dir << " (set OXBOW_SHARED_DATA; see tests/support/shared_data.h)";
   // Half-size images (INTER_AREA) keep the test fast (brute-force matching is quadratic); the
   // homographies are conjugated accordingly. The benchmark scores the full-size images.
   auto image = [&](int i) {

@@ -472,7 +472,7 @@ TEST(RealImages, Graf1ToGraf3HomographyMatchesGroundTruth) {
 TEST(RealImagesSharedData, BoatSequenceHomographiesMatchGroundTruth) {
   const std::string dir = SharedData("oxford_affine/");
   if (!std::filesystem::exists(dir + "images/boat/img1.pgm"))
-    GTEST_SKIP() << "no " << dir << " (set OXBOW_SHARED_DATA; see tests/shared_data.h)";
+    GTEST_SKIP() << "no " << dir << " (set OXBOW_SHARED_DATA; see tests/support/shared_data.h)";
   for (int n : {2, 3, 4}) {
     SCOPED_TRACE("boat 1 -> " + std::to_string(n));
     ExpectHomographyMatchesTruth(dir + "images/boat/img1.pgm", dir + "images/boat/img" + std::to_string(n) + ".pgm",
