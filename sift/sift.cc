@@ -804,10 +804,13 @@ inline void AddOrientationVotes(const OrientationVotes& v, float* temp) {
   }
 }
 
-// OrientationHistogramCircular's AVX-512 path over the whole window, rows in order, 16 samples at a
-// time, each vector's votes prepared while the one before is added (as DescriptorWindowAvx512).
-void OrientationWindowAvx512(std::span<const OrientationWindowRow> rows, const float* wx, float* temp) {
-  OrientationVotes buffers[2];
+// Walks the rows of a window (each with j0, j1 and the `below` row pointer) 16 samples at a time:
+// prepare(row, j, buffer) fills a buffer for samples j..j+15 of a row while add(buffer) adds the
+// vector before it, so the long latency of a preparation overlaps the additions instead of stalling
+// them. Vectors are added in order: rows in order, j increasing.
+template <typename Buffer, typename Row, typename Prepare, typename Add>
+void WalkWindowPipelined(std::span<const Row> rows, const Prepare& prepare, const Add& add) {
+  Buffer buffers[2];
   size_t row = 0;
   int j = rows.empty() ? 0 : rows[0].j0;
   int current = 0;
@@ -815,17 +818,24 @@ void OrientationWindowAvx512(std::span<const OrientationWindowRow> rows, const f
   while (row < rows.size()) {
     if (j == rows[row].j0 && row + 3 < rows.size()) {
       // The window's rows are far apart in memory; ask for the row needed three rows from now.
-      const OrientationWindowRow& ahead = rows[row + 3];
+      const Row& ahead = rows[row + 3];
       for (int k = ahead.j0 - 1; k < ahead.j1 + 16; k += 16) _mm_prefetch(reinterpret_cast<const char*>(ahead.below + k), _MM_HINT_T0);
     }
-    PrepareOrientationVotes(rows[row], j, wx, &buffers[current ^ 1]);
-    if (pending) AddOrientationVotes(buffers[current], temp);
+    prepare(rows[row], j, &buffers[current ^ 1]);
+    if (pending) add(buffers[current]);
     current ^= 1;
     pending = true;
     j += 16;
     if (j >= rows[row].j1 && ++row < rows.size()) j = rows[row].j0;
   }
-  if (pending) AddOrientationVotes(buffers[current], temp);
+  if (pending) add(buffers[current]);
+}
+
+// OrientationHistogramCircular's AVX-512 path over the whole window, votes added in sample order.
+void OrientationWindowAvx512(std::span<const OrientationWindowRow> rows, const float* wx, float* temp) {
+  WalkWindowPipelined<OrientationVotes>(
+      rows, [&](const OrientationWindowRow& row, int j, OrientationVotes* votes) { PrepareOrientationVotes(row, j, wx, votes); },
+      [&](const OrientationVotes& votes) { AddOrientationVotes(votes, temp); });
 }
 #endif
 
@@ -1116,32 +1126,14 @@ inline void AddDescriptorVector(const DescriptorVector& v, __m512 (&h)[kDescBins
   }
 }
 
-// Descriptor's AVX-512 path over the whole window, rows in order, 16 samples at a time: each vector is
-// prepared (gradients, bins, weights) while the one before it is added, so the long latency of the
-// preparation overlaps the additions instead of stalling them. Every bin receives the same fused
-// multiply-adds in the same sample order as on the other paths (zero weights add +0).
+// Descriptor's AVX-512 path over the whole window (WalkWindowPipelined). Every bin receives the same
+// fused multiply-adds in the same sample order as on the other paths (zero weights add +0).
 void DescriptorWindowAvx512(std::span<const DescriptorWindowRow> rows, const DescriptorFrame& frame, float* hist) {
   __m512 h[kDescBins];
   for (__m512& bin : h) bin = _mm512_setzero_ps();
-  DescriptorVector buffers[2];
-  size_t row = 0;
-  int j = rows.empty() ? 0 : rows[0].j0;
-  int current = 0;
-  bool pending = false;
-  while (row < rows.size()) {
-    if (j == rows[row].j0 && row + 3 < rows.size()) {
-      // The window's rows are far apart in memory; ask for the row needed three rows from now.
-      const DescriptorWindowRow& ahead = rows[row + 3];
-      for (int k = ahead.j0 - 1; k < ahead.j1 + 16; k += 16) _mm_prefetch(reinterpret_cast<const char*>(ahead.below + k), _MM_HINT_T0);
-    }
-    PrepareDescriptorVector(rows[row], j, frame, &buffers[current ^ 1]);
-    if (pending) AddDescriptorVector(buffers[current], h);
-    current ^= 1;
-    pending = true;
-    j += 16;
-    if (j >= rows[row].j1 && ++row < rows.size()) j = rows[row].j0;
-  }
-  if (pending) AddDescriptorVector(buffers[current], h);
+  WalkWindowPipelined<DescriptorVector>(
+      rows, [&](const DescriptorWindowRow& row, int j, DescriptorVector* v) { PrepareDescriptorVector(row, j, frame, v); },
+      [&](const DescriptorVector& v) { AddDescriptorVector(v, h); });
   for (int k = 0; k < kDescBins; ++k) _mm512_storeu_ps(hist + k * kDescCellCount, h[k]);
 }
 #endif
