@@ -44,6 +44,7 @@ std::vector<BagOfWords> RandomBags(std::mt19937_64& rng, size_t count, size_t vo
 
 std::vector<const BagOfWords*> Pointers(const std::vector<BagOfWords>& bags) {
   std::vector<const BagOfWords*> out;
+  out.reserve(bags.size());
   for (const BagOfWords& bag : bags) out.push_back(&bag);
   return out;
 }

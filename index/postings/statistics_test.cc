@@ -40,6 +40,7 @@ TEST(CollectionStatistics, IdfTablesAndNormsFollowTheDefinition) {
     EXPECT_EQ((*squared)[0], 0.0) << "n_w = 0: no finite idf";
     EXPECT_DOUBLE_EQ((*squared)[1], std::log(8.0) * std::log(8.0));
     EXPECT_EQ((*squared)[3], 0.0);
+    // NOLINTNEXTLINE(performance-unnecessary-copy-initialization): the copy is what is tested
     const postings::CollectionStatistics copy = statistics;
     EXPECT_EQ(copy.IdfSquaredTable(), squared) << "made once, shared by copies";
     const auto log_df = statistics.LogDfTable();
