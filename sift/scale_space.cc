@@ -254,10 +254,11 @@ int HorizontalPassAlignedAvx512(const float* t, const float* c, int width, float
             const __m512 ck = _mm512_set1_ps(c[k]);
 #pragma GCC unroll 4
             for (int m = 0; m < 4; ++m) {
-              const __m512 left = _mm512_castsi512_ps(
-                  _mm512_alignr_epi32(_mm512_castps_si512(v[m + 1]), _mm512_castps_si512(v[m]), 16 - k));
-              const __m512 right = _mm512_castsi512_ps(
-                  _mm512_alignr_epi32(_mm512_castps_si512(v[m + 2]), _mm512_castps_si512(v[m + 1]), k));
+              // (The all-lanes masked form: GCC 12's unmasked one warns of its undefined pass-through.)
+              const __m512i lo = _mm512_castps_si512(v[m]), mid = _mm512_castps_si512(v[m + 1]);
+              const __m512i hi = _mm512_castps_si512(v[m + 2]);
+              const __m512 left = _mm512_castsi512_ps(_mm512_mask_alignr_epi32(mid, 0xffff, mid, lo, 16 - k));
+              const __m512 right = _mm512_castsi512_ps(_mm512_mask_alignr_epi32(mid, 0xffff, hi, mid, k));
               a[m] = _mm512_fmadd_ps(ck, _mm512_add_ps(left, right), a[m]);
             }
           }(),
