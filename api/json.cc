@@ -79,6 +79,7 @@ nlohmann::json SearchResponseToJson(const SearchResponse& response) {
                        {"score", r.score},
                        {"verified", r.verified},
                        {"inliers", r.inliers},
+                       {"via", r.via.empty() ? nlohmann::json(nullptr) : nlohmann::json(r.via)},
                        // As POST /v1/match: a transform and a region only for a verified result.
                        {"transform", r.verified ? nlohmann::json{{r.db_from_query.m[0], r.db_from_query.m[1],
                                                                   r.db_from_query.m[2]},

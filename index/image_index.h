@@ -347,7 +347,11 @@ struct QueryResult {
   double score = 0;            // tf-idf cosine in [0, 1] (of the expanded query for QE-only results;
                                // the Hamming-embedding score with QueryOptions::hamming)
   bool verified = false;       // passed spatial verification
-  int inliers = 0;             // inlier correspondences (0 when not re-ranked)
+  int inliers = 0;             // inlier correspondences (0 when not re-ranked); with `via`, those
+                               // with the anchor's matched region, not with the query
+  std::string via;             // verified transitively: the id of the verified result (the anchor)
+                               // whose matched region verified this one; empty when verified against
+                               // the query itself (or not verified)
   sift::Affine2D db_from_query;  // query-image pixels -> db-image pixels (identity when not verified)
   std::array<float, 4> db_region = {0, 0, 0, 0};  // x1,y1,x2,y2 in the db image (zeros when not verified)
   ImageRecord record;          // catalogue entry (id, size, metadata, ...)

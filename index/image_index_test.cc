@@ -212,6 +212,7 @@ TEST_F(ImageIndexTest, TransitiveVerificationReachesViewsThatOnlyMatchAResult) {
   ASSERT_TRUE(plain) << plain.error().ToString();
   ASSERT_EQ(plain->results[0].id, "hub");
   ASSERT_TRUE(plain->results[0].verified);
+  EXPECT_EQ(plain->results[0].via, "");  // verified against the query itself
   for (const auto& r : plain->results) {
     if (r.id == "far") {
       EXPECT_FALSE(r.verified);
@@ -227,6 +228,8 @@ TEST_F(ImageIndexTest, TransitiveVerificationReachesViewsThatOnlyMatchAResult) {
     const QueryResult& second = r->results[1];
     EXPECT_EQ(second.id, "far") << "qe " << qe;
     EXPECT_TRUE(second.verified);
+    EXPECT_EQ(second.via, "hub") << "far shares nothing with the query: hub's region verified it";
+    EXPECT_EQ(r->results[0].via, "");
     EXPECT_GE(second.inliers, 40);
     for (size_t i = 2; i < r->results.size(); ++i) EXPECT_FALSE(r->results[i].verified) << r->results[i].id;
     // db_from_query goes through hub: query -> hub (inverse of the query's similarity) -> far.

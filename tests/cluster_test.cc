@@ -154,7 +154,8 @@ class Cluster : public ::testing::Test {
     const auto& b = front["results"];
     ASSERT_EQ(a.size(), b.size()) << what << "\n" << front.dump();
     for (size_t i = 0; i < a.size(); ++i) {
-      for (const char* field : {"rank", "id", "score", "verified", "inliers", "transform", "region", "width", "height", "metadata"})
+      for (const char* field :
+           {"rank", "id", "score", "verified", "inliers", "via", "transform", "region", "width", "height", "metadata"})
         EXPECT_EQ(a[i][field], b[i][field]) << what << ": " << field << " of rank " << i;
     }
   }
@@ -177,6 +178,7 @@ class Cluster : public ::testing::Test {
       EXPECT_EQ(a.score, b.score) << what << " rank " << i;
       EXPECT_EQ(a.verified, b.verified) << what << " rank " << i;
       EXPECT_EQ(a.inliers, b.inliers) << what << " rank " << i;
+      EXPECT_EQ(a.via, b.via) << what << " rank " << i;
       EXPECT_EQ(a.db_region, b.db_region) << what << " rank " << i;
       EXPECT_EQ(a.record.id, b.record.id) << what << " rank " << i;
       EXPECT_EQ(a.record.num_features, b.record.num_features) << what << " rank " << i;
@@ -469,7 +471,7 @@ TEST_F(Cluster, HttpFrontAnswersAsASingleNodeServer) {
   ASSERT_EQ(a.size(), b.size()) << got->body;
   ASSERT_GE(a.size(), 3u);
   for (size_t i = 0; i < a.size(); ++i) {
-    for (const char* field : {"id", "score", "verified", "inliers", "region", "width", "height"})
+    for (const char* field : {"id", "score", "verified", "inliers", "via", "region", "width", "height"})
       EXPECT_EQ(a[i][field], b[i][field]) << field << " of rank " << i;
   }
   EXPECT_EQ(nlohmann::json::parse(expected->body)["candidates"], nlohmann::json::parse(got->body)["candidates"]);

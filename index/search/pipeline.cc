@@ -292,7 +292,9 @@ Status VerifyTransitively(Source& source, const QueryOptions& options, bool hamm
         QueryResult& r = hits[positions[i]].result;
         r.verified = true;
         r.inliers = v.result.num_inliers;
-        r.db_from_query = Compose(v.result.db_from_query, hits[pool[used + v.geometry]].result.db_from_query);
+        const QueryResult& anchor = hits[pool[used + v.geometry]].result;
+        r.via = anchor.id;
+        r.db_from_query = Compose(v.result.db_from_query, anchor.db_from_query);
         r.db_region = v.result.db_region;
         found[positions[i] - first] = 1;
       }

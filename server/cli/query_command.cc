@@ -46,6 +46,7 @@ nlohmann::json ResultJson(const index::QueryResult& r) {
                       {"width", r.record.width},
                       {"height", r.record.height},
                       {"metadata", metadata}};
+  if (!r.via.empty()) j["via"] = r.via;
   if (r.verified) {
     j["db_from_query"] = r.db_from_query.m;
     j["db_region"] = r.db_region;

@@ -282,7 +282,8 @@ function renderResults(response) {
     title.textContent = `#${r.rank} ${r.id}`;
     const facts = document.createElement('span');
     facts.textContent = `score ${r.score.toFixed(3)} · ` +
-      (r.verified ? `✓ verified, ${r.inliers} inliers` : `not verified (${r.inliers} inliers)`);
+      (!r.verified ? `not verified (${r.inliers} inliers)`
+        : r.via ? `✓ verified via ${r.via}, ${r.inliers} inliers` : `✓ verified, ${r.inliers} inliers`);
     caption.append(title, facts);
     button.append(frame, caption);
     button.addEventListener('click', () => openMatchView(r));
