@@ -29,7 +29,7 @@
 #include "index/storage/feature_store.h"
 #include "index/storage/folder_lock.h"
 #include "index/storage/geometry_parts.h"
-#include "index/hamming.h"
+#include "index/search/hamming.h"
 #include "index/storage/huge_pages.h"
 #include "index/storage/loader.h"
 #include "index/storage/snapshot.h"

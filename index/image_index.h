@@ -14,7 +14,7 @@
 //    query q is the cosine  s(q, d) = <v(q), v(d)> / (|v(q)| |v(d)|), in [0, 1]; an image whose vector
 //    is zero (every word in every image, e.g. N = 1) scores 0.
 //    N and n_w (hence idf and every norm) are the collection statistics of the last refresh
-//    (inverted_file.h): while the index holds at most TfIdfOptions::exact_statistics_postings postings
+//    (postings/inverted_file.h): while the index holds at most TfIdfOptions::exact_statistics_postings postings
 //    (about 4000 images) every write refreshes them, so scores equal those of an index built from
 //    scratch on the live images; above that, an add or remove costs O(its own words) and the
 //    statistics are refreshed (one parallel pass over the postings) once the images changed since the

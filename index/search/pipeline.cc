@@ -8,7 +8,7 @@
 #include <map>
 #include <numeric>
 
-#include "index/hamming.h"
+#include "index/search/hamming.h"
 #include "index/search/kept_memory.h"
 #include "sift/base/parallel.h"
 

@@ -30,7 +30,7 @@
 #include <vector>
 
 #include "index/storage/feature_store.h"
-#include "index/word_runs.h"
+#include "index/search/word_runs.h"
 #include "sift/types.h"
 #include "sift/verify.h"
 

@@ -6,7 +6,7 @@
 #include <optional>
 #include <utility>
 
-#include "index/hamming.h"
+#include "index/search/hamming.h"
 #include "index/search/kept_memory.h"
 #include "index/search/rerank.h"
 #include "sift/base/parallel.h"

@@ -2,7 +2,7 @@
 //
 // The search pipeline (index/search/pipeline.h) is written once, against this interface; an
 // implementation decides where the images are:
-//   - one index's snapshot, in process (ImageIndex::OpenSearch, index/image_index.cc), for a single
+//   - one index's snapshot, in process (ImageIndex::OpenSearch, index/search/snapshot_source.cc), for a single
 //     node and for each partition of a cluster;
 //   - the partitions of a cluster, reached over gRPC (server/cluster/front.cc), each answering with its
 //     own snapshot. Sharding wraps the same search, as faiss's IndexShards wraps an index.

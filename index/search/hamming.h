@@ -25,7 +25,7 @@
 #include <vector>
 
 #include "index/storage/feature_store.h"
-#include "index/word_runs.h"
+#include "index/search/word_runs.h"
 
 namespace oxbow::index {
 

@@ -1,4 +1,4 @@
-#include "index/hamming.h"
+#include "index/search/hamming.h"
 
 #include <algorithm>
 #include <bit>

@@ -1,7 +1,7 @@
 // Hamming embedding in the index: the match weight, the scoring of index/hamming.h, signatures in the
 // packed features (BLOB version 2, geometry checkpoint version 2, old versions still read), and a
 // query where the signatures decide the ranking.
-#include "index/hamming.h"
+#include "index/search/hamming.h"
 
 #include <gtest/gtest.h>
 
