@@ -35,7 +35,8 @@ SyntheticCollection::SyntheticCollection(std::span<const sift::FeatureSet> photo
   }
 }
 
-std::string SyntheticCollection::Id(uint64_t number) { return "s" + std::to_string(number); }
+// Appended: GCC 12 reports a false -Wrestrict overlap on `"s" + std::to_string(number)` once inlined.
+std::string SyntheticCollection::Id(uint64_t number) { return std::string("s").append(std::to_string(number)); }
 
 SyntheticImage SyntheticCollection::Make(uint64_t number) const {
   OXBOW_CHECK(!pool_.empty());

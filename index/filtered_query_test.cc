@@ -2,7 +2,6 @@
 // all 297 others scoring higher by tf-idf and by inliers. The filter applies while scoring, so the 3
 // are found even when re-ranking looks at fewer candidates than there are better disallowed images.
 #include <gtest/gtest.h>
-#include <unistd.h>
 
 #include <algorithm>
 #include <cmath>
@@ -15,6 +14,7 @@
 #include <vector>
 
 #include "index/image_index.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow::index {
 namespace {
@@ -37,9 +37,6 @@ class KeepFilter final : public ImageFilter {
 class FilteredQueryTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    dir_ = fs::temp_directory_path() / ("oxbow_filtered_query_test_" + std::to_string(::getpid()) + "_" +
-                                        ::testing::UnitTest::GetInstance()->current_test_info()->name());
-    fs::remove_all(dir_);
     std::mt19937_64 rng(7);
     std::normal_distribution<float> normal(0, 1);
     centroids_.resize(static_cast<size_t>(kVocabularyWords) * kDimension);
@@ -84,10 +81,7 @@ class FilteredQueryTest : public ::testing::Test {
     }
     ASSERT_EQ(allowed_ids_.size(), static_cast<size_t>(kAllowed));
   }
-  void TearDown() override {
-    index_.reset();
-    fs::remove_all(dir_);
-  }
+  void TearDown() override { index_.reset(); }  // closed before its folder goes
 
   sift::FeatureSet Features(const std::vector<uint32_t>& words, const std::vector<sift::Keypoint>& keypoints) const {
     sift::FeatureSet f;
@@ -114,7 +108,8 @@ class FilteredQueryTest : public ::testing::Test {
     return ids;
   }
 
-  fs::path dir_;
+  oxbow::testing::TempDir temp_;
+  fs::path dir_ = temp_ / "index";
   std::vector<float> centroids_;
   std::vector<sift::Keypoint> positions_;
   std::unique_ptr<ImageIndex> index_;

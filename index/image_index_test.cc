@@ -92,7 +92,7 @@ TEST_F(ImageIndexTest, SpatialReRankingFindsTheTransformedImage) {
   std::vector<sift::FeatureSet> images;
   for (int i = 0; i < 30; ++i) {
     images.push_back(RandomImage(rng, 150));
-    ASSERT_TRUE(index->Add("img" + std::to_string(i), images.back(), {}));
+    ASSERT_TRUE(index->Add(NumberedId("img", i), images.back(), {}));
   }
   // Query: image 7 seen at scale 0.5, rotated 30 degrees and shifted, 60% of its features, plus clutter.
   const sift::FeatureSet& target = images[7];
@@ -155,7 +155,7 @@ TEST_F(ImageIndexTest, SpatialReRankingFindsTheTransformedImage) {
   stop_list.max_document_frequency = 0.4;
   auto stopped = ImageIndex::Create((dir_ / "stop-list").string(), vocabulary_, "test-extractor/1", stop_list);
   ASSERT_TRUE(stopped) << stopped.error().ToString();
-  for (size_t i = 0; i < images.size(); ++i) ASSERT_TRUE((*stopped)->Add("img" + std::to_string(i), images[i], {}));
+  for (size_t i = 0; i < images.size(); ++i) ASSERT_TRUE((*stopped)->Add(NumberedId("img", i), images[i], {}));
   const auto stopped_self = (*stopped)->QuerySimilar("img12", Opts(3, 200));
   ASSERT_TRUE(stopped_self);
   EXPECT_EQ(stopped_self->results[0].id, "img12");
@@ -189,7 +189,7 @@ TEST_F(ImageIndexTest, TransitiveVerificationReachesViewsThatOnlyMatchAResult) {
   std::vector<uint32_t> hub_words(hub.size());
   vocabulary_.Quantize(hub.descriptors, hub_words);
   ASSERT_TRUE(index->Add("hub", hub, {}));
-  for (int i = 0; i < 25; ++i) ASSERT_TRUE(index->Add("other" + std::to_string(i), RandomImage(rng, 150), {}));
+  for (int i = 0; i < 25; ++i) ASSERT_TRUE(index->Add(NumberedId("other", i), RandomImage(rng, 150), {}));
   std::vector<uint32_t> query_words, far_words;
   std::vector<sift::Keypoint> query_kps, far_kps;
   for (size_t i = 0; i < hub.size(); ++i) {
@@ -270,7 +270,7 @@ TEST_F(ImageIndexTest, MultipleAssignmentReachesTheSecondNearestWord) {
   std::mt19937_64 rng(5);
   ASSERT_TRUE(index->Add("a", Features({10, 30}, {{10, 10, 2, 0, 1, 0}, {50, 50, 2, 0, 1, 0}}), {}));
   ASSERT_TRUE(index->Add("b", Features({20, 40}, {{10, 10, 2, 0, 1, 0}, {50, 50, 2, 0, 1, 0}}), {}));
-  for (int i = 0; i < 5; ++i) ASSERT_TRUE(index->Add("r" + std::to_string(i), RandomImage(rng, 30), {}));
+  for (int i = 0; i < 5; ++i) ASSERT_TRUE(index->Add(NumberedId("r", i), RandomImage(rng, 30), {}));
   const auto c = vocabulary_.centroids();
   sift::FeatureSet query = Features({10}, {{10, 10, 2, 0, 1, 0}});
   for (size_t d = 0; d < 128; ++d) query.descriptors[d] = 0.55f * c[10 * 128 + d] + 0.45f * c[20 * 128 + d];
@@ -398,7 +398,7 @@ TEST_F(ImageIndexTest, AddRemoveSequenceEqualsFreshIndex) {
         ASSERT_TRUE(index->Remove(it->first));
         live.erase(it);
       } else {
-        const std::string id = "i" + std::to_string(counter++);
+        const std::string id = NumberedId("i", counter++);
         live[id] = RandomImage(rng, 20 + static_cast<int>(rng() % 80));
         ASSERT_TRUE(index->Add(id, live[id], {}));
       }
@@ -436,7 +436,7 @@ TEST_F(ImageIndexTest, RestartGivesIdenticalResults) {
   std::vector<QueryResponse> before;
   {
     auto index = CreateIndex();
-    for (int i = 0; i < 25; ++i) ASSERT_TRUE(index->Add("img" + std::to_string(i), RandomImage(rng, 100), {}));
+    for (int i = 0; i < 25; ++i) ASSERT_TRUE(index->Add(NumberedId("img", i), RandomImage(rng, 100), {}));
     ASSERT_TRUE(index->Remove("img3"));
     for (int q = 0; q < 5; ++q) {
       queries.push_back(RandomImage(rng, 80));
@@ -541,7 +541,7 @@ TEST_F(ImageIndexTest, AddBatchEqualsSingleAddsAndFailsPerImageOrAsAWhole) {
     auto index = CreateIndex();
     ASSERT_TRUE(index->Add("b0", images[0], {}));
     std::vector<BatchImage> batch;
-    for (int i = 1; i < 12; ++i) batch.push_back({"b" + std::to_string(i), &images[i], Info("/p" + std::to_string(i)), {}, {}});
+    for (int i = 1; i < 12; ++i) batch.push_back({NumberedId("b", i), &images[i], Info("/p" + std::to_string(i)), {}, {}});
     batch.push_back({"b0", &images[1], {}, {}, {}});          // already indexed
     batch.push_back({"b5", &images[2], {}, {}, {}});          // repeated in the batch
     batch.push_back({"", &images[3], {}, {}, {}});            // bad id
@@ -567,7 +567,7 @@ TEST_F(ImageIndexTest, AddBatchEqualsSingleAddsAndFailsPerImageOrAsAWhole) {
     ASSERT_TRUE(index) << index.error().ToString();
     std::vector<BatchImage> batch;
     batch.reserve(4);
-    for (int i = 0; i < 4; ++i) batch.push_back({"c" + std::to_string(i), &images[i], {}, {}, {}});
+    for (int i = 0; i < 4; ++i) batch.push_back({NumberedId("c", i), &images[i], {}, {}, {}});
     for (const auto& r : (*index)->AddBatch(batch)) {
       ASSERT_FALSE(r);
       EXPECT_NE(r.error().message.find("injected insert failure"), std::string::npos) << r.error().message;
@@ -582,7 +582,7 @@ TEST_F(ImageIndexTest, AddBatchEqualsSingleAddsAndFailsPerImageOrAsAWhole) {
   EXPECT_FALSE((*index)->Contains("c0"));
   auto single = ImageIndex::Create((dir_ / "single").string(), vocabulary_, "test-extractor/1");
   ASSERT_TRUE(single);
-  for (int i = 0; i < 12; ++i) ASSERT_TRUE((*single)->Add("b" + std::to_string(i), images[i], {}));
+  for (int i = 0; i < 12; ++i) ASSERT_TRUE((*single)->Add(NumberedId("b", i), images[i], {}));
   for (int q = 0; q < 5; ++q) {
     const auto query = RandomImage(rng, 60);
     const auto a = ScoresById(*(*index)->Query(query, Opts(100, 0)));
@@ -612,7 +612,7 @@ TEST_F(ImageIndexTest, AddBatchOnOtherNumbersThanExpectedLinksTheNumbersGiven) {
     auto index = ImageIndex::Open(dir_.string());
     ASSERT_TRUE(index) << index.error().ToString();
     std::vector<BatchImage> batch;
-    for (int i = 2; i < 6; ++i) batch.push_back({"b" + std::to_string(i), &images[i], {}, {}, {}});
+    for (int i = 2; i < 6; ++i) batch.push_back({NumberedId("b", i), &images[i], {}, {}, {}});
     for (const auto& r : (*index)->AddBatch(batch)) ASSERT_TRUE(r) << r.error().ToString();
     ASSERT_TRUE((*index)->Remove("b3"));
     EXPECT_FALSE((*index)->Contains("b3"));
@@ -620,7 +620,7 @@ TEST_F(ImageIndexTest, AddBatchOnOtherNumbersThanExpectedLinksTheNumbersGiven) {
     for (const int i : {2, 4, 5}) {
       const auto found = (*index)->Query(images[i], Opts(1, 0));
       ASSERT_TRUE(found && !found->results.empty());
-      EXPECT_EQ(found->results[0].id, "b" + std::to_string(i));
+      EXPECT_EQ(found->results[0].id, NumberedId("b", i));
     }
     scores = ScoresById(*(*index)->Query(images[4], Opts(100, 0)));
   }
@@ -661,8 +661,8 @@ TEST_F(ImageIndexTest, AddBatchWithAssignedWordsEqualsQuantising) {
   std::vector<BatchImage> a, b;
   std::vector<ErrorCode> refused;  // per entry of b: kInternal for an image that must be added
   for (size_t i = 0; i < words.size(); ++i) {
-    a.push_back({"w" + std::to_string(i), &with_descriptors[i], {}, {}, {}});
-    b.push_back({"w" + std::to_string(i), &without[i], {}, words[i], {}});
+    a.push_back({NumberedId("w", i), &with_descriptors[i], {}, {}, {}});
+    b.push_back({NumberedId("w", i), &without[i], {}, words[i], {}});
     refused.push_back(ErrorCode::kInternal);
     if (i == 1) {
       b.push_back({"outside", &without[0], {}, outside, {}});
@@ -751,7 +751,7 @@ TEST_F(ImageIndexTest, WriteSequenceCountsCommittedWritesAndSurvivesARestart) {
 TEST_F(ImageIndexTest, ReadersRunWhileWritersAdd) {
   auto index = CreateIndex();
   std::mt19937_64 rng(11);
-  for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("seed" + std::to_string(i), RandomImage(rng, 60), {}));
+  for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add(NumberedId("seed", i), RandomImage(rng, 60), {}));
   const std::vector<sift::FeatureSet> to_add = RandomImages(rng, 40, 60);
   const auto query = RandomImage(rng, 60);
   std::atomic<bool> done{false};
@@ -779,9 +779,9 @@ TEST_F(ImageIndexTest, ReadersRunWhileWritersAdd) {
   // failure still reaches the join below.
   while (started.load() < 2) std::this_thread::yield();
   for (int i = 0; i < 40; ++i) {
-    EXPECT_TRUE(index->Add("new" + std::to_string(i), to_add[i], {})) << i;
+    EXPECT_TRUE(index->Add(NumberedId("new", i), to_add[i], {})) << i;
     if (i % 3 == 0) {
-      EXPECT_TRUE(index->Remove("seed" + std::to_string(i / 3))) << i;
+      EXPECT_TRUE(index->Remove(NumberedId("seed", i / 3))) << i;
     }
   }
   done = true;
@@ -798,7 +798,7 @@ TEST_F(ImageIndexTest, ReadersRunWhileWritersAdd) {
 TEST_F(ImageIndexTest, SearchesOnManyThreadsScoreAsOneAtATime) {
   auto index = CreateIndex();
   std::mt19937_64 rng(12);
-  for (int i = 0; i < 40; ++i) ASSERT_TRUE(index->Add("img" + std::to_string(i), RandomImage(rng, 80), {}));
+  for (int i = 0; i < 40; ++i) ASSERT_TRUE(index->Add(NumberedId("img", i), RandomImage(rng, 80), {}));
   const std::vector<sift::FeatureSet> queries = RandomImages(rng, 5, 80);
   QueryOptions options = Opts(40, 10, true);
   options.transitive_depth = 1;

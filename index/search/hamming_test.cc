@@ -24,7 +24,9 @@
 #include "index/storage/feature_store.h"
 #include "index/image_index.h"
 #include "index/search/rerank.h"
+#include "index/storage/test_support.h"
 #include "sift/base/log.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow::index {
 namespace {
@@ -166,8 +168,8 @@ TEST(PackedSignaturesTest, BlobAndCheckpointRoundTripAndOldFormatsStillLoad) {
 
   // Geometry files: version 3 (per-image checksums) is written; 1 (no signatures) and 2 (signatures),
   // what older builds wrote, are read.
-  const fs::path dir = fs::temp_directory_path() / ("oxbow_hamming_geometry_" + std::to_string(::getpid()));
-  fs::create_directories(dir);
+  const oxbow::testing::TempDir temp;
+  const fs::path dir = temp.path();
   for (const auto& [version, signed_images] : std::vector<std::pair<uint32_t, bool>>{
            {1, false}, {2, false}, {2, true}, {3, false}, {3, true}}) {
     SCOPED_TRACE("version " + std::to_string(version) + (signed_images ? " with signatures" : ""));
@@ -201,7 +203,6 @@ TEST(PackedSignaturesTest, BlobAndCheckpointRoundTripAndOldFormatsStillLoad) {
       EXPECT_NE(ImageChecksum(with), ImageChecksum(without)) << "the checksum covers the signatures";
     }
   }
-  fs::remove_all(dir);
 }
 
 // The features a search is about to read (its shortlist) are asked for at once: WillNeed on a view of
@@ -218,8 +219,8 @@ TEST(PackedSignaturesTest, WillNeedReadsAMappedImageIntoMemoryBeforeItsFirstUse)
   }
   const PackedFeatures packed = PackedFeatures::Pack(RandomKeypoints(rng, n), words, 640, 480, signatures);
   // Beside the test binary, not in /tmp: pages of a tmpfs file are always in memory.
-  const fs::path dir = fs::current_path() / ("oxbow_willneed_" + std::to_string(::getpid()));
-  fs::create_directories(dir);
+  const oxbow::testing::TempDir temp("oxbow-willneed", fs::current_path());
+  const fs::path dir = temp.path();
   const std::string path = (dir / "geometry.oxck").string();
   {
     std::vector<uint8_t> file;
@@ -257,7 +258,6 @@ TEST(PackedSignaturesTest, WillNeedReadsAMappedImageIntoMemoryBeforeItsFirstUse)
   ASSERT_GT(record_pages, 50u);
   ASSERT_GT(signature_pages, 50u);
   if (records_before + signatures_before > (record_pages + signature_pages) / 2) {
-    fs::remove_all(dir);
     GTEST_SKIP() << "the file system of " << dir << " keeps files in memory (posix_fadvise dropped "
                  << "nothing): WillNeed cannot be observed there";
   }
@@ -273,14 +273,13 @@ TEST(PackedSignaturesTest, WillNeedReadsAMappedImageIntoMemoryBeforeItsFirstUse)
   EXPECT_EQ(records, record_pages);
   EXPECT_EQ(signed_pages, signature_pages);
   EXPECT_EQ(view.Words(), packed.Words());  // and they are the image's features
-  fs::remove_all(dir);
 }
 
 // ReadAt copies a part of a mapped file with pread (a search reads its shortlist so, without mapping
 // the pages); anything outside the file, a size mismatch or a file read into memory is refused.
 TEST(PackedSignaturesTest, ReadAtCopiesAPartOfAMappedFile) {
-  const fs::path dir = fs::temp_directory_path() / ("oxbow_read_at_" + std::to_string(::getpid()));
-  fs::create_directories(dir);
+  const oxbow::testing::TempDir temp;
+  const fs::path dir = temp.path();
   const std::string path = (dir / "f").string();
   std::vector<uint8_t> content(3 * 4096 + 17);
   for (size_t i = 0; i < content.size(); ++i) content[i] = static_cast<uint8_t>(i * 131 + 7);
@@ -301,7 +300,6 @@ TEST(PackedSignaturesTest, ReadAtCopiesAPartOfAMappedFile) {
   auto resident = MappedFile::Open(path, MappedFile::Use::kResident);
   ASSERT_TRUE(resident);
   EXPECT_FALSE((*resident)->ReadAt((*resident)->bytes().first(17), tail));  // read whole already
-  fs::remove_all(dir);
 }
 
 TEST(HammingRerankTest, TentativeMatchesNeedCloseSignatures) {
@@ -388,8 +386,6 @@ class HammingIndexTest : public ::testing::Test {
  protected:
   void SetUp() override {
     log::SetLevel(log::Level::kWarning);
-    dir_ = fs::temp_directory_path() / ("oxbow_hamming_index_" + std::to_string(::getpid()));
-    fs::remove_all(dir_);
     auto plain = vocab::Vocabulary::FromCentroids(RandomUnitRows(kWords, 1), kDim, sift::DescriptorKind::kRootSift,
                                                   "test-extractor/1");
     ASSERT_TRUE(plain);
@@ -397,7 +393,6 @@ class HammingIndexTest : public ::testing::Test {
     ASSERT_TRUE(he);
     vocabulary_ = std::make_unique<vocab::Vocabulary>(*he);
   }
-  void TearDown() override { fs::remove_all(dir_); }
 
   // `per_word` descriptors around each centroid (sigma 0.02 per dimension: they stay in their word).
   static std::vector<float> Around(std::span<const float> centroids, size_t per_word, uint64_t seed) {
@@ -422,7 +417,8 @@ class HammingIndexTest : public ::testing::Test {
     return f;
   }
 
-  fs::path dir_;
+  oxbow::testing::TempDir temp_;
+  fs::path dir_ = temp_ / "index";
   std::unique_ptr<vocab::Vocabulary> vocabulary_;
 };
 
@@ -441,7 +437,7 @@ TEST_F(HammingIndexTest, SignaturesDecideBetweenImagesWithTheSameWords) {
     ASSERT_TRUE((*index)->Add("other", Image(other, 1), {}));
     ASSERT_TRUE((*index)->Add("same", Image(same, 2), {}));
     for (int i = 0; i < 3; ++i) {  // images without the query's words: the words get a non-zero idf
-      ASSERT_TRUE((*index)->Add("filler" + std::to_string(i),
+      ASSERT_TRUE((*index)->Add(test_support::NumberedId("filler", i),
                                 Image(Around(centroids.subspan((30 + 10 * i) * kDim, 10 * kDim), 2, i), 3 + i), {}));
     }
   }
@@ -507,8 +503,8 @@ TEST_F(HammingIndexTest, CheckpointedCandidatesScoreAsInMemoryAndDamageIsNeverSc
     ASSERT_TRUE(index) << index.error().ToString();
     ASSERT_TRUE((*index)->Add("same", Image(same, 2), {}));
     for (int i = 0; i < 6; ++i) {  // the query's words with other descriptors, and other words
-      ASSERT_TRUE((*index)->Add("other" + std::to_string(i), Image(Around(centroids.first(20 * kDim), 1, 200 + i), 10 + i), {}));
-      ASSERT_TRUE((*index)->Add("filler" + std::to_string(i),
+      ASSERT_TRUE((*index)->Add(test_support::NumberedId("other", i), Image(Around(centroids.first(20 * kDim), 1, 200 + i), 10 + i), {}));
+      ASSERT_TRUE((*index)->Add(test_support::NumberedId("filler", i),
                                 Image(Around(centroids.subspan((30 + 5 * i) * kDim, 5 * kDim), 2, i), 3 + i), {}));
     }
     in_memory = scores(**index);
@@ -575,8 +571,8 @@ TEST_F(HammingIndexTest, AssignedSignaturesEqualComputingThem) {
   for (auto& f : bare) f.descriptors.clear();
   std::vector<BatchImage> a, b;
   for (size_t i = 0; i < images.size(); ++i) {
-    a.push_back({"i" + std::to_string(i), &images[i], {}, {}, {}});
-    b.push_back({"i" + std::to_string(i), &bare[i], {}, words[i], signatures[i]});
+    a.push_back({test_support::NumberedId("i", i), &images[i], {}, {}, {}});
+    b.push_back({test_support::NumberedId("i", i), &bare[i], {}, words[i], signatures[i]});
   }
   const std::vector<uint64_t> short_signatures(3, 0);
   b.push_back({"short", &bare[0], {}, words[0], short_signatures});
@@ -587,8 +583,8 @@ TEST_F(HammingIndexTest, AssignedSignaturesEqualComputingThem) {
   EXPECT_EQ(results[4].error().code, ErrorCode::kInvalidArgument);
   EXPECT_EQ(results[5].error().code, ErrorCode::kInvalidArgument);
   for (size_t i = 0; i < images.size(); ++i) {
-    const auto x = (*computed)->QuerySimilar("i" + std::to_string(i), QueryOptions{});
-    const auto y = (*assigned)->QuerySimilar("i" + std::to_string(i), QueryOptions{});
+    const auto x = (*computed)->QuerySimilar(test_support::NumberedId("i", i), QueryOptions{});
+    const auto y = (*assigned)->QuerySimilar(test_support::NumberedId("i", i), QueryOptions{});
     ASSERT_TRUE(x && y);
     ASSERT_GE(y->results.size(), x->results.size());
     for (size_t r = 0; r < x->results.size(); ++r) {
@@ -641,7 +637,7 @@ TEST_F(HammingIndexTest, QueryExpansionRanksByTheSignaturesOfTheVerifiedRegions)
   ASSERT_TRUE((*index)->Add("expanded", Image(expanded, 2), {}));
   ASSERT_TRUE((*index)->Add("verified", verified, {}));
   for (int i = 0; i < 3; ++i) {
-    ASSERT_TRUE((*index)->Add("filler" + std::to_string(i),
+    ASSERT_TRUE((*index)->Add(test_support::NumberedId("filler", i),
                               Image(Around(centroids.subspan((40 + 5 * i) * kDim, 5 * kDim), 2, i), 30 + i), {}));
   }
   QueryOptions options;

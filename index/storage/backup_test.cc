@@ -2,11 +2,9 @@
 
 #include <gtest/gtest.h>
 #include <sqlite3.h>
-#include <unistd.h>
 
 #include <atomic>
 #include <chrono>
-#include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
@@ -18,6 +16,8 @@
 #include "index/storage/catalogue.h"
 #include "index/storage/checkpoint.h"
 #include "index/image_index.h"
+#include "index/storage/test_support.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow::index {
 namespace {
@@ -27,25 +27,6 @@ constexpr int kWords = 64;
 
 class BackupTest : public ::testing::Test {
  protected:
-  void SetUp() override {
-    root_ = fs::temp_directory_path() / ("oxbow_backup_test_" + std::to_string(::getpid()) + "_" +
-                                         ::testing::UnitTest::GetInstance()->current_test_info()->name());
-    fs::remove_all(root_);
-    fs::create_directories(root_);
-    std::mt19937_64 rng(1);
-    std::normal_distribution<float> g(0, 1);
-    std::vector<float> c(static_cast<size_t>(kWords) * 128);
-    for (int w = 0; w < kWords; ++w) {
-      double n = 0;
-      for (int d = 0; d < 128; ++d) n += std::pow(c[w * 128 + d] = g(rng), 2);
-      for (int d = 0; d < 128; ++d) c[w * 128 + d] /= static_cast<float>(std::sqrt(n));
-    }
-    auto v = vocab::Vocabulary::FromCentroids(std::move(c), 128, sift::DescriptorKind::kRootSift, "test/1");
-    ASSERT_TRUE(v.has_value());
-    vocabulary_ = std::make_unique<vocab::Vocabulary>(std::move(*v));
-  }
-  void TearDown() override { fs::remove_all(root_); }
-
   // An image of 30 features on centroids (so each quantises to its word), seeded by `seed`.
   sift::FeatureSet Image(uint64_t seed) const {
     std::mt19937_64 rng(seed);
@@ -108,8 +89,10 @@ class BackupTest : public ::testing::Test {
   std::string Source() const { return (root_ / "source").string(); }
   std::string Out(int n = 0) const { return (root_ / ("backup" + std::to_string(n))).string(); }
 
-  fs::path root_;
-  std::unique_ptr<vocab::Vocabulary> vocabulary_;
+  oxbow::testing::TempDir temp_;
+  fs::path root_ = temp_.path();
+  std::unique_ptr<vocab::Vocabulary> vocabulary_ =
+      std::make_unique<vocab::Vocabulary>(test_support::RandomVocabulary(1, kWords, "test/1"));
 };
 
 // One writer adds and removes images (each op acknowledged when its call returns) while backups run and

@@ -10,8 +10,8 @@ using namespace test_support;  // NOLINT(google-build-using-namespace): the test
 
 // Both ways of holding a checkpoint file give its exact bytes; a missing file is kNotFound.
 TEST(CheckpointTest, ResidentAndMappedFilesHoldTheFileBytes) {
-  const fs::path dir = fs::temp_directory_path() / ("oxbow-mapped-" + std::to_string(::getpid()));
-  fs::create_directories(dir);
+  const oxbow::testing::TempDir temp;
+  const fs::path dir = temp.path();
   std::string content(3u << 20, '\0');  // over a 2 MB huge page, not a multiple of it
   for (size_t i = 0; i < content.size(); ++i) content[i] = static_cast<char>((i * 2654435761u) >> 13);
   std::ofstream((dir / "f").string(), std::ios::binary) << content;
@@ -28,7 +28,6 @@ TEST(CheckpointTest, ResidentAndMappedFilesHoldTheFileBytes) {
     ASSERT_FALSE(missing);
     EXPECT_EQ(missing.error().code, ErrorCode::kNotFound);
   }
-  fs::remove_all(dir);
 }
 
 // The check of a checkpoint file leaves the page cache as it found it: pages it held stay, pages it
@@ -36,8 +35,8 @@ TEST(CheckpointTest, ResidentAndMappedFilesHoldTheFileBytes) {
 // and fill memory; index/README.md). Seen with mincore on a mapping never touched.
 TEST(CheckpointTest, TheCheckLeavesThePageCacheAsItWas) {
   // Beside the test binary, not in /tmp: pages of a tmpfs file are always in memory.
-  const fs::path dir = fs::current_path() / ("oxbow_check_cache_" + std::to_string(::getpid()));
-  fs::create_directories(dir);
+  const oxbow::testing::TempDir temp("oxbow-check-cache", fs::current_path());
+  const fs::path dir = temp.path();
   std::mt19937_64 rng(5);
   std::vector<uint8_t> bytes((size_t{10} << 20) + 12345);  // more than two 4 MiB reads, a partial page at the end
   for (auto& b : bytes) b = static_cast<uint8_t>(rng());
@@ -64,7 +63,6 @@ TEST(CheckpointTest, TheCheckLeavesThePageCacheAsItWas) {
   if (resident(0, pages) > pages / 2) {
     ::munmap(mapping, bytes.size());
     ::close(fd);
-    fs::remove_all(dir);
     GTEST_SKIP() << "the file system of " << dir << " keeps files in memory (posix_fadvise dropped nothing)";
   }
   // Not held: read, checked, and not left in the cache.
@@ -95,7 +93,6 @@ TEST(CheckpointTest, TheCheckLeavesThePageCacheAsItWas) {
   EXPECT_EQ(damaged.error().code, ErrorCode::kCorruptData);
   ::munmap(mapping, bytes.size());
   ::close(fd);
-  fs::remove_all(dir);
 }
 
 }  // namespace

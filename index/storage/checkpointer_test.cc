@@ -13,7 +13,7 @@ class CheckpointerTest : public CheckpointFixture {};
 TEST_F(CheckpointerTest, CloseWritesACheckpointThatOpenUsesWithoutRebuilding) {
   {
     auto index = CreateIndex();
-    for (int i = 0; i < 30; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+    for (int i = 0; i < 30; ++i) ASSERT_TRUE(index->Add(NumberedId("i", i), Image(i), {}));
   }
   const std::vector<std::string> written = CheckpointFiles(dir_);
   EXPECT_EQ(written, (std::vector<std::string>{"geometry-1-0.oxck", "postings-1.oxck", "segment-1-0.oxck",
@@ -38,12 +38,12 @@ TEST_F(CheckpointerTest, CheckpointsWriteOnlyTheSegmentsNewSinceThePreviousOne) 
   const auto batch_of = [&](int begin) {
     std::vector<BatchImage> batch;
     batch.reserve(5);
-    for (int i = begin; i < begin + 5; ++i) batch.push_back({"i" + std::to_string(i), &images[i], {}, {}, {}});
+    for (int i = begin; i < begin + 5; ++i) batch.push_back({NumberedId("i", i), &images[i], {}, {}, {}});
     return batch;
   };
   // Waits (at most 60 s) for a checkpoint of generation `g`, then gives its segment files.
   const auto wait_for = [&](int g) {
-    const std::string head = "postings-" + std::to_string(g) + ".oxck";
+    const std::string head = NumberedId("postings-", g) + ".oxck";
     for (int t = 0; t < 600 && !fs::exists(dir_ / head); ++t) std::this_thread::sleep_for(std::chrono::milliseconds(100));
     EXPECT_TRUE(fs::exists(dir_ / head)) << "no checkpoint " << g << " within 60 s";
     return SegmentFiles(dir_);
@@ -69,7 +69,7 @@ TEST_F(CheckpointerTest, CheckpointsWriteOnlyTheSegmentsNewSinceThePreviousOne) 
 TEST_F(CheckpointerTest, GeometryIsCheckedInSchedIdleAndCheckpointsAreNot) {
   {
     auto index = CreateIndex();
-    for (int i = 0; i < 30; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+    for (int i = 0; i < 30; ++i) ASSERT_TRUE(index->Add(NumberedId("i", i), Image(i), {}));
   }
   // sched_getscheduler(0) is the calling thread's policy on Linux.
   std::atomic<int> verifying_policy{-2};
@@ -98,7 +98,7 @@ TEST_F(CheckpointerTest, GeometryIsCheckedInSchedIdleAndCheckpointsAreNot) {
 TEST_F(CheckpointerTest, GeometryCheckWaitsWhileASearchRuns) {
   {
     auto index = CreateIndex();
-    for (int i = 0; i < 30; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+    for (int i = 0; i < 30; ++i) ASSERT_TRUE(index->Add(NumberedId("i", i), Image(i), {}));
   }
   std::promise<void> start_check;
   std::shared_future<void> check_may_start = start_check.get_future().share();
@@ -147,7 +147,7 @@ TEST_F(CheckpointerTest, GeometryCheckSlowsRightAfterASearch) {
   using Clock = std::chrono::steady_clock;
   {
     auto index = CreateIndex();
-    for (int i = 0; i < 30; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+    for (int i = 0; i < 30; ++i) ASSERT_TRUE(index->Add(NumberedId("i", i), Image(i), {}));
   }
   std::promise<void> start_check;
   std::shared_future<void> check_may_start = start_check.get_future().share();
@@ -189,7 +189,7 @@ TEST_F(CheckpointerTest, GeometryCheckSlowsRightAfterASearch) {
 TEST_F(CheckpointerTest, GeometryFilesAreVerifiedInTheBackgroundAfterOpen) {
   {
     auto index = CreateIndex();
-    for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+    for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add(NumberedId("i", i), Image(i), {}));
   }
   DamageGeometryData(dir_ / "geometry-1-0.oxck");
   auto index = ImageIndex::Open(dir_.string());
@@ -207,7 +207,7 @@ TEST_F(CheckpointerTest, GeometryFilesAreVerifiedInTheBackgroundAfterOpen) {
 TEST_F(CheckpointerTest, CheckpointsDoNotWaitForTheBackgroundCheckOfTheGeometryFiles) {
   {
     auto index = CreateIndex();
-    for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+    for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add(NumberedId("i", i), Image(i), {}));
   }
   ASSERT_EQ(HeadAndGeometryFiles(dir_), (std::vector<std::string>{"geometry-1-0.oxck", "postings-1.oxck"}));
   // A later checkpoint was committed (postings-1 deleted), and it kept the file not checked yet.
@@ -222,7 +222,7 @@ TEST_F(CheckpointerTest, CheckpointsDoNotWaitForTheBackgroundCheckOfTheGeometryF
     options.checkpoint_changes = 1;
     auto index = ImageIndex::Open(dir_.string(), options);
     ASSERT_TRUE(index) << index.error().ToString();
-    for (int i = 20; i < 25; ++i) ASSERT_TRUE((*index)->Add("i" + std::to_string(i), Image(i), {}));
+    for (int i = 20; i < 25; ++i) ASSERT_TRUE((*index)->Add(NumberedId("i", i), Image(i), {}));
     for (int i = 0; i < 300 && !checkpointed(); ++i) std::this_thread::sleep_for(std::chrono::milliseconds(100));
     EXPECT_TRUE(checkpointed()) << "no checkpoint within 30 s while the geometry check waited";
     release.set_value();
@@ -242,11 +242,11 @@ TEST_F(CheckpointerTest, KillAtEveryStageOfACheckpointLosesNothing) {
     fs::remove_all(dir_);
     {
       auto index = CreateIndex();
-      for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+      for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add(NumberedId("i", i), Image(i), {}));
     }
     InChildThenKill(
         [&](ImageIndex& index) {
-          for (int i = 20; i < 30; ++i) ASSERT_TRUE(index.Add("i" + std::to_string(i), Image(i), {}));
+          for (int i = 20; i < 30; ++i) ASSERT_TRUE(index.Add(NumberedId("i", i), Image(i), {}));
           ASSERT_TRUE(index.Remove("i2"));
         },
         stage);
@@ -274,7 +274,7 @@ TEST_F(CheckpointerTest, BackgroundCheckpointWhileWritingIsConsistent) {
   IndexOptions options;
   options.checkpoint_changes = 4;
   InChildThenKill([&](ImageIndex& index) {
-    for (int i = 0; i < 40; ++i) ASSERT_TRUE(index.Add("i" + std::to_string(i), Image(i), {}));
+    for (int i = 0; i < 40; ++i) ASSERT_TRUE(index.Add(NumberedId("i", i), Image(i), {}));
     ASSERT_TRUE(index.Remove("i7"));
     // Wait (at most 60 s) for a background checkpoint after the one of the open's rebuild (there was
     // none before), then die without closing.

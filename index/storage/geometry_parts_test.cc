@@ -18,7 +18,7 @@ class GeometryPartsTest : public CheckpointFixture {
 std::vector<std::pair<std::vector<float>, std::vector<uint32_t>>> AllFeatures(const ImageIndex& index, int n) {
   std::vector<std::pair<std::vector<float>, std::vector<uint32_t>>> out;
   for (int i = 0; i < n; ++i) {
-    auto features = FeaturesOf(index, "i" + std::to_string(i));
+    auto features = FeaturesOf(index, NumberedId("i", i));
     EXPECT_TRUE(features) << features.error().ToString();
     if (!features) return out;
     std::vector<float> keypoints;
@@ -45,7 +45,7 @@ void GeometryPartsTest::ExpectDamagedGeometryDataNeverServed(uint32_t version) {
   {
     SetGeometryFormatVersionForTesting(version);
     auto index = CreateIndex();
-    for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+    for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add(NumberedId("i", i), Image(i), {}));
     before = AllFeatures(*index, 20);
   }
   SetGeometryFormatVersionForTesting(3);
@@ -98,7 +98,7 @@ TEST_F(GeometryPartsTest, ImagesViewTheGeometryFilesTheirCheckpointWrote) {
     for (int i = 0; i < 20; ++i) images.push_back(Image(i));
     std::vector<BatchImage> batch;
     batch.reserve(20);
-    for (int i = 0; i < 20; ++i) batch.push_back({"i" + std::to_string(i), &images[i], {}, {}, {}});
+    for (int i = 0; i < 20; ++i) batch.push_back({NumberedId("i", i), &images[i], {}, {}, {}});
     for (const auto& r : index->AddBatch(batch)) ASSERT_TRUE(r) << r.error().ToString();
     // The checkpoint's files are written, not committed: the images are still in memory.
     const auto before = AllFeatures(*index, 20);
@@ -130,7 +130,7 @@ TEST_F(GeometryPartsTest, ImagesViewTheGeometryFilesTheirCheckpointWrote) {
 TEST_F(GeometryPartsTest, RemovingADamagedImageBeforeItsFirstUseKeepsTheIndexExact) {
   {
     auto index = CreateIndex();
-    for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+    for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add(NumberedId("i", i), Image(i), {}));
   }
   DamageGeometryData(dir_ / "geometry-1-0.oxck");  // the data of the last images (i12 and i15 among them)
   std::vector<int> live = Range(0, 20);
@@ -185,7 +185,7 @@ TEST_F(GeometryPartsTest, GeometryFilesAndDescriptorsStayBoundedUnderChurn) {
       const int seen = checkpoints.load();
       for (int k = 0; k < 4; ++k) {
         const int i = static_cast<int>(rng() % kIds);
-        const std::string id = "i" + std::to_string(i);
+        const std::string id = NumberedId("i", i);
         if (!live.count(i)) {
           ASSERT_TRUE(index->Add(id, Image(i), {}));
           live.insert(i);
@@ -222,7 +222,7 @@ TEST_F(GeometryPartsTest, AGeometryFileTruncatedUnderTheRunningIndexIsNeverReadP
   std::vector<std::pair<std::vector<float>, std::vector<uint32_t>>> before;
   {
     auto index = CreateIndex();
-    for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+    for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add(NumberedId("i", i), Image(i), {}));
     before = AllFeatures(*index, 20);
   }
   const fs::path geometry = dir_ / "geometry-1-0.oxck";
@@ -266,7 +266,7 @@ TEST_F(GeometryPartsTest, GeometryDamagedAfterItsBackgroundCheckIsNeverServed) {
   std::vector<std::pair<std::vector<float>, std::vector<uint32_t>>> before;
   {
     auto index = CreateIndex();
-    for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+    for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add(NumberedId("i", i), Image(i), {}));
     before = AllFeatures(*index, 20);
   }
   std::promise<void> checked;

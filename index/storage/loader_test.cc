@@ -156,7 +156,7 @@ TEST_F(LoaderTest, ForeignWalIsRefusedAndLeavesTheCatalogueAlone) {
   {
     auto index = CreateIndex();
     std::mt19937_64 rng(11);
-    for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("a" + std::to_string(i), RandomImage(rng, 80), {}));
+    for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add(NumberedId("a", i), RandomImage(rng, 80), {}));
   }
   ASSERT_FALSE(fs::exists(dir_ / "catalogue.sqlite-wal"));  // a clean close checkpointed it
   const fs::path other_dir = dir_.string() + "_other";
@@ -197,6 +197,8 @@ TEST_F(LoaderTest, ReadOnlyFolderIsAnIoErrorNotDamage) {
     ASSERT_TRUE(index->Add("a", RandomImage(rng, 30), {}));
   }
   const std::string catalogue = FileBytes(dir_ / "catalogue.sqlite");
+  // The child may run as user nobody: it must reach dir_ through the test's folder (mkdtemp makes it 0700).
+  fs::permissions(temp_.path(), fs::perms::group_exec | fs::perms::others_exec, fs::perm_options::add);
   fs::permissions(dir_, fs::perms::owner_write | fs::perms::group_write | fs::perms::others_write,
                   fs::perm_options::remove);
   for (const auto& file : fs::directory_iterator(dir_)) {
@@ -238,13 +240,13 @@ TEST_F(LoaderTest, OpenReplaysChangesAfterTheCheckpointAndEqualsAFreshIndex) {
   SKIP_KILL_TEST_UNDER_TSAN();
   {
     auto index = CreateIndex();
-    for (int i = 0; i < 30; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+    for (int i = 0; i < 30; ++i) ASSERT_TRUE(index->Add(NumberedId("i", i), Image(i), {}));
   }
   // Killed after more adds, removes (of checkpointed and new images) and a replace: only the catalogue
   // has them.
   InChildThenKill([&](ImageIndex& index) {
-    for (int i = 30; i < 45; ++i) ASSERT_TRUE(index.Add("i" + std::to_string(i), Image(i), {}));
-    for (const int i : {3, 17, 40}) ASSERT_TRUE(index.Remove("i" + std::to_string(i)));
+    for (int i = 30; i < 45; ++i) ASSERT_TRUE(index.Add(NumberedId("i", i), Image(i), {}));
+    for (const int i : {3, 17, 40}) ASSERT_TRUE(index.Remove(NumberedId("i", i)));
     ASSERT_TRUE(index.Replace("i5", Image(5), {}));
   });
   std::vector<int> live;
@@ -291,7 +293,7 @@ TEST_F(LoaderTest, DamagedTruncatedOrMissingFilesAreRepairedFromTheCatalogue) {
       fs::remove_all(dir_);
       {
         auto index = CreateIndex();
-        for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+        for (int i = 0; i < 20; ++i) ASSERT_TRUE(index->Add(NumberedId("i", i), Image(i), {}));
       }
       damage(dir_ / target);
       auto index = ImageIndex::Open(dir_.string());
@@ -322,7 +324,7 @@ TEST_F(LoaderTest, AnIndexFolderIsOpenInOneProcessAtATime) {
   };
   {
     auto index = CreateIndex();
-    for (int i = 0; i < 5; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+    for (int i = 0; i < 5; ++i) ASSERT_TRUE(index->Add(NumberedId("i", i), Image(i), {}));
     EXPECT_TRUE(refused_by(std::to_string(::getpid())));
     EXPECT_EQ(ImageIndex::Create(dir_.string(), vocabulary_, "test-extractor/1").error().code, ErrorCode::kAlreadyExists);
   }
@@ -354,7 +356,7 @@ TEST_F(LoaderTest, AnIndexFolderIsOpenInOneProcessAtATime) {
 TEST_F(LoaderTest, VersionOneCatalogueIsMigratedInPlace) {
   {
     auto index = CreateIndex();
-    for (int i = 0; i < 12; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+    for (int i = 0; i < 12; ++i) ASSERT_TRUE(index->Add(NumberedId("i", i), Image(i), {}));
     ASSERT_TRUE(index->Remove("i11"));  // the sequence is above the highest number left
   }
   const fs::path v2 = dir_ / "v2.sqlite";
@@ -405,7 +407,7 @@ TEST_F(LoaderTest, DamagedBlobAddedAfterTheCheckpointCostsThatImageOnly) {
   SKIP_KILL_TEST_UNDER_TSAN();
   {
     auto index = CreateIndex();
-    for (int i = 0; i < 5; ++i) ASSERT_TRUE(index->Add("i" + std::to_string(i), Image(i), {}));
+    for (int i = 0; i < 5; ++i) ASSERT_TRUE(index->Add(NumberedId("i", i), Image(i), {}));
   }
   InChildThenKill([&](ImageIndex& index) { ASSERT_TRUE(index.Add("late", Image(9), {})); });
   ExecSql(dir_ / "catalogue.sqlite",

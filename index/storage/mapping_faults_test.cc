@@ -14,10 +14,12 @@
 #include <filesystem>
 #include <fstream>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
 #include "index/storage/checkpoint.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow::index {
 namespace {
@@ -27,21 +29,35 @@ namespace fs = std::filesystem;
 constexpr size_t kFileBytes = size_t{64} << 10;
 constexpr size_t kKeptBytes = size_t{4} << 10;  // what the truncation leaves: the first page
 
+// A death test's child is a fresh run of this program that ends by _Exit or a signal, never removing a
+// folder: it makes its own inside the parent's, named in this variable, which goes with the parent's.
+constexpr char kParentDirVariable[] = "OXBOW_MAPPING_FAULTS_TEST_DIR";
+
 class MappingFaultsTest : public ::testing::Test {
  protected:
   void SetUp() override {
     // Each death test runs in a fresh process (the handler is installed once per process).
     GTEST_FLAG_SET(death_test_style, "threadsafe");
-    dir_ = fs::temp_directory_path() / ("oxbow-mapping-faults-" + std::to_string(::getpid()));
-    fs::create_directories(dir_);
+    if (const char* parent = std::getenv(kParentDirVariable); parent != nullptr) {
+      temp_.emplace("oxbow-death-test", parent);
+    } else {
+      temp_.emplace();
+      ASSERT_EQ(::setenv(kParentDirVariable, temp_->path().c_str(), 1), 0);
+      in_parent_ = true;
+    }
+    dir_ = temp_->path();
   }
-  void TearDown() override { fs::remove_all(dir_); }
+  void TearDown() override {
+    if (in_parent_) ::unsetenv(kParentDirVariable);
+  }
   // A file of kFileBytes bytes of 0xab.
   std::string MakeFile(const std::string& name) const {
     std::string path = (dir_ / name).string();
     std::ofstream(path, std::ios::binary) << std::string(kFileBytes, '\xab');
     return path;
   }
+  std::optional<oxbow::testing::TempDir> temp_;
+  bool in_parent_ = false;
   fs::path dir_;
 };
 

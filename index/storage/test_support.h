@@ -12,6 +12,7 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <concepts>
 #include <cmath>
 #include <cstdio>
 #include <cstring>
@@ -43,6 +44,7 @@
 #include "index/storage/feature_store.h"
 #include "index/search/pipeline.h"
 #include "index/search/source.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow::index::test_support {
 
@@ -62,33 +64,36 @@ inline Result<search::RegionFeatures> FeaturesOf(const ImageIndex& index, const 
   return std::move(features->front());
 }
 
+// `prefix` then `number` ("i7"): the ids of the tests' images. Appended rather than `"i" +
+// std::to_string(n)`, on which GCC 12 reports a false -Wrestrict overlap once inlined.
+inline std::string NumberedId(std::string_view prefix, std::integral auto number) {
+  return std::string(prefix).append(std::to_string(number));
+}
+
+// A vocabulary of `words` random unit centroids (128 dimensions, RootSIFT) drawn from `seed`.
+inline vocab::Vocabulary RandomVocabulary(uint64_t seed, int words, const std::string& settings) {
+  std::mt19937_64 rng(seed);
+  std::normal_distribution<float> g(0, 1);
+  std::vector<float> c(static_cast<size_t>(words) * 128);
+  for (int w = 0; w < words; ++w) {
+    double n = 0;
+    for (int d = 0; d < 128; ++d) {
+      c[w * 128 + d] = g(rng);
+      n += c[w * 128 + d] * c[w * 128 + d];
+    }
+    for (int d = 0; d < 128; ++d) c[w * 128 + d] /= static_cast<float>(std::sqrt(n));
+  }
+  auto v = vocab::Vocabulary::FromCentroids(std::move(c), 128, sift::DescriptorKind::kRootSift, settings);
+  EXPECT_TRUE(v.has_value()) << (v ? "" : v.error().ToString());
+  return *v;
+}
+
 // A vocabulary of kWords random unit centroids; features are made by perturbing a centroid slightly so
 // the quantiser is known to return that word.
 class IndexFixture : public ::testing::Test {
  protected:
-  void SetUp() override {
-    dir_ = fs::temp_directory_path() / ("oxbow_index_test_" + std::to_string(::getpid()) + "_" +
-                                        ::testing::UnitTest::GetInstance()->current_test_info()->name());
-    fs::remove_all(dir_);
-    vocabulary_ = MakeVocabulary(1);
-  }
-  void TearDown() override { fs::remove_all(dir_); }
-
   static vocab::Vocabulary MakeVocabulary(uint64_t seed, const std::string& settings = "test-extractor/1") {
-    std::mt19937_64 rng(seed);
-    std::normal_distribution<float> g(0, 1);
-    std::vector<float> c(static_cast<size_t>(kWords) * 128);
-    for (int w = 0; w < kWords; ++w) {
-      double n = 0;
-      for (int d = 0; d < 128; ++d) {
-        c[w * 128 + d] = g(rng);
-        n += c[w * 128 + d] * c[w * 128 + d];
-      }
-      for (int d = 0; d < 128; ++d) c[w * 128 + d] /= static_cast<float>(std::sqrt(n));
-    }
-    auto v = vocab::Vocabulary::FromCentroids(std::move(c), 128, sift::DescriptorKind::kRootSift, settings);
-    EXPECT_TRUE(v.has_value()) << (v ? "" : v.error().ToString());
-    return *v;
+    return RandomVocabulary(seed, kWords, settings);
   }
 
   // Features with the given words at the given keypoints.
@@ -143,7 +148,7 @@ class IndexFixture : public ::testing::Test {
     const auto a = RandomImage(rng, 80), b = RandomImage(rng, 80);
     EXPECT_TRUE(index->Add("a", a, {}));
     EXPECT_TRUE(index->Add("b", b, {}));
-    for (int i = 0; i < 10; ++i) EXPECT_TRUE(index->Add("noise" + std::to_string(i), RandomImage(rng, 80), {}));
+    for (int i = 0; i < 10; ++i) EXPECT_TRUE(index->Add(NumberedId("noise", i), RandomImage(rng, 80), {}));
     *query = Features({}, {}, 640, 480);
     auto append = [&](const sift::FeatureSet& src, size_t count, float x0, float response) {
       for (size_t i = 0; i < count; ++i) {
@@ -160,7 +165,8 @@ class IndexFixture : public ::testing::Test {
     return index;
   }
 
-  fs::path dir_;
+  oxbow::testing::TempDir temp_;      // the test's folder (removed after it)
+  fs::path dir_ = temp_ / "index";    // the index folder, made by CreateIndex
   vocab::Vocabulary vocabulary_ = MakeVocabulary(1);
 };
 
@@ -272,12 +278,11 @@ class CheckpointFixture : public IndexFixture {
   }
   // The scores of `index` equal those of a fresh index holding images `live` (exact statistics).
   void ExpectEqualsFresh(ImageIndex& index, const std::vector<int>& live) {
-    const fs::path fresh_dir = dir_.string() + "_fresh";
-    fs::remove_all(fresh_dir);
+    const fs::path fresh_dir = temp_ / "fresh";
     {
       auto fresh = ImageIndex::Create(fresh_dir.string(), vocabulary_, "test-extractor/1");
       ASSERT_TRUE(fresh);
-      for (const int i : live) ASSERT_TRUE((*fresh)->Add("i" + std::to_string(i), Image(i), {}));
+      for (const int i : live) ASSERT_TRUE((*fresh)->Add(NumberedId("i", i), Image(i), {}));
       EXPECT_EQ(index.Stats().num_images, live.size());
       std::mt19937_64 rng(77);
       for (int q = 0; q < 5; ++q) {

@@ -1,7 +1,5 @@
 #include "tests/fuzz/fuzz_support.h"
 
-#include <unistd.h>
-
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
@@ -10,34 +8,30 @@
 #include <system_error>
 
 #include "sift/sift.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow::fuzz {
 namespace {
 
-struct Scratch {
-  std::filesystem::path dir;
-  Scratch() {
-    std::error_code ec;
-    std::filesystem::path base = std::filesystem::exists("/dev/shm", ec) ? std::filesystem::path("/dev/shm")
-                                                                         : std::filesystem::temp_directory_path();
-    dir = base / ("oxbow-fuzz-" + std::to_string(::getpid()));
-    std::filesystem::create_directories(dir, ec);
-    if (ec) {
-      std::fprintf(stderr, "fuzz harness: cannot create %s: %s\n", dir.c_str(), ec.message().c_str());
-      std::abort();
-    }
+// The harness's folder, in memory (/dev/shm) where there is one, removed at exit.
+oxbow::testing::TempDir MakeScratch() {
+  std::error_code ec;
+  const std::filesystem::path base = std::filesystem::exists("/dev/shm", ec) ? std::filesystem::path("/dev/shm")
+                                                                             : std::filesystem::temp_directory_path();
+  try {
+    return oxbow::testing::TempDir("oxbow-fuzz", base);
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "fuzz harness: %s\n", e.what());
+    std::abort();
   }
-  ~Scratch() {
-    std::error_code ec;
-    std::filesystem::remove_all(dir, ec);
-  }
-};
+}
 
 }  // namespace
 
 const std::filesystem::path& ScratchDir() {
-  static const Scratch scratch;
-  return scratch.dir;
+  static const oxbow::testing::TempDir scratch = MakeScratch();
+  static const std::filesystem::path dir = scratch.path();
+  return dir;
 }
 
 std::string WriteScratchFile(const std::string& name, std::span<const uint8_t> bytes) {

@@ -1,9 +1,11 @@
 // The one temporary folder of the tests: a fresh empty folder under the system's temporary directory
 // ($TMPDIR when set, else /tmp), unique to the process and the test (mkdtemp), named after the test that
-// makes it, and removed with everything in it when the TempDir is destroyed. Header-only; tests only.
+// makes it, and removed with everything in it when the TempDir is destroyed. Header-only; tests and the fuzz harness
+// only (the harness names its folders itself, so it links no GoogleTest).
 //
 //   oxbow::testing::TempDir dir;                       // oxbow-<Suite>.<Test>-XXXXXX
 //   oxbow::testing::TempDir suite_dir("oxbow-http");    // a prefix of one's own (e.g. in SetUpTestSuite)
+//   oxbow::testing::TempDir disk_dir("oxbow-pages", std::filesystem::current_path());  // elsewhere (not tmpfs)
 //   const std::string index = dir.path() + "/index";   // or dir / "index"
 #pragma once
 
@@ -19,16 +21,13 @@ namespace oxbow::testing {
 
 class TempDir {
  public:
-  // `prefix` empty: "oxbow-<suite>.<test>" of the running test ("oxbow-test" outside one).
-  explicit TempDir(std::string prefix = {}) {
-    if (prefix.empty()) {
-      const ::testing::TestInfo* test = ::testing::UnitTest::GetInstance()->current_test_info();
-      prefix = test == nullptr ? "oxbow-test" : std::string("oxbow-") + test->test_suite_name() + "." + test->name();
-      for (char& c : prefix) {
-        if (c == '/') c = '_';  // parameterised tests: "Suite/0", "Name/1"
-      }
-    }
-    std::string pattern = (std::filesystem::temp_directory_path() / (prefix + "-XXXXXX")).string();
+  // Named "oxbow-<suite>.<test>" after the running test ("oxbow-test" outside one).
+  TempDir() : TempDir(CurrentTestPrefix()) {}
+  // Named `prefix`-XXXXXX under `parent` (the system's temporary directory unless given). Needs no
+  // GoogleTest library: the fuzz harness uses this one.
+  explicit TempDir(const std::string& prefix,
+                   const std::filesystem::path& parent = std::filesystem::temp_directory_path()) {
+    std::string pattern = (parent / (prefix + "-XXXXXX")).string();
     if (mkdtemp(pattern.data()) == nullptr) {
       throw std::runtime_error("cannot make a temporary folder " + pattern + ": " +
                                std::generic_category().message(errno));
@@ -46,6 +45,16 @@ class TempDir {
   std::filesystem::path operator/(const std::filesystem::path& name) const { return std::filesystem::path(path_) / name; }
 
  private:
+  static std::string CurrentTestPrefix() {
+    const ::testing::TestInfo* test = ::testing::UnitTest::GetInstance()->current_test_info();
+    std::string prefix =
+        test == nullptr ? "oxbow-test" : std::string("oxbow-") + test->test_suite_name() + "." + test->name();
+    for (char& c : prefix) {
+      if (c == '/') c = '_';  // parameterised tests: "Suite/0", "Name/1"
+    }
+    return prefix;
+  }
+
   std::string path_;
 };
 
