@@ -98,11 +98,14 @@ void Checkpointer::Loop() {
     RunOnlyWhenIdle();
     VerifyParts();
   });
-  while (const std::optional<Job> job = NextJob()) {
+  for (;;) {
+    const std::optional<Job> next_job = NextJob();
+    if (!next_job.has_value()) break;
+    const Job& job = *next_job;
     GeometryContents next_contents;
-    auto next = WriteFiles(*job->snapshot, job->previous, job->contents, &next_contents);  // writers go on
-    const std::optional<Written> written = Commit(*job, std::move(next), std::move(next_contents));
-    if (written) PublishViews(*job->snapshot, ReadBack(*job->snapshot, *written));
+    auto next = WriteFiles(*job.snapshot, job.previous, job.contents, &next_contents);  // writers go on
+    const std::optional<Written> written = Commit(job, std::move(next), std::move(next_contents));
+    if (written.has_value()) PublishViews(*job.snapshot, ReadBack(*job.snapshot, *written));
   }
   verifier.join();  // Close set stop_verifying_: it gives up before its next read
 }
