@@ -112,6 +112,7 @@ TEST_F(StoragePath, IngestedFolderAnswersAsIndexBuildFromTheSameFeatures) {
     auto opened = index::ImageIndex::Open(ingested.string(), options);
     ASSERT_TRUE(opened) << opened.error().ToString();
     std::vector<const sift::FeatureSet*> searches;
+    searches.reserve(photos.size());
     for (const auto& p : photos) searches.push_back(&p);
     const auto writes = eval::AddAndRemoveWhileSearching(**opened, collection, kImages, 8, searches);
     ASSERT_TRUE(writes) << writes.error().ToString();
