@@ -8,6 +8,7 @@ set -euo pipefail
 
 build_packages=(
   build-essential cmake ninja-build pkg-config git
+  lld                    # the linker (CMakeLists.txt, OXBOW_USE_LLD): links every executable about 4x faster than BFD ld
   libopencv-dev          # decode/resize/draw; cv::SIFT only as a reference peer in tests and benchmarks
   libeigen3-dev          # least squares in verification, exact k-means path
   libflann-dev           # randomised kd-forests (matching, approximate k-means)
