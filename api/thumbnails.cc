@@ -7,8 +7,10 @@
 #include <vector>
 
 #include <opencv2/core.hpp>
-#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgcodecs.hpp>  // the IMREAD_ flags only; the library is loaded by sift/opencv_codecs.cc
 #include <opencv2/imgproc.hpp>
+
+#include "sift/opencv_codecs.h"
 
 namespace oxbow::api {
 
@@ -64,13 +66,12 @@ Result<Thumbnail> MakeThumbnail(std::span<const uint8_t> image, int max_side_px,
   } else if (longest >= 2ull * static_cast<uint64_t>(max_side_px) && shortest >= 2) {
     flags = cv::IMREAD_REDUCED_COLOR_2;
   }
-  cv::Mat pixels;
-  try {
-    const cv::Mat raw(1, static_cast<int>(image.size()), CV_8UC1, const_cast<uint8_t*>(image.data()));
-    pixels = cv::imdecode(raw, flags);  // applies the EXIF orientation (no IMREAD_IGNORE_ORIENTATION)
-  } catch (const cv::Exception& e) {
-    return Fail(ErrorCode::kInvalidImage, std::string("cannot decode the image for its thumbnail: ") + e.what());
+  auto decoded = sift::opencv_codecs::Decode(image, flags);  // applies the EXIF orientation (no IMREAD_IGNORE_ORIENTATION)
+  if (!decoded) {
+    if (decoded.error().code == ErrorCode::kUnsupportedFormat) return std::unexpected(decoded.error());
+    return Fail(ErrorCode::kInvalidImage, "cannot decode the image for its thumbnail: " + decoded.error().message);
   }
+  cv::Mat pixels = std::move(*decoded);
   if (pixels.empty()) return Fail(ErrorCode::kInvalidImage, "cannot decode the image for its thumbnail");
   const int side = std::max(pixels.cols, pixels.rows);
   if (side > max_side_px) {
@@ -81,10 +82,10 @@ Result<Thumbnail> MakeThumbnail(std::span<const uint8_t> image, int max_side_px,
     cv::resize(pixels, small, size, 0, 0, cv::INTER_AREA);
     pixels = small;
   }
-  std::vector<uchar> jpeg;
-  if (!cv::imencode(".jpg", pixels, jpeg, {cv::IMWRITE_JPEG_QUALITY, jpeg_quality})) {
-    return Fail(ErrorCode::kInternal, "JPEG encoding of a thumbnail failed");
-  }
+  std::vector<uint8_t> jpeg;
+  const auto encoded = sift::opencv_codecs::Encode(".jpg", pixels, jpeg, {cv::IMWRITE_JPEG_QUALITY, jpeg_quality});
+  if (!encoded) return std::unexpected(encoded.error());
+  if (!*encoded) return Fail(ErrorCode::kInternal, "JPEG encoding of a thumbnail failed");
   return Thumbnail{std::string(jpeg.begin(), jpeg.end()), pixels.cols, pixels.rows};
 }
 

@@ -80,7 +80,9 @@ string(CONCAT CPACK_PACKAGE_DESCRIPTION  # CPack indents the lines for the contr
     "spatial re-ranking and query expansion. It runs as an HTTP JSON server with a\n"
     "search page (oxbow.service) and as a command line tool.")
 set(CPACK_DEBIAN_PACKAGE_SHLIBDEPS ON)     # dpkg-shlibdeps fills Depends from the linked libraries
-set(CPACK_DEBIAN_PACKAGE_DEPENDS adduser)  # postinst creates the system user
+# adduser: postinst creates the system user. OpenCV's image codecs are loaded at run time, not linked
+# (sift/opencv_codecs.h), so dpkg-shlibdeps cannot see them.
+set(CPACK_DEBIAN_PACKAGE_DEPENDS "adduser, libopencv-imgcodecs406")
 set(CPACK_DEBIAN_PACKAGE_CONTROL_EXTRA
     "${_oxbow_pkg_src}/postinst" "${_oxbow_pkg_src}/prerm" "${_oxbow_pkg_src}/postrm" "${_oxbow_pkg_src}/conffiles")
 set(CPACK_DEBIAN_PACKAGE_CONTROL_STRICT_PERMISSION ON)

@@ -4,8 +4,9 @@
 #include <cmath>
 #include <cstdio>
 
-#include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+
+#include "sift/opencv_codecs.h"
 
 namespace oxbow::eval {
 namespace {
@@ -118,11 +119,10 @@ void DrawLegend(cv::Mat& img, const Frame& f, const std::vector<std::string>& na
 }
 
 Status Save(const std::string& path, const cv::Mat& img) {
-  try {
-    if (!cv::imwrite(path, img)) return Fail(ErrorCode::kIoError, "cannot write chart '" + path + "'");
-  } catch (const cv::Exception& e) {
-    return Fail(ErrorCode::kIoError, "cannot write chart '" + path + "': " + e.what());
-  }
+  const auto written = sift::opencv_codecs::Write(path, img);
+  if (!written) return Fail(written.error().code == ErrorCode::kUnsupportedFormat ? ErrorCode::kUnsupportedFormat : ErrorCode::kIoError,
+                            "cannot write chart '" + path + "': " + written.error().message);
+  if (!*written) return Fail(ErrorCode::kIoError, "cannot write chart '" + path + "'");
   return Ok();
 }
 

@@ -22,7 +22,8 @@ build_packages=(
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler  # a cluster's front <-> shard calls
                          # (server/cluster/shard.proto): deadlines, status codes, health checking
   libgtest-dev libgmock-dev
-  libjpeg-dev            # sift/image.cc checks JPEG data with libjpeg (damage, scan limit); tests: a CMYK JPEG fixture
+  libjpeg-dev            # sift/image_decoders.cc decodes JPEG with libjpeg (damage, scan limit); tests: a CMYK JPEG fixture
+  libpng-dev             # sift/image_decoders.cc decodes PNG with libpng
   libtiff-dev            # sift/image.cc checks TIFF data with libtiff (damage, the dimensions libtiff decodes)
   opencv-doc             # sample photos (graf, box, ...) used as test and demo data
   libvlfeat-dev          # VLFeat SIFT: benchmark peer only
@@ -42,7 +43,7 @@ build_packages=(
 )
 runtime_packages=(
   libopencv-core406 libopencv-imgproc406 libopencv-imgcodecs406 libopencv-features2d406 libopencv-calib3d406
-  libopencv-flann406 libflann1.9 libopenmpi3 libsqlite3-0 libcpp-httplib0.11 libgrpc++1.51 libprotobuf32 libjpeg62-turbo libtiff6 curl ca-certificates
+  libopencv-flann406 libflann1.9 libopenmpi3 libsqlite3-0 libcpp-httplib0.11 libgrpc++1.51 libprotobuf32 libjpeg62-turbo libpng16-16 libtiff6 curl ca-certificates
 )
 
 packages=("${build_packages[@]}")

@@ -5,10 +5,10 @@
 #include <vector>
 
 #include <opencv2/core.hpp>
-#include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include "sift/base/binary_io.h"
+#include "sift/opencv_codecs.h"
 
 namespace oxbow::sift {
 
@@ -38,12 +38,13 @@ Status DrawKeypoints(const GrayImage& background, const FeatureSet& features, do
   const auto dot = out_path.rfind('.');
   const std::string ext = dot == std::string::npos ? "" : out_path.substr(dot);
   std::vector<uint8_t> encoded;
-  try {
-    if (ext.empty() || !cv::imencode(ext, canvas, encoded))
-      return Fail(ErrorCode::kInvalidArgument, "cannot encode a drawing as '" + ext + "' (use .png or .jpg): " + out_path);
-  } catch (const cv::Exception& e) {
-    return Fail(ErrorCode::kInvalidArgument, "cannot encode a drawing as '" + ext + "': " + e.what());
+  if (ext.empty()) return Fail(ErrorCode::kInvalidArgument, "cannot encode a drawing without an extension (use .png or .jpg): " + out_path);
+  const auto written = opencv_codecs::Encode(ext, canvas, encoded);
+  if (!written) {
+    if (written.error().code == ErrorCode::kUnsupportedFormat) return std::unexpected(written.error());
+    return Fail(ErrorCode::kInvalidArgument, "cannot encode a drawing as '" + ext + "': " + written.error().message);
   }
+  if (!*written) return Fail(ErrorCode::kInvalidArgument, "cannot encode a drawing as '" + ext + "' (use .png or .jpg): " + out_path);
   return io::WriteFileAtomically(out_path, encoded);
 }
 

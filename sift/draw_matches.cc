@@ -6,21 +6,22 @@
 #include <vector>
 
 #include <opencv2/core.hpp>
-#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgcodecs.hpp>  // the IMREAD_ flags only; the library is loaded by opencv_codecs.cc
 #include <opencv2/imgproc.hpp>
+
+#include "sift/opencv_codecs.h"
 
 namespace oxbow::sift {
 namespace {
 
 Result<cv::Mat> ReadColour(const std::string& path) {
   if (!std::filesystem::exists(path)) return Fail(ErrorCode::kNotFound, "no such image file: " + path);
-  cv::Mat image;
-  try {
-    image = cv::imread(path, cv::IMREAD_COLOR);  // applies the EXIF orientation
-  } catch (const cv::Exception& e) {
-    return Fail(ErrorCode::kInvalidImage, "cannot decode " + path + ": " + e.what());
+  auto image = opencv_codecs::Read(path, cv::IMREAD_COLOR);  // applies the EXIF orientation
+  if (!image) {
+    if (image.error().code == ErrorCode::kUnsupportedFormat) return std::unexpected(image.error());
+    return Fail(ErrorCode::kInvalidImage, "cannot decode " + path + ": " + image.error().message);
   }
-  if (image.empty()) return Fail(ErrorCode::kInvalidImage, "cannot decode " + path);
+  if (image->empty()) return Fail(ErrorCode::kInvalidImage, "cannot decode " + path);
   return image;
 }
 
@@ -92,13 +93,12 @@ Status DrawMatchesToFile(const std::string& query_image_path, const std::string&
                   thickness, cv::LINE_AA);
   }
 
-  bool written = false;
-  try {
-    written = cv::imwrite(output_path, canvas);
-  } catch (const cv::Exception& e) {
-    return Fail(ErrorCode::kIoError, "cannot write " + output_path + ": " + e.what());
+  const auto written = opencv_codecs::Write(output_path, canvas);
+  if (!written) {
+    if (written.error().code == ErrorCode::kUnsupportedFormat) return std::unexpected(written.error());
+    return Fail(ErrorCode::kIoError, "cannot write " + output_path + ": " + written.error().message);
   }
-  if (!written) return Fail(ErrorCode::kIoError, "cannot write " + output_path + " (unknown extension or unwritable path)");
+  if (!*written) return Fail(ErrorCode::kIoError, "cannot write " + output_path + " (unknown extension or unwritable path)");
   return Ok();
 }
 

@@ -3,7 +3,6 @@
 #include <algorithm>
 #include <cctype>
 #include <cmath>
-#include <csetjmp>
 #include <cstdarg>
 #include <cstdio>
 #include <cstring>
@@ -11,15 +10,15 @@
 #include <memory>
 #include <string_view>
 
-#include <jpeglib.h>
-#include <jerror.h>
 #include <tiffio.h>
 
 #include <opencv2/core.hpp>
-#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgcodecs.hpp>  // the IMREAD_ flags only; the library is loaded by opencv_codecs.cc
 #include <opencv2/imgproc.hpp>
 
 #include "sift/base/binary_io.h"
+#include "sift/image_decoders.h"
+#include "sift/opencv_codecs.h"
 
 namespace oxbow::sift {
 namespace {
@@ -265,95 +264,10 @@ Status CheckPixelLimit(ImageFormat format, uint64_t width, uint64_t height, cons
                                              std::to_string(options.max_pixels));
 }
 
-// ---- The data as libjpeg and libtiff see it -----------------------------------------------------------
+// ---- TIFF data as libtiff sees it ------------------------------------------------------------------
 //
-// OpenCV's decoders carry on where the libraries report damage: libjpeg only warns about missing or
-// undecodable entropy-coded data (then fills in grey), and OpenCV's TIFF reader ignores what libtiff's
-// RGBA interface reports. So JPEG and TIFF data first goes through the library itself with such reports
-// as errors (what libjpeg-turbo's `djpeg -strict` does), and OpenCV decodes only what passed. The JPEG
-// pass also bounds the scans of a progressive file (`djpeg -maxscans`): libjpeg walks every block of
-// the frame for each scan, however few bytes the scan has, so scans, not bytes, set the cost.
-
-// libjpeg's callbacks reach this through cinfo->err (the first member); error_exit must not return, so
-// errors jump back into CheckJpegData.
-struct JpegCheck {
-  jpeg_error_mgr errors;
-  jpeg_progress_mgr progress;
-  std::jmp_buf failed;
-  int max_scans = 0;
-  bool over_scan_limit = false;
-  char message[JMSG_LENGTH_MAX] = {};
-};
-
-JpegCheck* CheckOf(j_common_ptr cinfo) { return reinterpret_cast<JpegCheck*>(cinfo->err); }
-
-[[noreturn]] void JpegFail(j_common_ptr cinfo) {
-  (*cinfo->err->format_message)(cinfo, CheckOf(cinfo)->message);
-  std::longjmp(CheckOf(cinfo)->failed, 1);
-}
-
-// Warnings that image data is missing or undecodable fail the check. The other warnings (an unknown
-// JFIF version, stray bytes between segments, a bad ICC profile) leave every pixel intact, and some
-// cameras write such files; they and trace messages (level >= 0) are ignored.
-void JpegMessage(j_common_ptr cinfo, int level) {
-  if (level >= 0) return;
-  switch (cinfo->err->msg_code) {
-    case JWRN_HIT_MARKER:      // "premature end of data segment": the scan's data ran out
-    case JWRN_JPEG_EOF:        // the file ran out
-    case JWRN_HUFF_BAD_CODE:
-    case JWRN_ARITH_BAD_CODE:
-    case JWRN_MUST_RESYNC:     // restart markers out of order: data was lost
-      JpegFail(cinfo);
-    default:
-      ++cinfo->err->num_warnings;
-  }
-}
-
-// libjpeg calls this for every row of blocks it reads; input_scan_number counts the scans started.
-void JpegProgress(j_common_ptr cinfo) {
-  JpegCheck* check = CheckOf(cinfo);
-  if (reinterpret_cast<j_decompress_ptr>(cinfo)->input_scan_number > check->max_scans) {
-    check->over_scan_limit = true;
-    std::longjmp(check->failed, 1);
-  }
-}
-
-// Decodes the JPEG at 1/8 scale and throws the pixels away: every scan and block is entropy-decoded
-// (where damage shows) while the inverse DCT and colour work shrink to almost nothing (~1/3 of a full
-// decode's time). No C++ object with a destructor lives between setjmp and the jumps back.
-Status CheckJpegData(std::span<const uint8_t> b, int max_scans) {
-  JpegCheck check;
-  jpeg_decompress_struct cinfo{};
-  cinfo.err = jpeg_std_error(&check.errors);
-  check.errors.error_exit = JpegFail;
-  check.errors.emit_message = JpegMessage;
-  check.progress.progress_monitor = JpegProgress;
-  check.max_scans = max_scans;
-  if (setjmp(check.failed) != 0) {
-    jpeg_destroy_decompress(&cinfo);
-    if (check.over_scan_limit) {
-      return Invalid("progressive JPEG has more than " + std::to_string(max_scans) +
-                     " scans (the limit; ordinary files have at most ~10): refused, as each scan costs a pass over the whole image");
-    }
-    return Invalid(std::string("JPEG data is corrupt or truncated (libjpeg: ") + check.message + ")");
-  }
-  jpeg_create_decompress(&cinfo);
-  cinfo.progress = &check.progress;
-  jpeg_mem_src(&cinfo, b.data(), static_cast<unsigned long>(b.size()));
-  jpeg_read_header(&cinfo, TRUE);
-  cinfo.scale_num = 1;
-  cinfo.scale_denom = 8;
-  cinfo.dct_method = JDCT_IFAST;
-  cinfo.do_fancy_upsampling = FALSE;
-  if (cinfo.jpeg_color_space == JCS_YCbCr || cinfo.jpeg_color_space == JCS_GRAYSCALE) cinfo.out_color_space = JCS_GRAYSCALE;
-  jpeg_start_decompress(&cinfo);
-  JSAMPARRAY row = (*cinfo.mem->alloc_sarray)(reinterpret_cast<j_common_ptr>(&cinfo), JPOOL_IMAGE,
-                                              cinfo.output_width * static_cast<JDIMENSION>(cinfo.output_components), 1);
-  while (cinfo.output_scanline < cinfo.output_height) jpeg_read_scanlines(&cinfo, row, 1);
-  jpeg_finish_decompress(&cinfo);  // reads on to the end marker: damage after the last row shows too
-  jpeg_destroy_decompress(&cinfo);
-  return Ok();
-}
+// OpenCV's TIFF reader ignores what libtiff's RGBA interface reports, so TIFF data first goes through
+// libtiff itself with its reports as errors, and OpenCV decodes only what passed (JPEG: image_decoders.h).
 
 // libtiff reads the bytes from memory through these callbacks; `error` keeps its first error message.
 struct TiffInput {
@@ -440,13 +354,11 @@ Status CheckTiffData(std::span<const uint8_t> b, const ImageHeaderInfo& header, 
 // an image it wrote itself. Asked only after a decode failed, to tell 415 from a corrupt file.
 bool OpenCvDecodes(ImageFormat format) {
   auto round_trip = [](const char* ext) {
-    try {
-      std::vector<uchar> bytes;
-      return cv::imencode(ext, cv::Mat(8, 8, CV_8UC1, cv::Scalar(128)), bytes) &&
-             !cv::imdecode(bytes, cv::IMREAD_GRAYSCALE).empty();
-    } catch (const cv::Exception&) {
-      return false;
-    }
+    std::vector<uint8_t> bytes;
+    const auto encoded = opencv_codecs::Encode(ext, cv::Mat(8, 8, CV_8UC1, cv::Scalar(128)), bytes);
+    if (!encoded || !*encoded) return false;
+    const auto decoded = opencv_codecs::Decode(bytes, cv::IMREAD_GRAYSCALE);
+    return decoded && !decoded->empty();
   };
   static const bool webp = round_trip(".webp");
   static const bool tiff = round_trip(".tiff");
@@ -563,20 +475,34 @@ Result<DecodedImage> DecodeImage(std::span<const uint8_t> bytes, const DecodeOpt
   const uint64_t declared = info->width * info->height;
   if (auto complete = CheckComplete(bytes, *info, scan_start, maxval, data_start); !complete)
     return std::unexpected(complete.error());
-  if (info->format == ImageFormat::kJpeg) {
-    if (auto intact = CheckJpegData(bytes, options.max_jpeg_scans); !intact) return std::unexpected(intact.error());
-  } else if (info->format == ImageFormat::kTiff) {
-    if (auto intact = CheckTiffData(bytes, *info, options); !intact) return std::unexpected(intact.error());
-  }
-
-  int flags = cv::IMREAD_GRAYSCALE;
-  if (!options.apply_exif_orientation) flags |= cv::IMREAD_IGNORE_ORIENTATION;
+  // JPEG, PNG and 8-bit PGM are decoded here (image_decoders.h); what those decoders leave (CMYK JPEG,
+  // other PNM, a PNG libpng refuses) and the other formats go to OpenCV's decoders.
   cv::Mat mat;
-  try {
-    const cv::Mat buffer(1, static_cast<int>(bytes.size()), CV_8U, const_cast<uint8_t*>(bytes.data()));
-    mat = cv::imdecode(buffer, flags);
-  } catch (const cv::Exception& e) {
-    return Invalid(std::string(ImageFormatName(info->format)) + " data could not be decoded: " + e.what());
+  switch (info->format) {
+    case ImageFormat::kJpeg: {
+      auto jpeg = internal::DecodeJpeg(bytes, options.max_jpeg_scans, true, options.apply_exif_orientation);
+      if (!jpeg) return std::unexpected(jpeg.error());
+      mat = std::move(*jpeg);
+      break;
+    }
+    case ImageFormat::kPng: mat = internal::DecodePngGray(bytes, options.apply_exif_orientation); break;
+    case ImageFormat::kPnm: mat = internal::DecodePgmGray(bytes, info->width, info->height, maxval, data_start); break;
+    case ImageFormat::kTiff:
+      if (auto intact = CheckTiffData(bytes, *info, options); !intact) return std::unexpected(intact.error());
+      break;
+    default: break;
+  }
+  if (mat.empty()) {
+    int flags = cv::IMREAD_GRAYSCALE;
+    if (!options.apply_exif_orientation) flags |= cv::IMREAD_IGNORE_ORIENTATION;
+    auto decoded = opencv_codecs::Decode(bytes, flags);
+    if (!decoded) {
+      Error error = decoded.error();
+      if (error.code == ErrorCode::kInvalidImage)
+        error.message = std::string(ImageFormatName(info->format)) + " data could not be decoded: " + error.message;
+      return std::unexpected(error);
+    }
+    mat = std::move(*decoded);
   }
   if (mat.empty()) {
     if (!OpenCvDecodes(info->format))
