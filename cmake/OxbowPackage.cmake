@@ -2,7 +2,8 @@
 # writes oxbow_<version>_<arch>.deb. Files: cmake/packaging/ (server/README.md, "Debian package").
 #
 # Two components:
-#   oxbow  /usr/bin/oxbow, its man pages (one per command, from the binary's --help) and the README.
+#   oxbow  /usr/bin/oxbow, its modules in /usr/lib/oxbow/ (MPI, the cluster's gRPC), its man pages (one per
+#          command, from the binary's --help) and the README.
 #          Also what `cmake --install build [--prefix P]` installs.
 #   deb    what only makes sense in the package, installed at fixed absolute paths the maintainer scripts
 #          and the unit name: oxbow.service, /etc/default/oxbow, the copyright file and changelog.
@@ -23,6 +24,9 @@ find_program(OXBOW_GZIP gzip REQUIRED)
 # server runs (lintian's hardening-no-bindnow); costs a few milliseconds at start.
 target_link_options(oxbow PRIVATE LINKER:-z,now)
 install(TARGETS oxbow RUNTIME DESTINATION "${CMAKE_INSTALL_BINDIR}" COMPONENT oxbow)
+# The run-time modules (server/cli/modules/module_loader.h): the binary looks for them in
+# <its folder>/../lib/oxbow, so the folder is lib/oxbow under the prefix, not the multiarch library folder.
+install(TARGETS oxbow_mpi oxbow_cluster_module LIBRARY DESTINATION lib/oxbow COMPONENT oxbow)
 # Generated at install time from the binary that is installed, so the pages always match it; costs the
 # normal build nothing (about 2 s, for cpack or cmake --install only).
 if(OXBOW_HELP2MAN)

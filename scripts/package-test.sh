@@ -8,7 +8,8 @@
 #   4. as root (CI) or with passwordless sudo: apt-get install of the .deb; the user, the unit and the
 #      settings are there; the installed /usr/bin/oxbow, run as the user oxbow the way server/README.md says,
 #      trains a tiny vocabulary, serves /var/lib/oxbow/index (created by the first start), takes images
-#      over HTTP and finds box_in_scene for box.png; under a running systemd, oxbow.service itself serves
+#      over HTTP and finds box_in_scene for box.png, and starts a shard's gRPC port (the cluster module in
+#      /usr/lib/oxbow); under a running systemd, oxbow.service itself serves
 #      it; then apt-get purge, and everything but the user and /var/lib/oxbow (kept on purge, as
 #      documented) is gone; the test deletes those two itself.
 # Otherwise step 4 is SKIPPED, saying why. It is also skipped on a machine that already has an oxbow
@@ -57,7 +58,7 @@ version=$(dpkg-deb -f "$deb" Version)
 contents=$(dpkg-deb -c "$deb" | awk '{ print $6 }')
 for path in ./usr/bin/oxbow ./lib/systemd/system/oxbow.service ./etc/default/oxbow ./usr/share/doc/oxbow/copyright \
             ./usr/share/doc/oxbow/changelog.gz ./usr/share/man/man1/oxbow.1.gz ./usr/share/man/man1/oxbow-serve.1.gz \
-            ./usr/share/man/man1/oxbow-index-build.1.gz; do
+            ./usr/share/man/man1/oxbow-index-build.1.gz ./usr/lib/oxbow/liboxbow_mpi.so ./usr/lib/oxbow/liboxbow_cluster.so; do
   grep -qx -- "$path" <<<"$contents" || fail "$path missing from $deb"
 done
 say "built $deb ($(du -k "$deb" | cut -f1) KiB; Depends: $(dpkg-deb -f "$deb" Depends))"
@@ -166,7 +167,18 @@ server_pid=
 "${as_oxbow[@]}" oxbow query --index /var/lib/oxbow/index "$samples/box.png" >"$work/query.json" 2>/dev/null || fail "oxbow query"
 python3 -c 'import json,sys; r = json.load(open(sys.argv[1]))["results"]; sys.exit(0 if len(r) == 8 and r[0]["id"] == "box_in_scene" else 1)' \
   "$work/query.json" || fail "oxbow query on the served index: $(head -c 400 "$work/query.json")"
-say "installed binary as user oxbow: vocab train, serve (created the index), 8 adds over HTTP, search, query: ok"
+# A shard's gRPC port: the binary loads its cluster module from /usr/lib/oxbow.
+"${as_oxbow[@]}" oxbow serve --index /var/lib/oxbow/index --port 0 --grpc-port 0 >"$work/shard.out" 2>"$work/shard.err" &
+server_pid=$!
+for _ in $(seq 100); do
+  grep -q '^listening on' "$work/shard.out" && break
+  sleep 0.1
+done
+grep -q '^shard listening on grpc://' "$work/shard.out" || { cat "$work/shard.err" >&2; fail "oxbow serve --grpc-port did not start (log above)"; }
+kill -TERM "$server_pid"
+wait "$server_pid" || fail "oxbow serve --grpc-port exited with $? after SIGTERM"
+server_pid=
+say "installed binary as user oxbow: vocab train, serve (created the index), 8 adds over HTTP, search, query, a shard's gRPC port: ok"
 
 if [[ -d /run/systemd/system ]]; then  # systemd runs: the unit itself, hardening included
   port=$(python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
@@ -186,7 +198,7 @@ fi
 as_root env DEBIAN_FRONTEND=noninteractive apt-get purge -y -qq oxbow >"$work/apt.log" 2>&1 || { cat "$work/apt.log" >&2; fail "apt-get purge oxbow"; }
 installed=0
 if dpkg-query -W -f='${Status}' oxbow 2>/dev/null | grep -q .; then fail "dpkg still lists oxbow after purge"; fi
-for path in /usr/bin/oxbow /lib/systemd/system/oxbow.service /etc/default/oxbow /usr/share/doc/oxbow \
+for path in /usr/bin/oxbow /usr/lib/oxbow /lib/systemd/system/oxbow.service /etc/default/oxbow /usr/share/doc/oxbow \
             /usr/share/man/man1/oxbow.1.gz /etc/systemd/system/oxbow.service \
             /var/lib/systemd/deb-systemd-helper-enabled/oxbow.service.dsh-also \
             /var/lib/systemd/deb-systemd-helper-masked/oxbow.service; do

@@ -1,8 +1,6 @@
 // MPI implementation of vocab::Communicator (see mpi_communicator.h).
 #include "server/cli/mpi_communicator.h"
 
-#include <mpi.h>
-
 #include <climits>
 #include <cstdio>
 #include <cstdlib>
@@ -11,6 +9,8 @@
 #include <vector>
 
 #include "server/cli/cli.h"
+#include "server/cli/modules/module_loader.h"
+#include "server/cli/modules/mpi_api.h"
 #include "sift/base/binary_io.h"
 #include "sift/base/log.h"
 
@@ -20,11 +20,23 @@ namespace {
 // MPI counts are int: large buffers go in pieces of at most kChunk elements.
 constexpr size_t kChunk = size_t{1} << 30;
 
+// The MPI module (modules/mpi_api.h), loaded on first use; CommandError when it cannot be.
+const MpiApi& Mpi() {
+  static const MpiApi* api = [] {
+    const auto entry = LoadModuleEntry("oxbow_mpi", kMpiApiEntry);
+    if (!entry) throw CommandError(entry.error());
+    const MpiApi* table = reinterpret_cast<MpiApiEntry>(*entry)(kMpiApiVersion);
+    if (table == nullptr) throw CommandError(ExitCodeFor(ErrorCode::kIncompatible), "the oxbow MPI module is of another oxbow version");
+    return table;
+  }();
+  return *api;
+}
+
 class MpiWorld final : public vocab::Communicator {
  public:
   MpiWorld() {
-    MPI_Comm_rank(MPI_COMM_WORLD, &rank_);
-    MPI_Comm_size(MPI_COMM_WORLD, &size_);
+    Mpi().rank(&rank_);
+    Mpi().size(&size_);
   }
   int rank() const override { return rank_; }
   int size() const override { return size_; }
@@ -32,25 +44,25 @@ class MpiWorld final : public vocab::Communicator {
   void SumInPlace(std::span<int64_t> values) override {
     for (size_t at = 0; at < values.size(); at += kChunk) {
       const int count = static_cast<int>(std::min(kChunk, values.size() - at));
-      MPI_Allreduce(MPI_IN_PLACE, values.data() + at, count, MPI_INT64_T, MPI_SUM, MPI_COMM_WORLD);
+      Mpi().sum_int64(values.data() + at, count);
     }
   }
   double Max(double value) override {
     double out = value;
-    MPI_Allreduce(&value, &out, 1, MPI_DOUBLE, MPI_MAX, MPI_COMM_WORLD);
+    Mpi().max_double(value, &out);
     return out;
   }
   void Broadcast(std::span<uint8_t> bytes) override {
     for (size_t at = 0; at < bytes.size(); at += kChunk) {
       const int count = static_cast<int>(std::min(kChunk, bytes.size() - at));
-      MPI_Bcast(bytes.data() + at, count, MPI_BYTE, 0, MPI_COMM_WORLD);
+      Mpi().broadcast(bytes.data() + at, count);
     }
   }
   std::vector<uint8_t> Allgather(std::span<const uint8_t> bytes) override {
     if (bytes.size() > INT_MAX) throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), "MPI message over 2 GiB");
     const int mine = static_cast<int>(bytes.size());
     std::vector<int> counts(size_), offsets(size_);
-    MPI_Allgather(&mine, 1, MPI_INT, counts.data(), 1, MPI_INT, MPI_COMM_WORLD);
+    Mpi().allgather_int(mine, counts.data());
     int64_t total = 0;
     for (int r = 0; r < size_; ++r) {
       if (total > INT_MAX) throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), "MPI gather over 2 GiB");
@@ -59,7 +71,7 @@ class MpiWorld final : public vocab::Communicator {
     }
     if (total > INT_MAX) throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), "MPI gather over 2 GiB");
     std::vector<uint8_t> out(static_cast<size_t>(total));
-    MPI_Allgatherv(bytes.data(), mine, MPI_BYTE, out.data(), counts.data(), offsets.data(), MPI_BYTE, MPI_COMM_WORLD);
+    Mpi().allgatherv_bytes(bytes.data(), mine, out.data(), counts.data(), offsets.data());
     return out;
   }
 
@@ -77,39 +89,37 @@ class AgreedError final : public CommandError {
 [[noreturn]] void AbortJob(int rank, const std::string& message, int exit_code) {
   std::fprintf(stderr, "oxbow: error (rank %d): %s\n", rank, message.c_str());
   std::fflush(stderr);
-  MPI_Abort(MPI_COMM_WORLD, exit_code);
+  Mpi().abort(exit_code);
   std::_Exit(exit_code);  // MPI_Abort does not return; this keeps the compiler's view honest
 }
 
 }  // namespace
 
 void RunWithMpi(const std::function<void(vocab::Communicator&)>& body) {
-  int initialized = 0;
-  MPI_Initialized(&initialized);
-  if (!initialized) MPI_Init(nullptr, nullptr);
+  Mpi().init();
   MpiWorld world;
   if (world.rank() != 0 && log::GetLevel() < log::Level::kWarning) log::SetLevel(log::Level::kWarning);
   try {
     body(world);
   } catch (const AgreedError& e) {
     // Every rank holds the same refusal: no abort; rank 0 reports it once, the others leave quietly.
-    MPI_Finalize();
+    Mpi().finalize();
     if (world.rank() == 0) throw CommandError(e.exit_code(), e.what());
     std::exit(e.exit_code());
   } catch (const CommandError& e) {
     if (world.size() == 1) {
-      MPI_Finalize();
+      Mpi().finalize();
       throw;
     }
     AbortJob(world.rank(), e.what(), e.exit_code());
   } catch (const std::exception& e) {
     if (world.size() == 1) {
-      MPI_Finalize();
+      Mpi().finalize();
       throw;
     }
     AbortJob(world.rank(), std::string("internal error: ") + e.what(), 1);
   }
-  MPI_Finalize();
+  Mpi().finalize();
 }
 
 void ThrowIfAnyRankRefuses(vocab::Communicator& comm, const std::optional<CommandError>& mine) {

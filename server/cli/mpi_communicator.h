@@ -1,6 +1,6 @@
 // vocab::Communicator over MPI (MPI_COMM_WORLD), for `--mpi` commands. MPI is initialised on first use
 // only, so commands without --mpi never touch it; started without mpirun, MPI runs as a singleton
-// (one rank). The only file of the CLI that includes <mpi.h>.
+// (one rank). MPI itself is in the module liboxbow_mpi.so (modules/mpi_api.h), loaded on first use.
 #pragma once
 
 #include <functional>

@@ -12,9 +12,7 @@
 #include "api/service.h"
 #include "server/cli/cli.h"
 #include "server/cli/common_flags.h"
-#include "server/cluster/front.h"
-#include "server/cluster/front_http.h"
-#include "server/cluster/shard_server.h"
+#include "server/cli/modules/cluster_api.h"
 #include "server/http/http_server.h"
 #include "server/cli/search_flags.h"
 #include "sift/base/log.h"
@@ -44,36 +42,17 @@ struct ServeFlags {
   cluster::FrontOptions front;
 };
 
-// `serve --cluster`: the front (server/cluster/front_http.h) over the shards cluster.json names.
+// `serve --cluster`: the front (server/cluster/front_http.h) over the shards cluster.json names, served
+// by the cluster module (modules/cluster_api.h).
 void ServeFront(const ServeFlags& flags, const server::HttpServerOptions& http,
                 const api::ServiceOptions& service_options, const sigset_t& signals) {
-  cluster::ClusterConfig config = ValueOrExit(cluster::ClusterConfig::Read(flags.cluster_file));
-  // The key sent to the shards: --cluster-key, else cluster.json's "key_file", else --api-key.
-  if (!flags.cluster_key.empty()) {
-    config.security.key = flags.cluster_key;
-  } else if (config.security.key.empty()) {
-    config.security.key = http.api_key;
-  }
-  std::shared_ptr<const cluster::ClusterFront> front = ValueOrExit(cluster::ClusterFront::Open(config, flags.front));
-  cluster::FrontHttpOptions options;
-  options.http = http;
-  options.service = service_options;
-  auto server = ValueOrExit(cluster::FrontHttpServer::Create(front, options));
-  const int port = ValueOrExit(server->Bind());
-  std::printf("listening on http://%s:%d\n", http.host.c_str(), port);
-  std::fflush(stdout);
-  OXBOW_LOG(kInfo) << "cluster front on http://" << http.host << ":" << port << " over " << front->num_partitions()
-                   << " partitions (" << flags.cluster_file << ")";
-  std::thread signal_waiter([&] {
-    int signal_number = 0;
-    sigwait(&signals, &signal_number);
-    OXBOW_LOG(kInfo) << "received a stop signal: finishing in-flight requests";
-    server->Shutdown();
-  });
-  server->Run();
-  pthread_kill(signal_waiter.native_handle(), SIGTERM);  // NOLINT(bugprone-bad-signal-to-kill-thread)
-  signal_waiter.join();
-  OXBOW_LOG(kInfo) << "stopped";
+  FrontArgs args;
+  args.cluster_file = flags.cluster_file;
+  args.cluster_key = flags.cluster_key;
+  args.front = flags.front;
+  args.http = http;
+  args.service = service_options;
+  Cluster().serve_front(args, signals);
 }
 
 void Serve(const ServeFlags& flags) {
@@ -123,20 +102,18 @@ void Serve(const ServeFlags& flags) {
 
   server::HttpServer server(http);
   const int port = ValueOrExit(server.Bind());
-  cluster::ShardServer shard;
+  std::unique_ptr<ShardApi> shard;  // the shard's gRPC API (cluster module), with --grpc-port
   if (flags.grpc_port >= 0) {
-    cluster::ShardServerOptions shard_options;
-    shard_options.security = flags.shard_security;
-    shard_options.security.key = flags.cluster_key.empty() ? http.api_key : flags.cluster_key;
+    cluster::ShardSecurity security = flags.shard_security;
+    security.key = flags.cluster_key.empty() ? http.api_key : flags.cluster_key;
+    shard = Cluster().new_shard();
     // The largest upload, and room for an add's id, metadata and source name.
-    shard_options.max_message_bytes = http.max_body_bytes + (1 << 20);
-    const int grpc_port = ValueOrExit(shard.Start(http.host, flags.grpc_port, shard_options));
+    const int grpc_port = ValueOrExit(shard->Start(http.host, flags.grpc_port, security, http.max_body_bytes + (1 << 20)));
     // Printed before the HTTP line, which tests and scripts wait for.
     std::printf("shard listening on grpc://%s:%d\n", http.host.c_str(), grpc_port);
     OXBOW_LOG(kInfo) << "cluster shard API (gRPC) on " << http.host << ":" << grpc_port
-                     << (shard_options.security.key.empty() ? "" : ", cluster key required")
-                     << (shard_options.security.tls() ? ", TLS" : "")
-                     << (shard_options.security.tls_client_ca_file.empty() ? "" : " with client certificates");
+                     << (security.key.empty() ? "" : ", cluster key required") << (security.tls() ? ", TLS" : "")
+                     << (security.tls_client_ca_file.empty() ? "" : " with client certificates");
   }
   // Tests and scripts parse this line for the port (it is printed once the socket accepts connections).
   std::printf("listening on http://%s:%d\n", http.host.c_str(), port);
@@ -164,7 +141,7 @@ void Serve(const ServeFlags& flags) {
                      << stats.index.num_features << " features, " << stats.index.vocabulary_size << " words, loaded in "
                      << std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() << " s";
     std::shared_ptr<api::Service> shared(std::move(*service));
-    shard.SetService(shared);
+    if (shard) shard->SetService(shared);
     server.SetService(std::move(shared));
   });
 
@@ -179,7 +156,7 @@ void Serve(const ServeFlags& flags) {
 
   server.Run();  // returns after Shutdown(), once in-flight requests are done
   loader.join();
-  shard.Shutdown();
+  if (shard) shard->Shutdown();
   // Wake the signal thread if the server stopped for another reason (index failed to load).
   // The waiter blocks SIGTERM and consumes it in sigwait(): this wakes it, it does not terminate anything.
   pthread_kill(signal_waiter.native_handle(), SIGTERM);  // NOLINT(bugprone-bad-signal-to-kill-thread)

@@ -1,7 +1,6 @@
 // The protection of front <-> shard calls (transport_security.h).
 #include "server/cluster/transport_security.h"
 
-#include <arpa/inet.h>
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/security/credentials.h>
 #include <grpcpp/security/server_credentials.h>
@@ -12,14 +11,6 @@
 #include "server/http/http_server.h"
 
 namespace oxbow::cluster {
-
-Status ShardSecurity::Check() const {
-  if (tls_cert_file.empty() != tls_key_file.empty())
-    return Fail(ErrorCode::kInvalidArgument, "TLS needs both a certificate and its private key (--grpc-tls-cert, --grpc-tls-key)");
-  if (!tls_client_ca_file.empty() && !tls())
-    return Fail(ErrorCode::kInvalidArgument, "--grpc-tls-client-ca needs TLS (--grpc-tls-cert, --grpc-tls-key)");
-  return Ok();
-}
 
 Result<std::string> ReadSmallFile(const std::string& path, std::string_view what) {
   std::ifstream in(path, std::ios::binary);
@@ -82,14 +73,6 @@ grpc::Status Authorize(const grpc::ServerContext& context, const std::string& ke
   if (!server::ConstantTimeEquals(std::string(value.substr(kBearerPrefix.size())), key))
     return {grpc::StatusCode::PERMISSION_DENIED, "wrong cluster key"};
   return grpc::Status::OK;
-}
-
-bool IsLoopbackHost(std::string_view host) {
-  if (host == "localhost" || host == "::1" || host == "[::1]") return true;
-  in_addr v4{};
-  const std::string text(host);
-  if (inet_pton(AF_INET, text.c_str(), &v4) == 1) return (ntohl(v4.s_addr) >> 24) == 127;
-  return false;
 }
 
 }  // namespace oxbow::cluster

@@ -1,0 +1,71 @@
+// liboxbow_cluster.so: cluster_api.h over server/cluster (gRPC). Loaded by serve_command.cc.
+#include <pthread.h>
+
+#include <cstdio>
+#include <thread>
+
+#include "server/cli/cli.h"
+#include "server/cli/modules/cluster_api.h"
+#include "server/cluster/front_http.h"
+#include "server/cluster/shard_server.h"
+#include "sift/base/log.h"
+
+namespace oxbow::cli {
+namespace {
+
+void ServeFront(const FrontArgs& args, const sigset_t& signals) {
+  cluster::ClusterConfig config = ValueOrExit(cluster::ClusterConfig::Read(args.cluster_file));
+  // The key sent to the shards: --cluster-key, else cluster.json's "key_file", else --api-key.
+  if (!args.cluster_key.empty()) {
+    config.security.key = args.cluster_key;
+  } else if (config.security.key.empty()) {
+    config.security.key = args.http.api_key;
+  }
+  std::shared_ptr<const cluster::ClusterFront> front = ValueOrExit(cluster::ClusterFront::Open(config, args.front));
+  cluster::FrontHttpOptions options;
+  options.http = args.http;
+  options.service = args.service;
+  auto server = ValueOrExit(cluster::FrontHttpServer::Create(front, options));
+  const int port = ValueOrExit(server->Bind());
+  std::printf("listening on http://%s:%d\n", args.http.host.c_str(), port);
+  std::fflush(stdout);
+  OXBOW_LOG(kInfo) << "cluster front on http://" << args.http.host << ":" << port << " over " << front->num_partitions()
+                   << " partitions (" << args.cluster_file << ")";
+  std::thread signal_waiter([&] {
+    int signal_number = 0;
+    sigwait(&signals, &signal_number);
+    OXBOW_LOG(kInfo) << "received a stop signal: finishing in-flight requests";
+    server->Shutdown();
+  });
+  server->Run();
+  pthread_kill(signal_waiter.native_handle(), SIGTERM);  // NOLINT(bugprone-bad-signal-to-kill-thread)
+  signal_waiter.join();
+  OXBOW_LOG(kInfo) << "stopped";
+}
+
+class Shard final : public ShardApi {
+ public:
+  Result<int> Start(const std::string& host, int port, const cluster::ShardSecurity& security,
+                    uint64_t max_message_bytes) override {
+    cluster::ShardServerOptions options;
+    options.security = security;
+    options.max_message_bytes = max_message_bytes;
+    return server_.Start(host, port, options);
+  }
+  void SetService(std::shared_ptr<api::Service> service) override { server_.SetService(std::move(service)); }
+  void Shutdown() override { server_.Shutdown(); }
+
+ private:
+  cluster::ShardServer server_;
+};
+
+std::unique_ptr<ShardApi> NewShard() { return std::make_unique<Shard>(); }
+
+constexpr ClusterApi kApi{kClusterApiVersion, ServeFront, NewShard};
+
+}  // namespace
+}  // namespace oxbow::cli
+
+extern "C" __attribute__((visibility("default"))) const oxbow::cli::ClusterApi* oxbow_cluster_api(int version) {
+  return version == oxbow::cli::kClusterApiVersion ? &oxbow::cli::kApi : nullptr;
+}
