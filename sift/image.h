@@ -1,7 +1,6 @@
 // Image decoding into the float grey images the SIFT extractor works on.
 //
-// DecodeImage accepts JPEG, PNG, PPM/PGM (binary P5/P6), WebP, TIFF and BMP: JPEG, PNG and 8-bit PGM are
-// decoded by image_decoders.h (libjpeg, libpng), the rest by OpenCV (opencv_codecs.h). Before any pixel is
+// DecodeImage accepts JPEG, PNG, PPM/PGM (binary P5/P6), WebP, TIFF and BMP. Before any pixel is
 // allocated it reads the image dimensions from the file header itself (not from OpenCV, which would
 // decode first) and refuses images whose declared width*height exceeds DecodeOptions::max_pixels, so a
 // small file declaring a huge image (a "decompression bomb") costs nothing (TIFF: the dimensions libtiff
@@ -11,10 +10,10 @@
 // in grey and go on), so a JPEG cut short with an end marker appended, a frame header larger than its
 // data, or a TIFF strip that does not decompress are refused; so is a progressive JPEG with more than
 // DecodeOptions::max_jpeg_scans scans (each scan costs a pass over every block of the image).
-// The EXIF orientation tag of JPEG and PNG files is honoured (the image is rotated/flipped upright), and the
+// The EXIF orientation tag of JPEG files is honoured (the image is rotated/flipped upright), and the
 // result can be downscaled (area averaging) so that its longest side is at most max_image_side_px.
 //
-// Thread safety: all functions are reentrant (OpenCV's codec library is loaded once, thread-safely).
+// Thread safety: all functions are reentrant (no shared state).
 #pragma once
 
 #include <cstdint>
