@@ -1,5 +1,6 @@
 // The decoders of image_decoders.h against cv::imdecode(IMREAD_GRAYSCALE), pixel for pixel: every JPEG,
-// PNG and PGM of OpenCV's sample data, the evaluation photos when ../shared/data is there, PNG files of
+// PNG and PGM of OpenCV's sample data, the evaluation photos (suite ImageDecodersSharedData, a ctest of its
+// own that is skipped without ../shared/data or $OXBOW_SHARED_DATA), PNG files of
 // every colour type and bit depth, and EXIF orientations in JPEG APP1 segments and PNG eXIf chunks.
 #include "sift/image_decoders.h"
 
@@ -18,6 +19,7 @@
 
 #include "sift/base/binary_io.h"
 #include "sift/image.h"
+#include "tests/support/shared_data.h"
 
 namespace oxbow::sift::internal {
 namespace {
@@ -25,7 +27,6 @@ namespace {
 namespace fs = std::filesystem;
 
 const fs::path kOpencvData = "/usr/share/doc/opencv-doc/examples/data";
-const fs::path kSharedData = fs::path(OXBOW_SOURCE_DIR) / ".." / "shared" / "data";
 
 // What image.cc's own decoders give for the file, or an empty Mat where they leave it to OpenCV.
 cv::Mat Native(const std::vector<uint8_t>& bytes) {
@@ -78,10 +79,13 @@ TEST(ImageDecoders, MatchOpenCvOnItsSampleImages) {
   EXPECT_GE(compared, 50);
 }
 
-TEST(ImageDecoders, MatchOpenCvOnTheEvaluationPhotos) {
-  if (!fs::is_directory(kSharedData)) GTEST_SKIP() << "no evaluation data at " << kSharedData;
+TEST(ImageDecodersSharedData, MatchOpenCvOnTheEvaluationPhotos) {
+  const fs::path data = oxbow::testing::SharedDataDir();
+  if (!fs::is_directory(data)) {
+    GTEST_SKIP() << "shared data not found at " << data << " (set OXBOW_SHARED_DATA; see tests/support/shared_data.h)";
+  }
   std::vector<fs::path> files;
-  for (const auto& entry : fs::recursive_directory_iterator(kSharedData)) {
+  for (const auto& entry : fs::recursive_directory_iterator(data)) {
     if (entry.is_regular_file() && IsJpegPngOrPgm(entry.path())) files.push_back(entry.path());
   }
   std::sort(files.begin(), files.end());
