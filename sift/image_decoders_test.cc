@@ -156,16 +156,14 @@ std::vector<uint8_t> MakePng(const PngSpec& spec, int width = 37, int height = 2
   if (spec.gamma) png_set_gAMA(png, info, 1 / 2.2);
   if (!spec.exif.empty()) png_set_eXIf_1(png, info, static_cast<png_uint_32>(spec.exif.size()), const_cast<png_bytep>(spec.exif.data()));
   png_write_info(png, info);
-  const int channels = png_get_channels(png, info);
   const size_t row_bytes = png_get_rowbytes(png, info);
   std::mt19937 random(static_cast<unsigned>(spec.colour_type * 100 + spec.bit_depth));
   std::vector<std::vector<png_byte>> rows(static_cast<size_t>(height), std::vector<png_byte>(row_bytes));
   for (int y = 0; y < height; ++y)
     for (size_t b = 0; b < row_bytes; ++b)  // a ramp with noise, so that every channel and bit varies
       rows[static_cast<size_t>(y)][b] = static_cast<png_byte>((b * 7 + static_cast<size_t>(y) * 11 + random() % 64) % 256);
-  (void)channels;
-  std::vector<png_bytep> pointers;
-  for (auto& row : rows) pointers.push_back(row.data());
+  std::vector<png_bytep> pointers(rows.size());
+  for (size_t y = 0; y < rows.size(); ++y) pointers[y] = rows[y].data();
   png_write_image(png, pointers.data());
   png_write_end(png, info);
   png_destroy_write_struct(&png, &info);

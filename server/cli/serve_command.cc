@@ -55,6 +55,23 @@ void ServeFront(const ServeFlags& flags, const server::HttpServerOptions& http,
   Cluster().serve_front(args, signals);
 }
 
+// `serve --grpc-port`: the shard's gRPC API (cluster module), started before the index is loaded; null
+// without --grpc-port.
+std::unique_ptr<ShardApi> StartShard(const ServeFlags& flags, const server::HttpServerOptions& http) {
+  if (flags.grpc_port < 0) return nullptr;
+  cluster::ShardSecurity security = flags.shard_security;
+  security.key = flags.cluster_key.empty() ? http.api_key : flags.cluster_key;
+  std::unique_ptr<ShardApi> shard = Cluster().new_shard();
+  // The largest upload, and room for an add's id, metadata and source name.
+  const int grpc_port = ValueOrExit(shard->Start(http.host, flags.grpc_port, security, http.max_body_bytes + (1 << 20)));
+  // Printed before the HTTP line, which tests and scripts wait for.
+  std::printf("shard listening on grpc://%s:%d\n", http.host.c_str(), grpc_port);
+  OXBOW_LOG(kInfo) << "cluster shard API (gRPC) on " << http.host << ":" << grpc_port
+                   << (security.key.empty() ? "" : ", cluster key required") << (security.tls() ? ", TLS" : "")
+                   << (security.tls_client_ca_file.empty() ? "" : " with client certificates");
+  return shard;
+}
+
 void Serve(const ServeFlags& flags) {
   log::Format log_format = log::Format::kText;
   if (!log::ParseFormat(flags.log_format, &log_format)) throw CommandError(2, "--log-format must be text or json");
@@ -102,19 +119,7 @@ void Serve(const ServeFlags& flags) {
 
   server::HttpServer server(http);
   const int port = ValueOrExit(server.Bind());
-  std::unique_ptr<ShardApi> shard;  // the shard's gRPC API (cluster module), with --grpc-port
-  if (flags.grpc_port >= 0) {
-    cluster::ShardSecurity security = flags.shard_security;
-    security.key = flags.cluster_key.empty() ? http.api_key : flags.cluster_key;
-    shard = Cluster().new_shard();
-    // The largest upload, and room for an add's id, metadata and source name.
-    const int grpc_port = ValueOrExit(shard->Start(http.host, flags.grpc_port, security, http.max_body_bytes + (1 << 20)));
-    // Printed before the HTTP line, which tests and scripts wait for.
-    std::printf("shard listening on grpc://%s:%d\n", http.host.c_str(), grpc_port);
-    OXBOW_LOG(kInfo) << "cluster shard API (gRPC) on " << http.host << ":" << grpc_port
-                     << (security.key.empty() ? "" : ", cluster key required") << (security.tls() ? ", TLS" : "")
-                     << (security.tls_client_ca_file.empty() ? "" : " with client certificates");
-  }
+  const std::unique_ptr<ShardApi> shard = StartShard(flags, http);
   // Tests and scripts parse this line for the port (it is printed once the socket accepts connections).
   std::printf("listening on http://%s:%d\n", http.host.c_str(), port);
   std::fflush(stdout);
