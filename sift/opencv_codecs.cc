@@ -2,8 +2,8 @@
 
 #include <dlfcn.h>
 
-#include <mutex>
 #include <string_view>
+#include <type_traits>
 
 #include <opencv2/imgcodecs.hpp>
 
@@ -69,50 +69,38 @@ const Library& Load() {
   return library;
 }
 
-std::unexpected<Error> Unavailable(const Library& library) { return Fail(ErrorCode::kUnsupportedFormat, library.error); }
+// Calls `call(library)` once the library is loaded; an exception OpenCV throws becomes `failure`.
+template <typename Call>
+auto Guarded(ErrorCode failure, Call&& call) -> Result<decltype(call(Load()))> {
+  const Library& library = Load();
+  if (!library.error.empty()) return Fail(ErrorCode::kUnsupportedFormat, library.error);
+  try {
+    return call(library);
+  } catch (const cv::Exception& e) {
+    return Fail(failure, e.what());
+  }
+}
 
 }  // namespace
 
 Result<cv::Mat> Decode(std::span<const uint8_t> bytes, int flags) {
-  const Library& library = Load();
-  if (!library.error.empty()) return Unavailable(library);
-  try {
+  return Guarded(ErrorCode::kInvalidImage, [&](const Library& library) {
     const cv::Mat buffer(1, static_cast<int>(bytes.size()), CV_8U, const_cast<uint8_t*>(bytes.data()));
     return library.imdecode(buffer, flags);
-  } catch (const cv::Exception& e) {
-    return Fail(ErrorCode::kInvalidImage, e.what());
-  }
+  });
 }
 
 Result<bool> Encode(const std::string& extension, const cv::Mat& image, std::vector<uint8_t>& out,
                     const std::vector<int>& params) {
-  const Library& library = Load();
-  if (!library.error.empty()) return Unavailable(library);
-  try {
-    return library.imencode(extension, image, out, params);
-  } catch (const cv::Exception& e) {
-    return Fail(ErrorCode::kIoError, e.what());
-  }
+  return Guarded(ErrorCode::kIoError, [&](const Library& library) { return library.imencode(extension, image, out, params); });
 }
 
 Result<cv::Mat> Read(const std::string& path, int flags) {
-  const Library& library = Load();
-  if (!library.error.empty()) return Unavailable(library);
-  try {
-    return library.imread(path, flags);
-  } catch (const cv::Exception& e) {
-    return Fail(ErrorCode::kInvalidImage, e.what());
-  }
+  return Guarded(ErrorCode::kInvalidImage, [&](const Library& library) { return library.imread(path, flags); });
 }
 
 Result<bool> Write(const std::string& path, const cv::Mat& image, const std::vector<int>& params) {
-  const Library& library = Load();
-  if (!library.error.empty()) return Unavailable(library);
-  try {
-    return library.imwrite(path, image, params);
-  } catch (const cv::Exception& e) {
-    return Fail(ErrorCode::kIoError, e.what());
-  }
+  return Guarded(ErrorCode::kIoError, [&](const Library& library) { return library.imwrite(path, image, params); });
 }
 
 }  // namespace oxbow::sift::opencv_codecs
