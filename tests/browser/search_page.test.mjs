@@ -1,6 +1,7 @@
 // End-to-end test of the search page in a real headless browser (Debian's /usr/bin/chromium driven by
 // playwright-core): builds a small index of opencv-doc photos with the oxbow CLI, starts
-// `oxbow serve --port 0 --api-key ...`, and drives the page as a person would. Saves screenshots.
+// `oxbow serve --port 0 --api-key ...`, and drives the page as a person would; then serves a data folder
+// of collections (`oxbow serve --data`) and drives the collection picker. Saves screenshots.
 //
 //   node tests/browser/search_page.test.mjs --oxbow build/server/oxbow --work /tmp/x --artifacts build/test-artifacts/browser
 //
@@ -14,6 +15,8 @@ import readline from 'node:readline';
 const SAMPLES = '/usr/share/doc/opencv-doc/examples/data';
 const INDEXED = ['box_in_scene.png', 'graf1.png', 'graf3.png', 'leuvenA.jpg', 'leuvenB.jpg', 'baboon.jpg',
                  'fruits.jpg', 'building.jpg'];
+// The second collection of the data folder (step 9): photos of which only box_in_scene is in the first.
+const LEUVEN = ['leuvenA.jpg', 'leuvenB.jpg', 'box_in_scene.png'];
 const API_KEY = 'browser-test-key';
 
 function parseArgs() {
@@ -41,9 +44,10 @@ function fatal(message) {
   process.exit(1);
 }
 
-function startServer(oxbow, indexDir, logPath) {
+// `oxbow serve` over `what` (['--index', DIR] or ['--data', DIR]).
+function startServer(oxbow, what, logPath) {
   const log = fs.openSync(logPath, 'a');
-  const child = spawn(oxbow, ['serve', '--index', indexDir, '--port', '0', '--api-key', API_KEY, '--http-workers', '4'],
+  const child = spawn(oxbow, ['serve', ...what, '--port', '0', '--api-key', API_KEY, '--http-workers', '4'],
                       { stdio: ['ignore', 'pipe', log] });
   return new Promise((resolve, reject) => {
     const timer = setTimeout(() => reject(new Error('no "listening on" line within 60 s; see ' + logPath)), 60000);
@@ -147,7 +151,18 @@ async function main() {
   const jpeg = fs.readFileSync(path.join(SAMPLES, 'leuvenA.jpg'));
   fs.writeFileSync(truncated, jpeg.subarray(0, Math.floor(jpeg.length / 2)));
 
-  const { child, url } = await startServer(args.oxbow, indexDir, path.join(args.work, 'serve.log'));
+  // A data folder of two collections put there by hand (so public, without limits): `default`, a copy of
+  // the index, and `leuven`, three photos over the same vocabulary.
+  const dataDir = path.join(args.work, 'data');
+  fs.rmSync(dataDir, { recursive: true, force: true });
+  fs.mkdirSync(dataDir, { recursive: true });
+  fs.cpSync(indexDir, path.join(dataDir, 'default'), { recursive: true });
+  const leuvenList = path.join(args.work, 'leuven.txt');
+  fs.writeFileSync(leuvenList, LEUVEN.map((n) => path.join(SAMPLES, n)).join('\n') + '\n');
+  execFileSync(args.oxbow, ['index', 'build', '--vocab', vocab, '--list', leuvenList, '--out', path.join(dataDir, 'leuven')], quiet);
+
+  const { child, url } = await startServer(args.oxbow, ['--index', indexDir], path.join(args.work, 'serve.log'));
+  let data = null;  // the server of the data folder (step 9)
   const browser = await chromium.launch({ executablePath: args.chromium, headless: true,
                                           args: ['--no-sandbox', '--disable-dev-shm-usage'] });
   const shot = async (page, name) => {
@@ -162,7 +177,7 @@ async function main() {
     context.setDefaultTimeout(60000);  // generous: ctest runs other suites beside this one on few cores
     page = await context.newPage();
     const consoleErrors = [];
-    page.on('console', (m) => { if (m.type() === 'error') consoleErrors.push(m.text()); });
+    page.on('console', (m) => { if (m.type() === 'error') consoleErrors.push(`${m.text()} ${m.location().url || ''}`); });
     page.on('pageerror', (e) => consoleErrors.push(e.message));
     page.on('dialog', (d) => d.accept());  // the delete confirmation
 
@@ -287,7 +302,8 @@ async function main() {
     await page.click('#collection li[data-id="uploaded-box"] button.danger');
     await page.waitForFunction(() => /Deleted uploaded-box/.test(document.getElementById('messages').textContent));
     check((await page.$('#collection li[data-id="uploaded-box"]')) === null, 'the deleted image left the collection');
-    check(consoleErrors.filter((e) => !/status of (400|401|413)/.test(e)).length === 0,
+    // (A server without collections answers GET /v1/collections 404: the picker stays hidden.)
+    check(consoleErrors.filter((e) => !/status of (400|401|413)/.test(e) && !/status of 404.*\/v1\/collections$/.test(e)).length === 0,
           `no script errors (${consoleErrors.join(' | ')})`);
     await context.close();
 
@@ -304,6 +320,102 @@ async function main() {
     check(overflow <= 0, `phone width: no horizontal overflow (${overflow} px)`);
     await shot(small, 'phone.png');
     await phone.close();
+
+    // 9. Collections: `oxbow serve --data` over the data folder. The picker lists what the key may read,
+    //    and the chosen collection's routes (/v1/collections/{name}/...) serve every search, thumbnail,
+    //    list and status request; "default" is served by the routes without a prefix.
+    data = await startServer(args.oxbow, ['--data', dataDir], path.join(args.work, 'serve-data.log'));
+    await waitReady(data.url);
+    const made = await fetch(`${data.url}/v1/collections`, {
+      method: 'POST', headers: { 'X-API-Key': API_KEY, 'Content-Type': 'application/json' },
+      body: JSON.stringify({ name: 'private', vocabulary: { like: 'default' } }) });
+    check(made.status === 201, `the admin key creates a private collection (HTTP ${made.status})`);
+    const collections = await browser.newContext({ viewport: { width: 1280, height: 900 } });
+    collections.setDefaultTimeout(60000);
+    page = await collections.newPage();
+    const pickerErrors = [];
+    page.on('console', (m) => { if (m.type() === 'error') pickerErrors.push(`${m.text()} ${m.location().url || ''}`); });
+    page.on('pageerror', (e) => pickerErrors.push(e.message));
+    const requested = [];
+    page.on('request', (r) => requested.push(new URL(r.url()).pathname));
+    const options = () => page.$$eval('#collection-select option', (list) => list.map((o) => o.value).join(','));
+    const statusShows = (n) => page.waitForFunction((k) => new RegExp(`\\b${k} images\\b`).test(document.getElementById('status').textContent), n);
+
+    await page.goto(data.url + '/');
+    await page.waitForSelector('body[data-ready="true"]');
+    check(await page.isVisible('#collection-select'), 'the collection picker is shown');
+    check(await page.$eval('#collection-select', (s) => [...s.labels].map((l) => l.textContent.trim()).join()) === 'Collection',
+          'the picker is labelled "Collection"');
+    check((await options()) === 'default,leuven', `without a key it lists the public collections (${await options()})`);
+    check((await page.inputValue('#collection-select')) === 'default', 'default is chosen first');
+    await statusShows(8);
+    check(requested.includes('/v1/stats') && !requested.some((p) => /^\/v1\/collections\/default\//.test(p)),
+          'default is served by the routes without a prefix');
+
+    // Chosen from the keyboard: the status strip, searches, thumbnails and the images tab follow.
+    await page.focus('#collection-select');
+    await page.keyboard.press('ArrowDown');
+    await statusShows(3);
+    check((await page.inputValue('#collection-select')) === 'leuven', 'ArrowDown on the picker chooses leuven (3 images)');
+    requested.length = 0;
+    await page.setInputFiles('#query-file', path.join(SAMPLES, 'box.png'));
+    await page.waitForSelector('#results li');
+    await page.waitForFunction(() => [...document.querySelectorAll('#results img')].every((i) => i.complete && i.naturalWidth > 0));
+    const found = await page.$$eval('#results li', (list) => list.map((li) => li.dataset.id));
+    check(found[0] === 'box_in_scene' && found.every((id) => ['leuvenA', 'leuvenB', 'box_in_scene'].includes(id)),
+          `the search found leuven's images only, box_in_scene first (${found})`);
+    check(requested.includes('/v1/collections/leuven/search') && !requested.includes('/v1/search'),
+          'the search went to /v1/collections/leuven/search');
+    const pictures = await page.$$eval('#results img', (list) => list.map((i) => new URL(i.src).pathname));
+    check(pictures.length > 0 && pictures.every((p) => /^\/v1\/collections\/leuven\/images\/[^/]+\/thumbnail$/.test(p)),
+          `the thumbnails are leuven's (${pictures[0]})`);
+    await shot(page, 'collections.png');
+    await page.fill('#query-id', 'leuvenA');
+    await page.click('#search-id-button');
+    await page.waitForFunction(() => document.querySelector('#results li')?.dataset.id === 'leuvenA');
+    check(requested.includes('/v1/collections/leuven/images/leuvenA') &&
+          requested.includes('/v1/collections/leuven/images/leuvenA/similar'), 'a search by id asks leuven');
+    await page.click('#tab-browse');
+    await page.waitForFunction(() => document.querySelectorAll('#collection li').length === 3);
+    check(requested.includes('/v1/collections/leuven/images'), 'the images tab lists leuven');
+
+    // The choice is kept for the tab; a new key reads the list again.
+    await page.reload();
+    await page.waitForSelector('body[data-ready="true"]');
+    check((await page.inputValue('#collection-select')) === 'leuven', 'a reload keeps leuven chosen');
+    await statusShows(3);
+    await page.click('#key-button');
+    await page.waitForSelector('#key-dialog[open]');
+    await page.fill('#key-input', API_KEY);
+    await page.click('#key-ok');
+    await page.waitForFunction(() => [...document.querySelectorAll('#collection-select option')].some((o) => o.value === 'private'));
+    check((await options()) === 'default,leuven,private', `with the admin key it lists every collection (${await options()})`);
+    check((await page.inputValue('#collection-select')) === 'leuven', 'the new key keeps leuven chosen');
+
+    // Back to default: the photo is searched again, through /v1/search.
+    await page.click('#tab-search');
+    await page.setInputFiles('#query-file', path.join(SAMPLES, 'box.png'));
+    await page.waitForSelector('#results li');
+    requested.length = 0;
+    await Promise.all([page.waitForRequest((r) => new URL(r.url()).pathname === '/v1/search'),
+                       page.selectOption('#collection-select', 'default')]);
+    await page.waitForSelector('#results li');
+    await statusShows(8);
+    check(!requested.some((p) => p.startsWith('/v1/collections/')), 'default: no request under /v1/collections/');
+    const metrics = await (await fetch(`${data.url}/metrics`)).text();
+    check(/^oxbow_http_requests_total\{.*collection="leuven".*\} \d/m.test(metrics), 'the request metrics carry collection="leuven"');
+    check(pickerErrors.length === 0, `no script errors with collections (${pickerErrors.join(' | ')})`);
+
+    // A server without collections answers GET /v1/collections 404: no picker, the routes of /v1.
+    const older = await collections.newPage();
+    await older.route('**/v1/collections', (route) => route.fulfill({
+      status: 404, contentType: 'application/json',
+      body: JSON.stringify({ error: { code: 'not_found', message: 'no route', request_id: 'test' } }) }));
+    await older.goto(data.url + '/');
+    await older.waitForSelector('body[data-ready="true"]');
+    await older.waitForFunction(() => /\b8 images\b/.test(document.getElementById('status').textContent));
+    check(!(await older.isVisible('#collection-select')), 'GET /v1/collections 404: the picker stays hidden');
+    await collections.close();
   } catch (e) {
     failures++;
     console.error('FAIL', e.stack || e.message);
@@ -311,6 +423,7 @@ async function main() {
   } finally {
     await browser.close();
     child.kill('SIGTERM');
+    if (data) data.child.kill('SIGTERM');
   }
   console.log(failures === 0 ? 'search_page.test: all checks passed' : `search_page.test: ${failures} check(s) failed`);
   process.exit(failures === 0 ? 0 : 1);

@@ -4,6 +4,9 @@
 //   GET  /v1/images/{id}/thumbnail      result and collection thumbnails
 //   POST /v1/match?correspondences=true the match view's lines (query photo vs the result's thumbnail)
 //   GET/POST/DELETE /v1/images          the collection; GET /v1/stats the status strip
+//   GET  /v1/collections                the collection picker: with a collection other than "default"
+//                                       chosen, the routes above (not /v1/match) are those of
+//                                       /v1/collections/{name}/... (see v1() below)
 // No framework, no build step, no network access beyond this server.
 
 const $ = (id) => document.getElementById(id);
@@ -11,12 +14,15 @@ const SVG_NS = 'http://www.w3.org/2000/svg';
 const PAGE_SIZE = 24;
 const MATCH_THUMBNAIL_PX = 512;  // the largest thumbnail the server keeps
 const MAX_LINES = 150;           // correspondence lines drawn in the match view at most
+const DEFAULT_COLLECTION = 'default';  // the collection of the routes without /v1/collections/{name}
 
 const state = {
   query: null,        // {kind: 'file', file, url, width, height} | {kind: 'id', id, url, width, height}
   box: null,          // [x1, y1, x2, y2] in query pixels, or null
   lastResponse: null, // the last search response
   offset: 0,          // collection page
+  collection: sessionStorage.getItem('oxbow-collection') || '',  // '' until the server lists its collections
+  collections: [],    // the names GET /v1/collections listed (none from a server without collections)
 };
 
 // ---- API ---------------------------------------------------------------------------------------
@@ -31,6 +37,14 @@ class ApiError extends Error {
 }
 
 function apiKey() { return sessionStorage.getItem('oxbow-api-key') || ''; }
+
+// The path of an image, search or stats route ('/search', '/images/ID/thumbnail?size=256', ...) in the
+// chosen collection: /v1/collections/{name}/... for a collection other than "default", else /v1/...
+// Every such request of the page takes its path from here.
+function v1(route) {
+  const name = state.collection;
+  return name && name !== DEFAULT_COLLECTION ? `/v1/collections/${encodeURIComponent(name)}${route}` : `/v1${route}`;
+}
 
 async function api(path, options = {}) {
   const headers = new Headers(options.headers || {});
@@ -71,6 +85,7 @@ function explain(error) {
     unavailable: 'The server is busy or still loading its index; try again in a moment.',
     resource_exhausted: 'The server is busy; try again in a moment.',
     not_found: 'Not found.',
+    collection_full: 'The collection is full.',
     already_exists: 'An image with this id is already in the collection.',
     invalid_argument: 'The request was not valid.',
     incompatible: 'The request does not fit this index.',
@@ -121,7 +136,7 @@ async function refreshStatus() {
   const el = $('status');
   let text;
   try {
-    const s = await apiJson('/v1/stats');
+    const s = await apiJson(v1('/stats'));
     text = `${s.images.toLocaleString()} images · ${s.features.toLocaleString()} features · ` +
            `${s.words.toLocaleString()} words · up ${formatUptime(s.uptime_s)}`;
   } catch (e) {
@@ -140,7 +155,7 @@ function svgElement(name, attributes) {
 }
 
 function thumbnailUrl(id, size) {
-  return `/v1/images/${encodeURIComponent(id)}/thumbnail?size=${size}`;
+  return v1(`/images/${encodeURIComponent(id)}/thumbnail?size=${size}`);
 }
 
 // A picture with an SVG overlay in the image's own pixel coordinates (viewBox 0 0 width height).
@@ -187,7 +202,7 @@ async function setQueryFile(file) {
 async function setQueryId(id) {
   let record;
   try {
-    record = await apiJson(`/v1/images/${encodeURIComponent(id)}`);
+    record = await apiJson(v1(`/images/${encodeURIComponent(id)}`));
   } catch (e) {
     showError(e);
     return;
@@ -230,14 +245,14 @@ async function runSearch() {
     if (state.query.kind === 'file') {
       const form = new FormData();
       form.append('file', state.query.file, state.query.file.name);
-      response = await apiJson(`/v1/search?${params}`, { method: 'POST', body: form });
+      response = await apiJson(v1(`/search?${params}`), { method: 'POST', body: form });
       // The server's size is authoritative (EXIF orientation, formats the browser cannot show).
       state.query.width = response.query.width;
       state.query.height = response.query.height;
       $('query-overlay').setAttribute('viewBox', `0 0 ${state.query.width} ${state.query.height}`);
       $('query-frame').style.aspectRatio = `${state.query.width} / ${state.query.height}`;
     } else {
-      response = await apiJson(`/v1/images/${encodeURIComponent(state.query.id)}/similar?${params}`);
+      response = await apiJson(v1(`/images/${encodeURIComponent(state.query.id)}/similar?${params}`));
     }
   } catch (e) {
     $('results').removeAttribute('aria-busy');
@@ -516,14 +531,21 @@ async function withApiKey(action) {
   return action();
 }
 
-function askForKey(reason) {
+// Asks for the API key; resolves true when one was given. With allowEmpty an empty key is taken too (it
+// forgets the key). A new key may read other collections: the picker's list is read again.
+function askForKey(reason, allowEmpty = false) {
   const dialog = $('key-dialog');
+  $('key-heading').textContent = allowEmpty ? 'API key' : 'API key needed';
   $('key-reason').textContent = reason;
   $('key-input').value = apiKey();
   return new Promise((resolve) => {
     dialog.addEventListener('close', () => {
-      const ok = dialog.returnValue === 'ok' && $('key-input').value !== '';
-      if (ok) sessionStorage.setItem('oxbow-api-key', $('key-input').value);
+      const key = $('key-input').value;
+      const ok = dialog.returnValue === 'ok' && (key !== '' || allowEmpty);
+      const changed = ok && key !== apiKey();
+      if (ok && key) sessionStorage.setItem('oxbow-api-key', key);
+      else if (ok) sessionStorage.removeItem('oxbow-api-key');
+      if (changed) loadCollections().then(refreshStatus);
       resolve(ok);
     }, { once: true });
     dialog.showModal();
@@ -534,7 +556,7 @@ function askForKey(reason) {
 async function loadCollection() {
   let page;
   try {
-    page = await apiJson(`/v1/images?offset=${state.offset}&limit=${PAGE_SIZE}`);
+    page = await apiJson(v1(`/images?offset=${state.offset}&limit=${PAGE_SIZE}`));
   } catch (e) {
     showError(e);
     return;
@@ -587,8 +609,9 @@ async function loadCollection() {
 
 async function deleteImage(id) {
   if (!window.confirm(`Delete ${id} from the collection?`)) return;
+  const path = v1(`/images/${encodeURIComponent(id)}`);  // this collection's, whatever a new key lists
   try {
-    await withApiKey(() => api(`/v1/images/${encodeURIComponent(id)}`, { method: 'DELETE' }));
+    await withApiKey(() => api(path, { method: 'DELETE' }));
   } catch (e) {
     showError(e);
     return;
@@ -609,8 +632,9 @@ async function addImage(event) {
   if (metadata) form.append('metadata', metadata);
   form.append('file', file, file.name);
   $('add-button').disabled = true;
+  const path = v1('/images');  // this collection's, whatever a new key lists
   try {
-    const added = await withApiKey(async () => apiJson('/v1/images', { method: 'POST', body: form }));
+    const added = await withApiKey(async () => apiJson(path, { method: 'POST', body: form }));
     showInfo(`Added ${added.id}: ${added.width} × ${added.height} px, ${added.features} features.`);
     $('add-form').reset();
   } catch (e) {
@@ -620,6 +644,57 @@ async function addImage(event) {
   }
   await loadCollection();
   refreshStatus();
+}
+
+// ---- Collections -------------------------------------------------------------------------------
+
+// Reads the collections the key may read and shows them in the picker; a server without collections
+// (GET /v1/collections answers 404), or one that lists none, leaves it hidden and the page on /v1/...
+async function loadCollections() {
+  let names = [];
+  try {
+    const answer = await apiJson('/v1/collections');
+    names = (answer.collections || []).map((c) => c.name).filter((n) => typeof n === 'string');
+  } catch (_) {
+    names = [];  // 404 from an older server; a refused key or no answer: nothing to choose from
+  }
+  state.collections = names;
+  const select = $('collection-select');
+  select.replaceChildren(...names.map((name) => {
+    const option = document.createElement('option');
+    option.value = name;
+    option.textContent = name;
+    return option;
+  }));
+  $('collection-picker').hidden = names.length === 0;
+  // The remembered choice while it is listed, else "default", else the first listed.
+  const chosen = names.length === 0 ? ''
+    : names.includes(state.collection) ? state.collection
+      : names.includes(DEFAULT_COLLECTION) ? DEFAULT_COLLECTION : names[0];
+  if (chosen) select.value = chosen;
+  if (chosen !== state.collection) chooseCollection(chosen, names.length > 0);
+}
+
+// Makes `name` the collection of every image and search request ('' = the routes without a prefix).
+// Results, a query by id and the page of images belonged to the previous one: they go; a query photo
+// stays and is searched again in the new collection.
+function chooseCollection(name, remember = true) {
+  if (remember) sessionStorage.setItem('oxbow-collection', name);
+  if (name === state.collection) return;
+  state.collection = name;
+  closeMatchView();
+  state.lastResponse = null;
+  $('results').replaceChildren();
+  $('results-summary').textContent = 'Choose a photo to search the collection.';
+  if (state.query && state.query.kind === 'id') {
+    state.query = null;
+    state.box = null;
+    $('query-panel').hidden = true;
+  }
+  state.offset = 0;
+  if (!$('browse-section').hidden) loadCollection();
+  refreshStatus();
+  if (state.query) runSearch();
 }
 
 // ---- Sections and start-up ---------------------------------------------------------------------
@@ -656,14 +731,20 @@ function setUpDropZone() {
   });
 }
 
-function start() {
+async function start() {
   $('query-file').addEventListener('change', (event) => setQueryFile(event.target.files[0]));
   $('search-form').addEventListener('submit', (event) => {
     event.preventDefault();
     const text = $('query-id').value.trim();
-    // A pasted address of an indexed image (…/v1/images/ID or …/v1/images/ID/thumbnail) works too.
-    const m = text.match(/\/v1\/images\/([^/?#]+)/);
-    const id = m ? decodeURIComponent(m[1]) : text;
+    // A pasted address of an indexed image (…/v1/images/ID or …/v1/images/ID/thumbnail) works too, and
+    // one of a listed collection's image (…/v1/collections/NAME/images/ID) chooses that collection.
+    const m = text.match(/\/v1\/(?:collections\/([^/?#]+)\/)?images\/([^/?#]+)/);
+    const id = m ? decodeURIComponent(m[2]) : text;
+    const collection = m ? decodeURIComponent(m[1] || DEFAULT_COLLECTION) : '';
+    if (collection && state.collections.includes(collection) && collection !== state.collection) {
+      $('collection-select').value = collection;
+      chooseCollection(collection);
+    }
     if (id) setQueryId(id);
   });
   $('match-close').addEventListener('click', () => {
@@ -679,10 +760,15 @@ function start() {
     const file = event.target.files[0];
     if (file && !$('add-id').value) $('add-id').value = file.name.replace(/\.[^.]*$/, '');
   });
+  $('collection-select').addEventListener('change', (event) => chooseCollection(event.target.value));
+  $('key-button').addEventListener('click', () => askForKey(
+    'An API key: the admin key, or a key of a collection (oxk_…). Leave it empty to use none.', true));
   setUpDropZone();
   setUpQueryBox();
-  refreshStatus();
   setInterval(refreshStatus, 10000);
+  // The requests go to the chosen collection: know the collections before the first one.
+  await loadCollections();
+  refreshStatus();
   document.body.dataset.ready = 'true';
 }
 
