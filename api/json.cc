@@ -115,6 +115,24 @@ nlohmann::json MatchResponseToJson(const MatchResponse& response) {
                                           .total = response.total_ms});
 }
 
+nlohmann::json CollectionToJson(const CollectionInfo& info, bool stats) {
+  const index::IndexStats& s = info.stats.index;
+  char fingerprint[17];
+  std::snprintf(fingerprint, sizeof fingerprint, "%016llx", static_cast<unsigned long long>(s.vocabulary_fingerprint));
+  auto optional = [](const std::optional<uint64_t>& v) { return v ? nlohmann::json(*v) : nlohmann::json(nullptr); };
+  nlohmann::json out = {
+      {"name", info.name},
+      {"public", info.settings.is_public},
+      {"images", s.num_images},
+      {"features", s.num_features},
+      {"disk_bytes", info.disk_bytes},
+      {"vocabulary", {{"words", s.vocabulary_size}, {"fingerprint", fingerprint}, {"descriptor", info.descriptor},
+                      {"hamming", info.hamming}}},
+      {"limits", {{"max_images", optional(info.settings.max_images)}, {"max_bytes", optional(info.settings.max_bytes)}}}};
+  if (stats) out["stats"] = StatsToJson(info.stats);
+  return out;
+}
+
 nlohmann::json BackupToJson(const std::string& out, const index::BackupResult& result) {
   return {{"out", out},
           {"images", result.images},

@@ -9,6 +9,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "api/collections.h"
 #include "api/service.h"
 #include "index/image_index.h"
 
@@ -31,6 +32,10 @@ nlohmann::json MatchResponseToJson(const MatchResponse& response);
 // {"images", "features", "words", "bytes_per_feature", "index_bytes": {...}, "memory_rss_bytes",
 //  "uptime_s", "extractions_in_flight", "max_concurrent_extractions", "segments", "vocabulary_fingerprint"}
 nlohmann::json StatsToJson(const ServiceStats& stats);
+// A collection (GET /v1/collections/{name}): {"name", "public", "images", "features", "disk_bytes",
+//  "vocabulary": {"words", "fingerprint" (16 hex digits), "descriptor", "hamming"},
+//  "limits": {"max_images", "max_bytes"} (null: none)}; with `stats`, also "stats" (StatsToJson).
+nlohmann::json CollectionToJson(const CollectionInfo& info, bool stats);
 // The answer of a backup (POST /v1/admin/backup, `oxbow index backup`): {out, images, generation,
 // bytes, attempts}.
 nlohmann::json BackupToJson(const std::string& out, const index::BackupResult& result);

@@ -14,6 +14,7 @@ build_packages=(
   libflann-dev           # randomised kd-forests (matching, approximate k-means)
   libopenmpi-dev openmpi-bin  # `--mpi` in vocab train / index build (mpirun; tests/mpi_test.cc)
   libsqlite3-dev         # the index catalogue
+  libssl-dev             # collection keys (api/access_keys.cc): salted SHA-256, random bytes (OpenSSL's libcrypto)
   zlib1g-dev             # CRC-32 of stored files and feature BLOBs (sift/base/binary_io.cc)
   libxxhash-dev          # XXH3 checksums of the index checkpoint files (verified at every open)
   nlohmann-json3-dev     # JSON in the CLI and the HTTP API
@@ -43,7 +44,7 @@ build_packages=(
 )
 runtime_packages=(
   libopencv-core406 libopencv-imgproc406 libopencv-imgcodecs406 libopencv-features2d406 libopencv-calib3d406
-  libopencv-flann406 libflann1.9 libopenmpi3 libsqlite3-0 libcpp-httplib0.11 libgrpc++1.51 libprotobuf32 libjpeg62-turbo libpng16-16 libtiff6 curl ca-certificates
+  libopencv-flann406 libflann1.9 libopenmpi3 libsqlite3-0 libcpp-httplib0.11 libgrpc++1.51 libprotobuf32 libjpeg62-turbo libpng16-16 libtiff6 libssl3 curl ca-certificates
 )
 
 packages=("${build_packages[@]}")

@@ -18,6 +18,9 @@
 #include <cmath>
 #include <cstring>
 #include <limits>
+#include <map>
+#include <memory>
+#include <mutex>
 #include <numeric>
 
 #include "sift/base/binary_io.h"
@@ -275,7 +278,24 @@ Result<Vocabulary> Vocabulary::Read(const std::string& path) {
   }
   state->Finish();
   if (state->fingerprint != *fingerprint) return corrupt("fingerprint does not match the centroids");
-  return Vocabulary(std::move(state));
+  // Vocabularies read from files of the same content share one State, so that the indexes of several
+  // collections over one vocabulary (api/collections.h) hold it once. A State is immutable once built;
+  // the registry holds weak references only.
+  static std::mutex registry_mutex;
+  static std::map<uint64_t, std::weak_ptr<const State>> registry;
+  std::lock_guard<std::mutex> lock(registry_mutex);
+  std::erase_if(registry, [](const auto& entry) { return entry.second.expired(); });
+  if (auto it = registry.find(state->fingerprint); it != registry.end()) {
+    if (auto held = it->second.lock(); held && held->dimension == state->dimension && held->kind == state->kind &&
+                                       held->settings == state->settings && held->centroids == state->centroids &&
+                                       held->index.offsets == state->index.offsets &&
+                                       held->projection == state->projection && held->medians == state->medians) {
+      return Vocabulary(std::move(held));
+    }
+  }
+  std::shared_ptr<const State> shared = std::move(state);
+  registry[shared->fingerprint] = shared;
+  return Vocabulary(std::move(shared));
 }
 
 size_t Vocabulary::size() const { return state_->centroids.size() / state_->dimension; }

@@ -97,6 +97,24 @@ TEST_F(VocabularyTest, FileRoundTrip) {
   fs::remove(path);
 }
 
+// Reads of files with the same content share one copy in memory (the collections of a server over one
+// vocabulary); a file of other content does not.
+TEST_F(VocabularyTest, ReadsOfTheSameContentShareOneCopy) {
+  auto vocab = Vocabulary::FromCentroids(WordsFrom(descriptors(), 300, 1), 128, sift::DescriptorKind::kRootSift, "s");
+  auto other = Vocabulary::FromCentroids(WordsFrom(descriptors(), 300, 2), 128, sift::DescriptorKind::kRootSift, "s");
+  ASSERT_TRUE(vocab && other);
+  const std::string a = TempPath("shared-a.vocab"), b = TempPath("shared-b.vocab"), c = TempPath("shared-c.vocab");
+  ASSERT_TRUE(vocab->Write(a) && vocab->Write(b) && other->Write(c));
+  auto first = Vocabulary::Read(a);
+  auto second = Vocabulary::Read(b);
+  auto third = Vocabulary::Read(c);
+  ASSERT_TRUE(first && second && third);
+  EXPECT_EQ(first->centroids().data(), second->centroids().data());
+  EXPECT_NE(first->centroids().data(), third->centroids().data());
+  EXPECT_NE(first->fingerprint(), third->fingerprint());
+  for (const auto& path : {a, b, c}) fs::remove(path);
+}
+
 TEST_F(VocabularyTest, RefusesDamagedTruncatedForeignAndNewerFiles) {
   auto vocab = Vocabulary::FromCentroids(WordsFrom(descriptors(), 64, 2), 128, sift::DescriptorKind::kSift, "x");
   ASSERT_TRUE(vocab);

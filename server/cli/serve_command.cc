@@ -5,10 +5,12 @@
 #include <cmath>
 #include <cstdio>
 #include <memory>
+#include <mutex>
 #include <optional>
 #include <string>
 #include <thread>
 
+#include "api/collections.h"
 #include "api/service.h"
 #include "server/cli/cli.h"
 #include "server/cli/common_flags.h"
@@ -22,6 +24,7 @@ namespace {
 
 struct ServeFlags {
   std::string index_dir;
+  std::string data_dir;  // --data: a folder of collections instead of one index
   std::string vocab_path;
   server::HttpServerOptions http;
   api::ServiceOptions service;
@@ -113,9 +116,18 @@ void Serve(const ServeFlags& flags) {
   sigemptyset(&signals);
   sigaddset(&signals, SIGINT);
   sigaddset(&signals, SIGTERM);
+  if (flags.cluster_file.empty() + flags.index_dir.empty() + flags.data_dir.empty() != 2) {
+    throw CommandError(2, "give one of --index, --data and --cluster");
+  }
+  if (!flags.data_dir.empty() && flags.grpc_port >= 0) {
+    throw CommandError(2, "--grpc-port serves one index folder as a cluster's shard: give --index, not --data");
+  }
+  if (!flags.cluster_file.empty()) {
+    pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+    return ServeFront(flags, http, service_options, signals);
+  }
+  sigaddset(&signals, SIGHUP);  // --data: re-read the collections' key file
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);  // inherited by every thread started below
-  if (flags.cluster_file.empty() == flags.index_dir.empty()) throw CommandError(2, "give either --index or --cluster (one of them)");
-  if (!flags.cluster_file.empty()) return ServeFront(flags, http, service_options, signals);
 
   server::HttpServer server(http);
   const int port = ValueOrExit(server.Bind());
@@ -128,10 +140,32 @@ void Serve(const ServeFlags& flags) {
                    << (http.api_key.empty() ? "" : ", API key required for writes") << ")";
 
   std::optional<Error> load_error;
+  std::shared_ptr<api::Collections> collections;  // --data, once loaded (for SIGHUP)
+  std::mutex collections_mutex;
   std::thread loader([&] {
     index::IndexOptions index_options = flags.index_options;
     index_options.num_threads = flags.index_threads;
     const auto start = std::chrono::steady_clock::now();
+    if (!flags.data_dir.empty()) {
+      auto opened = api::Collections::Open(flags.data_dir, flags.vocab_path.empty() ? std::nullopt
+                                                                                  : std::optional<std::string>(flags.vocab_path),
+                                           service_options, index_options);
+      if (!opened) {
+        load_error = opened.error();
+        OXBOW_LOG(kError) << "cannot open the data folder: " << opened.error().ToString();
+        server.Shutdown();
+        return;
+      }
+      OXBOW_LOG(kInfo) << "data folder " << flags.data_dir << " ready: " << (*opened)->Names().size()
+                       << " collections, loaded in "
+                       << std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() << " s";
+      {
+        std::lock_guard<std::mutex> lock(collections_mutex);
+        collections = *opened;
+      }
+      server.SetCollections(std::move(*opened));
+      return;
+    }
     auto service = api::Service::Open(flags.index_dir, flags.vocab_path.empty() ? std::nullopt
                                                                                 : std::optional<std::string>(flags.vocab_path),
                                       service_options, index_options);
@@ -153,6 +187,21 @@ void Serve(const ServeFlags& flags) {
   std::thread signal_waiter([&] {
     int signal_number = 0;
     sigwait(&signals, &signal_number);
+    while (signal_number == SIGHUP) {
+      std::shared_ptr<api::Collections> set;
+      {
+        std::lock_guard<std::mutex> lock(collections_mutex);
+        set = collections;
+      }
+      if (set == nullptr || set->keys() == nullptr) {
+        OXBOW_LOG(kInfo) << "received SIGHUP: no key file to re-read yet";
+      } else if (auto s = set->keys()->Reload(); !s) {
+        OXBOW_LOG(kError) << "received SIGHUP: the key file was not re-read, the keys stay as they were: " << s.error().ToString();
+      } else {
+        OXBOW_LOG(kInfo) << "received SIGHUP: re-read the collections' key file";
+      }
+      sigwait(&signals, &signal_number);
+    }
     OXBOW_LOG(kInfo) << "received " << (signal_number == SIGINT ? "SIGINT" : "SIGTERM")
                      << ": no new connections, finishing in-flight requests (extractions still running after "
                      << flags.shutdown_grace_s << " s are stopped)";
@@ -181,7 +230,13 @@ void SetUpServe(CLI::App& app) {
       "  oxbow serve --index cluster/partition-0 --port 9101 --grpc-port 9001      # ... one per partition\n"
       "  oxbow serve --cluster cluster.json --port 8080\n"
       "Prints 'listening on http://HOST:PORT' on stdout once bound. SIGINT/SIGTERM stop it gracefully.");
-  cmd->add_option("--index", flags->index_dir, "index folder (created when empty and --vocab is given)");
+  cmd->add_option("--index", flags->index_dir, "index folder (created when empty and --vocab is given); served as the "
+                                             "collection \"default\"");
+  cmd->add_option("--data", flags->data_dir,
+                  "a folder of collections instead of one index: each sub-folder is an index folder served under "
+                  "/v1/collections/NAME (created with POST /v1/collections and the admin key); the routes without "
+                  "that prefix act on the collection \"default\", which --vocab creates when missing. The "
+                  "collections' keys are in DIR/keys.json, re-read on SIGHUP (server/README.md, \"Collections\")");
   cmd->add_option("--cluster", flags->cluster_file,
                   "serve as the front of a cluster instead of an index: cluster.json names the vocabulary and each "
                   "partition's shard replicas (`serve --grpc-port`); serves the public API with the same limits and "
@@ -204,7 +259,7 @@ void SetUpServe(CLI::App& app) {
                   "(POST /v1/admin/refresh-statistics)")
       ->capture_default_str()
       ->check(CLI::Range(0.0, 1.0));
-  cmd->add_option("--vocab", flags->vocab_path, "vocabulary file; needed only to create a new index")
+  cmd->add_option("--vocab", flags->vocab_path, "vocabulary file; needed only to create a new index (--index), or the collection \"default\" (--data)")
       ->check(CLI::ExistingFile);
   cmd->add_option("--grpc-port", flags->grpc_port,
                   "also serve the cluster shard API (gRPC, for a front: `serve --cluster`) on this port of --host; "
@@ -240,8 +295,9 @@ void SetUpServe(CLI::App& app) {
       ->capture_default_str()
       ->check(CLI::Range(1, 100000));
   cmd->add_option("--api-key", flags->http.api_key,
-                  "require this key for POST/DELETE /v1/images (Authorization: Bearer KEY or X-API-Key: KEY); "
-                  "also read from $OXBOW_API_KEY")
+                  "the admin key: required for writes (Authorization: Bearer KEY or X-API-Key: KEY), for "
+                  "creating and deleting collections and their keys, and for backups; reads of a public collection "
+                  "need no key. Also read from $OXBOW_API_KEY")
       ->envname("OXBOW_API_KEY");
   cmd->add_option("--max-upload-mb", flags->max_upload_mb, "largest request body and image file, MiB (413 above)")
       ->capture_default_str();

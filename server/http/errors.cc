@@ -39,6 +39,8 @@ HttpError MethodNotAllowed(std::string_view method, std::string_view path, std::
 
 HttpError Unavailable(std::string message) { return HttpError{503, "unavailable", std::move(message)}; }
 
+HttpError CollectionFull(std::string message) { return HttpError{507, "collection_full", std::move(message)}; }
+
 nlohmann::json ErrorBody(const HttpError& error, std::string_view request_id) {
   return {{"error", {{"code", error.code}, {"message", error.message}, {"request_id", std::string(request_id)}}}};
 }

@@ -42,6 +42,8 @@ struct RequestContext {
   std::string id;
   Clock::time_point start;
   std::string route = "unmatched";
+  std::string collection;          // the collection addressed, once its route checked it ("" outside one)
+  std::optional<api::CollectionRef> held;  // that collection, for the route's body
   std::vector<std::pair<const char*, double>> stages;  // {"extract", 12.1 ms}, ... for the log line
 };
 thread_local RequestContext t_request;
@@ -193,6 +195,38 @@ std::span<const uint8_t> Bytes(std::string_view text) {
   return {reinterpret_cast<const uint8_t*>(text.data()), text.size()};
 }
 
+constexpr std::string_view kCollectionsPrefix = "/v1/collections/";
+
+// The collection a /v1 path addresses: the name after /v1/collections/, else "default".
+std::string CollectionOfPath(std::string_view path) {
+  if (!path.starts_with(kCollectionsPrefix)) return api::kDefaultCollection;
+  path.remove_prefix(kCollectionsPrefix.size());
+  return std::string(path.substr(0, path.find('/')));
+}
+
+// The route of the default collection that a collection's route mirrors: "/v1/collections/paris/images/x"
+// -> "/v1/images/x" (other paths unchanged).
+std::string UnprefixedPath(std::string_view path) {
+  if (!path.starts_with(kCollectionsPrefix)) return std::string(path);
+  const size_t slash = path.find('/', kCollectionsPrefix.size());
+  return slash == std::string_view::npos ? std::string() : "/v1" + std::string(path.substr(slash));
+}
+
+// "/v1/collections/{name}" for a path under a collection, else "/v1": where the request's routes live.
+std::string RoutePrefixOf(std::string_view path) {
+  if (!path.starts_with(kCollectionsPrefix)) return "/v1";
+  return "/v1/collections/" + CollectionOfPath(path);
+}
+
+// The key the request presents (X-API-Key, else Authorization: Bearer), whole: httplib's get_header_value
+// stops at a NUL byte ("KEY\0junk" would pass).
+std::string PresentedKey(const httplib::Request& req) {
+  std::string key = FullHeaderValue(req, "X-API-Key");
+  const std::string auth = FullHeaderValue(req, "Authorization");
+  if (key.empty() && auth.rfind("Bearer ", 0) == 0) key = auth.substr(7);
+  return key;
+}
+
 }  // namespace
 
 bool ConstantTimeEquals(const std::string& given, const std::string& expected) {
@@ -209,7 +243,8 @@ bool ConstantTimeEquals(const std::string& given, const std::string& expected) {
 
 // The Request is owned (non-const) by httplib's connection loop; this hook runs before the body is read.
 void TakeFormEncodedBodyAsImage(const httplib::Request& req) {
-  if (req.method != "POST" || (req.path != "/v1/images" && req.path != "/v1/search")) return;
+  const std::string path = UnprefixedPath(req.path);
+  if (req.method != "POST" || (path != "/v1/images" && path != "/v1/search")) return;
   auto& headers = const_cast<httplib::Request&>(req).headers;
   auto it = headers.find("Content-Type");
   if (it != headers.end() && it->second.rfind("application/x-www-form-urlencoded", 0) == 0) {
@@ -224,10 +259,7 @@ std::string RequestIdFor(const httplib::Request& req) {
 
 std::optional<HttpError> CheckApiKey(const httplib::Request& req, const std::string& api_key) {
   if (api_key.empty()) return std::nullopt;
-  // The whole values: httplib's get_header_value stops at a NUL byte ("KEY\0junk" would pass).
-  std::string key = FullHeaderValue(req, "X-API-Key");
-  const std::string auth = FullHeaderValue(req, "Authorization");
-  if (key.empty() && auth.rfind("Bearer ", 0) == 0) key = auth.substr(7);
+  const std::string key = PresentedKey(req);
   if (key.empty()) {
     return ToHttpError(
         {ErrorCode::kUnauthenticated, "this route needs the API key: header 'Authorization: Bearer KEY' or 'X-API-Key: KEY'"});
@@ -297,6 +329,18 @@ const HttpServer::RouteTable& Routes() {
       {"/v1/search", std::regex("/v1/search"), "POST"},
       {"/v1/match", std::regex("/v1/match"), "POST"},
       {"/v1/admin/backup", std::regex("/v1/admin/backup"), "POST"},
+      {"/v1/collections", std::regex("/v1/collections/?"), "GET, POST"},
+      {"/v1/collections/{name}/stats", std::regex("/v1/collections/[^/]+/stats"), "GET"},
+      {"/v1/collections/{name}/images", std::regex("/v1/collections/[^/]+/images"), "GET, POST"},
+      {"/v1/collections/{name}/images/batch", std::regex("/v1/collections/[^/]+/images/batch"), "POST"},
+      {"/v1/collections/{name}/images/{id}/similar", std::regex("/v1/collections/[^/]+/images/.+/similar"), "GET"},
+      {"/v1/collections/{name}/images/{id}/thumbnail", std::regex("/v1/collections/[^/]+/images/.+/thumbnail"), "GET"},
+      {"/v1/collections/{name}/images/{id}", std::regex("/v1/collections/[^/]+/images/.+"), "GET, DELETE"},
+      {"/v1/collections/{name}/search", std::regex("/v1/collections/[^/]+/search"), "POST"},
+      {"/v1/collections/{name}/keys", std::regex("/v1/collections/[^/]+/keys"), "GET, POST"},
+      {"/v1/collections/{name}/keys/{id}", std::regex("/v1/collections/[^/]+/keys/[^/]+"), "DELETE"},
+      {"/v1/collections/{name}/backup", std::regex("/v1/collections/[^/]+/backup"), "POST"},
+      {"/v1/collections/{name}", std::regex("/v1/collections/[^/]+"), "GET, DELETE"},
   }};
   return table;
 }
@@ -319,9 +363,19 @@ void ServeOpenApi(const httplib::Request& req, httplib::Response& res) {
   SendCacheable(req, res, document, "application/json", etag, "no-cache");
 }
 
+// Answers 507 when adding `adding` images would pass the limits of the request's collection.
+bool RefusedWhenFull(httplib::Response& res, uint64_t adding) {
+  if (!t_request.held) return false;
+  auto full = api::Collections::CheckRoom(*t_request.held, adding);
+  if (!full) return false;
+  SendError(res, CollectionFull(*full));
+  return true;
+}
+
 void PostImage(api::Service& s, const httplib::Request& req, httplib::Response& res) {
   auto params = api::ParseAddParams(CollectParams(req, {"file", "image"}));
   if (!params) return SendError(res, params.error());
+  if (RefusedWhenFull(res, params->replace ? 0 : 1)) return;
   std::string filename;
   auto image = RequestImage(req, "file", "image", &filename);
   if (!image) return SendError(res, image.error());
@@ -335,7 +389,7 @@ void PostImage(api::Service& s, const httplib::Request& req, httplib::Response& 
   auto added = s.AddImage(add);
   if (!added) return SendError(res, added.error());
   RecordStages(res, {{"decode_extract", added->decode_extract_ms}, {"add", added->add_ms}});
-  res.set_header("Location", "/v1/images/" + added->record.id);
+  res.set_header("Location", RoutePrefixOf(req.path) + "/images/" + added->record.id);
   SendJson(res, added->replaced ? 200 : 201, api::AddImageResponseToJson(*added));
 }
 
@@ -373,7 +427,8 @@ void GetImage(api::Service& s, const std::string& id, httplib::Response& res) {
 
 void GetImageOrSubresource(api::Service& s, const httplib::Request& req, httplib::Response& res) {
   const ImagePath path = ImagePathOf(req);
-  t_request.route = path.sub.empty() ? "/v1/images/{id}" : "/v1/images/{id}/" + path.sub;
+  const std::string prefix = req.path.starts_with(kCollectionsPrefix) ? "/v1/collections/{name}" : "/v1";
+  t_request.route = prefix + (path.sub.empty() ? "/images/{id}" : "/images/{id}/" + path.sub);
   if (path.sub == "similar") return GetSimilar(s, path.id, req, res);
   if (path.sub == "thumbnail") return GetThumbnail(s, path.id, req, res);
   GetImage(s, path.id, res);
@@ -406,6 +461,7 @@ void PostMatch(api::Service& s, const httplib::Request& req, httplib::Response& 
 }
 
 void PostImageBatch(api::Service& s, const httplib::Request& req, httplib::Response& res, int max_images) {
+  if (RefusedWhenFull(res, req.files.count("image"))) return;
   ServeImageBatch(req, res, max_images, [&](api::AddBatchRequest& batch) { return s.AddImages(batch); });
 }
 
@@ -566,7 +622,8 @@ Result<std::string> BackupFolderParam(const httplib::Request& req) {
 // the similar images of "a". A slash sent encoded belongs to the id (RFC 3986 2.2), so an id stored
 // before ParseAddParams refused such ids stays reachable.
 ImagePath ImagePathOf(const httplib::Request& req) {
-  constexpr size_t kPrefix = std::string_view("/v1/images/").size();  // matched by the route's pattern
+  // Matched by the route's pattern: /v1/images/... or /v1/collections/{name}/images/...
+  const size_t kPrefix = req.path.size() - UnprefixedPath(req.path).size() + std::string_view("/v1/images/").size();
   const std::string_view path(req.path);
   const std::string_view target = std::string_view(req.target).substr(0, req.target.find('?'));
   const std::string last = httplib::detail::decode_url(std::string(target.substr(target.rfind('/') + 1)), false);
@@ -601,7 +658,11 @@ HttpServer::HttpServer(const HttpServerOptions& options, CustomRoutes routes)
       upload_budget_(std::make_unique<UploadBudget>(options.max_inflight_body_bytes)) {
   auto table = std::make_unique<RouteTable>();
   for (const RouteInfo& r : custom_routes_.more_routes) table->routes.push_back({r.label, std::regex(r.pattern), r.methods});
-  table->routes.insert(table->routes.end(), Routes().routes.begin(), Routes().routes.end());
+  for (const auto& r : Routes().routes) {
+    // A server of custom routes (a cluster front) serves one collection: no /v1/collections routes.
+    if (custom_routes_.add && r.label.starts_with("/v1/collections")) continue;
+    table->routes.push_back(r);
+  }
   routes_ = std::move(table);
   GuardOptions guard;
   guard.request_timeout = std::chrono::seconds(options_.request_timeout_s);
@@ -645,17 +706,19 @@ HttpServer::HttpServer(const HttpServerOptions& options, CustomRoutes routes)
 
 HttpServer::~HttpServer() = default;
 
-std::shared_ptr<api::Service> HttpServer::service() const {
+std::shared_ptr<api::Collections> HttpServer::collections() const {
   std::lock_guard<std::mutex> lock(service_mutex_);
-  return service_;
+  return collections_;
 }
 
-void HttpServer::SetService(std::shared_ptr<api::Service> service) {
+void HttpServer::SetService(std::shared_ptr<api::Service> service) { SetCollections(api::Collections::Single(std::move(service))); }
+
+void HttpServer::SetCollections(std::shared_ptr<api::Collections> collections) {
   std::lock_guard<std::mutex> lock(service_mutex_);
-  service_ = std::move(service);
+  collections_ = std::move(collections);
 }
 
-bool HttpServer::ready() const { return (custom_routes_.add || service() != nullptr) && !shutting_down_.load(); }
+bool HttpServer::ready() const { return (custom_routes_.add || collections() != nullptr) && !shutting_down_.load(); }
 
 Result<int> HttpServer::Bind() {
   if (auto message = options_.Check()) return Fail(ErrorCode::kInvalidArgument, "server options: " + *message);
@@ -691,7 +754,7 @@ void HttpServer::Shutdown() {
   shutting_down_.store(true);  // before stop(): Run's watcher reads it after the server started
   // Extractions still running after the service's shutdown grace are abandoned (503) rather than
   // waited for: stop() returns once the requests in flight end.
-  if (auto s = service()) s->StopExtractions();
+  if (auto set = collections()) set->StopExtractions();
   http_->stop();
 }
 
@@ -703,11 +766,12 @@ void HttpServer::RegisterRoutes() {
     custom_routes_.add(*http_);
     return;
   }
-  http_->Get("/v1/stats", ServiceRoute(Access::kOpen, [](api::Service& s, const httplib::Request&, httplib::Response& res) {
-               SendJson(res, 200, api::StatsToJson(s.Stats()));
-             }));
+  Both("GET", "/v1/stats", ServiceRoute(Access::kRead, [](api::Service& s, const httplib::Request&, httplib::Response& res) {
+         SendJson(res, 200, api::StatsToJson(s.Stats()));
+       }));
   RegisterImageRoutes();
   RegisterSearchRoutes();
+  RegisterCollectionRoutes();
 }
 
 void HttpServer::RegisterRequestHooks() {
@@ -734,12 +798,13 @@ void HttpServer::RegisterRequestHooks() {
 void HttpServer::LogRequest(const std::string& id, const std::string& method, const std::string& path,
                             const std::string& route, int status, double seconds,
                             const std::vector<std::pair<const char*, double>>& stages, const std::string& refusal) {
-  metrics_.Observe(route, method, status, seconds);
+  metrics_.Observe(route, method, status, seconds, t_request.active ? t_request.collection : "");
   if (log::Level::kInfo < log::GetLevel()) return;
   log::Line line(log::Level::kInfo);
   // The same facts as the text, as fields for --log-format json (server/README.md, "Logging").
   line.Field("request_id", id).Field("method", method).Field("path", path).Field("route", route);
   line.Field("status", status).Field("latency_ms", seconds * 1000).Field("stages_ms", stages);
+  if (t_request.active && !t_request.collection.empty()) line.Field("collection", t_request.collection);
   line << "http " << id << " " << method << " " << path << " route=" << route << " status=" << status << " ";
   if (!refusal.empty()) {
     line.Field("refused", refusal);
@@ -813,31 +878,96 @@ void HttpServer::RegisterErrorHandlers() {
   });
 }
 
+std::optional<HttpError> HttpServer::Authorize(const httplib::Request& req, const std::string& collection,
+                                               Access access) const {
+  if (options_.api_key.empty()) {
+    if (access != Access::kAdmin) return std::nullopt;
+    return PermissionDenied("this route writes on the server's file system and is enabled only with an API key "
+                            "(oxbow serve --api-key)");
+  }
+  const std::string key = PresentedKey(req);
+  if (!key.empty() && ConstantTimeEquals(key, options_.api_key)) return std::nullopt;
+  if (access == Access::kOpen) return std::nullopt;
+  std::optional<HttpError> refused;
+  std::string reason;
+  const auto set = collections();
+  if (access == Access::kAdmin) {
+    reason = key.empty() ? "no key for an admin route" : "not the admin key, on an admin route";
+    refused = key.empty() ? ToHttpError({ErrorCode::kUnauthenticated, "this route needs the admin API key: header "
+                                                                      "'Authorization: Bearer KEY' or 'X-API-Key: KEY'"})
+                          : PermissionDenied("this route needs the admin API key");
+  } else {
+    const auto found = set ? set->Find(collection) : std::nullopt;
+    if (access == Access::kRead && found && found->settings.is_public) return std::nullopt;
+    const auto granted = key.empty() || !set || set->keys() == nullptr ? std::nullopt : set->keys()->Find(key);
+    if (granted && granted->collection == collection && (access == Access::kRead || granted->access == api::KeyAccess::kWrite)) {
+      return std::nullopt;
+    }
+    const std::string wanted = access == Access::kRead ? "read" : "write";
+    if (key.empty()) {
+      reason = "no key, to " + wanted + " collection '" + collection + "'";
+      refused = ToHttpError({ErrorCode::kUnauthenticated, "this route needs a key that may " + wanted + " collection '" +
+                                                              collection + "': header 'Authorization: Bearer KEY' or "
+                                                              "'X-API-Key: KEY'"});
+    } else {
+      reason = granted ? "key " + granted->id + " (" + api::KeyAccessName(granted->access) + ", collection '" +
+                             granted->collection + "') to " + wanted + " collection '" + collection + "'"
+                       : "an unknown key, to " + wanted + " collection '" + collection + "'";
+      refused = PermissionDenied("this key may not " + wanted + " collection '" + collection + "'");
+    }
+  }
+  OXBOW_LOG(kWarning) << "http " << t_request.id << " refused " << req.method << " " << LoggablePath(req.path) << ": " << reason;
+  return refused;
+}
+
 HttpServer::Handler HttpServer::ServiceRoute(Access access, ServiceHandler body) {
   return [this, access, body = std::move(body)](const httplib::Request& req, httplib::Response& res) {
     try {
-      if (access == Access::kAdmin && options_.api_key.empty()) {
-        SendError(res, PermissionDenied("this route writes on the server's file system and is enabled only with "
-                                             "an API key (oxbow serve --api-key)"));
-        return;
-      }
-      if (access != Access::kOpen) {
-        if (auto refused = CheckApiKey(req, options_.api_key)) return SendError(res, *refused);
-      }
-      auto service = this->service();
-      if (!service) {
+      const auto set = collections();
+      if (!set) {
         res.set_header("Retry-After", "5");
         SendError(res, Unavailable(shutting_down_ ? "shutting down" : "the index is still loading; retry shortly"));
         return;
       }
-      body(*service, req, res);
+      // A match needs no collection: it extracts with the default collection's settings (else any one's).
+      std::string name = access == Access::kOpen ? std::string(api::kDefaultCollection) : CollectionOfPath(req.path);
+      if (access == Access::kOpen && !set->Find(name)) {
+        const auto names = set->Names();
+        if (!names.empty()) name = names.front();
+      }
+      if (auto refused = Authorize(req, name, access)) return SendError(res, *refused);
+      auto found = set->Find(name);
+      if (!found) {
+        if (access == Access::kOpen) return SendError(res, Unavailable("the server holds no collection to extract with"));
+        return SendError(res, ToHttpError({ErrorCode::kNotFound,
+                                           "no collection named '" + name + "'" +
+                                               (name == api::kDefaultCollection
+                                                    ? " (the routes without /v1/collections/{name} act on it)"
+                                                    : "")}));
+      }
+      if (access != Access::kOpen) t_request.collection = name;
+      t_request.held = found;
+      body(*found->service, req, res);
+      t_request.held.reset();
     } catch (const std::exception& e) {
+      t_request.held.reset();
       OXBOW_LOG(kError) << "http " << t_request.id << " internal error: " << e.what();
       SendError(res, HttpError{500, "internal", std::string("internal error: ") + e.what()});
     } catch (...) {
+      t_request.held.reset();
       SendError(res, HttpError{500, "internal", "internal error"});
     }
   };
+}
+
+void HttpServer::Both(const std::string& method, const std::string& pattern, const Handler& handler) {
+  // pattern starts with "/v1/"; the collection's route is /v1/collections/{name}/...
+  const std::string prefixed = "/v1/collections/[^/]+" + pattern.substr(3);
+  for (const std::string& p : {pattern, prefixed}) {
+    if (method == "GET") http_->Get(p, handler);
+    else if (method == "POST") http_->Post(p, handler);
+    else if (method == "DELETE") http_->Delete(p, handler);
+  }
 }
 
 void HttpServer::RegisterStatusRoutes() {
@@ -864,19 +994,26 @@ void HttpServer::RegisterStatusRoutes() {
 
 void HttpServer::ServeMetrics(httplib::Response& res) const {
   std::vector<Gauge> gauges = {
-      {"oxbow_ready", "1 when the index is loaded and the server is not shutting down.", ready() ? 1.0 : 0.0},
+      {"oxbow_ready", "1 when the index is loaded and the server is not shutting down.", ready() ? 1.0 : 0.0, ""},
       {"oxbow_process_resident_memory_bytes", "Resident memory of the process.",
-       static_cast<double>(api::ResidentMemoryBytes())}};
-  if (auto s = service()) {
-    const auto stats = s->Stats();
-    gauges.push_back({"oxbow_index_images", "Live images in the index.", static_cast<double>(stats.index.num_images)});
-    gauges.push_back({"oxbow_index_features", "Indexed features.", static_cast<double>(stats.index.num_features)});
-    gauges.push_back({"oxbow_index_memory_bytes", "In-memory index (postings + geometry + tables).",
-                      static_cast<double>(stats.index.postings_bytes + stats.index.geometry_bytes + stats.index.other_bytes)});
-    gauges.push_back({"oxbow_vocabulary_words", "Visual words.", static_cast<double>(stats.index.vocabulary_size)});
-    gauges.push_back({"oxbow_extractions_in_flight", "Image decodes + extractions running now.",
-                      static_cast<double>(stats.extractions_in_flight)});
-    gauges.push_back({"oxbow_uptime_seconds", "Seconds since the index was opened.", stats.uptime_s});
+       static_cast<double>(api::ResidentMemoryBytes()), ""}};
+  if (auto set = collections()) {
+    // One series per collection, each family's series together.
+    std::vector<std::pair<std::string, api::ServiceStats>> stats;
+    for (const std::string& name : set->Names()) {
+      if (auto found = set->Find(name)) stats.emplace_back("collection=\"" + EscapeLabelValue(name) + "\"", found->service->Stats());
+    }
+    auto family = [&](const char* name, const char* help, auto value) {
+      for (const auto& [labels, st] : stats) gauges.push_back({name, help, static_cast<double>(value(st)), labels});
+    };
+    using S = const api::ServiceStats&;
+    family("oxbow_index_images", "Live images in the collection's index.", [](S st) { return st.index.num_images; });
+    family("oxbow_index_features", "Indexed features.", [](S st) { return st.index.num_features; });
+    family("oxbow_index_memory_bytes", "In-memory index (postings + geometry + tables).",
+           [](S st) { return st.index.postings_bytes + st.index.geometry_bytes + st.index.other_bytes; });
+    family("oxbow_vocabulary_words", "Visual words.", [](S st) { return st.index.vocabulary_size; });
+    family("oxbow_extractions_in_flight", "Image decodes + extractions running now.", [](S st) { return st.extractions_in_flight; });
+    family("oxbow_uptime_seconds", "Seconds since the index was opened.", [](S st) { return st.uptime_s; });
   }
   res.status = 200;
   std::string text = metrics_.Render(gauges);
@@ -885,21 +1022,182 @@ void HttpServer::ServeMetrics(httplib::Response& res) const {
 }
 
 void HttpServer::RegisterImageRoutes() {
-  auto& http = *http_;
-  http.Post("/v1/images", ServiceRoute(Access::kWrite, PostImage));
-  http.Post("/v1/images/batch", ServiceRoute(Access::kWrite, [this](api::Service& s, const httplib::Request& req,
-                                                                    httplib::Response& res) {
-              PostImageBatch(s, req, res, options_.max_batch_images);
-            }));
-  http.Get("/v1/images", ServiceRoute(Access::kOpen, ListImages));
-  http.Get(R"(/v1/images/(.+))", ServiceRoute(Access::kOpen, GetImageOrSubresource));
-  http.Delete(R"(/v1/images/(.+))", ServiceRoute(Access::kWrite, DeleteImage));
-  http.Post("/v1/admin/backup", ServiceRoute(Access::kAdmin, PostBackup));
+  Both("POST", "/v1/images", ServiceRoute(Access::kWrite, PostImage));
+  Both("POST", "/v1/images/batch", ServiceRoute(Access::kWrite, [this](api::Service& s, const httplib::Request& req,
+                                                                     httplib::Response& res) {
+         PostImageBatch(s, req, res, options_.max_batch_images);
+       }));
+  Both("GET", "/v1/images", ServiceRoute(Access::kRead, ListImages));
+  Both("GET", R"(/v1/images/(.+))", ServiceRoute(Access::kRead, GetImageOrSubresource));
+  Both("DELETE", R"(/v1/images/(.+))", ServiceRoute(Access::kWrite, DeleteImage));
+  http_->Post("/v1/admin/backup", ServiceRoute(Access::kAdmin, PostBackup));
 }
 
 void HttpServer::RegisterSearchRoutes() {
-  http_->Post("/v1/search", ServiceRoute(Access::kOpen, PostSearch));
+  Both("POST", "/v1/search", ServiceRoute(Access::kRead, PostSearch));
   http_->Post("/v1/match", ServiceRoute(Access::kOpen, PostMatch));
+}
+
+namespace {
+
+// POST /v1/collections's body.
+Result<api::CreateCollectionRequest> ParseCreateCollection(const httplib::Request& req) {
+  if (api::JsonNestingDepth(req.body) > api::kMaxJsonDepth) {
+    return Fail(ErrorCode::kInvalidArgument, "the JSON body nests deeper than " + std::to_string(api::kMaxJsonDepth) + " levels");
+  }
+  const json body = json::parse(req.body, nullptr, /*allow_exceptions=*/false);
+  const std::string shape = "POST /v1/collections takes a JSON object: {\"name\": \"...\", \"vocabulary\": \"<path of a "
+                            "vocabulary file on the server>\" or {\"like\": \"<collection>\"}, \"public\": false, "
+                            "\"max_images\": null, \"max_bytes\": null}";
+  if (body.is_discarded() || !body.is_object()) return Fail(ErrorCode::kInvalidArgument, shape);
+  api::CreateCollectionRequest request;
+  for (const auto& [field, value] : body.items()) {
+    if (field == "name" && value.is_string()) {
+      request.name = value.get<std::string>();
+    } else if (field == "vocabulary" && value.is_string()) {
+      request.vocabulary_path = value.get<std::string>();
+    } else if (field == "vocabulary" && value.is_object() && value.size() == 1 && value.contains("like") &&
+               value["like"].is_string()) {
+      request.like = value["like"].get<std::string>();
+    } else if (field == "public" && value.is_boolean()) {
+      request.settings.is_public = value.get<bool>();
+    } else if ((field == "max_images" || field == "max_bytes") && (value.is_null() || value.is_number_unsigned())) {
+      auto& limit = field == "max_images" ? request.settings.max_images : request.settings.max_bytes;
+      if (value.is_number_unsigned()) limit = value.get<uint64_t>();
+    } else {
+      return Fail(ErrorCode::kInvalidArgument, "field '" + LoggablePath(field) + "' is unknown or of the wrong type; " + shape);
+    }
+  }
+  if (request.name.empty()) return Fail(ErrorCode::kInvalidArgument, shape);
+  request.settings.is_public = body.value("public", false);  // created collections are private unless asked
+  return request;
+}
+
+}  // namespace
+
+void HttpServer::RegisterCollectionRoutes() {
+  using CollectionHandler = std::function<void(api::Collections&, const std::string& name, const httplib::Request&,
+                                               httplib::Response&)>;
+  // Loading, the key check against the collection in the path (matches[1]; "" for the list) and errors.
+  auto route = [this](Access access, CollectionHandler body) -> Handler {
+    return [this, access, body = std::move(body)](const httplib::Request& req, httplib::Response& res) {
+      try {
+        const auto set = collections();
+        if (!set) {
+          res.set_header("Retry-After", "5");
+          return SendError(res, Unavailable(shutting_down_ ? "shutting down" : "the index is still loading; retry shortly"));
+        }
+        const std::string name = req.matches.size() > 1 ? req.matches[1].str() : "";
+        if (auto refused = Authorize(req, name, access)) return SendError(res, *refused);
+        if (!name.empty() && set->Find(name)) t_request.collection = name;
+        body(*set, name, req, res);
+      } catch (const std::exception& e) {
+        OXBOW_LOG(kError) << "http " << t_request.id << " internal error: " << e.what();
+        SendError(res, HttpError{500, "internal", std::string("internal error: ") + e.what()});
+      }
+    };
+  };
+  auto& http = *http_;
+  http.Get(R"(/v1/collections/?)", [this](const httplib::Request& req, httplib::Response& res) {
+    const auto set = collections();
+    if (!set) return SendError(res, Unavailable(shutting_down_ ? "shutting down" : "the index is still loading; retry shortly"));
+    // The collections the caller may read: all with the admin key or on a server without one; else the
+    // public ones and the one its key belongs to.
+    const std::string key = PresentedKey(req);
+    const bool all = options_.api_key.empty() || (!key.empty() && ConstantTimeEquals(key, options_.api_key));
+    const auto granted = all || key.empty() || set->keys() == nullptr ? std::nullopt : set->keys()->Find(key);
+    json list = json::array();
+    for (const std::string& name : set->Names()) {
+      auto info = set->Describe(name);
+      if (!info) continue;  // deleted meanwhile
+      if (all || info->settings.is_public || (granted && granted->collection == name)) {
+        list.push_back(api::CollectionToJson(*info, false));
+      }
+    }
+    SendJson(res, 200, {{"collections", list}});
+  });
+  http.Post(R"(/v1/collections/?)", route(Access::kAdmin, [](api::Collections& set, const std::string&,
+                                                              const httplib::Request& req, httplib::Response& res) {
+    auto request = ParseCreateCollection(req);
+    if (!request) return SendError(res, request.error());
+    auto created = set.Create(*request);
+    if (!created) return SendError(res, created.error());
+    t_request.collection = request->name;
+    res.set_header("Location", "/v1/collections/" + request->name);
+    SendJson(res, 201, api::CollectionToJson(*created, false));
+  }));
+  http.Get(R"(/v1/collections/([^/]+))", route(Access::kRead, [](api::Collections& set, const std::string& name,
+                                                                 const httplib::Request&, httplib::Response& res) {
+    auto info = set.Describe(name);
+    if (!info) return SendError(res, info.error());
+    SendJson(res, 200, api::CollectionToJson(*info, true));
+  }));
+  http.Delete(R"(/v1/collections/([^/]+))", route(Access::kAdmin, [](api::Collections& set, const std::string& name,
+                                                                     const httplib::Request&, httplib::Response& res) {
+    if (auto s = set.Delete(name); !s) return SendError(res, s.error());
+    SendJson(res, 200, {{"name", name}, {"deleted", true}});
+  }));
+  // Keys: the admin's. A set without a data folder (--index) has none to manage.
+  auto keys_of = [](api::Collections& set, const std::string& name, httplib::Response& res) -> api::AccessKeys* {
+    if (set.keys() == nullptr) {
+      SendError(res, ToHttpError({ErrorCode::kIncompatible, "this server serves one index folder (--index) and has no "
+                                                            "collection keys; start it with --data DIR"}));
+      return nullptr;
+    }
+    if (!set.Find(name)) {
+      SendError(res, ToHttpError({ErrorCode::kNotFound, "no collection named '" + name + "'"}));
+      return nullptr;
+    }
+    return set.keys();
+  };
+  http.Post(R"(/v1/collections/([^/]+)/keys)", route(Access::kAdmin, [keys_of](api::Collections& set, const std::string& name,
+                                                                                const httplib::Request& req, httplib::Response& res) {
+    const json body = json::parse(req.body, nullptr, /*allow_exceptions=*/false);
+    const auto access = body.is_object() && body.size() == 1 && body.contains("access") && body["access"].is_string()
+                            ? api::ParseKeyAccess(body["access"].get<std::string>())
+                            : std::nullopt;
+    if (!access) {
+      return SendError(res, Error{ErrorCode::kInvalidArgument, "POST .../keys takes {\"access\": \"read\"} or "
+                                                               "{\"access\": \"write\"}"});
+    }
+    api::AccessKeys* keys = keys_of(set, name, res);
+    if (keys == nullptr) return;
+    auto made = keys->Create(name, *access);
+    if (!made) return SendError(res, made.error());
+    OXBOW_LOG(kInfo) << "http " << t_request.id << " made key " << made->info.id << " (" << api::KeyAccessName(*access)
+                     << ") of collection '" << name << "'";
+    SendJson(res, 201, {{"key", made->key}, {"id", made->info.id}, {"collection", name},
+                        {"access", api::KeyAccessName(*access)}, {"created", made->info.created}});
+  }));
+  http.Get(R"(/v1/collections/([^/]+)/keys)", route(Access::kAdmin, [keys_of](api::Collections& set, const std::string& name,
+                                                                               const httplib::Request&, httplib::Response& res) {
+    api::AccessKeys* keys = keys_of(set, name, res);
+    if (keys == nullptr) return;
+    json list = json::array();
+    for (const auto& k : keys->List(name)) {
+      list.push_back({{"id", k.id}, {"access", api::KeyAccessName(k.access)}, {"created", k.created}});
+    }
+    SendJson(res, 200, {{"keys", list}});
+  }));
+  http.Delete(R"(/v1/collections/([^/]+)/keys/([^/]+))", route(Access::kAdmin, [keys_of](api::Collections& set,
+                                                                                          const std::string& name,
+                                                                                          const httplib::Request& req,
+                                                                                          httplib::Response& res) {
+    api::AccessKeys* keys = keys_of(set, name, res);
+    if (keys == nullptr) return;
+    const std::string id = req.matches[2];
+    if (auto s = keys->Delete(name, id); !s) return SendError(res, s.error());
+    OXBOW_LOG(kInfo) << "http " << t_request.id << " revoked key " << LoggablePath(id) << " of collection '" << name << "'";
+    SendJson(res, 200, {{"id", id}, {"deleted", true}});
+  }));
+  http.Post(R"(/v1/collections/([^/]+)/backup)", route(Access::kAdmin, [](api::Collections& set, const std::string& name,
+                                                                         const httplib::Request& req, httplib::Response& res) {
+    auto out = BackupFolderParam(req);
+    if (!out) return SendError(res, out.error());
+    auto done = set.Backup(name, *out);
+    if (!done) return SendError(res, done.error());
+    SendJson(res, 200, api::BackupToJson(*out, *done));
+  }));
 }
 
 }  // namespace oxbow::server

@@ -16,10 +16,18 @@
 //  - Every request gets an id (the client's X-Request-Id when it is 1..64 of [A-Za-z0-9._-], else a new
 //    random one), echoed in the X-Request-Id response header, and one log line (sift/log.h):
 //      http <id> <method> <path> route=<pattern> status=<code> ms=<latency> [stage timings]
-//  - Optional API key: POST and DELETE on /v1/images (and POST /v1/images/batch) need `Authorization: Bearer KEY` or `X-API-Key: KEY`
-//    (compared in constant time); missing -> 401, wrong -> 403. Reads and searches are open.
-//    POST /v1/admin/backup needs the key too and is refused (403) on a server without one: it creates a
-//    folder on the server's machine.
+//  - Collections (api/collections.h): every image and search route also exists under
+//    /v1/collections/{name}/..., acting on that collection; the routes without the prefix act on the
+//    collection "default". /v1/collections manages them (create, list, describe, delete, keys, backup).
+//  - Keys, in `Authorization: Bearer KEY` or `X-API-Key: KEY` (compared in constant time). With an admin
+//    key (options.api_key): it grants everything; a collection's write key (api/access_keys.h) grants
+//    its image writes and reads, a read key its reads; reads of a public collection need no key. A
+//    request without the key it needs -> 401; with a key that does not grant it -> 403, with the same
+//    answer whether or not the collection exists (only the admin key gets 404 for an unknown
+//    collection). Every refusal is logged with its request id. Without an admin key every image and
+//    search route is open, and the routes that create or delete collections or keys or write a backup
+//    are refused (403): they write on the server's machine.
+//  - An add to a collection at its limits (images, bytes on disk) -> 507.
 //  - Shutdown() (from the SIGTERM/SIGINT handler) stops accepting, lets in-flight requests finish but
 //    abandons decodes and extractions still running after the service's shutdown grace (their requests
 //    get 503, nothing stored: api::Service::StopExtractions), and returns from Run(); the index's state
@@ -45,6 +53,7 @@
 
 #include "server/http/errors.h"
 #include "server/http/metrics.h"
+#include "api/collections.h"
 #include "api/params.h"
 #include "api/service.h"
 #include "sift/base/error.h"
@@ -73,7 +82,7 @@ struct HttpServerOptions {
   int threads = 8;
   // Accepted connections waiting for a worker at most; beyond it new connections get 503. [1, 100000].
   int max_queued_connections = 64;
-  // When non-empty, POST/DELETE /v1/images require this key (see the file comment).
+  // The admin key; when non-empty, writes require it or a collection's write key (see the file comment).
   std::string api_key;
   // Largest request body, bytes (multipart included); over it -> 413. [1, 2^32].
   uint64_t max_body_bytes = 32ull << 20;
@@ -145,17 +154,19 @@ class HttpServer {
   // Stops accepting and makes Run() return once in-flight requests are done. Idempotent.
   void Shutdown();
 
-  // Makes the service available to the routes (the index finished loading).
+  // Makes the service available to the routes as the collection "default" (the index finished loading).
   void SetService(std::shared_ptr<api::Service> service);
+  // Makes the collections available to the routes (oxbow serve --data: they finished loading).
+  void SetCollections(std::shared_ptr<api::Collections> collections);
   bool ready() const;
   int port() const { return port_; }
 
   struct RouteTable;
 
  private:
-  // Whether a /v1 route needs the API key (when one is set).
-  // kAdmin: as kWrite, and refused when the server has no key.
-  enum class Access { kOpen, kWrite, kAdmin };
+  // What a route needs of the collection it addresses (the file comment). kOpen: no collection
+  // (match), any key; kAdmin: the admin key, refused when the server has none.
+  enum class Access { kOpen, kRead, kWrite, kAdmin };
   using Handler = std::function<void(const httplib::Request&, httplib::Response&)>;
   using ServiceHandler = std::function<void(api::Service&, const httplib::Request&, httplib::Response&)>;
 
@@ -165,8 +176,15 @@ class HttpServer {
   void RegisterStatusRoutes();   // health, readiness, metrics, stats, API description, web page
   void RegisterImageRoutes();
   void RegisterSearchRoutes();
-  // Wraps a route body: catches everything, answers 503 while the index loads, checks the API key.
+  // Wraps a route body: catches everything, answers 503 while the index loads, checks the key against
+  // the collection the path names, answers 404 for an unknown one.
   Handler ServiceRoute(Access access, ServiceHandler body);
+  // Registers `handler` for `pattern` ("/v1/images...") and for the same under /v1/collections/{name}.
+  void Both(const std::string& method, const std::string& pattern, const Handler& handler);
+  // Why the request may not have `access` to `collection` (an unknown one is refused as a private one
+  // unless the caller holds the admin key); nullopt when it may. Logs refusals.
+  std::optional<HttpError> Authorize(const httplib::Request& req, const std::string& collection, Access access) const;
+  void RegisterCollectionRoutes();
   void ServeMetrics(httplib::Response& res) const;
   // The JSON answer, log line and metrics of a request refused before httplib parsed it.
   void AnswerRefusal(const RefusedRequest& refused, httplib::Response& res);
@@ -175,7 +193,7 @@ class HttpServer {
   void LogRequest(const std::string& id, const std::string& method, const std::string& path, const std::string& route,
                   int status, double seconds, const std::vector<std::pair<const char*, double>>& stages,
                   const std::string& refusal);
-  std::shared_ptr<api::Service> service() const;
+  std::shared_ptr<api::Collections> collections() const;
 
   HttpServerOptions options_;
   CustomRoutes custom_routes_;  // set: serves these instead of a service's routes
@@ -183,8 +201,8 @@ class HttpServer {
   std::unique_ptr<UploadBudget> upload_budget_;  // declared before http_, which uses it
   std::unique_ptr<httplib::Server> http_;
   Metrics metrics_;
-  mutable std::mutex service_mutex_;           // guards service_ (pointer copy only)
-  std::shared_ptr<api::Service> service_;
+  mutable std::mutex service_mutex_;           // guards collections_ (pointer copy only)
+  std::shared_ptr<api::Collections> collections_;
   std::atomic<bool> shutting_down_{false};
   int port_ = 0;
 };
