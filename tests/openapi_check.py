@@ -7,11 +7,12 @@ headers) against the document; derives out-of-range requests from the parameter 
 states; checks that the document's paths and methods are exactly the server's route table (GET /v1).
 Run by tests/openapi_test.cc, which starts the servers:
 
-  openapi_check.py --url URL --keyed-url URL --api-key KEY --image PNG --other-image PNG
+  openapi_check.py --url URL --keyed-url URL --data-url URL --api-key KEY --image PNG --other-image PNG
 
 --url: a server without API key and with --max-upload-mb 1; --keyed-url: one with --api-key KEY,
 --request-timeout-s 1 and --max-connections-per-client 4. Both start on an empty index over the same
-vocabulary. Exit 0: every check passed; 1: failures (listed); 77: python3-jsonschema is missing.
+vocabulary. --data-url: `oxbow serve --data DIR --vocab V --api-key KEY` on an empty data folder (its
+collection `default` made with that vocabulary), for the collection routes. Exit 0: every check passed; 1: failures (listed); 77: python3-jsonschema is missing.
 """
 
 import argparse
@@ -341,6 +342,107 @@ def probe_ranges(c, base, template, method, send):
     send(f"{first}=1&{first}=2", 400, "invalid_argument", "repeated parameter")
 
 
+def check_collections(c, url, data, key, image, other):
+    """The collection routes on `data` (oxbow serve --data, admin key `key`) and the refusals of `url`
+    (a server of one index folder, without a key)."""
+    json_type = {"Content-Type": "application/json"}
+    admin = {"X-API-Key": key}
+    png_type = {"Content-Type": "image/png"}
+
+    def post_json(name, base, target, body, expect, code=None, headers=None):
+        return c.check(name, base, "POST", target, expect, code, headers={**json_type, **(headers or {})},
+                       body=json.dumps(body).encode())
+
+    # Listing, creating.
+    c.check("collections", data, "GET", "/v1/collections", 200)
+    r = c.check("collections unknown key", data, "GET", "/v1/collections", 200, headers={"X-API-Key": "wrong"})
+    create = {"name": "alpha", "vocabulary": {"like": "default"}}
+    post_json("create without key", data, "/v1/collections", create, 401, "unauthenticated")
+    post_json("create wrong key", data, "/v1/collections", create, 403, "permission_denied", {"X-API-Key": "wrong"})
+    post_json("create on a server without key", url, "/v1/collections", create, 403, "permission_denied")
+    post_json("create bad name", data, "/v1/collections", {**create, "name": "Alpha"}, 400, "invalid_argument", admin)
+    post_json("create unknown like", data, "/v1/collections", {**create, "vocabulary": {"like": "nope"}}, 404, "not_found", admin)
+    r = post_json("create", data, "/v1/collections", create, 201, headers=admin)
+    if r.status == 201 and (r.json().get("name") != "alpha" or r.json().get("public") is not False):
+        c.fail(f"create: {r.body[:300]!r}")
+    post_json("create taken", data, "/v1/collections", create, 409, "already_exists", admin)
+    post_json("create full", data, "/v1/collections", {"name": "full", "vocabulary": {"like": "default"}, "public": True,
+                                                       "max_images": 0}, 201, headers=admin)
+    r = c.check("collections admin", data, "GET", "/v1/collections", 200, headers=admin)
+    if r.status == 200 and [x["name"] for x in r.json()["collections"]] != ["alpha", "default", "full"]:
+        c.fail(f"collections with the admin key: {r.body[:300]!r}")
+    r = c.check("collections without key", data, "GET", "/v1/collections", 200)
+    if r.status == 200 and "alpha" in [x["name"] for x in r.json()["collections"]]:
+        c.fail("collections without key: lists the private collection alpha")
+    c.check("collection", data, "GET", "/v1/collections/alpha", 200, headers=admin)
+    c.check("collection without key", data, "GET", "/v1/collections/alpha", 401, "unauthenticated")
+    c.check("collection unknown", data, "GET", "/v1/collections/nope", 404, "not_found", headers=admin)
+
+    # Keys.
+    keys = "/v1/collections/alpha/keys"
+    r = post_json("key write", data, keys, {"access": "write"}, 201, headers=admin)
+    write = {"X-API-Key": r.json().get("key", "")} if r.status == 201 else {}
+    r = post_json("key read", data, keys, {"access": "read"}, 201, headers=admin)
+    read = {"X-API-Key": r.json().get("key", "")} if r.status == 201 else {}
+    read_id = r.json().get("id", "x") if r.status == 201 else "x"
+    post_json("key bad access", data, keys, {"access": "admin"}, 400, "invalid_argument", admin)
+    post_json("key by a collection key", data, keys, {"access": "read"}, 403, "permission_denied", write)
+    c.check("keys", data, "GET", keys, 200, headers=admin)
+    c.check("keys without key", data, "GET", keys, 401, "unauthenticated")
+    r = post_json("key of full", data, "/v1/collections/full/keys", {"access": "write"}, 201, headers=admin)
+    other_key = {"X-API-Key": r.json().get("key", "")} if r.status == 201 else {}
+
+    # The image and search routes of a collection, with its keys.
+    base = "/v1/collections/alpha"
+    r = c.check("collection add", data, "POST", f"{base}/images?id=a", 201, headers={**png_type, **write}, body=image)
+    if r.headers.get("location") != f"{base}/images/a":
+        c.fail(f"collection add: Location {r.headers.get('location')!r}")
+    c.check("collection add b", data, "POST", f"{base}/images?id=b", 201, headers={**png_type, **write}, body=other)
+    c.check("collection add without key", data, "POST", f"{base}/images?id=k", 401, "unauthenticated", headers=png_type, body=image)
+    c.check("collection add read key", data, "POST", f"{base}/images?id=k", 403, "permission_denied", headers={**png_type, **read}, body=image)
+    c.check("collection add other key", data, "POST", f"{base}/images?id=k", 403, "permission_denied", headers={**png_type, **other_key}, body=image)
+    c.check("collection add unknown (other key)", data, "POST", "/v1/collections/nope/images?id=k", 403, "permission_denied",
+            headers={**png_type, **other_key}, body=image)
+    ctype, body = multipart([("image", image, "c.png"), ("id", b"c", None)])
+    c.check("collection batch", data, "POST", f"{base}/images/batch", 200, headers={"Content-Type": ctype, **write}, body=body)
+    c.check("collection batch read key", data, "POST", f"{base}/images/batch", 403, "permission_denied",
+            headers={"Content-Type": ctype, **read}, body=body)
+    c.check("collection full", data, "POST", "/v1/collections/full/images?id=f", 507, "collection_full", headers={**png_type, **admin}, body=image)
+    c.check("collection full batch", data, "POST", "/v1/collections/full/images/batch", 507, "collection_full",
+            headers={"Content-Type": ctype, **admin}, body=body)
+    c.check("collection list", data, "GET", f"{base}/images", 200, headers=read)
+    c.check("collection list without key", data, "GET", f"{base}/images", 401, "unauthenticated")
+    c.check("collection get", data, "GET", f"{base}/images/a", 200, headers=read)
+    c.check("collection get unknown", data, "GET", f"{base}/images/nope", 404, "not_found", headers=read)
+    c.check("collection thumbnail", data, "GET", f"{base}/images/a/thumbnail", 200, headers=read)
+    c.check("collection thumbnail unknown", data, "GET", f"{base}/images/nope/thumbnail", 404, "not_found", headers=read)
+    c.check("collection similar", data, "GET", f"{base}/images/a/similar", 200, headers=read)
+    c.check("collection similar unknown", data, "GET", f"{base}/images/nope/similar", 404, "not_found", headers=read)
+    c.check("collection search", data, "POST", f"{base}/search", 200, headers={**png_type, **read}, body=image)
+    c.check("collection search without key", data, "POST", f"{base}/search", 401, "unauthenticated", headers=png_type, body=image)
+    c.check("collection stats", data, "GET", f"{base}/stats", 200, headers=read)
+    c.check("collection stats without key", data, "GET", f"{base}/stats", 401, "unauthenticated")
+    c.check("collection delete read key", data, "DELETE", f"{base}/images/b", 403, "permission_denied", headers=read)
+    c.check("collection delete", data, "DELETE", f"{base}/images/b", 200, headers=write)
+
+    # Backup, revoking, deleting.
+    backups = tempfile.mkdtemp(prefix="oxbow-openapi-collection-backup-")
+    try:
+        post_json("collection backup", data, f"{base}/backup", {"out": os.path.join(backups, "alpha")}, 200, headers=admin)
+        post_json("collection backup relative", data, f"{base}/backup", {"out": "alpha"}, 400, "invalid_argument", admin)
+        post_json("collection backup write key", data, f"{base}/backup", {"out": os.path.join(backups, "b")}, 403,
+                  "permission_denied", write)
+    finally:
+        shutil.rmtree(backups, ignore_errors=True)
+    c.check("key delete", data, "DELETE", f"{keys}/{read_id}", 200, headers=admin)
+    c.check("key delete again", data, "DELETE", f"{keys}/{read_id}", 404, "not_found", headers=admin)
+    c.check("revoked key", data, "GET", f"{base}/images", 403, "permission_denied", headers=read)
+    c.check("collection delete without key", data, "DELETE", base, 401, "unauthenticated")
+    c.check("collection delete", data, "DELETE", base, 200, headers=admin)
+    c.check("collection delete again", data, "DELETE", base, 404, "not_found", headers=admin)
+    c.check("collection delete on a server without key", url, "DELETE", "/v1/collections/default", 403, "permission_denied")
+
+
 def run(args):
     image = open(args.image, "rb").read()
     other = open(args.other_image, "rb").read()  # shares few visual words with `image`: idf > 0
@@ -479,7 +581,7 @@ def run(args):
 
     # Every route with a method it does not take; paths that are no route.
     for template in doc["paths"]:
-        target = template.replace("{id}", "a").replace("{file}", "app.js")
+        target = template.replace("{name}", "default").replace("{id}", "a").replace("{file}", "app.js")
         c.check(f"wrong method {template}", url, "PUT", target, 405, "method_not_allowed")
     c.check("unknown route", url, "GET", "/v1/nope", 404, "not_found")
     c.check("unknown route", url, "POST", "/v2/search", 404, "not_found", headers=png_type, body=image)
@@ -487,7 +589,7 @@ def run(args):
     # Requests refused before any route runs, on every operation.
     many = {f"X-Filler-{i}": "1" for i in range(150)}
     for template, item in doc["paths"].items():
-        target = template.replace("{id}", "a").replace("{file}", "app.js")
+        target = template.replace("{name}", "default").replace("{id}", "a").replace("{file}", "app.js")
         for method in (m.upper() for m in item if m != "parameters"):
             c.check("target too long", url, method, target + "?" + "x" * 9000, 414, "uri_too_long")
             c.check("too many headers", url, method, target, 431, "headers_too_large", headers=many)
@@ -547,6 +649,8 @@ def run(args):
         for s in idle:
             s.close()
 
+    check_collections(c, url, args.data_url, key, image, other)
+
     # Coverage: every described operation answered at least once with success and once with an error.
     for template, item in doc["paths"].items():
         for method in (m for m in item if m != "parameters"):
@@ -564,6 +668,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--url", required=True)
     parser.add_argument("--keyed-url", required=True)
+    parser.add_argument("--data-url", required=True, help="oxbow serve --data DIR --vocab V --api-key KEY")
     parser.add_argument("--api-key", required=True)
     parser.add_argument("--image", required=True, help="a textured PNG (features to find)")
     parser.add_argument("--other-image", required=True, help="another textured PNG, unlike --image")

@@ -20,6 +20,10 @@ TEST_F(OpenApiTest, EveryResponseMatchesTheDescription) {
   auto open = StartServer({"--max-upload-mb", "1"});
   const std::string key = "openapi-test-key";
   auto keyed = StartServer({"--api-key", key, "--request-timeout-s", "1", "--max-connections-per-client", "4"});
+  // The collection routes: a data folder whose collection "default" --vocab creates.
+  ServerProcess data({"serve", "--data", dir_->path() + "/data", "--vocab", vocab_, "--api-key", key, "--port", "0"},
+                     dir_->path() + "/data.log");
+  ASSERT_TRUE(data.port() > 0 && data.WaitReady()) << data.Log();
   const std::string image = dir_->path() + "/texture.png";
   std::ofstream(image, std::ios::binary) << image_;
   const std::string other = dir_->path() + "/other.png";  // another crop: other visual words
@@ -28,11 +32,13 @@ TEST_F(OpenApiTest, EveryResponseMatchesTheDescription) {
   std::ofstream(other, std::ios::binary).write(reinterpret_cast<const char*>(png.data()), static_cast<std::streamsize>(png.size()));
   const std::string command = std::string(OXBOW_PYTHON3) + " tests/openapi_check.py --url http://127.0.0.1:" +
                               std::to_string(open->port()) + " --keyed-url http://127.0.0.1:" +
-                              std::to_string(keyed->port()) + " --api-key " + key + " --image " + image + " --other-image " + other + " 2>&1";
+                              std::to_string(keyed->port()) + " --data-url http://127.0.0.1:" + std::to_string(data.port()) +
+                              " --api-key " + key + " --image " + image + " --other-image " + other + " 2>&1";
   int exit_code = -1;
   const std::string output = RunCommand(command, &exit_code);
   if (exit_code == 77) GTEST_SKIP() << output;
-  EXPECT_EQ(exit_code, 0) << output << "\nopen server log:\n" << open->Log().substr(0, 4000);
+  EXPECT_EQ(exit_code, 0) << output << "\nopen server log:\n" << open->Log().substr(0, 4000) << "\ndata server log:\n"
+                          << data.Log().substr(0, 4000);
   std::cout << output;
 }
 
