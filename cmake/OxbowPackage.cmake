@@ -6,8 +6,10 @@
 #          command, from the binary's --help) and the README.
 #          Also what `cmake --install build [--prefix P]` installs.
 #   deb    what only makes sense in the package, installed at fixed absolute paths the maintainer scripts
-#          and the unit name: oxbow.service, /etc/default/oxbow, the copyright file and changelog.
-#          EXCLUDE_FROM_ALL, so `cmake --install` never writes to /etc or /lib.
+#          and the unit name: oxbow.service, /etc/default/oxbow, the copyright file and changelog; and the
+#          Python client (api/python) as a module of Debian's python3, in /usr/lib/python3/dist-packages
+#          (a path only Debian's python3 reads). EXCLUDE_FROM_ALL, so `cmake --install` never writes to /etc
+#          or /lib, nor a dist-packages folder no python3 reads (elsewhere: `pip install ./api/python`).
 # The web page needs no file: server/http embeds it in the binary.
 
 include(GNUInstallDirs)
@@ -18,6 +20,8 @@ set(OXBOW_DEB_MAINTAINER "oxbow maintainers <maintainers@users.noreply.h-seed-76
 
 find_program(OXBOW_HELP2MAN help2man)
 find_program(OXBOW_GZIP gzip REQUIRED)
+# Debian's, the one the package's module is for; it runs the client's build backend (Python 3.11+).
+find_program(OXBOW_PACKAGE_PYTHON3 python3 PATHS /usr/bin NO_DEFAULT_PATH)
 
 # ---- component oxbow ----
 # Full RELRO (bind now): the dynamic relocations are resolved at start, so the GOT is read-only while the
@@ -60,6 +64,19 @@ install(FILES "${_oxbow_pkg_src}/lintian-overrides" DESTINATION "${CMAKE_INSTALL
 install(FILES "${_oxbow_pkg_src}/oxbow.service" DESTINATION /lib/systemd/system COMPONENT deb EXCLUDE_FROM_ALL)
 install(FILES "${_oxbow_pkg_out}/default/oxbow" DESTINATION /etc/default PERMISSIONS OWNER_READ OWNER_WRITE
         COMPONENT deb EXCLUDE_FROM_ALL)
+# The Python client: the folder oxbow_client/ and oxbow_client-VERSION.dist-info/ (METADATA; no RECORD, so
+# pip leaves the files to dpkg), as the client's own build backend writes them (api/python/README.md).
+# Without bytecode: postinst compiles it with py3compile and prerm removes it with py3clean, as dh_python3's
+# snippets do.
+if(OXBOW_PACKAGE_PYTHON3)
+  install(CODE "execute_process(COMMAND \"${OXBOW_PACKAGE_PYTHON3}\" -B \"${PROJECT_SOURCE_DIR}/api/python/_build/oxbow_build.py\"
+                                        install \"${_oxbow_pkg_out}/python\" --installer dpkg COMMAND_ERROR_IS_FATAL ANY)"
+          COMPONENT deb EXCLUDE_FROM_ALL)
+else()
+  install(CODE "message(FATAL_ERROR \"/usr/bin/python3 not found: it writes the package's Python client (scripts/install-deps.sh installs it)\")"
+          COMPONENT deb EXCLUDE_FROM_ALL)
+endif()
+install(DIRECTORY "${_oxbow_pkg_out}/python/" DESTINATION lib/python3/dist-packages COMPONENT deb EXCLUDE_FROM_ALL)
 
 # ---- CPack ----
 set(CPACK_GENERATOR DEB)
@@ -82,11 +99,14 @@ string(CONCAT CPACK_PACKAGE_DESCRIPTION  # CPack indents the lines for the contr
     "a query photo (a crop, another viewpoint, scale, rotation or lighting) and the\n"
     "region that matched: SIFT/RootSIFT features, a visual-word TF-IDF index,\n"
     "spatial re-ranking and query expansion. It runs as an HTTP JSON server with a\n"
-    "search page (oxbow.service) and as a command line tool.")
+    "search page (oxbow.service) and as a command line tool. The Python client of\n"
+    "its HTTP API is the python3 module oxbow_client.")
 set(CPACK_DEBIAN_PACKAGE_SHLIBDEPS ON)     # dpkg-shlibdeps fills Depends from the linked libraries
 # adduser: postinst creates the system user. OpenCV's image codecs are loaded at run time, not linked
 # (sift/opencv_codecs.h), so dpkg-shlibdeps cannot see them.
 set(CPACK_DEBIAN_PACKAGE_DEPENDS "adduser, libopencv-imgcodecs406")
+# The Python client's module needs python3; the server does not.
+set(CPACK_DEBIAN_PACKAGE_SUGGESTS "python3")
 set(CPACK_DEBIAN_PACKAGE_CONTROL_EXTRA
     "${_oxbow_pkg_src}/postinst" "${_oxbow_pkg_src}/prerm" "${_oxbow_pkg_src}/postrm" "${_oxbow_pkg_src}/conffiles")
 set(CPACK_DEBIAN_PACKAGE_CONTROL_STRICT_PERMISSION ON)

@@ -32,6 +32,8 @@ build_packages=(
   curl python3           # demo and evaluation scripts
   openssl                # tests/cluster_security_test.cc makes the TLS certificates of its shards
   python3-jsonschema     # tests/openapi_check.py validates every response against server/http/openapi.json
+  python3-venv           # api/python/packaging_test.py installs the Python client into a fresh `python3 -m venv`
+                         # (pip comes from python3-pip-whl, offline)
   chromium nodejs        # the web page's end-to-end test (tests/browser: playwright-core drives /usr/bin/chromium)
   libclang-rt-14-dev     # libFuzzer runtime for the fuzz targets (scripts/fuzz.sh; GCC-instrumented, cmake/OxbowFuzz.cmake)
   clang-tidy-16          # static checks (scripts/clang-tidy.sh): the first Debian 12 clang-tidy that parses libstdc++ 12's <expected>

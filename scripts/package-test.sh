@@ -1,17 +1,19 @@
 #!/usr/bin/env bash
 # Tests the Debian package (server/README.md, "Debian package"); scripts/test.sh runs it after ctest, on the build
 # folder it has just built ($OXBOW_BUILD_DIR, default build/):
-#   1. cpack -G DEB, and the package holds the files it must;
+#   1. cpack -G DEB, and the package holds the files it must (the Python client's module among them, without
+#      bytecode);
 #   2. lintian: fails on any error or warning (intended tags are overridden, each with its reason, in
 #      cmake/packaging/lintian-overrides);
 #   3. systemd-analyze verify (no message at all) and security (exposure at most 2.0) on oxbow.service;
 #   4. as root (CI) or with passwordless sudo: apt-get install of the .deb; the user, the unit and the
 #      settings are there; the installed /usr/bin/oxbow, run as the user oxbow the way server/README.md says,
 #      trains a tiny vocabulary, serves /var/lib/oxbow/index (created by the first start), takes images
-#      over HTTP and finds box_in_scene for box.png, and starts a shard's gRPC port (the cluster module in
-#      /usr/lib/oxbow); under a running systemd, oxbow.service itself serves
+#      over HTTP and finds box_in_scene for box.png (with curl, and with the installed Python client, which
+#      Debian's python3 imports byte-compiled from /usr/lib/python3/dist-packages), and starts a shard's gRPC
+#      port (the cluster module in /usr/lib/oxbow); under a running systemd, oxbow.service itself serves
 #      it; then apt-get purge, and everything but the user and /var/lib/oxbow (kept on purge, as
-#      documented) is gone; the test deletes those two itself.
+#      documented) is gone, the client's bytecode included; the test deletes those two itself.
 # Otherwise step 4 is SKIPPED, saying why. It is also skipped on a machine that already has an oxbow
 # package, user or /var/lib/oxbow (it would replace and delete them). About 20 s.
 set -euo pipefail
@@ -58,9 +60,13 @@ version=$(dpkg-deb -f "$deb" Version)
 contents=$(dpkg-deb -c "$deb" | awk '{ print $6 }')
 for path in ./usr/bin/oxbow ./lib/systemd/system/oxbow.service ./etc/default/oxbow ./usr/share/doc/oxbow/copyright \
             ./usr/share/doc/oxbow/changelog.gz ./usr/share/man/man1/oxbow.1.gz ./usr/share/man/man1/oxbow-serve.1.gz \
-            ./usr/share/man/man1/oxbow-index-build.1.gz ./usr/lib/oxbow/liboxbow_mpi.so ./usr/lib/oxbow/liboxbow_cluster.so; do
+            ./usr/share/man/man1/oxbow-index-build.1.gz ./usr/lib/oxbow/liboxbow_mpi.so ./usr/lib/oxbow/liboxbow_cluster.so \
+            ./usr/lib/python3/dist-packages/oxbow_client/__init__.py ./usr/lib/python3/dist-packages/oxbow_client/py.typed \
+            "./usr/lib/python3/dist-packages/oxbow_client-$version.dist-info/METADATA"; do
   grep -qx -- "$path" <<<"$contents" || fail "$path missing from $deb"
 done
+if grep -E '__pycache__|\.pyc$' <<<"$contents"; then fail "the package holds Python bytecode (above): postinst compiles it"; fi
+[[ $(dpkg-deb -f "$deb" Suggests) == *python3* ]] || fail "Suggests does not name python3 (the client's module needs it)"
 say "built $deb ($(du -k "$deb" | cut -f1) KiB; Depends: $(dpkg-deb -f "$deb" Depends))"
 
 # ---- 2. lintian ----
@@ -116,7 +122,14 @@ bash "$root/cmake/packaging/make-default.sh" /usr/bin/oxbow "$work/default"
 as_root cat /etc/default/oxbow | diff - "$work/default" >&2 || fail "/etc/default/oxbow differs from the installed binary's serve --help"
 [[ -f /lib/systemd/system/oxbow.service ]] || fail "oxbow.service not installed"
 if command -v man >/dev/null; then verify_unit /lib/systemd/system/oxbow.service; else verify_unit /lib/systemd/system/oxbow.service --man=no; fi
-say "installed: /usr/bin/oxbow $version, user oxbow (uid $uid), /var/lib/oxbow, oxbow.service (verify clean), /etc/default/oxbow"
+# The Python client: postinst byte-compiled it (py3compile; checked before any import, which as root would
+# write the bytecode itself), and Debian's python3 imports it from the package, at the package's version.
+client=/usr/lib/python3/dist-packages/oxbow_client
+compgen -G "$client/__pycache__/__init__.cpython-3*.pyc" >/dev/null || fail "postinst did not byte-compile $client (py3compile)"
+imported=$(/usr/bin/python3 -I -c 'import importlib.metadata, oxbow_client; print(oxbow_client.__file__, importlib.metadata.version("oxbow-client"))') \
+  || fail "/usr/bin/python3 cannot import oxbow_client"
+[[ $imported == "$client/__init__.py $version" ]] || fail "python3 imports oxbow_client as '$imported', not $client at $version"
+say "installed: /usr/bin/oxbow $version, user oxbow (uid $uid), /var/lib/oxbow, oxbow.service (verify clean), /etc/default/oxbow, python3 module oxbow_client (byte-compiled)"
 
 # A tiny collection: 8 opencv-doc photos, box_in_scene.png among them; query box.png. 500 words is the
 # smallest vocabulary here that verifies it (18 inliers; 200 words rank it 4th, unverified).
@@ -144,6 +157,15 @@ import json, sys
 first = json.load(open(sys.argv[1]))["results"][0]
 print(f"package-test: search box.png -> {first['id']} (verified {first['verified']}, {first['inliers']} inliers)", file=sys.stderr)
 sys.exit(0 if first["id"] == "box_in_scene" and first["verified"] else 1)
+EOF
+  # The same with the packaged Python client, as the user oxbow (-I: nothing but the system's modules).
+  "${as_oxbow[@]}" /usr/bin/python3 -I - "$port" "$samples/box.png" "${#photos[@]}" <<'EOF' || fail "the installed Python client (above)"
+import sys
+from oxbow_client import Client
+oxbow = Client(f"http://127.0.0.1:{sys.argv[1]}", timeout=60)
+images, first = oxbow.stats()["images"], oxbow.search(sys.argv[2], top_k=3)["results"][0]
+print(f"package-test: oxbow_client: {images} images, search box.png -> {first['id']}", file=sys.stderr)
+sys.exit(0 if images == int(sys.argv[3]) and first["id"] == "box_in_scene" and first["verified"] else 1)
 EOF
 }
 
@@ -199,7 +221,7 @@ as_root env DEBIAN_FRONTEND=noninteractive apt-get purge -y -qq oxbow >"$work/ap
 installed=0
 if dpkg-query -W -f='${Status}' oxbow 2>/dev/null | grep -q .; then fail "dpkg still lists oxbow after purge"; fi
 for path in /usr/bin/oxbow /usr/lib/oxbow /lib/systemd/system/oxbow.service /etc/default/oxbow /usr/share/doc/oxbow \
-            /usr/share/man/man1/oxbow.1.gz /etc/systemd/system/oxbow.service \
+            /usr/share/man/man1/oxbow.1.gz /etc/systemd/system/oxbow.service "$client" "$client-$version.dist-info" \
             /var/lib/systemd/deb-systemd-helper-enabled/oxbow.service.dsh-also \
             /var/lib/systemd/deb-systemd-helper-masked/oxbow.service; do
   [[ ! -e $path && ! -L $path ]] || fail "$path is still there after apt-get purge"
@@ -210,5 +232,5 @@ as_root rm -rf /var/lib/oxbow
 as_root deluser --system --quiet oxbow >/dev/null 2>&1  # (it mentions crontab without cron)
 as_root delgroup --system --quiet oxbow >/dev/null 2>&1 || true
 if getent passwd oxbow >/dev/null || getent group oxbow >/dev/null; then fail "user or group oxbow left after deluser"; fi
-say "purged: no package, binary, unit, settings or systemd state left; user and /var/lib/oxbow removed after it"
+say "purged: no package, binary, unit, settings, Python module or systemd state left; user and /var/lib/oxbow removed after it"
 say "ok ($((SECONDS - started)) s)"

@@ -14,7 +14,7 @@ It is served as it is by `oxbow serve --index DIR` (server defaults) and measure
      add time excluding extraction (timings_ms.add), p50/p95/p99;
   4. kill -9 right after the last add was acknowledged, restart: time to /readyz again, and every
      acknowledged add is there (then they are deleted, leaving DIR's images as they were).
-Prints one line per figure. Needs nothing beyond Python's standard library and api/python/oxbow_client.py.
+Prints one line per figure. Needs nothing beyond Python's standard library and the client in api/python (oxbow_client).
 """
 import argparse
 import os

@@ -1,20 +1,29 @@
-"""Tests of oxbow_client.py against a real `oxbow serve` (every method, success and error).
+"""Tests of oxbow_client against a real `oxbow serve` (every method, success and error).
 
 tests/python_client_test.cc runs it (ctest python_client_test) with a fresh server; by hand:
-    OXBOW_URL=http://127.0.0.1:PORT OXBOW_API_KEY=KEY OXBOW_TEST_IMAGES=DIR python3 -m unittest -v oxbow_client_test
-where the server was started with --api-key KEY --max-batch-images 2 over an empty index (add_many then
-needs several batches), and DIR holds a.png, b.png and c.png:
-three different textured pictures. The tests add, replace and delete images with ids starting "py-".
+    OXBOW_URL=http://127.0.0.1:PORT OXBOW_API_KEY=KEY OXBOW_TEST_IMAGES=DIR OXBOW_VOCAB=VOCAB \
+        python3 api/python/oxbow_client_test.py -v
+where the server was started with `oxbow serve --data DATA --vocab VOCAB --api-key KEY --max-batch-images 2`
+over an empty DATA folder (its collection "default" is then created empty, public, with VOCAB; add_many
+needs several batches), VOCAB is a vocabulary file (the collection tests create collections with it, so it
+is a path on the server's machine: the tests run beside the server), and DIR holds a.png, b.png and c.png:
+three different textured pictures. The tests add, replace and delete images with ids starting "py-", and
+create and delete collections named "py-<6 random hex digits>-...". Every test needs these four variables:
+without one, the tests fail rather than skip.
 """
+
+from __future__ import annotations
 
 import io
 import os
 import pathlib
 import re
+import secrets
 import socket
 import sys
 import tempfile
 import unittest
+from typing import Any
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import oxbow_client as ox  # noqa: E402
@@ -22,24 +31,18 @@ import oxbow_client as ox  # noqa: E402
 URL = os.environ.get("OXBOW_URL", "")
 API_KEY = os.environ.get("OXBOW_API_KEY", "")
 IMAGES = pathlib.Path(os.environ.get("OXBOW_TEST_IMAGES", "/nonexistent"))
+VOCAB = os.environ.get("OXBOW_VOCAB", "")
 GENERATED_ID = re.compile(r"^[0-9a-f]{16}$")  # the server's own request ids
 
 
-def setUpModule():
+def setUpModule() -> None:
     # Never skip: a run without a server must fail, not pass with nothing tested.
     if not URL or not API_KEY or not (IMAGES / "a.png").is_file():
         raise RuntimeError(__doc__)
 
 
-class ClientTest(unittest.TestCase):
-    @classmethod
-    def setUpClass(cls):
-        cls.client = ox.Client(URL, api_key=API_KEY, timeout=60)
-        cls.a = (IMAGES / "a.png").read_bytes()
-        cls.b_path = IMAGES / "b.png"
-        cls.c_path = str(IMAGES / "c.png")
-
-    def assertServerError(self, context, cls, status, code):
+class ServerTestCase(unittest.TestCase):
+    def assertServerError(self, context: Any, cls: type[ox.OxbowError], status: int, code: str) -> None:
         error = context.exception
         self.assertIsInstance(error, cls)
         self.assertIsInstance(error, ox.OxbowError)
@@ -47,6 +50,15 @@ class ClientTest(unittest.TestCase):
         self.assertEqual(error.code, code)
         self.assertRegex(error.request_id or "", GENERATED_ID)
         self.assertTrue(error.message)
+
+
+class ClientTest(ServerTestCase):
+    @classmethod
+    def setUpClass(cls):
+        cls.client = ox.Client(URL, api_key=API_KEY, timeout=60)
+        cls.a = (IMAGES / "a.png").read_bytes()
+        cls.b_path = IMAGES / "b.png"
+        cls.c_path = str(IMAGES / "c.png")
 
     # -- status
 
@@ -294,6 +306,369 @@ class ClientTest(unittest.TestCase):
             with self.assertRaises(ox.ClientTimeoutError):
                 ox.Client(f"http://127.0.0.1:{s.getsockname()[1]}", timeout=0.2).stats()
 
+    def test_iter_images_reads_every_page(self):
+        ids = ["py-iter-1", "py-iter-2", "py-iter-3"]
+        for id in ids:
+            self.client.add(id, self.a)
+        try:
+            listed = [image["id"] for image in self.client.list(limit=1000)["images"]]
+            for page_size in (1, 2, 1000):
+                with self.subTest(page_size=page_size):
+                    self.assertEqual([image["id"] for image in self.client.iter_images(page_size=page_size)], listed)
+            self.assertTrue(set(ids) <= set(listed))
+        finally:
+            for id in ids:
+                self.client.delete(id)
+
+
+class CollectionTest(ServerTestCase):
+    """Collections, their keys and limits, and the image and search methods of Client.collection(name)."""
+
+    admin: ox.Client
+    anonymous: ox.Client
+    run_id: str
+    a: bytes
+    b_path: pathlib.Path
+    c_path: str
+
+    @classmethod
+    def setUpClass(cls) -> None:
+        if not VOCAB:
+            raise RuntimeError("OXBOW_VOCAB is not set: the collection tests create collections with that vocabulary "
+                               "file (a path on the server's machine); tests/python_client_test.cc sets it and starts "
+                               "the server with --data DIR --vocab VOCAB. " + (__doc__ or ""))
+        cls.admin = ox.Client(URL, api_key=API_KEY, timeout=60)
+        cls.anonymous = ox.Client(URL, timeout=60)
+        cls.run_id = secrets.token_hex(3)  # a second run against the same server makes other names
+        cls.a = (IMAGES / "a.png").read_bytes()
+        cls.b_path = IMAGES / "b.png"
+        cls.c_path = str(IMAGES / "c.png")
+
+    def make(self, suffix: str, vocabulary: str | None = None, **options: Any) -> tuple[str, dict[str, Any]]:
+        """Creates the collection py-RUN-suffix (with OXBOW_VOCAB unless like= or vocabulary= is given),
+        deleted after the test."""
+        name = f"py-{self.run_id}-{suffix}"
+        if vocabulary is None and "like" not in options:
+            vocabulary = VOCAB
+        created = self.admin.create_collection(name, vocabulary, **options)
+        self.addCleanup(self.drop, name)
+        return name, created
+
+    def drop(self, name: str) -> None:
+        try:
+            self.admin.delete_collection(name)
+        except ox.NotFoundError:
+            pass  # the test deleted it
+
+    def assertCollection(self, info: dict[str, Any], name: str, *, public: bool = False, images: int = 0,
+                         limits: dict[str, Any] | None = None) -> None:
+        self.assertEqual(info["name"], name)
+        self.assertIs(info["public"], public)
+        self.assertEqual(info["images"], images)
+        self.assertEqual(info["features"] > 0, images > 0, info)
+        self.assertIsInstance(info["disk_bytes"], int)
+        self.assertGreater(info["disk_bytes"], 0)  # the vocabulary and the catalogue at least
+        self.assertEqual(info["limits"], limits or {"max_images": None, "max_bytes": None})
+        vocabulary = info["vocabulary"]
+        self.assertGreater(vocabulary["words"], 0)
+        self.assertRegex(vocabulary["fingerprint"], r"^[0-9a-f]{16}$")
+        self.assertIn(vocabulary["descriptor"], ("sift", "rootsift"))
+        self.assertIsInstance(vocabulary["hamming"], bool)
+
+    # -- create, list, get, delete
+
+    def test_create_list_get_delete(self):
+        name, created = self.make("life")
+        self.assertCollection(created, name)
+        self.assertIn(name, [c["name"] for c in self.admin.collections()])
+        self.assertIn("default", [c["name"] for c in self.admin.collections()])
+        got = self.admin.get_collection(name)
+        self.assertCollection(got, name)
+        self.assertEqual(got["vocabulary"], created["vocabulary"])
+        self.assertEqual((got["stats"]["images"], got["stats"]["words"]), (0, created["vocabulary"]["words"]))
+        self.assertEqual(self.admin.collection(name).info()["name"], name)
+        self.assertEqual(self.admin.collection(name).stats()["words"], created["vocabulary"]["words"])
+
+        self.assertEqual(self.admin.delete_collection(name), {"name": name, "deleted": True})
+        self.assertNotIn(name, [c["name"] for c in self.admin.collections()])
+        for call in (lambda: self.admin.get_collection(name), lambda: self.admin.delete_collection(name),
+                     lambda: self.admin.collection(name).list(), lambda: self.admin.collection(name).get("py-x")):
+            with self.assertRaises(ox.NotFoundError) as e:
+                call()
+            self.assertServerError(e, ox.NotFoundError, 404, "not_found")
+
+    def test_create_errors(self):
+        name, _ = self.make("taken")
+        for taken in (name, "default"):
+            with self.assertRaises(ox.ConflictError) as e:
+                self.admin.create_collection(taken, VOCAB)
+            self.assertServerError(e, ox.ConflictError, 409, "already_exists")
+        for bad in ("Upper", "-dash-first", "a" * 65, "dot.ted", "sl/ash", f"py-{self.run_id}-bad name"):
+            with self.subTest(name=bad):
+                with self.assertRaises(ox.InvalidArgumentError) as e:
+                    self.admin.create_collection(bad, VOCAB)
+                self.assertServerError(e, ox.InvalidArgumentError, 400, "invalid_argument")
+        with self.assertRaises(ox.InvalidArgumentError) as e:
+            self.admin.create_collection(f"py-{self.run_id}-negative", VOCAB, max_images=-1)
+        self.assertServerError(e, ox.InvalidArgumentError, 400, "invalid_argument")
+        with self.assertRaises(ox.NotFoundError) as e:
+            self.admin.create_collection(f"py-{self.run_id}-novocab", os.path.join(VOCAB + ".d", "missing.oxvoc"))
+        self.assertServerError(e, ox.NotFoundError, 404, "not_found")
+        with self.assertRaises(ox.NotFoundError) as e:
+            self.admin.create_collection(f"py-{self.run_id}-nolike", like=f"py-{self.run_id}-never-made")
+        self.assertServerError(e, ox.NotFoundError, 404, "not_found")
+        for failed in ("negative", "novocab", "nolike"):
+            self.assertNotIn(f"py-{self.run_id}-{failed}", [c["name"] for c in self.admin.collections()])
+        with self.assertRaises(ValueError):  # both, or neither: refused before any request
+            self.admin.create_collection(f"py-{self.run_id}-both", VOCAB, like=name)
+        with self.assertRaises(ValueError):
+            self.admin.create_collection(f"py-{self.run_id}-neither")
+        with self.assertRaises(ValueError):
+            self.admin.collection("")
+
+    def test_like_takes_the_vocabulary_of_another_collection(self):
+        source, created = self.make("like-source")
+        copy, copied = self.make("like-copy", like=source, public=True, max_images=10, max_bytes=10**9)
+        self.assertCollection(copied, copy, public=True, limits={"max_images": 10, "max_bytes": 10**9})
+        self.assertEqual(copied["vocabulary"], created["vocabulary"])
+
+    # -- images and search in a collection
+
+    def test_images_and_search_in_a_collection(self):
+        name, _ = self.make("images")
+        paris = self.admin.collection(name)
+        self.assertEqual((paris.name, paris.client), (name, self.admin))
+        added = paris.add("py-c-a", self.a, metadata={"city": "Paris"})
+        self.assertEqual((added["id"], added["replaced"], added["metadata"]), ("py-c-a", False, {"city": "Paris"}))
+        self.assertGreater(added["features"], 0)
+        paris.add("py-c-b", self.b_path)
+        with open(self.c_path, "rb") as f:
+            paris.add("py-c-c/with slash", f)
+        self.assertEqual(paris.get("py-c-c/with slash")["id"], "py-c-c/with slash")
+        ids = ["py-c-a", "py-c-b", "py-c-c/with slash"]
+        listed = paris.list(limit=1000)
+        self.assertEqual(([i["id"] for i in listed["images"]], listed["total"]), (ids, 3))
+        self.assertEqual([i["id"] for i in paris.iter_images(page_size=2)], ids)
+        self.assertEqual(paris.stats()["images"], 3)
+        self.assertCollection(paris.info(), name, images=3)
+        self.assertTrue(paris.thumbnail("py-c-b", size=32).startswith(b"\xff\xd8"))
+
+        # Separate from the collection "default" (Client's own methods), both ways.
+        with self.assertRaises(ox.NotFoundError):
+            self.admin.get("py-c-a")
+        self.admin.add("py-default-only", self.a)
+        try:
+            with self.assertRaises(ox.NotFoundError):
+                paris.get("py-default-only")
+            self.assertNotIn("py-default-only", [i["id"] for i in paris.iter_images()])
+        finally:
+            self.admin.delete("py-default-only")
+
+        found = paris.search(self.a, top_k=1)
+        self.assertEqual([r["id"] for r in found["results"]], ["py-c-a"])
+        self.assertEqual(paris.search(self.a, filter={"city": "Lyon"}, top_k=5)["results"], [])
+        self.assertEqual(paris.similar("py-c-b", top_k=1)["results"][0]["id"], "py-c-b")
+        with self.assertRaises(ox.InvalidArgumentError) as e:
+            paris.search(self.a, top_k=0)
+        self.assertServerError(e, ox.InvalidArgumentError, 400, "invalid_argument")
+
+        with self.assertRaises(ox.ConflictError) as e:
+            paris.add("py-c-a", self.b_path)
+        self.assertServerError(e, ox.ConflictError, 409, "already_exists")
+        self.assertTrue(paris.add("py-c-a", self.b_path, replace=True)["replaced"])
+        self.assertEqual(paris.delete("py-c-b"), {"id": "py-c-b", "deleted": True})
+        for call in (paris.get, paris.delete, paris.similar, paris.thumbnail):
+            with self.subTest(call=call.__name__):
+                with self.assertRaises(ox.NotFoundError) as e:
+                    call("py-c-b")
+                self.assertServerError(e, ox.NotFoundError, 404, "not_found")
+
+    def test_add_many_in_a_collection(self):
+        name, _ = self.make("many")
+        lyon = self.admin.collection(name)
+        posts = []
+        request = lyon._request
+
+        def counting(method: str, path: str, **kwargs: Any) -> Any:
+            if method == "POST":
+                posts.append(path)
+            return request(method, path, **kwargs)
+
+        lyon._request = counting
+        items = [("py-m-1", self.a), ("py-m-2", self.b_path, {"k": "v"}), ("py-m-1", self.c_path),
+                 ("py-m-bad", b"not an image"), ("py-m-3", self.c_path)]
+        results = lyon.add_many(items)
+        self.assertEqual([r.ok for r in results], [True, True, False, False, True])
+        self.assertIsInstance(results[2].error, ox.ConflictError)
+        self.assertIsInstance(results[3].error, ox.InvalidArgumentError)
+        self.assertEqual(results[1].response["metadata"], {"k": "v"})
+        self.assertGreater(len(posts), 1)  # the server's --max-batch-images 2
+        self.assertEqual(set(posts), {f"/v1/collections/{name}/images/batch"})
+        self.assertEqual([i["id"] for i in lyon.iter_images()], ["py-m-1", "py-m-2", "py-m-3"])
+        replaced = lyon.add_many([("py-m-1", self.b_path)], replace=True)
+        self.assertTrue(replaced[0].response["replaced"])
+        self.assertEqual(posts[-1], f"/v1/collections/{name}/images")
+        for id in ("py-m-1", "py-m-2", "py-m-3"):
+            with self.assertRaises(ox.NotFoundError):
+                self.admin.get(id)
+
+    def test_default_is_the_collection_of_the_unprefixed_routes(self):
+        default = self.admin.collection("default")
+        self.admin.add("py-default-1", self.a, metadata={"n": 1})
+        try:
+            self.assertEqual(default.get("py-default-1")["metadata"], {"n": 1})
+            self.assertIn("py-default-1", [i["id"] for i in default.iter_images()])
+            self.assertEqual(default.stats()["images"], self.admin.stats()["images"])
+            self.assertIs(default.info()["public"], True)  # --vocab made it public
+        finally:
+            self.assertEqual(default.delete("py-default-1"), {"id": "py-default-1", "deleted": True})
+        with self.assertRaises(ox.NotFoundError):
+            self.admin.get("py-default-1")
+
+    # -- keys and access
+
+    def test_keys_grant_read_or_write_of_one_collection(self):
+        name, _ = self.make("keys")
+        other, _ = self.make("keys-other")
+        reader = self.admin.create_key(name)
+        writer = self.admin.create_key(name, access="write")
+        for key, access in ((reader, "read"), (writer, "write")):
+            self.assertRegex(key["key"], r"^oxk_")
+            self.assertEqual((key["collection"], key["access"]), (name, access))
+            self.assertTrue(key["id"])
+            self.assertTrue(key["created"])
+        self.assertNotEqual(reader["key"], writer["key"])
+        keys = self.admin.list_keys(name)
+        self.assertEqual(sorted(k["id"] for k in keys), sorted([reader["id"], writer["id"]]))
+        for listed in keys:
+            self.assertNotIn("key", listed)
+            self.assertEqual(listed["access"], "read" if listed["id"] == reader["id"] else "write")
+            self.assertIn("created", listed)
+        self.assertEqual(self.admin.list_keys(other), [])
+
+        as_writer = ox.Client(URL, api_key=writer["key"], timeout=60)
+        as_reader = ox.Client(URL, api_key=reader["key"], timeout=60)
+        self.assertEqual(as_writer.collection(name).add("py-k-1", self.a)["id"], "py-k-1")
+        self.assertEqual(as_writer.collection(name).add("py-k-2", self.b_path)["id"], "py-k-2")  # idf > 0 for a's words
+        reading = as_reader.collection(name)
+        self.assertEqual(reading.get("py-k-1")["id"], "py-k-1")
+        self.assertEqual(reading.list()["total"], 2)
+        self.assertEqual(reading.search(self.a, top_k=1)["results"][0]["id"], "py-k-1")
+        self.assertEqual(as_reader.get_collection(name)["images"], 2)
+        for call in (lambda: reading.add("py-k-3", self.a), lambda: reading.delete("py-k-1")):
+            with self.assertRaises(ox.PermissionDeniedError) as e:
+                call()
+            self.assertServerError(e, ox.PermissionDeniedError, 403, "permission_denied")
+        self.assertIsInstance(reading.add_many([("py-k-3", self.a)])[0].error, ox.PermissionDeniedError)
+        self.assertEqual(reading.list()["total"], 2)
+
+        # Without a key, the collection (not public) cannot be read; with another collection's key, nothing
+        # tells whether a collection exists.
+        for call in (lambda: self.anonymous.collection(name).get("py-k-1"), lambda: self.anonymous.get_collection(name),
+                     lambda: self.anonymous.collection(name).add("py-k-3", self.a)):
+            with self.assertRaises(ox.UnauthenticatedError) as e:
+                call()
+            self.assertServerError(e, ox.UnauthenticatedError, 401, "unauthenticated")
+        never = f"py-{self.run_id}-never-made"
+        messages = []
+        for target in (other, never):
+            with self.assertRaises(ox.PermissionDeniedError) as e:
+                as_writer.collection(target).list()
+            self.assertServerError(e, ox.PermissionDeniedError, 403, "permission_denied")
+            messages.append(e.exception.message.replace(target, "NAME"))
+        self.assertEqual(messages[0], messages[1])
+
+        # What each key lists: its own collection and the public ones.
+        for client in (as_reader, as_writer):
+            names = [c["name"] for c in client.collections()]
+            self.assertIn(name, names)
+            self.assertIn("default", names)
+            self.assertNotIn(other, names)
+        names = [c["name"] for c in self.anonymous.collections()]
+        self.assertIn("default", names)
+        self.assertNotIn(name, names)
+
+        # A collection key is not the admin key.
+        for call in (lambda: as_writer.create_key(name), lambda: as_writer.list_keys(name),
+                     lambda: as_writer.delete_key(name, reader["id"]), lambda: as_writer.delete_collection(name),
+                     lambda: as_writer.create_collection(f"py-{self.run_id}-by-key", VOCAB),
+                     lambda: as_writer.add("py-k-default", self.a)):  # the collection "default" is not its own
+            with self.assertRaises(ox.PermissionDeniedError) as e:
+                call()
+            self.assertServerError(e, ox.PermissionDeniedError, 403, "permission_denied")
+
+        # A deleted key grants nothing.
+        self.assertEqual(self.admin.delete_key(name, reader["id"]), {"id": reader["id"], "deleted": True})
+        self.assertEqual([k["id"] for k in self.admin.list_keys(name)], [writer["id"]])
+        with self.assertRaises(ox.PermissionDeniedError) as e:
+            reading.get("py-k-1")
+        self.assertServerError(e, ox.PermissionDeniedError, 403, "permission_denied")
+        with self.assertRaises(ox.NotFoundError) as e:
+            self.admin.delete_key(name, reader["id"])
+        self.assertServerError(e, ox.NotFoundError, 404, "not_found")
+        # Deleting the collection deletes its keys.
+        self.admin.delete_collection(name)
+        with self.assertRaises(ox.PermissionDeniedError):
+            as_writer.collection(name).list()
+
+    def test_public_collection_is_read_without_a_key(self):
+        name, created = self.make("public", public=True)
+        self.assertCollection(created, name, public=True)
+        self.admin.collection(name).add("py-p-1", self.a)
+        self.admin.collection(name).add("py-p-2", self.b_path)
+        public = self.anonymous.collection(name)
+        self.assertEqual([i["id"] for i in public.iter_images()], ["py-p-1", "py-p-2"])
+        self.assertEqual(public.search(self.a, top_k=1)["results"][0]["id"], "py-p-1")
+        self.assertEqual(public.info()["images"], 2)
+        self.assertIn(name, [c["name"] for c in self.anonymous.collections()])
+        for call in (lambda: public.add("py-p-3", self.a), lambda: public.delete("py-p-1")):
+            with self.assertRaises(ox.UnauthenticatedError) as e:
+                call()
+            self.assertServerError(e, ox.UnauthenticatedError, 401, "unauthenticated")
+
+    # -- limits and backup
+
+    def test_full_collection_refuses_adds(self):
+        name, created = self.make("full", max_images=1)
+        self.assertEqual(created["limits"], {"max_images": 1, "max_bytes": None})
+        full = self.admin.collection(name)
+        full.add("py-f-1", self.a)
+        with self.assertRaises(ox.CollectionFullError) as e:
+            full.add("py-f-2", self.b_path)
+        self.assertServerError(e, ox.CollectionFullError, 507, "collection_full")
+        self.assertIsInstance(e.exception, ox.ServerError)
+        results = full.add_many([("py-f-2", self.b_path), ("py-f-3", self.c_path)])
+        self.assertEqual([r.ok for r in results], [False, False])
+        self.assertIsInstance(results[0].error, ox.CollectionFullError)
+        full.delete("py-f-1")
+        self.assertEqual(full.add("py-f-2", self.b_path)["id"], "py-f-2")
+
+        name, _ = self.make("full-bytes", max_bytes=1)  # its folder already holds more
+        with self.assertRaises(ox.CollectionFullError) as e:
+            self.admin.collection(name).add("py-f-1", self.a)
+        self.assertServerError(e, ox.CollectionFullError, 507, "collection_full")
+        self.assertEqual(self.admin.get_collection(name)["images"], 0)
+
+    def test_backup_collection(self):
+        name, _ = self.make("backup")
+        self.admin.collection(name).add("py-b-1", self.a)
+        with tempfile.TemporaryDirectory() as folder:
+            out = os.path.join(folder, "copy")
+            with self.assertRaises(ox.UnauthenticatedError) as e:
+                self.anonymous.backup_collection(name, out)
+            self.assertServerError(e, ox.UnauthenticatedError, 401, "unauthenticated")
+            writer = ox.Client(URL, api_key=self.admin.create_key(name, access="write")["key"], timeout=60)
+            with self.assertRaises(ox.PermissionDeniedError) as e:
+                writer.collection(name).backup(out)
+            self.assertServerError(e, ox.PermissionDeniedError, 403, "permission_denied")
+            answer = self.admin.backup_collection(name, out)
+            self.assertEqual((answer["out"], answer["images"]), (out, 1))
+            self.assertTrue(os.path.isfile(os.path.join(out, "catalogue.sqlite")))
+            with self.assertRaises(ox.ConflictError):
+                self.admin.collection(name).backup(out)
+            with self.assertRaises(ox.NotFoundError):
+                self.admin.backup_collection(f"py-{self.run_id}-never-made", os.path.join(folder, "other"))
+
 
 class ErrorMappingTest(unittest.TestCase):
     """Answers the test server cannot easily give on demand: the mapping alone."""
@@ -304,6 +679,14 @@ class ErrorMappingTest(unittest.TestCase):
         self.assertIsInstance(error, ox.UnavailableError)
         self.assertIsInstance(error, ox.ServerError)
         self.assertEqual((error.status, error.code, error.request_id, error.retry_after), (503, "unavailable", "r1", 1.0))
+
+    def test_collection_full_is_a_server_error(self):
+        body = b'{"error":{"code":"collection_full","message":"at max_images 10","request_id":"r3"}}'
+        error = ox._error_from_response(507, {}, body)
+        self.assertIsInstance(error, ox.CollectionFullError)
+        self.assertIsInstance(error, ox.ServerError)
+        self.assertEqual((error.status, error.code, error.request_id), (507, "collection_full", "r3"))
+        self.assertEqual(str(error), "at max_images 10 (HTTP 507, collection_full, request r3)")
 
     def test_a_body_that_is_not_oxbows_keeps_its_text(self):
         error = ox._error_from_response(502, {"X-Request-Id": "r2"}, b"<html>Bad Gateway</html>")

@@ -9,10 +9,22 @@
     except NotFoundError as e:
         print(e.status, e.code, e.message, e.request_id)
 
+Collections (a server started with `oxbow serve --data DIR`): each is an index of its own, with its own
+vocabulary, keys and limits. The admin key (the server's --api-key) creates and deletes them and makes
+their keys; `Client.collection(name)` has the image and search methods of Client, on that collection:
+
+    oxbow.create_collection("paris", "/srv/vocab/paris.oxvoc", max_images=100_000)
+    key = oxbow.create_key("paris", access="write")["key"]     # shown only here
+    paris = Client("http://127.0.0.1:8080", api_key=key).collection("paris")
+    paris.add("louvre-1", "photos/louvre.jpg")
+    hits = paris.search("query.jpg", top_k=5)["results"]
+
+Client's own image and search methods act on the collection named "default".
+
 Every method returns the server's JSON answer as a dict (fields: server/README.md), or raises an
 OxbowError subclass that carries the server's error code, message, HTTP status and request id.
 Images are given as bytes, a path (str or os.PathLike) or a binary file object. A Client holds no
-connection between calls, so one may be shared by threads.
+connection between calls, so one may be shared by threads; so may a Collection.
 """
 
 from __future__ import annotations
@@ -26,17 +38,24 @@ import socket
 import urllib.error
 import urllib.parse
 import urllib.request
-from collections.abc import Iterable, Mapping
-from typing import Any, BinaryIO, Union
+from collections.abc import Iterable, Iterator, Mapping
+from email.message import Message
+from typing import Any, BinaryIO, Literal, Union, overload
+
+__version__ = "0.1.0"  # the oxbow version it belongs to (project(VERSION) in CMakeLists.txt)
 
 __all__ = [
-    "Client", "AddResult", "OxbowError", "TransportError", "ClientTimeoutError", "ClientError",
-    "InvalidArgumentError", "UnauthorizedError", "UnauthenticatedError", "PermissionDeniedError",
-    "NotFoundError", "ConflictError", "PayloadTooLargeError", "UnsupportedMediaTypeError", "ServerError",
-    "UnavailableError",
+    "Client", "Collection", "AddResult", "Image", "JSONObject", "OxbowError", "TransportError",
+    "ClientTimeoutError", "ClientError", "InvalidArgumentError", "UnauthorizedError", "UnauthenticatedError",
+    "PermissionDeniedError", "NotFoundError", "ConflictError", "PayloadTooLargeError", "UnsupportedMediaTypeError",
+    "ServerError", "UnavailableError", "CollectionFullError",
 ]
 
-Image = Union[bytes, bytearray, memoryview, str, os.PathLike, BinaryIO]
+Image = Union[bytes, bytearray, memoryview, str, os.PathLike[str], BinaryIO]
+"""An image: its encoded bytes, the path of its file, or a file object opened in binary mode."""
+
+JSONObject = dict[str, Any]
+"""A JSON object of the server's answer, as json.loads gives it."""
 
 
 # ---- Errors ------------------------------------------------------------------------------------------
@@ -51,7 +70,7 @@ class OxbowError(Exception):
     """
 
     def __init__(self, message: str, *, status: int | None = None, code: str | None = None,
-                 request_id: str | None = None):
+                 request_id: str | None = None) -> None:
         super().__init__(message)
         self.message = message
         self.status = status
@@ -80,27 +99,32 @@ class ClientError(OxbowError):
 
 
 class InvalidArgumentError(ClientError):
-    """400: a bad parameter or a bad image (code invalid_argument, invalid_image or bad_request)."""
+    """400: a bad parameter, body, collection name or image (code invalid_argument, invalid_image or
+    bad_request)."""
 
 
 class UnauthorizedError(ClientError):
-    """401 or 403: the API key is missing or wrong."""
+    """401 or 403: the API key is missing, wrong, or does not grant the request."""
 
 
 class UnauthenticatedError(UnauthorizedError):
-    """401: a write without an API key on a server started with --api-key."""
+    """401: no API key where the request needs one (a write on a server started with --api-key, a read of
+    a collection that is not public)."""
 
 
 class PermissionDeniedError(UnauthorizedError):
-    """403: a wrong API key."""
+    """403: a key that does not grant the request (a wrong key, another collection's key, a read key
+    writing, a collection key on an admin route), or an admin route of a server without --api-key."""
 
 
 class NotFoundError(ClientError):
-    """404: unknown image id (or route)."""
+    """404: unknown image id, collection, key id or vocabulary file (or route)."""
 
 
 class ConflictError(ClientError):
-    """409: the id is taken (already_exists), or the index cannot take this image (incompatible)."""
+    """409: the id or collection name is taken (already_exists), the index cannot take this image
+    (incompatible), or the server serves one index folder (--index) and has no collections or keys to
+    create or delete (incompatible)."""
 
 
 class PayloadTooLargeError(ClientError):
@@ -118,18 +142,24 @@ class ServerError(OxbowError):
 class UnavailableError(ServerError):
     """503: the server is loading its index, overloaded or stopping; retry after `retry_after` seconds."""
 
-    def __init__(self, message: str, *, retry_after: float | None = None, **kwargs: Any):
+    def __init__(self, message: str, *, retry_after: float | None = None, **kwargs: Any) -> None:
         super().__init__(message, **kwargs)
         self.retry_after = retry_after
+
+
+class CollectionFullError(ServerError):
+    """507: an add to a collection at its max_images or max_bytes (code collection_full); delete images,
+    or recreate the collection with larger limits."""
 
 
 _ERROR_BY_STATUS: dict[int, type[OxbowError]] = {
     400: InvalidArgumentError, 401: UnauthenticatedError, 403: PermissionDeniedError, 404: NotFoundError,
     409: ConflictError, 413: PayloadTooLargeError, 415: UnsupportedMediaTypeError, 503: UnavailableError,
+    507: CollectionFullError,
 }
 
 
-def _error_from_response(status: int, headers: Mapping[str, str], body: bytes) -> OxbowError:
+def _error_from_response(status: int, headers: Mapping[str, str] | Message, body: bytes) -> OxbowError:
     request_id = headers.get("X-Request-Id")
     code = None
     message = body[:200].decode("utf-8", "replace").strip() or f"HTTP {status}"
@@ -208,13 +238,13 @@ def _multipart(fields: Fields, files: Files) -> tuple[bytes, str]:
     return body, f"multipart/form-data; boundary={boundary}"
 
 
-# ---- The client --------------------------------------------------------------------------------------
+# ---- Images and search, of one collection ------------------------------------------------------------
 
 @dataclasses.dataclass
 class AddResult:
     """The outcome of one image of add_many: `response` (the add's answer) or `error`."""
     id: str
-    response: dict | None = None
+    response: JSONObject | None = None
     error: OxbowError | None = None
 
     @property
@@ -222,53 +252,52 @@ class AddResult:
         return self.error is None
 
 
-class Client:
-    """oxbow's HTTP API.
+class _ImageRoutes:
+    """The image and search methods, over the routes under one prefix: Client's act on /v1/images,
+    /v1/search, ... (the collection "default"), a Collection's on /v1/collections/{name}/images, ..."""
 
-    url: the server, e.g. "http://127.0.0.1:8080" (as printed by `oxbow serve`).
-    api_key: sent as "Authorization: Bearer KEY" (needed for add and delete on a server run with --api-key).
-    timeout: seconds to wait for the connection and for each read of the answer (a search of a large
-      image takes a few seconds on a busy server); on expiry ClientTimeoutError.
-    """
+    _prefix: str       # "/v1" or "/v1/collections/NAME"
+    _backup_path: str  # "/v1/admin/backup" or "/v1/collections/NAME/backup"
 
-    def __init__(self, url: str = "http://127.0.0.1:8080", *, api_key: str | None = None,
-                 timeout: float = 60.0):
-        self.url = url.rstrip("/")
-        self.api_key = api_key
-        self.timeout = timeout
+    @overload
+    def _request(self, method: str, path: str, *, query: Mapping[str, Any] | None = None,
+                 multipart: tuple[Fields, Files] | None = None, json_body: Any = None,
+                 raw: Literal[False] = False) -> JSONObject: ...
 
-    # -- status
+    @overload
+    def _request(self, method: str, path: str, *, query: Mapping[str, Any] | None = None,
+                 multipart: tuple[Fields, Files] | None = None, json_body: Any = None,
+                 raw: Literal[True]) -> bytes: ...
 
-    def health(self) -> dict:
-        """GET /healthz: {"status": "ok"} while the process is up."""
-        return self._request("GET", "/healthz")
+    def _request(self, method: str, path: str, *, query: Mapping[str, Any] | None = None,
+                 multipart: tuple[Fields, Files] | None = None, json_body: Any = None,
+                 raw: bool = False) -> Any:
+        """The answer to one request: its JSON object, or its body (raw=True); OxbowError if it failed."""
+        body = self._send(method, path, query, multipart, json_body)
+        return body if raw else json.loads(body)
 
-    def ready(self) -> bool:
-        """GET /readyz: True once the index is loaded; False while loading or stopping."""
-        try:
-            self._request("GET", "/readyz")
-        except UnavailableError:
-            return False
-        return True
+    def _send(self, method: str, path: str, query: Mapping[str, Any] | None, multipart: tuple[Fields, Files] | None,
+              json_body: Any) -> bytes:
+        raise NotImplementedError
 
-    def stats(self) -> dict:
+    def stats(self) -> JSONObject:
         """GET /v1/stats: images, features, words, index_bytes, memory_rss_bytes, uptime_s, ..."""
-        return self._request("GET", "/v1/stats")
+        return self._request("GET", self._prefix + "/stats")
 
     # -- images
 
-    def add(self, id: str, image: Image, *, metadata: Any = None, replace: bool = False) -> dict:
+    def add(self, id: str, image: Image, *, metadata: Any = None, replace: bool = False) -> JSONObject:
         """POST /v1/images: indexes `image` under `id`, with optional JSON `metadata` (a dict, list, ...).
 
-        An existing id raises ConflictError unless replace=True. Returns the stored record with
-        "replaced" and "timings_ms".
+        An existing id raises ConflictError unless replace=True; a collection at its limits raises
+        CollectionFullError. Returns the stored record with "replaced" and "timings_ms".
         """
         fields = {"id": id}
         if metadata is not None:
             fields["metadata"] = json.dumps(metadata, separators=(",", ":"))
         if replace:
             fields["replace"] = "true"
-        return self._request("POST", "/v1/images", multipart=(fields, {"file": _image_bytes(image)}))
+        return self._request("POST", self._prefix + "/images", multipart=(fields, {"file": _image_bytes(image)}))
 
     def add_many(self, items: Iterable[tuple[str, Image] | tuple[str, Image, Any] | Mapping[str, Any]], *,
                  replace: bool = False) -> list[AddResult]:
@@ -290,7 +319,7 @@ class Client:
             return self._add_one_by_one(normalized)
         if not normalized:
             return []
-        limits = self._request("GET", "/v1")["limits"]
+        limits = self._request("GET", "/v1")["limits"]  # the server's, the same for every collection
         results: list[AddResult] = []
         # Read lazily: one batch of images in memory at a time.
         for batch in _batches(((id, _image_bytes(image), metadata) for id, image, metadata in normalized),
@@ -314,7 +343,7 @@ class Client:
                        for _, _, metadata in batch]
         files = [("image", image) for _, image, _ in batch]
         try:
-            answer = self._request("POST", "/v1/images/batch", multipart=(fields, files))
+            answer = self._request("POST", self._prefix + "/images/batch", multipart=(fields, files))
         except OxbowError as e:
             return [AddResult(id, error=e) for id, _, _ in batch]
         results = []
@@ -326,34 +355,46 @@ class Client:
                 results.append(AddResult(id, error=_error_from_response(result["status"], {}, body)))
         return results
 
-    def get(self, id: str) -> dict:
+    def get(self, id: str) -> JSONObject:
         """GET /v1/images/{id}: the image's record (NotFoundError if unknown)."""
-        return self._request("GET", "/v1/images/" + _quote_id(id))
+        return self._request("GET", self._image_path(id))
 
-    def delete(self, id: str) -> dict:
+    def delete(self, id: str) -> JSONObject:
         """DELETE /v1/images/{id}: {"id": id, "deleted": true} (NotFoundError if unknown)."""
-        return self._request("DELETE", "/v1/images/" + _quote_id(id))
+        return self._request("DELETE", self._image_path(id))
 
-    def backup(self, out: str) -> dict:
-        """POST /v1/admin/backup: copies the index into the new folder `out`, an absolute path on the
-        server's machine, while the server keeps serving; restore by serving that folder. Needs the API
-        key (the server refuses the route without one). {"out", "images", "generation", "bytes",
-        "attempts"}; ConflictError when `out` exists and is not empty."""
-        return self._request("POST", "/v1/admin/backup", multipart=({"out": out}, {}))
-
-    def list(self, offset: int = 0, limit: int = 100) -> dict:
+    def list(self, offset: int = 0, limit: int = 100) -> JSONObject:
         """GET /v1/images: {"images": [...], "offset", "limit", "total"}, by id; limit 1..1000."""
-        return self._request("GET", "/v1/images", query={"offset": offset, "limit": limit})
+        return self._request("GET", self._prefix + "/images", query={"offset": offset, "limit": limit})
+
+    def iter_images(self, page_size: int = 1000) -> Iterator[JSONObject]:
+        """Every image record, by id, fetched `page_size` (1..1000) at a time with list(). Images added or
+        deleted while it runs may be missed or seen twice (each page is read at its own offset)."""
+        offset = 0
+        while True:
+            page = self.list(offset=offset, limit=page_size)
+            images = page["images"]
+            yield from images
+            offset += len(images)
+            if not images or offset >= page["total"]:
+                return
 
     def thumbnail(self, id: str, size: int | None = None) -> bytes:
         """GET /v1/images/{id}/thumbnail: JPEG bytes, longest side <= size (16..2048, default 256)."""
         query = {"size": size} if size is not None else {}
-        return self._request("GET", "/v1/images/" + _quote_id(id) + "/thumbnail", query=query, raw=True)
+        return self._request("GET", self._image_path(id) + "/thumbnail", query=query, raw=True)
+
+    def backup(self, out: str) -> JSONObject:
+        """POST /v1/admin/backup (a Collection: /v1/collections/{name}/backup): copies the index into the
+        new folder `out`, an absolute path on the server's machine, while the server keeps serving; restore
+        by serving that folder. Needs the admin key (the server refuses the route without one). {"out",
+        "images", "generation", "bytes", "attempts"}; ConflictError when `out` exists and is not empty."""
+        return self._request("POST", self._backup_path, multipart=({"out": out}, {}))
 
     # -- search
 
     def search(self, image: Image, *, bbox: tuple[float, float, float, float] | None = None,
-               filter: Mapping[str, Any] | str | None = None, **options: Any) -> dict:
+               filter: Mapping[str, Any] | str | None = None, **options: Any) -> JSONObject:
         """POST /v1/search with an image; bbox = (x1, y1, x2, y2) in the image's pixels.
 
         filter: only images whose metadata matches, a dict (or its JSON text) as server/README.md
@@ -366,15 +407,60 @@ class Client:
         raise InvalidArgumentError (the server refuses them).
         """
         fields = _search_fields(bbox, filter, options)
-        return self._request("POST", "/v1/search", multipart=(fields, {"file": _image_bytes(image)}))
+        return self._request("POST", self._prefix + "/search", multipart=(fields, {"file": _image_bytes(image)}))
 
-    def similar(self, id: str, *, filter: Mapping[str, Any] | str | None = None, **options: Any) -> dict:
+    def similar(self, id: str, *, filter: Mapping[str, Any] | str | None = None, **options: Any) -> JSONObject:
         """GET /v1/images/{id}/similar: a search with an indexed image's stored features; filter and
         options as search."""
-        return self._request("GET", "/v1/images/" + _quote_id(id) + "/similar",
-                             query=_search_fields(None, filter, options))
+        return self._request("GET", self._image_path(id) + "/similar", query=_search_fields(None, filter, options))
 
-    def match(self, a: Image, b: Image, **options: Any) -> dict:
+    def _image_path(self, id: str) -> str:
+        return self._prefix + "/images/" + _quote_id(id)
+
+
+# ---- The client --------------------------------------------------------------------------------------
+
+class Client(_ImageRoutes):
+    """oxbow's HTTP API.
+
+    url: the server, e.g. "http://127.0.0.1:8080" (as printed by `oxbow serve`).
+    api_key: sent as "Authorization: Bearer KEY": the server's --api-key (the admin key: everything), or a
+      collection key ("oxk_...", from create_key: reads, or reads and writes, of its collection). Needed
+      for writes on a server run with --api-key, and for reads of a collection that is not public.
+    timeout: seconds to wait for the connection and for each read of the answer (a search of a large
+      image takes a few seconds on a busy server); on expiry ClientTimeoutError.
+
+    Its image and search methods (add, add_many, get, delete, list, iter_images, thumbnail, search,
+    similar, stats, backup) act on the collection "default" (the only index of a server run with
+    --index); collection(name) gives them for another collection.
+    """
+
+    _prefix = "/v1"
+    _backup_path = "/v1/admin/backup"
+
+    def __init__(self, url: str = "http://127.0.0.1:8080", *, api_key: str | None = None,
+                 timeout: float = 60.0) -> None:
+        self.url = url.rstrip("/")
+        self.api_key = api_key
+        self.timeout = timeout
+
+    # -- status
+
+    def health(self) -> JSONObject:
+        """GET /healthz: {"status": "ok"} while the process is up."""
+        return self._request("GET", "/healthz")
+
+    def ready(self) -> bool:
+        """GET /readyz: True once the index is loaded; False while loading or stopping."""
+        try:
+            self._request("GET", "/readyz")
+        except UnavailableError:
+            return False
+        return True
+
+    # -- two images
+
+    def match(self, a: Image, b: Image, **options: Any) -> JSONObject:
         """POST /v1/match: matches and verifies two images (no index involved).
 
         options: model (hough-homography, hough-affine, similarity, affine, homography, fundamental), ratio, mutual,
@@ -383,24 +469,99 @@ class Client:
         fields = {name: _field_value(value) for name, value in options.items() if value is not None}
         return self._request("POST", "/v1/match", multipart=(fields, {"a": _image_bytes(a), "b": _image_bytes(b)}))
 
+    # -- collections
+
+    def collection(self, name: str) -> Collection:
+        """The collection `name`, with Client's image and search methods (no request is made here: an
+        unknown collection raises NotFoundError, or PermissionDeniedError for a key of another
+        collection, at the first call)."""
+        return Collection(self, name)
+
+    def collections(self) -> list[JSONObject]:
+        """GET /v1/collections: the collections this client's key may read (the admin key, or any key on a
+        server without --api-key: all; a collection key: its own and the public ones; no key: the public
+        ones), each a Collection object:
+        {"name", "public", "images", "features", "disk_bytes", "vocabulary": {"words", "fingerprint",
+        "descriptor", "hamming"}, "limits": {"max_images", "max_bytes"}}."""
+        collections: list[JSONObject] = self._request("GET", "/v1/collections")["collections"]
+        return collections
+
+    def create_collection(self, name: str, vocabulary: str | None = None, *, like: str | None = None,
+                          public: bool = False, max_images: int | None = None,
+                          max_bytes: int | None = None) -> JSONObject:
+        """POST /v1/collections (admin key): a new, empty collection; returns its Collection object.
+
+        name: [a-z0-9][a-z0-9_-]{0,63}.
+        vocabulary: the path of a vocabulary file on the server's machine; or
+        like: the name of a collection whose vocabulary to use. Exactly one of the two (else ValueError).
+        public: reads need no key.
+        max_images, max_bytes: adds beyond them raise CollectionFullError (max_bytes: the bytes of the
+          collection's folder on disk); None: no limit.
+        Errors: ConflictError (the name is taken, or the server serves one --index folder),
+        InvalidArgumentError (a bad name or limit), NotFoundError (no such vocabulary file or collection).
+        """
+        if (vocabulary is None) == (like is None):
+            raise ValueError("give the new collection's vocabulary: a vocabulary file on the server, or like= "
+                             "a collection whose vocabulary to use (one of the two)")
+        body: dict[str, Any] = {"name": name, "vocabulary": vocabulary if like is None else {"like": like},
+                                "public": public}
+        if max_images is not None:
+            body["max_images"] = max_images
+        if max_bytes is not None:
+            body["max_bytes"] = max_bytes
+        return self._request("POST", "/v1/collections", json_body=body)
+
+    def get_collection(self, name: str) -> JSONObject:
+        """GET /v1/collections/{name}: its Collection object, with "stats" (as stats() answers)."""
+        return self._request("GET", _collection_path(name))
+
+    def delete_collection(self, name: str) -> JSONObject:
+        """DELETE /v1/collections/{name} (admin key): deletes it, its images and its keys;
+        {"name": name, "deleted": true}."""
+        return self._request("DELETE", _collection_path(name))
+
+    def create_key(self, name: str, access: Literal["read", "write"] = "read") -> JSONObject:
+        """POST /v1/collections/{name}/keys (admin key): a new key of collection `name` that reads it
+        ("read") or reads and writes it ("write"): {"key": "oxk_...", "id", "collection", "access",
+        "created"}. The key is shown only in this answer (the server keeps a hash of it); use it as a
+        Client's api_key."""
+        return self._request("POST", _collection_path(name) + "/keys", json_body={"access": access})
+
+    def list_keys(self, name: str) -> list[JSONObject]:
+        """GET /v1/collections/{name}/keys (admin key): its keys as [{"id", "access", "created"}, ...]
+        (never the keys themselves)."""
+        keys: list[JSONObject] = self._request("GET", _collection_path(name) + "/keys")["keys"]
+        return keys
+
+    def delete_key(self, name: str, key_id: str) -> JSONObject:
+        """DELETE /v1/collections/{name}/keys/{key_id} (admin key): revokes the key; {"id", "deleted": true}."""
+        if not key_id:
+            raise ValueError("a key id is not empty")
+        return self._request("DELETE", _collection_path(name) + "/keys/" + urllib.parse.quote(key_id, safe=""))
+
+    def backup_collection(self, name: str, out: str) -> JSONObject:
+        """POST /v1/collections/{name}/backup (admin key): as backup(), of collection `name`."""
+        return self.collection(name).backup(out)
+
     # -- transport
 
-    def _request(self, method: str, path: str, *, query: Mapping[str, Any] | None = None,
-                 multipart: tuple[Fields, Files] | None = None,
-                 raw: bool = False) -> Any:
+    def _send(self, method: str, path: str, query: Mapping[str, Any] | None, multipart: tuple[Fields, Files] | None,
+              json_body: Any) -> bytes:
         url = self.url + path
         if query:
             url += "?" + urllib.parse.urlencode({k: _field_value(v) for k, v in query.items()})
-        headers = {"Accept": "application/json", "User-Agent": "oxbow-client-python/1"}
+        headers = {"Accept": "application/json", "User-Agent": "oxbow-client-python/" + __version__}
         if self.api_key is not None:
             headers["Authorization"] = "Bearer " + self.api_key
         data = None
         if multipart is not None:
             data, headers["Content-Type"] = _multipart(*multipart)
+        elif json_body is not None:
+            data, headers["Content-Type"] = json.dumps(json_body).encode(), "application/json"
         request = urllib.request.Request(url, data=data, headers=headers, method=method)
         try:
             with urllib.request.urlopen(request, timeout=self.timeout) as response:
-                body = response.read()
+                body: bytes = response.read()
         except urllib.error.HTTPError as e:
             with e:
                 raise _error_from_response(e.code, e.headers, e.read()) from None
@@ -412,8 +573,34 @@ class Client:
             raise TransportError(f"{method} {path}: cannot reach {self.url}: {e.reason}") from e
         except OSError as e:  # http.client.RemoteDisconnected, ConnectionResetError, ...
             raise TransportError(f"{method} {path}: connection to {self.url} failed: {e}") from e
-        return body if raw else json.loads(body)
+        return body
 
+
+class Collection(_ImageRoutes):
+    """One collection of the server: Client's image and search methods (add, add_many, get, delete, list,
+    iter_images, thumbnail, search, similar, stats, backup) on /v1/collections/{name}/..., with the
+    client's URL, key and timeout. Made by Client.collection(name).
+    """
+
+    def __init__(self, client: Client, name: str) -> None:
+        self.client = client
+        self.name = name
+        self._prefix = _collection_path(name)
+        self._backup_path = self._prefix + "/backup"
+
+    def info(self) -> JSONObject:
+        """GET /v1/collections/{name}: its Collection object, with "stats"."""
+        return self.client.get_collection(self.name)
+
+    def __repr__(self) -> str:
+        return f"Collection({self.name!r} at {self.client.url})"
+
+    def _send(self, method: str, path: str, query: Mapping[str, Any] | None, multipart: tuple[Fields, Files] | None,
+              json_body: Any) -> bytes:
+        return self.client._send(method, path, query, multipart, json_body)
+
+
+# ---- Helpers -----------------------------------------------------------------------------------------
 
 def _quote_id(id: str) -> str:
     # Every byte but unreserved ones encoded, "/" included: the server takes an encoded slash as part of
@@ -421,6 +608,12 @@ def _quote_id(id: str) -> str:
     if not id:
         raise ValueError("an image id is not empty")
     return urllib.parse.quote(id, safe="")
+
+
+def _collection_path(name: str) -> str:
+    if not name:
+        raise ValueError("a collection name is not empty")
+    return "/v1/collections/" + urllib.parse.quote(name, safe="")
 
 
 def _search_fields(bbox: Any, filter: Mapping[str, Any] | str | None,
@@ -436,7 +629,7 @@ def _search_fields(bbox: Any, filter: Mapping[str, Any] | str | None,
 
 
 def _batches(items: Iterable[tuple[str, tuple[bytes, str], Any]], max_images: int,
-             max_bytes: int) -> Iterable[list[tuple[str, tuple[bytes, str], Any]]]:
+             max_bytes: int) -> Iterator[list[tuple[str, tuple[bytes, str], Any]]]:
     """Consecutive runs of items of at most max_images images and (roughly) max_bytes of request body;
     an image too large on its own goes alone (the server answers it 413)."""
     batch: list[tuple[str, tuple[bytes, str], Any]] = []
