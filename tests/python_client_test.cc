@@ -1,5 +1,5 @@
-// Runs the Python client's tests (api/python/oxbow_client_test.py) against a real `oxbow serve` with an
-// API key over an empty index of the suite's random vocabulary, with three textured pictures to add
+// Runs the Python client's tests (api/python/oxbow_client_test.py) against a real `oxbow serve --data` with
+// an admin key over an empty data folder of the suite's random vocabulary, with three textured pictures to add
 // and search. The Python tests never skip: without python3, or with a failing test, this test fails.
 #include <gtest/gtest.h>
 
@@ -36,10 +36,16 @@ TEST_F(PythonClientTest, ClientTestsPassAgainstARealServer) {
 
   const std::string key = "python-client-test-key";
   // A small batch cap, so that add_many's batching into several requests is exercised.
-  auto server = StartServer({"--api-key", key, "--max-batch-images", "2"});
-  ASSERT_GT(server->port(), 0);
+  // A data folder (collections) whose collection "default" --vocab creates; the client's collection tests
+  // create theirs with the same vocabulary (OXBOW_VOCAB).
+  auto server = std::make_unique<oxbow::testing::ServerProcess>(
+      std::vector<std::string>{"serve", "--data", dir_->path() + "/data", "--vocab", vocab_, "--api-key", key,
+                               "--max-batch-images", "2", "--port", "0"},
+      dir_->path() + "/data.log");
+  ASSERT_TRUE(server->port() > 0 && server->WaitReady()) << server->Log();
   const std::string command = "OXBOW_URL=http://127.0.0.1:" + std::to_string(server->port()) +
-                              " OXBOW_API_KEY=" + key + " OXBOW_TEST_IMAGES='" + images + "' PYTHONDONTWRITEBYTECODE=1 python3 " +
+                              " OXBOW_API_KEY=" + key + " OXBOW_VOCAB='" + vocab_ + "' OXBOW_TEST_IMAGES='" + images +
+                              "' PYTHONDONTWRITEBYTECODE=1 python3 " +
                               OXBOW_SOURCE_DIR "/api/python/oxbow_client_test.py -v 2>&1";
   int exit_code = -1;
   const std::string output = oxbow::testing::RunCommand(command, &exit_code);
