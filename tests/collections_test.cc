@@ -7,6 +7,7 @@
 #include <filesystem>
 #include <fstream>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include <httplib.h>
@@ -224,6 +225,55 @@ TEST_F(CollectionsTest, OneIndexFolderIsTheDefaultCollection) {
   EXPECT_EQ(BodyOf(client.Get("/v1/collections/default/stats"))["images"], 1);
   EXPECT_EQ(StatusOf(client.Delete("/v1/collections/default/images/x", Key(kAdmin))), 200);
   EXPECT_EQ(StatusOf(client.Get("/v1/images/x")), 404);
+  EXPECT_EQ(server->Stop(), 0) << server->Log();
+}
+
+// The duplicate search as a job: started with write access, followed and cancelled with the
+// collection's keys.
+TEST_F(CollectionsTest, DuplicateSearchAsAJob) {
+  const std::string data = dir_->path() + "/jobs-data";
+  auto server = StartData(data, {"--api-key", kAdmin, "--vocab", vocab_});
+  auto client = server->Client();
+  ASSERT_EQ(StatusOf(Create(client, {{"name", "p"}, {"vocabulary", vocab_}})), 201);
+  const std::string write = MakeKey(client, "p", "write");
+  const std::string other = MakeKey(client, "default", "read");
+  std::vector<uchar> png;
+  ASSERT_TRUE(cv::imencode(".png", oxbow::testing::Texture(400, 300, "box_in_scene.png", 0, 0), png));
+  const std::string second(png.begin(), png.end());
+  ASSERT_EQ(StatusOf(Add(client, "p", "a", write)), 201);
+  ASSERT_EQ(StatusOf(Add(client, "p", "a-copy", write)), 201);
+  ASSERT_EQ(StatusOf(client.Post("/v1/collections/p/images?id=b", Key(write), second, "image/png")), 201);
+
+  EXPECT_EQ(StatusOf(client.Post("/v1/collections/p/duplicates", "", "application/json")), 401);
+  EXPECT_EQ(CodeOf(client.Post("/v1/collections/p/duplicates", Key(write), R"({"candidates": 0})", "application/json")),
+            "invalid_argument");
+  auto started = client.Post("/v1/collections/p/duplicates", Key(write), "", "application/json");
+  ASSERT_EQ(StatusOf(started), 202) << started->body;
+  const std::string job = BodyOf(started)["job"];
+  EXPECT_EQ(started->get_header_value("Location"), "/v1/jobs/" + job);
+  EXPECT_EQ(StatusOf(client.Get("/v1/jobs/" + job)), 401);
+  EXPECT_EQ(StatusOf(client.Get("/v1/jobs/" + job, Key(other))), 403);
+  json status;
+  for (int i = 0; i < 600; ++i) {
+    status = BodyOf(client.Get("/v1/jobs/" + job, Key(write)));
+    if (status.value("state", "") != "running") break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  ASSERT_EQ(status["state"], "done") << status.dump();
+  EXPECT_EQ(status["total"], 3);
+  EXPECT_EQ(status["done"], 3);
+  const json& pairs = status["result"]["pairs"];
+  ASSERT_EQ(pairs.size(), 1u) << status.dump();
+  EXPECT_EQ(pairs[0]["a"], "a");
+  EXPECT_EQ(pairs[0]["b"], "a-copy");
+  EXPECT_EQ(pairs[0]["kind"], "exact");
+  EXPECT_EQ(StatusOf(client.Delete("/v1/jobs/" + job, Key(other))), 403);
+  EXPECT_EQ(StatusOf(client.Delete("/v1/jobs/" + job, Key(write))), 200);
+  EXPECT_EQ(CodeOf(client.Get("/v1/jobs/" + job, Key(kAdmin))), "not_found");
+  // The routes without a prefix start a job on "default".
+  auto on_default = client.Post("/v1/duplicates", Key(kAdmin), "", "application/json");
+  ASSERT_EQ(StatusOf(on_default), 202);
+  EXPECT_EQ(BodyOf(on_default)["collection"], "default");
   EXPECT_EQ(server->Stop(), 0) << server->Log();
 }
 

@@ -6,6 +6,7 @@
 #include <fstream>
 #include <functional>
 #include <map>
+#include <mutex>
 #include <optional>
 #include <span>
 #include <string>
@@ -13,6 +14,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "api/duplicates.h"
 #include "api/json.h"
 #include "api/params.h"
 #include "api/partition.h"
@@ -358,8 +360,79 @@ void RunClusterBuild(const BuildArgs& build, vocab::Communicator& comm) {
              {"seconds", seconds}, {"partition_builds", all}});
 }
 
+// ---- duplicates (api/duplicates.h)
+void SetUpDuplicates(CLI::App& index_cmd) {
+  struct DuplicatesArgs {
+    std::string index;
+    std::string format = "json";
+    std::string out;
+    api::DuplicateOptions options;
+    bool no_mirror = false;
+  };
+  auto args = std::make_shared<DuplicatesArgs>();
+  CLI::App* d = index_cmd.add_subcommand("duplicates", "Find the images of an index that show the same thing: exact "
+                                                       "copies, near copies, the same object or scene");
+  d->footer(
+      "Every image searches the index with its stored features, and again mirrored (a mirrored copy is found too); "
+      "each verified pair is measured on both images' features: its inliers, the share of each image they cover, "
+      "the map between them. Kept pairs are `exact` (same size, identity map, both covered), `near_copy` (one image "
+      "covered at least --near-copy-coverage under a similarity: a resize, recompression, crop, rotation, mirror "
+      "image, retouch or overlay of the other) or `same_scene` (another photo of the same object or place); a pair "
+      "whose match covers little of both images, or only their borders, shares an overlay (a logo, a caption, a "
+      "frame) and is dropped. Groups are the connected components of the pairs. Prints JSON {images, settings, "
+      "pairs: [{a, b, kind, mirrored, inliers, coverage_a, coverage_b, region_a, region_b, transform (a pixels -> "
+      "b pixels, 2x3 row-major), group}], groups: [{group, images}], timings_s}, or CSV (a,b,kind,mirrored,inliers,"
+      "coverage_a,coverage_b,group). Reads the index while no server has it open; through a server: POST "
+      "/v1/collections/{name}/duplicates (server/README.md, Duplicates).");
+  d->add_option("--index", args->index, "index folder")->required();
+  d->add_option("--format", args->format, "json or csv")->capture_default_str()->check(CLI::IsMember({"json", "csv"}));
+  d->add_option("--out", args->out, "write the result to this file instead of stdout");
+  d->add_option("--candidates", args->options.candidates,
+                "best tf-idf candidates of each image that are verified (more: copies of much-copied images are "
+                "found directly, slower)")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 1000));
+  d->add_flag("--no-mirror", args->no_mirror, "do not look for mirrored copies (one search per image instead of two)");
+  d->add_option("--min-coverage", args->options.min_coverage,
+                "drop a pair whose match covers less than this share of both images (a shared logo or caption)")
+      ->capture_default_str()
+      ->check(CLI::Range(0.0, 1.0));
+  d->add_option("--near-copy-coverage", args->options.near_copy_coverage,
+                "a near copy: one image covered at least this much by the match")
+      ->capture_default_str()
+      ->check(CLI::Range(0.0, 1.0));
+  d->add_option("--threads", args->options.threads, "threads; 0 = all cores")->capture_default_str()->check(CLI::Range(0, 256));
+  d->callback([args] {
+    args->options.mirrored = !args->no_mirror;
+    auto idx = ValueOrExit(index::ImageIndex::Open(args->index));
+    api::DuplicateReport report;
+    {
+      log::Progress progress("duplicates", idx->Stats().num_images, "images");
+      uint64_t shown = 0;
+      std::mutex mutex;
+      report = ValueOrExit(api::FindDuplicates(*idx, args->options, [&](uint64_t done, uint64_t) {
+        std::lock_guard<std::mutex> lock(mutex);
+        if (done > shown) {
+          progress.Advance(done - shown);
+          shown = done;
+        }
+      }));
+    }
+    const std::string text = args->format == "csv" ? api::DuplicateReportToCsv(report)
+                                                    : api::DuplicateReportToJson(report, args->options).dump(1) + "\n";
+    if (args->out.empty()) {
+      std::fwrite(text.data(), 1, text.size(), stdout);
+    } else {
+      OkOrExit(io::WriteFileAtomically(args->out, {reinterpret_cast<const uint8_t*>(text.data()), text.size()}));
+    }
+    OXBOW_LOG(kInfo) << report.pairs.size() << " pairs in " << report.groups.size() << " groups over " << report.images
+                     << " images (" << report.overlay_pairs << " dropped as overlays); search " << report.search_s
+                     << " s, measure " << report.measure_s << " s";
+  });
+}
+
 void SetUpIndex(CLI::App& app) {
-  CLI::App* cmd = app.add_subcommand("index", "Build and maintain an image index (build, add, remove, info, check, backup)");
+  CLI::App* cmd = app.add_subcommand("index", "Build and maintain an image index (build, add, remove, info, check, backup, duplicates)");
   cmd->require_subcommand(1);
 
   // ---- build
@@ -525,6 +598,8 @@ void SetUpIndex(CLI::App& app) {
   k->callback([backup] {
     PrintJson(api::BackupToJson(backup->out, ValueOrExit(api::Service::BackupFolder(backup->index, backup->out))));
   });
+
+  SetUpDuplicates(*cmd);
 }
 
 const bool registered = RegisterCommand({"index", 30, &SetUpIndex});

@@ -17,6 +17,7 @@
 #include <nlohmann/json.hpp>
 
 #include "server/http/errors.h"
+#include "api/duplicate_jobs.h"
 #include "api/json.h"
 #include "api/params.h"
 #include "server/http/web_assets.h"
@@ -329,6 +330,8 @@ const HttpServer::RouteTable& Routes() {
       {"/v1/search", std::regex("/v1/search"), "POST"},
       {"/v1/match", std::regex("/v1/match"), "POST"},
       {"/v1/admin/backup", std::regex("/v1/admin/backup"), "POST"},
+      {"/v1/duplicates", std::regex("/v1/duplicates"), "POST"},
+      {"/v1/jobs/{job}", std::regex("/v1/jobs/[^/]+"), "GET, DELETE"},
       {"/v1/collections", std::regex("/v1/collections/?"), "GET, POST"},
       {"/v1/collections/{name}/stats", std::regex("/v1/collections/[^/]+/stats"), "GET"},
       {"/v1/collections/{name}/images", std::regex("/v1/collections/[^/]+/images"), "GET, POST"},
@@ -340,6 +343,7 @@ const HttpServer::RouteTable& Routes() {
       {"/v1/collections/{name}/keys", std::regex("/v1/collections/[^/]+/keys"), "GET, POST"},
       {"/v1/collections/{name}/keys/{id}", std::regex("/v1/collections/[^/]+/keys/[^/]+"), "DELETE"},
       {"/v1/collections/{name}/backup", std::regex("/v1/collections/[^/]+/backup"), "POST"},
+      {"/v1/collections/{name}/duplicates", std::regex("/v1/collections/[^/]+/duplicates"), "POST"},
       {"/v1/collections/{name}", std::regex("/v1/collections/[^/]+"), "GET, DELETE"},
   }};
   return table;
@@ -660,7 +664,10 @@ HttpServer::HttpServer(const HttpServerOptions& options, CustomRoutes routes)
   for (const RouteInfo& r : custom_routes_.more_routes) table->routes.push_back({r.label, std::regex(r.pattern), r.methods});
   for (const auto& r : Routes().routes) {
     // A server of custom routes (a cluster front) serves one collection: no /v1/collections routes.
-    if (custom_routes_.add && r.label.starts_with("/v1/collections")) continue;
+    if (custom_routes_.add && (r.label.starts_with("/v1/collections") || r.label == "/v1/duplicates" ||
+                               r.label.starts_with("/v1/jobs"))) {
+      continue;
+    }
     table->routes.push_back(r);
   }
   routes_ = std::move(table);
@@ -701,6 +708,7 @@ HttpServer::HttpServer(const HttpServerOptions& options, CustomRoutes routes)
   // from there, and a first touch costs about 18 us a page on the 2-core test VM. Large blocks (request
   // bodies, decoded images) still go back to the system when freed.
   mallopt(M_TRIM_THRESHOLD, 64 << 20);
+  jobs_ = std::make_unique<api::DuplicateJobs>();
   RegisterRoutes();
 }
 
@@ -772,6 +780,7 @@ void HttpServer::RegisterRoutes() {
   RegisterImageRoutes();
   RegisterSearchRoutes();
   RegisterCollectionRoutes();
+  RegisterDuplicateRoutes();
 }
 
 void HttpServer::RegisterRequestHooks() {
@@ -1040,6 +1049,36 @@ void HttpServer::RegisterSearchRoutes() {
 
 namespace {
 
+// POST .../duplicates's body (JSON, may be empty): the job's options.
+Result<api::DuplicateOptions> ParseDuplicateOptions(const httplib::Request& req) {
+  api::DuplicateOptions options;
+  options.threads = 1;  // beside the server's requests
+  if (req.body.empty()) return options;
+  if (api::JsonNestingDepth(req.body) > api::kMaxJsonDepth) return Fail(ErrorCode::kInvalidArgument, "JSON body nests too deep");
+  const json body = json::parse(req.body, nullptr, /*allow_exceptions=*/false);
+  const std::string shape = "POST .../duplicates takes an empty body or a JSON object with any of \"candidates\" "
+                            "(1-1000), \"mirrored\" (bool), \"min_coverage\", \"near_copy_coverage\" (0-1), "
+                            "\"threads\" (0-256)";
+  if (body.is_discarded() || !body.is_object()) return Fail(ErrorCode::kInvalidArgument, shape);
+  for (const auto& [field, value] : body.items()) {
+    if (field == "candidates" && value.is_number_integer()) {
+      options.candidates = static_cast<int>(std::clamp<int64_t>(value.get<int64_t>(), -1, 100000));
+    } else if (field == "mirrored" && value.is_boolean()) {
+      options.mirrored = value.get<bool>();
+    } else if (field == "min_coverage" && value.is_number()) {
+      options.min_coverage = value.get<double>();
+    } else if (field == "near_copy_coverage" && value.is_number()) {
+      options.near_copy_coverage = value.get<double>();
+    } else if (field == "threads" && value.is_number_integer()) {
+      options.threads = static_cast<int>(std::clamp<int64_t>(value.get<int64_t>(), -1, 100000));
+    } else {
+      return Fail(ErrorCode::kInvalidArgument, "field '" + LoggablePath(field) + "' is unknown or of the wrong type; " + shape);
+    }
+  }
+  if (auto message = options.Check()) return Fail(ErrorCode::kInvalidArgument, *message);
+  return options;
+}
+
 // POST /v1/collections's body.
 Result<api::CreateCollectionRequest> ParseCreateCollection(const httplib::Request& req) {
   if (api::JsonNestingDepth(req.body) > api::kMaxJsonDepth) {
@@ -1074,6 +1113,42 @@ Result<api::CreateCollectionRequest> ParseCreateCollection(const httplib::Reques
 }
 
 }  // namespace
+
+void HttpServer::RegisterDuplicateRoutes() {
+  Both("POST", "/v1/duplicates", ServiceRoute(Access::kWrite, [this](api::Service&, const httplib::Request& req,
+                                                                    httplib::Response& res) {
+         auto options = ParseDuplicateOptions(req);
+         if (!options) return SendError(res, options.error());
+         auto started = jobs_->Start(*t_request.held, *options);
+         if (!started) return SendError(res, started.error());
+         res.set_header("Location", "/v1/jobs/" + *started);
+         SendJson(res, 202, {{"job", *started}, {"collection", t_request.held->name}, {"state", "running"}});
+       }));
+  // A job answers to the keys of its collection: read to follow it, write to cancel it.
+  auto job_route = [this](Access access, std::function<void(const api::JobStatus&, httplib::Response&)> body) -> Handler {
+    return [this, access, body = std::move(body)](const httplib::Request& req, httplib::Response& res) {
+      const std::string id = req.matches[1];
+      const auto status = jobs_->Get(id);
+      const std::string collection = status ? status->collection : "";
+      if (auto refused = Authorize(req, collection, access)) return SendError(res, *refused);
+      if (!status) return SendError(res, ToHttpError({ErrorCode::kNotFound, "no job with id '" + LoggablePath(id) + "'"}));
+      t_request.collection = collection;
+      body(*status, res);
+    };
+  };
+  http_->Get(R"(/v1/jobs/([^/]+))", job_route(Access::kRead, [](const api::JobStatus& s, httplib::Response& res) {
+    json body = {{"job", s.id}, {"collection", s.collection}, {"state", s.state}, {"done", s.done},
+                 {"total", s.total}, {"elapsed_s", s.elapsed_s}};
+    if (s.result) body["result"] = *s.result;
+    if (s.error) body["error"] = ErrorBody(ToHttpError(*s.error), t_request.id)["error"];
+    SendJson(res, 200, body);
+  }));
+  http_->Delete(R"(/v1/jobs/([^/]+))", job_route(Access::kWrite, [this](const api::JobStatus& s, httplib::Response& res) {
+    const bool running = s.state == "running";
+    jobs_->Cancel(s.id);
+    SendJson(res, 200, {{"job", s.id}, {"cancelled", running}, {"deleted", true}});
+  }));
+}
 
 void HttpServer::RegisterCollectionRoutes() {
   using CollectionHandler = std::function<void(api::Collections&, const std::string& name, const httplib::Request&,
@@ -1132,8 +1207,9 @@ void HttpServer::RegisterCollectionRoutes() {
     if (!info) return SendError(res, info.error());
     SendJson(res, 200, api::CollectionToJson(*info, true));
   }));
-  http.Delete(R"(/v1/collections/([^/]+))", route(Access::kAdmin, [](api::Collections& set, const std::string& name,
+  http.Delete(R"(/v1/collections/([^/]+))", route(Access::kAdmin, [this](api::Collections& set, const std::string& name,
                                                                      const httplib::Request&, httplib::Response& res) {
+    jobs_->CancelCollection(name);
     if (auto s = set.Delete(name); !s) return SendError(res, s.error());
     SendJson(res, 200, {{"name", name}, {"deleted", true}});
   }));

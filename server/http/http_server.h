@@ -28,6 +28,9 @@
 //    search route is open, and the routes that create or delete collections or keys or write a backup
 //    are refused (403): they write on the server's machine.
 //  - An add to a collection at its limits (images, bytes on disk) -> 507.
+//  - POST /v1/collections/{name}/duplicates (write access) starts a duplicate search as a background job
+//    (api/duplicate_jobs.h): 202 with its id; GET /v1/jobs/{job} (read access to its collection) its
+//    progress and result, DELETE cancels it.
 //  - Shutdown() (from the SIGTERM/SIGINT handler) stops accepting, lets in-flight requests finish but
 //    abandons decodes and extractions still running after the service's shutdown grace (their requests
 //    get 503, nothing stored: api::Service::StopExtractions), and returns from Run(); the index's state
@@ -63,6 +66,10 @@ namespace httplib {
 class Server;
 struct Request;
 struct Response;
+}
+
+namespace oxbow::api {
+class DuplicateJobs;
 }
 
 namespace oxbow::server {
@@ -185,6 +192,7 @@ class HttpServer {
   // unless the caller holds the admin key); nullopt when it may. Logs refusals.
   std::optional<HttpError> Authorize(const httplib::Request& req, const std::string& collection, Access access) const;
   void RegisterCollectionRoutes();
+  void RegisterDuplicateRoutes();  // duplicate searches as jobs (api/duplicate_jobs.h)
   void ServeMetrics(httplib::Response& res) const;
   // The JSON answer, log line and metrics of a request refused before httplib parsed it.
   void AnswerRefusal(const RefusedRequest& refused, httplib::Response& res);
@@ -203,6 +211,7 @@ class HttpServer {
   Metrics metrics_;
   mutable std::mutex service_mutex_;           // guards collections_ (pointer copy only)
   std::shared_ptr<api::Collections> collections_;
+  std::unique_ptr<api::DuplicateJobs> jobs_;  // declared after collections_: destroyed (joined) first
   std::atomic<bool> shutting_down_{false};
   int port_ = 0;
 };

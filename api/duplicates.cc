@@ -1,0 +1,421 @@
+#include "api/duplicates.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <map>
+#include <mutex>
+#include <numeric>
+#include <sstream>
+#include <unordered_map>
+
+#include "index/search/pipeline.h"
+#include "index/search/source.h"
+#include "sift/base/parallel.h"
+#include "sift/types.h"
+#include "vocab/vocabulary.h"
+
+namespace oxbow::api {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+constexpr int kGrid = 8;                   // coverage cells per side
+constexpr double kExactCoverage = 0.9;
+
+double SecondsSince(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+
+// The word of each word's mirrored centroid.
+std::vector<uint32_t> MirrorWords(const vocab::Vocabulary& vocabulary, int threads) {
+  const size_t k = vocabulary.size();
+  const int d = vocabulary.dimension();
+  std::vector<uint32_t> mirrored(k);
+  if (d != sift::kDescriptorDim) {  // not a SIFT vocabulary: no mirror
+    std::iota(mirrored.begin(), mirrored.end(), 0u);
+    return mirrored;
+  }
+  std::vector<float> flipped(k * d);
+  const std::span<const float> centroids = vocabulary.centroids();
+  for (size_t w = 0; w < k; ++w) MirrorDescriptor(centroids.data() + w * d, flipped.data() + w * d);
+  vocab::QuantizerOptions options;
+  options.num_threads = threads;
+  // The centroids are stored in coarse-list order, not by word id: map each back through Quantize of
+  // the centroid itself, which is its own nearest word.
+  std::vector<uint32_t> own(k), of_flipped(k);
+  vocabulary.Quantize(centroids, own, options);
+  vocabulary.Quantize(flipped, of_flipped, options);
+  for (size_t i = 0; i < k; ++i) mirrored[own[i]] = of_flipped[i];
+  return mirrored;
+}
+
+index::search::QueryFeatures Mirrored(const index::search::QueryFeatures& q, const std::vector<uint32_t>& word_map) {
+  index::search::QueryFeatures m;
+  m.width = q.width;
+  m.height = q.height;
+  m.keypoints = q.keypoints;
+  m.words.resize(q.words.size());
+  for (size_t i = 0; i < q.words.size(); ++i) {
+    sift::Keypoint& kp = m.keypoints[i];
+    kp.x = static_cast<float>(q.width) - 1.0f - kp.x;
+    float o = static_cast<float>(M_PI) - kp.orientation;
+    if (o < 0) o += static_cast<float>(2 * M_PI);
+    kp.orientation = o;
+    m.words[i] = word_map[q.words[i]];
+  }
+  return m;
+}
+
+struct Candidate {
+  sift::Affine2D b_from_a;
+  int verified_inliers = 0;
+  bool mirrored = false;
+  bool a_is_query = true;  // the map goes from the query (a) to the result (b); else reversed
+};
+
+struct Measure {
+  int inliers = 0;
+  double coverage_a = 0, coverage_b = 0;
+  bool central = false;  // some inlier in the central cells of a or b
+  std::array<float, 4> region_a{}, region_b{};
+};
+
+// Cell of an 8 x 8 grid over a width x height image.
+int Cell(float x, float y, int width, int height) {
+  const int cx = std::clamp(static_cast<int>(x * kGrid / std::max(1, width)), 0, kGrid - 1);
+  const int cy = std::clamp(static_cast<int>(y * kGrid / std::max(1, height)), 0, kGrid - 1);
+  return cy * kGrid + cx;
+}
+bool Central(int cell) {
+  const int cx = cell % kGrid, cy = cell / kGrid;
+  return cx >= 2 && cx < kGrid - 2 && cy >= 2 && cy < kGrid - 2;
+}
+
+Measure MeasurePair(const index::search::QueryFeatures& a, const index::search::QueryFeatures& b,
+                    const sift::Affine2D& b_from_a, double tolerance_fraction) {
+  Measure m;
+  const double tolerance = std::max(4.0, tolerance_fraction * std::max(b.width, b.height));
+  const double tol_sq = tolerance * tolerance;
+  const double scale_ratio = std::sqrt(std::abs(b_from_a.Determinant()));
+  std::unordered_multimap<uint32_t, size_t> b_by_word;
+  b_by_word.reserve(b.words.size());
+  for (size_t j = 0; j < b.words.size(); ++j) b_by_word.emplace(b.words[j], j);
+  std::vector<char> cells_a(kGrid * kGrid, 0), cells_b(kGrid * kGrid, 0), hit_a(kGrid * kGrid, 0), hit_b(kGrid * kGrid, 0);
+  for (const auto& kp : a.keypoints) cells_a[Cell(kp.x, kp.y, a.width, a.height)] = 1;
+  for (const auto& kp : b.keypoints) cells_b[Cell(kp.x, kp.y, b.width, b.height)] = 1;
+  float ax1 = 1e30f, ay1 = 1e30f, ax2 = -1e30f, ay2 = -1e30f, bx1 = 1e30f, by1 = 1e30f, bx2 = -1e30f, by2 = -1e30f;
+  for (size_t i = 0; i < a.words.size(); ++i) {
+    const sift::Keypoint& p = a.keypoints[i];
+    const Eigen::Vector2d mapped = b_from_a.Apply({p.x, p.y});
+    const auto [begin, end] = b_by_word.equal_range(a.words[i]);
+    for (auto it = begin; it != end; ++it) {
+      const sift::Keypoint& q = b.keypoints[it->second];
+      const double dx = mapped.x() - q.x, dy = mapped.y() - q.y;
+      if (dx * dx + dy * dy > tol_sq) continue;
+      const double ratio = q.scale / std::max(1e-6, p.scale * scale_ratio);
+      if (ratio < 0.5 || ratio > 2.0) continue;
+      ++m.inliers;
+      const int ca = Cell(p.x, p.y, a.width, a.height), cb = Cell(q.x, q.y, b.width, b.height);
+      hit_a[ca] = 1;
+      hit_b[cb] = 1;
+      m.central = m.central || Central(ca) || Central(cb);
+      ax1 = std::min(ax1, p.x), ay1 = std::min(ay1, p.y), ax2 = std::max(ax2, p.x), ay2 = std::max(ay2, p.y);
+      bx1 = std::min(bx1, q.x), by1 = std::min(by1, q.y), bx2 = std::max(bx2, q.x), by2 = std::max(by2, q.y);
+      break;  // each feature of a counts once
+    }
+  }
+  auto share = [](const std::vector<char>& hit, const std::vector<char>& cells) {
+    const int with = static_cast<int>(std::count(cells.begin(), cells.end(), 1));
+    return with == 0 ? 0.0 : static_cast<double>(std::count(hit.begin(), hit.end(), 1)) / with;
+  };
+  m.coverage_a = share(hit_a, cells_a);
+  m.coverage_b = share(hit_b, cells_b);
+  if (m.inliers > 0) {
+    m.region_a = {ax1, ay1, ax2, ay2};
+    m.region_b = {bx1, by1, bx2, by2};
+  }
+  return m;
+}
+
+// Singular values of the linear part, larger first.
+std::pair<double, double> SingularValues(const sift::Affine2D& t) {
+  const double a = t.m[0], b = t.m[1], c = t.m[3], d = t.m[4];
+  const double s1 = a * a + b * b + c * c + d * d;
+  const double det = std::abs(a * d - b * c);
+  const double root = std::sqrt(std::max(0.0, s1 * s1 - 4 * det * det));
+  return {std::sqrt((s1 + root) / 2), std::sqrt(std::max(0.0, (s1 - root) / 2))};
+}
+
+// x -> width - 1 - x.
+sift::Affine2D Flip(int width) { return sift::Affine2D{{-1, 0, static_cast<double>(width) - 1, 0, 1, 0}}; }
+
+bool IsIdentity(const sift::Affine2D& t, int width, int height) {
+  const double tolerance = 0.01 * std::max(width, height);
+  return std::abs(t.m[0] - 1) < 0.01 && std::abs(t.m[4] - 1) < 0.01 && std::abs(t.m[1]) < 0.01 &&
+         std::abs(t.m[3]) < 0.01 && std::abs(t.m[2]) < tolerance && std::abs(t.m[5]) < tolerance;
+}
+
+struct UnionFind {
+  std::vector<size_t> parent;
+  explicit UnionFind(size_t n) : parent(n) { std::iota(parent.begin(), parent.end(), 0); }
+  size_t Find(size_t x) {
+    while (parent[x] != x) x = parent[x] = parent[parent[x]];
+    return x;
+  }
+  void Join(size_t x, size_t y) {
+    x = Find(x), y = Find(y);
+    if (x != y) parent[std::max(x, y)] = std::min(x, y);
+  }
+};
+
+}  // namespace
+
+void MirrorDescriptor(const float* descriptor, float* mirrored) {
+  // Layout: [(row * 4 + column) * 8 + orientation bin]. Mirroring the image maps the keypoint's
+  // orientation theta to pi - theta; in the patch frame that reverses the axis across the orientation
+  // (rows) and negates every gradient direction relative to the orientation (bin k -> -k mod 8).
+  for (int r = 0; r < 4; ++r) {
+    for (int c = 0; c < 4; ++c) {
+      for (int k = 0; k < 8; ++k) mirrored[(r * 4 + c) * 8 + k] = descriptor[((3 - r) * 4 + c) * 8 + ((8 - k) & 7)];
+    }
+  }
+}
+
+const char* DuplicateKindName(DuplicateKind kind) {
+  switch (kind) {
+    case DuplicateKind::kExact: return "exact";
+    case DuplicateKind::kNearCopy: return "near_copy";
+    case DuplicateKind::kSameScene: return "same_scene";
+  }
+  return "same_scene";
+}
+
+std::optional<std::string> DuplicateOptions::Check() const {
+  if (candidates < 1 || candidates > 1000) return "candidates must be in [1, 1000]";
+  if (!(min_coverage >= 0 && min_coverage <= 1)) return "min_coverage must be in [0, 1]";
+  if (!(near_copy_coverage >= 0 && near_copy_coverage <= 1)) return "near_copy_coverage must be in [0, 1]";
+  if (!(max_anisotropy >= 1 && max_anisotropy < 100)) return "max_anisotropy must be in [1, 100)";
+  if (!(inlier_tolerance > 0 && inlier_tolerance <= 1)) return "inlier_tolerance must be in (0, 1]";
+  if (threads < 0 || threads > 256) return "threads must be in [0, 256]";
+  return std::nullopt;
+}
+
+Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const DuplicateOptions& options,
+                                       const DuplicateProgress& progress, const std::function<bool()>& stop) {
+  if (auto message = options.Check()) return Fail(ErrorCode::kInvalidArgument, "duplicate options: " + *message);
+  const auto t0 = Clock::now();
+  std::vector<std::string> ids;
+  for (uint64_t offset = 0;; offset += 10000) {
+    auto page = index.List(offset, 10000);
+    if (!page) return std::unexpected(page.error());
+    for (auto& record : *page) ids.push_back(std::move(record.id));
+    if (page->size() < 10000) break;
+  }
+  std::sort(ids.begin(), ids.end());
+  DuplicateReport report;
+  report.images = ids.size();
+  const int threads = ResolveThreadCount(options.threads);
+  const std::vector<uint32_t> word_map = options.mirrored ? MirrorWords(index.vocabulary(), threads) : std::vector<uint32_t>{};
+
+  index::QueryOptions query;
+  query.top_k = options.candidates;
+  query.rerank_depth = options.candidates;
+  query.query_expansion = false;
+  query.transitive_depth = 0;
+  index::QueryOptions mirror_query = query;
+  mirror_query.hamming = false;
+
+  // 1. Searches: every verified (a, b), keyed by the ordered pair and whether mirrored.
+  std::map<std::tuple<std::string, std::string, bool>, Candidate> candidates;
+  std::mutex candidates_mutex;
+  std::atomic<uint64_t> done{0};
+  std::atomic<bool> cancelled{false};
+  std::optional<Error> failure;
+  ParallelFor(ids.size(), threads, 1, [&](size_t begin, size_t end, int) {
+    for (size_t i = begin; i < end; ++i) {
+      if (cancelled.load() || (stop && stop())) {
+        cancelled.store(true);
+        return;
+      }
+      const std::string& id = ids[i];
+      const std::unique_ptr<index::search::Source> source = index.OpenSearch();
+      index::ImageRecord record;
+      auto q = index::search::StoredQuery(*source, id, query, &record);
+      if (!q) {
+        if (q.error().code != ErrorCode::kNotFound) {  // deleted meanwhile: skipped
+          std::lock_guard<std::mutex> lock(candidates_mutex);
+          if (!failure) failure = q.error();
+        }
+        continue;
+      }
+      std::vector<std::pair<index::QueryResult, bool>> found;
+      auto direct = index::search::Run(*source, *q, query, {});
+      if (direct) {
+        for (auto& r : direct->results) found.emplace_back(std::move(r), false);
+      }
+      if (options.mirrored) {
+        auto mirrored = index::search::Run(*source, Mirrored(*q, word_map), mirror_query, {});
+        if (mirrored) {
+          for (auto& r : mirrored->results) found.emplace_back(std::move(r), true);
+        }
+      }
+      {
+        std::lock_guard<std::mutex> lock(candidates_mutex);
+        for (const auto& [r, is_mirrored] : found) {
+          if (!r.verified || r.id == id) continue;
+          const bool a_first = id < r.id;
+          auto key = std::make_tuple(a_first ? id : r.id, a_first ? r.id : id, is_mirrored);
+          auto it = candidates.find(key);
+          if (it == candidates.end() || it->second.verified_inliers < r.inliers) {
+            candidates[key] = Candidate{r.db_from_query, r.inliers, is_mirrored, a_first};
+          }
+        }
+      }
+      const uint64_t n = ++done;
+      if (progress) progress(n, ids.size());
+    }
+  });
+  if (cancelled.load()) return Fail(ErrorCode::kResourceExhausted, "the duplicate search was cancelled");
+  if (failure) return std::unexpected(*failure);
+  report.search_s = SecondsSince(t0);
+  report.candidate_pairs = candidates.size();
+
+  // 2. A pair found both directly and mirrored is a direct pair.
+  std::vector<std::pair<std::tuple<std::string, std::string, bool>, Candidate>> work;
+  for (const auto& [key, c] : candidates) {
+    if (std::get<2>(key) && candidates.contains(std::make_tuple(std::get<0>(key), std::get<1>(key), false))) continue;
+    work.emplace_back(key, c);
+  }
+
+  // 3. The measure of every pair, on the stored features of both.
+  const auto t1 = Clock::now();
+  std::vector<std::optional<DuplicatePair>> measured(work.size());
+  std::atomic<uint64_t> overlays{0};
+  index::QueryOptions plain = mirror_query;  // features without signatures
+  ParallelFor(work.size(), threads, 4, [&](size_t begin, size_t end, int) {
+    for (size_t i = begin; i < end; ++i) {
+      const auto& [key, c] = work[i];
+      const auto& [a_id, b_id, is_mirrored] = key;
+      const std::unique_ptr<index::search::Source> source = index.OpenSearch();
+      index::ImageRecord record_a, record_b;  // the query's, the result's
+      // The map goes from the query's pixels to the result's: measure in that direction.
+      const std::string& from = c.a_is_query ? a_id : b_id;
+      const std::string& to = c.a_is_query ? b_id : a_id;
+      auto qa = index::search::StoredQuery(*source, from, plain, &record_a);
+      auto qb = index::search::StoredQuery(*source, to, plain, &record_b);
+      if (!qa || !qb) continue;  // deleted meanwhile
+      const index::search::QueryFeatures query_side = is_mirrored ? Mirrored(*qa, word_map) : *qa;
+      Measure m = MeasurePair(query_side, *qb, c.b_from_a, options.inlier_tolerance);
+      if (std::max(m.coverage_a, m.coverage_b) < options.min_coverage || !m.central) {
+        ++overlays;
+        continue;
+      }
+      DuplicatePair pair;
+      pair.mirrored = is_mirrored;
+      pair.inliers = m.inliers;
+      const auto [s1, s2] = SingularValues(c.b_from_a);
+      const bool similarity = s2 > 0 && s1 / s2 <= options.max_anisotropy;
+      const double larger = std::max(m.coverage_a, m.coverage_b);
+      if (!is_mirrored && record_a.width == record_b.width && record_a.height == record_b.height &&
+          IsIdentity(c.b_from_a, record_a.width, record_a.height) && std::min(m.coverage_a, m.coverage_b) >= kExactCoverage) {
+        pair.kind = DuplicateKind::kExact;
+      } else if (similarity && larger >= options.near_copy_coverage) {
+        pair.kind = DuplicateKind::kNearCopy;
+      } else {
+        pair.kind = DuplicateKind::kSameScene;
+      }
+      // Reported with a < b and the map from a's pixels to b's (with the mirror: determinant < 0).
+      pair.a = a_id, pair.b = b_id;
+      const sift::Affine2D flip_from = Flip(record_a.width);  // record_a: the query's
+      const sift::Affine2D to_from_from = is_mirrored ? index::search::Compose(c.b_from_a, flip_from) : c.b_from_a;
+      if (c.a_is_query) {
+        pair.coverage_a = m.coverage_a, pair.coverage_b = m.coverage_b;
+        pair.region_a = m.region_a, pair.region_b = m.region_b;
+        pair.b_from_a = to_from_from;
+      } else {
+        pair.coverage_a = m.coverage_b, pair.coverage_b = m.coverage_a;
+        pair.region_a = m.region_b, pair.region_b = m.region_a;
+        pair.b_from_a = to_from_from.Inverse().value_or(to_from_from);
+      }
+      if (is_mirrored) {  // the query side's region was measured on its mirrored features
+        std::array<float, 4>& r = c.a_is_query ? pair.region_a : pair.region_b;
+        const float w = static_cast<float>(record_a.width) - 1.0f;
+        r = {w - r[2], r[1], w - r[0], r[3]};
+      }
+      measured[i] = std::move(pair);
+    }
+  });
+  report.overlay_pairs = overlays.load();
+  report.measure_s = SecondsSince(t1);
+
+  // 4. Groups: connected components, numbered by their first id.
+  std::unordered_map<std::string, size_t> number;
+  for (size_t i = 0; i < ids.size(); ++i) number[ids[i]] = i;
+  UnionFind sets(ids.size());
+  for (const auto& p : measured) {
+    if (p) sets.Join(number[p->a], number[p->b]);
+  }
+  std::map<size_t, std::vector<std::string>> members;
+  for (const auto& p : measured) {
+    if (!p) continue;
+    members[sets.Find(number[p->a])];
+  }
+  for (size_t i = 0; i < ids.size(); ++i) {
+    auto it = members.find(sets.Find(i));
+    if (it != members.end()) it->second.push_back(ids[i]);
+  }
+  std::unordered_map<size_t, int> group_of;
+  for (auto& [root, list] : members) {
+    group_of[root] = static_cast<int>(report.groups.size());
+    report.groups.push_back(std::move(list));
+  }
+  for (auto& p : measured) {
+    if (!p) continue;
+    p->group = group_of[sets.Find(number[p->a])];
+    report.pairs.push_back(std::move(*p));
+  }
+  std::sort(report.pairs.begin(), report.pairs.end(), [](const DuplicatePair& x, const DuplicatePair& y) {
+    return std::tie(x.group, x.a, x.b, x.mirrored) < std::tie(y.group, y.a, y.b, y.mirrored);
+  });
+  return report;
+}
+
+nlohmann::json DuplicateReportToJson(const DuplicateReport& report, const DuplicateOptions& options) {
+  using nlohmann::json;
+  json pairs = json::array();
+  for (const auto& p : report.pairs) {
+    pairs.push_back({{"a", p.a}, {"b", p.b}, {"kind", DuplicateKindName(p.kind)}, {"mirrored", p.mirrored},
+                     {"inliers", p.inliers}, {"coverage_a", std::round(p.coverage_a * 1000) / 1000},
+                     {"coverage_b", std::round(p.coverage_b * 1000) / 1000}, {"region_a", p.region_a},
+                     {"region_b", p.region_b}, {"transform", p.b_from_a.m}, {"group", p.group}});
+  }
+  json groups = json::array();
+  for (size_t g = 0; g < report.groups.size(); ++g) groups.push_back({{"group", g}, {"images", report.groups[g]}});
+  return {{"images", report.images},
+          {"settings", {{"candidates", options.candidates}, {"mirrored", options.mirrored},
+                        {"min_coverage", options.min_coverage}, {"near_copy_coverage", options.near_copy_coverage},
+                        {"max_anisotropy", options.max_anisotropy}, {"inlier_tolerance", options.inlier_tolerance}}},
+          {"pairs", pairs},
+          {"groups", groups},
+          {"candidate_pairs", report.candidate_pairs},
+          {"overlay_pairs", report.overlay_pairs},
+          {"timings_s", {{"search", report.search_s}, {"measure", report.measure_s}}}};
+}
+
+std::string DuplicateReportToCsv(const DuplicateReport& report) {
+  std::ostringstream out;
+  auto quoted = [](const std::string& text) {
+    if (text.find_first_of(",\"\n\r") == std::string::npos) return text;
+    std::string q = "\"";
+    for (char c : text) q += c == '"' ? std::string("\"\"") : std::string(1, c);
+    return q + "\"";
+  };
+  out << "a,b,kind,mirrored,inliers,coverage_a,coverage_b,group\n";
+  char buf[64];
+  for (const auto& p : report.pairs) {
+    std::snprintf(buf, sizeof buf, "%.3f,%.3f", p.coverage_a, p.coverage_b);
+    out << quoted(p.a) << "," << quoted(p.b) << "," << DuplicateKindName(p.kind) << "," << (p.mirrored ? "true" : "false")
+        << "," << p.inliers << "," << buf << "," << p.group << "\n";
+  }
+  return out.str();
+}
+
+}  // namespace oxbow::api

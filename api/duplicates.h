@@ -1,0 +1,110 @@
+// Duplicates in a collection: which images show the same thing, found by searching the index with every
+// image's stored features and verifying the geometry (oxbow index duplicates, POST .../duplicates).
+//
+// Method, per image A (in parallel over images, each on the index's current snapshot):
+//   1. A's stored features search the index (tf-idf + Hamming embedding, spatial re-ranking of the
+//      `candidates` best, no query expansion, no transitive verification): every other image B
+//      verified against A gives a candidate pair with A's affine map into B.
+//   2. The same with A's features mirrored (x -> width - x, orientation -> pi - orientation, each word
+//      replaced by the word of its mirrored centroid: a SIFT descriptor of a mirrored patch is a
+//      permutation of the original's), so that a mirrored copy is found without its pixels. Without
+//      Hamming signatures (they do not mirror).
+// Each pair is then measured once, on both images' stored features: the features of A that land
+// within `inlier_tolerance` of a feature of B with the same word under the map (and at a consistent
+// scale) are its inliers; `coverage_a` is the share of A's feature-bearing cells of an 8 x 8 grid
+// that hold an inlier (the same for B). A pair whose larger coverage is below `min_coverage`, or
+// whose inliers avoid the central cells of both images, shares only an overlay (a logo, a caption, a
+// frame) and is dropped. The kept pairs are:
+//   exact       the same picture: equal sizes, the identity map, both covered at least 0.9, not mirrored;
+//   near_copy   one image is the other resized, recompressed, cropped, rotated, mirrored, retouched or
+//               overlaid: one of them covered at least `near_copy_coverage` under a similarity (axis
+//               ratio of the map at most `max_anisotropy`);
+//   same_scene  another photo of the same object or place.
+// Groups are the connected components of the kept pairs.
+//
+// Thread-safe: runs on an index that serves searches and writes meanwhile (what a snapshot held at
+// the start of each image's search shows; images added during the run may be missed, deleted ones
+// are skipped).
+#pragma once
+
+#include <array>
+#include <atomic>
+#include <cstdint>
+#include <functional>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "index/image_index.h"
+#include "sift/base/error.h"
+#include "sift/verify.h"
+
+namespace oxbow::api {
+
+struct DuplicateOptions {
+  // Best tf-idf candidates of each image that spatial verification checks (its re-ranking depth and
+  // result count). An image with more copies than this may miss some (groups still connect them
+  // through the copies found). [1, 1000].
+  int candidates = 50;
+  // Also find mirrored copies (a second search per image).
+  bool mirrored = true;
+  // A pair is dropped when both images' coverage is below this (their match is a small patch: a shared
+  // logo or caption). [0, 1].
+  double min_coverage = 0.25;
+  // A near copy: one image covered at least this much by the match. [0, 1].
+  double near_copy_coverage = 0.6;
+  // A near copy's map is a similarity: ratio of its singular values at most this. >= 1.
+  double max_anisotropy = 1.3;
+  // Inliers of the measure: distance under the map, as a fraction of the longer side of image B
+  // (at least 4 px). (0, 1].
+  double inlier_tolerance = 0.015;
+  // Threads over images; 0 = all hardware threads. [0, 256].
+  int threads = 0;
+
+  std::optional<std::string> Check() const;
+};
+
+enum class DuplicateKind { kExact, kNearCopy, kSameScene };
+const char* DuplicateKindName(DuplicateKind kind);  // "exact" | "near_copy" | "same_scene"
+
+struct DuplicatePair {
+  std::string a, b;                 // a < b
+  DuplicateKind kind = DuplicateKind::kSameScene;
+  bool mirrored = false;            // b matches a mirrored
+  int inliers = 0;                  // the measure's inliers
+  double coverage_a = 0, coverage_b = 0;
+  std::array<float, 4> region_a{}, region_b{};  // boxes of the inliers, x1 y1 x2 y2 in pixels
+  sift::Affine2D b_from_a;          // a pixels -> b pixels (determinant < 0 when mirrored)
+  int group = 0;
+};
+
+struct DuplicateReport {
+  uint64_t images = 0;
+  std::vector<DuplicatePair> pairs;                 // by group, then a, then b
+  std::vector<std::vector<std::string>> groups;     // ids sorted; groups by their first id
+  double search_s = 0, measure_s = 0;
+  uint64_t candidate_pairs = 0;                     // verified by the searches, before the measure
+  uint64_t overlay_pairs = 0;                       // dropped as a shared overlay
+};
+
+// Progress: (images done, images in all), from the workers (thread-safe callers only).
+using DuplicateProgress = std::function<void(uint64_t done, uint64_t total)>;
+
+// Finds the duplicates of `index`. `stop` (may be empty) is asked between images: when it answers
+// true the job ends with kResourceExhausted ("cancelled"). kInvalidArgument for bad options.
+[[nodiscard]] Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const DuplicateOptions& options,
+                                                     const DuplicateProgress& progress = {},
+                                                     const std::function<bool()>& stop = {});
+
+// The report as JSON: {"images", "settings", "pairs": [...], "groups": [{"group", "images"}], "timings_s"}.
+nlohmann::json DuplicateReportToJson(const DuplicateReport& report, const DuplicateOptions& options);
+// As CSV: a,b,kind,mirrored,inliers,coverage_a,coverage_b,group (header, then one row per pair).
+std::string DuplicateReportToCsv(const DuplicateReport& report);
+
+// A SIFT/RootSIFT descriptor (128 values, oxbow's and OpenCV's layout) of the mirrored patch: what the
+// extractor computes at the mirrored keypoint of the horizontally mirrored image, up to sampling.
+void MirrorDescriptor(const float* descriptor, float* mirrored);
+
+}  // namespace oxbow::api
