@@ -116,6 +116,8 @@ as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-r
 IFS=: read -r _ _ uid _ _ home shell < <(getent passwd oxbow) || fail "no user oxbow after install"
 [[ $uid -lt 1000 && $home == /var/lib/oxbow && $shell == */nologin ]] || fail "user oxbow: uid $uid, home $home, shell $shell"
 [[ $(stat -c '%U:%G %a' /var/lib/oxbow) == "oxbow:oxbow 750" ]] || fail "/var/lib/oxbow is $(stat -c '%U:%G %a' /var/lib/oxbow)"
+[[ $(stat -c '%U:%G %a' /var/lib/oxbow/collections) == "oxbow:oxbow 750" ]] ||
+  fail "/var/lib/oxbow/collections (the service's --data folder) is $(stat -c '%U:%G %a' /var/lib/oxbow/collections 2>&1)"
 [[ $(stat -c '%U %a' /etc/default/oxbow) == "root 600" ]] || fail "/etc/default/oxbow is $(stat -c '%U %a' /etc/default/oxbow)"
 # The commented defaults in /etc/default/oxbow are those of the installed binary.
 bash "$root/cmake/packaging/make-default.sh" /usr/bin/oxbow "$work/default"
@@ -204,15 +206,16 @@ say "installed binary as user oxbow: vocab train, serve (created the index), 8 a
 
 if [[ -d /run/systemd/system ]]; then  # systemd runs: the unit itself, hardening included
   port=$(python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
-  as_root rm -rf /var/lib/oxbow/index
   as_root sed -i "s|^OXBOW_SERVE_ARGS=.*|OXBOW_SERVE_ARGS=\"--port $port --vocab /var/lib/oxbow/vocab.oxvoc\"|" /etc/default/oxbow
   journal=1
   as_root systemctl start oxbow.service || fail "systemctl start oxbow.service"
   check_search "$port"
-  [[ $(systemctl is-active oxbow.service) == active ]] || fail "oxbow.service is not active after the search"
+  [[ -f /var/lib/oxbow/collections/default/catalogue.sqlite ]] || fail "the service did not create the collection default in /var/lib/oxbow/collections"
+  as_root systemctl reload oxbow.service || fail "systemctl reload oxbow.service"
+  [[ $(systemctl is-active oxbow.service) == active ]] || fail "oxbow.service is not active after the search and a reload"
   as_root systemctl stop oxbow.service
   journal=0
-  say "oxbow.service (systemd): started, 8 adds, search, stopped: ok"
+  say "oxbow.service (systemd): started on /var/lib/oxbow/collections (created default), 8 adds, search, reload, stopped: ok"
 else
   say "oxbow.service not started: systemd is not running here (no /run/systemd/system); checked with systemd-analyze only"
 fi
