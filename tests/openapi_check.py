@@ -12,7 +12,8 @@ Run by tests/openapi_test.cc, which starts the servers:
 --url: a server without API key and with --max-upload-mb 1; --keyed-url: one with --api-key KEY,
 --request-timeout-s 1 and --max-connections-per-client 4. Both start on an empty index over the same
 vocabulary. --data-url: `oxbow serve --data DIR --vocab V --api-key KEY` on an empty data folder (its
-collection `default` made with that vocabulary), for the collection routes. Exit 0: every check passed; 1: failures (listed); 77: python3-jsonschema is missing.
+collection `default` made with that vocabulary), for the collection routes and the duplicate jobs. Exit 0:
+every check passed; 1: failures (listed); 77: python3-jsonschema is missing.
 """
 
 import argparse
@@ -75,8 +76,32 @@ def exchange(base, raw, partial_wait=0.0):
     return Response(data)
 
 
-def build(method, target, headers=None, body=b"", version="HTTP/1.1"):
-    lines = [f"{method} {target} {version}", "Host: 127.0.0.1", "Connection: close"]
+def exchange_pipelined(base, raws):
+    """Sends several whole requests at once on one connection (HTTP/1.1 pipelining: the server reads the
+    next as soon as it has answered the previous; all but the last should say Connection: keep-alive);
+    the responses, in order."""
+    host, port = urllib.parse.urlsplit(base).netloc.split(":")
+    data = b""
+    with socket.create_connection((host, int(port)), timeout=60) as s:
+        s.sendall(b"".join(raws))
+        while True:
+            try:
+                chunk = s.recv(65536)
+            except ConnectionResetError:
+                break
+            if not chunk:
+                break
+            data += chunk
+    responses = []
+    while b"\r\n\r\n" in data:
+        r = Response(data)
+        responses.append(r)
+        data = data.partition(b"\r\n\r\n")[2][len(r.body):]
+    return responses
+
+
+def build(method, target, headers=None, body=b"", version="HTTP/1.1", connection="close"):
+    lines = [f"{method} {target} {version}", "Host: 127.0.0.1", f"Connection: {connection}"]
     headers = dict(headers or {})
     if (body or method in ("POST", "PUT")) and "Content-Length" not in headers and "Transfer-Encoding" not in headers:
         headers["Content-Length"] = str(len(body))
@@ -422,6 +447,8 @@ def check_collections(c, url, data, key, image, other):
     c.check("collection search without key", data, "POST", f"{base}/search", 401, "unauthenticated", headers=png_type, body=image)
     c.check("collection stats", data, "GET", f"{base}/stats", 200, headers=read)
     c.check("collection stats without key", data, "GET", f"{base}/stats", 401, "unauthenticated")
+    check_duplicate_jobs(c, data, key, write, read, other_key)
+
     c.check("collection delete read key", data, "DELETE", f"{base}/images/b", 403, "permission_denied", headers=read)
     c.check("collection delete", data, "DELETE", f"{base}/images/b", 200, headers=write)
 
@@ -441,6 +468,129 @@ def check_collections(c, url, data, key, image, other):
     c.check("collection delete", data, "DELETE", base, 200, headers=admin)
     c.check("collection delete again", data, "DELETE", base, 404, "not_found", headers=admin)
     c.check("collection delete on a server without key", url, "DELETE", "/v1/collections/default", 403, "permission_denied")
+
+
+def check_duplicate_jobs(c, data, key, write, read, other_key):
+    """The duplicate searches of `data` as jobs: POST .../duplicates, GET and DELETE /v1/jobs/{job}. The
+    collection alpha holds the images a and c (the same picture) and b (another) when this runs; `write`
+    and `read` are its keys, `other_key` a write key of the public, empty collection full."""
+    json_type = {"Content-Type": "application/json"}
+    admin = {"X-API-Key": key}
+    dup = "/v1/collections/alpha/duplicates"
+
+    def start(name, target, body, expect, code=None, headers=None):
+        return c.check(name, data, "POST", target, expect, code, headers={**json_type, **(headers or {})},
+                       body=body if isinstance(body, bytes) else json.dumps(body).encode())
+
+    def follow(job, headers, name="job"):
+        """GET /v1/jobs/{job} until the job no longer runs (at most 60 s); the last answer."""
+        deadline = time.monotonic() + 60
+        while True:
+            r = c.check(name, data, "GET", f"/v1/jobs/{job}", 200, headers=headers)
+            if r.status != 200 or r.json().get("state") != "running" or time.monotonic() > deadline:
+                return r
+            time.sleep(0.02)
+
+    def started(r, collection):
+        """The job id of a 202 answer (None otherwise), its Location and collection checked."""
+        if r.status != 202:
+            return None
+        job = r.json().get("job", "")
+        if r.headers.get("location") != f"/v1/jobs/{job}" or r.json().get("collection") != collection:
+            c.fail(f"duplicates on {collection}: Location {r.headers.get('location')!r}, body {r.body[:200]!r}")
+        return job
+
+    # Refusals before any job starts: keys, unknown collection, bodies.
+    start("duplicates without key", dup, {}, 401, "unauthenticated")
+    start("duplicates read key", dup, {}, 403, "permission_denied", read)
+    start("duplicates other key", dup, {}, 403, "permission_denied", other_key)
+    start("duplicates unknown (other key)", "/v1/collections/nope/duplicates", {}, 403, "permission_denied", other_key)
+    start("duplicates unknown collection", "/v1/collections/nope/duplicates", {}, 404, "not_found", admin)
+    for body in ({"candidates": 0}, {"candidates": 1001}, {"candidates": 1.5}, {"mirrored": "yes"},
+                 {"min_coverage": -0.1}, {"min_coverage": 1.5}, {"near_copy_coverage": 2}, {"threads": -1},
+                 {"threads": 257}, {"max_anisotropy": 2}, {"nope": 1}, [], "text", b"{", b"candidates=5"):
+        start(f"duplicates body {body!r}", dup, body, 400, "invalid_argument", write)
+
+    # A job with every option at one end of its range, then at the other; the report echoes them.
+    for options in ({"candidates": 1, "mirrored": False, "min_coverage": 0, "near_copy_coverage": 1, "threads": 0},
+                    {"candidates": 1000, "mirrored": True, "min_coverage": 1, "near_copy_coverage": 0, "threads": 2}):
+        job = started(start(f"duplicates {options}", dup, options, 202, headers=write), "alpha")
+        if job:
+            r = follow(job, write)
+            settings = r.json().get("result", {}).get("settings", {}) if r.status == 200 else {}
+            if any(settings.get(k) != v for k, v in options.items() if k != "threads"):
+                c.fail(f"duplicates {options}: settings {settings}")
+            c.check("job delete (done)", data, "DELETE", f"/v1/jobs/{job}", 200, headers=write)
+
+    # One job per collection: a second start while the first runs is 409. Both requests go pipelined on one
+    # connection, so the second is answered microseconds after the first, while the job (milliseconds) still
+    # runs; should the job end first all the same (a loaded machine), both start, and the pair is sent again.
+    job, conflict = None, False
+    for attempt in range(5):
+        raws = [build("POST", dup, {**json_type, **write}, b"{}", connection="keep-alive"),
+                build("POST", dup, {**json_type, **write}, b"{}")]
+        answers = exchange_pipelined(data, raws)
+        for r in answers:
+            c.conform(f"duplicates pipelined ({attempt}): POST {dup} -> {r.status}", "POST", dup, r)
+        statuses = [r.status for r in answers]
+        jobs = [started(r, "alpha") for r in answers if r.status == 202]
+        for j in jobs:
+            last = follow(j, read, "job read key")
+        if statuses == [202, 409]:
+            conflict = True
+            if answers[1].json().get("error", {}).get("code") != "already_exists":
+                c.fail(f"duplicates while one runs: {answers[1].body[:300]!r}")
+            job = jobs[0]
+            break
+        if statuses != [202, 202]:
+            c.fail(f"duplicates pipelined: statuses {statuses}")
+            break
+        for j in jobs:
+            c.check("job delete (done)", data, "DELETE", f"/v1/jobs/{j}", 200, headers=write)
+    if not conflict:
+        c.fail("duplicates: no 409 for a second job while one runs (5 pipelined attempts)")
+    if job:
+        # The report of alpha: a and c are one picture (an exact pair, a group), b another.
+        report = last.json().get("result", {}) if last.status == 200 else {}
+        if (last.json().get("state") != "done" or last.json().get("done") != 3 or last.json().get("total") != 3 or
+                [(p["a"], p["b"], p["kind"]) for p in report.get("pairs", [])] != [("a", "c", "exact")] or
+                report.get("groups") != [{"group": 0, "images": ["a", "c"]}]):
+            c.fail(f"duplicates of alpha: {last.body[:600]!r}")
+        c.check("job without key", data, "GET", f"/v1/jobs/{job}", 401, "unauthenticated")
+        c.check("job other key", data, "GET", f"/v1/jobs/{job}", 403, "permission_denied", headers=other_key)
+        c.check("job wrong key", data, "GET", f"/v1/jobs/{job}", 403, "permission_denied", headers={"X-API-Key": "wrong"})
+        c.check("job admin", data, "GET", f"/v1/jobs/{job}", 200, headers=admin)
+        c.check("job delete without key", data, "DELETE", f"/v1/jobs/{job}", 401, "unauthenticated")
+        c.check("job delete read key", data, "DELETE", f"/v1/jobs/{job}", 403, "permission_denied", headers=read)
+        r = c.check("job delete", data, "DELETE", f"/v1/jobs/{job}", 200, headers=write)
+        if r.status == 200 and r.json() != {"job": job, "cancelled": False, "deleted": True}:
+            c.fail(f"job delete of a finished job: {r.body[:300]!r}")
+        c.check("job deleted", data, "GET", f"/v1/jobs/{job}", 404, "not_found", headers=admin)
+        c.check("job delete again", data, "DELETE", f"/v1/jobs/{job}", 404, "not_found", headers=admin)
+    c.check("job unknown", data, "GET", "/v1/jobs/0123456789abcdef", 404, "not_found", headers=admin)
+    c.check("job unknown without key", data, "GET", "/v1/jobs/0123456789abcdef", 401, "unauthenticated")
+    c.check("job unknown collection key", data, "GET", "/v1/jobs/0123456789abcdef", 403, "permission_denied", headers=read)
+    c.check("job delete unknown", data, "DELETE", "/v1/jobs/0123456789abcdef", 404, "not_found", headers=admin)
+
+    # Deleting a job as soon as it started: cancelled when it still ran (a 3-image job may have ended).
+    job = started(start("duplicates to cancel", dup, {}, 202, headers=write), "alpha")
+    if job:
+        c.check("job cancel", data, "DELETE", f"/v1/jobs/{job}", 200, headers=write)
+        c.check("job cancelled", data, "GET", f"/v1/jobs/{job}", 404, "not_found", headers=admin)
+
+    # A public collection's job is read without a key; the routes without a prefix act on `default`.
+    job = started(start("duplicates of full", "/v1/collections/full/duplicates", b"", 202, headers=other_key), "full")
+    if job:
+        r = follow(job, {}, "job of a public collection")
+        if r.status == 200 and (r.json().get("state") != "done" or r.json()["result"]["images"] != 0):
+            c.fail(f"duplicates of the empty collection full: {r.body[:300]!r}")
+    start("duplicates default without key", "/v1/duplicates", {}, 401, "unauthenticated")
+    start("duplicates default alpha's key", "/v1/duplicates", {}, 403, "permission_denied", write)
+    start("duplicates default bad body", "/v1/duplicates", {"candidates": "all"}, 400, "invalid_argument", admin)
+    job = started(start("duplicates default", "/v1/duplicates", {"mirrored": False}, 202, headers=admin), "default")
+    if job:
+        follow(job, admin)
+        c.check("job delete admin", data, "DELETE", f"/v1/jobs/{job}", 200, headers=admin)
 
 
 def run(args):
@@ -581,7 +731,8 @@ def run(args):
 
     # Every route with a method it does not take; paths that are no route.
     for template in doc["paths"]:
-        target = template.replace("{name}", "default").replace("{id}", "a").replace("{file}", "app.js")
+        target = (template.replace("{name}", "default").replace("{id}", "a").replace("{file}", "app.js")
+                  .replace("{job}", "0123456789abcdef"))
         c.check(f"wrong method {template}", url, "PUT", target, 405, "method_not_allowed")
     c.check("unknown route", url, "GET", "/v1/nope", 404, "not_found")
     c.check("unknown route", url, "POST", "/v2/search", 404, "not_found", headers=png_type, body=image)
@@ -589,7 +740,8 @@ def run(args):
     # Requests refused before any route runs, on every operation.
     many = {f"X-Filler-{i}": "1" for i in range(150)}
     for template, item in doc["paths"].items():
-        target = template.replace("{name}", "default").replace("{id}", "a").replace("{file}", "app.js")
+        target = (template.replace("{name}", "default").replace("{id}", "a").replace("{file}", "app.js")
+                  .replace("{job}", "0123456789abcdef"))
         for method in (m.upper() for m in item if m != "parameters"):
             c.check("target too long", url, method, target + "?" + "x" * 9000, 414, "uri_too_long")
             c.check("too many headers", url, method, target, 431, "headers_too_large", headers=many)
