@@ -34,6 +34,10 @@ build_packages=(
   python3-jsonschema     # tests/openapi_check.py validates every response against server/http/openapi.json
   python3-venv           # api/python/packaging_test.py installs the Python client into a fresh `python3 -m venv`
                          # (pip comes from python3-pip-whl, offline)
+  python3-pil python3-numpy  # eval/duplicates: the duplicate benchmark's generator, scorer and perceptual-hash peer
+  findimagedupes         # eval/duplicates: peer of `oxbow index duplicates` (GraphicsMagick fingerprints, Hamming threshold)
+  dupeguru               # eval/duplicates: peer of `oxbow index duplicates` (its picture mode's engine, run headless)
+  fonts-dejavu-core      # eval/duplicates: the fonts of the benchmark's captions, logo and screenshot frames
   chromium nodejs        # the web page's end-to-end test (tests/browser: playwright-core drives /usr/bin/chromium)
   libclang-rt-14-dev     # libFuzzer runtime for the fuzz targets (scripts/fuzz.sh; GCC-instrumented, cmake/OxbowFuzz.cmake)
   clang-tidy-16          # static checks (scripts/clang-tidy.sh): the first Debian 12 clang-tidy that parses libstdc++ 12's <expected>
