@@ -179,6 +179,7 @@ std::optional<CollectionRef> Collections::Find(const std::string& name) const {
 std::vector<std::string> Collections::Names() const {
   std::lock_guard<std::mutex> lock(map_mutex_);
   std::vector<std::string> names;
+  names.reserve(collections_.size());
   for (const auto& [name, entry] : collections_) names.push_back(name);
   return names;
 }

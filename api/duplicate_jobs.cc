@@ -51,8 +51,9 @@ Result<std::string> DuplicateJobs::Start(const CollectionRef& collection, const 
   std::lock_guard<std::mutex> lock(mutex_);
   for (const auto& [id, job] : jobs_) {
     if (job->status.collection == collection.name && job->status.state == "running") {
-      return Fail(ErrorCode::kAlreadyExists, "a duplicate search already runs on collection '" + collection.name +
-                                                 "': job " + id + " (GET /v1/jobs/" + id + ")");
+      std::string message = "a duplicate search already runs on collection '";
+      message.append(collection.name).append("': job ").append(id).append(" (GET /v1/jobs/").append(id).append(")");
+      return Fail(ErrorCode::kAlreadyExists, message);
     }
   }
   std::string id;

@@ -21,6 +21,7 @@ namespace {
 using Clock = std::chrono::steady_clock;
 constexpr int kGrid = 8;                   // coverage cells per side
 constexpr double kExactCoverage = 0.9;
+constexpr double kExactTwins = 0.98;       // share of features with an identical twin in an exact copy
 
 double SecondsSince(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
 
@@ -73,6 +74,8 @@ struct Candidate {
 
 struct Measure {
   int inliers = 0;
+  int twins = 0;           // inliers that are the same feature (same place, scale, orientation): identical pixels
+  double density_a = 0, density_b = 0;  // inliers / features inside each region
   double coverage_a = 0, coverage_b = 0;
   bool central = false;  // some inlier in the central cells of a or b
   std::array<float, 4> region_a{}, region_b{};
@@ -106,20 +109,30 @@ Measure MeasurePair(const index::search::QueryFeatures& a, const index::search::
     const sift::Keypoint& p = a.keypoints[i];
     const Eigen::Vector2d mapped = b_from_a.Apply({p.x, p.y});
     const auto [begin, end] = b_by_word.equal_range(a.words[i]);
-    for (auto it = begin; it != end; ++it) {
+    // The first feature of b within the tolerance is the match, unless one is a's twin (same place,
+    // scale and orientation: identical pixels there).
+    const sift::Keypoint* match = nullptr;
+    bool twin = false;
+    for (auto it = begin; it != end && !twin; ++it) {
       const sift::Keypoint& q = b.keypoints[it->second];
       const double dx = mapped.x() - q.x, dy = mapped.y() - q.y;
       if (dx * dx + dy * dy > tol_sq) continue;
       const double ratio = q.scale / std::max(1e-6, p.scale * scale_ratio);
       if (ratio < 0.5 || ratio > 2.0) continue;
+      twin = std::abs(p.x - q.x) <= 0.5f && std::abs(p.y - q.y) <= 0.5f && std::abs(p.scale - q.scale) <= 0.05f * p.scale &&
+             std::abs(std::remainder(p.orientation - q.orientation, 2 * M_PI)) <= 0.05;
+      if (match == nullptr || twin) match = &q;
+    }
+    if (match != nullptr) {
+      const sift::Keypoint& q = *match;
       ++m.inliers;
+      m.twins += twin ? 1 : 0;
       const int ca = Cell(p.x, p.y, a.width, a.height), cb = Cell(q.x, q.y, b.width, b.height);
       hit_a[ca] = 1;
       hit_b[cb] = 1;
       m.central = m.central || Central(ca) || Central(cb);
       ax1 = std::min(ax1, p.x), ay1 = std::min(ay1, p.y), ax2 = std::max(ax2, p.x), ay2 = std::max(ay2, p.y);
       bx1 = std::min(bx1, q.x), by1 = std::min(by1, q.y), bx2 = std::max(bx2, q.x), by2 = std::max(by2, q.y);
-      break;  // each feature of a counts once
     }
   }
   auto share = [](const std::vector<char>& hit, const std::vector<char>& cells) {
@@ -131,6 +144,13 @@ Measure MeasurePair(const index::search::QueryFeatures& a, const index::search::
   if (m.inliers > 0) {
     m.region_a = {ax1, ay1, ax2, ay2};
     m.region_b = {bx1, by1, bx2, by2};
+    auto inside = [](const index::search::QueryFeatures& f, const std::array<float, 4>& r) {
+      int n = 0;
+      for (const auto& kp : f.keypoints) n += kp.x >= r[0] && kp.x <= r[2] && kp.y >= r[1] && kp.y <= r[3];
+      return std::max(1, n);
+    };
+    m.density_a = static_cast<double>(m.inliers) / inside(a, m.region_a);
+    m.density_b = static_cast<double>(m.inliers) / inside(b, m.region_b);
   }
   return m;
 }
@@ -192,6 +212,8 @@ std::optional<std::string> DuplicateOptions::Check() const {
   if (candidates < 1 || candidates > 1000) return "candidates must be in [1, 1000]";
   if (!(min_coverage >= 0 && min_coverage <= 1)) return "min_coverage must be in [0, 1]";
   if (!(near_copy_coverage >= 0 && near_copy_coverage <= 1)) return "near_copy_coverage must be in [0, 1]";
+  if (!(overlay_coverage >= 0 && overlay_coverage <= 1)) return "overlay_coverage must be in [0, 1]";
+  if (!(overlay_density >= 0 && overlay_density <= 1)) return "overlay_density must be in [0, 1]";
   if (!(max_anisotropy >= 1 && max_anisotropy < 100)) return "max_anisotropy must be in [1, 100)";
   if (!(inlier_tolerance > 0 && inlier_tolerance <= 1)) return "inlier_tolerance must be in (0, 1]";
   if (threads < 0 || threads > 256) return "threads must be in [0, 256]";
@@ -304,7 +326,11 @@ Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const Dup
       if (!qa || !qb) continue;  // deleted meanwhile
       const index::search::QueryFeatures query_side = is_mirrored ? Mirrored(*qa, word_map) : *qa;
       Measure m = MeasurePair(query_side, *qb, c.b_from_a, options.inlier_tolerance);
-      if (std::max(m.coverage_a, m.coverage_b) < options.min_coverage || !m.central) {
+      // A shared overlay: the match covers little of both, or only their borders, or it is a dense match
+      // (identical pixels) confined to a part of both images.
+      const double larger_coverage = std::max(m.coverage_a, m.coverage_b);
+      if (larger_coverage < options.min_coverage || !m.central ||
+          (larger_coverage < options.overlay_coverage && std::max(m.density_a, m.density_b) >= options.overlay_density)) {
         ++overlays;
         continue;
       }
@@ -314,7 +340,10 @@ Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const Dup
       const auto [s1, s2] = SingularValues(c.b_from_a);
       const bool similarity = s2 > 0 && s1 / s2 <= options.max_anisotropy;
       const double larger = std::max(m.coverage_a, m.coverage_b);
+      // Identical pixels give identical stored features: every one has its twin.
+      const size_t features = std::max(qa->words.size(), qb->words.size());
       if (!is_mirrored && record_a.width == record_b.width && record_a.height == record_b.height &&
+          qa->words.size() == qb->words.size() && m.twins >= kExactTwins * static_cast<double>(features) &&
           IsIdentity(c.b_from_a, record_a.width, record_a.height) && std::min(m.coverage_a, m.coverage_b) >= kExactCoverage) {
         pair.kind = DuplicateKind::kExact;
       } else if (similarity && larger >= options.near_copy_coverage) {
@@ -392,6 +421,7 @@ nlohmann::json DuplicateReportToJson(const DuplicateReport& report, const Duplic
   return {{"images", report.images},
           {"settings", {{"candidates", options.candidates}, {"mirrored", options.mirrored},
                         {"min_coverage", options.min_coverage}, {"near_copy_coverage", options.near_copy_coverage},
+                        {"overlay_coverage", options.overlay_coverage}, {"overlay_density", options.overlay_density},
                         {"max_anisotropy", options.max_anisotropy}, {"inlier_tolerance", options.inlier_tolerance}}},
           {"pairs", pairs},
           {"groups", groups},

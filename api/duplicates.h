@@ -12,10 +12,13 @@
 // Each pair is then measured once, on both images' stored features: the features of A that land
 // within `inlier_tolerance` of a feature of B with the same word under the map (and at a consistent
 // scale) are its inliers; `coverage_a` is the share of A's feature-bearing cells of an 8 x 8 grid
-// that hold an inlier (the same for B). A pair whose larger coverage is below `min_coverage`, or
-// whose inliers avoid the central cells of both images, shares only an overlay (a logo, a caption, a
-// frame) and is dropped. The kept pairs are:
-//   exact       the same picture: equal sizes, the identity map, both covered at least 0.9, not mirrored;
+// that hold an inlier (the same for B); its density on each side is the share of the features inside
+// the inliers' box that are inliers. A pair shares only an overlay (a logo, a caption, a frame) and is
+// dropped when its larger coverage is below `min_coverage`, when its inliers avoid the central cells
+// of both images, or when it is dense (identical pixels: density at least `overlay_density` on one
+// side) but covers less than `overlay_coverage` of both. The kept pairs are:
+//   exact       the same picture: equal sizes, the identity map, both covered at least 0.9, at least 98%
+//               of the features identical (same word, place, scale and orientation), not mirrored;
 //   near_copy   one image is the other resized, recompressed, cropped, rotated, mirrored, retouched or
 //               overlaid: one of them covered at least `near_copy_coverage` under a similarity (axis
 //               ratio of the map at most `max_anisotropy`);
@@ -53,6 +56,11 @@ struct DuplicateOptions {
   // A pair is dropped when both images' coverage is below this (their match is a small patch: a shared
   // logo or caption). [0, 1].
   double min_coverage = 0.25;
+  // A dense match (at least `overlay_density` of the features inside the matched region are inliers,
+  // on one side: identical pixels) that covers less than `overlay_coverage` of both images is a shared
+  // overlay, not a duplicate. [0, 1] each.
+  double overlay_coverage = 0.5;
+  double overlay_density = 0.25;
   // A near copy: one image covered at least this much by the match. [0, 1].
   double near_copy_coverage = 0.6;
   // A near copy's map is a similarity: ratio of its singular values at most this. >= 1.

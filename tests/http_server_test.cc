@@ -309,7 +309,9 @@ TEST_F(HttpServerTest, ErrorStatusesAndLimits) {
   EXPECT_GT(s["memory_rss_bytes"].get<double>(), 1e6);
   EXPECT_GE(s["uptime_s"].get<double>(), 0);
   // A request is counted by the logger, right after its response was sent: poll briefly.
-  const std::string added_series = R"(oxbow_http_requests_total{route="/v1/images",method="POST",status="201"} 1)";
+  // Requests of an image or search route carry the collection they acted on ("default"); those refused
+  // before a route ran (413 here) have none.
+  const std::string added_series = R"(oxbow_http_requests_total{route="/v1/images",method="POST",status="201",collection="default"} 1)";
   std::string text;
   for (int i = 0; i < 100 && text.find(added_series) == std::string::npos; ++i) {
     auto metrics = client.Get("/metrics");
@@ -319,14 +321,14 @@ TEST_F(HttpServerTest, ErrorStatusesAndLimits) {
     text = metrics->body;
     if (text.find(added_series) == std::string::npos) std::this_thread::sleep_for(std::chrono::milliseconds(10));
   }
-  EXPECT_NE(text.find(R"(oxbow_http_requests_total{route="/v1/search",method="POST",status="400"} 3)"), std::string::npos) << text;
-  EXPECT_NE(text.find(R"(oxbow_http_requests_total{route="/v1/search",method="POST",status="200"} 1)"), std::string::npos);
+  EXPECT_NE(text.find(R"(oxbow_http_requests_total{route="/v1/search",method="POST",status="400",collection="default"} 3)"), std::string::npos) << text;
+  EXPECT_NE(text.find(R"(oxbow_http_requests_total{route="/v1/search",method="POST",status="200",collection="default"} 1)"), std::string::npos);
   EXPECT_NE(text.find(R"(oxbow_http_requests_total{route="/v1/search",method="POST",status="413"} 1)"), std::string::npos);
-  EXPECT_NE(text.find(R"(oxbow_http_requests_total{route="/v1/images",method="POST",status="201"} 1)"), std::string::npos);
+  EXPECT_NE(text.find(added_series), std::string::npos);
   EXPECT_NE(text.find(R"(oxbow_http_requests_total{route="unmatched",method="GET",status="404"} 2)"), std::string::npos);
-  EXPECT_NE(text.find("oxbow_http_request_duration_seconds_bucket{route=\"/v1/images\",method=\"POST\",status=\"201\",le=\"+Inf\"} 1"),
+  EXPECT_NE(text.find("oxbow_http_request_duration_seconds_bucket{route=\"/v1/images\",method=\"POST\",status=\"201\",collection=\"default\",le=\"+Inf\"} 1"),
             std::string::npos);
-  EXPECT_NE(text.find("oxbow_index_images 1\n"), std::string::npos);
+  EXPECT_NE(text.find("oxbow_index_images{collection=\"default\"} 1\n"), std::string::npos);
 
   // One log line per request, with the request id.
   EXPECT_EQ(server->Stop(SIGTERM), 0);

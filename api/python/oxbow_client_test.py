@@ -483,6 +483,27 @@ class CollectionTest(ServerTestCase):
                     call("py-c-b")
                 self.assertServerError(e, ox.NotFoundError, 404, "not_found")
 
+    def test_find_duplicates_in_a_collection(self):
+        name, _ = self.make("dups")
+        photos = self.admin.collection(name)
+        photos.add("py-d-a", self.a)
+        photos.add("py-d-a-copy", self.a)
+        photos.add("py-d-b", self.b_path)
+        report = photos.find_duplicates(poll_s=0.05, timeout_s=60, candidates=10)
+        self.assertEqual(report["images"], 3)
+        self.assertEqual([(p["a"], p["b"], p["kind"]) for p in report["pairs"]], [("py-d-a", "py-d-a-copy", "exact")])
+        self.assertEqual(report["settings"]["candidates"], 10)
+        started = photos.start_duplicates(mirrored=False)
+        self.assertEqual(started["collection"], name)
+        self.assertIn(photos.job(started["job"])["state"], ("running", "done"))
+        self.assertTrue(photos.cancel_job(started["job"])["deleted"])
+        with self.assertRaises(ox.NotFoundError):
+            photos.job(started["job"])
+        with self.assertRaises(ox.InvalidArgumentError):
+            photos.start_duplicates(candidates=0)
+        with self.assertRaises(ox.UnauthenticatedError):
+            self.anonymous.collection(name).start_duplicates()
+
     def test_add_many_in_a_collection(self):
         name, _ = self.make("many")
         lyon = self.admin.collection(name)

@@ -1053,7 +1053,12 @@ namespace {
 Result<api::DuplicateOptions> ParseDuplicateOptions(const httplib::Request& req) {
   api::DuplicateOptions options;
   options.threads = 1;  // beside the server's requests
+  if (auto known = api::CheckKnownParams(CollectParams(req, {}), {}); !known) return std::unexpected(known.error());
   if (req.body.empty()) return options;
+  if (req.get_header_value("Content-Type").rfind("application/json", 0) != 0) {
+    return Fail(ErrorCode::kInvalidArgument, "POST .../duplicates takes its options as a JSON body (Content-Type: "
+                                               "application/json), or no body");
+  }
   if (api::JsonNestingDepth(req.body) > api::kMaxJsonDepth) return Fail(ErrorCode::kInvalidArgument, "JSON body nests too deep");
   const json body = json::parse(req.body, nullptr, /*allow_exceptions=*/false);
   const std::string shape = "POST .../duplicates takes an empty body or a JSON object with any of \"candidates\" "
@@ -1128,10 +1133,11 @@ void HttpServer::RegisterDuplicateRoutes() {
   auto job_route = [this](Access access, std::function<void(const api::JobStatus&, httplib::Response&)> body) -> Handler {
     return [this, access, body = std::move(body)](const httplib::Request& req, httplib::Response& res) {
       const std::string id = req.matches[1];
+      // Job ids are 64 random bits: an unknown one is 404 for every caller.
       const auto status = jobs_->Get(id);
-      const std::string collection = status ? status->collection : "";
-      if (auto refused = Authorize(req, collection, access)) return SendError(res, *refused);
       if (!status) return SendError(res, ToHttpError({ErrorCode::kNotFound, "no job with id '" + LoggablePath(id) + "'"}));
+      if (auto refused = Authorize(req, status->collection, access)) return SendError(res, *refused);
+      const std::string& collection = status->collection;
       t_request.collection = collection;
       body(*status, res);
     };

@@ -35,6 +35,7 @@ import mimetypes
 import os
 import secrets
 import socket
+import time
 import urllib.error
 import urllib.parse
 import urllib.request
@@ -413,6 +414,43 @@ class _ImageRoutes:
         """GET /v1/images/{id}/similar: a search with an indexed image's stored features; filter and
         options as search."""
         return self._request("GET", self._image_path(id) + "/similar", query=_search_fields(None, filter, options))
+
+    # -- duplicates
+
+    def start_duplicates(self, **options: Any) -> JSONObject:
+        """POST /v1/duplicates (a Collection: /v1/collections/{name}/duplicates): starts a duplicate search
+        of the collection as a background job; {"job", "collection", "state"}. options: candidates,
+        mirrored, min_coverage, near_copy_coverage, threads (server/README.md "Duplicates"). Needs write
+        access; ConflictError while one runs on the collection."""
+        return self._request("POST", self._prefix + "/duplicates", json_body=options if options else None)
+
+    def find_duplicates(self, *, poll_s: float = 0.5, timeout_s: float | None = None, **options: Any) -> JSONObject:
+        """Starts a duplicate search (start_duplicates) and waits for it: the job's report ("pairs",
+        "groups", ...). OxbowError when the job failed; ClientTimeoutError after timeout_s (the job is
+        cancelled)."""
+        job = self.start_duplicates(**options)["job"]
+        started = time.monotonic()
+        while True:
+            status = self.job(job)
+            if status["state"] == "done":
+                return status["result"]
+            if status["state"] != "running":
+                error = status.get("error", {})
+                raise ServerError(f"duplicate job {job}: {status['state']}: {error.get('message', '')}",
+                                  code=error.get("code"))
+            if timeout_s is not None and time.monotonic() - started > timeout_s:
+                self.cancel_job(job)
+                raise ClientTimeoutError(f"duplicate job {job} still running after {timeout_s} s; cancelled")
+            time.sleep(poll_s)
+
+    def job(self, job: str) -> JSONObject:
+        """GET /v1/jobs/{job}: {"job", "collection", "state", "done", "total", "elapsed_s"}, with
+        "result" once done and "error" once failed."""
+        return self._request("GET", "/v1/jobs/" + urllib.parse.quote(job, safe=""))
+
+    def cancel_job(self, job: str) -> JSONObject:
+        """DELETE /v1/jobs/{job}: stops a running job (or forgets a finished one)."""
+        return self._request("DELETE", "/v1/jobs/" + urllib.parse.quote(job, safe=""))
 
     def _image_path(self, id: str) -> str:
         return self._prefix + "/images/" + _quote_id(id)
