@@ -270,17 +270,16 @@ Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const Dup
       }
       std::vector<std::pair<index::QueryResult, bool>> found;
       auto direct = index::search::Run(*source, *q, query, {});
-      if (direct) {
-        for (auto& r : direct->results) found.emplace_back(std::move(r), false);
-      }
-      if (options.mirrored) {
-        auto mirrored = index::search::Run(*source, Mirrored(*q, word_map), mirror_query, {});
-        if (mirrored) {
-          for (auto& r : mirrored->results) found.emplace_back(std::move(r), true);
-        }
-      }
+      Result<index::QueryResponse> mirrored = index::QueryResponse{};
+      if (direct && options.mirrored) mirrored = index::search::Run(*source, Mirrored(*q, word_map), mirror_query, {});
       {
         std::lock_guard<std::mutex> lock(candidates_mutex);
+        if (!direct || !mirrored) {
+          if (!failure) failure = !direct ? direct.error() : mirrored.error();
+          continue;
+        }
+        for (auto& r : direct->results) found.emplace_back(std::move(r), false);
+        for (auto& r : mirrored->results) found.emplace_back(std::move(r), true);
         for (const auto& [r, is_mirrored] : found) {
           if (!r.verified || r.id == id) continue;
           const bool a_first = id < r.id;

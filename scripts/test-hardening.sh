@@ -20,7 +20,7 @@ timings=()
 # kill -9 under concurrent writers. The tests in tests/ run the TSan-built `oxbow` of the same build
 # folder as a child (OXBOW_BINARY), which inherits TSAN_OPTIONS: log_path collects the reports of every
 # process (a child's report would otherwise go only to its log), and any report fails the phase.
-tsan_tests=(http_server_test image_index_test checkpointer_test geometry_parts_test loader_test service_test slow_clients_test crash_torture_test parallel_test)
+tsan_tests=(http_server_test collections_test image_index_test checkpointer_test geometry_parts_test loader_test service_test slow_clients_test crash_torture_test parallel_test)
 
 # Test executables of a configured build folder (GoogleTest suites *_test and fuzz replays *_replay);
 # benchmarks are not built.

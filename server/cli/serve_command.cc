@@ -194,7 +194,9 @@ void Serve(const ServeFlags& flags) {
         set = collections;
       }
       if (set == nullptr || set->keys() == nullptr) {
-        OXBOW_LOG(kInfo) << "received SIGHUP: no key file to re-read yet";
+        OXBOW_LOG(kInfo) << "received SIGHUP: nothing to re-read ("
+                         << (flags.data_dir.empty() ? "--index has no collection keys" : "the data folder is still loading")
+                         << ")";
       } else if (auto s = set->keys()->Reload(); !s) {
         OXBOW_LOG(kError) << "received SIGHUP: the key file was not re-read, the keys stay as they were: " << s.error().ToString();
       } else {
@@ -225,11 +227,13 @@ void SetUpServe(CLI::App& app) {
       "serve",
       "Serve an index over HTTP (JSON API under /v1, the search page at /; see the README).\n"
       "  oxbow serve --index idx --vocab vocab.oxvoc        # creates idx if it holds no index yet\n"
+      "  oxbow serve --data collections --api-key KEY       # every collections/NAME/ is a collection\n"
       "  curl -s --data-binary @photo.jpg 'http://127.0.0.1:8080/v1/search?top_k=5'\n"
       "A cluster (`index build --mpi --partitions P`): one shard per partition and a front:\n"
       "  oxbow serve --index cluster/partition-0 --port 9101 --grpc-port 9001      # ... one per partition\n"
       "  oxbow serve --cluster cluster.json --port 8080\n"
-      "Prints 'listening on http://HOST:PORT' on stdout once bound. SIGINT/SIGTERM stop it gracefully.");
+      "Prints 'listening on http://HOST:PORT' on stdout once bound. SIGINT/SIGTERM stop it gracefully; SIGHUP "
+      "re-reads the collections' key file (--data).");
   cmd->add_option("--index", flags->index_dir, "index folder (created when empty and --vocab is given); served as the "
                                              "collection \"default\"");
   cmd->add_option("--data", flags->data_dir,
