@@ -60,20 +60,26 @@ def exchange(base, raw, partial_wait=0.0):
         s.sendall(raw)
         if partial_wait:
             time.sleep(partial_wait)
-        data = b""
-        while True:
-            try:
-                chunk = s.recv(65536)
-            except ConnectionResetError:
+        return Response(receive(s, one_response=True))
+
+
+def receive(s, one_response):
+    """The bytes `s` receives until the server closes (or resets) it, or, with one_response, until one
+    whole response with a Content-Length has arrived."""
+    data = b""
+    while True:
+        try:
+            chunk = s.recv(65536)
+        except ConnectionResetError:
+            break
+        if not chunk:
+            break
+        data += chunk
+        if one_response and b"\r\n\r\n" in data:
+            r = Response(data)
+            if "content-length" in r.headers and len(r.body) >= int(r.headers["content-length"]):
                 break
-            if not chunk:
-                break
-            data += chunk
-            if b"\r\n\r\n" in data:
-                r = Response(data)
-                if "content-length" in r.headers and len(r.body) >= int(r.headers["content-length"]):
-                    break
-    return Response(data)
+    return data
 
 
 def exchange_pipelined(base, raws):
@@ -81,17 +87,9 @@ def exchange_pipelined(base, raws):
     next as soon as it has answered the previous; all but the last should say Connection: keep-alive);
     the responses, in order."""
     host, port = urllib.parse.urlsplit(base).netloc.split(":")
-    data = b""
     with socket.create_connection((host, int(port)), timeout=60) as s:
         s.sendall(b"".join(raws))
-        while True:
-            try:
-                chunk = s.recv(65536)
-            except ConnectionResetError:
-                break
-            if not chunk:
-                break
-            data += chunk
+        data = receive(s, one_response=False)
     responses = []
     while b"\r\n\r\n" in data:
         r = Response(data)

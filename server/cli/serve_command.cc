@@ -146,16 +146,15 @@ void Serve(const ServeFlags& flags) {
     index::IndexOptions index_options = flags.index_options;
     index_options.num_threads = flags.index_threads;
     const auto start = std::chrono::steady_clock::now();
+    const std::optional<std::string> vocab = flags.vocab_path.empty() ? std::nullopt : std::optional(flags.vocab_path);
+    auto fail = [&](const Error& error, const char* what) {
+      load_error = error;
+      OXBOW_LOG(kError) << "cannot open the " << what << ": " << error.ToString();
+      server.Shutdown();
+    };
     if (!flags.data_dir.empty()) {
-      auto opened = api::Collections::Open(flags.data_dir, flags.vocab_path.empty() ? std::nullopt
-                                                                                  : std::optional<std::string>(flags.vocab_path),
-                                           service_options, index_options);
-      if (!opened) {
-        load_error = opened.error();
-        OXBOW_LOG(kError) << "cannot open the data folder: " << opened.error().ToString();
-        server.Shutdown();
-        return;
-      }
+      auto opened = api::Collections::Open(flags.data_dir, vocab, service_options, index_options);
+      if (!opened) return fail(opened.error(), "data folder");
       OXBOW_LOG(kInfo) << "data folder " << flags.data_dir << " ready: " << (*opened)->Names().size()
                        << " collections, loaded in "
                        << std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() << " s";
@@ -166,15 +165,8 @@ void Serve(const ServeFlags& flags) {
       server.SetCollections(std::move(*opened));
       return;
     }
-    auto service = api::Service::Open(flags.index_dir, flags.vocab_path.empty() ? std::nullopt
-                                                                                : std::optional<std::string>(flags.vocab_path),
-                                      service_options, index_options);
-    if (!service) {
-      load_error = service.error();
-      OXBOW_LOG(kError) << "cannot open the index: " << service.error().ToString();
-      server.Shutdown();
-      return;
-    }
+    auto service = api::Service::Open(flags.index_dir, vocab, service_options, index_options);
+    if (!service) return fail(service.error(), "index");
     const auto stats = (*service)->Stats();
     OXBOW_LOG(kInfo) << "index " << flags.index_dir << " ready: " << stats.index.num_images << " images, "
                      << stats.index.num_features << " features, " << stats.index.vocabulary_size << " words, loaded in "
