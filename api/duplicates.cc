@@ -11,6 +11,7 @@
 
 #include "index/search/pipeline.h"
 #include "index/search/source.h"
+#include "sift/base/log.h"
 #include "sift/base/parallel.h"
 #include "sift/types.h"
 #include "vocab/vocabulary.h"
@@ -308,6 +309,8 @@ Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const Dup
 
   // 3. The measure of every pair, on the stored features of both.
   const auto t1 = Clock::now();
+  OXBOW_LOG(kInfo) << "duplicates: " << ids.size() << " images searched in " << report.search_s << " s; measuring "
+                   << work.size() << " verified pairs";
   std::vector<std::optional<DuplicatePair>> measured(work.size());
   std::atomic<uint64_t> overlays{0};
   index::QueryOptions plain = mirror_query;  // features without signatures
