@@ -4,6 +4,7 @@
 #include <chrono>
 #include <cmath>
 #include <map>
+#include <set>
 #include <mutex>
 #include <numeric>
 #include <sstream>
@@ -298,21 +299,16 @@ Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const Dup
   if (cancelled.load()) return Fail(ErrorCode::kResourceExhausted, "the duplicate search was cancelled");
   if (failure) return std::unexpected(*failure);
   report.search_s = SecondsSince(t0);
-  report.candidate_pairs = candidates.size();
 
-  // 2. A pair found both directly and mirrored is a direct pair.
-  std::vector<std::pair<std::tuple<std::string, std::string, bool>, Candidate>> work;
-  for (const auto& [key, c] : candidates) {
-    if (std::get<2>(key) && candidates.contains(std::make_tuple(std::get<0>(key), std::get<1>(key), false))) continue;
-    work.emplace_back(key, c);
-  }
+  // 2. Every candidate is measured; a pair found both directly and mirrored (a symmetric scene matches
+  // itself mirrored in part) keeps the map that covers more.
+  std::vector<std::pair<std::tuple<std::string, std::string, bool>, Candidate>> work(candidates.begin(), candidates.end());
 
   // 3. The measure of every pair, on the stored features of both.
   const auto t1 = Clock::now();
   OXBOW_LOG(kInfo) << "duplicates: " << ids.size() << " images searched in " << report.search_s << " s; measuring "
                    << work.size() << " verified pairs";
   std::vector<std::optional<DuplicatePair>> measured(work.size());
-  std::atomic<uint64_t> overlays{0};
   index::QueryOptions plain = mirror_query;  // features without signatures
   ParallelFor(work.size(), threads, 4, [&](size_t begin, size_t end, int) {
     for (size_t i = begin; i < end; ++i) {
@@ -333,7 +329,6 @@ Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const Dup
       const double larger_coverage = std::max(m.coverage_a, m.coverage_b);
       if (larger_coverage < options.min_coverage || !m.central ||
           (larger_coverage < options.overlay_coverage && std::max(m.density_a, m.density_b) >= options.overlay_density)) {
-        ++overlays;
         continue;
       }
       DuplicatePair pair;
@@ -374,7 +369,29 @@ Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const Dup
       measured[i] = std::move(pair);
     }
   });
-  report.overlay_pairs = overlays.load();
+  // Candidates are ordered by (a, b, mirrored): a direct and a mirrored measure of one pair are neighbours.
+  for (size_t i = 0; i + 1 < work.size(); ++i) {
+    if (std::get<0>(work[i].first) != std::get<0>(work[i + 1].first) ||
+        std::get<1>(work[i].first) != std::get<1>(work[i + 1].first)) {
+      continue;
+    }
+    auto& direct = measured[i];
+    auto& mirrored = measured[i + 1];
+    if (direct && mirrored) {
+      const double d = std::max(direct->coverage_a, direct->coverage_b);
+      const double m = std::max(mirrored->coverage_a, mirrored->coverage_b);
+      (m > d ? direct : mirrored).reset();
+    }
+    ++i;
+  }
+  std::set<std::pair<std::string, std::string>> kept, verified;
+  for (size_t i = 0; i < work.size(); ++i) {
+    std::pair<std::string, std::string> ab(std::get<0>(work[i].first), std::get<1>(work[i].first));
+    if (measured[i]) kept.insert(ab);
+    verified.insert(std::move(ab));
+  }
+  report.candidate_pairs = verified.size();
+  report.overlay_pairs = verified.size() - kept.size();
   report.measure_s = SecondsSince(t1);
 
   // 4. Groups: connected components, numbered by their first id.
