@@ -41,12 +41,8 @@ std::vector<uint32_t> MirrorWords(const vocab::Vocabulary& vocabulary, int threa
   for (size_t w = 0; w < k; ++w) MirrorDescriptor(centroids.data() + w * d, flipped.data() + w * d);
   vocab::QuantizerOptions options;
   options.num_threads = threads;
-  // The centroids are stored in coarse-list order, not by word id: map each back through Quantize of
-  // the centroid itself, which is its own nearest word.
-  std::vector<uint32_t> own(k), of_flipped(k);
-  vocabulary.Quantize(centroids, own, options);
-  vocabulary.Quantize(flipped, of_flipped, options);
-  for (size_t i = 0; i < k; ++i) mirrored[own[i]] = of_flipped[i];
+  // Row w of the centroids is word w.
+  vocabulary.Quantize(flipped, mirrored, options);
   return mirrored;
 }
 
