@@ -283,7 +283,10 @@ Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const Dup
           const bool a_first = id < r.id;
           auto key = std::make_tuple(a_first ? id : r.id, a_first ? r.id : id, is_mirrored);
           auto it = candidates.find(key);
-          if (it == candidates.end() || it->second.verified_inliers < r.inliers) {
+          // The search with more inliers gives the map; a tie goes to a's own search, so that the result
+          // does not depend on which worker searched first.
+          if (it == candidates.end() || it->second.verified_inliers < r.inliers ||
+              (it->second.verified_inliers == r.inliers && a_first && !it->second.a_is_query)) {
             candidates[key] = Candidate{r.db_from_query, r.inliers, is_mirrored, a_first};
           }
         }
