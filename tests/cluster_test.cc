@@ -499,7 +499,7 @@ TEST_F(Cluster, HttpFrontAnswersAsASingleNodeServer) {
   auto metrics = front.Client().Get("/metrics");
   ASSERT_TRUE(metrics);
   EXPECT_NE(metrics->body.find("oxbow_shard_calls_total{partition=\"2\""), std::string::npos) << metrics->body;
-  EXPECT_TRUE(std::regex_search(metrics->body, std::regex(R"(oxbow_shard_errors_total\{partition="2",replica="[^"]+"\} [1-9])")))
+  EXPECT_TRUE(std::regex_search(metrics->body, std::regex(R"(oxbow_shard_errors_total\{partition="2",replica="[^"]+",collection="default"\} [1-9])")))
       << metrics->body;
 }
 
@@ -890,7 +890,8 @@ TEST_F(Cluster, RankingsEqualTheSingleNodeAfterWritesAndARefresh) {
 
 // The value of a front metric for one replica (-1 when absent).
 double ReplicaMetric(const std::string& metrics, const std::string& name, int partition, const std::string& address) {
-  const std::string key = name + "{partition=\"" + std::to_string(partition) + "\",replica=\"" + address + "\"} ";
+  const std::string key =
+      name + "{partition=\"" + std::to_string(partition) + "\",replica=\"" + address + "\",collection=\"default\"} ";
   const size_t at = metrics.find(key);
   return at == std::string::npos ? -1 : std::stod(metrics.substr(at + key.size()));
 }
@@ -1059,6 +1060,170 @@ TEST_F(Cluster, ReadsDuringWritesAreAnsweredWithoutAFault) {
                               << " writes; first: " << (faults.empty() ? "" : faults[0]);
 }
 
+// Collections over a cluster: every shard serves --data DIR with its partition of each collection
+// (DIR/photos/ = partition k of the cluster built above; DIR/other/ an empty one with another
+// vocabulary); the front serves the collections cluster.json names, each searched with its own
+// vocabulary and partitions, with per-collection keys, public and private reads and limits.
+TEST_F(Cluster, HttpFrontServesCollectionsWithTheirKeysAndLimits) {
+  const std::string other_vocab = dir_->path() + "/v-other.oxvoc";
+  ASSERT_TRUE(testing::RandomVocabulary(sift::SiftOptions{}.Describe(), 256)->Write(other_vocab));
+  nlohmann::json partitions = nlohmann::json::array();
+  for (int p = 0; p < kPartitions; ++p) {
+    const std::string data = dir_->path() + "/data-" + std::to_string(p);
+    fs::create_directories(data);
+    fs::copy(api::PartitionFolder(dir_->path() + "/cluster", p), data + "/photos", fs::copy_options::recursive);
+    const std::string n = std::to_string(started_++);
+    shards_.push_back(std::make_unique<testing::ServerProcess>(
+        std::vector<std::string>{"serve", "--data", data, "--port", "0", "--grpc-port", "0", "--index-threads", "1",
+                                 "--api-key", "admin"},
+        dir_->path() + "/shard-" + n + ".log"));
+    testing::ServerProcess& shard = *shards_.back();
+    ASSERT_TRUE(shard.port() > 0 && shard.WaitReady()) << shard.Log();
+    httplib::Headers admin = {{"X-API-Key", "admin"}};
+    auto created = shard.Client().Post("/v1/collections", admin,
+                                       nlohmann::json{{"name", "other"}, {"vocabulary", other_vocab}}.dump(),
+                                       "application/json");
+    ASSERT_TRUE(created);
+    ASSERT_EQ(created->status, 201) << created->body;
+    std::smatch m;
+    const std::string log = shard.Log();
+    ASSERT_TRUE(std::regex_search(log, m, std::regex(R"(gRPC\) on (127\.0\.0\.1:\d+))"))) << log;
+    partitions.push_back({{"replicas", {m[1].str()}}});
+  }
+  const std::string config = dir_->path() + "/collections-cluster.json";
+  std::ofstream(config) << nlohmann::json{
+      {"partitions", partitions},
+      {"collections",
+       {{"photos", {{"vocabulary", "v.oxvoc"}}},
+        {"other", {{"vocabulary", "v-other.oxvoc"}, {"public", false}, {"max_images", 2}}}}},
+      {"collection_keys", "front-keys.json"}}.dump();
+  testing::ServerProcess front({"serve", "--cluster", config, "--port", "0", "--api-key", "admin"}, config + ".log");
+  ASSERT_TRUE(front.port() > 0 && front.WaitReady()) << front.Log();
+  const auto single_process = StartSingle(dir_->path() + "/single");
+  const httplib::Headers admin = {{"X-API-Key", "admin"}};
+
+  // The list: the public collection to anyone, both to the admin key.
+  auto listed = front.Client().Get("/v1/collections");
+  ASSERT_TRUE(listed);
+  ASSERT_EQ(listed->status, 200) << listed->body;
+  auto names = [](const std::string& body) {
+    std::set<std::string> out;
+    const nlohmann::json parsed = nlohmann::json::parse(body);
+    for (const auto& c : parsed["collections"]) out.insert(c["name"].get<std::string>());
+    return out;
+  };
+  EXPECT_EQ(names(listed->body), (std::set<std::string>{"photos"})) << listed->body;
+  listed = front.Client().Get("/v1/collections", admin);
+  ASSERT_TRUE(listed && listed->status == 200);
+  EXPECT_EQ(names(listed->body), (std::set<std::string>{"other", "photos"}));
+  auto described = front.Client().Get("/v1/collections/photos");
+  ASSERT_TRUE(described);
+  ASSERT_EQ(described->status, 200) << described->body;
+  EXPECT_EQ(nlohmann::json::parse(described->body)["images"], 12);
+  EXPECT_EQ(nlohmann::json::parse(described->body)["partitions"], kPartitions);
+
+  // A search of the partitioned collection answers as the single node over the same images.
+  std::ifstream in(dir_->path() + "/images/img5.png", std::ios::binary);
+  const std::string image((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  auto expected = single_process->Client().Post("/v1/search?top_k=8", image, "image/png");
+  auto got = front.Client().Post("/v1/collections/photos/search?top_k=8", image, "image/png");
+  ASSERT_TRUE(expected && got);
+  ASSERT_EQ(got->status, 200) << got->body;
+  const auto a = nlohmann::json::parse(expected->body)["results"];
+  const auto b = nlohmann::json::parse(got->body)["results"];
+  ASSERT_EQ(a.size(), b.size()) << got->body;
+  ASSERT_GE(a.size(), 3u);
+  for (size_t i = 0; i < a.size(); ++i) {
+    for (const char* field : {"id", "score", "verified", "inliers"}) EXPECT_EQ(a[i][field], b[i][field]) << field << " of rank " << i;
+  }
+  // No collection "default" in this cluster: 404 to the admin key, 401 without a key (as a private one).
+  auto no_default = front.Client().Post("/v1/search", admin, image, "image/png");
+  ASSERT_TRUE(no_default);
+  EXPECT_EQ(no_default->status, 404) << no_default->body;
+  no_default = front.Client().Post("/v1/search", image, "image/png");
+  ASSERT_TRUE(no_default);
+  EXPECT_EQ(no_default->status, 401) << no_default->body;
+
+  // Keys of the private collection: made by the admin on the front; a write key writes and reads it, a
+  // read key of another collection gets 403 with the answer an unknown collection gets.
+  const auto make_key = [&](const std::string& collection, const std::string& access) {
+    auto made = front.Client().Post("/v1/collections/" + collection + "/keys", admin,
+                                    nlohmann::json{{"access", access}}.dump(), "application/json");
+    EXPECT_TRUE(made && made->status == 201) << (made ? made->body : "no answer");
+    return made ? nlohmann::json::parse(made->body).value("key", "") : "";
+  };
+  const std::string writer = make_key("other", "write");
+  const std::string photos_reader = make_key("photos", "read");
+  ASSERT_FALSE(writer.empty());
+  ASSERT_FALSE(photos_reader.empty());
+  EXPECT_NE(fs::file_size(dir_->path() + "/front-keys.json"), 0u);
+  std::ifstream in0(dir_->path() + "/images/img0.png", std::ios::binary);
+  const std::string image0((std::istreambuf_iterator<char>(in0)), std::istreambuf_iterator<char>());
+  const auto add = [&](const std::string& id, const std::string& key, const std::string& bytes) {
+    httplib::Headers headers;
+    if (!key.empty()) headers.insert({"X-API-Key", key});
+    auto res = front.Client().Post("/v1/collections/other/images?id=" + id, headers, bytes, "image/png");
+    return res ? res->status : 0;
+  };
+  EXPECT_EQ(add("a", "", image), 401);
+  EXPECT_EQ(add("a", photos_reader, image), 403);
+  EXPECT_EQ(add("a", writer, image), 201);
+  EXPECT_EQ(add("b", writer, image0), 201);
+  EXPECT_EQ(add("c", writer, image0), 507);  // max_images 2 over the partitions
+  const auto images_of = [&](const std::string& collection, const std::string& key) {
+    httplib::Headers headers;
+    if (!key.empty()) headers.insert({"X-API-Key", key});
+    return front.Client().Get("/v1/collections/" + collection + "/images", headers);
+  };
+  auto other_images = images_of("other", writer);
+  ASSERT_TRUE(other_images);
+  ASSERT_EQ(other_images->status, 200) << other_images->body;
+  EXPECT_EQ(nlohmann::json::parse(other_images->body)["total"], 2);
+  auto refused = images_of("other", photos_reader);
+  auto unknown = images_of("nope", photos_reader);
+  ASSERT_TRUE(refused && unknown);
+  EXPECT_EQ(refused->status, 403);
+  EXPECT_EQ(unknown->status, 403);
+  // The same answer apart from the name, whether or not the collection exists.
+  EXPECT_EQ(nlohmann::json::parse(refused->body)["error"]["code"], nlohmann::json::parse(unknown->body)["error"]["code"]);
+  EXPECT_EQ(front.Client().Get("/v1/collections/nope", admin)->status, 404);
+  // The photos collection did not get other's images, and reads of it need no key.
+  auto photos_images = images_of("photos", "");
+  ASSERT_TRUE(photos_images && photos_images->status == 200);
+  EXPECT_EQ(nlohmann::json::parse(photos_images->body)["total"], 12);
+  // The other collection searched with its own vocabulary (after a refresh of its statistics: each
+  // partition holds at most one of its images) finds its image first.
+  auto refreshed = front.Client().Post("/v1/collections/other/admin/refresh-statistics", {{"X-API-Key", writer}}, "",
+                                       "application/json");
+  ASSERT_TRUE(refreshed);
+  ASSERT_EQ(refreshed->status, 200) << refreshed->body;
+  EXPECT_EQ(nlohmann::json::parse(refreshed->body)["images"], 2);
+  auto other_search = front.Client().Post("/v1/collections/other/search?top_k=2", {{"X-API-Key", writer}}, image, "image/png");
+  ASSERT_TRUE(other_search);
+  ASSERT_EQ(other_search->status, 200) << other_search->body;
+  const auto other_results = nlohmann::json::parse(other_search->body)["results"];
+  ASSERT_FALSE(other_results.empty()) << other_search->body;
+  EXPECT_EQ(other_results[0]["id"], "a");
+  auto other_stats = front.Client().Get("/v1/collections/other/stats", {{"X-API-Key", writer}});
+  ASSERT_TRUE(other_stats && other_stats->status == 200);
+  EXPECT_EQ(nlohmann::json::parse(other_stats->body)["words"], 256);
+
+  // A cluster's collections are those of cluster.json: create and delete are refused (409), and only
+  // the admin key learns that.
+  auto create = front.Client().Post("/v1/collections", admin, R"({"name": "new"})", "application/json");
+  ASSERT_TRUE(create);
+  EXPECT_EQ(create->status, 409) << create->body;
+  auto remove = front.Client().Delete("/v1/collections/photos", {{"X-API-Key", writer}});
+  ASSERT_TRUE(remove);
+  EXPECT_EQ(remove->status, 403) << remove->body;
+
+  auto metrics = front.Client().Get("/metrics");
+  ASSERT_TRUE(metrics);
+  EXPECT_TRUE(std::regex_search(metrics->body,
+                                std::regex(R"(oxbow_shard_calls_total\{partition="0",replica="[^"]+",collection="other"\} [1-9])")))
+      << metrics->body;
+}
+
 TEST(ClusterConfigFile, ReadsReplicasAndResolvesTheVocabularyBesideIt) {
   oxbow::testing::TempDir dir("oxbow-cluster-config");
   const std::string path = dir.path() + "/cluster.json";
@@ -1070,6 +1235,28 @@ TEST(ClusterConfigFile, ReadsReplicasAndResolvesTheVocabularyBesideIt) {
   EXPECT_EQ(config->partitions[0], (std::vector<std::string>{"a:1", "b:2"}));
   std::ofstream(path) << R"({"vocabulary": "v.oxvoc", "partitions": [{"replicas": []}]})";
   EXPECT_EQ(cluster::ClusterConfig::Read(path).error().code, ErrorCode::kInvalidArgument);
+  // Collections: each with its vocabulary and settings; "default" from the top-level vocabulary.
+  std::ofstream(path) << R"({"vocabulary": "v.oxvoc", "partitions": [{"replicas": ["a:1"]}],
+      "collections": {"photos": {"vocabulary": "/abs/p.oxvoc", "public": false, "max_images": 10}},
+      "collection_keys": "keys.json"})";
+  const auto with_collections = cluster::ClusterConfig::Read(path);
+  ASSERT_TRUE(with_collections) << with_collections.error().ToString();
+  ASSERT_EQ(with_collections->collections.size(), 2u);
+  EXPECT_EQ(with_collections->collections[0].name, "default");
+  EXPECT_EQ(with_collections->collections[1].name, "photos");
+  EXPECT_EQ(with_collections->collections[1].vocabulary, "/abs/p.oxvoc");
+  EXPECT_FALSE(with_collections->collections[1].settings.is_public);
+  EXPECT_EQ(with_collections->collections[1].settings.max_images, 10u);
+  EXPECT_EQ(with_collections->collection_keys, dir.path() + "/keys.json");
+  for (const char* bad : {R"({"partitions": [{"replicas": ["a:1"]}], "collections": {"Bad Name": {"vocabulary": "v"}}})",
+                          R"({"partitions": [{"replicas": ["a:1"]}], "collections": {"p": {}}})",
+                          R"({"partitions": [{"replicas": ["a:1"]}], "collections": {"p": {"vocabulary": "v", "max_images": -1}}})",
+                          R"({"partitions": [{"replicas": ["a:1"]}], "collections": {"p": {"vocabulary": "v", "colour": 1}}})",
+                          R"({"vocabulary": "v", "partitions": [{"replicas": ["a:1"]}], "collections": {"default": {"vocabulary": "v"}}})",
+                          R"({"partitions": [{"replicas": ["a:1"]}]})"}) {
+    std::ofstream(path) << bad;
+    EXPECT_EQ(cluster::ClusterConfig::Read(path).error().code, ErrorCode::kInvalidArgument) << bad;
+  }
 }
 
 }  // namespace

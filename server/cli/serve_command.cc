@@ -119,9 +119,6 @@ void Serve(const ServeFlags& flags) {
   if (flags.cluster_file.empty() + flags.index_dir.empty() + flags.data_dir.empty() != 2) {
     throw CommandError(2, "give one of --index, --data and --cluster");
   }
-  if (!flags.data_dir.empty() && flags.grpc_port >= 0) {
-    throw CommandError(2, "--grpc-port serves one index folder as a cluster's shard: give --index, not --data");
-  }
   if (!flags.cluster_file.empty()) {
     pthread_sigmask(SIG_BLOCK, &signals, nullptr);
     return ServeFront(flags, http, service_options, signals);
@@ -162,6 +159,7 @@ void Serve(const ServeFlags& flags) {
         std::lock_guard<std::mutex> lock(collections_mutex);
         collections = *opened;
       }
+      if (shard) shard->SetCollections(*opened);
       server.SetCollections(std::move(*opened));
       return;
     }
@@ -260,7 +258,8 @@ void SetUpServe(CLI::App& app) {
   cmd->add_option("--grpc-port", flags->grpc_port,
                   "also serve the cluster shard API (gRPC, for a front: `serve --cluster`) on this port of --host; "
                   "0 picks a free one (printed as 'shard listening on grpc://HOST:PORT'); off when not given. "
-                  "A partition of `index build --partitions` scores with the cluster's global-frequencies.oxdf")
+                  "A partition of `index build --partitions` scores with the cluster's global-frequencies.oxdf. With --data, "
+                  "DIR/NAME/ is this shard's partition of collection NAME (cluster.json's \"collections\")")
       ->check(CLI::Range(0, 65535));
   cmd->add_option("--cluster-key", flags->cluster_key,
                   "the key of a cluster's internal calls: a shard (--grpc-port) refuses every gRPC call without it, "

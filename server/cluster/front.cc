@@ -87,12 +87,54 @@ Result<ClusterConfig> ClusterConfig::Read(const std::string& path) {
   if (!in) return Fail(ErrorCode::kNotFound, "cannot read the cluster file " + path);
   const nlohmann::json json = nlohmann::json::parse(in, nullptr, /*allow_exceptions=*/false);
   const auto invalid = [&](const std::string& why) { return Fail(ErrorCode::kInvalidArgument, path + ": " + why); };
-  if (!json.is_object() || !json.contains("vocabulary") || !json["vocabulary"].is_string())
-    return invalid("expected {\"vocabulary\": PATH, \"partitions\": [{\"replicas\": [HOST:PORT, ...]}, ...]}");
+  const bool has_default = json.is_object() && json.contains("vocabulary");
+  const bool has_collections = json.is_object() && json.contains("collections");
+  if (!json.is_object() || (!has_default && !has_collections) || (has_default && !json["vocabulary"].is_string()))
+    return invalid("expected {\"vocabulary\": PATH, \"partitions\": [{\"replicas\": [HOST:PORT, ...]}, ...]} "
+                   "(or \"collections\": {NAME: {\"vocabulary\": PATH}, ...} in place of or beside \"vocabulary\")");
+  const auto relative = [&](const std::string& file) {
+    return std::filesystem::path(file).is_relative() ? (std::filesystem::path(path).parent_path() / file).string() : file;
+  };
   ClusterConfig config;
-  config.vocabulary = json["vocabulary"].get<std::string>();
-  if (std::filesystem::path(config.vocabulary).is_relative())
-    config.vocabulary = (std::filesystem::path(path).parent_path() / config.vocabulary).string();
+  if (has_default) {
+    config.vocabulary = relative(json["vocabulary"].get<std::string>());
+    config.collections.push_back({api::kDefaultCollection, config.vocabulary, {}});
+  }
+  if (has_collections) {
+    if (!json["collections"].is_object() || json["collections"].empty())
+      return invalid("\"collections\" is an object: {NAME: {\"vocabulary\": PATH, \"public\": BOOL, "
+                     "\"max_images\": N, \"max_bytes\": N}, ...}");
+    for (const auto& [name, entry] : json["collections"].items()) {
+      const std::string where = "collection \"" + name + "\": ";
+      if (!api::Collections::IsValidName(name)) return invalid(where + "not a collection name ([a-z0-9][a-z0-9_-]{0,63})");
+      if (name == api::kDefaultCollection && has_default)
+        return invalid(where + "named twice (the top-level \"vocabulary\" is the collection \"default\")");
+      if (!entry.is_object() || !entry.contains("vocabulary") || !entry["vocabulary"].is_string() ||
+          entry["vocabulary"].get<std::string>().empty())
+        return invalid(where + "needs \"vocabulary\": PATH");
+      ClusterCollection collection{name, relative(entry["vocabulary"].get<std::string>()), {}};
+      for (const auto& [field, value] : entry.items()) {
+        if (field == "vocabulary") continue;
+        if (field == "public") {
+          if (!value.is_boolean()) return invalid(where + "\"public\" is true or false");
+          collection.settings.is_public = value.get<bool>();
+        } else if (field == "max_images" || field == "max_bytes") {
+          if (!value.is_number_unsigned() || value.get<uint64_t>() == 0)
+            return invalid(where + "\"" + field + "\" is a positive integer");
+          (field == "max_images" ? collection.settings.max_images : collection.settings.max_bytes) = value.get<uint64_t>();
+        } else {
+          return invalid(where + "unknown field \"" + field + "\" (vocabulary, public, max_images, max_bytes)");
+        }
+      }
+      if (name == api::kDefaultCollection) config.vocabulary = collection.vocabulary;
+      config.collections.push_back(std::move(collection));
+    }
+  }
+  if (json.contains("collection_keys")) {
+    if (!json["collection_keys"].is_string() || json["collection_keys"].get<std::string>().empty())
+      return invalid("\"collection_keys\" is the path of the collections' key file");
+    config.collection_keys = relative(json["collection_keys"].get<std::string>());
+  }
   if (!json.contains("partitions") || !json["partitions"].is_array() || json["partitions"].empty())
     return invalid("\"partitions\" must be a non-empty array");
   for (const auto& partition : json["partitions"]) {
@@ -107,9 +149,6 @@ Result<ClusterConfig> ClusterConfig::Read(const std::string& path) {
     }
     config.partitions.push_back(std::move(replicas));
   }
-  const auto relative = [&](const std::string& file) {
-    return std::filesystem::path(file).is_relative() ? (std::filesystem::path(path).parent_path() / file).string() : file;
-  };
   if (json.contains("key_file")) {
     if (!json["key_file"].is_string() || json["key_file"].get<std::string>().empty())
       return invalid("\"key_file\" is the path of a file holding the cluster key");
@@ -178,8 +217,11 @@ class ClusterFront::Impl {
   template <typename Reply>
   using ShardCall = std::function<grpc::Status(Shard::Stub&, grpc::ClientContext&, Reply*)>;
 
-  Impl(vocab::Vocabulary v, const FrontOptions& o, const std::string& key)
-      : vocabulary(std::move(v)), settings(o), bearer(key.empty() ? "" : std::string(kBearerPrefix) + key) {}
+  Impl(vocab::Vocabulary v, const FrontOptions& o, const std::string& key, std::string name)
+      : vocabulary(std::move(v)),
+        settings(o),
+        bearer(key.empty() ? "" : std::string(kBearerPrefix) + key),
+        collection(std::move(name)) {}
   ~Impl() {
     {
       std::unique_lock<std::mutex> lock(ends_mutex);
@@ -208,6 +250,7 @@ class ClusterFront::Impl {
     grpc::ClientContext context;
     context.set_deadline(std::chrono::system_clock::now() + std::chrono::milliseconds(deadline_ms));
     if (!bearer.empty()) context.AddMetadata(std::string(kAuthorizationKey), bearer);
+    context.AddMetadata(kCollectionKey, collection);
     const auto t0 = Clock::now();
     grpc::Status status = call(*replica.stub, context, reply);
     if (counted) {
@@ -478,6 +521,7 @@ class ClusterFront::Impl {
           context.set_deadline(std::chrono::system_clock::now() +
                                std::chrono::milliseconds(std::min(settings.shard_deadline_ms, 1000)));
           if (!bearer.empty()) context.AddMetadata(std::string(kAuthorizationKey), bearer);
+          context.AddMetadata(kCollectionKey, collection);
           context.AddMetadata(kSearchKey, key);
           EndSearchReply reply;
           (void)stub->EndSearch(&context, EndSearchRequest(), &reply);
@@ -511,6 +555,7 @@ class ClusterFront::Impl {
   vocab::Vocabulary vocabulary;
   FrontOptions settings;
   const std::string bearer;  // "Bearer KEY" of the cluster key, sent on every call; "" = none
+  const std::string collection;  // named on every call (kCollectionKey)
   std::vector<std::vector<std::unique_ptr<Replica>>> partitions;
   std::vector<std::unique_ptr<std::atomic<uint64_t>>> next;  // per partition: round-robin position
   std::vector<std::unique_ptr<PartitionState>> states;        // per partition
@@ -526,7 +571,8 @@ class ClusterFront::Impl {
   mutable size_t ends_in_flight = 0;  // EndSearch calls posted and not yet answered
 };
 
-Result<std::unique_ptr<ClusterFront>> ClusterFront::Open(const ClusterConfig& config, const FrontOptions& options) {
+Result<std::unique_ptr<ClusterFront>> ClusterFront::Open(const ClusterConfig& config, const FrontOptions& options,
+                                                         const std::string& collection) {
   if (options.shard_deadline_ms < 1 || options.shard_deadline_ms > 600000)
     return Fail(ErrorCode::kInvalidArgument, "the shard deadline must be in [1, 600000] ms");
   if (options.write_deadline_ms < 1 || options.write_deadline_ms > 600000)
@@ -546,9 +592,14 @@ Result<std::unique_ptr<ClusterFront>> ClusterFront::Open(const ClusterConfig& co
   if (!config.security.tls_server_name.empty()) channel.SetSslTargetNameOverride(config.security.tls_server_name);
   auto credentials = MakeChannelCredentials(config.security);
   if (!credentials) return std::unexpected(credentials.error());
-  auto vocabulary = vocab::Vocabulary::Read(config.vocabulary);
+  std::string vocabulary_path;
+  for (const ClusterCollection& c : config.collections)
+    if (c.name == collection) vocabulary_path = c.vocabulary;
+  if (vocabulary_path.empty() && collection == api::kDefaultCollection) vocabulary_path = config.vocabulary;
+  if (vocabulary_path.empty()) return Fail(ErrorCode::kNotFound, "the cluster has no collection '" + collection + "'");
+  auto vocabulary = vocab::Vocabulary::Read(vocabulary_path);
   if (!vocabulary) return std::unexpected(vocabulary.error());
-  auto impl = std::make_unique<Impl>(std::move(*vocabulary), options, config.security.key);
+  auto impl = std::make_unique<Impl>(std::move(*vocabulary), options, config.security.key, collection);
   for (uint32_t p = 0; p < config.partitions.size(); ++p) {
     std::vector<std::unique_ptr<Impl::Replica>> replicas;
     for (const std::string& address : config.partitions[p]) {
@@ -576,6 +627,7 @@ ClusterFront::~ClusterFront() = default;
 
 size_t ClusterFront::num_partitions() const { return impl_->partitions.size(); }
 const vocab::Vocabulary& ClusterFront::vocabulary() const { return impl_->vocabulary; }
+const std::string& ClusterFront::collection() const { return impl_->collection; }
 
 std::vector<ReplicaMetrics> ClusterFront::Metrics() const {
   std::vector<ReplicaMetrics> out;

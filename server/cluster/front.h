@@ -71,6 +71,7 @@
 #include <string>
 #include <vector>
 
+#include "api/collections.h"
 #include "api/service.h"
 #include "index/image_index.h"
 #include "server/cluster/transport_security.h"
@@ -80,19 +81,37 @@
 namespace oxbow::cluster {
 
 // cluster.json: {"vocabulary": "V.oxvoc", "partitions": [{"replicas": ["host:port", ...]}, ...]}, and
-// optionally "key_file": a file holding the cluster key the shards require (its whole text, one
-// trailing newline dropped), and "tls": {"ca": PEM, "cert": PEM, "key": PEM, "server_name": NAME} to
-// reach the shards over TLS ("ca": the roots to trust, else the system's; "cert" and "key": the
-// front's own certificate, for shards that require one; "server_name": the name the shards'
-// certificates carry, when not the replicas' host; each part optional, `"tls": {}` = TLS with the
-// system's roots). Paths are relative to the file's folder unless absolute. Partition k is the k-th
-// entry of "partitions".
-struct ClusterConfig {
+// optionally:
+//   "collections": {"NAME": {"vocabulary": PATH, "public": bool, "max_images": n, "max_bytes": n}, ...}:
+//     the collections the front serves (api/collections.h; each shard is then `serve --data DIR` with
+//     DIR/NAME/ its partition of NAME). "vocabulary" at the top is the collection "default" (optional
+//     when "collections" is given). "public" (default true): reads need no key; the limits (default none)
+//     count the images and index bytes of every partition together.
+//   "collection_keys": a key file (api/access_keys.h) of the collections' read and write keys, which the
+//     front checks and makes (POST /v1/collections/NAME/keys); created when missing.
+//   "key_file": a file holding the cluster key the shards require (its whole text, one trailing newline
+//     dropped);
+//   "tls": {"ca": PEM, "cert": PEM, "key": PEM, "server_name": NAME} to reach the shards over TLS ("ca":
+//     the roots to trust, else the system's; "cert" and "key": the front's own certificate, for shards
+//     that require one; "server_name": the name the shards' certificates carry, when not the replicas'
+//     host; each part optional, `"tls": {}` = TLS with the system's roots).
+// Paths are relative to the file's folder unless absolute. Partition k is the k-th entry of "partitions"
+// (of every collection).
+struct ClusterCollection {
+  std::string name;
   std::string vocabulary;
+  api::CollectionSettings settings;
+};
+
+struct ClusterConfig {
+  std::string vocabulary;  // the collection "default"'s; "" when the file names only "collections"
+  std::vector<ClusterCollection> collections;  // every collection, "default" (from "vocabulary") included
   std::vector<std::vector<std::string>> partitions;  // per partition, its replicas' gRPC addresses
+  std::string collection_keys;  // "collection_keys"; "" = none (only the admin key and public reads)
   FrontSecurity security;  // key (from "key_file") and TLS
 
-  // kNotFound, kInvalidArgument (not JSON, missing fields, a partition without replicas).
+  // kNotFound, kInvalidArgument (not JSON, missing fields, a partition without replicas, a collection
+  // name that is not valid).
   [[nodiscard]] static Result<ClusterConfig> Read(const std::string& path);
 };
 
@@ -135,9 +154,13 @@ struct ReplicaMetrics {
 
 class ClusterFront {
  public:
-  // Reads the vocabulary and connects (lazily: a shard down now is tried at the first query).
+  // Reads the vocabulary of `collection` (config.collections; for "default", config.vocabulary when
+  // the list does not name it) and connects (lazily: a shard down now is tried at the first query).
+  // Every call to a shard names the collection (kCollectionKey, proto_convert.h). kNotFound for a
+  // collection the config does not name.
   [[nodiscard]] static Result<std::unique_ptr<ClusterFront>> Open(const ClusterConfig& config,
-                                                                  const FrontOptions& options = {});
+                                                                  const FrontOptions& options = {},
+                                                                  const std::string& collection = api::kDefaultCollection);
   ~ClusterFront();
   ClusterFront(const ClusterFront&) = delete;
   ClusterFront& operator=(const ClusterFront&) = delete;
@@ -195,6 +218,7 @@ class ClusterFront {
   std::vector<ReplicaMetrics> Metrics() const;
   const vocab::Vocabulary& vocabulary() const;
   size_t num_partitions() const;
+  const std::string& collection() const;
 
   class Impl;
 

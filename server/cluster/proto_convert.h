@@ -22,6 +22,9 @@ inline constexpr const char* kWriteSequenceKey = "oxbow-write-sequence";
 // keeps that search's index::search::Source between its calls (ShardServer), so each stage reads the
 // candidates' features and bags the previous stages read, from one snapshot.
 inline constexpr const char* kSearchKey = "oxbow-search";
+// The gRPC metadata key naming the collection a call acts on (api/collections.h; a shard serving --data
+// holds its partition of each); a call without it acts on the collection "default".
+inline constexpr const char* kCollectionKey = "oxbow-collection";
 
 // Keypoints as shard.proto packs them: x, y, scale, orientation of each, in order.
 inline constexpr int kKeypointValues = 4;

@@ -14,6 +14,7 @@
 #include <mutex>
 #include <system_error>
 
+#include "api/collections.h"
 #include "api/filter.h"
 #include "index/storage/backup.h"
 #include "index/search/source.h"
@@ -33,6 +34,7 @@ grpc::Status ToGrpc(const Error& e) {
   const grpc::StatusCode code = e.code == ErrorCode::kNotFound          ? grpc::StatusCode::NOT_FOUND
                                 : e.code == ErrorCode::kInvalidArgument ? grpc::StatusCode::INVALID_ARGUMENT
                                 : e.code == ErrorCode::kAlreadyExists   ? grpc::StatusCode::ALREADY_EXISTS
+                                : e.code == ErrorCode::kResourceExhausted ? grpc::StatusCode::RESOURCE_EXHAUSTED
                                                                         : grpc::StatusCode::INTERNAL;
   return {code, e.message, std::string(ErrorCodeName(e.code))};
 }
@@ -43,9 +45,9 @@ class ShardServer::Impl final : public Shard::Service {
  public:
   explicit Impl(std::string key) : key_(std::move(key)) {}
 
-  void SetService(std::shared_ptr<api::Service> service) {
+  void SetCollections(std::shared_ptr<api::Collections> collections) {
     std::lock_guard<std::mutex> lock(mutex_);
-    service_ = std::move(service);
+    collections_ = std::move(collections);
   }
 
   grpc::Status Score(grpc::ServerContext* context, const ScoreRequest* request, ScoreReply* reply) override {
@@ -354,7 +356,14 @@ class ShardServer::Impl final : public Shard::Service {
 
   grpc::Status Add(grpc::ServerContext* context, const AddRequest* request, AddReply* reply) override {
     std::shared_ptr<api::Service> service;
-    if (grpc::Status refused = Admit(*context, &service); !refused.ok()) return refused;
+    api::CollectionRef collection;
+    if (grpc::Status refused = Admit(*context, &service, &collection); !refused.ok()) return refused;
+    // The limits of this shard's part of the collection (its collection.json), as its own HTTP API applies
+    // them; the front applies the collection's limits over all partitions first.
+    if (auto full = api::Collections::CheckRoom(collection, request->replace() ? 0 : 1)) {
+      Stamp(context, *service);
+      return ToGrpc({ErrorCode::kResourceExhausted, "partition full: " + *full});
+    }
     api::AddImageRequest add;
     add.id = request->id();
     add.image = {reinterpret_cast<const uint8_t*>(request->image().data()), request->image().size()};
@@ -525,12 +534,27 @@ class ShardServer::Impl final : public Shard::Service {
     return refs;
   }
 
-  // Every call's first step: the cluster key (transport_security.h), then the loaded index.
-  grpc::Status Admit(const grpc::ServerContext& context, std::shared_ptr<api::Service>* service) const {
+  // Every call's first step: the cluster key (transport_security.h), then the loaded collections, then the
+  // collection the call names (kCollectionKey; "default" without it).
+  // `collection` (optional) receives the collection as a request holds it (its limits).
+  grpc::Status Admit(const grpc::ServerContext& context, std::shared_ptr<api::Service>* service,
+                     api::CollectionRef* collection = nullptr) const {
     if (grpc::Status refused = Authorize(context, key_); !refused.ok()) return refused;
-    std::lock_guard<std::mutex> lock(mutex_);
-    *service = service_;
-    if (!*service) return NotReady();
+    std::shared_ptr<api::Collections> collections;
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      collections = collections_;
+    }
+    if (!collections) return NotReady();
+    std::string name = api::kDefaultCollection;
+    const auto& metadata = context.client_metadata();
+    if (const auto it = metadata.find(kCollectionKey); it != metadata.end()) name.assign(it->second.data(), it->second.size());
+    if (!api::Collections::IsValidName(name))
+      return ToGrpc({ErrorCode::kInvalidArgument, "not a collection name (" + std::string(kCollectionKey) + ")"});
+    auto found = collections->Find(name);
+    if (!found) return ToGrpc({ErrorCode::kNotFound, "this shard holds no collection '" + name + "'"});
+    *service = found->service;
+    if (collection) *collection = std::move(*found);
     return grpc::Status::OK;
   }
   // Reads stamp the sequence before they read: a value at or above the front's floor then guarantees
@@ -541,8 +565,8 @@ class ShardServer::Impl final : public Shard::Service {
   static grpc::Status NotReady() { return {grpc::StatusCode::UNAVAILABLE, "the index is still loading"}; }
 
   const std::string key_;  // the cluster key; "" = none
-  mutable std::mutex mutex_;  // guards service_
-  std::shared_ptr<api::Service> service_;
+  mutable std::mutex mutex_;  // guards collections_ (pointer copies only)
+  std::shared_ptr<api::Collections> collections_;
   struct KeptSearch {
     std::string key;
     std::weak_ptr<const api::Service> service;  // the index it searches (a reloaded one starts afresh)
@@ -599,8 +623,12 @@ Result<int> ShardServer::Start(const std::string& host, int port, const ShardSer
 }
 
 void ShardServer::SetService(std::shared_ptr<api::Service> service) {
+  SetCollections(api::Collections::Single(std::move(service)));
+}
+
+void ShardServer::SetCollections(std::shared_ptr<api::Collections> collections) {
   if (!impl_) return;
-  impl_->SetService(std::move(service));
+  impl_->SetCollections(std::move(collections));
   if (server_) server_->GetHealthCheckService()->SetServingStatus(true);
 }
 

@@ -199,7 +199,7 @@ std::span<const uint8_t> Bytes(std::string_view text) {
 constexpr std::string_view kCollectionsPrefix = "/v1/collections/";
 
 // The collection a /v1 path addresses: the name after /v1/collections/, else "default".
-std::string CollectionOfPath(std::string_view path) {
+std::string CollectionNameOfPath(std::string_view path) {
   if (!path.starts_with(kCollectionsPrefix)) return api::kDefaultCollection;
   path.remove_prefix(kCollectionsPrefix.size());
   return std::string(path.substr(0, path.find('/')));
@@ -216,7 +216,7 @@ std::string UnprefixedPath(std::string_view path) {
 // "/v1/collections/{name}" for a path under a collection, else "/v1": where the request's routes live.
 std::string RoutePrefixOf(std::string_view path) {
   if (!path.starts_with(kCollectionsPrefix)) return "/v1";
-  return "/v1/collections/" + CollectionOfPath(path);
+  return "/v1/collections/" + CollectionNameOfPath(path);
 }
 
 // The key the request presents (X-API-Key, else Authorization: Bearer), whole: httplib's get_header_value
@@ -229,6 +229,12 @@ std::string PresentedKey(const httplib::Request& req) {
 }
 
 }  // namespace
+
+std::string CollectionOfPath(std::string_view path) { return CollectionNameOfPath(path); }
+
+void NoteCollection(const std::string& collection) {
+  if (t_request.active) t_request.collection = collection;
+}
 
 bool ConstantTimeEquals(const std::string& given, const std::string& expected) {
   // Compare every byte of the longer string so the time does not reveal the matching prefix.
@@ -887,28 +893,28 @@ void HttpServer::RegisterErrorHandlers() {
   });
 }
 
-std::optional<HttpError> HttpServer::Authorize(const httplib::Request& req, const std::string& collection,
-                                               Access access) const {
-  if (options_.api_key.empty()) {
+std::optional<HttpError> AuthorizeCollection(const httplib::Request& req, const std::string& admin_key,
+                                             const api::AccessKeys* keys, const std::string& collection,
+                                             std::optional<bool> is_public, CollectionAccess access) {
+  using Access = CollectionAccess;
+  if (admin_key.empty()) {
     if (access != Access::kAdmin) return std::nullopt;
     return PermissionDenied("this route writes on the server's file system and is enabled only with an API key "
                             "(oxbow serve --api-key)");
   }
   const std::string key = PresentedKey(req);
-  if (!key.empty() && ConstantTimeEquals(key, options_.api_key)) return std::nullopt;
+  if (!key.empty() && ConstantTimeEquals(key, admin_key)) return std::nullopt;
   if (access == Access::kOpen) return std::nullopt;
   std::optional<HttpError> refused;
   std::string reason;
-  const auto set = collections();
   if (access == Access::kAdmin) {
     reason = key.empty() ? "no key for an admin route" : "not the admin key, on an admin route";
     refused = key.empty() ? ToHttpError({ErrorCode::kUnauthenticated, "this route needs the admin API key: header "
                                                                       "'Authorization: Bearer KEY' or 'X-API-Key: KEY'"})
                           : PermissionDenied("this route needs the admin API key");
   } else {
-    const auto found = set ? set->Find(collection) : std::nullopt;
-    if (access == Access::kRead && found && found->settings.is_public) return std::nullopt;
-    const auto granted = key.empty() || !set || set->keys() == nullptr ? std::nullopt : set->keys()->Find(key);
+    if (access == Access::kRead && is_public.value_or(false)) return std::nullopt;
+    const auto granted = key.empty() || keys == nullptr ? std::nullopt : keys->Find(key);
     if (granted && granted->collection == collection && (access == Access::kRead || granted->access == api::KeyAccess::kWrite)) {
       return std::nullopt;
     }
@@ -929,6 +935,57 @@ std::optional<HttpError> HttpServer::Authorize(const httplib::Request& req, cons
   return refused;
 }
 
+std::function<bool(const std::string& name, bool is_public)> CollectionListFilter(const httplib::Request& req,
+                                                                                 const std::string& admin_key,
+                                                                                 const api::AccessKeys* keys) {
+  const std::string key = PresentedKey(req);
+  const bool all = admin_key.empty() || (!key.empty() && ConstantTimeEquals(key, admin_key));
+  const auto granted = all || key.empty() || keys == nullptr ? std::nullopt : keys->Find(key);
+  return [all, granted](const std::string& name, bool is_public) {
+    return all || is_public || (granted && granted->collection == name);
+  };
+}
+
+void ServeCreateKey(api::AccessKeys& keys, const std::string& collection, const httplib::Request& req,
+                    httplib::Response& res) {
+  const json body = json::parse(req.body, nullptr, /*allow_exceptions=*/false);
+  const auto access = body.is_object() && body.size() == 1 && body.contains("access") && body["access"].is_string()
+                          ? api::ParseKeyAccess(body["access"].get<std::string>())
+                          : std::nullopt;
+  if (!access) {
+    return SendError(res, Error{ErrorCode::kInvalidArgument, "POST .../keys takes {\"access\": \"read\"} or "
+                                                             "{\"access\": \"write\"}"});
+  }
+  auto made = keys.Create(collection, *access);
+  if (!made) return SendError(res, made.error());
+  OXBOW_LOG(kInfo) << "http " << t_request.id << " made key " << made->info.id << " (" << api::KeyAccessName(*access)
+                   << ") of collection '" << collection << "'";
+  SendJson(res, 201, {{"key", made->key}, {"id", made->info.id}, {"collection", collection},
+                      {"access", api::KeyAccessName(*access)}, {"created", made->info.created}});
+}
+
+void ServeListKeys(const api::AccessKeys& keys, const std::string& collection, httplib::Response& res) {
+  json list = json::array();
+  for (const auto& k : keys.List(collection)) {
+    list.push_back({{"id", k.id}, {"access", api::KeyAccessName(k.access)}, {"created", k.created}});
+  }
+  SendJson(res, 200, {{"keys", list}});
+}
+
+void ServeDeleteKey(api::AccessKeys& keys, const std::string& collection, const std::string& id, httplib::Response& res) {
+  if (auto s = keys.Delete(collection, id); !s) return SendError(res, s.error());
+  OXBOW_LOG(kInfo) << "http " << t_request.id << " revoked key " << LoggablePath(id) << " of collection '" << collection << "'";
+  SendJson(res, 200, {{"id", id}, {"deleted", true}});
+}
+
+std::optional<HttpError> HttpServer::Authorize(const httplib::Request& req, const std::string& collection,
+                                               Access access) const {
+  const auto set = collections();
+  const auto found = set ? set->Find(collection) : std::nullopt;
+  return AuthorizeCollection(req, options_.api_key, set ? set->keys() : nullptr, collection,
+                             found ? std::optional(found->settings.is_public) : std::nullopt, access);
+}
+
 HttpServer::Handler HttpServer::ServiceRoute(Access access, ServiceHandler body) {
   return [this, access, body = std::move(body)](const httplib::Request& req, httplib::Response& res) {
     try {
@@ -939,7 +996,7 @@ HttpServer::Handler HttpServer::ServiceRoute(Access access, ServiceHandler body)
         return;
       }
       // A match needs no collection: it extracts with the default collection's settings (else any one's).
-      std::string name = access == Access::kOpen ? std::string(api::kDefaultCollection) : CollectionOfPath(req.path);
+      std::string name = access == Access::kOpen ? std::string(api::kDefaultCollection) : CollectionNameOfPath(req.path);
       if (access == Access::kOpen && !set->Find(name)) {
         const auto names = set->Names();
         if (!names.empty()) name = names.front();
@@ -1184,16 +1241,12 @@ void HttpServer::RegisterCollectionRoutes() {
     if (!set) return SendError(res, Unavailable(shutting_down_ ? "shutting down" : "the index is still loading; retry shortly"));
     // The collections the caller may read: all with the admin key or on a server without one; else the
     // public ones and the one its key belongs to.
-    const std::string key = PresentedKey(req);
-    const bool all = options_.api_key.empty() || (!key.empty() && ConstantTimeEquals(key, options_.api_key));
-    const auto granted = all || key.empty() || set->keys() == nullptr ? std::nullopt : set->keys()->Find(key);
+    const auto shown = CollectionListFilter(req, options_.api_key, set->keys());
     json list = json::array();
     for (const std::string& name : set->Names()) {
       auto info = set->Describe(name);
       if (!info) continue;  // deleted meanwhile
-      if (all || info->settings.is_public || (granted && granted->collection == name)) {
-        list.push_back(api::CollectionToJson(*info, false));
-      }
+      if (shown(name, info->settings.is_public)) list.push_back(api::CollectionToJson(*info, false));
     }
     SendJson(res, 200, {{"collections", list}});
   });
@@ -1234,43 +1287,20 @@ void HttpServer::RegisterCollectionRoutes() {
   };
   http.Post(R"(/v1/collections/([^/]+)/keys)", route(Access::kAdmin, [keys_of](api::Collections& set, const std::string& name,
                                                                                 const httplib::Request& req, httplib::Response& res) {
-    const json body = json::parse(req.body, nullptr, /*allow_exceptions=*/false);
-    const auto access = body.is_object() && body.size() == 1 && body.contains("access") && body["access"].is_string()
-                            ? api::ParseKeyAccess(body["access"].get<std::string>())
-                            : std::nullopt;
-    if (!access) {
-      return SendError(res, Error{ErrorCode::kInvalidArgument, "POST .../keys takes {\"access\": \"read\"} or "
-                                                               "{\"access\": \"write\"}"});
-    }
     api::AccessKeys* keys = keys_of(set, name, res);
-    if (keys == nullptr) return;
-    auto made = keys->Create(name, *access);
-    if (!made) return SendError(res, made.error());
-    OXBOW_LOG(kInfo) << "http " << t_request.id << " made key " << made->info.id << " (" << api::KeyAccessName(*access)
-                     << ") of collection '" << name << "'";
-    SendJson(res, 201, {{"key", made->key}, {"id", made->info.id}, {"collection", name},
-                        {"access", api::KeyAccessName(*access)}, {"created", made->info.created}});
+    if (keys != nullptr) ServeCreateKey(*keys, name, req, res);
   }));
   http.Get(R"(/v1/collections/([^/]+)/keys)", route(Access::kAdmin, [keys_of](api::Collections& set, const std::string& name,
                                                                                const httplib::Request&, httplib::Response& res) {
     api::AccessKeys* keys = keys_of(set, name, res);
-    if (keys == nullptr) return;
-    json list = json::array();
-    for (const auto& k : keys->List(name)) {
-      list.push_back({{"id", k.id}, {"access", api::KeyAccessName(k.access)}, {"created", k.created}});
-    }
-    SendJson(res, 200, {{"keys", list}});
+    if (keys != nullptr) ServeListKeys(*keys, name, res);
   }));
   http.Delete(R"(/v1/collections/([^/]+)/keys/([^/]+))", route(Access::kAdmin, [keys_of](api::Collections& set,
                                                                                           const std::string& name,
                                                                                           const httplib::Request& req,
                                                                                           httplib::Response& res) {
     api::AccessKeys* keys = keys_of(set, name, res);
-    if (keys == nullptr) return;
-    const std::string id = req.matches[2];
-    if (auto s = keys->Delete(name, id); !s) return SendError(res, s.error());
-    OXBOW_LOG(kInfo) << "http " << t_request.id << " revoked key " << LoggablePath(id) << " of collection '" << name << "'";
-    SendJson(res, 200, {{"id", id}, {"deleted", true}});
+    if (keys != nullptr) ServeDeleteKey(*keys, name, req.matches[2], res);
   }));
   http.Post(R"(/v1/collections/([^/]+)/backup)", route(Access::kAdmin, [](api::Collections& set, const std::string& name,
                                                                          const httplib::Request& req, httplib::Response& res) {

@@ -49,6 +49,7 @@
 #include <optional>
 #include <span>
 #include <string>
+#include <string_view>
 #include <utility>
 #include <vector>
 
@@ -136,6 +137,10 @@ struct RouteInfo {
 // budget, connection limits, strict request heads), request ids, log lines, HTTP metrics, JSON error
 // bodies and status routes (/healthz, /readyz, /metrics, /v1, the web page). Such a server has no
 // api::Service: it is ready from the start.
+// What a route needs of the collection it addresses (the file comment). kOpen: no collection (match),
+// any key; kAdmin: the admin key, refused when the server has none.
+enum class CollectionAccess { kOpen, kRead, kWrite, kAdmin };
+
 struct CustomRoutes {
   // Registers the routes, /v1/stats included. Handlers answer errors with SendJsonError (below).
   std::function<void(httplib::Server&)> add;
@@ -171,9 +176,7 @@ class HttpServer {
   struct RouteTable;
 
  private:
-  // What a route needs of the collection it addresses (the file comment). kOpen: no collection
-  // (match), any key; kAdmin: the admin key, refused when the server has none.
-  enum class Access { kOpen, kRead, kWrite, kAdmin };
+  using Access = CollectionAccess;
   using Handler = std::function<void(const httplib::Request&, httplib::Response&)>;
   using ServiceHandler = std::function<void(api::Service&, const httplib::Request&, httplib::Response&)>;
 
@@ -259,6 +262,29 @@ using BatchAdder = std::function<Result<api::AddBatchResponse>(api::AddBatchRequ
 void ServeImageBatch(const httplib::Request& req, httplib::Response& res, int max_images, const BatchAdder& add);
 // POST /v1/admin/backup's folder: JSON {"out": "/abs/path"} or the parameter out; must be absolute.
 Result<std::string> BackupFolderParam(const httplib::Request& req);
+
+// Whether the request may have `access` to `collection` under the file comment's rules (the single node's
+// and the cluster front's): nullopt when it may, else the 401 or 403 answer, logged with the request id.
+// `admin_key` "" = none; `keys` (may be null) the collections' keys; `is_public` the collection's setting,
+// nullopt for a collection that does not exist (refused as a private one: only the admin key passes).
+std::optional<HttpError> AuthorizeCollection(const httplib::Request& req, const std::string& admin_key,
+                                             const api::AccessKeys* keys, const std::string& collection,
+                                             std::optional<bool> is_public, CollectionAccess access);
+// Which collections GET /v1/collections shows the request: all with the admin key (or on a server without
+// one), else the public ones and the one its key belongs to.
+std::function<bool(const std::string& name, bool is_public)> CollectionListFilter(const httplib::Request& req,
+                                                                                 const std::string& admin_key,
+                                                                                 const api::AccessKeys* keys);
+// The admin's key routes of a collection: POST .../keys {"access": "read"|"write"} (201 with the key,
+// shown once), GET .../keys, DELETE .../keys/{id}.
+void ServeCreateKey(api::AccessKeys& keys, const std::string& collection, const httplib::Request& req,
+                    httplib::Response& res);
+void ServeListKeys(const api::AccessKeys& keys, const std::string& collection, httplib::Response& res);
+void ServeDeleteKey(api::AccessKeys& keys, const std::string& collection, const std::string& id, httplib::Response& res);
+// The collection a path addresses: NAME for /v1/collections/NAME/..., else "default".
+std::string CollectionOfPath(std::string_view path);
+// The collection the request this thread serves acts on: its log line's field and its metrics' label.
+void NoteCollection(const std::string& collection);
 
 // True when `given` equals `expected`; the time taken depends only on their lengths.
 bool ConstantTimeEquals(const std::string& given, const std::string& expected);

@@ -9,6 +9,7 @@
 #include <memory>
 #include <string>
 
+#include "api/collections.h"
 #include "api/service.h"
 #include "server/cluster/front.h"
 #include "server/cluster/transport_security.h"
@@ -18,7 +19,7 @@
 namespace oxbow::cli {
 
 // Bumped whenever a member changes: a module of another version is refused.
-inline constexpr int kClusterApiVersion = 1;
+inline constexpr int kClusterApiVersion = 2;
 
 // `serve --cluster`: what the command line gives the front.
 struct FrontArgs {
@@ -37,6 +38,8 @@ class ShardApi {
   [[nodiscard]] virtual Result<int> Start(const std::string& host, int port, const cluster::ShardSecurity& security,
                                           uint64_t max_message_bytes) = 0;
   virtual void SetService(std::shared_ptr<api::Service> service) = 0;
+  // serve --data: every collection, each call naming its own (cluster::ShardServer::SetCollections).
+  virtual void SetCollections(std::shared_ptr<api::Collections> collections) = 0;
   virtual void Shutdown() = 0;  // idempotent
 };
 

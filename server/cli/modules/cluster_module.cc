@@ -2,7 +2,9 @@
 #include <pthread.h>
 
 #include <cstdio>
+#include <string>
 #include <thread>
+#include <vector>
 
 #include "server/cli/cli.h"
 #include "server/cli/modules/cluster_api.h"
@@ -21,16 +23,26 @@ void ServeFront(const FrontArgs& args, const sigset_t& signals) {
   } else if (config.security.key.empty()) {
     config.security.key = args.http.api_key;
   }
-  std::shared_ptr<const cluster::ClusterFront> front = ValueOrExit(cluster::ClusterFront::Open(config, args.front));
+  // One front per collection of cluster.json, each naming its collection on every shard call.
+  std::vector<cluster::FrontCollection> collections;
+  std::string names;
+  for (const cluster::ClusterCollection& c : config.collections) {
+    std::shared_ptr<const cluster::ClusterFront> front =
+        ValueOrExit(cluster::ClusterFront::Open(config, args.front, c.name));
+    collections.push_back({std::move(front), c.settings});
+    names += (names.empty() ? "" : ", ") + c.name;
+  }
+  std::unique_ptr<api::AccessKeys> keys;
+  if (!config.collection_keys.empty()) keys = ValueOrExit(api::AccessKeys::Open(config.collection_keys));
   cluster::FrontHttpOptions options;
   options.http = args.http;
   options.service = args.service;
-  auto server = ValueOrExit(cluster::FrontHttpServer::Create(front, options));
+  auto server = ValueOrExit(cluster::FrontHttpServer::Create(std::move(collections), std::move(keys), options));
   const int port = ValueOrExit(server->Bind());
   std::printf("listening on http://%s:%d\n", args.http.host.c_str(), port);
   std::fflush(stdout);
-  OXBOW_LOG(kInfo) << "cluster front on http://" << args.http.host << ":" << port << " over " << front->num_partitions()
-                   << " partitions (" << args.cluster_file << ")";
+  OXBOW_LOG(kInfo) << "cluster front on http://" << args.http.host << ":" << port << " over " << config.partitions.size()
+                   << " partitions, collections " << names << " (" << args.cluster_file << ")";
   std::thread signal_waiter([&] {
     int signal_number = 0;
     sigwait(&signals, &signal_number);
@@ -53,6 +65,9 @@ class Shard final : public ShardApi {
     return server_.Start(host, port, options);
   }
   void SetService(std::shared_ptr<api::Service> service) override { server_.SetService(std::move(service)); }
+  void SetCollections(std::shared_ptr<api::Collections> collections) override {
+    server_.SetCollections(std::move(collections));
+  }
   void Shutdown() override { server_.Shutdown(); }
 
  private:
