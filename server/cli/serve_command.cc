@@ -235,7 +235,9 @@ void SetUpServe(CLI::App& app) {
                   "serve as the front of a cluster instead of an index: cluster.json names the vocabulary and each "
                   "partition's shard replicas (`serve --grpc-port`); serves the public API with the same limits and "
                   "options as an index (writes on every replica of the image's partition, a backup per partition "
-                  "on its shard's machine; server/README.md, \"Operating a cluster\")")
+                  "on its shard's machine); with \"collections\" it serves each under /v1/collections/NAME, the shards "
+                  "holding their partition of each (`serve --data --grpc-port`; server/README.md, \"Operating a "
+                  "cluster\")")
       ->check(CLI::ExistingFile);
   cmd->add_option("--shard-deadline-ms", flags->front.shard_deadline_ms,
                   "--cluster: a call to one shard replica fails after this long; the partition's next replica is asked")

@@ -342,7 +342,7 @@ class FrontHttpServer::Impl {
       }
     };
     both("POST", "/v1/search", Route(Access::kRead, [this](const Served& c, Req req, Res res) { Search(c, req, res); }));
-    both("POST", "/v1/match", [this](Req req, Res res) { Match(req, res); });
+    server.Post("/v1/match", [this](Req req, Res res) { Match(req, res); });
     both("GET", "/v1/stats", Route(Access::kRead, [](const Served& c, Req, Res res) { Stats(c, res); }));
     both("GET", "/v1/images", Route(Access::kRead, [](const Served& c, Req req, Res res) { List(c, req, res); }));
     both("POST", "/v1/images", Route(Access::kWrite, [](const Served& c, Req req, Res res) { Add(c, req, res); }));

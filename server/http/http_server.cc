@@ -669,9 +669,8 @@ HttpServer::HttpServer(const HttpServerOptions& options, CustomRoutes routes)
   auto table = std::make_unique<RouteTable>();
   for (const RouteInfo& r : custom_routes_.more_routes) table->routes.push_back({r.label, std::regex(r.pattern), r.methods});
   for (const auto& r : Routes().routes) {
-    // A server of custom routes (a cluster front) serves one collection: no /v1/collections routes.
-    if (custom_routes_.add && (r.label.starts_with("/v1/collections") || r.label == "/v1/duplicates" ||
-                               r.label.starts_with("/v1/jobs"))) {
+    // A server of custom routes (a cluster front) runs no duplicate jobs.
+    if (custom_routes_.add && (r.label.ends_with("/duplicates") || r.label.starts_with("/v1/jobs"))) {
       continue;
     }
     table->routes.push_back(r);
