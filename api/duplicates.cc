@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cstring>
 #include <cmath>
 #include <map>
 #include <set>
@@ -15,6 +16,7 @@
 #include "sift/base/log.h"
 #include "sift/base/parallel.h"
 #include "sift/types.h"
+#include "vocab/communicator.h"
 #include "vocab/vocabulary.h"
 
 namespace oxbow::api {
@@ -26,6 +28,28 @@ constexpr double kExactCoverage = 0.9;
 constexpr double kExactTwins = 0.98;       // share of features with an identical twin in an exact copy
 
 double SecondsSince(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+
+// Every rank's `part` (CBOR: doubles exact) on every rank: the ranks' encodings, each after its 8-byte size.
+std::vector<uint8_t> GatherJson(vocab::Communicator& comm, const nlohmann::json& part) {
+  const std::vector<uint8_t> encoded = nlohmann::json::to_cbor(part);
+  std::vector<uint8_t> framed(8 + encoded.size());
+  const uint64_t size = encoded.size();
+  std::memcpy(framed.data(), &size, 8);
+  std::memcpy(framed.data() + 8, encoded.data(), encoded.size());
+  return comm.Allgather(framed);
+}
+
+// Calls `fn` with each rank's part of a GatherJson, in rank order.
+void ForEachGathered(const std::vector<uint8_t>& all, const std::function<void(const nlohmann::json&)>& fn) {
+  for (size_t at = 0; at + 8 <= all.size();) {
+    uint64_t size = 0;
+    std::memcpy(&size, all.data() + at, 8);
+    at += 8;
+    fn(nlohmann::json::from_cbor(all.begin() + static_cast<std::ptrdiff_t>(at),
+                                 all.begin() + static_cast<std::ptrdiff_t>(at + size)));
+    at += size;
+  }
+}
 
 // The word of each word's mirrored centroid.
 std::vector<uint32_t> MirrorWords(const vocab::Vocabulary& vocabulary, int threads) {
@@ -219,7 +243,12 @@ std::optional<std::string> DuplicateOptions::Check() const {
 }
 
 Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const DuplicateOptions& options,
-                                       const DuplicateProgress& progress, const std::function<bool()>& stop) {
+                                       const DuplicateProgress& progress, const std::function<bool()>& stop,
+                                       vocab::Communicator* comm) {
+  vocab::SingleProcess single;
+  if (comm == nullptr) comm = &single;
+  const int rank = comm->rank();
+  const int ranks = comm->size();
   if (auto message = options.Check()) return Fail(ErrorCode::kInvalidArgument, "duplicate options: " + *message);
   const auto t0 = Clock::now();
   std::vector<std::string> ids;
@@ -245,17 +274,29 @@ Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const Dup
 
   // 1. Searches: every verified (a, b), keyed by the ordered pair and whether mirrored.
   std::map<std::tuple<std::string, std::string, bool>, Candidate> candidates;
+  // A pair found by both images' searches: the search with more inliers gives the map; a tie goes to
+  // a's own search, so that the result depends neither on which worker nor on which rank searched first.
+  const auto offer = [&candidates](std::tuple<std::string, std::string, bool> key, const Candidate& c) {
+    auto it = candidates.find(key);
+    if (it == candidates.end() || it->second.verified_inliers < c.verified_inliers ||
+        (it->second.verified_inliers == c.verified_inliers && c.a_is_query && !it->second.a_is_query)) {
+      candidates[std::move(key)] = c;
+    }
+  };
   std::mutex candidates_mutex;
   std::atomic<uint64_t> done{0};
   std::atomic<bool> cancelled{false};
   std::optional<Error> failure;
-  ParallelFor(ids.size(), threads, 1, [&](size_t begin, size_t end, int) {
-    for (size_t i = begin; i < end; ++i) {
+  // This rank's images: every ranks-th one.
+  std::vector<size_t> mine;
+  for (size_t i = static_cast<size_t>(rank); i < ids.size(); i += static_cast<size_t>(ranks)) mine.push_back(i);
+  ParallelFor(mine.size(), threads, 1, [&](size_t begin, size_t end, int) {
+    for (size_t k = begin; k < end; ++k) {
       if (cancelled.load() || (stop && stop())) {
         cancelled.store(true);
         return;
       }
-      const std::string& id = ids[i];
+      const std::string& id = ids[mine[k]];
       const std::unique_ptr<index::search::Source> source = index.OpenSearch();
       index::ImageRecord record;
       auto q = index::search::StoredQuery(*source, id, query, &record);
@@ -281,21 +322,37 @@ Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const Dup
         for (const auto& [r, is_mirrored] : found) {
           if (!r.verified || r.id == id) continue;
           const bool a_first = id < r.id;
-          auto key = std::make_tuple(a_first ? id : r.id, a_first ? r.id : id, is_mirrored);
-          auto it = candidates.find(key);
-          // The search with more inliers gives the map; a tie goes to a's own search, so that the result
-          // does not depend on which worker searched first.
-          if (it == candidates.end() || it->second.verified_inliers < r.inliers ||
-              (it->second.verified_inliers == r.inliers && a_first && !it->second.a_is_query)) {
-            candidates[key] = Candidate{r.db_from_query, r.inliers, is_mirrored, a_first};
-          }
+          offer(std::make_tuple(a_first ? id : r.id, a_first ? r.id : id, is_mirrored),
+                Candidate{r.db_from_query, r.inliers, is_mirrored, a_first});
         }
       }
       const uint64_t n = ++done;
-      if (progress) progress(n, ids.size());
+      if (progress) progress(n, mine.size());
     }
   });
-  if (cancelled.load()) return Fail(ErrorCode::kResourceExhausted, "the duplicate search was cancelled");
+  if (cancelled.load()) failure = Error{ErrorCode::kResourceExhausted, "the duplicate search was cancelled"};
+  // Every rank's candidates on every rank (and every rank's failure: all fail alike).
+  if (ranks > 1) {
+    nlohmann::json out = {{"failure", nullptr}, {"candidates", nlohmann::json::array()}};
+    if (failure) out["failure"] = {static_cast<int>(failure->code), failure->message};
+    for (const auto& [key, c] : candidates) {
+      out["candidates"].push_back({std::get<0>(key), std::get<1>(key), std::get<2>(key), c.b_from_a.m,
+                                   c.verified_inliers, c.a_is_query});
+    }
+    const std::vector<uint8_t> all = GatherJson(*comm, out);
+    candidates.clear();
+    failure.reset();
+    ForEachGathered(all, [&](const nlohmann::json& part) {
+      if (!part["failure"].is_null() && !failure) {
+        failure = Error{static_cast<ErrorCode>(part["failure"][0].get<int>()), part["failure"][1].get<std::string>()};
+      }
+      for (const auto& c : part["candidates"]) {
+        Candidate candidate{{}, c[4].get<int>(), c[2].get<bool>(), c[5].get<bool>()};
+        candidate.b_from_a.m = c[3].get<std::array<double, 6>>();
+        offer(std::make_tuple(c[0].get<std::string>(), c[1].get<std::string>(), c[2].get<bool>()), candidate);
+      }
+    });
+  }
   if (failure) return std::unexpected(*failure);
   report.search_s = SecondsSince(t0);
 
@@ -309,8 +366,11 @@ Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const Dup
                    << work.size() << " verified pairs";
   std::vector<std::optional<DuplicatePair>> measured(work.size());
   index::QueryOptions plain = mirror_query;  // features without signatures
-  ParallelFor(work.size(), threads, 4, [&](size_t begin, size_t end, int) {
-    for (size_t i = begin; i < end; ++i) {
+  std::vector<size_t> my_work;  // this rank's pairs: every ranks-th one
+  for (size_t i = static_cast<size_t>(rank); i < work.size(); i += static_cast<size_t>(ranks)) my_work.push_back(i);
+  ParallelFor(my_work.size(), threads, 4, [&](size_t begin, size_t end, int) {
+    for (size_t k = begin; k < end; ++k) {
+      const size_t i = my_work[k];
       const auto& [key, c] = work[i];
       const auto& [a_id, b_id, is_mirrored] = key;
       const std::unique_ptr<index::search::Source> source = index.OpenSearch();
@@ -368,6 +428,33 @@ Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const Dup
       measured[i] = std::move(pair);
     }
   });
+  // Every rank's measures on every rank.
+  if (ranks > 1) {
+    nlohmann::json out = nlohmann::json::array();
+    for (const size_t i : my_work) {
+      if (!measured[i]) continue;
+      const DuplicatePair& p = *measured[i];
+      out.push_back({i, p.a, p.b, static_cast<int>(p.kind), p.mirrored, p.inliers, p.coverage_a, p.coverage_b,
+                     p.region_a, p.region_b, p.b_from_a.m});
+    }
+    const std::vector<uint8_t> all = GatherJson(*comm, {{"pairs", std::move(out)}});
+    ForEachGathered(all, [&](const nlohmann::json& part) {
+      for (const auto& q : part["pairs"]) {
+        DuplicatePair p;
+        p.a = q[1].get<std::string>();
+        p.b = q[2].get<std::string>();
+        p.kind = static_cast<DuplicateKind>(q[3].get<int>());
+        p.mirrored = q[4].get<bool>();
+        p.inliers = q[5].get<int>();
+        p.coverage_a = q[6].get<double>();
+        p.coverage_b = q[7].get<double>();
+        p.region_a = q[8].get<std::array<float, 4>>();
+        p.region_b = q[9].get<std::array<float, 4>>();
+        p.b_from_a.m = q[10].get<std::array<double, 6>>();
+        measured.at(q[0].get<size_t>()) = std::move(p);
+      }
+    });
+  }
   // Candidates are ordered by (a, b, mirrored): a direct and a mirrored measure of one pair are neighbours.
   for (size_t i = 0; i + 1 < work.size(); ++i) {
     if (std::get<0>(work[i].first) != std::get<0>(work[i + 1].first) ||

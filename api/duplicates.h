@@ -43,6 +43,7 @@
 #include "index/image_index.h"
 #include "sift/base/error.h"
 #include "sift/verify.h"
+#include "vocab/communicator.h"
 
 namespace oxbow::api {
 
@@ -102,9 +103,14 @@ using DuplicateProgress = std::function<void(uint64_t done, uint64_t total)>;
 
 // Finds the duplicates of `index`. `stop` (may be empty) is asked between images: when it answers
 // true the job ends with kResourceExhausted ("cancelled"). kInvalidArgument for bad options.
+// With `comm` (oxbow index duplicates --mpi: every rank has the same index open, ImageIndex::OpenReadOnly),
+// each rank searches every size()-th image and measures every size()-th pair, and every rank returns the
+// whole report, the single process's; `progress` counts the rank's own images. Collective: every rank
+// calls it with the same options, and a failure on one rank is every rank's.
 [[nodiscard]] Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const DuplicateOptions& options,
                                                      const DuplicateProgress& progress = {},
-                                                     const std::function<bool()>& stop = {});
+                                                     const std::function<bool()>& stop = {},
+                                                     vocab::Communicator* comm = nullptr);
 
 // The report as JSON: {"images", "settings", "pairs": [...], "groups": [{"group", "images"}], "timings_s"}.
 nlohmann::json DuplicateReportToJson(const DuplicateReport& report, const DuplicateOptions& options);

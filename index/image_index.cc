@@ -231,7 +231,14 @@ struct ImageIndex::Impl {
   std::atomic<uint64_t> write_sequence{0};      // Catalogue::WriteSequence of the last commit (stored under writer_mutex)
   CurrentSnapshot snapshot;                     // what readers see; its own leaf mutex (snapshot.h)
   SearchActivity searches;                      // Query and QuerySimilar calls running (the geometry check waits)
-  std::unique_ptr<Checkpointer> checkpointer;   // set before the index is returned; its thread runs until Close
+  std::unique_ptr<Checkpointer> checkpointer;   // set before the index is returned (none when read_only); its thread runs until Close
+  bool read_only = false;                       // OpenReadOnly: every write refused
+
+  // The refusal of a write to a read-only open, or Ok.
+  Status Writable() const {
+    if (!read_only) return Ok();
+    return Fail(ErrorCode::kIncompatible, "index " + dir + " is open read-only: it takes no writes");
+  }
 
   Impl(std::string d, const IndexOptions& o, vocab::Vocabulary v, std::string settings)
       : dir(std::move(d)), index_options(o), vocabulary(std::move(v)), extractor_settings(std::move(settings)) {}
@@ -273,7 +280,9 @@ struct ImageIndex::Impl {
 };
 
 ImageIndex::ImageIndex(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
-ImageIndex::~ImageIndex() { impl_->checkpointer->Close(); }
+ImageIndex::~ImageIndex() {
+  if (impl_->checkpointer) impl_->checkpointer->Close();
+}
 
 void ImageIndex::Impl::Changed(uint64_t images) {
   write_sequence.fetch_add(images);  // as the commit moved Catalogue::WriteSequence
@@ -355,13 +364,26 @@ Checkpointer::Start StartFrom(LoadedCheckpoint loaded, const std::string& dir, s
 }  // namespace
 
 Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, const IndexOptions& options) {
+  return OpenFolder(dir, options, /*read_only=*/false);
+}
+
+Result<std::unique_ptr<ImageIndex>> ImageIndex::OpenReadOnly(const std::string& dir, const IndexOptions& options) {
+  return OpenFolder(dir, options, /*read_only=*/true);
+}
+
+Result<std::unique_ptr<ImageIndex>> ImageIndex::OpenFolder(const std::string& dir, const IndexOptions& options,
+                                                           bool read_only) {
   if (auto e = options.Check()) return Fail(ErrorCode::kInvalidArgument, "index options: " + *e);
   const std::string catalogue_path = JoinPath(dir, kCatalogueFile);
   if (!Exists(dir)) return Fail(ErrorCode::kNotFound, "no index at " + dir + " (missing " + kCatalogueFile + ")");
-  auto lock = FolderLock::Acquire(dir);
+  auto lock = FolderLock::Acquire(dir, /*shared=*/read_only);
   if (!lock) return std::unexpected(lock.error());
   auto catalogue = Catalogue::Open(catalogue_path);
   if (!catalogue) return std::unexpected(catalogue.error());
+  if (read_only && (*catalogue)->meta().schema_version != kSchemaVersion) {
+    return Fail(ErrorCode::kIncompatible, "index " + dir + " was written by an earlier build: open it once for "
+                                          "writing (oxbow index info) to migrate it, then read it");
+  }
   // Every record is read below, but a damaged row can read as another valid one (an id changed in
   // place): SQLite's check of the records and their id index finds it.
   if (auto s = (*catalogue)->CheckRecords(); !s) return std::unexpected(s.error());
@@ -402,6 +424,21 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Open(const std::string& dir, con
     auto built = BuildFromCatalogue(**catalogue, vocab_size, options, &damaged);
     if (!built) return std::unexpected(built.error());
     snap = std::move(*built);
+  }
+  if (read_only) {
+    // Nothing is written: a damaged image is only left out of the snapshot, a checkpoint to rebuild is
+    // rebuilt in memory only, and there is no checkpointer.
+    for (const DamagedBlob& blob : damaged) {
+      OXBOW_LOG(kError) << "index " << dir << ": " << blob.why << "; the image is left out of this read-only open "
+                        << "(open the index for writing to drop it, then add it again from its source image)";
+    }
+    auto sequence = (*catalogue)->WriteSequence();
+    if (!sequence) return std::unexpected(sequence.error());
+    impl->write_sequence = *sequence;
+    impl->read_only = true;
+    impl->catalogue = std::move(*catalogue);
+    impl->Publish(std::move(snap));
+    return std::unique_ptr<ImageIndex>(new ImageIndex(std::move(impl)));
   }
   // Everything read is validated: only now may the catalogue be opened for writing (catalogue.h).
   if (auto writable = (*catalogue)->OpenForWriting(); !writable) return std::unexpected(writable.error());
@@ -529,6 +566,7 @@ void ImageIndex::Impl::Link(std::span<const uint32_t> numbers, std::span<Prepare
 
 Result<ImageRecord> ImageIndex::Impl::Write(const std::string& id, const sift::FeatureSet& features,
                                             const ImageInfo& info, bool replace) {
+  if (auto writable = Writable(); !writable) return std::unexpected(writable.error());
   const auto taken = [&] { return Fail(ErrorCode::kAlreadyExists, "an image with id '" + id + "' is already indexed"); };
   if (!replace && Current()->Find(id)) return taken();
   // Quantise outside the writer lock: it is the expensive part and needs no shared state.
@@ -560,6 +598,9 @@ Result<ImageRecord> ImageIndex::Impl::Write(const std::string& id, const sift::F
 }
 
 std::vector<Result<ImageRecord>> ImageIndex::AddBatch(std::span<const BatchImage> images) {
+  if (auto writable = impl_->Writable(); !writable) {
+    return std::vector<Result<ImageRecord>>(images.size(), std::unexpected(writable.error()));
+  }
   std::vector<Result<ImageRecord>> results(images.size(), Fail(ErrorCode::kInvalidArgument, "not processed"));
   std::vector<Impl::Prepared> prepared(images.size());  // valid where state[i] is kReady
   // Per image, under state_mutex while the images are prepared: the commit below reads them as they
@@ -707,6 +748,7 @@ void ImageIndex::Impl::Unlink(const Snapshot& current, uint32_t n, const Entry& 
 }
 
 Status ImageIndex::Remove(const std::string& id) {
+  if (auto writable = impl_->Writable(); !writable) return writable;
   std::lock_guard<std::mutex> writer(impl_->writer_mutex);
   const auto current = impl_->Current();
   uint32_t n = 0;
@@ -786,6 +828,7 @@ Result<QueryResponse> ImageIndex::QuerySimilar(const std::string& id, const Quer
 }
 
 Status ImageIndex::PinCollectionStatistics(uint64_t num_images, std::span<const uint32_t> document_frequency) {
+  if (auto writable = impl_->Writable(); !writable) return writable;
   if (document_frequency.size() != impl_->vocabulary.size())
     return Fail(ErrorCode::kInvalidArgument, "collection statistics of " + std::to_string(document_frequency.size()) +
                                                  " words for a vocabulary of " + std::to_string(impl_->vocabulary.size()));

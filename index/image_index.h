@@ -400,6 +400,15 @@ class ImageIndex {
   // checkpoint + checkpoint file bytes verified); O(total features) when it must rebuild.
   [[nodiscard]] static Result<std::unique_ptr<ImageIndex>> Open(const std::string& dir,
                                                                 const IndexOptions& options = {});
+  // Opens an existing index to read it only, as Open checks it, writing nothing to the folder (but
+  // SQLite's shared-memory index and an empty WAL beside the catalogue, catalogue.h): several
+  // read-only opens (other processes, e.g. the ranks of `index duplicates --mpi`) may hold it at once,
+  // and no writer opens it meanwhile (a shared folder lock). A checkpoint that must be rebuilt is rebuilt
+  // in memory; images with damaged features are left out; no checkpointer runs. Every write (Add,
+  // Replace, AddBatch, Remove, PinCollectionStatistics) answers kIncompatible. kIncompatible too for a
+  // catalogue an earlier build wrote (open it for writing once to migrate it).
+  [[nodiscard]] static Result<std::unique_ptr<ImageIndex>> OpenReadOnly(const std::string& dir,
+                                                                        const IndexOptions& options = {});
   // True when `dir` holds an index catalogue (cheap check, no validation).
   static bool Exists(const std::string& dir);
 
@@ -470,6 +479,8 @@ class ImageIndex {
 
  private:
   explicit ImageIndex(std::unique_ptr<Impl> impl);
+  static Result<std::unique_ptr<ImageIndex>> OpenFolder(const std::string& dir, const IndexOptions& options,
+                                                        bool read_only);
   std::unique_ptr<Impl> impl_;
 };
 

@@ -15,6 +15,8 @@
 #include <regex>
 #include <set>
 
+#include <nlohmann/json.hpp>
+
 #include "api/partition.h"
 #include "index/image_index.h"
 #include "sift/sift.h"
@@ -130,6 +132,32 @@ TEST_F(Mpi, StoppedTrainingResumesToTheUninterruptedVocabulary) {
                 "--threads 1 --out " + Path("other.oxvoc")), &code);
   EXPECT_NE(code, 0) << refused;
   EXPECT_NE(refused.find("belongs to other images"), std::string::npos) << refused;
+}
+
+// `index duplicates --mpi`: three ranks open one index read-only, each searches and measures its share,
+// and rank 0 writes the report one process writes (pairs, kinds, maps, groups), to the byte but timings.
+TEST_F(Mpi, DuplicatesOverRanksEqualOneProcess) {
+  const std::string settings = sift::SiftOptions{}.Describe();
+  ASSERT_TRUE(testing::RandomVocabulary(settings, 256).value().Write(Path("v.oxvoc")));
+  Run(std::string(OXBOW_BINARY) + " -q index build --vocab " + Path("v.oxvoc") + " --images " + images_ +
+      " --threads 1 --out " + Path("single") + " 2>&1");
+  const std::string args = "-q index duplicates --index " + Path("single") + " --threads 1 --min-coverage 0.1";
+  Run(std::string(OXBOW_BINARY) + " " + args + " --out " + Path("one.json") + " 2>&1");
+  Run(Mpirun(3, args + " --mpi --out " + Path("ranks.json")));
+  auto one = nlohmann::json::parse(ReadBytes(Path("one.json")), nullptr, false);
+  auto ranks = nlohmann::json::parse(ReadBytes(Path("ranks.json")), nullptr, false);
+  ASSERT_TRUE(one.is_object() && ranks.is_object());
+  ASSERT_GE(one["pairs"].size(), 3u) << one.dump();  // img i and img i+5 crop the same photo
+  one.erase("timings_s");
+  ranks.erase("timings_s");
+  EXPECT_EQ(one, ranks);
+  // The index was only read: it opens for writing afterwards, and a writer holding it refuses the ranks.
+  const auto writer = index::ImageIndex::Open(Path("single"));
+  ASSERT_TRUE(writer) << writer.error().ToString();
+  int code = 0;
+  const std::string refused = RunCommand(Mpirun(2, args + " --mpi"), &code);
+  EXPECT_NE(code, 0) << refused;
+  EXPECT_NE(refused.find("open in another process"), std::string::npos) << refused;
 }
 
 TEST_F(Mpi, PartitionedBuildMatchesASingleNodeBuild) {

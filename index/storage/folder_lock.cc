@@ -27,7 +27,7 @@ std::string HolderOf(int fd) {
 
 }  // namespace
 
-Result<FolderLock> FolderLock::Acquire(const std::string& dir) {
+Result<FolderLock> FolderLock::Acquire(const std::string& dir, bool shared) {
   const std::string path = (std::filesystem::path(dir) / kLockFile).string();
   const int fd = ::open(path.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
   if (fd < 0) {
@@ -40,7 +40,7 @@ Result<FolderLock> FolderLock::Acquire(const std::string& dir) {
   }
   int rc = 0;
   do {
-    rc = ::flock(fd, LOCK_EX | LOCK_NB);
+    rc = ::flock(fd, (shared ? LOCK_SH : LOCK_EX) | LOCK_NB);
   } while (rc != 0 && errno == EINTR);
   if (rc != 0) {
     const int error = errno;
@@ -59,8 +59,13 @@ Result<FolderLock> FolderLock::Acquire(const std::string& dir) {
     }
     return Fail(ErrorCode::kIoError,
                 "the index " + dir + " is open in another process" + (holder.empty() ? "" : " (pid " + holder + ")") +
-                    " or elsewhere in this one: one process at a time may open an index folder (it holds " + path +
+                    " or elsewhere in this one: one process at a time may open an index folder for writing, or "
+                    "several only to read it (it holds " + path +
                     "). Stop that process first, or send the work to the server that holds it over HTTP");
+  }
+  if (shared) {  // the pid names a writer only: no stale one in a refusal's message while readers hold it
+    (void)::ftruncate(fd, 0);
+    return FolderLock(fd);
   }
   // Best effort: the pid is for the message of a refused open only.
   const std::string pid = std::to_string(::getpid()) + "\n";

@@ -5,7 +5,9 @@
 // files not committed yet, so ImageIndex::Create and ::Open take this lock first and hold it until
 // closed: a second open, by another process or the same one, is refused with a clear error.
 //
-// The lock is flock(2) on DIR/LOCK (exclusive, not waiting). The kernel drops it when its holder's
+// The lock is flock(2) on DIR/LOCK (exclusive, not waiting). A read-only open
+// (ImageIndex::OpenReadOnly), which writes nothing, takes it shared: several read-only opens (the ranks
+// of `index duplicates --mpi`) share the folder, and no writer opens it meanwhile. The kernel drops it when its holder's
 // file is closed, including when the process dies (kill -9, a crash): a restart never meets a stale
 // lock. The file keeps the holder's pid, for the refusal's message only; the file itself stays. On a
 // file system without locks (flock fails with ENOLCK or EOPNOTSUPP) the folder opens unlocked, with a
@@ -22,9 +24,9 @@ inline constexpr const char* kLockFile = "LOCK";
 
 class FolderLock {
  public:
-  // Takes the lock of the existing folder `dir`. kIoError when another holder has it (the message
-  // names its pid when known) or the file cannot be opened.
-  [[nodiscard]] static Result<FolderLock> Acquire(const std::string& dir);
+  // Takes the lock of the existing folder `dir`, exclusive or `shared`. kIoError when a holder refuses it
+  // (the message names the exclusive holder's pid when known) or the file cannot be opened.
+  [[nodiscard]] static Result<FolderLock> Acquire(const std::string& dir, bool shared = false);
 
   FolderLock() = default;
   FolderLock(FolderLock&& other) noexcept;

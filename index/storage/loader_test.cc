@@ -308,6 +308,47 @@ TEST_F(LoaderTest, DamagedTruncatedOrMissingFilesAreRepairedFromTheCatalogue) {
   }
 }
 
+// Read-only opens (ImageIndex::OpenReadOnly) share the folder with each other and with no writer; they
+// take no write and leave every file of the folder as it was.
+TEST_F(LoaderTest, ReadOnlyOpensShareTheFolderAndWriteNothing) {
+  {
+    auto index = CreateIndex();
+    for (int i = 0; i < 5; ++i) ASSERT_TRUE(index->Add(NumberedId("i", i), Image(i), {}));
+  }
+  const auto files = [&] {
+    std::map<std::string, std::pair<uintmax_t, std::filesystem::file_time_type>> out;
+    for (const auto& entry : std::filesystem::directory_iterator(dir_)) {
+      // SQLite's side files: a read-only connection leaves an empty WAL (nothing to replay) and its
+      // shared-memory index.
+      const std::string name = entry.path().filename().string();
+      if (name == "LOCK" || name.ends_with("-shm") || (name.ends_with("-wal") && entry.file_size() == 0)) continue;
+      out[entry.path().filename().string()] = {entry.file_size(), entry.last_write_time()};
+    }
+    return out;
+  };
+  const auto before = files();
+  {
+    auto first = ImageIndex::OpenReadOnly(dir_.string());
+    auto second = ImageIndex::OpenReadOnly(dir_.string());
+    ASSERT_TRUE(first) << first.error().ToString();
+    ASSERT_TRUE(second) << second.error().ToString();
+    EXPECT_EQ((*first)->Stats().num_images, 5u);
+    ASSERT_TRUE((*second)->Get(NumberedId("i", 3)));
+    const auto writer = ImageIndex::Open(dir_.string());
+    ASSERT_FALSE(writer);
+    EXPECT_NE(writer.error().message.find("open in another process"), std::string::npos) << writer.error().ToString();
+    EXPECT_EQ((*first)->Add(NumberedId("j", 0), Image(7), {}).error().code, ErrorCode::kIncompatible);
+    EXPECT_EQ((*first)->Remove(NumberedId("i", 0)).error().code, ErrorCode::kIncompatible);
+    const std::vector<uint32_t> df((*first)->vocabulary().size(), 1);
+    EXPECT_EQ((*first)->PinCollectionStatistics(5, df).error().code, ErrorCode::kIncompatible);
+  }
+  EXPECT_EQ(files(), before);
+  auto writer = ImageIndex::Open(dir_.string());
+  ASSERT_TRUE(writer) << writer.error().ToString();
+  EXPECT_EQ(ImageIndex::OpenReadOnly(dir_.string()).error().code, ErrorCode::kIoError);
+  EXPECT_EQ((*writer)->Stats().num_images, 5u);
+}
+
 // One process at a time in a folder (folder_lock.h): a second open, in this process or another, is
 // refused while the first holds it, and works once it closed or died by kill -9 (no stale lock).
 TEST_F(LoaderTest, AnIndexFolderIsOpenInOneProcessAtATime) {

@@ -361,14 +361,53 @@ void RunClusterBuild(const BuildArgs& build, vocab::Communicator& comm) {
 }
 
 // ---- duplicates (api/duplicates.h)
+struct DuplicatesArgs {
+  std::string index;
+  std::string format = "json";
+  std::string out;
+  api::DuplicateOptions options;
+  bool no_mirror = false;
+  bool mpi = false;
+};
+
+// One process, or one rank of `--mpi` (comm): every rank finds the whole report; rank 0 writes it.
+void RunDuplicates(const DuplicatesArgs& args, vocab::Communicator* comm) {
+  const bool first = comm == nullptr || comm->rank() == 0;
+  auto idx = ValueOrExit(comm ? index::ImageIndex::OpenReadOnly(args.index) : index::ImageIndex::Open(args.index));
+  api::DuplicateReport report;
+  {
+    // Rank 0's share of the images (every ranks-th one).
+    const uint64_t images = idx->Stats().num_images;
+    const uint64_t ranks = comm ? static_cast<uint64_t>(comm->size()) : 1;
+    std::optional<log::Progress> progress;
+    if (first) progress.emplace(comm ? "duplicates (rank 0's share)" : "duplicates", (images + ranks - 1) / ranks, "images");
+    uint64_t shown = 0;
+    std::mutex mutex;
+    report = ValueOrExit(api::FindDuplicates(
+        *idx, args.options,
+        [&](uint64_t done, uint64_t) {
+          std::lock_guard<std::mutex> lock(mutex);
+          if (progress && done > shown) {
+            progress->Advance(done - shown);
+            shown = done;
+          }
+        },
+        {}, comm));
+  }
+  if (!first) return;
+  const std::string text = args.format == "csv" ? api::DuplicateReportToCsv(report)
+                                                 : api::DuplicateReportToJson(report, args.options).dump(1) + "\n";
+  if (args.out.empty()) {
+    std::fwrite(text.data(), 1, text.size(), stdout);
+  } else {
+    OkOrExit(io::WriteFileAtomically(args.out, {reinterpret_cast<const uint8_t*>(text.data()), text.size()}));
+  }
+  OXBOW_LOG(kInfo) << report.pairs.size() << " pairs in " << report.groups.size() << " groups over " << report.images
+                   << " images (" << report.overlay_pairs << " dropped as overlays); search " << report.search_s
+                   << " s, measure " << report.measure_s << " s" << (comm ? " (" + std::to_string(comm->size()) + " ranks)" : "");
+}
+
 void SetUpDuplicates(CLI::App& index_cmd) {
-  struct DuplicatesArgs {
-    std::string index;
-    std::string format = "json";
-    std::string out;
-    api::DuplicateOptions options;
-    bool no_mirror = false;
-  };
   auto args = std::make_shared<DuplicatesArgs>();
   CLI::App* d = index_cmd.add_subcommand("duplicates", "Find the images of an index that show the same thing: exact "
                                                        "copies, near copies, the same object or scene");
@@ -401,33 +440,20 @@ void SetUpDuplicates(CLI::App& index_cmd) {
                 "a near copy: one image covered at least this much by the match")
       ->capture_default_str()
       ->check(CLI::Range(0.0, 1.0));
-  d->add_option("--threads", args->options.threads, "threads; 0 = all cores")->capture_default_str()->check(CLI::Range(0, 256));
+  d->add_option("--threads", args->options.threads, "threads; 0 = all cores (per rank with --mpi)")
+      ->capture_default_str()
+      ->check(CLI::Range(0, 256));
+  d->add_flag("--mpi", args->mpi,
+              "distributed under mpirun: every rank opens --index read-only (a folder every rank reaches, e.g. on a "
+              "shared file system; no writer may open it meanwhile), searches every ranks-th image and measures "
+              "every ranks-th pair; rank 0 writes the result, the same as one process's (one rank without mpirun)");
   d->callback([args] {
     args->options.mirrored = !args->no_mirror;
-    auto idx = ValueOrExit(index::ImageIndex::Open(args->index));
-    api::DuplicateReport report;
-    {
-      log::Progress progress("duplicates", idx->Stats().num_images, "images");
-      uint64_t shown = 0;
-      std::mutex mutex;
-      report = ValueOrExit(api::FindDuplicates(*idx, args->options, [&](uint64_t done, uint64_t) {
-        std::lock_guard<std::mutex> lock(mutex);
-        if (done > shown) {
-          progress.Advance(done - shown);
-          shown = done;
-        }
-      }));
-    }
-    const std::string text = args->format == "csv" ? api::DuplicateReportToCsv(report)
-                                                    : api::DuplicateReportToJson(report, args->options).dump(1) + "\n";
-    if (args->out.empty()) {
-      std::fwrite(text.data(), 1, text.size(), stdout);
+    if (args->mpi) {
+      RunWithMpi([&](vocab::Communicator& comm) { RunDuplicates(*args, &comm); });
     } else {
-      OkOrExit(io::WriteFileAtomically(args->out, {reinterpret_cast<const uint8_t*>(text.data()), text.size()}));
+      RunDuplicates(*args, nullptr);
     }
-    OXBOW_LOG(kInfo) << report.pairs.size() << " pairs in " << report.groups.size() << " groups over " << report.images
-                     << " images (" << report.overlay_pairs << " dropped as overlays); search " << report.search_s
-                     << " s, measure " << report.measure_s << " s";
   });
 }
 
