@@ -94,6 +94,73 @@ struct Candidate {
   bool a_is_query = true;  // the map goes from the query (a) to the result (b); else reversed
 };
 
+// Verified pairs keyed by (a, b, mirrored), a < b.
+using CandidateKey = std::tuple<std::string, std::string, bool>;
+using CandidateMap = std::map<CandidateKey, Candidate>;
+
+// A pair found by both images' searches: the search with more inliers gives the map; a tie goes to a's
+// own search, so that the result depends neither on which worker nor on which rank searched first.
+void Offer(CandidateMap& candidates, CandidateKey key, const Candidate& c) {
+  const auto it = candidates.find(key);
+  if (it == candidates.end() || it->second.verified_inliers < c.verified_inliers ||
+      (it->second.verified_inliers == c.verified_inliers && c.a_is_query && !it->second.a_is_query)) {
+    candidates[std::move(key)] = c;
+  }
+}
+
+// --mpi: every rank's candidates and failure, merged on every rank (the first rank's failure wins).
+void ExchangeCandidates(vocab::Communicator& comm, CandidateMap* candidates, std::optional<Error>* failure) {
+  nlohmann::json out = {{"failure", nullptr}, {"candidates", nlohmann::json::array()}};
+  if (failure->has_value()) out["failure"] = {static_cast<int>((*failure)->code), (*failure)->message};
+  for (const auto& [key, c] : *candidates) {
+    out["candidates"].push_back({std::get<0>(key), std::get<1>(key), std::get<2>(key), c.b_from_a.m,
+                                 c.verified_inliers, c.a_is_query});
+  }
+  const std::vector<uint8_t> all = GatherJson(comm, out);
+  candidates->clear();
+  failure->reset();
+  ForEachGathered(all, [&](const nlohmann::json& part) {
+    if (!part["failure"].is_null() && !failure->has_value()) {
+      *failure = Error{static_cast<ErrorCode>(part["failure"][0].get<int>()), part["failure"][1].get<std::string>()};
+    }
+    for (const auto& c : part["candidates"]) {
+      Candidate candidate{{}, c[4].get<int>(), c[2].get<bool>(), c[5].get<bool>()};
+      candidate.b_from_a.m = c[3].get<std::array<double, 6>>();
+      Offer(*candidates, std::make_tuple(c[0].get<std::string>(), c[1].get<std::string>(), c[2].get<bool>()), candidate);
+    }
+  });
+}
+
+// --mpi: the pairs each rank measured (`mine`: its positions in `measured`), on every rank.
+void ExchangeMeasures(vocab::Communicator& comm, const std::vector<size_t>& mine,
+                      std::vector<std::optional<DuplicatePair>>* measured) {
+  nlohmann::json out = nlohmann::json::array();
+  for (const size_t i : mine) {
+    const std::optional<DuplicatePair>& one = (*measured)[i];
+    if (!one.has_value()) continue;
+    const DuplicatePair& p = one.value();
+    out.push_back({i, p.a, p.b, static_cast<int>(p.kind), p.mirrored, p.inliers, p.coverage_a, p.coverage_b,
+                   p.region_a, p.region_b, p.b_from_a.m});
+  }
+  const std::vector<uint8_t> all = GatherJson(comm, {{"pairs", std::move(out)}});
+  ForEachGathered(all, [&](const nlohmann::json& part) {
+    for (const auto& q : part["pairs"]) {
+      DuplicatePair p;
+      p.a = q[1].get<std::string>();
+      p.b = q[2].get<std::string>();
+      p.kind = static_cast<DuplicateKind>(q[3].get<int>());
+      p.mirrored = q[4].get<bool>();
+      p.inliers = q[5].get<int>();
+      p.coverage_a = q[6].get<double>();
+      p.coverage_b = q[7].get<double>();
+      p.region_a = q[8].get<std::array<float, 4>>();
+      p.region_b = q[9].get<std::array<float, 4>>();
+      p.b_from_a.m = q[10].get<std::array<double, 6>>();
+      measured->at(q[0].get<size_t>()) = std::move(p);
+    }
+  });
+}
+
 struct Measure {
   int inliers = 0;
   int twins = 0;           // inliers that are the same feature (same place, scale, orientation): identical pixels
@@ -273,16 +340,7 @@ Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const Dup
   mirror_query.hamming = false;
 
   // 1. Searches: every verified (a, b), keyed by the ordered pair and whether mirrored.
-  std::map<std::tuple<std::string, std::string, bool>, Candidate> candidates;
-  // A pair found by both images' searches: the search with more inliers gives the map; a tie goes to
-  // a's own search, so that the result depends neither on which worker nor on which rank searched first.
-  const auto offer = [&candidates](std::tuple<std::string, std::string, bool> key, const Candidate& c) {
-    auto it = candidates.find(key);
-    if (it == candidates.end() || it->second.verified_inliers < c.verified_inliers ||
-        (it->second.verified_inliers == c.verified_inliers && c.a_is_query && !it->second.a_is_query)) {
-      candidates[std::move(key)] = c;
-    }
-  };
+  CandidateMap candidates;
   std::mutex candidates_mutex;
   std::atomic<uint64_t> done{0};
   std::atomic<bool> cancelled{false};
@@ -322,7 +380,7 @@ Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const Dup
         for (const auto& [r, is_mirrored] : found) {
           if (!r.verified || r.id == id) continue;
           const bool a_first = id < r.id;
-          offer(std::make_tuple(a_first ? id : r.id, a_first ? r.id : id, is_mirrored),
+          Offer(candidates, std::make_tuple(a_first ? id : r.id, a_first ? r.id : id, is_mirrored),
                 Candidate{r.db_from_query, r.inliers, is_mirrored, a_first});
         }
       }
@@ -332,33 +390,13 @@ Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const Dup
   });
   if (cancelled.load()) failure = Error{ErrorCode::kResourceExhausted, "the duplicate search was cancelled"};
   // Every rank's candidates on every rank (and every rank's failure: all fail alike).
-  if (ranks > 1) {
-    nlohmann::json out = {{"failure", nullptr}, {"candidates", nlohmann::json::array()}};
-    if (failure) out["failure"] = {static_cast<int>(failure->code), failure->message};
-    for (const auto& [key, c] : candidates) {
-      out["candidates"].push_back({std::get<0>(key), std::get<1>(key), std::get<2>(key), c.b_from_a.m,
-                                   c.verified_inliers, c.a_is_query});
-    }
-    const std::vector<uint8_t> all = GatherJson(*comm, out);
-    candidates.clear();
-    failure.reset();
-    ForEachGathered(all, [&](const nlohmann::json& part) {
-      if (!part["failure"].is_null() && !failure) {
-        failure = Error{static_cast<ErrorCode>(part["failure"][0].get<int>()), part["failure"][1].get<std::string>()};
-      }
-      for (const auto& c : part["candidates"]) {
-        Candidate candidate{{}, c[4].get<int>(), c[2].get<bool>(), c[5].get<bool>()};
-        candidate.b_from_a.m = c[3].get<std::array<double, 6>>();
-        offer(std::make_tuple(c[0].get<std::string>(), c[1].get<std::string>(), c[2].get<bool>()), candidate);
-      }
-    });
-  }
+  if (ranks > 1) ExchangeCandidates(*comm, &candidates, &failure);
   if (failure) return std::unexpected(*failure);
   report.search_s = SecondsSince(t0);
 
   // 2. Every candidate is measured; a pair found both directly and mirrored (a symmetric scene matches
   // itself mirrored in part) keeps the map that covers more.
-  std::vector<std::pair<std::tuple<std::string, std::string, bool>, Candidate>> work(candidates.begin(), candidates.end());
+  std::vector<std::pair<CandidateKey, Candidate>> work(candidates.begin(), candidates.end());
 
   // 3. The measure of every pair, on the stored features of both.
   const auto t1 = Clock::now();
@@ -429,32 +467,7 @@ Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const Dup
     }
   });
   // Every rank's measures on every rank.
-  if (ranks > 1) {
-    nlohmann::json out = nlohmann::json::array();
-    for (const size_t i : my_work) {
-      if (!measured[i]) continue;
-      const DuplicatePair& p = *measured[i];
-      out.push_back({i, p.a, p.b, static_cast<int>(p.kind), p.mirrored, p.inliers, p.coverage_a, p.coverage_b,
-                     p.region_a, p.region_b, p.b_from_a.m});
-    }
-    const std::vector<uint8_t> all = GatherJson(*comm, {{"pairs", std::move(out)}});
-    ForEachGathered(all, [&](const nlohmann::json& part) {
-      for (const auto& q : part["pairs"]) {
-        DuplicatePair p;
-        p.a = q[1].get<std::string>();
-        p.b = q[2].get<std::string>();
-        p.kind = static_cast<DuplicateKind>(q[3].get<int>());
-        p.mirrored = q[4].get<bool>();
-        p.inliers = q[5].get<int>();
-        p.coverage_a = q[6].get<double>();
-        p.coverage_b = q[7].get<double>();
-        p.region_a = q[8].get<std::array<float, 4>>();
-        p.region_b = q[9].get<std::array<float, 4>>();
-        p.b_from_a.m = q[10].get<std::array<double, 6>>();
-        measured.at(q[0].get<size_t>()) = std::move(p);
-      }
-    });
-  }
+  if (ranks > 1) ExchangeMeasures(*comm, my_work, &measured);
   // Candidates are ordered by (a, b, mirrored): a direct and a mirrored measure of one pair are neighbours.
   for (size_t i = 0; i + 1 < work.size(); ++i) {
     if (std::get<0>(work[i].first) != std::get<0>(work[i + 1].first) ||

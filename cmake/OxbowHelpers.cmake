@@ -52,6 +52,11 @@ function(oxbow_add_gtest)
     # compile time of a GoogleTest file (batch_add_test.cc: 46 s at -O1, 20 s at -O0), and the code
     # under test (the modules, and any module source a test compiles in) keeps the build's -O1.
     set_source_files_properties(${G_SOURCE} PROPERTIES COMPILE_OPTIONS -O0)
+  elseif(CMAKE_BUILD_TYPE STREQUAL "Release" AND NOT OXBOW_SANITIZE)
+    # The test's own source at -O1 in a release build: -O3 spends its time optimising GoogleTest's
+    # macros (collections_test.cc: 28 s at -O3, 22 s at -O1; cluster_test.cc: 43 s, 31 s), while the
+    # code under test, in the modules, keeps -O3.
+    set_source_files_properties(${G_SOURCE} PROPERTIES COMPILE_OPTIONS -O1)
   endif()
   file(STRINGS ${G_SOURCE} _shared_data_tests REGEX "^TEST(_F|_P)?\\([A-Za-z0-9_]*SharedData")
   if(_shared_data_tests)

@@ -78,14 +78,21 @@ TEST(CheckpointTest, TheCheckLeavesThePageCacheAsItWas) {
   const size_t held_before = resident(0, pages);
   ASSERT_GE(held_before, (head + bytes.size() - tail_from) / page);
   ASSERT_TRUE(VerifyCheckpointFile(dir.string(), *file));
-  EXPECT_EQ(resident(0, head / page), head / page) << "pages held before the check were dropped";
-  EXPECT_EQ(resident(tail_from / page + 1, pages), pages - tail_from / page - 1);
+  // The kernel may evict a few clean pages under memory pressure meanwhile (seen on a loaded CI machine:
+  // one page of 2564); a check that dropped what was held would drop them all.
+  const auto held = [&](size_t first, size_t last) {
+    const size_t expected = last - first;
+    const size_t now = resident(first, last);
+    return ::testing::AssertionResult(now + expected / 64 >= expected) << now << " of " << expected << " pages held";
+  };
+  EXPECT_TRUE(held(0, head / page)) << "pages held before the check were dropped";
+  EXPECT_TRUE(held(tail_from / page + 1, pages));
   EXPECT_EQ(resident(head / page, tail_from / page), 0u) << "the check left pages it read in the cache";
   EXPECT_LE(resident(0, pages), held_before) << "the check left pages it read in the cache";
   // Held whole: still held, and the check still finds a damaged file.
   ASSERT_EQ(::pread(fd, scratch.data(), bytes.size(), 0), static_cast<ssize_t>(bytes.size()));
   ASSERT_TRUE(VerifyCheckpointFile(dir.string(), *file));
-  EXPECT_EQ(resident(0, pages), pages);
+  EXPECT_TRUE(held(0, pages));
   CheckpointFile wrong = *file;
   wrong.checksum ^= 1;
   const Status damaged = VerifyCheckpointFile(dir.string(), wrong);

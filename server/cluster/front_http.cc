@@ -221,12 +221,9 @@ class FrontHttpServer::Impl {
   }
 
   void AddBatch(const Served& c, Req req, Res res) const {
-    server::ServeImageBatch(req, res, options.http.max_batch_images, [&](api::AddBatchRequest& batch) -> Result<api::AddBatchResponse> {
-      if (auto full = CheckRoom(c, batch.images.size())) {
-        return Fail(ErrorCode::kResourceExhausted, full->message);
-      }
-      return c.front->AddBatch(batch);
-    });
+    if (auto full = CheckRoom(c, req.files.count("image"))) return server::SendJsonError(res, *full);
+    server::ServeImageBatch(req, res, options.http.max_batch_images,
+                            [&](api::AddBatchRequest& batch) { return c.front->AddBatch(batch); });
   }
 
   static void Delete(const Served& c, Req req, Res res) {
