@@ -108,27 +108,30 @@ void Offer(CandidateMap& candidates, CandidateKey key, const Candidate& c) {
   }
 }
 
-// --mpi: every rank's candidates and failure, merged on every rank (the first rank's failure wins).
-void ExchangeCandidates(vocab::Communicator& comm, CandidateMap* candidates, std::optional<Error>* failure) {
+// --mpi: every rank's candidates, merged on every rank, and the first rank's failure (`failure`: this
+// rank's, null when none), which every rank returns.
+std::optional<Error> ExchangeCandidates(vocab::Communicator& comm, CandidateMap* candidates, const Error* failure) {
   nlohmann::json out = {{"failure", nullptr}, {"candidates", nlohmann::json::array()}};
-  if (failure->has_value()) out["failure"] = {static_cast<int>((*failure)->code), (*failure)->message};
-  for (const auto& [key, c] : *candidates) {
+  if (failure != nullptr) out["failure"] = {static_cast<int>(failure->code), failure->message};
+  for (const auto& entry : *candidates) {
+    const CandidateKey& key = entry.first;
+    const Candidate& c = entry.second;
     out["candidates"].push_back({std::get<0>(key), std::get<1>(key), std::get<2>(key), c.b_from_a.m,
                                  c.verified_inliers, c.a_is_query});
   }
   const std::vector<uint8_t> all = GatherJson(comm, out);
   candidates->clear();
-  failure->reset();
+  nlohmann::json first_failure;  // null: none
   ForEachGathered(all, [&](const nlohmann::json& part) {
-    if (!part["failure"].is_null() && !failure->has_value()) {
-      *failure = Error{static_cast<ErrorCode>(part["failure"][0].get<int>()), part["failure"][1].get<std::string>()};
-    }
+    if (first_failure.is_null()) first_failure = part["failure"];
     for (const auto& c : part["candidates"]) {
       Candidate candidate{{}, c[4].get<int>(), c[2].get<bool>(), c[5].get<bool>()};
       candidate.b_from_a.m = c[3].get<std::array<double, 6>>();
       Offer(*candidates, std::make_tuple(c[0].get<std::string>(), c[1].get<std::string>(), c[2].get<bool>()), candidate);
     }
   });
+  if (first_failure.is_null()) return std::nullopt;
+  return Error{static_cast<ErrorCode>(first_failure[0].get<int>()), first_failure[1].get<std::string>()};
 }
 
 // --mpi: the pairs each rank measured (`mine`: its positions in `measured`), on every rank.
@@ -390,7 +393,7 @@ Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const Dup
   });
   if (cancelled.load()) failure = Error{ErrorCode::kResourceExhausted, "the duplicate search was cancelled"};
   // Every rank's candidates on every rank (and every rank's failure: all fail alike).
-  if (ranks > 1) ExchangeCandidates(*comm, &candidates, &failure);
+  if (ranks > 1) failure = ExchangeCandidates(*comm, &candidates, failure ? &*failure : nullptr);
   if (failure) return std::unexpected(*failure);
   report.search_s = SecondsSince(t0);
 

@@ -120,10 +120,11 @@ Result<ClusterConfig> ClusterConfig::Read(const std::string& path) {
           collection.settings.is_public = value.get<bool>();
         } else if (field == "max_images" || field == "max_bytes") {
           if (!value.is_number_unsigned() || value.get<uint64_t>() == 0)
-            return invalid(where + "\"" + field + "\" is a positive integer");
+            return invalid(std::string(where).append("\"").append(field).append("\" is a positive integer"));
           (field == "max_images" ? collection.settings.max_images : collection.settings.max_bytes) = value.get<uint64_t>();
         } else {
-          return invalid(where + "unknown field \"" + field + "\" (vocabulary, public, max_images, max_bytes)");
+          return invalid(std::string(where).append("unknown field \"").append(field).append(
+              "\" (vocabulary, public, max_images, max_bytes)"));
         }
       }
       if (name == api::kDefaultCollection) config.vocabulary = collection.vocabulary;
