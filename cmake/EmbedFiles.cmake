@@ -51,4 +51,6 @@ function(oxbow_embed_files)
     DEPENDS ${E_FILES} "${OXBOW_EMBED_SCRIPT}"
     COMMENT "Embedding ${E_BASE_DIR} into ${E_OUTPUT}"
     VERBATIM)
+  # Compiled alone in unity builds: every generated file names its arrays kFile0, kFile1, ...
+  set_source_files_properties("${E_OUTPUT}" PROPERTIES SKIP_UNITY_BUILD_INCLUSION ON)
 endfunction()

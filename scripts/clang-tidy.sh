@@ -40,7 +40,12 @@ if [[ -z "$tidy" ]]; then
   exit 1
 fi
 if [[ ! -f "$build_dir/compile_commands.json" ]]; then
-  cmake -S "$root" -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=Release >/dev/null
+  cmake -S "$root" -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=Release -DOXBOW_UNITY_BUILD=OFF >/dev/null
+fi
+if grep -q '/Unity/unity_' "$build_dir/compile_commands.json"; then
+  echo "clang-tidy.sh: $build_dir is a unity build: its compile database names unity files, not the sources;" \
+       "configure it with -DOXBOW_UNITY_BUILD=OFF" >&2
+  exit 2
 fi
 # Sources that include generated headers (server/cluster: shard.proto's) need them in the build tree.
 cmake --build "$build_dir" --target oxbow_generated_sources >/dev/null

@@ -28,9 +28,11 @@ test_targets() {
   ninja -C "$1" -t targets all | sed -n 's/^\([a-z0-9_]*_\(test\|replay\)\): phony$/\1/p' | grep -v '^cmake_' | sort -u
 }
 
-configure() {  # configure DIR SANITIZERS
+# configure DIR SANITIZERS [UNITY]: unity builds (ON, the default) for building and testing; clang-tidy
+# needs build-asan's compile database with one command per source (OFF), so its phase configures that.
+configure() {
   cmake -S "$root" -B "$1" -G Ninja -DCMAKE_BUILD_TYPE=Release -DCMAKE_CXX_FLAGS_RELEASE="-O1 -g1" \
-    -DOXBOW_SANITIZE="$2" >/dev/null
+    -DOXBOW_SANITIZE="$2" -DOXBOW_UNITY_BUILD="${3:-ON}" >/dev/null
 }
 
 run_phase() {
@@ -73,7 +75,7 @@ phase_tsan() {
 }
 
 phase_tidy() {
-  [[ -f "$root/build-asan/compile_commands.json" ]] || configure "$root/build-asan" "address;undefined"
+  configure "$root/build-asan" "address;undefined" OFF
   "$root/scripts/clang-tidy.sh" "$root/build-asan"
 }
 

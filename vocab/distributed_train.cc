@@ -12,6 +12,7 @@
 #include "sift/base/hash.h"
 #include "sift/base/log.h"
 #include "sift/base/parallel.h"
+#include "sift/base/system.h"
 #include "vocab/distributed.h"
 #include "vocab/train_internal.h"
 
@@ -20,7 +21,6 @@ namespace oxbow::vocab {
 namespace {
 
 using Clock = std::chrono::steady_clock;
-double SecondsSince(Clock::time_point t) { return std::chrono::duration<double>(Clock::now() - t).count(); }
 
 constexpr std::string_view kCheckpointMagic = "OXBWKMCP";
 constexpr uint32_t kCheckpointVersion = 1;

@@ -17,6 +17,7 @@
 
 #include "sift/base/log.h"
 #include "sift/base/parallel.h"
+#include "sift/base/system.h"
 #include "vocab/kernels.h"
 #include "vocab/search.h"
 #include "vocab/train_internal.h"
@@ -51,7 +52,6 @@ std::optional<std::string> TrainOptions::Check() const {
 namespace {
 
 using Clock = std::chrono::steady_clock;
-double SecondsSince(Clock::time_point t) { return std::chrono::duration<double>(Clock::now() - t).count(); }
 
 constexpr size_t kGrain = 4096;  // fixed chunking: results independent of the thread count
 

@@ -20,6 +20,7 @@
 #include "index/storage/catalogue.h"
 #include "index/storage/checkpoint.h"
 #include "sift/base/log.h"
+#include "sift/base/system.h"
 
 namespace oxbow::index {
 namespace {
@@ -31,12 +32,10 @@ namespace fs = std::filesystem;
 // practically always succeeds; more than a few means the index checkpoints faster than files open.
 constexpr int kMaxAttempts = 8;
 
-std::string Errno() { return std::strerror(errno); }
-
 Status SyncPath(const std::string& path, int flags) {
   const int fd = ::open(path.c_str(), flags | O_CLOEXEC);
   if (fd < 0 || ::fsync(fd) != 0) {
-    const std::string error = Errno();
+    const std::string error = ErrnoText();
     if (fd >= 0) ::close(fd);
     return Fail(ErrorCode::kIoError, "cannot sync " + path + ": " + error);
   }
@@ -63,32 +62,32 @@ class Fd {
 // Copies the open file `from` (its whole content) to the new file `to`, fsync'ed; returns the bytes.
 Result<uint64_t> CopyFile(const Fd& from, const std::string& what, const std::string& to) {
   Fd out(::open(to.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0644));
-  if (out.get() < 0) return Fail(ErrorCode::kIoError, "cannot create " + to + ": " + Errno());
+  if (out.get() < 0) return Fail(ErrorCode::kIoError, "cannot create " + to + ": " + ErrnoText());
   std::vector<char> buffer(size_t{1} << 20);
   uint64_t total = 0;
   for (;;) {
     const ssize_t n = ::pread(from.get(), buffer.data(), buffer.size(), static_cast<off_t>(total));
     if (n < 0 && errno == EINTR) continue;
-    if (n < 0) return Fail(ErrorCode::kIoError, "cannot read " + what + ": " + Errno());
+    if (n < 0) return Fail(ErrorCode::kIoError, "cannot read " + what + ": " + ErrnoText());
     if (n == 0) break;
     for (ssize_t done = 0; done < n;) {
       const ssize_t w = ::write(out.get(), buffer.data() + done, static_cast<size_t>(n - done));
       if (w < 0 && errno == EINTR) continue;
-      if (w < 0) return Fail(ErrorCode::kIoError, "cannot write " + to + ": " + Errno());
+      if (w < 0) return Fail(ErrorCode::kIoError, "cannot write " + to + ": " + ErrnoText());
       done += w;
     }
     total += static_cast<uint64_t>(n);
   }
-  if (::fsync(out.get()) != 0) return Fail(ErrorCode::kIoError, "cannot sync " + to + ": " + Errno());
+  if (::fsync(out.get()) != 0) return Fail(ErrorCode::kIoError, "cannot sync " + to + ": " + ErrnoText());
   return total;
 }
 
 // One read transaction on a SQLite file through its own read-only connection: every read, and the
 // copy, see the database as it was when the transaction began, whatever other connections commit.
-class Snapshot {
+class SqliteSnapshot {
  public:
-  static Result<std::unique_ptr<Snapshot>> Begin(const std::string& path) {
-    std::unique_ptr<Snapshot> s(new Snapshot(path));
+  static Result<std::unique_ptr<SqliteSnapshot>> Begin(const std::string& path) {
+    std::unique_ptr<SqliteSnapshot> s(new SqliteSnapshot(path));
     if (sqlite3_open_v2(path.c_str(), &s->db_, SQLITE_OPEN_READONLY, nullptr) != SQLITE_OK) {
       return s->Failure("cannot open");
     }
@@ -99,12 +98,12 @@ class Snapshot {
     }
     return s;
   }
-  ~Snapshot() {
+  ~SqliteSnapshot() {
     if (db_) sqlite3_exec(db_, "ROLLBACK", nullptr, nullptr, nullptr);
     sqlite3_close(db_);
   }
-  Snapshot(const Snapshot&) = delete;
-  Snapshot& operator=(const Snapshot&) = delete;
+  SqliteSnapshot(const SqliteSnapshot&) = delete;
+  SqliteSnapshot& operator=(const SqliteSnapshot&) = delete;
 
   // The first column of the first row of `sql` as text; nullopt when there is no row.
   Result<std::optional<std::string>> Value(const char* sql) {
@@ -161,7 +160,7 @@ class Snapshot {
   }
 
  private:
-  explicit Snapshot(std::string path) : path_(std::move(path)) {}
+  explicit SqliteSnapshot(std::string path) : path_(std::move(path)) {}
   std::unexpected<Error> Failure(const std::string& what) const {
     const int rc = db_ ? sqlite3_extended_errcode(db_) : SQLITE_NOMEM;
     const bool damaged = (rc & 0xff) == SQLITE_CORRUPT || (rc & 0xff) == SQLITE_NOTADB;
@@ -174,8 +173,8 @@ class Snapshot {
 
 // What one attempt holds: the snapshots and the open checkpoint files their manifest names.
 struct Attempt {
-  std::unique_ptr<Snapshot> catalogue;
-  std::vector<std::pair<std::string, std::unique_ptr<Snapshot>>> extras;  // name, snapshot
+  std::unique_ptr<SqliteSnapshot> catalogue;
+  std::vector<std::pair<std::string, std::unique_ptr<SqliteSnapshot>>> extras;  // name, snapshot
   int64_t images = 0;
   CheckpointManifest manifest;
   std::vector<Fd> files;  // manifest.files' order
@@ -184,14 +183,14 @@ struct Attempt {
 Status BeginSnapshots(const std::string& dir, const BackupOptions& options, Attempt& attempt) {
   std::unique_lock<std::mutex> lock;
   if (options.snapshot_mutex) lock = std::unique_lock<std::mutex>(*options.snapshot_mutex);
-  auto catalogue = Snapshot::Begin((fs::path(dir) / kCatalogueFile).string());
+  auto catalogue = SqliteSnapshot::Begin((fs::path(dir) / kCatalogueFile).string());
   if (!catalogue) return std::unexpected(catalogue.error());
   attempt.catalogue = std::move(*catalogue);
   for (const auto& name : options.extra_databases) {
     const std::string path = (fs::path(dir) / name).string();
     std::error_code ec;
     if (!fs::exists(path, ec)) continue;
-    auto extra = Snapshot::Begin(path);
+    auto extra = SqliteSnapshot::Begin(path);
     if (!extra) return std::unexpected(extra.error());
     attempt.extras.emplace_back(name, std::move(*extra));
   }
@@ -220,7 +219,7 @@ Result<bool> Prepare(const std::string& dir, const BackupOptions& options, int n
     const std::string path = (fs::path(dir) / file.name).string();
     Fd fd(::open(path.c_str(), O_RDONLY | O_CLOEXEC));
     if (fd.get() < 0 && errno == ENOENT) return false;
-    if (fd.get() < 0) return Fail(ErrorCode::kIoError, "cannot open " + path + ": " + Errno());
+    if (fd.get() < 0) return Fail(ErrorCode::kIoError, "cannot open " + path + ": " + ErrnoText());
     attempt.files.push_back(std::move(fd));
   }
   return true;
@@ -274,7 +273,7 @@ Result<BackupResult> WriteBackup(const std::string& dir, const std::string& tmp,
   // The vocabulary copy is never rewritten; the fingerprint check at open covers its content.
   const std::string vocabulary = (fs::path(dir) / kVocabularyFile).string();
   Fd fd(::open(vocabulary.c_str(), O_RDONLY | O_CLOEXEC));
-  if (fd.get() < 0) return Fail(ErrorCode::kIoError, "cannot open " + vocabulary + ": " + Errno());
+  if (fd.get() < 0) return Fail(ErrorCode::kIoError, "cannot open " + vocabulary + ": " + ErrnoText());
   auto bytes = CopyFile(fd, vocabulary, (fs::path(tmp) / kVocabularyFile).string());
   if (!bytes) return std::unexpected(bytes.error());
   result.bytes += *bytes;
@@ -282,7 +281,7 @@ Result<BackupResult> WriteBackup(const std::string& dir, const std::string& tmp,
     const std::string source = (fs::path(dir) / name).string();
     Fd extra(::open(source.c_str(), O_RDONLY | O_CLOEXEC));
     if (extra.get() < 0 && errno == ENOENT) continue;
-    if (extra.get() < 0) return Fail(ErrorCode::kIoError, "cannot open " + source + ": " + Errno());
+    if (extra.get() < 0) return Fail(ErrorCode::kIoError, "cannot open " + source + ": " + ErrnoText());
     auto extra_bytes = CopyFile(extra, source, (fs::path(tmp) / name).string());
     if (!extra_bytes) return std::unexpected(extra_bytes.error());
     result.bytes += *extra_bytes;

@@ -15,6 +15,8 @@
 #include <set>
 #include <sstream>
 
+#include "sift/base/system.h"
+
 namespace oxbow::index {
 namespace {
 
@@ -46,8 +48,6 @@ struct CheckedGeometryEntry {
   uint64_t checksum;
 };
 static_assert(sizeof(CheckedGeometryEntry) == 40);
-
-std::string Errno() { return std::strerror(errno); }
 
 bool IsCheckpointFileName(const std::string& name) {
   const bool ours = name.starts_with("postings-") || name.starts_with("segment-") || name.starts_with("geometry-");
@@ -168,10 +168,10 @@ bool KeepDescriptor() {
 
 Result<std::shared_ptr<const MappedFile>> MappedFile::Open(const std::string& path, Use use) {
   const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
-  if (fd < 0) return Fail(errno == ENOENT ? ErrorCode::kNotFound : ErrorCode::kIoError, path + ": " + Errno());
+  if (fd < 0) return Fail(errno == ENOENT ? ErrorCode::kNotFound : ErrorCode::kIoError, path + ": " + ErrnoText());
   struct stat st {};
   if (::fstat(fd, &st) != 0) {
-    const std::string message = Errno();
+    const std::string message = ErrnoText();
     ::close(fd);
     return Fail(ErrorCode::kIoError, path + ": " + message);
   }
@@ -180,7 +180,7 @@ Result<std::shared_ptr<const MappedFile>> MappedFile::Open(const std::string& pa
   if (size > 0 && use == Use::kRandom) {
     data = ::mmap(nullptr, size, PROT_READ, MAP_SHARED, fd, 0);
     if (data == MAP_FAILED) {
-      const std::string message = Errno();
+      const std::string message = ErrnoText();
       ::close(fd);
       return Fail(ErrorCode::kIoError, "cannot map " + path + ": " + message);
     }
@@ -188,7 +188,7 @@ Result<std::shared_ptr<const MappedFile>> MappedFile::Open(const std::string& pa
   } else if (size > 0) {
     data = ::mmap(nullptr, size, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
     if (data == MAP_FAILED) {
-      const std::string message = Errno();
+      const std::string message = ErrnoText();
       ::close(fd);
       return Fail(ErrorCode::kResourceExhausted, "cannot allocate " + std::to_string(size) + " bytes for " + path + ": " + message);
     }
@@ -201,13 +201,13 @@ Result<std::shared_ptr<const MappedFile>> MappedFile::Open(const std::string& pa
       const ssize_t n = ::read(fd, out + done, std::min<size_t>(size - done, size_t{64} << 20));
       if (n < 0 && errno == EINTR) continue;
       if (n <= 0) {
-        error = n < 0 ? Errno() : "the file shrank while it was read";
+        error = n < 0 ? ErrnoText() : "the file shrank while it was read";
         break;
       }
       done += static_cast<size_t>(n);
     }
     if (done < size || ::mprotect(data, size, PROT_READ) != 0) {
-      if (error.empty()) error = Errno();
+      if (error.empty()) error = ErrnoText();
       ::munmap(data, size);
       ::close(fd);
       return Fail(ErrorCode::kIoError, "cannot read " + path + ": " + error);
@@ -275,7 +275,7 @@ Result<CheckpointFile> WriteCheckpointFile(const std::string& dir, const std::st
   const std::string path = (std::filesystem::path(dir) / name).string();
   const std::string tmp = path + ".tmp";
   const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
-  if (fd < 0) return Fail(ErrorCode::kIoError, "cannot create " + tmp + ": " + Errno());
+  if (fd < 0) return Fail(ErrorCode::kIoError, "cannot create " + tmp + ": " + ErrnoText());
   CheckpointFile file{.name = name};
   Checksum checksum;
   std::vector<uint8_t> buffer;
@@ -289,7 +289,7 @@ Result<CheckpointFile> WriteCheckpointFile(const std::string& dir, const std::st
       if (n < 0 && errno == EINTR) continue;
       if (n <= 0) {
         ok = false;
-        error = Errno();
+        error = ErrnoText();
       } else {
         done += static_cast<size_t>(n);
       }
@@ -316,15 +316,15 @@ Result<CheckpointFile> WriteCheckpointFile(const std::string& dir, const std::st
   CheckpointStage("file-unsynced");
   if (ok && ::fsync(fd) != 0) {
     ok = false;
-    error = Errno();
+    error = ErrnoText();
   }
   if (::close(fd) != 0 && ok) {
     ok = false;
-    error = Errno();
+    error = ErrnoText();
   }
   if (ok && ::rename(tmp.c_str(), path.c_str()) != 0) {
     ok = false;
-    error = Errno();
+    error = ErrnoText();
   }
   if (!ok) {
     ::unlink(tmp.c_str());
@@ -333,7 +333,7 @@ Result<CheckpointFile> WriteCheckpointFile(const std::string& dir, const std::st
   // The rename is durable once the folder is.
   const int dir_fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
   if (dir_fd < 0 || ::fsync(dir_fd) != 0) {
-    error = Errno();
+    error = ErrnoText();
     if (dir_fd >= 0) ::close(dir_fd);
     return Fail(ErrorCode::kIoError, "cannot sync the folder " + dir + ": " + error);
   }
@@ -427,7 +427,7 @@ std::optional<Status> VerifyCheckpointFileUnless(const std::string& dir, const C
   const std::string path = (std::filesystem::path(dir) / file.name).string();
   const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
   if (fd < 0) {
-    return Fail(errno == ENOENT ? ErrorCode::kNotFound : ErrorCode::kIoError, "checkpoint file " + path + ": " + Errno());
+    return Fail(errno == ENOENT ? ErrorCode::kNotFound : ErrorCode::kIoError, "checkpoint file " + path + ": " + ErrnoText());
   }
   CacheNeutralReader reader(fd);
   std::vector<uint8_t> buffer(size_t{4} << 20);
@@ -439,7 +439,7 @@ std::optional<Status> VerifyCheckpointFileUnless(const std::string& dir, const C
     if (n < 0) {
       std::string message = "cannot read checkpoint file " + path;
       message += ": ";
-      message += Errno();
+      message += ErrnoText();
       return Fail(ErrorCode::kIoError, message);
     }
     if (n == 0) break;

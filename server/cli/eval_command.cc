@@ -130,7 +130,7 @@ void SetUp(CLI::App& app) {
   });
 }
 
-const bool registered = RegisterCommand({"eval", 80, &SetUp});
+const bool registered_eval = RegisterCommand({"eval", 80, &SetUp});
 
 }  // namespace
 }  // namespace oxbow::cli

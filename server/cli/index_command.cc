@@ -628,7 +628,7 @@ void SetUpIndex(CLI::App& app) {
   SetUpDuplicates(*cmd);
 }
 
-const bool registered = RegisterCommand({"index", 30, &SetUpIndex});
+const bool registered_index = RegisterCommand({"index", 30, &SetUpIndex});
 
 }  // namespace
 }  // namespace oxbow::cli

@@ -136,7 +136,7 @@ void SetUpMatch(CLI::App& app) {
   cmd->callback([args] { RunMatch(*args); });
 }
 
-const bool registered = RegisterCommand({"match", 30, &SetUpMatch});
+const bool registered_match = RegisterCommand({"match", 30, &SetUpMatch});
 
 }  // namespace
 }  // namespace oxbow::cli

@@ -82,8 +82,7 @@ void SetUpQuery(CLI::App& app) {
   AddImageFlags(cmd, &args->image_flags);
   AddThreadsFlag(cmd, &args->threads);
   cmd->callback([args, qe] {
-    using Clock = std::chrono::steady_clock;
-    const auto t0 = Clock::now();
+    const auto t0 = std::chrono::steady_clock::now();
     if (!args->bbox.empty()) args->options.region = ParseBox(args->bbox);
     if (args->options.rerank_depth == 0 && qe->count() == 0) args->options.query_expansion = false;
     if (!args->filter.empty()) args->options.filter = ValueOrExit(api::ParseFilter(args->filter, "--filter"));
@@ -92,7 +91,7 @@ void SetUpQuery(CLI::App& app) {
     const sift::DecodeOptions decode = args->image_flags.ToDecodeOptions();
     args->index_options.num_threads = args->threads;
     auto idx = ValueOrExit(index::ImageIndex::Open(args->index, args->index_options));
-    const double open_ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+    const double open_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
     sift::SiftOptions sift_options = ValueOrExit(sift::SiftOptions::FromDescription(idx->extractor_settings()));
     sift_options.num_threads = args->threads;
     const sift::SiftExtractor extractor = ValueOrExit(sift::SiftExtractor::Create(sift_options));
@@ -115,7 +114,7 @@ void SetUpQuery(CLI::App& app) {
   });
 }
 
-const bool registered = RegisterCommand({"query", 40, &SetUpQuery});
+const bool registered_query = RegisterCommand({"query", 40, &SetUpQuery});
 
 }  // namespace
 }  // namespace oxbow::cli

@@ -390,7 +390,7 @@ void SetUpServe(CLI::App& app) {
   cmd->callback([flags] { Serve(*flags); });
 }
 
-const bool registered = RegisterCommand({"serve", 60, &SetUpServe});
+const bool registered_serve = RegisterCommand({"serve", 60, &SetUpServe});
 
 }  // namespace
 }  // namespace oxbow::cli

@@ -433,7 +433,7 @@ void SetUpVocab(CLI::App& app) {
   });
 }
 
-const bool registered = RegisterCommand({"vocab", 20, &SetUpVocab});
+const bool registered_vocab = RegisterCommand({"vocab", 20, &SetUpVocab});
 
 }  // namespace
 }  // namespace oxbow::cli
