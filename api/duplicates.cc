@@ -1,6 +1,7 @@
 #include "api/duplicates.h"
 
 #include <algorithm>
+#include <bit>
 #include <chrono>
 #include <cstring>
 #include <cmath>
@@ -15,6 +16,7 @@
 #include "index/search/source.h"
 #include "sift/base/log.h"
 #include "sift/base/parallel.h"
+#include "sift/base/system.h"
 #include "sift/types.h"
 #include "vocab/communicator.h"
 #include "vocab/vocabulary.h"
@@ -26,8 +28,14 @@ using Clock = std::chrono::steady_clock;
 constexpr int kGrid = 8;                   // coverage cells per side
 constexpr double kExactCoverage = 0.9;
 constexpr double kExactTwins = 0.98;       // share of features with an identical twin in an exact copy
-
-double SecondsSince(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+// A small or dense match of distinct content is another photo of the same thing, not a shared overlay:
+// the median Hamming distance of its inliers' signatures is above kIdenticalHamming (of 64 bits; pixels
+// pasted on two photos give near-identical signatures, another photo of an object about a quarter of
+// the bits), at least kCentralShare of its inliers lie in the central cells of each image (an overlay
+// sits in a band, a corner or a border), and it covers at least kDistinctCoverage of one image.
+constexpr int kIdenticalHamming = 6;
+constexpr double kCentralShare = 0.05;
+constexpr double kDistinctCoverage = 0.1;
 
 // Every rank's `part` (CBOR: doubles exact) on every rank: the ranks' encodings, each after its 8-byte size.
 std::vector<uint8_t> GatherJson(vocab::Communicator& comm, const nlohmann::json& part) {
@@ -170,6 +178,8 @@ struct Measure {
   double density_a = 0, density_b = 0;  // inliers / features inside each region
   double coverage_a = 0, coverage_b = 0;
   bool central = false;  // some inlier in the central cells of a or b
+  int central_a = 0, central_b = 0;  // inliers in the central cells of each
+  int hamming_median = -1;           // of the inliers' signatures; -1 without signatures (mirrored)
   std::array<float, 4> region_a{}, region_b{};
 };
 
@@ -197,13 +207,15 @@ Measure MeasurePair(const index::search::QueryFeatures& a, const index::search::
   for (const auto& kp : a.keypoints) cells_a[Cell(kp.x, kp.y, a.width, a.height)] = 1;
   for (const auto& kp : b.keypoints) cells_b[Cell(kp.x, kp.y, b.width, b.height)] = 1;
   float ax1 = 1e30f, ay1 = 1e30f, ax2 = -1e30f, ay2 = -1e30f, bx1 = 1e30f, by1 = 1e30f, bx2 = -1e30f, by2 = -1e30f;
+  const bool signed_features = a.signatures.size() == a.words.size() && b.signatures.size() == b.words.size();
+  std::vector<int> distances;  // Hamming distances of the inliers' signatures
   for (size_t i = 0; i < a.words.size(); ++i) {
     const sift::Keypoint& p = a.keypoints[i];
     const Eigen::Vector2d mapped = b_from_a.Apply({p.x, p.y});
     const auto [begin, end] = b_by_word.equal_range(a.words[i]);
     // The first feature of b within the tolerance is the match, unless one is a's twin (same place,
     // scale and orientation: identical pixels there).
-    const sift::Keypoint* match = nullptr;
+    size_t match = b.keypoints.size();  // none
     bool twin = false;
     for (auto it = begin; it != end && !twin; ++it) {
       const sift::Keypoint& q = b.keypoints[it->second];
@@ -213,16 +225,19 @@ Measure MeasurePair(const index::search::QueryFeatures& a, const index::search::
       if (ratio < 0.5 || ratio > 2.0) continue;
       twin = std::abs(p.x - q.x) <= 0.5f && std::abs(p.y - q.y) <= 0.5f && std::abs(p.scale - q.scale) <= 0.05f * p.scale &&
              std::abs(std::remainder(p.orientation - q.orientation, 2 * M_PI)) <= 0.05;
-      if (match == nullptr || twin) match = &q;
+      if (match == b.keypoints.size() || twin) match = it->second;
     }
-    if (match != nullptr) {
-      const sift::Keypoint& q = *match;
+    if (match != b.keypoints.size()) {
+      const sift::Keypoint& q = b.keypoints[match];
       ++m.inliers;
+      if (signed_features) distances.push_back(std::popcount(a.signatures[i] ^ b.signatures[match]));
       m.twins += twin ? 1 : 0;
       const int ca = Cell(p.x, p.y, a.width, a.height), cb = Cell(q.x, q.y, b.width, b.height);
       hit_a[ca] = 1;
       hit_b[cb] = 1;
       m.central = m.central || Central(ca) || Central(cb);
+      m.central_a += Central(ca) ? 1 : 0;
+      m.central_b += Central(cb) ? 1 : 0;
       ax1 = std::min(ax1, p.x), ay1 = std::min(ay1, p.y), ax2 = std::max(ax2, p.x), ay2 = std::max(ay2, p.y);
       bx1 = std::min(bx1, q.x), by1 = std::min(by1, q.y), bx2 = std::max(bx2, q.x), by2 = std::max(by2, q.y);
     }
@@ -231,6 +246,11 @@ Measure MeasurePair(const index::search::QueryFeatures& a, const index::search::
     const int with = static_cast<int>(std::count(cells.begin(), cells.end(), 1));
     return with == 0 ? 0.0 : static_cast<double>(std::count(hit.begin(), hit.end(), 1)) / with;
   };
+  if (!distances.empty()) {
+    const auto middle = distances.begin() + static_cast<std::ptrdiff_t>(distances.size() / 2);
+    std::nth_element(distances.begin(), middle, distances.end());
+    m.hamming_median = *middle;
+  }
   m.coverage_a = share(hit_a, cells_a);
   m.coverage_b = share(hit_b, cells_b);
   if (m.inliers > 0) {
@@ -245,6 +265,20 @@ Measure MeasurePair(const index::search::QueryFeatures& a, const index::search::
     m.density_b = static_cast<double>(m.inliers) / inside(b, m.region_b);
   }
   return m;
+}
+
+// Whether a measured pair is kept, or dropped as sharing only an overlay: a match that reaches no
+// central cell, or that covers less than `min_coverage` of both images, or that is dense (identical
+// pixels) over less than `overlay_coverage` of both, is an overlay unless its content is distinct
+// (kIdenticalHamming, kCentralShare, kDistinctCoverage above; a mirrored pair has no signatures to tell).
+bool KeptAsDuplicate(const Measure& m, const DuplicateOptions& options) {
+  if (!m.central) return false;
+  const double larger_coverage = std::max(m.coverage_a, m.coverage_b);
+  const bool dense = larger_coverage < options.overlay_coverage &&
+                     std::max(m.density_a, m.density_b) >= options.overlay_density;
+  if (larger_coverage >= options.min_coverage && !dense) return true;
+  return m.hamming_median > kIdenticalHamming && larger_coverage >= std::min(options.min_coverage, kDistinctCoverage) &&
+         std::min(m.central_a, m.central_b) >= kCentralShare * m.inliers;
 }
 
 // Singular values of the linear part, larger first.
@@ -419,18 +453,14 @@ Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const Dup
       // The map goes from the query's pixels to the result's: measure in that direction.
       const std::string& from = c.a_is_query ? a_id : b_id;
       const std::string& to = c.a_is_query ? b_id : a_id;
-      auto qa = index::search::StoredQuery(*source, from, plain, &record_a);
-      auto qb = index::search::StoredQuery(*source, to, plain, &record_b);
+      // A direct pair's features with their signatures: how alike the matched content is.
+      const index::QueryOptions& loaded = is_mirrored ? plain : query;
+      auto qa = index::search::StoredQuery(*source, from, loaded, &record_a);
+      auto qb = index::search::StoredQuery(*source, to, loaded, &record_b);
       if (!qa || !qb) continue;  // deleted meanwhile
       const index::search::QueryFeatures query_side = is_mirrored ? Mirrored(*qa, word_map) : *qa;
       Measure m = MeasurePair(query_side, *qb, c.b_from_a, options.inlier_tolerance);
-      // A shared overlay: the match covers little of both, or only their borders, or it is a dense match
-      // (identical pixels) confined to a part of both images.
-      const double larger_coverage = std::max(m.coverage_a, m.coverage_b);
-      if (larger_coverage < options.min_coverage || !m.central ||
-          (larger_coverage < options.overlay_coverage && std::max(m.density_a, m.density_b) >= options.overlay_density)) {
-        continue;
-      }
+      if (!KeptAsDuplicate(m, options)) continue;
       DuplicatePair pair;
       pair.mirrored = is_mirrored;
       pair.inliers = m.inliers;
@@ -543,7 +573,9 @@ nlohmann::json DuplicateReportToJson(const DuplicateReport& report, const Duplic
           {"settings", {{"candidates", options.candidates}, {"mirrored", options.mirrored},
                         {"min_coverage", options.min_coverage}, {"near_copy_coverage", options.near_copy_coverage},
                         {"overlay_coverage", options.overlay_coverage}, {"overlay_density", options.overlay_density},
-                        {"max_anisotropy", options.max_anisotropy}, {"inlier_tolerance", options.inlier_tolerance}}},
+                        {"max_anisotropy", options.max_anisotropy}, {"inlier_tolerance", options.inlier_tolerance},
+                        {"distinct_hamming", kIdenticalHamming}, {"distinct_central_share", kCentralShare},
+                        {"distinct_coverage", std::min(options.min_coverage, kDistinctCoverage)}}},
           {"pairs", pairs},
           {"groups", groups},
           {"candidate_pairs", report.candidate_pairs},

@@ -14,6 +14,7 @@
 #include "sift/sift.h"
 #include "tests/support/samples.h"
 #include "tests/support/temp_dir.h"
+#include "vocab/vocabulary.h"
 
 namespace oxbow::api {
 namespace {
@@ -160,6 +161,85 @@ TEST_F(DuplicatesTest, FindsCopiesWithTheirKindAndIgnoresASharedLogo) {
   auto cancelled = FindDuplicates((*service)->index(), options, {}, [] { return true; });
   ASSERT_FALSE(cancelled);
   EXPECT_EQ(cancelled.error().code, ErrorCode::kResourceExhausted);
+}
+
+// The test vocabulary of tests/support/samples.h, with Hamming-embedding parameters when `hamming`.
+void WriteVocabulary(const std::vector<std::string>& images, bool hamming, const std::string& path) {
+  auto extractor = sift::SiftExtractor::Create(testing::TestSiftOptions());
+  ASSERT_TRUE(extractor);
+  std::vector<float> descriptors;
+  for (const auto& name : images) {
+    auto features = extractor->ExtractFromFile(SamplePath(name));
+    ASSERT_TRUE(features) << name;
+    descriptors.insert(descriptors.end(), features->descriptors.begin(), features->descriptors.end());
+  }
+  vocab::TrainOptions train;
+  train.num_words = 500;
+  train.max_iterations = 10;
+  auto vocabulary = vocab::Train(descriptors, sift::kDescriptorDim, sift::DescriptorKind::kRootSift,
+                                 testing::TestSiftOptions().Describe(), train);
+  ASSERT_TRUE(vocabulary) << vocabulary.error().ToString();
+  if (hamming) {
+    auto with = vocabulary->WithHamming(descriptors, 7, vocab::QuantizerOptions{.exact = true});
+    ASSERT_TRUE(with) << with.error().ToString();
+    vocabulary = std::move(with);
+  }
+  ASSERT_TRUE(vocabulary->Write(path));
+}
+
+// Another photo of an object (the box alone, and in a cluttered scene) matches little of the scene, like
+// a shared logo; its content is distinct (the signatures of its inliers differ), the logo's is not. With
+// `min_coverage` raised so that every kept pair goes through that test, the box pair is kept as the same
+// scene and the logo pair dropped; without signatures (a vocabulary without Hamming embedding) neither
+// can be told apart and both are dropped.
+TEST_F(DuplicatesTest, KeepsAnotherPhotoOfAnObjectAndDropsASharedLogoByTheirContent) {
+  const cv::Mat logo = cv::imread(SamplePath("fruits.jpg"), cv::IMREAD_COLOR)(cv::Rect(100, 100, 180, 180)).clone();
+  cv::Mat home = cv::imread(SamplePath("home.jpg"), cv::IMREAD_COLOR);
+  cv::Mat leuven = cv::imread(SamplePath("leuvenA.jpg"), cv::IMREAD_COLOR);
+  logo.copyTo(home(cv::Rect(0, 0, logo.cols, logo.rows)));
+  logo.copyTo(leuven(cv::Rect(leuven.cols - logo.cols, leuven.rows - logo.rows, logo.cols, logo.rows)));
+  const std::map<std::string, cv::Mat> images = {{"box", cv::imread(SamplePath("box.png"), cv::IMREAD_COLOR)},
+                                                 {"box-scene", cv::imread(SamplePath("box_in_scene.png"), cv::IMREAD_COLOR)},
+                                                 {"home-logo", home},
+                                                 {"leuven-logo", leuven}};
+  for (const bool hamming : {true, false}) {
+    SCOPED_TRACE(hamming ? "with signatures" : "without signatures");
+    oxbow::testing::TempDir dir("oxbow-duplicates-content");
+    const std::string vocab_path = dir.path() + "/vocab.oxvoc";
+    WriteVocabulary({"graf1.png", "box_in_scene.png", "leuvenA.jpg", "fruits.jpg"}, hamming, vocab_path);
+    auto service = Service::Open(dir.path() + "/index", vocab_path, ServiceOptions{});
+    ASSERT_TRUE(service) << service.error().ToString();
+    for (const auto& [id, image] : images) {
+      const auto bytes = Png(image);
+      AddImageRequest request;
+      request.id = id;
+      request.image = bytes;
+      auto added = (*service)->AddImage(request);
+      ASSERT_TRUE(added) << id << ": " << added.error().ToString();
+    }
+    DuplicateOptions options;
+    options.threads = 2;
+    options.mirrored = false;
+    options.min_coverage = 0.9;
+    auto report = FindDuplicates((*service)->index(), options);
+    ASSERT_TRUE(report) << report.error().ToString();
+    std::map<std::pair<std::string, std::string>, DuplicatePair> pairs;
+    for (const auto& p : report->pairs) pairs[{p.a, p.b}] = p;
+    // Both pairs were verified by the searches; the measure decides.
+    EXPECT_EQ(report->candidate_pairs, 2u);
+    EXPECT_FALSE(pairs.contains({"home-logo", "leuven-logo"}));
+    if (hamming) {
+      ASSERT_TRUE(pairs.contains({"box", "box-scene"}));
+      const DuplicatePair& box = pairs[{"box", "box-scene"}];
+      EXPECT_EQ(box.kind, DuplicateKind::kSameScene);
+      EXPECT_LT(std::max(box.coverage_a, box.coverage_b), options.min_coverage);
+      EXPECT_EQ(report->pairs.size(), 1u);
+      EXPECT_EQ(report->overlay_pairs, 1u);
+    } else {
+      EXPECT_TRUE(report->pairs.empty());
+      EXPECT_EQ(report->overlay_pairs, 2u);
+    }
+  }
 }
 
 }  // namespace
