@@ -31,11 +31,16 @@ constexpr double kExactTwins = 0.98;       // share of features with an identica
 // A small or dense match of distinct content is another photo of the same thing, not a shared overlay:
 // the median Hamming distance of its inliers' signatures is above kIdenticalHamming (of 64 bits; pixels
 // pasted on two photos give near-identical signatures, another photo of an object about a quarter of
-// the bits), at least kCentralShare of its inliers lie in the central cells of each image (an overlay
-// sits in a band, a corner or a border), and it covers at least kDistinctCoverage of one image.
+// the bits), at least kCentralShare of its inliers lie in the central cells of one image and
+// kCentralShareOther in those of the other (an overlay sits in a band, a corner or a border of both),
+// and it covers at least kDistinctCoverage of one image.
 constexpr int kIdenticalHamming = 6;
-constexpr double kCentralShare = 0.05;
-constexpr double kDistinctCoverage = 0.1;
+constexpr double kCentralShare = 0.1;
+constexpr double kCentralShareOther = 0.01;
+constexpr double kDistinctCoverage = 0.05;
+// A mirrored match covers at least this much of one image: a mirror image of a photo matches most of
+// it, while a symmetric logo or frame, or a symmetric part of a building, matches itself mirrored in part.
+constexpr double kMirroredCoverage = 0.4;
 
 // Every rank's `part` (CBOR: doubles exact) on every rank: the ranks' encodings, each after its 8-byte size.
 std::vector<uint8_t> GatherJson(vocab::Communicator& comm, const nlohmann::json& part) {
@@ -268,17 +273,20 @@ Measure MeasurePair(const index::search::QueryFeatures& a, const index::search::
 }
 
 // Whether a measured pair is kept, or dropped as sharing only an overlay: a match that reaches no
-// central cell, or that covers less than `min_coverage` of both images, or that is dense (identical
-// pixels) over less than `overlay_coverage` of both, is an overlay unless its content is distinct
-// (kIdenticalHamming, kCentralShare, kDistinctCoverage above; a mirrored pair has no signatures to tell).
-bool KeptAsDuplicate(const Measure& m, const DuplicateOptions& options) {
+// central cell, or that covers less than `min_coverage` of both images (a mirrored one: less than
+// kMirroredCoverage), or that is dense (identical pixels) over less than `overlay_coverage` of both, is an
+// overlay unless its content is distinct (kIdenticalHamming, kCentralShare, kCentralShareOther,
+// kDistinctCoverage above; a mirrored pair has no signatures to tell).
+bool KeptAsDuplicate(const Measure& m, bool mirrored, const DuplicateOptions& options) {
   if (!m.central) return false;
   const double larger_coverage = std::max(m.coverage_a, m.coverage_b);
+  if (mirrored && larger_coverage < std::max(options.min_coverage, kMirroredCoverage)) return false;
   const bool dense = larger_coverage < options.overlay_coverage &&
                      std::max(m.density_a, m.density_b) >= options.overlay_density;
   if (larger_coverage >= options.min_coverage && !dense) return true;
+  const int central_more = std::max(m.central_a, m.central_b), central_less = std::min(m.central_a, m.central_b);
   return m.hamming_median > kIdenticalHamming && larger_coverage >= std::min(options.min_coverage, kDistinctCoverage) &&
-         std::min(m.central_a, m.central_b) >= kCentralShare * m.inliers;
+         central_more >= kCentralShare * m.inliers && central_less >= kCentralShareOther * m.inliers;
 }
 
 // Singular values of the linear part, larger first.
@@ -460,7 +468,7 @@ Result<DuplicateReport> FindDuplicates(const index::ImageIndex& index, const Dup
       if (!qa || !qb) continue;  // deleted meanwhile
       const index::search::QueryFeatures query_side = is_mirrored ? Mirrored(*qa, word_map) : *qa;
       Measure m = MeasurePair(query_side, *qb, c.b_from_a, options.inlier_tolerance);
-      if (!KeptAsDuplicate(m, options)) continue;
+      if (!KeptAsDuplicate(m, is_mirrored, options)) continue;
       DuplicatePair pair;
       pair.mirrored = is_mirrored;
       pair.inliers = m.inliers;
@@ -575,7 +583,9 @@ nlohmann::json DuplicateReportToJson(const DuplicateReport& report, const Duplic
                         {"overlay_coverage", options.overlay_coverage}, {"overlay_density", options.overlay_density},
                         {"max_anisotropy", options.max_anisotropy}, {"inlier_tolerance", options.inlier_tolerance},
                         {"distinct_hamming", kIdenticalHamming}, {"distinct_central_share", kCentralShare},
-                        {"distinct_coverage", std::min(options.min_coverage, kDistinctCoverage)}}},
+                        {"distinct_central_share_other", kCentralShareOther},
+                        {"distinct_coverage", std::min(options.min_coverage, kDistinctCoverage)},
+                        {"mirrored_coverage", std::max(options.min_coverage, kMirroredCoverage)}}},
           {"pairs", pairs},
           {"groups", groups},
           {"candidate_pairs", report.candidate_pairs},

@@ -14,12 +14,14 @@
 // scale) are its inliers; `coverage_a` is the share of A's feature-bearing cells of an 8 x 8 grid
 // that hold an inlier (the same for B); its density on each side is the share of the features inside
 // the inliers' box that are inliers. A pair shares only an overlay (a logo, a caption, a frame) and is
-// dropped when its inliers avoid the central cells of both images, or when its larger coverage is below
-// `min_coverage`, or when it is dense (identical pixels: density at least `overlay_density` on one side)
-// but covers less than `overlay_coverage` of both; the last two keep a match of distinct content (the
-// median Hamming distance of its inliers' signatures above 6 bits: not pasted pixels) that has at least
-// 5% of its inliers in the central cells of each image and covers at least 0.1 of one (another photo of
-// the same object often matches only that much). The kept pairs are:
+// dropped when its inliers avoid the central cells of both images, when it is mirrored and covers less
+// than 0.4 of both (a mirror copy matches most of a photo; a symmetric logo or frame matches itself
+// mirrored in part), when its larger coverage is below `min_coverage`, or when it is dense (identical
+// pixels: density at least `overlay_density` on one side) but covers less than `overlay_coverage` of
+// both; the last two keep a match of distinct content (the median Hamming distance of its inliers'
+// signatures above 6 bits: not pasted pixels) that has at least 10% of its inliers in the central cells
+// of one image and 1% in those of the other and covers at least 0.05 of one (another photo of the same
+// object often matches only that much). The kept pairs are:
 //   exact       the same picture: equal sizes, the identity map, both covered at least 0.9, at least 98%
 //               of the features identical (same word, place, scale and orientation), not mirrored;
 //   near_copy   one image is the other resized, recompressed, cropped, rotated, mirrored, retouched or

@@ -1217,6 +1217,15 @@ TEST_F(Cluster, HttpFrontServesCollectionsWithTheirKeysAndLimits) {
   EXPECT_TRUE(std::regex_search(metrics->body,
                                 std::regex(R"(oxbow_shard_calls_total\{partition="0",replica="[^"]+",collection="other"\} [1-9])")))
       << metrics->body;
+
+  // The front's key file is re-read on SIGHUP: keys removed by hand stop working.
+  std::ofstream(dir_->path() + "/front-keys.json", std::ios::trunc) << R"({"keys": []})";
+  front.Signal(SIGHUP);
+  EXPECT_TRUE(front.WaitForLog("re-read the collections' key file")) << front.Log();
+  EXPECT_EQ(add("d", writer, image0), 403);
+  auto revoked = images_of("other", writer);
+  ASSERT_TRUE(revoked);
+  EXPECT_EQ(revoked->status, 403) << revoked->body;
 }
 
 TEST(ClusterConfigFile, ReadsReplicasAndResolvesTheVocabularyBesideIt) {

@@ -116,6 +116,7 @@ void Serve(const ServeFlags& flags) {
   sigemptyset(&signals);
   sigaddset(&signals, SIGINT);
   sigaddset(&signals, SIGTERM);
+  sigaddset(&signals, SIGHUP);  // --data and --cluster: re-read the collections' key file
   if (flags.cluster_file.empty() + flags.index_dir.empty() + flags.data_dir.empty() != 2) {
     throw CommandError(2, "give one of --index, --data and --cluster");
   }
@@ -123,7 +124,6 @@ void Serve(const ServeFlags& flags) {
     pthread_sigmask(SIG_BLOCK, &signals, nullptr);
     return ServeFront(flags, http, service_options, signals);
   }
-  sigaddset(&signals, SIGHUP);  // --data: re-read the collections' key file
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);  // inherited by every thread started below
 
   server::HttpServer server(http);
@@ -223,7 +223,7 @@ void SetUpServe(CLI::App& app) {
       "  oxbow serve --index cluster/partition-0 --port 9101 --grpc-port 9001      # ... one per partition\n"
       "  oxbow serve --cluster cluster.json --port 8080\n"
       "Prints 'listening on http://HOST:PORT' on stdout once bound. SIGINT/SIGTERM stop it gracefully; SIGHUP "
-      "re-reads the collections' key file (--data).");
+      "re-reads the collections' key file (--data; with --cluster, cluster.json's \"collection_keys\").");
   cmd->add_option("--index", flags->index_dir, "index folder (created when empty and --vocab is given); served as the "
                                              "collection \"default\"");
   cmd->add_option("--data", flags->data_dir,

@@ -1,6 +1,7 @@
 // liboxbow_cluster.so: cluster_api.h over server/cluster (gRPC). Loaded by serve_command.cc.
 #include <pthread.h>
 
+#include <csignal>
 #include <cstdio>
 #include <string>
 #include <thread>
@@ -34,6 +35,7 @@ void ServeFront(const FrontArgs& args, const sigset_t& signals) {
   }
   std::unique_ptr<api::AccessKeys> keys;
   if (!config.collection_keys.empty()) keys = ValueOrExit(api::AccessKeys::Open(config.collection_keys));
+  api::AccessKeys* const key_file = keys.get();  // owned by the server, which outlives the signal thread
   cluster::FrontHttpOptions options;
   options.http = args.http;
   options.service = args.service;
@@ -46,6 +48,16 @@ void ServeFront(const FrontArgs& args, const sigset_t& signals) {
   std::thread signal_waiter([&] {
     int signal_number = 0;
     sigwait(&signals, &signal_number);
+    while (signal_number == SIGHUP) {  // re-read cluster.json's "collection_keys", as a single node its keys.json
+      if (key_file == nullptr) {
+        OXBOW_LOG(kInfo) << "received SIGHUP: nothing to re-read (cluster.json names no collection_keys)";
+      } else if (auto s = key_file->Reload(); !s) {
+        OXBOW_LOG(kError) << "received SIGHUP: the key file was not re-read, the keys stay as they were: " << s.error().ToString();
+      } else {
+        OXBOW_LOG(kInfo) << "received SIGHUP: re-read the collections' key file";
+      }
+      sigwait(&signals, &signal_number);
+    }
     OXBOW_LOG(kInfo) << "received a stop signal: finishing in-flight requests";
     server->Shutdown();
   });
