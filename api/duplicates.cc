@@ -41,6 +41,14 @@ constexpr double kDistinctCoverage = 0.05;
 // A mirrored match covers at least this much of one image: a mirror image of a photo matches most of
 // it, while a symmetric logo or frame, or a symmetric part of a building, matches itself mirrored in part.
 constexpr double kMirroredCoverage = 0.4;
+// Two pictures in one frame (a screenshot of a viewer, a border, a template): the match is identical
+// pixels at the same places (at least kFrameTwins of its inliers are twins, their signatures alike) around
+// a block of the frame's centre where both images hold features and none match, which is at least
+// kFramedContent of the cells the two images share (cells of a kFineGrid x kFineGrid grid). A copy
+// differs from its original in scattered cells, a caption or a logo in a band or a corner.
+constexpr double kFrameTwins = 0.5;
+constexpr double kFramedContent = 0.2;
+constexpr int kFineGrid = 16;
 
 // Every rank's `part` (CBOR: doubles exact) on every rank: the ranks' encodings, each after its 8-byte size.
 std::vector<uint8_t> GatherJson(vocab::Communicator& comm, const nlohmann::json& part) {
@@ -185,6 +193,7 @@ struct Measure {
   bool central = false;  // some inlier in the central cells of a or b
   int central_a = 0, central_b = 0;  // inliers in the central cells of each
   int hamming_median = -1;           // of the inliers' signatures; -1 without signatures (mirrored)
+  double framed = 0;                 // FramedContent, the larger of both sides
   std::array<float, 4> region_a{}, region_b{};
 };
 
@@ -194,6 +203,58 @@ int Cell(float x, float y, int width, int height) {
   const int cy = std::clamp(static_cast<int>(y * kGrid / std::max(1, height)), 0, kGrid - 1);
   return cy * kGrid + cx;
 }
+int FineCell(float x, float y, int width, int height) {
+  const int cx = std::clamp(static_cast<int>(x * kFineGrid / std::max(1, width)), 0, kFineGrid - 1);
+  const int cy = std::clamp(static_cast<int>(y * kFineGrid / std::max(1, height)), 0, kFineGrid - 1);
+  return cy * kFineGrid + cx;
+}
+
+// The share of the cells `a` shares with `b` (fine cells holding a feature of a inside `region` whose
+// place in b, by `b_from_a`, is in a fine cell holding a feature of b) that lie in the largest connected
+// block of shared cells without an inlier (`hit`) that reaches the four central cells of a.
+double FramedContent(const index::search::QueryFeatures& a, const std::array<float, 4>& region,
+                     const std::vector<char>& hit, const index::search::QueryFeatures& b,
+                     const std::vector<char>& b_cells, const sift::Affine2D& b_from_a) {
+  std::vector<char> shared(kFineGrid * kFineGrid, 0);
+  for (const auto& kp : a.keypoints) {
+    if (kp.x < region[0] || kp.x > region[2] || kp.y < region[1] || kp.y > region[3]) continue;
+    const Eigen::Vector2d q = b_from_a.Apply({kp.x, kp.y});
+    if (q.x() < 0 || q.y() < 0 || q.x() >= b.width || q.y() >= b.height) continue;
+    if (b_cells[FineCell(static_cast<float>(q.x()), static_cast<float>(q.y()), b.width, b.height)] != 0) {
+      shared[FineCell(kp.x, kp.y, a.width, a.height)] = 1;
+    }
+  }
+  const int total = static_cast<int>(std::count(shared.begin(), shared.end(), 1));
+  if (total == 0) return 0;
+  std::vector<char> seen(shared.size(), 0);
+  int largest = 0;
+  for (int start = 0; start < kFineGrid * kFineGrid; ++start) {
+    if (shared[start] == 0 || hit[start] != 0 || seen[start] != 0) continue;
+    std::vector<int> stack{start};
+    seen[start] = 1;
+    int size = 0;
+    bool central = false;
+    while (!stack.empty()) {
+      const int cell = stack.back();
+      stack.pop_back();
+      ++size;
+      const int x = cell % kFineGrid, y = cell / kFineGrid;
+      central = central || ((x == kFineGrid / 2 - 1 || x == kFineGrid / 2) && (y == kFineGrid / 2 - 1 || y == kFineGrid / 2));
+      for (int ny = std::max(0, y - 1); ny <= std::min(kFineGrid - 1, y + 1); ++ny) {
+        for (int nx = std::max(0, x - 1); nx <= std::min(kFineGrid - 1, x + 1); ++nx) {
+          const int next = ny * kFineGrid + nx;
+          if (shared[next] != 0 && hit[next] == 0 && seen[next] == 0) {
+            seen[next] = 1;
+            stack.push_back(next);
+          }
+        }
+      }
+    }
+    if (central) largest = std::max(largest, size);
+  }
+  return static_cast<double>(largest) / total;
+}
+
 bool Central(int cell) {
   const int cx = cell % kGrid, cy = cell / kGrid;
   return cx >= 2 && cx < kGrid - 2 && cy >= 2 && cy < kGrid - 2;
@@ -211,6 +272,10 @@ Measure MeasurePair(const index::search::QueryFeatures& a, const index::search::
   std::vector<char> cells_a(kGrid * kGrid, 0), cells_b(kGrid * kGrid, 0), hit_a(kGrid * kGrid, 0), hit_b(kGrid * kGrid, 0);
   for (const auto& kp : a.keypoints) cells_a[Cell(kp.x, kp.y, a.width, a.height)] = 1;
   for (const auto& kp : b.keypoints) cells_b[Cell(kp.x, kp.y, b.width, b.height)] = 1;
+  std::vector<char> fine_a(kFineGrid * kFineGrid, 0), fine_b(kFineGrid * kFineGrid, 0);
+  std::vector<char> fine_hit_a(kFineGrid * kFineGrid, 0), fine_hit_b(kFineGrid * kFineGrid, 0);
+  for (const auto& kp : a.keypoints) fine_a[FineCell(kp.x, kp.y, a.width, a.height)] = 1;
+  for (const auto& kp : b.keypoints) fine_b[FineCell(kp.x, kp.y, b.width, b.height)] = 1;
   float ax1 = 1e30f, ay1 = 1e30f, ax2 = -1e30f, ay2 = -1e30f, bx1 = 1e30f, by1 = 1e30f, bx2 = -1e30f, by2 = -1e30f;
   const bool signed_features = a.signatures.size() == a.words.size() && b.signatures.size() == b.words.size();
   std::vector<int> distances;  // Hamming distances of the inliers' signatures
@@ -240,6 +305,8 @@ Measure MeasurePair(const index::search::QueryFeatures& a, const index::search::
       const int ca = Cell(p.x, p.y, a.width, a.height), cb = Cell(q.x, q.y, b.width, b.height);
       hit_a[ca] = 1;
       hit_b[cb] = 1;
+      fine_hit_a[FineCell(p.x, p.y, a.width, a.height)] = 1;
+      fine_hit_b[FineCell(q.x, q.y, b.width, b.height)] = 1;
       m.central = m.central || Central(ca) || Central(cb);
       m.central_a += Central(ca) ? 1 : 0;
       m.central_b += Central(cb) ? 1 : 0;
@@ -268,17 +335,27 @@ Measure MeasurePair(const index::search::QueryFeatures& a, const index::search::
     };
     m.density_a = static_cast<double>(m.inliers) / inside(a, m.region_a);
     m.density_b = static_cast<double>(m.inliers) / inside(b, m.region_b);
+    m.framed = FramedContent(a, m.region_a, fine_hit_a, b, fine_b, b_from_a);
+    if (const auto a_from_b = b_from_a.Inverse()) {
+      m.framed = std::max(m.framed, FramedContent(b, m.region_b, fine_hit_b, a, fine_a, *a_from_b));
+    }
   }
   return m;
 }
 
 // Whether a measured pair is kept, or dropped as sharing only an overlay: a match that reaches no
-// central cell, or that covers less than `min_coverage` of both images (a mirrored one: less than
+// central cell, or that frames different content (kFrameTwins, kFramedContent), or that covers less than `min_coverage` of both images (a mirrored one: less than
 // kMirroredCoverage), or that is dense (identical pixels) over less than `overlay_coverage` of both, is an
 // overlay unless its content is distinct (kIdenticalHamming, kCentralShare, kCentralShareOther,
 // kDistinctCoverage above; a mirrored pair has no signatures to tell).
 bool KeptAsDuplicate(const Measure& m, bool mirrored, const DuplicateOptions& options) {
   if (!m.central) return false;
+  // One frame around two pictures: twins (identical pixels at the same places) with alike signatures, or
+  // without signatures to compare; a mirrored match's twins are a symmetric picture's.
+  if (!mirrored && m.hamming_median <= kIdenticalHamming && m.twins >= kFrameTwins * m.inliers &&
+      m.framed >= kFramedContent) {
+    return false;
+  }
   const double larger_coverage = std::max(m.coverage_a, m.coverage_b);
   if (mirrored && larger_coverage < std::max(options.min_coverage, kMirroredCoverage)) return false;
   const bool dense = larger_coverage < options.overlay_coverage &&
@@ -585,7 +662,8 @@ nlohmann::json DuplicateReportToJson(const DuplicateReport& report, const Duplic
                         {"distinct_hamming", kIdenticalHamming}, {"distinct_central_share", kCentralShare},
                         {"distinct_central_share_other", kCentralShareOther},
                         {"distinct_coverage", std::min(options.min_coverage, kDistinctCoverage)},
-                        {"mirrored_coverage", std::max(options.min_coverage, kMirroredCoverage)}}},
+                        {"mirrored_coverage", std::max(options.min_coverage, kMirroredCoverage)},
+                        {"frame_twins", kFrameTwins}, {"framed_content", kFramedContent}}},
           {"pairs", pairs},
           {"groups", groups},
           {"candidate_pairs", report.candidate_pairs},

@@ -21,7 +21,10 @@
 // both; the last two keep a match of distinct content (the median Hamming distance of its inliers'
 // signatures above 6 bits: not pasted pixels) that has at least 10% of its inliers in the central cells
 // of one image and 1% in those of the other and covers at least 0.05 of one (another photo of the same
-// object often matches only that much). The kept pairs are:
+// object often matches only that much). A direct match of twins (identical pixels at the same places: at
+// least half its inliers, signatures alike or absent) around a block reaching the centre where both images
+// hold features and none match (at least 0.2 of the cells they share) is one frame around two pictures,
+// and dropped too. The kept pairs are:
 //   exact       the same picture: equal sizes, the identity map, both covered at least 0.9, at least 98%
 //               of the features identical (same word, place, scale and orientation), not mirrored;
 //   near_copy   one image is the other resized, recompressed, cropped, rotated, mirrored, retouched or

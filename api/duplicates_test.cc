@@ -242,5 +242,49 @@ TEST_F(DuplicatesTest, KeepsAnotherPhotoOfAnObjectAndDropsASharedLogoByTheirCont
   }
 }
 
+// Two different photos shown in one frame (a viewer's window, a border): the frame matches itself with
+// identical pixels over most of both images, around a centre where each shows its own photo. The pair is
+// verified by the searches and dropped by the measure; a copy of one framed photo is still a near copy.
+// (The test vocabulary has no signatures: the twins, identical features at the same places, decide.)
+TEST_F(DuplicatesTest, DropsTwoPhotosInTheSameFrame) {
+  oxbow::testing::TempDir dir("oxbow-duplicates-frame");
+  const std::string vocab_path = dir.path() + "/vocab.oxvoc";
+  ASSERT_TRUE(testing::BuildTestVocabulary({"graf1.png", "box_in_scene.png", "leuvenA.jpg", "fruits.jpg"}, 500, vocab_path));
+  auto service = Service::Open(dir.path() + "/index", vocab_path, ServiceOptions{});
+  ASSERT_TRUE(service) << service.error().ToString();
+  const cv::Mat frame = cv::imread(SamplePath("graf1.png"), cv::IMREAD_COLOR);
+  const cv::Rect window(frame.cols / 4, frame.rows / 4, frame.cols / 2, frame.rows / 2);
+  auto framed = [&](const char* photo) {
+    cv::Mat out = frame.clone(), inner;
+    cv::resize(cv::imread(SamplePath(photo), cv::IMREAD_COLOR), inner, window.size(), 0, 0, cv::INTER_AREA);
+    inner.copyTo(out(window));
+    return out;
+  };
+  const cv::Mat box = framed("box_in_scene.png"), fruits = framed("fruits.jpg");
+  cv::Mat box_brighter;
+  box.convertTo(box_brighter, -1, 1.0, 25);
+  const std::map<std::string, cv::Mat> images = {{"framed-box", box}, {"framed-fruits", fruits}, {"framed-box-brighter", box_brighter}};
+  for (const auto& [id, image] : images) {
+    const auto bytes = Png(image);
+    AddImageRequest request;
+    request.id = id;
+    request.image = bytes;
+    ASSERT_TRUE((*service)->AddImage(request)) << id;
+  }
+  DuplicateOptions options;
+  options.threads = 2;
+  options.mirrored = false;
+  auto report = FindDuplicates((*service)->index(), options);
+  ASSERT_TRUE(report) << report.error().ToString();
+  std::map<std::pair<std::string, std::string>, DuplicatePair> pairs;
+  for (const auto& p : report->pairs) pairs[{p.a, p.b}] = p;
+  EXPECT_EQ(report->candidate_pairs, 3u);  // every pair verified: the frame matches
+  EXPECT_FALSE(pairs.contains({"framed-box", "framed-fruits"}));
+  EXPECT_FALSE(pairs.contains({"framed-box-brighter", "framed-fruits"}));
+  ASSERT_TRUE(pairs.contains({"framed-box", "framed-box-brighter"}));
+  EXPECT_EQ((pairs[{"framed-box", "framed-box-brighter"}].kind), DuplicateKind::kNearCopy);
+  EXPECT_EQ(report->overlay_pairs, 2u);
+}
+
 }  // namespace
 }  // namespace oxbow::api
