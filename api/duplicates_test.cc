@@ -5,6 +5,7 @@
 #include <cmath>
 #include <filesystem>
 #include <map>
+#include <string>
 
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -25,6 +26,25 @@ std::vector<uint8_t> Png(const cv::Mat& image) {
   std::vector<uchar> png;
   EXPECT_TRUE(cv::imencode(".png", image, png));
   return {png.begin(), png.end()};
+}
+
+// Adds every image to the service's index as a PNG under its id.
+void AddImages(Service& service, const std::map<std::string, cv::Mat>& images) {
+  for (const auto& [id, image] : images) {
+    const auto bytes = Png(image);
+    AddImageRequest request;
+    request.id = id;
+    request.image = bytes;
+    auto added = service.AddImage(request);
+    ASSERT_TRUE(added) << id << ": " << added.error().ToString();
+  }
+}
+
+// The report's pairs by (a, b).
+std::map<std::pair<std::string, std::string>, DuplicatePair> PairsOf(const DuplicateReport& report) {
+  std::map<std::pair<std::string, std::string>, DuplicatePair> pairs;
+  for (const auto& p : report.pairs) pairs[{p.a, p.b}] = p;
+  return pairs;
 }
 
 float Distance(const float* a, const float* b) {
@@ -105,13 +125,7 @@ TEST_F(DuplicatesTest, FindsCopiesWithTheirKindAndIgnoresASharedLogo) {
   const std::map<std::string, cv::Mat> images = {{"graf", graf},       {"graf-copy", graf},  {"graf-mirror", mirror},
                                                  {"graf-crop", crop},  {"graf-small", resized},
                                                  {"graf-rotated", rotated}, {"box-logo", box}, {"leuven-logo", leuven}};
-  for (const auto& [id, image] : images) {
-    const auto bytes = Png(image);
-    AddImageRequest request;
-    request.id = id;
-    request.image = bytes;
-    ASSERT_TRUE((*service)->AddImage(request)) << id;
-  }
+  ASSERT_NO_FATAL_FAILURE(AddImages(**service, images));
 
   DuplicateOptions options;
   options.threads = 2;
@@ -123,8 +137,7 @@ TEST_F(DuplicatesTest, FindsCopiesWithTheirKindAndIgnoresASharedLogo) {
   ASSERT_TRUE(report) << report.error().ToString();
   EXPECT_EQ(report->images, images.size());
   EXPECT_EQ(last_done, images.size());
-  std::map<std::pair<std::string, std::string>, DuplicatePair> pairs;
-  for (const auto& p : report->pairs) pairs[{p.a, p.b}] = p;
+  auto pairs = PairsOf(*report);
   auto kind_of = [&](const std::string& a, const std::string& b) -> std::string {
     auto it = pairs.find({std::min(a, b), std::max(a, b)});
     return it == pairs.end() ? "none" : DuplicateKindName(it->second.kind);
@@ -209,22 +222,14 @@ TEST_F(DuplicatesTest, KeepsAnotherPhotoOfAnObjectAndDropsASharedLogoByTheirCont
     WriteVocabulary({"graf1.png", "box_in_scene.png", "leuvenA.jpg", "fruits.jpg"}, hamming, vocab_path);
     auto service = Service::Open(dir.path() + "/index", vocab_path, ServiceOptions{});
     ASSERT_TRUE(service) << service.error().ToString();
-    for (const auto& [id, image] : images) {
-      const auto bytes = Png(image);
-      AddImageRequest request;
-      request.id = id;
-      request.image = bytes;
-      auto added = (*service)->AddImage(request);
-      ASSERT_TRUE(added) << id << ": " << added.error().ToString();
-    }
+    ASSERT_NO_FATAL_FAILURE(AddImages(**service, images));
     DuplicateOptions options;
     options.threads = 2;
     options.mirrored = false;
     options.min_coverage = 0.9;
     auto report = FindDuplicates((*service)->index(), options);
     ASSERT_TRUE(report) << report.error().ToString();
-    std::map<std::pair<std::string, std::string>, DuplicatePair> pairs;
-    for (const auto& p : report->pairs) pairs[{p.a, p.b}] = p;
+    auto pairs = PairsOf(*report);
     // Both pairs were verified by the searches; the measure decides.
     EXPECT_EQ(report->candidate_pairs, 2u);
     EXPECT_FALSE(pairs.contains({"home-logo", "leuven-logo"}));
@@ -264,20 +269,13 @@ TEST_F(DuplicatesTest, DropsTwoPhotosInTheSameFrame) {
   cv::Mat box_brighter;
   box.convertTo(box_brighter, -1, 1.0, 25);
   const std::map<std::string, cv::Mat> images = {{"framed-box", box}, {"framed-fruits", fruits}, {"framed-box-brighter", box_brighter}};
-  for (const auto& [id, image] : images) {
-    const auto bytes = Png(image);
-    AddImageRequest request;
-    request.id = id;
-    request.image = bytes;
-    ASSERT_TRUE((*service)->AddImage(request)) << id;
-  }
+  ASSERT_NO_FATAL_FAILURE(AddImages(**service, images));
   DuplicateOptions options;
   options.threads = 2;
   options.mirrored = false;
   auto report = FindDuplicates((*service)->index(), options);
   ASSERT_TRUE(report) << report.error().ToString();
-  std::map<std::pair<std::string, std::string>, DuplicatePair> pairs;
-  for (const auto& p : report->pairs) pairs[{p.a, p.b}] = p;
+  auto pairs = PairsOf(*report);
   EXPECT_EQ(report->candidate_pairs, 3u);  // every pair verified: the frame matches
   EXPECT_FALSE(pairs.contains({"framed-box", "framed-fruits"}));
   EXPECT_FALSE(pairs.contains({"framed-box-brighter", "framed-fruits"}));
