@@ -193,21 +193,17 @@ struct Measure {
   bool central = false;  // some inlier in the central cells of a or b
   int central_a = 0, central_b = 0;  // inliers in the central cells of each
   int hamming_median = -1;           // of the inliers' signatures; -1 without signatures (mirrored)
-  double framed = 0;                 // FramedContent, the larger of both sides
+  double framed = 0;                 // FramedContent, the larger of both sides; 0 unless twins (see below)
   std::array<float, 4> region_a{}, region_b{};
 };
 
 // Cell of an 8 x 8 grid over a width x height image.
-int Cell(float x, float y, int width, int height) {
-  const int cx = std::clamp(static_cast<int>(x * kGrid / std::max(1, width)), 0, kGrid - 1);
-  const int cy = std::clamp(static_cast<int>(y * kGrid / std::max(1, height)), 0, kGrid - 1);
-  return cy * kGrid + cx;
+int Cell(float x, float y, int width, int height, int grid = kGrid) {
+  const int cx = std::clamp(static_cast<int>(x * grid / std::max(1, width)), 0, grid - 1);
+  const int cy = std::clamp(static_cast<int>(y * grid / std::max(1, height)), 0, grid - 1);
+  return cy * grid + cx;
 }
-int FineCell(float x, float y, int width, int height) {
-  const int cx = std::clamp(static_cast<int>(x * kFineGrid / std::max(1, width)), 0, kFineGrid - 1);
-  const int cy = std::clamp(static_cast<int>(y * kFineGrid / std::max(1, height)), 0, kFineGrid - 1);
-  return cy * kFineGrid + cx;
-}
+int FineCell(float x, float y, int width, int height) { return Cell(x, y, width, height, kFineGrid); }
 
 // The share of the cells `a` shares with `b` (fine cells holding a feature of a inside `region` whose
 // place in b, by `b_from_a`, is in a fine cell holding a feature of b) that lie in the largest connected
@@ -272,10 +268,7 @@ Measure MeasurePair(const index::search::QueryFeatures& a, const index::search::
   std::vector<char> cells_a(kGrid * kGrid, 0), cells_b(kGrid * kGrid, 0), hit_a(kGrid * kGrid, 0), hit_b(kGrid * kGrid, 0);
   for (const auto& kp : a.keypoints) cells_a[Cell(kp.x, kp.y, a.width, a.height)] = 1;
   for (const auto& kp : b.keypoints) cells_b[Cell(kp.x, kp.y, b.width, b.height)] = 1;
-  std::vector<char> fine_a(kFineGrid * kFineGrid, 0), fine_b(kFineGrid * kFineGrid, 0);
   std::vector<char> fine_hit_a(kFineGrid * kFineGrid, 0), fine_hit_b(kFineGrid * kFineGrid, 0);
-  for (const auto& kp : a.keypoints) fine_a[FineCell(kp.x, kp.y, a.width, a.height)] = 1;
-  for (const auto& kp : b.keypoints) fine_b[FineCell(kp.x, kp.y, b.width, b.height)] = 1;
   float ax1 = 1e30f, ay1 = 1e30f, ax2 = -1e30f, ay2 = -1e30f, bx1 = 1e30f, by1 = 1e30f, bx2 = -1e30f, by2 = -1e30f;
   const bool signed_features = a.signatures.size() == a.words.size() && b.signatures.size() == b.words.size();
   std::vector<int> distances;  // Hamming distances of the inliers' signatures
@@ -335,6 +328,12 @@ Measure MeasurePair(const index::search::QueryFeatures& a, const index::search::
     };
     m.density_a = static_cast<double>(m.inliers) / inside(a, m.region_a);
     m.density_b = static_cast<double>(m.inliers) / inside(b, m.region_b);
+  }
+  // Only a match of twins with alike (or no) signatures can be a frame (KeptAsDuplicate).
+  if (m.inliers > 0 && m.hamming_median <= kIdenticalHamming && m.twins >= kFrameTwins * m.inliers) {
+    std::vector<char> fine_a(kFineGrid * kFineGrid, 0), fine_b(kFineGrid * kFineGrid, 0);
+    for (const auto& kp : a.keypoints) fine_a[FineCell(kp.x, kp.y, a.width, a.height)] = 1;
+    for (const auto& kp : b.keypoints) fine_b[FineCell(kp.x, kp.y, b.width, b.height)] = 1;
     m.framed = FramedContent(a, m.region_a, fine_hit_a, b, fine_b, b_from_a);
     if (const auto a_from_b = b_from_a.Inverse()) {
       m.framed = std::max(m.framed, FramedContent(b, m.region_b, fine_hit_b, a, fine_a, *a_from_b));
@@ -344,10 +343,11 @@ Measure MeasurePair(const index::search::QueryFeatures& a, const index::search::
 }
 
 // Whether a measured pair is kept, or dropped as sharing only an overlay: a match that reaches no
-// central cell, or that frames different content (kFrameTwins, kFramedContent), or that covers less than `min_coverage` of both images (a mirrored one: less than
-// kMirroredCoverage), or that is dense (identical pixels) over less than `overlay_coverage` of both, is an
-// overlay unless its content is distinct (kIdenticalHamming, kCentralShare, kCentralShareOther,
-// kDistinctCoverage above; a mirrored pair has no signatures to tell).
+// central cell, or that frames different content (kFrameTwins, kFramedContent), or that covers less
+// than `min_coverage` of both images (a mirrored one: less than kMirroredCoverage), or that is dense
+// (identical pixels) over less than `overlay_coverage` of both, is an overlay unless its content is
+// distinct (kIdenticalHamming, kCentralShare, kCentralShareOther, kDistinctCoverage above; a mirrored
+// pair has no signatures to tell).
 bool KeptAsDuplicate(const Measure& m, bool mirrored, const DuplicateOptions& options) {
   if (!m.central) return false;
   // One frame around two pictures: twins (identical pixels at the same places) with alike signatures, or
