@@ -246,10 +246,12 @@ class ClusterFront::Impl {
   // before that write committed there, and the read began before the write was acknowledged.
   template <typename Reply>
   grpc::Status Invoke(Replica& replica, int deadline_ms, const ShardCall<Reply>& call, Reply* reply,
-                      int64_t* sequence = nullptr, bool counted = true, bool* stale = nullptr) const {
+                      int64_t* sequence = nullptr, bool counted = true, bool* stale = nullptr,
+                      bool wait_for_ready = false) const {
     const uint64_t floor_at_start = states[replica.partition]->floor.load();
     grpc::ClientContext context;
     context.set_deadline(std::chrono::system_clock::now() + std::chrono::milliseconds(deadline_ms));
+    context.set_wait_for_ready(wait_for_ready);
     if (!bearer.empty()) context.AddMetadata(std::string(kAuthorizationKey), bearer);
     context.AddMetadata(kCollectionKey, collection);
     const auto t0 = Clock::now();
@@ -342,12 +344,17 @@ class ClusterFront::Impl {
   std::vector<int64_t> PingAll(uint32_t p, std::vector<std::string>* why = nullptr) const {
     const std::vector<std::unique_ptr<Replica>>& replicas = partitions[p];
     std::vector<int64_t> sequences(replicas.size(), -1);
+    const Clock::rep now = Clock::now().time_since_epoch().count();
     ForEach(replicas.size(), [&](uint32_t r) -> Status {
       PingReply pong;
+      // Before a write, a replica not seen failing waits for its connection within the deadline: one
+      // failed connection attempt (a fresh channel, a reconnect after an idle spell) is retried by gRPC
+      // instead of refusing the write. A replica seen failing is not waited for.
+      const bool wait = why != nullptr && replicas[r]->failing_until.load() <= now;
       const grpc::Status status = Invoke<PingReply>(
           *replicas[r], settings.shard_deadline_ms,
           [](Shard::Stub& stub, grpc::ClientContext& context, PingReply* out) { return stub.Ping(&context, {}, out); },
-          &pong, &sequences[r], /*counted=*/why != nullptr);
+          &pong, &sequences[r], /*counted=*/why != nullptr, /*stale=*/nullptr, wait);
       if (!status.ok() && why) (*why)[r] = replicas[r]->address + " (" + status.error_message() + ")";
       if (status.ok() && sequences[r] < 0 && why)
         (*why)[r] = replicas[r]->address + " (it reports no write sequence: an older oxbow?)";

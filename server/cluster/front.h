@@ -25,7 +25,8 @@
 // `index build --partitions` places images with). Get asks one replica (failover as
 // above); List and Stats ask every partition and need them all (kResourceExhausted otherwise: a sum or
 // a page without a partition would look complete). Add and Delete are applied on EVERY replica of the
-// owner: first every replica must answer Ping (else kResourceExhausted, nothing written); then the
+// owner: first every replica must answer Ping within the shard deadline (a replica not seen failing is
+// waited for: a failed connection attempt is retried; else kResourceExhausted, nothing written); then the
 // first replica applies the write (its refusal, e.g. id taken or undecodable image, is every replica's:
 // returned as is, nothing written), then the others at once. A replica that fails after the first
 // applied the write leaves the replicas different: kResourceExhausted naming the replicas that applied
