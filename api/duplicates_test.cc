@@ -40,6 +40,16 @@ void AddImages(Service& service, const std::map<std::string, cv::Mat>& images) {
   }
 }
 
+// The sample photo `photo` shown in a frame (graf1.png, a photo viewer's window): resized into the
+// frame's central half.
+cv::Mat Framed(const char* photo) {
+  cv::Mat out = cv::imread(SamplePath("graf1.png"), cv::IMREAD_COLOR), inner;
+  const cv::Rect window(out.cols / 4, out.rows / 4, out.cols / 2, out.rows / 2);
+  cv::resize(cv::imread(SamplePath(photo), cv::IMREAD_COLOR), inner, window.size(), 0, 0, cv::INTER_AREA);
+  inner.copyTo(out(window));
+  return out;
+}
+
 // The report's pairs by (a, b).
 std::map<std::pair<std::string, std::string>, DuplicatePair> PairsOf(const DuplicateReport& report) {
   std::map<std::pair<std::string, std::string>, DuplicatePair> pairs;
@@ -203,8 +213,8 @@ void WriteVocabulary(const std::vector<std::string>& images, bool hamming, const
 // Another photo of an object (the box alone, and in a cluttered scene) matches little of the scene, like
 // a shared logo; its content is distinct (the signatures of its inliers differ), the logo's is not. With
 // `min_coverage` raised so that every kept pair goes through that test, the box pair is kept as the same
-// scene and the logo pair dropped; without signatures (a vocabulary without Hamming embedding) neither
-// can be told apart and both are dropped.
+// scene and the logo pair dropped (by the searches' verification already); without signatures (a
+// vocabulary without Hamming embedding) neither can be told apart and both are dropped.
 TEST_F(DuplicatesTest, KeepsAnotherPhotoOfAnObjectAndDropsASharedLogoByTheirContent) {
   const cv::Mat logo = cv::imread(SamplePath("fruits.jpg"), cv::IMREAD_COLOR)(cv::Rect(100, 100, 180, 180)).clone();
   cv::Mat home = cv::imread(SamplePath("home.jpg"), cv::IMREAD_COLOR);
@@ -230,20 +240,51 @@ TEST_F(DuplicatesTest, KeepsAnotherPhotoOfAnObjectAndDropsASharedLogoByTheirCont
     auto report = FindDuplicates((*service)->index(), options);
     ASSERT_TRUE(report) << report.error().ToString();
     auto pairs = PairsOf(*report);
-    // Both pairs were verified by the searches; the measure decides.
-    EXPECT_EQ(report->candidate_pairs, 2u);
     EXPECT_FALSE(pairs.contains({"home-logo", "leuven-logo"}));
     if (hamming) {
+      // The searches' verification already tells the logo from content: only the box pair is verified,
+      // and the measure keeps it.
+      EXPECT_EQ(report->candidate_pairs, 1u);
       ASSERT_TRUE(pairs.contains({"box", "box-scene"}));
       const DuplicatePair& box = pairs[{"box", "box-scene"}];
       EXPECT_EQ(box.kind, DuplicateKind::kSameScene);
       EXPECT_LT(std::max(box.coverage_a, box.coverage_b), options.min_coverage);
       EXPECT_EQ(report->pairs.size(), 1u);
-      EXPECT_EQ(report->overlay_pairs, 1u);
+      EXPECT_EQ(report->overlay_pairs, 0u);
     } else {
+      // Both pairs are verified by the searches; the measure drops both.
+      EXPECT_EQ(report->candidate_pairs, 2u);
       EXPECT_TRUE(report->pairs.empty());
       EXPECT_EQ(report->overlay_pairs, 2u);
     }
+  }
+}
+
+// A search's verified results show the query's content, not an overlay it shares: with signatures, a
+// photo shown in a frame (a viewer's window) does not verify another photo in the same frame (the match
+// is the frame's identical pixels around different content), while a brighter copy of the framed photo
+// verifies. Without signatures the pasted pixels cannot be told from content, and the other framed photo
+// verifies.
+TEST_F(DuplicatesTest, SearchDoesNotVerifyAPhotoThatSharesOnlyAFrame) {
+  const cv::Mat box = Framed("box_in_scene.png");
+  cv::Mat box_brighter;
+  box.convertTo(box_brighter, -1, 1.0, 25);
+  for (const bool hamming : {true, false}) {
+    SCOPED_TRACE(hamming ? "with signatures" : "without signatures");
+    oxbow::testing::TempDir dir("oxbow-search-overlay");
+    const std::string vocab_path = dir.path() + "/vocab.oxvoc";
+    WriteVocabulary({"graf1.png", "box_in_scene.png", "leuvenA.jpg", "fruits.jpg"}, hamming, vocab_path);
+    auto service = Service::Open(dir.path() + "/index", vocab_path, ServiceOptions{});
+    ASSERT_TRUE(service) << service.error().ToString();
+    ASSERT_NO_FATAL_FAILURE(AddImages(**service, {{"framed-fruits", Framed("fruits.jpg")}, {"framed-box-brighter", box_brighter}}));
+    index::QueryOptions options;
+    options.hamming = hamming;
+    auto found = (*service)->Search(Png(box), options);
+    ASSERT_TRUE(found) << found.error().ToString();
+    std::map<std::string, bool> verified;
+    for (const auto& r : found->index.results) verified[r.id] = r.verified;
+    EXPECT_TRUE(verified["framed-box-brighter"]);
+    EXPECT_EQ(verified["framed-fruits"], !hamming);
   }
 }
 
@@ -257,15 +298,7 @@ TEST_F(DuplicatesTest, DropsTwoPhotosInTheSameFrame) {
   ASSERT_TRUE(testing::BuildTestVocabulary({"graf1.png", "box_in_scene.png", "leuvenA.jpg", "fruits.jpg"}, 500, vocab_path));
   auto service = Service::Open(dir.path() + "/index", vocab_path, ServiceOptions{});
   ASSERT_TRUE(service) << service.error().ToString();
-  const cv::Mat frame = cv::imread(SamplePath("graf1.png"), cv::IMREAD_COLOR);
-  const cv::Rect window(frame.cols / 4, frame.rows / 4, frame.cols / 2, frame.rows / 2);
-  auto framed = [&](const char* photo) {
-    cv::Mat out = frame.clone(), inner;
-    cv::resize(cv::imread(SamplePath(photo), cv::IMREAD_COLOR), inner, window.size(), 0, 0, cv::INTER_AREA);
-    inner.copyTo(out(window));
-    return out;
-  };
-  const cv::Mat box = framed("box_in_scene.png"), fruits = framed("fruits.jpg");
+  const cv::Mat box = Framed("box_in_scene.png"), fruits = Framed("fruits.jpg");
   cv::Mat box_brighter;
   box.convertTo(box_brighter, -1, 1.0, 25);
   const std::map<std::string, cv::Mat> images = {{"framed-box", box}, {"framed-fruits", fruits}, {"framed-box-brighter", box_brighter}};
