@@ -39,11 +39,6 @@
 //    closest, per candidate), and query expansion re-orders the unverified results by the Hamming
 //    score of the query plus the verified regions' features instead of the averaged tf-idf vector
 //    below; transitive verification (6.) filters its tentative matches by signature the same way.
-//    With signatures a verification also checks that the match is the query's content and not only an
-//    overlay both images carry (a logo, a caption band, a viewer's frame around two pictures): a match
-//    whose inliers' signatures are close (pasted pixels) is measured against both images' features and
-//    is not verified when it only covers a small, dense, off-centre part of both, or frames different
-//    content (index/search/overlay.h, the duplicate finder's rule with its default settings).
 // 5. Average query expansion (Chum et al. 2007, "Total recall"), optional: the query's tf-idf vector
 //    and those of the first `qe_images` verified results (each restricted to the features inside the
 //    region it matched, all L2-normalised) are averaged and the index is queried again; the verified
