@@ -21,6 +21,83 @@ constexpr float kOverlaySuspectHamming = 12;
 // A region's footprint in the db image may pass its edges by this share of its sides (the fit's error).
 constexpr double kFootprintSlack = 0.05;
 
+// Whether a verified match is only pixels pasted on both images (a logo, a caption band, a viewer's
+// frame around two different pictures: index/search/overlay.h) rather than the query's content. The
+// query side: its keypoints, words and signatures and its region.
+bool OnlyAnOverlay(std::span<const sift::Keypoint> keypoints, std::span<const uint32_t> words,
+                   std::span<const uint64_t> signatures, const std::array<float, 4>& region,
+                   const PackedFeatures& db, const sift::VerificationResult& result,
+                   std::span<const sift::Match> matches) {
+  // Only pasted pixels can be an overlay. When the measure's inliers have near-identical signatures
+  // (median Hamming distance at most search::kIdenticalHamming) the duplicate finder's rule decides
+  // (search::OnlyAnOverlay: coverage, density and central cells of the match on both images, its frame).
+  // Another photo of one object is left alone, whatever part of either image it covers; when the
+  // verifier's own inliers already differ by more than kOverlaySuspectHamming (a match's distance is its
+  // Hamming distance here) it is not measured.
+  std::vector<float> distances(result.inliers.size());
+  for (size_t k = 0; k < distances.size(); ++k) distances[k] = matches[result.inliers[k]].distance;
+  if (distances.empty()) return false;
+  const auto middle = distances.begin() + static_cast<std::ptrdiff_t>(distances.size() / 2);
+  std::nth_element(distances.begin(), middle, distances.end());
+  if (*middle > static_cast<float>(kOverlaySuspectHamming)) return false;
+  // The query side in its region's frame (the region is the query image, or an anchor's matched region).
+  search::QueryFeatures a, b;
+  const float x0 = region[0], y0 = region[1];
+  a.width = std::max(1, static_cast<int>(std::ceil(region[2] - x0)));
+  a.height = std::max(1, static_cast<int>(std::ceil(region[3] - y0)));
+  for (size_t i = 0; i < keypoints.size(); ++i) {
+    sift::Keypoint k = keypoints[i];
+    if (k.x < region[0] || k.x > region[2] || k.y < region[1] || k.y > region[3]) continue;
+    k.x -= x0;
+    k.y -= y0;
+    a.keypoints.push_back(k);
+    a.words.push_back(words[i]);
+    a.signatures.push_back(signatures[i]);
+  }
+  // The db side in the frame of the region's footprint (the box around its corners' places in the db
+  // image): a match that covers an anchor's small region covers its footprint, not the whole db image.
+  const auto& t = result.db_from_query.m;
+  const sift::Affine2D shifted{{t[0], t[1], t[0] * x0 + t[1] * y0 + t[2], t[3], t[4], t[3] * x0 + t[4] * y0 + t[5]}};
+  double bx1 = db.width(), by1 = db.height(), bx2 = 0, by2 = 0;
+  for (const auto& [cx, cy] : {std::pair{0, 0}, {a.width, 0}, {0, a.height}, {a.width, a.height}}) {
+    const Eigen::Vector2d corner = shifted.Apply({cx, cy});
+    bx1 = std::min(bx1, corner.x()), by1 = std::min(by1, corner.y());
+    bx2 = std::max(bx2, corner.x()), by2 = std::max(by2, corner.y());
+  }
+  // A footprint reaching out of the db image (a query shifted or scaled against it: a logo in opposite
+  // corners) is the whole db image, as the duplicate finder measures a pair.
+  const double slack_x = kFootprintSlack * db.width(), slack_y = kFootprintSlack * db.height();
+  if (bx1 < -slack_x || by1 < -slack_y || bx2 > db.width() + slack_x || by2 > db.height() + slack_y) {
+    bx1 = 0, by1 = 0, bx2 = db.width(), by2 = db.height();
+  }
+  bx1 = std::max(0.0, bx1), by1 = std::max(0.0, by1);
+  bx2 = std::min<double>(db.width(), bx2), by2 = std::min<double>(db.height(), by2);
+  if (bx2 <= bx1 || by2 <= by1) return false;
+  b.width = std::max(1, static_cast<int>(std::ceil(bx2 - bx1)));
+  b.height = std::max(1, static_cast<int>(std::ceil(by2 - by1)));
+  for (size_t j = 0; j < db.size(); ++j) {
+    sift::Keypoint k = db.keypoint(j);
+    if (k.x < bx1 || k.x > bx2 || k.y < by1 || k.y > by2) continue;
+    k.x -= static_cast<float>(bx1);
+    k.y -= static_cast<float>(by1);
+    b.keypoints.push_back(k);
+    b.words.push_back(db.word(j));
+    b.signatures.push_back(db.signature(j));
+  }
+  // The region's frame to the footprint's: db_from_query between the two shifts.
+  const sift::Affine2D b_from_a{{shifted.m[0], shifted.m[1], shifted.m[2] - bx1, shifted.m[3], shifted.m[4],
+                                 shifted.m[5] - by1}};
+  const search::MatchMeasure m = search::MeasureMatch(a, b, b_from_a, kOverlayTolerance);
+  const search::OverlayRule rule;
+  if (m.hamming_median <= search::kIdenticalHamming) return search::OnlyAnOverlay(m, /*mirrored=*/false, rule);
+  // Pasted pixels resampled (an overlay scaled on one image, a caption in another font size) differ by
+  // more bits: a dense match (most features of the matched part are inliers) over a small part of both
+  // images, off the centre of one, is such an overlay; a similar photo of one object is not dense.
+  const bool dense = std::max(m.density_a, m.density_b) >= rule.overlay_density &&
+                     std::max(m.coverage_a, m.coverage_b) < rule.overlay_coverage;
+  return dense && std::min(m.central_a, m.central_b) < search::kCentralShareOther * m.inliers;
+}
+
 }  // namespace
 
 QueryGeometry::QueryGeometry(std::span<const sift::Keypoint> keypoints, std::span<const uint32_t> words,
@@ -118,80 +195,8 @@ sift::VerificationResult QueryGeometry::Verify(const PackedFeatures& db, int max
   }
   sift::VerificationResult result =
       sift::VerifyHoughAffine(keypoints_, db_keypoints, matches, region_, {db.width(), db.height()}, options);
-  if (result.verified && hamming && OnlyAnOverlay(db, result, matches)) result.verified = false;
+  if (result.verified && hamming && OnlyAnOverlay(keypoints_, words_, signatures_, region_, db, result, matches)) result.verified = false;
   return result;
-}
-
-bool QueryGeometry::OnlyAnOverlay(const PackedFeatures& db, const sift::VerificationResult& result,
-                                  std::span<const sift::Match> matches) const {
-  // Only pasted pixels can be an overlay. When the measure's inliers have near-identical signatures
-  // (median Hamming distance at most search::kIdenticalHamming) the duplicate finder's rule decides
-  // (search::OnlyAnOverlay: coverage, density and central cells of the match on both images, its frame).
-  // Another photo of one object is left alone, whatever part of either image it covers; when the
-  // verifier's own inliers already differ by more than kOverlaySuspectHamming (a match's distance is its
-  // Hamming distance here) it is not measured.
-  std::vector<float> distances(result.inliers.size());
-  for (size_t k = 0; k < distances.size(); ++k) distances[k] = matches[result.inliers[k]].distance;
-  if (distances.empty()) return false;
-  const auto middle = distances.begin() + static_cast<std::ptrdiff_t>(distances.size() / 2);
-  std::nth_element(distances.begin(), middle, distances.end());
-  if (*middle > static_cast<float>(kOverlaySuspectHamming)) return false;
-  // The query side in its region's frame (the region is the query image, or an anchor's matched region).
-  search::QueryFeatures a, b;
-  const float x0 = region_[0], y0 = region_[1];
-  a.width = std::max(1, static_cast<int>(std::ceil(region_[2] - x0)));
-  a.height = std::max(1, static_cast<int>(std::ceil(region_[3] - y0)));
-  for (size_t i = 0; i < keypoints_.size(); ++i) {
-    sift::Keypoint k = keypoints_[i];
-    if (k.x < region_[0] || k.x > region_[2] || k.y < region_[1] || k.y > region_[3]) continue;
-    k.x -= x0;
-    k.y -= y0;
-    a.keypoints.push_back(k);
-    a.words.push_back(words_[i]);
-    a.signatures.push_back(signatures_[i]);
-  }
-  // The db side in the frame of the region's footprint (the box around its corners' places in the db
-  // image): a match that covers an anchor's small region covers its footprint, not the whole db image.
-  const auto& t = result.db_from_query.m;
-  const sift::Affine2D shifted{{t[0], t[1], t[0] * x0 + t[1] * y0 + t[2], t[3], t[4], t[3] * x0 + t[4] * y0 + t[5]}};
-  double bx1 = db.width(), by1 = db.height(), bx2 = 0, by2 = 0;
-  for (const auto& [cx, cy] : {std::pair{0, 0}, {a.width, 0}, {0, a.height}, {a.width, a.height}}) {
-    const Eigen::Vector2d corner = shifted.Apply({cx, cy});
-    bx1 = std::min(bx1, corner.x()), by1 = std::min(by1, corner.y());
-    bx2 = std::max(bx2, corner.x()), by2 = std::max(by2, corner.y());
-  }
-  // A footprint reaching out of the db image (a query shifted or scaled against it: a logo in opposite
-  // corners) is the whole db image, as the duplicate finder measures a pair.
-  const double slack_x = kFootprintSlack * db.width(), slack_y = kFootprintSlack * db.height();
-  if (bx1 < -slack_x || by1 < -slack_y || bx2 > db.width() + slack_x || by2 > db.height() + slack_y) {
-    bx1 = 0, by1 = 0, bx2 = db.width(), by2 = db.height();
-  }
-  bx1 = std::max(0.0, bx1), by1 = std::max(0.0, by1);
-  bx2 = std::min<double>(db.width(), bx2), by2 = std::min<double>(db.height(), by2);
-  if (bx2 <= bx1 || by2 <= by1) return false;
-  b.width = std::max(1, static_cast<int>(std::ceil(bx2 - bx1)));
-  b.height = std::max(1, static_cast<int>(std::ceil(by2 - by1)));
-  for (size_t j = 0; j < db.size(); ++j) {
-    sift::Keypoint k = db.keypoint(j);
-    if (k.x < bx1 || k.x > bx2 || k.y < by1 || k.y > by2) continue;
-    k.x -= static_cast<float>(bx1);
-    k.y -= static_cast<float>(by1);
-    b.keypoints.push_back(k);
-    b.words.push_back(db.word(j));
-    b.signatures.push_back(db.signature(j));
-  }
-  // The region's frame to the footprint's: db_from_query between the two shifts.
-  const sift::Affine2D b_from_a{{shifted.m[0], shifted.m[1], shifted.m[2] - bx1, shifted.m[3], shifted.m[4],
-                                 shifted.m[5] - by1}};
-  const search::MatchMeasure m = search::MeasureMatch(a, b, b_from_a, kOverlayTolerance);
-  const search::OverlayRule rule;
-  if (m.hamming_median <= search::kIdenticalHamming) return search::OnlyAnOverlay(m, /*mirrored=*/false, rule);
-  // Pasted pixels resampled (an overlay scaled on one image, a caption in another font size) differ by
-  // more bits: a dense match (most features of the matched part are inliers) over a small part of both
-  // images, off the centre of one, is such an overlay; a similar photo of one object is not dense.
-  const bool dense = std::max(m.density_a, m.density_b) >= rule.overlay_density &&
-                     std::max(m.coverage_a, m.coverage_b) < rule.overlay_coverage;
-  return dense && std::min(m.central_a, m.central_b) < search::kCentralShareOther * m.inliers;
 }
 
 }  // namespace oxbow::index

@@ -48,11 +48,6 @@ class QueryGeometry {
                                   const sift::HoughVerifyOptions& options) const;
 
  private:
-  // Whether a verified match is only pixels pasted on both images (a logo, a caption band, a viewer's
-  // frame around two different pictures: index/search/overlay.h) rather than the query's content.
-  bool OnlyAnOverlay(const PackedFeatures& db, const sift::VerificationResult& result,
-                     std::span<const sift::Match> matches) const;
-
   std::span<const sift::Keypoint> keypoints_;
   std::span<const uint32_t> words_;
   std::span<const uint64_t> signatures_;
