@@ -4,6 +4,7 @@
 #include <bit>
 #include <cmath>
 #include <numeric>
+#include <tuple>
 #include <vector>
 
 #include "index/search/overlay.h"
@@ -20,6 +21,25 @@ constexpr double kOverlayTolerance = 0.015;
 constexpr float kOverlaySuspectHamming = 12;
 // A region's footprint in the db image may pass its edges by this share of its sides (the fit's error).
 constexpr double kFootprintSlack = 0.05;
+
+// The features inside `box` (x1, y1, x2, y2) in the box's frame (shifted to its corner; its size as the
+// image size), from `n` features given by feature(i) = (keypoint, word, signature).
+template <typename Feature>
+search::QueryFeatures InBox(size_t n, const std::array<float, 4>& box, const Feature& feature) {
+  search::QueryFeatures out;
+  out.width = std::max(1, static_cast<int>(std::ceil(box[2] - box[0])));
+  out.height = std::max(1, static_cast<int>(std::ceil(box[3] - box[1])));
+  for (size_t i = 0; i < n; ++i) {
+    auto [k, word, signature] = feature(i);
+    if (k.x < box[0] || k.x > box[2] || k.y < box[1] || k.y > box[3]) continue;
+    k.x -= box[0];
+    k.y -= box[1];
+    out.keypoints.push_back(k);
+    out.words.push_back(word);
+    out.signatures.push_back(signature);
+  }
+  return out;
+}
 
 // Whether a verified match is only pixels pasted on both images (a logo, a caption band, a viewer's
 // frame around two different pictures: index/search/overlay.h) rather than the query's content. The
@@ -41,19 +61,10 @@ bool OnlyAnOverlay(std::span<const sift::Keypoint> keypoints, std::span<const ui
   std::nth_element(distances.begin(), middle, distances.end());
   if (*middle > static_cast<float>(kOverlaySuspectHamming)) return false;
   // The query side in its region's frame (the region is the query image, or an anchor's matched region).
-  search::QueryFeatures a, b;
   const float x0 = region[0], y0 = region[1];
-  a.width = std::max(1, static_cast<int>(std::ceil(region[2] - x0)));
-  a.height = std::max(1, static_cast<int>(std::ceil(region[3] - y0)));
-  for (size_t i = 0; i < keypoints.size(); ++i) {
-    sift::Keypoint k = keypoints[i];
-    if (k.x < region[0] || k.x > region[2] || k.y < region[1] || k.y > region[3]) continue;
-    k.x -= x0;
-    k.y -= y0;
-    a.keypoints.push_back(k);
-    a.words.push_back(words[i]);
-    a.signatures.push_back(signatures[i]);
-  }
+  const search::QueryFeatures a = InBox(keypoints.size(), region, [&](size_t i) {
+    return std::tuple{keypoints[i], words[i], signatures[i]};
+  });
   // The db side in the frame of the region's footprint (the box around its corners' places in the db
   // image): a match that covers an anchor's small region covers its footprint, not the whole db image.
   const auto& t = result.db_from_query.m;
@@ -73,17 +84,11 @@ bool OnlyAnOverlay(std::span<const sift::Keypoint> keypoints, std::span<const ui
   bx1 = std::max(0.0, bx1), by1 = std::max(0.0, by1);
   bx2 = std::min<double>(db.width(), bx2), by2 = std::min<double>(db.height(), by2);
   if (bx2 <= bx1 || by2 <= by1) return false;
-  b.width = std::max(1, static_cast<int>(std::ceil(bx2 - bx1)));
-  b.height = std::max(1, static_cast<int>(std::ceil(by2 - by1)));
-  for (size_t j = 0; j < db.size(); ++j) {
-    sift::Keypoint k = db.keypoint(j);
-    if (k.x < bx1 || k.x > bx2 || k.y < by1 || k.y > by2) continue;
-    k.x -= static_cast<float>(bx1);
-    k.y -= static_cast<float>(by1);
-    b.keypoints.push_back(k);
-    b.words.push_back(db.word(j));
-    b.signatures.push_back(db.signature(j));
-  }
+  const std::array<float, 4> footprint = {static_cast<float>(bx1), static_cast<float>(by1), static_cast<float>(bx2),
+                                           static_cast<float>(by2)};
+  const search::QueryFeatures b = InBox(db.size(), footprint, [&](size_t j) {
+    return std::tuple{db.keypoint(j), db.word(j), db.signature(j)};
+  });
   // The region's frame to the footprint's: db_from_query between the two shifts.
   const sift::Affine2D b_from_a{{shifted.m[0], shifted.m[1], shifted.m[2] - bx1, shifted.m[3], shifted.m[4],
                                  shifted.m[5] - by1}};
@@ -195,7 +200,9 @@ sift::VerificationResult QueryGeometry::Verify(const PackedFeatures& db, int max
   }
   sift::VerificationResult result =
       sift::VerifyHoughAffine(keypoints_, db_keypoints, matches, region_, {db.width(), db.height()}, options);
-  if (result.verified && hamming && OnlyAnOverlay(keypoints_, words_, signatures_, region_, db, result, matches)) result.verified = false;
+  if (result.verified && hamming && OnlyAnOverlay(keypoints_, words_, signatures_, region_, db, result, matches)) {
+    result.verified = false;
+  }
   return result;
 }
 
