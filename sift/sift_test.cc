@@ -38,6 +38,7 @@ SiftOptions OpencvLike() {
   SiftOptions options;
   options.descriptor = DescriptorKind::kSift;
   options.keypoint_style = KeypointStyle::kOpenCv;
+  options.contrast_threshold = 0.04;
   return options;
 }
 
@@ -538,7 +539,7 @@ TEST(SiftOptions, CheckDescribeAndFingerprint) {
   EXPECT_FALSE(options.Check().has_value());
   EXPECT_EQ(options.keypoint_style, KeypointStyle::kVlfeat);
   EXPECT_EQ(options.Describe(),
-            "oxbow-sift/1;upsample=1;sigma=1.6;assumed_blur=0.5;intervals=3;contrast=0.04;edge=10;max_features=all;"
+            "oxbow-sift/1;upsample=1;sigma=1.6;assumed_blur=0.5;intervals=3;contrast=0.034;edge=10;max_features=all;"
             "descriptor=rootsift;peak_ratio=0.8;kernel_radius=4;max_octaves=all;keypoints=vlfeat");
   // FNV-1a 64 of the string above; a change here means stored vocabularies/indexes will refuse the new
   // features, so it must be deliberate.

@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# One extraction as a whole process, as a user runs it: `oxbow extract --threads 1 --format colmap` on one
+# One extraction as a whole process, as a user runs it: `oxbow extract --threads 1 --contrast-threshold 0.04
+# --format colmap` (cv::SIFT's contrast threshold) on one
 # image against cv_sift_extract (OpenCV's SIFT with its defaults on one thread, same output format), in
 # turn, each from a fresh process; and `oxbow --version` alone, the cost of starting the binary.
 #   eval/bench/extract_process.sh [--reps N] [--build DIR] IMAGE...
@@ -15,7 +16,7 @@ while [[ $# -gt 0 ]]; do
   case "$1" in
     --reps) reps=$2; shift 2 ;;
     --build) build=$2; shift 2 ;;
-    -h|--help) sed -n '2,8p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    -h|--help) sed -n '2,9p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
     *) images+=("$1"); shift ;;
   esac
 done
@@ -45,11 +46,11 @@ median() { sort -g | awk '{ v[NR] = $1 } END { print (NR % 2) ? v[(NR + 1) / 2] 
 printf '%-28s %10s %10s %10s %10s %12s\n' image "oxbow cpu" "wall" "cv cpu" "wall" "cpu ratio"
 for image in "${images[@]}"; do
   name=$(basename "$image")
-  "$oxbow" extract --threads 1 --format colmap --out "$work/o" "$image" >/dev/null 2>&1  # warm the page cache
+  "$oxbow" extract --threads 1 --contrast-threshold 0.04 --format colmap --out "$work/o" "$image" >/dev/null 2>&1  # warm the page cache
   "$peer" "$image" "$work/p.txt"
   : >"$work/rows"
   for ((i = 0; i < reps; ++i)); do
-    o=$(measure "$oxbow" extract --threads 1 --format colmap --out "$work/o" "$image")
+    o=$(measure "$oxbow" extract --threads 1 --contrast-threshold 0.04 --format colmap --out "$work/o" "$image")
     p=$(measure "$peer" "$image" "$work/p.txt")
     echo "$o $p" >>"$work/rows"
   done

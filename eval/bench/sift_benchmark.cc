@@ -17,7 +17,7 @@
 //   warm  repetitions on one thread with one extractor: oxbow keeps its pyramid buffers between images
 //         (SiftOptions::thread_cache_mib, the default), cv::SIFT has no such cache and allocates anew.
 // VLFeat is single-threaded and measured cold only. Paths: opencv-doc samples (always present) and
-// ../shared/data (boat, Paris photos) when present.
+// ../shared/data (boat, Paris photos) when present. Every side uses cv::SIFT's contrast threshold (0.04).
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -56,6 +56,10 @@ namespace {
 using namespace oxbow::sift;
 using Clock = std::chrono::steady_clock;
 
+// Every side extracts with cv::SIFT's contrast threshold (oxbow's default is lower, 0.034), so the
+// three find keypoints under the same rule.
+constexpr double kPeerContrast = 0.04;
+
 const std::string kOpencvData = "/usr/share/doc/opencv-doc/examples/data/";
 const std::string kShared = OXBOW_SOURCE_DIR "/../shared/data/";
 
@@ -93,7 +97,7 @@ FeatureSet Vlfeat(const cv::Mat& gray8) {
   f.image_width = gray.width;
   f.image_height = gray.height;
   VlSiftFilt* filter = vl_sift_new(gray.width, gray.height, -1, 3, -1);
-  vl_sift_set_peak_thresh(filter, 0.04 / 3);  // the same contrast threshold, image in [0, 1]
+  vl_sift_set_peak_thresh(filter, kPeerContrast / 3);  // the same contrast threshold, image in [0, 1]
   vl_sift_set_edge_thresh(filter, 10);
   int err = vl_sift_process_first_octave(filter, gray.pixels.data());
   float desc[128];
@@ -132,9 +136,10 @@ class Extractors {
   static SiftExtractor NewOxbow(int threads) {
     SiftOptions options;
     options.num_threads = threads;
+    options.contrast_threshold = kPeerContrast;
     return *SiftExtractor::Create(options);
   }
-  static cv::Ptr<cv::SIFT> NewOpencv() { return cv::SIFT::create(0, 3, 0.04, 10, 1.6); }
+  static cv::Ptr<cv::SIFT> NewOpencv() { return cv::SIFT::create(0, 3, kPeerContrast, 10, 1.6); }
 
  private:
   std::map<int, SiftExtractor> oxbow_;
@@ -361,6 +366,7 @@ int main(int argc, char** argv) {
     SiftOptions options;
     options.descriptor = DescriptorKind::kSift;
     options.keypoint_style = style;
+    options.contrast_threshold = kPeerContrast;
     return [extractor = *SiftExtractor::Create(options)](const cv::Mat& m) { return extractor.Extract(ToGray(m)); };
   };
   std::vector<QualityMethod> quality = {{"oxbow", oxbow_raw(KeypointStyle::kVlfeat)},
