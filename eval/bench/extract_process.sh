@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
-# One extraction as a whole process, as a user runs it: `oxbow extract --threads 1 --contrast-threshold 0.04
-# --format colmap` (cv::SIFT's contrast threshold) on one
-# image against cv_sift_extract (OpenCV's SIFT with its defaults on one thread, same output format), in
-# turn, each from a fresh process; and `oxbow --version` alone, the cost of starting the binary.
+# One extraction as a whole process, as a user runs it: `oxbow extract --threads 1 --format colmap` at
+# cv::SIFT's contrast threshold (--contrast-threshold 0.04; oxbow's default is 0.034) on one image
+# against cv_sift_extract (OpenCV's SIFT with its defaults on one thread, same output format), in turn,
+# each from a fresh process; and `oxbow --version` alone, the cost of starting the binary.
 #   eval/bench/extract_process.sh [--reps N] [--build DIR] IMAGE...
 # For each image: the median CPU time (user + system) and wall time of each over N pairs (default 11),
 # and the median of the pairs' CPU ratios oxbow / cv::SIFT (pair by pair, so that a drift of the
@@ -22,6 +22,7 @@ while [[ $# -gt 0 ]]; do
 done
 [[ ${#images[@]} -gt 0 ]] || { echo "extract_process.sh: give one or more images (--help)" >&2; exit 2; }
 oxbow=$build/server/oxbow
+oxbow_extract=(extract --threads 1 --contrast-threshold 0.04 --format colmap)  # the same settings as the peer's
 peer=$build/eval/bench/cv_sift_extract
 for b in "$oxbow" "$peer"; do [[ -x $b ]] || { echo "extract_process.sh: $b is not built (cmake --build $build)" >&2; exit 2; }; done
 work=$(mktemp -d)
@@ -46,11 +47,11 @@ median() { sort -g | awk '{ v[NR] = $1 } END { print (NR % 2) ? v[(NR + 1) / 2] 
 printf '%-28s %10s %10s %10s %10s %12s\n' image "oxbow cpu" "wall" "cv cpu" "wall" "cpu ratio"
 for image in "${images[@]}"; do
   name=$(basename "$image")
-  "$oxbow" extract --threads 1 --contrast-threshold 0.04 --format colmap --out "$work/o" "$image" >/dev/null 2>&1  # warm the page cache
+  "$oxbow" "${oxbow_extract[@]}" --out "$work/o" "$image" >/dev/null 2>&1  # warm the page cache
   "$peer" "$image" "$work/p.txt"
   : >"$work/rows"
   for ((i = 0; i < reps; ++i)); do
-    o=$(measure "$oxbow" extract --threads 1 --contrast-threshold 0.04 --format colmap --out "$work/o" "$image")
+    o=$(measure "$oxbow" "${oxbow_extract[@]}" --out "$work/o" "$image")
     p=$(measure "$peer" "$image" "$work/p.txt")
     echo "$o $p" >>"$work/rows"
   done
