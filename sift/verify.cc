@@ -66,6 +66,7 @@ struct Scratch {
   std::vector<uint32_t> count_start;
   std::vector<uint32_t> members, selected, previous, best;
   std::vector<uint8_t> in_best;
+  std::vector<double> scales;  // InlierSpread's
 };
 
 // Empties the bins a call used, so the next call starts from an all-empty table without clearing it all.
@@ -154,6 +155,40 @@ bool Plausible(const Affine2D& a, const HoughVerifyOptions& o) {
   if (!(a.Determinant() > 0)) return false;
   const auto [s1, s2] = SingularValues(a);
   return s2 >= o.min_scale && s1 <= o.max_scale && s1 <= o.max_anisotropy * s2;
+}
+
+// The inliers' spread (HoughVerifyOptions::min_inlier_spread): in each image, the standard deviation of
+// their positions across their principal axis divided by their median keypoint scale; the smaller of the
+// two. Scale-invariant: a copy at another size measures the same.
+double InlierSpread(std::span<const uint32_t> selected, const Points& p, std::span<const Keypoint> query,
+                    std::span<const Keypoint> db, std::span<const Match> matches, std::vector<double>& scales) {
+  const size_t n = selected.size();
+  if (n < 2) return 0;
+  double spread = std::numeric_limits<double>::infinity();
+  for (const bool query_side : {true, false}) {
+    const std::vector<double>& xs = query_side ? p.qx : p.dx;
+    const std::vector<double>& ys = query_side ? p.qy : p.dy;
+    double mx = 0, my = 0;
+    for (const uint32_t i : selected) mx += xs[i], my += ys[i];
+    mx /= double(n), my /= double(n);
+    double sxx = 0, sxy = 0, syy = 0;
+    for (const uint32_t i : selected) {
+      const double x = xs[i] - mx, y = ys[i] - my;
+      sxx += x * x, sxy += x * y, syy += y * y;
+    }
+    sxx /= double(n - 1), sxy /= double(n - 1), syy /= double(n - 1);
+    // The covariance's smaller eigenvalue: the variance across the principal axis.
+    const double minor = (sxx + syy) / 2 - std::hypot((sxx - syy) / 2, sxy);
+    scales.clear();
+    for (const uint32_t i : selected) {
+      const Match& m = matches[p.match_index[i]];
+      scales.push_back(query_side ? query[m.query_index].scale : db[m.db_index].scale);
+    }
+    const auto middle = scales.begin() + static_cast<std::ptrdiff_t>(n / 2);
+    std::nth_element(scales.begin(), middle, scales.end());
+    spread = std::min(spread, std::sqrt(std::max(0.0, minor)) / std::max(double(*middle), 1e-6));
+  }
+  return spread;
 }
 
 // Agreement tests with a fit; see the file comment.
@@ -268,6 +303,9 @@ std::optional<std::string> HoughVerifyOptions::Check() const {
            " and " + std::to_string(max_scale);
   }
   if (!(max_anisotropy >= 1 && std::isfinite(max_anisotropy))) return bad("max_anisotropy", max_anisotropy, "[1, inf)");
+  if (!(min_inlier_spread >= 0 && std::isfinite(min_inlier_spread))) {
+    return bad("min_inlier_spread", min_inlier_spread, "[0, inf)");
+  }
   return std::nullopt;
 }
 
@@ -420,7 +458,9 @@ VerificationResult VerifyHoughAffine(std::span<const Keypoint> query, std::span<
     const double tolerance = options.initial_residual_bin_fraction * location_bin_size(ScaleBinOfKey(s.table[slot].key));
     Affine2D fit;
     if (!VerifyCluster(p, s.members, tolerance, options, orientation_bin_rad, s.selected, s.previous, &fit)) continue;
-    const bool verified = static_cast<int>(s.selected.size()) >= options.min_inliers && Plausible(fit, options);
+    const bool verified = static_cast<int>(s.selected.size()) >= options.min_inliers && Plausible(fit, options) &&
+                          (options.min_inlier_spread <= 0 ||
+                           InlierSpread(s.selected, p, query, db, matches, s.scales) >= options.min_inlier_spread);
     const bool better = !have_fit || (verified && !best_verified) ||
                         (verified == best_verified && s.selected.size() > s.best.size());
     if (!better) continue;

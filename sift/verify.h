@@ -15,8 +15,9 @@
 //    `check_keypoint_pose`, its keypoint orientation and scale agree with the fit within half a bin.
 //    Acceptance rule (instead of Lowe's probabilistic test, which needs the model's feature density):
 //    at least `min_inliers` agreeing matches AND a plausible affine (orientation-preserving, singular
-//    values within [min_scale, max_scale], anisotropy at most max_anisotropy). Among all verified
-//    clusters the one with the most inliers is returned.
+//    values within [min_scale, max_scale], anisotropy at most max_anisotropy) AND inliers that span an
+//    area, not a line (min_inlier_spread). Among all verified clusters the one with the most inliers is
+//    returned.
 //
 // 2. FitRobust: full models for users that need them, via OpenCV calib3d's robust estimators
 //    (we do not re-implement RANSAC): similarity = cv::estimateAffinePartial2D (RANSAC + LM refine; it
@@ -87,6 +88,11 @@ struct HoughVerifyOptions {
   double max_scale = 32;
   double max_anisotropy = 6;           // ratio of A's singular values at most this, >= 1
                                        // (a 6:1 squash is ~80 degrees of viewpoint change)
+  double min_inlier_spread = 3.5;      // the inliers' spread across their principal axis (standard deviation
+                                       // of their positions) in each image, in their median keypoint scale,
+                                       // at least this; >= 0, 0 = no test. Inliers along a line (a word matched
+                                       // to the same word in another text) leave the affine undetermined across
+                                       // it; another view of an object spreads its inliers over an area
 
   std::optional<std::string> Check() const;  // empty when valid, else a message naming the field
 };

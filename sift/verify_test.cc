@@ -202,6 +202,51 @@ TEST(VerifyHoughAffine, PoseCheckRejectsMatchesWithInconsistentOrientation) {
   EXPECT_GT(without.num_inliers, with_check.num_inliers);
 }
 
+// Twelve small keypoints (scale 1.5 px, a text's strokes) matched under a similarity, placed either along
+// one line of text (across it they spread by about half a stroke) or over an area of the same length.
+Scenario LineOrArea(bool line) {
+  const Affine2D truth = Similarity(1.8, 0, 40, 300);
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> jitter(-1, 1);
+  Scenario s;
+  for (uint32_t i = 0; i < 12; ++i) {
+    Keypoint q;
+    q.x = static_cast<float>(100 + 18 * i);
+    q.y = static_cast<float>(line ? 200 + jitter(rng) : 100 + 18 * ((i * 5) % 12));
+    q.scale = 1.5f;
+    q.orientation = static_cast<float>(WrapAngle(0.5 * i));
+    const Eigen::Vector2d p = truth.Apply({q.x, q.y});
+    Keypoint d = q;
+    d.x = static_cast<float>(p.x() + 0.3 * jitter(rng));
+    d.y = static_cast<float>(p.y() + 0.3 * jitter(rng));
+    d.scale = 1.5f * 1.8f;
+    s.query.push_back(q);
+    s.db.push_back(d);
+    s.matches.push_back({i, i, 0.1f});
+  }
+  return s;
+}
+
+TEST(VerifyHoughAffine, InliersAlongALineDoNotVerify) {
+  // Along a line the affine is undetermined across it (a word matched to the same word in another
+  // text): the fit holds all twelve matches, yet the rule does not verify it unless the spread test is off.
+  const Scenario line = LineOrArea(true);
+  const VerificationResult r = VerifyHoughAffine(line.query, line.db, line.matches, {0, 0, 640, 480}, {900, 900});
+  EXPECT_FALSE(r.verified);
+  EXPECT_EQ(r.num_inliers, 12);
+  HoughVerifyOptions no_spread;
+  no_spread.min_inlier_spread = 0;
+  const VerificationResult off = VerifyHoughAffine(line.query, line.db, line.matches, {0, 0, 640, 480}, {900, 900}, no_spread);
+  EXPECT_TRUE(off.verified);
+  EXPECT_EQ(off.num_inliers, 12);
+  // The same twelve matches spread over an area verify.
+  const Scenario area = LineOrArea(false);
+  EXPECT_TRUE(VerifyHoughAffine(area.query, area.db, area.matches, {0, 0, 640, 480}, {900, 900}).verified);
+  HoughVerifyOptions bad;
+  bad.min_inlier_spread = -1;
+  EXPECT_TRUE(bad.Check().has_value());
+}
+
 TEST(VerifyHoughAffine, RejectsRandomMatches) {
   for (uint32_t seed : {1u, 2u, 3u}) {
     const Scenario s = MakeScenario(Affine2D{}, 0, 300, 1.0, seed);
