@@ -46,7 +46,8 @@
 // 6. Transitive verification (same paper, its transitive closure), optional: the first
 //    `transitive_depth` unverified results are verified against the matched regions of up to
 //    `transitive_anchors` verified results (directly verified first, then the transitively verified
-//    ones of earlier rounds), and those that pass are ranked right after the directly verified ones
+//    ones of earlier rounds; only firm ones, sift::VerificationResult::firm: not a line of matched
+//    text), and those that pass are ranked right after the directly verified ones
 //    (by inliers). Their db_from_query is the composition through the result they matched. Each anchor
 //    only checks its own `transitive_neighbours` best tf-idf matches among the results so far, and
 //    each candidate is verified against at most `transitive_attempts` of a round's anchors (those that
@@ -271,7 +272,8 @@ struct QueryOptions {
   // Transitive verification, the transitive closure of Chum et al. 2007 ("Total recall"): the first
   // `transitive_depth` unverified results of the ranking (the expanded one with query_expansion) are
   // verified against the regions matched in verified results ("anchors": the directly verified ones
-  // best first, then those verified transitively, round after round); those that pass join the
+  // best first, then those verified transitively, round after round; only firm verifications anchor,
+  // sift::VerificationResult::firm); those that pass join the
   // verified results, after the directly verified ones, by inliers. Finds views too different from the
   // query to match it directly. 0 disables. [0, 10000]. Does nothing without re-ranking
   // (rerank_depth 0: nothing is verified). Default chosen by measurement on Paris (see README).

@@ -4,6 +4,8 @@
 
 #include <gtest/gtest.h>
 
+#include <array>
+
 namespace oxbow::index {
 namespace {
 
@@ -262,6 +264,51 @@ TEST_F(ImageIndexTest, TransitiveVerificationReachesViewsThatOnlyMatchAResult) {
       EXPECT_NE(refused.error().message.find(name), std::string::npos);
     }
   }
+}
+
+TEST_F(ImageIndexTest, TransitiveVerificationOnlyChainsFromFirmResults) {
+  // The query matches "hub" only along a thin band (a line of text): verified, but not firm, so hub
+  // anchors no chain and "far", which shares hub's other features, stays unverified. With sixteen of
+  // hub's features over an area added to the query, hub anchors the chain to far.
+  std::mt19937_64 rng(12);
+  auto index = CreateIndex();
+  sift::FeatureSet hub = RandomImage(rng, 240);
+  constexpr size_t kBand = 16, kArea = 32;
+  for (size_t i = 0; i < kBand; ++i) {
+    sift::Keypoint& k = hub.keypoints[i];
+    k.x = 100.0f + 25.0f * static_cast<float>(i);
+    k.y = 200.0f + 12.0f * std::array{-1.0f, -0.33f, 0.33f, 1.0f}[i % 4];
+    k.scale = 1.5f;
+  }
+  std::vector<uint32_t> hub_words(hub.size());
+  vocabulary_.Quantize(hub.descriptors, hub_words);
+  ASSERT_TRUE(index->Add("hub", hub, {}));
+  for (int i = 0; i < 25; ++i) ASSERT_TRUE(index->Add(NumberedId("other", i), RandomImage(rng, 150), {}));
+  const std::vector<uint32_t> far_words(hub_words.begin() + kArea, hub_words.end());
+  const std::vector<sift::Keypoint> far_kps(hub.keypoints.begin() + kArea, hub.keypoints.end());
+  ASSERT_TRUE(index->Add("far", Features(far_words, Transformed(far_kps, -0.4, 0.8, 120, 250), 800, 700), {}));
+  const auto query_of = [&](size_t n) {
+    const std::vector<uint32_t> words(hub_words.begin(), hub_words.begin() + static_cast<std::ptrdiff_t>(n));
+    const std::vector<sift::Keypoint> kps(hub.keypoints.begin(), hub.keypoints.begin() + static_cast<std::ptrdiff_t>(n));
+    return Features(words, Transformed(kps, 0.5, 1.2, 300, 20), 1100, 1000);
+  };
+  QueryOptions transitive = Opts(30, 30);
+  transitive.transitive_depth = 30;
+  const auto band = index->Query(query_of(kBand), transitive);
+  ASSERT_TRUE(band) << band.error().ToString();
+  ASSERT_FALSE(band->results.empty());
+  EXPECT_EQ(band->results[0].id, "hub");
+  EXPECT_TRUE(band->results[0].verified) << "the band spans min_inlier_spread: hub is verified";
+  for (const auto& r : band->results) {
+    if (r.id == "far") EXPECT_FALSE(r.verified) << "far verified via '" << r.via << "'";
+  }
+  const auto area = index->Query(query_of(kArea), transitive);
+  ASSERT_TRUE(area) << area.error().ToString();
+  ASSERT_GE(area->results.size(), 2u);
+  EXPECT_EQ(area->results[0].id, "hub");
+  EXPECT_EQ(area->results[1].id, "far");
+  EXPECT_TRUE(area->results[1].verified);
+  EXPECT_EQ(area->results[1].via, "hub");
 }
 
 TEST_F(ImageIndexTest, MultipleAssignmentReachesTheSecondNearestWord) {

@@ -157,28 +157,61 @@ bool Plausible(const Affine2D& a, const HoughVerifyOptions& o) {
   return s2 >= o.min_scale && s1 <= o.max_scale && s1 <= o.max_anisotropy * s2;
 }
 
+// The standard deviations of points (xs[i], ys[i]), i in `selected` but not selected[skip], across and
+// along their principal axis; `farthest` (when given) receives the position in `selected` of the point
+// farthest from that axis.
+struct Deviations {
+  double across = 0, along = 0;
+};
+Deviations AxisDeviations(std::span<const uint32_t> selected, const std::vector<double>& xs,
+                          const std::vector<double>& ys, size_t skip, size_t* farthest) {
+  const size_t n = selected.size() - (skip < selected.size() ? 1 : 0);
+  if (n < 2) return {};
+  double mx = 0, my = 0;
+  for (size_t k = 0; k < selected.size(); ++k) {
+    if (k != skip) mx += xs[selected[k]], my += ys[selected[k]];
+  }
+  mx /= double(n), my /= double(n);
+  double sxx = 0, sxy = 0, syy = 0;
+  for (size_t k = 0; k < selected.size(); ++k) {
+    if (k == skip) continue;
+    const double x = xs[selected[k]] - mx, y = ys[selected[k]] - my;
+    sxx += x * x, sxy += x * y, syy += y * y;
+  }
+  sxx /= double(n - 1), sxy /= double(n - 1), syy /= double(n - 1);
+  if (farthest != nullptr) {
+    // The principal axis's angle; the minor axis is its normal.
+    const double angle = 0.5 * std::atan2(2 * sxy, sxx - syy);
+    const double nx = -std::sin(angle), ny = std::cos(angle);
+    double worst = -1;
+    for (size_t k = 0; k < selected.size(); ++k) {
+      const double d = std::abs((xs[selected[k]] - mx) * nx + (ys[selected[k]] - my) * ny);
+      if (d > worst) worst = d, *farthest = k;
+    }
+  }
+  // The covariance's eigenvalues: the variances across and along the principal axis.
+  const double mean = (sxx + syy) / 2, half_gap = std::hypot((sxx - syy) / 2, sxy);
+  return {std::sqrt(std::max(0.0, mean - half_gap)), std::sqrt(std::max(0.0, mean + half_gap))};
+}
+
+constexpr size_t kNoSkip = std::numeric_limits<size_t>::max();
+
 // The inliers' spread (HoughVerifyOptions::min_inlier_spread): in each image, the standard deviation of
 // their positions across their principal axis divided by their median keypoint scale; the smaller of the
-// two. Scale-invariant: a copy at another size measures the same.
+// two. Scale-invariant: a copy at another size measures the same. With leave_farthest_out, each image's
+// deviation leaves out the inlier farthest from the principal axis (VerificationResult::firm).
 double InlierSpread(std::span<const uint32_t> selected, const Points& p, std::span<const Keypoint> query,
-                    std::span<const Keypoint> db, std::span<const Match> matches, std::vector<double>& scales) {
+                    std::span<const Keypoint> db, std::span<const Match> matches, bool leave_farthest_out,
+                    std::vector<double>& scales) {
   const size_t n = selected.size();
   if (n < 2) return 0;
   double spread = std::numeric_limits<double>::infinity();
   for (const bool query_side : {true, false}) {
     const std::vector<double>& xs = query_side ? p.qx : p.dx;
     const std::vector<double>& ys = query_side ? p.qy : p.dy;
-    double mx = 0, my = 0;
-    for (const uint32_t i : selected) mx += xs[i], my += ys[i];
-    mx /= double(n), my /= double(n);
-    double sxx = 0, sxy = 0, syy = 0;
-    for (const uint32_t i : selected) {
-      const double x = xs[i] - mx, y = ys[i] - my;
-      sxx += x * x, sxy += x * y, syy += y * y;
-    }
-    sxx /= double(n - 1), sxy /= double(n - 1), syy /= double(n - 1);
-    // The covariance's smaller eigenvalue: the variance across the principal axis.
-    const double minor = (sxx + syy) / 2 - std::hypot((sxx - syy) / 2, sxy);
+    size_t farthest = kNoSkip;
+    double deviation = AxisDeviations(selected, xs, ys, kNoSkip, leave_farthest_out ? &farthest : nullptr).across;
+    if (leave_farthest_out) deviation = AxisDeviations(selected, xs, ys, farthest, nullptr).across;
     scales.clear();
     for (const uint32_t i : selected) {
       const Match& m = matches[p.match_index[i]];
@@ -186,9 +219,20 @@ double InlierSpread(std::span<const uint32_t> selected, const Points& p, std::sp
     }
     const auto middle = scales.begin() + static_cast<std::ptrdiff_t>(n / 2);
     std::nth_element(scales.begin(), middle, scales.end());
-    spread = std::min(spread, std::sqrt(std::max(0.0, minor)) / std::max(double(*middle), 1e-6));
+    spread = std::min(spread, deviation / std::max(double(*middle), 1e-6));
   }
   return spread;
+}
+
+// The inliers' aspect (HoughVerifyOptions::min_firm_aspect): in each image, their standard deviation
+// across their principal axis over that along it; the smaller of the two. A line of text is long and thin.
+double InlierAspect(std::span<const uint32_t> selected, const Points& p) {
+  double aspect = std::numeric_limits<double>::infinity();
+  for (const bool query_side : {true, false}) {
+    const Deviations d = AxisDeviations(selected, query_side ? p.qx : p.dx, query_side ? p.qy : p.dy, kNoSkip, nullptr);
+    aspect = std::min(aspect, d.along > 0 ? d.across / d.along : 0.0);
+  }
+  return aspect;
 }
 
 // Agreement tests with a fit; see the file comment.
@@ -306,6 +350,7 @@ std::optional<std::string> HoughVerifyOptions::Check() const {
   if (!(min_inlier_spread >= 0 && std::isfinite(min_inlier_spread))) {
     return bad("min_inlier_spread", min_inlier_spread, "[0, inf)");
   }
+  if (!(min_firm_aspect >= 0 && min_firm_aspect <= 1)) return bad("min_firm_aspect", min_firm_aspect, "[0, 1]");
   return std::nullopt;
 }
 
@@ -460,7 +505,7 @@ VerificationResult VerifyHoughAffine(std::span<const Keypoint> query, std::span<
     if (!VerifyCluster(p, s.members, tolerance, options, orientation_bin_rad, s.selected, s.previous, &fit)) continue;
     const bool verified = static_cast<int>(s.selected.size()) >= options.min_inliers && Plausible(fit, options) &&
                           (options.min_inlier_spread <= 0 ||
-                           InlierSpread(s.selected, p, query, db, matches, s.scales) >= options.min_inlier_spread);
+                           InlierSpread(s.selected, p, query, db, matches, false, s.scales) >= options.min_inlier_spread);
     const bool better = !have_fit || (verified && !best_verified) ||
                         (verified == best_verified && s.selected.size() > s.best.size());
     if (!better) continue;
@@ -475,6 +520,9 @@ VerificationResult VerifyHoughAffine(std::span<const Keypoint> query, std::span<
   if (!have_fit) return result;
 
   result.verified = best_verified;
+  result.firm = best_verified && (options.min_inlier_spread <= 0 ||
+                                  InlierSpread(s.best, p, query, db, matches, true, s.scales) >= options.min_inlier_spread) &&
+                InlierAspect(s.best, p) >= options.min_firm_aspect;
   result.num_votes = best_votes;
   result.db_from_query = best_fit;
   result.inliers.reserve(s.best.size());

@@ -93,6 +93,10 @@ struct HoughVerifyOptions {
                                        // at least this; >= 0, 0 = no test. Inliers along a line (a word matched
                                        // to the same word in another text) leave the affine undetermined across
                                        // it; another view of an object spreads its inliers over an area
+  double min_firm_aspect = 0.2;        // VerificationResult::firm also needs the inliers' standard deviation
+                                       // across their principal axis at least this fraction of that along it,
+                                       // in each image, [0, 1]; 0 = no test. A matched line of text is long
+                                       // and thin however many letters it holds
 
   std::optional<std::string> Check() const;  // empty when valid, else a message naming the field
 };
@@ -105,6 +109,10 @@ struct VerificationResult {
   std::array<float, 4> db_region = {0, 0, 0, 0};  // x1,y1,x2,y2: axis-aligned box in the db image that the
                                   // query region maps onto, clipped to the db image; zeros if no fit
   int num_votes = 0;              // votes of the Hough bin the result grew from (0 if none had enough)
+  bool firm = false;              // verified, and the inliers still span an area (min_inlier_spread) without
+                                  // the one farthest from their principal axis in each image (not a line of
+                                  // matches plus one stray point), and not a thin band (min_firm_aspect).
+                                  // A search chains transitive verification only from firm results
 };
 
 // Lowe's Hough pose clustering + affine verification (see the file comment).

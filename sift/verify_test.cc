@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <filesystem>
 #include <cstdio>
@@ -244,6 +245,68 @@ TEST(VerifyHoughAffine, InliersAlongALineDoNotVerify) {
   EXPECT_TRUE(VerifyHoughAffine(area.query, area.db, area.matches, {0, 0, 640, 480}, {900, 900}).verified);
   HoughVerifyOptions bad;
   bad.min_inlier_spread = -1;
+  EXPECT_TRUE(bad.Check().has_value());
+}
+
+// Matches at the given query points under one similarity, keypoint scale 1.5 (2.7 in the db image).
+Scenario AtPoints(const std::vector<Eigen::Vector2d>& points) {
+  const Affine2D truth = Similarity(1.8, 0, 40, 300);
+  Scenario s;
+  for (uint32_t i = 0; i < points.size(); ++i) {
+    Keypoint q;
+    q.x = static_cast<float>(points[i].x());
+    q.y = static_cast<float>(points[i].y());
+    q.scale = 1.5f;
+    q.orientation = static_cast<float>(WrapAngle(0.5 * i));
+    const Eigen::Vector2d p = truth.Apply(points[i]);
+    Keypoint d = q;
+    d.x = static_cast<float>(p.x());
+    d.y = static_cast<float>(p.y());
+    d.scale = 1.5f * 1.8f;
+    s.query.push_back(q);
+    s.db.push_back(d);
+    s.matches.push_back({i, i, 0.1f});
+  }
+  return s;
+}
+
+TEST(VerifyHoughAffine, FirmNeedsAnAreaWithoutItsStrayPointAndNotAThinBand) {
+  const std::array<float, 4> region = {0, 0, 640, 480};
+  const std::array<int, 2> db_size = {900, 900};
+  // Over an area: verified and firm.
+  const Scenario area = LineOrArea(false);
+  const VerificationResult a = VerifyHoughAffine(area.query, area.db, area.matches, region, db_size);
+  EXPECT_TRUE(a.verified);
+  EXPECT_TRUE(a.firm);
+  // A line of twelve plus one point 100 px off it: the thirteen span an area and verify, but without
+  // the stray point they are a line: not firm.
+  std::vector<Eigen::Vector2d> line;
+  for (int i = 0; i < 12; ++i) line.emplace_back(100 + 18 * i, 200 + (i % 2 == 0 ? 0.5 : -0.5));
+  line.emplace_back(200, 300);
+  const Scenario stray = AtPoints(line);
+  const VerificationResult l = VerifyHoughAffine(stray.query, stray.db, stray.matches, region, db_size);
+  EXPECT_TRUE(l.verified);
+  EXPECT_EQ(l.num_inliers, 13);
+  EXPECT_FALSE(l.firm);
+  // A band 24 px high and 200 px long (a line of text): its spread across passes min_inlier_spread with
+  // or without any one point, but it is seven times longer than high: not firm unless the aspect test is off.
+  std::vector<Eigen::Vector2d> band;
+  for (int i = 0; i < 12; ++i) band.emplace_back(100 + 18 * i, 200 + 12 * std::array{-1.0, -0.33, 0.33, 1.0}[i % 4]);
+  const Scenario text = AtPoints(band);
+  const VerificationResult b = VerifyHoughAffine(text.query, text.db, text.matches, region, db_size);
+  EXPECT_TRUE(b.verified);
+  EXPECT_EQ(b.num_inliers, 12);
+  EXPECT_FALSE(b.firm);
+  HoughVerifyOptions no_aspect;
+  no_aspect.min_firm_aspect = 0;
+  EXPECT_TRUE(VerifyHoughAffine(text.query, text.db, text.matches, region, db_size, no_aspect).firm);
+  // Unverified results are never firm.
+  const Scenario thin = LineOrArea(true);
+  EXPECT_FALSE(VerifyHoughAffine(thin.query, thin.db, thin.matches, region, db_size).firm);
+  HoughVerifyOptions bad;
+  bad.min_firm_aspect = 1.5;
+  EXPECT_TRUE(bad.Check().has_value());
+  bad.min_firm_aspect = std::numeric_limits<double>::quiet_NaN();
   EXPECT_TRUE(bad.Check().has_value());
 }
 

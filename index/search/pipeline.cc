@@ -23,6 +23,7 @@ double MsSince(Clock::time_point t0) { return std::chrono::duration<double, std:
 struct Hit {
   ImageRef ref;
   QueryResult result;  // without its record until the end
+  bool firm = false;   // verified, and firmly (sift::VerificationResult::firm): may anchor a chain
 };
 
 std::vector<ImageRef> RefsOf(std::span<const Hit> hits) {
@@ -99,6 +100,7 @@ Result<size_t> Rerank(Source& source, const QueryFeatures& query, const QueryOpt
     const sift::VerificationResult& v = (*verified)[c].result;
     QueryResult& r = hits[c].result;
     r.inliers = v.num_inliers;
+    hits[c].firm = v.firm;
     if (v.verified) {
       r.verified = true;
       r.db_from_query = v.db_from_query;
@@ -240,8 +242,13 @@ Status VerifyTransitively(Source& source, const QueryOptions& options, bool hamm
     std::sort(by_id.begin(), by_id.end(), [&](size_t x, size_t y) { return hits[x].result.id < hits[y].result.id; });
     for (size_t k = 0; k < last; ++k) tie[by_id[k]] = static_cast<uint32_t>(k);
   }
-  std::vector<size_t> pool(num_verified);  // anchor candidates: positions in `hits`, in anchor order
-  std::iota(pool.begin(), pool.end(), size_t{0});
+  // Anchor candidates: positions in `hits`, in anchor order. Only firm results anchor: a line of matched
+  // text plus one stray point verifies a caption against another, and would pass that on to every copy
+  // of the other's photo.
+  std::vector<size_t> pool;
+  for (size_t c = 0; c < num_verified; ++c) {
+    if (hits[c].firm) pool.push_back(c);
+  }
   const auto max_anchors = static_cast<size_t>(options.transitive_anchors);
   // With Hamming embedding an anchor's region is verified against as a query is: with at most
   // max_query_features features, those of its rarest words (stored features keep no DoG response).
@@ -289,6 +296,7 @@ Status VerifyTransitively(Source& source, const QueryOptions& options, bool hamm
       for (size_t i = 0; i < tasks.size(); ++i) {
         const Verified& v = (*verified)[i];
         if (!v.result.verified) continue;
+        hits[positions[i]].firm = v.result.firm;
         QueryResult& r = hits[positions[i]].result;
         r.verified = true;
         r.inliers = v.result.num_inliers;
@@ -303,7 +311,7 @@ Status VerifyTransitively(Source& source, const QueryOptions& options, bool hamm
     // The candidates this round verified join the pool, the anchors of later rounds, most inliers first.
     std::vector<size_t> fresh;
     for (size_t c = first; c < last; ++c) {
-      if (found[c - first]) fresh.push_back(c);
+      if (found[c - first] && hits[c].firm) fresh.push_back(c);
     }
     std::stable_sort(fresh.begin(), fresh.end(),
                      [&](size_t x, size_t y) { return hits[x].result.inliers > hits[y].result.inliers; });

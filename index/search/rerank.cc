@@ -202,6 +202,7 @@ sift::VerificationResult QueryGeometry::Verify(const PackedFeatures& db, int max
       sift::VerifyHoughAffine(keypoints_, db_keypoints, matches, region_, {db.width(), db.height()}, options);
   if (result.verified && hamming && OnlyAnOverlay(keypoints_, words_, signatures_, region_, db, result, matches)) {
     result.verified = false;
+    result.firm = false;
   }
   return result;
 }

@@ -1058,6 +1058,7 @@ class PartitionsSource final : public index::search::Source {
         v.result.num_inliers = result.inliers();
         if (result.verified() && result.db_from_query_size() == 6 && result.db_region_size() == 4) {
           v.result.verified = true;
+          v.result.firm = result.firm();
           std::copy(result.db_from_query().begin(), result.db_from_query().end(), v.result.db_from_query.m.begin());
           std::copy(result.db_region().begin(), result.db_region().end(), v.result.db_region.begin());
         }

@@ -189,6 +189,7 @@ class ShardServer::Impl final : public Shard::Service {
       Verification* r = outcome->mutable_result();
       r->set_verified(v.result.verified);
       r->set_inliers(v.result.num_inliers);
+      r->set_firm(v.result.firm);
       for (double m : v.result.db_from_query.m) r->add_db_from_query(m);
       for (float b : v.result.db_region) r->add_db_region(b);
     }
