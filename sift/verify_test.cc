@@ -281,6 +281,7 @@ TEST(VerifyHoughAffine, FirmNeedsAnAreaWithoutItsStrayPointAndNotAThinBand) {
   // A line of twelve plus one point 100 px off it: the thirteen span an area and verify, but without
   // the stray point they are a line: not firm.
   std::vector<Eigen::Vector2d> line;
+  line.reserve(13);
   for (int i = 0; i < 12; ++i) line.emplace_back(100 + 18 * i, 200 + (i % 2 == 0 ? 0.5 : -0.5));
   line.emplace_back(200, 300);
   const Scenario stray = AtPoints(line);
@@ -291,6 +292,7 @@ TEST(VerifyHoughAffine, FirmNeedsAnAreaWithoutItsStrayPointAndNotAThinBand) {
   // A band 24 px high and 200 px long (a line of text): its spread across passes min_inlier_spread with
   // or without any one point, but it is seven times longer than high: not firm unless the aspect test is off.
   std::vector<Eigen::Vector2d> band;
+  band.reserve(12);
   for (int i = 0; i < 12; ++i) band.emplace_back(100 + 18 * i, 200 + 12 * std::array{-1.0, -0.33, 0.33, 1.0}[i % 4]);
   const Scenario text = AtPoints(band);
   const VerificationResult b = VerifyHoughAffine(text.query, text.db, text.matches, region, db_size);
