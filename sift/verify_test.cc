@@ -203,29 +203,38 @@ TEST(VerifyHoughAffine, PoseCheckRejectsMatchesWithInconsistentOrientation) {
   EXPECT_GT(without.num_inliers, with_check.num_inliers);
 }
 
-// Twelve small keypoints (scale 1.5 px, a text's strokes) matched under a similarity, placed either along
-// one line of text (across it they spread by about half a stroke) or over an area of the same length.
-Scenario LineOrArea(bool line) {
+// Matches at the given query points under one similarity; small keypoints (scale 1.5 px, a text's
+// strokes; 2.7 px in the db image).
+Scenario AtPoints(const std::vector<Eigen::Vector2d>& points) {
   const Affine2D truth = Similarity(1.8, 0, 40, 300);
-  std::mt19937 rng(5);
-  std::uniform_real_distribution<double> jitter(-1, 1);
   Scenario s;
-  for (uint32_t i = 0; i < 12; ++i) {
+  for (uint32_t i = 0; i < points.size(); ++i) {
     Keypoint q;
-    q.x = static_cast<float>(100 + 18 * i);
-    q.y = static_cast<float>(line ? 200 + jitter(rng) : 100 + 18 * ((i * 5) % 12));
+    q.x = static_cast<float>(points[i].x());
+    q.y = static_cast<float>(points[i].y());
     q.scale = 1.5f;
     q.orientation = static_cast<float>(WrapAngle(0.5 * i));
-    const Eigen::Vector2d p = truth.Apply({q.x, q.y});
+    const Eigen::Vector2d p = truth.Apply(points[i]);
     Keypoint d = q;
-    d.x = static_cast<float>(p.x() + 0.3 * jitter(rng));
-    d.y = static_cast<float>(p.y() + 0.3 * jitter(rng));
+    d.x = static_cast<float>(p.x());
+    d.y = static_cast<float>(p.y());
     d.scale = 1.5f * 1.8f;
     s.query.push_back(q);
     s.db.push_back(d);
     s.matches.push_back({i, i, 0.1f});
   }
   return s;
+}
+
+// Twelve matches along one line of text (across it they spread by about half a stroke) or over an area
+// of the same length.
+Scenario LineOrArea(bool line) {
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> jitter(-1, 1);
+  std::vector<Eigen::Vector2d> points;
+  points.reserve(12);
+  for (int i = 0; i < 12; ++i) points.emplace_back(100 + 18 * i, line ? 200 + jitter(rng) : 100 + 18 * ((i * 5) % 12));
+  return AtPoints(points);
 }
 
 TEST(VerifyHoughAffine, InliersAlongALineDoNotVerify) {
@@ -246,28 +255,6 @@ TEST(VerifyHoughAffine, InliersAlongALineDoNotVerify) {
   HoughVerifyOptions bad;
   bad.min_inlier_spread = -1;
   EXPECT_TRUE(bad.Check().has_value());
-}
-
-// Matches at the given query points under one similarity, keypoint scale 1.5 (2.7 in the db image).
-Scenario AtPoints(const std::vector<Eigen::Vector2d>& points) {
-  const Affine2D truth = Similarity(1.8, 0, 40, 300);
-  Scenario s;
-  for (uint32_t i = 0; i < points.size(); ++i) {
-    Keypoint q;
-    q.x = static_cast<float>(points[i].x());
-    q.y = static_cast<float>(points[i].y());
-    q.scale = 1.5f;
-    q.orientation = static_cast<float>(WrapAngle(0.5 * i));
-    const Eigen::Vector2d p = truth.Apply(points[i]);
-    Keypoint d = q;
-    d.x = static_cast<float>(p.x());
-    d.y = static_cast<float>(p.y());
-    d.scale = 1.5f * 1.8f;
-    s.query.push_back(q);
-    s.db.push_back(d);
-    s.matches.push_back({i, i, 0.1f});
-  }
-  return s;
 }
 
 TEST(VerifyHoughAffine, FirmNeedsAnAreaWithoutItsStrayPointAndNotAThinBand) {
