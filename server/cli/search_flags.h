@@ -22,8 +22,10 @@ inline void AddSearchFlags(CLI::App* cmd, index::QueryOptions* o) {
       "re-ranking: words with more features than this on either side give no tentative matches", 1, 100);
   add("--transitive-depth", &o->transitive_depth,
       "transitive verification: unverified results tried against verified ones (0 = off)", 0, 10000);
-  add("--transitive-anchors", &o->transitive_anchors, "transitive verification: verified results used as anchors", 1,
-      1000);
+  add("--transitive-anchors", &o->transitive_anchors,
+      "transitive verification: verified results used as anchors (only firm ones: inliers over an area, not a line "
+      "or a band of text)",
+      1, 1000);
   add("--transitive-neighbours", &o->transitive_neighbours,
       "transitive verification: an anchor only verifies its own best tf-idf neighbours", 1, 10000);
   add("--transitive-attempts", &o->transitive_attempts,
