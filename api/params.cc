@@ -143,6 +143,8 @@ constexpr IntQueryParam kIntQueryParams[] = {
     {"max_query_features", 0, 1000000, &index::QueryOptions::max_query_features},
     {"max_tentative_matches", 0, 1000000, &index::QueryOptions::max_tentative_matches},
     {"max_scored_postings", 0, 2000000000, &index::QueryOptions::max_scored_postings},
+    {"asmk_weight", 0, 1000, &index::QueryOptions::asmk_weight},
+    {"qe_asmk_weight", 0, 1000, &index::QueryOptions::qe_asmk_weight},
 };
 
 }  // namespace

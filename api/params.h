@@ -58,6 +58,8 @@ using Params = std::multimap<std::string, std::string>;
 //   max_tentative_matches  [0, 1000000]  QueryOptions::max_tentative_matches (0 = no limit)
 //   max_scored_postings    [0, 2000000000]  QueryOptions::max_scored_postings (0 = no limit)
 //   hamming                bool          QueryOptions::hamming
+//   asmk_weight            [0, 1000]     QueryOptions::asmk_weight (0 = off)
+//   qe_asmk_weight         [0, 1000]     QueryOptions::qe_asmk_weight (0 = off)
 //   filter     a JSON object over the image metadata (api/filter.h)  QueryOptions::filter
 // Starts from `defaults`; the result passes QueryOptions::Check().
 [[nodiscard]] Result<index::QueryOptions> ParseQueryParams(const Params& params, const index::QueryOptions& defaults);

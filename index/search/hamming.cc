@@ -3,13 +3,40 @@
 #include <algorithm>
 #include <bit>
 #include <cmath>
+#include <cstddef>
 #include <numeric>
 
 namespace oxbow::index {
+namespace {
+
+// The bitwise majority of n >= 1 signatures sig(k) (ties: sig(0)'s bit).
+template <typename SignatureAt>
+uint64_t Majority(size_t n, SignatureAt sig) {
+  if (n == 1) return sig(0);
+  std::array<int, 64> count{};
+  for (size_t k = 0; k < n; ++k) {
+    const uint64_t s = sig(k);
+    for (size_t b = 0; b < 64; ++b) count[b] += (s >> b & 1) != 0 ? 1 : -1;
+  }
+  const uint64_t first = sig(0);
+  uint64_t out = 0;
+  for (size_t b = 0; b < 64; ++b) {
+    if (count[b] > 0 || (count[b] == 0 && (first >> b & 1) != 0)) out |= uint64_t{1} << b;
+  }
+  return out;
+}
+
+}  // namespace
+
 double HammingWeight(uint64_t a, uint64_t b, const HammingWeighting& weighting) {
   const int h = std::popcount(a ^ b);
   if (h > weighting.threshold) return 0;
   return std::exp(-static_cast<double>(h * h) / (weighting.sigma * weighting.sigma));
+}
+
+double AggregatedWeight(int h) {
+  const double u = 1.0 - 2.0 * static_cast<double>(h) / 64.0;
+  return u > 0.25 ? u * u * u : 0.0;
 }
 
 QuerySignatures::QuerySignatures(std::span<const uint32_t> words, std::span<const uint64_t> signatures,
@@ -31,6 +58,17 @@ QuerySignatures::QuerySignatures(std::span<const uint32_t> words, std::span<cons
     self_ += IdfSquared(words[i]);
   }
   runs_ = WordRuns(words_.size(), [&](size_t i) { return words_[i]; });
+  OXBOW_CHECK(weighting.asmk_weight >= 0);
+  asmk_weight_ = weighting.asmk_weight;
+  if (asmk_weight_ > 0) {
+    for (size_t i = 0; i < words_.size();) {
+      size_t i2 = i + 1;
+      while (i2 < words_.size() && words_[i2] == words_[i]) ++i2;
+      aggregated_.push_back(Majority(i2 - i, [&](size_t k) { return signatures_[i + k]; }));
+      self_distinct_ += IdfSquared(words_[i]);
+      i = i2;
+    }
+  }
 }
 
 double QuerySignatures::IdfSquared(uint32_t word) const {
@@ -38,12 +76,13 @@ double QuerySignatures::IdfSquared(uint32_t word) const {
   return (*idf_squared_)[word];
 }
 
-template <bool kSelf>
-double QuerySignatures::Votes(const PackedFeatures& db, double* self_db) const {
+
+template <bool kSelf, bool kAggregate>
+QuerySignatures::Votes QuerySignatures::Count(const PackedFeatures& db) const {
   OXBOW_CHECK(db.has_signatures(), "Hamming scoring needs the candidate's signatures");
   thread_local std::vector<double> strength, query_total, db_total;
   const size_t nd = db.size();
-  double votes = 0;
+  Votes votes;
   size_t r = 0;  // first query run whose word may still occur in the db (db words ascend)
   for (size_t j = 0; j < nd;) {
     const uint32_t w = db.word(j);
@@ -55,14 +94,23 @@ double QuerySignatures::Votes(const PackedFeatures& db, double* self_db) const {
     size_t j2 = j + 1;
     while (j2 < nd && db.word(j2) == w) ++j2;
     const double idf2 = IdfSquared(w);
-    if constexpr (kSelf) *self_db += idf2 * static_cast<double>(j2 - j);
+    if constexpr (kSelf) {
+      votes.self += idf2 * static_cast<double>(j2 - j);
+      votes.distinct += idf2;
+    }
     // The query's run of w, [i, i2): empty for most db words, which one bit test tells (an expanded
     // query holds tens of thousands of features: a merge step per feature was most of Score's time).
     const auto [i, i2] = runs_.Find(w, r);
+    if (i2 > i && idf2 > 0) {
+      if constexpr (kAggregate) {
+        const uint64_t aggregated = Majority(j2 - j, [&db, j](size_t k) { return db.signature(j + k); });
+        votes.aggregated += idf2 * AggregatedWeight(std::popcount(aggregated_[r] ^ aggregated));
+      }
+    }
     if (i2 == i + 1 && j2 == j + 1 && idf2 > 0) {
       // Most shared words: one feature on each side (the general case below, without its scratch).
       const double s = weight_[std::popcount(signatures_[i] ^ db.signature(j))];
-      if (s > 0) votes += idf2 * (s * s / std::sqrt(s * s));
+      if (s > 0) votes.matched += idf2 * (s * s / std::sqrt(s * s));
     } else if (i2 > i && idf2 > 0) {
       const size_t cq = i2 - i, cd = j2 - j;
       strength.assign(cq * cd, 0.0);
@@ -83,24 +131,31 @@ double QuerySignatures::Votes(const PackedFeatures& db, double* self_db) const {
           if (s > 0) word_votes += s * s / std::sqrt(query_total[a] * db_total[b]);
         }
       }
-      votes += idf2 * word_votes;
+      votes.matched += idf2 * word_votes;
     }
     j = j2;
   }
   return votes;
 }
 
+double QuerySignatures::Combine(const Votes& votes, double candidate_self) const {
+  double score = 0;
+  if (votes.matched > 0 && self_ > 0 && candidate_self > 0) score = votes.matched / std::sqrt(self_ * candidate_self);
+  if (asmk_weight_ > 0 && votes.aggregated > 0 && self_distinct_ > 0 && votes.distinct > 0) {
+    score += asmk_weight_ * votes.aggregated / std::sqrt(self_distinct_ * votes.distinct);
+  }
+  return score;
+}
+
 double QuerySignatures::Score(const PackedFeatures& db) const {
-  double self_db = 0;
-  const double votes = Votes<true>(db, &self_db);
-  if (votes <= 0 || self_ <= 0 || self_db <= 0) return 0;
-  return votes / std::sqrt(self_ * self_db);
+  const Votes votes = asmk_weight_ > 0 ? Count<true, true>(db) : Count<true, false>(db);
+  return Combine(votes, votes.self);
 }
 
 double QuerySignatures::Score(const PackedFeatures& db, double candidate_self) const {
-  const double votes = Votes<false>(db, nullptr);
-  if (votes <= 0 || self_ <= 0 || candidate_self <= 0) return 0;
-  return votes / std::sqrt(self_ * candidate_self);
+  // With aggregation the candidate's M_d is summed over all its features anyway.
+  if (asmk_weight_ > 0) return Combine(Count<true, true>(db), candidate_self);
+  return Combine(Count<false, false>(db), candidate_self);
 }
 
 }  // namespace oxbow::index

@@ -90,6 +90,49 @@ TEST(QuerySignaturesTest, ScoresMatchingSignaturesAndDownWeightsBursts) {
   EXPECT_NEAR(burst, 4.0 * 2.0 / std::sqrt(13.0 * 16.0), 1e-12);
 }
 
+TEST(AggregatedWeightTest, CubeOfTheSimilarityAboveAQuarter) {
+  EXPECT_DOUBLE_EQ(AggregatedWeight(0), 1.0);
+  EXPECT_DOUBLE_EQ(AggregatedWeight(16), 0.125);  // u = 1/2
+  EXPECT_GT(AggregatedWeight(23), 0.0);           // u = 0.28125
+  EXPECT_EQ(AggregatedWeight(24), 0.0);           // u = 1/4: not above
+  EXPECT_EQ(AggregatedWeight(64), 0.0);
+}
+
+// With asmk_weight, a word of an image is one majority signature: a burst votes once, and a word whose
+// features mostly disagree with the query's does not vote even when one of them matches.
+TEST(QuerySignaturesTest, AggregatedMatchingVotesOncePerWordWithTheMajoritySignature) {
+  auto idf_squared = std::make_shared<std::vector<double>>(10, 1.0);
+  const std::vector<uint32_t> words = {0, 1};
+  const std::vector<uint64_t> signatures = {0x0ull, 0x0ull};
+  const QuerySignatures plain(words, signatures, idf_squared, HammingWeighting{.threshold = 32});
+  const QuerySignatures once(words, signatures, idf_squared, HammingWeighting{.threshold = 32, .asmk_weight = 1});
+  const QuerySignatures twice(words, signatures, idf_squared, HammingWeighting{.threshold = 32, .asmk_weight = 2});
+  // Word 0 three times in the image, the last two with the query's signature: the majority is the
+  // query's (not the first feature's).
+  // M_q = 2 (words 0 and 1), M_d = 2 (words 0 and 2): the aggregated score is 1 / sqrt(2 * 2).
+  const PackedFeatures agreeing = Packed({0, 0, 0, 2}, {~0x0ull, 0x0ull, 0x0ull, 0x0ull});
+  EXPECT_NEAR(once.Score(agreeing) - plain.Score(agreeing), 0.5, 1e-12);
+  EXPECT_NEAR(twice.Score(agreeing) - plain.Score(agreeing), 1.0, 1e-12);
+  // A burst of ten identical features is still one word: the same aggregated score.
+  const PackedFeatures burst = Packed({0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 2}, std::vector<uint64_t>(11, 0x0ull));
+  EXPECT_NEAR(once.Score(burst) - plain.Score(burst), 0.5, 1e-12);
+  // Two of the three features far from the query's: Hamming embedding still matches the first, the
+  // aggregated signature (the majority, all ones) does not match.
+  const PackedFeatures disagreeing = Packed({0, 0, 0, 2}, {0x0ull, ~0x0ull, ~0x0ull, 0x0ull});
+  EXPECT_GT(plain.Score(disagreeing), 0.0);
+  EXPECT_NEAR(once.Score(disagreeing), plain.Score(disagreeing), 1e-12);
+  // The query's own aggregation: its word 0 twice, mostly far from the image's.
+  const std::vector<uint32_t> split_words = {0, 0, 0, 1};
+  const std::vector<uint64_t> split_signatures = {0x0ull, ~0x0ull, ~0x0ull, 0x0ull};
+  const QuerySignatures split(split_words, split_signatures, idf_squared,
+                              HammingWeighting{.threshold = 32, .asmk_weight = 1});
+  const QuerySignatures split_plain(split_words, split_signatures, idf_squared, HammingWeighting{.threshold = 32});
+  EXPECT_NEAR(split.Score(agreeing), split_plain.Score(agreeing), 1e-12);
+  // With the candidate's N_d given, the same scores.
+  const double self = 4;  // four features of idf^2 1
+  EXPECT_NEAR(once.Score(agreeing, self), once.Score(agreeing), 1e-12);
+}
+
 // The index scores a shortlist with each candidate's N_d given as its tf-idf norm squared (sqrt(tf)
 // weighting, the default), which lets Score skip the candidate's words the query lacks: the norm must
 // be N_d, and the score with it given must equal the one Score computes alone.

@@ -147,7 +147,7 @@ Status ExpandQuery(Source& source, std::span<const QueryTerm> terms, const Query
 
 // 3. Query expansion with Hamming embedding: the unverified hits re-ordered by their Hamming score
 // against the query's features plus those inside the matched regions of its first qe_images verified
-// hits (with their signatures).
+// hits (with their signatures), with qe_asmk_weight times their aggregated score added.
 Status ExpandQueryHamming(Source& source, const QueryFeatures& query, const QueryOptions& options, size_t num_verified,
                           std::vector<Hit>& hits) {
   std::vector<uint32_t> words = query.words;
@@ -162,7 +162,9 @@ Status ExpandQueryHamming(Source& source, const QueryFeatures& query, const Quer
     signatures.insert(signatures.end(), f.signatures.begin(), f.signatures.end());
   }
   const std::span<Hit> unverified = std::span(hits).subspan(num_verified);
-  auto scores = source.HammingScores(words, signatures, RefsOf(unverified), options);
+  QueryOptions expanded = options;
+  expanded.asmk_weight = options.qe_asmk_weight;
+  auto scores = source.HammingScores(words, signatures, RefsOf(unverified), expanded);
   if (!scores) return std::unexpected(scores.error());
   ReorderByScore(unverified, *scores);
   return Ok();

@@ -133,7 +133,9 @@ class SnapshotSource final : public Source {
   Result<std::vector<double>> HammingScores(std::span<const uint32_t> words, std::span<const uint64_t> signatures,
                                             std::span<const ImageRef> refs, const QueryOptions& options) override {
     const QuerySignatures query(words, signatures, snap_->inverted.IdfSquaredTable(),
-                                {.threshold = options.hamming_threshold, .sigma = options.hamming_sigma});
+                                {.threshold = options.hamming_threshold,
+                                 .sigma = options.hamming_sigma,
+                                 .asmk_weight = static_cast<double>(options.asmk_weight)});
     const bool keep = !copied_;  // the first re-scoring's images are kept for the later stages
     if (keep) copies_.Reserve(refs.size());
     std::vector<double> out(refs.size());

@@ -43,6 +43,14 @@ inline void AddSearchFlags(CLI::App* cmd, index::QueryOptions* o) {
   add("--hamming-threshold", &o->hamming_threshold, "Hamming embedding: largest distance (bits) that matches", 0, 64);
   add("--hamming-sigma", &o->hamming_sigma, "Hamming embedding: width (bits) of the weight exp(-h^2/sigma^2)", 1e-9,
       64.0);
+  add("--asmk-weight", &o->asmk_weight,
+      "Hamming embedding: weight of the aggregated score (ASMK*: one majority signature per word and image) "
+      "added when re-scoring the tf-idf shortlist (0 = off)",
+      0, 1000);
+  add("--qe-asmk-weight", &o->qe_asmk_weight,
+      "Hamming embedding: weight of the aggregated score (ASMK*) added when query expansion re-scores the "
+      "unverified results (0 = off)",
+      0, 1000);
   add("--max-query-features", &o->max_query_features,
       "an image query uses at most this many of its features, the strongest (0 = all)", 0, 1000000);
   add("--max-scored-postings", &o->max_scored_postings,

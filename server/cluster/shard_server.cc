@@ -115,6 +115,7 @@ class ShardServer::Impl final : public Shard::Service {
     index::QueryOptions options;
     options.hamming_threshold = request->threshold();
     options.hamming_sigma = request->sigma();
+    options.asmk_weight = request->asmk_weight();
     if (auto message = options.Check()) return Invalid(*message);
     const std::shared_ptr<Search> search = SearchOf(*context, service);
     const std::lock_guard<std::mutex> in_use(search->mutex);
