@@ -288,6 +288,8 @@ TEST_F(Cluster, FrontRankingsEqualTheSingleNode) {
   budget.max_scored_postings = 40;
   index::QueryOptions soft = options;
   soft.query_assignments = 2;
+  index::QueryOptions asmk = options;  // the aggregated score in the first re-scoring too
+  asmk.asmk_weight = 5;
   index::QueryOptions tf_idf = options;  // without Hamming embedding: tf-idf query expansion
   tf_idf.hamming = false;
   index::QueryOptions tf_idf_transitive = transitive_qe;
@@ -300,6 +302,7 @@ TEST_F(Cluster, FrontRankingsEqualTheSingleNode) {
     for (const auto& [name, o] : {std::pair{"default", options}, std::pair{"plain", plain}, std::pair{"region", region},
                                   std::pair{"transitive", transitive}, std::pair{"transitive+qe", transitive_qe},
                                   std::pair{"budget", budget}, std::pair{"query_assignments=2", soft},
+                                  std::pair{"asmk_weight=5", asmk},
                                   std::pair{"hamming=false", tf_idf},
                                   std::pair{"hamming=false transitive+qe", tf_idf_transitive}}) {
       const auto expected = single->Query((*queries_)[q], o);
