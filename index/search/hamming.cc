@@ -12,7 +12,12 @@ namespace {
 // The bitwise majority of n >= 1 signatures sig(k) (ties: sig(0)'s bit).
 template <typename SignatureAt>
 uint64_t Majority(size_t n, SignatureAt sig) {
-  if (n == 1) return sig(0);
+  // One or two signatures: the first (two that differ in a bit tie there). Three: the bitwise vote.
+  if (n <= 2) return sig(0);
+  if (n == 3) {
+    const uint64_t a = sig(0), b = sig(1), c = sig(2);
+    return (a & b) | (a & c) | (b & c);
+  }
   std::array<int, 64> count{};
   for (size_t k = 0; k < n; ++k) {
     const uint64_t s = sig(k);

@@ -121,7 +121,14 @@ TEST(QuerySignaturesTest, AggregatedMatchingVotesOncePerWordWithTheMajoritySigna
   const PackedFeatures disagreeing = Packed({0, 0, 0, 2}, {0x0ull, ~0x0ull, ~0x0ull, 0x0ull});
   EXPECT_GT(plain.Score(disagreeing), 0.0);
   EXPECT_NEAR(once.Score(disagreeing), plain.Score(disagreeing), 1e-12);
-  // The query's own aggregation: its word 0 twice, mostly far from the image's.
+  // Four features: the majority (three far ones) does not match; a tie (two and two) takes the first's bits.
+  const PackedFeatures four = Packed({0, 0, 0, 0, 2}, {0x0ull, ~0x0ull, ~0x0ull, ~0x0ull, 0x0ull});
+  EXPECT_NEAR(once.Score(four), plain.Score(four), 1e-12);
+  const PackedFeatures tie = Packed({0, 0, 0, 0, 2}, {0x0ull, ~0x0ull, 0x0ull, ~0x0ull, 0x0ull});
+  EXPECT_NEAR(once.Score(tie) - plain.Score(tie), 0.5, 1e-12);
+  const PackedFeatures tie_far = Packed({0, 0, 0, 0, 2}, {~0x0ull, 0x0ull, ~0x0ull, 0x0ull, 0x0ull});
+  EXPECT_NEAR(once.Score(tie_far), plain.Score(tie_far), 1e-12);
+  // The query's own aggregation: its word 0 three times, mostly far from the image's.
   const std::vector<uint32_t> split_words = {0, 0, 0, 1};
   const std::vector<uint64_t> split_signatures = {0x0ull, ~0x0ull, ~0x0ull, 0x0ull};
   const QuerySignatures split(split_words, split_signatures, idf_squared,
