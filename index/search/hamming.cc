@@ -106,8 +106,8 @@ QuerySignatures::Votes QuerySignatures::Count(const PackedFeatures& db) const {
     // The query's run of w, [i, i2): empty for most db words, which one bit test tells (an expanded
     // query holds tens of thousands of features: a merge step per feature was most of Score's time).
     const auto [i, i2] = runs_.Find(w, r);
-    if (i2 > i && idf2 > 0) {
-      if constexpr (kAggregate) {
+    if constexpr (kAggregate) {
+      if (i2 > i && idf2 > 0) {
         const uint64_t aggregated = Majority(j2 - j, [&db, j](size_t k) { return db.signature(j + k); });
         votes.aggregated += idf2 * AggregatedWeight(std::popcount(aggregated_[r] ^ aggregated));
       }

@@ -27,8 +27,9 @@
 // Thread safety: a QuerySignatures is immutable after construction; Score may run concurrently.
 // Cost of Score: O(|candidate|) plus a binary search per shared word, plus O(cq * cd) per shared word;
 // the O(|candidate|) part is a 3-byte read and a bit test per feature when N_d is given and
-// asmk_weight is 0 (with aggregation, M_d needs an idf look-up per feature), and O(64 cd) more per
-// shared word with aggregation (the query's aggregated signatures are made once, at construction).
+// asmk_weight is 0 (with aggregation, M_d needs an idf look-up per distinct word), and with aggregation
+// O(cd) more per shared word, O(64 cd) where the candidate has four or more features of it (the query's
+// aggregated signatures are made once, at construction).
 #pragma once
 
 #include <array>
