@@ -127,6 +127,10 @@ Result<SiftOptions> SiftOptions::FromDescription(const std::string& settings) {
     if (*v != "vlfeat") return incompatible("keypoints");
     o.keypoint_style = KeypointStyle::kVlfeat;
   }
+  if (const std::string* v = need("upright")) {
+    if (*v != "1") return incompatible("upright");
+    o.upright = true;
+  }
   if (!read_double("peak_ratio", &o.orientation_peak_ratio)) return incompatible("peak_ratio");
   if (!read_double("kernel_radius", &o.kernel_radius_sigmas)) return incompatible("kernel_radius");
   if (const std::string* v = need("max_octaves"); v && *v != "all") {
@@ -154,6 +158,8 @@ std::string SiftOptions::Describe() const {
     << ";max_octaves=" << (max_octaves ? std::to_string(*max_octaves) : std::string("all"));
   // kOpenCv is written as no field, so that descriptions made before the field existed keep their meaning.
   if (keypoint_style == KeypointStyle::kVlfeat) s << ";keypoints=vlfeat";
+  // Off is written as no field, like kOpenCv above.
+  if (upright) s << ";upright=1";
   return s.str();
 }
 
@@ -1453,6 +1459,11 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
         const Refined& p = unique[i];
         const float scale_octave = static_cast<float>(sigma * std::pow(2.0, (p.layer + p.xi) / S));
         scales[i] = scale_octave;
+        if (options.upright) {
+          orientations[i].count = 1;
+          orientations[i].degrees[0] = 0.0f;
+          continue;
+        }
         const Plane& img = octave.gauss[static_cast<size_t>(p.level)];
         const float max_value =
             options.keypoint_style == KeypointStyle::kVlfeat

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <filesystem>
 #include <numbers>
@@ -378,6 +379,69 @@ TEST(SiftInvariance, RotationBy90DegreesKeepsKeypointsAndTurnsOrientations) {
   EXPECT_GT(share, 0.75);
 }
 
+// Median over the keypoints of `a` of the smallest descriptor distance to a keypoint of `b` at the
+// mapped position (0.5 px) and scale (5%); -1 when none pairs up.
+template <typename Map>
+double MedianPairedDistance(const FeatureSet& a, const FeatureSet& b, Map map) {
+  std::vector<double> distances;
+  for (size_t i = 0; i < a.size(); ++i) {
+    double u = 0, v = 0;
+    map(a.keypoints[i].x, a.keypoints[i].y, &u, &v);
+    double best = -1;
+    for (size_t j = 0; j < b.size(); ++j) {
+      const Keypoint& k = b.keypoints[j];
+      if (std::hypot(k.x - u, k.y - v) > 0.5 || std::fabs(k.scale / a.keypoints[i].scale - 1) > 0.05) continue;
+      double d2 = 0;
+      for (int e = 0; e < kDescriptorDim; ++e) d2 += std::pow(a.Descriptor(i)[e] - b.Descriptor(j)[e], 2);
+      if (best < 0 || d2 < best * best) best = std::sqrt(d2);
+    }
+    if (best >= 0) distances.push_back(best);
+  }
+  if (distances.empty()) return -1;
+  std::nth_element(distances.begin(), distances.begin() + static_cast<ptrdiff_t>(distances.size() / 2), distances.end());
+  return distances[distances.size() / 2];
+}
+
+TEST(SiftUpright, OneKeypointPerExtremumAlongTheXAxisAndNoRotationInvariance) {
+  const cv::Mat gray = LoadGray(kOpencvData + "graf1.png");
+  ASSERT_FALSE(gray.empty());
+  SiftOptions upright_options;
+  upright_options.upright = true;
+  upright_options.max_octaves = 3;  // the small keypoints are enough, and the pairing below is quadratic
+  SiftOptions oriented_options;
+  oriented_options.max_octaves = 3;
+  const auto upright = MakeExtractor(upright_options), oriented = MakeExtractor(oriented_options);
+  const FeatureSet a = oriented.Extract(FromMat(gray)), a_up = upright.Extract(FromMat(gray));
+  // The oriented set's extrema, each once and in order (several orientations of one extremum are
+  // consecutive), are the upright set's keypoints, each with orientation 0.
+  std::vector<std::array<float, 3>> extrema;
+  for (const Keypoint& k : a.keypoints) {
+    const std::array<float, 3> e = {k.x, k.y, k.scale};
+    if (extrema.empty() || extrema.back() != e) extrema.push_back(e);
+  }
+  ASSERT_EQ(a_up.size(), extrema.size());
+  EXPECT_LT(a_up.size(), a.size());  // graf1 has extrema with two or more orientations
+  for (size_t i = 0; i < a_up.size(); ++i) {
+    const Keypoint& k = a_up.keypoints[i];
+    EXPECT_EQ((std::array<float, 3>{k.x, k.y, k.scale}), extrema[i]) << i;
+    EXPECT_EQ(k.orientation, 0.0f) << i;
+  }
+  // Turned by 90 degrees, an oriented keypoint keeps its descriptor; an upright one describes the
+  // turned patch, which is another histogram.
+  cv::Mat rotated;
+  cv::rotate(gray, rotated, cv::ROTATE_90_CLOCKWISE);  // (x, y) -> (H - 1 - y, x)
+  const double h = gray.rows;
+  const auto map = [&](double x, double y, double* u, double* v) { *u = h - 1 - y, *v = x; };
+  const double oriented_distance = MedianPairedDistance(a, oriented.Extract(FromMat(rotated)), map);
+  const double upright_distance = MedianPairedDistance(a_up, upright.Extract(FromMat(rotated)), map);
+  std::printf("90-degree rotation: median descriptor distance %.3f oriented, %.3f upright\n", oriented_distance,
+              upright_distance);
+  ASSERT_GE(oriented_distance, 0);
+  ASSERT_GE(upright_distance, 0);
+  EXPECT_LT(oriented_distance, 0.2);  // 0 here: a quarter turn maps the pixel grid onto itself
+  EXPECT_GT(upright_distance, 0.5);   // unit-norm descriptors: 1.1 measured
+}
+
 TEST(SiftInvariance, HalfSizeKeepsTheLargerKeypoints) {
   const cv::Mat gray = LoadGray(kOpencvData + "graf1.png");
   ASSERT_FALSE(gray.empty());
@@ -577,6 +641,14 @@ TEST(SiftOptions, CheckDescribeAndFingerprint) {
   }
   EXPECT_FALSE(SiftOptions::FromDescription(opencv.Describe() + ";keypoints=opencv"));
   EXPECT_FALSE(SiftOptions::FromDescription(opencv.Describe() + ";keypoints=other"));
+  // Upright features are described by an `upright=1` field; off is no field.
+  SiftOptions upright = options;
+  upright.upright = true;
+  EXPECT_EQ(upright.Describe(), options.Describe() + ";upright=1");
+  auto parsed_upright = SiftOptions::FromDescription(upright.Describe());
+  ASSERT_TRUE(parsed_upright) << parsed_upright.error().ToString();
+  EXPECT_TRUE(parsed_upright->upright);
+  EXPECT_FALSE(SiftOptions::FromDescription(options.Describe() + ";upright=0"));
 
   for (auto mutate : std::vector<void (*)(SiftOptions&)>{
            [](SiftOptions& o) { o.sigma = 0; }, [](SiftOptions& o) { o.intervals = 0; },

@@ -38,6 +38,7 @@ struct VocabTrainArgs {
   std::string assignment = "auto";
   int probes = vocab::TrainOptions{}.ivf_probes;
   ImageFlags image;
+  bool upright = false;  // extract upright features (--images, --list)
   bool mpi = false;
   std::string checkpoint;  // --mpi: k-means checkpoint file ("" = <out>.checkpoint)
   int stop_after = 0;      // --mpi: iterations this run (0 = to the end)
@@ -129,6 +130,7 @@ std::string ReadDescriptors(const VocabTrainArgs& args, const TrainingInputs& in
   }
   sift::SiftOptions options;
   options.descriptor = kind;
+  options.upright = args.upright;
   options.num_threads = args.threads;
   const sift::SiftExtractor extractor = ValueOrExit(sift::SiftExtractor::Create(options));
   settings = options.Describe();
@@ -345,6 +347,10 @@ void SetUpVocab(CLI::App& app) {
   train->add_option("--words", args->words, "vocabulary size k (number of visual words)")->required()->check(CLI::PositiveNumber);
   train->add_option("--out", args->out, "vocabulary file to write (atomically)")->required();
   AddDescriptorFlag(train, &args->descriptor);  // with --features, SIFT files are converted to RootSIFT
+  train->add_flag("--upright", args->upright,
+                  "extract upright features (every orientation along the image's x axis; for photos taken upright, such "
+                  "as buildings: see 'oxbow extract --help'); index build and serve then extract them too")
+      ->excludes("--features");
   train->add_flag_callback("--root-sift", [args] { args->descriptor = sift::DescriptorKind::kRootSift; },
                            "same as --descriptor rootsift (the default)");
   train->add_option("--sample", args->sample, "maximum training descriptors in total")->capture_default_str()->check(CLI::PositiveNumber);
