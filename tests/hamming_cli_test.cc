@@ -1,6 +1,7 @@
 // Hamming embedding through the commands: `vocab train --hamming` and `vocab hamming` write vocabularies
-// with the parameters (`vocab info` says so, the input of `vocab hamming` is left alone), `index build`
-// stores signatures with them, and `query --hamming` finds the object; the server takes hamming=true.
+// with the parameters (`vocab info` says so, the input of `vocab hamming` is left alone, and it extracts
+// images with the vocabulary's recorded settings), `index build` stores signatures with them, and
+// `query --hamming` finds the object; the server takes hamming=true.
 #include <gtest/gtest.h>
 
 #include <httplib.h>
@@ -54,6 +55,19 @@ TEST(HammingCli, TrainIndexAndSearchWithSignatures) {
   EXPECT_NE(out.find("hamming      64-bit embedding"), std::string::npos) << out;
   out = RunCommand(Oxbow("vocab info " + path("plain.oxvoc")), &rc);
   EXPECT_NE(out.find("hamming      none"), std::string::npos) << "the input is not modified: " << out;
+  // A vocabulary of another extractor setting (upright features) gets its parameters from images too:
+  // they are extracted with the settings it records.
+  out = RunCommand(Oxbow("vocab train --images " + path("photos") + " --upright --words 64 --no-hamming --out " +
+                         path("upright.oxvoc")),
+                   &rc);
+  ASSERT_EQ(rc, 0) << out;
+  out = RunCommand(Oxbow("vocab hamming --vocab " + path("upright.oxvoc") + " --images " + path("photos") +
+                         " --out " + path("upright-he.oxvoc")),
+                   &rc);
+  ASSERT_EQ(rc, 0) << out;
+  out = RunCommand(Oxbow("vocab info " + path("upright-he.oxvoc")), &rc);
+  EXPECT_NE(out.find("hamming      64-bit embedding"), std::string::npos) << out;
+  EXPECT_NE(out.find("upright=1"), std::string::npos) << out;
 
   out = RunCommand(Oxbow("index build --vocab " + path("he.oxvoc") + " --images " + path("photos") + " --out " +
                          path("index")),

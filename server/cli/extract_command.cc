@@ -157,8 +157,7 @@ void SetUpExtract(CLI::App& app) {
   cmd->add_flag("--upright", args->upright,
                 "upright features (Perdoch et al. 2009): every keypoint's orientation is the image's x axis, one keypoint "
                 "per extremum. Better on collections photographed upright (buildings), much worse where objects turn "
-                "in the picture; a vocabulary trained on these files makes index build and serve extract the same way")
-      ->capture_default_str();
+                "in the picture; a vocabulary trained on these files makes index build and serve extract the same way");
   cmd->add_flag("--ignore-exif", args->ignore_exif, "use the pixels as stored, ignoring the EXIF orientation tag");
   AddThreadsFlag(cmd, &args->num_threads);
   cmd->add_option("--thread-cache-mib", args->thread_cache_mib,

@@ -38,7 +38,9 @@ struct VocabTrainArgs {
   std::string assignment = "auto";
   int probes = vocab::TrainOptions{}.ivf_probes;
   ImageFlags image;
-  bool upright = false;  // extract upright features (--images, --list)
+  // Extractor of --images and --list (descriptor and threads come from the fields above): `vocab train
+  // --upright` sets it, `vocab hamming` takes the vocabulary's recorded settings.
+  sift::SiftOptions extractor;
   bool mpi = false;
   std::string checkpoint;  // --mpi: k-means checkpoint file ("" = <out>.checkpoint)
   int stop_after = 0;      // --mpi: iterations this run (0 = to the end)
@@ -128,9 +130,8 @@ std::string ReadDescriptors(const VocabTrainArgs& args, const TrainingInputs& in
     extractor.descriptor = kind;
     return extractor.Describe();
   }
-  sift::SiftOptions options;
+  sift::SiftOptions options = args.extractor;
   options.descriptor = kind;
-  options.upright = args.upright;
   options.num_threads = args.threads;
   const sift::SiftExtractor extractor = ValueOrExit(sift::SiftExtractor::Create(options));
   settings = options.Describe();
@@ -239,11 +240,15 @@ void RunVocabHamming(VocabTrainArgs args) {
   const vocab::Vocabulary vocabulary = ValueOrExit(vocab::Vocabulary::Read(args.vocab_in));
   args.descriptor = vocabulary.descriptor_kind();
   args.words = 1;  // any sample size will do: no k-means
+  // Images are extracted as the vocabulary's own were (its recorded settings; the descriptor kind is
+  // set above), so that a sample of images matches it whatever extractor setting it was trained with.
+  if (!vocabulary.extractor_settings().empty())
+    args.extractor = ValueOrExit(sift::SiftOptions::FromDescription(vocabulary.extractor_settings()));
   const auto [descriptors, settings] = SampleDescriptors(args);
   if (!vocabulary.extractor_settings().empty() && settings != vocabulary.extractor_settings()) {
     throw CommandError(ExitCodeFor(ErrorCode::kIncompatible),
                        "the sample was extracted with '" + settings + "', the vocabulary with '" +
-                           vocabulary.extractor_settings() + "': give the same image flags");
+                           vocabulary.extractor_settings() + "': give feature files of the vocabulary's extractor");
   }
   const vocab::Vocabulary out = WithHamming(vocabulary, descriptors, args);
   OkOrExit(out.Write(args.out));
@@ -347,7 +352,7 @@ void SetUpVocab(CLI::App& app) {
   train->add_option("--words", args->words, "vocabulary size k (number of visual words)")->required()->check(CLI::PositiveNumber);
   train->add_option("--out", args->out, "vocabulary file to write (atomically)")->required();
   AddDescriptorFlag(train, &args->descriptor);  // with --features, SIFT files are converted to RootSIFT
-  train->add_flag("--upright", args->upright,
+  train->add_flag("--upright", args->extractor.upright,
                   "extract upright features (every orientation along the image's x axis; for photos taken upright, such "
                   "as buildings: see 'oxbow extract --help'); index build and serve then extract them too")
       ->excludes("--features");
@@ -402,8 +407,9 @@ void SetUpVocab(CLI::App& app) {
       "hamming",
       "Add Hamming-embedding parameters to an existing vocabulary (what 'vocab train --hamming' learns):\n"
       "a random orthogonal projection of descriptors to 64 bits (seeded by --seed) and, per word, the medians of\n"
-      "the projected sample descriptors assigned to it (Jegou et al. 2008). Extract the sample with the image\n"
-      "flags the vocabulary was trained with. The result has a new fingerprint: index images with it.\n"
+      "the projected sample descriptors assigned to it (Jegou et al. 2008). Images are extracted with the extractor\n"
+      "settings the vocabulary records (give the image flags it was trained with, e.g. --max-image-side).\n"
+      "The result has a new fingerprint: index images with it.\n"
       "Example:\n"
       "  oxbow vocab hamming --vocab paris20k.oxvoc --images photos/ --out paris20k-he.oxvoc");
   hamming->add_option("--vocab", hargs->vocab_in, "vocabulary to extend (not modified)")->required();
