@@ -47,8 +47,10 @@
 //    `transitive_depth` unverified results are verified against the matched regions of up to
 //    `transitive_anchors` verified results (directly verified first, then the transitively verified
 //    ones of earlier rounds; only firm ones, sift::VerificationResult::firm: not a line of matched
-//    text), and those that pass are ranked right after the directly verified ones
-//    (by inliers). Their db_from_query is the composition through the result they matched. Each anchor
+//    text), and those that pass are ranked right after the directly verified ones (by inliers); a
+//    result whose match with the query was rejected as only an overlay on at least 30 inliers (a logo
+//    both carry; with Hamming embedding, index/search/rerank.h) is not tried. Their
+//    db_from_query is the composition through the result they matched. Each anchor
 //    only checks its own `transitive_neighbours` best tf-idf matches among the results so far, and
 //    each candidate is verified against at most `transitive_attempts` of a round's anchors (those that
 //    score it highest).
@@ -284,7 +286,8 @@ struct QueryOptions {
   // verified against the regions matched in verified results ("anchors": the directly verified ones
   // best first, then those verified transitively, round after round; only firm verifications anchor,
   // sift::VerificationResult::firm); those that pass join the
-  // verified results, after the directly verified ones, by inliers. Finds views too different from the
+  // verified results, after the directly verified ones, by inliers. A result whose own match with the
+  // query was rejected as an overlay (a logo both carry) on at least 30 inliers is not tried. Finds views too different from the
   // query to match it directly. 0 disables. [0, 10000]. Does nothing without re-ranking
   // (rerank_depth 0: nothing is verified). Default chosen by measurement on Paris (see README).
   int transitive_depth = 200;

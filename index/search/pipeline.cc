@@ -19,11 +19,19 @@ using Clock = std::chrono::steady_clock;
 
 double MsSince(Clock::time_point t0) { return std::chrono::duration<double, std::milli>(Clock::now() - t0).count(); }
 
+// A match with the query rejected as only an overlay on at least this many inliers keeps its image out
+// of transitive verification: a pasted logo or caption matches itself with dozens of inliers (60 and
+// more on the duplicate benchmark), while a rejection on a few (a facade's repeated pattern with alike
+// signatures: 16 on a Paris photo) may be wrong, and a chain may still verify the image.
+constexpr int kCertainOverlayInliers = 30;
+
 // A result while the stages rank it: the image as the source names it, and what it became.
 struct Hit {
   ImageRef ref;
   QueryResult result;  // without its record until the end
   bool firm = false;   // verified, and firmly (sift::VerificationResult::firm): may anchor a chain
+  bool overlay = false;  // the query's own verification rejected it as sharing only an overlay, on at
+                         // least kCertainOverlayInliers inliers: no chain may verify it
 };
 
 std::vector<ImageRef> RefsOf(std::span<const Hit> hits) {
@@ -101,6 +109,7 @@ Result<size_t> Rerank(Source& source, const QueryFeatures& query, const QueryOpt
     QueryResult& r = hits[c].result;
     r.inliers = v.num_inliers;
     hits[c].firm = v.firm;
+    hits[c].overlay = (*verified)[c].overlay && v.num_inliers >= kCertainOverlayInliers;
     if (v.verified) {
       r.verified = true;
       r.db_from_query = v.db_from_query;
@@ -173,8 +182,9 @@ Status ExpandQueryHamming(Source& source, const QueryFeatures& query, const Quer
 // Transitive verification's plan. scores[a][c]: anchor a's matched region (its features inside
 // db_region, as a tf-idf query) scored against hits[c], c < last = tie.size(); tie[c] orders equal
 // scores (smaller first). Each anchor keeps its transitive_neighbours + 1 best-scoring hits (one for
-// itself); each hit of [first, last) not verified yet is tried against at most transitive_attempts of
-// the anchors keeping it, those that score it highest, listed in anchor order.
+// itself); each hit of [first, last) not verified yet, and not rejected as an overlay by the query's
+// own verification, is tried against at most transitive_attempts of the anchors keeping it, those
+// that score it highest, listed in anchor order.
 struct Attempt {
   float score = 0;      // the candidate's tf-idf score against the anchor's region
   uint32_t anchor = 0;  // index into the round's anchors
@@ -211,7 +221,7 @@ std::vector<std::vector<Attempt>> PlanAttempts(std::span<const std::vector<float
                       });
     list.resize(keep);
     for (const Neighbour& n : list) {
-      if (n.position >= first && !hits[n.position].result.verified) {
+      if (n.position >= first && !hits[n.position].result.verified && !hits[n.position].overlay) {
         attempts[n.position - first].push_back({n.score, static_cast<uint32_t>(a)});
       }
     }

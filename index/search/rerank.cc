@@ -123,7 +123,8 @@ QueryGeometry::QueryGeometry(std::span<const sift::Keypoint> keypoints, std::spa
 }
 
 sift::VerificationResult QueryGeometry::Verify(const PackedFeatures& db, int max_pairs_per_word,
-                                               const sift::HoughVerifyOptions& options) const {
+                                               const sift::HoughVerifyOptions& options, bool* overlay) const {
+  if (overlay != nullptr) *overlay = false;
   // Scratch reused by every call on this thread: a re-ranking pass verifies hundreds of candidates.
   thread_local std::vector<sift::Match> matches;
   thread_local std::vector<sift::Keypoint> db_keypoints;
@@ -203,6 +204,7 @@ sift::VerificationResult QueryGeometry::Verify(const PackedFeatures& db, int max
   if (result.verified && hamming && OnlyAnOverlay(keypoints_, words_, signatures_, region_, db, result, matches)) {
     result.verified = false;
     result.firm = false;
+    if (overlay != nullptr) *overlay = true;
   }
   return result;
 }

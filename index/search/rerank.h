@@ -44,8 +44,10 @@ class QueryGeometry {
                 const std::array<float, 4>& region, std::span<const uint64_t> signatures = {},
                 int hamming_threshold = 64, int max_matches = 0);
 
+  // With `overlay`: set to whether the verifier accepted the match and it was then rejected as only an
+  // overlay shared by both images (index/search/overlay.h).
   sift::VerificationResult Verify(const PackedFeatures& candidate, int max_pairs_per_word,
-                                  const sift::HoughVerifyOptions& options) const;
+                                  const sift::HoughVerifyOptions& options, bool* overlay = nullptr) const;
 
  private:
   std::span<const sift::Keypoint> keypoints_;

@@ -187,7 +187,7 @@ class SnapshotSource final : public Source {
         const PackedFeatures& features = copies_.Of(n, *snap_->entries[n]);
         for (const uint32_t g : tasks[c].geometries) {
           out[c].geometry = g;
-          out[c].result = prepared[g]->Verify(features, options.max_pairs_per_word, options.verify);
+          out[c].result = prepared[g]->Verify(features, options.max_pairs_per_word, options.verify, &out[c].overlay);
           if (out[c].result.verified) break;
         }
       }

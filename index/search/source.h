@@ -97,6 +97,7 @@ struct VerifyTask {
 struct Verified {
   uint32_t geometry = 0;
   sift::VerificationResult result;
+  bool overlay = false;  // that geometry's match was rejected as only an overlay (QueryGeometry::Verify)
 };
 
 // An image's stored features inside a region, as a search reads them.

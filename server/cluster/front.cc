@@ -1057,6 +1057,7 @@ class PartitionsSource final : public index::search::Source {
         v.geometry = original[outcome.geometry()];
         const Verification& result = outcome.result();
         v.result.num_inliers = result.inliers();
+        v.overlay = result.overlay();
         if (result.verified() && result.db_from_query_size() == 6 && result.db_region_size() == 4) {
           v.result.verified = true;
           v.result.firm = result.firm();

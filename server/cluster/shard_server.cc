@@ -191,6 +191,7 @@ class ShardServer::Impl final : public Shard::Service {
       r->set_verified(v.result.verified);
       r->set_inliers(v.result.num_inliers);
       r->set_firm(v.result.firm);
+      r->set_overlay(v.overlay);
       for (double m : v.result.db_from_query.m) r->add_db_from_query(m);
       for (float b : v.result.db_region) r->add_db_region(b);
     }
