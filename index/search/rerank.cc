@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <bit>
 #include <cmath>
+#include <limits>
 #include <numeric>
 #include <tuple>
 #include <vector>
@@ -39,6 +40,62 @@ search::QueryFeatures InBox(size_t n, const std::array<float, 4>& box, const Fea
     out.signatures.push_back(signature);
   }
   return out;
+}
+
+// The smallest standard deviation of `points` across their principal axis with any one of them left out,
+// in pixels (sift::HoughVerifyOptions::min_inlier_spread's measure, before its division by the keypoint
+// scale). O(n): each point's removal downdates the sums of the centred coordinates.
+double SpreadWithoutAnyOne(std::span<const std::array<double, 2>> points) {
+  const size_t n = points.size();
+  if (n < 4) return 0;
+  double cx = 0, cy = 0;
+  for (const auto& [x, y] : points) cx += x, cy += y;
+  cx /= static_cast<double>(n), cy /= static_cast<double>(n);
+  double sx = 0, sy = 0, sxx = 0, sxy = 0, syy = 0;
+  for (const auto& [px, py] : points) {
+    const double x = px - cx, y = py - cy;
+    sx += x, sy += y, sxx += x * x, sxy += x * y, syy += y * y;
+  }
+  const auto m = static_cast<double>(n - 1);
+  double smallest = std::numeric_limits<double>::infinity();
+  for (const auto& [px, py] : points) {
+    const double x = px - cx, y = py - cy;
+    const double mx = (sx - x) / m, my = (sy - y) / m;
+    const double vxx = (sxx - x * x - m * mx * mx) / (m - 1), vyy = (syy - y * y - m * my * my) / (m - 1);
+    const double vxy = (sxy - x * y - m * mx * my) / (m - 1);
+    // The smaller eigenvalue of the covariance: the variance across the principal axis.
+    const double across = (vxx + vyy) / 2 - std::hypot((vxx - vyy) / 2, vxy);
+    smallest = std::min(smallest, std::sqrt(std::max(0.0, across)));
+  }
+  return smallest;
+}
+
+// Whether a firm match's inliers span an area in both images with any one of them left out, at least
+// options.min_inlier_spread of their median keypoint scale across their principal axis. The verifier's
+// firmness leaves out the inlier farthest from the principal axis; when a single inlier lies far off a
+// line of them (a word matched to the same word in another caption, plus one chance inlier across the
+// image), that inlier sets the axis and the line passes for an area. Such a match verifies but does not
+// anchor a chain.
+bool SpansAnArea(std::span<const sift::Keypoint> query, std::span<const sift::Keypoint> db,
+                 std::span<const sift::Match> matches, std::span<const uint32_t> inliers,
+                 const sift::HoughVerifyOptions& options) {
+  if (options.min_inlier_spread <= 0) return true;
+  thread_local std::vector<std::array<double, 2>> points;
+  thread_local std::vector<float> scales;
+  for (const bool query_side : {true, false}) {
+    points.clear();
+    scales.clear();
+    for (const uint32_t i : inliers) {
+      const sift::Keypoint& k = query_side ? query[matches[i].query_index] : db[matches[i].db_index];
+      points.push_back({k.x, k.y});
+      scales.push_back(k.scale);
+    }
+    if (scales.empty()) return false;
+    const auto middle = scales.begin() + static_cast<std::ptrdiff_t>(scales.size() / 2);
+    std::nth_element(scales.begin(), middle, scales.end());
+    if (SpreadWithoutAnyOne(points) < options.min_inlier_spread * std::max(*middle, 1e-6f)) return false;
+  }
+  return true;
 }
 
 // Whether a verified match is only pixels pasted on both images (a logo, a caption band, a viewer's
@@ -206,6 +263,7 @@ sift::VerificationResult QueryGeometry::Verify(const PackedFeatures& db, int max
     result.firm = false;
     if (overlay != nullptr) *overlay = true;
   }
+  if (result.firm && !SpansAnArea(keypoints_, db_keypoints, matches, result.inliers, options)) result.firm = false;
   return result;
 }
 

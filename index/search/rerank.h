@@ -45,7 +45,9 @@ class QueryGeometry {
                 int hamming_threshold = 64, int max_matches = 0);
 
   // With `overlay`: set to whether the verifier accepted the match and it was then rejected as only an
-  // overlay shared by both images (index/search/overlay.h).
+  // overlay shared by both images (index/search/overlay.h). The result is firm only when the verifier's
+  // is and its inliers span an area with any one of them left out (a row of matched letters plus one
+  // chance inlier far off it is not), so that it may anchor transitive verification.
   sift::VerificationResult Verify(const PackedFeatures& candidate, int max_pairs_per_word,
                                   const sift::HoughVerifyOptions& options, bool* overlay = nullptr) const;
 

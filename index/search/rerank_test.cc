@@ -116,5 +116,50 @@ TEST(QueryGeometry, FewerMatchesThanMinInliersIsNotVerified) {
   EXPECT_EQ(five.num_inliers, 5);
 }
 
+// A word matched to the same word in another caption: a row of letters' features, plus one chance
+// inlier far across the image that the same similarity happens to map. The verifier finds the row plus
+// that point firm (the far point sets their principal axis, so the row's thickness is never measured
+// across it); the search's Verify keeps it verified but not firm, so it anchors no chain. With the far
+// point replaced by two points spread over an area, the match stays firm.
+TEST(QueryGeometry, ARowOfMatchesPlusOneFarInlierIsNotFirm) {
+  auto match = [](const std::vector<std::array<float, 2>>& places) {
+    std::vector<sift::Keypoint> query, db;
+    std::vector<uint32_t> words;
+    for (size_t i = 0; i < places.size(); ++i) {
+      const auto [x, y] = places[i];
+      query.push_back({x, y, 2.0f, 0.3f, 1.0f, 0});
+      db.push_back({1.5f * x + 160, 1.5f * y + 50, 3.0f, 0.3f, 1.0f, 0});
+      words.push_back(static_cast<uint32_t>(i) * 11 + 3);
+    }
+    const PackedFeatures packed = PackedFeatures::Pack(db, words, 1280, 1280);
+    const std::array<float, 4> region = {0, 0, 1024, 768};
+    const sift::HoughVerifyOptions options;
+    std::vector<sift::Match> matches;
+    for (uint32_t i = 0; i < places.size(); ++i) matches.push_back({i, i, 1.0f});
+    const sift::VerificationResult verifier =
+        sift::VerifyHoughAffine(query, packed.Keypoints(), matches, region, {1280, 1280}, options);
+    const sift::VerificationResult search = QueryGeometry(query, words, region).Verify(packed, 4, options);
+    return std::pair{verifier, search};
+  };
+  std::vector<std::array<float, 2>> row;
+  for (int i = 0; i < 11; ++i) row.push_back({98.0f + 20.0f * static_cast<float>(i), 11.0f + 3.0f * static_cast<float>(i % 4)});
+  std::vector<std::array<float, 2>> stray = row;
+  stray.push_back({347, 700});
+  const auto [verifier, search] = match(stray);
+  ASSERT_TRUE(verifier.verified);
+  ASSERT_EQ(verifier.num_inliers, 12);
+  EXPECT_TRUE(verifier.firm);  // the case this guards: the verifier's own test passes it
+  EXPECT_TRUE(search.verified);
+  EXPECT_EQ(search.num_inliers, 12);
+  EXPECT_FALSE(search.firm);
+
+  std::vector<std::array<float, 2>> area = row;
+  area.push_back({347, 700});
+  area.push_back({600, 400});
+  const auto [area_verifier, area_search] = match(area);
+  ASSERT_TRUE(area_verifier.firm);
+  EXPECT_TRUE(area_search.firm);
+}
+
 }  // namespace
 }  // namespace oxbow::index
