@@ -119,12 +119,15 @@ TEST(QueryGeometry, FewerMatchesThanMinInliersIsNotVerified) {
 // A word matched to the same word in another caption: a row of letters' features, plus one chance
 // inlier far across the image that the same similarity happens to map. The verifier finds the row plus
 // that point firm (the far point sets their principal axis, so the row's thickness is never measured
-// across it); the search's Verify keeps it verified but not firm, so it anchors no chain. With the far
-// point replaced by two points spread over an area, the match stays firm.
+// across it); the search's Verify keeps it verified but not firm, so it anchors no chain. With a second
+// inlier far off the row, the inliers span an area whichever one is left out, and the match stays firm.
 TEST(QueryGeometry, ARowOfMatchesPlusOneFarInlierIsNotFirm) {
   auto match = [](const std::vector<std::array<float, 2>>& places) {
     std::vector<sift::Keypoint> query, db;
     std::vector<uint32_t> words;
+    query.reserve(places.size());
+    db.reserve(places.size());
+    words.reserve(places.size());
     for (size_t i = 0; i < places.size(); ++i) {
       const auto [x, y] = places[i];
       query.push_back({x, y, 2.0f, 0.3f, 1.0f, 0});
@@ -135,6 +138,7 @@ TEST(QueryGeometry, ARowOfMatchesPlusOneFarInlierIsNotFirm) {
     const std::array<float, 4> region = {0, 0, 1024, 768};
     const sift::HoughVerifyOptions options;
     std::vector<sift::Match> matches;
+    matches.reserve(places.size());
     for (uint32_t i = 0; i < places.size(); ++i) matches.push_back({i, i, 1.0f});
     const sift::VerificationResult verifier =
         sift::VerifyHoughAffine(query, packed.Keypoints(), matches, region, {1280, 1280}, options);
@@ -142,6 +146,7 @@ TEST(QueryGeometry, ARowOfMatchesPlusOneFarInlierIsNotFirm) {
     return std::pair{verifier, search};
   };
   std::vector<std::array<float, 2>> row;
+  row.reserve(11);
   for (int i = 0; i < 11; ++i) row.push_back({98.0f + 20.0f * static_cast<float>(i), 11.0f + 3.0f * static_cast<float>(i % 4)});
   std::vector<std::array<float, 2>> stray = row;
   stray.push_back({347, 700});
