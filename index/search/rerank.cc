@@ -50,23 +50,24 @@ search::QueryFeatures InBox(size_t n, const std::array<float, 4>& box, const Fea
 
 // The smallest standard deviation of `points` across their principal axis with any one of them left out,
 // in pixels (sift::HoughVerifyOptions::min_inlier_spread's measure, before its division by the keypoint
-// scale). O(n): each point's removal downdates the sums of the centred coordinates.
+// scale). O(n): each point's removal downdates the sums of the centred coordinates (which sum to zero, so
+// the other points' mean is -(x, y) / (n - 1)).
 double SpreadWithoutAnyOne(std::span<const std::array<double, 2>> points) {
   const size_t n = points.size();
   if (n < 4) return 0;
   double cx = 0, cy = 0;
   for (const auto& [x, y] : points) cx += x, cy += y;
   cx /= static_cast<double>(n), cy /= static_cast<double>(n);
-  double sx = 0, sy = 0, sxx = 0, sxy = 0, syy = 0;
+  double sxx = 0, sxy = 0, syy = 0;
   for (const auto& [px, py] : points) {
     const double x = px - cx, y = py - cy;
-    sx += x, sy += y, sxx += x * x, sxy += x * y, syy += y * y;
+    sxx += x * x, sxy += x * y, syy += y * y;
   }
   const auto m = static_cast<double>(n - 1);
   double smallest = std::numeric_limits<double>::infinity();
   for (const auto& [px, py] : points) {
     const double x = px - cx, y = py - cy;
-    const double mx = (sx - x) / m, my = (sy - y) / m;
+    const double mx = -x / m, my = -y / m;
     const double vxx = (sxx - x * x - m * mx * mx) / (m - 1), vyy = (syy - y * y - m * my * my) / (m - 1);
     const double vxy = (sxy - x * y - m * mx * my) / (m - 1);
     // The smaller eigenvalue of the covariance: the variance across the principal axis.
