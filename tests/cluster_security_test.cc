@@ -378,6 +378,19 @@ TEST_F(ShardPort, ClusterBackupFoldersAreCheckedOnTheShard) {
   ASSERT_TRUE(backup(Path("copy/partition-0")).ok());
   EXPECT_TRUE(fs::exists(Path("copy/partition-0/catalogue.sqlite")));
   EXPECT_TRUE(backup(Path("copy/partition-1")).ok());
+  // The partitions of one machine arrive at once: whichever makes FOLDER, the others write beside it.
+  for (int round = 0; round < 40; ++round) {
+    const std::string folder = Path("together-" + std::to_string(round));
+    std::vector<grpc::Status> statuses(4);
+    std::vector<std::thread> partitions;
+    for (size_t p = 0; p < statuses.size(); ++p)
+      partitions.emplace_back([&, p] { statuses[p] = backup(folder + "/partition-" + std::to_string(p)); });
+    for (std::thread& partition : partitions) partition.join();
+    for (size_t p = 0; p < statuses.size(); ++p) {
+      EXPECT_TRUE(statuses[p].ok()) << round << " partition " << p << ": " << statuses[p].error_message();
+      EXPECT_TRUE(fs::exists(folder + "/partition-" + std::to_string(p) + "/catalogue.sqlite"));
+    }
+  }
 
   // Through the front: the folder refused by every partition keeps its code (409, not 503).
   cluster::ClusterConfig config;

@@ -437,26 +437,24 @@ class ShardServer::Impl final : public Shard::Service {
     const std::filesystem::path out(request->out());
     if (!out.is_absolute() || !out.has_parent_path() || !out.filename().string().starts_with("partition-"))
       return ToGrpc({ErrorCode::kInvalidArgument, "a cluster backup goes to an absolute FOLDER/partition-K"});
-    // FOLDER is new, or holds only the partition folders of this backup (the partitions on this machine
-    // make theirs at once); never a folder with other contents, never through a symbolic link.
+    // FOLDER passes the single node's checks (its parent exists; no '..', link or control character; not
+    // the served folder) and is new, or holds only the partition folders of this backup: the partitions
+    // on this machine make theirs at once, so FOLDER may appear between the check and its creation, and
+    // a taken FOLDER is judged by its contents. BackupIndex checks FOLDER/partition-K.
     const std::filesystem::path folder = out.parent_path();
+    if (auto ok = index::CheckBackupFolder(service->index().directory(), folder.string());
+        !ok && ok.error().code != ErrorCode::kAlreadyExists)
+      return ToGrpc(ok.error());
     std::error_code error;
+    std::filesystem::create_directory(folder, error);  // false, without an error, when it exists
     if (std::filesystem::is_symlink(folder, error))
       return ToGrpc({ErrorCode::kInvalidArgument, "the backup folder " + folder.string() + " is a symbolic link"});
-    if (std::filesystem::is_directory(folder, error)) {
-      for (const auto& entry : std::filesystem::directory_iterator(folder, error)) {
-        if (!entry.path().filename().string().starts_with("partition-"))
-          return ToGrpc({ErrorCode::kAlreadyExists, "the backup folder " + folder.string() +
-                                                        " exists and holds other files: give a new folder"});
-      }
-    } else if (std::filesystem::exists(folder, error)) {
+    if (!std::filesystem::is_directory(folder, error))
       return ToGrpc({ErrorCode::kAlreadyExists, "the backup folder " + folder.string() + " exists and is not a folder"});
-    } else {
-      // A new FOLDER passes the single node's checks (its parent exists; no '..', link or control
-      // character; not the served folder) before it is made; BackupIndex checks FOLDER/partition-K.
-      if (auto ok = index::CheckBackupFolder(service->index().directory(), folder.string()); !ok)
-        return ToGrpc(ok.error());
-      std::filesystem::create_directory(folder, error);
+    for (const auto& entry : std::filesystem::directory_iterator(folder, error)) {
+      if (!entry.path().filename().string().starts_with("partition-"))
+        return ToGrpc({ErrorCode::kAlreadyExists, "the backup folder " + folder.string() +
+                                                      " exists and holds other files: give a new folder"});
     }
     auto done = service->Backup(out.string());
     if (!done) return ToGrpc(done.error());
