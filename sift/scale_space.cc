@@ -347,11 +347,12 @@ void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kern
 
 namespace {
 
-// Dst rows [y, y + count) (count <= kRowBlock) of the blur: the vertical pass into the padded rows t,
-// their borders reflected, then the horizontal pass into dst. rows: room for 2 r + kRowBlock pointers.
-template <typename SourceRow>
-void BlurBlock(const SourceRow& source_row, int w, int h, Plane* dst, std::span<const float> half_kernel, const float* kernel,
-               int y, int count, float* const* t, const float** rows, bool simd) {
+// Rows [y, y + count) (count <= kRowBlock) of the blur: the vertical pass into the padded rows t,
+// their borders reflected, then the horizontal pass into dest_row(y + m). rows: room for 2 r + kRowBlock
+// pointers.
+template <typename SourceRow, typename DestRow>
+void BlurBlock(const SourceRow& source_row, const DestRow& dest_row, int w, int h, std::span<const float> half_kernel,
+               const float* kernel, int y, int count, float* const* t, const float** rows, bool simd) {
   const int r = static_cast<int>(half_kernel.size()) - 1;
   for (int j = 0; j < 2 * r + count; ++j) rows[j] = source_row(Reflect101(y - r + j, h));
   VerticalPass(rows, kernel, r, count, w, t, simd);
@@ -360,7 +361,7 @@ void BlurBlock(const SourceRow& source_row, int w, int h, Plane* dst, std::span<
       t[m][-i] = t[m][Reflect101(-i, w)];
       t[m][w - 1 + i] = t[m][Reflect101(w - 1 + i, w)];
     }
-    HorizontalPass(t[m], half_kernel, w, dst->row(y + m), simd);
+    HorizontalPass(t[m], half_kernel, w, dest_row(y + m), simd);
   }
 }
 
@@ -399,7 +400,17 @@ void GaussianBlurRows(const std::function<const float*(int)>& source_row, int wi
   OXBOW_CHECK(dst->width() == width && dst->height() == height);
   OXBOW_CHECK(count >= 1 && count <= kRowBlock && y >= 0 && y + count <= height);
   scratch->Prepare(width, half_kernel);
-  BlurBlock(source_row, width, height, dst, half_kernel, scratch->kernel.data(), y, count, scratch->t,
+  BlurBlock(source_row, [dst](int i) { return dst->row(i); }, width, height, half_kernel, scratch->kernel.data(), y,
+            count, scratch->t, scratch->rows.data(), allow_simd);
+}
+
+void GaussianBlurRows(const std::function<const float*(int)>& source_row, const std::function<float*(int)>& dest_row,
+                      int width, int height, std::span<const float> half_kernel, int y, int count, BlurScratch* scratch,
+                      bool allow_simd) {
+  allow_simd = allow_simd && Avx2FmaAvailable();
+  OXBOW_CHECK(count >= 1 && count <= kRowBlock && y >= 0 && y + count <= height);
+  scratch->Prepare(width, half_kernel);
+  BlurBlock(source_row, dest_row, width, height, half_kernel, scratch->kernel.data(), y, count, scratch->t,
             scratch->rows.data(), allow_simd);
 }
 
@@ -419,8 +430,8 @@ void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kern
     scratch.Prepare(w, half_kernel);
     for (int y = static_cast<int>(y0); y < static_cast<int>(y1); y += kRowBlock) {
       const int count = std::min(kRowBlock, static_cast<int>(y1) - y);
-      BlurBlock([&src](int i) { return src.row(i); }, w, h, dst, half_kernel, scratch.kernel.data(), y, count, scratch.t,
-                scratch.rows.data(), allow_simd);
+      BlurBlock([&src](int i) { return src.row(i); }, [dst](int i) { return dst->row(i); }, w, h, half_kernel,
+                scratch.kernel.data(), y, count, scratch.t, scratch.rows.data(), allow_simd);
     }
   });
 }

@@ -112,6 +112,12 @@ void GaussianBlurRows(const Plane& src, Plane* dst, std::span<const float> half_
 void GaussianBlurRows(const std::function<const float*(int)>& source_row, int width, int height, Plane* dst,
                       std::span<const float> half_kernel, int y, int count, BlurScratch* scratch, bool allow_simd);
 
+// The same with the destination given row by row too: row i of the blur is written to dest_row(i)
+// (width floats, 64-byte aligned, with a row's padding after it).
+void GaussianBlurRows(const std::function<const float*(int)>& source_row, const std::function<float*(int)>& dest_row,
+                      int width, int height, std::span<const float> half_kernel, int y, int count, BlurScratch* scratch,
+                      bool allow_simd);
+
 // Row y (0 <= y < 2h) of Upsample2x's output into out (2w floats); v: scratch of w floats.
 void Upsample2xRow(const float* src, int w, int h, size_t src_stride, int y, float* v, float* out);
 

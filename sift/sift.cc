@@ -1,6 +1,7 @@
 #include "sift/sift.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdlib>
 #include <cstdio>
@@ -341,94 +342,68 @@ OXBOW_AVX2_TARGET int SubtractAvx2(const float* b, const float* a, int w, float*
 }
 #endif
 
-// Finds the candidate extrema of one octave, in (layer, row, column) order. DoG rows are computed on
-// the fly into a small ring buffer per worker, so the DoG pyramid is never stored.
-//
-// rows_ready (may be empty): when set, the rows are scanned in one pass from the top, and rows_ready(n)
-// is called before any row >= n - 2 of a level is read; it makes rows < n of every level final and
-// returns false to abandon the scan (the candidates found so far are returned).
-std::vector<Candidate> ScanOctave(const Octave& octave, int intervals, float threshold, WorkerTeam& team, bool simd,
-                                  const std::function<bool(int)>& rows_ready = {}) {
-  constexpr int kPrefetchRows = 4;
-  const int num_threads = team.size();
-  const Plane& g0 = octave.gauss[0];
-  const int w = g0.width(), h = g0.height();
-  if (w <= 2 * kBorder || h <= 2 * kBorder) return {};
-  const int rows = h - 2 * kBorder;
-  const size_t grain = rows_ready ? static_cast<size_t>(rows)
-                                  : static_cast<size_t>(std::max(8, rows / std::max(1, 4 * num_threads)));
-  const size_t chunks = (static_cast<size_t>(rows) + grain - 1) / grain;
-  std::vector<std::vector<Candidate>> found(chunks);
+// Row y of Gaussian level l of an octave (a strip's view: its own rows from the octave's planes, the
+// rows just above and below it from its own copies).
+using LevelRow = std::function<const float*(int level, int y)>;
+
+// Finds the candidate extrema in rows [y0, y1) of an octave of w x h pixels (clipped to kBorder from its
+// edges), in (layer, row, column) order. DoG rows are computed on the fly into a small ring buffer, so the
+// DoG pyramid is never stored. rows_ready(n) is called before any row >= n - 2 of a level is read; it
+// makes rows < n of every level final (rows y0 - 1 .. y1 at least are read) and returns false to abandon
+// the scan (the candidates found so far are returned).
+std::vector<Candidate> ScanRows(const LevelRow& level_row, int w, int h, size_t stride, int y0, int y1, int intervals,
+                                float threshold, bool simd, const std::function<bool(int)>& rows_ready) {
+  y0 = std::max(y0, kBorder);
+  y1 = std::min(y1, h - kBorder);
+  if (w <= 2 * kBorder || y0 >= y1) return {};
   const int dog_layers = intervals + 2;
-  team.ParallelFor(static_cast<size_t>(rows), grain, [&](size_t begin, size_t end, int) {
-    const int y0 = kBorder + static_cast<int>(begin), y1 = kBorder + static_cast<int>(end);
-    // A ring of 4 DoG rows per layer (rows y-1, y, y+1 and the next one): ~100 KB that stays in cache.
-    // Row pointers for the scan are set per row, so the ring only needs consistent slots.
-    const size_t stride = g0.stride();
-    constexpr int kRing = 4;
-    std::unique_ptr<float[]> ring(new float[static_cast<size_t>(dog_layers) * kRing * stride + 16]);
-    auto slot = [&](int layer, int y) {
-      return ring.get() + (static_cast<size_t>(layer) * kRing + static_cast<size_t>((y % kRing + kRing) % kRing)) * stride;
-    };
-    auto compute_row = [&](int y) {
-#ifdef OXBOW_AVX2
-      // The S + 3 planes stream from memory side by side; ask for their rows a few rows ahead. Not when
-      // the rows are made just before the scan (rows_ready): they are in cache already.
-      if (!rows_ready && y + kPrefetchRows < h)
-        for (int l = 0; l <= dog_layers; ++l) {
-          const char* ahead = reinterpret_cast<const char*>(octave.gauss[static_cast<size_t>(l)].row(y + kPrefetchRows));
-          for (int x = 0; x < w; x += 16) _mm_prefetch(ahead + 4 * x, _MM_HINT_T0);
-        }
-#endif
-      for (int l = 0; l < dog_layers; ++l) {
-        const float* pa = octave.gauss[static_cast<size_t>(l)].row(y);
-        const float* pb = octave.gauss[static_cast<size_t>(l) + 1].row(y);
-        float* d = slot(l, y);
-        int x = 0;
+  // A ring of 4 DoG rows per layer (rows y-1, y, y+1 and the next one): ~100 KB that stays in cache.
+  // Row pointers for the scan are set per row, so the ring only needs consistent slots.
+  constexpr int kRing = 4;
+  std::unique_ptr<float[]> ring(new float[static_cast<size_t>(dog_layers) * kRing * stride + 16]);
+  auto slot = [&](int layer, int y) {
+    return ring.get() + (static_cast<size_t>(layer) * kRing + static_cast<size_t>((y % kRing + kRing) % kRing)) * stride;
+  };
+  auto compute_row = [&](int y) {
+    for (int l = 0; l < dog_layers; ++l) {
+      const float* pa = level_row(l, y);
+      const float* pb = level_row(l + 1, y);
+      float* d = slot(l, y);
+      int x = 0;
 #ifdef OXBOW_AVX512
-        if (simd) {
-          SubtractAvx512(pb, pa, w, d);
-          continue;
-        }
+      if (simd) {
+        SubtractAvx512(pb, pa, w, d);
+        continue;
+      }
 #endif
 #ifdef OXBOW_AVX2
-        if (simd) x = SubtractAvx2(pb, pa, w, d);
+      if (simd) x = SubtractAvx2(pb, pa, w, d);
 #endif
-        for (; x < w; ++x) d[x] = pb[x] - pa[x];
-      }
-    };
-    // On the heap: GCC zeroes a stack array of vectors with aligned 64-byte stores, which ASan's
-    // detect_stack_use_after_return frames (32-byte aligned) fault on.
-    std::vector<std::vector<Candidate>> rows_found(8);
-    std::vector<int> columns;
-    bool abandoned = rows_ready && !rows_ready(y0 + 1);
-    if (!abandoned) {
-      compute_row(y0 - 1);
-      compute_row(y0);
+      for (; x < w; ++x) d[x] = pb[x] - pa[x];
     }
-    for (int y = y0; y < y1 && !abandoned; ++y) {
-      if (rows_ready && !rows_ready(y + 2)) break;
-      compute_row(y + 1);
-      for (int layer = 1; layer <= intervals; ++layer) {
-        columns.clear();
-        // ScanRow reaches rows y-1 and y+1 through +-stride, so hand it a contiguous view: copy-free
-        // when the three ring slots are in order, otherwise via the slot pointers below.
-        const float* rows3[3][3];
-        for (int l = 0; l < 3; ++l)
-          for (int dy = 0; dy < 3; ++dy) rows3[l][dy] = slot(layer - 1 + l, y - 1 + dy);
-        ScanRow(rows3, kBorder, w - kBorder, threshold, simd, &columns);
-        for (int x : columns) rows_found[layer - 1].push_back({layer, y, x});
-      }
+  };
+  // On the heap: GCC zeroes a stack array of vectors with aligned 64-byte stores, which ASan's
+  // detect_stack_use_after_return frames (32-byte aligned) fault on.
+  std::vector<std::vector<Candidate>> rows_found(static_cast<size_t>(intervals));
+  std::vector<int> columns;
+  if (!rows_ready(y0 + 1)) return {};
+  compute_row(y0 - 1);
+  compute_row(y0);
+  for (int y = y0; y < y1; ++y) {
+    if (!rows_ready(y + 2)) break;
+    compute_row(y + 1);
+    for (int layer = 1; layer <= intervals; ++layer) {
+      columns.clear();
+      const float* rows3[3][3];
+      for (int l = 0; l < 3; ++l)
+        for (int dy = 0; dy < 3; ++dy) rows3[l][dy] = slot(layer - 1 + l, y - 1 + dy);
+      ScanRow(rows3, kBorder, w - kBorder, threshold, simd, &columns);
+      for (int x : columns) rows_found[static_cast<size_t>(layer) - 1].push_back({layer, y, x});
     }
-    std::vector<Candidate>& out = found[begin / grain];
-    for (int layer = 1; layer <= intervals; ++layer)
-      out.insert(out.end(), rows_found[layer - 1].begin(), rows_found[layer - 1].end());
-  });
-  // Chunks are ordered by row; order the merged list by (layer, row, column).
-  std::vector<Candidate> all;
-  for (auto& f : found) all.insert(all.end(), f.begin(), f.end());
-  std::stable_sort(all.begin(), all.end(), [](const Candidate& a, const Candidate& b) { return a.layer < b.layer; });
-  return all;
+  }
+  std::vector<Candidate> out;
+  for (const auto& found : rows_found) out.insert(out.end(), found.begin(), found.end());
+  return out;
 }
 
 // ---- Refinement [L04 sec. 4] ------------------------------------------------------------------------
@@ -1282,6 +1257,125 @@ Scratch& ThreadScratch() {
   return scratch;
 }
 
+// Where level 0 of a strip comes from: the input image upsampled 2x row by row (`image`), a plane to
+// blur (`base`), or, with neither, level 0 is already made (a later octave's decimated base).
+struct StripSource {
+  const GrayImage* image = nullptr;
+  const Plane* base = nullptr;
+};
+
+// A strip recomputes the rows its blurs and scan read beyond its own (about 50 per level on the first
+// octave): strips thinner than this would redo much of their neighbours' work.
+constexpr int kMinStripRows = 128;
+
+// A strip's own memory, kept by each thread between strips: per level the rows just above and below
+// the strip, the upsampled base's rows and the blur's block.
+struct StripScratch {
+  std::vector<Plane> above, below;
+  std::vector<float> base_ring, upsample;
+  BlurScratch blur;
+
+  size_t Bytes() const {
+    size_t bytes = (base_ring.capacity() + upsample.capacity() + blur.padded.capacity()) * sizeof(float);
+    for (const Plane& plane : above) bytes += plane.capacity_bytes();
+    for (const Plane& plane : below) bytes += plane.capacity_bytes();
+    return bytes;
+  }
+};
+
+StripScratch& ThreadStripScratch() {
+  thread_local StripScratch scratch;
+  return scratch;
+}
+
+// Makes rows [s, e) of the octave's levels (from level 0, or from level 1 when level 0 is already
+// made) and returns the candidate extrema among them, in (layer, row, column) order. Every level is
+// blurred a block of rows at a time just before the scan (or the next level) reads it, so the rows a
+// level reads come from cache. The rows above and below the strip that its blurs and scan read are
+// made too, into the thread's own memory: the octave's planes receive only rows [s, e), so strips run
+// at once on different threads, and each row has the same value whatever the strips. poll() returning
+// false abandons the strip.
+std::vector<Candidate> BuildStrip(Octave* octave, const StripSource& source, const std::vector<std::vector<float>>& kernels,
+                                  int intervals, float threshold, int s, int e, bool simd, int cache_mib,
+                                  const std::function<bool()>& poll) {
+  const int levels = intervals + 3;
+  const int w = octave->gauss[0].width(), h = octave->gauss[0].height();
+  const int first = source.image || source.base ? 0 : 1;
+  const auto radius = [&](int i) { return static_cast<int>(kernels[static_cast<size_t>(i)].size()) - 1; };
+  // Rows [lo[i], hi[i]) of level i are made: the scan reads one row beyond the strip, and each blur
+  // reads its radius beyond the rows it makes.
+  std::vector<int> halo(static_cast<size_t>(levels), 1), lo(halo.size(), 0), hi(halo.size(), h), produced(halo.size(), h);
+  for (int i = levels - 1; i > first; --i) halo[static_cast<size_t>(i) - 1] = halo[static_cast<size_t>(i)] + radius(i);
+  StripScratch& scratch = ThreadStripScratch();
+  scratch.above.resize(static_cast<size_t>(levels));
+  scratch.below.resize(static_cast<size_t>(levels));
+  for (int i = first; i < levels; ++i) {
+    const auto l = static_cast<size_t>(i);
+    lo[l] = std::max(0, s - halo[l]);
+    hi[l] = std::min(h, e + halo[l]);
+    produced[l] = lo[l];
+    scratch.above[l].Reshape(w, s - lo[l]);
+    scratch.below[l].Reshape(w, hi[l] - e);
+  }
+  const auto row = [&](int i, int y) -> float* {
+    const auto l = static_cast<size_t>(i);
+    if (i < first || (y >= s && y < e)) return octave->gauss[l].row(y);
+    return y < s ? scratch.above[l].row(y - lo[l]) : scratch.below[l].row(y - e);
+  };
+  // The upsampled base's rows, made on demand into a ring that holds what one block of the first blur
+  // reads: 2 r + kRowBlock rows.
+  const int base_ring_rows = source.image ? 2 * radius(0) + kRowBlock : 0;
+  const size_t base_pitch = (static_cast<size_t>(w) + 15) / 16 * 16;
+  if (source.image) {
+    scratch.base_ring.resize(static_cast<size_t>(base_ring_rows) * base_pitch);
+    scratch.upsample.resize(static_cast<size_t>(source.image->width));
+  }
+  int base_made = source.image ? std::max(0, lo[0] - radius(0)) : 0;
+  const std::function<const float*(int)> base_row = [&](int i) -> const float* {
+    if (source.base) return source.base->row(i);
+    return scratch.base_ring.data() + static_cast<size_t>(i % base_ring_rows) * base_pitch;
+  };
+  // Makes rows [lo[i], n) of level i final, first the rows of the levels below that it reads.
+  std::function<void(int, int)> produce = [&](int i, int n) {
+    const auto l = static_cast<size_t>(i);
+    n = std::min(n, hi[l]);
+    const std::function<float*(int)> dest = [&](int y) { return row(i, y); };
+    while (produced[l] < n) {
+      const int y = produced[l], count = std::min(kRowBlock, hi[l] - y);
+      if (i > 0) {
+        produce(i - 1, y + count + radius(i));
+        GaussianBlurRows([&](int y2) -> const float* { return row(i - 1, y2); }, dest, w, h, kernels[l], y, count,
+                         &scratch.blur, simd);
+      } else {
+        if (source.image) {
+          const GrayImage& image = *source.image;
+          for (; base_made < std::min(h, y + count + radius(0)); ++base_made)
+            Upsample2xRow(image.pixels.data(), image.width, image.height, static_cast<size_t>(image.width), base_made,
+                          scratch.upsample.data(),
+                          scratch.base_ring.data() + static_cast<size_t>(base_made % base_ring_rows) * base_pitch);
+        }
+        GaussianBlurRows(base_row, dest, w, h, kernels[0], y, count, &scratch.blur, simd);
+      }
+      produced[l] += count;
+    }
+  };
+  int polls = 0;
+  bool stopped = false;
+  std::vector<Candidate> candidates = ScanRows(
+      [&](int i, int y) -> const float* { return row(i, y); }, w, h, octave->gauss[0].stride(), s, e, intervals, threshold,
+      simd, [&](int n) {
+        if ((++polls & 63) == 0 && !poll()) {
+          stopped = true;
+          return false;
+        }
+        produce(levels - 1, n);
+        return true;
+      });
+  if (!stopped) produce(levels - 1, e);  // the strip's rows below the last scanned one
+  if (scratch.Bytes() > (static_cast<size_t>(cache_mib) << 20)) scratch = StripScratch();
+  return candidates;
+}
+
 }  // namespace
 
 FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool simd, const StopRequested& stop) {
@@ -1308,23 +1402,18 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
   octave.gauss.resize(static_cast<size_t>(S) + 3);
 
 
-  // `spare` holds the base image of octave 0 (the input, optionally upsampled 2x, still to be blurred
-  // from the assumed camera blur to sigma; not filled when upsampling on one thread), then the
-  // decimated base of each next octave.
+  // `spare` holds the base image of octave 0 when it is the input itself (still to be blurred from the
+  // assumed camera blur to sigma), then the decimated base of each next octave. The 2x upsampled base is
+  // never stored whole: each strip makes the rows its first blur reads (see BuildStrip).
   Plane& spare = scratch.spare;
   double present_blur = options.assumed_blur;
-  // On one thread the upsampled image is never stored whole: its rows are made as the first blur reads
-  // them (see the octave loop).
-  const bool upsample_by_rows = options.upsample_first_octave && threads == 1;
   if (options.upsample_first_octave) {
-    if (!upsample_by_rows) Upsample2x(image.pixels.data(), image.width, image.height, static_cast<size_t>(image.width), &spare, team);
     present_blur *= 2;
   } else {
     spare.Reshape(image.width, image.height);
     for (int y = 0; y < image.height; ++y)
       std::copy_n(image.pixels.data() + static_cast<size_t>(y) * static_cast<size_t>(image.width), image.width, spare.row(y));
   }
-  const Plane& base = spare;
   const double first_blur = std::sqrt(std::max(sigma * sigma - present_blur * present_blur, 0.01));
 
   const int base_width = options.upsample_first_octave ? 2 * image.width : image.width;
@@ -1363,62 +1452,36 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
     const int ow = o == 0 ? base_width : octave.gauss[0].width();
     const int oh = o == 0 ? base_height : octave.gauss[0].height();
     if (ow < 1 || oh < 1) break;
-    std::vector<Candidate> candidates;
-    if (team.size() == 1) {
-      // One thread: every level is blurred a block of rows at a time just before the scan (or the next
-      // level) needs it, so the rows a level reads are recent and come from cache, not memory. Each row
-      // has the same value as in the level-by-level order below.
-      for (int i = o == 0 ? 0 : 1; i < S + 3; ++i) octave.gauss[static_cast<size_t>(i)].Reshape(ow, oh);
-      std::vector<int> produced(static_cast<size_t>(S) + 3, 0);
-      if (o > 0) produced[0] = oh;
-      BlurScratch blur_scratch;
-      // The upsampled base's rows, made on demand into a ring that holds what one block of the first blur
-      // reads: 2 r + kRowBlock rows.
-      const bool base_by_rows = o == 0 && upsample_by_rows;
-      const int base_ring_rows = base_by_rows ? 2 * (static_cast<int>(kernels[0].size()) - 1) + kRowBlock : 0;
-      const size_t base_pitch = (static_cast<size_t>(ow) + 15) / 16 * 16;
-      std::vector<float> base_ring(static_cast<size_t>(base_ring_rows) * base_pitch), upsample_scratch;
-      if (base_by_rows) upsample_scratch.resize(static_cast<size_t>(image.width));
-      int base_made = 0;
-      const auto base_row = [&](int i) -> const float* {
-        return base_ring.data() + static_cast<size_t>(i % base_ring_rows) * base_pitch;
-      };
-      // Makes rows [0, n) of level i final, first the rows of the levels below that it reads.
-      std::function<void(int, int)> produce = [&](int i, int n) {
-        n = std::min(n, oh);
-        const auto level = static_cast<size_t>(i);
-        const int r = static_cast<int>(kernels[level].size()) - 1;
-        while (produced[level] < n) {
-          const int y = produced[level], count = std::min(kRowBlock, oh - y);
-          if (i > 0) {
-            produce(i - 1, y + count + r);
-            GaussianBlurRows(octave.gauss[level - 1], &octave.gauss[level], kernels[level], y, count, &blur_scratch, simd);
-          } else if (base_by_rows) {
-            for (; base_made < std::min(oh, y + count + r); ++base_made)
-              Upsample2xRow(image.pixels.data(), image.width, image.height, static_cast<size_t>(image.width), base_made,
-                            upsample_scratch.data(), base_ring.data() + static_cast<size_t>(base_made % base_ring_rows) * base_pitch);
-            GaussianBlurRows(base_row, ow, oh, &octave.gauss[0], kernels[0], y, count, &blur_scratch, simd);
-          } else {
-            GaussianBlurRows(base, &octave.gauss[0], kernels[0], y, count, &blur_scratch, simd);
-          }
-          produced[level] += count;
+    for (int i = o == 0 ? 0 : 1; i < S + 3; ++i) octave.gauss[static_cast<size_t>(i)].Reshape(ow, oh);
+    // The octave's rows in horizontal strips, one per worker (none thinner than kMinStripRows): each
+    // strip blurs its levels a block of rows at a time just before the scan needs them, so that the rows
+    // a level reads are recent and come from cache. Rows and candidates do not depend on the strips.
+    const int strips = std::clamp(oh / kMinStripRows, 1, team.size());
+    std::vector<std::vector<Candidate>> found(static_cast<size_t>(strips));
+    std::atomic<bool> abandon{false};
+    team.ParallelFor(static_cast<size_t>(strips), 1, [&](size_t begin, size_t end, int worker) {
+      for (size_t strip = begin; strip < end; ++strip) {
+        const int y0 = static_cast<int>(static_cast<int64_t>(oh) * static_cast<int64_t>(strip) / strips);
+        const int y1 = static_cast<int>(static_cast<int64_t>(oh) * static_cast<int64_t>(strip + 1) / strips);
+        // Only the calling thread (worker 0) may ask `stop`; the others follow `abandon`.
+        const auto poll = [&] {
+          if (worker == 0 && stopped()) abandon = true;
+          return !abandon;
+        };
+        StripSource source;
+        if (o == 0 && options.upsample_first_octave) {
+          source.image = &image;
+        } else if (o == 0) {
+          source.base = &spare;
         }
-      };
-      int polls = 0;
-      candidates = ScanOctave(octave, S, scan_threshold, team, simd, [&](int n) {
-        if ((++polls & 63) == 0 && stopped()) return false;
-        produce(S + 2, n);
-        return true;
-      });
-      if (stopped()) break;
-      produce(S + 2, oh);  // the rows below the last scanned one
-    } else {
-      if (o == 0) GaussianBlur(base, &octave.gauss[0], kernels[0], team, simd);
-      for (int i = 1; i < S + 3 && !stopped(); ++i)
-        GaussianBlur(octave.gauss[static_cast<size_t>(i) - 1], &octave.gauss[static_cast<size_t>(i)], kernels[static_cast<size_t>(i)], team, simd);
-      if (stopped()) break;
-      candidates = ScanOctave(octave, S, scan_threshold, team, simd);
-    }
+        found[strip] = BuildStrip(&octave, source, kernels, S, scan_threshold, y0, y1, simd, options.thread_cache_mib, poll);
+      }
+    });
+    if (abandon || stopped()) break;
+    // Each strip's candidates are in (layer, row, column) order and the strips in row order.
+    std::vector<Candidate> candidates;
+    for (auto& f : found) candidates.insert(candidates.end(), f.begin(), f.end());
+    std::stable_sort(candidates.begin(), candidates.end(), [](const Candidate& a, const Candidate& b) { return a.layer < b.layer; });
     if (stopped()) break;
     std::vector<std::optional<Refined>> refined(candidates.size());
     team.ParallelFor(candidates.size(), 64, [&](size_t b, size_t e, int) {

@@ -228,6 +228,30 @@ TEST(SiftDeterminism, ThreadCountsAndSimdPathsAgreeExactly) {
   }
 }
 
+// A stop is asked on the calling thread only, also while other threads blur and scan their strips, and
+// it ends the extraction early: fewer keypoints than a whole one.
+TEST(SiftStop, IsAskedOnTheCallingThreadAndEndsTheExtraction) {
+  const cv::Mat gray = LoadGray(kOpencvData + "box.png");
+  ASSERT_FALSE(gray.empty());
+  const GrayImage image = FromMat(gray);
+  SiftOptions options;
+  options.num_threads = 4;
+  const FeatureSet whole = internal::ExtractImpl(image, options, true);
+  ASSERT_GT(whole.size(), 100u);
+  for (const int after : {0, 1, 3}) {
+    const std::thread::id caller = std::this_thread::get_id();
+    int asked = 0;
+    bool elsewhere = false;
+    const FeatureSet part = internal::ExtractImpl(image, options, true, [&] {
+      elsewhere = elsewhere || std::this_thread::get_id() != caller;
+      return ++asked > after;
+    });
+    EXPECT_FALSE(elsewhere) << after;
+    EXPECT_GT(asked, after);
+    EXPECT_LT(part.size(), whole.size()) << after;
+  }
+}
+
 // The vector paths run wherever the CPU has AVX2 and FMA, also in a portable build (sift/base/cpu.h), so
 // that ThreadCountsAndSimdPathsAgreeExactly compares two paths there rather than the scalar one twice.
 TEST(SiftDeterminism, VectorPathsRunWhereTheCpuHasThem) {
