@@ -108,7 +108,14 @@ class Extractions::Threads {
 
 Extractions::Extractions(const sift::SiftExtractor& extractor, const ExtractionOptions& options)
     : extractor_(extractor), options_(options), semaphore_(options.slots) {
-  if (options_.add_nice > 0) add_threads_ = std::make_unique<Threads>(options_.slots, options_.add_nice);
+  if (options_.add_nice > 0) {
+    add_threads_ = std::make_unique<Threads>(options_.slots, options_.add_nice);
+    sift::SiftOptions one_thread = extractor.options();
+    one_thread.num_threads = 1;
+    auto created = sift::SiftExtractor::Create(one_thread);
+    OXBOW_CHECK(created.has_value(), "a valid extractor's settings with one thread are valid");
+    add_extractor_.emplace(std::move(*created));
+  }
   normal_threads_ = std::make_unique<Threads>(options_.slots, 0);
 }
 
@@ -160,10 +167,12 @@ Result<sift::FeatureSet> Extractions::Extract(std::span<const uint8_t> image, co
   // At most `slots` jobs hold a slot, and each pool has that many threads: no job waits here.
   Result<sift::FeatureSet> features = Fail(ErrorCode::kInternal, "extraction did not run");
   const sift::StopRequested stop = [this, &work] { return StopReason(work).has_value(); };
-  Threads& threads = priority == Priority::kAdd && add_threads_ ? *add_threads_ : *normal_threads_;
+  const bool low = priority == Priority::kAdd && add_threads_;
+  Threads& threads = low ? *add_threads_ : *normal_threads_;
+  const sift::SiftExtractor& extractor = low ? *add_extractor_ : extractor_;
   threads.Run([&] {
     const auto start = Clock::now();
-    features = extractor_.ExtractFromBytes(image, options_.decode, stop);
+    features = extractor.ExtractFromBytes(image, options_.decode, stop);
     *elapsed_ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
     if (features && also) also();
   });

@@ -10,7 +10,8 @@
 //  - Threads: extractions run on threads of this object, not the caller's. SIFT keeps its pyramid
 //    buffers per thread that extracts (SiftOptions::thread_cache_mib), so extracting on HTTP workers
 //    would let every worker keep ~200 MiB (32 workers: 7 GiB measured) whatever the slot count. Adds run
-//    on threads at a lower CPU priority (add_nice), so that searches get the CPU first.
+//    on threads at a lower CPU priority (add_nice), so that searches get the CPU first, and each on its
+//    own thread only: the extractor's other threads (the process-wide pool) run at normal priority.
 //
 // Thread safety: every member may be called from any number of threads at once.
 #pragma once
@@ -86,6 +87,7 @@ class Extractions {
   // When Stop()'s grace ends (Clock ticks since its epoch); the maximum until it is called.
   std::atomic<Clock::rep> stop_at_{Clock::time_point::max().time_since_epoch().count()};
   std::unique_ptr<Threads> add_threads_;      // low priority (add_nice > 0), else null
+  std::optional<sift::SiftExtractor> add_extractor_;  // with add_threads_: extractor_ on one thread
   std::unique_ptr<Threads> normal_threads_;   // every other extraction
 };
 

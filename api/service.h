@@ -74,9 +74,11 @@ struct ServiceOptions {
   // long for extractions (less than `docker stop`'s 10 s before SIGKILL). 0 stops them at once.
   // [0, 3600000].
   int shutdown_grace_ms = 5'000;
-  // Threads used inside one extraction and one pairwise match; 1 lets concurrent requests use the
-  // cores, 0 = all hardware threads (lowest latency for a single request). [0, 256].
-  int threads_per_request = 1;
+  // Threads used inside one extraction and one pairwise match, 0 = all hardware threads: a search's
+  // photo is extracted on every core (its octaves in strips, its keypoints split), the lowest latency.
+  // Concurrent requests share one pool of threads, so under load each runs mostly on its own. Adds at a
+  // lower priority (add_nice > 0) extract on their one thread. [0, 256].
+  int threads_per_request = 0;
   // Adds decode and extract on dedicated threads running at this nice value (Linux; 0 = the callers'
   // threads at normal priority), so that on a busy machine the CPU goes to searches first and search
   // latency barely moves while images are added. The add still completes (lower priority is not

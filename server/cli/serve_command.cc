@@ -323,7 +323,8 @@ void SetUpServe(CLI::App& app) {
       ->capture_default_str()
       ->check(CLI::Range(0.0, 3600.0));
   cmd->add_option("--threads-per-request", flags->service.threads_per_request,
-                  "threads inside one extraction/match; 1 favours throughput, 0 = all cores (latency)")
+                  "threads inside one search's extraction and one match, 0 = all cores (lowest latency; concurrent "
+                  "requests share them); adds at --add-nice extract on one thread")
       ->capture_default_str()
       ->check(CLI::Range(0, 256));
   cmd->add_option("--thumbnail-px", flags->service.thumbnails.stored_side_px,
