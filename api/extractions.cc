@@ -114,7 +114,7 @@ Extractions::Extractions(const sift::SiftExtractor& extractor, const ExtractionO
     one_thread.num_threads = 1;
     auto created = sift::SiftExtractor::Create(one_thread);
     OXBOW_CHECK(created.has_value(), "a valid extractor's settings with one thread are valid");
-    add_extractor_.emplace(std::move(*created));
+    add_extractor_.emplace(*created);
   }
   normal_threads_ = std::make_unique<Threads>(options_.slots, 0);
 }
@@ -167,12 +167,15 @@ Result<sift::FeatureSet> Extractions::Extract(std::span<const uint8_t> image, co
   // At most `slots` jobs hold a slot, and each pool has that many threads: no job waits here.
   Result<sift::FeatureSet> features = Fail(ErrorCode::kInternal, "extraction did not run");
   const sift::StopRequested stop = [this, &work] { return StopReason(work).has_value(); };
-  const bool low = priority == Priority::kAdd && add_threads_;
-  Threads& threads = low ? *add_threads_ : *normal_threads_;
-  const sift::SiftExtractor& extractor = low ? *add_extractor_ : extractor_;
-  threads.Run([&] {
+  Threads* threads = normal_threads_.get();
+  const sift::SiftExtractor* extractor = &extractor_;
+  if (priority == Priority::kAdd && add_threads_ && add_extractor_) {
+    threads = add_threads_.get();
+    extractor = &*add_extractor_;
+  }
+  threads->Run([&] {
     const auto start = Clock::now();
-    features = extractor.ExtractFromBytes(image, options_.decode, stop);
+    features = extractor->ExtractFromBytes(image, options_.decode, stop);
     *elapsed_ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
     if (features && also) also();
   });
