@@ -474,16 +474,6 @@ void Upsample2xRow(const float* src, int w, int h, size_t src_stride, int y, flo
   for (; x < w; ++x) column(x);
 }
 
-void Upsample2x(const float* src, int w, int h, size_t src_stride, Plane* dst, WorkerTeam& team) {
-  const int num_threads = team.size();
-  dst->Reshape(2 * w, 2 * h);
-  if (w == 0 || h == 0) return;
-  team.ParallelFor(2 * static_cast<size_t>(h), RowGrain(2 * h, num_threads), [&](size_t y0, size_t y1, int) {
-    std::vector<float> v(static_cast<size_t>(w));
-    for (int y = static_cast<int>(y0); y < static_cast<int>(y1); ++y) Upsample2xRow(src, w, h, src_stride, y, v.data(), dst->row(y));
-  });
-}
-
 void Decimate2x(const Plane& src, Plane* dst) {
   const int w = src.width() / 2, h = src.height() / 2;
   dst->Reshape(w, h);

@@ -118,13 +118,11 @@ void GaussianBlurRows(const std::function<const float*(int)>& source_row, const 
                       int width, int height, std::span<const float> half_kernel, int y, int count, BlurScratch* scratch,
                       bool allow_simd);
 
-// Row y (0 <= y < 2h) of Upsample2x's output into out (2w floats); v: scratch of w floats.
+// Row y (0 <= y < 2h) of the bilinear 2x enlargement of the w x h image at `src` (rows `src_stride`
+// floats apart) into out (2w floats), with pixel-centre alignment (as cv::resize INTER_LINEAR):
+// dst(2i) = 0.75 src(i) + 0.25 src(i-1), dst(2i+1) = 0.75 src(i) + 0.25 src(i+1), edges replicated, in
+// both directions. v: scratch of w floats.
 void Upsample2xRow(const float* src, int w, int h, size_t src_stride, int y, float* v, float* out);
-
-// dst (2w x 2h) = bilinear 2x enlargement of the w x h image at `src` (rows `src_stride` floats apart)
-// with pixel-centre alignment (as cv::resize INTER_LINEAR): dst(2i) = 0.75 src(i) + 0.25 src(i-1),
-// dst(2i+1) = 0.75 src(i) + 0.25 src(i+1), edges replicated. dst is reshaped (its buffer reused).
-void Upsample2x(const float* src, int w, int h, size_t src_stride, Plane* dst, WorkerTeam& team);
 
 // dst (floor(w/2) x floor(h/2)) = src sampled at even rows and columns (the next octave's base).
 void Decimate2x(const Plane& src, Plane* dst);

@@ -1442,7 +1442,7 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
   // set (and so the keypoints) identical to cv::SIFT's.
   const float scan_threshold = static_cast<float>(std::floor(0.5 * options.contrast_threshold / S * 255.0) / 255.0);
   const double coordinate_scale = options.upsample_first_octave ? 0.5 : 1.0;
-  const double coordinate_shift = options.upsample_first_octave ? -0.25 : 0.0;  // pixel centres, see Upsample2x
+  const double coordinate_shift = options.upsample_first_octave ? -0.25 : 0.0;  // pixel centres, see Upsample2xRow
 
   // The S + 3 planes of octave 0 are reused by the (smaller) later octaves; `spare` receives the
   // decimated base of the next octave.
@@ -1482,7 +1482,6 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
     std::vector<Candidate> candidates;
     for (auto& f : found) candidates.insert(candidates.end(), f.begin(), f.end());
     std::stable_sort(candidates.begin(), candidates.end(), [](const Candidate& a, const Candidate& b) { return a.layer < b.layer; });
-    if (stopped()) break;
     std::vector<std::optional<Refined>> refined(candidates.size());
     team.ParallelFor(candidates.size(), 64, [&](size_t b, size_t e, int) {
       for (size_t i = b; i < e; ++i)
