@@ -71,6 +71,15 @@ TEST(Params, QueryParamsOverrideDefaultsAndRefuseUnknownNames) {
   EXPECT_NE(typo.error().message.find("topk"), std::string::npos);
   EXPECT_FALSE(ParseQueryParams({{"top_k", "0"}}, defaults));
   EXPECT_FALSE(ParseQueryParams({{"qe", "1"}, {"rerank", "0"}}, defaults));
+  auto exponent = ParseQueryParams({{"hamming_norm_exponent", "0.5"}}, defaults);
+  ASSERT_TRUE(exponent);
+  EXPECT_EQ(exponent->hamming_norm_exponent, 0.5);
+  EXPECT_EQ(none->hamming_norm_exponent, index::QueryOptions{}.hamming_norm_exponent);
+  for (const char* bad : {"1.5", "-0.1", "", "0.5x", "nan"}) {
+    auto refused = ParseQueryParams({{"hamming_norm_exponent", bad}}, defaults);
+    ASSERT_FALSE(refused) << bad;
+    EXPECT_NE(refused.error().message.find("hamming_norm_exponent"), std::string::npos);
+  }
   // QE on by default (as `oxbow serve` ships) does not make a tf-idf-only search an error: it is off there.
   index::QueryOptions qe_default = defaults;
   qe_default.query_expansion = true;

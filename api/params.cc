@@ -151,7 +151,7 @@ constexpr IntQueryParam kIntQueryParams[] = {
 
 const std::set<std::string>& QueryParamNames() {
   static const std::set<std::string> names = [] {
-    std::set<std::string> n = {"rerank", "bbox", "qe", "min_inliers", "filter", "hamming"};
+    std::set<std::string> n = {"rerank", "bbox", "qe", "min_inliers", "filter", "hamming", "hamming_norm_exponent"};
     for (const IntQueryParam& p : kIntQueryParams) n.insert(p.name);
     return n;
   }();
@@ -172,6 +172,15 @@ Result<index::QueryOptions> ParseQueryParams(const Params& params, const index::
     auto parsed = ParseInt("min_inliers", *v, 3, 1000000);
     if (!parsed) return std::unexpected(parsed.error());
     options.verify.min_inliers = static_cast<int>(*parsed);
+  }
+  if (const auto* v = Find(params, "hamming_norm_exponent")) {
+    char* end = nullptr;
+    const double e = v->empty() ? NAN : std::strtod(v->c_str(), &end);
+    if (v->empty() || end != v->c_str() + v->size() || !(e >= 0 && e <= 1)) {
+      return Fail(ErrorCode::kInvalidArgument,
+                  "parameter 'hamming_norm_exponent' must be a number in [0, 1], got " + Quote(*v));
+    }
+    options.hamming_norm_exponent = e;
   }
   if (const auto* v = Find(params, "rerank")) {
     if (*v == "true" || *v == "false" || *v == "yes" || *v == "no" || *v == "on" || *v == "off") {

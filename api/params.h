@@ -60,6 +60,7 @@ using Params = std::multimap<std::string, std::string>;
 //   hamming                bool          QueryOptions::hamming
 //   asmk_weight            [0, 1000]     QueryOptions::asmk_weight (0 = off)
 //   qe_asmk_weight         [0, 1000]     QueryOptions::qe_asmk_weight (0 = off)
+//   hamming_norm_exponent  [0, 1]        QueryOptions::hamming_norm_exponent
 //   filter     a JSON object over the image metadata (api/filter.h)  QueryOptions::filter
 // Starts from `defaults`; the result passes QueryOptions::Check().
 [[nodiscard]] Result<index::QueryOptions> ParseQueryParams(const Params& params, const index::QueryOptions& defaults);

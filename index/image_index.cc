@@ -170,6 +170,9 @@ std::optional<std::string> QueryOptions::Check() const {
     return "hamming_threshold must be in [0, 64], got " + std::to_string(hamming_threshold);
   }
   if (!(hamming_sigma > 0 && hamming_sigma <= vocab::kHammingBits)) return std::string("hamming_sigma must be in (0, 64]");
+  if (!(hamming_norm_exponent >= 0 && hamming_norm_exponent <= 1)) {
+    return std::string("hamming_norm_exponent must be in [0, 1]");
+  }
   if (asmk_weight < 0 || asmk_weight > 1000) return "asmk_weight must be in [0, 1000], got " + std::to_string(asmk_weight);
   if (qe_asmk_weight < 0 || qe_asmk_weight > 1000) {
     return "qe_asmk_weight must be in [0, 1000], got " + std::to_string(qe_asmk_weight);

@@ -290,6 +290,8 @@ TEST_F(Cluster, FrontRankingsEqualTheSingleNode) {
   soft.query_assignments = 2;
   index::QueryOptions asmk = options;  // the aggregated score in the first re-scoring too
   asmk.asmk_weight = 5;
+  index::QueryOptions symmetric = options;  // the Hamming score's normalisation, not the default (0.9)
+  symmetric.hamming_norm_exponent = 0.5;
   index::QueryOptions tf_idf = options;  // without Hamming embedding: tf-idf query expansion
   tf_idf.hamming = false;
   index::QueryOptions tf_idf_transitive = transitive_qe;
@@ -303,6 +305,7 @@ TEST_F(Cluster, FrontRankingsEqualTheSingleNode) {
                                   std::pair{"transitive", transitive}, std::pair{"transitive+qe", transitive_qe},
                                   std::pair{"budget", budget}, std::pair{"query_assignments=2", soft},
                                   std::pair{"asmk_weight=5", asmk},
+                                  std::pair{"hamming_norm_exponent=0.5", symmetric},
                                   std::pair{"hamming=false", tf_idf},
                                   std::pair{"hamming=false transitive+qe", tf_idf_transitive}}) {
       const auto expected = single->Query((*queries_)[q], o);

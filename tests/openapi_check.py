@@ -329,9 +329,12 @@ def probes(doc, parameter):
         elif kind == "integer":
             valid += [str(s["minimum"]), str(s["maximum"])]
             invalid += [str(s["minimum"] - 1), str(s["maximum"] + 1), "1.5"]
-        elif kind == "number":
+        elif kind == "number" and "exclusiveMinimum" in s:
             valid.append(str(s["maximum"]))
             invalid += [str(s["exclusiveMinimum"]), str(s["maximum"] + 0.5), "x"]
+        elif kind == "number":
+            valid += [str(s["minimum"]), str(s["maximum"])]
+            invalid += [str(s["minimum"] - 0.5), str(s["maximum"] + 0.5), "x"]
         elif kind == "boolean":
             valid += ["true", "false"]
             invalid.append("maybe")

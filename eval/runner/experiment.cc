@@ -362,7 +362,8 @@ std::string SearchDefaults() {
     << ", quantizer_probes " << o.quantizer_probes << ", max_pairs_per_word " << o.max_pairs_per_word
     << ", min_inliers " << o.verify.min_inliers << ", max_query_features " << o.max_query_features
     << ", max_tentative_matches " << o.max_tentative_matches << ", max_scored_postings " << o.max_scored_postings
-    << ", hamming_shortlist " << o.hamming_shortlist << ", asmk_weight " << o.asmk_weight << ", qe_asmk_weight " << o.qe_asmk_weight;
+    << ", hamming_shortlist " << o.hamming_shortlist << ", asmk_weight " << o.asmk_weight << ", qe_asmk_weight " << o.qe_asmk_weight
+    << ", hamming_norm_exponent " << o.hamming_norm_exponent;
   return s.str();
 }
 

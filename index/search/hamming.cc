@@ -63,6 +63,9 @@ QuerySignatures::QuerySignatures(std::span<const uint32_t> words, std::span<cons
     self_ += IdfSquared(words[i]);
   }
   runs_ = WordRuns(words_.size(), [&](size_t i) { return words_[i]; });
+  OXBOW_CHECK(weighting.norm_exponent >= 0 && weighting.norm_exponent <= 1);
+  norm_exponent_ = weighting.norm_exponent;
+  self_scale_ = std::pow(self_, 1.0 - norm_exponent_);
   OXBOW_CHECK(weighting.asmk_weight >= 0);
   asmk_weight_ = weighting.asmk_weight;
   if (asmk_weight_ > 0) {
@@ -145,7 +148,9 @@ QuerySignatures::Votes QuerySignatures::Count(const PackedFeatures& db) const {
 
 double QuerySignatures::Combine(const Votes& votes, double candidate_self) const {
   double score = 0;
-  if (votes.matched > 0 && self_ > 0 && candidate_self > 0) score = votes.matched / std::sqrt(self_ * candidate_self);
+  if (votes.matched > 0 && self_ > 0 && candidate_self > 0) {
+    score = votes.matched / (self_scale_ * std::pow(candidate_self, norm_exponent_));
+  }
   if (asmk_weight_ > 0 && votes.aggregated > 0 && self_distinct_ > 0 && votes.distinct > 0) {
     score += asmk_weight_ * votes.aggregated / std::sqrt(self_distinct_ * votes.distinct);
   }

@@ -9,8 +9,11 @@
 // of the total strengths of its two features in this image pair:
 //   s'_ij = s_ij^2 / sqrt(S_i S_j),  S_i = sum_j s_ij,  S_j = sum_i s_ij,
 // so a one-to-one match keeps s_ij and m equal matches of one feature count sqrt(m) together.
-// The score is  sum_w idf_w^2 sum_ij s'_ij / sqrt(N_q N_d)  with N_x = sum_w idf_w^2 tf_w(x) (the
-// score of an image against itself when each feature matches only itself), in [0, about 1].
+// The score is  sum_w idf_w^2 sum_ij s'_ij / (N_q^(1 - e) N_d^e)  with N_x = sum_w idf_w^2 tf_w(x) (the
+// score of an image against itself when each feature matches only itself) and e = norm_exponent. With
+// e = 0.5 it is the symmetric form, sqrt(N_q N_d), in [0, about 1]; a larger e weighs the candidate's own
+// size more, as document-length normalisation does in text retrieval: a large image (a textured scene of
+// 6,000 features) matched in part by chance then scores less against a small one whose features match.
 //
 // Aggregated matching (ASMK*, Tolias, Avrithis & Jegou 2013, "To aggregate or not to aggregate"),
 // added with weight asmk_weight: each image is one aggregated signature per word it has, the bitwise
@@ -44,9 +47,10 @@
 namespace oxbow::index {
 
 struct HammingWeighting {
-  int threshold = 24;       // largest Hamming distance that matches, [0, 64]
-  double sigma = 16;        // kernel width in bits, > 0
-  double asmk_weight = 0;   // weight of the aggregated (ASMK*) score added to the score above, >= 0
+  int threshold = 24;         // largest Hamming distance that matches, [0, 64]
+  double sigma = 16;          // kernel width in bits, > 0
+  double asmk_weight = 0;     // weight of the aggregated (ASMK*) score added to the score above, >= 0
+  double norm_exponent = 0.5; // e above: the candidate's share of the normalisation, [0, 1]
 };
 
 // The ASMK* selectivity of two aggregated signatures at Hamming distance h (sigma(u) above).
@@ -91,6 +95,8 @@ class QuerySignatures {
   WordRuns runs_;                     // of words_
   std::array<double, 65> weight_{};   // s_ij by Hamming distance (0 above the threshold)
   double asmk_weight_ = 0;
+  double norm_exponent_ = 0.5;        // e
+  double self_scale_ = 0;             // N_q^(1 - e)
   std::vector<uint64_t> aggregated_;  // with aggregation: each run's majority signature, by run
   double self_distinct_ = 0;          // M_q
   // idf^2 by word, made once per statistics (a logarithm per word of every candidate was most of

@@ -90,6 +90,32 @@ TEST(QuerySignaturesTest, ScoresMatchingSignaturesAndDownWeightsBursts) {
   EXPECT_NEAR(burst, 4.0 * 2.0 / std::sqrt(13.0 * 16.0), 1e-12);
 }
 
+// The normalisation N_q^(1 - e) N_d^e: with e above 0.5 a candidate's own size counts more, so of two
+// candidates with the same matches the smaller one ranks first; at 0.5 the score is symmetric.
+TEST(QuerySignaturesTest, TheNormExponentSharesTheNormalisationBetweenQueryAndCandidate) {
+  auto idf_squared = std::make_shared<std::vector<double>>(100);
+  for (uint32_t w = 0; w < 100; ++w) (*idf_squared)[w] = 1.0;
+  // The query: words 0..3 (N_q = 4). Candidate `small` holds words 0, 1 and one more (N_d = 3), `large`
+  // words 0, 1 and ten more (N_d = 12); both match the query on words 0 and 1 exactly (votes 2).
+  const std::vector<uint32_t> words = {0, 1, 2, 3};
+  const std::vector<uint64_t> signatures = {0, 0, 0, 0};
+  const PackedFeatures small = Packed({0, 1, 50}, {0, 0, 0});
+  const PackedFeatures large = Packed({0, 1, 50, 51, 52, 53, 54, 55, 56, 57, 58, 59}, std::vector<uint64_t>(12, 0));
+  const QuerySignatures symmetric(words, signatures, idf_squared, HammingWeighting{.norm_exponent = 0.5});
+  EXPECT_NEAR(symmetric.Score(small), 2.0 / std::sqrt(4.0 * 3.0), 1e-12);
+  EXPECT_NEAR(symmetric.Score(large), 2.0 / std::sqrt(4.0 * 12.0), 1e-12);
+  const QuerySignatures candidate(words, signatures, idf_squared, HammingWeighting{.norm_exponent = 0.9});
+  EXPECT_NEAR(candidate.Score(small), 2.0 / (std::pow(4.0, 0.1) * std::pow(3.0, 0.9)), 1e-12);
+  EXPECT_NEAR(candidate.Score(large), 2.0 / (std::pow(4.0, 0.1) * std::pow(12.0, 0.9)), 1e-12);
+  // The ratio small / large grows from (12 / 3)^0.5 = 2 to (12 / 3)^0.9.
+  EXPECT_NEAR(candidate.Score(small) / candidate.Score(large), std::pow(4.0, 0.9), 1e-9);
+  // e = 1: the share of the candidate's own self-score that matched; e = 0: the query's.
+  const QuerySignatures share(words, signatures, idf_squared, HammingWeighting{.norm_exponent = 1.0});
+  EXPECT_NEAR(share.Score(small), 2.0 / 3.0, 1e-12);
+  const QuerySignatures query_share(words, signatures, idf_squared, HammingWeighting{.norm_exponent = 0.0});
+  EXPECT_NEAR(query_share.Score(large), 2.0 / 4.0, 1e-12);
+}
+
 TEST(AggregatedWeightTest, CubeOfTheSimilarityAboveAQuarter) {
   EXPECT_DOUBLE_EQ(AggregatedWeight(0), 1.0);
   EXPECT_DOUBLE_EQ(AggregatedWeight(16), 0.125);  // u = 1/2

@@ -135,7 +135,8 @@ class SnapshotSource final : public Source {
     const QuerySignatures query(words, signatures, snap_->inverted.IdfSquaredTable(),
                                 {.threshold = options.hamming_threshold,
                                  .sigma = options.hamming_sigma,
-                                 .asmk_weight = static_cast<double>(options.asmk_weight)});
+                                 .asmk_weight = static_cast<double>(options.asmk_weight),
+                                 .norm_exponent = options.hamming_norm_exponent});
     const bool keep = !copied_;  // the first re-scoring's images are kept for the later stages
     if (keep) copies_.Reserve(refs.size());
     std::vector<double> out(refs.size());

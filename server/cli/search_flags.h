@@ -43,6 +43,11 @@ inline void AddSearchFlags(CLI::App* cmd, index::QueryOptions* o) {
   add("--hamming-threshold", &o->hamming_threshold, "Hamming embedding: largest distance (bits) that matches", 0, 64);
   add("--hamming-sigma", &o->hamming_sigma, "Hamming embedding: width (bits) of the weight exp(-h^2/sigma^2)", 1e-9,
       64.0);
+  add("--hamming-norm-exponent", &o->hamming_norm_exponent,
+      "Hamming embedding: the candidate's share e of the score's normalisation, score / (N_query^(1-e) "
+      "N_candidate^e): 0.5 is symmetric, larger ranks a large image that matches by chance below a smaller one "
+      "whose features match",
+      0.0, 1.0);
   add("--asmk-weight", &o->asmk_weight,
       "Hamming embedding: weight of the aggregated score (ASMK*: one majority signature per word and image) "
       "added when re-scoring the tf-idf shortlist (0 = off)",

@@ -993,6 +993,7 @@ class PartitionsSource final : public index::search::Source {
     head.set_threshold(options.hamming_threshold);
     head.set_sigma(options.hamming_sigma);
     head.set_asmk_weight(options.asmk_weight);
+    head.set_norm_exponent(options.hamming_norm_exponent);
     std::vector<double> out(refs.size(), std::nan(""));
     const std::vector<std::vector<size_t>> held = ByPartition(refs);
     Scatter([&](uint32_t p) -> Status {

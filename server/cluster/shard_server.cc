@@ -116,6 +116,7 @@ class ShardServer::Impl final : public Shard::Service {
     options.hamming_threshold = request->threshold();
     options.hamming_sigma = request->sigma();
     options.asmk_weight = request->asmk_weight();
+    if (request->has_norm_exponent()) options.hamming_norm_exponent = request->norm_exponent();
     if (auto message = options.Check()) return Invalid(*message);
     const std::shared_ptr<Search> search = SearchOf(*context, service);
     const std::lock_guard<std::mutex> in_use(search->mutex);

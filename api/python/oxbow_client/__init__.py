@@ -404,8 +404,9 @@ class _ImageRoutes:
 
         options: the server's search parameters (server/README.md "Search options"): top_k, rerank, qe, qe_images,
         min_inliers, max_pairs_per_word, transitive_depth, transitive_anchors, transitive_neighbours,
-        transitive_attempts, query_assignments, quantizer_probes, hamming, asmk_weight, qe_asmk_weight. Unknown
-        names and out-of-range values raise InvalidArgumentError (the server refuses them).
+        transitive_attempts, query_assignments, quantizer_probes, hamming, asmk_weight, qe_asmk_weight,
+        hamming_norm_exponent. Unknown names and out-of-range values raise InvalidArgumentError (the server
+        refuses them).
         """
         fields = _search_fields(bbox, filter, options)
         return self._request("POST", self._prefix + "/search", multipart=(fields, {"file": _image_bytes(image)}))
