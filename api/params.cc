@@ -3,6 +3,7 @@
 #include <charconv>
 #include <cmath>
 #include <cstdlib>
+#include <optional>
 #include <string>
 
 #include <nlohmann/json.hpp>
@@ -53,6 +54,16 @@ bool IsValidUtf8(std::string_view text) {
   return true;
 }
 
+// `text` as a number when all of it is one (strtod's syntax: "nan" and "inf" included, the callers
+// check the range); nullopt for an empty text or trailing characters.
+std::optional<double> WholeNumber(const std::string& text) {
+  if (text.empty()) return std::nullopt;
+  char* end = nullptr;
+  const double v = std::strtod(text.c_str(), &end);
+  if (end != text.c_str() + text.size()) return std::nullopt;
+  return v;
+}
+
 const std::string* Find(const Params& params, const std::string& name) {
   auto it = params.find(name);
   return it == params.end() ? nullptr : &it->second;
@@ -94,12 +105,9 @@ Result<std::array<float, 4>> ParseBox(std::string_view name, std::string_view te
     const bool last = i == 3;
     if (last != (comma == std::string_view::npos)) return Fail(ErrorCode::kInvalidArgument, bad);
     const std::string part(text.substr(start, last ? std::string_view::npos : comma - start));
-    char* parse_end = nullptr;
-    const double v = part.empty() ? NAN : std::strtod(part.c_str(), &parse_end);
-    if (part.empty() || parse_end != part.c_str() + part.size() || !std::isfinite(v) || std::abs(v) > 1e9) {
-      return Fail(ErrorCode::kInvalidArgument, bad);
-    }
-    box[static_cast<size_t>(i)] = static_cast<float>(v);
+    const std::optional<double> v = WholeNumber(part);
+    if (!v || !std::isfinite(*v) || std::abs(*v) > 1e9) return Fail(ErrorCode::kInvalidArgument, bad);
+    box[static_cast<size_t>(i)] = static_cast<float>(*v);
     start = comma + 1;
   }
   if (!(box[0] < box[2]) || !(box[1] < box[3])) return Fail(ErrorCode::kInvalidArgument, bad);
@@ -174,13 +182,12 @@ Result<index::QueryOptions> ParseQueryParams(const Params& params, const index::
     options.verify.min_inliers = static_cast<int>(*parsed);
   }
   if (const auto* v = Find(params, "hamming_norm_exponent")) {
-    char* end = nullptr;
-    const double e = v->empty() ? NAN : std::strtod(v->c_str(), &end);
-    if (v->empty() || end != v->c_str() + v->size() || !(e >= 0 && e <= 1)) {
+    const std::optional<double> e = WholeNumber(*v);
+    if (!e || !(*e >= 0 && *e <= 1)) {
       return Fail(ErrorCode::kInvalidArgument,
                   "parameter 'hamming_norm_exponent' must be a number in [0, 1], got " + Quote(*v));
     }
-    options.hamming_norm_exponent = e;
+    options.hamming_norm_exponent = *e;
   }
   if (const auto* v = Find(params, "rerank")) {
     if (*v == "true" || *v == "false" || *v == "yes" || *v == "no" || *v == "on" || *v == "off") {
@@ -360,12 +367,11 @@ Result<MatchParams> ParseMatchParams(const Params& params) {
     match.model = *model;
   }
   if (const auto* v = Find(params, "ratio")) {
-    char* end = nullptr;
-    const double ratio = v->empty() ? NAN : std::strtod(v->c_str(), &end);
-    if (v->empty() || end != v->c_str() + v->size() || !(ratio > 0 && ratio <= 1)) {
+    const std::optional<double> ratio = WholeNumber(*v);
+    if (!ratio || !(*ratio > 0 && *ratio <= 1)) {
       return Fail(ErrorCode::kInvalidArgument, "parameter 'ratio' must be a number in (0, 1], got " + Quote(*v));
     }
-    match.match.ratio = static_cast<float>(ratio);
+    match.match.ratio = static_cast<float>(*ratio);
   }
   if (const auto* v = Find(params, "mutual")) {
     auto parsed = ParseBool("mutual", *v);
