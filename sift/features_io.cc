@@ -1,7 +1,9 @@
 #include "sift/features_io.h"
 
+#include <array>
+#include <charconv>
 #include <cmath>
-#include <cstdio>
+#include <cstring>
 #include <string>
 
 #include "sift/base/binary_io.h"
@@ -100,19 +102,40 @@ Result<FeatureFile> ReadFeatureFile(const std::string& path) {
 Status WriteColmapFeatures(const std::string& path, const FeatureSet& features) {
   std::vector<uint8_t> bytes;
   DescriptorsToUint8(features, &bytes);
+  // " 0" .. " 255": each descriptor value is one copy of at most 4 bytes.
+  static const auto kByteText = [] {
+    std::array<std::array<char, 5>, 256> table{};
+    for (int v = 0; v < 256; ++v) {
+      char* end = std::to_chars(table[static_cast<size_t>(v)].data() + 1, table[static_cast<size_t>(v)].data() + 4, v).ptr;
+      table[static_cast<size_t>(v)][0] = ' ';
+      table[static_cast<size_t>(v)][4] = static_cast<char>(end - table[static_cast<size_t>(v)].data());
+    }
+    return table;
+  }();
   std::string text = std::to_string(features.size()) + " " + std::to_string(kDescriptorDim) + "\n";
-  text.reserve(text.size() + features.size() * (48 + 4 * kDescriptorDim));
-  char buf[96];
+  // A line: four numbers of at most 13 characters each ("-1.23457e+06" as printf's %.6g writes them),
+  // three spaces, 128 values of at most 4 characters and the newline.
+  constexpr size_t kMaxLine = 4 * 13 + 3 + 4 * kDescriptorDim + 1;
+  const size_t head = text.size();
+  text.resize(head + features.size() * kMaxLine);
+  char* out = text.data() + head;
   for (size_t i = 0; i < features.size(); ++i) {
     const Keypoint& k = features.keypoints[i];
-    std::snprintf(buf, sizeof buf, "%.6g %.6g %.6g %.6g", k.x + 0.5, k.y + 0.5, k.scale, k.orientation);
-    text += buf;
-    for (int d = 0; d < kDescriptorDim; ++d) {
-      text += ' ';
-      text += std::to_string(bytes[i * kDescriptorDim + static_cast<size_t>(d)]);
+    const double numbers[4] = {k.x + 0.5, k.y + 0.5, k.scale, k.orientation};
+    for (int j = 0; j < 4; ++j) {
+      if (j > 0) *out++ = ' ';
+      // std::to_chars with a precision writes exactly what printf's %.6g does.
+      out = std::to_chars(out, out + 13, numbers[j], std::chars_format::general, 6).ptr;
     }
-    text += '\n';
+    const uint8_t* row = bytes.data() + i * kDescriptorDim;
+    for (int d = 0; d < kDescriptorDim; ++d) {
+      const auto& t = kByteText[row[d]];
+      std::memcpy(out, t.data(), 4);  // the table's 5th byte holds the length
+      out += t[4];
+    }
+    *out++ = '\n';
   }
+  text.resize(static_cast<size_t>(out - text.data()));
   return io::WriteFileAtomically(path, std::span(reinterpret_cast<const uint8_t*>(text.data()), text.size()));
 }
 

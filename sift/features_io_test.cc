@@ -2,7 +2,9 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <random>
@@ -171,6 +173,46 @@ TEST_F(FeaturesIoTest, ColmapTextFormat) {
   }
   std::string rest;
   EXPECT_FALSE(in >> rest);
+}
+
+// The text is exactly printf's "%.6g" for the four numbers and the decimal bytes, for values of every
+// length: negative, large, tiny, whole, at the edge of %.6g's switch to exponents, and all 256 bytes.
+TEST_F(FeaturesIoTest, ColmapTextIsPrintfsText) {
+  FeatureSet f;
+  f.kind = DescriptorKind::kSift;
+  const float values[] = {0.0f, -0.5f, 1.0f, 123456.0f, 999999.5f, 1234567.0f, -7654321.0f, 1e-5f, -3.4e38f,
+                          2.5e-38f, 0.1f, 1.0f / 3.0f, 6.2831853f, 99999.95f};
+  std::mt19937 rng(7);
+  for (size_t i = 0; i < std::size(values); ++i) {
+    const float v = values[i], w = values[(i + 5) % std::size(values)];
+    f.keypoints.push_back({v, w, std::fabs(w) + 1.0f, v, 1.0f, 0});
+    for (int d = 0; d < kDescriptorDim; ++d) f.descriptors.push_back(static_cast<float>(rng() % 1000) / 1000.0f);
+  }
+  // One descriptor with every byte value 0..255 spread over two keypoints' 256 dimensions.
+  for (int half = 0; half < 2; ++half) {
+    f.keypoints.push_back({1.0f, 2.0f, 3.0f, 0.0f, 1.0f, 0});
+    for (int d = 0; d < kDescriptorDim; ++d) f.descriptors.push_back(static_cast<float>(half * 128 + d) / 512.0f);
+  }
+  ASSERT_TRUE(WriteColmapFeatures(Path("exact.txt"), f));
+  std::ifstream in(Path("exact.txt"), std::ios::binary);
+  const std::string written((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+
+  std::vector<uint8_t> bytes;
+  DescriptorsToUint8(f, &bytes);
+  std::string expected = std::to_string(f.size()) + " 128\n";
+  char buf[128];
+  for (size_t i = 0; i < f.size(); ++i) {
+    const Keypoint& k = f.keypoints[i];
+    std::snprintf(buf, sizeof buf, "%.6g %.6g %.6g %.6g", k.x + 0.5, k.y + 0.5, k.scale, k.orientation);
+    expected += buf;
+    for (int d = 0; d < kDescriptorDim; ++d) expected += " " + std::to_string(bytes[i * kDescriptorDim + static_cast<size_t>(d)]);
+    expected += "\n";
+  }
+  EXPECT_EQ(written, expected);
+  // The byte values cover 0..255 (the last two keypoints), so every entry of the writer's table is used.
+  std::vector<bool> seen(256, false);
+  for (uint8_t b : bytes) seen[b] = true;
+  EXPECT_EQ(std::count(seen.begin(), seen.end(), true), 256);
 }
 
 }  // namespace

@@ -1548,6 +1548,13 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
     std::vector<size_t> first(unique.size() + 1);
     first[0] = result.keypoints.size();
     for (size_t i = 0; i < unique.size(); ++i) first[i + 1] = first[i] + static_cast<size_t>(orientations[i].count);
+    if (o == 0) {
+      // The later octaves add about a quarter of the previous one's points each: room for them now
+      // spares copying the descriptors each time they grow.
+      const size_t expected = first.back() + first.back() / 2 + 64;
+      result.keypoints.reserve(expected);
+      result.descriptors.reserve(expected * kDescriptorDim);
+    }
     result.keypoints.resize(first.back());
     result.descriptors.resize(first.back() * kDescriptorDim);
     const double octave_scale = std::ldexp(1.0, o);
