@@ -1054,9 +1054,9 @@ struct DescriptorFrame {
 // m o1 for bin (k0 + 1) mod n, else 0).
 struct DescriptorVector {
   __mmask16 valid;
-  alignas(64) float rbins[16];
-  alignas(64) float cbins[16];
-  alignas(64) float mo[kDescBins][16];
+  // Rows of 16 lanes, lane i at [row * 16 + i]: row 0 rbin, row 1 cbin, row 2 + k the weighted magnitude
+  // for orientation bin k. A lane's values are then at constant offsets from one address.
+  alignas(64) float lanes[(2 + kDescBins) * 16];
 };
 
 inline void PrepareDescriptorVector(const DescriptorWindowRow& r, int j, const DescriptorFrame& f, DescriptorVector* out) {
@@ -1078,15 +1078,15 @@ inline void PrepareDescriptorVector(const DescriptorWindowRow& r, int j, const D
   obin = _mm512_mask_add_ps(obin, _mm512_cmp_ps_mask(obin, zero, _CMP_LT_OQ), obin, nv);
   obin = _mm512_mask_sub_ps(obin, _mm512_cmp_ps_mask(obin, nv, _CMP_GE_OQ), obin, nv);
   const __m512 m = _mm512_mul_ps(mag, _mm512_mul_ps(_mm512_set1_ps(r.wrow), _mm512_loadu_ps(f.wcol + j)));
-  _mm512_storeu_ps(out->rbins, rbin);
-  _mm512_storeu_ps(out->cbins, cbin);
+  _mm512_storeu_ps(out->lanes, rbin);
+  _mm512_storeu_ps(out->lanes + 16, cbin);
   const __m512i k0 = _mm512_cvttps_epi32(obin);
   const __m512i k1 = _mm512_and_si512(_mm512_add_epi32(k0, _mm512_set1_epi32(1)), _mm512_set1_epi32(n - 1));
   const __m512 o1 = _mm512_sub_ps(obin, _mm512_cvtepi32_ps(k0));
   const __m512 mo1 = _mm512_mul_ps(m, o1), mo0 = _mm512_mul_ps(m, _mm512_sub_ps(one, o1));
   for (int k = 0; k < n; ++k) {
     const __m512i kv = _mm512_set1_epi32(k);
-    _mm512_storeu_ps(out->mo[k], _mm512_mask_mov_ps(_mm512_maskz_mov_ps(_mm512_cmpeq_epi32_mask(k0, kv), mo0),
+    _mm512_storeu_ps(out->lanes + (2 + k) * 16, _mm512_mask_mov_ps(_mm512_maskz_mov_ps(_mm512_cmpeq_epi32_mask(k0, kv), mo0),
                                                     _mm512_cmpeq_epi32_mask(k1, kv), mo1));
   }
 }
@@ -1099,11 +1099,14 @@ inline void AddDescriptorVector(const DescriptorVector& v, __m512 (&h)[kDescBins
   const __m512 cell_col = _mm512_setr_ps(0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3);
   for (unsigned bits = v.valid; bits != 0; bits &= bits - 1) {
     const int lane = std::countr_zero(bits);
-    const __m512 wr = _mm512_max_ps(_mm512_sub_ps(one, _mm512_abs_ps(_mm512_sub_ps(_mm512_set1_ps(v.rbins[lane]), cell_row))), zero);
-    const __m512 wc = _mm512_max_ps(_mm512_sub_ps(one, _mm512_abs_ps(_mm512_sub_ps(_mm512_set1_ps(v.cbins[lane]), cell_col))), zero);
+    // One pointer to the lane: its values are at constant offsets from it, which the broadcasts take
+    // as address displacements instead of computing an address for each.
+    const float* x = v.lanes + lane;
+    const __m512 wr = _mm512_max_ps(_mm512_sub_ps(one, _mm512_abs_ps(_mm512_sub_ps(_mm512_set1_ps(x[0]), cell_row))), zero);
+    const __m512 wc = _mm512_max_ps(_mm512_sub_ps(one, _mm512_abs_ps(_mm512_sub_ps(_mm512_set1_ps(x[16]), cell_col))), zero);
     const __m512 wcell = _mm512_mul_ps(wr, wc);
 #pragma GCC unroll 8
-    for (int k = 0; k < kDescBins; ++k) h[k] = _mm512_fmadd_ps(wcell, _mm512_set1_ps(v.mo[k][lane]), h[k]);
+    for (int k = 0; k < kDescBins; ++k) h[k] = _mm512_fmadd_ps(wcell, _mm512_set1_ps(x[(2 + k) * 16]), h[k]);
   }
 }
 
