@@ -102,13 +102,13 @@ Result<FeatureFile> ReadFeatureFile(const std::string& path) {
 Status WriteColmapFeatures(const std::string& path, const FeatureSet& features) {
   std::vector<uint8_t> bytes;
   DescriptorsToUint8(features, &bytes);
-  // " 0" .. " 255": each descriptor value is one copy of at most 4 bytes.
+  // " 0" .. " 255" and, in the 5th byte, the length: each descriptor value is one copy of 4 bytes.
   static const auto kByteText = [] {
     std::array<std::array<char, 5>, 256> table{};
-    for (int v = 0; v < 256; ++v) {
-      char* end = std::to_chars(table[static_cast<size_t>(v)].data() + 1, table[static_cast<size_t>(v)].data() + 4, v).ptr;
-      table[static_cast<size_t>(v)][0] = ' ';
-      table[static_cast<size_t>(v)][4] = static_cast<char>(end - table[static_cast<size_t>(v)].data());
+    for (size_t v = 0; v < table.size(); ++v) {
+      char* text = table[v].data();
+      text[0] = ' ';
+      text[4] = static_cast<char>(std::to_chars(text + 1, text + 4, v).ptr - text);
     }
     return table;
   }();
@@ -130,7 +130,7 @@ Status WriteColmapFeatures(const std::string& path, const FeatureSet& features) 
     const uint8_t* row = bytes.data() + i * kDescriptorDim;
     for (int d = 0; d < kDescriptorDim; ++d) {
       const auto& t = kByteText[row[d]];
-      std::memcpy(out, t.data(), 4);  // the table's 5th byte holds the length
+      std::memcpy(out, t.data(), 4);
       out += t[4];
     }
     *out++ = '\n';
