@@ -3,10 +3,12 @@
 
   python3 scripts/scale_http_check.py --index DIR [--photos DIR] [--oxbow build/server/oxbow]
                                       [--queries 40] [--adds 40] [--port 18765] [--serve-arg=ARG ...]
+                                      [--no-read-postings]
 
 DIR: an index folder, e.g. the one `build/eval/bench/index_benchmark storage --images 1000000 --out DIR` leaves.
-It is served as it is by `oxbow serve --index DIR` (server defaults) and measured:
-  1. start to /readyz 200 (the server process started cold, then) and resident memory when ready;
+Its postings and segment files are first read into the page cache (--no-read-postings: not). It is then
+served as it is by `oxbow serve --index DIR` (server defaults) and measured:
+  1. start to /readyz 200 (a new server process) and resident memory when ready;
   2. searches with real photos (default: the Paris subset, else OpenCV's samples), one at a time:
      server time excluding decoding and extraction (timings_ms.total - timings_ms.decode_extract),
      p50/p95/p99, and the client's wall time; first right after /readyz, while the server's background
@@ -40,6 +42,23 @@ def percentile(values, q):
 def summary(values):
     return "p50 %.1f ms, p95 %.1f ms, p99 %.1f ms (%d)" % (percentile(values, .5), percentile(values, .95),
                                                            percentile(values, .99), len(values))
+
+
+def read_postings(index):
+    """Reads the index's postings and segment files once (as `cat DIR/postings* DIR/segment* >/dev/null`), so
+    that the searches find them in the page cache; returns (seconds, bytes)."""
+    t0 = time.monotonic()
+    total = 0
+    for name in sorted(os.listdir(index)):
+        if not name.startswith(("postings", "segment")):
+            continue
+        with open(os.path.join(index, name), "rb", buffering=0) as f:
+            while True:
+                chunk = f.read(8 << 20)
+                if not chunk:
+                    break
+                total += len(chunk)
+    return time.monotonic() - t0, total
 
 
 def start_server(args):
@@ -106,6 +125,10 @@ def main():
     parser.add_argument("--log", default="/tmp/scale_http_check.log", help="the server's stderr")
     parser.add_argument("--serve-arg", action="append", default=[],
                         help="one more argument for `oxbow serve` (repeat it), e.g. --serve-arg=--max-scored-postings=0")
+    parser.add_argument("--no-read-postings", dest="read_postings", action="store_false",
+                        help="do not read the postings files into the page cache before the server starts (the "
+                             "method of eval/results/index-scale.md reads them: memory idle for a few seconds may be "
+                             "reclaimed on a VM, and searches then measure the disk)")
     args = parser.parse_args()
 
     photo_dirs = [args.photos] if args.photos else [os.path.join(ROOT, "..", "shared", "data", "paris6k", "images"),
@@ -125,6 +148,9 @@ def main():
     later = rest[::max(1, len(rest) // args.queries)][:args.queries]
     print("photos: %d from %s; server log: %s" % (len(photos), os.path.dirname(photos[0]), args.log))
 
+    if args.read_postings:
+        read_s, read_bytes = read_postings(args.index)
+        print("postings read into the page cache: %.2f GB in %.1f s" % (read_bytes / 1e9, read_s))
     log_offset = os.path.getsize(args.log) if os.path.exists(args.log) else 0
     proc, ready_s = start_server(args)
     client = oxbow_client.Client("http://127.0.0.1:%d" % args.port, timeout=120)
