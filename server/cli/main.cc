@@ -47,12 +47,13 @@ int main(int argc, char** argv) {
   std::signal(SIGXFSZ, SIG_IGN);
 #ifdef __GLIBC__
   // Memory freed after one image is kept for the next. glibc's defaults move both thresholds with the
-  // sizes freed so far: blocks of a few MiB (an image's pixels, its descriptors, a feature file's bytes)
-  // were mapped fresh or trimmed back to the kernel after each image, and every image paid the page
-  // faults and zeroing of ~7 MiB again (a third of the time of `oxbow extract` over 800 x 640 photos).
+  // sizes freed so far: with small photos, blocks of a few MiB (an image's pixels, its descriptors, a
+  // feature file's bytes) are then mapped fresh or trimmed back to the kernel after each image, and every
+  // image pays the page faults and zeroing of ~7 MiB again (a quarter of the CPU of `oxbow extract` over
+  // 800 x 640 photos).
   // Blocks of 8 MiB and more are still mapped and returned at once, and at most 16 MiB of free memory
-  // at the top of a heap is kept: the peak memory of a many-image extraction grows by 1-2%, where 16 and
-  // 32 MiB added a quarter (eval/results/sift.md, "Many images in one process").
+  // at the top of a heap is kept: the peak memory of a many-image extraction grows by 2-3%, where a
+  // 32 MiB threshold added 30% (eval/results/sift.md, "Many images in one process").
   mallopt(M_MMAP_THRESHOLD, 8 << 20);
   mallopt(M_TRIM_THRESHOLD, 16 << 20);
 #endif
