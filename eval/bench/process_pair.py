@@ -22,14 +22,13 @@ def run(argv):
     """Runs argv to completion; returns (cpu seconds, wall seconds, peak resident MiB, exit status)."""
     start = time.perf_counter()
     proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    _, status, usage = os.wait4(proc.pid, 0)
+    _, status, usage = os.wait4(proc.pid, 0)  # reaped here, for its own resource usage
     wall = time.perf_counter() - start
-    proc.returncode = os.waitstatus_to_exitcode(status)
+    proc.returncode = os.waitstatus_to_exitcode(status)  # so that Popen does not wait for it again
     return usage.ru_utime + usage.ru_stime, wall, usage.ru_maxrss / 1024.0, proc.returncode
 
 
-def row(name, values, unit, scale=1.0):
-    values = [v * scale for v in values]
+def row(name, values, unit):
     return "%-10s %10.3f %10.3f %10.3f %s" % (name, statistics.median(values), min(values), max(values), unit)
 
 
