@@ -224,6 +224,11 @@ std::vector<double> InChild(const std::function<std::vector<double>()>& fn) {
   const pid_t pid = ::fork();
   if (pid == 0) {
     ::close(pipe_fds[0]);
+#ifdef __GLIBC__
+    // The parent keeps the memory it freed (the policy above); hand it back so that the child starts
+    // from its live memory only, and no side reuses pages inherited from the parent's runs.
+    malloc_trim(0);
+#endif
     const std::vector<double> values = fn();
     const size_t n = values.size();
     const auto bytes = static_cast<ssize_t>(n * sizeof(double));
