@@ -16,11 +16,11 @@
 //         pyramid cache starts empty, cv::SIFT allocates its pyramid as always;
 //   warm  repetitions on one thread with one extractor: oxbow keeps its pyramid buffers between images
 //         (SiftOptions::thread_cache_mib, the default), cv::SIFT has no such cache and allocates anew.
-// Both sides run under one allocator policy, set before anything is allocated: blocks up to 32 MiB come
-// from the heap and freed memory stays with the process (glibc's mallopt). Left to glibc's adaptive
-// thresholds, what cv::SIFT frees after one image goes back to the kernel or not depending on the sizes
-// freed before it, and its warm runs on 1024-pixel photos paid fresh zeroed pages on every run (2-3x its
-// time with memory kept) while on 800x640 ones they did not.
+// Both sides run under one allocator policy, set first thing in main: blocks up to 32 MiB come from the
+// heap and freed memory stays with the process (glibc's mallopt). Left to glibc's adaptive thresholds,
+// what cv::SIFT frees after one image goes back to the kernel or not depending on the sizes freed before
+// it, and its warm runs on 1024-pixel photos paid fresh zeroed pages on every run (2-4x its time with
+// memory kept) while on 800x640 ones they did not.
 // VLFeat is single-threaded and measured cold only. Paths: opencv-doc samples (always present) and
 // ../shared/data (boat, Paris photos) when present. Every side uses cv::SIFT's contrast threshold (0.04).
 #include <sys/wait.h>
