@@ -10,6 +10,7 @@
 
 #include "api/filter.h"
 #include "api/json.h"
+#include "sift/base/log.h"
 
 namespace oxbow::api {
 
@@ -20,38 +21,6 @@ std::string Quote(std::string_view text) {
   std::string shown(text.substr(0, kMaxShown));
   if (text.size() > kMaxShown) shown += "...";
   return "'" + shown + "'";
-}
-
-// Well-formed UTF-8 (RFC 3629): no overlong forms, no surrogates, nothing above U+10FFFF.
-bool IsValidUtf8(std::string_view text) {
-  size_t i = 0;
-  while (i < text.size()) {
-    const auto c = static_cast<unsigned char>(text[i]);
-    size_t extra = 0;
-    uint32_t code = 0;
-    if (c < 0x80) {
-      ++i;
-      continue;
-    } else if (c >= 0xC2 && c <= 0xDF) {
-      extra = 1, code = c & 0x1Fu;
-    } else if (c >= 0xE0 && c <= 0xEF) {
-      extra = 2, code = c & 0x0Fu;
-    } else if (c >= 0xF0 && c <= 0xF4) {
-      extra = 3, code = c & 0x07u;
-    } else {
-      return false;
-    }
-    if (text.size() - i <= extra) return false;
-    for (size_t k = 1; k <= extra; ++k) {
-      const auto next = static_cast<unsigned char>(text[i + k]);
-      if ((next & 0xC0u) != 0x80u) return false;
-      code = (code << 6) | (next & 0x3Fu);
-    }
-    const uint32_t min_code = extra == 1 ? 0x80u : extra == 2 ? 0x800u : 0x10000u;
-    if (code < min_code || code > 0x10FFFFu || (code >= 0xD800u && code <= 0xDFFFu)) return false;
-    i += extra + 1;
-  }
-  return true;
 }
 
 // `text` as a number when all of it is one (strtod's syntax: "nan" and "inf" included, the callers
@@ -240,7 +209,7 @@ Status CheckImageId(std::string_view id) {
   }
   // Ids come back in JSON bodies, which hold UTF-8 only: another byte sequence could not be returned as
   // it was given (the server would answer with U+FFFD in its place).
-  if (!IsValidUtf8(id)) return Fail(ErrorCode::kInvalidArgument, "image id must be valid UTF-8");
+  if (!log::IsWellFormedUtf8(id)) return Fail(ErrorCode::kInvalidArgument, "image id must be valid UTF-8");
   return Ok();
 }
 

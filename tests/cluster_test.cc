@@ -570,6 +570,25 @@ TEST_F(Cluster, HttpFrontReadsAnswerAsASingleNodeServer) {
   auto deleted = front->Client().Delete("/v1/images/no-such-image");
   ASSERT_TRUE(deleted);
   EXPECT_EQ(deleted->status, 404) << deleted->body;
+  // An id that is not UTF-8 (no add takes one, and a shard call could not carry it) is not found, as on
+  // a single node, and no replica is counted as failed for it.
+  const auto errors_counted = [&] {
+    const std::string body = front->Client().Get("/metrics")->body;
+    const std::regex line(R"(oxbow_shard_errors_total\{[^}]*\} ([0-9]+))");
+    long total = 0;
+    for (auto it = std::sregex_iterator(body.begin(), body.end(), line); it != std::sregex_iterator(); ++it)
+      total += std::stol((*it)[1].str());
+    return total;
+  };
+  const long errors_before = errors_counted();
+  for (const std::string path : {"/v1/images/%FF", "/v1/images/%C3%28/similar", "/v1/images/%FF/thumbnail"}) {
+    const auto [a_status, a] = GetJson(*single, path);
+    const auto [b_status, b] = GetJson(*front, path);
+    EXPECT_EQ(a_status, 404) << path << " " << a.dump();
+    EXPECT_EQ(b_status, 404) << path << " " << b.dump();
+  }
+  EXPECT_EQ(front->Client().Delete("/v1/images/%FF")->status, 404);
+  EXPECT_EQ(errors_counted(), errors_before);
 
   // Thumbnails come from the owner: the single node's bytes.
   for (const auto& image : all["images"]) {
@@ -684,6 +703,19 @@ TEST_F(Cluster, HttpFrontWritesOnEveryReplicaOfTheOwnerPartition) {
   ASSERT_EQ(add(*front, other).first, 201);
   EXPECT_EQ(holders(other), shard_of[2]);
   EXPECT_EQ(add(*front, other).first, 409);  // taken: refused by the owner, as a single node
+  // A file name that is not UTF-8 (a Latin-1 "café.png") is stored as a single node shows it.
+  const auto add_named = [&](testing::ServerProcess& server, const std::string& id) {
+    httplib::MultipartFormDataItems items = {{"file", image, "caf\xE9.png", "image/png"}, {"id", id, "", ""}};
+    auto res = server.Client().Post("/v1/images", items);
+    return res ? std::pair{res->status, nlohmann::json::parse(res->body, nullptr, false)} : std::pair{0, nlohmann::json()};
+  };
+  const std::string latin1 = IdIn(1, "latin1-");
+  const auto [la_status, la] = add_named(*single, latin1);
+  const auto [lb_status, lb] = add_named(*front, latin1);
+  ASSERT_EQ(la_status, 201) << la.dump();
+  ASSERT_EQ(lb_status, 201) << lb.dump();
+  EXPECT_EQ(la["source"], lb["source"]);
+  EXPECT_EQ(holders(latin1), shard_of[1]);
   // The raw image as `curl --data-binary @photo.png` sends it (labelled a form), as a single node takes it.
   auto raw = front->Client().Post("/v1/images?id=" + IdIn(1, "raw-"), image, "application/x-www-form-urlencoded");
   ASSERT_TRUE(raw);

@@ -256,6 +256,12 @@ TEST_F(HttpServerTest, SearchSimilarAndMatch) {
   httplib::MultipartFormDataItems missing = {Part("a", box_)};
   ExpectErrorShape(client.Post("/v1/match", missing), 400, "invalid_argument");
   ExpectErrorShape(client.Post("/v1/match", box_, "image/png"), 415, "unsupported_format");
+  // What `curl --data-binary @box.png` sends (a form label): the same 415 at any size under the upload
+  // limit, not the HTTP library's 8 KiB form limit reported as the server's.
+  ASSERT_GT(box_.size(), 8192u);
+  for (const std::string& labelled : {box_.substr(0, 8000), box_}) {
+    ExpectErrorShape(client.Post("/v1/match", labelled, "application/x-www-form-urlencoded"), 415, "unsupported_format");
+  }
   httplib::MultipartFormDataItems bad_model = {Part("a", box_), Part("b", scene_), Part("model", "magic")};
   ExpectErrorShape(client.Post("/v1/match", bad_model), 400, "invalid_argument");
 }

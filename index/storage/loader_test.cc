@@ -123,6 +123,20 @@ TEST_F(LoaderTest, TheCheckFindsAndDropsDamagedBlobsThatAnOpenDoesNotRead) {
   EXPECT_EQ((*index)->Get("b").error().code, ErrorCode::kNotFound);
 }
 
+// A folder without an index: not found, as every command says it, and nothing written into it.
+TEST_F(LoaderTest, TheCheckOfAFolderWithoutAnIndexIsNotFoundAndWritesNothing) {
+  const fs::path empty = dir_ / "empty";
+  fs::create_directories(empty);
+  auto check = CheckIndexFolder(empty.string(), false);
+  ASSERT_FALSE(check);
+  EXPECT_EQ(check.error().code, ErrorCode::kNotFound) << check.error().ToString();
+  EXPECT_TRUE(fs::is_empty(empty));
+  check = CheckIndexFolder((dir_ / "missing").string(), false);
+  ASSERT_FALSE(check);
+  EXPECT_EQ(check.error().code, ErrorCode::kNotFound) << check.error().ToString();
+  EXPECT_FALSE(fs::exists(dir_ / "missing"));
+}
+
 TEST_F(LoaderTest, DamagedCatalogueAndVocabularyAreRefused) {
   {
     auto index = CreateIndex();

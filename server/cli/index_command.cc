@@ -586,7 +586,7 @@ void SetUpIndex(CLI::App& app) {
       "Runs SQLite's integrity check of the image records and checks every image's feature BLOB (CRC-32), also "
       "those an open does not read (the images a checkpoint covers), while no process has the index open (a "
       "running server's folder is refused). Prints {index, images, damaged: [{id, number, why}], dropped} as JSON; "
-      "exits 1 when a damaged image was found and not dropped. --drop-damaged deletes the damaged images from the "
+      "exits 6 (damaged) when a damaged image was found and not dropped. --drop-damaged deletes the damaged images from the "
       "catalogue (add them again from their source images).");
   c->add_option("--index", check->index, "index folder")->required();
   c->add_flag("--drop-damaged", check->drop_damaged, "delete the images whose feature BLOB is damaged");

@@ -38,6 +38,13 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
+// Ids travel in protobuf string fields, which hold UTF-8 only. Adds refuse an id that is not, so no
+// partition holds it: it is not found, as on a single node, and no shard is asked.
+Status CheckStorableId(const std::string& id) {
+  if (log::IsWellFormedUtf8(id)) return Ok();
+  return Fail(ErrorCode::kNotFound, "no image with id '" + id + "'");
+}
+
 // The partitions that failed during one query, with the first error.
 class Failures {
  public:
@@ -647,6 +654,7 @@ std::vector<ReplicaMetrics> ClusterFront::Metrics() const {
 }
 
 Result<index::ImageRecord> ClusterFront::Get(const std::string& id) const {
+  if (auto s = CheckStorableId(id); !s) return std::unexpected(s.error());
   ImageRequest request;
   request.set_id(id);
   auto record = impl_->Call<Record>(impl_->OwnerOf(id), [&](Shard::Stub& stub, grpc::ClientContext& context, Record* out) {
@@ -808,7 +816,7 @@ Result<api::AddImageResponse> ClusterFront::Add(const api::AddImageRequest& requ
   add.set_id(request.id);
   add.set_image(request.image.data(), request.image.size());
   add.set_metadata_json(request.metadata_json);
-  add.set_source_name(request.source_name);
+  add.set_source_name(log::ToWellFormedUtf8(request.source_name));  // a client's file name, any bytes
   add.set_replace(request.replace);
   const std::lock_guard<std::mutex> lock(impl_->WriteLockOf(request.id));
   auto reply = impl_->WriteAll<AddReply>(impl_->OwnerOf(request.id),
@@ -825,6 +833,7 @@ Result<api::AddImageResponse> ClusterFront::Add(const api::AddImageRequest& requ
 }
 
 Status ClusterFront::Delete(const std::string& id) const {
+  if (auto s = CheckStorableId(id); !s) return std::unexpected(s.error());
   ImageRequest request;
   request.set_id(id);
   const std::lock_guard<std::mutex> lock(impl_->WriteLockOf(id));
@@ -867,6 +876,7 @@ Result<api::AddBatchResponse> ClusterFront::AddBatch(const api::AddBatchRequest&
 }
 
 Result<std::string> ClusterFront::Thumbnail(const std::string& id, int max_side_px) const {
+  if (auto s = CheckStorableId(id); !s) return std::unexpected(s.error());
   ThumbnailRequest request;
   request.set_id(id);
   request.set_max_side_px(max_side_px);
@@ -879,6 +889,10 @@ Result<std::string> ClusterFront::Thumbnail(const std::string& id, int max_side_
 }
 
 Result<std::vector<ClusterFront::PartitionBackup>> ClusterFront::Backup(const std::string& out) const {
+  if (!log::IsWellFormedUtf8(out)) {
+    return Fail(ErrorCode::kInvalidArgument, "a cluster's backup folder must be a UTF-8 path: the shards are "
+                                             "sent it as text");
+  }
   std::vector<PartitionBackup> done(impl_->partitions.size());
   const std::vector<Status> statuses = Impl::ForEach(done.size(), [&](uint32_t p) -> Status {
     BackupRequest request;
@@ -1315,6 +1329,7 @@ Result<api::SearchResponse> ClusterFront::QuerySimilar(const std::string& id, co
                                                        bool allow_partial, Coverage* coverage) const {
   const auto t0 = Clock::now();
   if (auto s = CheckServed(options); !s) return std::unexpected(s.error());
+  if (auto s = CheckStorableId(id); !s) return std::unexpected(s.error());
   PartitionsSource source(*impl_, allow_partial);
   index::ImageRecord record;
   auto q = index::search::StoredQuery(source, id, options, &record);

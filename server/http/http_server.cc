@@ -849,6 +849,24 @@ void HttpServer::AnswerRefusal(const RefusedRequest& refused, httplib::Response&
              refused.refusal.message);
 }
 
+namespace {
+
+// A form-encoded body no larger than the server's limit: the HTTP library answers 413 to such a body
+// over its own 8 KiB form limit.
+bool IsSmallFormBody(const httplib::Request& req, size_t max_body_bytes) {
+  if (req.get_header_value("Content-Type").rfind("application/x-www-form-urlencoded", 0) != 0) return false;
+  const std::string length = req.get_header_value("Content-Length");
+  if (length.empty()) return false;
+  size_t bytes = 0;
+  for (const char c : length) {
+    if (c < '0' || c > '9' || bytes > max_body_bytes) return false;
+    bytes = bytes * 10 + static_cast<size_t>(c - '0');
+  }
+  return bytes <= max_body_bytes;
+}
+
+}  // namespace
+
 void HttpServer::RegisterErrorHandlers() {
   // Responses with an error status that no handler filled (unknown route, payload too large, malformed
   // request) get the JSON error shape; an unknown method on a known route becomes 405. Those httplib
@@ -868,6 +886,14 @@ void HttpServer::RegisterErrorHandlers() {
       } else {
         SendError(res, RouteNotFound(req.method, LoggablePath(req.path)));
       }
+    } else if (res.status == 413 && IsSmallFormBody(req, options_.max_body_bytes)) {
+      // The HTTP library reads at most 8 KiB of a form-encoded body, which no route takes: say what they
+      // take instead of naming a size limit the body is under.
+      SendError(res, HttpError{415, "unsupported_format",
+                               "form-encoded bodies (application/x-www-form-urlencoded, what curl --data sends by "
+                               "default) are not read: send an image as the raw body with its type (curl "
+                               "--data-binary @photo.jpg -H 'Content-Type: image/jpeg') or as multipart/form-data "
+                               "(curl -F image=@photo.jpg), and JSON with Content-Type: application/json"});
     } else if (res.status == 413) {
       SendError(res, HttpError{413, "payload_too_large", "request body over the server's limit of " +
                                                                   std::to_string(options_.max_body_bytes) +

@@ -39,6 +39,13 @@ bool ParseFormat(const std::string& text, Format* format);
 // bytes (a client's path, an id) give valid JSON.
 std::string JsonString(std::string_view text);
 
+// Whether `text` is well-formed UTF-8 (RFC 3629: no overlong forms, no surrogates, nothing above
+// U+10FFFF).
+bool IsWellFormedUtf8(std::string_view text);
+
+// `text` with every byte that is not part of well-formed UTF-8 replaced by U+FFFD; other bytes kept.
+std::string ToWellFormedUtf8(std::string_view text);
+
 // `text` for one line of the text format: every control character (U+0000..U+001F, U+007F) written as
 // an escape ("\n", "\r", "\t", "\x01"), so that bytes a client chose (a path, an id) can neither end
 // the line nor start one that looks like the server's. Other bytes are kept.

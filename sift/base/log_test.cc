@@ -42,6 +42,24 @@ TEST(JsonStringTest, ReplacesEveryByteThatIsNotUtf8) {
   EXPECT_EQ(JsonString("\xe2\x82\""), R"("\ufffd\ufffd\"")");                      // a quote never hides in a sequence
 }
 
+TEST(Utf8Test, WellFormedTextIsKeptAndEveryOtherByteReplaced) {
+  const std::string text = "caf\xc3\xa9 \xe2\x82\xac \xf0\x9f\x98\x80 \xf4\x8f\xbf\xbf \xed\x9f\xbf";
+  EXPECT_TRUE(IsWellFormedUtf8(text));
+  EXPECT_TRUE(IsWellFormedUtf8(""));
+  EXPECT_EQ(ToWellFormedUtf8(text), text);
+  const std::string replacement = "\xef\xbf\xbd";
+  for (const auto& [bad, good] : std::vector<std::pair<std::string, std::string>>{
+           {"caf\xe9.png", "caf" + replacement + ".png"},                       // Latin-1
+           {"cut \xe2\x82", "cut " + replacement + replacement},                // truncated sequence
+           {"\xc0\xaf", replacement + replacement},                             // overlong '/'
+           {"\xed\xa0\x80", replacement + replacement + replacement},           // surrogate U+D800
+           {"\x80x", replacement + "x"}}) {                                     // lone continuation byte
+    EXPECT_FALSE(IsWellFormedUtf8(bad)) << bad;
+    EXPECT_EQ(ToWellFormedUtf8(bad), good) << bad;
+    EXPECT_TRUE(IsWellFormedUtf8(ToWellFormedUtf8(bad))) << bad;
+  }
+}
+
 TEST(FormatTest, ParsesTheTwoNames) {
   Format format = Format::kText;
   EXPECT_TRUE(ParseFormat("json", &format));
