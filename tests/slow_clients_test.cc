@@ -168,6 +168,31 @@ TEST_F(SlowClientsTest, TricklingAndIdleClientsDoNotStarveANormalRequest) {
   EXPECT_NE(server->Log().find("status=408"), std::string::npos);
 }
 
+// A body that stops arriving: once no byte came for a whole --read-timeout-s, the server answers 408
+// naming that timeout (not a 400 that calls the request malformed), on a route that streams its body and
+// on one that reads it whole.
+TEST_F(SlowClientsTest, ABodyThatStopsArrivingGets408AfterTheReadTimeout) {
+  auto server = Start({"--read-timeout-s", "1", "--request-timeout-s", "60"});
+  for (const char* head : {"POST /v1/search HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: image/png\r\n",
+                           "POST /v1/match HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: multipart/form-data; "
+                           "boundary=B\r\n"}) {
+    const int fd = oxbow::testing::ConnectTo(server->port());
+    ASSERT_GE(fd, 0);
+    ASSERT_TRUE(SendAll(fd, std::string(head) + "Content-Length: 100000\r\n\r\n" + std::string(1000, 'x')));
+    std::string answer;
+    const auto sent = Clock::now();
+    oxbow::testing::ReadUntil(fd, "}", &answer, std::chrono::seconds(30));
+    close(fd);
+    EXPECT_LT(Clock::now() - sent, std::chrono::seconds(20)) << head;
+    EXPECT_EQ(answer.rfind("HTTP/1.1 408", 0), 0u) << head << answer;
+    EXPECT_NE(answer.find("request_timeout"), std::string::npos) << answer;
+    EXPECT_NE(answer.find("--read-timeout-s"), std::string::npos) << answer;
+  }
+  auto health = server->Client().Get("/healthz");
+  ASSERT_TRUE(health);
+  EXPECT_EQ(health->status, 200);
+}
+
 TEST_F(SlowClientsTest, AStalledClientCannotBlockTheBusyAnswer) {
   // One worker, a queue of one: the first trickler (a body) holds the worker, the second (headers) waits
   // in the queue, the third is handed to the shedding thread and trickles its headers there. Each

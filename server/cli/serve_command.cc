@@ -350,7 +350,7 @@ void SetUpServe(CLI::App& app) {
   cmd->add_option("--log-format", flags->log_format,
                   "stderr log lines: text, or json (one object per line; fields in server/README.md, \"Logging\")")
       ->capture_default_str();
-  cmd->add_option("--read-timeout-s", flags->http.read_timeout_s, "socket read timeout, seconds")
+  cmd->add_option("--read-timeout-s", flags->http.read_timeout_s, "socket read timeout, seconds: a request body with no byte for this long gets 408")
       ->capture_default_str()
       ->check(CLI::Range(1, 3600));
   cmd->add_option("--write-timeout-s", flags->http.write_timeout_s, "socket write timeout, seconds")

@@ -104,12 +104,16 @@ httplib::Server::HandlerResponse RefuseOverUploadBudget(const httplib::Request& 
   return httplib::Server::HandlerResponse::Handled;
 }
 
-// A request whose headers + body did not arrive within the request timeout.
-httplib::Server::HandlerResponse AnswerRequestTimeout(httplib::Response& res) {
+// A request whose headers + body did not arrive within the request timeout, or whose body stopped
+// arriving for a whole read timeout.
+httplib::Server::HandlerResponse AnswerRequestTimeout(httplib::Response& res, bool stalled) {
   res.set_header("Connection", "close");
   CloseConnectionAfterResponse();
   SendError(res, HttpError{408, "request_timeout",
-                                "the request did not arrive within the server's request timeout (oxbow serve --request-timeout-s)"});
+                           stalled ? "the request body stopped arriving: no byte came within the server's read "
+                                     "timeout (oxbow serve --read-timeout-s)"
+                                   : "the request did not arrive within the server's request timeout (oxbow serve "
+                                     "--request-timeout-s)"});
   return httplib::Server::HandlerResponse::Handled;
 }
 
@@ -873,7 +877,8 @@ void HttpServer::RegisterErrorHandlers() {
   // answers itself, but for 404/405, may leave body bytes unread: their connection closes.
   http_->set_error_handler(httplib::Server::HandlerWithResponse([this](const httplib::Request& req, httplib::Response& res) {
     if (!res.body.empty()) return httplib::Server::HandlerResponse::Unhandled;
-    if (RequestDeadlineExpired()) return AnswerRequestTimeout(res);
+    if (RequestDeadlineExpired()) return AnswerRequestTimeout(res, /*stalled=*/false);
+    if (RequestReadTimedOut()) return AnswerRequestTimeout(res, /*stalled=*/true);
     if (res.status != 404) {
       res.set_header("Connection", "close");
       CloseConnectionAfterResponse();

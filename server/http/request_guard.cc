@@ -25,6 +25,7 @@ using Clock = std::chrono::steady_clock;
 
 thread_local bool t_shedding_thread = false;
 thread_local bool t_deadline_expired = false;
+thread_local bool t_read_timed_out = false;
 thread_local bool t_chunked_over_limit = false;
 thread_local bool t_close_after_response = false;
 thread_local uint64_t t_reserved_bytes = 0;
@@ -210,7 +211,11 @@ class DeadlineStream : public httplib::Stream {
   bool WaitReadable() const {
     const int wait_ms = std::min(read_timeout_ms_, MsUntil(deadline_));
     if (wait_ms > 0 && PollFor(sock_, POLLIN, wait_ms)) return true;
-    if (MsUntil(deadline_) <= 0) t_deadline_expired = true;
+    if (MsUntil(deadline_) <= 0) {
+      t_deadline_expired = true;
+    } else {
+      t_read_timed_out = true;
+    }
     return false;
   }
   ssize_t Receive(char* ptr, size_t size) {
@@ -500,6 +505,8 @@ uint64_t UploadBudget::in_use() const {
 
 bool RequestDeadlineExpired() { return t_deadline_expired; }
 
+bool RequestReadTimedOut() { return t_read_timed_out; }
+
 bool ChunkedBodyOverLimit() { return t_chunked_over_limit; }
 
 void CloseConnectionAfterResponse() { t_close_after_response = true; }
@@ -672,6 +679,7 @@ void GuardedHttpServer::ServeConnection(socket_t sock, Clock::time_point accepte
                                          : options_.request_timeout;
     stream.SetDeadline(Clock::now() + timeout);
     t_deadline_expired = false;
+    t_read_timed_out = false;
     t_chunked_over_limit = false;
     t_close_after_response = false;
     HeadParse parse = ParseRequestHead(stream.Buffered(), options_.head);

@@ -169,6 +169,9 @@ class GuardedHttpServer : public httplib::Server {
 
 // True when the request this thread serves ran past its read deadline (answer 408).
 bool RequestDeadlineExpired();
+// True when a read of the request this thread serves waited the whole read timeout for a byte (answer
+// 408: its body stopped arriving).
+bool RequestReadTimedOut();
 // True when the chunked body of the request this thread serves went over max_body_bytes (answer 413).
 bool ChunkedBodyOverLimit();
 // The connection of the request this thread serves closes after the response (its body may be unread).
