@@ -290,6 +290,8 @@ TEST_F(HostileHttpTest, AnotherHttpVersionGetsOneAnswer) {
       {"GET /healthz HTTP/1.2\r\n\r\n", 505},
       {"GET /healthz HTTP/2\r\n\r\n", 400},
       {"GET /healthz\r\n\r\n", 400},
+      {"FOO /v1 HTTP/1.1\r\nHost: x\r\n\r\n", 501},  // a method no server route or HTTP library serves
+      {"TRACE / HTTP/1.1\r\nHost: x\r\n\r\n", 501},
   };
   for (const auto& [request, status] : requests) {
     const Reply reply = Exchange(server->port(), request);

@@ -331,6 +331,11 @@ std::optional<HeadParse> CheckRequestLine(std::string_view line, HeadParse* pars
     }
     return RefuseFraming(std::move(*parse), "the request line does not end in an HTTP version");
   }
+  static constexpr std::string_view kServed[] = {"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"};
+  if (std::find(std::begin(kServed), std::end(kServed), method) == std::end(kServed)) {
+    return Refuse(std::move(*parse), 501, "not_implemented",
+                  "the method is not one the server implements (GET, HEAD, POST, PUT, PATCH, DELETE, OPTIONS)");
+  }
   return std::nullopt;
 }
 
