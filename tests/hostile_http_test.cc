@@ -215,6 +215,23 @@ TEST_F(HostileHttpTest, ChunkedBodiesAreCutAtTheUploadLimit) {
   EXPECT_EQ(added.Status(), 201) << added.text;
 }
 
+// A body the HTTP library cannot read gets a 400 that says which part of it is wrong.
+TEST_F(HostileHttpTest, AnUnreadableBodyIsNamedInTheAnswer) {
+  auto server = Start({});
+  const std::string multipart = "--XYZ\r\nContent-Disposition: form-data; name=\"file\"; filename=\"a.png\"\r\n\r\nxx";
+  const Reply cut = Exchange(server->port(), "POST /v1/images?id=m HTTP/1.1\r\nHost: x\r\nConnection: close\r\n"
+                                             "Content-Type: multipart/form-data; boundary=XYZ\r\nContent-Length: " +
+                                                 std::to_string(multipart.size()) + "\r\n\r\n" + multipart);
+  EXPECT_EQ(cut.Status(), 400) << cut.text;
+  EXPECT_NE(cut.Body()["error"]["message"].get<std::string>().find("multipart/form-data body"), std::string::npos) << cut.text;
+  const Reply chunked = Exchange(server->port(), "POST /v1/search HTTP/1.1\r\nHost: x\r\nConnection: close\r\n"
+                                                 "Content-Type: image/png\r\nTransfer-Encoding: chunked\r\n\r\nzz\r\nxx\r\n0\r\n\r\n");
+  EXPECT_EQ(chunked.Status(), 400) << chunked.text;
+  EXPECT_NE(chunked.Body()["error"]["message"].get<std::string>().find("chunked body"), std::string::npos) << chunked.text;
+  auto client = server->Client();
+  EXPECT_EQ(client.Get("/v1/images/m")->status, 404);
+}
+
 TEST_F(HostileHttpTest, ARequestWithoutLengthHasNoBody) {
   auto server = Start({});
   // RFC 9112 6.3: no Content-Length and no Transfer-Encoding means no body, not "read until EOF": the

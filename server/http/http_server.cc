@@ -869,6 +869,23 @@ bool IsSmallFormBody(const httplib::Request& req, size_t max_body_bytes) {
   return bytes <= max_body_bytes;
 }
 
+// What the HTTP library could not read of a request it refused with `status` (the head was checked
+// before it, so the body).
+std::string UnreadBodyReason(const httplib::Request& req, int status) {
+  const std::string suffix = " (status " + std::to_string(status) + ")";
+  if (status == 400 && req.is_multipart_form_data()) {
+    return "the multipart/form-data body could not be read: a part or the closing boundary is malformed or "
+           "missing, or the body ended early" + suffix;
+  }
+  if (status == 400 && req.get_header_value("Transfer-Encoding") == "chunked") {
+    return "the chunked body could not be read: a chunk size is malformed, or the body ended early" + suffix;
+  }
+  if (status == 400 && req.has_header("Content-Length")) {
+    return "the request body could not be read: it was cut short, or is not in the form its Content-Type names" + suffix;
+  }
+  return "the HTTP request could not be processed" + suffix;
+}
+
 }  // namespace
 
 void HttpServer::RegisterErrorHandlers() {
@@ -904,8 +921,7 @@ void HttpServer::RegisterErrorHandlers() {
                                                                   std::to_string(options_.max_body_bytes) +
                                                                   " bytes (oxbow serve --max-upload-mb)"});
     } else {
-      SendError(res, HttpError{res.status, res.status >= 500 ? "internal" : "bad_request",
-                                    "the HTTP request could not be processed (status " + std::to_string(res.status) + ")"});
+      SendError(res, HttpError{res.status, res.status >= 500 ? "internal" : "bad_request", UnreadBodyReason(req, res.status)});
     }
     return httplib::Server::HandlerResponse::Handled;
   }));
