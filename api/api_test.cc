@@ -22,6 +22,11 @@ TEST(Params, IntegersAreCheckedCompletely) {
     EXPECT_EQ(r.error().code, ErrorCode::kInvalidArgument);
     EXPECT_NE(r.error().message.find("'k'"), std::string::npos);
   }
+  // An integer beyond 64 bits is out of range, not "not an integer".
+  for (const char* big : {"99999999999999999999999", "9223372036854775808", "-9223372036854775809"}) {
+    EXPECT_NE(ParseInt("k", big, 1, 100).error().message.find("must be in [1, 100]"), std::string::npos) << big;
+  }
+  EXPECT_NE(ParseInt("k", "1e99", 1, 100).error().message.find("must be an integer"), std::string::npos);
 }
 
 TEST(Params, BoolsAndBoxes) {

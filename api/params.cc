@@ -46,6 +46,10 @@ Result<int64_t> ParseInt(std::string_view name, std::string_view text, int64_t m
   const char* end = text.data() + text.size();
   if (!text.empty() && text.front() == '+') ++begin;
   auto [ptr, ec] = std::from_chars(begin, end, value);
+  if (!text.empty() && ec == std::errc::result_out_of_range && ptr == end) {  // an integer, beyond 64 bits
+    return Fail(ErrorCode::kInvalidArgument, "parameter '" + std::string(name) + "' must be in [" + std::to_string(min) +
+                                                 ", " + std::to_string(max) + "], got " + Quote(text));
+  }
   if (text.empty() || ec != std::errc() || ptr != end) {
     return Fail(ErrorCode::kInvalidArgument,
                 "parameter '" + std::string(name) + "' must be an integer, got " + Quote(text));
@@ -62,7 +66,8 @@ Result<bool> ParseBool(std::string_view name, std::string_view text) {
   if (text.empty() || text == "true" || text == "1" || text == "yes" || text == "on") return true;
   if (text == "false" || text == "0" || text == "no" || text == "off") return false;
   return Fail(ErrorCode::kInvalidArgument,
-              "parameter '" + std::string(name) + "' must be true or false, got " + Quote(text));
+              "parameter '" + std::string(name) + "' must be true or false (or 1/0, yes/no, on/off; empty is "
+              "true), got " + Quote(text));
 }
 
 Result<std::array<float, 4>> ParseBox(std::string_view name, std::string_view text) {

@@ -5,6 +5,8 @@
 #include <gtest/gtest.h>
 
 #include <array>
+#include <filesystem>
+#include <fstream>
 
 namespace oxbow::index {
 namespace {
@@ -81,6 +83,26 @@ TEST_F(ImageIndexTest, CreateRefusesExistingIndexAndForeignExtractor) {
   ASSERT_FALSE(other);
   EXPECT_EQ(other.error().code, ErrorCode::kIncompatible);
   EXPECT_EQ(ImageIndex::Open((dir_ / "missing").string()).error().code, ErrorCode::kNotFound);
+}
+
+// A folder of other files (a mistyped --out) is refused and left as it was; what a creation that did not
+// finish leaves (the lock and the vocabulary copy) is taken.
+TEST_F(ImageIndexTest, CreateRefusesAFolderOfOtherFiles) {
+  const std::filesystem::path photos = dir_ / "photos";
+  std::filesystem::create_directories(photos);
+  std::ofstream(photos / "holiday.jpg") << "not an index";
+  const auto refused = ImageIndex::Create(photos.string(), vocabulary_, "test-extractor/1");
+  ASSERT_FALSE(refused);
+  EXPECT_EQ(refused.error().code, ErrorCode::kAlreadyExists) << refused.error().ToString();
+  size_t entries = 0;
+  for ([[maybe_unused]] const auto& entry : std::filesystem::directory_iterator(photos)) ++entries;
+  EXPECT_EQ(entries, 1u);
+  const std::filesystem::path unfinished = dir_ / "unfinished";
+  std::filesystem::create_directories(unfinished);
+  std::ofstream(unfinished / "LOCK") << "1";
+  ASSERT_TRUE(vocabulary_.Write((unfinished / "vocabulary.oxvoc").string()));
+  const auto created = ImageIndex::Create(unfinished.string(), vocabulary_, "test-extractor/1");
+  EXPECT_TRUE(created) << created.error().ToString();
 }
 
 TEST_F(ImageIndexTest, SpatialReRankingFindsTheTransformedImage) {

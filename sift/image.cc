@@ -408,7 +408,9 @@ Result<std::vector<std::string>> ListImageFiles(const std::string& folder) { ret
 Result<std::vector<std::string>> ListFiles(const std::string& folder, const std::function<bool(const std::string&)>& keep) {
   namespace fs = std::filesystem;
   std::error_code ec;
-  if (!fs::is_directory(folder, ec)) return Fail(ErrorCode::kNotFound, "'" + folder + "' is not a folder");
+  if (!fs::is_directory(folder, ec)) {
+    return Fail(ErrorCode::kNotFound, "'" + folder + (fs::exists(folder, ec) ? "' is not a folder" : "' does not exist"));
+  }
   std::vector<std::string> files;
   fs::recursive_directory_iterator it(folder, fs::directory_options::follow_directory_symlink, ec);
   for (; !ec && it != fs::recursive_directory_iterator(); it.increment(ec)) {

@@ -154,6 +154,26 @@ TEST_F(EndToEnd, CommandLineBuildResumeAndQuery) {
   EXPECT_EQ(summary["added"], 0);
   EXPECT_EQ(summary["already_indexed"], kDatabase.size());
 
+  // Inputs none of which can be indexed: an error (exit 3), not an empty index reported as built.
+  const fs::path broken_only = *work_ / "broken_only";
+  fs::create_directories(broken_only);
+  fs::copy_file(images / "broken.jpg", broken_only / "broken.jpg");
+  const std::string build_broken = bin + " -q index build --vocab " + vocab_file.string() + " --images " +
+                                   broken_only.string() + " --out " + (*work_ / "broken_index").string();
+  RunCommand(build_broken, &code);
+  EXPECT_EQ(code, 3);
+  // A mistyped --images leaves no index behind; a folder of other files is not written into.
+  RunCommand(bin + " -q index build --vocab " + vocab_file.string() + " --images " + (*work_ / "no-such").string() +
+                 " --out " + (*work_ / "typo_index").string(),
+             &code);
+  EXPECT_EQ(code, 4);
+  EXPECT_FALSE(fs::exists(*work_ / "typo_index"));
+  RunCommand(bin + " -q index build --vocab " + vocab_file.string() + " --images " + images.string() + " --out " +
+                 broken_only.string(),
+             &code);
+  EXPECT_EQ(code, 5);
+  EXPECT_FALSE(fs::exists(broken_only / "catalogue.sqlite"));
+
   const std::string query = bin + " -q query --index " + out.string() + " --max-image-side " + std::to_string(kMaxSide) +
                             " --top-k 3 " + (kSamples / "box.png").string();
   const auto result = nlohmann::json::parse(RunCommand(query, &code));

@@ -9,7 +9,12 @@
 
 #include <CLI/CLI.hpp>
 
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <filesystem>
 #include <functional>
+#include <limits>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -47,5 +52,52 @@ T ValueOrExit(Result<T> result) {
 inline void OkOrExit(const Status& status) {
   if (!status) throw CommandError(status.error());
 }
+
+// A flag's numeric range check whose refusal names the real bounds ("must be in (0, 1], not 1.5"):
+// CLI11's own checks print their bounds with std::to_string, 1e-9 as 0.000000 and the largest double
+// with its 300 digits. `lo_open`: lo itself is refused; hi = infinity: no upper bound.
+inline CLI::Validator NumberIn(double lo, double hi, bool lo_open = false) {
+  const auto shown = [](double v) {
+    char text[32];
+    std::snprintf(text, sizeof text, "%g", v);
+    return std::string(text);
+  };
+  std::string bounds, description;
+  if (hi == std::numeric_limits<double>::infinity()) {
+    bounds = (lo_open ? "greater than " : "at least ") + shown(lo);
+    description = (lo_open ? "> " : ">= ") + shown(lo);
+  } else {
+    description = std::string(lo_open ? "(" : "[") + shown(lo) + ", " + shown(hi) + "]";
+    bounds = "in " + description;
+  }
+  return CLI::Validator(
+      [lo, hi, lo_open, bounds](std::string& text) -> std::string {
+        char* end = nullptr;
+        const double v = std::strtod(text.c_str(), &end);
+        if (text.empty() || end != text.c_str() + text.size() || std::isnan(v)) return "'" + text + "' is not a number";
+        if ((lo_open ? v > lo : v >= lo) && v <= hi) return std::string();
+        return "must be " + bounds + ", not " + text;
+      },
+      description);
+}
+// A file a command writes: its folder must exist and the path must not be a folder. Checked when the
+// flags are read, so that a mistyped path is refused before the work, not after it.
+inline CLI::Validator FileToWrite() {
+  return CLI::Validator(
+      [](std::string& path) -> std::string {
+        std::error_code ec;
+        const std::filesystem::path file(path);
+        if (std::filesystem::is_directory(file, ec)) return "'" + path + "' is a folder: give a file name";
+        const std::filesystem::path folder = file.parent_path().empty() ? std::filesystem::path(".") : file.parent_path();
+        if (!std::filesystem::is_directory(folder, ec)) {
+          return "the folder '" + folder.string() + "' of '" + path + "' does not exist";
+        }
+        return std::string();
+      },
+      "FILE");
+}
+
+inline CLI::Validator Positive() { return NumberIn(0, std::numeric_limits<double>::infinity(), /*lo_open=*/true); }
+inline CLI::Validator NonNegative() { return NumberIn(0, std::numeric_limits<double>::infinity()); }
 
 }  // namespace oxbow::cli

@@ -62,25 +62,41 @@ void SetUp(CLI::App& app) {
                   "oxford (good/ok/junk folder), restricted (the same, limited to the images present), "
                   "revisited (JSON from scripts/revisited_gt_to_json.py), groups (a folder of sub-folders, one per "
                   "object or place)")
-      ->capture_default_str();
+      ->capture_default_str()
+      ->check(CLI::IsMember({"oxford", "restricted", "revisited", "groups"}));
   cmd->add_option("--images", args->images, "database images folder (groups: the folder of group folders)")->required();
   cmd->add_option("--distractors", args->distractors,
                   "groups: every image under this folder (recursively) joins the database as "
                   "distractor__<name>; never a query, never a positive");
   cmd->add_option("--gt", args->gt, "ground truth: folder of *_query.txt etc. (oxford, restricted) or JSON (revisited)");
-  cmd->add_option("--setting", args->setting, "revisited difficulty: easy, medium, hard")->capture_default_str();
+  cmd->add_option("--setting", args->setting, "revisited difficulty: easy, medium, hard")
+      ->capture_default_str()
+      ->check(CLI::IsMember({"easy", "medium", "hard"}));
   cmd->add_option("--train-images", args->train_images,
                   "train the vocabulary on these images (recursively) instead of the database (with distractors)");
   cmd->add_option("--work", args->work, "folder caching vocabularies and indexes between runs (one database per folder)")->capture_default_str();
   cmd->add_option("--out", args->out, "report folder (report.md, results.json, plots/)")->capture_default_str();
-  cmd->add_option("--features", args->features, "descriptor kinds to compare: sift, rootsift")->delimiter(',')->capture_default_str();
-  cmd->add_option("--words", args->words, "vocabulary sizes to compare, e.g. 10000,50000")->delimiter(',')->capture_default_str();
-  cmd->add_option("--rerank", args->rerank, "re-ranking depths to compare (0 = tf-idf only)")->delimiter(',')->capture_default_str();
-  cmd->add_option("--qe", args->qe, "query expansion settings to compare: off, on")->delimiter(',')->capture_default_str();
+  cmd->add_option("--features", args->features, "descriptor kinds to compare: sift, rootsift")
+      ->delimiter(',')
+      ->capture_default_str()
+      ->check(CLI::IsMember({"sift", "rootsift"}));
+  cmd->add_option("--words", args->words, "vocabulary sizes to compare, e.g. 10000,50000")
+      ->delimiter(',')
+      ->capture_default_str()
+      ->check(Positive());
+  cmd->add_option("--rerank", args->rerank, "re-ranking depths to compare (0 = tf-idf only)")
+      ->delimiter(',')
+      ->capture_default_str()
+      ->check(NumberIn(0, 10000));
+  cmd->add_option("--qe", args->qe, "query expansion settings to compare: off, on")
+      ->delimiter(',')
+      ->capture_default_str()
+      ->check(CLI::IsMember({"off", "on"}));
   cmd->add_option("--transitive", args->transitive,
                   "transitive verification settings to compare: off, on (the server's default)")
       ->delimiter(',')
-      ->capture_default_str();
+      ->capture_default_str()
+      ->check(CLI::IsMember({"off", "on"}));
   cmd->add_option("--hamming", args->hamming,
                   "Hamming-embedding re-scoring settings to compare: off, on (a vocabulary trained here gets the "
                   "parameters when on is listed; a cached one must have them: 'oxbow vocab hamming')")
@@ -98,8 +114,9 @@ void SetUp(CLI::App& app) {
                   "--mode in-process)")
       ->delimiter(',')
       ->capture_default_str()
-      ->check(CLI::Range(1e-9, 64.0));
-  cmd->add_option("--top-k", args->top_k, "results per query (0 = the whole database, at most 10000)");
+      ->check(NumberIn(0, 64, /*lo_open=*/true));
+  cmd->add_option("--top-k", args->top_k, "results per query (0 = the whole database, at most 10000)")
+      ->check(NumberIn(0, 10000));
   cmd->add_option("--sample", args->sample, "descriptors sampled to train each vocabulary")->capture_default_str();
   cmd->add_option("--per-image", args->per_image, "cap of training descriptors per image (0 = vocab train's default)");
   cmd->add_option("--iterations", args->iterations, "k-means iterations (0 = vocab train's default)");

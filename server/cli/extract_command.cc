@@ -145,7 +145,7 @@ void SetUpExtract(CLI::App& app) {
       ->capture_default_str();
   AddDescriptorFlag(cmd, &args->descriptor);
   cmd->add_option("--max-features", args->max_features, "keep only the N strongest keypoints (by DoG contrast)")
-      ->check(CLI::PositiveNumber);
+      ->check(Positive());
   AddImageFlags(cmd, &args->image);
   cmd->add_flag("--no-upsample", args->no_upsample,
                 "do not double the image size for the first octave (about 3x faster, finds fewer small features)");
@@ -166,7 +166,8 @@ void SetUpExtract(CLI::App& app) {
       ->capture_default_str();
   cmd->add_option("--draw", args->draw,
                   "also write the image with its keypoints drawn (circle radius = 3 x scale, line = orientation); with "
-                  "several images, out.png becomes out_<image stem>.png");
+                  "several images, out.png becomes out_<image stem>.png")
+      ->check(FileToWrite());
   cmd->callback([args] { RunExtract(*args); });
 }
 
@@ -177,7 +178,7 @@ void SetUpFeatures(CLI::App& app) {
   auto files = std::make_shared<std::vector<std::string>>();
   auto show = std::make_shared<int>(5);
   info->add_option("files", *files, "feature files (.oxfeat)")->required();
-  info->add_option("--show", *show, "number of keypoints to print")->capture_default_str()->check(CLI::NonNegativeNumber);
+  info->add_option("--show", *show, "number of keypoints to print")->capture_default_str()->check(NonNegative());
   info->callback([files, show] {
     for (const std::string& path : *files) {
       const sift::FeatureFile file = ValueOrExit(sift::ReadFeatureFile(path));

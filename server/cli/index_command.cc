@@ -425,7 +425,7 @@ void SetUpDuplicates(CLI::App& index_cmd) {
       "/v1/collections/{name}/duplicates (server/README.md, Duplicates).");
   d->add_option("--index", args->index, "index folder")->required();
   d->add_option("--format", args->format, "json or csv")->capture_default_str()->check(CLI::IsMember({"json", "csv"}));
-  d->add_option("--out", args->out, "write the result to this file instead of stdout");
+  d->add_option("--out", args->out, "write the result to this file instead of stdout")->check(FileToWrite());
   d->add_option("--candidates", args->options.candidates,
                 "best tf-idf candidates of each image that are verified (more: copies of much-copied images are "
                 "found directly, slower)")
@@ -500,10 +500,18 @@ void SetUpIndex(CLI::App& app) {
     if (build->partitions != 1) throw CommandError(2, "--partitions needs --mpi");
     const auto t0 = std::chrono::steady_clock::now();
     const vocab::Vocabulary vocabulary = ValueOrExit(vocab::Vocabulary::Read(build->vocab));
+    // The inputs first: a mistyped --images or --list leaves no index behind.
+    auto jobs = CollectJobs(*build);
     auto idx = OpenOrCreate(build->out, vocabulary, IndexOptionsFor(*build));
-    const BuildCounts counts = IngestJobs(*build, *idx, CollectJobs(*build), nullptr);
+    const BuildCounts counts = IngestJobs(*build, *idx, std::move(jobs), nullptr);
     const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     PrintJson(BuildSummary(*idx, counts, seconds));
+    if (counts.failed > 0 && counts.added == 0 && counts.skipped == 0) {
+      // Failures among indexed images are reported and the build goes on; an index of none is an error.
+      throw CommandError(ExitCodeFor(ErrorCode::kInvalidImage),
+                         "none of the " + std::to_string(counts.failed) + " inputs could be indexed (see the "
+                         "warnings above)");
+    }
   });
 
   // ---- add
@@ -533,22 +541,28 @@ void SetUpIndex(CLI::App& app) {
     const sift::DecodeOptions decode = add->image.ToDecodeOptions();
     nlohmann::json out = nlohmann::json::array();
     int errors = 0;
+    int exit_code = 0;  // the first failure's (exit codes: server/README.md, "Command line")
     for (const auto& path : add->images) {
       const std::string id = add->id.empty() ? fs::path(path).stem().string() : add->id;
-      auto f = extractor.ExtractFromFile(path, decode);
-      Result<index::ImageRecord> record = f ? idx->Add(id, *f, {fs::absolute(path).string(), add->metadata,
-                                                                idx->extractor_settings()})
-                                            : Result<index::ImageRecord>(std::unexpected(f.error()));
+      // The ids the HTTP API takes, so that every image added here is reachable through it.
+      Result<index::ImageRecord> record = std::unexpected(Error{ErrorCode::kInternal, ""});
+      if (Status checked = api::CheckNewImageId(id); !checked) {
+        record = std::unexpected(checked.error());
+      } else if (auto f = extractor.ExtractFromFile(path, decode); !f) {
+        record = std::unexpected(f.error());
+      } else {
+        record = idx->Add(id, *f, {fs::absolute(path).string(), add->metadata, idx->extractor_settings()});
+      }
       if (!record) {
         std::fprintf(stderr, "oxbow: %s: %s\n", path.c_str(), record.error().ToString().c_str());
-        ++errors;
+        if (errors++ == 0) exit_code = ExitCodeFor(record.error().code);
         out.push_back({{"id", id}, {"error", record.error().ToString()}});
       } else {
         out.push_back({{"id", id}, {"features", record->num_features}});
       }
     }
     PrintJson(out);
-    if (errors) throw CommandError(3, std::to_string(errors) + " image(s) not added");
+    if (errors) throw CommandError(exit_code, std::to_string(errors) + " image(s) not added");
   });
 
   // ---- remove
@@ -562,7 +576,15 @@ void SetUpIndex(CLI::App& app) {
   r->add_option("ids", remove->ids, "image ids")->required();
   r->callback([remove] {
     auto idx = ValueOrExit(index::ImageIndex::Open(remove->index));
-    for (const auto& id : remove->ids) OkOrExit(idx->Remove(id));
+    for (size_t k = 0; k < remove->ids.size(); ++k) {
+      if (Status removed = idx->Remove(remove->ids[k]); !removed) {
+        // Each remove is durable on its own: say which of the ids before this one are gone.
+        throw CommandError(ExitCodeFor(removed.error().code),
+                           removed.error().ToString() + (k == 0 ? "; nothing was removed"
+                                                                : "; the " + std::to_string(k) +
+                                                                      " id(s) before it were removed, the rest were not tried"));
+      }
+    }
     OXBOW_LOG(kInfo) << "removed " << remove->ids.size() << " image(s)";
   });
 

@@ -4,7 +4,9 @@
 #include <cstdio>
 #include <exception>
 #include <malloc.h>
+#include <optional>
 #include <string>
+#include <vector>
 
 #include "server/cli/cli.h"
 #include "sift/base/log.h"
@@ -37,6 +39,34 @@ void PrintError(const std::string& text) {
     std::fprintf(stderr, "%s\n", text.c_str());
   }
 }
+// When argv names a command that does not exist ("oxbow index bild"), the error for it: the word and
+// the commands there are. CLI11 itself only says that a command is required. The words before the
+// first command that has no sub-commands are read; of the options among them only the top level's
+// --log-level takes a value.
+std::optional<std::string> UnknownCommand(CLI::App& app, int argc, char** argv) {
+  CLI::App* at = &app;
+  std::string path = "oxbow";
+  for (int i = 1; i < argc; ++i) {
+    const std::string word = argv[i];
+    if (word.empty() || word[0] == '-') {
+      if (at == &app && word == "--log-level") ++i;
+      continue;
+    }
+    const std::vector<CLI::App*> commands = at->get_subcommands([](CLI::App*) { return true; });
+    if (commands.empty()) return std::nullopt;
+    const auto named = std::find_if(commands.begin(), commands.end(), [&](CLI::App* c) { return c->check_name(word); });
+    if (named == commands.end()) {
+      std::string known;
+      for (const CLI::App* c : commands) known += (known.empty() ? "" : ", ") + c->get_name();
+      return "'" + word + "' is not a command of " + path + "; the commands are: " + known +
+             " (" + path + " --help describes them)";
+    }
+    at = *named;
+    path += " " + word;
+  }
+  return std::nullopt;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -79,6 +109,12 @@ int main(int argc, char** argv) {
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
+    if (dynamic_cast<const CLI::RequiredError*>(&e) != nullptr) {
+      if (const auto unknown = UnknownCommand(app, argc, argv)) {
+        PrintError("oxbow: error: " + *unknown);
+        return e.get_exit_code();
+      }
+    }
     return app.exit(e);
   } catch (const CommandError& e) {
     PrintError(std::string("oxbow: error: ") + e.what());

@@ -111,7 +111,7 @@ void SetUpMatch(CLI::App& app) {
       ->check(CLI::IsMember({"hough-homography", "hough-affine", "similarity", "affine", "homography", "fundamental"}))
       ->capture_default_str();
   cmd->add_option("--ratio", args->ratio, "Lowe's ratio test threshold, (0, 1]; 1 disables it")
-      ->check(CLI::Range(0.0f, 1.0f))
+      ->check(NumberIn(0, 1, /*lo_open=*/true))
       ->capture_default_str();
   cmd->add_flag("--mutual", args->mutual, "keep only mutual nearest neighbours");
   cmd->add_option("--method", args->method, "nearest-neighbour search: brute (exact) or kdtree (FLANN kd-forest)")
@@ -121,18 +121,19 @@ void SetUpMatch(CLI::App& app) {
   cmd->add_option("--kd-checks", args->kd_checks, "kd-forest: leaves visited per query")->check(CLI::Range(1, 1 << 20))->capture_default_str();
   AddDescriptorFlag(cmd, &args->descriptor);
   cmd->add_option("--max-features", args->max_features, "keep at most this many strongest keypoints per image")
-      ->check(CLI::PositiveNumber);
+      ->check(Positive());
   AddImageFlags(cmd, &args->image);
   cmd->add_option("--reprojection-px", args->reprojection_px,
                   "inlier threshold of the robust estimators (similarity/affine/homography/fundamental), pixels")
-      ->check(CLI::PositiveNumber)
+      ->check(Positive())
       ->capture_default_str();
   cmd->add_option("--min-inliers", args->min_inliers, "inliers needed for \"verified\": true (every model)")
       ->check(CLI::Range(3, 1000000))
       ->capture_default_str();
   AddThreadsFlag(cmd, &args->num_threads);
   cmd->add_option("--draw", args->draw_path,
-                  "write the two images side by side: inliers green, rejected matches red, matched region outlined");
+                  "write the two images side by side: inliers green, rejected matches red, matched region outlined")
+      ->check(FileToWrite());
   cmd->callback([args] { RunMatch(*args); });
 }
 

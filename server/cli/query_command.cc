@@ -71,9 +71,10 @@ void SetUpQuery(CLI::App& app) {
                   "only rank images whose metadata matches this JSON object, keys ANDed: "
                   "'{\"city\": \"Paris\"}', '{\"city\": {\"in\": [\"Paris\", \"Lyon\"]}}', "
                   "'{\"year\": {\"gte\": 2000, \"lt\": 2010}}' (server/README.md, Filtered search)");
-  cmd->add_option("--top-k", args->options.top_k, "results returned")->capture_default_str();
+  cmd->add_option("--top-k", args->options.top_k, "results returned")->capture_default_str()->check(NumberIn(1, 10000));
   cmd->add_option("--rerank", args->options.rerank_depth, "spatially verify the top R (0: tf-idf only)")
-      ->capture_default_str();
+      ->capture_default_str()
+      ->check(NumberIn(0, 10000));
   // Query expansion needs verified results: it does not apply to --rerank 0 unless asked for.
   auto* qe = cmd->add_flag("--qe,!--no-qe", args->options.query_expansion,
                            "average query expansion (Chum et al. 2007); on by default, --no-qe turns it off");
@@ -84,7 +85,11 @@ void SetUpQuery(CLI::App& app) {
   cmd->callback([args, qe] {
     const auto t0 = std::chrono::steady_clock::now();
     if (!args->bbox.empty()) args->options.region = ParseBox(args->bbox);
-    if (args->options.rerank_depth == 0 && qe->count() == 0) args->options.query_expansion = false;
+    if (args->options.rerank_depth == 0 && args->options.query_expansion) {
+      // As the HTTP parameter: asked for, QE without re-ranking is an error; by default it does not apply.
+      if (qe->count() > 0) throw CommandError(2, "--qe needs re-ranking: give --rerank above 0 (or leave --qe out)");
+      args->options.query_expansion = false;
+    }
     if (!args->filter.empty()) args->options.filter = ValueOrExit(api::ParseFilter(args->filter, "--filter"));
     if (auto e = args->options.Check()) throw CommandError(2, *e);
     if (auto e = args->index_options.Check()) throw CommandError(2, *e);

@@ -8,13 +8,14 @@
 #include <CLI/CLI.hpp>
 
 #include "index/image_index.h"
+#include "server/cli/cli.h"
 
 namespace oxbow::cli {
 
 // Per-search options beyond --top-k/--rerank/--qe (which each command words for its own use).
 inline void AddSearchFlags(CLI::App* cmd, index::QueryOptions* o) {
   const auto add = [cmd](const char* name, auto* field, const char* help, auto min, auto max) {
-    cmd->add_option(name, *field, help)->capture_default_str()->check(CLI::Range(min, max))->group("Search");
+    cmd->add_option(name, *field, help)->capture_default_str()->check(NumberIn(static_cast<double>(min), static_cast<double>(max)))->group("Search");
   };
   add("--qe-images", &o->qe_images, "verified results averaged into the expanded query", 1, 100);
   add("--min-inliers", &o->verify.min_inliers, "inliers needed to count as verified", 3, 1000000);
@@ -75,7 +76,7 @@ inline void AddIndexScoringFlags(CLI::App* cmd, index::IndexOptions* o) {
   cmd->add_option("--max-df", o->max_document_frequency,
                   "stop list: ignore query words in more than this fraction of the images (1 = off)")
       ->capture_default_str()
-      ->check(CLI::Range(1e-9, 1.0))
+      ->check(NumberIn(0, 1, /*lo_open=*/true))
       ->group(group);
   cmd->add_option("--stop-list-min-images", o->stop_list_min_images,
                   "stop list: never drop a word contained in at most this many images")

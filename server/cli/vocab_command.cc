@@ -180,7 +180,13 @@ vocab::SampleOptions SampleOptionsFrom(const VocabTrainArgs& args) {
   return sample;
 }
 
-void CheckEnoughDescriptors(uint64_t sampled, const VocabTrainArgs& args) {
+// `read` inputs were read, `unreadable` could not be (each warned about as it was met).
+void CheckEnoughDescriptors(uint64_t sampled, uint64_t read, uint64_t unreadable, const VocabTrainArgs& args) {
+  if (read == 0 && unreadable > 0) {
+    throw CommandError(ExitCodeFor(ErrorCode::kInvalidImage),
+                       "none of the inputs could be read (" + std::to_string(unreadable) +
+                           " unreadable, see the warnings above): no descriptors to train on");
+  }
   if (sampled < args.words)
     throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument),
                        "only " + std::to_string(sampled) + " descriptors for " + std::to_string(args.words) +
@@ -219,7 +225,7 @@ Sample SampleDescriptors(const VocabTrainArgs& args) {
       args, inputs, 0, 1, [&](const std::string&, std::span<const float> d) { sampler.AddImage(d); }, failures);
   OXBOW_LOG(kInfo) << "sampled " << sampler.size() << " of " << sampler.rows_seen() << " descriptors from "
                    << sampler.images_seen() << " images" << (failures ? " (" + std::to_string(failures) + " unreadable)" : "");
-  CheckEnoughDescriptors(sampler.size(), args);
+  CheckEnoughDescriptors(sampler.size(), sampler.images_seen(), failures, args);
   out.descriptors = sampler.TakeDescriptors();
   return out;
 }
@@ -237,6 +243,10 @@ void RunVocabTrain(const VocabTrainArgs& args) {
 
 // `vocab hamming`: an existing vocabulary with Hamming-embedding parameters learnt from a new sample.
 void RunVocabHamming(VocabTrainArgs args) {
+  std::error_code ec;
+  if (fs::equivalent(args.vocab_in, args.out, ec)) {
+    throw CommandError(2, "--out is the --vocab file itself, which 'vocab hamming' leaves as it is: give another file");
+  }
   const vocab::Vocabulary vocabulary = ValueOrExit(vocab::Vocabulary::Read(args.vocab_in));
   args.descriptor = vocabulary.descriptor_kind();
   args.words = 1;  // any sample size will do: no k-means
@@ -302,7 +312,7 @@ void RunVocabTrainMpi(const VocabTrainArgs& args, vocab::Communicator& comm) {
   OXBOW_LOG(kInfo) << "sampled " << sample.total_rows << " of " << sample.rows_seen << " descriptors from "
                    << sample.images_seen << " images on " << comm.size() << " ranks"
                    << (unreadable[0] ? " (" + std::to_string(unreadable[0]) + " unreadable)" : "");
-  CheckEnoughDescriptors(sample.total_rows, args);
+  CheckEnoughDescriptors(sample.total_rows, sample.images_seen, static_cast<uint64_t>(unreadable[0]), args);
   vocab::TrainReport report;
   const vocab::DistributedTrainResult result =
       ValueOrExit(vocab::TrainDistributed(sample, comm, args.descriptor, settings, options, &report));
@@ -349,8 +359,8 @@ void SetUpVocab(CLI::App& app) {
   source->add_option("--list", args->list_file, "text file with one image path per line ('#' starts a comment)");
   source->add_option("--features", args->features_dir, "folder of .oxfeat feature files from 'oxbow extract', searched recursively");
   source->require_option(1);
-  train->add_option("--words", args->words, "vocabulary size k (number of visual words)")->required()->check(CLI::PositiveNumber);
-  train->add_option("--out", args->out, "vocabulary file to write (atomically)")->required();
+  train->add_option("--words", args->words, "vocabulary size k (number of visual words)")->required()->check(Positive());
+  train->add_option("--out", args->out, "vocabulary file to write (atomically)")->required()->check(FileToWrite());
   AddDescriptorFlag(train, &args->descriptor);  // with --features, SIFT files are converted to RootSIFT
   train->add_flag("--upright", args->extractor.upright,
                   "extract upright features (every orientation along the image's x axis; for photos taken upright, such "
@@ -358,8 +368,8 @@ void SetUpVocab(CLI::App& app) {
       ->excludes("--features");
   train->add_flag_callback("--root-sift", [args] { args->descriptor = sift::DescriptorKind::kRootSift; },
                            "same as --descriptor rootsift (the default)");
-  train->add_option("--sample", args->sample, "maximum training descriptors in total")->capture_default_str()->check(CLI::PositiveNumber);
-  train->add_option("--per-image", args->per_image, "maximum descriptors kept per image")->capture_default_str()->check(CLI::PositiveNumber);
+  train->add_option("--sample", args->sample, "maximum training descriptors in total")->capture_default_str()->check(Positive());
+  train->add_option("--per-image", args->per_image, "maximum descriptors kept per image")->capture_default_str()->check(Positive());
   train->add_option("--iterations", args->iterations, "maximum Lloyd iterations")->capture_default_str()->check(CLI::Range(1, 1000));
   train->add_option("--seed", args->seed, "seed of the sampling, the seeding and the search structures")->capture_default_str();
   AddThreadsFlag(train, &args->threads);
@@ -418,9 +428,9 @@ void SetUpVocab(CLI::App& app) {
   hsource->add_option("--list", hargs->list_file, "text file with one image path per line ('#' starts a comment)");
   hsource->add_option("--features", hargs->features_dir, "folder of .oxfeat feature files, searched recursively");
   hsource->require_option(1);
-  hamming->add_option("--out", hargs->out, "vocabulary file to write (atomically)")->required();
-  hamming->add_option("--sample", hargs->sample, "maximum sample descriptors in total")->capture_default_str()->check(CLI::PositiveNumber);
-  hamming->add_option("--per-image", hargs->per_image, "maximum descriptors kept per image")->capture_default_str()->check(CLI::PositiveNumber);
+  hamming->add_option("--out", hargs->out, "vocabulary file to write (atomically)")->required()->check(FileToWrite());
+  hamming->add_option("--sample", hargs->sample, "maximum sample descriptors in total")->capture_default_str()->check(Positive());
+  hamming->add_option("--per-image", hargs->per_image, "maximum descriptors kept per image")->capture_default_str()->check(Positive());
   hamming->add_option("--seed", hargs->seed, "seed of the sampling and of the projection")->capture_default_str();
   AddThreadsFlag(hamming, &hargs->threads);
   AddImageFlags(hamming, &hargs->image);
