@@ -16,6 +16,8 @@
 #include <memory>
 #include <regex>
 #include <string>
+#include <tuple>
+#include <vector>
 
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -138,6 +140,32 @@ TEST_F(CliCoherence, EveryCommandExtractsALargePhotoAsTheServerDoes) {
   EXPECT_EQ(response["params"]["rerank"], index::QueryOptions{}.rerank_depth);
   EXPECT_EQ(response["params"]["qe"], index::QueryOptions{}.query_expansion);
   EXPECT_TRUE(index::QueryOptions{}.query_expansion);
+}
+
+// Mistakes are refused before any work, with what is wrong in the flag's own terms.
+TEST(CliErrors, MistakesAreRefusedBeforeAnyWorkNamingWhatIsWrong) {
+  const oxbow::testing::TempDir dir("oxbow-cli-errors");
+  const std::string d = dir.path();
+  const std::vector<std::tuple<std::string, int, std::string>> cases = {
+      {"frobnicate", 106, "'frobnicate' is not a command of oxbow; the commands are: "},
+      {"index bild --out x", 106, "'bild' is not a command of oxbow index"},
+      {"vocab train --images " + d + " --words 0 --out " + d + "/v.oxvoc", 105, "must be greater than 0, not 0"},
+      {"vocab train --images " + d + " --words 10 --out " + d + "/no-such/v.oxvoc", 105,
+       "the folder '" + d + "/no-such' of '" + d + "/no-such/v.oxvoc' does not exist"},
+      {"vocab train --images " + d + " --words 10 --out " + d, 105, "is a folder: give a file name"},
+      {"eval --images " + d + " --qe maybe", 105, "maybe not in {off,on}"},
+      {"eval --images " + d + " --protocol foo", 105, "foo not in {oxford,restricted,revisited,groups}"},
+      {"eval --images " + d + " --hamming-sigma 0", 105, "must be in (0, 64], not 0"},
+      {"index check --index " + d + "/no-index", 4, "no index at " + d + "/no-index"},
+  };
+  for (const auto& [args, expected_rc, expected_text] : cases) {
+    int rc = -1;
+    const std::string out = RunCommand(Oxbow(args), &rc);
+    EXPECT_EQ(rc, expected_rc) << args << "\n" << out;
+    EXPECT_NE(out.find(expected_text), std::string::npos) << args << "\n" << out;
+  }
+  EXPECT_FALSE(fs::exists(d + "/no-index"));
+  EXPECT_FALSE(fs::exists(d + "/v.oxvoc"));
 }
 
 }  // namespace
