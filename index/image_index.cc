@@ -315,13 +315,18 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Create(const std::string& dir, c
   std::error_code ec;
   // A folder of someone's files (a mistyped --out) is not mixed with an index's: only a new or empty
   // folder, or one left by a creation that did not finish (its lock and vocabulary copy), is taken.
+  std::string foreign;
   for (const auto& entry : std::filesystem::directory_iterator(dir, ec)) {
     const std::string name = entry.path().filename().string();
     const bool own = name == "LOCK" || name.rfind(kVocabularyFile, 0) == 0 || name.rfind(kCatalogueFile, 0) == 0;
     if (!own) {
-      return Fail(ErrorCode::kAlreadyExists, dir + " holds other files ('" + name +
-                                                 "') and no index: give a new or empty folder for an index");
+      foreign = name;
+      break;
     }
+  }
+  if (!foreign.empty()) {
+    return Fail(ErrorCode::kAlreadyExists,
+                dir + " holds other files ('" + foreign + "') and no index: give a new or empty folder for an index");
   }
   ec.clear();
   std::filesystem::create_directories(dir, ec);

@@ -145,7 +145,7 @@ TEST_F(CliCoherence, EveryCommandExtractsALargePhotoAsTheServerDoes) {
 // Mistakes are refused before any work, with what is wrong in the flag's own terms.
 TEST(CliErrors, MistakesAreRefusedBeforeAnyWorkNamingWhatIsWrong) {
   const oxbow::testing::TempDir dir("oxbow-cli-errors");
-  const std::string d = dir.path();
+  const std::string& d = dir.path();
   const std::vector<std::tuple<std::string, int, std::string>> cases = {
       {"frobnicate", 106, "'frobnicate' is not a command of oxbow; the commands are: "},
       {"index bild --out x", 106, "'bild' is not a command of oxbow index"},

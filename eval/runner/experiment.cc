@@ -434,7 +434,8 @@ Experiments RunExperiments(const ExperimentOptions& a) {
             if ((qe || !transitive) && rerank == 0) continue;
             for (const HammingSetting& hamming : hamming_settings) {
               eval::RunResult run = base;
-              run.label = (external ? server_url : features) + " " + std::to_string(words / 1000) + "k" +
+              run.label = (external ? server_url : features) + " " +
+                          (words % 1000 == 0 ? std::to_string(words / 1000) + "k" : std::to_string(words)) +
                           (rerank > 0 ? " +rerank" + std::to_string(rerank) : "") +
                           (rerank > 0 && transitive ? " +tv" : "") + (qe ? " +qe" : "") + HammingLabel(hamming) +
                           (a.mode == "both" && !external ? " (" + mode + ")" : "");

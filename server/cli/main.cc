@@ -56,10 +56,10 @@ std::optional<std::string> UnknownCommand(CLI::App& app, int argc, char** argv) 
     if (commands.empty()) return std::nullopt;
     const auto named = std::find_if(commands.begin(), commands.end(), [&](CLI::App* c) { return c->check_name(word); });
     if (named == commands.end()) {
-      std::string known;
-      for (const CLI::App* c : commands) known += (known.empty() ? "" : ", ") + c->get_name();
-      return "'" + word + "' is not a command of " + path + "; the commands are: " + known +
-             " (" + path + " --help describes them)";
+      std::string message = "'";
+      message.append(word).append("' is not a command of ").append(path).append("; the commands are: ");
+      for (size_t k = 0; k < commands.size(); ++k) message.append(k == 0 ? "" : ", ").append(commands[k]->get_name());
+      return message.append(" (").append(path).append(" --help describes them)");
     }
     at = *named;
     path += " " + word;

@@ -47,13 +47,13 @@ TEST(Utf8Test, WellFormedTextIsKeptAndEveryOtherByteReplaced) {
   EXPECT_TRUE(IsWellFormedUtf8(text));
   EXPECT_TRUE(IsWellFormedUtf8(""));
   EXPECT_EQ(ToWellFormedUtf8(text), text);
-  const std::string replacement = "\xef\xbf\xbd";
+  // U+FFFD is EF BF BD.
   for (const auto& [bad, good] : std::vector<std::pair<std::string, std::string>>{
-           {"caf\xe9.png", "caf" + replacement + ".png"},                       // Latin-1
-           {"cut \xe2\x82", "cut " + replacement + replacement},                // truncated sequence
-           {"\xc0\xaf", replacement + replacement},                             // overlong '/'
-           {"\xed\xa0\x80", replacement + replacement + replacement},           // surrogate U+D800
-           {"\x80x", replacement + "x"}}) {                                     // lone continuation byte
+           {"caf\xe9.png", "caf\xef\xbf\xbd.png"},                                        // Latin-1
+           {"cut \xe2\x82", "cut \xef\xbf\xbd\xef\xbf\xbd"},                             // truncated sequence
+           {"\xc0\xaf", "\xef\xbf\xbd\xef\xbf\xbd"},                                      // overlong '/'
+           {"\xed\xa0\x80", "\xef\xbf\xbd\xef\xbf\xbd\xef\xbf\xbd"},                    // surrogate U+D800
+           {"\x80x", "\xef\xbf\xbdx"}}) {                                                   // lone continuation byte
     EXPECT_FALSE(IsWellFormedUtf8(bad)) << bad;
     EXPECT_EQ(ToWellFormedUtf8(bad), good) << bad;
     EXPECT_TRUE(IsWellFormedUtf8(ToWellFormedUtf8(bad))) << bad;
