@@ -228,6 +228,13 @@ TEST_F(ShardPort, AddsAreCheckedAsOverHttp) {
     EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << id.substr(0, 20) << ": " << status.error_message();
     EXPECT_EQ(status.error_details(), "invalid_argument");
   }
+  // An image the shard cannot decode is the request's fault too: INVALID_ARGUMENT, named in the details.
+  cluster::AddRequest corrupt = AddOf("corrupt");
+  corrupt.set_image("\x89PNG\r\n\x1a\n not the rest of a PNG");
+  cluster::AddReply not_added;
+  const grpc::Status undecodable = stub->Add(Context().get(), corrupt, &not_added);
+  EXPECT_EQ(undecodable.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << undecodable.error_message();
+  EXPECT_EQ(undecodable.error_details(), "invalid_image");
   EXPECT_EQ(Ids(shard), before);
   // What HTTP accepts, gRPC accepts, stored as HTTP stores it (re-serialised).
   cluster::AddReply added;

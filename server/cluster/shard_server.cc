@@ -31,8 +31,12 @@ std::array<float, 4> Box(const google::protobuf::RepeatedField<float>& v) {
 
 // The front reads the ErrorCode back from the details (shard.proto) and answers as a single node would.
 grpc::Status ToGrpc(const Error& e) {
+  // A request's own fault (an image it cannot decode, too large, of a format not served) is an invalid
+  // argument, as the others; the front reads the ErrorCode's name in the details either way.
+  const bool invalid = e.code == ErrorCode::kInvalidArgument || e.code == ErrorCode::kInvalidImage ||
+                       e.code == ErrorCode::kImageTooLarge || e.code == ErrorCode::kUnsupportedFormat;
   const grpc::StatusCode code = e.code == ErrorCode::kNotFound          ? grpc::StatusCode::NOT_FOUND
-                                : e.code == ErrorCode::kInvalidArgument ? grpc::StatusCode::INVALID_ARGUMENT
+                                : invalid                               ? grpc::StatusCode::INVALID_ARGUMENT
                                 : e.code == ErrorCode::kAlreadyExists   ? grpc::StatusCode::ALREADY_EXISTS
                                 : e.code == ErrorCode::kResourceExhausted ? grpc::StatusCode::RESOURCE_EXHAUSTED
                                                                         : grpc::StatusCode::INTERNAL;
