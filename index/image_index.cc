@@ -315,10 +315,12 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::Create(const std::string& dir, c
   std::error_code ec;
   // A folder of someone's files (a mistyped --out) is not mixed with an index's: only a new or empty
   // folder, or one left by a creation that did not finish (its lock and vocabulary copy), is taken.
+  // Hidden entries and a file system's lost+found (a volume mounted as the index folder) do not count.
   std::string foreign;
   for (const auto& entry : std::filesystem::directory_iterator(dir, ec)) {
     const std::string name = entry.path().filename().string();
-    const bool own = name == "LOCK" || name.rfind(kVocabularyFile, 0) == 0 || name.rfind(kCatalogueFile, 0) == 0;
+    const bool own = name == "LOCK" || name.rfind(kVocabularyFile, 0) == 0 || name.rfind(kCatalogueFile, 0) == 0 ||
+                     name.front() == '.' || name == "lost+found";
     if (!own) {
       foreign = name;
       break;

@@ -98,7 +98,8 @@ TEST_F(ImageIndexTest, CreateRefusesAFolderOfOtherFiles) {
   for ([[maybe_unused]] const auto& entry : std::filesystem::directory_iterator(photos)) ++entries;
   EXPECT_EQ(entries, 1u);
   const std::filesystem::path unfinished = dir_ / "unfinished";
-  std::filesystem::create_directories(unfinished);
+  std::filesystem::create_directories(unfinished / "lost+found");  // a volume mounted there
+  std::ofstream(unfinished / ".keep") << "";
   std::ofstream(unfinished / "LOCK") << "1";
   ASSERT_TRUE(vocabulary_.Write((unfinished / "vocabulary.oxvoc").string()));
   const auto created = ImageIndex::Create(unfinished.string(), vocabulary_, "test-extractor/1");
