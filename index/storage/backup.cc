@@ -407,10 +407,7 @@ Status CheckBackupFolder(const std::string& dir, const std::string& out) {
 }
 
 Result<BackupResult> BackupIndex(const std::string& dir, const std::string& out_in, const BackupOptions& options) {
-  std::error_code ec;
-  if (!fs::is_regular_file(fs::path(dir) / kCatalogueFile, ec)) {
-    return Fail(ErrorCode::kNotFound, "no index at " + dir + " (missing " + kCatalogueFile + ")");
-  }
+  if (auto s = CheckHoldsCatalogue(dir); !s) return std::unexpected(s.error());
   if (auto checked = CheckBackupFolder(dir, out_in); !checked) return std::unexpected(checked.error());
   auto target = BackupTarget(out_in);
   if (!target) return std::unexpected(target.error());
@@ -434,6 +431,7 @@ Result<BackupResult> BackupIndex(const std::string& dir, const std::string& out_
     if (auto s = SyncPath(parent.string(), O_RDONLY | O_DIRECTORY); !s) result = std::unexpected(s.error());
   }
   if (!result) {
+    std::error_code ec;
     fs::remove_all(tmp, ec);
     return result;
   }

@@ -682,12 +682,15 @@ Status CheckFeatureBlobs(const std::string& path) {
                   "; `oxbow index check --index DIR` lists them, --drop-damaged deletes them");
 }
 
+Status CheckHoldsCatalogue(const std::string& dir) {
+  std::error_code ec;
+  if (std::filesystem::is_regular_file(std::filesystem::path(dir) / kCatalogueFile, ec)) return Ok();
+  return Fail(ErrorCode::kNotFound, "no index at " + dir + " (missing " + kCatalogueFile + ")");
+}
+
 Result<IndexCheck> CheckIndexFolder(const std::string& dir, bool drop_damaged) {
   // Before the lock, which would create its file: a folder that holds no index is left as it is.
-  std::error_code ec;
-  if (!std::filesystem::is_regular_file(std::filesystem::path(dir) / kCatalogueFile, ec)) {
-    return Fail(ErrorCode::kNotFound, "no index at " + dir + " (missing " + kCatalogueFile + ")");
-  }
+  if (auto s = CheckHoldsCatalogue(dir); !s) return std::unexpected(s.error());
   auto lock = FolderLock::Acquire(dir);
   if (!lock) return std::unexpected(lock.error());
   auto catalogue = Catalogue::Open((std::filesystem::path(dir) / kCatalogueFile).string());

@@ -170,4 +170,8 @@ struct IndexCheck {
 };
 [[nodiscard]] Result<IndexCheck> CheckIndexFolder(const std::string& dir, bool drop_damaged);
 
+// kNotFound ("no index at DIR (missing catalogue.sqlite)") unless `dir` holds an index's catalogue;
+// touches nothing, so it runs before a FolderLock that would create its file.
+[[nodiscard]] Status CheckHoldsCatalogue(const std::string& dir);
+
 }  // namespace oxbow::index

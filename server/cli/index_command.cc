@@ -544,15 +544,14 @@ void SetUpIndex(CLI::App& app) {
     int exit_code = 0;  // the first failure's (exit codes: server/README.md, "Command line")
     for (const auto& path : add->images) {
       const std::string id = add->id.empty() ? fs::path(path).stem().string() : add->id;
-      // The ids the HTTP API takes, so that every image added here is reachable through it.
-      Result<index::ImageRecord> record = std::unexpected(Error{ErrorCode::kInternal, ""});
-      if (Status checked = api::CheckNewImageId(id); !checked) {
-        record = std::unexpected(checked.error());
-      } else if (auto f = extractor.ExtractFromFile(path, decode); !f) {
-        record = std::unexpected(f.error());
-      } else {
-        record = idx->Add(id, *f, {fs::absolute(path).string(), add->metadata, idx->extractor_settings()});
-      }
+      const auto add_one = [&]() -> Result<index::ImageRecord> {
+        // The ids the HTTP API takes, so that every image added here is reachable through it.
+        if (Status checked = api::CheckNewImageId(id); !checked) return std::unexpected(checked.error());
+        auto f = extractor.ExtractFromFile(path, decode);
+        if (!f) return std::unexpected(f.error());
+        return idx->Add(id, *f, {fs::absolute(path).string(), add->metadata, idx->extractor_settings()});
+      };
+      const Result<index::ImageRecord> record = add_one();
       if (!record) {
         std::fprintf(stderr, "oxbow: %s: %s\n", path.c_str(), record.error().ToString().c_str());
         if (errors++ == 0) exit_code = ExitCodeFor(record.error().code);

@@ -855,18 +855,10 @@ void HttpServer::AnswerRefusal(const RefusedRequest& refused, httplib::Response&
 
 namespace {
 
-// A form-encoded body no larger than the server's limit: the HTTP library answers 413 to such a body
-// over its own 8 KiB form limit.
-bool IsSmallFormBody(const httplib::Request& req, size_t max_body_bytes) {
-  if (req.get_header_value("Content-Type").rfind("application/x-www-form-urlencoded", 0) != 0) return false;
-  const std::string length = req.get_header_value("Content-Length");
-  if (length.empty()) return false;
-  size_t bytes = 0;
-  for (const char c : length) {
-    if (c < '0' || c > '9' || bytes > max_body_bytes) return false;
-    bytes = bytes * 10 + static_cast<size_t>(c - '0');
-  }
-  return bytes <= max_body_bytes;
+// A form-encoded body: the HTTP library reads at most 8 KiB of one and answers 413 beyond. A
+// Content-Length over the server's limit never reaches it (the request guard refuses it unread).
+bool IsFormEncoded(const httplib::Request& req) {
+  return req.get_header_value("Content-Type").rfind("application/x-www-form-urlencoded", 0) == 0;
 }
 
 // What the HTTP library could not read of a request it refused with `status` (the head was checked
@@ -908,7 +900,7 @@ void HttpServer::RegisterErrorHandlers() {
       } else {
         SendError(res, RouteNotFound(req.method, LoggablePath(req.path)));
       }
-    } else if (res.status == 413 && IsSmallFormBody(req, options_.max_body_bytes)) {
+    } else if (res.status == 413 && !ChunkedBodyOverLimit() && IsFormEncoded(req)) {
       // The HTTP library reads at most 8 KiB of a form-encoded body, which no route takes: say what they
       // take instead of naming a size limit the body is under.
       SendError(res, HttpError{415, "unsupported_format",
