@@ -323,7 +323,9 @@ TEST_F(ImageIndexTest, TransitiveVerificationOnlyChainsFromFirmResults) {
   EXPECT_EQ(band->results[0].id, "hub");
   EXPECT_TRUE(band->results[0].verified) << "the band spans min_inlier_spread: hub is verified";
   for (const auto& r : band->results) {
-    if (r.id == "far") EXPECT_FALSE(r.verified) << "far verified via '" << r.via << "'";
+    if (r.id == "far") {
+      EXPECT_FALSE(r.verified) << "far verified via '" << r.via << "'";
+    }
   }
   const auto area = index->Query(query_of(kArea), transitive);
   ASSERT_TRUE(area) << area.error().ToString();

@@ -150,6 +150,8 @@ TEST_F(JsonLogTest, AFailedStartEndsWithAJsonErrorLine) {
   const std::string log = server.Log();
   const auto lines = ParseLines(log);
   EXPECT_TRUE(HasMessage(lines, "error", "cannot open the index")) << log;
+  // Nobody sent a signal: the log does not say one was received.
+  EXPECT_EQ(log.find("received SIG"), std::string::npos) << log;
   ASSERT_FALSE(lines.empty());
   EXPECT_EQ(lines.back()["level"], "error") << log;
   EXPECT_EQ(lines.back()["message"].get<std::string>().rfind("oxbow: error: ", 0), 0u) << log;

@@ -2,6 +2,7 @@
 #include <pthread.h>
 #include <signal.h>
 
+#include <atomic>
 #include <cmath>
 #include <cstdio>
 #include <memory>
@@ -174,10 +175,11 @@ void Serve(const ServeFlags& flags) {
     server.SetService(std::move(shared));
   });
 
+  std::atomic<bool> stopped_itself{false};  // the server stopped without a signal (the index failed to load)
   std::thread signal_waiter([&] {
     int signal_number = 0;
     sigwait(&signals, &signal_number);
-    while (signal_number == SIGHUP) {
+    while (signal_number == SIGHUP && !stopped_itself) {
       std::shared_ptr<api::Collections> set;
       {
         std::lock_guard<std::mutex> lock(collections_mutex);
@@ -194,6 +196,7 @@ void Serve(const ServeFlags& flags) {
       }
       sigwait(&signals, &signal_number);
     }
+    if (stopped_itself) return;
     OXBOW_LOG(kInfo) << "received " << (signal_number == SIGINT ? "SIGINT" : "SIGTERM")
                      << ": no new connections, finishing in-flight requests (extractions still running after "
                      << flags.shutdown_grace_s << " s are stopped)";
@@ -205,6 +208,7 @@ void Serve(const ServeFlags& flags) {
   if (shard) shard->Shutdown();
   // Wake the signal thread if the server stopped for another reason (index failed to load).
   // The waiter blocks SIGTERM and consumes it in sigwait(): this wakes it, it does not terminate anything.
+  stopped_itself = true;
   pthread_kill(signal_waiter.native_handle(), SIGTERM);  // NOLINT(bugprone-bad-signal-to-kill-thread)
   signal_waiter.join();
   if (load_error) throw CommandError(*load_error);
