@@ -219,6 +219,12 @@ TEST(DecodeImage, RefusesDeclaredOversizeBeforeAllocating) {
   ASSERT_FALSE(limited);
   EXPECT_EQ(limited.error().code, ErrorCode::kImageTooLarge);
 
+  // A PNG strip within the pixel limit but taller than libpng reads is too large, not corrupt.
+  auto strip = DecodeImage(PngHeaderOnly(2, 1000001));
+  ASSERT_FALSE(strip);
+  EXPECT_EQ(strip.error().code, ErrorCode::kImageTooLarge) << strip.error().ToString();
+  EXPECT_NE(strip.error().message.find("2x1000001"), std::string::npos) << strip.error().message;
+
   DecodeOptions few_bytes;
   few_bytes.max_bytes = 100;
   auto too_many_bytes = DecodeImage(Encode(TestCard(), ".png"), few_bytes);
