@@ -258,13 +258,14 @@ Status CheckComplete(std::span<const uint8_t> b, const ImageHeaderInfo& info, si
 
 // Over the pixel limit: refused before any pixel is allocated.
 Status CheckPixelLimit(ImageFormat format, uint64_t width, uint64_t height, const DecodeOptions& options) {
-  // libpng refuses a side over 1,000,000 pixels (its default limit, in the decoder here and in OpenCV's,
-  // which makes thumbnails): such a strip is refused as too large, not reported as corrupt data.
-  constexpr uint64_t kPngMaxSide = 1000000;
-  if (format == ImageFormat::kPng && std::max(width, height) > kPngMaxSide) {
-    return Fail(ErrorCode::kImageTooLarge, "PNG header declares " + std::to_string(width) + "x" + std::to_string(height) +
-                                               " pixels: a side over " + std::to_string(kPngMaxSide) +
-                                               " pixels, the most libpng reads");
+  // The decoders' own limits on a side: libpng's 1,000,000 pixels (in the decoder here and in OpenCV's,
+  // which also makes thumbnails) and OpenCV's 2^20 (CV_IO_MAX_IMAGE_WIDTH / HEIGHT, an assertion inside
+  // it). A strip within the pixel limit but longer is refused as too large, not reported as corrupt data.
+  const uint64_t max_side = format == ImageFormat::kPng ? 1000000 : uint64_t{1} << 20;
+  if (std::max(width, height) > max_side) {
+    return Fail(ErrorCode::kImageTooLarge, std::string(ImageFormatName(format)) + " header declares " +
+                                               std::to_string(width) + "x" + std::to_string(height) + " pixels: a side over " +
+                                               std::to_string(max_side) + " pixels, the most its decoder reads");
   }
   if (width <= (uint64_t{1} << 31) && height <= (uint64_t{1} << 31) && width * height <= options.max_pixels) return Ok();
   return Fail(ErrorCode::kImageTooLarge, std::string(ImageFormatName(format)) + " header declares " + std::to_string(width) +

@@ -224,6 +224,18 @@ TEST(DecodeImage, RefusesDeclaredOversizeBeforeAllocating) {
   ASSERT_FALSE(strip);
   EXPECT_EQ(strip.error().code, ErrorCode::kImageTooLarge) << strip.error().ToString();
   EXPECT_NE(strip.error().message.find("2x1000001"), std::string::npos) << strip.error().message;
+  // The same for a side over OpenCV's 2^20 (a BMP, which OpenCV decodes): an assertion inside it otherwise.
+  std::vector<uint8_t> bmp = {'B', 'M'};
+  const uint32_t rows = 1100000, row_bytes = 4;  // 1 x 1,100,000, 24 bits, rows padded to 4 bytes
+  auto put32 = [&](uint32_t x) { for (int i = 0; i < 4; ++i) bmp.push_back(static_cast<uint8_t>(x >> (8 * i))); };
+  auto put16 = [&](uint16_t x) { for (int i = 0; i < 2; ++i) bmp.push_back(static_cast<uint8_t>(x >> (8 * i))); };
+  put32(54 + rows * row_bytes), put32(0), put32(54);
+  put32(40), put32(1), put32(rows), put16(1), put16(24), put32(0), put32(rows * row_bytes), put32(2835), put32(2835), put32(0), put32(0);
+  bmp.resize(54 + size_t{rows} * row_bytes, 0);
+  auto long_bmp = DecodeImage(bmp);
+  ASSERT_FALSE(long_bmp);
+  EXPECT_EQ(long_bmp.error().code, ErrorCode::kImageTooLarge) << long_bmp.error().ToString();
+  EXPECT_NE(long_bmp.error().message.find("1x1100000"), std::string::npos) << long_bmp.error().message;
 
   DecodeOptions few_bytes;
   few_bytes.max_bytes = 100;
