@@ -720,6 +720,18 @@ TEST_F(Cluster, HttpFrontWritesOnEveryReplicaOfTheOwnerPartition) {
   auto raw = front->Client().Post("/v1/images?id=" + IdIn(1, "raw-"), image, "application/x-www-form-urlencoded");
   ASSERT_TRUE(raw);
   EXPECT_EQ(raw->status, 201) << raw->body;
+  // Location names an id with '?', '#' and a space in a form that reaches it, as on a single node.
+  const std::string odd = IdIn(2, "odd?v=2#a b-");
+  const std::string odd_encoded = "odd%3Fv%3D2%23a%20b-" + odd.substr(std::string("odd?v=2#a b-").size());
+  const std::string location = testing::RawResponseHeader(
+      front->port(),
+      "POST /v1/images?id=" + odd_encoded + " HTTP/1.1\r\nHost: localhost\r\nContent-Type: image/png\r\n"
+      "Content-Length: " + std::to_string(image.size()) + "\r\nConnection: close\r\n\r\n" + image,
+      "Location");
+  EXPECT_EQ(location, "/v1/images/" + odd_encoded);
+  const auto [odd_status, odd_record] = GetJson(*front, location);
+  EXPECT_EQ(odd_status, 200) << odd_record.dump();
+  EXPECT_EQ(odd_record["id"], odd) << odd_record.dump();
 
   // A front with an API key asks for it on writes, as a single node: 401 without, 403 with another.
   const auto keyed = StartFront(partitions, {"--api-key", "cluster-key"});

@@ -166,10 +166,19 @@ TEST_F(HttpServerTest, ImagesLifecycle) {
   EXPECT_EQ(record["width"], 751);
   EXPECT_EQ(record["source"], "http:leuvenA.jpg");
 
-  ASSERT_EQ(StatusOf(client.Post("/v1/images?id=a%20b%2Fc", box_, "image/png")), 201);  // ids may hold spaces and '/'
-  auto odd = client.Get("/v1/images/a%20b%2Fc");
+  // Ids may hold spaces, '/', '?', '#' and any UTF-8; Location names the image in a form that reaches it.
+  EXPECT_EQ(added->get_header_value("Location"), "/v1/images/scene");
+  const std::string odd_id = "a b/c?v=2#\u00fc";
+  const std::string location = oxbow::testing::RawResponseHeader(
+      server->port(),
+      "POST /v1/images?id=a%20b%2Fc%3Fv%3D2%23%C3%BC HTTP/1.1\r\nHost: localhost\r\nContent-Type: image/png\r\n"
+      "Content-Length: " + std::to_string(box_.size()) + "\r\nConnection: close\r\n\r\n" + box_,
+      "Location");
+  EXPECT_EQ(location, "/v1/images/a%20b%2Fc%3Fv%3D2%23%C3%BC");
+  auto odd = client.Get(location);
   ASSERT_TRUE(odd);
   EXPECT_EQ(odd->status, 200) << odd->body;
+  EXPECT_EQ(json::parse(odd->body)["id"], odd_id) << odd->body;
 
   auto list = client.Get("/v1/images?offset=1&limit=2");
   ASSERT_TRUE(list);
@@ -177,7 +186,7 @@ TEST_F(HttpServerTest, ImagesLifecycle) {
   auto page = json::parse(list->body);
   EXPECT_EQ(page["total"], 3);
   ASSERT_EQ(page["images"].size(), 2u);
-  EXPECT_EQ(page["images"][0]["id"], "leuven");  // ordered by id: "a b/c", "leuven", "scene"
+  EXPECT_EQ(page["images"][0]["id"], "leuven");  // ordered by id: "a b/c?v=2#\u00fc", "leuven", "scene"
   ExpectErrorShape(client.Get("/v1/images?limit=0"), 400, "invalid_argument");
   ExpectErrorShape(client.Get("/v1/images?limit=abc"), 400, "invalid_argument");
 
@@ -601,6 +610,15 @@ TEST_F(HttpServerTest, ThumbnailsStoredAtAddSurviveRestartAndGoWithDelete) {
     auto cached = client.Get("/v1/images/scene/thumbnail", {{"If-None-Match", etag_before}});
     ASSERT_TRUE(cached);
     EXPECT_EQ(cached->status, 304);
+    // If-None-Match as caches and proxies send it: weak tags, lists, "*" (RFC 9110 weak comparison).
+    for (const std::string& sent : {"W/" + etag_before, "\"other\", " + etag_before, std::string("*")}) {
+      auto revalidated = client.Get("/v1/images/scene/thumbnail", {{"If-None-Match", sent}});
+      ASSERT_TRUE(revalidated);
+      EXPECT_EQ(revalidated->status, 304) << sent;
+    }
+    auto stale = client.Get("/v1/images/scene/thumbnail", {{"If-None-Match", "\"other\", W/\"another\""}});
+    ASSERT_TRUE(stale);
+    EXPECT_EQ(stale->status, 200);
     auto over = client.Get("/v1/images/scene/thumbnail?size=1000");  // larger than stored: the stored one
     ASSERT_TRUE(over);
     EXPECT_EQ(JpegSize(over->body), std::make_pair(512, 384));

@@ -14,6 +14,7 @@ without one, the tests fail rather than skip.
 
 from __future__ import annotations
 
+import http.client
 import io
 import os
 import pathlib
@@ -22,6 +23,7 @@ import secrets
 import socket
 import sys
 import tempfile
+import threading
 import unittest
 from typing import Any
 
@@ -715,6 +717,79 @@ class ErrorMappingTest(unittest.TestCase):
         self.assertNotIsInstance(error, ox.UnavailableError)
         self.assertEqual((error.code, error.message, error.request_id), (None, "<html>Bad Gateway</html>", "r2"))
         self.assertIsInstance(ox._error_from_response(418, {}, b""), ox.ClientError)
+
+
+class StubServer:
+    """A server on 127.0.0.1 that reads one request, writes `answer` (bytes as given, however malformed) and
+    closes the connection: the answers of a broken connection, a proxy or a captive portal."""
+
+    def __init__(self, answer: bytes) -> None:
+        self.answer = answer
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.listener.settimeout(10)  # never blocks the tests for longer when no request comes
+        self.url = f"http://127.0.0.1:{self.listener.getsockname()[1]}"
+        self.thread = threading.Thread(target=self._serve_one, daemon=True)
+
+    def __enter__(self) -> StubServer:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc_info: Any) -> None:
+        self.thread.join(10)
+        self.listener.close()
+
+    def _serve_one(self) -> None:
+        try:
+            connection, _ = self.listener.accept()
+        except OSError:
+            return
+        with connection:
+            connection.settimeout(10)
+            request = b""
+            while b"\r\n\r\n" not in request:  # the client's requests here are GETs: no body
+                chunk = connection.recv(4096)
+                if not chunk:
+                    return
+                request += chunk
+            connection.sendall(self.answer)
+            connection.shutdown(socket.SHUT_WR)
+
+
+class BrokenAnswerTest(unittest.TestCase):
+    """Answers that are not a whole HTTP answer, or not JSON: OxbowError like every failure."""
+
+    def fetch_stats(self, answer: bytes) -> ox.OxbowError:
+        with StubServer(answer) as server:
+            with self.assertRaises(ox.OxbowError) as e:
+                ox.Client(server.url, timeout=5).stats()
+        self.assertIsInstance(e.exception, ox.OxbowError)
+        return e.exception
+
+    def test_a_body_cut_short_is_a_transport_error(self):
+        for status in (b"200 OK", b"502 Bad Gateway"):  # the answer's body, or the body of an error answer
+            with self.subTest(status=status):
+                error = self.fetch_stats(b"HTTP/1.1 " + status + b"\r\nContent-Type: application/json\r\n"
+                                         b"Content-Length: 100\r\n\r\n" + b'{"images":1')
+                self.assertIsInstance(error, ox.TransportError)
+                self.assertNotIsInstance(error, ox.ClientTimeoutError)
+                self.assertIsNone(error.status)
+                self.assertIn("mid-response", error.message)
+                self.assertIsInstance(error.__cause__, http.client.IncompleteRead)
+
+    def test_a_garbage_status_line_is_a_transport_error(self):
+        error = self.fetch_stats(b"SSH-2.0-OpenSSH_9.2\r\n\r\n")
+        self.assertIsInstance(error, ox.TransportError)
+        self.assertIsNone(error.status)
+        self.assertIsInstance(error.__cause__, http.client.BadStatusLine)
+
+    def test_a_2xx_body_that_is_not_json_is_a_server_error(self):
+        page = b"<html><body>Sign in to the network</body></html>"
+        error = self.fetch_stats(b"HTTP/1.1 200 OK\r\nContent-Type: text/html\r\nX-Request-Id: proxy-7\r\n"
+                                 b"Content-Length: " + str(len(page)).encode() + b"\r\n\r\n" + page)
+        self.assertIsInstance(error, ox.ServerError)
+        self.assertEqual((error.status, error.code, error.request_id), (200, None, "proxy-7"))
+        self.assertIn("not JSON", error.message)
+        self.assertIn("Sign in to the network", error.message)
 
 
 if __name__ == "__main__":

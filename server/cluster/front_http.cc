@@ -216,7 +216,7 @@ class FrontHttpServer::Impl {
     server::RecordStages(res, {{"decode_extract", added->decode_extract_ms}, {"add", added->add_ms}});
     const std::string prefix =
         req.path.starts_with("/v1/collections/") ? "/v1/collections/" + c.front->collection() : std::string("/v1");
-    res.set_header("Location", prefix + "/images/" + added->record.id);
+    res.set_header("Location", server::ImageLocation(prefix, added->record.id));
     SendJsonAnswer(res, added->replaced ? 200 : 201, api::AddImageResponseToJson(*added));
   }
 

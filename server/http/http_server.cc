@@ -120,6 +120,25 @@ httplib::Server::HandlerResponse AnswerRequestTimeout(httplib::Response& res, bo
 }  // namespace
 
 // W3C Server Timing.
+std::string ImageLocation(std::string_view prefix, std::string_view id) {
+  static constexpr char kHex[] = "0123456789ABCDEF";
+  std::string location(prefix);
+  location += "/images/";
+  for (const char c : id) {
+    const auto b = static_cast<unsigned char>(c);
+    const bool unreserved = (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || (c >= '0' && c <= '9') || c == '-' ||
+                            c == '.' || c == '_' || c == '~';
+    if (unreserved) {
+      location += c;
+    } else {
+      location += '%';
+      location += kHex[b >> 4];
+      location += kHex[b & 15];
+    }
+  }
+  return location;
+}
+
 void RecordStages(httplib::Response& res, const std::vector<std::pair<const char*, double>>& stages) {
   std::string header;
   for (const auto& [name, ms] : stages) {
@@ -171,13 +190,35 @@ Result<std::string_view> RequestImage(const httplib::Request& req, const std::st
 
 namespace {
 
+// Whether the request's If-None-Match fields name `etag`: "*", or a comma-separated list of entity tags
+// compared weakly (RFC 9110 sec. 13.1.2: W/"x" matches "x"), as caches and proxies send them.
+bool IfNoneMatchNames(const httplib::Request& req, std::string_view etag) {
+  const size_t fields = req.get_header_value_count("If-None-Match");
+  for (size_t f = 0; f < fields; ++f) {
+    const std::string value = req.get_header_value("If-None-Match", f);
+    size_t pos = 0;
+    while (pos <= value.size()) {
+      size_t end = value.find(',', pos);
+      if (end == std::string::npos) end = value.size();
+      std::string_view tag = std::string_view(value).substr(pos, end - pos);
+      while (!tag.empty() && (tag.front() == ' ' || tag.front() == '\t')) tag.remove_prefix(1);
+      while (!tag.empty() && (tag.back() == ' ' || tag.back() == '\t')) tag.remove_suffix(1);
+      if (tag == "*") return true;
+      if (tag.starts_with("W/")) tag.remove_prefix(2);
+      if (!tag.empty() && tag == etag) return true;
+      pos = end + 1;
+    }
+  }
+  return false;
+}
+
 // Bytes with a strong ETag: 304 without a body when the client already holds them (If-None-Match).
 void SendCacheable(const httplib::Request& req, httplib::Response& res, std::string_view content,
                    const std::string& content_type, const std::string& etag, const char* cache_control) {
   res.set_header("ETag", etag);
   res.set_header("Cache-Control", cache_control);
   res.set_header("X-Content-Type-Options", "nosniff");
-  if (req.get_header_value("If-None-Match") == etag) {
+  if (IfNoneMatchNames(req, etag)) {
     res.status = 304;
     return;
   }
@@ -403,7 +444,7 @@ void PostImage(api::Service& s, const httplib::Request& req, httplib::Response& 
   auto added = s.AddImage(add);
   if (!added) return SendError(res, added.error());
   RecordStages(res, {{"decode_extract", added->decode_extract_ms}, {"add", added->add_ms}});
-  res.set_header("Location", RoutePrefixOf(req.path) + "/images/" + added->record.id);
+  res.set_header("Location", ImageLocation(RoutePrefixOf(req.path), added->record.id));
   SendJson(res, added->replaced ? 200 : 201, api::AddImageResponseToJson(*added));
 }
 

@@ -241,6 +241,10 @@ struct ImagePath {
   std::string sub;
 };
 ImagePath ImagePathOf(const httplib::Request& req);
+// The Location of an added image: `prefix` + "/images/" + the id with every byte but RFC 3986's unreserved
+// ones percent-encoded (a '/', '?', '#', space or non-ASCII byte of the id stays part of it), the path
+// ImagePathOf reads back as that id.
+std::string ImageLocation(std::string_view prefix, std::string_view id);
 // GET .../thumbnail's `size` parameter: [api::kMinThumbnailPx, api::kMaxThumbnailPx], default 256.
 Result<int> ThumbnailSizeParam(const httplib::Request& req);
 // A JPEG thumbnail with a strong ETag (304 when the client holds it).

@@ -109,6 +109,22 @@ inline bool ReadUntil(int fd, const std::string& end, std::string* text,
   return true;
 }
 
+// The value of response header `name` exactly as the server wrote it (httplib's client decodes some
+// header values), for `request` sent whole to 127.0.0.1:port; empty when absent or on no answer.
+inline std::string RawResponseHeader(int port, const std::string& request, const std::string& name) {
+  const int fd = ConnectTo(port);
+  if (fd < 0) return "";
+  std::string answer;
+  const bool read = SendAll(fd, request) && ReadUntil(fd, "\r\n\r\n", &answer);
+  close(fd);
+  if (!read) return "";
+  const std::string key = "\r\n" + name + ": ";
+  const size_t at = answer.find(key);
+  if (at == std::string::npos || at > answer.find("\r\n\r\n")) return "";
+  const size_t begin = at + key.size();
+  return answer.substr(begin, answer.find("\r\n", begin) - begin);
+}
+
 // The interim response a server sends to `Expect: 100-continue` once a worker has read the headers.
 inline constexpr const char* kContinue = "HTTP/1.1 100 Continue\r\n\r\n";
 

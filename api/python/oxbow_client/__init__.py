@@ -22,7 +22,9 @@ their keys; `Client.collection(name)` has the image and search methods of Client
 Client's own image and search methods act on the collection named "default".
 
 Every method returns the server's JSON answer as a dict (fields: server/README.md), or raises an
-OxbowError subclass that carries the server's error code, message, HTTP status and request id.
+OxbowError subclass that carries the server's error code, message, HTTP status and request id: no answer
+or a broken one (unreachable, connection broken, not HTTP) raises TransportError, and a 2xx answer whose
+body is not JSON (a proxy's or captive portal's page) ServerError.
 Images are given as bytes, a path (str or os.PathLike) or a binary file object. A Client holds no
 connection between calls, so one may be shared by threads; so may a Collection.
 """
@@ -30,6 +32,7 @@ connection between calls, so one may be shared by threads; so may a Collection.
 from __future__ import annotations
 
 import dataclasses
+import http.client
 import json
 import mimetypes
 import os
@@ -88,7 +91,8 @@ class OxbowError(Exception):
 
 
 class TransportError(OxbowError):
-    """No HTTP answer: the server could not be reached, or the connection broke."""
+    """No whole HTTP answer: the server could not be reached, the connection broke (before or in the middle
+    of the answer), or what came back is not HTTP. The original exception is its __cause__."""
 
 
 class ClientTimeoutError(TransportError):
@@ -137,7 +141,8 @@ class UnsupportedMediaTypeError(ClientError):
 
 
 class ServerError(OxbowError):
-    """A 5xx answer."""
+    """A 5xx answer, or a 2xx answer whose body is not JSON (a proxy's or captive portal's page: code None,
+    status the 2xx one)."""
 
 
 class UnavailableError(ServerError):
@@ -274,11 +279,20 @@ class _ImageRoutes:
                  multipart: tuple[Fields, Files] | None = None, json_body: Any = None,
                  raw: bool = False) -> Any:
         """The answer to one request: its JSON object, or its body (raw=True); OxbowError if it failed."""
-        body = self._send(method, path, query, multipart, json_body)
-        return body if raw else json.loads(body)
+        status, headers, body = self._send(method, path, query, multipart, json_body)
+        if raw:
+            return body
+        try:
+            return json.loads(body)
+        except ValueError as e:  # JSONDecodeError, or UnicodeDecodeError: not oxbow's answer (a proxy's page?)
+            text = body[:200].decode("utf-8", "replace").strip()
+            raise ServerError(f"{method} {path}: the HTTP {status} answer is not JSON "
+                              f"({headers.get('Content-Type') or 'no Content-Type'}): {text}",
+                              status=status, request_id=headers.get("X-Request-Id")) from e
 
     def _send(self, method: str, path: str, query: Mapping[str, Any] | None, multipart: tuple[Fields, Files] | None,
-              json_body: Any) -> bytes:
+              json_body: Any) -> tuple[int, Message, bytes]:
+        """The status, headers and body of a 2xx answer; OxbowError for any other answer, or none."""
         raise NotImplementedError
 
     def stats(self) -> JSONObject:
@@ -288,8 +302,12 @@ class _ImageRoutes:
     # -- images
 
     def add(self, id: str, image: Image, *, metadata: Any = None, replace: bool = False) -> JSONObject:
-        """POST /v1/images: indexes `image` under `id`, with optional JSON `metadata` (a dict, list, ...).
+        """POST /v1/images: indexes `image` under `id`, with optional `metadata`.
 
+        metadata: any JSON value, given as the Python object that json.dumps writes (a dict, list, str,
+          number or bool), e.g. {"city": "Paris"}. It is always sent as JSON, so a str is stored as a JSON
+          string: metadata='{"city":"Paris"}' stores that text, not an object, and search filters on "city"
+          never match it. For metadata held as JSON text, pass json.loads(text).
         An existing id raises ConflictError unless replace=True; a collection at its limits raises
         CollectionFullError. Returns the stored record with "replaced" and "timings_ms".
         """
@@ -305,7 +323,8 @@ class _ImageRoutes:
         """Adds several images; never raises for one image's failure.
 
         items: (id, image) or (id, image, metadata) tuples, or mappings with keys id, image and
-          optionally metadata.
+          optionally metadata. metadata as add(): any JSON value as a Python object (a str is stored as a
+          JSON string; for JSON text, pass json.loads(text)).
         Returns one AddResult per item, in order: the stored record (as get() returns it), or the
         OxbowError of that image. Every image whose AddResult is ok is acknowledged, hence durable.
 
@@ -585,7 +604,7 @@ class Client(_ImageRoutes):
     # -- transport
 
     def _send(self, method: str, path: str, query: Mapping[str, Any] | None, multipart: tuple[Fields, Files] | None,
-              json_body: Any) -> bytes:
+              json_body: Any) -> tuple[int, Message, bytes]:
         url = self.url + path
         if query:
             url += "?" + urllib.parse.urlencode({k: _field_value(v) for k, v in query.items()})
@@ -599,20 +618,30 @@ class Client(_ImageRoutes):
             data, headers["Content-Type"] = json.dumps(json_body).encode(), "application/json"
         request = urllib.request.Request(url, data=data, headers=headers, method=method)
         try:
-            with urllib.request.urlopen(request, timeout=self.timeout) as response:
-                body: bytes = response.read()
-        except urllib.error.HTTPError as e:
-            with e:
-                raise _error_from_response(e.code, e.headers, e.read()) from None
+            try:
+                with urllib.request.urlopen(request, timeout=self.timeout) as response:
+                    return response.status, response.headers, response.read()
+            except urllib.error.HTTPError as e:
+                # A 4xx or 5xx answer. Its body is read here, inside the outer try: a body cut short or a
+                # timeout while reading it is a TransportError or ClientTimeoutError like a 2xx answer's.
+                with e:
+                    error = _error_from_response(e.code, e.headers, e.read())
+                raise error from None
         except (TimeoutError, socket.timeout) as e:
             raise ClientTimeoutError(f"{method} {path}: no answer within {self.timeout} s") from e
         except urllib.error.URLError as e:
             if isinstance(e.reason, (TimeoutError, socket.timeout)):
                 raise ClientTimeoutError(f"{method} {path}: no answer within {self.timeout} s") from e
             raise TransportError(f"{method} {path}: cannot reach {self.url}: {e.reason}") from e
+        except http.client.IncompleteRead as e:
+            expected = f", {e.expected} more expected" if e.expected is not None else ""
+            raise TransportError(f"{method} {path}: the connection to {self.url} broke mid-response "
+                                 f"({len(e.partial)} bytes read{expected})") from e
         except OSError as e:  # http.client.RemoteDisconnected, ConnectionResetError, ...
             raise TransportError(f"{method} {path}: connection to {self.url} failed: {e}") from e
-        return body
+        except http.client.HTTPException as e:  # BadStatusLine, LineTooLong, ...: what came back is not HTTP
+            raise TransportError(f"{method} {path}: the answer from {self.url} is not valid HTTP "
+                                 f"({type(e).__name__}: {str(e).strip()[:200]})") from e
 
 
 class Collection(_ImageRoutes):
@@ -635,7 +664,7 @@ class Collection(_ImageRoutes):
         return f"Collection({self.name!r} at {self.client.url})"
 
     def _send(self, method: str, path: str, query: Mapping[str, Any] | None, multipart: tuple[Fields, Files] | None,
-              json_body: Any) -> bytes:
+              json_body: Any) -> tuple[int, Message, bytes]:
         return self.client._send(method, path, query, multipart, json_body)
 
 
