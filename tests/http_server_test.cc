@@ -283,6 +283,13 @@ TEST_F(HttpServerTest, ErrorStatusesAndLimits) {
   auto wrong = client.Put("/v1/search", box_, "image/png");
   ExpectErrorShape(wrong, 405, "method_not_allowed");
   EXPECT_EQ(wrong->get_header_value("Allow"), "POST");
+  auto wrong_on_read = client.Delete("/v1/stats");
+  ExpectErrorShape(wrong_on_read, 405, "method_not_allowed");
+  EXPECT_EQ(wrong_on_read->get_header_value("Allow"), "GET, HEAD");  // HEAD is answered wherever GET is
+  auto head = client.Head("/v1/stats");
+  ASSERT_TRUE(head);
+  EXPECT_EQ(head->status, 200);
+  EXPECT_TRUE(head->body.empty());
   ExpectErrorShape(client.Delete("/v1/images"), 405, "method_not_allowed");
 
   // Corrupt, truncated, empty and non-image bodies.

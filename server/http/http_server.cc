@@ -936,8 +936,10 @@ void HttpServer::RegisterErrorHandlers() {
     if (ChunkedBodyOverLimit()) res.status = 413;
     if (res.status == 404) {
       if (const auto* route = routes_->Find(req.path)) {
-        res.set_header("Allow", route->methods);
-        SendError(res, MethodNotAllowed(req.method, req.path, route->methods));
+        // HEAD is answered wherever GET is (as GET without a body): Allow says so too.
+        const std::string allowed = route->methods.find("GET") != std::string::npos ? route->methods + ", HEAD" : route->methods;
+        res.set_header("Allow", allowed);
+        SendError(res, MethodNotAllowed(req.method, req.path, allowed));
       } else {
         SendError(res, RouteNotFound(req.method, LoggablePath(req.path)));
       }

@@ -408,7 +408,8 @@ class _ImageRoutes:
         """POST /v1/admin/backup (a Collection: /v1/collections/{name}/backup): copies the index into the
         new folder `out`, an absolute path on the server's machine, while the server keeps serving; restore
         by serving that folder. Needs the admin key (the server refuses the route without one). {"out",
-        "images", "generation", "bytes", "attempts"}; ConflictError when `out` exists and is not empty."""
+        "images", "generation", "bytes", "attempts"}; ConflictError when `out` exists and is not empty (or
+        a previous copy's OUT.tmp is left), NotFoundError when its parent folder does not exist."""
         return self._request("POST", self._backup_path, multipart=({"out": out}, {}))
 
     # -- search
