@@ -179,7 +179,7 @@ void Serve(const ServeFlags& flags) {
   std::thread signal_waiter([&] {
     int signal_number = 0;
     sigwait(&signals, &signal_number);
-    while (signal_number == SIGHUP && !stopped_itself) {
+    while (signal_number == SIGHUP) {
       std::shared_ptr<api::Collections> set;
       {
         std::lock_guard<std::mutex> lock(collections_mutex);

@@ -119,7 +119,6 @@ httplib::Server::HandlerResponse AnswerRequestTimeout(httplib::Response& res, bo
 
 }  // namespace
 
-// W3C Server Timing.
 std::string ImageLocation(std::string_view prefix, std::string_view id) {
   static constexpr char kHex[] = "0123456789ABCDEF";
   std::string location(prefix);
@@ -139,6 +138,7 @@ std::string ImageLocation(std::string_view prefix, std::string_view id) {
   return location;
 }
 
+// W3C Server Timing.
 void RecordStages(httplib::Response& res, const std::vector<std::pair<const char*, double>>& stages) {
   std::string header;
   for (const auto& [name, ms] : stages) {
