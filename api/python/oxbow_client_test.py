@@ -720,15 +720,16 @@ class ErrorMappingTest(unittest.TestCase):
 
 
 class StubServer:
-    """A server on 127.0.0.1 that reads one request, writes `answer` (bytes as given, however malformed) and
-    closes the connection: the answers of a broken connection, a proxy or a captive portal."""
+    """A server on 127.0.0.1 that answers its first requests, one per connection, with `answers` (bytes as
+    given, however malformed), closing each connection: the answers of a broken connection, a proxy, a
+    captive portal or another service."""
 
-    def __init__(self, answer: bytes) -> None:
-        self.answer = answer
+    def __init__(self, *answers: bytes) -> None:
+        self.answers = answers
         self.listener = socket.create_server(("127.0.0.1", 0))
         self.listener.settimeout(10)  # never blocks the tests for longer when no request comes
         self.url = f"http://127.0.0.1:{self.listener.getsockname()[1]}"
-        self.thread = threading.Thread(target=self._serve_one, daemon=True)
+        self.thread = threading.Thread(target=self._serve, daemon=True)
 
     def __enter__(self) -> StubServer:
         self.thread.start()
@@ -738,21 +739,41 @@ class StubServer:
         self.thread.join(10)
         self.listener.close()
 
-    def _serve_one(self) -> None:
-        try:
-            connection, _ = self.listener.accept()
-        except OSError:
-            return
-        with connection:
-            connection.settimeout(10)
-            request = b""
-            while b"\r\n\r\n" not in request:  # the client's requests here are GETs: no body
-                chunk = connection.recv(4096)
-                if not chunk:
+    def _serve(self) -> None:
+        for answer in self.answers:
+            try:
+                connection, _ = self.listener.accept()
+            except OSError:
+                return
+            with connection:
+                connection.settimeout(10)
+                if not self._read_request(connection):
                     return
-                request += chunk
-            connection.sendall(self.answer)
-            connection.shutdown(socket.SHUT_WR)
+                connection.sendall(answer)
+                connection.shutdown(socket.SHUT_WR)
+
+    @staticmethod
+    def _read_request(connection: socket.socket) -> bool:
+        """Reads the request's head and its Content-Length bytes of body; False if the client left."""
+        request = b""
+        while b"\r\n\r\n" not in request:
+            chunk = connection.recv(65536)
+            if not chunk:
+                return False
+            request += chunk
+        head, body = request.split(b"\r\n\r\n", 1)
+        length = re.search(rb"(?im)^content-length:\s*(\d+)", head)
+        remaining = (int(length.group(1)) if length else 0) - len(body)
+        while remaining > 0:
+            chunk = connection.recv(65536)
+            if not chunk:
+                return False
+            remaining -= len(chunk)
+        return True
+
+
+def http_answer(status: str, content_type: str, body: bytes) -> bytes:
+    return (f"HTTP/1.1 {status}\r\nContent-Type: {content_type}\r\nContent-Length: {len(body)}\r\n\r\n").encode() + body
 
 
 class BrokenAnswerTest(unittest.TestCase):
@@ -790,6 +811,47 @@ class BrokenAnswerTest(unittest.TestCase):
         self.assertEqual((error.status, error.code, error.request_id), (200, None, "proxy-7"))
         self.assertIn("not JSON", error.message)
         self.assertIn("Sign in to the network", error.message)
+
+    def test_a_2xx_answer_that_is_json_but_not_an_object_is_a_server_error(self):
+        error = self.fetch_stats(http_answer("200 OK", "application/json", b'["images", 3]'))
+        self.assertIsInstance(error, ox.ServerError)
+        self.assertEqual(error.status, 200)
+        self.assertIn("not an object", error.message)
+
+    def test_an_answer_without_what_the_client_reads_is_a_server_error(self):
+        with StubServer(http_answer("200 OK", "application/json", b'{"items": []}')) as server:
+            with self.assertRaises(ox.ServerError) as e:
+                ox.Client(server.url, timeout=5).collections()
+        self.assertIn("has no 'collections'", e.exception.message)
+        with StubServer(http_answer("200 OK", "application/json", b'{"images": []}')) as server:
+            with self.assertRaises(ox.ServerError) as e:
+                list(ox.Client(server.url, timeout=5).iter_images())
+        self.assertIn("has no 'total'", e.exception.message)
+
+    def test_add_many_with_limits_or_results_not_oxbows(self):
+        image = b"\x89PNG not read by the stub"
+        limits_without_bytes = http_answer("200 OK", "application/json", b'{"limits": {"max_batch_images": 2}}')
+        with StubServer(limits_without_bytes) as server:
+            with self.assertRaises(ox.ServerError) as e:
+                ox.Client(server.url, timeout=5).add_many([("a", image)])
+        self.assertIn("'max_upload_bytes'", e.exception.message)
+        limits = http_answer("200 OK", "application/json",
+                             b'{"limits": {"max_batch_images": 4, "max_upload_bytes": 1000000}}')
+        for results in (b'{"results": [{"image": {"id": "a"}}]}',  # one result for two images
+                        b'{"results": [{"image": {"id": "a"}}, {"status": 400}]}'):  # no "error"
+            with self.subTest(results=results):
+                with StubServer(limits, http_answer("200 OK", "application/json", results)) as server:
+                    added = ox.Client(server.url, timeout=5).add_many([("a", image), ("b", image)])
+                self.assertEqual([r.id for r in added], ["a", "b"])
+                for r in added:  # nothing is known of either image
+                    self.assertFalse(r.ok)
+                    self.assertIsInstance(r.error, ox.ServerError)
+
+    def test_a_thumbnail_that_is_not_a_jpeg_is_a_server_error(self):
+        with StubServer(http_answer("200 OK", "text/html", b"<html>Sign in</html>")) as server:
+            with self.assertRaises(ox.ServerError) as e:
+                ox.Client(server.url, timeout=5).thumbnail("a")
+        self.assertIn("not a JPEG", e.exception.message)
 
 
 if __name__ == "__main__":

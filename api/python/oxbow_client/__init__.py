@@ -186,6 +186,13 @@ def _error_from_response(status: int, headers: Mapping[str, str] | Message, body
     return cls(message, **kwargs)
 
 
+def _check_members(value: Any, names: tuple[str, ...], what: str) -> None:
+    """ServerError unless `value` (a part of an answer that the client reads) is an object with `names`."""
+    if not isinstance(value, dict) or any(name not in value for name in names):
+        raise ServerError(f"{what} is not what oxbow answers: expected an object with "
+                          + ", ".join(repr(name) for name in names) + f", got {json.dumps(value)[:200]}")
+
+
 # ---- Request bodies ----------------------------------------------------------------------------------
 
 def _image_bytes(image: Image) -> tuple[bytes, str]:
@@ -268,27 +275,38 @@ class _ImageRoutes:
     @overload
     def _request(self, method: str, path: str, *, query: Mapping[str, Any] | None = None,
                  multipart: tuple[Fields, Files] | None = None, json_body: Any = None,
-                 raw: Literal[False] = False) -> JSONObject: ...
+                 raw: Literal[False] = False, expect: tuple[str, ...] = ()) -> JSONObject: ...
 
     @overload
     def _request(self, method: str, path: str, *, query: Mapping[str, Any] | None = None,
                  multipart: tuple[Fields, Files] | None = None, json_body: Any = None,
-                 raw: Literal[True]) -> bytes: ...
+                 raw: Literal[True], expect: tuple[str, ...] = ()) -> bytes: ...
 
     def _request(self, method: str, path: str, *, query: Mapping[str, Any] | None = None,
                  multipart: tuple[Fields, Files] | None = None, json_body: Any = None,
-                 raw: bool = False) -> Any:
-        """The answer to one request: its JSON object, or its body (raw=True); OxbowError if it failed."""
+                 raw: bool = False, expect: tuple[str, ...] = ()) -> Any:
+        """The answer to one request: its JSON object, or its body (raw=True); OxbowError if it failed.
+        `expect`: members the object must have (the ones the caller reads), else ServerError."""
         status, headers, body = self._send(method, path, query, multipart, json_body)
         if raw:
             return body
-        try:
-            return json.loads(body)
-        except ValueError as e:  # JSONDecodeError, or UnicodeDecodeError: not oxbow's answer (a proxy's page?)
+
+        def not_oxbows(what: str) -> ServerError:  # a proxy's page, another service, another API version
             text = body[:200].decode("utf-8", "replace").strip()
-            raise ServerError(f"{method} {path}: the HTTP {status} answer is not JSON "
-                              f"({headers.get('Content-Type') or 'no Content-Type'}): {text}",
-                              status=status, request_id=headers.get("X-Request-Id")) from e
+            return ServerError(f"{method} {path}: the HTTP {status} answer {what} "
+                               f"({headers.get('Content-Type') or 'no Content-Type'}): {text}",
+                               status=status, request_id=headers.get("X-Request-Id"))
+
+        try:
+            answer = json.loads(body)
+        except ValueError as e:  # JSONDecodeError, or UnicodeDecodeError
+            raise not_oxbows("is not JSON") from e
+        if not isinstance(answer, dict):
+            raise not_oxbows("is JSON but not an object")
+        missing = [name for name in expect if name not in answer]
+        if missing:
+            raise not_oxbows("has no " + ", ".join(repr(name) for name in missing))
+        return answer
 
     def _send(self, method: str, path: str, query: Mapping[str, Any] | None, multipart: tuple[Fields, Files] | None,
               json_body: Any) -> tuple[int, Message, bytes]:
@@ -339,7 +357,9 @@ class _ImageRoutes:
             return self._add_one_by_one(normalized)
         if not normalized:
             return []
-        limits = self._request("GET", "/v1")["limits"]  # the server's, the same for every collection
+        # The server's limits, the same for every collection.
+        limits = self._request("GET", "/v1", expect=("limits",))["limits"]
+        _check_members(limits, ("max_batch_images", "max_upload_bytes"), "GET /v1's limits")
         results: list[AddResult] = []
         # Read lazily: one batch of images in memory at a time.
         for batch in _batches(((id, _image_bytes(image), metadata) for id, image, metadata in normalized),
@@ -362,9 +382,17 @@ class _ImageRoutes:
             fields += [("metadata", "" if metadata is None else json.dumps(metadata, separators=(",", ":")))
                        for _, _, metadata in batch]
         files = [("image", image) for _, image, _ in batch]
+        route = f"POST {self._prefix}/images/batch"
         try:
-            answer = self._request("POST", self._prefix + "/images/batch", multipart=(fields, files))
-        except OxbowError as e:
+            answer = self._request("POST", self._prefix + "/images/batch", multipart=(fields, files),
+                                   expect=("results",))
+            if not isinstance(answer["results"], list) or len(answer["results"]) != len(batch):
+                raise ServerError(f"{route}: the answer's results are not a list of one per image sent "
+                                  f"({len(batch)})")
+            for (id, _, _), result in zip(batch, answer["results"]):  # {"image"}, or {"status", "error"}
+                if not (isinstance(result, dict) and "image" in result):
+                    _check_members(result, ("status", "error"), f"{route}: the result for {id!r}")
+        except OxbowError as e:  # nothing known of any image of the batch
             return [AddResult(id, error=e) for id, _, _ in batch]
         results = []
         for (id, _, _), result in zip(batch, answer["results"]):
@@ -385,7 +413,8 @@ class _ImageRoutes:
 
     def list(self, offset: int = 0, limit: int = 100) -> JSONObject:
         """GET /v1/images: {"images": [...], "offset", "limit", "total"}, by id; limit 1..1000."""
-        return self._request("GET", self._prefix + "/images", query={"offset": offset, "limit": limit})
+        return self._request("GET", self._prefix + "/images", query={"offset": offset, "limit": limit},
+                             expect=("images", "total"))
 
     def iter_images(self, page_size: int = 1000) -> Iterator[JSONObject]:
         """Every image record, by id, fetched `page_size` (1..1000) at a time with list(). Images added or
@@ -402,7 +431,11 @@ class _ImageRoutes:
     def thumbnail(self, id: str, size: int | None = None) -> bytes:
         """GET /v1/images/{id}/thumbnail: JPEG bytes, longest side <= size (16..2048, default 256)."""
         query = {"size": size} if size is not None else {}
-        return self._request("GET", self._image_path(id) + "/thumbnail", query=query, raw=True)
+        path = self._image_path(id) + "/thumbnail"
+        body = self._request("GET", path, query=query, raw=True)
+        if not body.startswith(b"\xff\xd8\xff"):  # a JPEG's start of image and first marker
+            raise ServerError(f"GET {path}: the answer is not a JPEG image: {body[:200]!r}")
+        return body
 
     def backup(self, out: str) -> JSONObject:
         """POST /v1/admin/backup (a Collection: /v1/collections/{name}/backup): copies the index into the
@@ -443,7 +476,8 @@ class _ImageRoutes:
         of the collection as a background job; {"job", "collection", "state"}. options: candidates,
         mirrored, min_coverage, near_copy_coverage, threads (server/README.md "Duplicates"). Needs write
         access; ConflictError while one runs on the collection."""
-        return self._request("POST", self._prefix + "/duplicates", json_body=options if options else None)
+        return self._request("POST", self._prefix + "/duplicates", json_body=options if options else None,
+                             expect=("job",))
 
     def find_duplicates(self, *, poll_s: float = 0.5, timeout_s: float | None = None, **options: Any) -> JSONObject:
         """Starts a duplicate search (start_duplicates) and waits for it: the job's report ("pairs",
@@ -454,6 +488,7 @@ class _ImageRoutes:
         while True:
             status = self.job(job)
             if status["state"] == "done":
+                _check_members(status, ("result",), f"duplicate job {job}, done,")
                 return status["result"]
             if status["state"] != "running":
                 error = status.get("error", {})
@@ -467,7 +502,7 @@ class _ImageRoutes:
     def job(self, job: str) -> JSONObject:
         """GET /v1/jobs/{job}: {"job", "collection", "state", "done", "total", "elapsed_s"}, with
         "result" once done and "error" once failed."""
-        return self._request("GET", "/v1/jobs/" + urllib.parse.quote(job, safe=""))
+        return self._request("GET", "/v1/jobs/" + urllib.parse.quote(job, safe=""), expect=("state",))
 
     def cancel_job(self, job: str) -> JSONObject:
         """DELETE /v1/jobs/{job}: stops a running job (or forgets a finished one)."""
@@ -542,7 +577,7 @@ class Client(_ImageRoutes):
         ones), each a Collection object:
         {"name", "public", "images", "features", "disk_bytes", "vocabulary": {"words", "fingerprint",
         "descriptor", "hamming"}, "limits": {"max_images", "max_bytes"}}."""
-        collections: list[JSONObject] = self._request("GET", "/v1/collections")["collections"]
+        collections: list[JSONObject] = self._request("GET", "/v1/collections", expect=("collections",))["collections"]
         return collections
 
     def create_collection(self, name: str, vocabulary: str | None = None, *, like: str | None = None,
@@ -589,7 +624,7 @@ class Client(_ImageRoutes):
     def list_keys(self, name: str) -> list[JSONObject]:
         """GET /v1/collections/{name}/keys (admin key): its keys as [{"id", "access", "created"}, ...]
         (never the keys themselves)."""
-        keys: list[JSONObject] = self._request("GET", _collection_path(name) + "/keys")["keys"]
+        keys: list[JSONObject] = self._request("GET", _collection_path(name) + "/keys", expect=("keys",))["keys"]
         return keys
 
     def delete_key(self, name: str, key_id: str) -> JSONObject:
