@@ -59,18 +59,22 @@ def subcommands(text):
     return names
 
 
-def flags(text):
-    """Long flags of the option lines of a CLI11 help text (the name column, before the description).
+def name_columns(text):
+    """The name columns of the option lines of a CLI11 help text ("--top-k INT:INT in [1 - 10000]=20").
 
     An option line is indented by at most 8 spaces and starts with '-'; wrapped descriptions are indented
-    further, so they are not read as options."""
-    found = []
+    further, so they are not read as options. The column ends where two spaces separate it from the
+    description."""
     for line in text.splitlines():
         m = re.match(r"^\s{1,8}(-\S.*)$", line)
-        if not m:
-            continue
-        # The name column ends where two spaces separate it from the description.
-        column = re.split(r"\s{2,}", m.group(1), maxsplit=1)[0]
+        if m:
+            yield re.split(r"\s{2,}", m.group(1), maxsplit=1)[0]
+
+
+def flags(text):
+    """Long flags of the option lines of a CLI11 help text."""
+    found = []
+    for column in name_columns(text):
         for flag in HELP_FLAG_RE.findall(column):
             if flag not in IGNORED_FLAGS and flag not in found:
                 found.append(flag)
@@ -78,9 +82,9 @@ def flags(text):
 
 
 def command_tree(binary, words=()):
-    """[(words, flags)] for the command and, depth first, every subcommand under it."""
+    """[(words, flags, help text)] for the command and, depth first, every subcommand under it."""
     text = help_text(binary, list(words))
-    out = [(tuple(words), flags(text))]
+    out = [(tuple(words), flags(text), text)]
     for name in subcommands(text):
         out.extend(command_tree(binary, (*words, name)))
     return out
@@ -194,8 +198,13 @@ def check_cli(binary, reference_path):
     secs = sections(text)
     where = os.path.relpath(reference_path, os.path.dirname(os.path.dirname(reference_path)))
     problems = []
-    for words, command_flags in command_tree(binary):
+    for words, command_flags, help_output in command_tree(binary):
         name = " ".join(("oxbow", *words))
+        # CLI11 writes a negated flag's value after its name ("--qe,--no-qe{false}"), which reads as a
+        # default: the help formatter (server/cli/main.cc) leaves it out.
+        for column in name_columns(help_output):
+            if re.search(r"-[\w-]+\{", column):
+                problems.append(f"`{name} --help` shows a flag's value in its name: {column}")
         if not command_flags:  # a group of subcommands only (`oxbow index`): its subcommands are checked
             continue
         # The sections whose heading names exactly this command in backticks (`oxbow index build`).

@@ -4,6 +4,7 @@
 #include <cstdio>
 #include <exception>
 #include <malloc.h>
+#include <memory>
 #include <optional>
 #include <string>
 #include <vector>
@@ -39,6 +40,25 @@ void PrintError(const std::string& text) {
     std::fprintf(stderr, "%s\n", text.c_str());
   }
 }
+// CLI11's help formatter without the value a flag's negated name sets: "--qe, --no-qe" rather than
+// "--qe,--no-qe{false}", which reads as if the flag were off by default. The descriptions say which form
+// is the default.
+class HelpFormatter : public CLI::Formatter {
+ public:
+  std::string make_option_name(const CLI::Option* option, bool is_positional) const override {
+    std::string name = CLI::Formatter::make_option_name(option, is_positional);
+    if (is_positional || option->get_items_expected() != 0) return name;
+    std::string out;
+    bool in_value = false;
+    for (const char c : name) {
+      if (c == '{') in_value = true;
+      if (!in_value) out += c;
+      if (c == '}') in_value = false;
+    }
+    return out;
+  }
+};
+
 // When argv names a command that does not exist ("oxbow index bild"), the error for it: the word and
 // the commands there are. CLI11 itself only says that a command is required. The words before the
 // first command that has no sub-commands are read; of the options among them only the top level's
@@ -90,6 +110,7 @@ int main(int argc, char** argv) {
   CLI::App app{
       "oxbow: instance-level image retrieval (SIFT, visual words, TF-IDF, spatial verification).\n"
       "Run 'oxbow <command> --help' for the options of a command."};
+  app.formatter(std::make_shared<HelpFormatter>());  // before the commands: each copies its parent's
   app.require_subcommand(1);
   app.set_version_flag("--version", "oxbow " OXBOW_VERSION);  // project(VERSION) in CMakeLists.txt
   std::string log_level = "info";
