@@ -123,6 +123,16 @@ TEST_F(HttpServerTest, HealthReadyAndRouteIndex) {
   ASSERT_TRUE(routes);
   EXPECT_EQ(routes->status, 200);
   EXPECT_GE(json::parse(routes->body)["routes"].size(), 8u);
+  // Routes take no trailing slash: the 404 names the route without it.
+  for (const std::string path : {"/v1/images/", "/v1/stats/"}) {
+    auto slashed = client.Get(path);
+    ExpectErrorShape(slashed, 404, "not_found");
+    EXPECT_NE(slashed->body.find("the route is " + path.substr(0, path.size() - 1) + ", without the trailing slash"),
+              std::string::npos) << slashed->body;
+  }
+  auto unknown = client.Get("/v1/nothing/");
+  ExpectErrorShape(unknown, 404, "not_found");
+  EXPECT_NE(unknown->body.find("GET /v1 lists the routes"), std::string::npos) << unknown->body;
   // The request id: generated, or the client's own when sane.
   httplib::Headers headers = {{"X-Request-Id", "my-trace.42"}};
   auto traced = client.Get("/healthz", headers);

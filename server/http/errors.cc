@@ -26,9 +26,14 @@ HttpError ToHttpError(const Error& error) {
 
 HttpError PermissionDenied(std::string message) { return HttpError{403, "permission_denied", std::move(message)}; }
 
-HttpError RouteNotFound(std::string_view method, std::string_view path) {
-  return HttpError{404, "not_found",
-                   "no route " + std::string(method) + " " + std::string(path) + " (GET /v1 lists the routes)"};
+HttpError RouteNotFound(std::string_view method, std::string_view path, std::string_view route_without_slash) {
+  std::string message = "no route " + std::string(method) + " " + std::string(path);
+  if (!route_without_slash.empty()) {
+    message += "; the route is " + std::string(route_without_slash) + ", without the trailing slash";
+  } else {
+    message += " (GET /v1 lists the routes)";
+  }
+  return HttpError{404, "not_found", std::move(message)};
 }
 
 HttpError MethodNotAllowed(std::string_view method, std::string_view path, std::string_view allowed) {

@@ -35,7 +35,8 @@ HttpError ToHttpError(const Error& error);
 // Errors that exist only at the HTTP level (no ErrorCode): 403 wrong API key, 404 unknown route,
 // 405 wrong method, 503 server busy / not ready, 507 collection full.
 HttpError PermissionDenied(std::string message);   // 403 "permission_denied"
-HttpError RouteNotFound(std::string_view method, std::string_view path);  // 404 "not_found"
+// 404 "not_found"; route_without_slash: the route `path` names with a trailing slash added, if any.
+HttpError RouteNotFound(std::string_view method, std::string_view path, std::string_view route_without_slash = {});
 HttpError MethodNotAllowed(std::string_view method, std::string_view path, std::string_view allowed);  // 405
 HttpError Unavailable(std::string message);        // 503 "unavailable"
 HttpError CollectionFull(std::string message);     // 507 "collection_full": a collection's limit reached

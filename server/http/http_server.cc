@@ -941,7 +941,10 @@ void HttpServer::RegisterErrorHandlers() {
         res.set_header("Allow", allowed);
         SendError(res, MethodNotAllowed(req.method, req.path, allowed));
       } else {
-        SendError(res, RouteNotFound(req.method, LoggablePath(req.path)));
+        // Routes take no trailing slash ("/v1/images/" would be the image route with an empty id).
+        const std::string trimmed = req.path.size() > 1 && req.path.back() == '/' ? req.path.substr(0, req.path.size() - 1) : "";
+        const bool slash_added = !trimmed.empty() && routes_->Find(trimmed) != nullptr;
+        SendError(res, RouteNotFound(req.method, LoggablePath(req.path), slash_added ? LoggablePath(trimmed) : ""));
       }
     } else if (res.status == 413 && !ChunkedBodyOverLimit() && IsFormEncoded(req)) {
       // The HTTP library reads at most 8 KiB of a form-encoded body, which no route takes: say what they
