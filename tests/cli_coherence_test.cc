@@ -13,6 +13,7 @@
 
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <memory>
 #include <regex>
 #include <string>
@@ -157,7 +158,27 @@ TEST(CliErrors, MistakesAreRefusedBeforeAnyWorkNamingWhatIsWrong) {
       {"eval --images " + d + " --protocol foo", 105, "foo not in {oxford,restricted,revisited,groups}"},
       {"eval --images " + d + " --hamming-sigma 0", 105, "must be in (0, 64], not 0"},
       {"index check --index " + d + "/no-index", 4, "no index at " + d + "/no-index"},
+      // A missing flag is named, not read as a mistyped command (the sources are an option group).
+      {"vocab train --images " + d + " --words 10", 106, "--out is required"},
+      {"vocab hamming --vocab " + d + "/v.oxvoc --images " + d, 106, "--out is required"},
+      // Outputs never replace an input, a file of another kind, or another image's output.
+      {"vocab train --images " + d + " --words 10 --out " + d + "/photo.jpg", 105,
+       "'" + d + "/photo.jpg' exists and is not a vocabulary file"},
+      {"index duplicates --index " + d + "/no-index --out " + d + "/photo.jpg", 105,
+       "'" + d + "/photo.jpg' exists and is not a duplicates report"},
+      {"extract " + d + "/photo.jpg --out " + d + "/features --draw " + d + "/photo.jpg", 2,
+       "the drawing '" + d + "/photo.jpg' is one of the input files"},
+      {"extract " + d + "/photo.jpg --out " + d + "/features --draw " + d + "/drawing", 105,
+       "name the drawing's format by its extension"},
+      {"match " + d + "/photo.jpg " + d + "/x/photo.jpg --draw " + d + "/x/photo.jpg", 2,
+       "--draw '" + d + "/x/photo.jpg' is one of the input files"},
+      {"extract " + d + "/photo.jpg " + d + "/x/photo.jpg --out " + d + "/features", 2,
+       "'" + d + "/photo.jpg' and '" + d + "/x/photo.jpg' would both write the feature file"},
   };
+  // Checked before decoding: the bytes need not be a photo.
+  const std::string photo = "not decoded: the outputs are refused first";
+  fs::create_directories(d + "/x");
+  for (const std::string path : {d + "/photo.jpg", d + "/x/photo.jpg"}) std::ofstream(path, std::ios::binary) << photo;
   for (const auto& [args, expected_rc, expected_text] : cases) {
     int rc = -1;
     const std::string out = RunCommand(Oxbow(args), &rc);
@@ -166,6 +187,11 @@ TEST(CliErrors, MistakesAreRefusedBeforeAnyWorkNamingWhatIsWrong) {
   }
   EXPECT_FALSE(fs::exists(d + "/no-index"));
   EXPECT_FALSE(fs::exists(d + "/v.oxvoc"));
+  EXPECT_FALSE(fs::exists(d + "/features"));
+  for (const std::string path : {d + "/photo.jpg", d + "/x/photo.jpg"}) {
+    std::ifstream in(path, std::ios::binary);
+    EXPECT_EQ(std::string(std::istreambuf_iterator<char>(in), {}), photo) << path;
+  }
 }
 
 }  // namespace

@@ -8,15 +8,21 @@
 #pragma once
 
 #include <CLI/CLI.hpp>
+#include <sys/stat.h>
 
+#include <algorithm>
+#include <cctype>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
 #include <functional>
 #include <limits>
+#include <optional>
 #include <stdexcept>
 #include <string>
+#include <string_view>
+#include <utility>
 #include <vector>
 
 #include "sift/base/error.h"
@@ -96,6 +102,73 @@ inline CLI::Validator FileToWrite() {
       },
       "FILE");
 }
+
+// A file a command writes that may already exist: replaced only when its first bytes show it holds what
+// the command writes (`is_own`), so that an --out naming a photo or a document by mistake cannot destroy
+// it. An empty file is replaced.
+inline CLI::Validator ReplacesOnly(const std::string& what, std::function<bool(std::string_view head)> is_own) {
+  return CLI::Validator(
+      [what, is_own](std::string& path) -> std::string {
+        std::error_code ec;
+        if (!std::filesystem::is_regular_file(path, ec)) return std::string();
+        std::FILE* file = std::fopen(path.c_str(), "rb");
+        if (file == nullptr) return std::string();  // the write reports what is wrong
+        char head[64];
+        const size_t n = std::fread(head, 1, sizeof head, file);
+        std::fclose(file);
+        if (n == 0 || is_own(std::string_view(head, n))) return std::string();
+        return "'" + path + "' exists and is not " + what + ": it is replaced only when it is one; remove it or " +
+               "give another file name";
+      },
+      "FILE");
+}
+
+// A vocabulary file a command writes (vocab/vocabulary.cc's container magic).
+inline CLI::Validator VocabularyToWrite() {
+  return ReplacesOnly("a vocabulary file", [](std::string_view head) { return head.starts_with("OXBWVOCB"); });
+}
+
+// A drawing a command writes: the extension names the format.
+inline CLI::Validator DrawingFile() {
+  return CLI::Validator(
+      [](std::string& path) -> std::string {
+        std::string ext = std::filesystem::path(path).extension().string();
+        std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char c) { return std::tolower(c); });
+        for (const char* known : {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm"}) {
+          if (ext == known) return std::string();
+        }
+        return "'" + path + "': name the drawing's format by its extension, .png or .jpg (or .jpeg, .bmp, .tif, " +
+               ".tiff, .webp, .ppm)";
+      },
+      "FILE");
+}
+
+// The files a command reads, by device and inode. An output path that names one of them (the same
+// name, a link, another spelling) would overwrite it: RefuseOverwrite throws CommandError (exit 2).
+class InputFiles {
+ public:
+  explicit InputFiles(const std::vector<std::string>& paths) {
+    for (const std::string& path : paths) {
+      if (const auto id = FileId(path)) ids_.push_back(*id);
+    }
+    std::sort(ids_.begin(), ids_.end());
+  }
+  void RefuseOverwrite(const std::string& output, const std::string& what) const {
+    const auto id = FileId(output);
+    if (id && std::binary_search(ids_.begin(), ids_.end(), *id)) {
+      throw CommandError(2, what + " '" + output + "' is one of the input files: writing it would replace the input; "
+                                   "give another name");
+    }
+  }
+
+ private:
+  static std::optional<std::pair<uint64_t, uint64_t>> FileId(const std::string& path) {
+    struct stat st {};
+    if (::stat(path.c_str(), &st) != 0) return std::nullopt;
+    return std::pair<uint64_t, uint64_t>(st.st_dev, st.st_ino);
+  }
+  std::vector<std::pair<uint64_t, uint64_t>> ids_;
+};
 
 inline CLI::Validator Positive() { return NumberIn(0, std::numeric_limits<double>::infinity(), /*lo_open=*/true); }
 inline CLI::Validator NonNegative() { return NumberIn(0, std::numeric_limits<double>::infinity()); }

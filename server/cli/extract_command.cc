@@ -4,6 +4,7 @@
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
+#include <map>
 #include <optional>
 #include <string>
 #include <vector>
@@ -61,6 +62,28 @@ void RunExtract(const ExtractArgs& args) {
   decode.apply_exif_orientation = !args.ignore_exif;
   if (auto message = decode.Check()) throw CommandError(ExitCodeFor(ErrorCode::kInvalidArgument), *message);
 
+  // Every output is named before the work: none may replace an input, or another image's output.
+  const auto feature_file = [&](const std::string& image) {
+    const std::string name = fs::path(image).filename().string();
+    return (fs::path(args.out_dir) / (name + (args.format == "colmap" ? ".txt" : ".oxfeat"))).string();
+  };
+  {
+    const InputFiles inputs(args.images);
+    std::map<std::string, std::string> writer;  // output -> the image that writes it
+    auto claim = [&](const std::string& out, const std::string& image, const std::string& what) {
+      inputs.RefuseOverwrite(out, what);
+      const auto [it, added] = writer.emplace(fs::path(out).lexically_normal().string(), image);
+      if (!added && it->second != image) {
+        throw CommandError(2, "'" + it->second + "' and '" + image + "' would both write " + what + " '" + out +
+                                  "' (the name is the image's file name): extract them into different --out folders");
+      }
+    };
+    for (const std::string& image : args.images) {
+      claim(feature_file(image), image, "the feature file");
+      if (args.draw) claim(DrawPath(*args.draw, image, args.images.size() > 1), image, "the drawing");
+    }
+  }
+
   std::error_code ec;
   fs::create_directories(args.out_dir, ec);
   if (ec) throw CommandError(ExitCodeFor(ErrorCode::kIoError), "cannot create output folder '" + args.out_dir + "': " + ec.message());
@@ -99,8 +122,7 @@ void RunExtract(const ExtractArgs& args) {
         continue;
       }
       const sift::FeatureSet& features = e.features;
-      const std::string name = fs::path(image).filename().string();
-      const std::string out = (fs::path(args.out_dir) / (name + (args.format == "colmap" ? ".txt" : ".oxfeat"))).string();
+      const std::string out = feature_file(image);
       Status written = args.format == "colmap"
                            ? sift::WriteColmapFeatures(out, features)
                            : sift::WriteFeatureFile(out, {features, options.Fingerprint(), options.Describe()});
@@ -167,7 +189,8 @@ void SetUpExtract(CLI::App& app) {
   cmd->add_option("--draw", args->draw,
                   "also write the image with its keypoints drawn (circle radius = 3 x scale, line = orientation); with "
                   "several images, out.png becomes out_<image stem>.png")
-      ->check(FileToWrite());
+      ->check(FileToWrite())
+      ->check(DrawingFile());
   cmd->callback([args] { RunExtract(*args); });
 }
 

@@ -425,7 +425,12 @@ void SetUpDuplicates(CLI::App& index_cmd) {
       "/v1/collections/{name}/duplicates (server/README.md, Duplicates).");
   d->add_option("--index", args->index, "index folder")->required();
   d->add_option("--format", args->format, "json or csv")->capture_default_str()->check(CLI::IsMember({"json", "csv"}));
-  d->add_option("--out", args->out, "write the result to this file instead of stdout")->check(FileToWrite());
+  d->add_option("--out", args->out,
+                "write the result to this file instead of stdout (an existing file only if a report: JSON or this CSV)")
+      ->check(FileToWrite())
+      ->check(ReplacesOnly("a duplicates report", [](std::string_view head) {
+        return head.starts_with("{") || head.starts_with("a,b,kind,");
+      }));
   d->add_option("--candidates", args->options.candidates,
                 "best tf-idf candidates of each image that are verified (more: copies of much-copied images are "
                 "found directly, slower)")

@@ -72,7 +72,9 @@ std::optional<std::string> UnknownCommand(CLI::App& app, int argc, char** argv) 
       if (at == &app && word == "--log-level") ++i;
       continue;
     }
-    const std::vector<CLI::App*> commands = at->get_subcommands([](CLI::App*) { return true; });
+    // Option groups (`vocab train`'s sources) are CLI11 sub-apps too, but no commands.
+    const std::vector<CLI::App*> commands =
+        at->get_subcommands([](CLI::App* c) { return dynamic_cast<CLI::Option_group*>(c) == nullptr; });
     if (commands.empty()) return std::nullopt;
     const auto named = std::find_if(commands.begin(), commands.end(), [&](CLI::App* c) { return c->check_name(word); });
     if (named == commands.end()) {

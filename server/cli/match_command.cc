@@ -46,6 +46,7 @@ void RunMatch(const MatchArgs& args) {
   using namespace oxbow::sift;
   const auto model = ParseGeometricModel(args.model);
   if (!model) throw CommandError(2, "unknown --model '" + args.model + "'");
+  if (!args.draw_path.empty()) InputFiles({args.query_path, args.db_path}).RefuseOverwrite(args.draw_path, "--draw");
 
   SiftOptions sift_options;
   sift_options.descriptor = args.descriptor;
@@ -133,7 +134,8 @@ void SetUpMatch(CLI::App& app) {
   AddThreadsFlag(cmd, &args->num_threads);
   cmd->add_option("--draw", args->draw_path,
                   "write the two images side by side: inliers green, rejected matches red, matched region outlined")
-      ->check(FileToWrite());
+      ->check(FileToWrite())
+      ->check(DrawingFile());
   cmd->callback([args] { RunMatch(*args); });
 }
 

@@ -360,7 +360,10 @@ void SetUpVocab(CLI::App& app) {
   source->add_option("--features", args->features_dir, "folder of .oxfeat feature files from 'oxbow extract', searched recursively");
   source->require_option(1);
   train->add_option("--words", args->words, "vocabulary size k (number of visual words)")->required()->check(Positive());
-  train->add_option("--out", args->out, "vocabulary file to write (atomically)")->required()->check(FileToWrite());
+  train->add_option("--out", args->out, "vocabulary file to write (atomically; an existing file only if a vocabulary)")
+      ->required()
+      ->check(FileToWrite())
+      ->check(VocabularyToWrite());
   AddDescriptorFlag(train, &args->descriptor);  // with --features, SIFT files are converted to RootSIFT
   train->add_flag("--upright", args->extractor.upright,
                   "extract upright features (every orientation along the image's x axis; for photos taken upright, such "
@@ -428,7 +431,10 @@ void SetUpVocab(CLI::App& app) {
   hsource->add_option("--list", hargs->list_file, "text file with one image path per line ('#' starts a comment)");
   hsource->add_option("--features", hargs->features_dir, "folder of .oxfeat feature files, searched recursively");
   hsource->require_option(1);
-  hamming->add_option("--out", hargs->out, "vocabulary file to write (atomically)")->required()->check(FileToWrite());
+  hamming->add_option("--out", hargs->out, "vocabulary file to write (atomically; an existing file only if a vocabulary)")
+      ->required()
+      ->check(FileToWrite())
+      ->check(VocabularyToWrite());
   hamming->add_option("--sample", hargs->sample, "maximum sample descriptors in total")->capture_default_str()->check(Positive());
   hamming->add_option("--per-image", hargs->per_image, "maximum descriptors kept per image")->capture_default_str()->check(Positive());
   hamming->add_option("--seed", hargs->seed, "seed of the sampling and of the projection")->capture_default_str();
