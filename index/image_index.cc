@@ -421,15 +421,7 @@ Result<std::unique_ptr<ImageIndex>> ImageIndex::OpenFolder(const std::string& di
     loaded = LoadCheckpoint(dir, **catalogue, meta.vocabulary_size, options);
   }
   auto vocabulary = reading.get();
-  if (!vocabulary) {
-    return Fail(vocabulary.error().code, "index " + dir + ": its vocabulary copy is unusable: " +
-                                             vocabulary.error().message);
-  }
-  if (vocabulary->fingerprint() != meta.vocabulary_fingerprint || vocabulary->size() != meta.vocabulary_size) {
-    return Fail(ErrorCode::kIncompatible, "index " + dir + ": vocabulary copy " + kVocabularyFile +
-                                              " does not match the catalogue (fingerprint or size differ); "
-                                              "the folder mixes two indexes");
-  }
+  if (auto s = CheckVocabularyCopy(dir, meta, vocabulary); !s) return std::unexpected(s.error());
   if (meta.descriptor_kind != sift::DescriptorKindName(vocabulary->descriptor_kind())) {
     return Fail(ErrorCode::kIncompatible, "index " + dir + ": descriptor kind of the catalogue and vocabulary differ");
   }

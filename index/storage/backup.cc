@@ -270,12 +270,19 @@ Result<BackupResult> WriteBackup(const std::string& dir, const std::string& tmp,
                       "); nothing was backed up. Restarting the index rebuilds its checkpoint from the catalogue");
     }
   }
-  // The vocabulary copy is never rewritten; the fingerprint check at open covers its content.
+  // The vocabulary copy is never rewritten, but a disk can still damage it: the backup's copy is read
+  // and checked against the catalogue, as an open would.
   const std::string vocabulary = (fs::path(dir) / kVocabularyFile).string();
   Fd fd(::open(vocabulary.c_str(), O_RDONLY | O_CLOEXEC));
   if (fd.get() < 0) return Fail(ErrorCode::kIoError, "cannot open " + vocabulary + ": " + ErrnoText());
-  auto bytes = CopyFile(fd, vocabulary, (fs::path(tmp) / kVocabularyFile).string());
+  const std::string vocabulary_copy = (fs::path(tmp) / kVocabularyFile).string();
+  auto bytes = CopyFile(fd, vocabulary, vocabulary_copy);
   if (!bytes) return std::unexpected(bytes.error());
+  auto copied_catalogue = Catalogue::Open((fs::path(tmp) / kCatalogueFile).string());
+  if (!copied_catalogue) return std::unexpected(copied_catalogue.error());
+  if (auto s = CheckVocabularyCopy(dir, (*copied_catalogue)->meta(), vocab::Vocabulary::Read(vocabulary_copy)); !s) {
+    return Fail(s.error().code, "nothing was backed up: " + s.error().message);
+  }
   result.bytes += *bytes;
   for (const std::string& name : options.extra_files) {
     const std::string source = (fs::path(dir) / name).string();

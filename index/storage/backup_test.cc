@@ -267,6 +267,24 @@ TEST_F(BackupTest, DamagedCheckpointFileIsReportedAndNothingIsLeft) {
   EXPECT_FALSE(fs::exists(Out() + ".tmp"));
 }
 
+// The vocabulary copy is read by an open only: damaged after the source was opened, the backup's copy is
+// checked against the catalogue.
+TEST_F(BackupTest, DamagedVocabularyCopyIsReportedAndNothingIsLeft) {
+  ASSERT_TRUE(CreateWithImages(IndexOptions{}.checkpoint_changes, 10));
+  {
+    std::fstream f(fs::path(Source()) / kVocabularyFile, std::ios::in | std::ios::out | std::ios::binary);
+    f.seekp(100);
+    f.put('\x5a');
+  }
+  auto result = BackupIndex(Source(), Out());
+  ASSERT_FALSE(result.has_value());
+  EXPECT_EQ(result.error().code, ErrorCode::kCorruptData) << result.error().ToString();
+  EXPECT_NE(result.error().message.find("nothing was backed up"), std::string::npos) << result.error().message;
+  EXPECT_NE(result.error().message.find(kVocabularyFile), std::string::npos) << result.error().message;
+  EXPECT_FALSE(fs::exists(Out()));
+  EXPECT_FALSE(fs::exists(Out() + ".tmp"));
+}
+
 // A damaged page that the backup's own reads never touch (the `features` table): the page copy takes it
 // as it is, SQLite's quick_check of the copy finds it.
 TEST_F(BackupTest, DamagedCatalogueIsReportedAndNothingIsLeft) {

@@ -688,6 +688,23 @@ Status CheckHoldsCatalogue(const std::string& dir) {
   return Fail(ErrorCode::kNotFound, "no index at " + dir + " (missing " + kCatalogueFile + ")");
 }
 
+Status CheckVocabularyCopy(const std::string& dir, const CatalogueMeta& meta, const Result<vocab::Vocabulary>& copy) {
+  char fingerprint[17];
+  std::snprintf(fingerprint, sizeof fingerprint, "%016" PRIx64, meta.vocabulary_fingerprint);
+  const std::string restore = "; the index was built with a vocabulary of " + std::to_string(meta.vocabulary_size) +
+                              " words, fingerprint " + fingerprint + " (`oxbow vocab info FILE` prints a file's): " +
+                              "copy that file to " + (std::filesystem::path(dir) / kVocabularyFile).string() +
+                              ", or restore a backup";
+  if (!copy) {
+    return Fail(copy.error().code, "index " + dir + ": its vocabulary copy is unusable: " + copy.error().message + restore);
+  }
+  if (copy->fingerprint() != meta.vocabulary_fingerprint || copy->size() != meta.vocabulary_size) {
+    return Fail(ErrorCode::kIncompatible, "index " + dir + ": vocabulary copy " + kVocabularyFile +
+                                              " does not match the catalogue (fingerprint or size differ)" + restore);
+  }
+  return Ok();
+}
+
 Result<IndexCheck> CheckIndexFolder(const std::string& dir, bool drop_damaged) {
   // Before the lock, which would create its file: a folder that holds no index is left as it is.
   if (auto s = CheckHoldsCatalogue(dir); !s) return std::unexpected(s.error());
@@ -699,6 +716,11 @@ Result<IndexCheck> CheckIndexFolder(const std::string& dir, bool drop_damaged) {
     return Fail(ErrorCode::kIncompatible, "the catalogue of " + dir + " has schema version " +
                                               std::to_string((*catalogue)->meta().schema_version) +
                                               ": open the index once (oxbow index info) to migrate it, then check it");
+  }
+  if (auto s = CheckVocabularyCopy(dir, (*catalogue)->meta(),
+                                   vocab::Vocabulary::Read((std::filesystem::path(dir) / kVocabularyFile).string()));
+      !s) {
+    return std::unexpected(s.error());
   }
   if (auto s = (*catalogue)->CheckRecords(); !s) return std::unexpected(s.error());
   IndexCheck out;

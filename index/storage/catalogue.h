@@ -38,6 +38,7 @@
 
 #include "index/image_index.h"
 #include "sift/base/error.h"
+#include "vocab/vocabulary.h"
 
 namespace oxbow::index {
 
@@ -168,7 +169,14 @@ struct IndexCheck {
   std::vector<Catalogue::DamagedImage> damaged;  // those whose BLOB fails its check, by number
   bool dropped = false;                          // drop_damaged: `damaged` were deleted
 };
+// The vocabulary copy is checked first (CheckVocabularyCopy): an index without a usable one does not open.
 [[nodiscard]] Result<IndexCheck> CheckIndexFolder(const std::string& dir, bool drop_damaged);
+
+// The index's vocabulary copy (`copy`, read from DIR/vocabulary.oxvoc) against its catalogue: Ok, or the
+// error (unreadable, damaged, another vocabulary) with how to restore it: the copy is never rewritten,
+// so the vocabulary file the index was built with, recognised by its fingerprint, can replace it.
+[[nodiscard]] Status CheckVocabularyCopy(const std::string& dir, const CatalogueMeta& meta,
+                                         const Result<vocab::Vocabulary>& copy);
 
 // kNotFound ("no index at DIR (missing catalogue.sqlite)") unless `dir` holds an index's catalogue;
 // touches nothing, so it runs before a FolderLock that would create its file.

@@ -151,8 +151,14 @@ TEST_F(LoaderTest, DamagedCatalogueAndVocabularyAreRefused) {
   auto r = ImageIndex::Open(dir_.string());
   ASSERT_FALSE(r);
   EXPECT_EQ(r.error().code, ErrorCode::kCorruptData) << r.error().ToString();
+  // The message says how to restore it; `oxbow index check` finds it too.
+  EXPECT_NE(r.error().message.find("copy that file to " + vocab_path.string()), std::string::npos) << r.error().message;
+  auto check = CheckIndexFolder(dir_.string(), /*drop_damaged=*/false);
+  ASSERT_FALSE(check);
+  EXPECT_EQ(check.error().code, ErrorCode::kCorruptData) << check.error().ToString();
   fs::copy_file(backup, vocab_path, fs::copy_options::overwrite_existing);
   ASSERT_TRUE(ImageIndex::Open(dir_.string()));
+  ASSERT_TRUE(CheckIndexFolder(dir_.string(), false));
   // Garbage over the SQLite header.
   {
     std::fstream f(dir_ / "catalogue.sqlite", std::ios::in | std::ios::out | std::ios::binary);

@@ -609,7 +609,8 @@ void SetUpIndex(CLI::App& app) {
   auto check = std::make_shared<CheckArgs>();
   CLI::App* c = cmd->add_subcommand("check", "Check an index's catalogue: its records and every image's feature BLOB");
   c->footer(
-      "Runs SQLite's integrity check of the image records and checks every image's feature BLOB (CRC-32), also "
+      "Checks the vocabulary copy against the catalogue, runs SQLite's integrity check of the image records and "
+      "checks every image's feature BLOB (CRC-32), also "
       "those an open does not read (the images a checkpoint covers), while no process has the index open (a "
       "running server's folder is refused). Prints {index, images, damaged: [{id, number, why}], dropped} as JSON; "
       "exits 6 (damaged) when a damaged image was found and not dropped. --drop-damaged deletes the damaged images from the "
