@@ -266,6 +266,19 @@ TEST_F(EndToEnd, BuildFromFeatureFilesEqualsBuildFromImages) {
                                              (*work_ / "from_other").string() + " 2>&1", &code);
   EXPECT_NE(refused.find("extract with the index's settings"), std::string::npos) << refused;
   EXPECT_NE(refused.find("\"failed\": 1"), std::string::npos) << refused;
+  // A folder without feature files, a folder or an image as --list: refused before an index is made.
+  fs::create_directories(*work_ / "no_feats");
+  const std::vector<std::pair<std::string, std::string>> wrong = {
+      {"--features " + (*work_ / "no_feats").string(), "no .oxfeat files under"},
+      {"--list " + images.string(), "is a folder: give a text file of image paths"},
+      {"--list " + (images / kDatabase[0]).string(), "is not a text file of image paths"}};
+  for (const auto& [source, expected] : wrong) {
+    const std::string out = RunCommand(bin + " index build --vocab " + vocab_file.string() + " " + source + " --out " +
+                                           (*work_ / "wrong_source").string() + " 2>&1", &code);
+    EXPECT_NE(code, 0) << source;
+    EXPECT_NE(out.find(expected), std::string::npos) << source << "\n" << out;
+    EXPECT_FALSE(fs::exists(*work_ / "wrong_source")) << source;
+  }
 }
 
 }  // namespace

@@ -93,6 +93,11 @@ std::vector<ImageJob> CollectImages(const std::string& images_dir, const std::st
   if (!images_dir.empty()) {
     paths = ValueOrExit(sift::ListImageFiles(images_dir));
   } else {
+    std::error_code ec;
+    if (fs::is_directory(list_file, ec)) {
+      throw CommandError(2, "--list '" + list_file + "' is a folder: give a text file of image paths, one per line "
+                            "(or --images FOLDER)");
+    }
     std::ifstream in(list_file);
     if (!in) throw CommandError(ExitCodeFor(ErrorCode::kNotFound), "cannot read list " + list_file);
     const fs::path base = fs::path(list_file).parent_path();
@@ -100,8 +105,11 @@ std::vector<ImageJob> CollectImages(const std::string& images_dir, const std::st
     while (std::getline(in, line)) {
       while (!line.empty() && (line.back() == '\r' || line.back() == ' ')) line.pop_back();
       if (line.empty() || line[0] == '#') continue;
+      if (line.find('\0') != std::string::npos) {
+        throw CommandError(2, "--list '" + list_file + "' is not a text file of image paths (it holds NUL bytes: an "
+                              "image? give it as a path in the list, or its folder as --images)");
+      }
       fs::path p(line);
-      std::error_code ec;
       if (p.is_relative() && !fs::exists(p, ec) && fs::exists(base / p, ec)) p = base / p;
       paths.push_back(p.string());
     }
@@ -122,6 +130,10 @@ std::vector<ImageJob> CollectFeatureFiles(const std::string& folder) {
     if (it->is_regular_file(ec) && it->path().extension() == ".oxfeat") paths.push_back(it->path().string());
   }
   if (ec) throw CommandError(ExitCodeFor(ErrorCode::kIoError), "cannot list " + folder + ": " + ec.message());
+  if (paths.empty()) {
+    throw CommandError(ExitCodeFor(ErrorCode::kNotFound),
+                       "no .oxfeat files under " + folder + " (`oxbow extract IMAGES --out " + folder + "` writes them)");
+  }
   std::sort(paths.begin(), paths.end());
   return UniqueIdJobs(paths, [](const fs::path& p) { return p.stem().stem().string(); });
 }

@@ -356,7 +356,7 @@ void SetUpVocab(CLI::App& app) {
       "  oxbow vocab train --features feats/ --words 100000 --sample 5000000 --per-image 2000 --out 100k.vocab");
   auto* source = train->add_option_group("source", "where the training descriptors come from (exactly one)");
   source->add_option("--images", args->images_dir, "folder of images (JPEG, PNG, PPM/PGM, BMP, TIFF, WebP), searched recursively");
-  source->add_option("--list", args->list_file, "text file with one image path per line ('#' starts a comment)");
+  source->add_option("--list", args->list_file, "text file with one image path per line (a line starting with '#' is a comment)");
   source->add_option("--features", args->features_dir, "folder of .oxfeat feature files from 'oxbow extract', searched recursively");
   source->require_option(1);
   train->add_option("--words", args->words, "vocabulary size k (number of visual words)")->required()->check(Positive());
@@ -428,7 +428,7 @@ void SetUpVocab(CLI::App& app) {
   hamming->add_option("--vocab", hargs->vocab_in, "vocabulary to extend (not modified)")->required();
   auto* hsource = hamming->add_option_group("source", "where the sample comes from (exactly one)");
   hsource->add_option("--images", hargs->images_dir, "folder of images, searched recursively");
-  hsource->add_option("--list", hargs->list_file, "text file with one image path per line ('#' starts a comment)");
+  hsource->add_option("--list", hargs->list_file, "text file with one image path per line (a line starting with '#' is a comment)");
   hsource->add_option("--features", hargs->features_dir, "folder of .oxfeat feature files, searched recursively");
   hsource->require_option(1);
   hamming->add_option("--out", hargs->out, "vocabulary file to write (atomically; an existing file only if a vocabulary)")
