@@ -266,6 +266,18 @@ TEST_F(EndToEnd, BuildFromFeatureFilesEqualsBuildFromImages) {
                                              (*work_ / "from_other").string() + " 2>&1", &code);
   EXPECT_NE(refused.find("extract with the index's settings"), std::string::npos) << refused;
   EXPECT_NE(refused.find("\"failed\": 1"), std::string::npos) << refused;
+  // Two images whose ids (file names without extension) are one: the second is counted as failed.
+  fs::create_directories(*work_ / "clash" / "x");
+  fs::create_directories(*work_ / "clash" / "y");
+  fs::copy_file(images / kDatabase[0], *work_ / "clash" / "x" / kDatabase[0]);
+  fs::copy_file(images / kDatabase[0], *work_ / "clash" / "y" / kDatabase[0]);
+  const std::string clash = RunCommand(bin + " index build --vocab " + vocab_file.string() + side + " --images " +
+                                           (*work_ / "clash").string() + " --out " + (*work_ / "clash_index").string() +
+                                           " 2>&1", &code);
+  EXPECT_EQ(code, 0) << clash;
+  EXPECT_NE(clash.find("\"added\": 1"), std::string::npos) << clash;
+  EXPECT_NE(clash.find("\"failed\": 1"), std::string::npos) << clash;
+  EXPECT_NE(clash.find("not indexed: " + (*work_ / "clash" / "y" / kDatabase[0]).string()), std::string::npos) << clash;
   // A folder without feature files, a folder or an image as --list: refused before an index is made.
   fs::create_directories(*work_ / "no_feats");
   const std::vector<std::pair<std::string, std::string>> wrong = {

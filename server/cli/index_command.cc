@@ -40,6 +40,7 @@ namespace fs = std::filesystem;
 struct ImageJob {
   std::string id;
   std::string path;
+  std::string taken_by;  // another input with the same id, listed first: this one is not indexed
 };
 
 // The extractor whose settings the index records.
@@ -71,7 +72,8 @@ std::unique_ptr<index::ImageIndex> OpenOrCreate(const std::string& dir, const vo
   return ValueOrExit(index::ImageIndex::Create(dir, vocabulary, SettingsFor(vocabulary), options));
 }
 
-// One job per path, id = id_of(path); a path whose id an earlier one took is reported and skipped.
+// One job per path, id = id_of(path); a path whose id an earlier one took is marked (taken_by), and
+// counted among the failed images when the build reaches it.
 std::vector<ImageJob> UniqueIdJobs(const std::vector<std::string>& paths,
                                    const std::function<std::string(const fs::path&)>& id_of) {
   std::vector<ImageJob> jobs;
@@ -79,11 +81,7 @@ std::vector<ImageJob> UniqueIdJobs(const std::vector<std::string>& paths,
   for (const auto& p : paths) {
     const std::string id = id_of(p);
     auto [it, inserted] = seen.emplace(id, p);
-    if (!inserted) {
-      OXBOW_LOG(kWarning) << "skipping " << p << ": id '" << id << "' already used by " << it->second;
-      continue;
-    }
-    jobs.push_back({id, p});
+    jobs.push_back({id, p, inserted ? std::string() : it->second});
   }
   return jobs;
 }
@@ -190,9 +188,18 @@ BuildCounts IngestJobs(const BuildArgs& build, index::ImageIndex& idx, std::vect
   BuildCounts counts;
   std::vector<ImageJob> todo;
   for (auto& job : all) {
-    if (!idx.Contains(job.id)) todo.push_back(std::move(job));
+    if (!job.taken_by.empty()) {
+      // Ids are file names without their extension: x/a.jpg and y/a.png are both 'a'.
+      OXBOW_LOG(kWarning) << "not indexed: " << job.path << ": its id '" << job.id << "' is " << job.taken_by
+                          << "'s (an id is the file name without its extension); rename it, or index it into "
+                             "another --out";
+      ++counts.failed;
+    } else if (!idx.Contains(job.id)) {
+      todo.push_back(std::move(job));
+    } else {
+      ++counts.skipped;
+    }
   }
-  counts.skipped = all.size() - todo.size();
   if (counts.skipped) {
     OXBOW_LOG(kInfo) << counts.skipped << " images already indexed in " << idx.directory() << ", skipped";
   }
