@@ -5,6 +5,8 @@
 // In the text format, bytes a client chose never end a line or start one.
 #include <gtest/gtest.h>
 
+#include <filesystem>
+#include <fstream>
 #include <map>
 #include <memory>
 #include <regex>
@@ -20,6 +22,7 @@ namespace oxbow {
 namespace {
 
 using nlohmann::json;
+namespace fs = std::filesystem;
 
 // Every line of `log` parsed as JSON: fails the test for a line that is not an object with the three
 // fields every line has.
@@ -142,10 +145,21 @@ TEST_F(JsonLogTest, EveryLineIsJsonAndRequestLinesCarryTheirFields) {
 }
 
 TEST_F(JsonLogTest, AFailedStartEndsWithAJsonErrorLine) {
-  // No index in the folder and no --vocab to create one: the server binds, fails to load, exits 1.
+  // An index whose vocabulary copy is damaged: the server binds, fails to load, exits non-zero.
+  std::string index;
+  {
+    auto first = StartServer({});
+    index = dir_->path() + "/index-" + std::to_string(counter_ - 1);
+    ASSERT_EQ(first->Stop(), 0);
+  }
+  {
+    std::fstream vocabulary(index + "/vocabulary.oxvoc", std::ios::in | std::ios::out | std::ios::binary);
+    vocabulary.seekp(100);
+    vocabulary.put('\x5a');
+  }
   const std::string log_path = dir_->path() + "/failed-start.log";
-  oxbow::testing::ServerProcess server({"serve", "--index", dir_->path() + "/no-index", "--port", "0", "--log-format", "json"},
-                                       log_path);
+  oxbow::testing::ServerProcess server({"serve", "--index", index, "--port", "0", "--log-format", "json"}, log_path);
+  EXPECT_GT(server.port(), 0) << server.Log();
   EXPECT_NE(server.Wait(), 0);
   const std::string log = server.Log();
   const auto lines = ParseLines(log);
@@ -155,6 +169,27 @@ TEST_F(JsonLogTest, AFailedStartEndsWithAJsonErrorLine) {
   ASSERT_FALSE(lines.empty());
   EXPECT_EQ(lines.back()["level"], "error") << log;
   EXPECT_EQ(lines.back()["message"].get<std::string>().rfind("oxbow: error: ", 0), 0u) << log;
+}
+
+TEST_F(JsonLogTest, WhatTakesNoTimeToRefuseIsRefusedBeforeListening) {
+  // No index in the folder and no --vocab to create one; a folder that holds other files.
+  fs::create_directories(dir_->path() + "/other-files");
+  std::ofstream(dir_->path() + "/other-files/notes.txt") << "not an index";
+  for (const auto& args : std::vector<std::vector<std::string>>{
+           {"--index", dir_->path() + "/no-index"},
+           {"--index", dir_->path() + "/other-files", "--vocab", vocab_}}) {
+    std::vector<std::string> all = {"serve", "--port", "0", "--log-format", "json"};
+    all.insert(all.end(), args.begin(), args.end());
+    oxbow::testing::ServerProcess server(all, dir_->path() + "/refused-" + std::to_string(args.size()) + ".log");
+    EXPECT_EQ(server.port(), 0) << "it listened:\n" << server.Log();
+    EXPECT_NE(server.Wait(), 0);
+    const std::string log = server.Log();
+    const auto lines = ParseLines(log);
+    ASSERT_FALSE(lines.empty());
+    EXPECT_EQ(lines.back()["level"], "error") << log;
+    EXPECT_EQ(lines.back()["message"].get<std::string>().rfind("oxbow: error: ", 0), 0u) << log;
+  }
+  EXPECT_FALSE(fs::exists(dir_->path() + "/no-index"));
 }
 
 TEST_F(JsonLogTest, TextStaysTheDefault) {

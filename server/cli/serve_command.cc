@@ -5,6 +5,7 @@
 #include <atomic>
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -13,6 +14,8 @@
 
 #include "api/collections.h"
 #include "api/service.h"
+#include "index/image_index.h"
+#include "index/storage/folder_lock.h"
 #include "server/cli/cli.h"
 #include "server/cli/common_flags.h"
 #include "server/cli/modules/cluster_api.h"
@@ -127,6 +130,27 @@ void Serve(const ServeFlags& flags) {
   }
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);  // inherited by every thread started below
 
+  index::IndexOptions index_options = flags.index_options;
+  index_options.num_threads = flags.index_threads;
+  const std::optional<std::string> vocab = flags.vocab_path.empty() ? std::nullopt : std::optional(flags.vocab_path);
+  // What takes no time to open or refuse is opened before the port is bound: a folder without an index
+  // (created with --vocab, refused without), a data folder that does not exist yet, a path that is a
+  // file, a folder another process holds. A script waiting for 'listening on' then finds a server, not
+  // one about to exit. A large index still loads behind the listening port (/readyz says when).
+  std::shared_ptr<api::Service> opened_service;
+  std::shared_ptr<api::Collections> opened_collections;
+  std::error_code ec;
+  if (!flags.index_dir.empty()) {
+    if (!index::ImageIndex::Exists(flags.index_dir)) {
+      opened_service = std::shared_ptr<api::Service>(
+          ValueOrExit(api::Service::Open(flags.index_dir, vocab, service_options, index_options)));
+    } else {
+      ValueOrExit(index::FolderLock::Acquire(flags.index_dir));  // released here; the load takes it again
+    }
+  } else if (!flags.data_dir.empty() && !std::filesystem::is_directory(flags.data_dir, ec)) {
+    opened_collections = ValueOrExit(api::Collections::Open(flags.data_dir, vocab, service_options, index_options));
+  }
+
   server::HttpServer server(http);
   const int port = ValueOrExit(server.Bind());
   const std::unique_ptr<ShardApi> shard = StartShard(flags, http);
@@ -141,17 +165,15 @@ void Serve(const ServeFlags& flags) {
   std::shared_ptr<api::Collections> collections;  // --data, once loaded (for SIGHUP)
   std::mutex collections_mutex;
   std::thread loader([&] {
-    index::IndexOptions index_options = flags.index_options;
-    index_options.num_threads = flags.index_threads;
     const auto start = std::chrono::steady_clock::now();
-    const std::optional<std::string> vocab = flags.vocab_path.empty() ? std::nullopt : std::optional(flags.vocab_path);
     auto fail = [&](const Error& error, const char* what) {
       load_error = error;
       OXBOW_LOG(kError) << "cannot open the " << what << ": " << error.ToString();
       server.Shutdown();
     };
     if (!flags.data_dir.empty()) {
-      auto opened = api::Collections::Open(flags.data_dir, vocab, service_options, index_options);
+      auto opened = opened_collections ? Result<std::shared_ptr<api::Collections>>(opened_collections)
+                                       : api::Collections::Open(flags.data_dir, vocab, service_options, index_options);
       if (!opened) return fail(opened.error(), "data folder");
       OXBOW_LOG(kInfo) << "data folder " << flags.data_dir << " ready: " << (*opened)->Names().size()
                        << " collections, loaded in "
@@ -164,13 +186,16 @@ void Serve(const ServeFlags& flags) {
       server.SetCollections(std::move(*opened));
       return;
     }
-    auto service = api::Service::Open(flags.index_dir, vocab, service_options, index_options);
-    if (!service) return fail(service.error(), "index");
-    const auto stats = (*service)->Stats();
+    std::shared_ptr<api::Service> shared = opened_service;
+    if (!shared) {
+      auto service = api::Service::Open(flags.index_dir, vocab, service_options, index_options);
+      if (!service) return fail(service.error(), "index");
+      shared = std::move(*service);
+    }
+    const auto stats = shared->Stats();
     OXBOW_LOG(kInfo) << "index " << flags.index_dir << " ready: " << stats.index.num_images << " images, "
                      << stats.index.num_features << " features, " << stats.index.vocabulary_size << " words, loaded in "
                      << std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() << " s";
-    std::shared_ptr<api::Service> shared(std::move(*service));
     if (shard) shard->SetService(shared);
     server.SetService(std::move(shared));
   });
