@@ -19,7 +19,24 @@ std::string StripOxfordPrefix(const std::string& name) {
   return name.starts_with("oxc1_") ? name.substr(5) : name;
 }
 
+// A folder opens as a stream on Linux, and fails only when read (an exception from the JSON parser).
+Status CheckNotAFolder(const fs::path& path, const char* what) {
+  std::error_code ec;
+  if (fs::is_directory(path, ec)) {
+    return Fail(ErrorCode::kInvalidArgument, "'" + path.string() + "' is a folder: give the " + what + " file");
+  }
+  return Ok();
+}
+
+// An nlohmann::json exception's text without its "[json.exception.type.403] " prefix.
+std::string JsonErrorText(const std::exception& e) {
+  const std::string text = e.what();
+  const size_t end = text.rfind("[json.exception.", 0) == 0 ? text.find("] ") : std::string::npos;
+  return end == std::string::npos ? text : text.substr(end + 2);
+}
+
 Result<std::vector<std::string>> ReadLines(const fs::path& path) {
+  if (auto s = CheckNotAFolder(path, "ground-truth"); !s) return std::unexpected(s.error());
   std::ifstream in(path);
   if (!in) return Fail(ErrorCode::kNotFound, "cannot read ground-truth file '" + path.string() + "'");
   std::vector<std::string> lines;
@@ -125,13 +142,16 @@ Protocol RestrictToImages(const Protocol& protocol, const std::vector<std::strin
 
 Result<Protocol> LoadRevisitedProtocol(const std::string& json_path, RevisitedSetting setting,
                                        const std::string& name) {
+  if (auto s = CheckNotAFolder(json_path, "revisited ground-truth JSON (gnd_roxford5k.json, gnd_rparis6k.json)"); !s) {
+    return std::unexpected(s.error());
+  }
   std::ifstream in(json_path);
   if (!in) return Fail(ErrorCode::kNotFound, "cannot read '" + json_path + "'");
   nlohmann::json root;
   try {
     root = nlohmann::json::parse(in);
   } catch (const nlohmann::json::exception& e) {
-    return Fail(ErrorCode::kCorruptData, "'" + json_path + "' is not valid JSON: " + e.what());
+    return Fail(ErrorCode::kCorruptData, "'" + json_path + "' is not valid JSON: " + JsonErrorText(e));
   }
   try {
     const auto imlist = root.at("imlist").get<std::vector<std::string>>();
@@ -187,7 +207,8 @@ Result<Protocol> LoadRevisitedProtocol(const std::string& json_path, RevisitedSe
     }
     return protocol;
   } catch (const std::exception& e) {
-    return Fail(ErrorCode::kCorruptData, "'" + json_path + "' is not revisited ground truth: " + e.what());
+    return Fail(ErrorCode::kCorruptData, "'" + json_path + "' is not revisited ground truth (revisitop's JSON: imlist, "
+                                         "qimlist, gnd with easy, hard, junk and bbx per query): " + JsonErrorText(e));
   }
 }
 

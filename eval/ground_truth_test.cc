@@ -97,6 +97,18 @@ TEST_F(GroundTruthTest, RevisitedSettingsFollowRadenovic) {
   auto broken = LoadRevisitedProtocol((dir_ / "broken.json").string(), RevisitedSetting::kEasy, "r");
   ASSERT_FALSE(broken);
   EXPECT_EQ(broken.error().code, ErrorCode::kCorruptData);
+  // Another JSON document: what is missing, without the JSON library's exception prefix.
+  Write("other.json", R"({"images": []})");
+  auto other = LoadRevisitedProtocol((dir_ / "other.json").string(), RevisitedSetting::kEasy, "r");
+  ASSERT_FALSE(other);
+  EXPECT_EQ(other.error().code, ErrorCode::kCorruptData);
+  EXPECT_NE(other.error().message.find("key 'imlist' not found"), std::string::npos) << other.error().message;
+  EXPECT_EQ(other.error().message.find("json.exception"), std::string::npos) << other.error().message;
+  // A folder where the file belongs (it opens as a stream, and fails only when read).
+  auto folder = LoadRevisitedProtocol(dir_.string(), RevisitedSetting::kEasy, "r");
+  ASSERT_FALSE(folder);
+  EXPECT_EQ(folder.error().code, ErrorCode::kInvalidArgument);
+  EXPECT_NE(folder.error().message.find("is a folder"), std::string::npos) << folder.error().message;
 }
 
 TEST_F(GroundTruthTest, GroupsProtocol) {

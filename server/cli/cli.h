@@ -103,6 +103,19 @@ inline CLI::Validator FileToWrite() {
       "FILE");
 }
 
+// A folder a command writes into (created when missing): not a file.
+inline CLI::Validator FolderToWrite() {
+  return CLI::Validator(
+      [](std::string& path) -> std::string {
+        std::error_code ec;
+        if (std::filesystem::exists(path, ec) && !std::filesystem::is_directory(path, ec)) {
+          return "'" + path + "' is a file: give a folder (created when missing)";
+        }
+        return std::string();
+      },
+      "DIR");
+}
+
 // A file a command writes that may already exist: replaced only when its first bytes show it holds what
 // the command writes (`is_own`), so that an --out naming a photo or a document by mistake cannot destroy
 // it. An empty file is replaced.

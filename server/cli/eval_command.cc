@@ -74,8 +74,12 @@ void SetUp(CLI::App& app) {
       ->check(CLI::IsMember({"easy", "medium", "hard"}));
   cmd->add_option("--train-images", args->train_images,
                   "train the vocabulary on these images (recursively) instead of the database (with distractors)");
-  cmd->add_option("--work", args->work, "folder caching vocabularies and indexes between runs (one database per folder)")->capture_default_str();
-  cmd->add_option("--out", args->out, "report folder (report.md, results.json, plots/)")->capture_default_str();
+  cmd->add_option("--work", args->work, "folder caching vocabularies and indexes between runs (one database per folder)")
+      ->check(FolderToWrite())
+      ->capture_default_str();
+  cmd->add_option("--out", args->out, "report folder (report.md, results.json, plots/)")
+      ->check(FolderToWrite())
+      ->capture_default_str();
   cmd->add_option("--features", args->features, "descriptor kinds to compare: sift, rootsift")
       ->delimiter(',')
       ->capture_default_str()

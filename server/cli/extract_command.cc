@@ -161,7 +161,7 @@ void SetUpExtract(CLI::App& app) {
                                  "Example: oxbow extract photos/*.jpg --out feats --max-image-side 1024");
   auto args = std::make_shared<ExtractArgs>();
   cmd->add_option("images", args->images, "image files (JPEG, PNG, PPM/PGM, WebP, TIFF, BMP)")->required();
-  cmd->add_option("--out", args->out_dir, "output folder (created if missing)")->capture_default_str();
+  cmd->add_option("--out", args->out_dir, "output folder (created if missing)")->check(FolderToWrite())->capture_default_str();
   cmd->add_option("--format", args->format, "feature file format: oxbow (binary) or colmap (text)")
       ->check(CLI::IsMember({"oxbow", "colmap"}))
       ->capture_default_str();
