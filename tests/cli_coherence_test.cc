@@ -6,6 +6,7 @@
 
 // Before <httplib.h>: it includes <resolv.h>, whose `_res` macro breaks Eigen's headers.
 #include "index/image_index.h"
+#include "server/cli/cli.h"
 #include "sift/sift.h"
 
 #include <httplib.h>
@@ -193,6 +194,26 @@ TEST(CliErrors, MistakesAreRefusedBeforeAnyWorkNamingWhatIsWrong) {
     std::ifstream in(path, std::ios::binary);
     EXPECT_EQ(std::string(std::istreambuf_iterator<char>(in), {}), photo) << path;
   }
+}
+
+// Ctrl-C in `extract` and `index build`: the first signal is recorded for the command to stop between
+// images; the second takes the default action (the handler resets itself); the command's end restores
+// what was there before.
+TEST(CliInterrupt, TheFirstSignalIsRecordedTheSecondIsTheDefault) {
+  struct sigaction before {};
+  ASSERT_EQ(sigaction(SIGINT, nullptr, &before), 0);
+  {
+    const oxbow::cli::InterruptibleCommand command;
+    EXPECT_FALSE(oxbow::cli::InterruptibleCommand::Interrupted());
+    ASSERT_EQ(raise(SIGINT), 0);
+    EXPECT_TRUE(oxbow::cli::InterruptibleCommand::Interrupted());
+    struct sigaction now {};
+    ASSERT_EQ(sigaction(SIGINT, nullptr, &now), 0);
+    EXPECT_EQ(now.sa_handler, SIG_DFL);
+  }
+  struct sigaction after {};
+  ASSERT_EQ(sigaction(SIGINT, nullptr, &after), 0);
+  EXPECT_EQ(after.sa_handler, before.sa_handler);
 }
 
 }  // namespace

@@ -8,9 +8,11 @@
 #pragma once
 
 #include <CLI/CLI.hpp>
+#include <signal.h>
 #include <sys/stat.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cctype>
 #include <cmath>
 #include <cstdio>
@@ -181,6 +183,36 @@ class InputFiles {
     return std::pair<uint64_t, uint64_t>(st.st_dev, st.st_ino);
   }
   std::vector<std::pair<uint64_t, uint64_t>> ids_;
+};
+
+// SIGINT and SIGTERM for a command that stops cleanly between units of work (images, batches): while
+// it lives, the first signal sets Interrupted() and the command finishes the unit in hand, says what
+// is done and exits 130; a second signal ends the process at once, as without it.
+class InterruptibleCommand {
+ public:
+  InterruptibleCommand() {
+    interrupted_.store(false);
+    struct sigaction action {};
+    action.sa_handler = &OnSignal;
+    sigemptyset(&action.sa_mask);
+    action.sa_flags = SA_RESETHAND;  // the second signal takes the default action
+    sigaction(SIGINT, &action, &old_int_);
+    sigaction(SIGTERM, &action, &old_term_);
+  }
+  ~InterruptibleCommand() {
+    sigaction(SIGINT, &old_int_, nullptr);
+    sigaction(SIGTERM, &old_term_, nullptr);
+  }
+  InterruptibleCommand(const InterruptibleCommand&) = delete;
+  InterruptibleCommand& operator=(const InterruptibleCommand&) = delete;
+
+  static bool Interrupted() { return interrupted_.load(std::memory_order_relaxed); }
+  static constexpr int kExitCode = 130;  // 128 + SIGINT, what a shell reports for Ctrl-C
+
+ private:
+  static void OnSignal(int) { interrupted_.store(true, std::memory_order_relaxed); }
+  static inline std::atomic<bool> interrupted_{false};
+  struct sigaction old_int_ {}, old_term_ {};
 };
 
 inline CLI::Validator Positive() { return NumberIn(0, std::numeric_limits<double>::infinity(), /*lo_open=*/true); }

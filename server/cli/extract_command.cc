@@ -103,7 +103,10 @@ void RunExtract(const ExtractArgs& args) {
     double ms = 0;
   };
   const size_t batch = static_cast<size_t>(split.workers);
+  const InterruptibleCommand interruptible;  // Ctrl-C: the images in hand are finished and written
+  size_t done = 0;
   for (size_t begin = 0; begin < args.images.size(); begin += batch) {
+    if (InterruptibleCommand::Interrupted()) break;
     const size_t n = std::min(batch, args.images.size() - begin);
     std::vector<Extracted> extracted(n);
     ParallelFor(n, split.workers, 1, [&](size_t lo, size_t hi, int) {
@@ -142,6 +145,13 @@ void RunExtract(const ExtractArgs& args) {
       std::printf("%s: %dx%d, %zu keypoints, %.1f ms -> %s%s%s\n", image.c_str(), features.image_width,
                   features.image_height, features.size(), e.ms, out.c_str(), drawn.empty() ? "" : ", ", drawn.c_str());
     }
+    done = begin + n;
+  }
+  if (InterruptibleCommand::Interrupted() && done < args.images.size()) {
+    std::fflush(stdout);
+    throw CommandError(InterruptibleCommand::kExitCode,
+                       "interrupted after " + std::to_string(done) + " of " + std::to_string(args.images.size()) +
+                           " images: the feature files listed above are complete; the rest were not extracted");
   }
   if (first_failure) {
     if (args.images.size() == 1) throw CommandError(*first_failure);

@@ -177,6 +177,7 @@ std::vector<ImageJob> CollectJobs(const BuildArgs& build) {
 struct BuildCounts {
   size_t added = 0, failed = 0, skipped = 0;
   uint64_t features = 0;
+  bool interrupted = false;  // stopped between batches by InterruptibleCommand
 };
 
 // Adds the jobs `idx` does not hold yet, in batches. With a journal, the words are assigned here (the
@@ -213,6 +214,10 @@ BuildCounts IngestJobs(const BuildArgs& build, index::ImageIndex& idx, std::vect
   // crash loses at most the batch in flight, which the next run redoes.
   const size_t batch = from_features ? 256 : std::max<size_t>(32, static_cast<size_t>(split.workers) * 2);
   for (size_t begin = 0; begin < todo.size(); begin += batch) {
+    if (InterruptibleCommand::Interrupted()) {
+      counts.interrupted = true;
+      break;
+    }
     const size_t n = std::min(batch, todo.size() - begin);
     std::vector<Result<sift::FeatureFile>> loaded(n);  // every slot is assigned below
     std::vector<std::vector<uint32_t>> words(journal ? n : 0);
@@ -527,9 +532,15 @@ void SetUpIndex(CLI::App& app) {
     // The inputs first: a mistyped --images or --list leaves no index behind.
     auto jobs = CollectJobs(*build);
     auto idx = OpenOrCreate(build->out, vocabulary, IndexOptionsFor(*build));
+    const InterruptibleCommand interruptible;  // Ctrl-C: the batch in hand is committed, then the build stops
     const BuildCounts counts = IngestJobs(*build, *idx, std::move(jobs), nullptr);
     const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     PrintJson(BuildSummary(*idx, counts, seconds));
+    if (counts.interrupted) {
+      throw CommandError(InterruptibleCommand::kExitCode,
+                         "interrupted: the " + std::to_string(counts.added) + " images added are committed; run the "
+                         "same command again to index the rest (indexed ids are skipped)");
+    }
     if (counts.failed > 0 && counts.added == 0 && counts.skipped == 0) {
       // Failures among indexed images are reported and the build goes on; an index of none is an error.
       throw CommandError(ExitCodeFor(ErrorCode::kInvalidImage),
