@@ -7,8 +7,13 @@
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
+#include <functional>
 #include <memory>
+#include <set>
 #include <string_view>
+#include <utility>
+
+#include <sys/stat.h>
 
 #include <tiffio.h>
 
@@ -420,11 +425,32 @@ Result<std::vector<std::string>> ListFiles(const std::string& folder, const std:
   if (!fs::is_directory(folder, ec)) {
     return Fail(ErrorCode::kNotFound, "'" + folder + (fs::exists(folder, ec) ? "' is not a folder" : "' does not exist"));
   }
+  // Links to folders are followed, each folder once: a link back to an ancestor (or a second link to
+  // one folder) is not entered again, so a loop ends and no file is listed twice through it. Folders
+  // are walked in name order, so which of two links to one folder lists it does not depend on the
+  // file system's order.
+  auto folder_id = [](const fs::path& path) -> std::pair<dev_t, ino_t> {
+    struct stat st {};
+    return ::stat(path.c_str(), &st) == 0 ? std::pair(st.st_dev, st.st_ino) : std::pair<dev_t, ino_t>(0, 0);
+  };
+  std::set<std::pair<dev_t, ino_t>> entered;
   std::vector<std::string> files;
-  fs::recursive_directory_iterator it(folder, fs::directory_options::follow_directory_symlink, ec);
-  for (; !ec && it != fs::recursive_directory_iterator(); it.increment(ec)) {
-    if (it->is_regular_file(ec) && keep(it->path().string())) files.push_back(it->path().string());
-  }
+  std::function<void(const fs::path&)> walk = [&](const fs::path& dir) {
+    if (ec || !entered.insert(folder_id(dir)).second) return;
+    std::vector<fs::path> entries;
+    for (fs::directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) entries.push_back(it->path());
+    if (ec) return;
+    std::sort(entries.begin(), entries.end());
+    for (const fs::path& entry : entries) {
+      std::error_code entry_ec;  // a dangling link or a file removed meanwhile is skipped
+      if (fs::is_directory(entry, entry_ec)) {
+        walk(entry);
+      } else if (fs::is_regular_file(entry, entry_ec) && keep(entry.string())) {
+        files.push_back(entry.string());
+      }
+    }
+  };
+  walk(folder);
   if (ec) return Fail(ErrorCode::kIoError, "cannot list '" + folder + "': " + ec.message());
   std::sort(files.begin(), files.end());
   return files;

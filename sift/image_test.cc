@@ -4,6 +4,7 @@
 
 #include <cmath>
 #include <filesystem>
+#include <fstream>
 #include <string>
 #include <vector>
 
@@ -13,6 +14,7 @@
 
 #include "sift/base/binary_io.h"
 #include "tests/support/hostile_images.h"
+#include "tests/support/temp_dir.h"
 
 namespace oxbow::sift {
 namespace {
@@ -371,6 +373,28 @@ TEST(DecodeImage, RefusesBadOptionsAndMissingFiles) {
   ASSERT_FALSE(missing);
   EXPECT_EQ(missing.error().code, ErrorCode::kNotFound);
   EXPECT_NE(missing.error().message.find("/nonexistent/image.jpg"), std::string::npos);
+}
+
+// Links to folders are followed, each folder once: a link back to an ancestor ends, and no image is
+// listed twice (a loop listed one image dozens of times, and `vocab train` sampled it as many).
+TEST(ListImageFiles, FollowsFolderLinksOnceEach) {
+  namespace fs = std::filesystem;
+  const oxbow::testing::TempDir dir;
+  const fs::path root = dir.path();
+  fs::create_directories(root / "photos" / "sub");
+  fs::create_directories(root / "elsewhere");
+  for (const fs::path& image : {root / "photos" / "a.jpg", root / "photos" / "sub" / "b.jpg", root / "elsewhere" / "c.jpg"}) {
+    std::ofstream(image) << "listed, not decoded";
+  }
+  fs::create_directory_symlink("..", root / "photos" / "sub" / "up");
+  fs::create_directory_symlink(root / "elsewhere", root / "photos" / "linked");
+  fs::create_directory_symlink(root / "elsewhere", root / "photos" / "linked-again");
+  auto files = ListImageFiles((root / "photos").string());
+  ASSERT_TRUE(files) << files.error().ToString();
+  ASSERT_EQ(files->size(), 3u);
+  EXPECT_EQ((*files)[0], (root / "photos" / "a.jpg").string());
+  EXPECT_EQ((*files)[1], (root / "photos" / "linked" / "c.jpg").string());
+  EXPECT_EQ((*files)[2], (root / "photos" / "sub" / "b.jpg").string());
 }
 
 }  // namespace
