@@ -75,9 +75,13 @@ TEST_F(CliCoherence, VocabularyFromSiftFeatureFilesIsUsableByIndexBuildAndServe)
   ASSERT_EQ(rc, 0) << out;
   out = RunCommand(Oxbow("features info " + Path("feats/box.png.oxfeat")), &rc);
   ASSERT_NE(out.find(", sift descriptors"), std::string::npos) << out;
+  // A damaged feature file among them is skipped with a warning, as an unreadable image is.
+  std::ofstream(Path("feats/damaged.png.oxfeat"), std::ios::binary) << "not a feature file";
   // The documented path: SIFT files, a RootSIFT vocabulary (the default descriptor converts them).
   out = RunCommand(Oxbow("vocab train --features " + Path("feats") + " --words 64 --out " + Path("v.oxvoc")), &rc);
   ASSERT_EQ(rc, 0) << out;
+  EXPECT_NE(out.find("skipping " + Path("feats/damaged.png.oxfeat")), std::string::npos) << out;
+  EXPECT_NE(out.find("(1 unreadable)"), std::string::npos) << out;
   out = RunCommand(Oxbow("vocab info " + Path("v.oxvoc")), &rc);
   ASSERT_EQ(rc, 0) << out;
   EXPECT_NE(out.find("descriptor   rootsift"), std::string::npos) << out;

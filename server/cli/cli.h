@@ -10,6 +10,7 @@
 #include <CLI/CLI.hpp>
 #include <signal.h>
 #include <sys/stat.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <atomic>
@@ -99,6 +100,9 @@ inline CLI::Validator FileToWrite() {
         const std::filesystem::path folder = file.parent_path().empty() ? std::filesystem::path(".") : file.parent_path();
         if (!std::filesystem::is_directory(folder, ec)) {
           return "the folder '" + folder.string() + "' of '" + path + "' does not exist";
+        }
+        if (::access(folder.c_str(), W_OK) != 0) {
+          return "the folder '" + folder.string() + "' of '" + path + "' is not writable";
         }
         return std::string();
       },

@@ -101,7 +101,14 @@ std::string ReadDescriptors(const VocabTrainArgs& args, const TrainingInputs& in
     std::string first_file;
     for (size_t i = first; i < inputs.paths.size(); i += stride) {
       const std::string& path = inputs.paths[i];
-      sift::FeatureFile file = ValueOrExit(sift::ReadFeatureFile(path));
+      auto read = sift::ReadFeatureFile(path);
+      if (!read) {  // a damaged or unreadable file is skipped, as an unreadable image is
+        ++failures;
+        OXBOW_LOG(kWarning) << "skipping " << path << ": " << read.error().ToString();
+        progress.Advance();
+        continue;
+      }
+      sift::FeatureFile file = std::move(*read);
       if (first_file.empty()) {
         settings = file.extractor_description;
         first_file = path;
