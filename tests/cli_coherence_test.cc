@@ -164,6 +164,7 @@ TEST(CliErrors, MistakesAreRefusedBeforeAnyWorkNamingWhatIsWrong) {
       {"eval --images " + d + " --hamming-sigma 0", 105, "must be in (0, 64], not 0"},
       {"eval --images " + d + " --work " + d + "/photo.jpg", 105, "is a file: give a folder"},
       {"index check --index " + d + "/no-index", 4, "no index at " + d + "/no-index"},
+      {"index check --index " + d + "/no-index -q", 4, "no index at " + d + "/no-index"},  // global flags anywhere
       // A missing flag is named, not read as a mistyped command (the sources are an option group).
       {"vocab train --images " + d + " --words 10", 106, "--out is required"},
       {"vocab hamming --vocab " + d + "/v.oxvoc --images " + d, 106, "--out is required"},

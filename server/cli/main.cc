@@ -61,15 +61,15 @@ class HelpFormatter : public CLI::Formatter {
 
 // When argv names a command that does not exist ("oxbow index bild"), the error for it: the word and
 // the commands there are. CLI11 itself only says that a command is required. The words before the
-// first command that has no sub-commands are read; of the options among them only the top level's
-// --log-level takes a value.
+// first command that has no sub-commands are read; of the options among them only --log-level takes a
+// value.
 std::optional<std::string> UnknownCommand(CLI::App& app, int argc, char** argv) {
   CLI::App* at = &app;
   std::string path = "oxbow";
   for (int i = 1; i < argc; ++i) {
     const std::string word = argv[i];
     if (word.empty() || word[0] == '-') {
-      if (at == &app && word == "--log-level") ++i;
+      if (word == "--log-level") ++i;  // its value is no command (the flag falls through to every command)
       continue;
     }
     // Option groups (`vocab train`'s sources) are CLI11 sub-apps too, but no commands.
@@ -114,6 +114,7 @@ int main(int argc, char** argv) {
       "Run 'oxbow <command> --help' for the options of a command."};
   app.formatter(std::make_shared<HelpFormatter>());  // before the commands: each copies its parent's
   app.require_subcommand(1);
+  app.fallthrough();  // --log-level and -q may follow the command too ("oxbow index info --index x -q")
   app.set_version_flag("--version", "oxbow " OXBOW_VERSION);  // project(VERSION) in CMakeLists.txt
   std::string log_level = "info";
   app.add_option("--log-level", log_level, "stderr log level: debug, info, warning, error, off")
