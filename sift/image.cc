@@ -513,7 +513,8 @@ Result<DecodedImage> DecodeImage(std::span<const uint8_t> bytes, const DecodeOpt
   if (auto complete = CheckComplete(bytes, *info, scan_start, maxval, data_start); !complete)
     return std::unexpected(complete.error());
   // JPEG, PNG and 8-bit PGM are decoded here (image_decoders.h); what those decoders leave (CMYK JPEG,
-  // other PNM, a PNG libpng refuses) and the other formats go to OpenCV's decoders.
+  // other PNM) and the other formats go to OpenCV's decoders. A PNG that libpng refuses is not: OpenCV
+  // reads it with the same libpng, which would refuse it again and print its error to stderr.
   cv::Mat mat;
   switch (info->format) {
     case ImageFormat::kJpeg: {
@@ -522,7 +523,10 @@ Result<DecodedImage> DecodeImage(std::span<const uint8_t> bytes, const DecodeOpt
       mat = std::move(*jpeg);
       break;
     }
-    case ImageFormat::kPng: mat = internal::DecodePngGray(bytes, options.apply_exif_orientation); break;
+    case ImageFormat::kPng:
+      mat = internal::DecodePngGray(bytes, options.apply_exif_orientation);
+      if (mat.empty()) return Invalid("png data could not be decoded (corrupt or truncated)");
+      break;
     case ImageFormat::kPnm: mat = internal::DecodePgmGray(bytes, info->width, info->height, maxval, data_start); break;
     case ImageFormat::kTiff:
       if (auto intact = CheckTiffData(bytes, *info, options); !intact) return std::unexpected(intact.error());

@@ -3,10 +3,15 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdio>
+#include <iterator>
 #include <filesystem>
 #include <fstream>
 #include <string>
 #include <vector>
+
+#include <fcntl.h>
+#include <unistd.h>
 
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -373,6 +378,33 @@ TEST(DecodeImage, RefusesBadOptionsAndMissingFiles) {
   ASSERT_FALSE(missing);
   EXPECT_EQ(missing.error().code, ErrorCode::kNotFound);
   EXPECT_NE(missing.error().message.find("/nonexistent/image.jpg"), std::string::npos);
+}
+
+// A PNG whose pixel data libpng refuses is reported once, as oxbow's error: it is not handed to
+// OpenCV's decoder, whose libpng would refuse it again and print "libpng error: ..." to stderr.
+TEST(DecodeImage, ADamagedPngPrintsNothingToStderr) {
+  std::vector<uchar> png;
+  cv::Mat noise(120, 160, CV_8U);
+  cv::randu(noise, 0, 255);
+  ASSERT_TRUE(cv::imencode(".png", noise, png));
+  for (size_t i = png.size() / 2; i < png.size() / 2 + 16; ++i) png[i] ^= 0x5a;  // inside the pixel data
+  const oxbow::testing::TempDir dir;
+  const std::string captured = dir.path() + "/stderr.txt";
+  std::fflush(stderr);
+  const int saved = dup(STDERR_FILENO);
+  const int file = open(captured.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+  ASSERT_GE(file, 0);
+  dup2(file, STDERR_FILENO);
+  const auto decoded = DecodeImage(png);
+  std::fflush(stderr);
+  dup2(saved, STDERR_FILENO);
+  close(file);
+  close(saved);
+  ASSERT_FALSE(decoded);
+  EXPECT_EQ(decoded.error().code, ErrorCode::kInvalidImage);
+  EXPECT_NE(decoded.error().message.find("png data could not be decoded"), std::string::npos) << decoded.error().message;
+  std::ifstream in(captured);
+  EXPECT_EQ(std::string(std::istreambuf_iterator<char>(in), {}), "");
 }
 
 // Links to folders are followed, each folder once: a link back to an ancestor ends, and no image is
