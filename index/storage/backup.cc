@@ -377,6 +377,7 @@ Status CheckBackupFolder(const std::string& dir, const std::string& out) {
   fs::path prefix = target->root_path();
   size_t i = 0;
   bool taken = false;  // the last component exists and is not an empty folder
+  bool taken_by_file = false;
   for (const fs::path& part : relative) {
     prefix /= part;
     const bool last = ++i == components;
@@ -400,6 +401,7 @@ Status CheckBackupFolder(const std::string& dir, const std::string& out) {
     }
     std::error_code ec;
     taken = last && !(S_ISDIR(st.st_mode) && fs::is_empty(prefix, ec));
+    taken_by_file = taken && !S_ISDIR(st.st_mode);
   }
   if (!dir.empty()) {
     std::error_code ec;
@@ -409,7 +411,10 @@ Status CheckBackupFolder(const std::string& dir, const std::string& out) {
                      " being backed up: back up to a folder outside it");
     }
   }
-  if (taken) return Fail(ErrorCode::kAlreadyExists, Shown(*target) + " exists and is not an empty folder; back up to a new one");
+  if (taken) {
+    return Fail(ErrorCode::kAlreadyExists, Shown(*target) + (taken_by_file ? " is a file" : " exists and is not an empty folder") +
+                                               "; back up to a new folder");
+  }
   return Ok();
 }
 

@@ -109,9 +109,18 @@ Result<std::vector<uint8_t>> ReadWholeFile(const std::string& path, uint64_t max
     return Fail(code, "cannot open '" + path + "': " + ErrnoText());
   }
   struct stat st {};
-  if (::fstat(fd, &st) != 0 || !S_ISREG(st.st_mode)) {
+  if (::fstat(fd, &st) != 0) {
+    const std::string why = ErrnoText();
     ::close(fd);
-    return Fail(ErrorCode::kIoError, "'" + path + "' is not a regular file");
+    return Fail(ErrorCode::kIoError, "cannot read '" + path + "': " + why);
+  }
+  if (S_ISDIR(st.st_mode)) {  // a folder where a file belongs: the caller's mistake, not the disk's
+    ::close(fd);
+    return Fail(ErrorCode::kInvalidArgument, "'" + path + "' is a folder, not a file");
+  }
+  if (!S_ISREG(st.st_mode)) {
+    ::close(fd);
+    return Fail(ErrorCode::kInvalidArgument, "'" + path + "' is not a regular file (a device, a pipe or a socket)");
   }
   if (static_cast<uint64_t>(st.st_size) > max_bytes) {
     ::close(fd);
