@@ -163,6 +163,13 @@ TEST(CliErrors, MistakesAreRefusedBeforeAnyWorkNamingWhatIsWrong) {
       {"eval --images " + d + " --protocol foo", 105, "foo not in {oxford,restricted,revisited,groups}"},
       {"eval --images " + d + " --hamming-sigma 0", 105, "must be in (0, 64], not 0"},
       {"eval --images " + d + " --work " + d + "/photo.jpg", 105, "is a file: give a folder"},
+      // Flags name themselves, and conflicting or meaningless values are refused.
+      {"extract " + d + "/photo.jpg --contrast-threshold 2", 105, "--contrast-threshold: must be in [0, 1], not 2"},
+      {"vocab train --images " + d + " --words 10 --seed -1 --out " + d + "/v.oxvoc", 105, "--seed: must be at least 0"},
+      {"vocab train --images " + d + " --words 10 --descriptor sift --root-sift --out " + d + "/v.oxvoc", 108,
+       "--descriptor excludes --root-sift"},
+      {"serve --index " + d + "/no-index --shutdown-grace-s nan", 105, "'nan' is not a number"},
+      {"index add --index " + d + "/no-index --id '' " + d + "/photo.jpg", 105, "--id: an id is not empty"},
       {"index check --index " + d + "/no-index", 4, "no index at " + d + "/no-index"},
       {"index check --index " + d + "/no-index -q", 4, "no index at " + d + "/no-index"},  // global flags anywhere
       // A missing flag is named, not read as a mistyped command (the sources are an option group).

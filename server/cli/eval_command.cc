@@ -124,11 +124,11 @@ void SetUp(CLI::App& app) {
   cmd->add_option("--sample", args->sample, "descriptors sampled to train each vocabulary")->capture_default_str();
   cmd->add_option("--per-image", args->per_image, "cap of training descriptors per image (0 = vocab train's default)");
   cmd->add_option("--iterations", args->iterations, "k-means iterations (0 = vocab train's default)");
-  cmd->add_option("--seed", args->seed, "random seed for sampling and k-means")->capture_default_str();
+  cmd->add_option("--seed", args->seed, "random seed for sampling and k-means")->check(NonNegative())->capture_default_str();
   cmd->add_option("--threads", args->threads, "threads for training, indexing and serving (0 = all cores)");
   cmd->add_flag("--full-image", args->full_image, "query with the whole query image instead of its box");
   cmd->add_option("--mode", args->mode, "http (through oxbow serve), in-process, or both")->capture_default_str();
-  cmd->add_option("--max-queries", args->max_queries, "evaluate only the first N queries (smoke runs)");
+  cmd->add_option("--max-queries", args->max_queries, "evaluate only the first N queries (smoke runs; 0 = all)")->check(NonNegative());
   cmd->add_option("--server", args->server,
                   "evaluate a running server or cluster front (http://HOST:PORT) instead of building one: it must "
                   "hold exactly the database images under eval's ids (when it does not, eval writes the list to "

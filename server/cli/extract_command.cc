@@ -183,8 +183,10 @@ void SetUpExtract(CLI::App& app) {
                 "do not double the image size for the first octave (about 3x faster, finds fewer small features)");
   cmd->add_option("--contrast-threshold", args->contrast_threshold,
                   "minimum DoG contrast, divided by the 3 scales per octave as OpenCV does; lower finds more, weaker keypoints")
+      ->check(NumberIn(0, 1))
       ->capture_default_str();
   cmd->add_option("--edge-threshold", args->edge_threshold, "edge rejection ratio r (Lowe's r = 10); higher keeps more edge-like keypoints")
+      ->check(NumberIn(1, 1e6, /*lo_open=*/true))
       ->capture_default_str();
   cmd->add_flag("--upright", args->upright,
                 "upright features (Perdoch et al. 2009): every keypoint's orientation is the image's x axis, one keypoint "

@@ -464,11 +464,11 @@ void SetUpDuplicates(CLI::App& index_cmd) {
   d->add_option("--min-coverage", args->options.min_coverage,
                 "drop a pair whose match covers less than this share of both images (a shared logo or caption)")
       ->capture_default_str()
-      ->check(CLI::Range(0.0, 1.0));
+      ->check(NumberIn(0, 1));
   d->add_option("--near-copy-coverage", args->options.near_copy_coverage,
                 "a near copy: one image covered at least this much by the match")
       ->capture_default_str()
-      ->check(CLI::Range(0.0, 1.0));
+      ->check(NumberIn(0, 1));
   d->add_option("--threads", args->options.threads, "threads; 0 = all cores (per rank with --mpi)")
       ->capture_default_str()
       ->check(CLI::Range(0, 256));
@@ -560,7 +560,8 @@ void SetUpIndex(CLI::App& app) {
   CLI::App* a = cmd->add_subcommand("add", "Add images to an index (id = file name without extension)");
   a->add_option("--index", add->index, "index folder")->required();
   a->add_option("images", add->images, "image files")->required();
-  a->add_option("--id", add->id, "id for the image (only with one image)");
+  a->add_option("--id", add->id, "id for the image (only with one image)")->check(CLI::Validator(
+      [](std::string& id) { return id.empty() ? std::string("an id is not empty") : std::string(); }, "ID"));
   a->add_option("--metadata", add->metadata, "metadata JSON stored with the image(s)");
   AddImageFlags(a, &add->image);
   AddThreadsFlag(a, &add->threads);

@@ -283,7 +283,7 @@ void SetUpServe(CLI::App& app) {
                   "since the last refresh reach this fraction of its images; 0: only on demand "
                   "(POST /v1/admin/refresh-statistics)")
       ->capture_default_str()
-      ->check(CLI::Range(0.0, 1.0));
+      ->check(NumberIn(0, 1));
   cmd->add_option("--vocab", flags->vocab_path, "vocabulary file; needed only to create a new index (--index), or the collection \"default\" (--data)")
       ->check(CLI::ExistingFile);
   cmd->add_option("--grpc-port", flags->grpc_port,
@@ -350,7 +350,7 @@ void SetUpServe(CLI::App& app) {
                   "on SIGTERM/SIGINT, decodes and extractions still running after this many seconds are stopped "
                   "(their requests get 503); 0 stops them at once")
       ->capture_default_str()
-      ->check(CLI::Range(0.0, 3600.0));
+      ->check(NumberIn(0, 3600));
   cmd->add_option("--threads-per-request", flags->service.threads_per_request,
                   "threads inside one search's extraction and one match, 0 = all cores (lowest latency; concurrent "
                   "requests share them); adds at --add-nice extract on one thread")

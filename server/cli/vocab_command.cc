@@ -377,11 +377,14 @@ void SetUpVocab(CLI::App& app) {
                   "as buildings: see 'oxbow extract --help'); index build and serve then extract them too")
       ->excludes("--features");
   train->add_flag_callback("--root-sift", [args] { args->descriptor = sift::DescriptorKind::kRootSift; },
-                           "same as --descriptor rootsift (the default)");
+                           "same as --descriptor rootsift (the default)")
+      ->excludes("--descriptor");
   train->add_option("--sample", args->sample, "maximum training descriptors in total")->capture_default_str()->check(Positive());
   train->add_option("--per-image", args->per_image, "maximum descriptors kept per image")->capture_default_str()->check(Positive());
   train->add_option("--iterations", args->iterations, "maximum Lloyd iterations")->capture_default_str()->check(CLI::Range(1, 1000));
-  train->add_option("--seed", args->seed, "seed of the sampling, the seeding and the search structures")->capture_default_str();
+  train->add_option("--seed", args->seed, "seed of the sampling, the seeding and the search structures")
+      ->check(NonNegative())
+      ->capture_default_str();
   AddThreadsFlag(train, &args->threads);
   train->add_option("--assignment", args->assignment, "nearest-centroid search in the iterations: auto, exact, ivf, kdforest")
       ->capture_default_str()
@@ -444,7 +447,7 @@ void SetUpVocab(CLI::App& app) {
       ->check(VocabularyToWrite());
   hamming->add_option("--sample", hargs->sample, "maximum sample descriptors in total")->capture_default_str()->check(Positive());
   hamming->add_option("--per-image", hargs->per_image, "maximum descriptors kept per image")->capture_default_str()->check(Positive());
-  hamming->add_option("--seed", hargs->seed, "seed of the sampling and of the projection")->capture_default_str();
+  hamming->add_option("--seed", hargs->seed, "seed of the sampling and of the projection")->check(NonNegative())->capture_default_str();
   AddThreadsFlag(hamming, &hargs->threads);
   AddImageFlags(hamming, &hargs->image);
   hamming->callback([hargs] { RunVocabHamming(*hargs); });
