@@ -462,7 +462,9 @@ void SetUpDuplicates(CLI::App& index_cmd) {
       ->check(CLI::Range(1, 1000));
   d->add_flag("--no-mirror", args->no_mirror, "do not look for mirrored copies (one search per image instead of two)");
   d->add_option("--min-coverage", args->options.min_coverage,
-                "drop a pair whose match covers less than this share of both images (a shared logo or caption)")
+                "drop a pair whose match covers less than this share of both images (a shared logo or caption); "
+                "a match of distinct content (another photo of one place or object) needs only 0.05 of one image "
+                "(server/README.md, \"Duplicates\")")
       ->capture_default_str()
       ->check(NumberIn(0, 1));
   d->add_option("--near-copy-coverage", args->options.near_copy_coverage,
