@@ -463,7 +463,7 @@ void SetUpDuplicates(CLI::App& index_cmd) {
   d->add_flag("--no-mirror", args->no_mirror, "do not look for mirrored copies (one search per image instead of two)");
   d->add_option("--min-coverage", args->options.min_coverage,
                 "drop a pair whose match covers less than this share of both images (a shared logo or caption); "
-                "a match of distinct content (another photo of one place or object) needs only 0.05 of one image "
+                "a match of distinct content (another photo of one place or object) needs only 0.05 of one image (or this, when lower) "
                 "(server/README.md, \"Duplicates\")")
       ->capture_default_str()
       ->check(NumberIn(0, 1));
