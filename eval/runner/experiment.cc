@@ -129,9 +129,23 @@ void Prepare(const ExperimentOptions& a, const Config& c, const std::map<std::st
   const fs::path complete = fs::path(c.Dir(a.work)) / "index.complete";
   if (index::ImageIndex::Exists(index) && fs::exists(complete)) {
     // A cached index of other images (another folder, distractors or not) would score the wrong database.
-    std::string listed;
-    for (const std::string& p : database_paths) listed += p + "\n";
-    if (ReadBytes(list_path.string()) != listed) {
+    // Compared file by file, each path resolved: the same files named from another folder, or through a
+    // --work spelled another way (relative, absolute), are the same database.
+    auto resolved = [](const std::vector<std::string>& paths) {
+      std::vector<std::string> files;
+      for (const std::string& p : paths) {
+        std::error_code ec;
+        const fs::path real = fs::weakly_canonical(p, ec);
+        files.push_back(ec ? p : real.string());
+      }
+      return files;
+    };
+    std::vector<std::string> cached;
+    {
+      std::istringstream lines(ReadBytes(list_path.string()));
+      for (std::string line; std::getline(lines, line);) cached.push_back(line);
+    }
+    if (resolved(cached) != resolved(database_paths)) {
       throw ExperimentError(2, "the work folder " + a.work + " holds an index of other images than " + list_path.string() +
                                 " lists for this run; use another --work");
     }
