@@ -170,6 +170,7 @@ TEST(CliErrors, MistakesAreRefusedBeforeAnyWorkNamingWhatIsWrong) {
        "--descriptor excludes --root-sift"},
       {"serve --index " + d + "/no-index --shutdown-grace-s nan", 105, "'nan' is not a number"},
       {"index add --index " + d + "/no-index --id '' " + d + "/photo.jpg", 105, "--id: an id is not empty"},
+      {"match " + d + "/photo.jpg " + d + "/x/photo.jpg --kd-trees 3", 2, "--kd-trees and --kd-checks tune --method kdtree"},
       {"index check --index " + d + "/no-index", 4, "no index at " + d + "/no-index"},
       {"index check --index " + d + "/no-index -q", 4, "no index at " + d + "/no-index"},  // global flags anywhere
       // A missing flag is named, not read as a mistyped command (the sources are an option group).

@@ -118,8 +118,12 @@ void SetUpMatch(CLI::App& app) {
   cmd->add_option("--method", args->method, "nearest-neighbour search: brute (exact) or kdtree (FLANN kd-forest)")
       ->check(CLI::IsMember({"brute", "kdtree"}))
       ->capture_default_str();
-  cmd->add_option("--kd-trees", args->kd_trees, "kd-forest: number of randomised trees")->check(CLI::Range(1, 64))->capture_default_str();
-  cmd->add_option("--kd-checks", args->kd_checks, "kd-forest: leaves visited per query")->check(CLI::Range(1, 1 << 20))->capture_default_str();
+  const CLI::Option* trees = cmd->add_option("--kd-trees", args->kd_trees, "kd-forest (--method kdtree): number of randomised trees")
+                                 ->check(CLI::Range(1, 64))
+                                 ->capture_default_str();
+  const CLI::Option* checks = cmd->add_option("--kd-checks", args->kd_checks, "kd-forest (--method kdtree): leaves visited per query")
+                                  ->check(CLI::Range(1, 1 << 20))
+                                  ->capture_default_str();
   AddDescriptorFlag(cmd, &args->descriptor);
   cmd->add_option("--max-features", args->max_features, "keep at most this many strongest keypoints per image")
       ->check(Positive());
@@ -136,7 +140,12 @@ void SetUpMatch(CLI::App& app) {
                   "write the two images side by side: inliers green, rejected matches red, matched region outlined")
       ->check(FileToWrite())
       ->check(DrawingFile());
-  cmd->callback([args] { RunMatch(*args); });
+  cmd->callback([args, trees, checks] {
+    if (args->method != "kdtree" && (trees->count() > 0 || checks->count() > 0)) {
+      throw CommandError(2, "--kd-trees and --kd-checks tune --method kdtree; the search is --method " + args->method);
+    }
+    RunMatch(*args);
+  });
 }
 
 const bool registered_match = RegisterCommand({"match", 30, &SetUpMatch});
