@@ -193,7 +193,7 @@ TEST(CliErrors, MistakesAreRefusedBeforeAnyWorkNamingWhatIsWrong) {
   // Checked before decoding: the bytes need not be a photo.
   const std::string photo = "not decoded: the outputs are refused first";
   fs::create_directories(d + "/x");
-  for (const std::string path : {d + "/photo.jpg", d + "/x/photo.jpg"}) std::ofstream(path, std::ios::binary) << photo;
+  for (const std::string& path : {d + "/photo.jpg", d + "/x/photo.jpg"}) std::ofstream(path, std::ios::binary) << photo;
   for (const auto& [args, expected_rc, expected_text] : cases) {
     int rc = -1;
     const std::string out = RunCommand(Oxbow(args), &rc);
@@ -203,7 +203,7 @@ TEST(CliErrors, MistakesAreRefusedBeforeAnyWorkNamingWhatIsWrong) {
   EXPECT_FALSE(fs::exists(d + "/no-index"));
   EXPECT_FALSE(fs::exists(d + "/v.oxvoc"));
   EXPECT_FALSE(fs::exists(d + "/features"));
-  for (const std::string path : {d + "/photo.jpg", d + "/x/photo.jpg"}) {
+  for (const std::string& path : {d + "/photo.jpg", d + "/x/photo.jpg"}) {
     std::ifstream in(path, std::ios::binary);
     EXPECT_EQ(std::string(std::istreambuf_iterator<char>(in), {}), photo) << path;
   }

@@ -285,8 +285,9 @@ TEST_F(EndToEnd, BuildFromFeatureFilesEqualsBuildFromImages) {
       {"--list " + images.string(), "is a folder: give a text file of image paths"},
       {"--list " + (images / kDatabase[0]).string(), "is not a text file of image paths"}};
   for (const auto& [source, expected] : wrong) {
-    const std::string out = RunCommand(bin + " index build --vocab " + vocab_file.string() + " " + source + " --out " +
-                                           (*work_ / "wrong_source").string() + " 2>&1", &code);
+    std::string command = bin + " index build --vocab " + vocab_file.string();
+    command.append(" ").append(source).append(" --out ").append((*work_ / "wrong_source").string()).append(" 2>&1");
+    const std::string out = RunCommand(command, &code);
     EXPECT_NE(code, 0) << source;
     EXPECT_NE(out.find(expected), std::string::npos) << source << "\n" << out;
     EXPECT_FALSE(fs::exists(*work_ / "wrong_source")) << source;
