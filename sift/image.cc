@@ -437,16 +437,17 @@ Result<std::vector<std::string>> ListFiles(const std::string& folder, const std:
   std::vector<std::string> files;
   std::function<void(const fs::path&)> walk = [&](const fs::path& dir) {
     if (ec || !entered.insert(folder_id(dir)).second) return;
-    std::vector<fs::path> entries;
-    for (fs::directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) entries.push_back(it->path());
+    // Entries keep the type the folder listing gave: only links cost a stat.
+    std::vector<fs::directory_entry> entries;
+    for (fs::directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) entries.push_back(*it);
     if (ec) return;
     std::sort(entries.begin(), entries.end());
-    for (const fs::path& entry : entries) {
+    for (const fs::directory_entry& entry : entries) {
       std::error_code entry_ec;  // a dangling link or a file removed meanwhile is skipped
-      if (fs::is_directory(entry, entry_ec)) {
-        walk(entry);
-      } else if (fs::is_regular_file(entry, entry_ec) && keep(entry.string())) {
-        files.push_back(entry.string());
+      if (entry.is_directory(entry_ec)) {
+        walk(entry.path());
+      } else if (entry.is_regular_file(entry_ec) && keep(entry.path().string())) {
+        files.push_back(entry.path().string());
       }
     }
   };

@@ -172,8 +172,8 @@ void Serve(const ServeFlags& flags) {
       server.Shutdown();
     };
     if (!flags.data_dir.empty()) {
-      auto opened = opened_collections ? Result<std::shared_ptr<api::Collections>>(opened_collections)
-                                       : api::Collections::Open(flags.data_dir, vocab, service_options, index_options);
+      Result<std::shared_ptr<api::Collections>> opened = opened_collections;
+      if (!opened_collections) opened = api::Collections::Open(flags.data_dir, vocab, service_options, index_options);
       if (!opened) return fail(opened.error(), "data folder");
       OXBOW_LOG(kInfo) << "data folder " << flags.data_dir << " ready: " << (*opened)->Names().size()
                        << " collections, loaded in "
