@@ -5,6 +5,7 @@
 //
 //   build/eval/bench/sift_benchmark [--reps N] [--skip-large] [--quick] [--processes]
 //     --quick: graf1 only, oxbow vs cv::SIFT only, no quality table.
+//     --quality: the quality tables only (no timing).
 //     --processes: every method runs its repetitions of an image in a process of its own (forked from
 //     this one before any extraction), so no method inherits another's allocator and page state.
 //
@@ -285,14 +286,15 @@ int main(int argc, char** argv) {
   mallopt(M_TRIM_THRESHOLD, 1 << 30);
 #endif
   int reps = 5;
-  bool skip_large = false, quick = false, processes = false;
+  bool skip_large = false, quick = false, quality_only = false, processes = false;
   for (int i = 1; i < argc; ++i) {
     if (!std::strcmp(argv[i], "--reps") && i + 1 < argc) reps = std::max(1, std::atoi(argv[++i]));
     else if (!std::strcmp(argv[i], "--skip-large")) skip_large = true;
     else if (!std::strcmp(argv[i], "--quick")) quick = skip_large = true;
+    else if (!std::strcmp(argv[i], "--quality")) quality_only = skip_large = true;
     else if (!std::strcmp(argv[i], "--processes")) processes = true;
     else {
-      std::fprintf(stderr, "usage: %s [--reps N] [--skip-large] [--quick] [--processes]\n", argv[0]);
+      std::fprintf(stderr, "usage: %s [--reps N] [--skip-large] [--quick] [--quality] [--processes]\n", argv[0]);
       return 2;
     }
   }
@@ -311,14 +313,17 @@ int main(int argc, char** argv) {
     images.resize(1);
     std::erase_if(methods, [](const Method& m) { return m.side == Side::kVlfeat; });
   }
+  if (quality_only) images.clear();
   Extractors warm;
-  std::printf("SIFT benchmark: %d repetitions, %s; median ms per image from the decoded 8-bit image\n", reps,
-              processes ? "each method's repetitions in a process of its own" : "methods interleaved in one process");
-  std::printf("(conversion to float inside every timer; cold = new thread and new extractor per run, warm = one of each;\n"
-              " blocks up to 32 MiB from the heap and freed memory kept by the process, for every side)\n\n");
-  std::printf("| image | peer | threads | state | oxbow wall ms | peer wall ms | ours/peer wall | oxbow CPU ms | peer CPU ms "
-              "| ours/peer CPU | keypoints ours / peer |\n");
-  std::printf("|---|---|---:|---|---:|---:|---:|---:|---:|---:|---|\n");
+  if (!images.empty()) {
+    std::printf("SIFT benchmark: %d repetitions, %s; median ms per image from the decoded 8-bit image\n", reps,
+                processes ? "each method's repetitions in a process of its own" : "methods interleaved in one process");
+    std::printf("(conversion to float inside every timer; cold = new thread and new extractor per run, warm = one of each;\n"
+                " blocks up to 32 MiB from the heap and freed memory kept by the process, for every side)\n\n");
+    std::printf("| image | peer | threads | state | oxbow wall ms | peer wall ms | ours/peer wall | oxbow CPU ms | peer CPU ms "
+                "| ours/peer CPU | keypoints ours / peer |\n");
+    std::printf("|---|---|---:|---|---:|---:|---:|---:|---:|---:|---|\n");
+  }
   for (const Image& image : images) {
     const cv::Mat gray8 = cv::imread(image.path, cv::IMREAD_GRAYSCALE);
     if (gray8.empty()) continue;
