@@ -38,6 +38,8 @@ std::optional<std::string> SiftOptions::Check() const {
   if (!(kernel_radius_sigmas >= 2.5 && kernel_radius_sigmas <= 6)) return "kernel_radius_sigmas must be in [2.5, 6], got " + std::to_string(kernel_radius_sigmas);
   if (max_octaves && (*max_octaves < 1 || *max_octaves > 32)) return "max_octaves must be in [1, 32] when set, got " + std::to_string(*max_octaves);
   if (num_threads < 0 || num_threads > 256) return "num_threads must be in [0, 256], got " + std::to_string(num_threads);
+  if (!(descriptor_magnification >= 1 && descriptor_magnification <= 10)) return "descriptor_magnification must be in [1, 10], got " + std::to_string(descriptor_magnification);
+  if (descriptor_row_step < 1 || descriptor_row_step > 4) return "descriptor_row_step must be in [1, 4], got " + std::to_string(descriptor_row_step);
   if (thread_cache_mib < 0 || thread_cache_mib > 65536) return "thread_cache_mib must be in [0, 65536], got " + std::to_string(thread_cache_mib);
   return std::nullopt;
 }
@@ -90,7 +92,9 @@ Result<SiftOptions> SiftOptions::FromDescription(const std::string& settings) {
     start = end;
   }
   SiftOptions o;
-  o.keypoint_style = KeypointStyle::kOpenCv;  // descriptions without the field were made that way
+  o.keypoint_style = KeypointStyle::kOpenCv;  // descriptions without these fields were made that way
+  o.descriptor_magnification = kLegacyDescriptorMagnification;
+  o.descriptor_row_step = 1;
   auto need = [&](const char* key) -> const std::string* {
     auto it = fields.find(key);
     return it == fields.end() ? nullptr : &it->second;
@@ -134,6 +138,8 @@ Result<SiftOptions> SiftOptions::FromDescription(const std::string& settings) {
   }
   if (!read_double("peak_ratio", &o.orientation_peak_ratio)) return incompatible("peak_ratio");
   if (!read_double("kernel_radius", &o.kernel_radius_sigmas)) return incompatible("kernel_radius");
+  if (!read_double("magnification", &o.descriptor_magnification)) return incompatible("magnification");
+  if (!read_int("row_step", &o.descriptor_row_step)) return incompatible("row_step");
   if (const std::string* v = need("max_octaves"); v && *v != "all") {
     int n = 0;
     if (!ParseDescribedInt(*v, &n)) return incompatible("max_octaves");
@@ -161,6 +167,9 @@ std::string SiftOptions::Describe() const {
   if (keypoint_style == KeypointStyle::kVlfeat) s << ";keypoints=vlfeat";
   // Off is written as no field, like kOpenCv above.
   if (upright) s << ";upright=1";
+  // Lowe's cell width (3) and every row (1) are written as no field, like kOpenCv above.
+  if (descriptor_magnification != kLegacyDescriptorMagnification) s << ";magnification=" << CanonicalDouble(descriptor_magnification);
+  if (descriptor_row_step != 1) s << ";row_step=" << descriptor_row_step;
   return s.str();
 }
 
@@ -176,7 +185,6 @@ constexpr float kOriSigmaFactor = 1.5f;
 constexpr float kOriRadiusFactor = 3.0f * kOriSigmaFactor;
 constexpr int kDescCells = 4;          // d: 4x4 spatial cells
 constexpr int kDescBins = 8;           // n: orientation bins per cell
-constexpr float kDescCellFactor = 3.0f;  // cell width = 3 sigma [L04 sec. 6.1]
 constexpr float kDescClip = 0.2f;      // [L04 sec. 6.1]
 
 // One octave of the Gaussian scale space: S + 3 images, each blurred more than the previous.
@@ -1124,12 +1132,14 @@ void DescriptorWindowAvx512(std::span<const DescriptorWindowRow> rows, const Des
 
 // Computes the 128-d descriptor of the keypoint at sub-pixel (x, y) of `img` (octave pixels), scale
 // `scale` (octave pixels) and orientation `ori_deg` (degrees, y axis up), unit L2 norm, clipped.
-void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, float* out, bool simd) {
+// `magnification`: cell width in keypoint scales; `row_step`: every row_step-th row of the window is sampled.
+void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, float magnification, int row_step, float* out,
+                bool simd) {
   constexpr int d = kDescCells, n = kDescBins;
   const int cx = static_cast<int>(std::lrint(x)), cy = static_cast<int>(std::lrint(y));
   const float fx = x - static_cast<float>(cx), fy = y - static_cast<float>(cy);
   const float angle = ori_deg * static_cast<float>(3.14159265358979323846 / 180.0);
-  const float hist_width = kDescCellFactor * scale;
+  const float hist_width = magnification * scale;
   const int w = img.width(), h = img.height();
   int radius = static_cast<int>(std::lrint(hist_width * 1.4142135623730951f * (d + 1) * 0.5f));
   radius = std::min(radius, static_cast<int>(std::sqrt(static_cast<double>(w) * w + static_cast<double>(h) * h)));
@@ -1150,7 +1160,7 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
   size_t window_rows = 0;
 #endif
   const float half = d / 2.0f - 0.5f;
-  for (int i = -radius; i <= radius; ++i) {
+  for (int i = -radius; i <= radius; i += row_step) {
     const int yy = cy + i;
     if (yy <= 0 || yy >= h - 1) continue;
     const float di = static_cast<float>(i) - fy;
@@ -1187,8 +1197,8 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
 #endif
 #ifdef OXBOW_AVX2
     // The window's rows are far apart in memory; ask for the row needed three rows from now.
-    if (yy + 3 < h) {
-      const float* ahead = img.row(yy + 3) + cx;
+    if (yy + 3 * row_step < h) {
+      const float* ahead = img.row(yy + 3 * row_step) + cx;
       for (int k = j0 - 1; k < j1 + 8; k += 16) _mm_prefetch(reinterpret_cast<const char*>(ahead + k), _MM_HINT_T0);
     }
 #endif
@@ -1584,7 +1594,8 @@ FeatureSet ExtractImpl(const GrayImage& image, const SiftOptions& options, bool 
           kp.octave = o - (options.upsample_first_octave ? 1 : 0);
           float* descriptor = result.descriptors.data() + index * kDescriptorDim;
           Descriptor(img, static_cast<float>(x_octave), static_cast<float>(y_octave), ori_up == 360.0f ? 0.0f : ori_up,
-                     scale_octave, descriptor, simd);
+                     scale_octave, static_cast<float>(options.descriptor_magnification), options.descriptor_row_step,
+                     descriptor, simd);
           if (options.descriptor == DescriptorKind::kRootSift) ToRootSift(std::span<float>(descriptor, kDescriptorDim));
         }
       }

@@ -40,6 +40,8 @@ SiftOptions OpencvLike() {
   options.descriptor = DescriptorKind::kSift;
   options.keypoint_style = KeypointStyle::kOpenCv;
   options.contrast_threshold = 0.04;
+  options.descriptor_magnification = 3;  // Lowe's descriptor, every row sampled
+  options.descriptor_row_step = 1;
   return options;
 }
 
@@ -594,6 +596,64 @@ TEST(SiftHomography, VlfeatStyleMatchesMoreThanOpencvStyle) {
   EXPECT_GT(ours.correct_matches, opencv.correct_matches * 11 / 10);
 }
 
+// graf1's features and their score against graf3's under the true homography, with `options`.
+struct GrafScore {
+  FeatureSet graf1;
+  HomographyScore score;
+};
+GrafScore ScoreGraf(const SiftOptions& options) {
+  const cv::Mat g1 = LoadGray(kOpencvData + "graf1.png"), g3 = LoadGray(kOpencvData + "graf3.png");
+  auto h = ReadHomography(kOpencvData + "H1to3p.xml");
+  EXPECT_TRUE(h) << h.error().ToString();
+  if (!h) return {};
+  const auto extractor = MakeExtractor(options);
+  GrafScore out{extractor.Extract(FromMat(g1)), {}};
+  out.score = ScoreUnderHomography(out.graf1, extractor.Extract(FromMat(g3)), *h);
+  return out;
+}
+
+// A wider descriptor window (SiftOptions::descriptor_magnification) describes the same keypoints with more
+// of their surroundings: on graf1->graf3 it gives more correct matches (sift_benchmark --quality has the
+// Oxford affine pairs).
+TEST(SiftHomography, WiderDescriptorSameKeypointsMoreMatches) {
+  SiftOptions lowe = OpencvLike();
+  lowe.keypoint_style = KeypointStyle::kVlfeat;
+  lowe.descriptor_magnification = 3;
+  SiftOptions wide = lowe;
+  wide.descriptor_magnification = 4;
+  const GrafScore narrow = ScoreGraf(lowe), wider = ScoreGraf(wide);
+  ASSERT_EQ(narrow.graf1.size(), wider.graf1.size());
+  size_t same_descriptor = 0;
+  for (size_t i = 0; i < narrow.graf1.size(); ++i) {
+    EXPECT_EQ(narrow.graf1.keypoints[i].x, wider.graf1.keypoints[i].x);
+    EXPECT_EQ(narrow.graf1.keypoints[i].scale, wider.graf1.keypoints[i].scale);
+    const auto a = narrow.graf1.Descriptor(i), b = wider.graf1.Descriptor(i);
+    same_descriptor += std::equal(a.begin(), a.end(), b.begin());
+  }
+  EXPECT_EQ(same_descriptor, 0u);
+  std::printf("graf1->graf3: magnification 3 matching score %.3f correct %d; 4: %.3f %d\n", narrow.score.matching_score,
+              narrow.score.correct_matches, wider.score.matching_score, wider.score.correct_matches);
+  EXPECT_GT(wider.score.correct_matches, narrow.score.correct_matches * 21 / 20);
+}
+
+// With cells 4 scales wide, sampling every second row of the descriptor window
+// (SiftOptions::descriptor_row_step) describes the keypoints as well as every row does: on graf1->graf3
+// the correct matches are within 2%.
+TEST(SiftHomography, EverySecondDescriptorRowMatchesAsEveryRow) {
+  SiftOptions every_row = OpencvLike();
+  every_row.keypoint_style = KeypointStyle::kVlfeat;
+  every_row.descriptor_magnification = 4;
+  every_row.descriptor_row_step = 1;
+  SiftOptions stepped = every_row;
+  stepped.descriptor_row_step = 2;
+  const GrafScore all = ScoreGraf(every_row), some = ScoreGraf(stepped);
+  ASSERT_EQ(all.graf1.size(), some.graf1.size());
+  EXPECT_NE(all.graf1.descriptors, some.graf1.descriptors);
+  std::printf("graf1->graf3: every row correct %d, every second row %d\n", all.score.correct_matches,
+              some.score.correct_matches);
+  EXPECT_GE(some.score.correct_matches, all.score.correct_matches * 49 / 50);
+}
+
 TEST(SiftHomographySharedData, BoatSequenceNotWorseThanOpencv) {
   const std::string data = oxbow::testing::SharedDataDir().string();
   const std::string dir = data + "/oxford_affine/images/boat/";
@@ -652,10 +712,13 @@ TEST(SiftOptions, CheckDescribeAndFingerprint) {
   EXPECT_EQ(sift.Fingerprint(), 4792148495956217284u) << "got " << sift.Fingerprint();
   // The cv::SIFT style is described without a `keypoints` field, exactly as every description written
   // before the field existed, so vocabularies and indexes made then keep their fingerprints and meaning.
-  // Those descriptions have cv::SIFT's contrast threshold, 0.04.
+  // Those descriptions have cv::SIFT's contrast threshold, 0.04, and Lowe's descriptor (cells 3 sigmas wide,
+  // every row sampled).
   SiftOptions opencv = options;
   opencv.keypoint_style = KeypointStyle::kOpenCv;
   opencv.contrast_threshold = 0.04;
+  opencv.descriptor_magnification = 3;
+  opencv.descriptor_row_step = 1;
   EXPECT_EQ(opencv.Fingerprint(), 15604930684332118585u) << "got " << opencv.Fingerprint();
   for (const SiftOptions& o : {options, sift, opencv}) {
     auto parsed = SiftOptions::FromDescription(o.Describe());
@@ -673,13 +736,49 @@ TEST(SiftOptions, CheckDescribeAndFingerprint) {
   ASSERT_TRUE(parsed_upright) << parsed_upright.error().ToString();
   EXPECT_TRUE(parsed_upright->upright);
   EXPECT_FALSE(SiftOptions::FromDescription(options.Describe() + ";upright=0"));
+  // The descriptor's cell width is described by a `magnification` field unless it is Lowe's 3, which
+  // every description made before the field had.
+  SiftOptions lowe = options;
+  lowe.descriptor_magnification = 3;
+  auto parsed_lowe = SiftOptions::FromDescription(lowe.Describe());
+  ASSERT_TRUE(parsed_lowe) << parsed_lowe.error().ToString();
+  EXPECT_EQ(lowe.Describe().find("magnification"), std::string::npos);
+  EXPECT_EQ(parsed_lowe->descriptor_magnification, 3.0);
+  SiftOptions wide = options;
+  wide.descriptor_magnification = 4.5;
+  EXPECT_NE(wide.Describe().find(";magnification=4.5"), std::string::npos) << wide.Describe();
+  auto parsed_wide = SiftOptions::FromDescription(wide.Describe());
+  ASSERT_TRUE(parsed_wide) << parsed_wide.error().ToString();
+  EXPECT_EQ(parsed_wide->descriptor_magnification, 4.5);
+  EXPECT_NE(wide.Fingerprint(), lowe.Fingerprint());
+  EXPECT_FALSE(SiftOptions::FromDescription(lowe.Describe() + ";magnification=3"));  // not canonical
+  EXPECT_FALSE(SiftOptions::FromDescription(lowe.Describe() + ";magnification=wide"));
+  // Every row of the descriptor window is described as no `row_step` field, as before the field existed;
+  // so a description with neither field is Lowe's descriptor, every row sampled.
+  SiftOptions every_row = lowe;
+  every_row.descriptor_row_step = 1;
+  EXPECT_EQ(every_row.Describe().find("row_step"), std::string::npos);
+  auto parsed_every_row = SiftOptions::FromDescription(every_row.Describe());
+  ASSERT_TRUE(parsed_every_row) << parsed_every_row.error().ToString();
+  EXPECT_EQ(parsed_every_row->descriptor_row_step, 1);
+  EXPECT_EQ(parsed_every_row->descriptor_magnification, 3.0);
+  SiftOptions stepped = options;
+  stepped.descriptor_row_step = 2;
+  EXPECT_EQ(stepped.Describe(), options.Describe() + ";row_step=2");
+  auto parsed_stepped = SiftOptions::FromDescription(stepped.Describe());
+  ASSERT_TRUE(parsed_stepped) << parsed_stepped.error().ToString();
+  EXPECT_EQ(parsed_stepped->descriptor_row_step, 2);
+  EXPECT_EQ(parsed_stepped->descriptor_magnification, 3.0);
+  EXPECT_FALSE(SiftOptions::FromDescription(every_row.Describe() + ";row_step=1"));  // not canonical
 
   for (auto mutate : std::vector<void (*)(SiftOptions&)>{
            [](SiftOptions& o) { o.sigma = 0; }, [](SiftOptions& o) { o.intervals = 0; },
            [](SiftOptions& o) { o.contrast_threshold = -1; }, [](SiftOptions& o) { o.edge_threshold = 1; },
            [](SiftOptions& o) { o.max_features = 0; }, [](SiftOptions& o) { o.num_threads = -1; },
            [](SiftOptions& o) { o.assumed_blur = 2; }, [](SiftOptions& o) { o.kernel_radius_sigmas = 1; },
-           [](SiftOptions& o) { o.thread_cache_mib = -1; }}) {
+           [](SiftOptions& o) { o.thread_cache_mib = -1; }, [](SiftOptions& o) { o.descriptor_magnification = 0.5; },
+           [](SiftOptions& o) { o.descriptor_magnification = std::nan(""); },
+           [](SiftOptions& o) { o.descriptor_row_step = 0; }, [](SiftOptions& o) { o.descriptor_row_step = 5; }}) {
     SiftOptions bad;
     mutate(bad);
     EXPECT_TRUE(bad.Check().has_value());

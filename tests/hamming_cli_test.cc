@@ -55,9 +55,10 @@ TEST(HammingCli, TrainIndexAndSearchWithSignatures) {
   EXPECT_NE(out.find("hamming      64-bit embedding"), std::string::npos) << out;
   out = RunCommand(Oxbow("vocab info " + path("plain.oxvoc")), &rc);
   EXPECT_NE(out.find("hamming      none"), std::string::npos) << "the input is not modified: " << out;
-  // A vocabulary of another extractor setting (upright features) gets its parameters from images too:
-  // they are extracted with the settings it records.
-  out = RunCommand(Oxbow("vocab train --images " + path("photos") + " --upright --words 64 --no-hamming --out " +
+  // A vocabulary of other extractor settings (upright features, a wider descriptor) gets its parameters
+  // from images too: they are extracted with the settings it records.
+  out = RunCommand(Oxbow("vocab train --images " + path("photos") +
+                         " --upright --descriptor-magnification 4 --descriptor-row-step 2 --words 64 --no-hamming --out " +
                          path("upright.oxvoc")),
                    &rc);
   ASSERT_EQ(rc, 0) << out;
@@ -67,7 +68,7 @@ TEST(HammingCli, TrainIndexAndSearchWithSignatures) {
   ASSERT_EQ(rc, 0) << out;
   out = RunCommand(Oxbow("vocab info " + path("upright-he.oxvoc")), &rc);
   EXPECT_NE(out.find("hamming      64-bit embedding"), std::string::npos) << out;
-  EXPECT_NE(out.find("upright=1"), std::string::npos) << out;
+  EXPECT_NE(out.find("upright=1;magnification=4;row_step=2"), std::string::npos) << out;
 
   out = RunCommand(Oxbow("index build --vocab " + path("he.oxvoc") + " --images " + path("photos") + " --out " +
                          path("index")),

@@ -3,7 +3,7 @@
 // matching score under ground-truth homographies (raw SIFT, and RootSIFT applied to every side alike), and
 // peak memory for a 4000x3000 photo.
 //
-//   build/eval/bench/sift_benchmark [--reps N] [--skip-large] [--quick] [--processes]
+//   build/eval/bench/sift_benchmark [--reps N] [--skip-large] [--quick] [--quality] [--processes]
 //     --quick: graf1 only, oxbow vs cv::SIFT only, no quality table.
 //     --quality: the quality tables only (no timing).
 //     --processes: every method runs its repetitions of an image in a process of its own (forked from
@@ -380,21 +380,26 @@ int main(int argc, char** argv) {
       pairs.push_back({"boat 1->" + std::to_string(i), boat + "img1.pgm", boat + "img" + std::to_string(i) + ".pgm",
                        gt + "H1to" + std::to_string(i) + "p"});
   // Every extractor's raw SIFT descriptors, scored as they are and with RootSIFT applied to all of them
-  // alike (L1 normalise, square root), so that no side gains from its descriptor form. oxbow runs in its
-  // default keypoint style and in the cv::SIFT one.
+  // alike (L1 normalise, square root), so that no side gains from its descriptor form.
   struct QualityMethod {
     std::string name;
     std::function<FeatureSet(const cv::Mat&)> extract;
   };
-  auto oxbow_raw = [](KeypointStyle style) {
+  auto oxbow_raw = [](KeypointStyle style, double magnification, int row_step) {
     SiftOptions options;
     options.descriptor = DescriptorKind::kSift;
     options.keypoint_style = style;
     options.contrast_threshold = kPeerContrast;
+    options.descriptor_magnification = magnification;
+    options.descriptor_row_step = row_step;
     return [extractor = *SiftExtractor::Create(options)](const cv::Mat& m) { return extractor.Extract(ToGray(m)); };
   };
-  std::vector<QualityMethod> quality = {{"oxbow", oxbow_raw(KeypointStyle::kVlfeat)},
-                                        {"oxbow cv-style", oxbow_raw(KeypointStyle::kOpenCv)},
+  // oxbow's defaults, its descriptor with cells 4 scales wide and every second row sampled, and the cv::SIFT style.
+  const SiftOptions defaults;
+  std::vector<QualityMethod> quality = {
+      {"oxbow", oxbow_raw(defaults.keypoint_style, defaults.descriptor_magnification, defaults.descriptor_row_step)},
+      {"oxbow, cells 4 wide, every 2nd row", oxbow_raw(defaults.keypoint_style, 4, 2)},
+      {"oxbow cv-style", oxbow_raw(KeypointStyle::kOpenCv, 3, 1)},
                                         {"cv::SIFT", [&](const cv::Mat& m) { return Extract({"cv::SIFT", Side::kOpencv, 1, true}, m, warm); }}};
 #ifdef OXBOW_HAVE_VLFEAT
   quality.push_back({"VLFeat", [&](const cv::Mat& m) { return Extract({"VLFeat", Side::kVlfeat, 1, true}, m, warm); }});

@@ -19,6 +19,7 @@
 #include <cstddef>
 #include <optional>
 #include <string>
+#include <vector>
 
 #include "server/cli/cli.h"
 #include "sift/base/error.h"
@@ -69,6 +70,20 @@ inline void AddDescriptorFlag(CLI::App* cmd, sift::DescriptorKind* kind) {
       ->transform(CLI::IsMember({"rootsift", "sift"}, CLI::ignore_case).description(""))  // SIFT -> sift
       ->type_name("rootsift|sift")
       ->default_str(sift::DescriptorKindName(*kind));
+}
+
+// --descriptor-magnification and --descriptor-row-step: the descriptor window of `options`.
+inline std::vector<CLI::Option*> AddDescriptorWindowFlags(CLI::App* cmd, sift::SiftOptions* options) {
+  return {cmd->add_option("--descriptor-magnification", options->descriptor_magnification,
+                          "width of each of the descriptor's 4 x 4 cells in keypoint scales (VLFeat's magnif; Lowe's and "
+                          "cv::SIFT's 3)")
+              ->check(NumberIn(1, 10))
+              ->capture_default_str(),
+          cmd->add_option("--descriptor-row-step", options->descriptor_row_step,
+                          "the descriptor samples every this-many rows of its window (1 = every row, as Lowe's and "
+                          "cv::SIFT's)")
+              ->check(CLI::Range(1, 4))
+              ->capture_default_str()};
 }
 
 inline void AddThreadsFlag(CLI::App* cmd, int* threads) {

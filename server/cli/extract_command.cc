@@ -35,6 +35,7 @@ struct ExtractArgs {
   ImageFlags image;
   double contrast_threshold = sift::SiftOptions{}.contrast_threshold;
   double edge_threshold = sift::SiftOptions{}.edge_threshold;
+  sift::SiftOptions window;  // descriptor_magnification and descriptor_row_step
   int num_threads = 0;
   int thread_cache_mib = sift::SiftOptions{}.thread_cache_mib;
 };
@@ -54,6 +55,8 @@ void RunExtract(const ExtractArgs& args) {
   options.contrast_threshold = args.contrast_threshold;
   options.edge_threshold = args.edge_threshold;
   options.upright = args.upright;
+  options.descriptor_magnification = args.window.descriptor_magnification;
+  options.descriptor_row_step = args.window.descriptor_row_step;
   const ThreadSplit split = SplitThreads(args.num_threads, args.images.size());
   options.num_threads = split.per_item;
   options.thread_cache_mib = args.thread_cache_mib;
@@ -188,6 +191,7 @@ void SetUpExtract(CLI::App& app) {
   cmd->add_option("--edge-threshold", args->edge_threshold, "edge rejection ratio r (Lowe's r = 10); higher keeps more edge-like keypoints")
       ->check(NumberIn(1, 1e6, /*lo_open=*/true))
       ->capture_default_str();
+  AddDescriptorWindowFlags(cmd, &args->window);
   cmd->add_flag("--upright", args->upright,
                 "upright features (Perdoch et al. 2009): every keypoint's orientation is the image's x axis, one keypoint "
                 "per extremum. Better on collections photographed upright (buildings), much worse where objects turn "

@@ -376,6 +376,7 @@ void SetUpVocab(CLI::App& app) {
                   "extract upright features (every orientation along the image's x axis; for photos taken upright, such "
                   "as buildings: see 'oxbow extract --help'); index build and serve then extract them too")
       ->excludes("--features");
+  for (CLI::Option* flag : AddDescriptorWindowFlags(train, &args->extractor)) flag->excludes("--features");
   train->add_flag_callback("--root-sift", [args] { args->descriptor = sift::DescriptorKind::kRootSift; },
                            "same as --descriptor rootsift (the default)")
       ->excludes("--descriptor");
