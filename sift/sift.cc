@@ -45,6 +45,10 @@ std::optional<std::string> SiftOptions::Check() const {
 }
 
 namespace {
+// Lowe's descriptor window, which a description without the `magnification` and `row_step` fields means.
+constexpr double kLoweMagnification = 3.0;
+constexpr int kEveryRow = 1;
+
 // Shortest text that reads back to the same double (std::to_chars), so Describe() is canonical.
 std::string CanonicalDouble(double v) {
   char buf[64];
@@ -93,8 +97,8 @@ Result<SiftOptions> SiftOptions::FromDescription(const std::string& settings) {
   }
   SiftOptions o;
   o.keypoint_style = KeypointStyle::kOpenCv;  // descriptions without these fields were made that way
-  o.descriptor_magnification = kLegacyDescriptorMagnification;
-  o.descriptor_row_step = 1;
+  o.descriptor_magnification = kLoweMagnification;
+  o.descriptor_row_step = kEveryRow;
   auto need = [&](const char* key) -> const std::string* {
     auto it = fields.find(key);
     return it == fields.end() ? nullptr : &it->second;
@@ -167,9 +171,9 @@ std::string SiftOptions::Describe() const {
   if (keypoint_style == KeypointStyle::kVlfeat) s << ";keypoints=vlfeat";
   // Off is written as no field, like kOpenCv above.
   if (upright) s << ";upright=1";
-  // Lowe's cell width (3) and every row (1) are written as no field, like kOpenCv above.
-  if (descriptor_magnification != kLegacyDescriptorMagnification) s << ";magnification=" << CanonicalDouble(descriptor_magnification);
-  if (descriptor_row_step != 1) s << ";row_step=" << descriptor_row_step;
+  // Lowe's window is written as no field, like kOpenCv above.
+  if (descriptor_magnification != kLoweMagnification) s << ";magnification=" << CanonicalDouble(descriptor_magnification);
+  if (descriptor_row_step != kEveryRow) s << ";row_step=" << descriptor_row_step;
   return s.str();
 }
 

@@ -129,9 +129,6 @@ enum class KeypointStyle : uint8_t {
   kVlfeat = 1,
 };
 
-// The descriptor cell width of descriptions that do not name one (SiftOptions::descriptor_magnification).
-inline constexpr double kLegacyDescriptorMagnification = 3.0;
-
 struct SiftOptions {
   // ---- Behaviour: these change the output and are part of Describe()/Fingerprint(). ----
 

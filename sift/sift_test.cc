@@ -712,13 +712,10 @@ TEST(SiftOptions, CheckDescribeAndFingerprint) {
   EXPECT_EQ(sift.Fingerprint(), 4792148495956217284u) << "got " << sift.Fingerprint();
   // The cv::SIFT style is described without a `keypoints` field, exactly as every description written
   // before the field existed, so vocabularies and indexes made then keep their fingerprints and meaning.
-  // Those descriptions have cv::SIFT's contrast threshold, 0.04, and Lowe's descriptor (cells 3 sigmas wide,
-  // every row sampled).
+  // Those descriptions have cv::SIFT's contrast threshold, 0.04.
   SiftOptions opencv = options;
   opencv.keypoint_style = KeypointStyle::kOpenCv;
   opencv.contrast_threshold = 0.04;
-  opencv.descriptor_magnification = 3;
-  opencv.descriptor_row_step = 1;
   EXPECT_EQ(opencv.Fingerprint(), 15604930684332118585u) << "got " << opencv.Fingerprint();
   for (const SiftOptions& o : {options, sift, opencv}) {
     auto parsed = SiftOptions::FromDescription(o.Describe());
@@ -736,40 +733,24 @@ TEST(SiftOptions, CheckDescribeAndFingerprint) {
   ASSERT_TRUE(parsed_upright) << parsed_upright.error().ToString();
   EXPECT_TRUE(parsed_upright->upright);
   EXPECT_FALSE(SiftOptions::FromDescription(options.Describe() + ";upright=0"));
-  // The descriptor's cell width is described by a `magnification` field unless it is Lowe's 3, which
-  // every description made before the field had.
-  SiftOptions lowe = options;
-  lowe.descriptor_magnification = 3;
-  auto parsed_lowe = SiftOptions::FromDescription(lowe.Describe());
-  ASSERT_TRUE(parsed_lowe) << parsed_lowe.error().ToString();
-  EXPECT_EQ(lowe.Describe().find("magnification"), std::string::npos);
-  EXPECT_EQ(parsed_lowe->descriptor_magnification, 3.0);
+  // The descriptor window is described by `magnification` and `row_step` fields unless it is Lowe's (cells 3
+  // wide, every row), the default, which every description made before the fields had: the default
+  // description above has neither, and one without them reads back as Lowe's window.
+  auto parsed_default = SiftOptions::FromDescription(options.Describe());
+  ASSERT_TRUE(parsed_default) << parsed_default.error().ToString();
+  EXPECT_EQ(parsed_default->descriptor_magnification, 3.0);
+  EXPECT_EQ(parsed_default->descriptor_row_step, 1);
   SiftOptions wide = options;
   wide.descriptor_magnification = 4.5;
-  EXPECT_NE(wide.Describe().find(";magnification=4.5"), std::string::npos) << wide.Describe();
+  wide.descriptor_row_step = 2;
+  EXPECT_EQ(wide.Describe(), options.Describe() + ";magnification=4.5;row_step=2");
+  EXPECT_NE(wide.Fingerprint(), options.Fingerprint());
   auto parsed_wide = SiftOptions::FromDescription(wide.Describe());
   ASSERT_TRUE(parsed_wide) << parsed_wide.error().ToString();
   EXPECT_EQ(parsed_wide->descriptor_magnification, 4.5);
-  EXPECT_NE(wide.Fingerprint(), lowe.Fingerprint());
-  EXPECT_FALSE(SiftOptions::FromDescription(lowe.Describe() + ";magnification=3"));  // not canonical
-  EXPECT_FALSE(SiftOptions::FromDescription(lowe.Describe() + ";magnification=wide"));
-  // Every row of the descriptor window is described as no `row_step` field, as before the field existed;
-  // so a description with neither field is Lowe's descriptor, every row sampled.
-  SiftOptions every_row = lowe;
-  every_row.descriptor_row_step = 1;
-  EXPECT_EQ(every_row.Describe().find("row_step"), std::string::npos);
-  auto parsed_every_row = SiftOptions::FromDescription(every_row.Describe());
-  ASSERT_TRUE(parsed_every_row) << parsed_every_row.error().ToString();
-  EXPECT_EQ(parsed_every_row->descriptor_row_step, 1);
-  EXPECT_EQ(parsed_every_row->descriptor_magnification, 3.0);
-  SiftOptions stepped = options;
-  stepped.descriptor_row_step = 2;
-  EXPECT_EQ(stepped.Describe(), options.Describe() + ";row_step=2");
-  auto parsed_stepped = SiftOptions::FromDescription(stepped.Describe());
-  ASSERT_TRUE(parsed_stepped) << parsed_stepped.error().ToString();
-  EXPECT_EQ(parsed_stepped->descriptor_row_step, 2);
-  EXPECT_EQ(parsed_stepped->descriptor_magnification, 3.0);
-  EXPECT_FALSE(SiftOptions::FromDescription(every_row.Describe() + ";row_step=1"));  // not canonical
+  EXPECT_EQ(parsed_wide->descriptor_row_step, 2);
+  for (const char* field : {";magnification=3", ";row_step=1", ";magnification=wide", ";row_step=two"})
+    EXPECT_FALSE(SiftOptions::FromDescription(options.Describe() + field)) << field;  // not canonical, or not a number
 
   for (auto mutate : std::vector<void (*)(SiftOptions&)>{
            [](SiftOptions& o) { o.sigma = 0; }, [](SiftOptions& o) { o.intervals = 0; },
