@@ -215,5 +215,17 @@ TEST_F(MatchAgreementTest, CliDrawsTheMatch) {
   EXPECT_EQ(drawing.cols, 324 + 512);  // box.png and box_in_scene.png side by side
 }
 
+// The descriptor window flags reach the extractor: the same keypoints, other descriptors, so another set of
+// tentative matches, and the box is still found.
+TEST_F(MatchAgreementTest, CliDescriptorWindow) {
+  const json lowe = Cli("box.png", "box_in_scene.png", {});
+  const json wide =
+      Cli("box.png", "box_in_scene.png", {{"descriptor_magnification", "4"}, {"descriptor_row_step", "2"}});
+  EXPECT_EQ(wide["a"]["keypoints"], lowe["a"]["keypoints"]) << wide;
+  EXPECT_EQ(wide["b"]["keypoints"], lowe["b"]["keypoints"]) << wide;
+  EXPECT_NE(wide["tentative_matches"], lowe["tentative_matches"]) << wide << "\n" << lowe;
+  EXPECT_TRUE(wide["verified"].get<bool>()) << wide;
+}
+
 }  // namespace
 }  // namespace oxbow

@@ -35,6 +35,7 @@ struct MatchArgs {
   int kd_checks = sift::MatchOptions{}.kd_checks;
   sift::DescriptorKind descriptor = sift::SiftOptions{}.descriptor;
   std::optional<int> max_features;
+  sift::SiftOptions window;  // descriptor_magnification and descriptor_row_step
   ImageFlags image;
   double reprojection_px = sift::RobustFitOptions{}.reprojection_px;
   int min_inliers = api::PairMatchOptions{}.min_inliers;
@@ -51,6 +52,8 @@ void RunMatch(const MatchArgs& args) {
   SiftOptions sift_options;
   sift_options.descriptor = args.descriptor;
   sift_options.max_features = args.max_features;
+  sift_options.descriptor_magnification = args.window.descriptor_magnification;
+  sift_options.descriptor_row_step = args.window.descriptor_row_step;
   sift_options.num_threads = args.num_threads;
   const SiftExtractor extractor = ValueOrExit(SiftExtractor::Create(sift_options));
   const DecodeOptions decode = args.image.ToDecodeOptions();
@@ -125,6 +128,7 @@ void SetUpMatch(CLI::App& app) {
                                   ->check(CLI::Range(1, 1 << 20))
                                   ->capture_default_str();
   AddDescriptorFlag(cmd, &args->descriptor);
+  AddDescriptorWindowFlags(cmd, &args->window);
   cmd->add_option("--max-features", args->max_features, "keep at most this many strongest keypoints per image")
       ->check(Positive());
   AddImageFlags(cmd, &args->image);
