@@ -18,17 +18,31 @@ uint64_t Majority(size_t n, SignatureAt sig) {
     const uint64_t a = sig(0), b = sig(1), c = sig(2);
     return (a & b) | (a & c) | (b & c);
   }
-  std::array<int, 64> count{};
+  // Each bit position's count of ones, bit-sliced: planes[k] holds bit k of the 64 counts, so adding a
+  // signature is a ripple-carry add of 64 one-bit numbers (a few word operations, not 64 per signature).
+  std::array<uint64_t, 64> planes{};
+  const auto num_planes = static_cast<size_t>(std::bit_width(n));
   for (size_t k = 0; k < n; ++k) {
-    const uint64_t s = sig(k);
-    for (size_t b = 0; b < 64; ++b) count[b] += (s >> b & 1) != 0 ? 1 : -1;
+    uint64_t carry = sig(k);
+    for (size_t p = 0; carry != 0 && p < num_planes; ++p) {
+      const uint64_t next = planes[p] & carry;
+      planes[p] ^= carry;
+      carry = next;
+    }
   }
-  const uint64_t first = sig(0);
-  uint64_t out = 0;
-  for (size_t b = 0; b < 64; ++b) {
-    if (count[b] > 0 || (count[b] == 0 && (first >> b & 1) != 0)) out |= uint64_t{1} << b;
+  // A bit is set when its count c has 2c > n, or 2c == n (a tie) and sig(0) has it: compare every count
+  // with half = floor(n / 2) from the top plane down.
+  const size_t half = n / 2;
+  uint64_t above = 0, equal = ~uint64_t{0};
+  for (size_t p = num_planes; p-- > 0;) {
+    if ((half >> p & 1) != 0) {
+      equal &= planes[p];
+    } else {
+      above |= equal & planes[p];
+      equal &= ~planes[p];
+    }
   }
-  return out;
+  return n % 2 == 0 ? above | (equal & sig(0)) : above;
 }
 
 }  // namespace
@@ -121,7 +135,7 @@ QuerySignatures::Votes QuerySignatures::Count(const PackedFeatures& db) const {
       if (s > 0) votes.matched += idf2 * (s * s / std::sqrt(s * s));
     } else if (i2 > i && idf2 > 0) {
       const size_t cq = i2 - i, cd = j2 - j;
-      strength.assign(cq * cd, 0.0);
+      strength.resize(cq * cd);  // every entry is written below
       query_total.assign(cq, 0.0);
       db_total.assign(cd, 0.0);
       for (size_t a = 0; a < cq; ++a) {
@@ -132,12 +146,18 @@ QuerySignatures::Votes QuerySignatures::Count(const PackedFeatures& db) const {
           db_total[b] += s;
         }
       }
+      // s^2 / sqrt(query_total[a] * db_total[b]) summed as s^2 / sqrt(db_total[b]) per row, then over the
+      // rows / sqrt(query_total[a]): one root per feature instead of a root and a division per pair (an
+      // expanded query's bursts make this loop most of query expansion's time). A total of 0 has only
+      // zero strengths beside it.
+      for (double& total : db_total) total = total > 0 ? 1.0 / std::sqrt(total) : 0.0;
       double word_votes = 0;
       for (size_t a = 0; a < cq; ++a) {
-        for (size_t b = 0; b < cd; ++b) {
-          const double s = strength[a * cd + b];
-          if (s > 0) word_votes += s * s / std::sqrt(query_total[a] * db_total[b]);
-        }
+        if (query_total[a] <= 0) continue;
+        const double* row = &strength[a * cd];
+        double sum = 0;
+        for (size_t b = 0; b < cd; ++b) sum += row[b] * row[b] * db_total[b];
+        word_votes += sum / std::sqrt(query_total[a]);
       }
       votes.matched += idf2 * word_votes;
     }

@@ -166,6 +166,43 @@ TEST(QuerySignaturesTest, AggregatedMatchingVotesOncePerWordWithTheMajoritySigna
   EXPECT_NEAR(once.Score(agreeing, self), once.Score(agreeing), 1e-12);
 }
 
+// The majority signature of a burst of any length, on either side, is the bitwise vote (a tie takes
+// the first feature's bit): the aggregated score of one word is 1 against the vote and lower against
+// the vote with one bit flipped.
+TEST(QuerySignaturesTest, AggregatedSignatureIsTheBitwiseVoteOfAnyBurst) {
+  auto idf_squared = std::make_shared<std::vector<double>>(4, 1.0);
+  std::mt19937_64 random(7);
+  const double one_bit_off = std::pow(1.0 - 2.0 / 64, 3);
+  for (size_t n = 1; n <= 70; ++n) {
+    std::vector<uint64_t> burst(n);
+    // Few distinct values make ties and near-ties common.
+    for (uint64_t& s : burst) s = random() & random();
+    uint64_t vote = 0;
+    for (int b = 0; b < 64; ++b) {
+      size_t ones = 0;
+      for (const uint64_t s : burst) ones += (s >> b) & 1;
+      if (2 * ones > n || (2 * ones == n && ((burst[0] >> b) & 1) != 0)) vote |= uint64_t{1} << b;
+    }
+    const std::vector<uint32_t> burst_words(n, 0);
+    for (const uint64_t single : {vote, vote ^ (uint64_t{1} << (n % 64))}) {
+      const double expected = single == vote ? 1.0 : one_bit_off;
+      const std::vector<uint32_t> one_word = {0};
+      const std::vector<uint64_t> one_signature = {single};
+      // The burst in the image.
+      const QuerySignatures query(one_word, one_signature, idf_squared, {.threshold = 64, .asmk_weight = 1});
+      const QuerySignatures plain(one_word, one_signature, idf_squared, {.threshold = 64});
+      const PackedFeatures image = Packed(burst_words, burst);
+      EXPECT_NEAR(query.Score(image) - plain.Score(image), expected, 1e-12) << "image burst of " << n;
+      // The burst in the query.
+      const QuerySignatures burst_query(burst_words, burst, idf_squared, {.threshold = 64, .asmk_weight = 1});
+      const QuerySignatures burst_plain(burst_words, burst, idf_squared, {.threshold = 64});
+      const PackedFeatures single_image = Packed(one_word, one_signature);
+      EXPECT_NEAR(burst_query.Score(single_image) - burst_plain.Score(single_image), expected, 1e-12)
+          << "query burst of " << n;
+    }
+  }
+}
+
 // The index scores a shortlist with each candidate's N_d given as its tf-idf norm squared (sqrt(tf)
 // weighting, the default), which lets Score skip the candidate's words the query lacks: the norm must
 // be N_d, and the score with it given must equal the one Score computes alone.
