@@ -175,8 +175,11 @@ TEST(QuerySignaturesTest, AggregatedSignatureIsTheBitwiseVoteOfAnyBurst) {
   const double one_bit_off = std::pow(1.0 - 2.0 / 64, 3);
   for (size_t n = 1; n <= 70; ++n) {
     std::vector<uint64_t> burst(n);
-    // Few distinct values make ties and near-ties common.
-    for (uint64_t& s : burst) s = random() & random();
+    // Each bit set with probability 1/4: in a burst, bits that win the vote, lose it and tie.
+    for (uint64_t& s : burst) {
+      s = random();
+      s &= random();
+    }
     uint64_t vote = 0;
     for (int b = 0; b < 64; ++b) {
       size_t ones = 0;
