@@ -26,7 +26,9 @@
 #pragma once
 
 #include <array>
+#include <bit>
 #include <cstdint>
+#include <cstring>
 #include <memory>
 #include <span>
 #include <string>
@@ -72,10 +74,12 @@ class PackedFeatures {
   }
   bool has_signatures() const { return !signature_bytes_.empty() || bytes_.empty(); }
   // The Hamming-embedding signature of feature i (has_signatures()).
+  // Stored little-endian; one load (scoring and verification read it per pair of features).
   uint64_t signature(size_t i) const {
-    const uint8_t* p = signature_bytes_.data() + i * kSignatureBytes;
+    static_assert(kSignatureBytes == sizeof(uint64_t));
     uint64_t v = 0;
-    for (size_t b = 0; b < kSignatureBytes; ++b) v |= uint64_t{p[b]} << (8 * b);
+    std::memcpy(&v, signature_bytes_.data() + i * kSignatureBytes, sizeof v);
+    if constexpr (std::endian::native == std::endian::big) v = __builtin_bswap64(v);
     return v;
   }
   // The dequantised keypoint of feature i (response 0, octave 0).
