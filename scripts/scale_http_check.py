@@ -11,9 +11,10 @@ served as it is by `oxbow serve --index DIR` (server defaults) and measured:
   1. start to /readyz 200 (a new server process) and resident memory when ready;
   2. searches with real photos (default: the Paris subset, else OpenCV's samples), one at a time:
      server time excluding decoding and extraction (timings_ms.total - timings_ms.decode_extract),
-     p50/p95/p99, and the client's wall time; first right after /readyz, while the server's background
-     check of the geometry files runs, then, once the server has logged that check's end, with other
-     photos (so that the second round finds none of its postings read by the first);
+     p50/p95/p99, the client's wall time, and the p50 of each of the server's timings_ms stages; first
+     right after /readyz, while the server's background check of the geometry files runs, then, once the
+     server has logged that check's end, with other photos (so that the second round finds none of its
+     postings read by the first);
   3. adds of real photos (ids scalecheck-N) while another client searches without pause: the server's
      add time excluding extraction (timings_ms.add), p50/p95/p99;
   4. kill -9 right after the last add was acknowledged, restart: time to /readyz again, and every
@@ -93,15 +94,19 @@ def wait_for_log(path, offset, text, timeout_s):
 
 def search_round(client, queries, label):
     """Searches each photo in turn; prints the server's time after extraction and the client's wall time."""
-    server_ms, wall_ms = [], []
+    server_ms, wall_ms, stages = [], [], {}
     for path in queries:
         t0 = time.monotonic()
         found = client.search(path)
         wall_ms.append((time.monotonic() - t0) * 1000)
         t = found["timings_ms"]
         server_ms.append(t["total"] - t["decode_extract"])
+        for stage, ms in t.items():
+            stages.setdefault(stage, []).append(ms)
     print("search %s, server time after extraction: %s" % (label, summary(server_ms)))
     print("search %s, client wall time (upload, decode, extraction included): %s" % (label, summary(wall_ms)))
+    print("search %s, the server's stages, p50: %s" % (
+        label, ", ".join("%s %.1f ms" % (stage, percentile(ms, .5)) for stage, ms in stages.items())))
 
 
 def rss_bytes(pid):
