@@ -721,6 +721,8 @@ Result<std::optional<RobustFitResult>> HomographyAgreeingWith(std::span<const Ke
     }
   }
   if (2 * kept < hough_inliers.size()) return std::optional<RobustFitResult>();
+  // Its inliers become the answer's, and "verified" promises at least min_inliers of them.
+  if (fit->num_inliers < options.hough.min_inliers) return std::optional<RobustFitResult>();
   return std::optional<RobustFitResult>(std::move(*fit));
 }
 

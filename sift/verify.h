@@ -133,7 +133,8 @@ enum class GeometricModel {
   kHoughAffine,  // VerifyHoughAffine (region = keypoint bounding boxes)
   // VerifyHoughAffine decides (its inliers, its plausible-affine test); when it verifies, a homography
   // fitted to the tentative matches (as kHomography) replaces the affine transform and the inliers if
-  // it keeps at least half of the Hough inliers (HomographyAgreeingWith). Affine maps cannot follow a
+  // it keeps at least half of the Hough inliers and has at least hough.min_inliers inliers of its own
+  // (HomographyAgreeingWith), so a verified answer never reports fewer. Affine maps cannot follow a
   // perspective change: graf 1 -> 3 corner error 48.6 px with kHoughAffine, 0.93 px with this
   // (eval/bench/pair_match_accuracy_benchmark.cc).
   kHoughHomography,
@@ -181,9 +182,10 @@ struct RobustFitResult {
                                                 std::span<const Keypoint> db, std::span<const Match> matches,
                                                 const RobustFitOptions& options = {});
 
-// A homography fitted to `matches` (FitRobust with kHomography and `options`) when it succeeds and
-// keeps at least half of `hough_inliers` (indices into `matches`, e.g. VerificationResult::inliers)
-// among its own inliers; nullopt otherwise (the affine answer stands). Errors as FitRobust's.
+// A homography fitted to `matches` (FitRobust with kHomography and `options`) when it succeeds, keeps
+// at least half of `hough_inliers` (indices into `matches`, e.g. VerificationResult::inliers) among its
+// own inliers and has at least options.hough.min_inliers inliers; nullopt otherwise (the affine answer
+// stands). Errors as FitRobust's.
 [[nodiscard]] Result<std::optional<RobustFitResult>> HomographyAgreeingWith(std::span<const Keypoint> query,
                                                                             std::span<const Keypoint> db,
                                                                             std::span<const Match> matches,

@@ -10,6 +10,7 @@
 #include <filesystem>
 #include <cstdio>
 #include <fstream>
+#include <iterator>
 #include <limits>
 #include <map>
 #include <numbers>
@@ -594,6 +595,32 @@ TEST(FitRobust, HoughHomographyTakesOnlyAHomographyThatAgreesWithTheHoughInliers
   auto disagreeing = HomographyAgreeingWith(s.query, s.db, s.matches, outliers, {});
   ASSERT_TRUE(disagreeing.has_value());
   EXPECT_FALSE(disagreeing->has_value());
+}
+
+// hough-homography: a homography with fewer inliers than the verification floor does not replace the
+// affine answer, even when it keeps most of the Hough inliers, since its inliers would be the verified
+// answer's. Five matches on an exact map among five random ones: the homography finds those five.
+TEST(FitRobust, HoughHomographyTakesOnlyAHomographyWithMinInliersOfItsOwn) {
+  const Scenario s = MakeScenario(Similarity(1.3, 25, 40, 30), 5, 5, 0.0, 11);
+  ASSERT_EQ(s.true_inliers.size(), 5u);
+  // "Hough inliers": four of the five and two of the random matches.
+  std::vector<uint32_t> hough(s.true_inliers.begin(), std::next(s.true_inliers.begin(), 4));
+  for (uint32_t i = 0; i < s.matches.size() && hough.size() < 6; ++i) {
+    if (s.true_inliers.count(i) == 0) hough.push_back(i);
+  }
+  std::sort(hough.begin(), hough.end());
+  RobustFitOptions options;
+  options.hough.min_inliers = 6;
+  auto six = HomographyAgreeingWith(s.query, s.db, s.matches, hough, options);
+  ASSERT_TRUE(six.has_value()) << six.error().ToString();
+  EXPECT_FALSE(six->has_value()) << "a homography with " << (*six)->num_inliers << " inliers replaced the answer";
+  // The same homography is taken where the floor is five.
+  options.hough.min_inliers = 5;
+  auto five = HomographyAgreeingWith(s.query, s.db, s.matches, hough, options);
+  ASSERT_TRUE(five.has_value()) << five.error().ToString();
+  ASSERT_TRUE(five->has_value());
+  EXPECT_EQ((*five)->num_inliers, 5);
+  EXPECT_EQ(std::set<uint32_t>((*five)->inliers.begin(), (*five)->inliers.end()), s.true_inliers);
 }
 
 // Under a 40-degree viewpoint change an affine map is off by tens of pixels at graf1's corners; the
