@@ -10,8 +10,10 @@
 #include <mutex>
 #include <string>
 #include <thread>
+#include <utility>
 #include <vector>
 
+#include "api/pair_match.h"
 #include "sift/base/log.h"
 
 namespace oxbow::api {
@@ -35,6 +37,12 @@ class SlotGuard {
   std::counting_semaphore<1024>* semaphore_;
   std::atomic<int>* in_flight_;
 };
+
+sift::SiftExtractor MustCreate(const sift::SiftOptions& options) {
+  auto created = sift::SiftExtractor::Create(options);
+  OXBOW_CHECK(created.has_value(), "settings derived from a valid extractor's are valid");
+  return std::move(*created);
+}
 
 }  // namespace
 
@@ -107,7 +115,10 @@ class Extractions::Threads {
 };
 
 Extractions::Extractions(const sift::SiftExtractor& extractor, const ExtractionOptions& options)
-    : extractor_(extractor), options_(options), semaphore_(options.slots) {
+    : extractor_(extractor),
+      options_(options),
+      semaphore_(options.slots),
+      pair_match_extractor_(MustCreate(PairMatchExtractorOptions(extractor.options()))) {
   if (options_.add_nice > 0) {
     add_threads_ = std::make_unique<Threads>(options_.slots, options_.add_nice);
     sift::SiftOptions one_thread = extractor.options();
@@ -149,7 +160,7 @@ std::optional<Error> Extractions::StopReason(const Work& work) const {
 }
 
 Result<sift::FeatureSet> Extractions::Extract(std::span<const uint8_t> image, const Work& work, double* elapsed_ms,
-                                              const std::function<void()>& also, Priority priority) const {
+                                              const std::function<void()>& also, Use use) const {
   // The wait for a slot is taken in short steps, so that a request abandoned meanwhile stops waiting.
   const auto wait_until = Clock::now() + std::chrono::milliseconds(options_.extraction_wait_ms);
   for (;;) {
@@ -169,9 +180,11 @@ Result<sift::FeatureSet> Extractions::Extract(std::span<const uint8_t> image, co
   const sift::StopRequested stop = [this, &work] { return StopReason(work).has_value(); };
   Threads* threads = normal_threads_.get();
   const sift::SiftExtractor* extractor = &extractor_;
-  if (priority == Priority::kAdd && add_threads_ && add_extractor_) {
+  if (use == Use::kAdd && add_threads_ && add_extractor_) {
     threads = add_threads_.get();
     extractor = &*add_extractor_;
+  } else if (use == Use::kPairMatch) {
+    extractor = &pair_match_extractor_;
   }
   threads->Run([&] {
     const auto start = Clock::now();

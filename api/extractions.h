@@ -60,13 +60,15 @@ class Extractions {
   // Why `work` must stop now (Stop() and its grace ended, client gone, deadline passed), or nullopt.
   [[nodiscard]] std::optional<Error> StopReason(const Work& work) const;
 
-  enum class Priority { kNormal, kAdd };
+  // What an extraction is for. kAdd runs on the low-priority add threads (add_nice > 0). kPairMatch
+  // extracts with PairMatchExtractorOptions of the extractor's settings (api/pair_match.h), as `oxbow
+  // match` does, so POST /v1/match and the CLI agree.
+  enum class Use { kSearch, kAdd, kPairMatch };
   // Decode + extract `image` under a slot. After a successful extraction `also` (when given) runs under
   // the same slot (an add's thumbnail decode), so the slots bound its memory too. `elapsed_ms` receives
   // the decode + extraction time (the wait for a slot excluded).
   [[nodiscard]] Result<sift::FeatureSet> Extract(std::span<const uint8_t> image, const Work& work, double* elapsed_ms,
-                                                 const std::function<void()>& also = {},
-                                                 Priority priority = Priority::kNormal) const;
+                                                 const std::function<void()>& also = {}, Use use = Use::kSearch) const;
 
   // For shutdown: work still running shutdown_grace_ms from now stops at its next check, as does later
   // work. Irreversible; a second call does not extend the grace.
@@ -88,6 +90,7 @@ class Extractions {
   std::atomic<Clock::rep> stop_at_{Clock::time_point::max().time_since_epoch().count()};
   std::unique_ptr<Threads> add_threads_;      // low priority (add_nice > 0), else null
   std::optional<sift::SiftExtractor> add_extractor_;  // with add_threads_: extractor_ on one thread
+  sift::SiftExtractor pair_match_extractor_;         // PairMatchExtractorOptions(extractor_.options())
   std::unique_ptr<Threads> normal_threads_;   // every other extraction
 };
 

@@ -35,6 +35,12 @@ sift::RobustFitOptions FitOptions(const PairMatchOptions& options) {
 
 }  // namespace
 
+sift::SiftOptions PairMatchExtractorOptions(const sift::SiftOptions& base) {
+  sift::SiftOptions options = base;
+  options.refine_in_scale = base.keypoint_style == sift::KeypointStyle::kVlfeat;
+  return options;
+}
+
 std::optional<std::string> PairMatchOptions::Check() const {
   if (min_inliers < 3) return "min_inliers must be >= 3, got " + std::to_string(min_inliers);
   if (auto problem = match.Check()) return problem;

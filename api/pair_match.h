@@ -22,10 +22,17 @@
 
 #include "sift/base/error.h"
 #include "sift/match.h"
+#include "sift/sift.h"
 #include "sift/types.h"
 #include "sift/verify.h"
 
 namespace oxbow::api {
+
+// The extractor settings pair matching uses, from the settings `base` (the server's index or the
+// command's flags): with the vlfeat keypoint style, refinement also in scale
+// (sift::SiftOptions::refine_in_scale), whose positions follow a homography where the scale changes;
+// everything else as `base`. Its corner error on the Oxford affine pairs is in eval/results/matching.md.
+sift::SiftOptions PairMatchExtractorOptions(const sift::SiftOptions& base);
 
 struct PairMatchOptions {
   sift::MatchOptions match;                                         // descriptor matching (sift/match.h)

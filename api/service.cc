@@ -220,7 +220,7 @@ Result<AddImageResponse> Service::AddImage(const AddImageRequest& request) {
         thumbnail = MakeThumbnail(request.image, options_.thumbnails.stored_side_px, options_.thumbnails.jpeg_quality,
                                   options_.Decode());
       },
-      Extractions::Priority::kAdd);
+      Extractions::Use::kAdd);
   if (!features) return std::unexpected(features.error());
   if (!thumbnail) return std::unexpected(thumbnail.error());
 
@@ -311,7 +311,7 @@ Result<AddBatchResponse> Service::AddImages(const AddBatchRequest& request) {
             thumbnail = MakeThumbnail(item.image, options_.thumbnails.stored_side_px, options_.thumbnails.jpeg_quality,
                                       options_.Decode());
           },
-          Extractions::Priority::kAdd);
+          Extractions::Use::kAdd);
       if (!extracted) {
         response.results[i] = std::unexpected(extracted.error());
       } else if (!thumbnail) {
@@ -501,13 +501,13 @@ Result<MatchResponse> MatchImages(const Extractions& extractions, int threads_pe
   const auto start = Clock::now();
   MatchResponse response;
   const Extractions::Work work = extractions.Start(client_gone);  // one deadline for both images
-  auto a = extractions.Extract(image_a, work, &response.decode_extract_a_ms);
+  auto a = extractions.Extract(image_a, work, &response.decode_extract_a_ms, {}, Extractions::Use::kPairMatch);
   if (!a) {
     Error error = a.error();
     error.message = "image a: " + error.message;
     return std::unexpected(error);
   }
-  auto b = extractions.Extract(image_b, work, &response.decode_extract_b_ms);
+  auto b = extractions.Extract(image_b, work, &response.decode_extract_b_ms, {}, Extractions::Use::kPairMatch);
   if (!b) {
     Error error = b.error();
     error.message = "image b: " + error.message;

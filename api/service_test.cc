@@ -2,10 +2,13 @@
 // searches, replace semantics, errors and limits, without HTTP.
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <filesystem>
+#include <utility>
 
 #include "api/json.h"
 #include "api/service.h"
+#include "tests/support/feature_eval.h"
 #include "tests/support/samples.h"
 #include "tests/support/temp_dir.h"
 
@@ -169,6 +172,36 @@ TEST_F(ServiceTest, MatchFindsTheBoxInTheScene) {
   auto bad = service->Match(box, empty, options);
   ASSERT_FALSE(bad);
   EXPECT_NE(bad.error().message.find("image b"), std::string::npos);
+}
+
+// POST /v1/match's homography on graf1 -> graf3 against the true one (H1to3p.xml): the mean distance
+// between where the two send graf1's corners (the HPatches corner error) stays within the bound of
+// pair_match_accuracy_benchmark (OpenCV's 1.01 px + 0.5). The index's extractor settings unchanged
+// (no refinement in scale) give 3.44 px here; the pair-matching extractor (PairMatchExtractorOptions)
+// gives 1.04.
+TEST_F(ServiceTest, MatchHomographyOfGrafIsNearTheTrueOne) {
+  // A server whose vocabulary was made with the default extractor settings, as `oxbow vocab train`'s.
+  const std::string vocab = dir_->path() + "/default-extractor.oxvoc";
+  ASSERT_TRUE(oxbow::testing::BuildTestVocabulary({"box.png"}, 32, vocab, sift::SiftOptions{}));
+  auto opened = Service::Open(dir_->path() + "/default-extractor", vocab, ServiceOptions{});
+  ASSERT_TRUE(opened) << opened.error().ToString();
+  const std::unique_ptr<Service> service = std::move(*opened);
+  auto truth = sift::ReadHomography(SamplePath("H1to3p.xml"));
+  ASSERT_TRUE(truth) << truth.error().ToString();
+  auto match = service->Match(ReadBytes(SamplePath("graf1.png")), ReadBytes(SamplePath("graf3.png")), PairMatchOptions{});
+  ASSERT_TRUE(match) << match.error().ToString();
+  ASSERT_TRUE(match->match.verified);
+  const auto& t = *truth;
+  ASSERT_TRUE(match->match.transform);
+  const Eigen::Matrix3d found = *match->match.transform;
+  double sum = 0;
+  const double w = match->match.width_a - 1, h = match->match.height_a - 1;
+  for (const auto& [x, y] : {std::pair{0.0, 0.0}, std::pair{w, 0.0}, std::pair{0.0, h}, std::pair{w, h}}) {
+    const Eigen::Vector3d f = found * Eigen::Vector3d(x, y, 1);
+    const double tz = t[6] * x + t[7] * y + t[8];
+    sum += std::hypot(f.x() / f.z() - (t[0] * x + t[1] * y + t[2]) / tz, f.y() / f.z() - (t[3] * x + t[4] * y + t[5]) / tz);
+  }
+  EXPECT_LT(sum / 4, 1.51) << "mean corner error, px";
 }
 
 TEST_F(ServiceTest, ReopensWithItsOwnVocabularyAndRefusesAnother) {

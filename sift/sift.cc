@@ -40,6 +40,8 @@ std::optional<std::string> SiftOptions::Check() const {
   if (num_threads < 0 || num_threads > 256) return "num_threads must be in [0, 256], got " + std::to_string(num_threads);
   if (!(descriptor_magnification >= 1 && descriptor_magnification <= 10)) return "descriptor_magnification must be in [1, 10], got " + std::to_string(descriptor_magnification);
   if (descriptor_row_step < 1 || descriptor_row_step > 4) return "descriptor_row_step must be in [1, 4], got " + std::to_string(descriptor_row_step);
+  if (refine_in_scale && keypoint_style != KeypointStyle::kVlfeat)
+    return "refine_in_scale needs the vlfeat keypoint style (the opencv style always refines in scale)";
   if (thread_cache_mib < 0 || thread_cache_mib > 65536) return "thread_cache_mib must be in [0, 65536], got " + std::to_string(thread_cache_mib);
   return std::nullopt;
 }
@@ -140,6 +142,10 @@ Result<SiftOptions> SiftOptions::FromDescription(const std::string& settings) {
     if (*v != "1") return incompatible("upright");
     o.upright = true;
   }
+  if (const std::string* v = need("refine_scale")) {
+    if (*v != "1") return incompatible("refine_scale");
+    o.refine_in_scale = true;
+  }
   if (!read_double("peak_ratio", &o.orientation_peak_ratio)) return incompatible("peak_ratio");
   if (!read_double("kernel_radius", &o.kernel_radius_sigmas)) return incompatible("kernel_radius");
   if (!read_double("magnification", &o.descriptor_magnification)) return incompatible("magnification");
@@ -174,6 +180,8 @@ std::string SiftOptions::Describe() const {
   // Lowe's window is written as no field, like kOpenCv above.
   if (descriptor_magnification != kLoweMagnification) s << ";magnification=" << CanonicalDouble(descriptor_magnification);
   if (descriptor_row_step != kEveryRow) s << ";row_step=" << descriptor_row_step;
+  // Off is written as no field, like kOpenCv above.
+  if (refine_in_scale) s << ";refine_scale=1";
   return s.str();
 }
 
@@ -538,23 +546,26 @@ void FitQuadratic(const Octave& octave, int layer, int r, int c, double grad[3],
   for (int i = 0; i < 3; ++i) offset[i] = -x[i];
 }
 
-// KeypointStyle::kVlfeat's refinement: the sample moves one pixel in space (never in scale) while a
-// spatial offset exceeds kMoveOffset, at most kMaxRefineSteps times; the fit at the final sample is
-// kept when every offset is below kMaxOffset, then the contrast and edge tests as in Refine.
+// KeypointStyle::kVlfeat's refinement: the sample moves one pixel in space (and, with
+// SiftOptions::refine_in_scale, one layer in scale) while an offset exceeds kMoveOffset, at most
+// kMaxRefineSteps times; the fit at the final sample is kept when every offset is below kMaxOffset,
+// then the contrast and edge tests as in Refine.
 std::optional<Refined> RefineInSpace(const Octave& octave, Candidate cand, const SiftOptions& options) {
   constexpr double kMoveOffset = 0.6, kMaxOffset = 1.5;
   const int S = options.intervals;
   const int w = octave.gauss[0].width(), h = octave.gauss[0].height();
-  const int layer = cand.layer;
+  int layer = cand.layer;
   int r = cand.r, c = cand.c;
   double grad[3], offset[3];
   FitQuadratic(octave, layer, r, c, grad, offset);
   for (int step = 0; step < kMaxRefineSteps; ++step) {
     const int dc = (offset[0] > kMoveOffset && c < w - kBorder - 1) ? 1 : (offset[0] < -kMoveOffset && c > kBorder) ? -1 : 0;
     const int dr = (offset[1] > kMoveOffset && r < h - kBorder - 1) ? 1 : (offset[1] < -kMoveOffset && r > kBorder) ? -1 : 0;
-    if (dc == 0 && dr == 0) break;
+    const int dl = !options.refine_in_scale ? 0 : (offset[2] > kMoveOffset && layer < S) ? 1 : (offset[2] < -kMoveOffset && layer > 1) ? -1 : 0;
+    if (dc == 0 && dr == 0 && dl == 0) break;
     c += dc;
     r += dr;
+    layer += dl;
     FitQuadratic(octave, layer, r, c, grad, offset);
   }
   if (!(std::fabs(offset[0]) < kMaxOffset && std::fabs(offset[1]) < kMaxOffset && std::fabs(offset[2]) < kMaxOffset))

@@ -184,6 +184,16 @@ struct SiftOptions {
   // cells 4 sigmas wide (at least ~6 pixels) every second row gives the same matching scores as every
   // row at half the cost. 1 (every row) is written as no field in Describe(). [1, 4].
   int descriptor_row_step = 1;
+  // With KeypointStyle::kVlfeat, the refinement also moves the sample one scale layer while the scale
+  // offset exceeds 0.6 (within the octave's layers 1..intervals), as it moves one pixel in space;
+  // candidates that converge onto the same sample are kept once. Pair matching extracts with it
+  // (api::PairMatchExtractorOptions): `oxbow match`'s homography on graf 1 -> 3 came out 1.04 px from
+  // the true one at the corners, against 3.44 px without (eval/results/matching.md). The index's
+  // extractor leaves it off: retrieval measured lower on the Paris subset with one vocabulary seed of
+  // three and no better elsewhere (also in eval/results/matching.md). kOpenCv always
+  // moves in scale; Check() refuses true with it. Written as `refine_scale=1` in Describe(); absent
+  // means off.
+  bool refine_in_scale = false;
 
   // ---- Performance: does not change the output. ----
 

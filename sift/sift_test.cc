@@ -733,6 +733,17 @@ TEST(SiftOptions, CheckDescribeAndFingerprint) {
   ASSERT_TRUE(parsed_upright) << parsed_upright.error().ToString();
   EXPECT_TRUE(parsed_upright->upright);
   EXPECT_FALSE(SiftOptions::FromDescription(options.Describe() + ";upright=0"));
+  // Refinement in scale: a `refine_scale=1` field; off is no field; the opencv style refuses it.
+  SiftOptions in_scale = options;
+  in_scale.refine_in_scale = true;
+  EXPECT_EQ(in_scale.Describe(), options.Describe() + ";refine_scale=1");
+  EXPECT_NE(in_scale.Fingerprint(), options.Fingerprint());
+  auto parsed_in_scale = SiftOptions::FromDescription(in_scale.Describe());
+  ASSERT_TRUE(parsed_in_scale) << parsed_in_scale.error().ToString();
+  EXPECT_TRUE(parsed_in_scale->refine_in_scale);
+  EXPECT_FALSE(SiftOptions::FromDescription(options.Describe() + ";refine_scale=0"));
+  in_scale.keypoint_style = KeypointStyle::kOpenCv;
+  EXPECT_TRUE(in_scale.Check().has_value());
   // The descriptor window is described by `magnification` and `row_step` fields unless it is Lowe's (cells 3
   // wide, every row), the default, which every description made before the fields had: the default
   // description above has neither, and one without them reads back as Lowe's window.

@@ -135,8 +135,8 @@ enum class GeometricModel {
   // fitted to the tentative matches (as kHomography) replaces the affine transform and the inliers if
   // it keeps at least half of the Hough inliers and has at least hough.min_inliers inliers of its own
   // (HomographyAgreeingWith), so a verified answer never reports fewer. Affine maps cannot follow a
-  // perspective change: graf 1 -> 3 corner error 48.6 px with kHoughAffine, 0.93 px with this
-  // (eval/bench/pair_match_accuracy_benchmark.cc).
+  // perspective change: graf 1 -> 3 corner error 48.2 px with kHoughAffine, 1.04 px with this and
+  // `oxbow match`'s extractor (eval/results/matching.md).
   kHoughHomography,
   kSimilarity,   // 4 dof: rotation, uniform scale, translation (cv::estimateAffinePartial2D)
   kAffine,       // 6 dof (cv::estimateAffine2D)

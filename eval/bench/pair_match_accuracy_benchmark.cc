@@ -7,7 +7,8 @@
 // Pairs: graf1 -> graf3 (opencv-doc, H1to3p.xml) and boat 1 -> 3, 4, 5 (../shared/data/oxford_affine,
 // skipped with a note when absent). Contenders, each from the same decoded grey image:
 //   - oxbow with the defaults of `oxbow match` (api::MatchPair with PairMatchOptions{}, the extractor
-//     with SiftOptions{}), and the same with the homography and hough-affine models;
+//     with api::PairMatchExtractorOptions(SiftOptions{})), and the same with the homography and
+//     hough-affine models;
 //   - OpenCV 4.6: cv::SIFT (its defaults), RootSIFT (L1 normalisation, square root), brute-force
 //     knnMatch k = 2 with Lowe's ratio 0.8, cv::findHomography(USAC_MAGSAC, 3 px).
 // The bound it checks: oxbow's defaults no worse than OpenCV + 0.5 px in mean corner error on each pair.
@@ -148,7 +149,7 @@ int main(int argc, char** argv) {
   } else {
     std::printf("no %s: the boat pairs skipped\n", shared.c_str());
   }
-  sift::SiftOptions sift_options;  // `oxbow match`'s extractor
+  sift::SiftOptions sift_options = api::PairMatchExtractorOptions(sift::SiftOptions{});  // `oxbow match`'s extractor
   sift_options.num_threads = threads;
   const auto extractor = sift::SiftExtractor::Create(sift_options);
   if (!extractor) {

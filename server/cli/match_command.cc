@@ -55,7 +55,7 @@ void RunMatch(const MatchArgs& args) {
   sift_options.descriptor_magnification = args.window.descriptor_magnification;
   sift_options.descriptor_row_step = args.window.descriptor_row_step;
   sift_options.num_threads = args.num_threads;
-  const SiftExtractor extractor = ValueOrExit(SiftExtractor::Create(sift_options));
+  const SiftExtractor extractor = ValueOrExit(SiftExtractor::Create(api::PairMatchExtractorOptions(sift_options)));
   const DecodeOptions decode = args.image.ToDecodeOptions();
 
   const auto begin = Clock::now();

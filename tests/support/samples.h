@@ -35,10 +35,12 @@ inline sift::SiftOptions TestSiftOptions() {
 }
 
 // Trains a `words`-word vocabulary on the features of `images` (file names in kSampleDir) with
-// TestSiftOptions and writes it to `path`. Seconds on one core for ~4 images and 64 words.
+// `options` (TestSiftOptions unless given) and writes it to `path`. Seconds on one core for ~4 images
+// and 64 words.
 inline Result<vocab::Vocabulary> BuildTestVocabulary(const std::vector<std::string>& images, size_t words,
-                                                     const std::string& path) {
-  auto extractor = sift::SiftExtractor::Create(TestSiftOptions());
+                                                     const std::string& path,
+                                                     const sift::SiftOptions& options = TestSiftOptions()) {
+  auto extractor = sift::SiftExtractor::Create(options);
   if (!extractor) return std::unexpected(extractor.error());
   std::vector<float> descriptors;
   for (const auto& name : images) {
@@ -50,7 +52,7 @@ inline Result<vocab::Vocabulary> BuildTestVocabulary(const std::vector<std::stri
   train.num_words = words;
   train.max_iterations = 10;
   auto vocabulary = vocab::Train(descriptors, sift::kDescriptorDim, sift::DescriptorKind::kRootSift,
-                                 TestSiftOptions().Describe(), train);
+                                 options.Describe(), train);
   if (!vocabulary) return std::unexpected(vocabulary.error());
   if (auto written = vocabulary->Write(path); !written) return std::unexpected(written.error());
   return vocabulary;
