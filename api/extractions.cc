@@ -10,7 +10,6 @@
 #include <mutex>
 #include <string>
 #include <thread>
-#include <utility>
 #include <vector>
 
 #include "api/pair_match.h"
@@ -41,7 +40,7 @@ class SlotGuard {
 sift::SiftExtractor MustCreate(const sift::SiftOptions& options) {
   auto created = sift::SiftExtractor::Create(options);
   OXBOW_CHECK(created.has_value(), "settings derived from a valid extractor's are valid");
-  return std::move(*created);
+  return *created;
 }
 
 }  // namespace
