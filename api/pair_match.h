@@ -30,8 +30,8 @@ namespace oxbow::api {
 
 // The extractor settings pair matching uses, from the settings `base` (the server's index or the
 // command's flags): with the vlfeat keypoint style, refinement also in scale
-// (sift::SiftOptions::refine_in_scale), whose positions follow a homography where the scale changes;
-// everything else as `base`. Its corner error on the Oxford affine pairs is in eval/results/matching.md.
+// (sift::SiftOptions::refine_in_scale), with which the fitted homographies came out nearer the true
+// ones (eval/results/matching.md, corner error on the Oxford affine pairs); everything else as `base`.
 sift::SiftOptions PairMatchExtractorOptions(const sift::SiftOptions& base);
 
 struct PairMatchOptions {
