@@ -200,7 +200,7 @@ void SetUpExtract(CLI::App& app) {
                 "in the picture; a vocabulary trained on these files makes index build and serve extract the same way");
   cmd->add_flag("--refine-in-scale", args->refine_in_scale,
                 "the keypoint refinement also moves in scale, as `oxbow match` extracts: its homography on graf 1 -> 3 "
-                "came out nearer the true one; off by default, as the index extracts (it retrieved no better)");
+                "came out nearer the true one; off by default, as the index extracts (it retrieved less well on the Paris subset)");
   cmd->add_flag("--ignore-exif", args->ignore_exif, "use the pixels as stored, ignoring the EXIF orientation tag");
   AddThreadsFlag(cmd, &args->num_threads);
   cmd->add_option("--thread-cache-mib", args->thread_cache_mib,
