@@ -455,72 +455,6 @@ bool Solve3(double H[3][3], const double g[3], double x[3]) {
   return true;
 }
 
-std::optional<Refined> Refine(const Octave& octave, Candidate cand, const SiftOptions& options) {
-  const int S = options.intervals;
-  const int w = octave.gauss[0].width(), h = octave.gauss[0].height();
-  int layer = cand.layer, r = cand.r, c = cand.c;
-  double offset[3] = {0, 0, 0};  // (column, row, scale)
-  double grad[3] = {0, 0, 0};
-  int step = 0;
-  for (; step < kMaxRefineSteps; ++step) {
-    const float v = octave.Dog(layer, r, c);
-    const float right = octave.Dog(layer, r, c + 1), left = octave.Dog(layer, r, c - 1);
-    const float down = octave.Dog(layer, r + 1, c), up = octave.Dog(layer, r - 1, c);
-    const float next = octave.Dog(layer + 1, r, c), prev = octave.Dog(layer - 1, r, c);
-    grad[0] = 0.5 * (right - left);
-    grad[1] = 0.5 * (down - up);
-    grad[2] = 0.5 * (next - prev);
-    double H[3][3];
-    H[0][0] = right + left - 2.0 * v;
-    H[1][1] = down + up - 2.0 * v;
-    H[2][2] = next + prev - 2.0 * v;
-    H[0][1] = H[1][0] = 0.25 * (octave.Dog(layer, r + 1, c + 1) - octave.Dog(layer, r + 1, c - 1) -
-                                octave.Dog(layer, r - 1, c + 1) + octave.Dog(layer, r - 1, c - 1));
-    H[0][2] = H[2][0] = 0.25 * (octave.Dog(layer + 1, r, c + 1) - octave.Dog(layer + 1, r, c - 1) -
-                                octave.Dog(layer - 1, r, c + 1) + octave.Dog(layer - 1, r, c - 1));
-    H[1][2] = H[2][1] = 0.25 * (octave.Dog(layer + 1, r + 1, c) - octave.Dog(layer + 1, r - 1, c) -
-                                octave.Dog(layer - 1, r + 1, c) + octave.Dog(layer - 1, r - 1, c));
-    double x[3] = {0, 0, 0};
-    if (!Solve3(H, grad, x)) x[0] = x[1] = x[2] = 0;  // a flat fit: keep the sample position
-    for (int i = 0; i < 3; ++i) offset[i] = -x[i];
-    if (std::fabs(offset[0]) < 0.5 && std::fabs(offset[1]) < 0.5 && std::fabs(offset[2]) < 0.5) break;
-    if (std::fabs(offset[0]) > 1e6 || std::fabs(offset[1]) > 1e6 || std::fabs(offset[2]) > 1e6) return std::nullopt;
-    c += static_cast<int>(std::lrint(offset[0]));
-    r += static_cast<int>(std::lrint(offset[1]));
-    layer += static_cast<int>(std::lrint(offset[2]));
-    if (layer < 1 || layer > S || c < kBorder || c >= w - kBorder || r < kBorder || r >= h - kBorder) return std::nullopt;
-  }
-  if (step >= kMaxRefineSteps) return std::nullopt;  // did not converge
-
-  // Contrast at the interpolated extremum: D + 0.5 * grad . offset (gradient at the final sample).
-  const float v = octave.Dog(layer, r, c);
-  grad[0] = 0.5 * (octave.Dog(layer, r, c + 1) - octave.Dog(layer, r, c - 1));
-  grad[1] = 0.5 * (octave.Dog(layer, r + 1, c) - octave.Dog(layer, r - 1, c));
-  grad[2] = 0.5 * (octave.Dog(layer + 1, r, c) - octave.Dog(layer - 1, r, c));
-  const double contrast = v + 0.5 * (grad[0] * offset[0] + grad[1] * offset[1] + grad[2] * offset[2]);
-  if (std::fabs(contrast) * S < options.contrast_threshold) return std::nullopt;
-
-  // Edge test on the 2x2 spatial Hessian [L04 sec. 4.1].
-  const double dxx = octave.Dog(layer, r, c + 1) + octave.Dog(layer, r, c - 1) - 2.0 * v;
-  const double dyy = octave.Dog(layer, r + 1, c) + octave.Dog(layer, r - 1, c) - 2.0 * v;
-  const double dxy = 0.25 * (octave.Dog(layer, r + 1, c + 1) - octave.Dog(layer, r + 1, c - 1) -
-                             octave.Dog(layer, r - 1, c + 1) + octave.Dog(layer, r - 1, c - 1));
-  const double tr = dxx + dyy, det = dxx * dyy - dxy * dxy;
-  const double e = options.edge_threshold;
-  if (det <= 0 || tr * tr * e >= (e + 1) * (e + 1) * det) return std::nullopt;
-
-  Refined out;
-  out.layer = layer;
-  out.r = r;
-  out.c = c;
-  out.xc = static_cast<float>(offset[0]);
-  out.xr = static_cast<float>(offset[1]);
-  out.xi = static_cast<float>(offset[2]);
-  out.contrast = static_cast<float>(contrast);
-  out.level = layer;
-  return out;
-}
-
 // The 3D quadratic fit of D at (layer, r, c): grad = first derivatives (column, row, scale) and the
 // offset = -H^-1 grad to the fitted extremum (zero when H is singular).
 void FitQuadratic(const Octave& octave, int layer, int r, int c, double grad[3], double offset[3]) {
@@ -544,6 +478,56 @@ void FitQuadratic(const Octave& octave, int layer, int r, int c, double grad[3],
   double x[3] = {0, 0, 0};
   if (!Solve3(H, grad, x)) x[0] = x[1] = x[2] = 0;
   for (int i = 0; i < 3; ++i) offset[i] = -x[i];
+}
+
+// The contrast test at the fitted extremum, D + 0.5 grad . offset, and the edge test on the 2x2 spatial
+// Hessian [L04 sec. 4, 4.1], at the sample (layer, r, c) whose fit gave grad and offset: the keypoint,
+// its descriptor taken at Gaussian level `level`, or nothing.
+std::optional<Refined> AcceptFit(const Octave& octave, int layer, int r, int c, const double grad[3],
+                                 const double offset[3], int level, const SiftOptions& options) {
+  const float v = octave.Dog(layer, r, c);
+  const double contrast = v + 0.5 * (grad[0] * offset[0] + grad[1] * offset[1] + grad[2] * offset[2]);
+  if (std::fabs(contrast) * options.intervals < options.contrast_threshold) return std::nullopt;
+  const double dxx = octave.Dog(layer, r, c + 1) + octave.Dog(layer, r, c - 1) - 2.0 * v;
+  const double dyy = octave.Dog(layer, r + 1, c) + octave.Dog(layer, r - 1, c) - 2.0 * v;
+  const double dxy = 0.25 * (octave.Dog(layer, r + 1, c + 1) - octave.Dog(layer, r + 1, c - 1) -
+                             octave.Dog(layer, r - 1, c + 1) + octave.Dog(layer, r - 1, c - 1));
+  const double tr = dxx + dyy, det = dxx * dyy - dxy * dxy;
+  const double e = options.edge_threshold;
+  if (det <= 0 || tr * tr * e >= (e + 1) * (e + 1) * det) return std::nullopt;
+  Refined out;
+  out.layer = layer;
+  out.r = r;
+  out.c = c;
+  out.xc = static_cast<float>(offset[0]);
+  out.xr = static_cast<float>(offset[1]);
+  out.xi = static_cast<float>(offset[2]);
+  out.contrast = static_cast<float>(contrast);
+  out.level = level;
+  return out;
+}
+
+// KeypointStyle::kOpenCv's refinement (cv::SIFT's adjustLocalExtrema): the sample moves to the rounded
+// fitted extremum, in space and scale, until every offset is below half a sample, at most
+// kMaxRefineSteps times.
+std::optional<Refined> Refine(const Octave& octave, Candidate cand, const SiftOptions& options) {
+  const int S = options.intervals;
+  const int w = octave.gauss[0].width(), h = octave.gauss[0].height();
+  int layer = cand.layer, r = cand.r, c = cand.c;
+  double offset[3] = {0, 0, 0};  // (column, row, scale)
+  double grad[3] = {0, 0, 0};
+  int step = 0;
+  for (; step < kMaxRefineSteps; ++step) {
+    FitQuadratic(octave, layer, r, c, grad, offset);
+    if (std::fabs(offset[0]) < 0.5 && std::fabs(offset[1]) < 0.5 && std::fabs(offset[2]) < 0.5) break;
+    if (std::fabs(offset[0]) > 1e6 || std::fabs(offset[1]) > 1e6 || std::fabs(offset[2]) > 1e6) return std::nullopt;
+    c += static_cast<int>(std::lrint(offset[0]));
+    r += static_cast<int>(std::lrint(offset[1]));
+    layer += static_cast<int>(std::lrint(offset[2]));
+    if (layer < 1 || layer > S || c < kBorder || c >= w - kBorder || r < kBorder || r >= h - kBorder) return std::nullopt;
+  }
+  if (step >= kMaxRefineSteps) return std::nullopt;  // did not converge
+  return AcceptFit(octave, layer, r, c, grad, offset, layer, options);
 }
 
 // KeypointStyle::kVlfeat's refinement: the sample moves one pixel in space (and, with
@@ -570,26 +554,8 @@ std::optional<Refined> RefineInSpace(const Octave& octave, Candidate cand, const
   }
   if (!(std::fabs(offset[0]) < kMaxOffset && std::fabs(offset[1]) < kMaxOffset && std::fabs(offset[2]) < kMaxOffset))
     return std::nullopt;
-  const float v = octave.Dog(layer, r, c);
-  const double contrast = v + 0.5 * (grad[0] * offset[0] + grad[1] * offset[1] + grad[2] * offset[2]);
-  if (std::fabs(contrast) * S < options.contrast_threshold) return std::nullopt;
-  const double dxx = octave.Dog(layer, r, c + 1) + octave.Dog(layer, r, c - 1) - 2.0 * v;
-  const double dyy = octave.Dog(layer, r + 1, c) + octave.Dog(layer, r - 1, c) - 2.0 * v;
-  const double dxy = 0.25 * (octave.Dog(layer, r + 1, c + 1) - octave.Dog(layer, r + 1, c - 1) -
-                             octave.Dog(layer, r - 1, c + 1) + octave.Dog(layer, r - 1, c - 1));
-  const double tr = dxx + dyy, det = dxx * dyy - dxy * dxy;
-  const double e = options.edge_threshold;
-  if (det <= 0 || tr * tr * e >= (e + 1) * (e + 1) * det) return std::nullopt;
-  Refined out;
-  out.layer = layer;
-  out.r = r;
-  out.c = c;
-  out.xc = static_cast<float>(offset[0]);
-  out.xr = static_cast<float>(offset[1]);
-  out.xi = static_cast<float>(offset[2]);
-  out.contrast = static_cast<float>(contrast);
-  out.level = std::clamp(static_cast<int>(std::lrint(layer + offset[2])), 0, S + 2);
-  return out;
+  return AcceptFit(octave, layer, r, c, grad, offset, std::clamp(static_cast<int>(std::lrint(layer + offset[2])), 0, S + 2),
+                   options);
 }
 
 // ---- Gradients -------------------------------------------------------------------------------------
