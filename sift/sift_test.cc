@@ -558,6 +558,21 @@ TEST(SiftDescriptor, ClippingOfASpikyHistogram) {
   EXPECT_TRUE(found_flattened);
 }
 
+// The corner error (tests/support/feature_eval.h) of a shifted and of a scaled homography, whose
+// distances at the corners are known, and of one that sends a corner to infinity.
+TEST(SiftHomography, CornerErrorOfKnownHomographies) {
+  const Homography truth = {1, 0, 0, 0, 1, 0, 0, 0, 1};
+  const CornerError shifted = CornerErrorOf({1, 0, 3, 0, 1, 4, 0, 0, 1}, truth, 11, 21);
+  EXPECT_DOUBLE_EQ(shifted.mean_px, 5.0);
+  EXPECT_DOUBLE_EQ(shifted.max_px, 5.0);
+  // Twice the size: the corner (0, 0) stays, (10, 0) moves 10 px, (0, 20) 20 px, (10, 20) sqrt(500) px.
+  const CornerError scaled = CornerErrorOf({2, 0, 0, 0, 2, 0, 0, 0, 1}, truth, 11, 21);
+  EXPECT_DOUBLE_EQ(scaled.max_px, std::sqrt(500.0));
+  EXPECT_DOUBLE_EQ(scaled.mean_px, (0 + 10 + 20 + std::sqrt(500.0)) / 4);
+  const CornerError degenerate = CornerErrorOf({1, 0, 0, 0, 1, 0, 0.1, 0, 0}, truth, 11, 21);
+  EXPECT_TRUE(std::isinf(degenerate.max_px));
+}
+
 TEST(SiftHomography, Graf1To3NotWorseThanOpencv) {
   const cv::Mat g1 = LoadGray(kOpencvData + "graf1.png"), g3 = LoadGray(kOpencvData + "graf3.png");
   auto h = ReadHomography(kOpencvData + "H1to3p.xml");

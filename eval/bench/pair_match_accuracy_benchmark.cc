@@ -46,22 +46,17 @@ struct Outcome {
   double mean_px = NAN, max_px = NAN;
 };
 
-// Corner errors of `estimate` against `truth` over the corners of a w x h image (pixel centres 0..w-1).
-void CornerErrors(const Eigen::Matrix3d& estimate, const Eigen::Matrix3d& truth, double w, double h, Outcome* out) {
-  double sum = 0, worst = 0;
-  for (int c = 0; c < 4; ++c) {
-    const Eigen::Vector3d corner((c & 1) ? w - 1 : 0, (c & 2) ? h - 1 : 0, 1);
-    const Eigen::Vector3d p = estimate * corner, q = truth * corner;
-    const double d = (p.head<2>() / p.z() - q.head<2>() / q.z()).norm();
-    sum += d;
-    worst = std::max(worst, d);
-  }
-  out->mean_px = sum / 4;
-  out->max_px = worst;
+// The corner errors of `estimate` against `truth` over the corners of a width x height image a.
+void SetCornerErrors(const Eigen::Matrix3d& estimate, const sift::Homography& truth, int width, int height, Outcome* out) {
+  sift::Homography e;
+  for (int i = 0; i < 9; ++i) e[static_cast<size_t>(i)] = estimate(i / 3, i % 3);
+  const sift::CornerError error = sift::CornerErrorOf(e, truth, width, height);
+  out->mean_px = error.mean_px;
+  out->max_px = error.max_px;
 }
 
 Outcome Oxbow(const sift::FeatureSet& a, const sift::FeatureSet& b, sift::GeometricModel model,
-              const Eigen::Matrix3d& truth, int threads) {
+              const sift::Homography& truth, int threads) {
   api::PairMatchOptions options;
   options.model = model;
   options.match.num_threads = threads;
@@ -76,11 +71,11 @@ Outcome Oxbow(const sift::FeatureSet& a, const sift::FeatureSet& b, sift::Geomet
   const std::optional<Eigen::Matrix3d> transform = result->transform;
   if (!transform.has_value()) return out;
   out.ok = true;
-  CornerErrors(*transform, truth, a.image_width, a.image_height, &out);
+  SetCornerErrors(*transform, truth, a.image_width, a.image_height, &out);
   return out;
 }
 
-Outcome OpenCv(const cv::Mat& a, const cv::Mat& b, const Eigen::Matrix3d& truth) {
+Outcome OpenCv(const cv::Mat& a, const cv::Mat& b, const sift::Homography& truth) {
   auto sift = cv::SIFT::create();
   std::vector<cv::KeyPoint> ka, kb;
   cv::Mat da, db;
@@ -113,7 +108,7 @@ Outcome OpenCv(const cv::Mat& a, const cv::Mat& b, const Eigen::Matrix3d& truth)
   out.inliers = cv::countNonZero(mask);
   Eigen::Matrix3d e;
   for (int i = 0; i < 9; ++i) e(i / 3, i % 3) = h.at<double>(i / 3, i % 3);
-  CornerErrors(e, truth, a.cols, a.rows, &out);
+  SetCornerErrors(e, truth, a.cols, a.rows, &out);
   return out;
 }
 
@@ -163,13 +158,11 @@ int main(int argc, char** argv) {
   std::printf("|---|---|---|---|---|---|\n");
   int missed = 0;
   for (const Pair& p : pairs) {
-    const auto truth_rows = sift::ReadHomography(p.truth);
-    if (!truth_rows) {
-      std::fprintf(stderr, "%s: %s\n", p.truth.c_str(), truth_rows.error().ToString().c_str());
+    const auto truth = sift::ReadHomography(p.truth);
+    if (!truth) {
+      std::fprintf(stderr, "%s: %s\n", p.truth.c_str(), truth.error().ToString().c_str());
       return 1;
     }
-    Eigen::Matrix3d truth;
-    for (int i = 0; i < 9; ++i) truth(i / 3, i % 3) = (*truth_rows)[i];
     const cv::Mat a = cv::imread(p.a, cv::IMREAD_GRAYSCALE), b = cv::imread(p.b, cv::IMREAD_GRAYSCALE);
     const auto fa = extractor->ExtractFromFile(p.a, sift::DecodeOptions{});
     const auto fb = extractor->ExtractFromFile(p.b, sift::DecodeOptions{});
@@ -177,10 +170,10 @@ int main(int argc, char** argv) {
       std::fprintf(stderr, "%s: cannot read or extract the images\n", p.name.c_str());
       return 1;
     }
-    const Outcome def = Oxbow(*fa, *fb, defaults, truth, threads);
-    const Outcome hom = Oxbow(*fa, *fb, sift::GeometricModel::kHomography, truth, threads);
-    const Outcome hough_affine = Oxbow(*fa, *fb, sift::GeometricModel::kHoughAffine, truth, threads);
-    const Outcome cv_out = OpenCv(a, b, truth);
+    const Outcome def = Oxbow(*fa, *fb, defaults, *truth, threads);
+    const Outcome hom = Oxbow(*fa, *fb, sift::GeometricModel::kHomography, *truth, threads);
+    const Outcome hough_affine = Oxbow(*fa, *fb, sift::GeometricModel::kHoughAffine, *truth, threads);
+    const Outcome cv_out = OpenCv(a, b, *truth);
     std::string diff = "-";
     if (def.ok && cv_out.ok) {
       char buf[48];

@@ -32,6 +32,22 @@ Homography Invert(const Homography& m) {
 
 }  // namespace
 
+CornerError CornerErrorOf(const Homography& estimate, const Homography& truth, int width, int height) {
+  CornerError out;
+  double sum = 0;
+  for (int c = 0; c < 4; ++c) {
+    const double x = (c & 1) ? width - 1 : 0, y = (c & 2) ? height - 1 : 0;
+    double ex = 0, ey = 0, tx = 0, ty = 0;
+    const double d = Project(estimate, x, y, &ex, &ey) && Project(truth, x, y, &tx, &ty)
+                         ? std::hypot(ex - tx, ey - ty)
+                         : std::numeric_limits<double>::infinity();
+    sum += d;
+    out.max_px = std::max(out.max_px, d);
+  }
+  out.mean_px = sum / 4;
+  return out;
+}
+
 Result<Homography> ReadHomography(const std::string& path) {
   std::ifstream in(path);
   if (!in) return Fail(ErrorCode::kNotFound, "cannot open homography file '" + path + "'");

@@ -38,4 +38,13 @@ struct HomographyScore {
 HomographyScore ScoreUnderHomography(const FeatureSet& image1, const FeatureSet& image2, const Homography& image2_from_image1,
                                      double tolerance_px = 3.0, double ratio = 0.8, double scale_ratio = 1.5);
 
+// How far an estimated homography is from the true one (the HPatches "corner error"): the distances, in
+// image 2's pixels, between where the two send each corner of image 1 (pixel centres (0, 0) to
+// (width - 1, height - 1)). A corner either sends to infinity counts as infinitely far.
+struct CornerError {
+  double mean_px = 0;
+  double max_px = 0;
+};
+CornerError CornerErrorOf(const Homography& estimate, const Homography& truth, int width, int height);
+
 }  // namespace oxbow::sift
