@@ -129,10 +129,14 @@ failed=$(cat "$out"/*.time | awk '$2 != 0' | wc -l)
 unchanged=$(cat "$out"/*.time | grep -c "unchanged since a clean analysis" || true)
 cat "$out"/*.key 2>/dev/null | sort >"$out/clean-ledger.txt" || true
 if [[ "${OXBOW_TIDY_LEDGER_UPDATE:-0}" == 1 ]]; then
-  # This run's files get this run's keys (none when not clean); the other files' lines stay.
+  # This run's files get this run's keys (none when not clean); the other files' lines stay while the
+  # file is still in the tree.
   printf '%s\n' "${files[@]#"$root"/}" >"$out/run-files.txt"
   touch "$root/.ci/clang-tidy-clean.txt"
-  { awk 'NR == FNR { run[$0] = 1; next } !($2 in run)' "$out/run-files.txt" "$root/.ci/clang-tidy-clean.txt"
+  { awk 'NR == FNR { run[$0] = 1; next } !($2 in run)' "$out/run-files.txt" "$root/.ci/clang-tidy-clean.txt" |
+      while read -r key file; do
+        if [[ -e "$root/$file" ]]; then printf '%s %s\n' "$key" "$file"; fi
+      done
     cat "$out/clean-ledger.txt"; } | sort -k2 >"$out/ledger.new"
   mv "$out/ledger.new" "$root/.ci/clang-tidy-clean.txt"
   echo "clang-tidy.sh: .ci/clang-tidy-clean.txt now lists $(wc -l <"$root/.ci/clang-tidy-clean.txt") clean files ($(wc -l <"$out/clean-ledger.txt") of this run's ${#files[@]})"
