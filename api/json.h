@@ -51,7 +51,7 @@ inline constexpr int kMaxJsonDepth = 64;
 [[nodiscard]] int JsonNestingDepth(std::string_view text, int stop_above = kMaxJsonDepth);
 
 // The stored metadata text as JSON; null for "", the text as a JSON string if it does not parse or nests
-// deeper than kMaxJsonDepth (stored by an older version or `oxbow index add --metadata`: returned, not parsed).
+// deeper than kMaxJsonDepth (returned, not parsed).
 nlohmann::json MetadataToJson(const std::string& metadata_json);
 
 }  // namespace oxbow::api

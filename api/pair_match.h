@@ -30,16 +30,17 @@ namespace oxbow::api {
 
 // The extractor settings pair matching uses, from the settings `base` (the server's index or the
 // command's flags): with the vlfeat keypoint style, refinement also in scale
-// (sift::SiftOptions::refine_in_scale), with which the fitted homographies came out nearer the true
-// ones (eval/results/matching.md, corner error on the Oxford affine pairs); everything else as `base`.
+// (sift::SiftOptions::refine_in_scale), with which graf 1 -> 3's homography came out 1.04 px from the
+// true one at the corners against 3.44 px without, and boat 1 -> 3, 4, 5 at
+// 0.17, 0.75, 1.33 px against 0.11, 0.87, 1.36 (eval/results/matching.md); everything else as `base`.
 sift::SiftOptions PairMatchExtractorOptions(const sift::SiftOptions& base);
 
 struct PairMatchOptions {
   sift::MatchOptions match;                                         // descriptor matching (sift/match.h)
   // Model fitted to the matches. hough-homography: the Hough/affine verifier decides, a homography
   // that agrees with it gives the transform (sift/verify.h); on the homography pairs its corner error
-  // is within 0.1 px of OpenCV RootSIFT + MAGSAC's or better, where hough-affine's is 0.6-48 px worse
-  // (server/README.md, `oxbow match`).
+  // is within 0.1 px of OpenCV RootSIFT + MAGSAC's or better, where hough-affine's is 0.4-47 px worse
+  // than this default's (eval/results/matching.md).
   sift::GeometricModel model = sift::GeometricModel::kHoughHomography;
   // Estimator settings, and the Hough verifier's in fit.hough (whose min_inliers is replaced by the one
   // below, so that one number rules every model).

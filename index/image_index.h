@@ -18,10 +18,11 @@
 //    (about 4000 images) every write refreshes them, so scores equal those of an index built from
 //    scratch on the live images; above that, an add or remove costs O(its own words) and the
 //    statistics are refreshed (one parallel pass over the postings) once the images changed since the
-//    last refresh exceed 10% of the live images. Norms use three per-image sums:
+//    last refresh exceed 25% of the live images (TfIdfOptions::statistics_refresh_fraction). Norms use three per-image sums:
 //    |v(d)|^2 = L^2 A_d - 2 L B_d + C_d with L = log N, A_d = sum t^2, B_d = sum t^2 log n_w,
 //    C_d = sum t^2 (log n_w)^2.
-// 3. Inverted file: per visual word, the postings (image, tf) sorted by image, delta + varint coded,
+// 3. Inverted file: per visual word, the postings (image, tf) sorted by image, each a 16-bit unit
+//    (gap << 1 | tf > 1, long gaps escaped; postings/codec.h),
 //    kept in immutable segments (a log-structured merge: each add makes a small segment, segments of
 //    similar size are merged, removed images are dropped at merge time). Scoring accumulates into a
 //    dense float array over images (one pass over the postings of the query's words).
@@ -239,7 +240,7 @@ struct QueryOptions {
   // Coarse lists of the vocabulary's quantiser probed per query descriptor (vocab::QuantizerOptions::
   // num_probes for the query; images are added with IndexOptions::quantizer). Fewer probes: faster,
   // more descriptors miss their exact nearest word. [1, 4096]. Default chosen by measurement on Paris
-  // (8 probes: 0.917 recall@1 at 10k words, half the time of 16; see README).
+  // (8 probes: 0.916 recall@1 at 10k words, 1.6x the speed of 16; eval/results/vocabulary.md).
   int quantizer_probes = 8;
   // Kernel width of the assignment weights, in squared descriptor distance (RootSIFT descriptors have
   // unit L2 norm, so squared distances lie in [0, 4]). (0, 4].

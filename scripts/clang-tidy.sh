@@ -18,8 +18,8 @@
 # (commit it with the change that was analysed). The ledger only saves time: without it, or with a
 # stale one, every changed file is analysed as before. Its keys are those of build-asan's compile
 # commands, the folder CI's tidy phase analyses (scripts/test-hardening.sh): an update from any other
-# folder is refused, since none of its keys would match there (a ledger written from build-tidy once
-# made CI analyse all 127 files, about 20 minutes on 2 cores).
+# folder is refused, since none of its keys would match there (CI would analyse every file, about 20
+# minutes on 2 cores).
 #
 # oxbow is C++23 built with GCC 12; clang-tidy 16 parses it as C++2b. libstdc++ 12 only declares
 # std::expected when __cpp_concepts >= 202002L, which clang 16 implements (P0848, conditionally trivial

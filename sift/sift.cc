@@ -173,7 +173,7 @@ std::string SiftOptions::Describe() const {
     << ";peak_ratio=" << CanonicalDouble(orientation_peak_ratio)
     << ";kernel_radius=" << CanonicalDouble(kernel_radius_sigmas)
     << ";max_octaves=" << (max_octaves ? std::to_string(*max_octaves) : std::string("all"));
-  // kOpenCv is written as no field, so that descriptions made before the field existed keep their meaning.
+  // kOpenCv is written as no field: a description without it means kOpenCv.
   if (keypoint_style == KeypointStyle::kVlfeat) s << ";keypoints=vlfeat";
   // Off is written as no field, like kOpenCv above.
   if (upright) s << ";upright=1";

@@ -72,7 +72,7 @@
 // maps input x to 2x + 0.5, so we report x_up / 2 - 0.25 where OpenCV reports x_up / 2; (b) the
 // descriptor window is centred on the sub-pixel keypoint position (OpenCV rounds it to the nearest
 // pixel); (c) gradient directions use a degree-9 polynomial atan2 (error < 0.001 degrees). Keypoint
-// sets otherwise agree: on graf1.png 100% of cv::SIFT's 2665 keypoints have a counterpart within
+// sets otherwise agree: on graf1.png 99.9% of cv::SIFT's 2665 keypoints have a counterpart within
 // 0.5 px / 5% scale / 3 degrees, and the same extrema pre-filter (0.5 * contrast / S quantised to 8-bit
 // grey levels, as OpenCV) and non-strict 26-neighbour comparison are used.
 //
@@ -133,7 +133,7 @@ struct SiftOptions {
   // ---- Behaviour: these change the output and are part of Describe()/Fingerprint(). ----
 
   // Keypoint refinement and orientation assignment (see KeypointStyle). A description without a
-  // `keypoints` field (written before the field existed) means kOpenCv.
+  // `keypoints` field means kOpenCv.
   KeypointStyle keypoint_style = KeypointStyle::kVlfeat;
 
   // Enlarge the input 2x before building the first octave (octave -1), as Lowe and OpenCV do; finds
@@ -178,7 +178,7 @@ struct SiftOptions {
   // Width of each of the descriptor's 4 x 4 cells in keypoint sigmas (step 7; VLFeat's `magnif`; Lowe's
   // 3). 4 gives 3-21% more correct matches on the Oxford affine pairs and a higher groups_hard mAP with
   // each of three vocabulary seeds, at a slower search (eval/results/accuracy.md, "Descriptor window").
-  // 3 is written as no field in Describe(), so descriptions made before the field keep it. [1, 10].
+  // 3 is written as no field in Describe(): a description without the field means 3. [1, 10].
   double descriptor_magnification = 3.0;
   // The descriptor samples every this-many rows of its window (every column of a sampled row). With
   // cells 4 sigmas wide (at least ~6 pixels) every second row gives the same matching scores as every
@@ -201,8 +201,9 @@ struct SiftOptions {
   int num_threads = 0;
   // Each thread that calls Extract keeps its pyramid buffers (28 * W * H floats with upsampling and 3
   // intervals: ~88 MB for a 1024x768 image) for its next call, unless they exceed this many MiB; 0
-  // frees them after every call. Reuse saves the page faults (and kernel zeroing) of fresh memory: a
-  // cold call measured 1.02-1.33x the CPU time of a warm one (sift_benchmark, README). [0, 65536].
+  // frees them after every call. Reuse saves the page faults (and kernel zeroing) of fresh memory where the
+  // allocator hands freed memory back to the kernel; under sift_benchmark's policy, which keeps freed
+  // memory in the process, a cold call measured 0.93-1.05x a warm one (eval/results/sift.md, "Time"). [0, 65536].
   int thread_cache_mib = 256;
 
   // Error message for an invalid setting, or nullopt.

@@ -115,8 +115,8 @@ void Prepare(const ExperimentOptions& a, const Config& c, const std::map<std::st
     RunChild(args);
     base->build_vocab_s = std::chrono::duration<double>(Clock::now() - t0).count();
   }
-  // A cached vocabulary from before Hamming embedding was the default would make the "+he" rows
-  // measure plain tf-idf (an index without signatures ignores the switch).
+  // A cached vocabulary without Hamming-embedding parameters would make the "+he" rows measure plain
+  // tf-idf (an index without signatures ignores the switch).
   if (std::find(a.hamming.begin(), a.hamming.end(), "on") != a.hamming.end() &&
       !Must(vocab::Vocabulary::Read(vocab)).has_hamming()) {
     const fs::path list = fs::path(c.Dir(a.work)) / "train_images.txt";
