@@ -26,10 +26,6 @@ using server::SendJsonAnswer;
 
 void SendError(httplib::Response& res, const Error& error) { server::SendJsonError(res, server::ToHttpError(error)); }
 
-std::span<const uint8_t> Bytes(std::string_view text) {
-  return {reinterpret_cast<const uint8_t*>(text.data()), text.size()};
-}
-
 // The front's own parameter allow_partial (Elasticsearch's allow_partial_search_results): on by
 // default; taken out of `params`.
 Result<bool> TakeAllowPartial(api::Params& params) {
@@ -144,7 +140,7 @@ class FrontHttpServer::Impl {
     response.options = *query;
     const sift::StopRequested client_gone = server::ClientGone();
     auto features =
-        c.extractions->Extract(Bytes(*image), c.extractions->Start(client_gone), &response.decode_extract_ms);
+        c.extractions->Extract(server::Bytes(*image), c.extractions->Start(client_gone), &response.decode_extract_ms);
     if (!features) return SendError(res, features.error());
     response.query_width = features->image_width;
     response.query_height = features->image_height;
@@ -205,13 +201,7 @@ class FrontHttpServer::Impl {
     auto image = server::RequestImage(req, "file", "image", &filename);
     if (!image) return SendError(res, image.error());
     if (auto full = CheckRoom(c, params->replace ? 0 : 1)) return server::SendJsonError(res, *full);
-    api::AddImageRequest add;
-    add.id = params->id;
-    add.image = Bytes(*image);
-    add.metadata_json = params->metadata_json;
-    add.replace = params->replace;
-    add.source_name = filename.empty() ? "http" : "http:" + filename;
-    auto added = c.front->Add(add);
+    auto added = c.front->Add(server::AddImageRequestOf(*params, *image, filename));
     if (!added) return SendError(res, added.error());
     server::RecordStages(res, {{"decode_extract", added->decode_extract_ms}, {"add", added->add_ms}});
     const std::string prefix =

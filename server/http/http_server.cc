@@ -188,6 +188,20 @@ Result<std::string_view> RequestImage(const httplib::Request& req, const std::st
   return std::string_view(req.body);
 }
 
+std::span<const uint8_t> Bytes(std::string_view text) {
+  return {reinterpret_cast<const uint8_t*>(text.data()), text.size()};
+}
+
+api::AddImageRequest AddImageRequestOf(const api::AddParams& params, std::string_view image, const std::string& filename) {
+  api::AddImageRequest add;
+  add.id = params.id;
+  add.image = Bytes(image);
+  add.metadata_json = params.metadata_json;
+  add.replace = params.replace;
+  add.source_name = filename.empty() ? "http" : "http:" + filename;
+  return add;
+}
+
 namespace {
 
 // Whether the request's If-None-Match fields name `etag`: "*", or a comma-separated list of entity tags
@@ -235,10 +249,6 @@ void SendWebAsset(const httplib::Request& req, httplib::Response& res, std::stri
                  "default-src 'self'; img-src 'self' blob: data:; connect-src 'self'; frame-ancestors 'none'; "
                  "base-uri 'none'; form-action 'none'");
   SendCacheable(req, res, asset->content, asset->content_type, asset->etag, "no-cache");
-}
-
-std::span<const uint8_t> Bytes(std::string_view text) {
-  return {reinterpret_cast<const uint8_t*>(text.data()), text.size()};
 }
 
 constexpr std::string_view kCollectionsPrefix = "/v1/collections/";
@@ -434,12 +444,7 @@ void PostImage(api::Service& s, const httplib::Request& req, httplib::Response& 
   std::string filename;
   auto image = RequestImage(req, "file", "image", &filename);
   if (!image) return SendError(res, image.error());
-  api::AddImageRequest add;
-  add.id = params->id;
-  add.image = Bytes(*image);
-  add.metadata_json = params->metadata_json;
-  add.replace = params->replace;
-  add.source_name = filename.empty() ? "http" : "http:" + filename;
+  api::AddImageRequest add = AddImageRequestOf(*params, *image, filename);
   add.client_gone = ClientGone();
   auto added = s.AddImage(add);
   if (!added) return SendError(res, added.error());

@@ -233,6 +233,12 @@ api::Params CollectParams(const httplib::Request& req, const std::vector<std::st
 // the raw body. 415 for a JSON or text body, 400 for an empty one or a multipart request without it.
 Result<std::string_view> RequestImage(const httplib::Request& req, const std::string& field,
                                       const std::string& alt_field, std::string* filename);
+// A request body's bytes as the api takes them (not owned).
+std::span<const uint8_t> Bytes(std::string_view text);
+// The add that POST /v1/images asks for, the same on a single node and a cluster front: its parameters,
+// the image's bytes (not owned) and, as its source, "http" or "http:" + the multipart file name.
+api::AddImageRequest AddImageRequestOf(const api::AddParams& params, std::string_view image,
+                                       const std::string& filename);
 // GET /v1/images/{id}, {id}/similar and {id}/thumbnail told apart on the request target as the client
 // sent it (route pattern /v1/images/(.+)): a slash sent encoded (%2F) belongs to the id. `sub` is "",
 // "similar" or "thumbnail".
