@@ -3,17 +3,13 @@
 #include <gtest/gtest.h>
 
 #include <fstream>
-#include <iterator>
 
 #include "tests/support/temp_dir.h"
 
 namespace oxbow::api {
 namespace {
 
-std::string ReadText(const std::string& path) {
-  std::ifstream in(path);
-  return std::string((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-}
+using oxbow::testing::FileBytes;
 
 TEST(AccessKeysTest, KeysGrantTheirCollectionAndAreStoredOnlyAsSaltedHashes) {
   oxbow::testing::TempDir dir("oxbow-access-keys-test");
@@ -41,7 +37,7 @@ TEST(AccessKeysTest, KeysGrantTheirCollectionAndAreStoredOnlyAsSaltedHashes) {
   EXPECT_FALSE((*keys)->Find(""));
 
   // The file holds no secret, and a fresh open of it grants the same.
-  const std::string text = ReadText(path);
+  const std::string text = FileBytes(path);
   EXPECT_EQ(text.find(write->key.substr(17)), std::string::npos);
   EXPECT_NE(text.find(write->info.id), std::string::npos);
   auto reopened = AccessKeys::Open(path);

@@ -52,8 +52,7 @@ TEST(Report, SummariseAndWriteMarkdownJsonPlots) {
   ASSERT_EQ(json["runs"].size(), 2u);
   EXPECT_DOUBLE_EQ(json["runs"][0]["map"].get<double>(), 1.0);
   EXPECT_NEAR(json["runs"][1]["map"].get<double>(), worse.map, 1e-12);
-  std::ifstream md_in(dir / "report.md");
-  const std::string md((std::istreambuf_iterator<char>(md_in)), std::istreambuf_iterator<char>());
+  const std::string md = oxbow::testing::FileBytes(dir / "report.md");
   EXPECT_NE(md.find("| toy | perfect | **1.000**"), std::string::npos) << md;
   EXPECT_NE(md.find("words = 10000"), std::string::npos);
   for (const char* plot : {"plots/ap_per_query.png", "plots/map_vs_vocabulary.png"}) {
@@ -98,8 +97,7 @@ TEST(Report, GroupsMetricsRecallTopFourAndApPerGroup) {
   const oxbow::testing::TempDir temp;
   const fs::path dir = temp.path();
   ASSERT_TRUE(WriteReport(dir.string(), {run}, "oxbow eval --protocol groups"));
-  std::ifstream md_in(dir / "report.md");
-  const std::string md((std::istreambuf_iterator<char>(md_in)), std::istreambuf_iterator<char>());
+  const std::string md = oxbow::testing::FileBytes(dir / "report.md");
   EXPECT_NE(md.find("| groups | toy | **0.550** | non-interpolated | 0.333 | 1.00 (1.67) |"), std::string::npos) << md;
   EXPECT_NE(md.find("| a | 2 | 0.725 |"), std::string::npos) << md;
   EXPECT_NE(md.find("| b | 1 | 0.200 |"), std::string::npos) << md;

@@ -194,8 +194,7 @@ TEST_F(FeaturesIoTest, ColmapTextIsPrintfsText) {
     for (int d = 0; d < kDescriptorDim; ++d) f.descriptors.push_back(static_cast<float>(half * 128 + d) / 512.0f);
   }
   ASSERT_TRUE(WriteColmapFeatures(Path("exact.txt"), f));
-  std::ifstream in(Path("exact.txt"), std::ios::binary);
-  const std::string written((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const std::string written = oxbow::testing::FileBytes(Path("exact.txt"));
 
   std::vector<uint8_t> bytes;
   DescriptorsToUint8(f, &bytes);

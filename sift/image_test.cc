@@ -4,7 +4,6 @@
 
 #include <cmath>
 #include <cstdio>
-#include <iterator>
 #include <filesystem>
 #include <fstream>
 #include <string>
@@ -403,8 +402,7 @@ TEST(DecodeImage, ADamagedPngPrintsNothingToStderr) {
   ASSERT_FALSE(decoded);
   EXPECT_EQ(decoded.error().code, ErrorCode::kInvalidImage);
   EXPECT_NE(decoded.error().message.find("png data could not be decoded"), std::string::npos) << decoded.error().message;
-  std::ifstream in(captured);
-  EXPECT_EQ(std::string(std::istreambuf_iterator<char>(in), {}), "");
+  EXPECT_EQ(oxbow::testing::FileBytes(captured), "");
 }
 
 // Links to folders are followed, each folder once: a link back to an ancestor ends, and no image is

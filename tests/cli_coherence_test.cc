@@ -14,7 +14,6 @@
 
 #include <filesystem>
 #include <fstream>
-#include <iterator>
 #include <memory>
 #include <regex>
 #include <string>
@@ -133,8 +132,7 @@ TEST_F(CliCoherence, EveryCommandExtractsALargePhotoAsTheServerDoes) {
   testing::ServerProcess server({"serve", "--index", Path("index"), "--port", "0"}, Path("serve.log"));
   ASSERT_GT(server.port(), 0) << server.Log();
   ASSERT_TRUE(server.WaitReady()) << server.Log();
-  std::ifstream in(big_, std::ios::binary);
-  const std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const std::string bytes = testing::FileBytes(big_);
   httplib::Client client("127.0.0.1", server.port());
   client.set_read_timeout(120);
   auto searched = client.Post("/v1/search", bytes, "image/png");
@@ -204,8 +202,7 @@ TEST(CliErrors, MistakesAreRefusedBeforeAnyWorkNamingWhatIsWrong) {
   EXPECT_FALSE(fs::exists(d + "/v.oxvoc"));
   EXPECT_FALSE(fs::exists(d + "/features"));
   for (const std::string& path : {d + "/photo.jpg", d + "/x/photo.jpg"}) {
-    std::ifstream in(path, std::ios::binary);
-    EXPECT_EQ(std::string(std::istreambuf_iterator<char>(in), {}), photo) << path;
+    EXPECT_EQ(testing::FileBytes(path), photo) << path;
   }
 }
 

@@ -12,7 +12,6 @@
 #include <filesystem>
 #include <thread>
 #include <fstream>
-#include <regex>
 #include <string>
 #include <vector>
 
@@ -48,8 +47,7 @@ class ShardPort : public ::testing::Test {
     Run(std::string(OXBOW_BINARY) + " -q index build --vocab " + dir_->path() + "/v.oxvoc --images " + images +
         " --threads 1 --out " + dir_->path() + "/index 2>&1");
     Run("cd " + dir_->path() + " && (" + kMakeCertificates + ") 2>&1");
-    std::ifstream in(images + "/img1.png", std::ios::binary);
-    png_ = std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+    png_ = testing::FileBytes(images + "/img1.png");
   }
   static void TearDownTestSuite() {
     delete dir_;
@@ -72,10 +70,7 @@ class ShardPort : public ::testing::Test {
     shards_.push_back(std::make_unique<testing::ServerProcess>(args, Path("shard-" + n + ".log")));
     testing::ServerProcess& shard = *shards_.back();
     EXPECT_TRUE(shard.port() > 0 && shard.WaitReady()) << shard.Log();
-    std::smatch m;
-    const std::string log = shard.Log();
-    if (!std::regex_search(log, m, std::regex(R"(gRPC\) on (127\.0\.0\.1:\d+))"))) return "";
-    return m[1];
+    return shard.GrpcAddress();
   }
 
   static std::unique_ptr<cluster::Shard::Stub> Stub(const std::string& address,

@@ -90,10 +90,7 @@ class Cluster : public ::testing::Test {
         dir_->path() + "/shard-" + n + ".log"));
     const testing::ServerProcess& shard = *shards_.back();
     EXPECT_TRUE(shard.port() > 0 && shard.WaitReady()) << shard.Log();
-    std::smatch m;
-    const std::string log = shard.Log();
-    if (!std::regex_search(log, m, std::regex(R"(gRPC\) on (127\.0\.0\.1:\d+))"))) return "";
-    return m[1];
+    return shard.GrpcAddress();
   }
 
   // One shard per partition, in `config`.
@@ -464,8 +461,7 @@ TEST_F(Cluster, HttpFrontAnswersAsASingleNodeServer) {
   testing::ServerProcess& front = *front_process;
   testing::ServerProcess& single = *single_process;
 
-  std::ifstream in(dir_->path() + "/images/img5.png", std::ios::binary);
-  const std::string image((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const std::string image = testing::FileBytes(dir_->path() + "/images/img5.png");
   const std::string path = "/v1/search?top_k=8";  // the defaults, transitive verification included
   auto expected = single.Client().Post(path, image, "image/png");
   auto got = front.Client().Post(path, image, "image/png");
@@ -605,8 +601,8 @@ TEST_F(Cluster, HttpFrontReadsAnswerAsASingleNodeServer) {
   EXPECT_EQ(GetJson(*front, "/v1/images/img1/thumbnail?size=1").first, 400);
 
   // POST /v1/match runs at the front (no index needed): the single node's answer.
-  std::ifstream file_a(dir_->path() + "/images/img0.png", std::ios::binary), file_b(dir_->path() + "/images/img4.png", std::ios::binary);
-  const std::string bytes_a((std::istreambuf_iterator<char>(file_a)), {}), bytes_b((std::istreambuf_iterator<char>(file_b)), {});
+  const std::string bytes_a = testing::FileBytes(dir_->path() + "/images/img0.png");
+  const std::string bytes_b = testing::FileBytes(dir_->path() + "/images/img4.png");
   const httplib::MultipartFormDataItems pair = {{"a", bytes_a, "a.png", "image/png"}, {"b", bytes_b, "b.png", "image/png"}};
   auto ma = single->Client().Post("/v1/match", pair);
   auto mb = front->Client().Post("/v1/match", pair);
@@ -859,10 +855,7 @@ TEST_F(Cluster, RankingsEqualTheSingleNodeAfterWritesAndARefresh) {
   };
   std::vector<std::string> queries;
   queries.reserve(3);
-  for (int i : {0, 5, 10}) {
-    std::ifstream in(dir_->path() + "/images/img" + std::to_string(i) + ".png", std::ios::binary);
-    queries.emplace_back((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-  }
+  for (int i : {0, 5, 10}) queries.push_back(testing::FileBytes(dir_->path() + "/images/img" + std::to_string(i) + ".png"));
   // The same writes on both: two adds (another crop each) and a delete.
   for (const auto& [id, sample] : {std::pair{"new-a", "box.png"}, std::pair{"new-b", "graf1.png"}}) {
     std::vector<uchar> png;
@@ -1135,10 +1128,9 @@ TEST_F(Cluster, HttpFrontServesCollectionsWithTheirKeysAndLimits) {
                                        "application/json");
     ASSERT_TRUE(created);
     ASSERT_EQ(created->status, 201) << created->body;
-    std::smatch m;
-    const std::string log = shard.Log();
-    ASSERT_TRUE(std::regex_search(log, m, std::regex(R"(gRPC\) on (127\.0\.0\.1:\d+))"))) << log;
-    partitions.push_back({{"replicas", {m[1].str()}}});
+    const std::string address = shard.GrpcAddress();
+    ASSERT_FALSE(address.empty()) << shard.Log();
+    partitions.push_back({{"replicas", {address}}});
   }
   const std::string config = dir_->path() + "/collections-cluster.json";
   std::ofstream(config) << nlohmann::json{
@@ -1173,8 +1165,7 @@ TEST_F(Cluster, HttpFrontServesCollectionsWithTheirKeysAndLimits) {
   EXPECT_EQ(nlohmann::json::parse(described->body)["partitions"], kPartitions);
 
   // A search of the partitioned collection answers as the single node over the same images.
-  std::ifstream in(dir_->path() + "/images/img5.png", std::ios::binary);
-  const std::string image((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const std::string image = testing::FileBytes(dir_->path() + "/images/img5.png");
   auto expected = single_process->Client().Post("/v1/search?top_k=8", image, "image/png");
   auto got = front.Client().Post("/v1/collections/photos/search?top_k=8", image, "image/png");
   ASSERT_TRUE(expected && got);
@@ -1202,8 +1193,7 @@ TEST_F(Cluster, HttpFrontServesCollectionsWithTheirKeysAndLimits) {
   ASSERT_FALSE(writer.empty());
   ASSERT_FALSE(photos_reader.empty());
   EXPECT_NE(fs::file_size(dir_->path() + "/front-keys.json"), 0u);
-  std::ifstream in0(dir_->path() + "/images/img0.png", std::ios::binary);
-  const std::string image0((std::istreambuf_iterator<char>(in0)), std::istreambuf_iterator<char>());
+  const std::string image0 = testing::FileBytes(dir_->path() + "/images/img0.png");
   const auto add = [&](const std::string& id, const std::string& key, const std::string& bytes) {
     httplib::Headers headers;
     if (!key.empty()) headers.insert({"X-API-Key", key});

@@ -96,8 +96,7 @@ TEST_F(CollectionsTest, KeysLimitsAndIsolationOverHttp) {
   const std::string tokyo_write = MakeKey(client, "tokyo", "write");
   ASSERT_FALSE(paris_write.empty() || paris_read.empty() || tokyo_write.empty());
   // The key file keeps salted hashes, never a key.
-  std::ifstream key_file(data + "/keys.json");
-  const std::string key_text((std::istreambuf_iterator<char>(key_file)), std::istreambuf_iterator<char>());
+  const std::string key_text = testing::FileBytes(data + "/keys.json");
   EXPECT_NE(key_text.find("sha256"), std::string::npos);
   EXPECT_EQ(key_text.find(paris_write.substr(17)), std::string::npos);
 

@@ -10,7 +10,6 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
-#include <iterator>
 #include <set>
 #include <string>
 
@@ -155,8 +154,7 @@ TEST(EvalEndToEnd, GroupsProtocolThroughTheHttpServer) {
               2)
         << other;
     EXPECT_NE(other.find("holds 12 images; the protocol's database has 8"), std::string::npos) << other;
-    std::ifstream list(dir / "work-other" / "database.list");
-    const std::string listed((std::istreambuf_iterator<char>(list)), std::istreambuf_iterator<char>());
+    const std::string listed = oxbow::testing::FileBytes(dir / "work-other" / "database.list");
     EXPECT_EQ(std::count(listed.begin(), listed.end(), '\n'), 8) << listed;
   }
 }

@@ -8,7 +8,6 @@
 #include <nlohmann/json.hpp>
 
 #include <filesystem>
-#include <fstream>
 #include <string>
 
 #include "tests/support/e2e.h"
@@ -88,8 +87,7 @@ TEST(HammingCli, TrainIndexAndSearchWithSignatures) {
   testing::ServerProcess server({"serve", "--index", path("index"), "--port", "0"}, path("serve.log"));
   ASSERT_GT(server.port(), 0) << server.Log();
   ASSERT_TRUE(server.WaitReady()) << server.Log();
-  std::ifstream in(scene, std::ios::binary);
-  const std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const std::string bytes = testing::FileBytes(scene);
   httplib::Client client("127.0.0.1", server.port());
   client.set_read_timeout(120);
   auto response = client.Post("/v1/search?hamming=true", bytes, "application/octet-stream");

@@ -14,7 +14,6 @@
 #include <chrono>
 #include <filesystem>
 #include <fstream>
-#include <iterator>
 #include <memory>
 #include <optional>
 #include <string>
@@ -34,10 +33,7 @@ namespace {
 namespace fs = std::filesystem;
 using nlohmann::json;
 
-std::string FileBytes(const fs::path& path) {
-  std::ifstream in(path, std::ios::binary);
-  return std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
-}
+using testing::FileBytes;
 
 std::vector<uint8_t> Picture(int n) {
   const cv::Mat picture = oxbow::testing::Texture(320, 240, "graf1.png", 10 * n, 5 * n);

@@ -9,8 +9,6 @@
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
-#include <fstream>
-#include <iterator>
 #include <map>
 #include <regex>
 #include <set>
@@ -38,11 +36,6 @@ std::string Mpirun(int ranks, const std::string& args) {
   command += "mpirun --oversubscribe -np " + std::to_string(ranks);
   command += " " OXBOW_BINARY " " + args + " 2>&1";
   return command;
-}
-
-std::string ReadBytes(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
 }
 
 class Mpi : public ::testing::Test {
@@ -78,10 +71,10 @@ TEST_F(Mpi, VocabularyIsTheSameForOneAndThreeRanks) {
   std::string singleton = testing::kMpiChildEnvironment;  // no mpirun: one rank (MPI_Init as a singleton)
   singleton += OXBOW_BINARY " " + train;
   Run(singleton + Path("singleton.oxvoc") + " 2>&1");
-  const std::string np1 = ReadBytes(Path("np1.oxvoc"));
+  const std::string np1 = testing::FileBytes(Path("np1.oxvoc"));
   ASSERT_GT(np1.size(), 200u * 128u * 4u);
-  EXPECT_TRUE(np1 == ReadBytes(Path("np3.oxvoc"))) << "np=1 and np=3 vocabularies differ";
-  EXPECT_TRUE(np1 == ReadBytes(Path("singleton.oxvoc"))) << "mpirun -np 1 and a singleton differ";
+  EXPECT_TRUE(np1 == testing::FileBytes(Path("np3.oxvoc"))) << "np=1 and np=3 vocabularies differ";
+  EXPECT_TRUE(np1 == testing::FileBytes(Path("singleton.oxvoc"))) << "mpirun -np 1 and a singleton differ";
   EXPECT_FALSE(fs::exists(Path("np3.oxvoc.checkpoint"))) << "the checkpoint outlives a finished training";
   const std::string info = Run(std::string(OXBOW_BINARY) + " vocab info " + Path("np3.oxvoc") + " 2>&1");
   EXPECT_NE(info.find("hamming      64-bit embedding"), std::string::npos) << "learnt by default:\n" << info;
@@ -98,9 +91,9 @@ TEST_F(Mpi, HammingParametersAreTheSingleNodeOnesOnTheSameSample) {
   EXPECT_NE(info.find("hamming      none"), std::string::npos) << info;
   Run(std::string(OXBOW_BINARY) + " vocab hamming --vocab " + Path("plain.oxvoc") + all_rows + " --out " +
       Path("added.oxvoc") + " 2>&1");
-  const std::string he = ReadBytes(Path("he.oxvoc"));
+  const std::string he = testing::FileBytes(Path("he.oxvoc"));
   ASSERT_FALSE(he.empty());
-  EXPECT_TRUE(he == ReadBytes(Path("added.oxvoc"))) << "--mpi Hamming parameters differ from the single-node ones";
+  EXPECT_TRUE(he == testing::FileBytes(Path("added.oxvoc"))) << "--mpi Hamming parameters differ from the single-node ones";
 }
 
 TEST_F(Mpi, StoppedTrainingResumesToTheUninterruptedVocabulary) {
@@ -121,7 +114,7 @@ TEST_F(Mpi, StoppedTrainingResumesToTheUninterruptedVocabulary) {
   // Resumed on another number of ranks.
   const std::string second = Run(Mpirun(1, train + Path("resumed.oxvoc")));
   EXPECT_NE(second.find("resuming from"), std::string::npos) << second;
-  EXPECT_TRUE(ReadBytes(Path("whole.oxvoc")) == ReadBytes(Path("resumed.oxvoc"))) << "resumed vocabulary differs";
+  EXPECT_TRUE(testing::FileBytes(Path("whole.oxvoc")) == testing::FileBytes(Path("resumed.oxvoc"))) << "resumed vocabulary differs";
   EXPECT_FALSE(fs::exists(Path("resumed.oxvoc.checkpoint")));
 
   // A checkpoint of other options is refused, not silently mixed in.
@@ -144,8 +137,8 @@ TEST_F(Mpi, DuplicatesOverRanksEqualOneProcess) {
   const std::string args = "-q index duplicates --index " + Path("single") + " --threads 1 --min-coverage 0.1";
   Run(std::string(OXBOW_BINARY) + " " + args + " --out " + Path("one.json") + " 2>&1");
   Run(Mpirun(3, args + " --mpi --out " + Path("ranks.json")));
-  auto one = nlohmann::json::parse(ReadBytes(Path("one.json")), nullptr, false);
-  auto ranks = nlohmann::json::parse(ReadBytes(Path("ranks.json")), nullptr, false);
+  auto one = nlohmann::json::parse(testing::FileBytes(Path("one.json")), nullptr, false);
+  auto ranks = nlohmann::json::parse(testing::FileBytes(Path("ranks.json")), nullptr, false);
   ASSERT_TRUE(one.is_object() && ranks.is_object());
   ASSERT_GE(one["pairs"].size(), 3u) << one.dump();  // img i and img i+5 crop the same photo
   one.erase("timings_s");
@@ -216,10 +209,10 @@ TEST_F(Mpi, PartitionedBuildMatchesASingleNodeBuild) {
   }
 
   // Resumed (here: nothing left to do) on three ranks: every image is known, the frequencies stay.
-  const std::string before = ReadBytes(frequency_files[1]);
+  const std::string before = testing::FileBytes(frequency_files[1]);
   const std::string again = Run(Mpirun(3, build));
   EXPECT_NE(again.find("\"already_indexed\": 4"), std::string::npos) << again;
-  EXPECT_TRUE(ReadBytes(frequency_files[1]) == before);
+  EXPECT_TRUE(testing::FileBytes(frequency_files[1]) == before);
 
   // Resuming with another number of partitions would misroute images: refused.
   int code = 0;

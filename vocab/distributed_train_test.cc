@@ -10,7 +10,6 @@
 #include <filesystem>
 #include <fstream>
 #include <functional>
-#include <iterator>
 #include <limits>
 #include <optional>
 #include <random>
@@ -106,8 +105,7 @@ class ThreadRanks {
 
 std::string FileBytes(const Vocabulary& vocabulary, const fs::path& path) {
   EXPECT_TRUE(vocabulary.Write(path.string()));
-  std::ifstream in(path, std::ios::binary);
-  return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+  return oxbow::testing::FileBytes(path);
 }
 
 DistributedSample Sample(const std::vector<int>& order, const SampleOptions& options) {

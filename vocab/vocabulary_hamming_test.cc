@@ -10,6 +10,7 @@
 
 #include "sift/base/binary_io.h"
 #include "sift/base/log.h"
+#include "tests/support/random_descriptors.h"
 #include "tests/support/temp_dir.h"
 #include "vocab/vocabulary.h"
 
@@ -26,17 +27,6 @@ std::string TempPath(const std::string& name) {
   return (dir / name).string();
 }
 
-std::vector<float> RandomUnitRows(size_t rows, uint64_t seed) {
-  std::mt19937_64 rng(seed);
-  std::normal_distribution<float> g(0, 1);
-  std::vector<float> out(rows * kDim);
-  for (size_t r = 0; r < rows; ++r) {
-    double n = 0;
-    for (int d = 0; d < kDim; ++d) n += std::pow(out[r * kDim + d] = g(rng), 2);
-    for (int d = 0; d < kDim; ++d) out[r * kDim + d] /= static_cast<float>(std::sqrt(n));
-  }
-  return out;
-}
 
 // `per_word` descriptors around every centroid (per-dimension noise sigma).
 std::vector<float> SampleAround(std::span<const float> centroids, size_t per_word, float sigma, uint64_t seed) {
@@ -56,7 +46,7 @@ class HammingVocabularyTest : public ::testing::Test {
  protected:
   void SetUp() override {
     log::SetLevel(log::Level::kWarning);
-    auto v = Vocabulary::FromCentroids(RandomUnitRows(kWords, 1), kDim, sift::DescriptorKind::kRootSift, "x");
+    auto v = Vocabulary::FromCentroids(testing::RandomUnitRows(kWords, kDim, 1), kDim, sift::DescriptorKind::kRootSift, "x");
     ASSERT_TRUE(v) << v.error().ToString();
     plain_ = std::make_unique<Vocabulary>(*v);
     sample_ = SampleAround(v->centroids(), 101, 0.03f, 2);

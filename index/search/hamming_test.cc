@@ -26,6 +26,7 @@
 #include "index/search/rerank.h"
 #include "index/storage/test_support.h"
 #include "sift/base/log.h"
+#include "tests/support/random_descriptors.h"
 #include "tests/support/temp_dir.h"
 
 namespace oxbow::index {
@@ -35,17 +36,6 @@ namespace fs = std::filesystem;
 constexpr int kDim = 128;
 constexpr int kWords = 64;
 
-std::vector<float> RandomUnitRows(size_t rows, uint64_t seed) {
-  std::mt19937_64 rng(seed);
-  std::normal_distribution<float> g(0, 1);
-  std::vector<float> out(rows * kDim);
-  for (size_t r = 0; r < rows; ++r) {
-    double n = 0;
-    for (int d = 0; d < kDim; ++d) n += std::pow(out[r * kDim + d] = g(rng), 2);
-    for (int d = 0; d < kDim; ++d) out[r * kDim + d] /= static_cast<float>(std::sqrt(n));
-  }
-  return out;
-}
 
 std::vector<sift::Keypoint> RandomKeypoints(std::mt19937_64& rng, size_t n) {
   std::uniform_real_distribution<float> x(0, 600), s(1.5f, 12.0f), o(0, 6.28f);
@@ -504,7 +494,7 @@ class HammingIndexTest : public ::testing::Test {
  protected:
   void SetUp() override {
     log::SetLevel(log::Level::kWarning);
-    auto plain = vocab::Vocabulary::FromCentroids(RandomUnitRows(kWords, 1), kDim, sift::DescriptorKind::kRootSift,
+    auto plain = vocab::Vocabulary::FromCentroids(testing::RandomUnitRows(kWords, kDim, 1), kDim, sift::DescriptorKind::kRootSift,
                                                   "test-extractor/1");
     ASSERT_TRUE(plain);
     auto he = plain->WithHamming(Around(plain->centroids(), 50, 9), 3, {.exact = true});

@@ -31,6 +31,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "sift/base/error.h"
+#include "tests/support/temp_dir.h"
 #include "vocab/vocabulary.h"
 
 namespace oxbow::testing {
@@ -246,9 +247,13 @@ class ServerProcess {
     }
     return true;
   }
-  std::string Log() const {
-    std::ifstream in(log_path_, std::ios::binary);
-    return std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+  std::string Log() const { return FileBytes(log_path_); }
+  // The address of the shard port (`serve --grpc-port`) that the log names, "" when it names none.
+  std::string GrpcAddress() const {
+    std::smatch m;
+    const std::string log = Log();
+    if (!std::regex_search(log, m, std::regex(R"(gRPC\) on (127\.0\.0\.1:\d+))"))) return "";
+    return m[1];
   }
 
  private:

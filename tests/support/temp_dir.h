@@ -7,12 +7,15 @@
 //   oxbow::testing::TempDir suite_dir("oxbow-http");    // a prefix of one's own (e.g. in SetUpTestSuite)
 //   oxbow::testing::TempDir disk_dir("oxbow-pages", std::filesystem::current_path());  // elsewhere (not tmpfs)
 //   const std::string index = dir.path() + "/index";   // or dir / "index"
+//   const std::string bytes = oxbow::testing::FileBytes(dir / "photo.png");
 #pragma once
 
 #include <gtest/gtest.h>
 #include <stdlib.h>
 
 #include <filesystem>
+#include <fstream>
+#include <iterator>
 #include <stdexcept>
 #include <string>
 #include <system_error>
@@ -57,5 +60,11 @@ class TempDir {
 
   std::string path_;
 };
+
+// The bytes of the file at `path` ("" when it cannot be read).
+inline std::string FileBytes(const std::filesystem::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+}
 
 }  // namespace oxbow::testing
