@@ -198,8 +198,8 @@ struct QueryOptions {
   // Number of results returned. [1, 10000].
   int top_k = 20;
   // Spatial re-ranking depth R: the top R tf-idf candidates are verified; 0 disables re-ranking.
-  // [0, 10000]. 200 verifies the views that tf-idf ranks past 100 (eval/results/accuracy.md, "Query
-  // settings over three vocabularies").
+  // [0, 10000]. 200 verifies the views that tf-idf ranks past 100 (eval/results/accuracy.md, "Re-ranking
+  // depth").
   int rerank_depth = 200;
   // Query region x1,y1,x2,y2 in query-image pixels (x1 < x2, y1 < y2): only features whose keypoint lies
   // inside (x1 <= x <= x2, y1 <= y <= y2) are used, as in the Oxford/Paris queries. Unset: the whole image.

@@ -12,6 +12,7 @@
 #include <fstream>
 #include <set>
 #include <string>
+#include <vector>
 
 #include <nlohmann/json.hpp>
 
@@ -156,6 +157,47 @@ TEST(EvalEndToEnd, GroupsProtocolThroughTheHttpServer) {
     EXPECT_NE(other.find("holds 12 images; the protocol's database has 8"), std::string::npos) << other;
     const std::string listed = oxbow::testing::FileBytes(dir / "work-other" / "database.list");
     EXPECT_EQ(std::count(listed.begin(), listed.end(), '\n'), 8) << listed;
+  }
+  // --server sends only the search settings given to it. A server started with tf-idf ranking alone and
+  // no Hamming embedding (--rerank 0 --no-qe --no-hamming) ranks, without settings from eval, as eval's
+  // explicit request for the same; eval's own defaults would have asked for Hamming re-scoring, which
+  // ranks these images otherwise (eval's tf-idf run above).
+  const auto rankings = [](const nlohmann::json& run) {
+    std::vector<nlohmann::json> tops;
+    for (const auto& q : run["queries"]) tops.push_back(q["top"]);
+    return tops;
+  };
+  {
+    oxbow::testing::ServerProcess server({"serve", "--index", (dir / "work" / "rootsift-400" / "index").string(),
+                                          "--port", "0", "--rerank", "0", "--no-qe", "--no-hamming"},
+                                         (dir / "serve-tfidf.log").string());
+    ASSERT_TRUE(server.port() > 0 && server.WaitReady()) << server.Log();
+    const std::string url = "http://127.0.0.1:" + std::to_string(server.port());
+    const auto evaluate = [&](const std::string& settings, const std::string& out) {
+      std::string via;
+      EXPECT_EQ(RunShell(std::string(OXBOW_BINARY) + " eval --protocol groups --images " + (dir / "images").string() +
+                             " --distractors " + (dir / "distractors").string() + " --server " + url + " --work " +
+                             (dir / "work-server").string() + " --out " + (dir / out).string() + settings,
+                         &via),
+                0)
+          << via;
+      const auto report = nlohmann::json::parse(oxbow::testing::FileBytes(dir / out / "results.json"));
+      EXPECT_EQ(report["runs"].size(), 1u) << via;
+      return report["runs"][0];
+    };
+    const auto asked = evaluate(" --rerank 0 --qe off --hamming off", "report-asked");
+    ASSERT_NE(rankings(asked), rankings(tfidf)) << "Hamming re-scoring must reorder some query's results here";
+    const auto left = evaluate("", "report-left");
+    EXPECT_EQ(rankings(left), rankings(asked));
+    EXPECT_DOUBLE_EQ(left["map"].get<double>(), asked["map"].get<double>());
+    for (const char* setting : {"rerank", "qe", "transitive", "hamming", "search_defaults"}) {
+      EXPECT_EQ(left["settings"][setting], "the server's") << setting;
+    }
+    EXPECT_EQ(asked["settings"]["rerank"], "0");
+    EXPECT_EQ(asked["settings"]["hamming"], "off");
+    EXPECT_EQ(asked["settings"]["transitive"], "the server's");
+    EXPECT_NE(left["label"].get<std::string>().find("(the server's rerank qe transitive hamming)"), std::string::npos)
+        << left["label"];
   }
 }
 

@@ -173,6 +173,12 @@ struct HammingSetting {
   double sigma = index::QueryOptions{}.hamming_sigma;
 };
 
+// Whether a search setting is sent with each search: always for a server eval starts itself, and for
+// a running server (--server) only when it was given on eval's command line.
+bool Sends(const ExperimentOptions& a, const std::string& setting) {
+  return a.server.empty() || a.server_settings_given.count(setting) > 0;
+}
+
 void RunHttp(const ExperimentOptions& a, const eval::Protocol& protocol, const std::map<std::string, std::string>& files,
              const std::string& url, int rerank, bool qe, bool transitive, const HammingSetting& hamming, int top_k,
              eval::RunResult* run) {
@@ -184,9 +190,11 @@ void RunHttp(const ExperimentOptions& a, const eval::Protocol& protocol, const s
     const auto found = files.find(q.image);
     if (found == files.end()) throw ExperimentError(4, "query image '" + q.image + "' not found in " + a.images);
     const std::string& path = found->second;
-    std::string target = "/v1/search?top_k=" + std::to_string(top_k) + "&rerank=" + std::to_string(rerank) +
-                         "&qe=" + (qe ? "true" : "false") + (transitive ? "" : "&transitive_depth=0") +
-                         "&hamming=" + (hamming.on ? "true" : "false");
+    std::string target = "/v1/search?top_k=" + std::to_string(top_k);
+    if (Sends(a, "rerank")) target += "&rerank=" + std::to_string(rerank);
+    if (Sends(a, "qe")) target += std::string("&qe=") + (qe ? "true" : "false");
+    if (Sends(a, "transitive") && !transitive) target += "&transitive_depth=0";
+    if (Sends(a, "hamming")) target += std::string("&hamming=") + (hamming.on ? "true" : "false");
     if (q.bbox && !a.full_image) target += "&bbox=" + BoxParam(*q.bbox);
     const std::string body = ReadBytes(path);
     const auto t0 = Clock::now();
@@ -448,11 +456,25 @@ Experiments RunExperiments(const ExperimentOptions& a) {
             if ((qe || !transitive) && rerank == 0) continue;
             for (const HammingSetting& hamming : hamming_settings) {
               eval::RunResult run = base;
+              // A setting left to a running server is labelled as such, not with eval's default.
+              std::vector<std::string> left;
+              for (const char* setting : {"rerank", "qe", "transitive", "hamming"}) {
+                if (!Sends(a, setting)) left.emplace_back(setting);
+              }
+              const auto shown = [&](const std::string& setting, const std::string& value) {
+                return Sends(a, setting) ? value : std::string("the server's");
+              };
               run.label = (external ? server_url : features) + " " +
                           (words % 1000 == 0 ? std::to_string(words / 1000) + "k" : std::to_string(words)) +
-                          (rerank > 0 ? " +rerank" + std::to_string(rerank) : "") +
-                          (rerank > 0 && transitive ? " +tv" : "") + (qe ? " +qe" : "") + HammingLabel(hamming) +
+                          (rerank > 0 && Sends(a, "rerank") ? " +rerank" + std::to_string(rerank) : "") +
+                          (rerank > 0 && transitive && Sends(a, "transitive") ? " +tv" : "") +
+                          (qe && Sends(a, "qe") ? " +qe" : "") + (Sends(a, "hamming") ? HammingLabel(hamming) : "") +
                           (a.mode == "both" && !external ? " (" + mode + ")" : "");
+              if (!left.empty()) {
+                run.label += " (the server's";
+                for (const std::string& setting : left) run.label += " " + setting;
+                run.label += ")";
+              }
               run.settings = {{"features", external ? "the server's" : features},
                               {"words", std::to_string(words)},
                               {"vocabulary_trained_on", external ? "the server's"
@@ -460,13 +482,13 @@ Experiments RunExperiments(const ExperimentOptions& a) {
                                                                                  : a.train_images},
                               {"training_sample", std::to_string(a.sample)},
                               {"seed", std::to_string(a.seed)},
-                              {"rerank", std::to_string(rerank)},
-                              {"qe", qe ? "on" : "off"},
-                              {"transitive", rerank > 0 && transitive ? "on" : "off"},
-                              {"hamming", hamming.on ? "on" : "off"},
-                              {"hamming_threshold", hamming.on ? std::to_string(hamming.threshold) : "-"},
-                              {"hamming_sigma", hamming.on ? FormatSigma(hamming.sigma) : "-"},
-                              {"search_defaults", SearchDefaults()},
+                              {"rerank", shown("rerank", std::to_string(rerank))},
+                              {"qe", shown("qe", qe ? "on" : "off")},
+                              {"transitive", shown("transitive", rerank > 0 && transitive ? "on" : "off")},
+                              {"hamming", shown("hamming", hamming.on ? "on" : "off")},
+                              {"hamming_threshold", !hamming.on ? "-" : shown("hamming", std::to_string(hamming.threshold))},
+                              {"hamming_sigma", !hamming.on ? "-" : shown("hamming", FormatSigma(hamming.sigma))},
+                              {"search_defaults", external ? "the server's" : SearchDefaults()},
                               {"query_region", a.full_image ? "full image" : "ground-truth box"},
                               {"ap", eval::ApDefinitionName(protocol.ap)},
                               {"distractors", a.distractors.empty() ? "none"

@@ -7,6 +7,7 @@
 #pragma once
 
 #include <cstdint>
+#include <set>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -48,6 +49,10 @@ struct ExperimentOptions {
   std::string mode = "http";             // http | in-process | both
   int max_queries = 0;                   // evaluate only the first N queries (0 = all), for smoke runs
   std::string server;                    // a running server or cluster front to evaluate (http://HOST:PORT)
+  // With --server: the search settings given on the command line ("rerank", "qe", "transitive",
+  // "hamming"). Only these are sent with each search; the others are the server's own (its defaults
+  // and the flags it was started with), and the report says so.
+  std::set<std::string> server_settings_given;
 };
 
 // A failed experiment: the message and the exit code `oxbow eval` ends with (as sift/base/error.h's

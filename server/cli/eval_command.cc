@@ -132,14 +132,18 @@ void SetUp(CLI::App& app) {
   cmd->add_option("--server", args->server,
                   "evaluate a running server or cluster front (http://HOST:PORT) instead of building one: it must "
                   "hold exactly the database images under eval's ids (when it does not, eval writes the list to "
-                  "index: WORK/database.list); --features, --words, --train-images and --mode do not apply; a "
-                  "partial answer (a partition down) stops the evaluation");
+                  "index: WORK/database.list); --features, --words, --train-images and --mode do not apply; only "
+                  "the search settings given here (--rerank, --qe, --transitive, --hamming) are sent, the others "
+                  "are the server's own; a partial answer (a partition down) stops the evaluation");
   cmd->callback([args, command_line, &app] {
     std::string line = "oxbow eval";
     for (const auto* opt : app.get_subcommand("eval")->get_options()) {
       if (opt->count() == 0 || opt->get_name() == "--help") continue;
       line += " " + opt->get_name();
       for (const auto& r : opt->results()) line += " " + r;
+      for (const char* setting : {"rerank", "qe", "transitive", "hamming"}) {
+        if (opt->get_name() == std::string("--") + setting) args->server_settings_given.insert(setting);
+      }
     }
     if ((args->protocol == "oxford" || args->protocol == "restricted" || args->protocol == "revisited") && args->gt.empty()) {
       throw CommandError(2, "--gt is required for the " + args->protocol + " protocol");
