@@ -4,7 +4,8 @@
 # BUILD_DIR holds compile_commands.json (configured here if missing; default build-tidy). FILE_REGEX
 # narrows the files (default: every .cc of the modules and tests). Files run $OXBOW_JOBS (default nproc)
 # at a time, each under a time limit of $OXBOW_TIDY_FILE_TIMEOUT seconds (default 600; a file that
-# exceeds it fails the run, so a pathological analysis cannot stall CI). Prints every finding, the
+# exceeds it is analysed once more, and a second timeout fails the run, so a pathological analysis
+# cannot stall CI). Prints every finding, the
 # slowest files and the total; exit 0 only when every file is clean. Per-file output: BUILD_DIR/clang-tidy/.
 #
 # Files analysed clean before with exactly the same input are not analysed again. A file's key is the
