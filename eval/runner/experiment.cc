@@ -410,6 +410,12 @@ Experiments RunExperiments(const ExperimentOptions& a) {
   const std::string server_url =
       !external || a.server.find("://") != std::string::npos ? a.server : "http://" + a.server;
   if (external && a.mode == "in-process") throw ExperimentError(2, "--server evaluates over HTTP: --mode in-process does not apply");
+  // The end of every run's label: the settings left to a running server, e.g. " (the server's qe hamming)".
+  std::string left_to_server;
+  for (const char* setting : kServerSearchSettings) {
+    if (!Sends(a, setting)) left_to_server += std::string(left_to_server.empty() ? " (the server's " : " ") + setting;
+  }
+  if (!left_to_server.empty()) left_to_server += ")";
   std::vector<eval::RunResult> runs;
   for (const std::string& features : external ? std::vector<std::string>{"server"} : a.features) {
     if (!external && features != "sift" && features != "rootsift")
@@ -457,10 +463,6 @@ Experiments RunExperiments(const ExperimentOptions& a) {
             for (const HammingSetting& hamming : hamming_settings) {
               eval::RunResult run = base;
               // A setting left to a running server is labelled as such, not with eval's default.
-              std::vector<std::string> left;
-              for (const char* setting : {"rerank", "qe", "transitive", "hamming"}) {
-                if (!Sends(a, setting)) left.emplace_back(setting);
-              }
               const auto shown = [&](const std::string& setting, const std::string& value) {
                 return Sends(a, setting) ? value : std::string("the server's");
               };
@@ -470,11 +472,7 @@ Experiments RunExperiments(const ExperimentOptions& a) {
                           (rerank > 0 && transitive && Sends(a, "transitive") ? " +tv" : "") +
                           (qe && Sends(a, "qe") ? " +qe" : "") + (Sends(a, "hamming") ? HammingLabel(hamming) : "") +
                           (a.mode == "both" && !external ? " (" + mode + ")" : "");
-              if (!left.empty()) {
-                run.label += " (the server's";
-                for (const std::string& setting : left) run.label += " " + setting;
-                run.label += ")";
-              }
+              run.label += left_to_server;
               run.settings = {{"features", external ? "the server's" : features},
                               {"words", std::to_string(words)},
                               {"vocabulary_trained_on", external ? "the server's"

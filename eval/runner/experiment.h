@@ -6,6 +6,7 @@
 // caller writes the report.
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <set>
 #include <stdexcept>
@@ -49,11 +50,15 @@ struct ExperimentOptions {
   std::string mode = "http";             // http | in-process | both
   int max_queries = 0;                   // evaluate only the first N queries (0 = all), for smoke runs
   std::string server;                    // a running server or cluster front to evaluate (http://HOST:PORT)
-  // With --server: the search settings given on the command line ("rerank", "qe", "transitive",
-  // "hamming"). Only these are sent with each search; the others are the server's own (its defaults
-  // and the flags it was started with), and the report says so.
+  // With --server: which of kServerSearchSettings were given on the command line. Only these are sent
+  // with each search; the others are the server's own (its defaults and the flags it was started
+  // with), and the report says so.
   std::set<std::string> server_settings_given;
 };
+
+// The search settings of `oxbow eval` (its flags without the dashes) that a running server (--server)
+// receives only when they are given.
+inline constexpr std::array<const char*, 4> kServerSearchSettings = {"rerank", "qe", "transitive", "hamming"};
 
 // A failed experiment: the message and the exit code `oxbow eval` ends with (as sift/base/error.h's
 // ExitCodeFor: 1 internal, 2 invalid argument, 4 not found, 7 I/O).

@@ -141,7 +141,7 @@ void SetUp(CLI::App& app) {
       if (opt->count() == 0 || opt->get_name() == "--help") continue;
       line += " " + opt->get_name();
       for (const auto& r : opt->results()) line += " " + r;
-      for (const char* setting : {"rerank", "qe", "transitive", "hamming"}) {
+      for (const char* setting : eval::kServerSearchSettings) {
         if (opt->get_name() == std::string("--") + setting) args->server_settings_given.insert(setting);
       }
     }
