@@ -179,6 +179,21 @@ bool Sends(const ExperimentOptions& a, const std::string& setting) {
   return a.server.empty() || a.server_settings_given.count(setting) > 0;
 }
 
+}  // namespace
+
+std::string SearchTarget(const ExperimentOptions& a, int rerank, bool qe, bool transitive, bool hamming, int top_k) {
+  std::string target = "/v1/search?top_k=" + std::to_string(top_k);
+  if (Sends(a, "rerank")) target += "&rerank=" + std::to_string(rerank);
+  if (Sends(a, "qe")) target += std::string("&qe=") + (qe ? "true" : "false");
+  if (Sends(a, "transitive")) {
+    target += "&transitive_depth=" + std::to_string(transitive ? index::QueryOptions{}.transitive_depth : 0);
+  }
+  if (Sends(a, "hamming")) target += std::string("&hamming=") + (hamming ? "true" : "false");
+  return target;
+}
+
+namespace {
+
 void RunHttp(const ExperimentOptions& a, const eval::Protocol& protocol, const std::map<std::string, std::string>& files,
              const std::string& url, int rerank, bool qe, bool transitive, const HammingSetting& hamming, int top_k,
              eval::RunResult* run) {
@@ -190,11 +205,7 @@ void RunHttp(const ExperimentOptions& a, const eval::Protocol& protocol, const s
     const auto found = files.find(q.image);
     if (found == files.end()) throw ExperimentError(4, "query image '" + q.image + "' not found in " + a.images);
     const std::string& path = found->second;
-    std::string target = "/v1/search?top_k=" + std::to_string(top_k);
-    if (Sends(a, "rerank")) target += "&rerank=" + std::to_string(rerank);
-    if (Sends(a, "qe")) target += std::string("&qe=") + (qe ? "true" : "false");
-    if (Sends(a, "transitive") && !transitive) target += "&transitive_depth=0";
-    if (Sends(a, "hamming")) target += std::string("&hamming=") + (hamming.on ? "true" : "false");
+    std::string target = SearchTarget(a, rerank, qe, transitive, hamming.on, top_k);
     if (q.bbox && !a.full_image) target += "&bbox=" + BoxParam(*q.bbox);
     const std::string body = ReadBytes(path);
     const auto t0 = Clock::now();

@@ -60,6 +60,12 @@ struct ExperimentOptions {
 // receives only when they are given.
 inline constexpr std::array<const char*, 4> kServerSearchSettings = {"rerank", "qe", "transitive", "hamming"};
 
+// The target of one search request for a run with these settings: `/v1/search?top_k=N`, then those of
+// kServerSearchSettings that are sent (to a server eval starts itself, all of them; to a running
+// server, those given): `rerank`, `qe`, `transitive_depth` (0 for off, the built-in depth for on) and
+// `hamming`. The query's box is the caller's to add.
+std::string SearchTarget(const ExperimentOptions& a, int rerank, bool qe, bool transitive, bool hamming, int top_k);
+
 // A failed experiment: the message and the exit code `oxbow eval` ends with (as sift/base/error.h's
 // ExitCodeFor: 1 internal, 2 invalid argument, 4 not found, 7 I/O).
 class ExperimentError : public std::runtime_error {

@@ -8,6 +8,7 @@
 
 #include "eval/report.h"
 #include "eval/runner/experiment.h"
+#include "index/image_index.h"
 #include "server/cli/cli.h"
 
 namespace oxbow::cli {
@@ -97,7 +98,8 @@ void SetUp(CLI::App& app) {
       ->capture_default_str()
       ->check(CLI::IsMember({"off", "on"}));
   cmd->add_option("--transitive", args->transitive,
-                  "transitive verification settings to compare: off, on (the server's default)")
+                  "transitive verification settings to compare: off (transitive_depth 0), on (transitive_depth " +
+                      std::to_string(index::QueryOptions{}.transitive_depth) + ", the built-in depth)")
       ->delimiter(',')
       ->capture_default_str()
       ->check(CLI::IsMember({"off", "on"}));
