@@ -2,7 +2,8 @@
 # Builds the Debian package oxbow_<version>_<arch>.deb into build/ (or $OXBOW_BUILD_DIR): installs the
 # Debian packages needed, builds (scripts/build.sh; extra arguments go to CMake), then cpack -G DEB.
 #   bash scripts/package.sh                      # for this machine's CPU (-march=native, as the build/ default)
-#   bash scripts/package.sh -DOXBOW_NATIVE=OFF   # for any x86-64 machine (rebuilds build/ without -march=native)
+#   bash scripts/package.sh -DOXBOW_NATIVE=OFF   # for any x86-64 machine with AVX2 and FMA (x86-64-v3;
+#                                                # rebuilds build/ without -march=native)
 # Install it with: sudo apt-get install ./build/oxbow_*.deb   (server/README.md, "Debian package")
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)

@@ -436,27 +436,27 @@ void GaussianBlur(const Plane& src, Plane* dst, std::span<const float> half_kern
   });
 }
 
-void Upsample2xRow(const float* src, int w, int h, size_t src_stride, int y, float* v, float* out) {
+namespace {
+
+// Output columns 2x and 2x + 1 of Upsample2xRow from its vertical pass v.
+[[gnu::always_inline]] inline void UpsampleColumns(const float* v, int w, int x, float* out) {
+  const float centre = 0.75f * v[x];
+  out[2 * x] = std::fma(0.25f, v[std::max(x - 1, 0)], centre);
+  out[2 * x + 1] = std::fma(0.25f, v[std::min(x + 1, w - 1)], centre);
+}
+
+// Upsample2xRow's body. Every p * q + r in it is one fused multiply-add, on every path and in every
+// build, so that a portable build enlarges the first octave exactly as a native one: inlined into a
+// function compiled for FMA, std::fma is one instruction (and the loops vectorise); in a portable
+// build's baseline copy, taken only on a CPU without FMA, it is libm's exact fma.
+[[gnu::always_inline]] inline void Upsample2xRowBody(const float* src, int w, int h, size_t src_stride, int y, float* v,
+                                                     float* out) {
   const int sy = y / 2;
   const int other = std::clamp(y % 2 == 0 ? sy - 1 : sy + 1, 0, h - 1);
   const float* a = src + static_cast<size_t>(sy) * src_stride;
   const float* b = src + static_cast<size_t>(other) * src_stride;
-  // p * q + r as one fused multiply-add where the build targets FMA (as GCC contracts it there), else
-  // a product and a sum, as in a portable build.
-  const auto madd = [](float p, float q, float r) {
-#ifdef __FMA__
-    return std::fma(p, q, r);
-#else
-    return p * q + r;
-#endif
-  };
-  for (int x = 0; x < w; ++x) v[x] = madd(0.75f, a[x], 0.25f * b[x]);
-  const auto column = [&](int x) {
-    const float centre = 0.75f * v[x];
-    out[2 * x] = madd(0.25f, v[std::max(x - 1, 0)], centre);
-    out[2 * x + 1] = madd(0.25f, v[std::min(x + 1, w - 1)], centre);
-  };
-  column(0);
+  for (int x = 0; x < w; ++x) v[x] = std::fma(0.75f, a[x], 0.25f * b[x]);
+  UpsampleColumns(v, w, 0, out);
   int x = 1;
 #ifdef OXBOW_AVX512
   // Columns x..x+15 from v[x-1..x+16], the even and odd outputs interleaved by two permutes.
@@ -471,7 +471,25 @@ void Upsample2xRow(const float* src, int w, int h, size_t src_stride, int y, flo
     _mm512_storeu_ps(out + 2 * x + 16, _mm512_permutex2var_ps(even, hi, odd));
   }
 #endif
-  for (; x < w; ++x) column(x);
+  for (; x < w; ++x) UpsampleColumns(v, w, x, out);
+}
+
+#ifdef OXBOW_AVX2_DISPATCH
+OXBOW_AVX2_TARGET void Upsample2xRowAvx2(const float* src, int w, int h, size_t src_stride, int y, float* v, float* out) {
+  Upsample2xRowBody(src, w, h, src_stride, y, v, out);
+}
+#endif
+
+}  // namespace
+
+void Upsample2xRow(const float* src, int w, int h, size_t src_stride, int y, float* v, float* out) {
+#ifdef OXBOW_AVX2_DISPATCH
+  if (Avx2FmaAvailable()) {
+    Upsample2xRowAvx2(src, w, h, src_stride, y, v, out);
+    return;
+  }
+#endif
+  Upsample2xRowBody(src, w, h, src_stride, y, v, out);
 }
 
 void Decimate2x(const Plane& src, Plane* dst) {

@@ -18,6 +18,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "sift/base/cpu.h"
+#include "sift/base/hash.h"
 #include "sift/scale_space.h"
 #include "sift/sift_internal.h"
 #include "tests/support/feature_eval.h"
@@ -228,6 +229,34 @@ TEST(SiftDeterminism, ThreadCountsAndSimdPathsAgreeExactly) {
         << "scalar and vector paths differ (vector paths available: " << Avx2FmaAvailable() << "), style "
         << static_cast<int>(style);
   }
+}
+
+// The features of one photo, hashed: the same bytes in a native build (its AVX-512 or AVX2 paths) and in
+// a portable build for x86-64-v3 (OXBOW_PORTABLE_MARCH, CMakeLists.txt), so that an index or a
+// vocabulary made by the Debian package or the Docker image is the one the README's build makes. A
+// baseline x86-64 build (sift_portable_test compiles this file so) finds the same keypoints, bit for
+// bit; its descriptors differ in the last bits: its scalar code cannot fuse multiply-adds. A deliberate
+// change of the extractor changes the values below; a change of the build must not.
+TEST(SiftDeterminism, FeaturesAreTheSameBytesInEveryBuild) {
+  const cv::Mat gray = LoadGray(kOpencvData + "graf1.png");
+  ASSERT_FALSE(gray.empty());
+  SiftOptions options;
+  options.num_threads = 2;
+  const FeatureSet features = MakeExtractor(options).Extract(FromMat(gray));
+  ASSERT_EQ(features.size(), 3360u);
+  uint64_t keypoints = kFnv1a64Basis;
+  for (const Keypoint& k : features.keypoints) {
+    for (const float v : {k.x, k.y, k.scale, k.orientation, k.response}) {
+      keypoints = Fnv1a64(std::string_view(reinterpret_cast<const char*>(&v), sizeof v), keypoints);
+    }
+    keypoints = Fnv1a64(std::string_view(reinterpret_cast<const char*>(&k.octave), sizeof k.octave), keypoints);
+  }
+  EXPECT_EQ(keypoints, 0x9beab537a9096b36ull);
+#if defined(__AVX2__) && defined(__FMA__)
+  const uint64_t descriptors = Fnv1a64(std::string_view(reinterpret_cast<const char*>(features.descriptors.data()),
+                                                        features.descriptors.size() * sizeof(float)));
+  EXPECT_EQ(descriptors, 0x1f916bb9a5aed511ull);
+#endif
 }
 
 // A stop is asked on the calling thread only, also while other threads blur and scan their strips, and

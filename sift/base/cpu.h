@@ -1,8 +1,8 @@
 // Vector code paths and the CPU a build runs on.
 //
 // OXBOW_AVX2 is defined when AVX2+FMA code is compiled in: with -march=native on a CPU that has them
-// (OXBOW_NATIVE=ON, the default), or, in a portable x86-64 build (OXBOW_NATIVE=OFF: the Docker image,
-// the packages), by function attribute: functions marked OXBOW_AVX2_TARGET are compiled for those
+// (OXBOW_NATIVE=ON, the default) or in a portable build for x86-64-v3 (OXBOW_NATIVE=OFF: the Docker
+// image, the packages), or, in a baseline x86-64 build (OXBOW_PORTABLE_MARCH=x86-64), by function attribute: functions marked OXBOW_AVX2_TARGET are compiled for those
 // instructions and must only run where Avx2FmaAvailable() is true; the rest of the build stays baseline
 // x86-64. Without FMA instructions every std::fma is a call into libm: SIFT extraction measured 13x
 // slower and the vocabulary's quantiser about 50x slower than with the vector paths.
