@@ -5,8 +5,6 @@
 #if defined(OXBOW_REQUIRED_MARCH) && defined(__x86_64__) && defined(__GNUC__)
 #include <unistd.h>
 
-#include <cstdlib>
-
 namespace {
 
 [[gnu::constructor(101)]] void RequireCpuLevel() {
