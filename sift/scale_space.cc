@@ -129,7 +129,7 @@ OXBOW_AVX2_TARGET void VerticalPassAvx2(const float* const* rows, const float* k
 #ifdef OXBOW_AVX512
 // VerticalPass's AVX-512 path: the AVX2 path's formula 16 lanes at a time, the last partial vector
 // masked (masked lanes are neither loaded nor stored).
-void VerticalPassAvx512(const float* const* rows, const float* kernel, int r, int count, int width, float* const* out) {
+OXBOW_AVX512_TARGET void VerticalPassAvx512(const float* const* rows, const float* kernel, int r, int count, int width, float* const* out) {
   const int taps = 2 * r + 1;
   int x = 0;
   if (count == kRowBlock && taps > kRowBlock) {
@@ -141,7 +141,7 @@ void VerticalPassAvx512(const float* const* rows, const float* kernel, int r, in
         a0[m] = _mm512_mul_ps(k0, _mm512_loadu_ps(rows[m] + x));
         a1[m] = _mm512_mul_ps(k0, _mm512_loadu_ps(rows[m] + x + 16));
       }
-      auto add_row = [&](int j, int m_begin, int m_end) {
+      auto add_row = [&](int j, int m_begin, int m_end) OXBOW_AVX512_TARGET {
         const __m512 v0 = _mm512_loadu_ps(rows[j] + x), v1 = _mm512_loadu_ps(rows[j] + x + 16);
 #pragma GCC unroll 8
         for (int m = 0; m < kRowBlock; ++m) {
@@ -175,7 +175,7 @@ void VerticalPassAvx512(const float* const* rows, const float* kernel, int r, in
 
 void VerticalPass(const float* const* rows, const float* kernel, int r, int count, int width, float* const* out, bool simd) {
 #ifdef OXBOW_AVX512
-  if (simd) {
+  if (simd && Avx512Available()) {
     VerticalPassAvx512(rows, kernel, r, count, width, out);
     return;
   }
@@ -237,7 +237,7 @@ OXBOW_AVX2_TARGET int HorizontalPassAvx2(const float* t, std::span<const float> 
 // t[x - k ...] and t[x + k ...] by aligning pairs of them, instead of two unaligned loads per tap that
 // each straddle two cache lines. The same sums and fused multiply-adds in the same order.
 template <int R>
-int HorizontalPassAlignedAvx512(const float* t, const float* c, int width, float* out) {
+OXBOW_AVX512_TARGET int HorizontalPassAlignedAvx512(const float* t, const float* c, int width, float* out) {
   int x = 0;
   for (; x + 64 <= width; x += 64) {
     __m512 v[6];
@@ -247,9 +247,9 @@ int HorizontalPassAlignedAvx512(const float* t, const float* c, int width, float
     __m512 a[4];
 #pragma GCC unroll 4
     for (int m = 0; m < 4; ++m) a[m] = _mm512_mul_ps(c0, v[m + 1]);
-    [&]<int... K>(std::integer_sequence<int, K...>) {
+    [&]<int... K>(std::integer_sequence<int, K...>) OXBOW_AVX512_TARGET {
       (
-          [&] {
+          [&]() OXBOW_AVX512_TARGET {
             constexpr int k = K + 1;
             const __m512 ck = _mm512_set1_ps(c[k]);
 #pragma GCC unroll 4
@@ -271,7 +271,7 @@ int HorizontalPassAlignedAvx512(const float* t, const float* c, int width, float
 }
 
 // HorizontalPass's AVX-512 path for whole vectors of outputs; returns the first output it left.
-int HorizontalPassAvx512(const float* t, std::span<const float> c, int width, float* out) {
+OXBOW_AVX512_TARGET int HorizontalPassAvx512(const float* t, std::span<const float> c, int width, float* out) {
   const int r = static_cast<int>(c.size()) - 1;
   int x = 0;
   if (reinterpret_cast<uintptr_t>(t) % 64 == 0) {
@@ -321,7 +321,7 @@ void HorizontalPass(const float* t, std::span<const float> c, int width, float* 
   const int r = static_cast<int>(c.size()) - 1;
   int x = 0;
 #ifdef OXBOW_AVX512
-  if (simd) x = HorizontalPassAvx512(t, c, width, out);
+  if (simd && Avx512Available()) x = HorizontalPassAvx512(t, c, width, out);
 #endif
 #ifdef OXBOW_AVX2
   if (simd) x += HorizontalPassAvx2(t + x, c, width - x, out + x);
@@ -458,7 +458,7 @@ namespace {
   for (int x = 0; x < w; ++x) v[x] = std::fma(0.75f, a[x], 0.25f * b[x]);
   UpsampleColumns(v, w, 0, out);
   int x = 1;
-#ifdef OXBOW_AVX512
+#ifdef OXBOW_AVX512_ALWAYS  // (under 1% of an extraction: not worth a run-time choice)
   // Columns x..x+15 from v[x-1..x+16], the even and odd outputs interleaved by two permutes.
   const __m512i lo = _mm512_setr_epi32(0, 16, 1, 17, 2, 18, 3, 19, 4, 20, 5, 21, 6, 22, 7, 23);
   const __m512i hi = _mm512_setr_epi32(8, 24, 9, 25, 10, 26, 11, 27, 12, 28, 13, 29, 14, 30, 15, 31);
@@ -499,7 +499,7 @@ void Decimate2x(const Plane& src, Plane* dst) {
     const float* in = src.row(2 * y);
     float* out = dst->row(y);
     int x = 0;
-#ifdef OXBOW_AVX512
+#ifdef OXBOW_AVX512_ALWAYS
     // The even samples of 32 inputs (2 * x + 31 < 2 * w <= src width) into 16 outputs.
     const __m512i even = _mm512_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30);
     for (; x + 16 <= w; x += 16)

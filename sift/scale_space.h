@@ -2,10 +2,10 @@
 // planes, separable Gaussian blur, 2x bilinear upsampling and 2x decimation. Exposed in a header so the
 // tests can compare the vectorised and scalar paths; not part of the public API.
 //
-// Every function that takes `allow_simd` computes the same formula on all paths: the AVX-512 path (when
-// compiled with AVX-512), the AVX2 path (when compiled with __AVX2__ and __FMA__, or chosen at run time)
-// and the scalar path use the same fused multiply-adds in the same order, so their results are
-// bit-identical; tests assert that.
+// Every function that takes `allow_simd` computes the same formula on all paths: the AVX-512 path (where
+// Avx512Available()), the AVX2 path (where only Avx2FmaAvailable(); sift/base/cpu.h) and the scalar
+// path use the same fused multiply-adds in the same order, so their results are bit-identical; tests
+// assert that.
 #pragma once
 
 #include <cstddef>
@@ -15,12 +15,7 @@
 #include <span>
 #include <vector>
 
-// AVX-512 paths are compiled only where the build targets AVX-512 (-march=native on such a CPU; a
-// portable build has the AVX2 paths chosen at run time). They compute the same formulas as the AVX2
-// and scalar paths, bit for bit.
-#if defined(__AVX512F__) && defined(__AVX512DQ__) && defined(__AVX512VL__) && defined(__AVX512BW__)
-#define OXBOW_AVX512 1
-#endif
+#include "sift/base/cpu.h"  // OXBOW_AVX2, OXBOW_AVX512: which vector paths are compiled in
 
 namespace oxbow::sift::internal {
 

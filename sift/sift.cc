@@ -269,7 +269,7 @@ OXBOW_AVX2_TARGET int ScanRowAvx2(const float* const (&rows)[3][3], int x0, int 
 
 #ifdef OXBOW_AVX512
 // ScanRowAvx2's formula 16 columns at a time.
-int ScanRowAvx512(const float* const (&rows)[3][3], int x0, int x1, float threshold, std::vector<int>* out) {
+OXBOW_AVX512_TARGET int ScanRowAvx512(const float* const (&rows)[3][3], int x0, int x1, float threshold, std::vector<int>* out) {
   const float* cur = rows[1][1];
   int x = x0;
   const __m512 thr = _mm512_set1_ps(threshold);
@@ -308,7 +308,7 @@ int ScanRowAvx512(const float* const (&rows)[3][3], int x0, int x1, float thresh
 }
 
 // d[x] = b[x] - a[x] for all x < w (the last vector masked).
-void SubtractAvx512(const float* b, const float* a, int w, float* d) {
+OXBOW_AVX512_TARGET void SubtractAvx512(const float* b, const float* a, int w, float* d) {
   for (int x = 0; x < w; x += 16) {
     const __mmask16 lanes = w - x >= 16 ? __mmask16(0xffff) : static_cast<__mmask16>((1u << (w - x)) - 1);
     _mm512_mask_storeu_ps(d + x, lanes, _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, b + x), _mm512_maskz_loadu_ps(lanes, a + x)));
@@ -343,7 +343,7 @@ void ScanRow(const float* const (&rows)[3][3], int x0, int x1, float threshold, 
   };
   int x = x0;
 #ifdef OXBOW_AVX512
-  if (simd) x = ScanRowAvx512(rows, x0, x1, threshold, out);
+  if (simd && Avx512Available()) x = ScanRowAvx512(rows, x0, x1, threshold, out);
 #endif
 #ifdef OXBOW_AVX2
   if (simd) x = ScanRowAvx2(rows, x, x1, threshold, out);
@@ -384,6 +384,7 @@ std::vector<Candidate> ScanRows(const LevelRow& level_row, int w, int h, size_t 
   auto slot = [&](int layer, int y) {
     return ring.get() + (static_cast<size_t>(layer) * kRing + static_cast<size_t>((y % kRing + kRing) % kRing)) * stride;
   };
+  [[maybe_unused]] const bool avx512 = simd && Avx512Available();
   auto compute_row = [&](int y) {
     for (int l = 0; l < dog_layers; ++l) {
       const float* pa = level_row(l, y);
@@ -391,7 +392,7 @@ std::vector<Candidate> ScanRows(const LevelRow& level_row, int w, int h, size_t 
       float* d = slot(l, y);
       int x = 0;
 #ifdef OXBOW_AVX512
-      if (simd) {
+      if (avx512) {
         SubtractAvx512(pb, pa, w, d);
         continue;
       }
@@ -592,7 +593,7 @@ OXBOW_AVX2_TARGET inline void Gradient8(const float* row, const float* above, co
 
 #ifdef OXBOW_AVX512
 // FastAtan2Deg 16 lanes at a time (bit-identical).
-inline __m512 Atan2Deg16(__m512 y, __m512 x) {
+OXBOW_AVX512_TARGET inline __m512 Atan2Deg16(__m512 y, __m512 x) {
   const __m512 zero = _mm512_setzero_ps();
   const __m512 ax = _mm512_abs_ps(x), ay = _mm512_abs_ps(y);
   const __m512 t = _mm512_div_ps(_mm512_min_ps(ax, ay), _mm512_max_ps(_mm512_max_ps(ax, ay), _mm512_set1_ps(1.17549435e-38f)));
@@ -610,7 +611,7 @@ inline __m512 Atan2Deg16(__m512 y, __m512 x) {
 }
 
 // Gradient for the 16 samples x..x+15 of a row; see Gradient.
-inline void Gradient16(const float* row, const float* above, const float* below, int x, __m512* mag, __m512* ori) {
+OXBOW_AVX512_TARGET inline void Gradient16(const float* row, const float* above, const float* below, int x, __m512* mag, __m512* ori) {
   const __m512 dx = _mm512_sub_ps(_mm512_loadu_ps(row + x + 1), _mm512_loadu_ps(row + x - 1));
   const __m512 dy = _mm512_sub_ps(_mm512_loadu_ps(above + x), _mm512_loadu_ps(below + x));
   *mag = _mm512_sqrt_ps(_mm512_fmadd_ps(dx, dx, _mm512_mul_ps(dy, dy)));
@@ -748,7 +749,7 @@ struct OrientationVotes {
   alignas(64) float fractions[16];
 };
 
-inline void PrepareOrientationVotes(const OrientationWindowRow& r, int j, const float* wx, OrientationVotes* out) {
+OXBOW_AVX512_TARGET inline void PrepareOrientationVotes(const OrientationWindowRow& r, int j, const float* wx, OrientationVotes* out) {
   const __m512 bins_per_deg = _mm512_set1_ps(kBinsPerDeg);
   const __m512i nbins = _mm512_set1_epi32(kOriBins);
   __m512 mag, ori;
@@ -779,7 +780,7 @@ inline void AddOrientationVotes(const OrientationVotes& v, float* temp) {
 // vector before it, so the long latency of a preparation overlaps the additions instead of stalling
 // them. Vectors are added in order: rows in order, j increasing.
 template <typename Buffer, typename Row, typename Prepare, typename Add>
-void WalkWindowPipelined(std::span<const Row> rows, const Prepare& prepare, const Add& add) {
+OXBOW_AVX512_TARGET void WalkWindowPipelined(std::span<const Row> rows, const Prepare& prepare, const Add& add) {
   Buffer buffers[2];
   size_t row = 0;
   int j = rows.empty() ? 0 : rows[0].j0;
@@ -802,14 +803,16 @@ void WalkWindowPipelined(std::span<const Row> rows, const Prepare& prepare, cons
 }
 
 // OrientationHistogramCircular's AVX-512 path over the whole window, votes added in sample order.
-void OrientationWindowAvx512(std::span<const OrientationWindowRow> rows, const float* wx, float* temp) {
+OXBOW_AVX512_TARGET void OrientationWindowAvx512(std::span<const OrientationWindowRow> rows, const float* wx, float* temp) {
   WalkWindowPipelined<OrientationVotes>(
-      rows, [&](const OrientationWindowRow& row, int j, OrientationVotes* votes) { PrepareOrientationVotes(row, j, wx, votes); },
-      [&](const OrientationVotes& votes) { AddOrientationVotes(votes, temp); });
+      rows,
+      [&](const OrientationWindowRow& row, int j, OrientationVotes* votes)
+          OXBOW_AVX512_TARGET { PrepareOrientationVotes(row, j, wx, votes); },
+      [&](const OrientationVotes& votes) OXBOW_AVX512_TARGET { AddOrientationVotes(votes, temp); });
 }
 #endif
 
-#if defined(OXBOW_AVX2) && !defined(OXBOW_AVX512)  // the AVX-512 path replaces it where both exist
+#if defined(OXBOW_AVX2) && !defined(OXBOW_AVX512_ALWAYS)  // the AVX-512 path replaces it where it always runs
 // OrientationHistogramCircular's AVX2 path for the samples [j, j1) of a row: votes 8 at a time, added
 // in sample order.
 OXBOW_AVX2_TARGET void OrientationCircularRowAvx2(const float* row, const float* above, const float* below, int j, int j1,
@@ -859,6 +862,7 @@ float OrientationHistogramCircular(const Plane& img, float xf, float yf, float s
     wx[j + radius] = std::exp(dj * dj * exp_scale);
   }
 #ifdef OXBOW_AVX512
+  const bool avx512 = simd && Avx512Available();
   OrientationWindowRow window[2 * 120 + 1];
   size_t window_rows = 0;
 #endif
@@ -883,7 +887,7 @@ float OrientationHistogramCircular(const Plane& img, float xf, float yf, float s
     const float* above = img.row(y - 1) + cx;
     const float* below = img.row(y + 1) + cx;
 #ifdef OXBOW_AVX512
-    if (simd) {
+    if (avx512) {
       window[window_rows++] = {row, above, below, j0, j1, wy};
       continue;
     }
@@ -896,7 +900,7 @@ float OrientationHistogramCircular(const Plane& img, float xf, float yf, float s
     }
 #endif
     if (simd) {
-#if defined(OXBOW_AVX2) && !defined(OXBOW_AVX512)
+#if defined(OXBOW_AVX2) && !defined(OXBOW_AVX512_ALWAYS)
       OrientationCircularRowAvx2(row, above, below, j0, j1, wy, wx + radius, temp);
       continue;
 #endif
@@ -908,7 +912,7 @@ float OrientationHistogramCircular(const Plane& img, float xf, float yf, float s
     }
   }
 #ifdef OXBOW_AVX512
-  if (simd) OrientationWindowAvx512(std::span<const OrientationWindowRow>(window, window_rows), wx + radius, temp);
+  if (avx512) OrientationWindowAvx512(std::span<const OrientationWindowRow>(window, window_rows), wx + radius, temp);
 #endif
   for (int pass = 0; pass < 6; ++pass) {
     const float first = temp[0];
@@ -976,7 +980,7 @@ inline float OrientationBin(float ori, float ori_deg, float bins_per_deg) {
   return obin;
 }
 
-#if defined(OXBOW_AVX2) && !defined(OXBOW_AVX512)  // the AVX-512 path replaces it where both exist
+#if defined(OXBOW_AVX2) && !defined(OXBOW_AVX512_ALWAYS)  // the AVX-512 path replaces it where it always runs
 // Descriptor's AVX2 path for the samples [j, j1) of a window row (wcol: the column weights, indexed
 // by j), whole vectors of 8 (lanes past j1 read valid memory: row padding or the next row, and are not
 // added): bin coordinates and weights 8 at a time, then AccumulateSample per sample in order.
@@ -1048,7 +1052,7 @@ struct DescriptorVector {
   alignas(64) float lanes[(2 + kDescBins) * 16];
 };
 
-inline void PrepareDescriptorVector(const DescriptorWindowRow& r, int j, const DescriptorFrame& f, DescriptorVector* out) {
+OXBOW_AVX512_TARGET inline void PrepareDescriptorVector(const DescriptorWindowRow& r, int j, const DescriptorFrame& f, DescriptorVector* out) {
   constexpr int d = kDescCells, n = kDescBins;
   const __m512i iota = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
   const __m512 minus_one = _mm512_set1_ps(-1.0f), dv = _mm512_set1_ps(static_cast<float>(d));
@@ -1082,7 +1086,7 @@ inline void PrepareDescriptorVector(const DescriptorWindowRow& r, int j, const D
 
 // Adds the valid samples of `v` in order, each to all 128 bins held in h (8 registers of 16 cells, one
 // per orientation bin; cell = row * 4 + column).
-inline void AddDescriptorVector(const DescriptorVector& v, __m512 (&h)[kDescBins]) {
+OXBOW_AVX512_TARGET inline void AddDescriptorVector(const DescriptorVector& v, __m512 (&h)[kDescBins]) {
   const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.0f);
   const __m512 cell_row = _mm512_setr_ps(0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3);
   const __m512 cell_col = _mm512_setr_ps(0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3);
@@ -1101,12 +1105,14 @@ inline void AddDescriptorVector(const DescriptorVector& v, __m512 (&h)[kDescBins
 
 // Descriptor's AVX-512 path over the whole window (WalkWindowPipelined). Every bin receives the same
 // fused multiply-adds in the same sample order as on the other paths (zero weights add +0).
-void DescriptorWindowAvx512(std::span<const DescriptorWindowRow> rows, const DescriptorFrame& frame, float* hist) {
+OXBOW_AVX512_TARGET void DescriptorWindowAvx512(std::span<const DescriptorWindowRow> rows, const DescriptorFrame& frame, float* hist) {
   __m512 h[kDescBins];
   for (__m512& bin : h) bin = _mm512_setzero_ps();
   WalkWindowPipelined<DescriptorVector>(
-      rows, [&](const DescriptorWindowRow& row, int j, DescriptorVector* v) { PrepareDescriptorVector(row, j, frame, v); },
-      [&](const DescriptorVector& v) { AddDescriptorVector(v, h); });
+      rows,
+      [&](const DescriptorWindowRow& row, int j, DescriptorVector* v)
+          OXBOW_AVX512_TARGET { PrepareDescriptorVector(row, j, frame, v); },
+      [&](const DescriptorVector& v) OXBOW_AVX512_TARGET { AddDescriptorVector(v, h); });
   for (int k = 0; k < kDescBins; ++k) _mm512_storeu_ps(hist + k * kDescCellCount, h[k]);
 }
 #endif
@@ -1137,6 +1143,7 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
   }
   alignas(64) float hist[kDescBins * kDescCellCount] = {};
 #ifdef OXBOW_AVX512
+  const bool avx512 = simd && Avx512Available();
   DescriptorWindowRow window[2 * 250 + 1];
   size_t window_rows = 0;
 #endif
@@ -1171,7 +1178,7 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
     const float* above = img.row(yy - 1) + cx;
     const float* below = img.row(yy + 1) + cx;
 #ifdef OXBOW_AVX512
-    if (simd) {
+    if (avx512) {
       window[window_rows++] = {row, above, below, j0, j1, rb0, cb0, wrow};
       continue;
     }
@@ -1184,7 +1191,7 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
     }
 #endif
     int j = j0;
-#if defined(OXBOW_AVX2) && !defined(OXBOW_AVX512)
+#if defined(OXBOW_AVX2) && !defined(OXBOW_AVX512_ALWAYS)
     if (simd) {
       j = DescriptorRowAvx2(row, above, below, j, j1, fx, sin_t, cos_t, rb0, cb0, ori_deg, bins_per_deg, wrow,
                             wcol + radius, hist);
@@ -1201,7 +1208,7 @@ void Descriptor(const Plane& img, float x, float y, float ori_deg, float scale, 
     }
   }
 #ifdef OXBOW_AVX512
-  if (simd)
+  if (avx512)
     DescriptorWindowAvx512(std::span<const DescriptorWindowRow>(window, window_rows),
                            DescriptorFrame{fx, sin_t, cos_t, ori_deg, bins_per_deg, wcol + radius}, hist);
 #endif

@@ -228,6 +228,17 @@ TEST(SiftDeterminism, ThreadCountsAndSimdPathsAgreeExactly) {
     EXPECT_TRUE(SameFeatures(one, internal::ExtractImpl(image, options, /*allow_simd=*/false)))
         << "scalar and vector paths differ (vector paths available: " << Avx2FmaAvailable() << "), style "
         << static_cast<int>(style);
+#ifdef OXBOW_AVX512_DISPATCH
+    // A portable build on an AVX-512 CPU: `one` came from the AVX-512 paths; the AVX2 paths must agree.
+    if (Avx512Available()) {
+      AllowAvx512(false);
+      const bool avx2_taken = !Avx512Available();
+      const FeatureSet avx2 = MakeExtractor(options).Extract(image);
+      AllowAvx512(true);
+      EXPECT_TRUE(avx2_taken);
+      EXPECT_TRUE(SameFeatures(one, avx2)) << "AVX-512 and AVX2 paths differ, style " << static_cast<int>(style);
+    }
+#endif
   }
 }
 
@@ -284,11 +295,16 @@ TEST(SiftStop, IsAskedOnTheCallingThreadAndEndsTheExtraction) {
   }
 }
 
-// The vector paths run wherever the CPU has AVX2 and FMA, also in a portable build (sift/base/cpu.h), so
-// that ThreadCountsAndSimdPathsAgreeExactly compares two paths there rather than the scalar one twice.
+// The vector paths run wherever the CPU has AVX2 and FMA, and the AVX-512 ones wherever it has those,
+// also in a portable build (sift/base/cpu.h), so that ThreadCountsAndSimdPathsAgreeExactly compares
+// the paths there rather than the scalar one twice.
 TEST(SiftDeterminism, VectorPathsRunWhereTheCpuHasThem) {
 #if defined(__x86_64__) && defined(__GNUC__)
   EXPECT_EQ(Avx2FmaAvailable(), __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"));
+  // The AVX-512 paths too: in a native build for such a CPU, or chosen at run time in any other.
+  EXPECT_EQ(Avx512Available(), Avx2FmaAvailable() && __builtin_cpu_supports("avx512f") &&
+                                   __builtin_cpu_supports("avx512dq") && __builtin_cpu_supports("avx512vl") &&
+                                   __builtin_cpu_supports("avx512bw"));
 #else
   GTEST_SKIP() << "the vector paths are x86-64 only";
 #endif
@@ -371,9 +387,12 @@ TEST(SiftDeterminism, VectorAndScalarKernelsAgree) {
     double sum = kernel[0];
     for (size_t i = 1; i < kernel.size(); ++i) sum += 2 * kernel[i];
     EXPECT_NEAR(sum, 1.0, 1e-6);
-    internal::Plane a, b;
+    internal::Plane a, b, c;
     internal::GaussianBlur(src, &a, kernel, 1, true);
     internal::GaussianBlur(src, &b, kernel, 2, false);
+    AllowAvx512(false);  // where the AVX-512 paths are chosen at run time: the AVX2 ones
+    internal::GaussianBlur(src, &c, kernel, 1, true);
+    AllowAvx512(true);
     // And against OpenCV's GaussianBlur with the same kernel size and border.
     cv::Mat in(src.height(), src.width(), CV_32F), ref;
     for (int y = 0; y < src.height(); ++y) std::copy_n(src.row(y), src.width(), in.ptr<float>(y));
@@ -382,6 +401,7 @@ TEST(SiftDeterminism, VectorAndScalarKernelsAgree) {
     for (int y = 0; y < src.height(); ++y)
       for (int x = 0; x < src.width(); ++x) {
         ASSERT_EQ(a.at(x, y), b.at(x, y)) << x << "," << y;
+        ASSERT_EQ(a.at(x, y), c.at(x, y)) << x << "," << y;
         ASSERT_NEAR(a.at(x, y), ref.at<float>(y, x), 2e-5f) << x << "," << y;
       }
   }

@@ -6,7 +6,16 @@
 // instructions and must only run where Avx2FmaAvailable() is true; the rest of the build stays baseline
 // x86-64. Without FMA instructions every std::fma is a call into libm: SIFT extraction measured 13x
 // slower and the vocabulary's quantiser about 50x slower than with the vector paths.
+//
+// OXBOW_AVX512 is defined when AVX-512 (F, DQ, VL, BW) code is compiled in: with -march=native on a CPU
+// that has it, where it is the only vector path taken (OXBOW_AVX512_ALWAYS; the AVX2 paths it replaces
+// are not compiled), or, in a portable build, by function attribute: functions marked
+// OXBOW_AVX512_TARGET must only run where Avx512Available() is true, and the AVX2 paths serve the other
+// CPUs. Every AVX-512 path computes its AVX2 and scalar paths' formulas bit for bit, so the features do
+// not depend on which one runs.
 #pragma once
+
+#include <atomic>
 
 #if defined(__AVX2__) && defined(__FMA__)
 #define OXBOW_AVX2 1
@@ -15,6 +24,16 @@
 #define OXBOW_AVX2 1
 #define OXBOW_AVX2_DISPATCH 1
 #define OXBOW_AVX2_TARGET __attribute__((target("avx2,fma")))
+#endif
+
+#if defined(OXBOW_AVX2) && defined(__AVX512F__) && defined(__AVX512DQ__) && defined(__AVX512VL__) && defined(__AVX512BW__)
+#define OXBOW_AVX512 1
+#define OXBOW_AVX512_ALWAYS 1
+#define OXBOW_AVX512_TARGET
+#elif defined(OXBOW_AVX2) && defined(__x86_64__) && defined(__GNUC__)
+#define OXBOW_AVX512 1
+#define OXBOW_AVX512_DISPATCH 1
+#define OXBOW_AVX512_TARGET __attribute__((target("avx2,fma,avx512f,avx512dq,avx512vl,avx512bw")))
 #endif
 
 namespace oxbow {
@@ -31,5 +50,31 @@ inline bool Avx2FmaAvailable() {
   return false;
 #endif
 }
+
+namespace internal {
+// Set by AllowAvx512; read by Avx512Available.
+inline std::atomic<bool> avx512_allowed{true};
+}  // namespace internal
+
+// True when the OXBOW_AVX512_TARGET code may run here: compiled in for this CPU, or compiled by attribute,
+// this CPU has AVX-512 F, DQ, VL and BW, and AllowAvx512(false) has not been called. Implies
+// Avx2FmaAvailable().
+inline bool Avx512Available() {
+#if defined(OXBOW_AVX512_DISPATCH)
+  static const bool cpu = Avx2FmaAvailable() && __builtin_cpu_supports("avx512f") &&
+                          __builtin_cpu_supports("avx512dq") && __builtin_cpu_supports("avx512vl") &&
+                          __builtin_cpu_supports("avx512bw");
+  return cpu && internal::avx512_allowed.load(std::memory_order_relaxed);
+#elif defined(OXBOW_AVX512)
+  return true;
+#else
+  return false;
+#endif
+}
+
+// Where the AVX-512 paths are chosen at run time (OXBOW_AVX512_DISPATCH), false makes every later
+// extraction take the AVX2 paths instead, so that tests and benchmarks can compare the two on one CPU.
+// Without effect elsewhere. Results are the same either way.
+inline void AllowAvx512(bool allowed) { internal::avx512_allowed.store(allowed, std::memory_order_relaxed); }
 
 }  // namespace oxbow
