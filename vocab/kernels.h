@@ -7,8 +7,8 @@
 //
 // Determinism. Every (query, word) dot product is computed by one fixed formula whatever the tile it
 // falls in: one fused multiply-add per dimension, in increasing dimension order, starting from 0. The
-// vector paths (AVX2: 6 queries x 2 panels of 8 words per register tile; AVX-512: 8 queries x 2 panels
-// of 16) hold one pair per lane, so they and the scalar path (std::fma) give bit-identical scores, and
+// vector paths (AVX2: 6 queries x 2 vectors of 8 words per register tile; AVX-512: 8 queries x 2
+// vectors of 16) hold one pair per lane, so they and the scalar path (std::fma) give bit-identical scores, and
 // a query's nearest word does not depend on which other queries share its batch, on the thread count,
 // or on the instruction set the library was compiled for.
 //
@@ -22,11 +22,8 @@
 
 #include "sift/base/cpu.h"
 
-// The AVX2+FMA kernels (OXBOW_AVX2): compiled for this CPU, or, in a portable build, by function attribute
-// and taken where Avx2FmaAvailable() (sift/base/cpu.h).
-#if defined(OXBOW_AVX2) && defined(__AVX512F__)
-#define OXBOW_VOCAB_AVX512 1
-#endif
+// The AVX2+FMA kernels (OXBOW_AVX2) and the AVX-512 ones (OXBOW_AVX512): compiled for this CPU, or by
+// function attribute and taken where Avx2FmaAvailable() or Avx512Available() (sift/base/cpu.h).
 #ifdef OXBOW_AVX2
 #include <immintrin.h>
 // Register tiles must be unrolled completely, or the compiler keeps the accumulators in memory.
@@ -84,10 +81,12 @@ inline float SquaredL2(const float* a, const float* b, int dim) {
 // panel's scores come out together, to be compared with the queries' current k-th best at once). A
 // last panel of fewer words is padded with zero values and +inf norms, and the kernels never report
 // padded lanes.
-#ifdef OXBOW_VOCAB_AVX512
-inline constexpr size_t kPanelWidth = 16;  // one 16-lane register
+// Where AVX-512 kernels are compiled in (every x86-64 build with AVX2), panels are 16 words wide, one
+// AVX-512 register, which the AVX2 kernel reads as two halves; elsewhere 8.
+#ifdef OXBOW_AVX512
+inline constexpr size_t kPanelWidth = 16;
 #else
-inline constexpr size_t kPanelWidth = 8;   // one 8-lane register
+inline constexpr size_t kPanelWidth = 8;
 #endif
 
 inline size_t NumPanels(size_t num_words) { return (num_words + kPanelWidth - 1) / kPanelWidth; }
@@ -135,21 +134,27 @@ inline void ScorePanelsScalar(const float* queries, size_t num_queries, const fl
   }
 }
 
-#ifdef OXBOW_AVX2
-// One panel's lanes in one register: the operations the tile below needs.
-struct PanelLanes {
-#ifdef OXBOW_VOCAB_AVX512
+#ifdef OXBOW_AVX512
+// 16 words' lanes in one AVX-512 register (a whole panel): the operations the tile below needs.
+struct Lanes16 {
+  static constexpr size_t kLanes = 16;
   using V = __m512;
-  OXBOW_AVX2_TARGET static V Zero() { return _mm512_setzero_ps(); }
-  OXBOW_AVX2_TARGET static V Load(const float* p) { return _mm512_loadu_ps(p); }
-  OXBOW_AVX2_TARGET static V Broadcast(const float* p) { return _mm512_set1_ps(*p); }
-  OXBOW_AVX2_TARGET static V Fma(V a, V b, V c) { return _mm512_fmadd_ps(a, b, c); }
-  OXBOW_AVX2_TARGET static V Score(V norm, V dot) { return _mm512_sub_ps(norm, _mm512_add_ps(dot, dot)); }
-  OXBOW_AVX2_TARGET static unsigned AtMost(V v, float bound) {
+  OXBOW_AVX512_TARGET static V Zero() { return _mm512_setzero_ps(); }
+  OXBOW_AVX512_TARGET static V Load(const float* p) { return _mm512_loadu_ps(p); }
+  OXBOW_AVX512_TARGET static V Broadcast(const float* p) { return _mm512_set1_ps(*p); }
+  OXBOW_AVX512_TARGET static V Fma(V a, V b, V c) { return _mm512_fmadd_ps(a, b, c); }
+  OXBOW_AVX512_TARGET static V Score(V norm, V dot) { return _mm512_sub_ps(norm, _mm512_add_ps(dot, dot)); }
+  OXBOW_AVX512_TARGET static unsigned AtMost(V v, float bound) {
     return static_cast<unsigned>(_mm512_cmp_ps_mask(v, _mm512_set1_ps(bound), _CMP_LE_OQ));
   }
-  OXBOW_AVX2_TARGET static void Store(float* out, V v) { _mm512_storeu_ps(out, v); }
-#else
+  OXBOW_AVX512_TARGET static void Store(float* out, V v) { _mm512_storeu_ps(out, v); }
+};
+#endif
+
+#if defined(OXBOW_AVX2) && !defined(OXBOW_AVX512_ALWAYS)
+// 8 words' lanes in one AVX2 register (half a 16-word panel, or a whole 8-word one).
+struct Lanes8 {
+  static constexpr size_t kLanes = 8;
   using V = __m256;
   OXBOW_AVX2_TARGET static V Zero() { return _mm256_setzero_ps(); }
   OXBOW_AVX2_TARGET static V Load(const float* p) { return _mm256_loadu_ps(p); }
@@ -160,92 +165,134 @@ struct PanelLanes {
     return static_cast<unsigned>(_mm256_movemask_ps(_mm256_cmp_ps(v, _mm256_set1_ps(bound), _CMP_LE_OQ)));
   }
   OXBOW_AVX2_TARGET static void Store(float* out, V v) { _mm256_storeu_ps(out, v); }
-#endif
 };
+#endif
 
-// QN queries against PN consecutive panels from panel p0 (a register tile: QN x PN accumulators).
-template <int QN, int PN, typename Bound, typename Sink>
-OXBOW_AVX2_TARGET inline void ScorePanelTile(const float* queries, size_t qi, const float* panels,
-                                              const float* panel_norms, size_t p0, size_t num_words, int dim,
-                                              Bound& bound, Sink& sink) {
-  using L = PanelLanes;
+#ifdef OXBOW_AVX2
+// The register tiles below are written once for both lane types. They carry no target attribute of
+// their own: they are always inlined into ScorePanelsWith<Lanes>'s entry points (ScorePanelsAvx512,
+// ScorePanelsAvx2), which have the lanes' target, so each instantiation is compiled for its own
+// instructions. (GCC warns that a vector passed between the tile and the lanes' functions has no ABI
+// without AVX-512; they never call each other as functions.)
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wpsabi"
+#endif
+
+// QN queries against NV consecutive vectors of L::kLanes words from word `first` (a multiple of
+// L::kLanes; a register tile: QN x NV accumulators). A vector is a panel or a part of one.
+template <typename L, int QN, int NV, typename Bound, typename Sink>
+[[gnu::always_inline]] inline void ScorePanelTile(const float* queries, size_t qi, const float* panels,
+                                                  const float* panel_norms, size_t first, size_t num_words, int dim,
+                                                  Bound& bound, Sink& sink) {
+  static_assert(kPanelWidth % L::kLanes == 0);
   const size_t stride = static_cast<size_t>(dim) * kPanelWidth;
-  L::V acc[QN][PN];
+  typename L::V acc[QN][NV];
   OXBOW_UNROLL for (int a = 0; a < QN; ++a)
-    OXBOW_UNROLL for (int b = 0; b < PN; ++b) acc[a][b] = L::Zero();
+    OXBOW_UNROLL for (int b = 0; b < NV; ++b) acc[a][b] = L::Zero();
   const float* q = queries + qi * static_cast<size_t>(dim);
-  const float* w = panels + p0 * stride;
+  const float* w[NV];
+  OXBOW_UNROLL for (int b = 0; b < NV; ++b) {
+    const size_t word = first + static_cast<size_t>(b) * L::kLanes;
+    w[b] = panels + (word / kPanelWidth) * stride + word % kPanelWidth;
+  }
   _Pragma("GCC unroll 4") for (int d = 0; d < dim; ++d) {
-    L::V wv[PN];
-    OXBOW_UNROLL for (int b = 0; b < PN; ++b) wv[b] = L::Load(w + b * stride + static_cast<size_t>(d) * kPanelWidth);
+    typename L::V wv[NV];
+    OXBOW_UNROLL for (int b = 0; b < NV; ++b) wv[b] = L::Load(w[b] + static_cast<size_t>(d) * kPanelWidth);
     OXBOW_UNROLL for (int a = 0; a < QN; ++a) {
-      const L::V qv = L::Broadcast(q + static_cast<size_t>(a) * dim + d);
-      OXBOW_UNROLL for (int b = 0; b < PN; ++b) acc[a][b] = L::Fma(qv, wv[b], acc[a][b]);
+      const typename L::V qv = L::Broadcast(q + static_cast<size_t>(a) * dim + d);
+      OXBOW_UNROLL for (int b = 0; b < NV; ++b) acc[a][b] = L::Fma(qv, wv[b], acc[a][b]);
     }
   }
-  OXBOW_UNROLL for (int b = 0; b < PN; ++b) {
-    const size_t first = (p0 + b) * kPanelWidth;
-    const size_t lanes = std::min(kPanelWidth, num_words - first);  // the rest are padding
+  OXBOW_UNROLL for (int b = 0; b < NV; ++b) {
+    const size_t word = first + static_cast<size_t>(b) * L::kLanes;
+    const size_t lanes = std::min(L::kLanes, num_words - word);  // the rest are padding
     const unsigned valid = (1u << lanes) - 1u;
-    const L::V norm = L::Load(panel_norms + first);
+    const typename L::V norm = L::Load(panel_norms + word);
     OXBOW_UNROLL for (int a = 0; a < QN; ++a) {
-      const L::V score = L::Score(norm, acc[a][b]);
+      const typename L::V score = L::Score(norm, acc[a][b]);
       unsigned mask = L::AtMost(score, bound(qi + a)) & valid;
       if (mask == 0) continue;
-      float out[kPanelWidth];
+      float out[L::kLanes];
       L::Store(out, score);
       for (; mask != 0; mask &= mask - 1) {
         const int j = __builtin_ctz(mask);
-        sink(qi + a, first + static_cast<size_t>(j), out[j]);
+        sink(qi + a, word + static_cast<size_t>(j), out[j]);
       }
     }
   }
 }
 
-template <int QN, typename Bound, typename Sink>
-OXBOW_AVX2_TARGET inline void ScorePanelRow(const float* queries, size_t qi, const float* panels,
-                                             const float* panel_norms, size_t num_words, int dim, Bound& bound,
-                                             Sink& sink) {
-  const size_t np = NumPanels(num_words);
-  size_t p = 0;
-  for (; p + 2 <= np; p += 2) ScorePanelTile<QN, 2>(queries, qi, panels, panel_norms, p, num_words, dim, bound, sink);
-  if (p < np) ScorePanelTile<QN, 1>(queries, qi, panels, panel_norms, p, num_words, dim, bound, sink);
-}
-#endif
-
-#ifdef OXBOW_AVX2
-template <typename Bound, typename Sink>
-OXBOW_AVX2_TARGET inline void ScorePanelsVector(const float* queries, size_t num_queries, const float* panels,
+// QN queries against all the words: tiles of two vectors, the last of one vector where the words end
+// within it (every vector holds at least one word, so the AVX2 kernel skips the padding half of a last
+// panel of at most 8 words).
+template <typename L, int QN, typename Bound, typename Sink>
+[[gnu::always_inline]] inline void ScorePanelRow(const float* queries, size_t qi, const float* panels,
                                                  const float* panel_norms, size_t num_words, int dim, Bound& bound,
                                                  Sink& sink) {
-#ifdef OXBOW_VOCAB_AVX512
-  constexpr int kRows = 8;  // 8 queries x 2 panels: 16 accumulators of the 32 registers
-#else
-  constexpr int kRows = 6;  // 6 queries x 2 panels: 12 accumulators, 2 word vectors and a broadcast of 16
-#endif
+  const size_t end = (num_words + L::kLanes - 1) / L::kLanes * L::kLanes;
+  size_t first = 0;
+  for (; first + 2 * L::kLanes <= end; first += 2 * L::kLanes)
+    ScorePanelTile<L, QN, 2>(queries, qi, panels, panel_norms, first, num_words, dim, bound, sink);
+  if (first < end) ScorePanelTile<L, QN, 1>(queries, qi, panels, panel_norms, first, num_words, dim, bound, sink);
+}
+
+// Rows of kRows queries (AVX-512: 8 queries x 2 vectors, 16 accumulators of the 32 registers; AVX2:
+// 6 x 2, 12 accumulators, 2 word vectors and a broadcast of the 16), then the remaining queries.
+template <typename L, int kRows, typename Bound, typename Sink>
+[[gnu::always_inline]] inline void ScorePanelsWith(const float* queries, size_t num_queries, const float* panels,
+                                                   const float* panel_norms, size_t num_words, int dim, Bound& bound,
+                                                   Sink& sink) {
+  static_assert(kRows <= 8);
   size_t i = 0;
   for (; i + kRows <= num_queries; i += kRows)
-    ScorePanelRow<kRows>(queries, i, panels, panel_norms, num_words, dim, bound, sink);
+    ScorePanelRow<L, kRows>(queries, i, panels, panel_norms, num_words, dim, bound, sink);
   switch (num_queries - i) {
-    case 7: ScorePanelRow<7>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
-    case 6: ScorePanelRow<6>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
-    case 5: ScorePanelRow<5>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
-    case 4: ScorePanelRow<4>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
-    case 3: ScorePanelRow<3>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
-    case 2: ScorePanelRow<2>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
-    case 1: ScorePanelRow<1>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
+    case 7: ScorePanelRow<L, 7>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
+    case 6: ScorePanelRow<L, 6>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
+    case 5: ScorePanelRow<L, 5>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
+    case 4: ScorePanelRow<L, 4>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
+    case 3: ScorePanelRow<L, 3>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
+    case 2: ScorePanelRow<L, 2>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
+    case 1: ScorePanelRow<L, 1>(queries, i, panels, panel_norms, num_words, dim, bound, sink); break;
     default: break;
   }
 }
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC diagnostic pop
+#endif
 #endif
 
-// ScorePanelsScalar's contract, on the vector path where there is one (bit-identical scores).
+#ifdef OXBOW_AVX512
+template <typename Bound, typename Sink>
+OXBOW_AVX512_TARGET void ScorePanelsAvx512(const float* queries, size_t num_queries, const float* panels,
+                                           const float* panel_norms, size_t num_words, int dim, Bound& bound, Sink& sink) {
+  ScorePanelsWith<Lanes16, 8>(queries, num_queries, panels, panel_norms, num_words, dim, bound, sink);
+}
+#endif
+
+#if defined(OXBOW_AVX2) && !defined(OXBOW_AVX512_ALWAYS)
+template <typename Bound, typename Sink>
+OXBOW_AVX2_TARGET void ScorePanelsAvx2(const float* queries, size_t num_queries, const float* panels,
+                                       const float* panel_norms, size_t num_words, int dim, Bound& bound, Sink& sink) {
+  ScorePanelsWith<Lanes8, 6>(queries, num_queries, panels, panel_norms, num_words, dim, bound, sink);
+}
+#endif
+
+// ScorePanelsScalar's contract, on the vector path where there is one (bit-identical scores): AVX-512
+// where Avx512Available(), else AVX2 where Avx2FmaAvailable() (sift/base/cpu.h).
 template <typename Bound, typename Sink>
 inline void ScorePanels(const float* queries, size_t num_queries, const float* panels, const float* panel_norms,
                         size_t num_words, int dim, Bound& bound, Sink& sink) {
-#ifdef OXBOW_AVX2
+#ifdef OXBOW_AVX512
+  if (Avx512Available()) {
+    ScorePanelsAvx512(queries, num_queries, panels, panel_norms, num_words, dim, bound, sink);
+    return;
+  }
+#endif
+#if defined(OXBOW_AVX2) && !defined(OXBOW_AVX512_ALWAYS)
   if (Avx2FmaAvailable()) {
-    ScorePanelsVector(queries, num_queries, panels, panel_norms, num_words, dim, bound, sink);
+    ScorePanelsAvx2(queries, num_queries, panels, panel_norms, num_words, dim, bound, sink);
     return;
   }
 #endif

@@ -38,32 +38,39 @@ float SequentialScore(const float* q, const float* w, float norm, int dim) {
 
 // The vector and scalar score paths must agree bit for bit with the definition, for every tile shape
 // including the tails (query counts 1..13; word counts that fill 1 to 4 panels of 8 or 16, partly or
-// wholly),
-// and for dimensions that are not multiples of 8.
+// wholly), and for dimensions that are not multiples of 8. Both vector paths where the AVX-512 one is
+// chosen at run time (AllowAvx512; a native AVX-512 build has only that one).
 TEST(KernelsTest, VectorAndScalarScoresAreIdentical) {
   if (!Avx2FmaAvailable()) GTEST_SKIP() << "built without AVX2+FMA: only the scalar path exists";
-  for (int dim : {1, 13, 128}) {
-    for (size_t nq = 1; nq <= 13; ++nq) {
-      for (size_t nw : {1, 2, 3, 5, 7, 8, 9, 15, 16, 17, 24, 31, 32, 33, 40, 47, 48, 49}) {
-        const auto q = RandomRows(nq, dim, static_cast<uint32_t>(nq * 100 + nw));
-        const auto w = RandomRows(nw, dim, static_cast<uint32_t>(nq * 1000 + nw));
-        const TestPanels panels(w, nw, dim);
-        std::vector<float> vec(nq * nw, -1.f), sca(nq * nw, -2.f);
-        std::vector<int> calls(nq * nw, 0);
-        auto all = [](size_t) { return INFINITY; };
-        auto vsink = [&](size_t i, size_t j, float s) {
-          ASSERT_LT(j, nw) << "a padded lane was reported";
-          vec[i * nw + j] = s;
-          ++calls[i * nw + j];
-        };
-        auto ssink = [&](size_t i, size_t j, float s) { sca[i * nw + j] = s; };
-        ScorePanels(q.data(), nq, panels.data.data(), panels.norms.data(), nw, dim, all, vsink);
-        ScorePanelsScalar(q.data(), nq, panels.data.data(), panels.norms.data(), nw, dim, all, ssink);
-        for (size_t t = 0; t < nq * nw; ++t) {
-          ASSERT_EQ(calls[t], 1) << "each pair scored once";
-          ASSERT_EQ(vec[t], sca[t]) << "dim " << dim << " nq " << nq << " nw " << nw << " pair " << t;
-          const size_t i = t / nw, j = t % nw;
-          ASSERT_EQ(vec[t], SequentialScore(q.data() + i * dim, w.data() + j * dim, panels.norms[j], dim));
+  struct Restore {
+    ~Restore() { AllowAvx512(true); }
+  } restore;
+  for (const bool avx512 : {true, false}) {
+    AllowAvx512(avx512);
+    SCOPED_TRACE(Avx512Available() ? "AVX-512 path" : "AVX2 path");
+    for (int dim : {1, 13, 128}) {
+      for (size_t nq = 1; nq <= 13; ++nq) {
+        for (size_t nw : {1, 2, 3, 5, 7, 8, 9, 15, 16, 17, 24, 31, 32, 33, 40, 47, 48, 49}) {
+          const auto q = RandomRows(nq, dim, static_cast<uint32_t>(nq * 100 + nw));
+          const auto w = RandomRows(nw, dim, static_cast<uint32_t>(nq * 1000 + nw));
+          const TestPanels panels(w, nw, dim);
+          std::vector<float> vec(nq * nw, -1.f), sca(nq * nw, -2.f);
+          std::vector<int> calls(nq * nw, 0);
+          auto all = [](size_t) { return INFINITY; };
+          auto vsink = [&](size_t i, size_t j, float s) {
+            ASSERT_LT(j, nw) << "a padded lane was reported";
+            vec[i * nw + j] = s;
+            ++calls[i * nw + j];
+          };
+          auto ssink = [&](size_t i, size_t j, float s) { sca[i * nw + j] = s; };
+          ScorePanels(q.data(), nq, panels.data.data(), panels.norms.data(), nw, dim, all, vsink);
+          ScorePanelsScalar(q.data(), nq, panels.data.data(), panels.norms.data(), nw, dim, all, ssink);
+          for (size_t t = 0; t < nq * nw; ++t) {
+            ASSERT_EQ(calls[t], 1) << "each pair scored once";
+            ASSERT_EQ(vec[t], sca[t]) << "dim " << dim << " nq " << nq << " nw " << nw << " pair " << t;
+            const size_t i = t / nw, j = t % nw;
+            ASSERT_EQ(vec[t], SequentialScore(q.data() + i * dim, w.data() + j * dim, panels.norms[j], dim));
+          }
         }
       }
     }

@@ -16,9 +16,11 @@
 //
 // Usage: vocab_benchmark [--images DIR] [--cache FILE] [--words 10000,100000,1000000|none] [--queries N]
 //                        [--train-sample N] [--train-words K] [--train-iterations N] [--reps N] [--skip-train]
-//                        [--synthetic] [--vocab-iterations N] [--vocab FILE]
+//                        [--synthetic] [--vocab-iterations N] [--vocab FILE] [--no-avx512]
 //                        [--scale-words K --scale-descriptors N --scale-iterations N --scale-threads T
 //                         --scale-out FILE]
+// --no-avx512: the AVX2 kernels where the AVX-512 ones are chosen at run time (a portable build on an
+// AVX-512 CPU), to compare the two on one machine.
 // Assignment vocabularies up to 200k words are trained with Train (inverted-file assignment,
 // --vocab-iterations Lloyd iterations, default 8) on all training descriptors; larger ones, or all with
 // --synthetic, are synthetic-from-data (training descriptors + Gaussian noise, sigma 0.01). Each is
@@ -487,6 +489,7 @@ int main(int argc, char** argv) {
     else if (a == "--train-iterations") train_iterations = std::stoi(next());
     else if (a == "--reps") reps = std::stoi(next());
     else if (a == "--skip-train") skip_train = true;
+    else if (a == "--no-avx512") AllowAvx512(false);
     else if (a == "--synthetic") synthetic = true;
     else if (a == "--vocab-iterations") vocab_iterations = std::stoi(next());
     else if (a == "--vocab") vocab_file = next();
@@ -510,7 +513,7 @@ int main(int argc, char** argv) {
       std::fprintf(stderr, "usage: %s [--images DIR] [--cache FILE] [--words K,K,..|none] [--queries N] [--train-sample N]"
                            " [--train-words K] [--train-iterations N] [--reps N] [--skip-train] [--synthetic]"
                            " [--vocab-iterations N] [--vocab FILE] [--scale-words K] [--scale-descriptors N]"
-                           " [--scale-iterations N] [--scale-threads T] [--scale-sigma S] [--scale-out FILE]\n", argv[0]);
+                           " [--scale-iterations N] [--scale-threads T] [--scale-sigma S] [--scale-out FILE] [--no-avx512]\n", argv[0]);
       return 2;
     }
   }
@@ -521,11 +524,9 @@ int main(int argc, char** argv) {
   const Descriptors d = Load(images, cache);
   std::printf("# oxbow vocabulary benchmark\n\n%zu training and %zu held-out RootSIFT descriptors (%s), %s\n",
               d.train.size() / 128, d.queries.size() / 128, d.settings.c_str(),
-#if defined(OXBOW_VOCAB_AVX512)
-              "AVX-512 kernels (16-word panels)"
-#else
-              Avx2FmaAvailable() ? "AVX2+FMA kernels (8-word panels)" : "scalar kernels"
-#endif
+              Avx512Available()    ? "AVX-512 kernels (16-word panels)"
+              : Avx2FmaAvailable() ? "AVX2+FMA kernels"
+                                   : "scalar kernels"
   );
   if (!skip_train) TrainingComparison(d, train_sample, train_words, train_iterations, reps);
   if (scale_words > 0) ScaleTraining(d, scale_words, scale_descriptors, scale_iterations, scale_threads, scale_sigma, scale_out);
