@@ -268,6 +268,7 @@ OXBOW_AVX2_TARGET int ScanRowAvx2(const float* const (&rows)[3][3], int x0, int 
 #endif
 
 #ifdef OXBOW_AVX512
+OXBOW_AVX512_BEGIN
 // ScanRowAvx2's formula 16 columns at a time.
 OXBOW_AVX512_TARGET int ScanRowAvx512(const float* const (&rows)[3][3], int x0, int x1, float threshold, std::vector<int>* out) {
   const float* cur = rows[1][1];
@@ -314,6 +315,7 @@ OXBOW_AVX512_TARGET void SubtractAvx512(const float* b, const float* a, int w, f
     _mm512_mask_storeu_ps(d + x, lanes, _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, b + x), _mm512_maskz_loadu_ps(lanes, a + x)));
   }
 }
+OXBOW_AVX512_END
 #endif
 
 // Scans row y of a DoG layer for samples with |v| > threshold that are >= (or <=) all 26 neighbours;
@@ -592,6 +594,7 @@ OXBOW_AVX2_TARGET inline void Gradient8(const float* row, const float* above, co
 #endif
 
 #ifdef OXBOW_AVX512
+OXBOW_AVX512_BEGIN
 // FastAtan2Deg 16 lanes at a time (bit-identical).
 OXBOW_AVX512_TARGET inline __m512 Atan2Deg16(__m512 y, __m512 x) {
   const __m512 zero = _mm512_setzero_ps();
@@ -617,6 +620,7 @@ OXBOW_AVX512_TARGET inline void Gradient16(const float* row, const float* above,
   *mag = _mm512_sqrt_ps(_mm512_fmadd_ps(dx, dx, _mm512_mul_ps(dy, dy)));
   *ori = Atan2Deg16(dy, dx);
 }
+OXBOW_AVX512_END
 #endif
 
 // Gradient at column x of `row` (rows y-1 and y+1 in `above`, `below`): dx = I(x+1) - I(x-1),
@@ -730,6 +734,7 @@ inline void AddOrientationVote(float* temp, float ori, float wm) {
 }
 
 #ifdef OXBOW_AVX512
+OXBOW_AVX512_BEGIN
 // One row of the circular orientation window for the AVX-512 path: samples j0 <= j < j1 (columns
 // relative to the centre) of `row`, with the rows above and below and the row's Gaussian weight.
 struct OrientationWindowRow {
@@ -810,6 +815,7 @@ OXBOW_AVX512_TARGET void OrientationWindowAvx512(std::span<const OrientationWind
           OXBOW_AVX512_TARGET { PrepareOrientationVotes(row, j, wx, votes); },
       [&](const OrientationVotes& votes) OXBOW_AVX512_TARGET { AddOrientationVotes(votes, temp); });
 }
+OXBOW_AVX512_END
 #endif
 
 #if defined(OXBOW_AVX2) && !defined(OXBOW_AVX512_ALWAYS)  // the AVX-512 path replaces it where it always runs
@@ -1026,6 +1032,7 @@ OXBOW_AVX2_TARGET int DescriptorRowAvx2(const float* row, const float* above, co
 #endif
 
 #ifdef OXBOW_AVX512
+OXBOW_AVX512_BEGIN
 // One row of the descriptor window for the AVX-512 path: samples j0 <= j < j1, at image columns cx + j
 // of `row` (rows above and below for the gradient), with the row's bin offsets and Gaussian weight.
 struct DescriptorWindowRow {
@@ -1115,6 +1122,7 @@ OXBOW_AVX512_TARGET void DescriptorWindowAvx512(std::span<const DescriptorWindow
       [&](const DescriptorVector& v) OXBOW_AVX512_TARGET { AddDescriptorVector(v, h); });
   for (int k = 0; k < kDescBins; ++k) _mm512_storeu_ps(hist + k * kDescCellCount, h[k]);
 }
+OXBOW_AVX512_END
 #endif
 
 // Computes the 128-d descriptor of the keypoint at sub-pixel (x, y) of `img` (octave pixels), scale

@@ -36,6 +36,17 @@
 #define OXBOW_AVX512_TARGET __attribute__((target("avx2,fma,avx512f,avx512dq,avx512vl,avx512bw")))
 #endif
 
+// Around the AVX-512 code: GCC 12's unmasked AVX-512 intrinsics pass a deliberately undefined vector
+// (_mm512_undefined_ps) as the operand their full mask discards, and GCC reports it as "may be used
+// uninitialized" wherever they are inlined (GCC bug 105593). Between these two macros it does not.
+#if defined(__GNUC__) && !defined(__clang__)
+#define OXBOW_AVX512_BEGIN _Pragma("GCC diagnostic push") _Pragma("GCC diagnostic ignored \"-Wmaybe-uninitialized\"")
+#define OXBOW_AVX512_END _Pragma("GCC diagnostic pop")
+#else
+#define OXBOW_AVX512_BEGIN
+#define OXBOW_AVX512_END
+#endif
+
 namespace oxbow {
 
 // True when the OXBOW_AVX2_TARGET code may run here: compiled in for this CPU, or compiled by attribute
