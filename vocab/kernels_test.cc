@@ -2,7 +2,10 @@
 
 #include <gtest/gtest.h>
 
+#include "vocab/kbest.h"
+
 #include <cmath>
+#include <cstring>
 #include <random>
 #include <vector>
 
@@ -108,6 +111,46 @@ TEST(KernelsTest, BoundFiltersExactly) {
       }
     }
   }
+}
+
+// The AVX-512 insertions into 8- and 16-slot k-best lists give InsertKBest's list after every insertion:
+// streams of pairs with many equal scores (ties broken by row), into lists that start unfilled.
+TEST(KernelsTest, VectorKBestInsertionMatchesScalar) {
+#ifdef OXBOW_AVX512
+  if (!Avx512Available()) GTEST_SKIP() << "this CPU has no AVX-512: only the scalar insertion runs";
+  std::mt19937 rng(3);
+  for (const int k : {8, 16}) {
+    for (int stream = 0; stream < 200; ++stream) {
+      const int distinct = 1 + stream % 40;  // few distinct scores: many ties
+      std::vector<uint32_t> rows_s(k, 1000), rows_v(k, 1000);
+      std::vector<float> scores_s(k, INFINITY), scores_v(k, INFINITY);
+      for (int n = 0; n < 300; ++n) {
+        const auto row = static_cast<uint32_t>(rng() % 1000);
+        const float score = static_cast<float>(rng() % distinct) - 20.5f;
+        InsertKBest(rows_s.data(), scores_s.data(), k, row, score);
+        if (k == 16) InsertKBest16(rows_v.data(), scores_v.data(), row, score);
+        else InsertKBest8(rows_v.data(), scores_v.data(), row, score);
+        ASSERT_EQ(rows_v, rows_s) << "k " << k << " stream " << stream << " insertion " << n;
+        ASSERT_EQ(0, std::memcmp(scores_v.data(), scores_s.data(), sizeof(float) * k));
+      }
+    }
+  }
+  // WithKBestInsert takes them for k = 8 and 16 and InsertKBest for other k: the same lists either way.
+  for (const int k : {1, 3, 8, 16}) {
+    std::vector<uint32_t> rows_s(k, 1000), rows_v(k, 1000);
+    std::vector<float> scores_s(k, INFINITY), scores_v(k, INFINITY);
+    for (int n = 0; n < 500; ++n) {
+      const auto row = static_cast<uint32_t>(rng() % 1000);
+      const float score = static_cast<float>(rng() % 50);
+      InsertKBest(rows_s.data(), scores_s.data(), k, row, score);
+      WithKBestInsert(k, [&](auto insert) { insert(rows_v.data(), scores_v.data(), row, score); });
+    }
+    EXPECT_EQ(rows_v, rows_s) << "k " << k;
+    EXPECT_EQ(scores_v, scores_s) << "k " << k;
+  }
+#else
+  GTEST_SKIP() << "built without AVX-512 code: only the scalar insertion exists";
+#endif
 }
 
 TEST(KernelsTest, ScoreOrdersLikeSquaredDistance) {

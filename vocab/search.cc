@@ -7,26 +7,13 @@
 
 #include "sift/base/error.h"
 #include "sift/base/parallel.h"
+#include "vocab/kbest.h"
 #include "vocab/kernels.h"
 
 namespace oxbow::vocab::internal {
 namespace {
 
 constexpr float kInf = std::numeric_limits<float>::infinity();
-
-// Sorted (score, row) list of capacity k per query; rows/scores point at the query's k slots.
-inline void Insert(uint32_t* rows, float* scores, int k, uint32_t row, float score) {
-  const int last = k - 1;
-  if (score > scores[last] || (score == scores[last] && row >= rows[last])) return;
-  int pos = last;
-  while (pos > 0 && (score < scores[pos - 1] || (score == scores[pos - 1] && row < rows[pos - 1]))) {
-    scores[pos] = scores[pos - 1];
-    rows[pos] = rows[pos - 1];
-    --pos;
-  }
-  scores[pos] = score;
-  rows[pos] = row;
-}
 
 void Reset(uint32_t* rows, float* scores, size_t count, uint32_t fill_row) {
   std::fill(rows, rows + count, fill_row);
@@ -48,10 +35,12 @@ void ScanAll(const PanelMatrix& words, const float* queries, size_t count, int k
     const size_t w0 = p0 * kPanelWidth;
     const size_t nw = std::min(block * kPanelWidth, words.num_words - w0);
     auto bound = [&](size_t qi) { return scores[qi * k + k - 1]; };
-    auto sink = [&](size_t qi, size_t wj, float score) {
-      Insert(rows + qi * k, scores + qi * k, k, static_cast<uint32_t>(w0 + wj), score);
-    };
-    ScorePanels(queries, count, words.panels + p0 * stride, words.norms + w0, nw, words.dim, bound, sink);
+    WithKBestInsert(k, [&](auto insert) {
+      auto sink = [&](size_t qi, size_t wj, float score) {
+        insert(rows + qi * k, scores + qi * k, static_cast<uint32_t>(w0 + wj), score);
+      };
+      ScorePanels(queries, count, words.panels + p0 * stride, words.norms + w0, nw, words.dim, bound, sink);
+    });
   }
 }
 
@@ -157,13 +146,15 @@ void TwoLevelIndex::Search(const float* queries, size_t n, int k, int num_probes
           std::copy_n(batch + size_t{members[g]} * dim, dim, group_queries.data() + size_t{g - g0} * dim);
         const uint32_t* group = members.data() + g0;
         auto bound = [&](size_t gi) { return out_scores[size_t{group[gi]} * k + k - 1]; };
-        auto sink = [&](size_t gi, size_t wj, float score) {
-          const size_t q = group[gi];
-          Insert(out_rows + q * k, out_scores + q * k, k, static_cast<uint32_t>(w0 + wj), score);
-        };
         const uint64_t p0 = panel_offsets[l];
-        ScorePanels(group_queries.data(), g1 - g0, word_panels.data() + p0 * stride,
-                    word_panel_norms.data() + p0 * kPanelWidth, w1 - w0, dim, bound, sink);
+        WithKBestInsert(k, [&](auto insert) {
+          auto sink = [&](size_t gi, size_t wj, float score) {
+            const size_t q = group[gi];
+            insert(out_rows + q * k, out_scores + q * k, static_cast<uint32_t>(w0 + wj), score);
+          };
+          ScorePanels(group_queries.data(), g1 - g0, word_panels.data() + p0 * stride,
+                      word_panel_norms.data() + p0 * kPanelWidth, w1 - w0, dim, bound, sink);
+        });
       }
     });
     // 4. Merge the threads' lists into the output (the first thread's, then the others' entries).
@@ -176,7 +167,7 @@ void TwoLevelIndex::Search(const float* queries, size_t n, int k, int num_probes
         for (int j = 0; j < k; ++j) {
           const uint32_t row = worker_rows[w][q * k + j];
           if (row == fill_row) break;  // the rest of this list is unfilled
-          Insert(out_rows + q * k, out_scores + q * k, k, row, worker_scores[w][q * k + j]);
+          InsertKBest(out_rows + q * k, out_scores + q * k, k, row, worker_scores[w][q * k + j]);
         }
       }
     }
