@@ -113,29 +113,34 @@ TEST(KernelsTest, BoundFiltersExactly) {
   }
 }
 
-// The AVX-512 insertions into 8- and 16-slot k-best lists give InsertKBest's list after every insertion:
+// The vector insertions into 8- and 16-slot k-best lists give InsertKBest's list after every insertion:
 // streams of pairs with many equal scores (ties broken by row), into lists that start unfilled.
-TEST(KernelsTest, VectorKBestInsertionMatchesScalar) {
-#ifdef OXBOW_AVX512
-  if (!Avx512Available()) GTEST_SKIP() << "this CPU has no AVX-512: only the scalar insertion runs";
+using InsertFn = void (*)(uint32_t*, float*, uint32_t, float);
+void ExpectInsertionMatchesScalar(int k, InsertFn insert, const char* name) {
   std::mt19937 rng(3);
-  for (const int k : {8, 16}) {
-    for (int stream = 0; stream < 200; ++stream) {
-      const int distinct = 1 + stream % 40;  // few distinct scores: many ties
-      std::vector<uint32_t> rows_s(k, 1000), rows_v(k, 1000);
-      std::vector<float> scores_s(k, INFINITY), scores_v(k, INFINITY);
-      for (int n = 0; n < 300; ++n) {
-        const auto row = static_cast<uint32_t>(rng() % 1000);
-        const float score = static_cast<float>(rng() % distinct) - 20.5f;
-        InsertKBest(rows_s.data(), scores_s.data(), k, row, score);
-        if (k == 16) InsertKBest16(rows_v.data(), scores_v.data(), row, score);
-        else InsertKBest8(rows_v.data(), scores_v.data(), row, score);
-        ASSERT_EQ(rows_v, rows_s) << "k " << k << " stream " << stream << " insertion " << n;
-        ASSERT_EQ(0, std::memcmp(scores_v.data(), scores_s.data(), sizeof(float) * k));
-      }
+  for (int stream = 0; stream < 200; ++stream) {
+    const int distinct = 1 + stream % 40;  // few distinct scores: many ties
+    // Odd streams mix rows below and above 2^31 (rows are unsigned; the AVX2 insertion has only a signed
+    // compare) and start from the largest row.
+    const bool high = stream % 2 == 1;
+    const uint32_t fill = high ? 0xFFFFFFFFu : 1000u;
+    std::vector<uint32_t> rows_s(k, fill), rows_v(k, fill);
+    std::vector<float> scores_s(k, INFINITY), scores_v(k, INFINITY);
+    for (int n = 0; n < 300; ++n) {
+      const auto row = static_cast<uint32_t>(rng() % 1000) + (high && rng() % 2 == 0 ? 0x80000000u : 0u);
+      const float score = static_cast<float>(rng() % distinct) - 20.5f;
+      InsertKBest(rows_s.data(), scores_s.data(), k, row, score);
+      insert(rows_v.data(), scores_v.data(), row, score);
+      ASSERT_EQ(rows_v, rows_s) << name << " stream " << stream << " insertion " << n;
+      ASSERT_EQ(0, std::memcmp(scores_v.data(), scores_s.data(), sizeof(float) * k)) << name << " stream " << stream;
     }
   }
-  // WithKBestInsert takes them for k = 8 and 16 and InsertKBest for other k: the same lists either way.
+}
+
+// WithKBestInsert gives InsertKBest's lists for k = 8 and 16, where it takes a vector insertion, and for
+// other k.
+void ExpectWithKBestInsertMatchesScalar() {
+  std::mt19937 rng(4);
   for (const int k : {1, 3, 8, 16}) {
     std::vector<uint32_t> rows_s(k, 1000), rows_v(k, 1000);
     std::vector<float> scores_s(k, INFINITY), scores_v(k, INFINITY);
@@ -148,9 +153,35 @@ TEST(KernelsTest, VectorKBestInsertionMatchesScalar) {
     EXPECT_EQ(rows_v, rows_s) << "k " << k;
     EXPECT_EQ(scores_v, scores_s) << "k " << k;
   }
-#else
-  GTEST_SKIP() << "built without AVX-512 code: only the scalar insertion exists";
+}
+
+TEST(KernelsTest, VectorKBestInsertionMatchesScalar) {
+  int checked = 0;
+#ifdef OXBOW_AVX512
+  if (Avx512Available()) {
+    ExpectInsertionMatchesScalar(16, InsertKBest16, "AVX-512, k 16");
+    ExpectInsertionMatchesScalar(8, InsertKBest8, "AVX-512, k 8");
+    checked += 2;
+  }
 #endif
+#if defined(OXBOW_AVX2) && !defined(OXBOW_AVX512_ALWAYS)
+  if (Avx2FmaAvailable()) {
+    ExpectInsertionMatchesScalar(16, InsertKBest16Avx2, "AVX2, k 16");
+    ExpectInsertionMatchesScalar(8, InsertKBest8Avx2, "AVX2, k 8");
+    checked += 2;
+  }
+#endif
+  // WithKBestInsert on every path this build can take here: AVX-512, then AVX2 where AllowAvx512(false)
+  // turns it off, then the scalar insertion.
+  ExpectWithKBestInsertMatchesScalar();
+  {
+    AllowAvx512(false);
+    struct Restore {
+      ~Restore() { AllowAvx512(true); }
+    } restore;
+    ExpectWithKBestInsertMatchesScalar();
+  }
+  if (checked == 0) GTEST_SKIP() << "no vector insertion can run in this build on this CPU: only the scalar one was checked";
 }
 
 TEST(KernelsTest, ScoreOrdersLikeSquaredDistance) {
