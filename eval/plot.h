@@ -23,7 +23,7 @@ struct ChartOptions {
   double x_min = 0, x_max = 1;  // axis ranges; ignored (auto) when min >= max
   double y_min = 0, y_max = 1;
   bool log_x = false;           // logarithmic x axis (for vocabulary sizes); x values must be > 0
-  std::vector<double> x_ticks;  // x positions of the tick labels (e.g. the measured sizes); empty: 6 even steps
+  std::vector<double> x_ticks = {};  // x positions of the tick labels (e.g. the measured sizes); empty: 6 even steps
   bool legend_at_bottom = false;  // legend in the bottom-right corner instead of the top-right
   int width_px = 900;
   int height_px = 600;

@@ -23,7 +23,9 @@
 
 namespace oxbow::index {
 
-namespace {
+// A named namespace, not an anonymous one: Catalogue::Db, a type with external linkage, holds a
+// LogCopier.
+namespace catalogue_internal {
 
 // Copies the write-ahead log into the database file on a thread and connection of its own. SQLite's
 // automatic checkpoint runs inside the COMMIT that takes the log past 1000 pages: that commit copies
@@ -132,7 +134,9 @@ class LogCopier {
   bool stop_ = false;
 };
 
-}  // namespace
+}  // namespace catalogue_internal
+
+using catalogue_internal::LogCopier;
 
 // Owns the connection and the prepared statements.
 struct Catalogue::Db {

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <cstring>
 #include <numbers>
 #include <numeric>
 
@@ -82,15 +83,12 @@ void PackRecords(std::span<const sift::Keypoint> keypoints, std::span<const uint
 
 // The BLOB header (kBlobHeaderBytes) of `count` features whose body has CRC-32 `crc`.
 void WriteBlobHeader(uint8_t* out, bool with_signatures, int width, int height, size_t count, uint32_t crc) {
-  io::ByteWriter header;
-  for (char c : kMagic) header.Put<char>(c);
-  header.Put<uint32_t>(with_signatures ? kSignedBlobVersion : kBlobVersion);
-  header.Put<int32_t>(width);
-  header.Put<int32_t>(height);
-  header.Put<uint32_t>(static_cast<uint32_t>(count));
-  header.Put<uint32_t>(crc);
-  OXBOW_CHECK(header.bytes().size() == kBlobHeaderBytes);
-  std::copy(header.bytes().begin(), header.bytes().end(), out);
+  // Host byte order, as the reader's io::ByteReader expects.
+  const uint32_t fields[5] = {with_signatures ? kSignedBlobVersion : kBlobVersion, static_cast<uint32_t>(width),
+                              static_cast<uint32_t>(height), static_cast<uint32_t>(count), crc};
+  static_assert(sizeof(kMagic) + sizeof(fields) == kBlobHeaderBytes);
+  std::memcpy(out, kMagic, sizeof(kMagic));
+  std::memcpy(out + sizeof(kMagic), fields, sizeof(fields));
 }
 
 }  // namespace
