@@ -122,9 +122,43 @@ check_one() {
   if [[ $status -eq 0 ]]; then echo "$key ${file#"$root"/}" >"$out/$n.key"; fi
 }
 export -f check_one
+# Stopping this script (Ctrl-C, or a TERM sent to it alone, as a caller's time limit does) stops the
+# analyses it started: xargs does not pass a signal on to its workers. The workers run in the
+# background so that the trap runs at once, not when they have all finished.
+descendants() {  # the PIDs below $1, each parent before its children (from /proc: procps may be absent)
+  local -A children=()
+  local stat line rest pid ppid child queue=("$1")
+  for stat in /proc/[0-9]*/stat; do
+    read -r line 2>/dev/null <"$stat" || continue
+    pid=${line%% *}
+    rest=${line##*) }
+    ppid=${rest#* }
+    ppid=${ppid%% *}
+    children[$ppid]+="$pid "
+  done
+  while ((${#queue[@]})); do
+    pid=${queue[0]}
+    queue=("${queue[@]:1}")
+    for child in ${children[$pid]:-}; do
+      echo "$child"
+      queue+=("$child")
+    done
+  done
+}
+stop_workers() {
+  trap - INT TERM
+  local pids
+  pids=$(descendants $$)
+  # shellcheck disable=SC2086  # one PID per word
+  if [[ -n $pids ]]; then kill -TERM $pids 2>/dev/null || true; fi
+  echo "clang-tidy.sh: stopped; the analyses it had started were stopped too" >&2
+  exit 130
+}
+trap stop_workers INT TERM
 start=$(date +%s)
 for i in "${!files[@]}"; do printf '%s\0%s\0' "$i" "${files[$i]}"; done |
-  xargs -0 -n 2 -P "${OXBOW_JOBS:-$(nproc)}" bash -c 'check_one "$1" "$2"' _
+  xargs -0 -n 2 -P "${OXBOW_JOBS:-$(nproc)}" bash -c 'check_one "$1" "$2"' _ &
+wait $!
 # clang-tidy 16's bugprone-unchecked-optional-access can spin in its SAT solver for far longer than the
 # limit on a file that another run of the same command analyses in seconds: the order of the solver's
 # work follows heap addresses, which differ from run to run (llvm/llvm-project#69298, fixed in 17). A
