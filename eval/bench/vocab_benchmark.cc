@@ -16,11 +16,13 @@
 //
 // Usage: vocab_benchmark [--images DIR] [--cache FILE] [--words 10000,100000,1000000|none] [--queries N]
 //                        [--train-sample N] [--train-words K] [--train-iterations N] [--reps N] [--skip-train]
-//                        [--synthetic] [--vocab-iterations N] [--vocab FILE] [--no-avx512]
+//                        [--synthetic] [--vocab-iterations N] [--vocab FILE] [--no-avx512] [--oxbow-only]
 //                        [--scale-words K --scale-descriptors N --scale-iterations N --scale-threads T
 //                         --scale-out FILE]
 // --no-avx512: the AVX2 kernels where the AVX-512 ones are chosen at run time (a portable build on an
 // AVX-512 CPU), to compare the two on one machine.
+// --oxbow-only: the assignment table's two-level rows only (no exact search, FLANN or faiss), for
+// comparing two builds of oxbow with runs in turn: seconds per run instead of minutes.
 // Assignment vocabularies up to 200k words are trained with Train (inverted-file assignment,
 // --vocab-iterations Lloyd iterations, default 8) on all training descriptors; larger ones, or all with
 // --synthetic, are synthetic-from-data (training descriptors + Gaussian noise, sigma 0.01). Each is
@@ -277,7 +279,7 @@ vocab::Vocabulary AssignmentVocabulary(const Descriptors& d, size_t k, int itera
 }
 
 void AssignmentComparison(const Descriptors& d, const vocab::Vocabulary& vocab_ref, const std::string& origin,
-                          size_t num_queries, int reps) {
+                          size_t num_queries, int reps, bool peers) {
   const vocab::Vocabulary* vocab = &vocab_ref;
   const size_t k = vocab->size();
   const std::vector<float> queries = Subsample(d.queries, num_queries, 11);
@@ -296,17 +298,20 @@ void AssignmentComparison(const Descriptors& d, const vocab::Vocabulary& vocab_r
                          vocab->Quantize({q, n * 128}, {out, n}, {.num_threads = 1, .num_probes = probes});
                        }});
   }
-  methods.push_back({"oxbow exact (panel kernel)", [&](const float* q, size_t n, uint32_t* out) {
-                       vocab->Quantize({q, n * 128}, {out, n}, {.num_threads = 1, .exact = true});
-                     }});
+  if (peers) {
+    methods.push_back({"oxbow exact (panel kernel)", [&](const float* q, size_t n, uint32_t* out) {
+                         vocab->Quantize({q, n * 128}, {out, n}, {.num_threads = 1, .exact = true});
+                       }});
+  }
   flann::Matrix<float> dataset(const_cast<float*>(centroids.data()), k, 128);
   flann::Index<flann::L2<float>> kdforest(dataset, flann::KDTreeIndexParams(8));
-  {
+  if (peers) {
     const auto t = Clock::now();
     kdforest.buildIndex();
     std::printf("(FLANN kd-forest, 8 trees, built in %.1f s)\n", Seconds(t));
   }
   for (int checks : {32, 128, 512}) {
+    if (!peers) break;
     methods.push_back({"FLANN kd-forest, 8 trees, " + std::to_string(checks) + " checks",
                        [&, checks](const float* q, size_t n, uint32_t* out) {
                          std::vector<int> idx(n);
@@ -324,7 +329,8 @@ void AssignmentComparison(const Descriptors& d, const vocab::Vocabulary& vocab_r
   faiss::IndexFlatL2 flat(128);
   flat.add(static_cast<faiss::Index::idx_t>(k), centroids.data());
   std::unique_ptr<faiss::IndexHNSWFlat> hnsw;
-  if (k <= 200000) {
+  const bool faiss_peers = peers && k <= 200000;
+  if (faiss_peers) {
     hnsw = std::make_unique<faiss::IndexHNSWFlat>(128, 32);
     const auto t = Clock::now();
     hnsw->add(static_cast<faiss::Index::idx_t>(k), centroids.data());
@@ -339,7 +345,7 @@ void AssignmentComparison(const Descriptors& d, const vocab::Vocabulary& vocab_r
   // faiss's flat search goes through BLAS sgemm for batches of 20 or more queries; Debian's default
   // libblas.so.3 is the reference (netlib) BLAS, so faiss's own SIMD distance loop (BLAS threshold
   // raised above the batch) is measured too.
-  if (k <= 200000) {
+  if (faiss_peers) {
     methods.push_back({"faiss IndexFlatL2 (exact, sgemm via Debian reference libblas)",
                        [&](const float* q, size_t n, uint32_t* out) { faiss_search(flat, q, n, out); }});
     methods.push_back({"faiss IndexFlatL2 (exact, faiss distance loop, no BLAS)",
@@ -470,7 +476,7 @@ int main(int argc, char** argv) {
   std::vector<size_t> words = {10000, 100000, 1000000};
   size_t num_queries = 20000, train_sample = 100000, train_words = 1000;
   int train_iterations = 10, reps = 3, vocab_iterations = 8;
-  bool skip_train = false, synthetic = false;
+  bool skip_train = false, synthetic = false, peers = true;
   std::string vocab_file, scale_out;
   size_t scale_words = 0, scale_descriptors = 5'000'000;
   int scale_iterations = 2, scale_threads = 2;
@@ -490,6 +496,7 @@ int main(int argc, char** argv) {
     else if (a == "--reps") reps = std::stoi(next());
     else if (a == "--skip-train") skip_train = true;
     else if (a == "--no-avx512") AllowAvx512(false);
+    else if (a == "--oxbow-only") peers = false;
     else if (a == "--synthetic") synthetic = true;
     else if (a == "--vocab-iterations") vocab_iterations = std::stoi(next());
     else if (a == "--vocab") vocab_file = next();
@@ -513,7 +520,8 @@ int main(int argc, char** argv) {
       std::fprintf(stderr, "usage: %s [--images DIR] [--cache FILE] [--words K,K,..|none] [--queries N] [--train-sample N]"
                            " [--train-words K] [--train-iterations N] [--reps N] [--skip-train] [--synthetic]"
                            " [--vocab-iterations N] [--vocab FILE] [--scale-words K] [--scale-descriptors N]"
-                           " [--scale-iterations N] [--scale-threads T] [--scale-sigma S] [--scale-out FILE] [--no-avx512]\n", argv[0]);
+                           " [--scale-iterations N] [--scale-threads T] [--scale-sigma S] [--scale-out FILE] [--no-avx512]"
+                           " [--oxbow-only]\n", argv[0]);
       return 2;
     }
   }
@@ -536,13 +544,13 @@ int main(int argc, char** argv) {
       std::fprintf(stderr, "%s\n", v.error().ToString().c_str());
       return 1;
     }
-    AssignmentComparison(d, *v, "read from " + vocab_file, num_queries, reps);
+    AssignmentComparison(d, *v, "read from " + vocab_file, num_queries, reps, peers);
   }
   for (size_t k : words) {
     std::string origin;
     const vocab::Vocabulary v = AssignmentVocabulary(d, k, vocab_iterations, fs::path(cache).parent_path().string(),
                                                      synthetic || k > 200000, origin);
-    AssignmentComparison(d, v, origin, num_queries, reps);
+    AssignmentComparison(d, v, origin, num_queries, reps, peers);
   }
   return 0;
 }
