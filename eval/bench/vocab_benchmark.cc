@@ -309,28 +309,27 @@ void AssignmentComparison(const Descriptors& d, const vocab::Vocabulary& vocab_r
     const auto t = Clock::now();
     kdforest.buildIndex();
     std::printf("(FLANN kd-forest, 8 trees, built in %.1f s)\n", Seconds(t));
-  }
-  for (int checks : {32, 128, 512}) {
-    if (!peers) break;
-    methods.push_back({"FLANN kd-forest, 8 trees, " + std::to_string(checks) + " checks",
-                       [&, checks](const float* q, size_t n, uint32_t* out) {
-                         std::vector<int> idx(n);
-                         std::vector<float> dist(n);
-                         flann::Matrix<float> qm(const_cast<float*>(q), n, 128);
-                         flann::Matrix<int> im(idx.data(), n, 1);
-                         flann::Matrix<float> dm(dist.data(), n, 1);
-                         flann::SearchParams p(checks);
-                         p.cores = 1;
-                         kdforest.knnSearch(qm, im, dm, 1, p);
-                         for (size_t i = 0; i < n; ++i) out[i] = static_cast<uint32_t>(idx[i]);
-                       }});
+    for (int checks : {32, 128, 512}) {
+      methods.push_back({"FLANN kd-forest, 8 trees, " + std::to_string(checks) + " checks",
+                         [&, checks](const float* q, size_t n, uint32_t* out) {
+                           std::vector<int> idx(n);
+                           std::vector<float> dist(n);
+                           flann::Matrix<float> qm(const_cast<float*>(q), n, 128);
+                           flann::Matrix<int> im(idx.data(), n, 1);
+                           flann::Matrix<float> dm(dist.data(), n, 1);
+                           flann::SearchParams p(checks);
+                           p.cores = 1;
+                           kdforest.knnSearch(qm, im, dm, 1, p);
+                           for (size_t i = 0; i < n; ++i) out[i] = static_cast<uint32_t>(idx[i]);
+                         }});
+    }
   }
   omp_set_num_threads(ResolveThreadCount(0));
   faiss::IndexFlatL2 flat(128);
-  flat.add(static_cast<faiss::Index::idx_t>(k), centroids.data());
   std::unique_ptr<faiss::IndexHNSWFlat> hnsw;
   const bool faiss_peers = peers && k <= 200000;
   if (faiss_peers) {
+    flat.add(static_cast<faiss::Index::idx_t>(k), centroids.data());
     hnsw = std::make_unique<faiss::IndexHNSWFlat>(128, 32);
     const auto t = Clock::now();
     hnsw->add(static_cast<faiss::Index::idx_t>(k), centroids.data());
