@@ -266,7 +266,7 @@ TEST_F(ShardPort, ConcurrentOversizedMessagesLeaveTheShardsMemoryBounded) {
       if (line.starts_with("VmHWM:")) return std::stol(line.substr(6)) / 1024;
     return -1L;
   };
-  const long before = rss_mib();
+  [[maybe_unused]] const long before = rss_mib();  // read only where the bound is checked
   constexpr int kSenders = 5;  // 750 MiB of messages at once
   std::vector<std::thread> senders;
   senders.reserve(kSenders);
@@ -280,7 +280,7 @@ TEST_F(ShardPort, ConcurrentOversizedMessagesLeaveTheShardsMemoryBounded) {
     });
   }
   for (std::thread& t : senders) t.join();
-  const long after = rss_mib();
+  [[maybe_unused]] const long after = rss_mib();
   // The quota: two of the largest messages (33 MiB each by default) and 64 MiB, plus what parsing and
   // the allocator keep; unbounded, the five messages took the shard past 750 MiB.
   EXPECT_EQ(refused.load(), kSenders);

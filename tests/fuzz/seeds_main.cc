@@ -248,12 +248,12 @@ int main(int argc, char** argv) {
     // Framing and flood shapes the server refuses before httplib parses them (server/http/request_guard.h).
     Bytes chunked = text("POST /v1/search HTTP/1.1\r\nHost: x\r\nContent-Type: image/jpeg\r\nTransfer-Encoding: chunked\r\n\r\n");
     for (size_t at = 0; at < jpeg.size(); at += 4096) {
-      const size_t n = std::min<size_t>(4096, jpeg.size() - at);
+      const size_t chunk = std::min<size_t>(4096, jpeg.size() - at);
       char size_line[32];
-      std::snprintf(size_line, sizeof size_line, "%zx\r\n", n);
+      std::snprintf(size_line, sizeof size_line, "%zx\r\n", chunk);
       const Bytes line = text(size_line);
       chunked.insert(chunked.end(), line.begin(), line.end());
-      chunked.insert(chunked.end(), jpeg.begin() + static_cast<std::ptrdiff_t>(at), jpeg.begin() + static_cast<std::ptrdiff_t>(at + n));
+      chunked.insert(chunked.end(), jpeg.begin() + static_cast<std::ptrdiff_t>(at), jpeg.begin() + static_cast<std::ptrdiff_t>(at + chunk));
       chunked.push_back('\r');
       chunked.push_back('\n');
     }
