@@ -186,9 +186,11 @@ TEST(SiftSynthetic, TinyAndOddSizedImagesDoNotCrash) {
     cv::Mat noise(std::max(h, 1), std::max(w, 1), CV_8U);
     rng.fill(noise, cv::RNG::UNIFORM, 0, 256);
     GrayImage g = w == 0 ? GrayImage{} : FromMat(noise);
-    for (const bool upsample : {true, false}) {
+    for (const auto& [upsample, sampling] : {std::pair{true, DescriptorSampling::kPixels}, std::pair{false, DescriptorSampling::kPixels},
+                                             std::pair{true, DescriptorSampling::kGrid}, std::pair{false, DescriptorSampling::kGrid}}) {
       SiftOptions options;
       options.upsample_first_octave = upsample;
+      options.descriptor_sampling = sampling;
       const FeatureSet f = MakeExtractor(options).Extract(g);
       EXPECT_EQ(f.descriptors.size(), f.size() * kDescriptorDim);
       for (const Keypoint& k : f.keypoints) {
@@ -214,9 +216,12 @@ TEST(SiftDeterminism, ThreadCountsAndSimdPathsAgreeExactly) {
   const cv::Mat gray = LoadGray(kOpencvData + "box.png");
   ASSERT_FALSE(gray.empty());
   const GrayImage image = FromMat(gray);
-  for (const KeypointStyle style : {KeypointStyle::kVlfeat, KeypointStyle::kOpenCv}) {
+  for (const auto& [style, sampling] : {std::pair{KeypointStyle::kVlfeat, DescriptorSampling::kPixels},
+                                        std::pair{KeypointStyle::kOpenCv, DescriptorSampling::kPixels},
+                                        std::pair{KeypointStyle::kVlfeat, DescriptorSampling::kGrid}}) {
     SiftOptions options;
     options.keypoint_style = style;
+    options.descriptor_sampling = sampling;
     options.num_threads = 1;
     const FeatureSet one = MakeExtractor(options).Extract(image);
     ASSERT_GT(one.size(), 100u);
@@ -227,7 +232,7 @@ TEST(SiftDeterminism, ThreadCountsAndSimdPathsAgreeExactly) {
     options.num_threads = 2;
     EXPECT_TRUE(SameFeatures(one, internal::ExtractImpl(image, options, /*allow_simd=*/false)))
         << "scalar and vector paths differ (vector paths available: " << Avx2FmaAvailable() << "), style "
-        << static_cast<int>(style);
+        << static_cast<int>(style) << ", sampling " << static_cast<int>(sampling);
 #ifdef OXBOW_AVX512_DISPATCH
     // A portable build on an AVX-512 CPU: `one` came from the AVX-512 paths; the AVX2 paths must agree.
     if (Avx512Available()) {
@@ -236,7 +241,8 @@ TEST(SiftDeterminism, ThreadCountsAndSimdPathsAgreeExactly) {
       const FeatureSet avx2 = MakeExtractor(options).Extract(image);
       AllowAvx512(true);
       EXPECT_TRUE(avx2_taken);
-      EXPECT_TRUE(SameFeatures(one, avx2)) << "AVX-512 and AVX2 paths differ, style " << static_cast<int>(style);
+      EXPECT_TRUE(SameFeatures(one, avx2)) << "AVX-512 and AVX2 paths differ, style " << static_cast<int>(style)
+                                           << ", sampling " << static_cast<int>(sampling);
     }
 #endif
   }
@@ -719,6 +725,44 @@ TEST(SiftHomography, EverySecondDescriptorRowMatchesAsEveryRow) {
   EXPECT_GE(some.score.correct_matches, all.score.correct_matches * 49 / 50);
 }
 
+// The grid sampling (DescriptorSampling::kGrid) describes the same keypoints as the pixel sampling, in
+// the same layout: a keypoint's two descriptors are close (the median distance is a fraction of the
+// distance to another keypoint's), and on graf1->graf3 the correct matches are within 3%.
+TEST(SiftHomography, GridSamplingDescribesAsThePixels) {
+  SiftOptions pixels = OpencvLike();
+  pixels.keypoint_style = KeypointStyle::kVlfeat;
+  SiftOptions grid = pixels;
+  grid.descriptor_sampling = DescriptorSampling::kGrid;
+  const GrafScore by_pixels = ScoreGraf(pixels), by_grid = ScoreGraf(grid);
+  ASSERT_EQ(by_pixels.graf1.size(), by_grid.graf1.size());
+  ASSERT_GT(by_pixels.graf1.size(), 1000u);
+  std::vector<double> same, other;
+  for (size_t i = 0; i < by_pixels.graf1.size(); ++i) {
+    EXPECT_EQ(by_pixels.graf1.keypoints[i].x, by_grid.graf1.keypoints[i].x);
+    EXPECT_EQ(by_pixels.graf1.keypoints[i].orientation, by_grid.graf1.keypoints[i].orientation);
+    const auto a = by_pixels.graf1.Descriptor(i), b = by_grid.graf1.Descriptor(i);
+    const auto c = by_grid.graf1.Descriptor((i + by_grid.graf1.size() / 2) % by_grid.graf1.size());
+    double d_same = 0, d_other = 0;
+    for (int e = 0; e < kDescriptorDim; ++e) {
+      d_same += std::pow(a[e] - b[e], 2);
+      d_other += std::pow(a[e] - c[e], 2);
+    }
+    same.push_back(std::sqrt(d_same));
+    other.push_back(std::sqrt(d_other));
+  }
+  auto median = [](std::vector<double> v) {
+    std::nth_element(v.begin(), v.begin() + static_cast<ptrdiff_t>(v.size() / 2), v.end());
+    return v[v.size() / 2];
+  };
+  std::printf("graf1: median distance between a keypoint's pixel and grid descriptors %.3f, to another keypoint's %.3f\n",
+              median(same), median(other));
+  EXPECT_LT(median(same), median(other) / 3);
+  std::printf("graf1->graf3: correct matches with the pixel sampling %d, the grid %d\n", by_pixels.score.correct_matches,
+              by_grid.score.correct_matches);
+  EXPECT_GE(by_grid.score.correct_matches, by_pixels.score.correct_matches * 97 / 100);
+  EXPECT_GE(by_grid.score.matching_score, by_pixels.score.matching_score - 0.01);
+}
+
 TEST(SiftHomographySharedData, BoatSequenceNotWorseThanOpencv) {
   const std::string data = oxbow::testing::SharedDataDir().string();
   const std::string dir = data + "/oxford_affine/images/boat/";
@@ -827,6 +871,21 @@ TEST(SiftOptions, CheckDescribeAndFingerprint) {
   EXPECT_EQ(parsed_wide->descriptor_row_step, 2);
   for (const char* field : {";magnification=3", ";row_step=1", ";magnification=wide", ";row_step=two"})
     EXPECT_FALSE(SiftOptions::FromDescription(options.Describe() + field)) << field;  // not canonical, or not a number
+  // The grid sampling is a `sampling=grid` field; the pixel sampling is no field, as in every description
+  // made before the field existed. It has no rows to step over.
+  SiftOptions grid = options;
+  grid.descriptor_sampling = DescriptorSampling::kGrid;
+  EXPECT_FALSE(grid.Check().has_value());
+  EXPECT_EQ(grid.Describe(), options.Describe() + ";sampling=grid");
+  EXPECT_NE(grid.Fingerprint(), options.Fingerprint());
+  auto parsed_grid = SiftOptions::FromDescription(grid.Describe());
+  ASSERT_TRUE(parsed_grid) << parsed_grid.error().ToString();
+  EXPECT_EQ(parsed_grid->descriptor_sampling, DescriptorSampling::kGrid);
+  EXPECT_EQ(parsed_default->descriptor_sampling, DescriptorSampling::kPixels);
+  for (const char* field : {";sampling=pixels", ";sampling=Grid"})
+    EXPECT_FALSE(SiftOptions::FromDescription(options.Describe() + field)) << field;
+  grid.descriptor_row_step = 2;
+  EXPECT_TRUE(grid.Check().has_value());
 
   for (auto mutate : std::vector<void (*)(SiftOptions&)>{
            [](SiftOptions& o) { o.sigma = 0; }, [](SiftOptions& o) { o.intervals = 0; },

@@ -68,6 +68,18 @@ TEST(HammingCli, TrainIndexAndSearchWithSignatures) {
   out = RunCommand(Oxbow("vocab info " + path("upright-he.oxvoc")), &rc);
   EXPECT_NE(out.find("hamming      64-bit embedding"), std::string::npos) << out;
   EXPECT_NE(out.find("upright=1;magnification=4;row_step=2"), std::string::npos) << out;
+  // The grid sampling likewise.
+  out = RunCommand(Oxbow("vocab train --images " + path("photos") + " --descriptor-sampling grid --words 64 --no-hamming --out " +
+                         path("grid.oxvoc")),
+                   &rc);
+  ASSERT_EQ(rc, 0) << out;
+  out = RunCommand(Oxbow("vocab hamming --vocab " + path("grid.oxvoc") + " --images " + path("photos") + " --out " +
+                         path("grid-he.oxvoc")),
+                   &rc);
+  ASSERT_EQ(rc, 0) << out;
+  out = RunCommand(Oxbow("vocab info " + path("grid-he.oxvoc")), &rc);
+  EXPECT_NE(out.find("hamming      64-bit embedding"), std::string::npos) << out;
+  EXPECT_NE(out.find("keypoints=vlfeat;sampling=grid"), std::string::npos) << out;
 
   out = RunCommand(Oxbow("index build --vocab " + path("he.oxvoc") + " --images " + path("photos") + " --out " +
                          path("index")),

@@ -4,7 +4,10 @@
 // peak memory for a 4000x3000 photo.
 //
 //   build/eval/bench/sift_benchmark [--reps N] [--skip-large] [--quick] [--quality] [--processes]
+//                                   [--descriptor-sampling grid|pixels]
 //     --quick: graf1 only, oxbow vs cv::SIFT only, no quality table.
+//     --descriptor-sampling: where oxbow's timed descriptors take their gradients (SiftOptions::
+//     descriptor_sampling; pixels, the default, by default). The quality tables show both.
 //     --quality: the quality tables only (no timing).
 //     --processes: every method runs its repetitions of an image in a process of its own (forked from
 //     this one before any extraction), so no method inherits another's allocator and page state.
@@ -68,6 +71,9 @@ using Clock = std::chrono::steady_clock;
 // Every side extracts with cv::SIFT's contrast threshold (oxbow's default is lower, 0.034), so the
 // three find keypoints under the same rule.
 constexpr double kPeerContrast = 0.04;
+
+// Where oxbow's timed descriptors take their gradients (--descriptor-sampling); the quality tables show both.
+DescriptorSampling g_sampling = DescriptorSampling::kPixels;
 
 const std::string kOpencvData = "/usr/share/doc/opencv-doc/examples/data/";
 const std::string kShared = OXBOW_SOURCE_DIR "/../shared/data/";
@@ -146,6 +152,7 @@ class Extractors {
     SiftOptions options;
     options.num_threads = threads;
     options.contrast_threshold = kPeerContrast;
+    options.descriptor_sampling = g_sampling;
     return *SiftExtractor::Create(options);
   }
   static cv::Ptr<cv::SIFT> NewOpencv() { return cv::SIFT::create(0, 3, kPeerContrast, 10, 1.6); }
@@ -293,8 +300,10 @@ int main(int argc, char** argv) {
     else if (!std::strcmp(argv[i], "--quick")) quick = skip_large = true;
     else if (!std::strcmp(argv[i], "--quality")) quality_only = skip_large = true;
     else if (!std::strcmp(argv[i], "--processes")) processes = true;
+    else if (!std::strcmp(argv[i], "--descriptor-sampling") && i + 1 < argc && (!std::strcmp(argv[i + 1], "grid") || !std::strcmp(argv[i + 1], "pixels")))
+      g_sampling = !std::strcmp(argv[++i], "grid") ? DescriptorSampling::kGrid : DescriptorSampling::kPixels;
     else {
-      std::fprintf(stderr, "usage: %s [--reps N] [--skip-large] [--quick] [--quality] [--processes]\n", argv[0]);
+      std::fprintf(stderr, "usage: %s [--reps N] [--skip-large] [--quick] [--quality] [--processes] [--descriptor-sampling grid|pixels]\n", argv[0]);
       return 2;
     }
   }
@@ -316,8 +325,10 @@ int main(int argc, char** argv) {
   if (quality_only) images.clear();
   Extractors warm;
   if (!images.empty()) {
-    std::printf("SIFT benchmark: %d repetitions, %s; median ms per image from the decoded 8-bit image\n", reps,
-                processes ? "each method's repetitions in a process of its own" : "methods interleaved in one process");
+    std::printf("SIFT benchmark: %d repetitions, %s; median ms per image from the decoded 8-bit image;\n"
+                "oxbow's descriptors sampled at the %s\n", reps,
+                processes ? "each method's repetitions in a process of its own" : "methods interleaved in one process",
+                g_sampling == DescriptorSampling::kGrid ? "grid" : "pixels");
     std::printf("(conversion to float inside every timer; cold = new thread and new extractor per run, warm = one of each;\n"
                 " blocks up to 32 MiB from the heap and freed memory kept by the process, for every side)\n\n");
     std::printf("| image | peer | threads | state | oxbow wall ms | peer wall ms | ours/peer wall | oxbow CPU ms | peer CPU ms "
@@ -385,8 +396,10 @@ int main(int argc, char** argv) {
     std::string name;
     std::function<FeatureSet(const cv::Mat&)> extract;
   };
-  auto oxbow_raw = [](KeypointStyle style, double magnification, int row_step) {
+  auto oxbow_raw = [](KeypointStyle style, double magnification, int row_step,
+                      DescriptorSampling sampling = DescriptorSampling::kPixels) {
     SiftOptions options;
+    options.descriptor_sampling = sampling;
     options.descriptor = DescriptorKind::kSift;
     options.keypoint_style = style;
     options.contrast_threshold = kPeerContrast;
@@ -394,11 +407,14 @@ int main(int argc, char** argv) {
     options.descriptor_row_step = row_step;
     return [extractor = *SiftExtractor::Create(options)](const cv::Mat& m) { return extractor.Extract(ToGray(m)); };
   };
-  // oxbow's defaults, its descriptor with cells 4 scales wide and every second row sampled, and the cv::SIFT style.
+  // oxbow's defaults, its descriptor with cells 4 scales wide and every second row sampled, its grid
+  // sampling with cells 3 and 4 scales wide, and the cv::SIFT style.
   const SiftOptions defaults;
   std::vector<QualityMethod> quality = {
       {"oxbow", oxbow_raw(defaults.keypoint_style, defaults.descriptor_magnification, defaults.descriptor_row_step)},
       {"oxbow, cells 4 wide, every 2nd row", oxbow_raw(defaults.keypoint_style, 4, 2)},
+      {"oxbow, grid", oxbow_raw(defaults.keypoint_style, 3, 1, DescriptorSampling::kGrid)},
+      {"oxbow, grid, cells 4 wide", oxbow_raw(defaults.keypoint_style, 4, 1, DescriptorSampling::kGrid)},
       {"oxbow cv-style", oxbow_raw(KeypointStyle::kOpenCv, 3, 1)},
                                         {"cv::SIFT", [&](const cv::Mat& m) { return Extract({"cv::SIFT", Side::kOpencv, 1, true}, m, warm); }}};
 #ifdef OXBOW_HAVE_VLFEAT

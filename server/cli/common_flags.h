@@ -72,16 +72,30 @@ inline void AddDescriptorFlag(CLI::App* cmd, sift::DescriptorKind* kind) {
       ->default_str(sift::DescriptorKindName(*kind));
 }
 
-// --descriptor-magnification and --descriptor-row-step: the descriptor window of `options`.
+// --descriptor-magnification, --descriptor-row-step and --descriptor-sampling: the descriptor window of
+// `options`.
 inline std::vector<CLI::Option*> AddDescriptorWindowFlags(CLI::App* cmd, sift::SiftOptions* options) {
-  return {cmd->add_option("--descriptor-magnification", options->descriptor_magnification,
+  const bool grid = options->descriptor_sampling == sift::DescriptorSampling::kGrid;
+  return {cmd->add_option_function<std::string>(
+                 "--descriptor-sampling",
+                 [options](const std::string& name) {
+                   options->descriptor_sampling =
+                       name == "grid" ? sift::DescriptorSampling::kGrid : sift::DescriptorSampling::kPixels;
+                 },
+                 "where the descriptor takes its gradients: grid (16 x 16 points in the keypoint's frame, the "
+                 "same 256 for every keypoint; about a quarter less extraction time) or pixels (every pixel "
+                 "of the rotated window, as Lowe's and cv::SIFT's)")
+              ->transform(CLI::IsMember({"grid", "pixels"}, CLI::ignore_case).description(""))
+              ->type_name("grid|pixels")
+              ->default_str(grid ? "grid" : "pixels"),
+          cmd->add_option("--descriptor-magnification", options->descriptor_magnification,
                           "width of each of the descriptor's 4 x 4 cells in keypoint scales (VLFeat's magnif; Lowe's and "
                           "cv::SIFT's 3)")
               ->check(NumberIn(1, 10))
               ->capture_default_str(),
           cmd->add_option("--descriptor-row-step", options->descriptor_row_step,
                           "the descriptor samples every this-many rows of its window (1 = every row, as Lowe's and "
-                          "cv::SIFT's)")
+                          "cv::SIFT's; with --descriptor-sampling pixels only)")
               ->check(CLI::Range(1, 4))
               ->capture_default_str()};
 }

@@ -36,7 +36,7 @@ struct ExtractArgs {
   ImageFlags image;
   double contrast_threshold = sift::SiftOptions{}.contrast_threshold;
   double edge_threshold = sift::SiftOptions{}.edge_threshold;
-  sift::SiftOptions window;  // descriptor_magnification and descriptor_row_step
+  sift::SiftOptions window;  // descriptor_magnification, descriptor_row_step and descriptor_sampling
   int num_threads = 0;
   int thread_cache_mib = sift::SiftOptions{}.thread_cache_mib;
 };
@@ -59,6 +59,7 @@ void RunExtract(const ExtractArgs& args) {
   options.refine_in_scale = args.refine_in_scale;
   options.descriptor_magnification = args.window.descriptor_magnification;
   options.descriptor_row_step = args.window.descriptor_row_step;
+  options.descriptor_sampling = args.window.descriptor_sampling;
   const ThreadSplit split = SplitThreads(args.num_threads, args.images.size());
   options.num_threads = split.per_item;
   options.thread_cache_mib = args.thread_cache_mib;

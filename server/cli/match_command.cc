@@ -35,7 +35,7 @@ struct MatchArgs {
   int kd_checks = sift::MatchOptions{}.kd_checks;
   sift::DescriptorKind descriptor = sift::SiftOptions{}.descriptor;
   std::optional<int> max_features;
-  sift::SiftOptions window;  // descriptor_magnification and descriptor_row_step
+  sift::SiftOptions window;  // descriptor_magnification, descriptor_row_step and descriptor_sampling
   ImageFlags image;
   double reprojection_px = sift::RobustFitOptions{}.reprojection_px;
   int min_inliers = api::PairMatchOptions{}.min_inliers;
@@ -54,6 +54,7 @@ void RunMatch(const MatchArgs& args) {
   sift_options.max_features = args.max_features;
   sift_options.descriptor_magnification = args.window.descriptor_magnification;
   sift_options.descriptor_row_step = args.window.descriptor_row_step;
+  sift_options.descriptor_sampling = args.window.descriptor_sampling;
   sift_options.num_threads = args.num_threads;
   const SiftExtractor extractor = ValueOrExit(SiftExtractor::Create(api::PairMatchExtractorOptions(sift_options)));
   const DecodeOptions decode = args.image.ToDecodeOptions();
