@@ -141,8 +141,9 @@ enum class DescriptorSampling : uint8_t {
   // and cell width. The same trilinear histogram, Gaussian, normalisation and clipping. The extraction
   // takes about a quarter less time and the Oxford affine pairs match as well (eval/results/sift.md),
   // but retrieval is lower: over three vocabulary seeds groups_hard mAP 0.033 and Paris 0.020 below the
-  // pixels' (eval/results/accuracy.md, "Descriptor sampling"). For extraction that feeds pair matching
-  // or reconstruction rather than an index.
+  // pixels' (eval/results/accuracy.md, "Descriptor sampling"), and `oxbow match`'s homographies on
+  // graf 1 -> 3 and boat 1 -> 4 came out farther from the true ones (eval/results/matching.md). An
+  // option where extraction time counts most.
   kGrid = 1,
 };
 
