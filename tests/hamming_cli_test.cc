@@ -9,6 +9,7 @@
 
 #include <filesystem>
 #include <string>
+#include <tuple>
 
 #include "tests/support/e2e.h"
 #include "tests/support/samples.h"
@@ -54,32 +55,22 @@ TEST(HammingCli, TrainIndexAndSearchWithSignatures) {
   EXPECT_NE(out.find("hamming      64-bit embedding"), std::string::npos) << out;
   out = RunCommand(Oxbow("vocab info " + path("plain.oxvoc")), &rc);
   EXPECT_NE(out.find("hamming      none"), std::string::npos) << "the input is not modified: " << out;
-  // A vocabulary of other extractor settings (upright features, a wider descriptor) gets its parameters
-  // from images too: they are extracted with the settings it records.
-  out = RunCommand(Oxbow("vocab train --images " + path("photos") +
-                         " --upright --descriptor-magnification 4 --descriptor-row-step 2 --words 64 --no-hamming --out " +
-                         path("upright.oxvoc")),
-                   &rc);
-  ASSERT_EQ(rc, 0) << out;
-  out = RunCommand(Oxbow("vocab hamming --vocab " + path("upright.oxvoc") + " --images " + path("photos") +
-                         " --out " + path("upright-he.oxvoc")),
-                   &rc);
-  ASSERT_EQ(rc, 0) << out;
-  out = RunCommand(Oxbow("vocab info " + path("upright-he.oxvoc")), &rc);
-  EXPECT_NE(out.find("hamming      64-bit embedding"), std::string::npos) << out;
-  EXPECT_NE(out.find("upright=1;magnification=4;row_step=2"), std::string::npos) << out;
-  // The grid sampling likewise.
-  out = RunCommand(Oxbow("vocab train --images " + path("photos") + " --descriptor-sampling grid --words 64 --no-hamming --out " +
-                         path("grid.oxvoc")),
-                   &rc);
-  ASSERT_EQ(rc, 0) << out;
-  out = RunCommand(Oxbow("vocab hamming --vocab " + path("grid.oxvoc") + " --images " + path("photos") + " --out " +
-                         path("grid-he.oxvoc")),
-                   &rc);
-  ASSERT_EQ(rc, 0) << out;
-  out = RunCommand(Oxbow("vocab info " + path("grid-he.oxvoc")), &rc);
-  EXPECT_NE(out.find("hamming      64-bit embedding"), std::string::npos) << out;
-  EXPECT_NE(out.find("keypoints=vlfeat;sampling=grid"), std::string::npos) << out;
+  // A vocabulary of other extractor settings (upright features, a wider descriptor, the grid sampling)
+  // gets its parameters from images too: they are extracted with the settings it records.
+  for (const auto& [name, flags, described] :
+       {std::tuple{"upright", " --upright --descriptor-magnification 4 --descriptor-row-step 2",
+                   "upright=1;magnification=4;row_step=2"},
+        std::tuple{"grid", " --descriptor-sampling grid", "keypoints=vlfeat;sampling=grid"}}) {
+    const std::string trained = path(std::string(name) + ".oxvoc"), embedded = path(std::string(name) + "-he.oxvoc");
+    out = RunCommand(Oxbow("vocab train --images " + path("photos") + flags + " --words 64 --no-hamming --out " + trained),
+                     &rc);
+    ASSERT_EQ(rc, 0) << out;
+    out = RunCommand(Oxbow("vocab hamming --vocab " + trained + " --images " + path("photos") + " --out " + embedded), &rc);
+    ASSERT_EQ(rc, 0) << out;
+    out = RunCommand(Oxbow("vocab info " + embedded), &rc);
+    EXPECT_NE(out.find("hamming      64-bit embedding"), std::string::npos) << out;
+    EXPECT_NE(out.find(described), std::string::npos) << out;
+  }
 
   out = RunCommand(Oxbow("index build --vocab " + path("he.oxvoc") + " --images " + path("photos") + " --out " +
                          path("index")),
