@@ -1285,8 +1285,9 @@ struct GridTables {
     const float first = -kGridHalfWidth - 0.5f * kGridStep;  // the ring's
     for (int k = 0; k < kGridPadded; ++k) {
       const int p = std::min(k, kGridPoints - 1);
-      v[k] = first + static_cast<float>(p / kGridRing) * kGridStep;
-      u[k] = first + static_cast<float>(p % kGridRing) * kGridStep;
+      const int row = p / kGridRing, column = p % kGridRing;
+      v[k] = first + static_cast<float>(row) * kGridStep;
+      u[k] = first + static_cast<float>(column) * kGridStep;
     }
     const float half = kDescCells / 2.0f - 0.5f;
     for (int i = 0; i < kGridSide; ++i) {
@@ -1295,9 +1296,9 @@ struct GridTables {
         // Descriptor's Gaussian of half the window width, in cells: exp(-(u^2 + v^2) / (2 (d/2)^2)).
         const float gauss = std::exp(-(uj * uj + vi * vi) / (kDescCells * kDescCells * 0.5f));
         for (int cell = 0; cell < kDescCellCount; ++cell) {
+          const int cell_row = cell / kDescCells, cell_column = cell % kDescCells;
           cell_weight[(i * kGridSide + j) * kDescCellCount + cell] =
-              gauss * Tent(vi + half - static_cast<float>(cell / kDescCells)) *
-              Tent(uj + half - static_cast<float>(cell % kDescCells));
+              gauss * Tent(vi + half - static_cast<float>(cell_row)) * Tent(uj + half - static_cast<float>(cell_column));
         }
       }
     }
