@@ -61,13 +61,16 @@ TEST(HammingCli, TrainIndexAndSearchWithSignatures) {
        {std::tuple{"upright", " --upright --descriptor-magnification 4 --descriptor-row-step 2",
                    "upright=1;magnification=4;row_step=2"},
         std::tuple{"grid", " --descriptor-sampling grid", "keypoints=vlfeat;sampling=grid"}}) {
-    const std::string trained = path(std::string(name) + ".oxvoc"), embedded = path(std::string(name) + "-he.oxvoc");
-    out = RunCommand(Oxbow("vocab train --images " + path("photos") + flags + " --words 64 --no-hamming --out " + trained),
+    const auto vocabulary = [&, name = name](const char* suffix) { return path(std::string(name) + suffix); };
+    out = RunCommand(
+        Oxbow("vocab train --images " + path("photos") + flags + " --words 64 --no-hamming --out " + vocabulary(".oxvoc")),
+        &rc);
+    ASSERT_EQ(rc, 0) << out;
+    out = RunCommand(Oxbow("vocab hamming --vocab " + vocabulary(".oxvoc") + " --images " + path("photos") + " --out " +
+                           vocabulary("-he.oxvoc")),
                      &rc);
     ASSERT_EQ(rc, 0) << out;
-    out = RunCommand(Oxbow("vocab hamming --vocab " + trained + " --images " + path("photos") + " --out " + embedded), &rc);
-    ASSERT_EQ(rc, 0) << out;
-    out = RunCommand(Oxbow("vocab info " + embedded), &rc);
+    out = RunCommand(Oxbow("vocab info " + vocabulary("-he.oxvoc")), &rc);
     EXPECT_NE(out.find("hamming      64-bit embedding"), std::string::npos) << out;
     EXPECT_NE(out.find(described), std::string::npos) << out;
   }
